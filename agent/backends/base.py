@@ -1,0 +1,108 @@
+"""The one small interface every vehicle backend implements.
+
+The built-in simulator, the MAVSDK (companion) backend and the MAVLink relay (onboard) backend all
+look the same to the agent. What a backend can do is explicit in `capabilities`; a call it cannot
+serve raises `NotSupported` (a permanent property of that backend), which is kept apart from
+`BackendError` (this call failed now, with a reason) and from NotImplementedError (a gap in covey).
+"""
+
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+
+class Capability(enum.Enum):
+    VELOCITY_SETPOINT = "velocity_setpoint"
+    """Accepts NED velocity setpoints: the agent runs the policy (companion mode)."""
+    ONBOARD_GUIDANCE = "onboard_guidance"
+    """Runs the policy itself: the agent only forwards goto targets (onboard mode)."""
+    TRAFFIC_INPUT = "traffic_input"
+    """Accepts neighbour states as traffic reports (MAVLink ADSB_VEHICLE)."""
+
+
+class NotSupported(Exception):
+    """This backend cannot do this, ever (see `VehicleBackend.capabilities`)."""
+
+
+class BackendError(Exception):
+    """The vehicle refused or failed this call now; the message says why."""
+
+
+@dataclass(frozen=True)
+class Telemetry:
+    """What the agent needs to know about its own vehicle, in the fleet's local NED frame."""
+
+    stamp_s: float
+    """Time of the sample on the agent's clock, in seconds."""
+    pos_ned_m: tuple[float, float, float]
+    vel_ned_m_s: tuple[float, float, float]
+    heading_rad: float
+    """Yaw: 0 = north, positive clockwise."""
+    armed: bool
+    in_air: bool
+    battery_pct: float
+    link_ok: bool = True
+    """False when the autopilot link is lost (heartbeat timeout)."""
+
+
+@dataclass(frozen=True)
+class Traffic:
+    """One neighbour as forwarded to an autopilot that runs the policy onboard."""
+
+    vehicle_id: int
+    pos_ned_m: tuple[float, float, float]
+    vel_ned_m_s: tuple[float, float, float]
+    heading_rad: float
+    age_s: float
+
+
+class VehicleBackend(ABC):
+    """A vehicle the agent flies. Use as a context manager; `close()` releases the link."""
+
+    capabilities: frozenset[Capability] = frozenset()
+
+    def __enter__(self) -> VehicleBackend:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    @abstractmethod
+    def telemetry(self) -> Telemetry | None:
+        """Latest sample, or None before the first one arrives."""
+
+    @abstractmethod
+    def takeoff(self, alt_m: float) -> None:
+        """Arm and climb to `alt_m` above the home position, then hover."""
+
+    @abstractmethod
+    def land(self) -> None: ...
+
+    @abstractmethod
+    def hold(self) -> None:
+        """Stop and keep the current position."""
+
+    @abstractmethod
+    def kill(self) -> None:
+        """Stop the motors now, in the air or not. The vehicle falls."""
+
+    def set_velocity_ned(self, vel_ned_m_s: Sequence[float], heading_rad: float) -> None:
+        """Fly at this NED velocity, facing `heading_rad` (companion mode)."""
+        raise NotSupported(f"{type(self).__name__} does not take velocity setpoints")
+
+    def goto_local(self, pos_ned_m: Sequence[float]) -> None:
+        """Fly to this local NED position with onboard guidance (onboard mode)."""
+        raise NotSupported(f"{type(self).__name__} does not run guidance onboard")
+
+    def send_traffic(self, traffic: Sequence[Traffic]) -> None:
+        """Tell the autopilot where the neighbours are (onboard mode)."""
+        raise NotSupported(f"{type(self).__name__} does not take traffic reports")
+
+    def step(self, now_s: float) -> None:  # noqa: B027 - optional hook, no-op by default
+        """Advance by one agent tick. The simulator integrates here; real links do nothing."""
