@@ -1,0 +1,209 @@
+"""Numpy reference of the policy observation (docs/POLICY_SPEC.md).
+
+Everything here is in policy units (3 m separation at 1 m/s). The C firmware and
+the torch trainer follow this module; `observe` is the single-vehicle reference,
+`observe_batch` the vectorised form used by the environment and `command_batch`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+TWO_PI = 2.0 * np.pi
+ENCODINGS = ("paper", "sincos")
+ORDERS = ("index", "closest_last")
+
+
+@dataclass(frozen=True)
+class ObsConfig:
+    """How a vehicle turns its neighbours and goal into network inputs."""
+
+    encoding: str = "paper"
+    """"paper" ([d, psi_ij, |psi_ji|], goal [psi_D]) or "sincos" (angles as sin, cos)."""
+    order: str = "index"
+    """"index" keeps the given order; "closest_last" feeds the nearest neighbour last."""
+    dist_scale: float = 1.0
+    """Distances are divided by this (policy units); 1.0 in the paper configuration."""
+    sense_range: float = 0.0
+    """Neighbours farther than this (policy units) are dropped; 0 means unlimited."""
+
+    def __post_init__(self) -> None:
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
+        if self.order not in ORDERS:
+            raise ValueError(f"order must be one of {ORDERS}, got {self.order!r}")
+        if not (self.dist_scale > 0 and np.isfinite(self.dist_scale)):
+            raise ValueError(f"dist_scale must be finite and > 0, got {self.dist_scale}")
+        if not (self.sense_range >= 0 and np.isfinite(self.sense_range)):
+            raise ValueError(f"sense_range must be finite and >= 0, got {self.sense_range}")
+
+    @property
+    def input_size(self) -> int:
+        """Width of one neighbour tuple."""
+        return 3 if self.encoding == "paper" else 5
+
+    @property
+    def goal_size(self) -> int:
+        """Width of the goal features."""
+        return 1 if self.encoding == "paper" else 2
+
+    @classmethod
+    def from_dict(cls, cfg: dict) -> ObsConfig:
+        """Reads the observation fields of a weights-file config (others are ignored)."""
+        return cls(
+            encoding=str(cfg.get("encoding", "paper")),
+            order=str(cfg.get("order", "index")),
+            dist_scale=float(cfg.get("dist_scale", 1.0)),
+            sense_range=float(cfg.get("sense_range", 0.0) or 0.0),
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+
+def wrap_rad(angle_rad):
+    """Wraps to [-pi, pi): wrap(a) = ((a + pi) mod 2 pi) - pi."""
+    return np.mod(np.asarray(angle_rad, dtype=np.float64) + np.pi, TWO_PI) - np.pi
+
+
+def neighbour_tuples(pos, heading_rad, nbr_pos, nbr_heading_rad):
+    """Returns (d_ij, psi_ij, psi_ji) for each neighbour, each shape (K,)."""
+    rel = np.asarray(nbr_pos, dtype=np.float64) - np.asarray(pos, dtype=np.float64)
+    d = np.hypot(rel[:, 0], rel[:, 1])
+    los_ij = np.arctan2(rel[:, 1], rel[:, 0])
+    psi_ij = wrap_rad(los_ij - heading_rad)
+    # line of sight j -> i is the opposite direction: atan2(-dy, -dx)
+    psi_ji = wrap_rad(
+        np.asarray(nbr_heading_rad, dtype=np.float64) - np.arctan2(-rel[:, 1], -rel[:, 0])
+    )
+    return d, psi_ij, psi_ji
+
+
+def select_order(d, cfg: ObsConfig, max_neighbours: int | None = None) -> np.ndarray:
+    """Indices of the neighbours to feed, in feeding order.
+
+    Drops those beyond sense_range, keeps the nearest max_neighbours (ties: given
+    order), then orders by index or by decreasing distance (stable).
+    """
+    d = np.asarray(d, dtype=np.float64)
+    idx = np.arange(d.shape[0])
+    if cfg.sense_range > 0:
+        idx = idx[d <= cfg.sense_range]
+    if max_neighbours is not None and idx.shape[0] > max_neighbours:
+        idx = idx[np.argsort(d[idx], kind="stable")[:max_neighbours]]
+        idx = np.sort(idx)
+    if cfg.order == "closest_last":
+        idx = idx[np.argsort(-d[idx], kind="stable")]
+    return idx
+
+
+def encode_tuples(d, psi_ij, psi_ji, cfg: ObsConfig) -> np.ndarray:
+    """Stacks neighbour tuples into LSTM inputs, shape (..., X)."""
+    ds = np.asarray(d) / cfg.dist_scale
+    if cfg.encoding == "paper":
+        return np.stack([ds, psi_ij, np.abs(psi_ji)], axis=-1)
+    return np.stack([ds, np.sin(psi_ij), np.cos(psi_ij), np.sin(psi_ji), np.cos(psi_ji)], axis=-1)
+
+
+def goal_features(pos, heading_rad, goal, cfg: ObsConfig) -> np.ndarray:
+    """[psi_D] or [sin psi_D, cos psi_D], shape (..., G)."""
+    pos = np.asarray(pos, dtype=np.float64)
+    goal = np.asarray(goal, dtype=np.float64)
+    psi_d = wrap_rad(
+        np.arctan2(goal[..., 1] - pos[..., 1], goal[..., 0] - pos[..., 0]) - heading_rad
+    )
+    if cfg.encoding == "paper":
+        return psi_d[..., None]
+    return np.stack([np.sin(psi_d), np.cos(psi_d)], axis=-1)
+
+
+def observe(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg: ObsConfig, max_neighbours=None):
+    """Single-vehicle observation: (sequence (L, X), goal features (G,), chosen indices (L,))."""
+    nbr_pos = np.asarray(nbr_pos, dtype=np.float64).reshape(-1, 2)
+    d, psi_ij, psi_ji = neighbour_tuples(pos, heading_rad, nbr_pos, nbr_heading_rad)
+    idx = select_order(d, cfg, max_neighbours)
+    seq = encode_tuples(d[idx], psi_ij[idx], psi_ji[idx], cfg)
+    return seq.reshape(-1, cfg.input_size), goal_features(pos, heading_rad, goal, cfg), idx
+
+
+def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours=None, group=None):
+    """Every active vehicle observes every other active vehicle (of its group).
+
+    pos (N,2), heading_rad (N,), goal (N,2), active (N,) bool; group (N,) ints puts
+    vehicles in separate worlds (the env's environments), None = one world.
+    Returns seq (N, K, X) zero padded after each row's length, lengths (N,),
+    goal features (N, G) and the neighbour indices (N, K) (-1 = padding).
+    Ordering and selection match `observe` (ties at the max_neighbours cut aside).
+    """
+    pos = np.asarray(pos, dtype=np.float64)
+    heading_rad = np.asarray(heading_rad, dtype=np.float64)
+    active = np.asarray(active, dtype=bool)
+    n = pos.shape[0]
+    rel = pos[None, :, :] - pos[:, None, :]  # rel[i, j] = p_j - p_i
+    d = np.hypot(rel[..., 0], rel[..., 1])
+    valid = active[:, None] & active[None, :] & ~np.eye(n, dtype=bool)
+    if group is not None:
+        group = np.asarray(group)
+        valid &= group[:, None] == group[None, :]
+    if cfg.sense_range > 0:
+        valid &= d <= cfg.sense_range
+    k = n - 1 if max_neighbours is None else min(max_neighbours, n - 1)
+    k = max(k, 0)
+    key = np.where(valid, d, np.inf)
+    # nearest k, ties broken by index (= stable); full sort only when cheap
+    if k < n - 1 and n > 64:
+        part = np.argpartition(key, k - 1, axis=1)[:, :k] if k > 0 else np.zeros((n, 0), int)
+        sub = np.take_along_axis(key, part, axis=1)
+        o = np.lexsort((part, sub), axis=1)
+        nearest = np.take_along_axis(part, o, axis=1)
+    else:
+        nearest = np.argsort(key, axis=1, kind="stable")[:, :k]
+    nd = np.take_along_axis(key, nearest, axis=1)
+    ok = np.isfinite(nd)
+    lengths = ok.sum(axis=1)
+    if cfg.order == "index":
+        sort_key = np.where(ok, nearest, n + 1)
+        o = np.argsort(sort_key, axis=1, kind="stable")
+    else:
+        # decreasing distance, ties in index order; padding (inf) goes last
+        o = np.lexsort((nearest, np.where(ok, -nd, np.inf)), axis=1)
+    nbr = np.take_along_axis(nearest, o, axis=1)
+    ok = np.take_along_axis(ok, o, axis=1)
+    rows = np.arange(n)[:, None]
+    r = rel[rows, nbr]
+    dd = d[rows, nbr]
+    psi_ij = wrap_rad(np.arctan2(r[..., 1], r[..., 0]) - heading_rad[:, None])
+    psi_ji = wrap_rad(heading_rad[nbr] - np.arctan2(-r[..., 1], -r[..., 0]))
+    seq = encode_tuples(dd, psi_ij, psi_ji, cfg) * ok[..., None]
+    nbr = np.where(ok, nbr, -1)
+    return seq, lengths, goal_features(pos, heading_rad, goal, cfg), nbr
+
+
+def action_to_velocity(action, heading_rad):
+    """Body-frame action (fwd, right) to (north, east) velocity in policy units.
+
+    v_n = a_f cos h - a_r sin h,  v_e = a_f sin h + a_r cos h
+    """
+    a = np.asarray(action, dtype=np.float64)
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    return np.stack([a[..., 0] * c - a[..., 1] * s, a[..., 0] * s + a[..., 1] * c], axis=-1)
+
+
+def velocity_to_action(vel, heading_rad):
+    """Inverse of action_to_velocity."""
+    v = np.asarray(vel, dtype=np.float64)
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    return np.stack([v[..., 0] * c + v[..., 1] * s, -v[..., 0] * s + v[..., 1] * c], axis=-1)
+
+
+def clip_unit(action):
+    """a / |a| where |a| > 1 (the spec's clip to unit length)."""
+    a = np.asarray(action, dtype=np.float64)
+    n = np.hypot(a[..., 0], a[..., 1])
+    return a / np.maximum(n, 1.0)[..., None]

@@ -1,0 +1,262 @@
+"""Numpy runtime of the guidance policy (no torch): what the agents run.
+
+    pol = GuidancePolicy.load()                 # shipped weights
+    v_m_s = pol.command(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
+
+World frame: x north, y east, metres; heading 0 = north, clockwise positive.
+The contract is docs/POLICY_SPEC.md; observations come from policy.features.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from policy import features, safety
+from policy.features import ObsConfig
+
+DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
+
+
+@dataclass(frozen=True)
+class Network:
+    """LSTM + tanh head weights, with the sigmoid gates pre-scaled by 1/2.
+
+    sigmoid(x) = (1 + tanh(x/2)) / 2, so one tanh per step serves all four gates.
+    """
+
+    w_ih: np.ndarray
+    """(4H, X), rows of gates i, f, o scaled by 0.5."""
+    w_hh_t: np.ndarray
+    """(H, 4H) transposed recurrent weights, scaled like w_ih."""
+    bias: np.ndarray
+    """(4H,) b_ih + b_hh, scaled like w_ih."""
+    head: tuple
+    """((W, b), ...) of the tanh head, the output layer last."""
+    hidden: int
+    """LSTM hidden size H."""
+
+    @classmethod
+    def from_arrays(cls, arrays: dict) -> Network:
+        w_ih = np.asarray(arrays["lstm.weight_ih"], dtype=np.float64)
+        w_hh = np.asarray(arrays["lstm.weight_hh"], dtype=np.float64)
+        bias = np.asarray(arrays["lstm.bias"], dtype=np.float64)
+        h = w_hh.shape[1]
+        if w_ih.shape[0] != 4 * h or w_hh.shape != (4 * h, h) or bias.shape != (4 * h,):
+            raise ValueError(f"inconsistent LSTM shapes {w_ih.shape}, {w_hh.shape}, {bias.shape}")
+        scale = np.full(4 * h, 0.5)
+        scale[2 * h : 3 * h] = 1.0  # gate g is a real tanh
+        head = []
+        k = 0
+        while f"head.{k}.weight" in arrays:
+            head.append(
+                (
+                    np.asarray(arrays[f"head.{k}.weight"], dtype=np.float64),
+                    np.asarray(arrays[f"head.{k}.bias"], dtype=np.float64),
+                )
+            )
+            k += 1
+        if not head:
+            raise ValueError("weights file has no head.0.weight")
+        return cls(
+            w_ih * scale[:, None], (w_hh * scale[:, None]).T.copy(), bias * scale, tuple(head), h
+        )
+
+    def lstm_last(self, seq: np.ndarray) -> np.ndarray:
+        """Final hidden state of one sequence (L, X) -> (H,); zeros when L = 0."""
+        hs = self.hidden
+        h = np.zeros(hs)
+        c = np.zeros(hs)
+        if seq.shape[0] == 0:
+            return h
+        xp = seq @ self.w_ih.T + self.bias
+        w = self.w_hh_t
+        for t in range(seq.shape[0]):
+            g = np.tanh(xp[t] + h @ w)
+            # i, f, o = (1 + g) / 2 ; c = f c + i g_cell ; h = o tanh(c)
+            c = 0.5 * ((1.0 + g[hs : 2 * hs]) * c + (1.0 + g[:hs]) * g[2 * hs : 3 * hs])
+            h = 0.5 * (1.0 + g[3 * hs :]) * np.tanh(c)
+        return h
+
+    def lstm_last_batch(self, seq: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        """Final hidden states (N, H) of zero-padded sequences (N, K, X) with lengths (N,)."""
+        n, k, _ = seq.shape
+        hs = self.hidden
+        h = np.zeros((n, hs))
+        c = np.zeros((n, hs))
+        if k == 0 or n == 0:
+            return h
+        kmax = int(lengths.max())
+        xp = seq[:, :kmax] @ self.w_ih.T + self.bias
+        for t in range(kmax):
+            rows = np.flatnonzero(lengths > t)
+            if rows.shape[0] == n:
+                g = np.tanh(xp[:, t] + h @ self.w_hh_t)
+                c = 0.5 * (
+                    (1.0 + g[:, hs : 2 * hs]) * c + (1.0 + g[:, :hs]) * g[:, 2 * hs : 3 * hs]
+                )
+                h = 0.5 * (1.0 + g[:, 3 * hs :]) * np.tanh(c)
+            else:
+                g = np.tanh(xp[rows, t] + h[rows] @ self.w_hh_t)
+                cr = 0.5 * (
+                    (1.0 + g[:, hs : 2 * hs]) * c[rows] + (1.0 + g[:, :hs]) * g[:, 2 * hs : 3 * hs]
+                )
+                c[rows] = cr
+                h[rows] = 0.5 * (1.0 + g[:, 3 * hs :]) * np.tanh(cr)
+        return h
+
+    def head_forward(self, h_last: np.ndarray, goal_feat: np.ndarray) -> np.ndarray:
+        """Unclipped head output (..., 2)."""
+        z = np.concatenate([np.tanh(h_last), goal_feat], axis=-1)
+        for w, b in self.head:
+            z = np.tanh(z @ w.T + b)
+        return z
+
+
+def _check(name: str, x, shape: tuple) -> np.ndarray:
+    """Array of the given shape (-1 = any length), finite, or a ValueError saying which."""
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name} must be numeric, got {type(x).__name__}") from e
+    if a.ndim != len(shape) or any(s != -1 and s != d for s, d in zip(shape, a.shape, strict=True)):
+        want = "(" + ", ".join("K" if s == -1 else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite, got {a!r}")
+    return a
+
+
+class GuidancePolicy:
+    """The trained guidance policy with world-unit scaling and an optional safety filter."""
+
+    def __init__(
+        self,
+        net: Network,
+        obs_cfg: ObsConfig,
+        config: dict,
+        separation_m: float = 3.0,
+        cruise_speed_m_s: float = 1.0,
+        safety_filter: bool = True,
+        max_neighbours: int | None = None,
+        safety_cfg: safety.SafetyConfig | None = None,
+    ):
+        if not (np.isfinite(separation_m) and separation_m > 0):
+            raise ValueError(f"separation_m must be finite and > 0, got {separation_m}")
+        if not (np.isfinite(cruise_speed_m_s) and cruise_speed_m_s > 0):
+            raise ValueError(f"cruise_speed_m_s must be finite and > 0, got {cruise_speed_m_s}")
+        if max_neighbours is not None and max_neighbours < 0:
+            raise ValueError(f"max_neighbours must be >= 0 or None, got {max_neighbours}")
+        self.net = net
+        self.obs_cfg = obs_cfg
+        self.config = config
+        self.dist_scale_m = separation_m / 3.0
+        """World metres per policy unit of distance."""
+        self.cruise_speed_m_s = cruise_speed_m_s
+        self.max_neighbours = max_neighbours
+        self.safety_filter = safety_filter
+        base = safety_cfg or safety.SafetyConfig()
+        self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path | None = None,
+        separation_m: float = 3.0,
+        cruise_speed_m_s: float = 1.0,
+        safety_filter: bool = True,
+        max_neighbours: int | None = None,
+        safety_cfg: safety.SafetyConfig | None = None,
+    ) -> GuidancePolicy:
+        """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights."""
+        path = Path(path) if path is not None else DEFAULT_WEIGHTS
+        if not path.is_file():
+            raise FileNotFoundError(f"no policy weights at {path}")
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        if "config" not in arrays:
+            raise ValueError(f"{path} has no 'config' entry")
+        config = json.loads(str(arrays["config"]))
+        if config.get("encoder", "lstm") != "lstm":
+            raise ValueError(
+                f"{path}: the runtime only runs encoder 'lstm', not {config['encoder']!r}"
+            )
+        obs_cfg = ObsConfig.from_dict(config)
+        net = Network.from_arrays(arrays)
+        if net.w_ih.shape[1] != obs_cfg.input_size:
+            raise ValueError(
+                f"{path}: LSTM input {net.w_ih.shape[1]} does not fit encoding {obs_cfg.encoding}"
+            )
+        return cls(
+            net,
+            obs_cfg,
+            config,
+            separation_m,
+            cruise_speed_m_s,
+            safety_filter,
+            max_neighbours,
+            safety_cfg,
+        )
+
+    # --- policy units -------------------------------------------------------------
+
+    def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
+        """Raw network action (a_fwd, a_right), clipped to |a| <= 1; inputs in policy units."""
+        seq, goal_feat, _ = features.observe(
+            pos, heading_rad, goal, nbr_pos, nbr_heading_rad, self.obs_cfg, self.max_neighbours
+        )
+        return features.clip_unit(self.net.head_forward(self.net.lstm_last(seq), goal_feat))
+
+    def action_batch(self, pos, heading_rad, goal, active, group=None):
+        """Raw actions (N, 2) and neighbour indices (N, K) of all vehicles; policy units."""
+        seq, lengths, goal_feat, nbr = features.observe_batch(
+            pos, heading_rad, goal, active, self.obs_cfg, self.max_neighbours, group
+        )
+        h = self.net.lstm_last_batch(seq, lengths)
+        return features.clip_unit(self.net.head_forward(h, goal_feat)), nbr
+
+    # --- world units ----------------------------------------------------------------
+
+    def command(self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad):
+        """Velocity command (2,) in m/s (north, east) for one vehicle."""
+        pos_m = _check("pos_m", pos_m, (2,))
+        vel_m_s = _check("vel_m_s", vel_m_s, (2,))
+        heading = float(_check("heading_rad", heading_rad, ()))
+        goal_m = _check("goal_m", goal_m, (2,))
+        nbr_pos_m = _check("nbr_pos_m", nbr_pos_m, (-1, 2))
+        k = nbr_pos_m.shape[0]
+        nbr_vel_m_s = _check("nbr_vel_m_s", nbr_vel_m_s, (k, 2))
+        nbr_heading = _check("nbr_heading_rad", nbr_heading_rad, (k,))
+        s = self.dist_scale_m
+        a = self.action(pos_m / s, heading, goal_m / s, nbr_pos_m / s, nbr_heading)
+        v = features.action_to_velocity(a, heading) * self.cruise_speed_m_s
+        if self.safety_filter and k:
+            v = safety.filter_velocity(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
+        return v
+
+    def command_batch(self, pos_m, vel_m_s, heading_rad, goal_m, active=None):
+        """Velocity commands (N, 2) in m/s; each active vehicle sees all other active ones.
+
+        Inactive vehicles get (0, 0) and are invisible to the others.
+        """
+        pos_m = _check("pos_m", pos_m, (-1, 2))
+        n = pos_m.shape[0]
+        vel_m_s = _check("vel_m_s", vel_m_s, (n, 2))
+        heading = _check("heading_rad", heading_rad, (n,))
+        goal_m = _check("goal_m", goal_m, (n, 2))
+        if active is None:
+            active = np.ones(n, dtype=bool)
+        active = np.asarray(active)
+        if active.shape != (n,):
+            raise ValueError(f"active must have shape ({n},), got {active.shape}")
+        active = active.astype(bool)
+        s = self.dist_scale_m
+        a, nbr = self.action_batch(pos_m / s, heading, goal_m / s, active)
+        v = features.action_to_velocity(a, heading) * self.cruise_speed_m_s
+        if self.safety_filter:
+            v = safety.filter_batch(pos_m, vel_m_s, v, nbr, self.safety_cfg)
+        v[~active] = 0.0
+        return v

@@ -1,0 +1,221 @@
+"""Optional safety filter: ORCA half-planes and a small 2-D linear program.
+
+Beyond the paper. Each vehicle alone, from its neighbours' positions and velocities,
+changes the policy's velocity as little as possible (closest in the Euclidean sense)
+so that it stays outside every neighbour's velocity obstacle for `time_horizon_s`,
+taking half of the avoidance effort (reciprocity). The maths follows van den Berg et
+al., "Reciprocal n-body collision avoidance" (2011); the LP is their incremental
+2-D program with the fallback that minimises the worst violation when infeasible.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """ORCA parameters in world units (the runtime scales them)."""
+
+    radius_m: float = 3.0
+    """Combined radius kept between two vehicle centres (the separation)."""
+    margin: float = 0.1
+    """Relative padding on radius_m, to absorb discrete-time and link errors."""
+    time_horizon_s: float = 4.0
+    """How far ahead velocity obstacles look."""
+    dt_s: float = 0.1
+    """Control period; used only when two vehicles already overlap."""
+    max_speed_m_s: float = 1.0
+    """Speed limit of the filtered velocity."""
+    responsibility: float = 0.5
+    """Share of the avoidance each vehicle takes (0.5 = reciprocal)."""
+
+
+def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig):
+    """ORCA half-planes for one or many vehicles.
+
+    rel_pos = p_j - p_i, rel_vel = v_i - v_j, shapes (..., K, 2); own_vel (..., 2).
+    Returns (point, direction), each (..., K, 2): the allowed side is
+    det(direction, point - v) <= 0, with det(a, b) = a_x b_y - a_y b_x.
+    """
+    r = cfg.radius_m * (1.0 + cfg.margin)
+    tau = cfg.time_horizon_s
+    px, py = rel_pos[..., 0], rel_pos[..., 1]
+    vx, vy = rel_vel[..., 0], rel_vel[..., 1]
+    dist_sq = px * px + py * py
+    # not yet colliding: w = v_rel - p_rel / tau, relative to the cut-off circle centre
+    wx, wy = vx - px / tau, vy - py / tau
+    w_len_sq = wx * wx + wy * wy
+    dot1 = wx * px + wy * py
+    on_circle = (dot1 < 0) & (dot1 * dot1 > r * r * w_len_sq)
+    w_len = np.sqrt(np.maximum(w_len_sq, EPS))
+    ux_c, uy_c = wx / w_len, wy / w_len
+    leg = np.sqrt(np.maximum(dist_sq - r * r, 0.0))
+    left = (px * wy - py * wx) > 0
+    inv = 1.0 / np.maximum(dist_sq, EPS)
+    lx = np.where(left, px * leg - py * r, -(px * leg + py * r)) * inv
+    ly = np.where(left, px * r + py * leg, -(-px * r + py * leg)) * inv
+    dot2 = vx * lx + vy * ly
+    # direction and u (the smallest change of v_rel that leaves the obstacle)
+    dir_x = np.where(on_circle, uy_c, lx)
+    dir_y = np.where(on_circle, -ux_c, ly)
+    u_x = np.where(on_circle, (r / tau - w_len) * ux_c, dot2 * lx - vx)
+    u_y = np.where(on_circle, (r / tau - w_len) * uy_c, dot2 * ly - vy)
+    # already colliding: resolve within one control period
+    colliding = dist_sq <= r * r
+    inv_dt = 1.0 / cfg.dt_s
+    cx, cy = vx - inv_dt * px, vy - inv_dt * py
+    c_len = np.sqrt(np.maximum(cx * cx + cy * cy, EPS))
+    ucx, ucy = cx / c_len, cy / c_len
+    dir_x = np.where(colliding, ucy, dir_x)
+    dir_y = np.where(colliding, -ucx, dir_y)
+    u_x = np.where(colliding, (r * inv_dt - c_len) * ucx, u_x)
+    u_y = np.where(colliding, (r * inv_dt - c_len) * ucy, u_y)
+    k = cfg.responsibility
+    point = np.stack([own_vel[..., None, 0] + k * u_x, own_vel[..., None, 1] + k * u_y], axis=-1)
+    return point, np.stack([dir_x, dir_y], axis=-1)
+
+
+def _det(ax, ay, bx, by):
+    return ax * by - ay * bx
+
+
+def _lp1(lines, n, radius, opt, direction_opt):
+    (px, py), (dx, dy) = lines[n]
+    dot = px * dx + py * dy
+    disc = dot * dot + radius * radius - (px * px + py * py)
+    if disc < 0.0:
+        return None
+    sq = disc**0.5
+    t_left, t_right = -dot - sq, -dot + sq
+    for i in range(n):
+        (qx, qy), (ex, ey) = lines[i]
+        denom = _det(dx, dy, ex, ey)
+        numer = _det(ex, ey, px - qx, py - qy)
+        if abs(denom) <= EPS:
+            if numer < 0.0:
+                return None
+            continue
+        t = numer / denom
+        if denom >= 0.0:
+            t_right = min(t_right, t)
+        else:
+            t_left = max(t_left, t)
+        if t_left > t_right:
+            return None
+    if direction_opt:
+        t = t_right if opt[0] * dx + opt[1] * dy > 0.0 else t_left
+    else:
+        t = min(max(dx * (opt[0] - px) + dy * (opt[1] - py), t_left), t_right)
+    return (px + t * dx, py + t * dy)
+
+
+def _lp2(lines, radius, opt, direction_opt):
+    if direction_opt:
+        result = (opt[0] * radius, opt[1] * radius)
+    else:
+        n = (opt[0] ** 2 + opt[1] ** 2) ** 0.5
+        result = opt if n <= radius else (opt[0] / n * radius, opt[1] / n * radius)
+    for i, ((px, py), (dx, dy)) in enumerate(lines):
+        if _det(dx, dy, px - result[0], py - result[1]) > 0.0:
+            new = _lp1(lines, i, radius, opt, direction_opt)
+            if new is None:
+                return i, result
+            result = new
+    return len(lines), result
+
+
+def _lp3(lines, begin, radius, result):
+    distance = 0.0
+    for i in range(begin, len(lines)):
+        (px, py), (dx, dy) = lines[i]
+        if _det(dx, dy, px - result[0], py - result[1]) > distance:
+            proj = []
+            for j in range(i):
+                (qx, qy), (ex, ey) = lines[j]
+                determinant = _det(dx, dy, ex, ey)
+                if abs(determinant) <= EPS:
+                    if dx * ex + dy * ey > 0.0:
+                        continue
+                    point = (0.5 * (px + qx), 0.5 * (py + qy))
+                else:
+                    t = _det(ex, ey, px - qx, py - qy) / determinant
+                    point = (px + t * dx, py + t * dy)
+                nx, ny = ex - dx, ey - dy
+                nn = max((nx * nx + ny * ny) ** 0.5, EPS)
+                proj.append((point, (nx / nn, ny / nn)))
+            fail, new = _lp2(proj, radius, (-dy, dx), True)
+            if fail >= len(proj):
+                result = new
+            distance = _det(dx, dy, px - result[0], py - result[1])
+    return result
+
+
+def solve(point, direction, pref_vel, max_speed):
+    """Velocity closest to pref_vel inside all half-planes and |v| <= max_speed.
+
+    When infeasible, minimises the largest violation (ORCA's fallback).
+    """
+    lines = [
+        ((float(p[0]), float(p[1])), (float(d[0]), float(d[1])))
+        for p, d in zip(point, direction, strict=True)
+    ]
+    opt = (float(pref_vel[0]), float(pref_vel[1]))
+    fail, result = _lp2(lines, max_speed, opt, False)
+    if fail < len(lines):
+        result = _lp3(lines, fail, max_speed, result)
+    return np.array(result)
+
+
+def filter_velocity(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: SafetyConfig):
+    """The filtered velocity of one vehicle (2,), world units."""
+    nbr_pos_m = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
+    if nbr_pos_m.shape[0] == 0:
+        return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
+    rel_pos = nbr_pos_m - pos_m
+    rel_vel = np.asarray(vel_m_s) - np.asarray(nbr_vel_m_s).reshape(-1, 2)
+    # vehicles that cannot meet within the horizon add no constraint
+    reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
+    near = (rel_pos**2).sum(-1) < reach * reach
+    point, direction = orca_lines(rel_pos[near], rel_vel[near], np.asarray(vel_m_s, float), cfg)
+    return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
+
+
+def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig):
+    """Filtered velocities (N,2) for N vehicles; nbr (N,K) neighbour indices, -1 = none.
+
+    Half-planes are built for all vehicles at once; the LP runs only for the
+    vehicles whose preferred velocity breaks a constraint.
+    """
+    pos_m = np.asarray(pos_m, dtype=np.float64)
+    vel_m_s = np.asarray(vel_m_s, dtype=np.float64)
+    pref = _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
+    if nbr.shape[1] == 0:
+        return pref
+    ok = nbr >= 0
+    j = np.where(ok, nbr, 0)
+    rel_pos = pos_m[j] - pos_m[:, None]
+    rel_vel = vel_m_s[:, None] - vel_m_s[j]
+    reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
+    ok &= (rel_pos**2).sum(-1) < reach * reach
+    point, direction = orca_lines(rel_pos, rel_vel, vel_m_s, cfg)
+    viol = _det(
+        direction[..., 0],
+        direction[..., 1],
+        point[..., 0] - pref[:, None, 0],
+        point[..., 1] - pref[:, None, 1],
+    )
+    out = pref.copy()
+    for i in np.flatnonzero(((viol > 0) & ok).any(axis=1)):
+        m = ok[i]
+        out[i] = solve(point[i, m], direction[i, m], pref[i], cfg.max_speed_m_s)
+    return out
+
+
+def _clip_speed(v, max_speed):
+    n = np.hypot(v[..., 0], v[..., 1])
+    return v * (max_speed / np.maximum(n, max_speed))[..., None]
