@@ -1,0 +1,461 @@
+"""Every message covey puts on the wire, and its codec.
+
+Fixed-layout little-endian structs, each starting with a type byte and a version byte, so that the
+C firmware, the Python processes and recordings share the same bytes. `decode()` raises one typed
+`DecodeError` for anything malformed: wrong length, unknown type or version, non-finite numbers,
+out-of-range fields. Nothing else escapes a decoder.
+
+Layouts (all little-endian, packed; `<` struct codes):
+
+    VehicleState  type 1 v1  <BBHIQ3f3ff3fBBHf       64 bytes
+        type, version, vehicle_id, seq, stamp_ns, pos_ned_m[3], vel_ned_m_s[3], heading_rad,
+        goal_ned_m[3], mode, armed, flags, battery_pct
+    Command       type 2 v1  <BBQQHB3dIH + n*H + 32s  header 51 bytes + 2 per target + 32 tag
+        type, version, nonce, stamp_ns, source_id, kind, params[3] (float64), seq, n_targets,
+        targets[n_targets] (empty = the whole fleet), tag (HMAC-SHA256 or zeros in open mode)
+    CommandAck    type 3 v1  <BBHQQBB96s32s           150 bytes
+        type, version, vehicle_id, nonce, stamp_ns, result, mode, reason (utf-8, zero padded), tag
+    Event         type 4 v1  <BBHQBB120s              134 bytes
+        type, version, vehicle_id, stamp_ns, severity, kind, text (utf-8, zero padded)
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import struct
+from dataclasses import dataclass
+from typing import ClassVar
+
+SCHEMA_VERSION = 1
+MAX_VEHICLE_ID = 65000
+"""Vehicle ids are 1..MAX_VEHICLE_ID; 0 means 'none' (a ground station, or an undecodable sender)."""
+MAX_TARGETS = 1024
+REASON_BYTES = 96
+EVENT_TEXT_BYTES = 120
+TAG_BYTES = 32
+
+TAKEOFF_ALT_RANGE_M = (0.5, 500.0)
+LOCAL_HORIZONTAL_LIMIT_M = 100_000.0
+LOCAL_DOWN_RANGE_M = (-10_000.0, 100.0)
+GLOBAL_ALT_RANGE_M = (-500.0, 10_000.0)
+POSITION_LIMIT_M = 1_000_000.0
+SPEED_LIMIT_M_S = 1_000.0
+
+
+class DecodeError(ValueError):
+    """The bytes are not a valid covey message; the message says why."""
+
+
+class MsgType(enum.IntEnum):
+    VEHICLE_STATE = 1
+    COMMAND = 2
+    COMMAND_ACK = 3
+    EVENT = 4
+
+
+class Mode(enum.IntEnum):
+    """Flight mode of an agent's command state machine (agent/commands.py owns the transitions)."""
+
+    LANDED = 0
+    TAKING_OFF = 1
+    HOLDING = 2
+    GOTO = 3
+    LANDING = 4
+    RETURNING = 5
+    KILLED = 6
+
+
+class StateFlag(enum.IntFlag):
+    NONE = 0
+    HAS_GOAL = 1
+    FAILSAFE_GCS_LOST = 2
+    FAILSAFE_LINK_LOST = 4
+    NEIGHBOURS_STALE = 8
+    GEOFENCE = 16
+    OPEN_MODE = 32
+    """Commands are not authenticated (simulator demo only)."""
+    FILTER_ACTIVE = 64
+    """The safety filter changed the policy's command this tick."""
+    REPLAY = 128
+    """Republished from a recording, not a live vehicle."""
+
+
+class CommandKind(enum.IntEnum):
+    TAKEOFF = 1  # params: alt_m
+    LAND = 2
+    GOTO_LOCAL = 3  # params: n_m, e_m, d_m
+    GOTO_GLOBAL = 4  # params: lat_deg, lon_deg, alt_m
+    HOLD = 5
+    RETURN = 6
+    KILL = 7
+
+
+class AckResult(enum.IntEnum):
+    ACCEPTED = 0
+    REJECTED = 1
+    FAILED = 2
+
+
+class Severity(enum.IntEnum):
+    DEBUG = 0
+    INFO = 1
+    WARNING = 2
+    ERROR = 3
+    CRITICAL = 4
+
+
+class EventKind(enum.IntEnum):
+    STATUS = 0
+    MODE_CHANGE = 1
+    FAILSAFE = 2
+    COMMAND = 3
+    LINK_STATS = 4
+    SECURITY = 5
+
+
+def _check_finite(name: str, *values: float) -> None:
+    for v in values:
+        if not math.isfinite(v):
+            raise DecodeError(f"{name} must be finite, got {v}")
+
+
+def _check_range(name: str, value: float, lo: float, hi: float) -> None:
+    if not lo <= value <= hi:
+        raise DecodeError(f"{name}={value} is outside [{lo}, {hi}]")
+
+
+def _enum(cls: type[enum.IntEnum], name: str, value: int) -> enum.IntEnum:
+    try:
+        return cls(value)
+    except ValueError:
+        raise DecodeError(f"{name}={value} is not a valid {cls.__name__}") from None
+
+
+def _check_vehicle_id(name: str, vid: int, allow_zero: bool = False) -> None:
+    lo = 0 if allow_zero else 1
+    if not lo <= vid <= MAX_VEHICLE_ID:
+        raise DecodeError(f"{name}={vid} is outside [{lo}, {MAX_VEHICLE_ID}]")
+
+
+def _text_field(raw: bytes, name: str) -> str:
+    text = raw.rstrip(b"\0")
+    try:
+        return text.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise DecodeError(f"{name} is not valid UTF-8: {exc}") from None
+
+
+def _fit_text(text: str, size: int) -> bytes:
+    """Encode to UTF-8 and cut to `size` bytes without splitting a character."""
+    raw = text.encode("utf-8")
+    if len(raw) <= size:
+        return raw
+    return raw[:size].decode("utf-8", errors="ignore").encode("utf-8")
+
+
+def _header(data: bytes, expected: MsgType) -> None:
+    if len(data) < 2:
+        raise DecodeError(f"message too short for a header: {len(data)} bytes")
+    if data[0] != expected:
+        raise DecodeError(f"expected message type {expected.value}, got {data[0]}")
+    if data[1] != SCHEMA_VERSION:
+        raise DecodeError(f"unsupported {expected.name} version {data[1]} (this covey speaks {SCHEMA_VERSION})")
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """One vehicle's state, as it publishes it (latest wins)."""
+
+    vehicle_id: int
+    seq: int
+    stamp_ns: int
+    pos_ned_m: tuple[float, float, float]
+    vel_ned_m_s: tuple[float, float, float]
+    heading_rad: float
+    mode: Mode = Mode.LANDED
+    armed: bool = False
+    battery_pct: float = 100.0
+    flags: StateFlag = StateFlag.NONE
+    goal_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Where guidance is flying to; meaningful only with StateFlag.HAS_GOAL."""
+
+    TYPE: ClassVar[MsgType] = MsgType.VEHICLE_STATE
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ3f3ff3fBBHf")
+
+    def validate(self) -> None:
+        _check_vehicle_id("vehicle_id", self.vehicle_id)
+        if not 0 <= self.seq < 2**32:
+            raise DecodeError(f"seq={self.seq} does not fit 32 bits")
+        if not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError(f"stamp_ns={self.stamp_ns} does not fit 64 bits")
+        _check_finite("pos_ned_m", *self.pos_ned_m)
+        _check_finite("vel_ned_m_s", *self.vel_ned_m_s)
+        _check_finite("goal_ned_m", *self.goal_ned_m)
+        _check_finite("heading_rad", self.heading_rad)
+        _check_finite("battery_pct", self.battery_pct)
+        for i, p in enumerate((*self.pos_ned_m, *self.goal_ned_m)):
+            _check_range(f"position[{i}]", p, -POSITION_LIMIT_M, POSITION_LIMIT_M)
+        for i, v in enumerate(self.vel_ned_m_s):
+            _check_range(f"vel_ned_m_s[{i}]", v, -SPEED_LIMIT_M_S, SPEED_LIMIT_M_S)
+        _check_range("heading_rad", self.heading_rad, -2 * math.pi, 2 * math.pi)
+        _check_range("battery_pct", self.battery_pct, 0.0, 100.0)
+        _enum(Mode, "mode", int(self.mode))
+        if int(self.flags) & ~0xFF:
+            raise DecodeError(f"flags={int(self.flags):#x} has unknown bits")
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self._FMT.pack(
+            self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.seq, self.stamp_ns,
+            *self.pos_ned_m, *self.vel_ned_m_s, self.heading_rad, *self.goal_ned_m,
+            int(self.mode), int(self.armed), int(self.flags), self.battery_pct,
+        )  # fmt: skip
+
+    @classmethod
+    def decode(cls, data: bytes) -> VehicleState:
+        _header(data, cls.TYPE)
+        if len(data) != cls._FMT.size:
+            raise DecodeError(f"VehicleState must be {cls._FMT.size} bytes, got {len(data)}")
+        # f: type, version, id, seq, stamp, pos[3], vel[3], heading, goal[3], mode, armed, flags, battery
+        f = cls._FMT.unpack(data)
+        if f[16] not in (0, 1):
+            raise DecodeError(f"armed must be 0 or 1, got {f[16]}")
+        if f[17] > 0xFF:
+            raise DecodeError(f"flags={f[17]:#x} has unknown bits")
+        msg = cls(
+            vehicle_id=f[2], seq=f[3], stamp_ns=f[4], pos_ned_m=f[5:8], vel_ned_m_s=f[8:11],
+            heading_rad=f[11], goal_ned_m=f[12:15], mode=_enum(Mode, "mode", f[15]),
+            armed=bool(f[16]), flags=StateFlag(f[17]), battery_pct=f[18],
+        )  # fmt: skip
+        msg.validate()
+        return msg
+
+
+@dataclass(frozen=True)
+class Command:
+    """A ground-station command to one vehicle, a list of them, or the whole fleet."""
+
+    kind: CommandKind
+    nonce: int
+    stamp_ns: int
+    params: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    targets: tuple[int, ...] = ()
+    """Vehicle ids this command is for; empty means every vehicle of the fleet."""
+    source_id: int = 0
+    """Who sent it (a ground station id); part of the signed bytes."""
+    seq: int = 0
+    tag: bytes = bytes(TAG_BYTES)
+    """HMAC-SHA256 over every byte before it; zeros in open mode (comms/auth.py)."""
+
+    TYPE: ClassVar[MsgType] = MsgType.COMMAND
+    _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBQQHB3dIH")
+
+    @staticmethod
+    def takeoff(alt_m: float, **kw: object) -> Command:
+        return Command(kind=CommandKind.TAKEOFF, params=(alt_m, 0.0, 0.0), **kw)  # type: ignore[arg-type]
+
+    @staticmethod
+    def goto_local(n_m: float, e_m: float, d_m: float, **kw: object) -> Command:
+        return Command(kind=CommandKind.GOTO_LOCAL, params=(n_m, e_m, d_m), **kw)  # type: ignore[arg-type]
+
+    @staticmethod
+    def goto_global(lat_deg: float, lon_deg: float, alt_m: float, **kw: object) -> Command:
+        return Command(kind=CommandKind.GOTO_GLOBAL, params=(lat_deg, lon_deg, alt_m), **kw)  # type: ignore[arg-type]
+
+    def applies_to(self, vehicle_id: int) -> bool:
+        return not self.targets or vehicle_id in self.targets
+
+    def validate(self) -> None:
+        _enum(CommandKind, "kind", int(self.kind))
+        if not 0 <= self.nonce < 2**64 or not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError("nonce and stamp_ns must fit 64 bits")
+        if not 0 <= self.seq < 2**32:
+            raise DecodeError(f"seq={self.seq} does not fit 32 bits")
+        _check_vehicle_id("source_id", self.source_id, allow_zero=True)
+        if len(self.targets) > MAX_TARGETS:
+            raise DecodeError(f"{len(self.targets)} targets, at most {MAX_TARGETS}")
+        if len(set(self.targets)) != len(self.targets):
+            raise DecodeError("targets contain duplicates")
+        for t in self.targets:
+            _check_vehicle_id("target", t)
+        if len(self.tag) != TAG_BYTES:
+            raise DecodeError(f"tag must be {TAG_BYTES} bytes, got {len(self.tag)}")
+        p0, p1, p2 = self.params
+        _check_finite(f"{CommandKind(self.kind).name} params", p0, p1, p2)
+        kind = CommandKind(self.kind)
+        if kind is CommandKind.TAKEOFF:
+            _check_range("takeoff alt_m", p0, *TAKEOFF_ALT_RANGE_M)
+            unused = (p1, p2)
+        elif kind is CommandKind.GOTO_LOCAL:
+            _check_range("goto north_m", p0, -LOCAL_HORIZONTAL_LIMIT_M, LOCAL_HORIZONTAL_LIMIT_M)
+            _check_range("goto east_m", p1, -LOCAL_HORIZONTAL_LIMIT_M, LOCAL_HORIZONTAL_LIMIT_M)
+            _check_range("goto down_m", p2, *LOCAL_DOWN_RANGE_M)
+            unused = ()
+        elif kind is CommandKind.GOTO_GLOBAL:
+            _check_range("goto lat_deg", p0, -90.0, 90.0)
+            _check_range("goto lon_deg", p1, -180.0, 180.0)
+            _check_range("goto alt_m", p2, *GLOBAL_ALT_RANGE_M)
+            unused = ()
+        else:
+            unused = (p0, p1, p2)
+        if any(u != 0.0 for u in unused):
+            raise DecodeError(f"{kind.name} takes fewer parameters; unused ones must be 0")
+
+    def signed_bytes(self) -> bytes:
+        """Every byte that the tag covers."""
+        head = self._HEAD.pack(
+            self.TYPE, SCHEMA_VERSION, self.nonce, self.stamp_ns, self.source_id, int(self.kind),
+            *self.params, self.seq, len(self.targets),
+        )  # fmt: skip
+        return head + struct.pack(f"<{len(self.targets)}H", *self.targets)
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.tag
+
+    @classmethod
+    def decode(cls, data: bytes) -> Command:
+        _header(data, cls.TYPE)
+        if len(data) < cls._HEAD.size + TAG_BYTES:
+            raise DecodeError(f"Command too short: {len(data)} bytes")
+        f = cls._HEAD.unpack_from(data)
+        seq, n = f[9], f[10]
+        expected = cls._HEAD.size + 2 * n + TAG_BYTES
+        if n > MAX_TARGETS:
+            raise DecodeError(f"{n} targets, at most {MAX_TARGETS}")
+        if len(data) != expected:
+            raise DecodeError(f"Command with {n} targets must be {expected} bytes, got {len(data)}")
+        targets = struct.unpack_from(f"<{n}H", data, cls._HEAD.size)
+        msg = cls(
+            nonce=f[2], stamp_ns=f[3], source_id=f[4], kind=_enum(CommandKind, "kind", f[5]),
+            params=f[6:9], seq=seq,
+            targets=targets, tag=data[-TAG_BYTES:],
+        )  # fmt: skip
+        msg.validate()
+        return msg
+
+
+@dataclass(frozen=True)
+class CommandAck:
+    """One vehicle's answer to a command."""
+
+    vehicle_id: int
+    nonce: int
+    stamp_ns: int
+    result: AckResult
+    reason: str = ""
+    mode: Mode = Mode.LANDED
+    """The vehicle's mode after handling the command."""
+    tag: bytes = bytes(TAG_BYTES)
+
+    TYPE: ClassVar[MsgType] = MsgType.COMMAND_ACK
+    _FMT: ClassVar[struct.Struct] = struct.Struct(f"<BBHQQBB{REASON_BYTES}s{TAG_BYTES}s")
+
+    @property
+    def accepted(self) -> bool:
+        return self.result is AckResult.ACCEPTED
+
+    def validate(self) -> None:
+        _check_vehicle_id("vehicle_id", self.vehicle_id, allow_zero=True)
+        if not 0 <= self.nonce < 2**64 or not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError("nonce and stamp_ns must fit 64 bits")
+        _enum(AckResult, "result", int(self.result))
+        _enum(Mode, "mode", int(self.mode))
+        if len(self.tag) != TAG_BYTES:
+            raise DecodeError(f"tag must be {TAG_BYTES} bytes, got {len(self.tag)}")
+
+    def signed_bytes(self) -> bytes:
+        return self._FMT.pack(
+            self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.nonce, self.stamp_ns,
+            int(self.result), int(self.mode), _fit_text(self.reason, REASON_BYTES), b"",
+        )[: -TAG_BYTES]  # fmt: skip
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.tag
+
+    @classmethod
+    def decode(cls, data: bytes) -> CommandAck:
+        _header(data, cls.TYPE)
+        if len(data) != cls._FMT.size:
+            raise DecodeError(f"CommandAck must be {cls._FMT.size} bytes, got {len(data)}")
+        f = cls._FMT.unpack(data)
+        msg = cls(
+            vehicle_id=f[2], nonce=f[3], stamp_ns=f[4], result=_enum(AckResult, "result", f[5]),
+            mode=_enum(Mode, "mode", f[6]), reason=_text_field(f[7], "reason"), tag=f[8],
+        )  # fmt: skip
+        msg.validate()
+        return msg
+
+
+@dataclass(frozen=True)
+class Event:
+    """Status text, mode changes, failsafe transitions and link statistics."""
+
+    vehicle_id: int
+    stamp_ns: int
+    text: str
+    severity: Severity = Severity.INFO
+    kind: EventKind = EventKind.STATUS
+
+    TYPE: ClassVar[MsgType] = MsgType.EVENT
+    _FMT: ClassVar[struct.Struct] = struct.Struct(f"<BBHQBB{EVENT_TEXT_BYTES}s")
+
+    def validate(self) -> None:
+        _check_vehicle_id("vehicle_id", self.vehicle_id, allow_zero=True)
+        if not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError("stamp_ns must fit 64 bits")
+        _enum(Severity, "severity", int(self.severity))
+        _enum(EventKind, "kind", int(self.kind))
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self._FMT.pack(
+            self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.stamp_ns, int(self.severity),
+            int(self.kind), _fit_text(self.text, EVENT_TEXT_BYTES),
+        )  # fmt: skip
+
+    @classmethod
+    def decode(cls, data: bytes) -> Event:
+        _header(data, cls.TYPE)
+        if len(data) != cls._FMT.size:
+            raise DecodeError(f"Event must be {cls._FMT.size} bytes, got {len(data)}")
+        f = cls._FMT.unpack(data)
+        msg = cls(
+            vehicle_id=f[2], stamp_ns=f[3], severity=_enum(Severity, "severity", f[4]),
+            kind=_enum(EventKind, "kind", f[5]), text=_text_field(f[6], "text"),
+        )  # fmt: skip
+        msg.validate()
+        return msg
+
+
+Message = VehicleState | Command | CommandAck | Event
+_DECODERS: dict[int, type] = {
+    MsgType.VEHICLE_STATE: VehicleState,
+    MsgType.COMMAND: Command,
+    MsgType.COMMAND_ACK: CommandAck,
+    MsgType.EVENT: Event,
+}
+
+
+def decode(data: bytes | bytearray | memoryview) -> Message:
+    """Decode any covey message by its type byte. Raises only DecodeError."""
+    data = bytes(data)
+    if not data:
+        raise DecodeError("empty message")
+    cls = _DECODERS.get(data[0])
+    if cls is None:
+        raise DecodeError(f"unknown message type {data[0]}")
+    try:
+        return cls.decode(data)
+    except DecodeError:
+        raise
+    except (struct.error, ValueError, OverflowError, TypeError) as exc:  # defence in depth
+        raise DecodeError(f"malformed {cls.__name__}: {exc}") from None
+
+
+__all__ = [
+    "AckResult", "Command", "CommandAck", "CommandKind", "DecodeError", "Event", "EventKind",
+    "Message", "Mode", "MsgType", "Severity", "StateFlag", "VehicleState", "decode",
+]  # fmt: skip

@@ -1,0 +1,97 @@
+"""Zenoh session configuration for the topologies that work (see shared/DESIGN.md).
+
+- embedded (default): one process (the demo's or the ground station's) is a Zenoh *router* that
+  listens on a loopback port; every agent connects to it as a *peer* that also listens, so gossip
+  builds a full mesh and traffic between agents does not need the router once they have met.
+- peer mesh (radio-mesh analogue): every process is a peer that listens and connects to one or
+  more known endpoints.
+- client of a router (multi-site fleets): every process is a client of a `zenohd` router
+  (`--mesh-mode client --connect tcp/<router>:7447`).
+
+Multicast scouting is off unless asked for: it floods the LAN and makes tests flaky.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from dataclasses import dataclass, field
+from typing import Literal
+
+import zenoh
+
+DEFAULT_PORT = 7447
+Mode = Literal["peer", "client", "router"]
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    """How a process joins the covey mesh."""
+
+    fleet: str = "covey"
+    """Fleet name: the second element of every key; fleets never see each other."""
+    mode: Mode = "peer"
+    """Zenoh role of this process: peer, client (of a router) or router."""
+    connect: tuple[str, ...] = (f"tcp/127.0.0.1:{DEFAULT_PORT}",)
+    """Endpoints to connect to, e.g. ("tcp/10.0.0.1:7447",)."""
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
+    """Endpoints to listen on. Peers must listen for gossip to build a mesh; port 0 = any free."""
+    multicast_scouting: bool = False
+    """Discover peers by UDP multicast. Off by default; never on in tests."""
+    lease_ms: int = 2000
+    """Transport lease: a hung (not killed) peer is declared gone after about this long."""
+    config_file: str | None = None
+    """A full Zenoh JSON5 config (TLS, user/password, access control). Fields above override it."""
+    extra: tuple[tuple[str, str], ...] = field(default_factory=tuple)
+    """Additional (path, json5 value) pairs inserted into the Zenoh config."""
+
+    def __post_init__(self) -> None:
+        from comms.keys import check_fleet
+
+        check_fleet(self.fleet)
+        if self.mode not in ("peer", "client", "router"):
+            raise ValueError(f"mesh mode must be peer, client or router, got {self.mode!r}")
+        for ep in (*self.connect, *self.listen):
+            if not isinstance(ep, str) or "/" not in ep:
+                raise ValueError(f"endpoint {ep!r} must look like tcp/127.0.0.1:7447")
+        if self.mode == "client" and not self.connect:
+            raise ValueError("a client needs at least one --connect endpoint (its router)")
+        if not 100 <= self.lease_ms <= 600_000:
+            raise ValueError(f"lease_ms={self.lease_ms} must be within 100..600000")
+
+    def zenoh_config(self) -> zenoh.Config:
+        conf = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(self.mode))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        listen = [] if self.mode == "client" else list(self.listen)
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+        conf.insert_json5("transport/link/tx/lease", str(self.lease_ms))
+        # Keep retrying to connect: agents may start before the router does.
+        conf.insert_json5("connect/timeout_ms", "-1" if self.mode != "router" else "0")
+        conf.insert_json5("connect/exit_on_failure", "false")
+        for path, value in self.extra:
+            conf.insert_json5(path, value)
+        return conf
+
+
+def embedded_router(port: int, fleet: str = "covey", host: str = "127.0.0.1") -> MeshConfig:
+    """The config of the process that hosts the embedded mesh (no zenohd needed)."""
+    return MeshConfig(fleet=fleet, mode="router", connect=(), listen=(f"tcp/{host}:{port}",))
+
+
+def embedded_peer(port: int, fleet: str = "covey", host: str = "127.0.0.1") -> MeshConfig:
+    """The config of a process that joins an embedded mesh hosted on `port`."""
+    return MeshConfig(fleet=fleet, mode="peer", connect=(f"tcp/{host}:{port}",), listen=(f"tcp/{host}:0",))
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago (bind to 0 and read it back)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def open_session(cfg: MeshConfig) -> zenoh.Session:
+    """Open a Zenoh session; the caller closes it (or uses it as a context manager)."""
+    return zenoh.open(cfg.zenoh_config())

@@ -1,0 +1,57 @@
+"""`covey`: one command, many subcommands. Each subcommand lives in its own module and is imported
+only when used, so `covey --help` is fast and the runtime never imports torch."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# name: (module, function taking argv, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
+    "demo": ("groundstation.demo", "cli", "simulated fleet + browser ground station, no external services"),
+    "agent": ("agent.cli", "cli", "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)"),
+    "gcs": ("groundstation.cli", "cli", "browser ground station (viser)"),
+    "status": ("groundstation.ops", "status_cli", "print the fleet: presence, last state, link age"),
+    "cmd": ("groundstation.ops", "cmd_cli", "send one command and print every vehicle's ack"),
+    "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
+    "eval": ("policy.eval", "cli", "evaluate policies against ORCA and straight-line baselines"),
+    "export": ("covey_export", "cli", "export weights (--format npz|c)"),
+    "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
+    "record": ("comms.record_cli", "record_cli", "record the mesh to MCAP (--info FILE summarises)"),
+    "replay": ("comms.record_cli", "replay_cli", "replay an MCAP recording into a fleet"),
+    "keygen": ("comms.auth", "keygen_cli", "create a fleet key for signed commands"),
+    "fleet-sim": ("agent.fleet_sim", "cli", "simulate hundreds of vehicles in one process"),
+    "bench": ("bench.__main__", "cli", "run the benchmark suite"),
+}
+
+
+def usage() -> str:
+    width = max(map(len, SUBCOMMANDS))
+    lines = ["usage: covey <command> [options]   (covey <command> --help for its options)", "", "commands:"]
+    lines += [f"  {name:<{width}}  {text}" for name, (_, _, text) in SUBCOMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in SUBCOMMANDS:
+        print(f"covey: unknown command {name!r}\n\n{usage()}", file=sys.stderr)
+        return 2
+    module_name, func_name, _ = SUBCOMMANDS[name]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        print(f"covey {name}: not available in this install ({exc}).", file=sys.stderr)
+        if exc.name == "torch":
+            print("Install the training extra: pip install -e '.[train]'", file=sys.stderr)
+        return 2
+    result = getattr(module, func_name)(rest)
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
