@@ -8,6 +8,7 @@ message cannot kill a process.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -100,10 +101,9 @@ class Mesh:
         if session is None:
             return
         for ent in reversed(entities):
-            try:
+            # Best effort: closing the session below frees whatever failed to undeclare.
+            with contextlib.suppress(Exception):
                 ent.undeclare()
-            except Exception:  # noqa: BLE001 - best effort: the session close below frees it anyway
-                pass
         session.close()
 
     def _keep(self, entity: Any) -> Any:

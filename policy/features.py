@@ -132,54 +132,49 @@ def observe(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg: ObsConfig, ma
     return seq.reshape(-1, cfg.input_size), goal_features(pos, heading_rad, goal, cfg), idx
 
 
-def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours=None, group=None):
-    """Every active vehicle observes every other active vehicle (of its group).
+def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours=None):
+    """Every active vehicle observes every other active vehicle of its world.
 
-    pos (N,2), heading_rad (N,), goal (N,2), active (N,) bool; group (N,) ints puts
-    vehicles in separate worlds (the env's environments), None = one world.
-    Returns seq (N, K, X) zero padded after each row's length, lengths (N,),
-    goal features (N, G) and the neighbour indices (N, K) (-1 = padding).
-    Ordering and selection match `observe` (ties at the max_neighbours cut aside).
+    pos (..., N, 2), heading_rad (..., N), goal (..., N, 2), active (..., N) bool;
+    leading dimensions are separate worlds (the env's environments).
+    Returns seq (..., N, K, X) zero padded after each row's length, lengths (..., N),
+    goal features (..., N, G) and neighbour indices (..., N, K) (-1 = padding).
+    Selection and order match `observe` (ties at the max_neighbours cut aside).
     """
     pos = np.asarray(pos, dtype=np.float64)
     heading_rad = np.asarray(heading_rad, dtype=np.float64)
     active = np.asarray(active, dtype=bool)
-    n = pos.shape[0]
-    rel = pos[None, :, :] - pos[:, None, :]  # rel[i, j] = p_j - p_i
+    n = pos.shape[-2]
+    rel = pos[..., None, :, :] - pos[..., :, None, :]  # rel[..., i, j, :] = p_j - p_i
     d = np.hypot(rel[..., 0], rel[..., 1])
-    valid = active[:, None] & active[None, :] & ~np.eye(n, dtype=bool)
-    if group is not None:
-        group = np.asarray(group)
-        valid &= group[:, None] == group[None, :]
+    valid = active[..., :, None] & active[..., None, :] & ~np.eye(n, dtype=bool)
     if cfg.sense_range > 0:
         valid &= d <= cfg.sense_range
-    k = n - 1 if max_neighbours is None else min(max_neighbours, n - 1)
-    k = max(k, 0)
+    k = max(n - 1 if max_neighbours is None else min(max_neighbours, n - 1), 0)
     key = np.where(valid, d, np.inf)
-    # nearest k, ties broken by index (= stable); full sort only when cheap
-    if k < n - 1 and n > 64:
-        part = np.argpartition(key, k - 1, axis=1)[:, :k] if k > 0 else np.zeros((n, 0), int)
-        sub = np.take_along_axis(key, part, axis=1)
-        o = np.lexsort((part, sub), axis=1)
-        nearest = np.take_along_axis(part, o, axis=1)
+    # nearest k, ties broken by index (= stable); a full sort only when cheap
+    if 0 < k < n - 1 and n > 64:
+        part = np.argpartition(key, k - 1, axis=-1)[..., :k]
+        o = np.lexsort((part, np.take_along_axis(key, part, axis=-1)), axis=-1)
+        nearest = np.take_along_axis(part, o, axis=-1)
     else:
-        nearest = np.argsort(key, axis=1, kind="stable")[:, :k]
-    nd = np.take_along_axis(key, nearest, axis=1)
+        nearest = np.argsort(key, axis=-1, kind="stable")[..., :k]
+    nd = np.take_along_axis(key, nearest, axis=-1)
     ok = np.isfinite(nd)
-    lengths = ok.sum(axis=1)
+    lengths = ok.sum(axis=-1)
     if cfg.order == "index":
-        sort_key = np.where(ok, nearest, n + 1)
-        o = np.argsort(sort_key, axis=1, kind="stable")
+        o = np.argsort(np.where(ok, nearest, n + 1), axis=-1, kind="stable")
     else:
         # decreasing distance, ties in index order; padding (inf) goes last
-        o = np.lexsort((nearest, np.where(ok, -nd, np.inf)), axis=1)
-    nbr = np.take_along_axis(nearest, o, axis=1)
-    ok = np.take_along_axis(ok, o, axis=1)
-    rows = np.arange(n)[:, None]
-    r = rel[rows, nbr]
-    dd = d[rows, nbr]
-    psi_ij = wrap_rad(np.arctan2(r[..., 1], r[..., 0]) - heading_rad[:, None])
-    psi_ji = wrap_rad(heading_rad[nbr] - np.arctan2(-r[..., 1], -r[..., 0]))
+        o = np.lexsort((nearest, np.where(ok, -nd, np.inf)), axis=-1)
+    nbr = np.take_along_axis(nearest, o, axis=-1)
+    ok = np.take_along_axis(ok, o, axis=-1)
+    rx = np.take_along_axis(rel[..., 0], nbr, axis=-1)
+    ry = np.take_along_axis(rel[..., 1], nbr, axis=-1)
+    dd = np.take_along_axis(d, nbr, axis=-1)
+    h_nbr = np.take_along_axis(np.broadcast_to(heading_rad[..., None, :], d.shape), nbr, axis=-1)
+    psi_ij = wrap_rad(np.arctan2(ry, rx) - heading_rad[..., None])
+    psi_ji = wrap_rad(h_nbr - np.arctan2(-ry, -rx))
     seq = encode_tuples(dd, psi_ij, psi_ji, cfg) * ok[..., None]
     nbr = np.where(ok, nbr, -1)
     return seq, lengths, goal_features(pos, heading_rad, goal, cfg), nbr

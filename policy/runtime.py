@@ -210,10 +210,10 @@ class GuidancePolicy:
         )
         return features.clip_unit(self.net.head_forward(self.net.lstm_last(seq), goal_feat))
 
-    def action_batch(self, pos, heading_rad, goal, active, group=None):
+    def action_batch(self, pos, heading_rad, goal, active):
         """Raw actions (N, 2) and neighbour indices (N, K) of all vehicles; policy units."""
         seq, lengths, goal_feat, nbr = features.observe_batch(
-            pos, heading_rad, goal, active, self.obs_cfg, self.max_neighbours, group
+            pos, heading_rad, goal, active, self.obs_cfg, self.max_neighbours
         )
         h = self.net.lstm_last_batch(seq, lengths)
         return features.clip_unit(self.net.head_forward(h, goal_feat)), nbr
