@@ -114,10 +114,16 @@ def f32(x) -> float:
     return float(F32(x))
 
 
-def random_case(rng: np.random.Generator, n_nbrs: int | None = None, spread_m: float = 60.0,
-                stale_fraction: float = 0.1) -> Case:
-    """A valid scenario: random airframe scaling, positions, headings, some stale neighbours."""
+def random_case(rng: np.random.Generator, n_nbrs: int | None = None,
+                spread_m: float | None = None, stale_fraction: float = 0.1) -> Case:
+    """A valid scenario: random airframe scaling, positions, headings, some stale neighbours.
+
+    Neighbours lie within +-spread_m (scaled by separation / 3) of the vehicle; by
+    default the spread is drawn from 10, 30 or 80 so that sense ranges matter.
+    """
     n = int(rng.integers(0, MAX_NEIGHBOURS + 1)) if n_nbrs is None else n_nbrs
+    if spread_m is None:
+        spread_m = float(rng.choice([10.0, 30.0, 80.0]))
     sep = f32(rng.choice([3.0, rng.uniform(1.0, 10.0)]))
     cruise = f32(rng.choice([1.0, rng.uniform(0.5, 8.0)]))
     centre = rng.uniform(-500, 500, 2)
@@ -226,3 +232,27 @@ def mutate(c: Case, rng: np.random.Generator) -> Case:
         else:
             c.now_us = int(rng.choice(BAD_STAMPS))
     return c
+
+
+def runtime_reference(npz_path, c: Case):
+    """(velocity m/s, action, neighbours used) from the numpy runtime, for a valid case.
+
+    The runtime has no clock, so it gets only the neighbours the core keeps as fresh.
+    The safety filter is off: the C core implements the network policy alone.
+    """
+    from policy import features
+    from policy.runtime import GuidancePolicy
+
+    pol = GuidancePolicy.load(npz_path, separation_m=c.sep_m, cruise_speed_m_s=c.cruise_m_s,
+                              safety_filter=False, max_neighbours=c.max_nbrs)
+    fresh = c.fresh_nbrs()
+    nbr_pos = np.array([nb[:2] for nb in fresh], dtype=np.float64).reshape(-1, 2)
+    nbr_h = np.array([nb[2] for nb in fresh], dtype=np.float64)
+    pos = np.array(c.own[:2], dtype=np.float64)
+    goal = np.array(c.goal, dtype=np.float64)
+    vel = pol.command(pos, np.zeros(2), c.own[2], goal, nbr_pos, np.zeros_like(nbr_pos), nbr_h)
+    s = pol.dist_scale_m
+    action = pol.action(pos / s, c.own[2], goal / s, nbr_pos / s, nbr_h)
+    _, _, idx = features.observe(pos / s, c.own[2], goal / s, nbr_pos / s, nbr_h, pol.obs_cfg,
+                                 c.max_nbrs)
+    return vel, action, len(idx)

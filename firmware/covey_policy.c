@@ -361,10 +361,10 @@ covey_status_t covey_command(const covey_config_t *cfg, const covey_vehicle_t *o
         n_cand = cfg->max_neighbours;
         sort_by_index(scratch->order, n_cand);
     }
-#if COVEY_W_ORDER_CLOSEST_LAST
-    /* decreasing distance, so the nearest neighbour is the last LSTM step */
-    sort_by_dist_desc(scratch->order, n_cand, scratch->dist);
-#endif
+    if (COVEY_W_ORDER_CLOSEST_LAST) {
+        /* decreasing distance, so the nearest neighbour is the last LSTM step */
+        sort_by_dist_desc(scratch->order, n_cand, scratch->dist);
+    }
 
     for (int32_t k = 0; k < n_cand; ++k) {
         encode_neighbour(own, &nbrs[scratch->order[k]], k_per_m, scratch->seq[k]);
@@ -379,6 +379,11 @@ covey_status_t covey_command(const covey_config_t *cfg, const covey_vehicle_t *o
     out->vel_e_m_s = cfg->cruise_speed_m_s * (out->action[0] * s_h + out->action[1] * c_h);
     out->n_used = n_cand;
     return COVEY_OK;
+}
+
+uint32_t covey_scratch_bytes(void)
+{
+    return (uint32_t)sizeof(covey_scratch_t);
 }
 
 const char *covey_status_name(covey_status_t status)

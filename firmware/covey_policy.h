@@ -161,6 +161,9 @@ covey_status_t covey_command(const covey_config_t *cfg, const covey_vehicle_t *o
 covey_status_t covey_action(const float *seq, int32_t n_steps, const float *goal_feat,
                             covey_scratch_t *scratch, float action[2]);
 
+/* sizeof(covey_scratch_t), for bindings (ctypes) that allocate it as raw bytes. */
+uint32_t covey_scratch_bytes(void);
+
 /* Short name of a status, for logs. */
 const char *covey_status_name(covey_status_t status);
 

@@ -20,6 +20,8 @@ from firmware.sitl.px4 import Px4Mode
 GRAVITY_M_S2 = 9.80665
 MAX_SUBSTEP_S = 0.02
 """Integration step; `step()` splits longer gaps so the controllers stay stable."""
+TAKEOFF_ACCEPT_M = 0.25
+"""TAKEOFF is done within this vertical distance of the takeoff altitude."""
 
 
 @dataclass(frozen=True)
@@ -127,7 +129,8 @@ class Vehicle:
     falling: bool = False
     """Motors off in the air (kill, termination): only gravity acts."""
     armed_at_s: float = 0.0
-    landed_at_s: float = 0.0
+    landed_at_s: float = math.inf
+    """When the vehicle last touched down (inf while flying)."""
     took_off: bool = False
     events: list[str] = field(default_factory=list)
     """STATUSTEXTs to send; the link layer drains it."""
@@ -318,7 +321,7 @@ class Vehicle:
             self.landed_at_s = now
         if self.took_off and now - self.landed_at_s >= p.disarm_after_land_s:
             self.armed = False
-            self._say("Disarmed by auto preflight disarming" if not self.took_off else "Disarmed by landing")
+            self._say("Disarmed by landing")
         elif not self.took_off and now - self.armed_at_s >= p.disarm_preflight_s:
             self.armed = False
             self._say("Disarmed by auto preflight disarming")
@@ -328,11 +331,13 @@ class Vehicle:
             self._say("Failsafe: no offboard setpoints, holding")
             self._enter(Px4Mode.HOLD, now)
         if self.mode is Px4Mode.TAKEOFF and self.target_ned_m is not None \
-                and abs(self.pos_ned_m[2] - self.target_ned_m[2]) < 0.1:
+                and abs(self.pos_ned_m[2] - self.target_ned_m[2]) < TAKEOFF_ACCEPT_M:
+            # PX4 switches to HOLD at the takeoff altitude.
+            alt_d_m = self.target_ned_m[2]
             self._say("Takeoff complete")
             self._enter(Px4Mode.HOLD, now)
-            self.target_ned_m = self.pos_ned_m.copy()
-            self.target_ned_m[2] = self.target_ned_m[2]
+            assert self.target_ned_m is not None
+            self.target_ned_m[2] = alt_d_m
         if self.mode is Px4Mode.RTL and self.target_ned_m is not None \
                 and float(np.linalg.norm(self.pos_ned_m[:2])) < self.params.arrive_radius_m:
             self._enter(Px4Mode.LAND, now)

@@ -1,0 +1,207 @@
+"""ctypes wrapper of the C policy core: the onboard policy, callable from Python.
+
+    pol = CPolicy.load(separation_m=3.0, cruise_speed_m_s=1.0)   # shipped weights
+    v_m_s = pol.command(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
+
+`command` mirrors `policy.runtime.GuidancePolicy.command` without the safety filter
+(the C core has none; the velocities are accepted for the same signature and ignored).
+Freshness is optional: pass `now_s` with `stamp_s` / `nbr_stamp_s` (seconds on one
+clock) and neighbours older than `max_neighbour_age_s` are dropped, an own state older
+than `max_own_age_s` raises. The shared library is built on demand into firmware/build/
+with the system C compiler (a hash of sources, weights and flags names it, so a stale
+build is never loaded).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from firmware import hostbuild
+
+MAX_NEIGHBOURS = 40
+"""COVEY_MAX_NEIGHBOURS: most neighbours fed to the LSTM."""
+MAX_INPUTS = 64
+"""COVEY_MAX_INPUTS: most neighbour reports per call."""
+STATUS_NAMES = {0: "ok", 1: "null", 2: "nonfinite", 3: "range", 4: "stale"}
+
+
+class _Config(ctypes.Structure):
+    _fields_ = [
+        ("separation_m", ctypes.c_float),
+        ("cruise_speed_m_s", ctypes.c_float),
+        ("max_neighbour_age_us", ctypes.c_uint64),
+        ("max_own_age_us", ctypes.c_uint64),
+        ("max_neighbours", ctypes.c_int32),
+    ]
+
+
+class _Vehicle(ctypes.Structure):
+    _fields_ = [
+        ("pos_n_m", ctypes.c_float),
+        ("pos_e_m", ctypes.c_float),
+        ("heading_rad", ctypes.c_float),
+        ("stamp_us", ctypes.c_uint64),
+    ]
+
+
+class _Goal(ctypes.Structure):
+    _fields_ = [("pos_n_m", ctypes.c_float), ("pos_e_m", ctypes.c_float)]
+
+
+class _Command(ctypes.Structure):
+    _fields_ = [
+        ("vel_n_m_s", ctypes.c_float),
+        ("vel_e_m_s", ctypes.c_float),
+        ("action", ctypes.c_float * 2),
+        ("n_used", ctypes.c_int32),
+        ("n_stale", ctypes.c_int32),
+        ("n_far", ctypes.c_int32),
+        ("n_excess", ctypes.c_int32),
+    ]
+
+
+class CPolicyError(ValueError):
+    """The core refused its inputs; `status` is the covey_status_t name."""
+
+    def __init__(self, status: int):
+        self.status = STATUS_NAMES.get(status, str(status))
+        super().__init__(f"C policy core fault: {self.status}")
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    """Everything one evaluation returns."""
+
+    status: str
+    """"ok" or the fault name."""
+    vel_m_s: np.ndarray
+    """(north, east) velocity command in m/s; zero on a fault."""
+    action: np.ndarray
+    """Clipped network action (forward, right), policy units."""
+    n_used: int
+    n_stale: int
+    n_far: int
+    n_excess: int
+
+
+def _us(t_s: float) -> int:
+    if not np.isfinite(t_s) or t_s < 0:
+        raise ValueError(f"times must be finite and >= 0 s, got {t_s}")
+    return int(round(float(t_s) * 1e6))
+
+
+def load_library(npz_path=None) -> ctypes.CDLL:
+    """Builds (if needed) and loads the core compiled against `npz_path`'s weights."""
+    npz = Path(npz_path) if npz_path is not None else hostbuild.SHIPPED_NPZ
+    lib = ctypes.CDLL(str(hostbuild.build_library(hostbuild.header_for(npz))))
+    lib.covey_command.restype = ctypes.c_int
+    lib.covey_command.argtypes = [
+        ctypes.POINTER(_Config), ctypes.POINTER(_Vehicle), ctypes.POINTER(_Goal),
+        ctypes.POINTER(_Vehicle), ctypes.c_int32, ctypes.c_uint64, ctypes.c_void_p,
+        ctypes.POINTER(_Command),
+    ]
+    lib.covey_action.restype = ctypes.c_int
+    lib.covey_action.argtypes = [
+        ctypes.POINTER(ctypes.c_float), ctypes.c_int32, ctypes.POINTER(ctypes.c_float),
+        ctypes.c_void_p, ctypes.POINTER(ctypes.c_float),
+    ]
+    lib.covey_scratch_bytes.restype = ctypes.c_uint32
+    lib.covey_scratch_bytes.argtypes = []
+    return lib
+
+
+class CPolicy:
+    """The C policy core with world-unit scaling (no safety filter)."""
+
+    def __init__(self, npz_path=None, separation_m: float = 3.0, cruise_speed_m_s: float = 1.0,
+                 max_neighbours: int | None = None, max_neighbour_age_s: float = 1.0,
+                 max_own_age_s: float = 0.5):
+        if max_neighbours is None:
+            max_neighbours = MAX_NEIGHBOURS
+        if not 0 <= max_neighbours <= MAX_NEIGHBOURS:
+            raise ValueError(f"max_neighbours must be in [0, {MAX_NEIGHBOURS}] for the C core, "
+                             f"got {max_neighbours}")
+        self._lib = load_library(npz_path)
+        self._scratch = ctypes.create_string_buffer(self._lib.covey_scratch_bytes())
+        self._cfg = _Config(separation_m, cruise_speed_m_s, _us(max_neighbour_age_s),
+                            _us(max_own_age_s), max_neighbours)
+        self.separation_m = float(separation_m)
+        self.cruise_speed_m_s = float(cruise_speed_m_s)
+        self.max_neighbours = max_neighbours
+
+    @classmethod
+    def load(cls, path=None, separation_m: float = 3.0, cruise_speed_m_s: float = 1.0,
+             max_neighbours: int | None = None, **kwargs) -> CPolicy:
+        """Same call as GuidancePolicy.load (path None = shipped weights)."""
+        kwargs.pop("safety_filter", None)  # the C core has no safety filter
+        kwargs.pop("safety_cfg", None)
+        return cls(path, separation_m, cruise_speed_m_s, max_neighbours, **kwargs)
+
+    def evaluate(self, pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s=None,
+                 stamp_s=None, nbr_stamp_s=None, cfg: _Config | None = None) -> CommandResult:
+        """One call of covey_command; faults come back in `status`, never raised."""
+        nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
+        k = nbr_pos.shape[0]
+        nbr_h = np.asarray(nbr_heading_rad, dtype=np.float64).reshape(-1)
+        if nbr_h.shape[0] != k:
+            raise ValueError(f"nbr_heading_rad has {nbr_h.shape[0]} entries for {k} neighbours")
+        if k > MAX_INPUTS:
+            raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbour reports, got {k}")
+        now_us = _us(now_s) if now_s is not None else 0
+        own_us = _us(stamp_s) if stamp_s is not None else now_us
+        nbr_us = (np.full(k, now_us, dtype=np.int64) if nbr_stamp_s is None
+                  else [_us(t) for t in np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)])
+        if len(nbr_us) != k:
+            raise ValueError(f"nbr_stamp_s has {len(nbr_us)} entries for {k} neighbours")
+        pos = np.asarray(pos_m, dtype=np.float64).reshape(2)
+        goal = np.asarray(goal_m, dtype=np.float64).reshape(2)
+        own = _Vehicle(pos[0], pos[1], float(heading_rad), own_us)
+        nbrs = (_Vehicle * max(k, 1))()
+        for i in range(k):
+            nbrs[i] = _Vehicle(nbr_pos[i, 0], nbr_pos[i, 1], nbr_h[i], int(nbr_us[i]))
+        out = _Command()
+        st = self._lib.covey_command(ctypes.byref(cfg or self._cfg), ctypes.byref(own),
+                                     ctypes.byref(_Goal(goal[0], goal[1])), nbrs, k, now_us,
+                                     self._scratch, ctypes.byref(out))
+        return CommandResult(STATUS_NAMES.get(st, str(st)),
+                             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
+                             np.array(out.action[:], dtype=np.float64), out.n_used, out.n_stale,
+                             out.n_far, out.n_excess)
+
+    def command(self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s,
+                nbr_heading_rad, now_s=None, stamp_s=None, nbr_stamp_s=None) -> np.ndarray:
+        """Velocity command (2,) in m/s (north, east); raises CPolicyError on a fault."""
+        del vel_m_s, nbr_vel_m_s  # only the safety filter of the numpy runtime uses them
+        r = self.evaluate(pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s,
+                          stamp_s, nbr_stamp_s)
+        if r.status != "ok":
+            raise CPolicyError(STATUS_NAMES_INV[r.status])
+        return r.vel_m_s
+
+    def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
+        """Clipped network action (fwd, right); inputs in policy units, like GuidancePolicy."""
+        cfg = _Config(3.0, 1.0, self._cfg.max_neighbour_age_us, self._cfg.max_own_age_us,
+                      self._cfg.max_neighbours)
+        r = self.evaluate(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg=cfg)
+        if r.status != "ok":
+            raise CPolicyError(STATUS_NAMES_INV[r.status])
+        return r.action
+
+    def network(self, seq, goal_feat) -> np.ndarray:
+        """covey_action: the network alone on an encoded sequence (L, X) and goal features."""
+        seq = np.ascontiguousarray(seq, dtype=np.float32)
+        g = np.ascontiguousarray(goal_feat, dtype=np.float32).reshape(-1)
+        a = (ctypes.c_float * 2)()
+        fp = ctypes.POINTER(ctypes.c_float)
+        st = self._lib.covey_action(seq.ctypes.data_as(fp), seq.shape[0], g.ctypes.data_as(fp),
+                                    self._scratch, a)
+        if st != 0:
+            raise CPolicyError(st)
+        return np.array(a[:], dtype=np.float64)
+
+
+STATUS_NAMES_INV = {v: k for k, v in STATUS_NAMES.items()}

@@ -1,0 +1,49 @@
+"""Settings of one emulated autopilot (`covey sitl`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from comms.geo import GeoOrigin
+from firmware.sitl.vehicle import VehicleParams
+
+
+@dataclass(frozen=True)
+class SitlConfig:
+    """One emulated PX4 vehicle and its MAVLink links."""
+
+    vehicle_id: int = 1
+    """MAVLink system id (1..254); also the vehicle's id in the fleet."""
+    links: tuple[str, ...] = ("udpout:127.0.0.1:14540",)
+    """MAVLink links, like PX4's mavlink instances: `udpout:HOST:PORT` sends to a listener
+    (MAVSDK's `udpin://`), `udpin:HOST:PORT` listens and answers whoever spoke last. Every link
+    gets all telemetry; commands are taken from any."""
+    home: GeoOrigin = field(default_factory=GeoOrigin)
+    """Where the vehicle stands at boot; local NED (0, 0, 0) of the emulator is here."""
+    onboard: bool = False
+    """Fly goto targets with the C policy (firmware.cpolicy), avoiding ADSB_VEHICLE traffic."""
+    policy_weights: str | None = None
+    """Weights file for the C policy (None: its default)."""
+    healthy: bool = True
+    """Pre-arm checks pass. False emulates a failed sensor: SYS_STATUS reports it, arming is refused."""
+    params: VehicleParams = field(default_factory=VehicleParams)
+    """Airframe and autopilot settings."""
+    physics_hz: float = 50.0
+    """Integration and receive rate of the real-time loop."""
+    position_hz: float = 20.0
+    """Rate of GLOBAL_POSITION_INT, LOCAL_POSITION_NED and ATTITUDE."""
+    traffic_timeout_s: float = 5.0
+    """Traffic reports older than this are forgotten."""
+    policy_hz: float = 10.0
+    """Rate at which onboard guidance evaluates the policy."""
+    duration_s: float | None = None
+    """Stop after this long (None: run until stopped)."""
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.vehicle_id <= 254:
+            raise ValueError(f"vehicle_id must be within 1..254 (a MAVLink system id), got {self.vehicle_id}")
+        if not self.links:
+            raise ValueError("at least one MAVLink link is needed")
+        for name in ("physics_hz", "position_hz", "traffic_timeout_s", "policy_hz"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")

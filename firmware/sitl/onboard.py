@@ -1,0 +1,70 @@
+"""Onboard guidance: the C policy flies goto targets around the traffic the relay forwards.
+
+This is what the PX4 module does on a real Pixhawk: neighbours arrive as ADSB_VEHICLE
+(lat/lon/alt, course, horizontal speed), become local positions and velocities, and the policy
+turns them into a horizontal velocity setpoint at a fixed rate.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+import numpy as np
+
+from comms.geo import GeoOrigin
+from firmware.sitl.traffic import TrafficStore
+
+
+class Policy(Protocol):
+    """`firmware.cpolicy.CPolicy` (and `policy.runtime.GuidancePolicy`) look like this."""
+
+    def command(self, pos_m: Any, vel_m_s: Any, heading_rad: float, goal_m: Any,
+                nbr_pos_m: Any, nbr_vel_m_s: Any, nbr_heading_rad: Any) -> Any: ...
+
+
+def load_c_policy(weights: str | None) -> Policy:
+    """Import the C policy lazily: the emulator runs without it unless onboard mode is asked for."""
+    try:
+        from firmware.cpolicy import CPolicy
+    except ImportError as exc:
+        raise RuntimeError(f"onboard mode needs firmware.cpolicy (the C policy wrapper): {exc}") from exc
+    return CPolicy(weights) if weights else CPolicy()
+
+
+class PolicyGuidance:
+    """Implements `vehicle.Guidance` with a policy and the traffic store."""
+
+    def __init__(self, policy: Policy, traffic: TrafficStore, home: GeoOrigin, rate_hz: float) -> None:
+        self.policy, self.traffic, self.home = policy, traffic, home
+        self.period_s = 1.0 / rate_hz
+        self._next_s = -math.inf
+        self._last = (0.0, 0.0)
+
+    def neighbours(self, now_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fresh traffic in the vehicle's local frame: positions (k,2), velocities (k,2), headings (k,)."""
+        pos, vel, hdg = [], [], []
+        for e in self.traffic.fresh(now_s):
+            if math.isnan(e.alt_m):
+                continue
+            n, east, _ = self.home.to_local(e.lat_deg, e.lon_deg, e.alt_m)
+            course = 0.0 if math.isnan(e.heading_rad) else e.heading_rad
+            # Dead-reckon the report to now: radios are slow (the paper's ran at 3 Hz).
+            age_s = max(0.0, now_s - e.received_s)
+            v = e.hor_speed_m_s * np.array([math.cos(course), math.sin(course)])
+            pos.append(np.array([n, east]) + v * age_s)
+            vel.append(v)
+            hdg.append(course)
+        return (np.array(pos, dtype=float).reshape(-1, 2), np.array(vel, dtype=float).reshape(-1, 2),
+                np.array(hdg, dtype=float))
+
+    def velocity_ne_m_s(self, pos_ned_m: np.ndarray, vel_ned_m_s: np.ndarray, heading_rad: float,
+                        goal_ned_m: np.ndarray, now_s: float) -> tuple[float, float]:
+        if now_s < self._next_s:
+            return self._last
+        self._next_s = now_s + self.period_s
+        nbr_pos, nbr_vel, nbr_hdg = self.neighbours(now_s)
+        cmd = np.asarray(self.policy.command(pos_ned_m[:2], vel_ned_m_s[:2], heading_rad, goal_ned_m[:2],
+                                             nbr_pos, nbr_vel, nbr_hdg), dtype=float).reshape(-1)
+        self._last = (float(cmd[0]), float(cmd[1])) if cmd.shape == (2,) else (math.nan, math.nan)
+        return self._last
