@@ -112,7 +112,8 @@ class Emulator:
             if self.cfg.duration_s is not None and now_s - start_s >= self.cfg.duration_s:
                 return
             self.tick(now_s)
-            next_s = max(next_s + period_s, now_s)
+            if now_s >= next_s:  # a tick on time, not one woken early by a packet
+                next_s = max(next_s + period_s, now_s)
             # Sleep on the sockets, so commands are handled as soon as they arrive.
             select.select(self.links, [], [], max(0.0, next_s - clock()))
 
