@@ -1,0 +1,258 @@
+"""Vectorised training environment: E arenas padded to M vehicles, with masks.
+
+Point masses in the plane (x north, y east, policy units), Euler steps of dt = 1 s,
+velocity command = the unit-clipped body-frame action rotated by the heading.
+Heading is the direction of the last displacement (at the start: the goal).
+Vehicles leave on arrival, on collision and at the step limit. Rewards follow the
+paper (PAPER.md): w_cav R_CAV + w_acc R_ACC + w_tme R_TME + w_arr R_ARR.
+`reference_step` is a plain per-agent loop that `SwarmEnv.step` must equal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from policy import features
+from policy.features import ObsConfig
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Arena, episode and reward constants (the code's values by default)."""
+
+    num_envs: int = 64
+    """E, arenas simulated side by side."""
+    max_vehicles: int = 5
+    """M, the cap of the vehicle count and the padding size."""
+    p_vehicles: float = 1.0 / 3.0
+    """Vehicle count n ~ geometric(p), P(n) = (1-p)^(n-1) p, capped at max_vehicles."""
+    arena_m: float = 60.0
+    """Side of the square arena holding starts and goals."""
+    min_gap_m: float = 10.0
+    """Starts apart from starts, goals from goals, and each goal from its start."""
+    dt_s: float = 1.0
+    """Euler step."""
+    max_steps: int = 100
+    """Steps before the remaining vehicles time out."""
+    speed: float = 1.0
+    """Speed of a unit action."""
+    eps_arr_m: float = 1.0
+    """Arrival radius."""
+    eps_cav_m: float = 3.0
+    """Collision distance (the separation)."""
+    knee_cav_m: float = 6.0
+    """R_CAV is linear from 0 at delta_cav_m to -2 here, then quadratic to -1000 at eps_cav_m."""
+    delta_cav_m: float = 10.0
+    """R_CAV is zero beyond this."""
+    r_arr: float = 1000.0
+    """Arrival reward."""
+    r_col: float = 1000.0
+    """Collision penalty (per neighbour inside eps_cav_m)."""
+    r_tme: float = 100.0
+    """Time penalty per step is r_tme / trip length."""
+    w_cav: float = 1.0
+    """Weight of R_CAV."""
+    w_acc: float = 6.0
+    """Weight of R_ACC = -|lateral action|."""
+    w_tme: float = 1.5
+    """Weight of R_TME."""
+    w_arr: float = 1.0
+    """Weight of R_ARR."""
+    w_prog: float = 0.0
+    """Weight of a progress term (metres gained towards the goal this step); 0 in the
+    paper. It is potential-based shaping (Phi = -distance), so it does not change
+    the optimal policy, but it makes the first arrivals far easier to discover."""
+
+
+def cav_reward(d, cfg: EnvConfig):
+    """R_CAV of one pair at distance d (vectorised)."""
+    d = np.asarray(d, dtype=np.float64)
+    lin = -2.0 * (cfg.delta_cav_m - d) / (cfg.delta_cav_m - cfg.knee_cav_m)
+    quad = -2.0 - (cfg.r_col - 2.0) * ((cfg.knee_cav_m - d) / (cfg.knee_cav_m - cfg.eps_cav_m)) ** 2
+    out = np.where(d >= cfg.delta_cav_m, 0.0, np.where(d >= cfg.knee_cav_m, lin, quad))
+    return np.where(d <= cfg.eps_cav_m, -cfg.r_col, out)
+
+
+def sample_vehicle_count(rng: np.random.Generator, cfg: EnvConfig) -> int:
+    return int(min(rng.geometric(cfg.p_vehicles), cfg.max_vehicles))
+
+
+def sample_scenario(rng: np.random.Generator, n: int, cfg: EnvConfig):
+    """Starts and goals (n, 2) in the arena, min_gap_m apart (rejection sampling)."""
+    starts, goals = [], []
+    for _ in range(n):
+        for _ in range(10000):
+            s = rng.uniform(0.0, cfg.arena_m, 2)
+            if all(np.hypot(*(s - o)) >= cfg.min_gap_m for o in starts):
+                break
+        for _ in range(10000):
+            g = rng.uniform(0.0, cfg.arena_m, 2)
+            if np.hypot(*(g - s)) >= cfg.min_gap_m and all(
+                np.hypot(*(g - o)) >= cfg.min_gap_m for o in goals
+            ):
+                break
+        starts.append(s)
+        goals.append(g)
+    return np.array(starts).reshape(n, 2), np.array(goals).reshape(n, 2)
+
+
+class SwarmEnv:
+    """E arenas of up to M vehicles; arrays are (E, M, ...) with an `active` mask."""
+
+    def __init__(self, cfg: EnvConfig, obs_cfg: ObsConfig):
+        self.cfg = cfg
+        self.obs_cfg = obs_cfg
+        e, m = cfg.num_envs, cfg.max_vehicles
+        self.pos = np.zeros((e, m, 2))
+        self.goal = np.zeros((e, m, 2))
+        self.heading = np.zeros((e, m))
+        self.active = np.zeros((e, m), dtype=bool)
+        self.trip_m = np.ones((e, m))
+        self.t = np.zeros(e, dtype=np.int64)
+        self.ep_return = np.zeros((e, m))
+        self.ep_arrived = np.zeros((e, m), dtype=bool)
+        self.ep_collided = np.zeros((e, m), dtype=bool)
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, seed: int | None = None):
+        """Resets every arena; returns the observation."""
+        self.rng = np.random.default_rng(seed)
+        self.reset_envs(np.ones(self.cfg.num_envs, dtype=bool))
+        return self.observe()
+
+    def reset_envs(self, mask) -> None:
+        """Draws new scenarios for the arenas in mask."""
+        for e in np.flatnonzero(mask):
+            n = sample_vehicle_count(self.rng, self.cfg)
+            s, g = sample_scenario(self.rng, n, self.cfg)
+            self.pos[e] = 0.0
+            self.goal[e] = 0.0
+            self.pos[e, :n] = s
+            self.goal[e, :n] = g
+            self.active[e] = False
+            self.active[e, :n] = True
+            rel = self.goal[e] - self.pos[e]
+            self.heading[e] = np.arctan2(rel[:, 1], rel[:, 0])
+            self.trip_m[e] = np.maximum(np.hypot(rel[:, 0], rel[:, 1]), 1e-6)
+            self.t[e] = 0
+            self.ep_return[e] = 0.0
+            self.ep_arrived[e] = False
+            self.ep_collided[e] = False
+
+    def observe(self, max_neighbours=None):
+        """(seq (E,M,K,X), lengths (E,M), goal features (E,M,G))."""
+        seq, lengths, goal_feat, _ = features.observe_batch(
+            self.pos, self.heading, self.goal, self.active, self.obs_cfg, max_neighbours
+        )
+        return seq, lengths, goal_feat
+
+    def step(self, actions):
+        """Advances all arenas by one step.
+
+        actions (E, M, 2) body frame (clipped here to unit length). Returns
+        (reward (E,M), done (E,M), info). done marks vehicles that left this step;
+        info["env_done"] (E,) marks arenas with no vehicle left (call reset_envs).
+        """
+        cfg = self.cfg
+        act = self.active.copy()
+        gd0 = self.goal - self.pos
+        a = features.clip_unit(actions)
+        vel = features.action_to_velocity(a, self.heading) * cfg.speed
+        disp = vel * cfg.dt_s * act[..., None]
+        self.pos = self.pos + disp
+        moved = act & (np.hypot(disp[..., 0], disp[..., 1]) > 1e-12)
+        self.heading = np.where(moved, np.arctan2(disp[..., 1], disp[..., 0]), self.heading)
+        rel = self.pos[:, None, :, :] - self.pos[:, :, None, :]
+        d = np.hypot(rel[..., 0], rel[..., 1])
+        m = cfg.max_vehicles
+        pair = act[:, :, None] & act[:, None, :] & ~np.eye(m, dtype=bool)
+        r_cav = np.where(pair, cav_reward(d, cfg), 0.0).sum(-1)
+        collided = (pair & (d <= cfg.eps_cav_m)).any(-1)
+        gd = self.goal - self.pos
+        arrived = act & (np.hypot(gd[..., 0], gd[..., 1]) <= cfg.eps_arr_m)
+        r_arr = cfg.r_arr * arrived
+        r_tme = -cfg.r_tme / self.trip_m
+        r_acc = -np.abs(a[..., 1])
+        r_prog = np.hypot(gd0[..., 0], gd0[..., 1]) - np.hypot(gd[..., 0], gd[..., 1])
+        reward = (
+            cfg.w_cav * r_cav
+            + cfg.w_acc * r_acc
+            + cfg.w_tme * r_tme
+            + cfg.w_arr * r_arr
+            + cfg.w_prog * r_prog
+        ) * act
+        self.t = self.t + 1
+        timeout = act & (self.t >= cfg.max_steps)[:, None]
+        done = act & (arrived | collided | timeout)
+        self.active = act & ~done
+        self.ep_return += reward
+        self.ep_arrived |= arrived & ~collided
+        self.ep_collided |= act & collided
+        env_done = ~self.active.any(axis=1)
+        info = {
+            "arrived": arrived & ~collided,
+            "collided": act & collided,
+            "timeout": timeout & ~arrived & ~collided,
+            "env_done": env_done,
+        }
+        return reward, done, info
+
+    def episode_stats(self, mask):
+        """Per finished arena: (mean vehicle return, all arrived, any collision)."""
+        out = []
+        for e in np.flatnonzero(mask):
+            n = int((self.trip_m[e] > 1e-6).sum())
+            n = max(n, 1)
+            out.append(
+                (
+                    float(self.ep_return[e, :n].mean()),
+                    bool(self.ep_arrived[e, :n].all()),
+                    bool(self.ep_collided[e, :n].any()),
+                )
+            )
+        return out
+
+
+def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfig):
+    """Plain per-agent loop of SwarmEnv.step on copies; returns the same quantities."""
+    e_n, m = active.shape
+    pos, heading, active = pos.copy(), heading.copy(), active.copy()
+    reward = np.zeros((e_n, m))
+    done = np.zeros((e_n, m), dtype=bool)
+    for e in range(e_n):
+        was = active[e].copy()
+        for i in range(m):
+            if not was[i]:
+                continue
+            ax, ay = actions[e, i]
+            norm = math.hypot(ax, ay)
+            if norm > 1.0:
+                ax, ay = ax / norm, ay / norm
+            h = heading[e, i]
+            d0 = math.hypot(*(goal[e, i] - pos[e, i]))
+            vn = (ax * math.cos(h) - ay * math.sin(h)) * cfg.speed * cfg.dt_s
+            ve = (ax * math.sin(h) + ay * math.cos(h)) * cfg.speed * cfg.dt_s
+            pos[e, i] += (vn, ve)
+            if math.hypot(vn, ve) > 1e-12:
+                heading[e, i] = math.atan2(ve, vn)
+            reward[e, i] += cfg.w_acc * -abs(ay) + cfg.w_tme * -cfg.r_tme / trip_m[e, i]
+            reward[e, i] += cfg.w_prog * (d0 - math.hypot(*(goal[e, i] - pos[e, i])))
+        for i in range(m):
+            if not was[i]:
+                continue
+            hit = False
+            for j in range(m):
+                if j == i or not was[j]:
+                    continue
+                dij = math.hypot(*(pos[e, j] - pos[e, i]))
+                reward[e, i] += cfg.w_cav * float(cav_reward(dij, cfg))
+                hit |= dij <= cfg.eps_cav_m
+            arrived = math.hypot(*(goal[e, i] - pos[e, i])) <= cfg.eps_arr_m
+            if arrived:
+                reward[e, i] += cfg.w_arr * cfg.r_arr
+            done[e, i] = arrived or hit or t[e] + 1 >= cfg.max_steps
+        active[e] = was & ~done[e]
+    return pos, heading, active, reward, done

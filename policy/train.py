@@ -1,0 +1,330 @@
+"""PPO trainer for the guidance policy, CleanRL style: read it top to bottom.
+
+Every vehicle of every arena is one agent of a shared policy; all active agents go
+through one batched forward pass per step, and each vehicle's experience is its own
+trajectory (GAE cut where it leaves). Writes checkpoints, a CSV log, the exported
+weights (`final.npz`) and the training curve (`curve.png`, as the paper's Fig. 4a).
+
+    covey train --preset improved --episodes 100000 --out runs/improved
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a run depends on; `main(cfg)` is the whole trainer."""
+
+    preset: str = "improved"
+    """Network/observation preset: "paper" or "improved" (see policy.model.PRESETS)."""
+    encoder: str = "lstm"
+    """"lstm" or "occupancy" (the paper's baseline; not exportable to the runtime)."""
+    episodes: int = 100_000
+    """Stop after this many finished arenas (the paper's budget is 100,000)."""
+    max_minutes: float = 0.0
+    """Also stop after this wall time (0 = no limit)."""
+    seed: int = 1
+    """Seeds the environment, torch and the action noise."""
+    num_envs: int = 128
+    """Arenas per rollout."""
+    num_steps: int = 32
+    """Steps per rollout and arena."""
+    lr: float = 3e-4
+    """Adam learning rate (annealed linearly to 10 % over the episode budget)."""
+    gamma: float = 0.99
+    """Discount."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    update_epochs: int = 4
+    """PPO epochs per rollout."""
+    minibatch_size: int = 2048
+    """Samples (agent steps) per minibatch."""
+    clip_coef: float = 0.2
+    """PPO ratio clip."""
+    vf_coef: float = 0.5
+    """Value loss weight."""
+    ent_coef: float = 0.0
+    """Entropy bonus."""
+    max_grad_norm: float = 0.5
+    """Gradient norm clip."""
+    init_log_std: float = math.log(0.6)
+    """Initial action noise (the code used a fixed std 0.6)."""
+    reward_scale: float = 0.01
+    """Rewards are multiplied by this for learning (the log shows raw rewards)."""
+    max_vehicles: int = 5
+    """Vehicle-count cap in training."""
+    w_acc: float = 6.0
+    """Weight of the acceleration term."""
+    w_tme: float = 1.5
+    """Weight of the time term."""
+    w_prog: float = 10.0
+    """Weight of the progress shaping term (0 = the paper's reward)."""
+    fwd_bias: float = 0.5
+    """Initial bias of the forward output, so that vehicles start by flying forward."""
+    threads: int = 2
+    """torch threads."""
+    out: str = "runs/train"
+    """Run directory: checkpoints, log.csv, final.npz, curve.png."""
+    checkpoint_every: int = 50
+    """Updates between checkpoints."""
+    progress: bool = True
+    """Show a tqdm bar."""
+
+
+def main(cfg: TrainConfig) -> dict:
+    """Trains, writes the run directory, returns the last logged row."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    import torch
+    from tqdm import tqdm
+
+    from policy.env import EnvConfig, SwarmEnv
+    from policy.export import export_model
+    from policy.model import PRESETS, ActorCritic
+
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model_cfg = replace(PRESETS[cfg.preset], encoder=cfg.encoder)
+    env_cfg = EnvConfig(
+        num_envs=cfg.num_envs,
+        max_vehicles=cfg.max_vehicles,
+        w_acc=cfg.w_acc,
+        w_tme=cfg.w_tme,
+        w_prog=cfg.w_prog,
+    )
+    env = SwarmEnv(env_cfg, model_cfg.obs)
+    model = ActorCritic(model_cfg, cfg.init_log_std)
+    with torch.no_grad():
+        model.head[-1].bias[0] = cfg.fwd_bias
+    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=1e-5)
+
+    t_n, e_n, m_n = cfg.num_steps, cfg.num_envs, cfg.max_vehicles
+    k_n, x_n, g_n = m_n - 1, model_cfg.obs.input_size, model_cfg.obs.goal_size
+    seq_buf = np.zeros((t_n, e_n, m_n, k_n, x_n), np.float32)
+    len_buf = np.zeros((t_n, e_n, m_n), np.int64)
+    goal_buf = np.zeros((t_n, e_n, m_n, g_n), np.float32)
+    act_buf = np.zeros((t_n, e_n, m_n, 2), np.float32)
+    logp_buf = np.zeros((t_n, e_n, m_n), np.float32)
+    val_buf = np.zeros((t_n, e_n, m_n), np.float32)
+    rew_buf = np.zeros((t_n, e_n, m_n), np.float32)
+    done_buf = np.zeros((t_n, e_n, m_n), np.float32)
+    mask_buf = np.zeros((t_n, e_n, m_n), bool)
+
+    def policy_step(seq, lengths, goal):
+        with torch.no_grad():
+            mean, value = model(
+                torch.from_numpy(seq), torch.from_numpy(lengths), torch.from_numpy(goal)
+            )
+            std = model.log_std.exp()
+            a = mean + std * torch.randn_like(mean)
+            logp = torch.distributions.Normal(mean, std).log_prob(a).sum(-1)
+        return a.numpy(), logp.numpy(), value.numpy()
+
+    obs = env.reset(cfg.seed)
+    recent = deque(maxlen=500)
+    episodes, update, t0 = 0, 0, time.time()
+    log_path = out / "log.csv"
+    log_f = open(log_path, "w", newline="")  # noqa: SIM115 - closed below; a with-block would indent the whole loop
+    writer = None
+    row: dict = {}
+    bar = tqdm(total=cfg.episodes, disable=not cfg.progress, unit="ep", smoothing=0.05)
+    while episodes < cfg.episodes and not (
+        cfg.max_minutes and time.time() - t0 > 60 * cfg.max_minutes
+    ):
+        frac = min(episodes / cfg.episodes, 1.0)
+        optim.param_groups[0]["lr"] = cfg.lr * (1.0 - 0.9 * frac)
+        # ---- rollout ----
+        for t in range(t_n):
+            seq, lengths, goal = obs
+            mask = env.active.copy()
+            seq_buf[t], len_buf[t], goal_buf[t], mask_buf[t] = seq, lengths, goal, mask
+            a, logp, value = policy_step(
+                seq[mask].astype(np.float32), lengths[mask], goal[mask].astype(np.float32)
+            )
+            actions = np.zeros((e_n, m_n, 2))
+            actions[mask] = a
+            act_buf[t][mask], logp_buf[t][mask], val_buf[t][mask] = a, logp, value
+            val_buf[t][~mask] = 0.0
+            reward, done, info = env.step(actions)
+            rew_buf[t] = reward * cfg.reward_scale
+            done_buf[t] = done | ~mask
+            if info["env_done"].any():
+                for ret, ok, col in env.episode_stats(info["env_done"]):
+                    recent.append((ret, ok, col))
+                n_done = int(info["env_done"].sum())
+                episodes += n_done
+                bar.update(n_done)
+                env.reset_envs(info["env_done"])
+            obs = env.observe()
+        # ---- GAE, cut where a vehicle leaves (or its slot is empty) ----
+        seq, lengths, goal = obs
+        mask = env.active
+        next_val = np.zeros((e_n, m_n), np.float32)
+        if mask.any():
+            _, _, v = policy_step(
+                seq[mask].astype(np.float32), lengths[mask], goal[mask].astype(np.float32)
+            )
+            next_val[mask] = v
+        adv = np.zeros_like(rew_buf)
+        last = np.zeros((e_n, m_n), np.float32)
+        for t in reversed(range(t_n)):
+            nv = next_val if t == t_n - 1 else val_buf[t + 1]
+            nonterm = 1.0 - done_buf[t]
+            delta = rew_buf[t] + cfg.gamma * nv * nonterm - val_buf[t]
+            last = delta + cfg.gamma * cfg.gae_lambda * nonterm * last
+            adv[t] = last
+        ret = adv + val_buf
+        # ---- PPO update on the active samples ----
+        b = mask_buf
+        b_seq = torch.from_numpy(seq_buf[b])
+        b_len = torch.from_numpy(len_buf[b])
+        b_goal = torch.from_numpy(goal_buf[b])
+        b_act = torch.from_numpy(act_buf[b])
+        b_logp = torch.from_numpy(logp_buf[b])
+        b_adv = torch.from_numpy(adv[b])
+        b_ret = torch.from_numpy(ret[b])
+        b_val = torch.from_numpy(val_buf[b])
+        n = b_seq.shape[0]
+        stats = []
+        for _ in range(cfg.update_epochs):
+            perm = torch.randperm(n)
+            for s in range(0, n, cfg.minibatch_size):
+                mb = perm[s : s + cfg.minibatch_size]
+                mean, value = model(b_seq[mb], b_len[mb], b_goal[mb])
+                dist = torch.distributions.Normal(mean, model.log_std.exp())
+                logp = dist.log_prob(b_act[mb]).sum(-1)
+                ratio = (logp - b_logp[mb]).exp()
+                mb_adv = (b_adv[mb] - b_adv[mb].mean()) / (b_adv[mb].std() + 1e-8)
+                pg_loss = torch.max(
+                    -mb_adv * ratio, -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)
+                ).mean()
+                v_clip = b_val[mb] + (value - b_val[mb]).clamp(
+                    -cfg.clip_coef * 10, cfg.clip_coef * 10
+                )
+                v_loss = 0.5 * torch.max((value - b_ret[mb]) ** 2, (v_clip - b_ret[mb]) ** 2).mean()
+                ent = dist.entropy().sum(-1).mean()
+                loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * ent
+                optim.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+                optim.step()
+                with torch.no_grad():
+                    clipfrac = ((ratio - 1).abs() > cfg.clip_coef).float().mean()
+                stats.append((pg_loss.item(), v_loss.item(), clipfrac.item()))
+        update += 1
+        # ---- log ----
+        if recent:
+            r = np.array(recent, dtype=np.float64)
+            pg, vl, cf = np.mean(stats, axis=0)
+            row = {
+                "update": update,
+                "episodes": episodes,
+                "wall_s": round(time.time() - t0, 1),
+                "reward": round(float(r[:, 0].mean()), 2),
+                "success": round(float(r[:, 1].mean()), 4),
+                "collision": round(float(r[:, 2].mean()), 4),
+                "pg_loss": round(float(pg), 5),
+                "v_loss": round(float(vl), 5),
+                "clipfrac": round(float(cf), 4),
+                "std": round(float(model.log_std.detach().exp().mean()), 4),
+                "samples": n,
+            }
+            if writer is None:
+                writer = csv.DictWriter(log_f, fieldnames=list(row))
+                writer.writeheader()
+            writer.writerow(row)
+            log_f.flush()
+            bar.set_postfix(rew=row["reward"], succ=row["success"], coll=row["collision"])
+        if update % cfg.checkpoint_every == 0:
+            _save(model, optim, cfg, episodes, out / "checkpoint.pt")
+            if model_cfg.encoder == "lstm":
+                export_model(model, out / "checkpoint.npz", {"trained_episodes": episodes})
+    bar.close()
+    log_f.close()
+    _save(model, optim, cfg, episodes, out / "final.pt")
+    if model_cfg.encoder == "lstm":
+        export_model(model, out / "final.npz", {"trained_episodes": episodes})
+    plot_curve(log_path, out / "curve.png")
+    return row
+
+
+def _save(model, optim, cfg: TrainConfig, episodes: int, path: Path) -> None:
+    import torch
+
+    torch.save(
+        {
+            "state_dict": model.state_dict(),
+            "optim": optim.state_dict(),
+            "model_cfg": model.cfg.to_dict(),
+            "train_cfg": asdict(cfg),
+            "episodes": episodes,
+        },
+        path,
+    )
+
+
+def plot_curve(log_csv: Path, png: Path) -> None:
+    """Reward and success rate against episodes (like the paper's Fig. 4a)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(log_csv) as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return
+    ep = [int(r["episodes"]) for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(ep, [float(r["reward"]) for r in rows], color="C0")
+    ax.set_xlabel("episodes")
+    ax.set_ylabel("mean vehicle return (500 arenas)", color="C0")
+    ax2 = ax.twinx()
+    ax2.plot(ep, [float(r["success"]) for r in rows], color="C1")
+    ax2.plot(ep, [float(r["collision"]) for r in rows], color="C3", ls="--")
+    ax2.set_ylabel("success (solid) / collision (dashed)")
+    ax2.set_ylim(0, 1)
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+
+
+def cli(argv=None) -> dict:
+    """`covey train [--field value ...]`: one flag per TrainConfig field."""
+    ap = argparse.ArgumentParser(
+        prog="covey train", description="Train the guidance policy with PPO."
+    )
+    for f in fields(TrainConfig):
+        name = "--" + f.name.replace("_", "-")
+        if f.type == "bool":
+            ap.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default)
+        else:
+            typ = {"int": int, "float": float, "str": str}[f.type]
+            ap.add_argument(name, type=typ, default=f.default)
+    ap.add_argument("--episodes-k", type=float, default=None, help="episodes in thousands")
+    args = vars(ap.parse_args(argv))
+    k = args.pop("episodes_k")
+    if k is not None:
+        args["episodes"] = int(k * 1000)
+    cfg = TrainConfig(**args)
+    if cfg.preset not in ("paper", "improved"):
+        ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
+    if cfg.encoder not in ("lstm", "occupancy"):
+        ap.error(f"--encoder must be lstm or occupancy, got {cfg.encoder!r}")
+    return main(cfg)
+
+
+if __name__ == "__main__":
+    cli()
