@@ -435,3 +435,16 @@ class LinkEmulator:
                 break
             text = f"{text} {p}" if text else p
         return text
+
+
+def emulator_from_spec(
+    spec: str,
+    seed: int | None = None,
+    clock_ns: Callable[[], int] = time.time_ns,
+    receiver_pos: Callable[[], tuple[float, float, float] | None] | None = None,
+) -> LinkEmulator:
+    """A LinkEmulator for a --link spec, seeded (e.g. with the vehicle id) for repeatable runs.
+    Enter it as a context manager to run its scheduler thread."""
+    import numpy as np
+
+    return LinkEmulator(parse_link_spec(spec), np.random.default_rng(seed), clock_ns, receiver_pos)

@@ -1,0 +1,353 @@
+"""Record a fleet's whole mesh into MCAP, and read recordings back (even cut-off ones).
+
+One MCAP channel per Zenoh key, carrying the raw covey bytes (message encoding "covey-v1"; the
+schema record holds the binary layout from comms.schema), log_time = receive time in ns:
+
+    covey/<fleet>/v/<id>/state  VehicleState        (subscriber on covey/<fleet>/**)
+    covey/<fleet>/v/<id>/event  Event               (same subscriber)
+    covey/<fleet>/v/*/cmd       Command             (a queryable that records and never replies)
+    covey/<fleet>/v/<id>/alive  one byte, 1 = token appeared, 0 = gone (liveliness, with history)
+
+Acks are Zenoh replies that only the querier sees, so they are recorded only if someone also
+publishes them under covey/<fleet>/** (anything published there is recorded).
+
+The file survives a SIGKILL of the recorder: chunks are small and flushed every
+`flush_interval_s`, and `read_recording` streams records and stops cleanly at a torn tail
+(no summary or footer needed). At most the last flush interval is lost.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO
+
+import zenoh
+from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from comms import keys, schema
+from comms.session import MeshConfig, open_session
+
+log = logging.getLogger(__name__)
+
+MESSAGE_ENCODING = "covey-v1"
+PRESENCE_ENCODING = "covey-presence-v1"
+SCHEMA_ENCODING = "covey-struct"
+"""Schema data is the struct layout text below: not a standard MCAP encoding, read by covey."""
+_LAYOUTS = {
+    "state": ("covey.VehicleState", "<BBHIQ3f3ff3fBBHf (comms/schema.py)"),
+    "event": ("covey.Event", "<BBHQBB120s (comms/schema.py)"),
+    "cmd": ("covey.Command", "<BBQQHB3dIH + n*H + 32s (comms/schema.py); query payload"),
+    "alive": ("covey.Presence", "1 byte: 1 = liveliness token appeared, 0 = it disappeared"),
+    "other": ("covey.Message", "any covey message; the first byte is its type (comms/schema.py)"),
+}
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """What `covey record` records, and where."""
+
+    path: str = "flight.mcap"
+    """Output MCAP file (overwritten)."""
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    """How to join the mesh; mesh.fleet is the fleet recorded."""
+    duration_s: float | None = None
+    """Stop after this long; None = until stopped (Ctrl-C, SIGTERM or the `stop` event)."""
+    flush_interval_s: float = 0.2
+    """Flush a chunk to disk at least this often: what a SIGKILL can lose."""
+    chunk_bytes: int = 16 * 1024
+    """Close a chunk once it holds this many bytes."""
+    record_commands: bool = True
+    """Declare a non-replying queryable on the fleet's cmd keys to record commands."""
+
+    def __post_init__(self) -> None:
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError(f"duration_s={self.duration_s} must be > 0")
+        if not 0.01 <= self.flush_interval_s <= 60:
+            raise ValueError(f"flush_interval_s={self.flush_interval_s} must be within 0.01..60")
+        if not 512 <= self.chunk_bytes <= 64 * 2**20:
+            raise ValueError(f"chunk_bytes={self.chunk_bytes} must be within 512..64 MiB")
+
+
+def _leaf(topic: str) -> str:
+    parsed = keys.parse_vehicle_key(topic)
+    if parsed is not None:
+        return parsed[2]
+    return "cmd" if topic.endswith("/cmd") else "other"
+
+
+class McapSink:
+    """Thread-safe MCAP writer: callbacks `put()`, one writer thread writes and flushes."""
+
+    def __init__(self, out: BinaryIO, fleet: str, chunk_bytes: int, flush_interval_s: float,
+                 clock_s: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+        self._out = out
+        self._writer = Writer(out, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        self._writer.start(profile="covey", library="covey-record")
+        self._writer.add_metadata("covey", {"fleet": fleet, "schema_version": str(schema.SCHEMA_VERSION)})
+        self._out.flush()
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._flush_interval_s = flush_interval_s
+        self._clock_s = clock_s
+        self.counts: dict[str, int] = {}
+        self._thread = threading.Thread(target=self._run, name="covey-record", daemon=True)
+        self._thread.start()
+
+    def put(self, topic: str, data: bytes, recv_ns: int) -> None:
+        self._queue.put((topic, data, recv_ns))
+
+    def _channel(self, topic: str) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            leaf = _leaf(topic)
+            name, layout = _LAYOUTS.get(leaf, _LAYOUTS["other"])
+            sid = self._schemas.get(name)
+            if sid is None:
+                sid = self._schemas[name] = self._writer.register_schema(name, SCHEMA_ENCODING, layout.encode())
+            enc = PRESENCE_ENCODING if leaf == "alive" else MESSAGE_ENCODING
+            cid = self._channels[topic] = self._writer.register_channel(topic, enc, sid)
+        return cid
+
+    def _write(self, item: tuple[str, bytes, int]) -> None:
+        topic, data, recv_ns = item
+        self._writer.add_message(self._channel(topic), recv_ns, data, recv_ns)
+        leaf = _leaf(topic)
+        self.counts[leaf] = self.counts.get(leaf, 0) + 1
+
+    def _run(self) -> None:
+        last_flush_s = self._clock_s()
+        while True:
+            try:
+                item = self._queue.get(timeout=self._flush_interval_s)
+            except queue.Empty:
+                item = None
+            if item == "stop":
+                return
+            if item is not None:
+                self._write(item)
+            if self._clock_s() - last_flush_s >= self._flush_interval_s:
+                self._writer.flush()
+                last_flush_s = self._clock_s()
+
+    def close(self) -> None:
+        """Write what is queued, the summary and the footer."""
+        self._queue.put("stop")
+        self._thread.join()
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item != "stop":
+                self._write(item)
+        self._writer.finish()
+        self._out.flush()
+
+
+class Recorder:
+    """Records one fleet's mesh traffic while open. Use it as a context manager."""
+
+    def __init__(self, cfg: RecordConfig, clock_ns: Callable[[], int] = time.time_ns) -> None:
+        self.cfg = cfg
+        self._clock_ns = clock_ns
+        fleet = cfg.mesh.fleet
+        self._file = open(cfg.path, "wb")  # noqa: SIM115 - closed in close()
+        self._entities: list = []
+        try:
+            self.sink = McapSink(self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s)
+            self._session: zenoh.Session | None = open_session(cfg.mesh)
+            s = self._session
+            self._entities.append(s.declare_subscriber(keys.everything(fleet), self._on_sample))
+            self._entities.append(
+                s.liveliness().declare_subscriber(keys.everything(fleet), self._on_alive, history=True)
+            )
+            if cfg.record_commands:
+                # complete=False: a get that asks for complete answers never routes here, and
+                # this queryable never replies, so vehicles' acks are untouched.
+                self._entities.append(s.declare_queryable(keys.all_cmds(fleet), self._on_query, complete=False))
+        except Exception:
+            self.close()
+            raise
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.sink.put(str(sample.key_expr), sample.payload.to_bytes(), self._clock_ns())
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        alive = b"\x01" if sample.kind == zenoh.SampleKind.PUT else b"\x00"
+        self.sink.put(str(sample.key_expr), alive, self._clock_ns())
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        self.sink.put(str(query.key_expr), payload, self._clock_ns())
+        # Dropping the query without a reply finalises it at once for this queryable.
+
+    @property
+    def counts(self) -> dict[str, int]:
+        return dict(self.sink.counts)
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for ent in reversed(self._entities):
+            with contextlib.suppress(Exception):
+                ent.undeclare()
+        self._entities = []
+        session, self._session = getattr(self, "_session", None), None
+        if session is not None:
+            session.close()
+        if hasattr(self, "sink"):
+            self.sink.close()
+            del self.sink
+        if not self._file.closed:
+            self._file.close()
+
+
+def record(cfg: RecordConfig, stop: threading.Event | None = None,
+           on_open: Callable[[Recorder], None] | None = None) -> dict[str, int]:  # fmt: skip
+    """Record until cfg.duration_s passes or `stop` is set; returns message counts by kind."""
+    stop = stop or threading.Event()
+    with Recorder(cfg) as rec:
+        if on_open is not None:
+            on_open(rec)
+        stop.wait(cfg.duration_s)
+        counts = rec.counts
+    return counts
+
+
+# -- reading ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Recorded:
+    """One recorded message."""
+
+    topic: str
+    log_time_ns: int
+    """Receive time at the recorder, ns since the Unix epoch."""
+    data: bytes
+    encoding: str
+
+
+@dataclass
+class Recording:
+    """A whole recording in memory, in log-time order."""
+
+    messages: list[Recorded]
+    fleet: str | None
+    truncated: str = ""
+    """Why reading stopped early (a torn tail after a kill), or empty for a complete file."""
+
+
+def iter_recording(path: str | Path) -> Iterator[Recorded | str]:
+    """Messages in file order. Stops at a torn tail, yielding one final str saying why."""
+    channels: dict[int, Channel] = {}
+    with open(path, "rb") as f:
+        try:
+            for rec in StreamReader(f).records:
+                if isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    ch = channels.get(rec.channel_id)
+                    if ch is not None:
+                        yield Recorded(ch.topic, rec.log_time, rec.data, ch.message_encoding)
+                elif isinstance(rec, Metadata) and rec.name == "covey":
+                    yield f"fleet={rec.metadata.get('fleet', '')}"
+                elif isinstance(rec, DataEnd | Footer):
+                    return
+                elif isinstance(rec, Schema):
+                    continue
+        except Exception as exc:  # noqa: BLE001 - any failure at the tail means a cut-off file
+            yield f"truncated: {type(exc).__name__}: {exc}"
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Load a recording (complete or cut off by a kill), sorted by log time."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no recording at {path}")
+    msgs: list[Recorded] = []
+    fleet, truncated = None, ""
+    for item in iter_recording(path):
+        if isinstance(item, Recorded):
+            msgs.append(item)
+        elif item.startswith("fleet="):
+            fleet = item[len("fleet=") :] or None
+        else:
+            truncated = item
+    if fleet is None:
+        for m in msgs:
+            parsed = keys.parse_vehicle_key(m.topic)
+            if parsed is not None:
+                fleet = parsed[0]
+                break
+    msgs.sort(key=lambda m: m.log_time_ns)
+    return Recording(msgs, fleet, truncated)
+
+
+def summarise(rec: Recording) -> dict:
+    """What `covey record --info` prints: vehicles, duration, counts and rates per kind."""
+    counts: dict[str, int] = {}
+    per_vehicle: dict[int, int] = {}
+    bad = 0
+    for m in rec.messages:
+        leaf = _leaf(m.topic)
+        counts[leaf] = counts.get(leaf, 0) + 1
+        if leaf == "state":
+            try:
+                state = schema.VehicleState.decode(m.data)
+            except schema.DecodeError:
+                bad += 1
+                continue
+            per_vehicle[state.vehicle_id] = per_vehicle.get(state.vehicle_id, 0) + 1
+    t0 = rec.messages[0].log_time_ns if rec.messages else 0
+    t1 = rec.messages[-1].log_time_ns if rec.messages else 0
+    duration_s = (t1 - t0) / 1e9
+    names = {"state": "states", "event": "events", "cmd": "commands", "alive": "presence", "other": "other"}
+
+    def rate(n: int) -> float:
+        return n / duration_s if duration_s > 0 else 0.0
+
+    return {
+        "fleet": rec.fleet,
+        "vehicles": sorted(per_vehicle),
+        "start_ns": t0,
+        "duration_s": duration_s,
+        "messages": len(rec.messages),
+        "counts": {names[k]: v for k, v in sorted(counts.items())},
+        "rates_hz": {names[k]: rate(v) for k, v in sorted(counts.items())},
+        "state_rate_hz_by_vehicle": {vid: rate(n) for vid, n in sorted(per_vehicle.items())},
+        "malformed_states": bad,
+        "complete": not rec.truncated,
+        "truncated": rec.truncated,
+    }
+
+
+def format_info(info: dict, path: str = "") -> str:
+    lines = [
+        f"recording   {path}",
+        f"fleet       {info['fleet']}",
+        f"vehicles    {', '.join(map(str, info['vehicles'])) or 'none'}",
+        f"duration    {info['duration_s']:.2f} s",
+        f"messages    {info['messages']}"
+        + ("" if info["complete"] else f"   (cut off: {info['truncated']})"),
+        "",
+        f"{'kind':<10} {'count':>8} {'rate Hz':>9}",
+    ]
+    for kind, n in info["counts"].items():
+        lines.append(f"{kind:<10} {n:>8} {info['rates_hz'][kind]:>9.2f}")
+    if info["state_rate_hz_by_vehicle"]:
+        lines += ["", f"{'vehicle':<10} {'state Hz':>9}"]
+        lines += [f"{vid:<10} {hz:>9.2f}" for vid, hz in info["state_rate_hz_by_vehicle"].items()]
+    return "\n".join(lines)

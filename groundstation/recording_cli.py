@@ -1,0 +1,175 @@
+"""`covey record` and `covey replay`: record a fleet's mesh to MCAP, summarise it, play it back,
+or replay one vehicle's recorded traffic through a policy (closed loop).
+
+    covey record -o flight.mcap --fleet demo --connect tcp/127.0.0.1:7447 --duration 60
+    covey record --info flight.mcap [--json]
+    covey replay flight.mcap --fleet demo-replay --speed 2 --loop
+    covey replay flight.mcap --policy policy/weights/policy.npz --vehicle 3 [--json out.json]
+
+This lives in groundstation/ because closed-loop replay needs the agent's guidance and the policy,
+which comms/ must not import.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from comms.record import RecordConfig, format_info, read_recording, record, summarise
+from comms.replay import LiveFleetError, ReplayConfig, replay
+from groundstation.meshargs import add_mesh_args, mesh_config
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not v > 0 or math.isnan(v):
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return v
+
+
+def _seconds(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of seconds >= 0")
+    return v
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+# -- record ----------------------------------------------------------------------------------
+def record_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="covey record", description="Record every message of a fleet's mesh to MCAP.")
+    p.add_argument("-o", "--output", default="flight.mcap", help="MCAP file to write (default flight.mcap)")
+    p.add_argument("--duration", type=_positive, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--info", metavar="FILE", default=None, help="summarise a recording instead of recording")
+    p.add_argument("--json", action="store_true", help="with --info: print JSON")
+    add_mesh_args(p)
+    return p
+
+
+def info_main(path: str, as_json: bool = False, out=sys.stdout) -> int:
+    info = summarise(read_recording(path))
+    print(json.dumps(info, indent=2) if as_json else format_info(info, path), file=out)
+    return 0
+
+
+def record_cli(argv: list[str]) -> int:
+    p = record_parser()
+    args = p.parse_args(argv)
+    if args.info:
+        try:
+            return info_main(args.info, args.json)
+        except FileNotFoundError as exc:
+            p.error(str(exc))
+    try:
+        cfg = RecordConfig(path=args.output, mesh=mesh_config(args, p), duration_s=args.duration)
+    except ValueError as exc:
+        p.error(str(exc))
+    stop = _stop_on_signals()
+    print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
+    counts = record(cfg, stop)
+    total = sum(counts.values())
+    print(f"wrote {total} messages to {cfg.path}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    return 0
+
+
+# -- replay ----------------------------------------------------------------------------------
+def replay_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey replay",
+        description="Play a recording into a fleet (states flagged REPLAY; commands are never sent), "
+        "or with --policy, replay one vehicle's traffic through a policy and compare its commands.",
+    )
+    p.add_argument("file", help="MCAP recording")
+    p.add_argument("--speed", type=_positive, default=1.0, help="playback speed (default 1; inf = as fast as possible)")
+    p.add_argument("--loop", action="store_true", help="start over at the end")
+    p.add_argument("--start", type=_seconds, default=0.0, metavar="S", help="start S seconds into the recording")
+    p.add_argument("--end", type=_seconds, default=None, metavar="S", help="stop S seconds into the recording")
+    p.add_argument("--presence-wait", type=_seconds, default=1.0, metavar="S",
+                   help="listen this long for live vehicles before replaying (default 1)")  # fmt: skip
+    cl = p.add_argument_group("closed loop")
+    cl.add_argument("--policy", default=None, metavar="PATH", help="weights (.npz) to replay through")
+    cl.add_argument("--vehicle", type=int, default=None, metavar="ID", help="the vehicle whose traffic is replayed")
+    cl.add_argument("--json-out", default=None, metavar="PATH", help="also write the closed-loop report as JSON")
+    cl.add_argument("--separation-m", type=_positive, default=3.0)
+    cl.add_argument("--cruise-speed-m-s", type=_positive, default=1.0)
+    cl.add_argument("--no-safety-filter", action="store_true")
+    add_mesh_args(p)
+    p.set_defaults(fleet=None)  # default: the recorded fleet
+    return p
+
+
+def replay_cli(argv: list[str]) -> int:
+    p = replay_parser()
+    args = p.parse_args(argv)
+    if not Path(args.file).is_file():
+        p.error(f"no recording at {args.file}")
+    if args.policy is not None or args.vehicle is not None:
+        if args.policy is None or args.vehicle is None:
+            p.error("closed-loop replay needs both --policy PATH and --vehicle ID")
+        return _closed_loop_cli(args, p)
+    rec = read_recording(args.file)
+    if rec.truncated:
+        print(f"note: {args.file} was cut off ({rec.truncated}); replaying what is there", file=sys.stderr)
+    if args.fleet is None:
+        args.fleet = rec.fleet or "covey"
+    try:
+        cfg = ReplayConfig(
+            path=args.file, mesh=mesh_config(args, p), speed=args.speed, loop=args.loop,
+            start_s=args.start, end_s=args.end, presence_wait_s=args.presence_wait,
+        )  # fmt: skip
+    except ValueError as exc:
+        p.error(str(exc))
+    stop = _stop_on_signals()
+    print(f"replaying {args.file} into fleet {cfg.mesh.fleet!r} at {cfg.speed:g}x", file=sys.stderr)
+    try:
+        result = replay(cfg, stop, recording=rec)
+    except LiveFleetError as exc:
+        print(f"covey replay: refused: {exc}", file=sys.stderr)
+        return 1
+    except ValueError as exc:
+        print(f"covey replay: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"replayed {result.states} states and {result.events} events in {result.loops} pass(es); "
+        f"{result.commands_skipped} recorded commands not sent"
+    )
+    return 0
+
+
+def _closed_loop_cli(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
+    from agent.closed_loop import ClosedLoopConfig, format_report, run_closed_loop
+
+    try:
+        cfg = ClosedLoopConfig(
+            path=args.file, vehicle_id=args.vehicle, policy_path=args.policy,
+            separation_m=args.separation_m, cruise_speed_m_s=args.cruise_speed_m_s,
+            safety_filter=not args.no_safety_filter, start_s=args.start, end_s=args.end,
+        )  # fmt: skip
+        report = run_closed_loop(cfg)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"covey replay: {exc}", file=sys.stderr)
+        return 2
+    print(format_report(report))
+    text = json.dumps(report, indent=2)
+    if args.json_out:
+        Path(args.json_out).write_text(text + "\n")
+    print(text)
+    return 0
