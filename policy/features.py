@@ -145,13 +145,17 @@ def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours
     heading_rad = np.asarray(heading_rad, dtype=np.float64)
     active = np.asarray(active, dtype=bool)
     n = pos.shape[-2]
-    rel = pos[..., None, :, :] - pos[..., :, None, :]  # rel[..., i, j, :] = p_j - p_i
-    d = np.hypot(rel[..., 0], rel[..., 1])
-    valid = active[..., :, None] & active[..., None, :] & ~np.eye(n, dtype=bool)
+    # squared distances key[..., i, j]; self, inactive and out-of-range pairs are inf
+    dx = pos[..., None, :, 0] - pos[..., :, None, 0]
+    dy = pos[..., None, :, 1] - pos[..., :, None, 1]
+    key = dx * dx + dy * dy
+    del dx, dy
+    ar = np.arange(n)
+    key[..., ar, ar] = np.inf
+    key += np.where(active, 0.0, np.inf)[..., None, :]
     if cfg.sense_range > 0:
-        valid &= d <= cfg.sense_range
+        key[key > cfg.sense_range**2] = np.inf
     k = max(n - 1 if max_neighbours is None else min(max_neighbours, n - 1), 0)
-    key = np.where(valid, d, np.inf)
     # nearest k, ties broken by index (= stable); a full sort only when cheap
     if 0 < k < n - 1 and n > 64:
         part = np.argpartition(key, k - 1, axis=-1)[..., :k]
@@ -160,7 +164,7 @@ def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours
     else:
         nearest = np.argsort(key, axis=-1, kind="stable")[..., :k]
     nd = np.take_along_axis(key, nearest, axis=-1)
-    ok = np.isfinite(nd)
+    ok = np.isfinite(nd) & active[..., None]
     lengths = ok.sum(axis=-1)
     if cfg.order == "index":
         o = np.argsort(np.where(ok, nearest, n + 1), axis=-1, kind="stable")
@@ -169,14 +173,16 @@ def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours
         o = np.lexsort((nearest, np.where(ok, -nd, np.inf)), axis=-1)
     nbr = np.take_along_axis(nearest, o, axis=-1)
     ok = np.take_along_axis(ok, o, axis=-1)
-    rx = np.take_along_axis(rel[..., 0], nbr, axis=-1)
-    ry = np.take_along_axis(rel[..., 1], nbr, axis=-1)
-    dd = np.take_along_axis(d, nbr, axis=-1)
-    h_nbr = np.take_along_axis(np.broadcast_to(heading_rad[..., None, :], d.shape), nbr, axis=-1)
-    psi_ij = wrap_rad(np.arctan2(ry, rx) - heading_rad[..., None])
-    psi_ji = wrap_rad(h_nbr - np.arctan2(-ry, -rx))
-    seq = encode_tuples(dd, psi_ij, psi_ji, cfg) * ok[..., None]
     nbr = np.where(ok, nbr, -1)
+    # gather the K neighbours of each row: (..., N, K)
+    pos_nbr = np.take_along_axis(pos[..., None, :, :], np.maximum(nbr, 0)[..., None], axis=-2)
+    h_nbr = np.take_along_axis(heading_rad[..., None, :], np.maximum(nbr, 0), axis=-1)
+    rx = pos_nbr[..., 0] - pos[..., :, None, 0]
+    ry = pos_nbr[..., 1] - pos[..., :, None, 1]
+    los = np.arctan2(ry, rx)
+    psi_ij = wrap_rad(los - heading_rad[..., None])
+    psi_ji = wrap_rad(h_nbr - (los + np.pi))  # the line of sight j -> i is los + pi
+    seq = encode_tuples(np.hypot(rx, ry), psi_ij, psi_ji, cfg) * ok[..., None]
     return seq, lengths, goal_features(pos, heading_rad, goal, cfg), nbr
 
 

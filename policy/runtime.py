@@ -82,31 +82,35 @@ class Network:
         return h
 
     def lstm_last_batch(self, seq: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-        """Final hidden states (N, H) of zero-padded sequences (N, K, X) with lengths (N,)."""
-        n, k, _ = seq.shape
+        """Final hidden states (N, H) of zero-padded sequences (N, K, X) with lengths (N,).
+
+        float32 (torch's precision), one matmul per step on [x_t, h] @ [W_ih; W_hh]^T.
+        """
+        n, k, x_n = seq.shape
         hs = self.hidden
-        h = np.zeros((n, hs))
-        c = np.zeros((n, hs))
-        if k == 0 or n == 0:
-            return h
-        kmax = int(lengths.max())
-        xp = seq[:, :kmax] @ self.w_ih.T + self.bias
+        out = np.zeros((n, hs))
+        if k == 0 or n == 0 or lengths.max() == 0:
+            return out
+        w = np.concatenate([self.w_ih.T, self.w_hh_t]).astype(np.float32)
+        b = self.bias.astype(np.float32)
+        # rows sorted by decreasing length: the rows still running at step t are a prefix
+        order = np.argsort(-lengths, kind="stable")
+        lens = lengths[order]
+        kmax = int(lens[0])
+        xs = seq[order, :kmax].astype(np.float32)
+        xh = np.zeros((n, x_n + hs), np.float32)
+        c = np.zeros((n, hs), np.float32)
         for t in range(kmax):
-            rows = np.flatnonzero(lengths > t)
-            if rows.shape[0] == n:
-                g = np.tanh(xp[:, t] + h @ self.w_hh_t)
-                c = 0.5 * (
-                    (1.0 + g[:, hs : 2 * hs]) * c + (1.0 + g[:, :hs]) * g[:, 2 * hs : 3 * hs]
-                )
-                h = 0.5 * (1.0 + g[:, 3 * hs :]) * np.tanh(c)
-            else:
-                g = np.tanh(xp[rows, t] + h[rows] @ self.w_hh_t)
-                cr = 0.5 * (
-                    (1.0 + g[:, hs : 2 * hs]) * c[rows] + (1.0 + g[:, :hs]) * g[:, 2 * hs : 3 * hs]
-                )
-                c[rows] = cr
-                h[rows] = 0.5 * (1.0 + g[:, 3 * hs :]) * np.tanh(cr)
-        return h
+            r = int(np.searchsorted(-lens, -t, side="left"))  # rows with length > t
+            xh[:r, :x_n] = xs[:r, t]
+            g = xh[:r] @ w
+            g += b
+            np.tanh(g, out=g)
+            g += 1.0  # i, f, o = (1 + g) / 2
+            c[:r] = 0.5 * (g[:, hs : 2 * hs] * c[:r] + g[:, :hs] * (g[:, 2 * hs : 3 * hs] - 1.0))
+            xh[:r, x_n:] = 0.5 * g[:, 3 * hs :] * np.tanh(c[:r])
+        out[order] = xh[:, x_n:]
+        return out
 
     def head_forward(self, h_last: np.ndarray, goal_feat: np.ndarray) -> np.ndarray:
         """Unclipped head output (..., 2)."""
