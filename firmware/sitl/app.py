@@ -36,7 +36,8 @@ class Emulator:
         self.traffic = TrafficStore(cfg.traffic_timeout_s, own_icao=cfg.vehicle_id)
         guidance = None
         if cfg.onboard:
-            guidance = PolicyGuidance(load_c_policy(cfg.policy_weights), self.traffic, cfg.home, cfg.policy_hz)
+            guidance = PolicyGuidance(load_c_policy(cfg.policy_weights, cfg.separation_m, cfg.policy_speed_m_s),
+                                      self.traffic, cfg.home, cfg.policy_hz)
         self.vehicle = Vehicle(params=cfg.params, healthy=cfg.healthy, guidance=guidance, now_s=now_s)
         self.autopilot = Autopilot(self.vehicle, cfg.home, cfg.vehicle_id, self.traffic)
         self._stack = ExitStack()
@@ -74,6 +75,8 @@ class Emulator:
                     self.handle_errors += 1
                     log.exception("error handling %s", msg.get_type())
                     continue
+                # PX4 explains a refusal in a STATUSTEXT; send it before the ack so it is there.
+                self._broadcast(self._statustexts())
                 for r in replies:
                     link.send(r)
         self.vehicle.step(now_s)
@@ -98,9 +101,11 @@ class Emulator:
             elif name == "traffic":
                 held = self.traffic.fresh(now_s)
                 out += [streams.adsb_vehicle(e, now_s) for e in held]
-        while v.events:
-            out.append(streams.statustext(v.events.pop(0)))
-        return out
+        return out + self._statustexts()
+
+    def _statustexts(self) -> list[Any]:
+        events, self.vehicle.events[:] = list(self.vehicle.events), []
+        return [streams.statustext(e) for e in events]
 
     def run(self, stop: threading.Event, clock: Callable[[], float] = time.monotonic) -> None:
         """Tick at `physics_hz` until `stop` is set (or `duration_s` has passed)."""

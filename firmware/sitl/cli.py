@@ -38,7 +38,9 @@ def parser() -> argparse.ArgumentParser:
                    help="listen and answer whoever speaks (repeatable)")
     p.add_argument("--home", type=_home, default=GeoOrigin(), metavar="LAT,LON,ALT", help="boot position")
     p.add_argument("--onboard", action="store_true", help="fly goto targets with the C policy, avoiding traffic")
-    p.add_argument("--weights", default=None, help="C policy weights (onboard mode)")
+    p.add_argument("--weights", default=None, help="C policy weights (onboard mode; default: shipped)")
+    p.add_argument("--separation", type=_positive, default=3.0, help="m kept from traffic by the onboard policy")
+    p.add_argument("--policy-speed", type=_positive, default=1.0, help="m/s cruise of the onboard policy")
     p.add_argument("--unhealthy", action="store_true", help="emulate a failed sensor: arming is refused")
     defaults = VehicleParams()
     p.add_argument("--cruise-speed", type=_positive, default=defaults.cruise_speed_m_s, help="m/s (MPC_XY_CRUISE)")
@@ -46,6 +48,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--land-speed", type=_positive, default=defaults.land_speed_m_s, help="m/s (MPC_LAND_SPEED)")
     p.add_argument("--climb-speed", type=_positive, default=defaults.climb_speed_m_s, help="m/s (MPC_Z_VEL_MAX_UP)")
     p.add_argument("--descent-speed", type=_positive, default=defaults.descent_speed_m_s, help="m/s (MPC_Z_VEL_MAX_DN)")
+    p.add_argument("--pos-gain", type=_positive, default=defaults.pos_gain_1_s, help="1/s position loop gain (MPC_XY_P)")
     p.add_argument("--accel", type=_positive, default=defaults.accel_m_s2, help="m/s^2 (MPC_ACC_HOR)")
     p.add_argument("--disarm-after-land", type=_positive, default=defaults.disarm_after_land_s, help="s (COM_DISARM_LAND)")
     p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
@@ -59,10 +62,11 @@ def config_from_args(argv: Sequence[str] | None = None) -> SitlConfig:
     links = [u if u.startswith("udp") else f"udpout:{u}" for u in links] or ["udpout:127.0.0.1:14540"]
     params = VehicleParams(
         cruise_speed_m_s=a.cruise_speed, takeoff_speed_m_s=a.takeoff_speed, land_speed_m_s=a.land_speed,
-        climb_speed_m_s=a.climb_speed, descent_speed_m_s=a.descent_speed, accel_m_s2=a.accel,
+        climb_speed_m_s=a.climb_speed, descent_speed_m_s=a.descent_speed, accel_m_s2=a.accel, pos_gain_1_s=a.pos_gain,
         disarm_after_land_s=a.disarm_after_land)
     return SitlConfig(vehicle_id=a.id, links=tuple(links), home=a.home, onboard=a.onboard,
-                      policy_weights=a.weights, healthy=not a.unhealthy, params=params, duration_s=a.duration)
+                      policy_weights=a.weights, separation_m=a.separation,
+                      policy_speed_m_s=a.policy_speed, healthy=not a.unhealthy, params=params, duration_s=a.duration)
 
 
 def cli(argv: Sequence[str] | None = None) -> int:

@@ -23,7 +23,11 @@ class SitlConfig:
     onboard: bool = False
     """Fly goto targets with the C policy (firmware.cpolicy), avoiding ADSB_VEHICLE traffic."""
     policy_weights: str | None = None
-    """Weights file for the C policy (None: its default)."""
+    """Weights file for the C policy (None: the shipped weights)."""
+    separation_m: float = 3.0
+    """Separation the onboard policy keeps (it was trained for 3 m; distances scale by this / 3)."""
+    policy_speed_m_s: float = 1.0
+    """Onboard policy cruise speed (the policy's unit speed)."""
     healthy: bool = True
     """Pre-arm checks pass. False emulates a failed sensor: SYS_STATUS reports it, arming is refused."""
     params: VehicleParams = field(default_factory=VehicleParams)
@@ -44,6 +48,7 @@ class SitlConfig:
             raise ValueError(f"vehicle_id must be within 1..254 (a MAVLink system id), got {self.vehicle_id}")
         if not self.links:
             raise ValueError("at least one MAVLink link is needed")
-        for name in ("physics_hz", "position_hz", "traffic_timeout_s", "policy_hz"):
+        for name in ("physics_hz", "position_hz", "traffic_timeout_s", "policy_hz", "separation_m",
+                     "policy_speed_m_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")

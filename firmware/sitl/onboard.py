@@ -7,6 +7,7 @@ turns them into a horizontal velocity setpoint at a fixed rate.
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any, Protocol
 
@@ -14,6 +15,8 @@ import numpy as np
 
 from comms.geo import GeoOrigin
 from firmware.sitl.traffic import TrafficStore
+
+log = logging.getLogger(__name__)
 
 
 class Policy(Protocol):
@@ -23,13 +26,13 @@ class Policy(Protocol):
                 nbr_pos_m: Any, nbr_vel_m_s: Any, nbr_heading_rad: Any) -> Any: ...
 
 
-def load_c_policy(weights: str | None) -> Policy:
+def load_c_policy(weights: str | None, separation_m: float, cruise_speed_m_s: float) -> Policy:
     """Import the C policy lazily: the emulator runs without it unless onboard mode is asked for."""
     try:
         from firmware.cpolicy import CPolicy
     except ImportError as exc:
         raise RuntimeError(f"onboard mode needs firmware.cpolicy (the C policy wrapper): {exc}") from exc
-    return CPolicy(weights) if weights else CPolicy()
+    return CPolicy.load(weights, separation_m=separation_m, cruise_speed_m_s=cruise_speed_m_s)
 
 
 class PolicyGuidance:
@@ -64,7 +67,11 @@ class PolicyGuidance:
             return self._last
         self._next_s = now_s + self.period_s
         nbr_pos, nbr_vel, nbr_hdg = self.neighbours(now_s)
-        cmd = np.asarray(self.policy.command(pos_ned_m[:2], vel_ned_m_s[:2], heading_rad, goal_ned_m[:2],
-                                             nbr_pos, nbr_vel, nbr_hdg), dtype=float).reshape(-1)
+        try:
+            cmd = np.asarray(self.policy.command(pos_ned_m[:2], vel_ned_m_s[:2], heading_rad, goal_ned_m[:2],
+                                                 nbr_pos, nbr_vel, nbr_hdg), dtype=float).reshape(-1)
+        except (ValueError, ArithmeticError) as exc:  # the core refused its inputs (CPolicyError)
+            log.warning("policy fault: %s", exc)
+            cmd = np.full(2, math.nan)  # the vehicle holds on a non-finite command
         self._last = (float(cmd[0]), float(cmd[1])) if cmd.shape == (2,) else (math.nan, math.nan)
         return self._last

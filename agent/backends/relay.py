@@ -1,0 +1,347 @@
+"""Onboard mode: the paper's Raspberry Pi relay between the mesh and a PX4 that runs the policy.
+
+The autopilot flies goto targets with the policy itself; this backend only relays. It reads the
+autopilot's own state (GLOBAL_POSITION_INT, LOCAL_POSITION_NED, ATTITUDE, HEARTBEAT, ...) as
+`Telemetry` in the fleet's local NED frame, forwards the neighbours as ADSB_VEHICLE traffic
+reports (PX4 ingests them as transponder reports), and sends ground-station commands as MAVLink
+commands, waiting for COMMAND_ACK. A refusal or a missing ack is a `BackendError` that carries
+the MAV_RESULT and the autopilot's own STATUSTEXT explanation when it sent one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
+from comms.geo import GeoOrigin
+
+KILL_MAGIC = 21196.0
+"""ARM_DISARM param2 that forces a disarm in the air."""
+PX4_HOLD = (4, 3)
+"""PX4 (main, sub) mode of HOLD (AUTO_LOITER)."""
+ADSB_FLAGS = (mavlink.ADSB_FLAGS_VALID_COORDS | mavlink.ADSB_FLAGS_VALID_ALTITUDE
+              | mavlink.ADSB_FLAGS_VALID_HEADING | mavlink.ADSB_FLAGS_VALID_VELOCITY
+              | mavlink.ADSB_FLAGS_VALID_CALLSIGN | mavlink.ADSB_FLAGS_SIMULATED
+              | mavlink.ADSB_FLAGS_VERTICAL_VELOCITY_VALID)
+RESULT_BY_VALUE = {k: v.name for k, v in mavlink.enums["MAV_RESULT"].items()}
+
+
+@dataclass(frozen=True)
+class RelayConfig:
+    """How the relay reaches its autopilot."""
+
+    connection: str = "udpin:0.0.0.0:14550"
+    """`udpin:HOST:PORT` (listen; the autopilot sends here) or `udpout:HOST:PORT` (send to it)."""
+    source_system: int = 245
+    """Our MAVLink system id."""
+    source_component: int = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
+    """Our MAVLink component id (a companion computer)."""
+    target_system: int | None = None
+    """The autopilot's system id; None: the first PX4 heartbeat heard."""
+    ack_timeout_s: float = 1.0
+    """Wait for COMMAND_ACK per attempt."""
+    attempts: int = 3
+    """Sends of one command before giving up (MAVLink's command protocol retransmits)."""
+    connect_timeout_s: float = 10.0
+    """How long a command waits for the autopilot's first heartbeat."""
+    link_timeout_s: float = 2.0
+    """No heartbeat for this long means the link is down (`Telemetry.link_ok` False)."""
+    heartbeat_hz: float = 1.0
+    """Our own heartbeat rate (PX4 watches companion heartbeats)."""
+
+    def __post_init__(self) -> None:
+        _parse_url(self.connection)
+        if self.attempts < 1:
+            raise ValueError(f"attempts must be at least 1, got {self.attempts}")
+        for name in ("ack_timeout_s", "connect_timeout_s", "link_timeout_s", "heartbeat_hz"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+
+
+def _parse_url(url: str) -> tuple[bool, str, int]:
+    scheme, _, rest = url.partition(":")
+    host, _, port = rest.removeprefix("//").rpartition(":")
+    if scheme not in ("udpin", "udpout") or not host or not port.isdigit():
+        raise ValueError(f"connection must be udpin:HOST:PORT or udpout:HOST:PORT, got {url!r}")
+    return scheme == "udpin", host, int(port)
+
+
+@dataclass
+class _State:
+    """Latest autopilot state (written by the receive thread, read under the lock)."""
+
+    pos_ned_m: tuple[float, float, float] | None = None
+    pos_stamp_s: float = -math.inf
+    vel_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    heading_rad: float = 0.0
+    armed: bool = False
+    landed_state: int = mavlink.MAV_LANDED_STATE_UNDEFINED
+    rel_alt_m: float = 0.0
+    battery_pct: float = math.nan
+    custom_mode: int = 0
+    heartbeat_s: float = -math.inf
+
+
+class RelayBackend(VehicleBackend):
+    """Relay to one PX4 autopilot that runs the policy onboard. Use as a context manager."""
+
+    capabilities = frozenset({Capability.ONBOARD_GUIDANCE, Capability.TRAFFIC_INPUT})
+
+    def __init__(self, cfg: RelayConfig, origin: GeoOrigin, clock: Callable[[], float] = time.monotonic) -> None:
+        self.cfg, self.origin, self.clock = cfg, origin, clock
+        self._listen, host, port = _parse_url(cfg.connection)
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._peer: tuple[str, int] | None = None
+        try:
+            if self._listen:
+                self._sock.bind((host, port))
+            else:
+                self._peer = (host, port)
+        except OSError as exc:
+            self._sock.close()
+            raise BackendError(f"cannot open {cfg.connection}: {exc}") from exc
+        self._mav = mavlink.MAVLink(self, srcSystem=cfg.source_system, srcComponent=cfg.source_component)
+        self._target = cfg.target_system
+        self._state = _State()
+        self._cond = threading.Condition()
+        self._acks: dict[int, int] = {}  # command id -> MAV_RESULT of the newest ack
+        self._texts: list[tuple[float, str]] = []
+        self._param: tuple[str, float] | None = None  # newest PARAM_VALUE (name, value)
+        self._send_lock = threading.Lock()
+        self._closed = False
+        self._thread = threading.Thread(target=self._receive_loop, name="relay-rx", daemon=True)
+        self._thread.start()
+
+    # ---- link ----------------------------------------------------------------------------------
+
+    def write(self, buf: bytes) -> None:
+        """pymavlink's output hook."""
+        if self._peer is not None:
+            # UDP: a lost packet is the command protocol's problem (it retries).
+            with contextlib.suppress(OSError):
+                self._sock.sendto(buf, self._peer)
+
+    def _receive_loop(self) -> None:
+        next_hb_s = 0.0
+        while not self._closed:
+            now = self.clock()
+            if now >= next_hb_s:
+                next_hb_s = now + 1.0 / self.cfg.heartbeat_hz
+                self._send(mavlink.MAVLink_heartbeat_message(
+                    mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3))
+            try:
+                ready, _, _ = select.select([self._sock], [], [], 0.05)
+                if not ready:
+                    continue
+                data, addr = self._sock.recvfrom(65535)
+            except (OSError, ValueError):  # closed under us, or ICMP unreachable
+                if self._closed:
+                    return
+                time.sleep(0.05)
+                continue
+            for msg in self._parse(data):
+                self._on_message(msg, addr)
+
+    @staticmethod
+    def _parse(data: bytes) -> list[Any]:
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        try:
+            msgs = parser.parse_buffer(data) or []
+        except Exception:  # noqa: BLE001 - garbage on the link is dropped, never fatal
+            return []
+        return [m for m in msgs if m.get_type() != "BAD_DATA"]
+
+    def _send(self, msg: Any) -> None:
+        try:
+            with self._send_lock:
+                self._mav.send(msg)
+        except Exception as exc:  # noqa: BLE001 - struct.error on an out-of-range field
+            raise BackendError(f"cannot encode {msg.get_type()}: {exc}") from exc
+
+    def _on_message(self, msg: Any, addr: tuple[str, int]) -> None:
+        kind, src = msg.get_type(), msg.get_srcSystem()
+        if kind == "HEARTBEAT" and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and self._target in (None, src):
+            with self._cond:
+                self._target = src
+                if self._listen:
+                    self._peer = addr  # udpin: answer whoever the autopilot is
+                s = self._state
+                s.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                s.custom_mode, s.heartbeat_s = msg.custom_mode, self.clock()
+                self._cond.notify_all()
+            return
+        if src != self._target:
+            return
+        with self._cond:
+            s = self._state
+            if kind == "GLOBAL_POSITION_INT":
+                s.pos_ned_m = self.origin.to_local(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+                s.pos_stamp_s, s.rel_alt_m = self.clock(), msg.relative_alt * 1e-3
+                s.vel_ned_m_s = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
+                if msg.hdg != 65535:
+                    s.heading_rad = math.radians(msg.hdg * 0.01)
+            elif kind == "LOCAL_POSITION_NED":
+                s.vel_ned_m_s = (msg.vx, msg.vy, msg.vz)  # finer than GLOBAL_POSITION_INT's cm/s
+            elif kind == "ATTITUDE":
+                s.heading_rad = msg.yaw % (2.0 * math.pi)
+            elif kind == "EXTENDED_SYS_STATE":
+                s.landed_state = msg.landed_state
+            elif kind == "SYS_STATUS" and msg.battery_remaining >= 0:
+                s.battery_pct = float(msg.battery_remaining)
+            elif kind == "COMMAND_ACK" and msg.target_system in (0, self.cfg.source_system):
+                self._acks[msg.command] = msg.result
+                self._cond.notify_all()
+            elif kind == "STATUSTEXT":
+                self._texts = [*self._texts[-19:], (self.clock(), msg.text.rstrip("\x00"))]
+            elif kind == "PARAM_VALUE":
+                self._param = (msg.param_id.rstrip("\x00"), msg.param_value)
+                self._cond.notify_all()
+
+    # ---- lifecycle -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._thread.join(timeout=2.0)
+        self._sock.close()
+
+    def wait_connected(self, timeout_s: float | None = None) -> bool:
+        """Block until a PX4 heartbeat has been heard (True) or the timeout passes (False)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._target is not None and self._peer is not None,
+                                       self.cfg.connect_timeout_s if timeout_s is None else timeout_s)
+
+    def _require_link(self) -> int:
+        if self._closed:
+            raise BackendError("relay is closed")
+        if not self.wait_connected():
+            raise BackendError(f"no autopilot heartbeat on {self.cfg.connection} after {self.cfg.connect_timeout_s} s")
+        assert self._target is not None
+        return self._target
+
+    # ---- commands ------------------------------------------------------------------------------
+
+    def _command(self, what: str, command: int, params: Sequence[float], *,
+                 global_xyz: tuple[int, int, float] | None = None) -> None:
+        """Send COMMAND_LONG (or COMMAND_INT with x/y/z) and wait for an ACCEPTED ack."""
+        target = self._require_link()
+        sent_s = self.clock()
+        p = [float(x) for x in params] + [math.nan] * (7 - len(params))
+        for attempt in range(self.cfg.attempts):
+            with self._cond:
+                self._acks.pop(command, None)
+            if global_xyz is None:
+                self._send(mavlink.MAVLink_command_long_message(target, 1, command, attempt, *p))
+            else:
+                x, y, z = global_xyz
+                self._send(mavlink.MAVLink_command_int_message(target, 1, mavlink.MAV_FRAME_GLOBAL, command,
+                                                               0, 0, *p[:4], x, y, z))
+            with self._cond:
+                got = self._cond.wait_for(lambda: self._acks.get(command, -1) not in (-1, mavlink.MAV_RESULT_IN_PROGRESS),
+                                          self.cfg.ack_timeout_s)
+                result = self._acks.get(command)
+            if got and result == mavlink.MAV_RESULT_ACCEPTED:
+                return
+            if got:
+                raise BackendError(f"{what} refused: {RESULT_BY_VALUE.get(result, result)}{self._explain(sent_s)}")
+        raise BackendError(f"{what}: no COMMAND_ACK after {self.cfg.attempts} tries of {self.cfg.ack_timeout_s} s"
+                           f"{'' if self.link_ok else ' (autopilot link lost)'}")
+
+    def _explain(self, since_s: float) -> str:
+        """The autopilot's STATUSTEXTs since the command was sent (PX4 says why it refused)."""
+        time.sleep(0.05)  # PX4 may send its explanation just after the ack
+        with self._cond:
+            texts = [t for s, t in self._texts if s >= since_s]
+        return f" ({'; '.join(texts)})" if texts else ""
+
+    def _set_param(self, name: str, value: float) -> None:
+        target = self._require_link()
+        for _ in range(self.cfg.attempts):
+            with self._cond:
+                self._param = None
+            self._send(mavlink.MAVLink_param_set_message(target, 1, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32))
+            with self._cond:
+                if self._cond.wait_for(lambda: self._param is not None and self._param[0] == name, self.cfg.ack_timeout_s):
+                    if self._param is not None and math.isclose(self._param[1], value, rel_tol=1e-6):
+                        return
+                    raise BackendError(f"parameter {name} = {value} refused by the autopilot")
+        raise BackendError(f"parameter {name}: no PARAM_VALUE after {self.cfg.attempts} tries")
+
+    @property
+    def link_ok(self) -> bool:
+        return not self._closed and self.clock() - self._state.heartbeat_s < self.cfg.link_timeout_s
+
+    def telemetry(self) -> Telemetry | None:
+        with self._cond:
+            s = self._state
+            if s.pos_ned_m is None:
+                return None
+            in_air = (s.landed_state in (mavlink.MAV_LANDED_STATE_IN_AIR, mavlink.MAV_LANDED_STATE_TAKEOFF,
+                                         mavlink.MAV_LANDED_STATE_LANDING)
+                      if s.landed_state != mavlink.MAV_LANDED_STATE_UNDEFINED else s.rel_alt_m > 0.3)
+            return Telemetry(stamp_s=s.pos_stamp_s, pos_ned_m=s.pos_ned_m, vel_ned_m_s=s.vel_ned_m_s,
+                             heading_rad=s.heading_rad, armed=s.armed, in_air=in_air,
+                             battery_pct=s.battery_pct, link_ok=self.link_ok)
+
+    def takeoff(self, alt_m: float) -> None:
+        if not (math.isfinite(alt_m) and 0.5 <= alt_m <= 120.0):
+            raise BackendError(f"takeoff altitude must be within [0.5, 120] m, got {alt_m}")
+        self._set_param("MIS_TAKEOFF_ALT", float(alt_m))
+        self._command("arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [1.0, 0.0])
+        # param7 NaN: PX4 climbs to MIS_TAKEOFF_ALT above home.
+        self._command("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, [])
+
+    def land(self) -> None:
+        self._command("land", mavlink.MAV_CMD_NAV_LAND, [])
+
+    def hold(self) -> None:
+        main, sub = PX4_HOLD
+        self._command("hold", mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub])
+
+    def kill(self) -> None:
+        self._command("kill", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0, KILL_MAGIC])
+
+    def goto_local(self, pos_ned_m: Sequence[float]) -> None:
+        p = [float(x) for x in pos_ned_m]
+        if len(p) != 3 or not all(math.isfinite(x) for x in p):
+            raise BackendError(f"goto position must be 3 finite numbers (NED m), got {pos_ned_m}")
+        lat, lon, alt = self.origin.to_global(*p)
+        # DO_REPOSITION: speed default (-1), switch mode (flag 1), yaw unchanged (NaN).
+        self._command("goto", mavlink.MAV_CMD_DO_REPOSITION, [-1.0, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0.0, math.nan],
+                      global_xyz=(round(lat * 1e7), round(lon * 1e7), alt))
+
+    def send_traffic(self, traffic: Sequence[Traffic]) -> None:
+        self._require_link()
+        bad = []
+        for t in traffic:
+            values = (*t.pos_ned_m, *t.vel_ned_m_s, t.heading_rad, t.age_s)
+            if not all(math.isfinite(x) for x in values) or not 0 <= t.vehicle_id <= 0xFFFFFF:
+                bad.append(t.vehicle_id)
+                continue
+            self._send(adsb_vehicle(t, self.origin))
+        if bad:
+            raise BackendError(f"traffic of vehicles {bad} not sent: non-finite fields or id out of the 24-bit ICAO range")
+
+
+def adsb_vehicle(t: Traffic, origin: GeoOrigin) -> Any:
+    """One neighbour as an ADSB_VEHICLE report (ICAO address = vehicle id)."""
+    lat, lon, alt = origin.to_global(*t.pos_ned_m)
+    vn, ve, vd = t.vel_ned_m_s
+    heading_cdeg = round(math.degrees(t.heading_rad) * 100.0) % 36000
+    return mavlink.MAVLink_adsb_vehicle_message(
+        t.vehicle_id, round(lat * 1e7), round(lon * 1e7), mavlink.ADSB_ALTITUDE_TYPE_GEOMETRIC,
+        round(alt * 1000.0), heading_cdeg, min(65535, round(math.hypot(vn, ve) * 100.0)),
+        max(-32767, min(32767, round(-vd * 100.0))), f"COVEY{t.vehicle_id}".encode()[:9],
+        mavlink.ADSB_EMITTER_TYPE_UAV, min(255, round(t.age_s)), ADSB_FLAGS, 0)
