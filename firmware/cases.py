@@ -20,6 +20,7 @@ MAX_ABS_POS_M = F32(1.0e5)
 MAX_ABS_HEADING_RAD = F32(12.5663706)
 MIN_SEPARATION_M = F32(0.01)
 MAX_SEPARATION_M = F32(1000.0)
+MIN_CRUISE_SPEED_M_S = F32(0.01)
 MAX_CRUISE_SPEED_M_S = F32(100.0)
 MAX_ABS_FEATURE = F32(1.0e9)
 U64_MAX = 2**64 - 1
@@ -164,7 +165,7 @@ def expected_status(c: Case) -> int:
     sep, cruise = F32(c.sep_m), F32(c.cruise_m_s)
     if not (np.isfinite(sep) and np.isfinite(cruise)):
         return STATUS["nonfinite"]
-    if not (MIN_SEPARATION_M <= sep <= MAX_SEPARATION_M) or not (0 < cruise <= MAX_CRUISE_SPEED_M_S):
+    if not (MIN_SEPARATION_M <= sep <= MAX_SEPARATION_M) or not (MIN_CRUISE_SPEED_M_S <= cruise <= MAX_CRUISE_SPEED_M_S):
         return STATUS["range"]
     if not (0 <= c.max_nbrs <= MAX_NEIGHBOURS):
         return STATUS["range"]

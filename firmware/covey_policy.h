@@ -53,6 +53,7 @@ extern "C" {
 #define COVEY_MAX_ABS_HEADING_RAD 12.5663706f /* 4 pi: one unwrapped turn either way */
 #define COVEY_MIN_SEPARATION_M 0.01f       /* keeps 3 / separation and distances finite */
 #define COVEY_MAX_SEPARATION_M 1000.0f
+#define COVEY_MIN_CRUISE_SPEED_M_S 0.01f
 #define COVEY_MAX_CRUISE_SPEED_M_S 100.0f
 #define COVEY_MAX_ABS_FEATURE 1.0e9f        /* covey_action inputs */
 
@@ -96,7 +97,7 @@ typedef enum {
 /* Run-time configuration; check once with covey_config_check (every call rechecks). */
 typedef struct {
     float separation_m;        /* [0.01, 1000]: 3 policy units of distance = this many metres */
-    float cruise_speed_m_s;    /* (0, 100]: 1 policy unit of speed = this many m/s */
+    float cruise_speed_m_s;    /* [0.01, 100]: 1 policy unit of speed = this many m/s */
     uint64_t max_neighbour_age_us; /* older neighbour reports are dropped */
     uint64_t max_own_age_us;   /* older own state is a fault (COVEY_ERR_STALE) */
     int32_t max_neighbours;    /* [0, COVEY_MAX_NEIGHBOURS]: nearest kept */
