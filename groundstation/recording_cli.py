@@ -55,10 +55,18 @@ def _stop_on_signals() -> threading.Event:
 
 # -- record ----------------------------------------------------------------------------------
 def record_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="covey record", description="Record every message of a fleet's mesh to MCAP.")
-    p.add_argument("-o", "--output", default="flight.mcap", help="MCAP file to write (default flight.mcap)")
-    p.add_argument("--duration", type=_positive, default=None, metavar="S", help="stop after S seconds")
-    p.add_argument("--info", metavar="FILE", default=None, help="summarise a recording instead of recording")
+    p = argparse.ArgumentParser(
+        prog="covey record", description="Record every message of a fleet's mesh to MCAP."
+    )
+    p.add_argument(
+        "-o", "--output", default="flight.mcap", help="MCAP file to write (default flight.mcap)"
+    )
+    p.add_argument(
+        "--duration", type=_positive, default=None, metavar="S", help="stop after S seconds"
+    )
+    p.add_argument(
+        "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
+    )
     p.add_argument("--json", action="store_true", help="with --info: print JSON")
     add_mesh_args(p)
     return p
@@ -86,7 +94,10 @@ def record_cli(argv: list[str]) -> int:
     print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
     counts = record(cfg, stop)
     total = sum(counts.values())
-    print(f"wrote {total} messages to {cfg.path}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    print(
+        f"wrote {total} messages to {cfg.path}: "
+        + ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    )
     return 0
 
 
@@ -98,16 +109,39 @@ def replay_parser() -> argparse.ArgumentParser:
         "or with --policy, replay one vehicle's traffic through a policy and compare its commands.",
     )
     p.add_argument("file", help="MCAP recording")
-    p.add_argument("--speed", type=_positive, default=1.0, help="playback speed (default 1; inf = as fast as possible)")
+    p.add_argument(
+        "--speed",
+        type=_positive,
+        default=1.0,
+        help="playback speed (default 1; inf = as fast as possible)",
+    )
     p.add_argument("--loop", action="store_true", help="start over at the end")
-    p.add_argument("--start", type=_seconds, default=0.0, metavar="S", help="start S seconds into the recording")
-    p.add_argument("--end", type=_seconds, default=None, metavar="S", help="stop S seconds into the recording")
+    p.add_argument(
+        "--start",
+        type=_seconds,
+        default=0.0,
+        metavar="S",
+        help="start S seconds into the recording",
+    )
+    p.add_argument(
+        "--end", type=_seconds, default=None, metavar="S", help="stop S seconds into the recording"
+    )
     p.add_argument("--presence-wait", type=_seconds, default=1.0, metavar="S",
                    help="listen this long for live vehicles before replaying (default 1)")  # fmt: skip
     cl = p.add_argument_group("closed loop")
-    cl.add_argument("--policy", default=None, metavar="PATH", help="weights (.npz) to replay through")
-    cl.add_argument("--vehicle", type=int, default=None, metavar="ID", help="the vehicle whose traffic is replayed")
-    cl.add_argument("--json-out", default=None, metavar="PATH", help="also write the closed-loop report as JSON")
+    cl.add_argument(
+        "--policy", default=None, metavar="PATH", help="weights (.npz) to replay through"
+    )
+    cl.add_argument(
+        "--vehicle",
+        type=int,
+        default=None,
+        metavar="ID",
+        help="the vehicle whose traffic is replayed",
+    )
+    cl.add_argument(
+        "--json-out", default=None, metavar="PATH", help="also write the closed-loop report as JSON"
+    )
     cl.add_argument("--separation-m", type=_positive, default=3.0)
     cl.add_argument("--cruise-speed-m-s", type=_positive, default=1.0)
     cl.add_argument("--no-safety-filter", action="store_true")
@@ -127,7 +161,10 @@ def replay_cli(argv: list[str]) -> int:
         return _closed_loop_cli(args, p)
     rec = read_recording(args.file)
     if rec.truncated:
-        print(f"note: {args.file} was cut off ({rec.truncated}); replaying what is there", file=sys.stderr)
+        print(
+            f"note: {args.file} was cut off ({rec.truncated}); replaying what is there",
+            file=sys.stderr,
+        )
     if args.fleet is None:
         args.fleet = rec.fleet or "covey"
     try:

@@ -1,0 +1,222 @@
+"""The ground station: joins the mesh, keeps the fleet model, serves the viser web app.
+
+    with GroundStation(cfg) as gcs:       # mesh + viser server + render loop
+        print(gcs.url); gcs.wait()
+
+The mesh feeds the FleetModel from Zenoh threads; one render thread draws the scene at
+`scene_rate_hz` and the table at `table_rate_hz` from snapshots; commands go out on a worker.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import viser
+
+from comms.geo import GeoOrigin
+from comms.mesh import Mesh
+from comms.presence import Presence
+from comms.schema import CommandKind
+from comms.session import MeshConfig
+from groundstation import dispatch, scenarios
+from groundstation.dispatch import CommandWorker, Dispatched
+from groundstation.fleet import FleetConfig, FleetModel
+from groundstation.inputs import CommandRequest
+from groundstation.panel import CommandPanel, Job, PanelHooks
+from groundstation.scene import FleetScene, SceneConfig
+from groundstation.tables import fleet_table, legend
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GcsConfig:
+    """Everything `covey gcs` needs."""
+
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    """How to join the mesh (ignored when a Mesh is passed to GroundStation)."""
+    host: str = "127.0.0.1"
+    """Address the web app listens on (loopback unless you mean to share it)."""
+    port: int = 8080
+    """Web port; if busy, the next free one is used and printed."""
+    gcs_id: int = 1
+    """This station's id on the mesh (its liveliness token; the commands' source id)."""
+    geofence_radius_m: float = 50.0
+    """Geofence drawn around the origin, in metres; also bounds goto targets."""
+    separation_m: float = 3.0
+    """Vehicles closer than this are flagged red."""
+    scene_rate_hz: float = 10.0
+    """Scene updates per second."""
+    table_rate_hz: float = 4.0
+    """Fleet table updates per second (presence loss shows within 1 / rate)."""
+    command_timeout_s: float = 2.0
+    """How long to wait for every vehicle's ack."""
+    origin: GeoOrigin = field(default_factory=GeoOrigin)
+    """Fleet origin (NED 0,0,0), for goto-global defaults."""
+    swap_radius_m: float = 12.0
+    """Radius of the swap scenario's circle."""
+    kill_window_s: float = 5.0
+    """Seconds after 'Arm kill' during which 'CONFIRM KILL' works."""
+    seed: int = 0
+    """Seed of the random-goals scenario."""
+    view_radius_m: float = 20.0
+    """The initial camera frames about this radius around the origin."""
+
+
+class GroundStation:
+    """Context manager: the running ground station."""
+
+    def __init__(self, cfg: GcsConfig, *, mesh: Mesh | None = None,
+                 clock_ns: Callable[[], int] = time.time_ns) -> None:  # fmt: skip
+        self.cfg = cfg
+        self._clock_ns = clock_ns
+        self._given_mesh = mesh
+        self.mesh: Mesh | None = None
+        self.fleet = FleetModel(FleetConfig(separation_m=cfg.separation_m))
+        self.presence: Presence | None = None
+        self.server: viser.ViserServer | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._rng = np.random.default_rng(cfg.seed)
+        self.update_times_s: list[float] = []
+        self.last_result: Dispatched | None = None
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def __enter__(self) -> GroundStation:
+        try:
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _start(self) -> None:
+        cfg = self.cfg
+        self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns)
+        self.mesh.subscribe_states(self.fleet.on_state)
+        self.presence = self.mesh.presence(self._on_presence)
+        self.mesh.declare_gcs(cfg.gcs_id)
+        self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="covey", verbose=False)
+        self.server.gui.configure_theme(control_width="large", show_share_button=False,
+                                        brand_color=(20, 110, 160))  # fmt: skip
+        cam, view_m = self.server.initial_camera, self.cfg.view_radius_m
+        cam.position, cam.look_at = (-0.45 * view_m, -1.3 * view_m, 0.9 * view_m), (0.0, 0.0, 2.0)
+        self._build_gui()
+        self._worker = CommandWorker(self._on_result)
+        self._thread = threading.Thread(target=self._loop, name="gcs-render", daemon=True)
+        self._thread.start()
+
+    def _build_gui(self) -> None:
+        assert self.server is not None
+        gui = self.server.gui
+        gui.add_markdown(f"**covey** ground station · fleet `{self.mesh.fleet}`")
+        with gui.add_folder("Fleet"):
+            self.table = gui.add_html("<i>waiting for vehicles…</i>")
+            gui.add_html(legend())
+        hooks = PanelHooks(known_ids=self.known_ids, dispatch=self.dispatch, scenario=self.scenario_jobs,
+                           now_s=time.monotonic)  # fmt: skip
+        self.panel = CommandPanel(self.server, hooks, self.cfg.origin, goto_limit_m=self.cfg.geofence_radius_m,
+                                  kill_window_s=self.cfg.kill_window_s)  # fmt: skip
+        self.scene = FleetScene(self.server, SceneConfig(self.cfg.geofence_radius_m, self.cfg.separation_m),
+                                on_vehicle_click=self.panel.select)  # fmt: skip
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        worker = getattr(self, "_worker", None)
+        if worker is not None:
+            worker.close()
+            self._worker = None
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+        if self.mesh is not None and self._given_mesh is None:
+            self.mesh.close()
+        self.mesh = None
+
+    @property
+    def url(self) -> str:
+        assert self.server is not None
+        return f"http://{self.cfg.host}:{self.server.get_port()}"
+
+    def wait(self) -> None:
+        """Block until close() is called from another thread (or a signal handler)."""
+        while not self._stop.wait(0.5):
+            pass
+
+    # -- mesh callbacks ------------------------------------------------------------------
+    def _on_presence(self, kind: str, ident: int, alive: bool) -> None:
+        if kind == "vehicle":
+            self.fleet.on_presence(ident, alive, self._clock_ns())
+
+    # -- panel hooks ---------------------------------------------------------------------
+    def known_ids(self) -> set[int]:
+        present = self.presence.vehicles if self.presence else set()
+        return present | set(self.fleet.ids())
+
+    def dispatch(self, label: str, jobs: list[Job]) -> None:
+        mesh, present = self.mesh, self.presence.vehicles if self.presence else set()
+        timeout_s, source = self.cfg.command_timeout_s, self.cfg.gcs_id
+
+        def run() -> list:
+            return [dispatch.send(mesh, req, targets, present=present, source_id=source, timeout_s=timeout_s)
+                    for req, targets in jobs]  # fmt: skip
+
+        self._worker.submit(label, run)
+
+    def scenario_jobs(self, name: str) -> list[Job]:
+        positions = {v: p for v, p in self.fleet.positions().items() if v in self.known_ids()}
+        if name == "swap":
+            goals = scenarios.swap_goals(
+                positions, min(self.cfg.swap_radius_m, 0.8 * self.cfg.geofence_radius_m)
+            )
+        else:
+            goals = scenarios.random_goals(positions, 0.6 * self.cfg.geofence_radius_m, self._rng)
+        return [
+            (CommandRequest(CommandKind.GOTO_LOCAL, g), (vid,)) for vid, g in sorted(goals.items())
+        ]
+
+    def _on_result(self, done: Dispatched) -> None:
+        self.last_result = done
+        self.panel.show_result(done)
+
+    # -- render loop ---------------------------------------------------------------------
+    def render_once(self, with_table: bool) -> float:
+        """One update burst; returns its duration in seconds."""
+        assert self.server is not None
+        t0 = time.perf_counter()
+        snap = self.fleet.snapshot(self._clock_ns())
+        with self.server.atomic():
+            self.scene.update(snap)
+            if with_table:
+                self.table.content = fleet_table(snap)
+        return time.perf_counter() - t0
+
+    def _loop(self) -> None:
+        period_s = 1.0 / self.cfg.scene_rate_hz
+        table_every = max(1, round(self.cfg.scene_rate_hz / self.cfg.table_rate_hz))
+        tick = 0
+        next_s = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.update_times_s.append(self.render_once(with_table=tick % table_every == 0))
+                del self.update_times_s[:-1000]
+                self.panel.tick()
+            except Exception:  # noqa: BLE001 - the display must keep going
+                log.exception("render update failed")
+            tick += 1
+            next_s += period_s
+            delay_s = next_s - time.monotonic()
+            if delay_s < 0:
+                next_s = time.monotonic()  # fell behind: do not try to catch up
+            self._stop.wait(max(0.0, delay_s))

@@ -1,0 +1,59 @@
+"""`covey gcs`: the browser ground station on an existing mesh."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import signal
+import sys
+
+from groundstation.app import GcsConfig, GroundStation
+from groundstation.meshargs import add_mesh_args, mesh_config
+
+
+def main(cfg: GcsConfig) -> int:
+    with GroundStation(cfg) as gcs:
+        if gcs.server.get_port() != cfg.port:
+            print(f"covey gcs: port {cfg.port} is busy; using {gcs.server.get_port()}", flush=True)
+        print(f"covey gcs: open {gcs.url}  (fleet {cfg.mesh.fleet}, Ctrl-C to stop)", flush=True)
+        stop = lambda *_: gcs.close()  # noqa: E731
+        signal.signal(signal.SIGTERM, stop)
+        with contextlib.suppress(KeyboardInterrupt):
+            gcs.wait()
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="covey gcs", description=__doc__)
+    add_mesh_args(p)
+    p.add_argument(
+        "--host", default="127.0.0.1", help="web address to listen on (default: 127.0.0.1)"
+    )
+    p.add_argument(
+        "--port", type=int, default=8080, help="web port (default: 8080; next free if busy)"
+    )
+    p.add_argument(
+        "--gcs-id", type=int, default=1, help="this station's id on the mesh (default: 1)"
+    )
+    p.add_argument(
+        "--geofence-radius-m", type=float, default=50.0, help="geofence radius drawn (default: 50)"
+    )
+    return p
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = parser()
+    args = p.parse_args(argv)
+    if not 0 <= args.port <= 65535:
+        p.error(f"--port {args.port} must be within 0..65535")
+    if not 1 <= args.gcs_id <= 65000:
+        p.error(f"--gcs-id {args.gcs_id} must be within 1..65000")
+    if not 0 < args.geofence_radius_m < 100_000:
+        p.error("--geofence-radius-m must be positive")
+    cfg = GcsConfig(mesh=mesh_config(args, p), host=args.host, port=args.port, gcs_id=args.gcs_id,
+                    geofence_radius_m=args.geofence_radius_m)  # fmt: skip
+    return main(cfg)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

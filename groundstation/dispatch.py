@@ -1,0 +1,122 @@
+"""Sending commands from the ground station: addressing, a worker thread, and the kill guard.
+
+`Mesh.send_command` blocks until every vehicle answers or the timeout passes, so the GUI hands
+commands to a single worker thread and renders the acks when they arrive; commands go out in the
+order they were given.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+from comms.commands import CommandResult, new_nonce
+from comms.mesh import Mesh
+from comms.schema import Command
+from groundstation.inputs import CommandRequest
+
+log = logging.getLogger(__name__)
+
+
+def build_command(
+    req: CommandRequest, targets: tuple[int, ...], source_id: int, stamp_ns: int
+) -> Command:
+    """A wire Command for `req` to `targets` (() = whole fleet)."""
+    cmd = Command(
+        kind=req.kind, nonce=new_nonce(), stamp_ns=stamp_ns, params=req.params,
+        targets=targets, source_id=source_id,
+    )  # fmt: skip
+    cmd.validate()
+    return cmd
+
+
+def send(
+    mesh: Mesh,
+    req: CommandRequest,
+    targets: tuple[int, ...],
+    *,
+    present: Iterable[int] = (),
+    source_id: int = 0,
+    timeout_s: float = 2.0,
+) -> CommandResult:
+    """Send one command (one query) and collect every answer. For the whole fleet (targets=()),
+    every vehicle in `present` is expected to answer, so a silent one shows as a timeout."""
+    cmd = build_command(req, targets, source_id, mesh.clock_ns())
+    expect = set(targets) if targets else set(present)
+    return mesh.send_command(cmd, expect=expect, timeout_s=timeout_s)
+
+
+@dataclass(frozen=True)
+class Dispatched:
+    """What the GUI shows about one command: what was asked, and (later) the answers."""
+
+    label: str
+    results: tuple[CommandResult, ...]
+    error: str = ""
+
+
+class CommandWorker:
+    """One background thread that sends commands in order; results go to `on_done`."""
+
+    def __init__(self, on_done: Callable[[Dispatched], None]) -> None:
+        self._pool = concurrent.futures.ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="gcs-cmd"
+        )
+        self._on_done = on_done
+
+    def submit(
+        self, label: str, job: Callable[[], list[CommandResult]]
+    ) -> concurrent.futures.Future:
+        def run() -> None:
+            try:
+                done = Dispatched(label, tuple(job()))
+            except Exception as exc:  # noqa: BLE001 - shown to the operator, not raised into a pool
+                log.exception("command %s failed", label)
+                done = Dispatched(label, (), error=f"{type(exc).__name__}: {exc}")
+            self._on_done(done)
+
+        return self._pool.submit(run)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> CommandWorker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class KillGuard:
+    """Two-step kill: `arm(now)` opens a window of `window_s`; only `confirm(now)` inside it
+    returns True (and closes it). A single click on either button never kills."""
+
+    def __init__(self, window_s: float = 5.0) -> None:
+        self.window_s = window_s
+        self._armed_at: float | None = None
+
+    def arm(self, now_s: float) -> None:
+        self._armed_at = now_s
+
+    def disarm(self) -> None:
+        self._armed_at = None
+
+    def armed(self, now_s: float) -> bool:
+        if self._armed_at is not None and now_s - self._armed_at > self.window_s:
+            self._armed_at = None
+        return self._armed_at is not None
+
+    def remaining_s(self, now_s: float) -> float:
+        return max(0.0, self.window_s - (now_s - self._armed_at)) if self.armed(now_s) else 0.0
+
+    def confirm(self, now_s: float) -> bool:
+        ok = self.armed(now_s)
+        self._armed_at = None
+        return ok
+
+
+def monotonic_s() -> float:
+    return time.monotonic()

@@ -1,0 +1,236 @@
+"""The ground station's fleet model: latest state per vehicle, trails, link health, separation.
+
+Pure and thread-safe: no viser, no Zenoh, no clock. Mesh callbacks feed it (`on_state`,
+`on_presence`) with the receive stamps they carry; the renderer asks for a `snapshot(now_ns)`.
+The replay tool and the benchmark drive it the same way.
+
+Link health per vehicle, over a sliding window of `rate_window_s`:
+    rate_hz  = (received - 1) / (t_last - t_first)
+    loss     = 1 - received / (seq_last - seq_first + 1)      (from VehicleState.seq gaps)
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from comms.schema import Mode, StateFlag, VehicleState
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class FleetConfig:
+    """What the fleet model keeps and how it judges link health."""
+
+    trail_s: float = 60.0
+    """How much history each vehicle's trail keeps, in seconds."""
+    trail_min_step_s: float = 0.2
+    """A trail point is kept at most this often (bounds memory at trail_s / step points)."""
+    rate_window_s: float = 3.0
+    """Window over which the state rate and the loss estimate are computed, in seconds."""
+    separation_m: float = 3.0
+    """Two vehicles closer than this (3D distance) raise a separation alert."""
+    stale_after_s: float = 1.0
+    """A vehicle whose last state is older than this is shown as stale."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "trail_s",
+            "trail_min_step_s",
+            "rate_window_s",
+            "separation_m",
+            "stale_after_s",
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}={value} must be a positive finite number")
+
+
+@dataclass
+class _Track:
+    """Everything the model keeps about one vehicle (internal, guarded by the model's lock)."""
+
+    state: VehicleState | None = None
+    last_recv_ns: int = 0
+    alive: bool = False
+    lost_ns: int | None = None
+    window: deque[tuple[int, int]] = field(default_factory=deque)  # (recv_ns, seq)
+    trail: deque[tuple[int, tuple[float, float, float]]] = field(default_factory=deque)
+    duplicates: int = 0
+
+
+@dataclass(frozen=True)
+class VehicleView:
+    """One vehicle as the ground station shows it, at one instant."""
+
+    vehicle_id: int
+    alive: bool
+    """Its liveliness token is present (the agent process is up and reachable)."""
+    state: VehicleState | None
+    """The latest state received, or None if none yet."""
+    age_s: float
+    """Seconds since the latest state arrived (inf if none)."""
+    rate_hz: float
+    """States received per second over the rate window."""
+    loss_pct: float
+    """Estimated loss over the rate window, from sequence-number gaps, in percent."""
+    trail_ned_m: np.ndarray
+    """(K, 3) trail positions, oldest first."""
+    too_close: bool
+    """Closer than the separation distance to another vehicle."""
+    stale: bool
+    """No state for longer than FleetConfig.stale_after_s."""
+
+    @property
+    def speed_m_s(self) -> float:
+        if self.state is None:
+            return 0.0
+        return math.sqrt(sum(v * v for v in self.state.vel_ned_m_s))
+
+    @property
+    def alt_m(self) -> float:
+        return -self.state.pos_ned_m[2] + 0.0 if self.state is not None else 0.0  # + 0.0: no '-0.0'
+
+    @property
+    def mode(self) -> Mode | None:
+        return self.state.mode if self.state is not None else None
+
+    @property
+    def has_goal(self) -> bool:
+        return self.state is not None and bool(self.state.flags & StateFlag.HAS_GOAL)
+
+
+@dataclass(frozen=True)
+class FleetSnapshot:
+    """The whole fleet at one instant, sorted by vehicle id."""
+
+    now_ns: int
+    vehicles: tuple[VehicleView, ...]
+    close_pairs: tuple[tuple[int, int, float], ...]
+    """(id_a, id_b, distance_m) for every pair closer than the separation distance."""
+
+    def by_id(self) -> dict[int, VehicleView]:
+        return {v.vehicle_id: v for v in self.vehicles}
+
+
+class FleetModel:
+    """Latest-wins fleet state fed from the mesh. Every method is safe from any thread."""
+
+    def __init__(self, cfg: FleetConfig | None = None) -> None:
+        self.cfg = cfg or FleetConfig()
+        self._lock = threading.Lock()
+        self._tracks: dict[int, _Track] = {}
+
+    # -- inputs ------------------------------------------------------------------------------
+    def on_state(self, state: VehicleState, recv_ns: int) -> None:
+        """Record one received state (a Mesh.subscribe_states callback)."""
+        cfg = self.cfg
+        with self._lock:
+            track = self._tracks.setdefault(state.vehicle_id, _Track())
+            prev = track.state
+            if prev is not None:
+                if state.seq == prev.seq:
+                    track.duplicates += 1
+                    return
+                if state.seq < prev.seq:
+                    # An older state arriving late is dropped; a big jump back is an agent restart.
+                    if prev.seq - state.seq < 100:
+                        return
+                    track.window.clear()
+            track.state = state
+            track.last_recv_ns = recv_ns
+            track.window.append((recv_ns, state.seq))
+            horizon_ns = recv_ns - int(cfg.rate_window_s * NS_PER_S)
+            while track.window and track.window[0][0] < horizon_ns:
+                track.window.popleft()
+            if not track.trail or recv_ns - track.trail[-1][0] >= cfg.trail_min_step_s * NS_PER_S:
+                track.trail.append((recv_ns, state.pos_ned_m))
+            trail_horizon_ns = recv_ns - int(cfg.trail_s * NS_PER_S)
+            while track.trail and track.trail[0][0] < trail_horizon_ns:
+                track.trail.popleft()
+
+    def on_presence(self, vehicle_id: int, alive: bool, now_ns: int) -> None:
+        """Record a liveliness change (a Mesh.presence on_change callback, vehicles only)."""
+        with self._lock:
+            track = self._tracks.setdefault(vehicle_id, _Track())
+            track.alive = alive
+            track.lost_ns = None if alive else now_ns
+
+    def forget(self, vehicle_id: int) -> None:
+        with self._lock:
+            self._tracks.pop(vehicle_id, None)
+
+    # -- outputs -----------------------------------------------------------------------------
+    def ids(self) -> list[int]:
+        with self._lock:
+            return sorted(self._tracks)
+
+    def positions(self) -> dict[int, tuple[float, float, float]]:
+        """Latest NED position of every vehicle with a state."""
+        with self._lock:
+            return {
+                vid: t.state.pos_ned_m for vid, t in self._tracks.items() if t.state is not None
+            }
+
+    def snapshot(self, now_ns: int) -> FleetSnapshot:
+        cfg = self.cfg
+        with self._lock:
+            items = sorted(self._tracks.items())
+            raw = [
+                (vid, t.state, t.alive, t.last_recv_ns, tuple(t.window), [p for _, p in t.trail])
+                for vid, t in items
+            ]
+        horizon_ns = now_ns - int(cfg.rate_window_s * NS_PER_S)
+        with_pos = [(vid, s.pos_ned_m) for vid, s, *_ in raw if s is not None]
+        pairs = close_pairs(with_pos, cfg.separation_m)
+        close_ids = {a for a, _, _ in pairs} | {b for _, b, _ in pairs}
+        views = []
+        for vid, state, alive, last_ns, window, trail in raw:
+            recent = [(t, s) for t, s in window if t >= horizon_ns]
+            rate_hz, loss_pct = link_health(recent)
+            age_s = (now_ns - last_ns) / NS_PER_S if state is not None else math.inf
+            views.append(
+                VehicleView(
+                    vehicle_id=vid,
+                    alive=alive,
+                    state=state,
+                    age_s=age_s,
+                    rate_hz=rate_hz,
+                    loss_pct=loss_pct,
+                    trail_ned_m=np.asarray(trail, dtype=np.float32).reshape(-1, 3),
+                    too_close=vid in close_ids,
+                    stale=age_s > cfg.stale_after_s,
+                )
+            )
+        return FleetSnapshot(now_ns=now_ns, vehicles=tuple(views), close_pairs=tuple(pairs))
+
+
+def link_health(window: list[tuple[int, int]] | tuple[tuple[int, int], ...]) -> tuple[float, float]:
+    """(rate_hz, loss_pct) from (recv_ns, seq) samples in arrival order, seq increasing."""
+    if len(window) < 2:
+        return 0.0, 0.0
+    span_s = (window[-1][0] - window[0][0]) / NS_PER_S
+    rate_hz = (len(window) - 1) / span_s if span_s > 0 else 0.0
+    expected = window[-1][1] - window[0][1] + 1
+    loss_pct = 100.0 * max(0.0, 1.0 - len(window) / expected) if expected > 0 else 0.0
+    return rate_hz, loss_pct
+
+
+def close_pairs(
+    positions: list[tuple[int, tuple[float, float, float]]], separation_m: float
+) -> list[tuple[int, int, float]]:
+    """Every pair of vehicles closer than `separation_m` (3D), as (id_a, id_b, distance_m)."""
+    if len(positions) < 2:
+        return []
+    ids = np.array([vid for vid, _ in positions])
+    pos = np.array([p for _, p in positions], dtype=np.float64)
+    # Pairwise distances: |p_i - p_j|; fine up to a few thousand vehicles.
+    diff = pos[:, None, :] - pos[None, :, :]
+    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+    ii, jj = np.nonzero(np.triu(dist < separation_m, k=1))
+    return [(int(ids[i]), int(ids[j]), float(dist[i, j])) for i, j in zip(ii, jj, strict=True)]

@@ -1,0 +1,47 @@
+"""The one conversion between covey's local NED frame and the viser scene frame.
+
+viser's world is Z-up (its default), so the scene frame is ENU: x = east, y = north, z = up.
+    scene = (e, n, -d)        ned = (y, x, -z)
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def ned_to_scene(ned_m: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """NED metres (..., 3) -> scene metres (..., 3): (n, e, d) -> (e, n, -d)."""
+    ned = np.asarray(ned_m, dtype=np.float32)
+    return np.stack([ned[..., 1], ned[..., 0], -ned[..., 2]], axis=-1)
+
+
+def scene_to_ned(scene_m: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """Scene metres (..., 3) -> NED metres (..., 3); the inverse of ned_to_scene."""
+    xyz = np.asarray(scene_m, dtype=np.float64)
+    return np.stack([xyz[..., 1], xyz[..., 0], -xyz[..., 2]], axis=-1)
+
+
+def heading_to_wxyz(heading_rad: float) -> tuple[float, float, float, float]:
+    """Quaternion (w, x, y, z) of a body with NED heading (0 = north, clockwise) in the scene.
+
+    North is scene +y and clockwise-from-above is a negative rotation about +z, so a body whose
+    nose points along its +y axis turns by yaw = -heading about z.
+    """
+    half = -0.5 * heading_rad
+    return (math.cos(half), 0.0, 0.0, math.sin(half))
+
+
+def ground_hit_ned(
+    ray_origin: tuple[float, float, float], ray_direction: tuple[float, float, float]
+) -> tuple[float, float] | None:
+    """(north_m, east_m) where a scene-frame click ray meets the ground (z = 0), or None."""
+    ox, oy, oz = ray_origin
+    dx, dy, dz = ray_direction
+    if not all(math.isfinite(v) for v in (ox, oy, oz, dx, dy, dz)) or dz >= -1e-9:
+        return None  # looking up or along the ground: no hit in front of the camera
+    t = -oz / dz
+    if t < 0:
+        return None
+    return float(oy + t * dy), float(ox + t * dx)

@@ -1,0 +1,121 @@
+"""Operator input -> commands, with a clear message for every bad value (no Command is built).
+
+The GUI and `covey cmd` both go through here, so a value that the wire would reject (non-finite,
+out of range) is caught at the ground station and explained, before anything is sent.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from comms.schema import (
+    GLOBAL_ALT_RANGE_M,
+    LOCAL_DOWN_RANGE_M,
+    MAX_VEHICLE_ID,
+    TAKEOFF_ALT_RANGE_M,
+    CommandKind,
+)
+
+
+class InputError(ValueError):
+    """An operator input is invalid; str() is a message to show as is."""
+
+
+@dataclass(frozen=True)
+class CommandRequest:
+    """A validated command, not yet addressed or stamped."""
+
+    kind: CommandKind
+    params: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def describe(self) -> str:
+        p = self.params
+        if self.kind is CommandKind.TAKEOFF:
+            return f"takeoff to {p[0]:g} m"
+        if self.kind is CommandKind.GOTO_LOCAL:
+            return f"goto N {p[0]:g} E {p[1]:g} D {p[2]:g} m"
+        if self.kind is CommandKind.GOTO_GLOBAL:
+            return f"goto lat {p[0]:.7f} lon {p[1]:.7f} alt {p[2]:g} m"
+        return self.kind.name.lower()
+
+
+def number(name: str, raw: object, lo: float, hi: float, unit: str = "") -> float:
+    """`raw` (a float from a GUI field, or text) as a finite float within [lo, hi]."""
+    if isinstance(raw, bool) or raw is None:
+        raise InputError(f"{name}: enter a number")
+    try:
+        value = float(raw)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: {raw!r} is not a number") from None
+    if not math.isfinite(value):
+        raise InputError(f"{name}: must be a finite number, got {raw!r}")
+    if not lo <= value <= hi:
+        raise InputError(
+            f"{name}: {value:g}{unit} is outside the allowed range [{lo:g}, {hi:g}]{unit}"
+        )
+    return value
+
+
+def takeoff(alt_m: object) -> CommandRequest:
+    alt = number("Takeoff altitude", alt_m, *TAKEOFF_ALT_RANGE_M, unit=" m")
+    return CommandRequest(CommandKind.TAKEOFF, (alt, 0.0, 0.0))
+
+
+def goto_local(n_m: object, e_m: object, d_m: object, limit_m: float = 1000.0) -> CommandRequest:
+    """`limit_m`: how far from the origin a local goal may be (the geofence, or a sane bound)."""
+    n = number("North", n_m, -limit_m, limit_m, unit=" m")
+    e = number("East", e_m, -limit_m, limit_m, unit=" m")
+    d = number("Down", d_m, *LOCAL_DOWN_RANGE_M, unit=" m")
+    if math.hypot(n, e) > limit_m:
+        raise InputError(
+            f"Goto: ({n:g}, {e:g}) is {math.hypot(n, e):.0f} m from the origin, beyond {limit_m:g} m"
+        )
+    return CommandRequest(CommandKind.GOTO_LOCAL, (n, e, d))
+
+
+def goto_global(lat_deg: object, lon_deg: object, alt_m: object) -> CommandRequest:
+    lat = number("Latitude", lat_deg, -90.0, 90.0, unit="°")
+    lon = number("Longitude", lon_deg, -180.0, 180.0, unit="°")
+    alt = number("Altitude", alt_m, *GLOBAL_ALT_RANGE_M, unit=" m")
+    return CommandRequest(CommandKind.GOTO_GLOBAL, (lat, lon, alt))
+
+
+def simple(kind: CommandKind) -> CommandRequest:
+    if kind not in (CommandKind.LAND, CommandKind.HOLD, CommandKind.RETURN, CommandKind.KILL):
+        raise InputError(f"{kind.name} needs parameters")
+    return CommandRequest(kind)
+
+
+def targets(text: str, known: set[int] | None = None) -> tuple[int, ...]:
+    """Parse "all" (-> ()), "3", "1,2,5" or "1-4" into sorted vehicle ids.
+
+    With `known`, ids that are not in the fleet are refused (a typo must not address nobody).
+    """
+    text = (text or "").strip().lower()
+    if text in ("all", "*"):
+        return ()
+    if not text:
+        raise InputError("Targets: enter 'all' or vehicle ids like 1,2,5 or 1-4")
+    ids: set[int] = set()
+    for part in text.replace(" ", "").split(","):
+        if not part:
+            continue
+        lo_s, sep, hi_s = part.partition("-")
+        try:
+            lo = int(lo_s)
+            hi = int(hi_s) if sep else lo
+        except ValueError:
+            raise InputError(f"Targets: {part!r} is not a vehicle id or a range like 1-4") from None
+        if not 1 <= lo <= hi <= MAX_VEHICLE_ID:
+            raise InputError(f"Targets: {part!r} must be ids within 1..{MAX_VEHICLE_ID}, low-high")
+        if hi - lo > 1024:
+            raise InputError(f"Targets: range {part!r} is too long")
+        ids.update(range(lo, hi + 1))
+    if not ids:
+        raise InputError("Targets: enter 'all' or vehicle ids like 1,2,5 or 1-4")
+    if known is not None:
+        unknown = sorted(ids - known)
+        if unknown:
+            raise InputError(f"Targets: no vehicle {', '.join(map(str, unknown))} in the fleet")
+    return tuple(sorted(ids))

@@ -1,0 +1,195 @@
+"""`covey status` and `covey cmd`: the fleet and one command from a terminal.
+
+    covey status --connect tcp/127.0.0.1:7447
+    covey cmd takeoff 5 --to all
+    covey cmd goto 10 0 -5 --to 1,2
+    covey cmd kill --to 3 --yes
+
+`covey cmd` exits non-zero when any addressed vehicle rejected, failed or timed out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from comms.commands import CommandResult, OutcomeStatus
+from comms.mesh import Mesh
+from comms.schema import CommandKind
+from comms.session import MeshConfig
+from groundstation import dispatch, inputs
+from groundstation.fleet import FleetModel, FleetSnapshot
+from groundstation.inputs import CommandRequest, InputError
+from groundstation.meshargs import add_mesh_args, mesh_config
+
+
+@dataclass(frozen=True)
+class StatusConfig:
+    """What `covey status` does."""
+
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    """How to join the mesh."""
+    listen_s: float = 1.5
+    """How long to listen for presence and states before printing."""
+
+
+def format_status(snap: FleetSnapshot) -> str:
+    lines = [f"{'id':>5} {'alive':>5} {'mode':<10} {'arm':>3} {'N m':>7} {'E m':>7} {'alt m':>6} "
+             f"{'m/s':>5} {'bat%':>5} {'Hz':>5} {'age s':>6} {'loss%':>5}"]  # fmt: skip
+    for v in snap.vehicles:
+        s = v.state
+        if s is None:
+            lines.append(f"{v.vehicle_id:>5} {'yes' if v.alive else 'no':>5} {'(no state)':<10}")
+            continue
+        lines.append(
+            f"{v.vehicle_id:>5} {'yes' if v.alive else 'LOST':>5} {s.mode.name:<10} {'yes' if s.armed else 'no':>3} "
+            f"{s.pos_ned_m[0]:>7.1f} {s.pos_ned_m[1]:>7.1f} {v.alt_m:>6.1f} {v.speed_m_s:>5.1f} "
+            f"{s.battery_pct:>5.0f} {v.rate_hz:>5.1f} {v.age_s:>6.2f} {v.loss_pct:>5.0f}"
+        )
+    if snap.close_pairs:
+        lines.append(
+            "TOO CLOSE: " + ", ".join(f"{a}-{b} {d:.1f} m" for a, b, d in snap.close_pairs)
+        )
+    return "\n".join(lines)
+
+
+def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
+    fleet = FleetModel()
+    with Mesh(cfg.mesh) as mesh:
+        mesh.subscribe_states(fleet.on_state)
+        pres = mesh.presence(
+            lambda kind, vid, alive: (
+                kind == "vehicle" and fleet.on_presence(vid, alive, time.time_ns())
+            )
+        )
+        time.sleep(cfg.listen_s)
+        snap = fleet.snapshot(time.time_ns())
+        stations = sorted(pres.ground_stations)
+    out(format_status(snap) if snap.vehicles else "no vehicles on the mesh")
+    out(f"ground stations: {', '.join(map(str, stations)) or 'none'}")
+    return 0 if snap.vehicles else 1
+
+
+def status_cli(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="covey status", description="print the fleet: presence, last state, link age"
+    )
+    add_mesh_args(p)
+    p.add_argument(
+        "--listen-s", type=float, default=1.5, help="how long to listen first (default 1.5 s)"
+    )
+    args = p.parse_args(argv)
+    if not 0.1 <= args.listen_s <= 60:
+        p.error("--listen-s must be within 0.1..60")
+    return status_main(StatusConfig(mesh=mesh_config(args, p), listen_s=args.listen_s))
+
+
+# -- covey cmd ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CmdConfig:
+    """One command to send."""
+
+    mesh: MeshConfig
+    """How to join the mesh."""
+    request: CommandRequest
+    """The validated command."""
+    targets: tuple[int, ...]
+    """Vehicle ids; () = every vehicle present."""
+    timeout_s: float = 3.0
+    """How long to wait for the acks."""
+    discover_s: float = 1.0
+    """For `--to all`: how long to wait for presence to learn who should answer."""
+    source_id: int = 1
+    """Source id written into the command."""
+
+
+def format_result(res: CommandResult) -> str:
+    lines = []
+    for vid in sorted(res.outcomes):
+        o = res.outcomes[vid]
+        lines.append(f"vehicle {vid:>5}: {o.status.value:<8} {o.reason}".rstrip())
+    lines += [f"error: {e}" for e in res.errors]
+    return "\n".join(lines) or "no vehicle answered"
+
+
+def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
+    with Mesh(cfg.mesh) as mesh:
+        pres = mesh.presence()
+        if not cfg.targets:
+            # Wait until presence is quiet: no new vehicle for a while, bounded by discover_s.
+            pres.wait_for(lambda v, _g: False, timeout_s=cfg.discover_s)
+        res = dispatch.send(mesh, cfg.request, cfg.targets, present=pres.vehicles, source_id=cfg.source_id,
+                            timeout_s=cfg.timeout_s)  # fmt: skip
+    out(f"{cfg.request.describe()}:")
+    out(format_result(res))
+    bad = [o for o in res.outcomes.values() if o.status is not OutcomeStatus.ACCEPTED]
+    return 0 if res.outcomes and not bad else 1
+
+
+def _request(args: argparse.Namespace) -> CommandRequest:
+    verb = args.verb
+    if verb == "takeoff":
+        return inputs.takeoff(args.alt_m)
+    if verb == "goto":
+        return inputs.goto_local(args.north_m, args.east_m, args.down_m, limit_m=100_000.0)
+    if verb == "goto-global":
+        return inputs.goto_global(args.lat_deg, args.lon_deg, args.alt_m)
+    return inputs.simple(CommandKind[verb.upper()])
+
+
+def cmd_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey cmd", description="send one command and print every vehicle's ack"
+    )
+    sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
+    verbs = {
+        "takeoff": ("take off to ALT_M metres", ["alt_m"]),
+        "land": ("land where you are", []),
+        "hold": ("hold position", []),
+        "return": ("return to the start position", []),
+        "goto": ("fly to a local NED position", ["north_m", "east_m", "down_m"]),
+        "goto-global": ("fly to a WGS-84 position", ["lat_deg", "lon_deg", "alt_m"]),
+        "kill": ("motors off NOW (the vehicle falls); asks to confirm", []),
+    }
+    for verb, (text, params) in verbs.items():
+        sp = sub.add_parser(verb, help=text, description=text)
+        for name in params:
+            sp.add_argument(name, type=str, help=name.replace("_", " "))
+        sp.add_argument("--to", required=True, help="vehicle ids (1,2,5 or 1-4) or 'all'")
+        sp.add_argument(
+            "--timeout", type=float, default=3.0, help="seconds to wait for acks (default 3)"
+        )
+        add_mesh_args(sp)
+        if verb == "kill":
+            sp.add_argument("--yes", action="store_true", help="do not ask for confirmation")
+    return p
+
+
+def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
+    p = cmd_parser()
+    args = p.parse_args(argv)
+    # Negative numbers after a verb (goto 10 0 -5) are positional values, which argparse handles
+    # because no option of ours looks like a number.
+    try:
+        req = _request(args)
+        targets = inputs.targets(args.to)
+    except InputError as exc:
+        p.error(str(exc))
+    if not 0.1 <= args.timeout <= 60:
+        p.error(f"--timeout {args.timeout} must be within 0.1..60 s")
+    cfg = CmdConfig(mesh=mesh_config(args, p), request=req, targets=targets, timeout_s=args.timeout)
+    if args.verb == "kill" and not args.yes:
+        who = "ALL vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))
+        print(
+            f"KILL {who}: motors stop and the vehicles fall. Type 'kill' to confirm: ",
+            end="",
+            flush=True,
+        )
+        answer = (stdin or sys.stdin).readline().strip().lower()
+        if answer != "kill":
+            print("not confirmed; nothing sent", file=sys.stderr)
+            return 1
+    return cmd_main(cfg)

@@ -1,0 +1,186 @@
+"""The command panel: target selection, commands, the guarded kill, scenarios, and the ack matrix.
+
+Every button validates its inputs (groundstation.inputs) and shows a clear message instead of
+sending when something is wrong. Sending happens on the station's command worker, never on
+viser's callback thread.
+"""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import viser
+
+from comms.geo import GeoOrigin
+from comms.schema import CommandKind
+from groundstation import inputs
+from groundstation.dispatch import Dispatched, KillGuard
+from groundstation.frames import ground_hit_ned, ned_to_scene
+from groundstation.inputs import CommandRequest, InputError
+from groundstation.tables import ack_matrix
+
+Job = tuple[CommandRequest, tuple[int, ...]]
+
+
+@dataclass(frozen=True)
+class PanelHooks:
+    """What the panel needs from the station (kept as callables so it can be tested alone)."""
+
+    known_ids: Callable[[], set[int]]
+    """Ids of the vehicles the station knows (present or with a state)."""
+    dispatch: Callable[[str, list[Job]], None]
+    """Send these (request, targets) jobs in order, then render the answers."""
+    scenario: Callable[[str], list[Job]]
+    """Build the jobs of a named scenario ("swap", "random")."""
+    now_s: Callable[[], float]
+    """Monotonic seconds (the kill window is measured with it)."""
+
+
+class CommandPanel:
+    def __init__(self, server: viser.ViserServer, hooks: PanelHooks, origin: GeoOrigin,
+                 goto_limit_m: float, kill_window_s: float = 5.0) -> None:  # fmt: skip
+        self.server = server
+        self.hooks = hooks
+        self.goto_limit_m = goto_limit_m
+        self.kill_guard = KillGuard(kill_window_s)
+        gui = server.gui
+        # Messages and acks first: the operator must see what happened without scrolling.
+        self.message = gui.add_html("")
+        self.acks = gui.add_html("")
+        with gui.add_folder("Command"):
+            self.targets = gui.add_text(
+                "Targets",
+                "all",
+                hint="'all', an id, or ids like 1,2,5 or 1-4. Click a vehicle to select it.",
+            )
+            self.alt = gui.add_number("Takeoff alt (m)", 5.0, step=0.5)
+            self.takeoff = gui.add_button("Takeoff", icon=viser.Icon.ARROW_BAR_UP)
+            self.simple = gui.add_button_group("Now", ("Land", "Hold", "Return"))
+        with gui.add_folder("Goto local (NED m)"):
+            self.north = gui.add_number("North (m)", 0.0, step=0.5)
+            self.east = gui.add_number("East (m)", 0.0, step=0.5)
+            self.down = gui.add_number("Down (m)", -5.0, step=0.5)
+            self.pick = gui.add_checkbox("Click ground to set N/E", False)
+            self.goto = gui.add_button("Goto local", icon=viser.Icon.TARGET)
+        with gui.add_folder("Goto global", expand_by_default=False):
+            self.lat = gui.add_number("Latitude (deg)", origin.lat_deg, step=1e-5)
+            self.lon = gui.add_number("Longitude (deg)", origin.lon_deg, step=1e-5)
+            self.galt = gui.add_number("Altitude (m)", origin.alt_m + 5.0, step=0.5)
+            self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
+        with gui.add_folder("Scenarios"):
+            self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
+        with gui.add_folder("Kill (motors off, vehicles fall)"):
+            self.kill_arm = gui.add_button(
+                "Arm kill", color="orange", icon=viser.Icon.ALERT_TRIANGLE
+            )
+            self.kill_confirm = gui.add_button(
+                "CONFIRM KILL", color="red", disabled=True, icon=viser.Icon.SKULL
+            )
+        self._wire()
+
+    # -- wiring --------------------------------------------------------------------------
+    def _wire(self) -> None:
+        self.takeoff.on_click(lambda _: self._send(lambda: inputs.takeoff(self.alt.value)))
+        kinds = {"Land": CommandKind.LAND, "Hold": CommandKind.HOLD, "Return": CommandKind.RETURN}
+        self.simple.on_click(lambda e: self._send(lambda: inputs.simple(kinds[e.target.value])))
+        self.goto.on_click(lambda _: self._send(lambda: inputs.goto_local(
+            self.north.value, self.east.value, self.down.value, self.goto_limit_m)))  # fmt: skip
+        self.goto_global.on_click(lambda _: self._send(lambda: inputs.goto_global(
+            self.lat.value, self.lon.value, self.galt.value)))  # fmt: skip
+        self.scenarios.on_click(
+            lambda e: self._scenario("swap" if e.target.value == "Swap" else "random")
+        )
+        self.kill_arm.on_click(lambda _: self.arm_kill())
+        self.kill_confirm.on_click(lambda _: self.confirm_kill())
+        self.pick.on_update(lambda _: self._pick_mode(self.pick.value))
+
+    def _pick_mode(self, on: bool) -> None:
+        scene = self.server.scene
+        if not on:
+            scene.remove_click_callback("all")
+            return
+
+        @scene.on_click()
+        def _(event: viser.SceneClickEvent) -> None:
+            hit = ground_hit_ned(event.ray_origin, event.ray_direction)
+            if hit is None:
+                self.say("That click does not hit the ground; aim below the horizon.", error=True)
+                return
+            self.north.value, self.east.value = round(hit[0], 1), round(hit[1], 1)
+            marker = ned_to_scene((hit[0], hit[1], 0.0))
+            self.server.scene.add_icosphere("/target", radius=0.4, color=(255, 200, 0), opacity=0.7,
+                                            position=tuple(float(x) for x in marker))  # fmt: skip
+            self.say(f"Goto target set to N {hit[0]:.1f} E {hit[1]:.1f}; press 'Goto local'.")
+
+    # -- actions -------------------------------------------------------------------------
+    def select(self, vehicle_id: int) -> None:
+        self.targets.value = str(vehicle_id)
+        self.say(f"Selected vehicle {vehicle_id}.")
+
+    def say(self, text: str, error: bool = False) -> None:
+        color = "#c5221f" if error else "#333"
+        weight = "bold" if error else "normal"
+        self.message.content = (
+            f"<div data-msg='{'error' if error else 'info'}' style='color:{color};font-weight:{weight};"
+            f"font-size:0.82em'>{html.escape(text)}</div>"
+        )
+
+    def parsed_targets(self) -> tuple[int, ...]:
+        return inputs.targets(self.targets.value, known=self.hooks.known_ids())
+
+    def _send(self, build: Callable[[], CommandRequest]) -> None:
+        try:
+            req = build()
+            targets = self.parsed_targets()
+        except InputError as exc:
+            self.say(str(exc), error=True)
+            return
+        who = "all vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))
+        label = f"{req.describe()} → {who}"
+        self.say(f"Sending {label} …")
+        self.hooks.dispatch(label, [(req, targets)])
+
+    def _scenario(self, name: str) -> None:
+        jobs = self.hooks.scenario(name)
+        if not jobs:
+            self.say(f"Scenario {name}: no vehicle with a known position.", error=True)
+            return
+        self.say(f"Scenario {name}: sending {len(jobs)} goals …")
+        self.hooks.dispatch(f"scenario {name} ({len(jobs)} vehicles)", jobs)
+
+    def arm_kill(self) -> None:
+        try:
+            targets = self.parsed_targets()
+        except InputError as exc:
+            self.say(str(exc), error=True)
+            return
+        self.kill_guard.arm(self.hooks.now_s())
+        self.kill_confirm.disabled = False
+        who = "ALL vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))
+        self.say(
+            f"Kill ARMED for {who}: press CONFIRM KILL within {self.kill_guard.window_s:g} s.",
+            error=True,
+        )
+
+    def confirm_kill(self) -> None:
+        if not self.kill_guard.confirm(self.hooks.now_s()):
+            self.kill_confirm.disabled = True
+            self.say("Kill not armed (or the window passed): press 'Arm kill' first.", error=True)
+            return
+        self.kill_confirm.disabled = True
+        self._send(lambda: inputs.simple(CommandKind.KILL))
+
+    def tick(self) -> None:
+        """Called by the station's loop: closes an expired kill window."""
+        if not self.kill_confirm.disabled and not self.kill_guard.armed(self.hooks.now_s()):
+            self.kill_confirm.disabled = True
+            self.say("Kill window expired; nothing was sent.")
+
+    def show_result(self, done: Dispatched) -> None:
+        self.acks.content = ack_matrix(done)
+        self.say(
+            f"Done: {done.label}" if not done.error else f"Failed: {done.error}",
+            error=bool(done.error),
+        )

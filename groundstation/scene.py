@@ -1,0 +1,182 @@
+"""The 3D scene: renders a FleetSnapshot into viser handles (one subtree per vehicle).
+
+    /ground, /geofence, /origin                       static
+    /vehicles/<id>                                    frame at the vehicle's position
+    /vehicles/<id>/body | label | ring | velocity | stalk
+    /goals/<id>, /trails/<id>                         in world coordinates
+
+Handles are created once and changed by assigning properties, and only when the value changed,
+so an update burst carries just what moved. The caller wraps `update` in `server.atomic()`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import viser
+
+from groundstation.fleet import FleetSnapshot, VehicleView
+from groundstation.frames import heading_to_wxyz, ned_to_scene
+from groundstation.palette import (
+    ALERT_RGB,
+    GEOFENCE_RGB,
+    GOAL_RGB,
+    LOST_RGB,
+    RING_OK_RGB,
+    mode_rgb,
+)
+
+
+def circle_segments(radius_m: float, n: int = 48, z_m: float = 0.0) -> np.ndarray:
+    """(n, 2, 3) line segments of a horizontal circle in the scene frame."""
+    a = np.linspace(0.0, 2.0 * math.pi, n + 1)
+    pts = np.stack([radius_m * np.cos(a), radius_m * np.sin(a), np.full_like(a, z_m)], axis=-1)
+    return np.stack([pts[:-1], pts[1:]], axis=1).astype(np.float32)
+
+
+def polyline_segments(points: np.ndarray) -> np.ndarray:
+    """(K, 3) points -> (K-1, 2, 3) segments (at least one, degenerate if K < 2)."""
+    if len(points) < 2:
+        p = points[0] if len(points) else np.zeros(3, np.float32)
+        return np.stack([p, p])[None].astype(np.float32)
+    return np.stack([points[:-1], points[1:]], axis=1).astype(np.float32)
+
+
+def _rgb(rgb: tuple[int, int, int]) -> np.ndarray:
+    """One colour for a whole line-segments node (viser accepts shape (3,))."""
+    return np.array(rgb, np.uint8)
+
+
+@dataclass
+class _VehicleHandles:
+    frame: Any
+    body: Any
+    label: Any
+    ring: Any
+    velocity: Any
+    stalk: Any
+    goal: Any
+    trail: Any
+    cache: dict[str, Any] = field(default_factory=dict)
+
+    def set(self, key: str, handle: Any, prop: str, value: Any) -> None:
+        """Assign handle.prop = value unless it is already that (cache compared by repr)."""
+        marker = value.tobytes() if isinstance(value, np.ndarray) else value
+        if self.cache.get(key) != marker:
+            self.cache[key] = marker
+            setattr(handle, prop, value)
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """How the scene looks."""
+
+    geofence_radius_m: float = 50.0
+    """Radius of the geofence circle around the origin, in metres (0 = none drawn)."""
+    separation_m: float = 3.0
+    """Separation distance; each vehicle's ring has half this radius, so rings touch at it."""
+    trail_period_s: float = 1.0
+    """How often trails are re-sent (they are the heaviest part of an update)."""
+    velocity_scale_s: float = 1.0
+    """Velocity arrows show where the vehicle will be in this many seconds."""
+
+
+class FleetScene:
+    """Owns every scene handle of the fleet. Call `update(snapshot)` from one thread."""
+
+    def __init__(self, server: viser.ViserServer, cfg: SceneConfig,
+                 on_vehicle_click: Callable[[int], None] | None = None) -> None:  # fmt: skip
+        self.server = server
+        self.cfg = cfg
+        self._on_vehicle_click = on_vehicle_click
+        self._vehicles: dict[int, _VehicleHandles] = {}
+        self._last_trail_ns = 0
+        scene = server.scene
+        extent_m = max(20.0, 2.2 * cfg.geofence_radius_m)
+        scene.add_grid("/ground", width=extent_m, height=extent_m, cell_size=1.0, section_size=10.0,
+                       plane="xy", fade_distance=4 * extent_m, plane_color=(235, 240, 235),
+                       plane_opacity=0.6)  # fmt: skip
+        if cfg.geofence_radius_m > 0:
+            ring = circle_segments(cfg.geofence_radius_m, 128, 0.02)
+            scene.add_line_segments("/geofence", ring, _rgb(GEOFENCE_RGB), thickness=4.0,
+                                    thickness_units="screen")  # fmt: skip
+        scene.add_frame("/origin", axes_length=2.0, axes_radius=0.06)
+        self.target_marker = scene.add_icosphere("/target", radius=0.4, color=GOAL_RGB, opacity=0.6,
+                                                 visible=False)  # fmt: skip
+
+    def _create(self, vid: int) -> _VehicleHandles:
+        scene = self.server.scene
+        root = f"/vehicles/{vid}"
+        ring = circle_segments(self.cfg.separation_m / 2.0)
+        h = _VehicleHandles(
+            frame=scene.add_frame(root, show_axes=False),
+            body=scene.add_box(f"{root}/body", color=mode_rgb(None), dimensions=(0.6, 0.9, 0.25)),
+            label=scene.add_label(f"{root}/label", f"{vid}", position=(0.0, 0.0, 0.7),
+                                  anchor="bottom-center", font_screen_scale=0.9),
+            ring=scene.add_line_segments(f"{root}/ring", ring, _rgb(RING_OK_RGB),
+                                         thickness=2.0, thickness_units="screen"),
+            velocity=scene.add_arrows(f"{root}/velocity", np.zeros((1, 2, 3), np.float32), (20, 20, 20),
+                                      shaft_radius=0.05, head_radius=0.15, head_length=0.3),
+            stalk=scene.add_line_segments(f"{root}/stalk", np.zeros((1, 2, 3), np.float32),
+                                          (120, 120, 120), thickness=1.0, thickness_units="screen"),
+            goal=scene.add_icosphere(f"/goals/{vid}", radius=0.35, color=GOAL_RGB, visible=False),
+            trail=scene.add_line_segments(f"/trails/{vid}", np.zeros((1, 2, 3), np.float32),
+                                          (120, 120, 120), thickness=2.0, thickness_units="screen"),
+        )  # fmt: skip
+        if self._on_vehicle_click is not None:
+            cb = self._on_vehicle_click
+            h.body.on_click(lambda _event, vid=vid: cb(vid))
+        return h
+
+    def update(self, snap: FleetSnapshot) -> None:
+        send_trails = snap.now_ns - self._last_trail_ns >= self.cfg.trail_period_s * 1e9
+        if send_trails:
+            self._last_trail_ns = snap.now_ns
+        for v in snap.vehicles:
+            h = self._vehicles.get(v.vehicle_id)
+            if h is None:
+                h = self._vehicles[v.vehicle_id] = self._create(v.vehicle_id)
+            self._update_vehicle(h, v, send_trails)
+        gone = set(self._vehicles) - {v.vehicle_id for v in snap.vehicles}
+        for vid in gone:
+            h = self._vehicles.pop(vid)
+            for handle in (h.frame, h.goal, h.trail):
+                handle.remove()
+
+    def _update_vehicle(self, h: _VehicleHandles, v: VehicleView, send_trails: bool) -> None:
+        s = v.state
+        if s is None:
+            h.set("visible", h.frame, "visible", False)
+            return
+        h.set("visible", h.frame, "visible", True)
+        pos = ned_to_scene(s.pos_ned_m)
+        h.set("pos", h.frame, "position", tuple(round(float(x), 3) for x in pos))
+        h.set("wxyz", h.body, "wxyz", heading_to_wxyz(round(s.heading_rad, 3)))
+        lost = not v.alive
+        colour = LOST_RGB if lost else mode_rgb(s.mode)
+        h.set("color", h.body, "color", colour)
+        status = "LOST" if lost else ("STALE" if v.stale else s.mode.name)
+        h.set(
+            "text", h.label, "text", f"{v.vehicle_id} {status} {v.alt_m:.1f}m {s.battery_pct:.0f}%"
+        )
+        ring_rgb = ALERT_RGB if v.too_close else RING_OK_RGB
+        h.set("ring", h.ring, "colors", _rgb(ring_rgb))
+        vel = ned_to_scene(s.vel_ned_m_s) * self.cfg.velocity_scale_s
+        moving = float(np.linalg.norm(vel)) > 0.05
+        h.set("vel_vis", h.velocity, "visible", moving)
+        if moving:
+            pts = np.round(np.stack([np.zeros(3, np.float32), vel])[None], 2).astype(np.float32)
+            h.set("vel", h.velocity, "points", pts)
+        stalk = np.array([[[0, 0, 0], [0, 0, -max(0.0, float(pos[2]))]]], np.float32).round(2)
+        h.set("stalk", h.stalk, "points", stalk)
+        h.set("goal_vis", h.goal, "visible", v.has_goal and not lost)
+        if v.has_goal:
+            h.set("goal", h.goal, "position", tuple(float(x) for x in ned_to_scene(s.goal_ned_m)))
+            h.set("goal_rgb", h.goal, "color", colour)
+        if send_trails and len(v.trail_ned_m):
+            h.set("trail", h.trail, "points", polyline_segments(ned_to_scene(v.trail_ned_m)))
+            h.set("trail_rgb", h.trail, "colors", _rgb(colour))

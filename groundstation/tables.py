@@ -1,0 +1,132 @@
+"""HTML for the fleet table, the ack matrix and the mode legend (pure: snapshot in, str out)."""
+
+from __future__ import annotations
+
+import html
+import math
+
+from comms.commands import OutcomeStatus
+from groundstation.dispatch import Dispatched
+from groundstation.fleet import FleetSnapshot, VehicleView
+from groundstation.palette import ALERT_RGB, MODE_RGB, css, mode_rgb
+
+_TABLE = (
+    '<table style="width:100%;border-collapse:collapse;font-size:0.78em;'
+    'font-variant-numeric:tabular-nums">'
+)
+_TH = '<th style="text-align:{a};padding:1px 3px;border-bottom:1px solid #999">{t}</th>'
+_TD = '<td style="text-align:{a};padding:1px 3px;{s}">{t}</td>'
+
+
+def _td(text: str, align: str = "right", style: str = "") -> str:
+    return _TD.format(a=align, s=style, t=text)
+
+
+def _mode_badge(v: VehicleView) -> str:
+    if not v.alive and v.state is not None:
+        return f'<b style="color:{css(ALERT_RGB)}">LOST</b>'
+    if v.mode is None:
+        return "—"
+    return f'<span style="color:{css(mode_rgb(v.mode))};font-weight:bold">{v.mode.name}</span>'
+
+
+def _link(v: VehicleView) -> str:
+    if v.state is None:
+        return _td("no state", style=f"color:{css(ALERT_RGB)}") * 3
+    age_style = f"color:{css(ALERT_RGB)};font-weight:bold" if v.stale else ""
+    loss_style = f"color:{css(ALERT_RGB)}" if v.loss_pct >= 10.0 else ""
+    age = f"{v.age_s:.1f}" if math.isfinite(v.age_s) else "—"
+    return (
+        _td(f"{v.rate_hz:.1f}")
+        + _td(age, style=age_style)
+        + _td(f"{v.loss_pct:.0f}", style=loss_style)
+    )
+
+
+def fleet_table(snap: FleetSnapshot, max_rows: int = 60) -> str:
+    """One row per vehicle: id, mode, armed, N/E/alt, speed, battery, Hz, age, loss."""
+    heads = [("id", "right"), ("mode", "left"), ("arm", "center"), ("N m", "right"), ("E m", "right"),
+             ("alt m", "right"), ("m/s", "right"), ("bat %", "right"), ("Hz", "right"),
+             ("age s", "right"), ("loss %", "right")]  # fmt: skip
+    rows = ["<tr>" + "".join(_TH.format(a=a, t=t) for t, a in heads) + "</tr>"]
+    for v in snap.vehicles[:max_rows]:
+        row_style = "background:#fde2e2" if (v.too_close or (not v.alive and v.state)) else ""
+        cells = [_td(f"<b>{v.vehicle_id}</b>"), _td(_mode_badge(v), "left")]
+        s = v.state
+        if s is None:
+            cells += [_td("—", "center")] + [_td("")] * 5
+        else:
+            bat_style = f"color:{css(ALERT_RGB)};font-weight:bold" if s.battery_pct < 20 else ""
+            cells += [
+                _td("●" if s.armed else "○", "center"),
+                _td(f"{s.pos_ned_m[0]:.1f}"),
+                _td(f"{s.pos_ned_m[1]:.1f}"),
+                _td(f"{v.alt_m:.1f}"),
+                _td(f"{v.speed_m_s:.1f}"),
+                _td(f"{s.battery_pct:.0f}", style=bat_style),
+            ]
+        cells.append(_link(v))
+        rows.append(
+            f'<tr data-vehicle="{v.vehicle_id}" style="{row_style}">' + "".join(cells) + "</tr>"
+        )
+    more = len(snap.vehicles) - max_rows
+    foot = f"<div style='font-size:0.75em'>… and {more} more</div>" if more > 0 else ""
+    alive = sum(v.alive for v in snap.vehicles)
+    summary = f"<div style='font-size:0.8em;margin-bottom:2px'><b>{alive}</b> of {len(snap.vehicles)} vehicles present"
+    if snap.close_pairs:
+        pairs = ", ".join(f"{a}–{b} ({d:.1f} m)" for a, b, d in snap.close_pairs[:5])
+        summary += f" · <b style='color:{css(ALERT_RGB)}'>TOO CLOSE: {html.escape(pairs)}</b>"
+    summary += "</div>"
+    return summary + _TABLE + "".join(rows) + "</table>" + foot
+
+
+_STATUS_STYLE = {
+    OutcomeStatus.ACCEPTED: ("✔ accepted", "#137333"),
+    OutcomeStatus.REJECTED: ("✘ rejected", "#c5221f"),
+    OutcomeStatus.FAILED: ("✘ failed", "#c5221f"),
+    OutcomeStatus.TIMEOUT: ("⏱ timeout", "#b06000"),
+    OutcomeStatus.ERROR: ("⚠ error", "#c5221f"),
+}
+
+
+def ack_matrix(done: Dispatched) -> str:
+    """Which vehicles accepted, rejected (with the reason), failed or timed out."""
+    title = f"<div style='font-size:0.8em'><b>{html.escape(done.label)}</b></div>"
+    if done.error:
+        return (
+            title
+            + f"<div style='color:{css(ALERT_RGB)};font-size:0.8em'>{html.escape(done.error)}</div>"
+        )
+    outcomes = {}
+    for res in done.results:
+        outcomes.update(res.outcomes)
+    errors = [e for res in done.results for e in res.errors]
+    if not outcomes:
+        return (
+            title + f"<div style='color:{css(ALERT_RGB)};font-size:0.8em'>no vehicle answered</div>"
+        )
+    counts: dict[OutcomeStatus, int] = {}
+    rows = []
+    for vid in sorted(outcomes):
+        o = outcomes[vid]
+        counts[o.status] = counts.get(o.status, 0) + 1
+        text, color = _STATUS_STYLE[o.status]
+        rows.append(
+            f'<tr data-vehicle="{vid}" data-status="{o.status.value}">' + _td(f"<b>{vid}</b>")
+            + _td(f'<span style="color:{color};font-weight:bold">{text}</span>', "left")
+            + _td(html.escape(o.reason), "left") + "</tr>"
+        )  # fmt: skip
+    tally = " · ".join(f"{n} {s.value}" for s, n in counts.items())
+    body = _TABLE + "".join(rows) + "</table>"
+    errs = "".join(f"<div style='font-size:0.75em'>{html.escape(e)}</div>" for e in errors[:3])
+    return title + f"<div style='font-size:0.75em'>{tally}</div>" + body + errs
+
+
+def legend() -> str:
+    chips = "".join(
+        f'<span style="display:inline-block;margin:1px 4px 1px 0;white-space:nowrap">'
+        f'<span style="display:inline-block;width:9px;height:9px;border-radius:5px;background:{css(rgb)};'
+        f'margin-right:2px"></span>{mode.name.lower()}</span>'
+        for mode, rgb in MODE_RGB.items()
+    )
+    return f"<div style='font-size:0.72em;line-height:1.3'>{chips}</div>"
