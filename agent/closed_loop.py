@@ -1,0 +1,259 @@
+"""Closed-loop replay: feed one vehicle's recorded traffic through a policy and compare commands.
+
+For every recorded state of vehicle V in which its agent ran guidance (goto, return or hold),
+rebuild what the agent saw — its own position, velocity, heading and goal, and its neighbour
+table — run `agent.guidance.Guidance` with the given policy, and compare the horizontal
+commanded velocity with the recorded reference.
+
+Reference and inputs, best first:
+- a guidance trace event (`trace_text` below; the agent publishes one per tick that publishes a
+  state): the exact command, the heading the policy saw and which neighbour samples (id, seq,
+  age) it used. Replaying the same policy then gives a difference at float32 rounding level.
+- without traces: the recorded velocity of V (the vehicle's response, not the command) and the
+  neighbour table rebuilt from the recorder's receive times. Approximate; the report says so.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.guidance import Guidance, GuidanceConfig
+from agent.neighbours import NeighbourConfig, NeighbourSnapshot
+from comms import keys
+from comms.record import Recording, read_recording
+from comms.schema import DecodeError, Event, Mode, StateFlag, VehicleState
+
+TRACE_PREFIX = "trace "
+GUIDED_MODES = (Mode.GOTO, Mode.RETURNING, Mode.HOLDING)
+
+
+# -- the trace contract ----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Trace:
+    """What the agent fed guidance in one tick, and what it commanded."""
+
+    state_seq: int
+    """seq of the VehicleState published in the same tick (same pos, vel and goal)."""
+    heading_rad: float
+    """Heading passed to guidance (the published heading is the one after guidance)."""
+    cmd_vel_ned_m_s: tuple[float, float, float]
+    neighbours: tuple[tuple[int, int, float], ...]
+    """(vehicle id, seq of its state, age in s) of every neighbour in the snapshot."""
+    complete: bool = True
+    """False when the neighbour list did not fit the event and was cut."""
+
+
+def trace_text(state_seq: int, heading_rad: float, cmd_vel_ned_m_s, nbr_ids, nbr_seqs, nbr_ages_s,
+               max_bytes: int = 120) -> str:  # fmt: skip
+    """`trace <seq> <heading> <vn>,<ve>,<vd> <id>:<seq>:<age_us>;...` cut to max_bytes (a final
+    `+` marks a cut neighbour list)."""
+    v = ",".join(f"{float(x):.9g}" for x in cmd_vel_ned_m_s)
+    text = f"{TRACE_PREFIX}{state_seq} {float(heading_rad):.9g} {v} "
+    items = [f"{i}:{s}:{round(a * 1e6)}" for i, s, a in zip(nbr_ids, nbr_seqs, nbr_ages_s, strict=True)]
+    body = ";".join(items)
+    if len((text + body).encode()) <= max_bytes:
+        return text + body
+    while items and len((text + ";".join(items) + "+").encode()) > max_bytes:
+        items.pop()
+    return text + ";".join(items) + "+"
+
+
+def parse_trace(text: str) -> Trace | None:
+    """The Trace in an event's text, or None if it is not a (valid) trace."""
+    if not text.startswith(TRACE_PREFIX):
+        return None
+    parts = text[len(TRACE_PREFIX) :].split(" ")
+    try:
+        seq, heading, vel = int(parts[0]), float(parts[1]), tuple(float(x) for x in parts[2].split(","))
+        body = parts[3] if len(parts) > 3 else ""
+        complete = not body.endswith("+")
+        nbrs = tuple(
+            (int(i), int(s), int(a) / 1e6)
+            for i, s, a in (item.split(":") for item in body.rstrip("+").split(";") if item)
+        )
+    except (ValueError, IndexError):
+        return None
+    if len(vel) != 3 or not all(map(math.isfinite, (heading, *vel))):
+        return None
+    return Trace(seq, heading, vel, nbrs, complete)  # type: ignore[arg-type]
+
+
+# -- replay ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ClosedLoopConfig:
+    """Which vehicle of which recording to replay through which policy."""
+
+    path: str
+    """The MCAP recording."""
+    vehicle_id: int
+    """The vehicle whose traffic is replayed."""
+    policy_path: str | None = None
+    """Policy weights (.npz); None = the shipped weights."""
+    separation_m: float = 3.0
+    """As the agent flew (covey agent --separation-m)."""
+    cruise_speed_m_s: float = 1.0
+    """As the agent flew (covey agent --cruise-speed-m-s)."""
+    safety_filter: bool = True
+    """As the agent flew (off with covey agent --no-safety-filter)."""
+    start_s: float = 0.0
+    """Skip the first start_s seconds of the recording."""
+    end_s: float | None = None
+    """Stop at this many seconds into the recording."""
+    neighbours: NeighbourConfig = NeighbourConfig()
+    """The agent's neighbour-table settings (staleness, vertical band)."""
+
+
+@dataclass(frozen=True)
+class _Sample:
+    t_ns: int
+    state: VehicleState
+
+
+def _index(rec: Recording, vid: int):
+    own: list[_Sample] = []
+    others: dict[int, list[_Sample]] = {}
+    traces: dict[int, Trace] = {}
+    for m in rec.messages:
+        parsed = keys.parse_vehicle_key(m.topic)
+        if parsed is None:
+            continue
+        try:
+            if parsed[2] == "state":
+                s = VehicleState.decode(m.data)
+                (own if s.vehicle_id == vid else others.setdefault(s.vehicle_id, [])).append(_Sample(m.log_time_ns, s))
+            elif parsed[2] == "event" and parsed[1] == vid:
+                tr = parse_trace(Event.decode(m.data).text)
+                if tr is not None:
+                    traces[tr.state_seq] = tr
+        except DecodeError:
+            continue
+    return own, others, traces
+
+
+def _snapshot(rows: list[tuple[VehicleState, float]], stale_s: float) -> NeighbourSnapshot:
+    """The agent's NeighbourSnapshot: positions dead-reckoned by age (p + v age)."""
+    k = len(rows)
+    pos = [np.asarray(s.pos_ned_m, float) + np.asarray(s.vel_ned_m_s, float) * a for s, a in rows]
+    return NeighbourSnapshot(
+        pos_ned_m=np.array(pos, dtype=float).reshape(k, 3),
+        vel_ned_m_s=np.array([s.vel_ned_m_s for s, _ in rows], dtype=float).reshape(k, 3),
+        heading_rad=np.array([s.heading_rad for s, _ in rows], dtype=float).reshape(k),
+        ids=tuple(s.vehicle_id for s, _ in rows),
+        age_s=np.array([a for _, a in rows], dtype=float).reshape(k),
+        stale_ids=tuple(s.vehicle_id for s, a in rows if a > stale_s),
+    )
+
+
+def _traced_rows(tr: Trace, others: dict[int, list[_Sample]], t_ns: int):
+    rows = []
+    for vid, seq, age_s in tr.neighbours:
+        cands = [x for x in others.get(vid, ()) if x.state.seq == seq and x.t_ns <= t_ns + 1_000_000_000]
+        if not cands:
+            return None  # the recorder missed the sample the agent used
+        rows.append((cands[-1].state, age_s))
+    return rows
+
+
+def _rebuilt_rows(others: dict[int, list[_Sample]], t_ns: int, own: VehicleState, cfg: NeighbourConfig):
+    rows = []
+    for samples in others.values():
+        i = bisect.bisect_right([x.t_ns for x in samples], t_ns) - 1
+        if i < 0:
+            continue
+        s, age_s = samples[i].state, (t_ns - samples[i].t_ns) / 1e9
+        if age_s > cfg.drop_s or (s.mode in (Mode.LANDED, Mode.KILLED) and not s.armed):
+            continue
+        if abs(s.pos_ned_m[2] + s.vel_ned_m_s[2] * age_s - own.pos_ned_m[2]) > cfg.vertical_band_m:
+            continue
+        rows.append((s, age_s))
+    return rows
+
+
+def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
+                    guidance: Guidance | None = None) -> dict:  # fmt: skip
+    """Replay and compare; returns the report (JSON-ready)."""
+    rec = recording if recording is not None else read_recording(cfg.path)
+    guidance = guidance or Guidance(GuidanceConfig(
+        separation_m=cfg.separation_m, cruise_speed_m_s=cfg.cruise_speed_m_s,
+        safety_filter=cfg.safety_filter, policy_path=cfg.policy_path,
+    ))  # fmt: skip
+    own, others, traces = _index(rec, cfg.vehicle_id)
+    if not own:
+        raise ValueError(f"{cfg.path}: no states of vehicle {cfg.vehicle_id} in the recording")
+    t0 = rec.messages[0].log_time_ns
+    lo, hi = t0 + round(cfg.start_s * 1e9), None if cfg.end_s is None else t0 + round(cfg.end_s * 1e9)
+    use_traces = bool(traces)
+    rows_out, skipped = [], 0
+    prev_heading = None
+    for sample in own:
+        s, t_ns = sample.state, sample.t_ns
+        heading_in = prev_heading
+        prev_heading = s.heading_rad
+        if t_ns < lo or (hi is not None and t_ns >= hi):
+            continue
+        if not (s.armed and s.mode in GUIDED_MODES and s.flags & StateFlag.HAS_GOAL):
+            continue
+        if use_traces:
+            tr = traces.get(s.seq)
+            nbr_rows = _traced_rows(tr, others, t_ns) if tr is not None and tr.complete else None
+            if nbr_rows is None:
+                skipped += 1
+                continue
+            heading_in, ref = tr.heading_rad, np.array(tr.cmd_vel_ned_m_s[:2])
+        else:
+            nbr_rows = _rebuilt_rows(others, t_ns, s, cfg.neighbours)
+            v = s.vel_ned_m_s
+            if math.hypot(v[0], v[1]) > 0.2 * cfg.cruise_speed_m_s or heading_in is None:
+                heading_in = math.atan2(v[1], v[0]) if math.hypot(v[0], v[1]) > 1e-9 else s.heading_rad
+            ref = np.array(v[:2])
+        snap = _snapshot(nbr_rows, cfg.neighbours.stale_s)
+        pos, vel, goal = (np.asarray(x, dtype=float) for x in (s.pos_ned_m, s.vel_ned_m_s, s.goal_ned_m))
+        step = guidance.hold if s.mode is Mode.HOLDING else guidance.goto
+        out = step(pos, vel, heading_in, goal, snap).vel_ned_m_s[:2]
+        rows_out.append(((t_ns - t0) / 1e9, s.seq, s.pos_ned_m, out, ref, float(np.linalg.norm(out - ref))))
+    return _report(cfg, rows_out, skipped, "trace" if use_traces else "recorded_velocity")
+
+
+def _report(cfg: ClosedLoopConfig, rows: list, skipped: int, reference: str) -> dict:
+    diffs = np.array([r[5] for r in rows])
+    worst = rows[int(np.argmax(diffs))] if rows else None
+    return {
+        "vehicle_id": cfg.vehicle_id,
+        "policy": cfg.policy_path or "shipped",
+        "reference": reference,
+        "exact": reference == "trace",
+        "ticks": len(rows),
+        "skipped_ticks": skipped,
+        "max_diff_m_s": float(diffs.max()) if rows else 0.0,
+        "p95_diff_m_s": float(np.percentile(diffs, 95)) if rows else 0.0,
+        "mean_diff_m_s": float(diffs.mean()) if rows else 0.0,
+        "worst": None if worst is None else {
+            "t_s": worst[0], "seq": worst[1], "pos_ned_m": list(worst[2]),
+            "commanded_m_s": worst[3].tolist(), "reference_m_s": worst[4].tolist(),
+        },
+        "largest": [
+            {"t_s": r[0], "seq": r[1], "pos_ned_m": list(r[2]), "diff_m_s": r[5]}
+            for r in sorted(rows, key=lambda r: -r[5])[:10]
+        ],
+    }  # fmt: skip
+
+
+def format_report(rep: dict) -> str:
+    ref = "traced commands (exact)" if rep["exact"] else "recorded velocity (approximate: no traces)"
+    lines = [
+        f"closed-loop replay of vehicle {rep['vehicle_id']} with policy {rep['policy']}",
+        f"reference   {ref}",
+        f"ticks       {rep['ticks']} compared, {rep['skipped_ticks']} skipped",
+        f"difference  max {rep['max_diff_m_s']:.3g} m/s, p95 {rep['p95_diff_m_s']:.3g} m/s, "
+        f"mean {rep['mean_diff_m_s']:.3g} m/s",
+        "",
+        f"{'t s':>8} {'seq':>6} {'north m':>9} {'east m':>9} {'diff m/s':>10}",
+    ]
+    for r in rep["largest"]:
+        n, e = r["pos_ned_m"][0], r["pos_ned_m"][1]
+        lines.append(f"{r['t_s']:>8.2f} {r['seq']:>6} {n:>9.2f} {e:>9.2f} {r['diff_m_s']:>10.3g}")
+    return "\n".join(lines)
