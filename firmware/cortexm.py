@@ -184,7 +184,7 @@ def main() -> int:
         print(name, sizes(elfs[name]))
     run = run_qemu(elfs["cases"])
     print(f"calibration: {1 / run.ticks_per_instruction:.3f} instructions per SysTick tick")
-    for k, ticks in run.bench_ticks.items():
+    for k in run.bench_ticks:
         print(f"{k:3d} neighbours: {run.instructions(k):,.0f} instructions")
     return 0
 

@@ -21,6 +21,7 @@ FIRMWARE_DIR = Path(__file__).resolve().parent
 BUILD_DIR = FIRMWARE_DIR / "build"
 CORE_SOURCES = (FIRMWARE_DIR / "covey_policy.c", FIRMWARE_DIR / "covey_policy.h")
 DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_driver.c"
+BENCH_SOURCE = FIRMWARE_DIR / "host" / "covey_bench.c"
 SHIPPED_NPZ = FIRMWARE_DIR.parent / "policy" / "weights" / "policy.npz"
 COMMITTED_HEADER = FIRMWARE_DIR / "covey_weights.h"
 
@@ -89,6 +90,11 @@ def build_driver(header: Path, sanitize: bool = False, defines: tuple[str, ...] 
     extra = SANITIZE_FLAGS if sanitize else OPT_FLAGS
     kind = "driver-asan" if sanitize else "driver"
     return _build(kind, header, extra, (DRIVER_SOURCE,), "", defines)
+
+
+def build_bench(header: Path) -> Path:
+    """The host timing program (firmware/host/covey_bench.c), -O2."""
+    return _build("bench", header, OPT_FLAGS, (BENCH_SOURCE,), "")
 
 
 def run_driver(driver: Path, text: str) -> tuple[list[str], str]:

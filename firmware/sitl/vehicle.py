@@ -304,16 +304,16 @@ class Vehicle:
             self.heading_rad = _wrap_pi(self.heading_rad + step)
 
     def _fall(self, dt: float) -> None:
+        if self.pos_ned_m[2] < 0.0:
+            self.vel_ned_m_s[:2] *= max(0.0, 1.0 - 0.5 * dt)  # drag bleeds the horizontal speed
+            self.vel_ned_m_s[2] += GRAVITY_M_S2 * dt
+            self.pos_ned_m += self.vel_ned_m_s * dt
         if self.pos_ned_m[2] >= 0.0:
             self.pos_ned_m[2] = 0.0
             self.vel_ned_m_s[:] = 0.0
             if self.falling:
                 self._say("Vehicle hit the ground")
             self.falling = False
-            return
-        self.vel_ned_m_s[:2] *= max(0.0, 1.0 - 0.5 * dt)  # drag bleeds the horizontal speed
-        self.vel_ned_m_s[2] += GRAVITY_M_S2 * dt
-        self.pos_ned_m += self.vel_ned_m_s * dt
 
     def _ground_checks(self, now: float) -> None:
         p = self.params
