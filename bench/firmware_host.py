@@ -1,0 +1,79 @@
+"""Host time of one C policy evaluation vs vehicle count (median of timed batches).
+
+    python -m bench.firmware_host        # prints a table, writes bench/results/firmware_host.json
+
+Builds firmware/host/covey_bench.c (-O2, system cc) against the shipped weights; for
+each neighbour count it times 15 batches of 20 covey_command calls and reports the
+median and the fastest batch per call. For comparison it times the numpy runtime
+(`GuidancePolicy.action`, the same network without the safety filter) the same way.
+The machine is shared, so the minimum is the steadier number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware import hostbuild
+
+RESULTS = Path(__file__).resolve().parent / "results"
+N_VEHICLES = (2, 5, 10, 20, 35)
+
+
+def time_c(neighbours) -> dict[int, tuple[float, float]]:
+    exe = hostbuild.build_bench(hostbuild.header_for(hostbuild.SHIPPED_NPZ))
+    out = subprocess.run([str(exe), *map(str, neighbours)], capture_output=True, text=True,
+                         check=True).stdout
+    return {int(t[0]): (float(t[1]), float(t[2])) for t in (ln.split() for ln in out.splitlines())}
+
+
+def time_numpy(neighbours, repeats: int = 15, batch: int = 5) -> dict[int, tuple[float, float]]:
+    from policy.runtime import GuidancePolicy
+
+    pol = GuidancePolicy.load(safety_filter=False)
+    rng = np.random.default_rng(0)
+    out = {}
+    for k in neighbours:
+        nbr = rng.uniform(-6, 6, (k, 2))
+        hdg = rng.uniform(-np.pi, np.pi, k)
+        per_call = []
+        for _ in range(repeats):
+            t0 = time.perf_counter_ns()
+            for _ in range(batch):
+                pol.action(np.zeros(2), 0.3, np.array([40.0, 25.0]), nbr, hdg)
+            per_call.append((time.perf_counter_ns() - t0) / batch)
+        out[k] = (float(np.median(per_call)), float(np.min(per_call)))
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=RESULTS / "firmware_host.json")
+    args = parser.parse_args(argv)
+    ks = [n - 1 for n in N_VEHICLES]
+    c_ns = time_c(ks)
+    np_ns = time_numpy(ks)
+    rows = [{"vehicles": k + 1, "neighbours": k, "c_median_us": c_ns[k][0] / 1e3,
+             "c_min_us": c_ns[k][1] / 1e3, "numpy_median_us": np_ns[k][0] / 1e3,
+             "numpy_min_us": np_ns[k][1] / 1e3} for k in ks]
+    print(" N   C median us   C min us   numpy median us   numpy min us")
+    for r in rows:
+        print(f"{r['vehicles']:2d} {r['c_median_us']:12.1f} {r['c_min_us']:10.1f} "
+              f"{r['numpy_median_us']:16.1f} {r['numpy_min_us']:14.1f}")
+    result = {"machine": platform.processor() or platform.machine(),
+              "compiler": hostbuild.compiler(), "flags": " ".join(hostbuild.OPT_FLAGS),
+              "rows": rows}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
