@@ -106,20 +106,28 @@ def ack_matrix(done: Dispatched) -> str:
             title + f"<div style='color:{css(ALERT_RGB)};font-size:0.8em'>no vehicle answered</div>"
         )
     counts: dict[OutcomeStatus, int] = {}
-    rows = []
+    chips, problems = [], []
     for vid in sorted(outcomes):
         o = outcomes[vid]
         counts[o.status] = counts.get(o.status, 0) + 1
         text, color = _STATUS_STYLE[o.status]
-        rows.append(
-            f'<tr data-vehicle="{vid}" data-status="{o.status.value}">' + _td(f"<b>{vid}</b>")
-            + _td(f'<span style="color:{color};font-weight:bold">{text}</span>', "left")
-            + _td(html.escape(o.reason), "left") + "</tr>"
-        )  # fmt: skip
+        chips.append(
+            f'<span data-vehicle="{vid}" data-status="{o.status.value}" title="{html.escape(text)} '
+            f'{html.escape(o.reason)}" style="display:inline-block;min-width:2.6em;margin:1px;padding:0 3px;'
+            f'border-radius:3px;color:white;background:{color};text-align:center">{vid} {text[0]}</span>'
+        )
+        if o.status is not OutcomeStatus.ACCEPTED:
+            problems.append(
+                f"<div><b>{vid}</b> <span style='color:{color}'>{text[2:]}</span>: {html.escape(o.reason)}</div>"
+            )
     tally = " · ".join(f"{n} {s.value}" for s, n in counts.items())
-    body = _TABLE + "".join(rows) + "</table>"
-    errs = "".join(f"<div style='font-size:0.75em'>{html.escape(e)}</div>" for e in errors[:3])
-    return title + f"<div style='font-size:0.75em'>{tally}</div>" + body + errs
+    errs = "".join(f"<div>{html.escape(e)}</div>" for e in errors[:3])
+    return (
+        title
+        + f"<div style='font-size:0.75em'>{tally}</div>"
+        + f"<div style='font-size:0.75em;line-height:1.5'>{''.join(chips)}</div>"
+        + f"<div style='font-size:0.75em'>{''.join(problems[:20])}{errs}</div>"
+    )
 
 
 def legend() -> str:

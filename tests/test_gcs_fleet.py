@@ -1,0 +1,140 @@
+"""The ground station's fleet model: link rate, loss from seq gaps, trails, separation, presence."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from comms.schema import Mode, StateFlag, VehicleState
+from groundstation.fleet import NS_PER_S, FleetConfig, FleetModel, close_pairs, link_health
+
+
+def state(vid: int, seq: int, pos=(0.0, 0.0, -5.0), vel=(1.0, 0.0, 0.0), **kw) -> VehicleState:
+    return VehicleState(vehicle_id=vid, seq=seq, stamp_ns=seq, pos_ned_m=pos, vel_ned_m_s=vel,
+                        heading_rad=0.0, mode=kw.pop("mode", Mode.GOTO), **kw)  # fmt: skip
+
+
+def feed(model: FleetModel, vid: int, n: int, rate_hz: float, t0_s: float = 0.0, drop=lambda seq: False,
+         pos=lambda seq: (0.0, 0.0, -5.0)) -> float:  # fmt: skip
+    """Feed n states at rate_hz starting at t0_s; returns the time of the last one (s)."""
+    t = t0_s
+    for seq in range(n):
+        t = t0_s + seq / rate_hz
+        if not drop(seq):
+            model.on_state(state(vid, seq, pos=pos(seq)), int(t * NS_PER_S))
+    return t
+
+
+def test_rate_and_no_loss_at_10_hz():
+    model = FleetModel()
+    t = feed(model, 1, 50, 10.0)
+    v = model.snapshot(int(t * NS_PER_S)).vehicles[0]
+    assert v.rate_hz == pytest.approx(10.0, rel=1e-6)
+    assert v.loss_pct == 0.0
+    assert v.age_s == 0.0 and not v.stale
+
+
+def test_loss_estimated_from_sequence_gaps():
+    model = FleetModel(FleetConfig(rate_window_s=10.0))
+    t = feed(model, 1, 101, 10.0, drop=lambda seq: seq % 5 == 2)  # one in five lost
+    v = model.snapshot(int(t * NS_PER_S)).vehicles[0]
+    assert v.loss_pct == pytest.approx(20.0, abs=1.5)
+    assert v.rate_hz == pytest.approx(8.0, abs=0.3)
+
+
+def test_age_grows_and_stale_flag_when_states_stop():
+    model = FleetModel(FleetConfig(stale_after_s=1.0))
+    t = feed(model, 1, 10, 10.0)
+    v = model.snapshot(int((t + 1.5) * NS_PER_S)).vehicles[0]
+    assert v.age_s == pytest.approx(1.5) and v.stale
+    assert v.rate_hz == pytest.approx(10.0)  # still from the window's samples
+
+
+def test_window_forgets_old_samples():
+    model = FleetModel(FleetConfig(rate_window_s=2.0))
+    feed(model, 1, 20, 10.0)  # 0 .. 1.9 s
+    v = model.snapshot(int(10 * NS_PER_S)).vehicles[0]
+    assert v.rate_hz == 0.0 and v.loss_pct == 0.0
+
+
+def test_duplicates_and_late_states_are_ignored_restart_resets():
+    model = FleetModel()
+    model.on_state(state(1, 10, pos=(1.0, 0.0, 0.0)), 1 * NS_PER_S)
+    model.on_state(state(1, 10, pos=(9.0, 0.0, 0.0)), 2 * NS_PER_S)  # duplicate
+    model.on_state(state(1, 8, pos=(8.0, 0.0, 0.0)), 3 * NS_PER_S)  # late
+    assert model.positions()[1] == (1.0, 0.0, 0.0)
+    model.on_state(
+        state(1, 0, pos=(2.0, 0.0, 0.0)), 4 * NS_PER_S
+    )  # seq 10 -> 0: small jump back, late
+    assert model.positions()[1] == (1.0, 0.0, 0.0)
+    model.on_state(state(1, 5000, pos=(3.0, 0.0, 0.0)), 5 * NS_PER_S)
+    model.on_state(state(1, 1, pos=(4.0, 0.0, 0.0)), 6 * NS_PER_S)  # big jump back: agent restarted
+    assert model.positions()[1] == (4.0, 0.0, 0.0)
+
+
+def test_trail_keeps_60_s_thinned():
+    cfg = FleetConfig(trail_s=60.0, trail_min_step_s=0.2)
+    model = FleetModel(cfg)
+    t = feed(model, 1, 1200, 10.0, pos=lambda seq: (seq * 0.1, 0.0, -5.0))  # 120 s at 10 Hz
+    trail = model.snapshot(int(t * NS_PER_S)).vehicles[0].trail_ned_m
+    assert trail.shape[1] == 3
+    assert 295 <= len(trail) <= 301  # 60 s at one point per 0.2 s
+    assert trail[-1][0] == pytest.approx(119.9, abs=0.2)
+    assert trail[0][0] == pytest.approx(60.0, abs=0.5)
+    assert np.all(np.diff(trail[:, 0]) > 0)
+
+
+def test_separation_alerts_pairs_closer_than_3_m():
+    model = FleetModel(FleetConfig(separation_m=3.0))
+    model.on_state(state(1, 1, pos=(0.0, 0.0, -5.0)), NS_PER_S)
+    model.on_state(state(2, 1, pos=(2.0, 0.0, -5.0)), NS_PER_S)  # 2 m from 1
+    model.on_state(state(3, 1, pos=(0.0, 10.0, -5.0)), NS_PER_S)
+    model.on_state(state(4, 1, pos=(0.0, 10.0, -7.9)), NS_PER_S)  # 2.9 m above 3
+    snap = model.snapshot(NS_PER_S)
+    assert [(a, b) for a, b, _ in snap.close_pairs] == [(1, 2), (3, 4)]
+    assert all(v.too_close for v in snap.vehicles)
+    model.on_state(state(2, 2, pos=(3.5, 0.0, -5.0)), 2 * NS_PER_S)
+    snap = model.snapshot(2 * NS_PER_S)
+    assert [(a, b) for a, b, _ in snap.close_pairs] == [(3, 4)]
+    assert [v.too_close for v in snap.vehicles] == [False, False, True, True]
+
+
+def test_close_pairs_matches_a_plain_loop():
+    rng = np.random.default_rng(3)
+    positions = [(i + 1, tuple(rng.uniform(-10, 10, 3))) for i in range(40)]
+    expected = sorted(
+        (a, b)
+        for i, (a, pa) in enumerate(positions)
+        for b, pb in positions[i + 1 :]
+        if math.dist(pa, pb) < 3.0
+    )
+    assert sorted((a, b) for a, b, _ in close_pairs(positions, 3.0)) == expected
+
+
+def test_presence_loss_and_return():
+    model = FleetModel()
+    model.on_presence(7, True, 0)
+    assert model.snapshot(0).vehicles[0].alive and model.snapshot(0).vehicles[0].state is None
+    model.on_state(state(7, 1, flags=StateFlag.HAS_GOAL, goal_ned_m=(1.0, 2.0, -3.0)), 10)
+    v = model.snapshot(10).vehicles[0]
+    assert v.has_goal and v.alt_m == 5.0 and v.speed_m_s == 1.0
+    model.on_presence(7, False, 20)
+    v = model.snapshot(20).vehicles[0]
+    assert not v.alive and v.state is not None  # last state is kept to show where it was lost
+    model.on_presence(7, True, 30)
+    assert model.snapshot(30).vehicles[0].alive
+
+
+def test_link_health_edge_cases():
+    assert link_health([]) == (0.0, 0.0)
+    assert link_health([(0, 5)]) == (0.0, 0.0)
+    assert link_health([(0, 5), (0, 6)]) == (0.0, 0.0)  # same stamp: no rate, no loss
+
+
+@pytest.mark.parametrize("field", ["trail_s", "rate_window_s", "separation_m"])
+@pytest.mark.parametrize("bad", [0.0, -1.0, math.nan, math.inf])
+def test_config_rejects_bad_values(field, bad):
+    with pytest.raises(ValueError, match=field):
+        FleetConfig(**{field: bad})
