@@ -18,6 +18,7 @@ from pymavlink.dialects.v20 import common as mavlink
 log = logging.getLogger(__name__)
 
 MAX_DATAGRAM_BYTES = 65535
+RECEIVE_BUFFER_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,8 @@ class UdpLink:
         self.url = LinkUrl.parse(url)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
+        # The loop drains the socket at physics_hz; a roomy buffer rides out bursts between ticks.
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
         self.peer: tuple[str, int] | None = None
         if self.url.listen:
             self.sock.bind((self.url.host, self.url.port))

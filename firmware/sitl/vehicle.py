@@ -271,10 +271,15 @@ class Vehicle:
 
     def step(self, now_s: float) -> None:
         """Integrate from the last call up to `now_s`."""
-        while now_s - self.now_s > 1e-9:
-            dt = min(MAX_SUBSTEP_S, now_s - self.now_s)
-            self.now_s += dt
-            self._substep(dt)
+        gap_s = now_s - self.now_s
+        if gap_s <= 0.0:
+            return
+        n = math.ceil(gap_s / MAX_SUBSTEP_S - 1e-9)
+        start_s = self.now_s
+        for k in range(1, n + 1):
+            self.now_s = start_s + gap_s * k / n
+            self._substep(gap_s / n)
+        self.now_s = now_s
 
     def _substep(self, dt: float) -> None:
         p, now = self.params, self.now_s
