@@ -186,6 +186,47 @@ def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours
     return seq, lengths, goal_features(pos, heading_rad, goal, cfg), nbr
 
 
+def observe_padded(
+    pos, heading_rad, goal, nbr_pos, nbr_heading_rad, nbr_valid, cfg: ObsConfig, max_neighbours=None
+):
+    """Each vehicle with its own neighbour list (e.g. what its radio link delivered).
+
+    pos (N,2), heading_rad (N,), goal (N,2); nbr_pos (N,K,2), nbr_heading_rad (N,K),
+    nbr_valid (N,K) bool. Returns seq (N,K',X), lengths (N,), goal features (N,G) and
+    the chosen columns (N,K') (-1 = padding), as `observe` row by row.
+    """
+    pos = np.asarray(pos, dtype=np.float64)
+    nbr_pos = np.asarray(nbr_pos, dtype=np.float64)
+    heading_rad = np.asarray(heading_rad, dtype=np.float64)
+    n, kk = nbr_valid.shape
+    rx = nbr_pos[..., 0] - pos[:, None, 0]
+    ry = nbr_pos[..., 1] - pos[:, None, 1]
+    d = np.hypot(rx, ry)
+    valid = np.asarray(nbr_valid, dtype=bool).copy()
+    if cfg.sense_range > 0:
+        valid &= d <= cfg.sense_range
+    key = np.where(valid, d, np.inf)
+    k = kk if max_neighbours is None else min(max_neighbours, kk)
+    cols = np.arange(kk)
+    nearest = np.lexsort((np.broadcast_to(cols, key.shape), key), axis=-1)[:, :k]
+    nd = np.take_along_axis(key, nearest, axis=-1)
+    ok = np.isfinite(nd)
+    if cfg.order == "index":
+        o = np.argsort(np.where(ok, nearest, kk + 1), axis=-1, kind="stable")
+    else:
+        o = np.lexsort((nearest, np.where(ok, -nd, np.inf)), axis=-1)
+    sel = np.take_along_axis(nearest, o, axis=-1)
+    ok = np.take_along_axis(ok, o, axis=-1)
+    sx, sy = np.take_along_axis(rx, sel, -1), np.take_along_axis(ry, sel, -1)
+    los = np.arctan2(sy, sx)
+    psi_ij = wrap_rad(los - heading_rad[:, None])
+    psi_ji = wrap_rad(
+        np.take_along_axis(np.asarray(nbr_heading_rad, np.float64), sel, -1) - (los + np.pi)
+    )
+    seq = encode_tuples(np.hypot(sx, sy), psi_ij, psi_ji, cfg) * ok[..., None]
+    return seq, ok.sum(-1), goal_features(pos, heading_rad, goal, cfg), np.where(ok, sel, -1)
+
+
 def action_to_velocity(action, heading_rad):
     """Body-frame action (fwd, right) to (north, east) velocity in policy units.
 

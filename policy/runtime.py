@@ -205,6 +205,25 @@ class GuidancePolicy:
             safety_cfg,
         )
 
+    @property
+    def decision_period_s(self) -> float:
+        """World time of one training step (1 s in policy units): call `command` at this
+        period and hold the velocity in between; run `filter` at the control rate."""
+        return float(self.config.get("dt_s", 1.0)) * self.dist_scale_m / self.cruise_speed_m_s
+
+    def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
+        """The safety filter alone (world units): pref_vel_m_s changed as little as possible."""
+        pos_m = _check("pos_m", pos_m, (2,))
+        nbr_pos_m = _check("nbr_pos_m", nbr_pos_m, (-1, 2))
+        return safety.filter_velocity(
+            pos_m,
+            _check("vel_m_s", vel_m_s, (2,)),
+            _check("pref_vel_m_s", pref_vel_m_s, (2,)),
+            nbr_pos_m,
+            _check("nbr_vel_m_s", nbr_vel_m_s, (nbr_pos_m.shape[0], 2)),
+            self.safety_cfg,
+        )
+
     # --- policy units -------------------------------------------------------------
 
     def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
@@ -263,4 +282,41 @@ class GuidancePolicy:
         if self.safety_filter:
             v = safety.filter_batch(pos_m, vel_m_s, v, nbr, self.safety_cfg)
         v[~active] = 0.0
+        return v
+
+    def command_views(
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        nbr_valid,
+    ):
+        """Velocity commands (N, 2) in m/s when each vehicle has its own view of the others.
+
+        nbr_* are (N, K, ...) padded with nbr_valid (N, K) False: what each vehicle's link
+        delivered (stale, lossy). Unchecked fast path for simulations.
+        """
+        s = self.dist_scale_m
+        seq, lengths, goal_feat, _ = features.observe_padded(
+            pos_m / s,
+            heading_rad,
+            goal_m / s,
+            nbr_pos_m / s,
+            nbr_heading_rad,
+            nbr_valid,
+            self.obs_cfg,
+            self.max_neighbours,
+        )
+        a = features.clip_unit(
+            self.net.head_forward(self.net.lstm_last_batch(seq, lengths), goal_feat)
+        )
+        v = features.action_to_velocity(a, heading_rad) * self.cruise_speed_m_s
+        if self.safety_filter:
+            v = safety.filter_padded(
+                pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, self.safety_cfg
+            )
         return v

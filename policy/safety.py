@@ -186,7 +186,17 @@ def filter_velocity(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: S
 
 
 def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig):
-    """Filtered velocities (N,2) for N vehicles; nbr (N,K) neighbour indices, -1 = none.
+    """Filtered velocities (N,2) for N vehicles; nbr (N,K) neighbour indices, -1 = none."""
+    pos_m = np.asarray(pos_m, dtype=np.float64)
+    vel_m_s = np.asarray(vel_m_s, dtype=np.float64)
+    j = np.maximum(nbr, 0)
+    return filter_padded(pos_m, vel_m_s, pref_vel_m_s, pos_m[j], vel_m_s[j], nbr >= 0, cfg)
+
+
+def filter_padded(
+    pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, nbr_valid, cfg: SafetyConfig
+):
+    """Filtered velocities (N,2); each vehicle has its own neighbour list (N,K,...).
 
     Half-planes are built for all vehicles at once; the LP runs only for the
     vehicles whose preferred velocity breaks a constraint.
@@ -194,14 +204,12 @@ def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig):
     pos_m = np.asarray(pos_m, dtype=np.float64)
     vel_m_s = np.asarray(vel_m_s, dtype=np.float64)
     pref = _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
-    if nbr.shape[1] == 0:
+    if nbr_valid.shape[1] == 0:
         return pref
-    ok = nbr >= 0
-    j = np.where(ok, nbr, 0)
-    rel_pos = pos_m[j] - pos_m[:, None]
-    rel_vel = vel_m_s[:, None] - vel_m_s[j]
+    rel_pos = np.asarray(nbr_pos_m, dtype=np.float64) - pos_m[:, None]
+    rel_vel = vel_m_s[:, None] - np.asarray(nbr_vel_m_s, dtype=np.float64)
     reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
-    ok &= (rel_pos**2).sum(-1) < reach * reach
+    ok = np.asarray(nbr_valid, dtype=bool) & ((rel_pos**2).sum(-1) < reach * reach)
     point, direction = orca_lines(rel_pos, rel_vel, vel_m_s, cfg)
     viol = _det(
         direction[..., 0],

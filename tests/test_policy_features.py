@@ -124,3 +124,20 @@ def test_config_validation():
         ObsConfig(order="random")
     with pytest.raises(ValueError, match="dist_scale"):
         ObsConfig(dist_scale=0.0)
+
+
+@pytest.mark.parametrize("cfg", CONFIGS)
+def test_padded_views_match_single(cfg):
+    rng = np.random.default_rng(7)
+    n, k = 8, 6
+    pos, goal, h = rng.uniform(0, 40, (n, 2)), rng.uniform(0, 40, (n, 2)), rng.uniform(-3, 3, n)
+    nbr, nh = rng.uniform(0, 40, (n, k, 2)), rng.uniform(-3, 3, (n, k))
+    valid = rng.random((n, k)) > 0.3
+    seq, lengths, g, sel = features.observe_padded(pos, h, goal, nbr, nh, valid, cfg, 4)
+    for i in range(n):
+        cols = np.flatnonzero(valid[i])
+        s1, g1, idx = features.observe(pos[i], h[i], goal[i], nbr[i, cols], nh[i, cols], cfg, 4)
+        assert lengths[i] == len(idx)
+        np.testing.assert_array_equal(sel[i, : lengths[i]], cols[idx])
+        np.testing.assert_allclose(seq[i, : lengths[i]], s1, atol=1e-12)
+        np.testing.assert_allclose(g[i], g1, atol=1e-12)

@@ -1,0 +1,299 @@
+"""`covey eval`: scenario suites, baselines, metrics, tables and figures.
+
+    covey eval --quick                       # smoke run, a minute
+    covey eval --out runs/eval --paper-weights runs/paper/final.npz \
+        --occupancy runs/occupancy/final.pt
+
+Suites (policy units): antipodal circle (N up to 50), random forced conflicts
+(N = 2-10), random large swarms (N = 35 and 100); links perfect and degraded
+(3 Hz, 20 % loss, 100 ms latency). Controllers: the policy with and without the
+safety filter, optional paper-config and occupancy-map policies, ORCA and the
+straight line. Writes results.json, results.md, trajectory PNGs and the paper's
+Fig. 5 heading-change maps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from policy import scenarios, sim
+from policy.sim import DEGRADED, PERFECT, SimConfig
+
+
+def flops(n: int, h: int = 63, x: int = 3, layers=(64, 64), a: int = 2) -> int:
+    """FLOPs of one policy evaluation with n vehicles (the paper's formula).
+
+    (n-1)(8h^2 + 8hx + 26h) + 2(h+1)l1 + 4l1 + sum_k (2 l_k l_k+1 + 4 l_k+1) + 2 l_w a + 4a
+    """
+    per_nbr = 8 * h * h + 8 * h * x + 26 * h
+    fixed = 2 * (h + 1) * layers[0] + 4 * layers[0]
+    fixed += sum(2 * layers[k] * layers[k + 1] + 4 * layers[k + 1] for k in range(len(layers) - 1))
+    fixed += 2 * layers[-1] * a + 4 * a
+    return (n - 1) * per_nbr + fixed
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """What to evaluate and where to write it."""
+
+    out: str = "runs/eval"
+    """Output directory."""
+    weights: str | None = None
+    """Policy weights (.npz); None = the shipped ones."""
+    paper_weights: str | None = None
+    """Optional weights of a paper-configuration policy to compare."""
+    occupancy: str | None = None
+    """Optional trainer checkpoint (.pt) of the occupancy-map baseline (needs torch)."""
+    max_neighbours: int = 10
+    """Nearest neighbours fed to the learned policies."""
+    quick: bool = False
+    """Small smoke suite."""
+    seed: int = 0
+    """Scenario and link-loss seed."""
+    links: tuple = ("perfect", "degraded")
+    """Link models to run."""
+    dt_s: float = 0.1
+    """Simulation step (links, safety filter, collision checks)."""
+    policy_period_s: float = 1.0
+    """Learned policies decide every period (their training step) and hold in between."""
+    figures: bool = True
+    """Write trajectory PNGs and the Fig. 5 maps."""
+    progress: bool = True
+    """Show a tqdm bar."""
+    suites: tuple = field(default=("circle", "conflict", "large"))
+    """Suites to run."""
+
+
+def cases(cfg: EvalConfig):
+    """[(suite, name, starts, goals)]."""
+    rng = np.random.default_rng(cfg.seed)
+    out = []
+    circle = [4, 8] if cfg.quick else [2, 4, 8, 16, 32, 50]
+    conflict = (
+        [(3, 0), (6, 0)] if cfg.quick else [(n, s) for n in (2, 4, 6, 8, 10) for s in range(3)]
+    )
+    large = [(35, 0)] if cfg.quick else [(35, 0), (35, 1), (100, 0)]
+    if "circle" in cfg.suites:
+        out += [("circle", f"circle-{n}", *scenarios.antipodal_circle(n)) for n in circle]
+    if "conflict" in cfg.suites:
+        out += [
+            ("conflict", f"conflict-{n}-s{s}", *scenarios.random_conflict(rng, n))
+            for n, s in conflict
+        ]
+    if "large" in cfg.suites:
+        out += [("large", f"large-{n}-s{s}", *scenarios.random_large(rng, n)) for n, s in large]
+    return out
+
+
+def controllers(cfg: EvalConfig) -> dict:
+    """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)."""
+    from policy.runtime import GuidancePolicy
+    from policy.safety import SafetyConfig, filter_padded
+
+    safety_cfg = SafetyConfig(dt_s=cfg.dt_s)
+    out = {}
+    for name, path, filt in [
+        ("policy+filter", cfg.weights, True),
+        ("policy", cfg.weights, False),
+        ("paper-config", cfg.paper_weights, False),
+    ]:
+        if name == "paper-config" and not path:
+            continue
+        pol = GuidancePolicy.load(path, safety_filter=False, max_neighbours=cfg.max_neighbours)
+        out[name] = Held(pol.command_views, cfg.policy_period_s, safety_cfg if filt else None)
+    if cfg.occupancy:
+        out["occupancy"] = Held(
+            _occupancy_controller(cfg.occupancy, cfg.max_neighbours), cfg.policy_period_s
+        )
+
+    def orca(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
+        v = sim.straight_line(ids, t_s, pos, vel, heading, goal)
+        return filter_padded(pos, vel, v, nbr_pos, nbr_vel, nbr_valid, safety_cfg)
+
+    out["orca"] = orca
+    out["straight"] = sim.straight_line
+    return out
+
+
+class Held:
+    """Runs a learned policy every period_s (its training step) and holds the velocity in
+    between; the optional safety filter runs at every simulation step."""
+
+    def __init__(self, policy, period_s: float, safety_cfg=None):
+        self.policy, self.period_s, self.safety_cfg = policy, period_s, safety_cfg
+        self.v: dict = {}
+        self.next_t = -1.0
+
+    def __call__(self, ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
+        from policy.safety import filter_padded
+
+        if t_s < self.next_t - 1e-9 and self.v and t_s > 0:
+            v = np.array([self.v[i] for i in ids])
+        else:
+            v = self.policy(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)
+            self.v = dict(zip(ids.tolist(), v, strict=True))
+            self.next_t = t_s + self.period_s
+        if self.safety_cfg is not None:
+            v = filter_padded(pos, vel, v, nbr_pos, nbr_vel, nbr_valid, self.safety_cfg)
+        return v
+
+    def reset(self):
+        self.v, self.next_t = {}, -1.0
+
+
+def _occupancy_controller(ckpt: str, max_neighbours: int):
+    import torch
+
+    from policy import features
+    from policy.export import load_checkpoint
+
+    model, _ = load_checkpoint(ckpt)
+    obs = model.cfg.obs
+
+    def ctrl(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
+        seq, lengths, g, _ = features.observe_padded(
+            pos, heading, goal, nbr_pos, nbr_heading, nbr_valid, obs, max_neighbours
+        )
+        with torch.no_grad():
+            a = model.actor_mean(
+                torch.tensor(seq, dtype=torch.float32),
+                torch.tensor(lengths),
+                torch.tensor(g, dtype=torch.float32),
+            ).numpy()
+        return features.action_to_velocity(features.clip_unit(a), heading)
+
+    return ctrl
+
+
+def summarise(rows: list) -> list:
+    """One row per (controller, link, suite)."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["controller"], r["link"], r["suite"]), []).append(r)
+    out = []
+    for (c, link, suite), rs in groups.items():
+
+        def mean(key, rs=rs):
+            v = [r[key] for r in rs if r[key] is not None]
+            return float(np.mean(v)) if v else None
+
+        seps = [r["min_sep"] for r in rs if r["min_sep"] is not None]
+        out.append(
+            {
+                "controller": c,
+                "link": link,
+                "suite": suite,
+                "cases": len(rs),
+                "vehicles": int(sum(r["n"] for r in rs)),
+                "success": float(np.mean([r["success"] for r in rs])),
+                "collisions": int(sum(r["collisions"] for r in rs)),
+                "timeouts": int(sum(r["timeouts"] for r in rs)),
+                "min_sep": float(min(seps)) if seps else None,
+                "extra_time": mean("extra_time"),
+                "path_ratio": mean("path_ratio"),
+                "mean_acc": mean("mean_acc"),
+            }
+        )
+    return out
+
+
+def markdown(summary: list) -> str:
+    cols = ["suite", "link", "controller", "cases", "vehicles", "success", "collisions", "timeouts",
+            "min_sep", "extra_time", "path_ratio", "mean_acc"]  # fmt: skip
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for s in sorted(summary, key=lambda s: (s["suite"], s["link"], s["controller"])):
+        cells = []
+        for c in cols:
+            v = s[c]
+            cells.append("-" if v is None else f"{v:.3g}" if isinstance(v, float) else str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(cfg: EvalConfig) -> dict:
+    """Runs every (case, link, controller); writes results.json and results.md."""
+    from tqdm import tqdm
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ctrls = controllers(cfg)
+    links = {"perfect": PERFECT, "degraded": DEGRADED}
+    all_cases = cases(cfg)
+    rows, tracks = [], {}
+    jobs = [(c, ln, name) for c in all_cases for ln in cfg.links for name in ctrls]
+    for (suite, case, starts, goals), link, name in tqdm(
+        jobs, disable=not cfg.progress, unit="run"
+    ):
+        record = (
+            cfg.figures and link == "perfect" and case in ("circle-16", "circle-8", "large-35-s0")
+        )
+        sim_cfg = SimConfig(dt_s=cfg.dt_s, record=record)
+        rng = np.random.default_rng([cfg.seed, len(rows)])
+        if hasattr(ctrls[name], "reset"):
+            ctrls[name].reset()
+        r = sim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
+        if record:
+            tracks[(case, name)] = (r.pop("tracks"), r.pop("goals"))
+        rows.append({"suite": suite, "case": case, "link": link, "controller": name, **r})
+    summary = summarise(rows)
+    result = {"config": asdict(cfg), "flops_20": flops(20), "summary": summary, "runs": rows}
+    (out / "results.json").write_text(json.dumps(result, indent=1))
+    (out / "results.md").write_text(markdown(summary))
+    if cfg.figures:
+        from policy import figures
+
+        for (case, name), (tr, goals) in tracks.items():
+            figures.plot_tracks(tr, goals, f"{case} / {name}", out / f"tracks_{case}_{name}.png")
+        from policy.runtime import GuidancePolicy
+
+        pol = GuidancePolicy.load(cfg.weights, safety_filter=False)
+        figures.heading_change_maps(pol, out / "fig5_heading_change.png")
+    return result
+
+
+def cli(argv=None) -> dict:
+    """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`."""
+    ap = argparse.ArgumentParser(
+        prog="covey eval", description="Evaluate the guidance policy and baselines."
+    )
+    ap.add_argument("--out", default=EvalConfig.out)
+    ap.add_argument("--weights", default=None)
+    ap.add_argument("--paper-weights", default=None)
+    ap.add_argument("--occupancy", default=None, help="occupancy-map trainer checkpoint (.pt)")
+    ap.add_argument("--max-neighbours", type=int, default=EvalConfig.max_neighbours)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--links", default="perfect,degraded")
+    ap.add_argument("--suites", default="circle,conflict,large")
+    ap.add_argument("--dt", type=float, default=EvalConfig.dt_s)
+    ap.add_argument("--policy-period", type=float, default=EvalConfig.policy_period_s)
+    ap.add_argument("--no-figures", action="store_true")
+    ap.add_argument("--no-progress", action="store_true")
+    a = ap.parse_args(argv)
+    links = tuple(s for s in a.links.split(",") if s)
+    if not set(links) <= {"perfect", "degraded"}:
+        ap.error(f"--links takes perfect and/or degraded, got {a.links!r}")
+    suites = tuple(s for s in a.suites.split(",") if s)
+    if not set(suites) <= {"circle", "conflict", "large"}:
+        ap.error(f"--suites takes circle, conflict, large, got {a.suites!r}")
+    if not (a.dt > 0 and math.isfinite(a.dt)):
+        ap.error("--dt must be > 0")
+    cfg = EvalConfig(
+        out=a.out, weights=a.weights, paper_weights=a.paper_weights, occupancy=a.occupancy,
+        max_neighbours=a.max_neighbours, quick=a.quick, seed=a.seed, links=links, dt_s=a.dt,
+        figures=not a.no_figures, progress=not a.no_progress, suites=suites,
+        policy_period_s=a.policy_period,
+    )  # fmt: skip
+    result = main(cfg)
+    print(markdown(result["summary"]))
+    return result
+
+
+if __name__ == "__main__":
+    cli()

@@ -1,0 +1,178 @@
+"""Closed-loop evaluation simulator with an emulated broadcast link.
+
+Point masses fly the commanded velocity (Euler, dt_s); heading is the direction of
+the last displacement, at the start the goal. Each vehicle knows itself exactly
+and the others only through what the link delivered: broadcasts at `rate_hz`
+(random phase), each copy lost with probability `loss`, delivered `latency_s`
+later. Vehicles leave on arrival and on collision (as in training); a departed
+vehicle is known to have left (presence tokens), so it is no longer avoided.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Neighbour-state link; the defaults are a perfect link."""
+
+    rate_hz: float = 0.0
+    """Broadcast rate; 0 = every step, no loss or latency (perfect)."""
+    loss: float = 0.0
+    """Probability that one receiver misses one broadcast."""
+    latency_s: float = 0.0
+    """Delay from broadcast to delivery."""
+
+    @property
+    def perfect(self) -> bool:
+        return self.rate_hz <= 0
+
+
+PERFECT = LinkConfig()
+DEGRADED = LinkConfig(rate_hz=3.0, loss=0.2, latency_s=0.1)
+"""The paper's XBee link (3 Hz) with 20 % loss and 100 ms latency."""
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Closed-loop evaluation settings (policy units: 3 m separation, 1 m/s)."""
+
+    dt_s: float = 0.1
+    """Control and integration step."""
+    speed: float = 1.0
+    """Cruise speed (the straight-line time is distance / speed)."""
+    arrive_m: float = 1.0
+    """Arrival radius."""
+    collide_m: float = 3.0
+    """A pair closer than this collides."""
+    time_factor: float = 4.0
+    """A vehicle times out after time_factor x its straight-line time."""
+    record: bool = False
+    """Keep the trajectories (for plots)."""
+
+
+# controller(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid) -> vel (N, 2)
+# ids are the vehicle numbers of the rows (the active vehicles), t_s the time.
+Controller = Callable[..., np.ndarray]
+
+
+def straight_line(ids, t_s, pos, vel, heading, goal, *_):
+    """Baseline: fly straight at the goal at unit speed."""
+    d = goal - pos
+    n = np.hypot(d[:, 0], d[:, 1])
+    return d / np.maximum(n, 1e-9)[:, None] * np.minimum(n, 1.0)[:, None]
+
+
+def run(
+    starts,
+    goals,
+    controller: Controller,
+    link: LinkConfig,
+    cfg: SimConfig,
+    rng: np.random.Generator,
+) -> dict:
+    """Flies one scenario to the end; returns its metrics (and tracks if cfg.record)."""
+    starts = np.asarray(starts, dtype=np.float64)
+    goals = np.asarray(goals, dtype=np.float64)
+    n = starts.shape[0]
+    pos, vel = starts.copy(), np.zeros((n, 2))
+    rel = goals - starts
+    trip = np.hypot(rel[:, 0], rel[:, 1])
+    heading = np.arctan2(rel[:, 1], rel[:, 0])
+    active = np.ones(n, bool)
+    arrive_t = np.full(n, np.nan)
+    collided = np.zeros(n, bool)
+    timed_out = np.zeros(n, bool)
+    path = np.zeros(n)
+    acc_sum, acc_n = 0.0, 0
+    min_sep = np.inf
+    t_limit = cfg.time_factor * trip / cfg.speed
+    # what receiver i last got from sender j
+    k_pos, k_vel, k_head = (
+        np.broadcast_to(pos, (n, n, 2)).copy(),
+        np.zeros((n, n, 2)),
+        np.broadcast_to(heading, (n, n)).copy(),
+    )
+    phase = rng.uniform(0, 1.0 / link.rate_hz, n) if not link.perfect else np.zeros(n)
+    next_tx = phase.copy()
+    pending: list = []  # (deliver_at, sender, receivers mask, pos, vel, heading)
+    eye = np.eye(n, dtype=bool)
+    tracks = [pos.copy()] if cfg.record else None
+    t = 0.0
+    steps = 0
+    while active.any():
+        if link.perfect:
+            nbr_pos, nbr_vel, nbr_head = (
+                np.broadcast_to(a, (n, *a.shape)) for a in (pos, vel, heading)
+            )
+        else:
+            # broadcasts due now, then deliveries due now
+            for j in np.flatnonzero(active & (next_tx <= t + 1e-9)):
+                recv = rng.random(n) >= link.loss
+                pending.append(
+                    (t + link.latency_s, j, recv, pos[j].copy(), vel[j].copy(), heading[j])
+                )
+                next_tx[j] += 1.0 / link.rate_hz
+            keep = []
+            for msg in pending:
+                if msg[0] <= t + 1e-9:
+                    _, j, recv, p, v, h = msg
+                    k_pos[recv, j], k_vel[recv, j], k_head[recv, j] = p, v, h
+                else:
+                    keep.append(msg)
+            pending = keep
+            nbr_pos, nbr_vel, nbr_head = k_pos, k_vel, k_head
+        valid = active[None, :] & active[:, None] & ~eye
+        idx = np.flatnonzero(active)
+        v = np.zeros((n, 2))
+        v[idx] = controller(
+            idx, t, pos[idx], vel[idx], heading[idx], goals[idx],
+            nbr_pos[idx], nbr_vel[idx], nbr_head[idx], valid[idx],
+        )  # fmt: skip
+        acc = np.hypot(*(v[idx] - vel[idx]).T) / cfg.dt_s
+        acc_sum += float(acc.sum())
+        acc_n += idx.size
+        disp = v * cfg.dt_s
+        step_len = np.hypot(disp[:, 0], disp[:, 1])
+        pos = pos + disp
+        vel = v
+        heading = np.where(step_len > 1e-9, np.arctan2(disp[:, 1], disp[:, 0]), heading)
+        path += step_len
+        t += cfg.dt_s
+        steps += 1
+        if tracks is not None:
+            tracks.append(np.where(active[:, None], pos, np.nan))
+        # separation among the vehicles that flew this step
+        dx = pos[idx, None, :] - pos[None, idx, :]
+        d = np.hypot(dx[..., 0], dx[..., 1]) + np.eye(idx.size) * 1e9
+        if idx.size > 1:
+            min_sep = min(min_sep, float(d.min()))
+        hit = (d < cfg.collide_m).any(axis=1)
+        collided[idx[hit]] = True
+        gd = goals[idx] - pos[idx]
+        arrived = (np.hypot(gd[:, 0], gd[:, 1]) <= cfg.arrive_m) & ~hit
+        arrive_t[idx[arrived]] = t
+        late = (t >= t_limit[idx]) & ~arrived & ~hit
+        timed_out[idx[late]] = True
+        active[idx[hit | arrived | late]] = False
+    ok = ~np.isnan(arrive_t)
+    out = {
+        "n": n,
+        "success": bool(ok.all() and not collided.any()),
+        "arrived": int(ok.sum()),
+        "collisions": int(collided.sum()),
+        "timeouts": int(timed_out.sum()),
+        "min_sep": float(min_sep) if np.isfinite(min_sep) else None,
+        "extra_time": float(np.mean(arrive_t[ok] * cfg.speed / trip[ok])) if ok.any() else None,
+        "path_ratio": float(np.mean(path[ok] / trip[ok])) if ok.any() else None,
+        "mean_acc": acc_sum / max(acc_n, 1),
+        "steps": steps,
+    }
+    if tracks is not None:
+        out["tracks"] = np.array(tracks)
+        out["goals"] = goals
+    return out
