@@ -13,7 +13,7 @@ from groundstation.meshargs import add_mesh_args, mesh_config
 
 def main(cfg: GcsConfig) -> int:
     with GroundStation(cfg) as gcs:
-        if gcs.server.get_port() != cfg.port:
+        if cfg.port and gcs.server.get_port() != cfg.port:
             print(f"covey gcs: port {cfg.port} is busy; using {gcs.server.get_port()}", flush=True)
         print(f"covey gcs: open {gcs.url}  (fleet {cfg.mesh.fleet}, Ctrl-C to stop)", flush=True)
         stop = lambda *_: gcs.close()  # noqa: E731

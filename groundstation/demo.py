@@ -121,7 +121,7 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
             ])  # fmt: skip
             print(f"covey demo: vehicle {vid} pid {proc.pid} start N {n:g} E {e:g}", flush=True)
         port = gcs.server.get_port()
-        if port != cfg.port:
+        if cfg.port and port != cfg.port:
             print(f"covey demo: web port {cfg.port} is busy; using {port} instead", flush=True)
         print(
             f"covey demo: mesh {endpoint} (covey status --connect {endpoint} --fleet {cfg.fleet})",
