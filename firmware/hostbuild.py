@@ -19,9 +19,11 @@ from firmware.export_c import export_c_header
 
 FIRMWARE_DIR = Path(__file__).resolve().parent
 BUILD_DIR = FIRMWARE_DIR / "build"
-CORE_SOURCES = (FIRMWARE_DIR / "covey_policy.c", FIRMWARE_DIR / "covey_policy.h")
+CORE_C = (FIRMWARE_DIR / "covey_policy.c", FIRMWARE_DIR / "covey_traffic.c")
+CORE_H = (FIRMWARE_DIR / "covey_policy.h", FIRMWARE_DIR / "covey_traffic.h")
 DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_driver.c"
 BENCH_SOURCE = FIRMWARE_DIR / "host" / "covey_bench.c"
+UNIT_SOURCE = FIRMWARE_DIR / "host" / "covey_unit.c"
 SHIPPED_NPZ = FIRMWARE_DIR.parent / "policy" / "weights" / "policy.npz"
 COMMITTED_HEADER = FIRMWARE_DIR / "covey_weights.h"
 
@@ -61,7 +63,7 @@ def _build(kind: str, header: Path, extra: tuple[str, ...], sources: tuple[Path,
     flags = (*WARN_FLAGS, *extra, *defines, f'-DCOVEY_WEIGHTS_HEADER="{header}"',
              f"-I{FIRMWARE_DIR}")
     h = hashlib.sha256()
-    for p in (*CORE_SOURCES, *sources, header):
+    for p in (*CORE_C, *CORE_H, *sources, header):
         h.update(p.read_bytes())
     h.update(" ".join((cc, *flags)).encode())
     out = BUILD_DIR / f"{kind}-{h.hexdigest()[:16]}{suffix}"
@@ -70,7 +72,7 @@ def _build(kind: str, header: Path, extra: tuple[str, ...], sources: tuple[Path,
     BUILD_DIR.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=BUILD_DIR, suffix=suffix + ".tmp")
     os.close(fd)
-    cmd = [cc, *flags, "-o", tmp, str(CORE_SOURCES[0]), *map(str, sources), "-lm"]
+    cmd = [cc, *flags, "-o", tmp, *map(str, CORE_C), *map(str, sources), "-lm"]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         os.unlink(tmp)
@@ -90,6 +92,11 @@ def build_driver(header: Path, sanitize: bool = False, defines: tuple[str, ...] 
     extra = SANITIZE_FLAGS if sanitize else OPT_FLAGS
     kind = "driver-asan" if sanitize else "driver"
     return _build(kind, header, extra, (DRIVER_SOURCE,), "", defines)
+
+
+def build_unit(header: Path) -> Path:
+    """The C unit tests (firmware/host/covey_unit.c), with ASan and UBSan."""
+    return _build("unit-asan", header, SANITIZE_FLAGS, (UNIT_SOURCE,), "")
 
 
 def build_bench(header: Path) -> Path:

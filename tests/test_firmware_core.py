@@ -181,3 +181,11 @@ def test_exporter_rejects_bad_weights(tmp_path, change, message):
     np.savez(tmp_path / "bad.npz", config=np.array(json.dumps(cfg)), **arrays)
     with pytest.raises(ValueError, match=message):
         export_c_header(tmp_path / "bad.npz", tmp_path / "bad.h")
+
+
+def test_c_unit_tests_pass_under_sanitizers():
+    """firmware/host/covey_unit.c: traffic table, heading, NULLs, ties, wrap edges."""
+    unit = hostbuild.build_unit(hostbuild.header_for(hostbuild.SHIPPED_NPZ))
+    lines, stderr = hostbuild.run_driver(unit, "")
+    assert lines and lines[-1].endswith("checks passed"), (lines, stderr)
+    assert "runtime error" not in stderr and "Sanitizer" not in stderr, stderr

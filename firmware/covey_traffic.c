@@ -1,0 +1,115 @@
+/*
+ * covey_traffic.c - neighbour table and heading bookkeeping; see covey_traffic.h.
+ */
+#include "covey_traffic.h"
+
+#include <math.h>
+#include <stddef.h>
+
+void covey_traffic_init(covey_traffic_t *t)
+{
+    if (t != NULL) {
+        t->n = 0;
+    }
+}
+
+static covey_status_t check_report(const covey_vehicle_t *v)
+{
+    if (!isfinite(v->pos_n_m) || !isfinite(v->pos_e_m) || !isfinite(v->heading_rad)) {
+        return COVEY_ERR_NONFINITE;
+    }
+    if (fabsf(v->pos_n_m) > COVEY_MAX_ABS_POS_M || fabsf(v->pos_e_m) > COVEY_MAX_ABS_POS_M ||
+        fabsf(v->heading_rad) > COVEY_MAX_ABS_HEADING_RAD) {
+        return COVEY_ERR_RANGE;
+    }
+    return COVEY_OK;
+}
+
+covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_vehicle_t *report)
+{
+    if (t == NULL || report == NULL) {
+        return COVEY_ERR_NULL;
+    }
+    if (t->n < 0 || t->n > COVEY_MAX_INPUTS) {
+        return COVEY_ERR_RANGE; /* corrupt table */
+    }
+    covey_status_t st = check_report(report);
+    if (st != COVEY_OK) {
+        return st;
+    }
+    int32_t oldest = 0;
+    for (int32_t i = 0; i < t->n; ++i) {
+        if (t->id[i] == id) {
+            t->report[i] = *report;
+            return COVEY_OK;
+        }
+        if (t->report[i].stamp_us < t->report[oldest].stamp_us) {
+            oldest = i;
+        }
+    }
+    if (t->n < COVEY_MAX_INPUTS) {
+        t->id[t->n] = id;
+        t->report[t->n] = *report;
+        t->n++;
+    } else if (report->stamp_us > t->report[oldest].stamp_us) {
+        t->id[oldest] = id;
+        t->report[oldest] = *report;
+    }
+    return COVEY_OK;
+}
+
+int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_age_us)
+{
+    if (t == NULL || t->n < 0 || t->n > COVEY_MAX_INPUTS) {
+        return 0;
+    }
+    int32_t kept = 0;
+    for (int32_t i = 0; i < t->n; ++i) {
+        const uint64_t stamp = t->report[i].stamp_us;
+        if (stamp <= now_us && now_us - stamp <= max_age_us) {
+            t->id[kept] = t->id[i];
+            t->report[kept] = t->report[i];
+            kept++;
+        }
+    }
+    const int32_t removed = t->n - kept;
+    t->n = kept;
+    return removed;
+}
+
+float covey_heading_for_goal(covey_heading_t *h, float pos_n_m, float pos_e_m,
+                             const covey_goal_t *goal)
+{
+    if (h == NULL || goal == NULL) {
+        return 0.0f;
+    }
+    const int32_t new_goal = !h->valid || goal->pos_n_m != h->goal.pos_n_m ||
+                             goal->pos_e_m != h->goal.pos_e_m;
+    if (new_goal) {
+        const float d_n = goal->pos_n_m - pos_n_m;
+        const float d_e = goal->pos_e_m - pos_e_m;
+        if (!h->valid) {
+            h->heading_rad = 0.0f;
+        }
+        /* bearing to the goal; a goal within 1 mm (or a non-finite one) keeps the heading */
+        if (isfinite(d_n) && isfinite(d_e) && d_n * d_n + d_e * d_e >= 1.0e-6f) {
+            h->heading_rad = atan2f(d_e, d_n);
+        }
+        h->goal = *goal;
+        h->valid = 1;
+    }
+    return h->heading_rad;
+}
+
+void covey_heading_after_command(covey_heading_t *h, const covey_command_t *cmd)
+{
+    if (h == NULL || cmd == NULL) {
+        return;
+    }
+    const float v_n = cmd->vel_n_m_s;
+    const float v_e = cmd->vel_e_m_s;
+    if (isfinite(v_n) && isfinite(v_e) &&
+        v_n * v_n + v_e * v_e >= COVEY_HEADING_MIN_SPEED_M_S * COVEY_HEADING_MIN_SPEED_M_S) {
+        h->heading_rad = atan2f(v_e, v_n);
+    }
+}

@@ -1,0 +1,65 @@
+/*
+ * covey_traffic.h - what an autopilot needs around the policy core, kept out of
+ * the platform shim so that it is tested on the host with the core:
+ *   - a fixed-size table of the latest report per neighbour (e.g. one per
+ *     ADS-B ICAO address from PX4's transponder_report);
+ *   - the heading the policy sees, as the paper defines it: the direction of
+ *     the last commanded displacement, or the bearing to the goal at start and
+ *     whenever the goal changes.
+ * Same rules as the core: caller-owned state, no malloc, float32, time passed in.
+ */
+#ifndef COVEY_TRAFFIC_H
+#define COVEY_TRAFFIC_H
+
+#include "covey_policy.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Below this commanded speed the heading is kept (hover does not turn the vehicle). */
+#define COVEY_HEADING_MIN_SPEED_M_S 0.05f
+
+/* Latest report per neighbour id; entries [0, n) are valid, in insertion order. */
+typedef struct {
+    uint32_t id[COVEY_MAX_INPUTS];
+    covey_vehicle_t report[COVEY_MAX_INPUTS];
+    int32_t n;
+} covey_traffic_t;
+
+void covey_traffic_init(covey_traffic_t *t);
+
+/*
+ * Stores a report: replaces the entry with the same id, else appends, else (table
+ * full) replaces the entry with the oldest stamp if the new report is newer.
+ * Returns COVEY_ERR_NONFINITE / COVEY_ERR_RANGE for a report the core would
+ * refuse (the table keeps its previous entry), COVEY_OK otherwise.
+ */
+covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_vehicle_t *report);
+
+/* Removes entries older than max_age_us (or stamped after now_us); returns how many. */
+int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_age_us);
+
+/* Heading state of the own vehicle. */
+typedef struct {
+    float heading_rad;
+    covey_goal_t goal;   /* the goal the heading was last reset for */
+    int32_t valid;       /* 0 until the first reset */
+} covey_heading_t;
+
+/*
+ * Call before each covey_command: on the first call or a new goal, the heading
+ * becomes the bearing to the goal, atan2(g_e - p_e, g_n - p_n) (kept if the goal
+ * is within 1 mm). Returns the heading to put in the own covey_vehicle_t.
+ */
+float covey_heading_for_goal(covey_heading_t *h, float pos_n_m, float pos_e_m,
+                             const covey_goal_t *goal);
+
+/* Call after a COVEY_OK command: heading = atan2(v_e, v_n) unless |v| < COVEY_HEADING_MIN_SPEED_M_S. */
+void covey_heading_after_command(covey_heading_t *h, const covey_command_t *cmd);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COVEY_TRAFFIC_H */

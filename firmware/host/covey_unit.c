@@ -1,0 +1,173 @@
+/*
+ * covey_unit.c - host unit tests of covey_traffic.c and of the core's edge
+ * cases that the random parity cases cannot reach (NULL pointers, ties,
+ * +-pi wrap). Prints "covey_unit: <n> checks passed"; exits 1 on a failure.
+ */
+#include "covey_traffic.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+static int checks, failures;
+
+#define CHECK(cond)                                                               \
+    do {                                                                          \
+        ++checks;                                                                 \
+        if (!(cond)) {                                                            \
+            ++failures;                                                           \
+            fprintf(stderr, "%s:%d: check failed: %s\n", __FILE__, __LINE__, #cond); \
+        }                                                                         \
+    } while (0)
+
+static covey_vehicle_t veh(float n, float e, float h, uint64_t stamp)
+{
+    covey_vehicle_t v = {n, e, h, stamp};
+    return v;
+}
+
+static void test_traffic(void)
+{
+    static covey_traffic_t t;
+    covey_traffic_init(&t);
+    covey_vehicle_t a = veh(1.0f, 2.0f, 0.5f, 100u);
+    CHECK(covey_traffic_put(&t, 7u, &a) == COVEY_OK && t.n == 1);
+    a.pos_n_m = 3.0f;
+    a.stamp_us = 200u;
+    CHECK(covey_traffic_put(&t, 7u, &a) == COVEY_OK && t.n == 1 && t.report[0].pos_n_m == 3.0f);
+    covey_vehicle_t bad = veh(NAN, 0.0f, 0.0f, 300u);
+    CHECK(covey_traffic_put(&t, 7u, &bad) == COVEY_ERR_NONFINITE && t.report[0].stamp_us == 200u);
+    bad = veh(0.0f, 2.0e5f, 0.0f, 300u);
+    CHECK(covey_traffic_put(&t, 8u, &bad) == COVEY_ERR_RANGE && t.n == 1);
+    CHECK(covey_traffic_put(NULL, 8u, &a) == COVEY_ERR_NULL);
+    CHECK(covey_traffic_put(&t, 8u, NULL) == COVEY_ERR_NULL);
+
+    /* fill the table; stamps 1000 + i, so entry id 7 (stamp 200) is the oldest */
+    for (uint32_t i = 1; i < COVEY_MAX_INPUTS; ++i) {
+        covey_vehicle_t v = veh((float)i, 0.0f, 0.0f, 1000u + i);
+        CHECK(covey_traffic_put(&t, 100u + i, &v) == COVEY_OK);
+    }
+    CHECK(t.n == COVEY_MAX_INPUTS);
+    covey_vehicle_t newer = veh(-5.0f, 0.0f, 0.0f, 5000u);
+    CHECK(covey_traffic_put(&t, 999u, &newer) == COVEY_OK && t.n == COVEY_MAX_INPUTS);
+    CHECK(t.id[0] == 999u && t.report[0].pos_n_m == -5.0f); /* replaced id 7 */
+    covey_vehicle_t older = veh(-6.0f, 0.0f, 0.0f, 10u);
+    CHECK(covey_traffic_put(&t, 555u, &older) == COVEY_OK);
+    for (int32_t i = 0; i < t.n; ++i) {
+        CHECK(t.id[i] != 555u); /* older than everything: not stored */
+    }
+
+    /* prune: keep stamps within 500 us of now = 1500 -> stamps 1001..1063 and 5000 is future */
+    int32_t removed = covey_traffic_prune(&t, 1500u, 500u);
+    CHECK(removed == 1 && t.n == COVEY_MAX_INPUTS - 1);
+    removed = covey_traffic_prune(&t, 1540u, 500u); /* drops stamps < 1040 */
+    CHECK(removed == 39 && t.n == COVEY_MAX_INPUTS - 40);
+    CHECK(t.id[0] == 140u); /* order kept */
+}
+
+static void test_heading(void)
+{
+    covey_heading_t h;
+    memset(&h, 0, sizeof h);
+    covey_goal_t g = {0.0f, 10.0f};
+    CHECK(fabsf(covey_heading_for_goal(&h, 0.0f, 0.0f, &g) - 1.5707964f) < 1e-6f);
+    covey_command_t cmd;
+    memset(&cmd, 0, sizeof cmd);
+    cmd.vel_n_m_s = -1.0f;
+    covey_heading_after_command(&h, &cmd);
+    CHECK(fabsf(h.heading_rad - 3.1415927f) < 1e-6f);
+    /* same goal: the heading follows the commands, not the goal */
+    CHECK(fabsf(covey_heading_for_goal(&h, 5.0f, 0.0f, &g) - 3.1415927f) < 1e-6f);
+    cmd.vel_n_m_s = 0.01f; /* hover: keep */
+    covey_heading_after_command(&h, &cmd);
+    CHECK(fabsf(h.heading_rad - 3.1415927f) < 1e-6f);
+    covey_goal_t g2 = {10.0f, 0.0f}; /* new goal, due north */
+    CHECK(fabsf(covey_heading_for_goal(&h, 0.0f, 0.0f, &g2)) < 1e-6f);
+    covey_goal_t here = {0.0f, 0.0005f}; /* within 1 mm: keep */
+    CHECK(fabsf(covey_heading_for_goal(&h, 0.0f, 0.0f, &here)) < 1e-6f);
+}
+
+static void test_core_edges(void)
+{
+    static covey_scratch_t s;
+    covey_config_t cfg = {3.0f, 1.0f, 1000000u, 500000u, COVEY_MAX_NEIGHBOURS};
+    covey_vehicle_t own = veh(0.0f, 0.0f, 0.0f, 0u);
+    covey_goal_t goal = {10.0f, 0.0f};
+    covey_command_t out;
+    CHECK(covey_command(NULL, &own, &goal, NULL, 0, 0u, &s, &out) == COVEY_ERR_NULL);
+    CHECK(covey_command(&cfg, NULL, &goal, NULL, 0, 0u, &s, &out) == COVEY_ERR_NULL);
+    CHECK(covey_command(&cfg, &own, NULL, NULL, 0, 0u, &s, &out) == COVEY_ERR_NULL);
+    CHECK(covey_command(&cfg, &own, &goal, NULL, 1, 0u, &s, &out) == COVEY_ERR_NULL);
+    CHECK(covey_command(&cfg, &own, &goal, NULL, 0, 0u, NULL, &out) == COVEY_ERR_NULL);
+    CHECK(covey_command(&cfg, &own, &goal, NULL, 0, 0u, &s, NULL) == COVEY_ERR_NULL);
+    CHECK(covey_command(&cfg, &own, &goal, NULL, 0, 0u, &s, &out) == COVEY_OK);
+    CHECK(isfinite(out.vel_n_m_s) && out.n_used == 0);
+    float a[2];
+    float g1[COVEY_GOAL] = {0.0f};
+    CHECK(covey_action(NULL, 0, g1, &s, a) == COVEY_OK);
+    CHECK(covey_action(NULL, 1, g1, &s, a) == COVEY_ERR_NULL);
+    CHECK(covey_config_check(NULL) == COVEY_ERR_NULL);
+    CHECK(strcmp(covey_status_name(COVEY_ERR_STALE), "stale") == 0);
+    CHECK(strcmp(covey_status_name((covey_status_t)42), "unknown") == 0);
+
+    /* two neighbours at the same distance: selection with max 1 keeps the lower index */
+    covey_vehicle_t nb[3] = {veh(0.0f, 5.0f, 1.0f, 0u), veh(0.0f, -5.0f, 2.0f, 0u),
+                             veh(50.0f, 0.0f, 0.0f, 0u)};
+    covey_config_t one = cfg;
+    one.max_neighbours = 1;
+    covey_command_t o1, o2;
+    CHECK(covey_command(&one, &own, &goal, nb, 3, 0u, &s, &o1) == COVEY_OK);
+    CHECK(covey_command(&one, &own, &goal, nb, 1, 0u, &s, &o2) == COVEY_OK);
+    CHECK(o1.n_used == 1 && o1.n_excess + o1.n_far == 2);
+    CHECK(o1.action[0] == o2.action[0] && o1.action[1] == o2.action[1]);
+
+    /* a neighbour exactly behind (bearing -pi): finite output, no fault */
+    covey_vehicle_t behind = veh(-5.0f, 0.0f, 0.0f, 0u);
+    CHECK(covey_command(&cfg, &own, &goal, &behind, 1, 0u, &s, &out) == COVEY_OK);
+    CHECK(isfinite(out.action[0]) && isfinite(out.action[1]));
+    /* on top of the vehicle (d = 0, atan2(0, 0) = 0): finite */
+    covey_vehicle_t same = veh(0.0f, 0.0f, 0.0f, 0u);
+    CHECK(covey_command(&cfg, &own, &goal, &same, 1, 0u, &s, &out) == COVEY_OK);
+    CHECK(isfinite(out.action[0]) && isfinite(out.action[1]));
+}
+
+static void test_loop(void)
+{
+    /* traffic table + heading + core, as the PX4 module runs them */
+    static covey_traffic_t t;
+    static covey_scratch_t s;
+    covey_traffic_init(&t);
+    covey_config_t cfg = {3.0f, 2.0f, 1000000u, 500000u, COVEY_MAX_NEIGHBOURS};
+    covey_heading_t hs;
+    memset(&hs, 0, sizeof hs);
+    covey_goal_t goal = {30.0f, 0.0f};
+    float pn = 0.0f, pe = 0.0f;
+    for (uint32_t step = 0; step < 50; ++step) {
+        uint64_t now = 1000000u + 100000u * step;
+        covey_vehicle_t intruder = veh(15.0f - 0.2f * (float)step, 0.5f, 3.14159f, now);
+        CHECK(covey_traffic_put(&t, 42u, &intruder) == COVEY_OK);
+        covey_traffic_prune(&t, now, cfg.max_neighbour_age_us);
+        covey_vehicle_t own = veh(pn, pe, covey_heading_for_goal(&hs, pn, pe, &goal), now);
+        covey_command_t out;
+        CHECK(covey_command(&cfg, &own, &goal, t.report, t.n, now, &s, &out) == COVEY_OK);
+        CHECK(out.n_used == 1);
+        CHECK(hypotf(out.vel_n_m_s, out.vel_e_m_s) <= cfg.cruise_speed_m_s * 1.000001f);
+        covey_heading_after_command(&hs, &out);
+        pn += 0.1f * out.vel_n_m_s;
+        pe += 0.1f * out.vel_e_m_s;
+    }
+}
+
+int main(void)
+{
+    test_traffic();
+    test_heading();
+    test_core_edges();
+    test_loop();
+    if (failures) {
+        fprintf(stderr, "covey_unit: %d of %d checks failed\n", failures, checks);
+        return 1;
+    }
+    printf("covey_unit: %d checks passed\n", checks);
+    return 0;
+}
