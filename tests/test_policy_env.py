@@ -1,0 +1,87 @@
+"""The vectorised environment equals the plain per-agent loop; reward constants."""
+
+import numpy as np
+import pytest
+
+from policy.env import EnvConfig, SwarmEnv, cav_reward, reference_step, sample_scenario
+from policy.features import ObsConfig
+
+
+@pytest.mark.parametrize("w_prog", [0.0, 10.0])
+def test_step_matches_reference_loop(w_prog):
+    cfg = EnvConfig(num_envs=16, max_vehicles=5, w_prog=w_prog, max_steps=30)
+    env = SwarmEnv(cfg, ObsConfig("sincos", "closest_last", 10.0, 20.0))
+    env.reset(seed=3)
+    rng = np.random.default_rng(4)
+    for _ in range(40):
+        actions = rng.normal(0.3, 0.8, (16, 5, 2))
+        # push pairs together now and then so that collisions happen
+        before = (
+            env.pos.copy(),
+            env.goal.copy(),
+            env.heading.copy(),
+            env.active.copy(),
+            env.trip_m.copy(),
+            env.t.copy(),
+        )
+        pos, heading, active, reward, done = reference_step(*before, actions, cfg)
+        r, d, info = env.step(actions)
+        np.testing.assert_allclose(env.pos, pos, atol=1e-12)
+        np.testing.assert_allclose(env.heading, heading, atol=1e-12)
+        np.testing.assert_array_equal(env.active, active)
+        np.testing.assert_allclose(r, reward, atol=1e-9)
+        np.testing.assert_array_equal(d, done)
+        env.reset_envs(info["env_done"])
+
+
+def test_reset_is_seeded_and_respects_the_arena():
+    cfg = EnvConfig(num_envs=200)
+    a, b = SwarmEnv(cfg, ObsConfig()), SwarmEnv(cfg, ObsConfig())
+    a.reset(seed=7)
+    b.reset(seed=7)
+    np.testing.assert_array_equal(a.pos, b.pos)
+    n = a.active.sum(1)
+    assert n.min() >= 1 and n.max() <= 5
+    # geometric(1/3) capped at 5: P(1) = 1/3
+    assert 0.2 < np.mean(n == 1) < 0.47
+    for e in range(cfg.num_envs):
+        k = n[e]
+        s, g = a.pos[e, :k], a.goal[e, :k]
+        assert np.all((s >= 0) & (s <= 60) & (g >= 0) & (g <= 60))
+        assert np.all(np.hypot(*(g - s).T) >= 10)
+        for i in range(k):
+            for j in range(i):
+                assert np.hypot(*(s[i] - s[j])) >= 10 and np.hypot(*(g[i] - g[j])) >= 10
+        np.testing.assert_allclose(a.heading[e, :k], np.arctan2((g - s)[:, 1], (g - s)[:, 0]))
+
+
+def test_cav_reward_shape():
+    cfg = EnvConfig()
+    assert cav_reward(12.0, cfg) == 0.0
+    assert cav_reward(10.0, cfg) == 0.0
+    assert cav_reward(8.0, cfg) == pytest.approx(-1.0)
+    assert cav_reward(6.0, cfg) == pytest.approx(-2.0)
+    assert cav_reward(3.0, cfg) == pytest.approx(-1000.0)
+    assert cav_reward(1.0, cfg) == -1000.0
+    assert -1000 < cav_reward(4.5, cfg) < -2
+
+
+def test_arrival_and_collision_leave_the_scene():
+    cfg = EnvConfig(num_envs=1, max_vehicles=3)
+    env = SwarmEnv(cfg, ObsConfig())
+    env.reset(seed=0)
+    env.pos[0] = [[0, 0], [0, 2.5], [20, 20]]
+    env.goal[0] = [[30, 0], [30, 2.5], [20.5, 20]]
+    env.heading[0] = 0.0
+    env.active[0] = True
+    env.trip_m[0] = [30, 30, 0.5]
+    r, d, info = env.step(np.array([[[1, 0], [1, 0], [0.5, 0]]]))
+    assert info["collided"][0].tolist() == [True, True, False]
+    assert info["arrived"][0].tolist() == [False, False, True]
+    assert d[0].all() and info["env_done"][0]
+    assert r[0, 2] == pytest.approx(1000 - 1.5 * 100 / 0.5)
+
+
+def test_sample_scenario_counts():
+    s, g = sample_scenario(np.random.default_rng(0), 5, EnvConfig())
+    assert s.shape == g.shape == (5, 2)

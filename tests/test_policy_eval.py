@@ -1,0 +1,71 @@
+"""FLOPs formula, safety filter, the simulator and an eval smoke run."""
+
+import json
+
+import numpy as np
+import pytest
+
+from policy import safety, scenarios, sim
+from policy.eval import EvalConfig, flops, main
+
+
+def test_flops_match_the_paper():
+    assert flops(2) - flops(1) == 34_902
+    assert flops(1) == 17_160
+    assert flops(20) == 19 * 34_902 + 17_160 == 680_298
+    assert flops(21) / 1e6 == pytest.approx(0.7152, abs=1e-4)
+
+
+def test_orca_filter_keeps_separation_head_on():
+    """Two straight-line vehicles head-on: the filter alone keeps them >= 3 m apart."""
+    cfg = safety.SafetyConfig(radius_m=3.0, dt_s=0.1)
+    pos = np.array([[0.0, 0.0], [40.0, 0.3]])
+    goal = pos[::-1].copy()
+    vel = np.zeros((2, 2))
+    min_d = np.inf
+    for _ in range(600):
+        pref = sim.straight_line(None, 0.0, pos, vel, None, goal)
+        v = safety.filter_batch(pos, vel, pref, np.array([[1], [0]]), cfg)
+        pos, vel = pos + 0.1 * v, v
+        min_d = min(min_d, np.hypot(*(pos[0] - pos[1])))
+    assert min_d >= 3.0
+    assert np.hypot(*(pos[0] - goal[0])) < 2.0  # and they get past each other
+
+
+def test_filter_does_not_touch_a_safe_velocity():
+    cfg = safety.SafetyConfig()
+    v = safety.filter_velocity(np.zeros(2), [1, 0], [1, 0], [[0, 50.0]], [[0, 0]], cfg)
+    np.testing.assert_allclose(v, [1, 0])
+
+
+def test_lp_projects_onto_one_half_plane():
+    # allowed: det(d, p - v) <= 0 with d = (1, 0), p = (0, 0.5)  ->  v_y >= 0.5
+    v = safety.solve(np.array([[0.0, 0.5]]), np.array([[1.0, 0.0]]), np.array([0.2, 0.0]), 2.0)
+    np.testing.assert_allclose(v, [0.2, 0.5], atol=1e-12)
+
+
+def test_straight_line_collides_on_the_circle():
+    s, g = scenarios.antipodal_circle(4)
+    r = sim.run(s, g, sim.straight_line, sim.PERFECT, sim.SimConfig(), np.random.default_rng(0))
+    assert r["collisions"] == 4 and not r["success"]
+
+
+def test_degraded_link_still_delivers():
+    s, g = scenarios.antipodal_circle(4)
+    r = sim.run(s, g, sim.straight_line, sim.DEGRADED, sim.SimConfig(), np.random.default_rng(0))
+    assert r["collisions"] == 4
+
+
+def test_eval_smoke(tmp_path):
+    res = main(
+        EvalConfig(
+            out=str(tmp_path), quick=True, suites=("circle",), links=("perfect",), progress=False
+        )
+    )
+    names = {s["controller"] for s in res["summary"]}
+    assert {"policy", "policy+filter", "orca", "straight"} <= names
+    assert (tmp_path / "results.md").read_text().startswith("| suite")
+    assert json.loads((tmp_path / "results.json").read_text())["flops_20"] == 680_298
+    assert (tmp_path / "fig5_heading_change.png").stat().st_size > 1000
+    straight = [s for s in res["summary"] if s["controller"] == "straight"][0]
+    assert straight["collisions"] > 0
