@@ -23,7 +23,7 @@ DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
 
 @dataclass(frozen=True)
 class Network:
-    """LSTM + tanh head weights, with the sigmoid gates pre-scaled by 1/2.
+    """LSTM + tanh head weights, gates as (i, f, o, g), the sigmoid ones pre-scaled by 1/2.
 
     sigmoid(x) = (1 + tanh(x/2)) / 2, so one tanh per step serves all four gates.
     """
@@ -47,8 +47,11 @@ class Network:
         h = w_hh.shape[1]
         if w_ih.shape[0] != 4 * h or w_hh.shape != (4 * h, h) or bias.shape != (4 * h,):
             raise ValueError(f"inconsistent LSTM shapes {w_ih.shape}, {w_hh.shape}, {bias.shape}")
+        # reorder torch's gates (i, f, g, o) to (i, f, o, g): the sigmoids become one slice
+        perm = np.r_[0 : 2 * h, 3 * h : 4 * h, 2 * h : 3 * h]
+        w_ih, w_hh, bias = w_ih[perm], w_hh[perm], bias[perm]
         scale = np.full(4 * h, 0.5)
-        scale[2 * h : 3 * h] = 1.0  # gate g is a real tanh
+        scale[3 * h :] = 1.0  # gate g is a real tanh
         head = []
         k = 0
         while f"head.{k}.weight" in arrays:
@@ -74,11 +77,12 @@ class Network:
             return h
         xp = seq @ self.w_ih.T + self.bias
         w = self.w_hh_t
+        h3 = 3 * hs
         for t in range(seq.shape[0]):
             g = np.tanh(xp[t] + h @ w)
-            # i, f, o = (1 + g) / 2 ; c = f c + i g_cell ; h = o tanh(c)
-            c = 0.5 * ((1.0 + g[hs : 2 * hs]) * c + (1.0 + g[:hs]) * g[2 * hs : 3 * hs])
-            h = 0.5 * (1.0 + g[3 * hs :]) * np.tanh(c)
+            s = g[:h3] * 0.5 + 0.5  # sigmoid(x) = (1 + tanh(x/2)) / 2
+            c = s[hs : 2 * hs] * c + s[:hs] * g[h3:]
+            h = s[2 * hs : h3] * np.tanh(c)
         return h
 
     def lstm_last_batch(self, seq: np.ndarray, lengths: np.ndarray) -> np.ndarray:
@@ -107,8 +111,8 @@ class Network:
             g += b
             np.tanh(g, out=g)
             g += 1.0  # i, f, o = (1 + g) / 2
-            c[:r] = 0.5 * (g[:, hs : 2 * hs] * c[:r] + g[:, :hs] * (g[:, 2 * hs : 3 * hs] - 1.0))
-            xh[:r, x_n:] = 0.5 * g[:, 3 * hs :] * np.tanh(c[:r])
+            c[:r] = 0.5 * (g[:, hs : 2 * hs] * c[:r] + g[:, :hs] * (g[:, 3 * hs :] - 1.0))
+            xh[:r, x_n:] = 0.5 * g[:, 2 * hs : 3 * hs] * np.tanh(c[:r])
         out[order] = xh[:, x_n:]
         return out
 

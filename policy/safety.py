@@ -181,6 +181,8 @@ def filter_velocity(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: S
     # vehicles that cannot meet within the horizon add no constraint
     reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
     near = (rel_pos**2).sum(-1) < reach * reach
+    if not near.any():
+        return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
     point, direction = orca_lines(rel_pos[near], rel_vel[near], np.asarray(vel_m_s, float), cfg)
     return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
 
