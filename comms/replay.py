@@ -113,11 +113,23 @@ def recorded_vehicles(items: list[Playable]) -> set[int]:
     return {p.message.vehicle_id for p in items if isinstance(p.message, VehicleState)}
 
 
+def live_vehicles(mesh: Mesh, wait_s: float) -> set[int]:
+    """Vehicle ids with a liveliness token in the mesh's fleet. A session that has just opened
+    learns of tokens as declarations arrive, so listen for the whole of wait_s, then also ask."""
+    pres = mesh.presence()
+    time.sleep(wait_s)
+    live = pres.vehicles
+    for reply in mesh.session.liveliness().get(keys.all_alive(mesh.fleet), timeout=max(wait_s, 0.1)):
+        if reply.ok is not None:
+            parsed = keys.parse_vehicle_key(str(reply.ok.key_expr))
+            if parsed is not None and parsed[0] == mesh.fleet:
+                live.add(parsed[1])
+    return live
+
+
 def refuse_live(mesh: Mesh, vehicle_ids: set[int], wait_s: float) -> None:
     """Raise LiveFleetError if any of `vehicle_ids` is alive in the mesh's fleet."""
-    pres = mesh.presence()
-    pres.wait_for(lambda v, _g: bool(v & vehicle_ids), timeout_s=wait_s)
-    live = pres.vehicles & vehicle_ids
+    live = live_vehicles(mesh, wait_s) & vehicle_ids
     if live:
         raise LiveFleetError(
             f"fleet {mesh.fleet!r} has live vehicles {sorted(live)} that are in this recording; "

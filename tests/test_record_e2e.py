@@ -1,0 +1,183 @@
+"""Record a real 3-agent flight (separate processes on loopback), then inspect and replay it.
+
+One flight serves every test in this module: three `covey agent` processes take off and cross
+over, while two recorder processes record the fleet; one is stopped with SIGTERM, the other is
+killed with SIGKILL.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+
+import pytest
+
+from comms import keys
+from comms.commands import new_nonce
+from comms.mesh import Mesh
+from comms.record import read_recording, summarise
+from comms.replay import LiveFleetError, ReplayConfig, replay
+from comms.schema import Command, StateFlag, VehicleState
+from comms.session import embedded_peer, embedded_router, free_tcp_port
+from groundstation.recording_cli import info_main, record_cli, replay_cli
+
+pytestmark = pytest.mark.e2e
+
+VEHICLES = (1, 2, 3)
+STARTS = {1: (0.0, 0.0), 2: (0.0, 8.0), 3: (8.0, 4.0)}
+GOALS = {1: (8.0, 8.0, -3.0), 2: (8.0, 0.0, -3.0), 3: (0.0, 4.0, -3.0)}
+RECORD = "import sys; from groundstation.recording_cli import record_cli; sys.exit(record_cli(sys.argv[1:]))"
+
+
+def _command_all(mesh: Mesh, make, deadline_s: float = 10.0) -> None:
+    """Send a command to each vehicle until every one has accepted it (agents start racing)."""
+    pending = set(VEHICLES)
+    end = time.monotonic() + deadline_s
+    while pending and time.monotonic() < end:
+        for vid in sorted(pending):
+            res = mesh.send_command(make(vid), timeout_s=1.0)
+            if res.ok:
+                pending.discard(vid)
+        if pending:
+            time.sleep(0.2)
+    assert not pending, f"vehicles {pending} did not accept"
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("flight")
+    fleet = "rec" + uuid.uuid4().hex[:8]
+    port = free_tcp_port()
+    clean, killed = tmp / "clean.mcap", tmp / "killed.mcap"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    procs: list[subprocess.Popen] = []
+    with Mesh(embedded_router(port, fleet=fleet)) as mesh:
+        try:
+            connect = f"tcp/127.0.0.1:{port}"
+            for out in (clean, killed):
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-c", RECORD, "-o", str(out), "--fleet", fleet, "--connect", connect],
+                    env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                ))  # fmt: skip
+            time.sleep(1.0)  # recorders join before the agents, so they see the whole flight
+            for vid in VEHICLES:
+                n, e = STARTS[vid]
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "covey_cli", "agent", "--id", str(vid), "--fleet", fleet,
+                     "--connect", connect, "--start", f"{n},{e}", "--no-gcs-failsafe"],
+                    env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                ))  # fmt: skip
+            assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 20.0)
+            stamp = time.time_ns
+            _command_all(mesh, lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)))
+            time.sleep(3.5)
+            _command_all(mesh, lambda v: Command.goto_local(*GOALS[v], nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)))
+            time.sleep(5.0)
+            procs[1].send_signal(signal.SIGKILL)
+            procs[0].send_signal(signal.SIGTERM)
+            assert procs[0].wait(20) == 0
+            procs[1].wait(5)
+            yield {"fleet": fleet, "port": port, "clean": clean, "killed": killed, "mesh": mesh}
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            for p in procs:
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+
+
+def test_info_summarises_the_flight(flight):
+    out = io.StringIO()
+    assert info_main(str(flight["clean"]), out=out) == 0
+    text = out.getvalue()
+    assert f"fleet       {flight['fleet']}" in text and "vehicles    1, 2, 3" in text
+    info = summarise(read_recording(flight["clean"]))
+    assert info["complete"] and info["vehicles"] == [1, 2, 3]
+    assert info["counts"]["commands"] >= 6  # 3 takeoffs + 3 gotos, as queries
+    assert info["counts"]["presence"] >= 3 and info["counts"]["events"] >= 3
+    for vid in VEHICLES:
+        assert 7.0 <= info["state_rate_hz_by_vehicle"][vid] <= 11.0  # agents publish at 10 Hz
+    assert record_cli(["--info", str(flight["clean"]), "--json"]) == 0
+
+
+def test_kill_9_leaves_a_readable_file(flight):
+    rec = read_recording(flight["killed"])
+    clean = read_recording(flight["clean"])
+    states = [m for m in rec.messages if m.topic.endswith("/state")]
+    assert {VehicleState.decode(m.data).vehicle_id for m in states} == set(VEHICLES)
+    assert len(states) >= 0.8 * sum(m.topic.endswith("/state") for m in clean.messages)
+    info = summarise(rec)  # no summary section or footer was ever written
+    assert info["vehicles"] == [1, 2, 3] and info["messages"] == len(rec.messages)
+    assert not info["complete"] and rec.truncated
+
+
+def _replay_and_watch(flight, target: str, **kw):
+    """Replay the clean recording into `target`; return (result, fleet model track, queries)."""
+    from groundstation.fleet import FleetModel
+
+    model, track, queries = FleetModel(), {}, []
+    lock = threading.Lock()
+
+    def on_state(state: VehicleState, recv_ns: int) -> None:
+        model.on_state(state, recv_ns)
+        with lock:
+            track[(state.vehicle_id, state.stamp_ns)] = (model.positions()[state.vehicle_id], state.flags)
+
+    with Mesh(embedded_peer(flight["port"], fleet=target)) as watcher:
+        watcher.subscribe_states(on_state)
+        for vid in VEHICLES:  # vehicles of the target fleet: nothing may query them
+            watcher.serve_commands(vid, lambda c: queries.append(c))
+        watcher.session.declare_queryable(keys.everything(target), lambda q: queries.append(q), complete=False)
+        time.sleep(0.5)
+        cfg = ReplayConfig(str(flight["clean"]), embedded_peer(flight["port"], fleet=target), speed=4.0, **kw)
+        result = replay(cfg)
+        time.sleep(0.5)
+        with lock:
+            return result, dict(track), list(queries)
+
+
+def test_replay_reproduces_the_tracks_and_sends_no_commands(flight):
+    target = flight["fleet"] + "r"
+    result, track, queries = _replay_and_watch(flight, target)
+    assert queries == []
+    assert result.commands_skipped >= 6
+    recorded = {}
+    for m in read_recording(flight["clean"]).messages:
+        if m.topic.endswith("/state"):
+            s = VehicleState.decode(m.data)
+            recorded[(s.vehicle_id, s.stamp_ns)] = s.pos_ned_m
+    assert result.states == len(recorded)
+    assert len(track) >= 0.95 * len(recorded)
+    moved = 0
+    for key, (pos, flags) in track.items():
+        assert flags & StateFlag.REPLAY
+        err_m = max(abs(a - b) for a, b in zip(pos, recorded[key], strict=True))
+        assert err_m <= 0.01, f"vehicle {key[0]} at {key[1]}: {pos} vs {recorded[key]}"
+        moved += abs(recorded[key][2]) > 1.0
+    assert moved > 100  # the tracks include the flight, not just the ground
+
+
+def test_replay_refuses_a_live_fleet(flight, capsys):
+    with pytest.raises(LiveFleetError, match=r"live vehicles \[1, 2, 3\]"):
+        replay(ReplayConfig(str(flight["clean"]), embedded_peer(flight["port"], fleet=flight["fleet"])))
+    code = replay_cli([str(flight["clean"]), "--connect", f"tcp/127.0.0.1:{flight['port']}"])
+    assert code == 1 and "Replay into another fleet" in capsys.readouterr().err
+
+
+def test_closed_loop_on_the_real_flight(flight):
+    from agent.closed_loop import ClosedLoopConfig, run_closed_loop
+
+    rep = run_closed_loop(ClosedLoopConfig(str(flight["clean"]), vehicle_id=1))
+    assert rep["ticks"] >= 20
+    if not rep["exact"]:
+        pytest.xfail("the agent does not publish guidance trace events yet (agent/closed_loop.py)")
+    assert rep["max_diff_m_s"] < 1e-4 and rep["skipped_ticks"] <= 0.05 * rep["ticks"]
