@@ -68,6 +68,8 @@ class EvalConfig:
     """Show a tqdm bar."""
     suites: tuple = field(default=("circle", "conflict", "large"))
     """Suites to run."""
+    controllers: tuple = ()
+    """Run only these controllers (empty = all available)."""
 
 
 def cases(cfg: EvalConfig):
@@ -223,6 +225,11 @@ def main(cfg: EvalConfig) -> dict:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     ctrls = controllers(cfg)
+    if cfg.controllers:
+        unknown = set(cfg.controllers) - set(ctrls)
+        if unknown:
+            raise ValueError(f"unknown or unavailable controllers {sorted(unknown)}; have {sorted(ctrls)}")
+        ctrls = {k: v for k, v in ctrls.items() if k in cfg.controllers}
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     all_cases = cases(cfg)
     rows, tracks = [], {}
@@ -273,6 +280,7 @@ def cli(argv=None) -> dict:
     ap.add_argument("--suites", default="circle,conflict,large")
     ap.add_argument("--dt", type=float, default=EvalConfig.dt_s)
     ap.add_argument("--policy-period", type=float, default=EvalConfig.policy_period_s)
+    ap.add_argument("--controllers", default="", help="comma list, e.g. policy,orca (default all)")
     ap.add_argument("--no-figures", action="store_true")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
@@ -288,7 +296,7 @@ def cli(argv=None) -> dict:
         out=a.out, weights=a.weights, paper_weights=a.paper_weights, occupancy=a.occupancy,
         max_neighbours=a.max_neighbours, quick=a.quick, seed=a.seed, links=links, dt_s=a.dt,
         figures=not a.no_figures, progress=not a.no_progress, suites=suites,
-        policy_period_s=a.policy_period,
+        policy_period_s=a.policy_period, controllers=tuple(c for c in a.controllers.split(",") if c),
     )  # fmt: skip
     result = main(cfg)
     print(markdown(result["summary"]))
