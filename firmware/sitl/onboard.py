@@ -65,7 +65,9 @@ class PolicyGuidance:
                         goal_ned_m: np.ndarray, now_s: float) -> tuple[float, float]:
         if now_s < self._next_s:
             return self._last
-        self._next_s = now_s + self.period_s
+        # Keep the phase (a fixed 10 Hz, not "10 Hz plus the physics step"), never a backlog.
+        nxt = self._next_s + self.period_s
+        self._next_s = nxt if nxt > now_s else now_s + self.period_s
         nbr_pos, nbr_vel, nbr_hdg = self.neighbours(now_s)
         try:
             cmd = np.asarray(self.policy.command(pos_ned_m[:2], vel_ned_m_s[:2], heading_rad, goal_ned_m[:2],
