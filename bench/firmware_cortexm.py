@@ -51,8 +51,13 @@ def table(m: dict, hidden: int, x: int) -> list[dict]:
     for n in N_VEHICLES:
         instr = m["instructions"][n - 1]
         flops = cortexm.paper_flops(n, hidden=hidden, x=x)
-        row = {"vehicles": n, "neighbours": n - 1, "instructions": instr, "paper_flops": flops,
-               "instructions_per_flop": instr / flops}
+        row = {
+            "vehicles": n,
+            "neighbours": n - 1,
+            "instructions": instr,
+            "paper_flops": flops,
+            "instructions_per_flop": instr / flops,
+        }
         for cname, hz in CLOCKS_HZ.items():
             row[f"ms_at_{cname}"] = 1e3 * instr / hz
             for rname, rate in RATES_HZ.items():
@@ -98,10 +103,17 @@ def main(argv=None) -> int:
         configs = {
             "paper h=63 x=3": (paper_npz, 63, 3),
             f"shipped h={cfg_shipped['hidden']} x={cfg_shipped['input']}": (
-                hostbuild.SHIPPED_NPZ, int(cfg_shipped["hidden"]), int(cfg_shipped["input"])),
+                hostbuild.SHIPPED_NPZ,
+                int(cfg_shipped["hidden"]),
+                int(cfg_shipped["input"]),
+            ),
         }
-        results = {"method": "qemu-system-arm -M mps2-an500 -icount shift=0, SysTick ticks x 40",
-                   "cpi_assumed": 1.0, "configs": {}, "tables": {}}
+        results = {
+            "method": "qemu-system-arm -M mps2-an500 -icount shift=0, SysTick ticks x 40",
+            "cpi_assumed": 1.0,
+            "configs": {},
+            "tables": {},
+        }
         for name, (npz, hidden, x) in configs.items():
             m = measure(npz, Path(tmp) / name.replace(" ", "_").replace("=", ""))
             ks = np.array(sorted(m["instructions"]))
@@ -114,20 +126,28 @@ def main(argv=None) -> int:
     for name, m in results["configs"].items():
         fp = m["footprint"]
         print(f"\n== {name}")
-        print(f"flash {fp['flash'] / 1024:.1f} KiB (core object {m['core_object']['flash'] / 1024:.1f}"
-              f" KiB), RAM {fp['ram'] / 1024:.1f} KiB static + {m['max_stack_frame_b']} B deepest "
-              f"frame; {m['instructions_per_tick']:.2f} instructions per SysTick tick")
-        print(f"fit: {m['fit_instructions_per_neighbour']:,.0f} instructions per neighbour + "
-              f"{m['fit_instructions_fixed']:,.0f} (paper: 34,902 FLOPs per neighbour + 17,160)")
-        print(" N  instr      paperFLOPs instr/FLOP  ms@216  %216@10Hz %216@3Hz  ms@480  %480@10Hz"
-              "  Hz@4%(216)")
+        print(
+            f"flash {fp['flash'] / 1024:.1f} KiB (core object {m['core_object']['flash'] / 1024:.1f}"
+            f" KiB), RAM {fp['ram'] / 1024:.1f} KiB static + {m['max_stack_frame_b']} B deepest "
+            f"frame; {m['instructions_per_tick']:.2f} instructions per SysTick tick"
+        )
+        print(
+            f"fit: {m['fit_instructions_per_neighbour']:,.0f} instructions per neighbour + "
+            f"{m['fit_instructions_fixed']:,.0f} (paper: 34,902 FLOPs per neighbour + 17,160)"
+        )
+        print(
+            " N  instr      paperFLOPs instr/FLOP  ms@216  %216@10Hz %216@3Hz  ms@480  %480@10Hz"
+            "  Hz@4%(216)"
+        )
         for r in results["tables"][name]:
-            print(f"{r['vehicles']:2d} {r['instructions']:10,.0f} {r['paper_flops']:10,d} "
-                  f"{r['instructions_per_flop']:8.2f} {r['ms_at_pixhawk4_216MHz']:7.2f} "
-                  f"{100 * r['load_pixhawk4_216MHz_10Hz']:8.2f} "
-                  f"{100 * r['load_pixhawk4_216MHz_3Hz_radio']:8.2f} "
-                  f"{r['ms_at_pixhawk6_480MHz']:7.2f} {100 * r['load_pixhawk6_480MHz_10Hz']:8.2f} "
-                  f"{r['max_rate_hz_within_4pct_pixhawk4_216MHz']:10.1f}")
+            print(
+                f"{r['vehicles']:2d} {r['instructions']:10,.0f} {r['paper_flops']:10,d} "
+                f"{r['instructions_per_flop']:8.2f} {r['ms_at_pixhawk4_216MHz']:7.2f} "
+                f"{100 * r['load_pixhawk4_216MHz_10Hz']:8.2f} "
+                f"{100 * r['load_pixhawk4_216MHz_3Hz_radio']:8.2f} "
+                f"{r['ms_at_pixhawk6_480MHz']:7.2f} {100 * r['load_pixhawk6_480MHz_10Hz']:8.2f} "
+                f"{r['max_rate_hz_within_4pct_pixhawk4_216MHz']:10.1f}"
+            )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2, default=float) + "\n")
     plot(results, args.out.with_suffix(".png"))

@@ -28,8 +28,9 @@ N_VEHICLES = (2, 5, 10, 20, 35)
 
 def time_c(neighbours) -> dict[int, tuple[float, float]]:
     exe = hostbuild.build_bench(hostbuild.header_for(hostbuild.SHIPPED_NPZ))
-    out = subprocess.run([str(exe), *map(str, neighbours)], capture_output=True, text=True,
-                         check=True).stdout
+    out = subprocess.run(
+        [str(exe), *map(str, neighbours)], capture_output=True, text=True, check=True
+    ).stdout
     return {int(t[0]): (float(t[1]), float(t[2])) for t in (ln.split() for ln in out.splitlines())}
 
 
@@ -59,16 +60,29 @@ def main(argv=None) -> int:
     ks = [n - 1 for n in N_VEHICLES]
     c_ns = time_c(ks)
     np_ns = time_numpy(ks)
-    rows = [{"vehicles": k + 1, "neighbours": k, "c_median_us": c_ns[k][0] / 1e3,
-             "c_min_us": c_ns[k][1] / 1e3, "numpy_median_us": np_ns[k][0] / 1e3,
-             "numpy_min_us": np_ns[k][1] / 1e3} for k in ks]
+    rows = [
+        {
+            "vehicles": k + 1,
+            "neighbours": k,
+            "c_median_us": c_ns[k][0] / 1e3,
+            "c_min_us": c_ns[k][1] / 1e3,
+            "numpy_median_us": np_ns[k][0] / 1e3,
+            "numpy_min_us": np_ns[k][1] / 1e3,
+        }
+        for k in ks
+    ]
     print(" N   C median us   C min us   numpy median us   numpy min us")
     for r in rows:
-        print(f"{r['vehicles']:2d} {r['c_median_us']:12.1f} {r['c_min_us']:10.1f} "
-              f"{r['numpy_median_us']:16.1f} {r['numpy_min_us']:14.1f}")
-    result = {"machine": platform.processor() or platform.machine(),
-              "compiler": hostbuild.compiler(), "flags": " ".join(hostbuild.OPT_FLAGS),
-              "rows": rows}
+        print(
+            f"{r['vehicles']:2d} {r['c_median_us']:12.1f} {r['c_min_us']:10.1f} "
+            f"{r['numpy_median_us']:16.1f} {r['numpy_min_us']:14.1f}"
+        )
+    result = {
+        "machine": platform.processor() or platform.machine(),
+        "compiler": hostbuild.compiler(),
+        "flags": " ".join(hostbuild.OPT_FLAGS),
+        "rows": rows,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")

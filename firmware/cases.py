@@ -28,16 +28,26 @@ U64_MAX = 2**64 - 1
 STATUS = {"ok": 0, "null": 1, "nonfinite": 2, "range": 3, "stale": 4}
 
 
-def write_random_npz(path, encoding="paper", order="index", hidden=63, head=(64, 64, 2),
-                     dist_scale=1.0, sense_range=0.0, seed=0, scale=0.4) -> Path:
+def write_random_npz(
+    path,
+    encoding="paper",
+    order="index",
+    hidden=63,
+    head=(64, 64, 2),
+    dist_scale=1.0,
+    sense_range=0.0,
+    seed=0,
+    scale=0.4,
+) -> Path:
     """A weights file in the spec's format with random float32 weights (for tests)."""
     rng = np.random.default_rng(seed)
     x = 3 if encoding == "paper" else 5
     g = 1 if encoding == "paper" else 2
 
     def rand(*shape):
-        return (rng.standard_normal(shape) * scale / np.sqrt(shape[-1] if len(shape) > 1 else 4)
-                ).astype(np.float32)
+        return (
+            rng.standard_normal(shape) * scale / np.sqrt(shape[-1] if len(shape) > 1 else 4)
+        ).astype(np.float32)
 
     arrays = {
         "lstm.weight_ih": rand(4 * hidden, x) * F32(3.0),
@@ -49,9 +59,16 @@ def write_random_npz(path, encoding="paper", order="index", hidden=63, head=(64,
         arrays[f"head.{k}.weight"] = rand(n_out, n_in) * F32(3.0)
         arrays[f"head.{k}.bias"] = rand(n_out)
         n_in = n_out
-    cfg = {"encoding": encoding, "order": order, "dist_scale": dist_scale,
-           "sense_range": sense_range, "hidden": hidden, "input": x, "head": list(head),
-           "encoder": "lstm"}
+    cfg = {
+        "encoding": encoding,
+        "order": order,
+        "dist_scale": dist_scale,
+        "sense_range": sense_range,
+        "hidden": hidden,
+        "input": x,
+        "head": list(head),
+        "encoder": "lstm",
+    }
     path = Path(path)
     np.savez(path, config=np.array(json.dumps(cfg)), **arrays)
     return path
@@ -89,10 +106,23 @@ def _f(x) -> str:
 
 def case_line(c: Case) -> str:
     """The driver's input line (firmware/host/covey_driver.c)."""
-    parts = ["C", _f(c.sep_m), _f(c.cruise_m_s), str(c.max_nbr_age_us), str(c.max_own_age_us),
-             str(c.max_nbrs), _f(c.own[0]), _f(c.own[1]), _f(c.own[2]), str(c.own[3]),
-             _f(c.goal[0]), _f(c.goal[1]), str(c.now_us), str(c.count),
-             str(min(len(c.nbrs), MAX_INPUTS))]
+    parts = [
+        "C",
+        _f(c.sep_m),
+        _f(c.cruise_m_s),
+        str(c.max_nbr_age_us),
+        str(c.max_own_age_us),
+        str(c.max_nbrs),
+        _f(c.own[0]),
+        _f(c.own[1]),
+        _f(c.own[2]),
+        str(c.own[3]),
+        _f(c.goal[0]),
+        _f(c.goal[1]),
+        str(c.now_us),
+        str(c.count),
+        str(min(len(c.nbrs), MAX_INPUTS)),
+    ]
     for nb in c.nbrs[:MAX_INPUTS]:
         parts += [_f(nb[0]), _f(nb[1]), _f(nb[2]), str(nb[3])]
     return " ".join(parts)
@@ -106,17 +136,27 @@ def action_line(seq, goal_feat, n_steps=None) -> str:
 
 def parse_command_output(line: str) -> dict:
     t = line.split()
-    return {"status": int(t[0]), "vel": np.array([float(t[1]), float(t[2])]),
-            "action": np.array([float(t[3]), float(t[4])]), "n_used": int(t[5]),
-            "n_stale": int(t[6]), "n_far": int(t[7]), "n_excess": int(t[8])}
+    return {
+        "status": int(t[0]),
+        "vel": np.array([float(t[1]), float(t[2])]),
+        "action": np.array([float(t[3]), float(t[4])]),
+        "n_used": int(t[5]),
+        "n_stale": int(t[6]),
+        "n_far": int(t[7]),
+        "n_excess": int(t[8]),
+    }
 
 
 def f32(x) -> float:
     return float(F32(x))
 
 
-def random_case(rng: np.random.Generator, n_nbrs: int | None = None,
-                spread_m: float | None = None, stale_fraction: float = 0.1) -> Case:
+def random_case(
+    rng: np.random.Generator,
+    n_nbrs: int | None = None,
+    spread_m: float | None = None,
+    stale_fraction: float = 0.1,
+) -> Case:
     """A valid scenario: random airframe scaling, positions, headings, some stale neighbours.
 
     Neighbours lie within +-spread_m (scaled by separation / 3) of the vehicle; by
@@ -129,8 +169,12 @@ def random_case(rng: np.random.Generator, n_nbrs: int | None = None,
     cruise = f32(rng.choice([1.0, rng.uniform(0.5, 8.0)]))
     centre = rng.uniform(-500, 500, 2)
     now = int(rng.integers(2_000_000, 10**12))
-    own = (f32(centre[0]), f32(centre[1]), f32(rng.uniform(-np.pi, np.pi)),
-           now - int(rng.integers(0, 400_000)))
+    own = (
+        f32(centre[0]),
+        f32(centre[1]),
+        f32(rng.uniform(-np.pi, np.pi)),
+        now - int(rng.integers(0, 400_000)),
+    )
     goal = tuple(f32(v) for v in centre + rng.uniform(-200, 200, 2))
     nbrs = []
     for _ in range(n):
@@ -139,8 +183,9 @@ def random_case(rng: np.random.Generator, n_nbrs: int | None = None,
         age = int(rng.integers(1_000_001, 5_000_000)) if stale else int(rng.integers(0, 1_000_000))
         nbrs.append((f32(p[0]), f32(p[1]), f32(rng.uniform(-np.pi, np.pi)), now - age))
     max_nbrs = int(rng.choice([MAX_NEIGHBOURS, rng.integers(0, MAX_NEIGHBOURS + 1)]))
-    return Case(sep_m=sep, cruise_m_s=cruise, max_nbrs=max_nbrs, own=own, goal=goal, now_us=now,
-                nbrs=nbrs)
+    return Case(
+        sep_m=sep, cruise_m_s=cruise, max_nbrs=max_nbrs, own=own, goal=goal, now_us=now, nbrs=nbrs
+    )
 
 
 # ---- reference of the input checks ------------------------------------------------
@@ -165,7 +210,9 @@ def expected_status(c: Case) -> int:
     sep, cruise = F32(c.sep_m), F32(c.cruise_m_s)
     if not (np.isfinite(sep) and np.isfinite(cruise)):
         return STATUS["nonfinite"]
-    if not (MIN_SEPARATION_M <= sep <= MAX_SEPARATION_M) or not (MIN_CRUISE_SPEED_M_S <= cruise <= MAX_CRUISE_SPEED_M_S):
+    if not (MIN_SEPARATION_M <= sep <= MAX_SEPARATION_M) or not (
+        MIN_CRUISE_SPEED_M_S <= cruise <= MAX_CRUISE_SPEED_M_S
+    ):
         return STATUS["range"]
     if not (0 <= c.max_nbrs <= MAX_NEIGHBOURS):
         return STATUS["range"]
@@ -193,8 +240,23 @@ def expected_status(c: Case) -> int:
     return STATUS["ok"]
 
 
-BAD_FLOATS = (float("nan"), float("inf"), float("-inf"), 3.0e38, -3.0e38, 1.0e30, 1.0e5 * 1.0001,
-              -1.0e5 * 1.0001, 13.0, -13.0, 0.0, -0.0, 1.0e-40, -1.0, 1.0e4)
+BAD_FLOATS = (
+    float("nan"),
+    float("inf"),
+    float("-inf"),
+    3.0e38,
+    -3.0e38,
+    1.0e30,
+    1.0e5 * 1.0001,
+    -1.0e5 * 1.0001,
+    13.0,
+    -13.0,
+    0.0,
+    -0.0,
+    1.0e-40,
+    -1.0,
+    1.0e4,
+)
 BAD_INTS = (-1, -(2**31), 2**31 - 1, 41, 65, 64, 0, 1)
 BAD_STAMPS = (0, U64_MAX, 2**63, 1)
 
@@ -244,8 +306,13 @@ def runtime_reference(npz_path, c: Case):
     from policy import features
     from policy.runtime import GuidancePolicy
 
-    pol = GuidancePolicy.load(npz_path, separation_m=c.sep_m, cruise_speed_m_s=c.cruise_m_s,
-                              safety_filter=False, max_neighbours=c.max_nbrs)
+    pol = GuidancePolicy.load(
+        npz_path,
+        separation_m=c.sep_m,
+        cruise_speed_m_s=c.cruise_m_s,
+        safety_filter=False,
+        max_neighbours=c.max_nbrs,
+    )
     fresh = c.fresh_nbrs()
     nbr_pos = np.array([nb[:2] for nb in fresh], dtype=np.float64).reshape(-1, 2)
     nbr_h = np.array([nb[2] for nb in fresh], dtype=np.float64)
@@ -254,6 +321,7 @@ def runtime_reference(npz_path, c: Case):
     vel = pol.command(pos, np.zeros(2), c.own[2], goal, nbr_pos, np.zeros_like(nbr_pos), nbr_h)
     s = pol.dist_scale_m
     action = pol.action(pos / s, c.own[2], goal / s, nbr_pos / s, nbr_h)
-    _, _, idx = features.observe(pos / s, c.own[2], goal / s, nbr_pos / s, nbr_h, pol.obs_cfg,
-                                 c.max_nbrs)
+    _, _, idx = features.observe(
+        pos / s, c.own[2], goal / s, nbr_pos / s, nbr_h, pol.obs_cfg, c.max_nbrs
+    )
     return vel, action, len(idx)

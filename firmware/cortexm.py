@@ -41,17 +41,27 @@ def _vehicle(v) -> str:
 
 
 def _config(c: cases.Case) -> str:
-    return (f"{{{c_float(c.sep_m)}, {c_float(c.cruise_m_s)}, {c.max_nbr_age_us}ULL, "
-            f"{c.max_own_age_us}ULL, {c.max_nbrs}}}")
+    return (
+        f"{{{c_float(c.sep_m)}, {c_float(c.cruise_m_s)}, {c.max_nbr_age_us}ULL, "
+        f"{c.max_own_age_us}ULL, {c.max_nbrs}}}"
+    )
 
 
 def bench_case(n_max: int = cases.MAX_NEIGHBOURS) -> cases.Case:
     """A fixed scene whose first k neighbours are all fresh and inside any sense range."""
     rng = np.random.default_rng(35)
-    nbrs = [(cases.f32(rng.uniform(-8, 8)), cases.f32(rng.uniform(-8, 8)),
-             cases.f32(rng.uniform(-np.pi, np.pi)), 10_000_000) for _ in range(n_max)]
-    return cases.Case(own=(0.0, 0.0, 0.3, 10_000_000), goal=(40.0, 25.0), now_us=10_000_000,
-                      nbrs=nbrs)
+    nbrs = [
+        (
+            cases.f32(rng.uniform(-8, 8)),
+            cases.f32(rng.uniform(-8, 8)),
+            cases.f32(rng.uniform(-np.pi, np.pi)),
+            10_000_000,
+        )
+        for _ in range(n_max)
+    ]
+    return cases.Case(
+        own=(0.0, 0.0, 0.3, 10_000_000), goal=(40.0, 25.0), now_us=10_000_000, nbrs=nbrs
+    )
 
 
 def write_cases_header(case_list, path: Path) -> Path:
@@ -69,12 +79,14 @@ def write_cases_header(case_list, path: Path) -> Path:
         f"static const covey_config_t cm_cfg[] = {{{', '.join(map(_config, case_list))}}};",
         f"static const covey_vehicle_t cm_own[] = {{{', '.join(_vehicle(c.own) for c in case_list)}}};",
         "static const covey_goal_t cm_goal[] = {"
-        + ", ".join(f"{{{c_float(c.goal[0])}, {c_float(c.goal[1])}}}" for c in case_list) + "};",
+        + ", ".join(f"{{{c_float(c.goal[0])}, {c_float(c.goal[1])}}}" for c in case_list)
+        + "};",
         f"static const uint64_t cm_now[] = {{{', '.join(f'{c.now_us}ULL' for c in case_list)}}};",
         f"static const int32_t cm_count[] = {{{', '.join(str(c.count) for c in case_list)}}};",
         f"static const int32_t cm_first[] = {{{', '.join(map(str, first))}}};",
         "static const covey_vehicle_t cm_nbrs[] = {"
-        + ", ".join(map(_vehicle, flat or [(0, 0, 0, 0)])) + "};",
+        + ", ".join(map(_vehicle, flat or [(0, 0, 0, 0)]))
+        + "};",
         f"#define CM_N_BENCH {len(BENCH_NEIGHBOURS)}",
         f"static const int32_t cm_bench_k[] = {{{', '.join(map(str, BENCH_NEIGHBOURS))}}};",
         f"static const covey_config_t cm_bench_cfg = {_config(b)};",
@@ -95,22 +107,33 @@ def build(case_list, npz_path=None, build_dir: Path = BUILD_DIR) -> dict[str, Pa
     """make in firmware/cortexm/ against a fresh weights header; returns the ELF paths."""
     header = hostbuild.header_for(npz_path or hostbuild.SHIPPED_NPZ)
     cases_h = write_cases_header(case_list, build_dir / "cortexm_cases.h")
-    cmd = ["make", "-s", "-C", str(CORTEXM_DIR), f"BUILD={build_dir}", f"WEIGHTS={header}",
-           f"CASES={cases_h}", "all"]
+    cmd = [
+        "make",
+        "-s",
+        "-C",
+        str(CORTEXM_DIR),
+        f"BUILD={build_dir}",
+        f"WEIGHTS={header}",
+        f"CASES={cases_h}",
+        "all",
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         raise RuntimeError(f"Cortex-M build failed:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}")
-    return {"cases": build_dir / "covey_cases.elf", "footprint": build_dir / "covey_footprint.elf",
-            "core": build_dir / "covey_policy.o"}
+    return {
+        "cases": build_dir / "covey_cases.elf",
+        "footprint": build_dir / "covey_footprint.elf",
+        "core": build_dir / "covey_policy.o",
+    }
 
 
 def sizes(elf: Path) -> dict[str, int]:
     """text, data, bss of an ELF or object; flash = text + data, RAM = data + bss."""
-    out = subprocess.run(["arm-none-eabi-size", "-A", str(elf)], capture_output=True, text=True,
-                         check=True).stdout
+    out = subprocess.run(
+        ["arm-none-eabi-size", "-A", str(elf)], capture_output=True, text=True, check=True
+    ).stdout
     sec = {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\.\S+)\s+(\d+)", out, re.M)}
-    text = sum(v for k, v in sec.items() if k.startswith((".text", ".rodata", ".vectors",
-                                                           ".ARM")))
+    text = sum(v for k, v in sec.items() if k.startswith((".text", ".rodata", ".vectors", ".ARM")))
     data = sec.get(".data", 0)
     bss = sum(v for k, v in sec.items() if k.startswith((".bss", "COMMON")))
     return {"text": text, "data": data, "bss": bss, "flash": text + data, "ram": data + bss}
@@ -139,10 +162,20 @@ class QemuRun:
 
 def run_qemu(elf: Path) -> QemuRun:
     """Runs the cases image under qemu-system-arm -icount shift=0 and parses its output."""
-    cmd = ["qemu-system-arm", "-M", "mps2-an500", "-nographic", "-semihosting", "-icount",
-           "shift=0", "-kernel", str(elf)]
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=QEMU_TIMEOUT_S,
-                         stdin=subprocess.DEVNULL)
+    cmd = [
+        "qemu-system-arm",
+        "-M",
+        "mps2-an500",
+        "-nographic",
+        "-semihosting",
+        "-icount",
+        "shift=0",
+        "-kernel",
+        str(elf),
+    ]
+    res = subprocess.run(
+        cmd, capture_output=True, text=True, timeout=QEMU_TIMEOUT_S, stdin=subprocess.DEVNULL
+    )
     text = res.stdout + res.stderr  # QEMU writes semihosting output to stderr
     if "DONE" not in text:
         raise RuntimeError(f"QEMU run failed (exit {res.returncode}):\n{text[-3000:]}")

@@ -100,14 +100,22 @@ def load_library(npz_path=None) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(hostbuild.build_library(hostbuild.header_for(npz))))
     lib.covey_command.restype = ctypes.c_int
     lib.covey_command.argtypes = [
-        ctypes.POINTER(_Config), ctypes.POINTER(_Vehicle), ctypes.POINTER(_Goal),
-        ctypes.POINTER(_Vehicle), ctypes.c_int32, ctypes.c_uint64, ctypes.c_void_p,
+        ctypes.POINTER(_Config),
+        ctypes.POINTER(_Vehicle),
+        ctypes.POINTER(_Goal),
+        ctypes.POINTER(_Vehicle),
+        ctypes.c_int32,
+        ctypes.c_uint64,
+        ctypes.c_void_p,
         ctypes.POINTER(_Command),
     ]
     lib.covey_action.restype = ctypes.c_int
     lib.covey_action.argtypes = [
-        ctypes.POINTER(ctypes.c_float), ctypes.c_int32, ctypes.POINTER(ctypes.c_float),
-        ctypes.c_void_p, ctypes.POINTER(ctypes.c_float),
+        ctypes.POINTER(ctypes.c_float),
+        ctypes.c_int32,
+        ctypes.POINTER(ctypes.c_float),
+        ctypes.c_void_p,
+        ctypes.POINTER(ctypes.c_float),
     ]
     lib.covey_scratch_bytes.restype = ctypes.c_uint32
     lib.covey_scratch_bytes.argtypes = []
@@ -117,32 +125,61 @@ def load_library(npz_path=None) -> ctypes.CDLL:
 class CPolicy:
     """The C policy core with world-unit scaling (no safety filter)."""
 
-    def __init__(self, npz_path=None, separation_m: float = 3.0, cruise_speed_m_s: float = 1.0,
-                 max_neighbours: int | None = None, max_neighbour_age_s: float = 1.0,
-                 max_own_age_s: float = 0.5):
+    def __init__(
+        self,
+        npz_path=None,
+        separation_m: float = 3.0,
+        cruise_speed_m_s: float = 1.0,
+        max_neighbours: int | None = None,
+        max_neighbour_age_s: float = 1.0,
+        max_own_age_s: float = 0.5,
+    ):
         if max_neighbours is None:
             max_neighbours = MAX_NEIGHBOURS
         if not 0 <= max_neighbours <= MAX_NEIGHBOURS:
-            raise ValueError(f"max_neighbours must be in [0, {MAX_NEIGHBOURS}] for the C core, "
-                             f"got {max_neighbours}")
+            raise ValueError(
+                f"max_neighbours must be in [0, {MAX_NEIGHBOURS}] for the C core, "
+                f"got {max_neighbours}"
+            )
         self._lib = load_library(npz_path)
         self._scratch = ctypes.create_string_buffer(self._lib.covey_scratch_bytes())
-        self._cfg = _Config(separation_m, cruise_speed_m_s, _us(max_neighbour_age_s),
-                            _us(max_own_age_s), max_neighbours)
+        self._cfg = _Config(
+            separation_m,
+            cruise_speed_m_s,
+            _us(max_neighbour_age_s),
+            _us(max_own_age_s),
+            max_neighbours,
+        )
         self.separation_m = float(separation_m)
         self.cruise_speed_m_s = float(cruise_speed_m_s)
         self.max_neighbours = max_neighbours
 
     @classmethod
-    def load(cls, path=None, separation_m: float = 3.0, cruise_speed_m_s: float = 1.0,
-             max_neighbours: int | None = None, **kwargs) -> CPolicy:
+    def load(
+        cls,
+        path=None,
+        separation_m: float = 3.0,
+        cruise_speed_m_s: float = 1.0,
+        max_neighbours: int | None = None,
+        **kwargs,
+    ) -> CPolicy:
         """Same call as GuidancePolicy.load (path None = shipped weights)."""
         kwargs.pop("safety_filter", None)  # the C core has no safety filter
         kwargs.pop("safety_cfg", None)
         return cls(path, separation_m, cruise_speed_m_s, max_neighbours, **kwargs)
 
-    def evaluate(self, pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s=None,
-                 stamp_s=None, nbr_stamp_s=None, cfg: _Config | None = None) -> CommandResult:
+    def evaluate(
+        self,
+        pos_m,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_heading_rad,
+        now_s=None,
+        stamp_s=None,
+        nbr_stamp_s=None,
+        cfg: _Config | None = None,
+    ) -> CommandResult:
         """One call of covey_command; faults come back in `status`, never raised."""
         nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
         k = nbr_pos.shape[0]
@@ -153,8 +190,11 @@ class CPolicy:
             raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbour reports, got {k}")
         now_us = _us(now_s) if now_s is not None else 0
         own_us = _us(stamp_s) if stamp_s is not None else now_us
-        nbr_us = (np.full(k, now_us, dtype=np.int64) if nbr_stamp_s is None
-                  else [_us(t) for t in np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)])
+        nbr_us = (
+            np.full(k, now_us, dtype=np.int64)
+            if nbr_stamp_s is None
+            else [_us(t) for t in np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)]
+        )
         if len(nbr_us) != k:
             raise ValueError(f"nbr_stamp_s has {len(nbr_us)} entries for {k} neighbours")
         pos = np.asarray(pos_m, dtype=np.float64).reshape(2)
@@ -164,28 +204,57 @@ class CPolicy:
         for i in range(k):
             nbrs[i] = _Vehicle(nbr_pos[i, 0], nbr_pos[i, 1], nbr_h[i], int(nbr_us[i]))
         out = _Command()
-        st = self._lib.covey_command(ctypes.byref(cfg or self._cfg), ctypes.byref(own),
-                                     ctypes.byref(_Goal(goal[0], goal[1])), nbrs, k, now_us,
-                                     self._scratch, ctypes.byref(out))
-        return CommandResult(STATUS_NAMES.get(st, str(st)),
-                             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
-                             np.array(out.action[:], dtype=np.float64), out.n_used, out.n_stale,
-                             out.n_far, out.n_excess)
+        st = self._lib.covey_command(
+            ctypes.byref(cfg or self._cfg),
+            ctypes.byref(own),
+            ctypes.byref(_Goal(goal[0], goal[1])),
+            nbrs,
+            k,
+            now_us,
+            self._scratch,
+            ctypes.byref(out),
+        )
+        return CommandResult(
+            STATUS_NAMES.get(st, str(st)),
+            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
+            np.array(out.action[:], dtype=np.float64),
+            out.n_used,
+            out.n_stale,
+            out.n_far,
+            out.n_excess,
+        )
 
-    def command(self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s,
-                nbr_heading_rad, now_s=None, stamp_s=None, nbr_stamp_s=None) -> np.ndarray:
+    def command(
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        now_s=None,
+        stamp_s=None,
+        nbr_stamp_s=None,
+    ) -> np.ndarray:
         """Velocity command (2,) in m/s (north, east); raises CPolicyError on a fault."""
         del vel_m_s, nbr_vel_m_s  # only the safety filter of the numpy runtime uses them
-        r = self.evaluate(pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s,
-                          stamp_s, nbr_stamp_s)
+        r = self.evaluate(
+            pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s, stamp_s, nbr_stamp_s
+        )
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
         return r.vel_m_s
 
     def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
         """Clipped network action (fwd, right); inputs in policy units, like GuidancePolicy."""
-        cfg = _Config(3.0, 1.0, self._cfg.max_neighbour_age_us, self._cfg.max_own_age_us,
-                      self._cfg.max_neighbours)
+        cfg = _Config(
+            3.0,
+            1.0,
+            self._cfg.max_neighbour_age_us,
+            self._cfg.max_own_age_us,
+            self._cfg.max_neighbours,
+        )
         r = self.evaluate(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg=cfg)
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
@@ -197,8 +266,9 @@ class CPolicy:
         g = np.ascontiguousarray(goal_feat, dtype=np.float32).reshape(-1)
         a = (ctypes.c_float * 2)()
         fp = ctypes.POINTER(ctypes.c_float)
-        st = self._lib.covey_action(seq.ctypes.data_as(fp), seq.shape[0], g.ctypes.data_as(fp),
-                                    self._scratch, a)
+        st = self._lib.covey_action(
+            seq.ctypes.data_as(fp), seq.shape[0], g.ctypes.data_as(fp), self._scratch, a
+        )
         if st != 0:
             raise CPolicyError(st)
         return np.array(a[:], dtype=np.float64)

@@ -150,7 +150,9 @@ def cli(argv=None) -> int:
     """`covey export --format c` lands here: cli([npz, out.h])."""
     parser = argparse.ArgumentParser(prog="covey export --format c", description=__doc__)
     parser.add_argument("npz", help="policy weights file (.npz)")
-    parser.add_argument("out", nargs="?", default="firmware/covey_weights.h", help="header to write")
+    parser.add_argument(
+        "out", nargs="?", default="firmware/covey_weights.h", help="header to write"
+    )
     args = parser.parse_args(argv)
     path = export_c_header(args.npz, args.out)
     print(f"wrote {path}")

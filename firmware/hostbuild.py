@@ -38,8 +38,13 @@ WARN_FLAGS = (
     "-Werror",
 )
 OPT_FLAGS = ("-O2",)
-SANITIZE_FLAGS = ("-O1", "-g", "-fsanitize=address,undefined", "-fno-omit-frame-pointer",
-                  "-fno-sanitize-recover=all")
+SANITIZE_FLAGS = (
+    "-O1",
+    "-g",
+    "-fsanitize=address,undefined",
+    "-fno-omit-frame-pointer",
+    "-fno-sanitize-recover=all",
+)
 
 
 def compiler() -> str:
@@ -56,12 +61,23 @@ def header_for(npz_path, out_dir: Path = BUILD_DIR) -> Path:
     return export_c_header(npz_path, out_dir / "headers" / f"covey_weights_{digest}.h")
 
 
-def _build(kind: str, header: Path, extra: tuple[str, ...], sources: tuple[Path, ...],
-           suffix: str, defines: tuple[str, ...] = ()) -> Path:
+def _build(
+    kind: str,
+    header: Path,
+    extra: tuple[str, ...],
+    sources: tuple[Path, ...],
+    suffix: str,
+    defines: tuple[str, ...] = (),
+) -> Path:
     cc = compiler()
     header = Path(header).resolve()
-    flags = (*WARN_FLAGS, *extra, *defines, f'-DCOVEY_WEIGHTS_HEADER="{header}"',
-             f"-I{FIRMWARE_DIR}")
+    flags = (
+        *WARN_FLAGS,
+        *extra,
+        *defines,
+        f'-DCOVEY_WEIGHTS_HEADER="{header}"',
+        f"-I{FIRMWARE_DIR}",
+    )
     h = hashlib.sha256()
     for p in (*CORE_C, *CORE_H, *sources, header):
         h.update(p.read_bytes())
@@ -106,8 +122,11 @@ def build_bench(header: Path) -> Path:
 
 def run_driver(driver: Path, text: str) -> tuple[list[str], str]:
     """Feeds cases to a driver; returns (stdout lines, stderr). Raises on a non-zero exit."""
-    env = dict(os.environ, ASAN_OPTIONS="detect_leaks=1:abort_on_error=0",
-               UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1")
+    env = dict(
+        os.environ,
+        ASAN_OPTIONS="detect_leaks=1:abort_on_error=0",
+        UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1",
+    )
     res = subprocess.run([str(driver)], input=text, capture_output=True, text=True, env=env)
     if res.returncode != 0:
         raise RuntimeError(f"{driver.name} exited {res.returncode}:\n{res.stderr[-4000:]}")

@@ -26,10 +26,16 @@ N_CONFIG_CASES = 250
 CONFIGS = {
     "paper-index": dict(encoding="paper", order="index"),
     "paper-closest-sense": dict(encoding="paper", order="closest_last", sense_range=12.0),
-    "sincos-index-scaled": dict(encoding="sincos", order="index", dist_scale=10.0, hidden=17,
-                                head=(32, 2)),
-    "sincos-closest-deep": dict(encoding="sincos", order="closest_last", dist_scale=5.0,
-                                sense_range=25.0, head=(64, 48, 32, 2)),
+    "sincos-index-scaled": dict(
+        encoding="sincos", order="index", dist_scale=10.0, hidden=17, head=(32, 2)
+    ),
+    "sincos-closest-deep": dict(
+        encoding="sincos",
+        order="closest_last",
+        dist_scale=5.0,
+        sense_range=25.0,
+        head=(64, 48, 32, 2),
+    ),
 }
 
 
@@ -57,8 +63,10 @@ def test_parity_shipped_weights(capsys):
     case_list += [cases.random_case(rng) for _ in range(N_SHIPPED_CASES - len(case_list))]
     err_action, err_vel = run_parity(hostbuild.SHIPPED_NPZ, case_list)
     with capsys.disabled():
-        print(f"\n[firmware parity] shipped weights: {len(case_list)} cases, max |action err| "
-              f"{err_action:.3g}, max |vel err|/cruise {err_vel:.3g}")
+        print(
+            f"\n[firmware parity] shipped weights: {len(case_list)} cases, max |action err| "
+            f"{err_action:.3g}, max |vel err|/cruise {err_vel:.3g}"
+        )
     assert err_action <= TOL
     assert err_vel <= TOL
 
@@ -72,8 +80,10 @@ def test_parity_other_configs(name, tmp_path, capsys):
     case_list += [cases.random_case(rng, n_nbrs=cases.MAX_INPUTS) for _ in range(20)]
     err_action, err_vel = run_parity(npz, case_list)
     with capsys.disabled():
-        print(f"\n[firmware parity] {name}: {len(case_list)} cases, max |action err| "
-              f"{err_action:.3g}, max |vel err|/cruise {err_vel:.3g}")
+        print(
+            f"\n[firmware parity] {name}: {len(case_list)} cases, max |action err| "
+            f"{err_action:.3g}, max |vel err|/cruise {err_vel:.3g}"
+        )
     assert err_action <= TOL
     assert err_vel <= TOL
 
@@ -114,8 +124,16 @@ def test_cpolicy_mirrors_guidance_policy_command():
         cp.command([np.nan, 0.0], [0, 0], 0.0, [1.0, 1.0], np.zeros((0, 2)), np.zeros((0, 2)), [])
     assert err.value.status == "nonfinite"
     # freshness: a stale neighbour is dropped, a stale own state is a fault
-    r = cp.evaluate([0, 0], 0.0, [10, 0], [[3, 0], [0, 3]], [0.0, 0.0], now_s=100.0,
-                    stamp_s=99.9, nbr_stamp_s=[99.8, 90.0])
+    r = cp.evaluate(
+        [0, 0],
+        0.0,
+        [10, 0],
+        [[3, 0], [0, 3]],
+        [0.0, 0.0],
+        now_s=100.0,
+        stamp_s=99.9,
+        nbr_stamp_s=[99.8, 90.0],
+    )
     assert (r.status, r.n_used, r.n_stale) == ("ok", 1, 1)
     r = cp.evaluate([0, 0], 0.0, [10, 0], [], [], now_s=100.0, stamp_s=98.0)
     assert r.status == "stale" and not np.any(r.vel_m_s)
@@ -144,21 +162,36 @@ def test_committed_header_is_up_to_date():
 
 
 def test_exporter_writes_sizes_and_config(tmp_path):
-    npz = cases.write_random_npz(tmp_path / "w.npz", encoding="sincos", order="closest_last",
-                                 hidden=9, head=(7, 2), dist_scale=4.0, sense_range=2.5)
+    npz = cases.write_random_npz(
+        tmp_path / "w.npz",
+        encoding="sincos",
+        order="closest_last",
+        hidden=9,
+        head=(7, 2),
+        dist_scale=4.0,
+        sense_range=2.5,
+    )
     text = export_c_header(npz, tmp_path / "w.h").read_text()
-    for line in ("#define COVEY_W_INPUT 5", "#define COVEY_W_HIDDEN 9", "#define COVEY_W_GOAL 2",
-                 "#define COVEY_W_HEAD_LAYERS 2", "#define COVEY_W_HEAD_MAX_WIDTH 11",
-                 "#define COVEY_W_ENCODING_SINCOS 1", "#define COVEY_W_ORDER_CLOSEST_LAST 1",
-                 "#define COVEY_W_DIST_SCALE 4.0f", "#define COVEY_W_SENSE_RANGE 2.5f",
-                 "static const float covey_w_lstm_hh[324]"):
+    for line in (
+        "#define COVEY_W_INPUT 5",
+        "#define COVEY_W_HIDDEN 9",
+        "#define COVEY_W_GOAL 2",
+        "#define COVEY_W_HEAD_LAYERS 2",
+        "#define COVEY_W_HEAD_MAX_WIDTH 11",
+        "#define COVEY_W_ENCODING_SINCOS 1",
+        "#define COVEY_W_ORDER_CLOSEST_LAST 1",
+        "#define COVEY_W_DIST_SCALE 4.0f",
+        "#define COVEY_W_SENSE_RANGE 2.5f",
+        "static const float covey_w_lstm_hh[324]",
+    ):
         assert line in text
     # the weights round-trip exactly through the %.9g literals
     with np.load(npz) as z:
         w = z["head.1.weight"].ravel()
     body = text.split("covey_w_head1_w[14] = {")[1].split("};")[0]
-    parsed = np.array([float(v.strip().rstrip("f")) for v in body.split(",") if v.strip()],
-                      dtype=np.float32)
+    parsed = np.array(
+        [float(v.strip().rstrip("f")) for v in body.split(",") if v.strip()], dtype=np.float32
+    )
     assert np.array_equal(parsed, w)
 
 

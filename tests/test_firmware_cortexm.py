@@ -33,8 +33,10 @@ PIXHAWK4_RAM_B = 512 * 1024
 @pytest.fixture(scope="module")
 def target_run(tmp_path_factory):
     rng = np.random.default_rng(11)
-    case_list = [cases.random_case(rng, n_nbrs=n % (cases.MAX_NEIGHBOURS + 1))
-                 for n in range(0, 7 * N_CASES, 7)]
+    case_list = [
+        cases.random_case(rng, n_nbrs=n % (cases.MAX_NEIGHBOURS + 1))
+        for n in range(0, 7 * N_CASES, 7)
+    ]
     build_dir = tmp_path_factory.mktemp("cortexm")
     elfs = cortexm.build(case_list, build_dir=build_dir)
     return case_list, elfs, cortexm.run_qemu(elfs["cases"]), build_dir
@@ -57,11 +59,16 @@ def test_target_equals_host_and_runtime(target_run, capsys):
         identical += int(np.array_equal(target, host_v))
         err_host = max(err_host, float(np.abs(target - host_v).max()) / max(c.cruise_m_s, 1.0))
         vel, action, _ = cases.runtime_reference(hostbuild.SHIPPED_NPZ, c)
-        err_runtime = max(err_runtime, float(np.abs(target[2:] - action).max()),
-                          float(np.abs(target[:2] - vel).max()) / c.cruise_m_s)
+        err_runtime = max(
+            err_runtime,
+            float(np.abs(target[2:] - action).max()),
+            float(np.abs(target[:2] - vel).max()) / c.cruise_m_s,
+        )
     with capsys.disabled():
-        print(f"\n[firmware cortex-m7] {len(case_list)} cases: max err vs host {err_host:.3g} "
-              f"({identical} bit-identical), vs numpy runtime {err_runtime:.3g}")
+        print(
+            f"\n[firmware cortex-m7] {len(case_list)} cases: max err vs host {err_host:.3g} "
+            f"({identical} bit-identical), vs numpy runtime {err_runtime:.3g}"
+        )
     assert err_host <= TOL
     assert err_runtime <= TOL
 

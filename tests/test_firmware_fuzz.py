@@ -98,5 +98,7 @@ def test_fuzz_under_sanitizers(capsys):
     assert counts["ok"] >= N_VALID and counts["nonfinite"] > 100 and counts["range"] > 100
     assert counts["stale"] > 10
     with capsys.disabled():
-        print(f"\n[firmware fuzz] {len(all_cases)} command inputs ({len(mutated)} mutated) + "
-              f"{len(actions)} network inputs under ASan+UBSan: statuses {counts}, clean")
+        print(
+            f"\n[firmware fuzz] {len(all_cases)} command inputs ({len(mutated)} mutated) + "
+            f"{len(actions)} network inputs under ASan+UBSan: statuses {counts}, clean"
+        )
