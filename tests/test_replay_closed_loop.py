@@ -7,7 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from agent.closed_loop import ClosedLoopConfig, format_report, parse_trace, run_closed_loop, trace_text
+from agent.closed_loop import (
+    ClosedLoopConfig,
+    format_report,
+    parse_trace,
+    run_closed_loop,
+    trace_text,
+)
 from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourTable
 from comms import keys
@@ -109,3 +115,33 @@ def test_unknown_vehicle_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="no states of vehicle 9"):
         run_closed_loop(ClosedLoopConfig(str(path), vehicle_id=9))
     assert len(read_recording(path).messages) == 30
+
+
+def test_cli_prints_a_table_and_writes_json(tmp_path, capsys):
+    import json
+
+    from groundstation.recording_cli import replay_cli
+    from policy.runtime import DEFAULT_WEIGHTS
+
+    path, out = tmp_path / "cl.mcap", tmp_path / "report.json"
+    _fly(path, n_ticks=30)
+    code = replay_cli([str(path), "--policy", str(DEFAULT_WEIGHTS), "--vehicle", "2", "--json-out", str(out)])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "closed-loop replay of vehicle 2" in printed and "diff m/s" in printed
+    rep = json.loads(out.read_text())
+    assert rep["ticks"] == 30 and rep["max_diff_m_s"] < 1e-4
+
+
+def test_cli_rejects_half_a_closed_loop_request(tmp_path):
+    from groundstation.recording_cli import replay_cli
+
+    path = tmp_path / "cl.mcap"
+    _fly(path, n_ticks=3)
+    with pytest.raises(SystemExit) as exc:
+        replay_cli([str(path), "--vehicle", "2"])
+    assert exc.value.code == 2
+    with pytest.raises(SystemExit):
+        replay_cli([str(tmp_path / "missing.mcap")])
+    with pytest.raises(SystemExit):
+        replay_cli([str(path), "--speed", "0"])
