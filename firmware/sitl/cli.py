@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 from comms.geo import GeoOrigin
 from firmware.sitl.config import SitlConfig
-from firmware.sitl.vehicle import VehicleParams
+from firmware.sitl.params import VehicleParams
 
 
 def _home(text: str) -> GeoOrigin:
@@ -57,7 +57,11 @@ def parser() -> argparse.ArgumentParser:
 
 
 def config_from_args(argv: Sequence[str] | None = None) -> SitlConfig:
-    a = parser().parse_args(argv)
+    """Parse a `covey sitl` command line into its config (argparse exits on bad input)."""
+    return _config(parser().parse_args(argv))
+
+
+def _config(a: argparse.Namespace) -> SitlConfig:
     links = [*a.connect, *(u if u.startswith("udpin") else f"udpin:{u}" for u in a.listen)]
     links = [u if u.startswith("udp") else f"udpout:{u}" for u in links] or ["udpout:127.0.0.1:14540"]
     params = VehicleParams(
@@ -70,11 +74,12 @@ def config_from_args(argv: Sequence[str] | None = None) -> SitlConfig:
 
 
 def cli(argv: Sequence[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     try:
-        cfg = config_from_args(argv)
+        cfg = _config(args)
     except ValueError as exc:
         parser().error(str(exc))
-    logging.basicConfig(level=logging.DEBUG if "-v" in (argv or []) else logging.INFO,
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s sitl %(levelname)s %(message)s")
     from firmware.sitl.app import main  # after parsing: --help stays fast
 

@@ -7,6 +7,7 @@ PARAM_VALUE, requested messages). Invalid input is refused with a reason, never 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from typing import Any
 
@@ -18,6 +19,8 @@ from firmware.sitl import px4, streams
 from firmware.sitl.px4 import Px4Mode
 from firmware.sitl.traffic import TrafficStore, entry_from_adsb
 from firmware.sitl.vehicle import Outcome, Vehicle
+
+log = logging.getLogger(__name__)
 
 INT32_MAX = 2**31 - 1
 """COMMAND_INT x/y value that means "unset": keep the current position."""
@@ -78,6 +81,7 @@ class Autopilot:
         except (ValueError, OverflowError) as exc:  # e.g. int(nan): a malformed parameter
             outcome = Outcome(px4.DENIED, f"Command {command} denied: {exc}")
             self.vehicle.events.append(outcome.reason)
+        log.debug("command %d %s -> result %d %s", command, p, outcome.result, outcome.reason)
         ack = mavlink.MAVLink_command_ack_message(command, outcome.result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
         return [*extra, ack]
 

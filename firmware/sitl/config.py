@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from comms.geo import GeoOrigin
-from firmware.sitl.vehicle import VehicleParams
+from firmware.sitl.params import VehicleParams
 
 
 @dataclass(frozen=True)
