@@ -2,7 +2,8 @@
 
     python -m firmware.cortexm            # build, run, print sizes and cost per evaluation
 
-Instruction counting: QEMU does not model the DWT cycle counter, so the image
+Instruction counting: QEMU 7.2 does not model the DWT cycle counter (CYCCNT reads as
+zero even when enabled), so the image
 reads SysTick (25 MHz core clock on MPS2, 40 ns a tick) while QEMU runs with
 `-icount shift=0`, where every guest instruction advances virtual time by exactly
 1 ns. One tick is then 40 instructions; a 2-instruction calibration loop in the
