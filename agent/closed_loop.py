@@ -148,20 +148,23 @@ def _snapshot(rows: list[tuple[VehicleState, float]], stale_s: float) -> Neighbo
     )
 
 
-def _traced_rows(tr: Trace, others: dict[int, list[_Sample]], t_ns: int):
+def _traced_rows(tr: Trace, by_seq: dict[tuple[int, int], list[_Sample]], t_ns: int):
     rows = []
     for vid, seq, age_s in tr.neighbours:
-        cands = [x for x in others.get(vid, ()) if x.state.seq == seq and x.t_ns <= t_ns + 1_000_000_000]
+        # seq wraps only after 13 years at 10 Hz, but an agent restart reuses seqs: take the
+        # latest sample with that seq the recorder had by then.
+        cands = [x for x in by_seq.get((vid, seq), ()) if x.t_ns <= t_ns + 1_000_000_000]
         if not cands:
             return None  # the recorder missed the sample the agent used
         rows.append((cands[-1].state, age_s))
     return rows
 
 
-def _rebuilt_rows(others: dict[int, list[_Sample]], t_ns: int, own: VehicleState, cfg: NeighbourConfig):
+def _rebuilt_rows(others: dict[int, tuple[list[int], list[_Sample]]], t_ns: int, own: VehicleState,
+                  cfg: NeighbourConfig):  # fmt: skip
     rows = []
-    for samples in others.values():
-        i = bisect.bisect_right([x.t_ns for x in samples], t_ns) - 1
+    for times, samples in others.values():
+        i = bisect.bisect_right(times, t_ns) - 1
         if i < 0:
             continue
         s, age_s = samples[i].state, (t_ns - samples[i].t_ns) / 1e9
@@ -182,6 +185,11 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
         safety_filter=cfg.safety_filter, policy_path=cfg.policy_path,
     ))  # fmt: skip
     own, others, traces = _index(rec, cfg.vehicle_id)
+    by_seq: dict[tuple[int, int], list[_Sample]] = {}
+    for samples in others.values():
+        for x in samples:
+            by_seq.setdefault((x.state.vehicle_id, x.state.seq), []).append(x)
+    timed = {vid: ([x.t_ns for x in samples], samples) for vid, samples in others.items()}
     if not own:
         raise ValueError(f"{cfg.path}: no states of vehicle {cfg.vehicle_id} in the recording")
     t0 = rec.messages[0].log_time_ns
@@ -199,13 +207,13 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
             continue
         if use_traces:
             tr = traces.get(s.seq)
-            nbr_rows = _traced_rows(tr, others, t_ns) if tr is not None and tr.complete else None
+            nbr_rows = _traced_rows(tr, by_seq, t_ns) if tr is not None and tr.complete else None
             if nbr_rows is None:
                 skipped += 1
                 continue
             heading_in, ref = tr.heading_rad, np.array(tr.cmd_vel_ned_m_s[:2])
         else:
-            nbr_rows = _rebuilt_rows(others, t_ns, s, cfg.neighbours)
+            nbr_rows = _rebuilt_rows(timed, t_ns, s, cfg.neighbours)
             v = s.vel_ned_m_s
             if math.hypot(v[0], v[1]) > 0.2 * cfg.cruise_speed_m_s or heading_in is None:
                 heading_in = math.atan2(v[1], v[0]) if math.hypot(v[0], v[1]) > 1e-9 else s.heading_rad

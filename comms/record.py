@@ -8,8 +8,9 @@ schema record holds the binary layout from comms.schema), log_time = receive tim
     covey/<fleet>/v/*/cmd       Command             (a queryable that records and never replies)
     covey/<fleet>/v/<id>/alive  one byte, 1 = token appeared, 0 = gone (liveliness, with history)
 
-Acks are Zenoh replies that only the querier sees, so they are recorded only if someone also
-publishes them under covey/<fleet>/** (anything published there is recorded).
+Acks are Zenoh replies that only the querier sees; the recorder cannot see them. Anything
+published under covey/<fleet>/** is recorded, so an ack that its vehicle also publishes on
+covey/<fleet>/v/<id>/ack lands in the channel of that key (schema covey.CommandAck).
 
 The file survives a SIGKILL of the recorder: chunks are small and flushed every
 `flush_interval_s`, and `read_recording` streams records and stops cleanly at a torn tail
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 import zenoh
+from mcap.exceptions import EndOfFile
 from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -47,6 +49,7 @@ _LAYOUTS = {
     "event": ("covey.Event", "<BBHQBB120s (comms/schema.py)"),
     "cmd": ("covey.Command", "<BBQQHB3dIH + n*H + 32s (comms/schema.py); query payload"),
     "alive": ("covey.Presence", "1 byte: 1 = liveliness token appeared, 0 = it disappeared"),
+    "ack": ("covey.CommandAck", "<BBHQQBB96s32s (comms/schema.py)"),
     "other": ("covey.Message", "any covey message; the first byte is its type (comms/schema.py)"),
 }
 
@@ -81,7 +84,10 @@ def _leaf(topic: str) -> str:
     parsed = keys.parse_vehicle_key(topic)
     if parsed is not None:
         return parsed[2]
-    return "cmd" if topic.endswith("/cmd") else "other"
+    for leaf in ("cmd", "ack"):
+        if topic.endswith("/" + leaf):
+            return leaf
+    return "other"
 
 
 class McapSink:
@@ -269,8 +275,10 @@ def iter_recording(path: str | Path) -> Iterator[Recorded | str]:
                     return
                 elif isinstance(rec, Schema):
                     continue
+        except EndOfFile:
+            yield "truncated: the file ends without a summary or footer (recorder killed?)"
         except Exception as exc:  # noqa: BLE001 - any failure at the tail means a cut-off file
-            yield f"truncated: {type(exc).__name__}: {exc}"
+            yield f"truncated: torn record at the end ({type(exc).__name__}: {exc})"
 
 
 def read_recording(path: str | Path) -> Recording:
@@ -314,7 +322,8 @@ def summarise(rec: Recording) -> dict:
     t0 = rec.messages[0].log_time_ns if rec.messages else 0
     t1 = rec.messages[-1].log_time_ns if rec.messages else 0
     duration_s = (t1 - t0) / 1e9
-    names = {"state": "states", "event": "events", "cmd": "commands", "alive": "presence", "other": "other"}
+    names = {"state": "states", "event": "events", "cmd": "commands", "ack": "acks", "alive": "presence",
+             "other": "other"}  # fmt: skip
 
     def rate(n: int) -> float:
         return n / duration_s if duration_s > 0 else 0.0
