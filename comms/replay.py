@@ -148,6 +148,8 @@ def play(
 ) -> ReplayResult:
     """Publish `items` once at the recorded pace / speed. Never sends a command."""
     result = result or ReplayResult()
+    if stop is not None and sleep is time.sleep:
+        sleep = stop.wait  # a long gap in the recording must not delay Ctrl-C
     start_s = clock_s()
     for p in items:
         if stop is not None and stop.is_set():

@@ -92,7 +92,11 @@ def record_cli(argv: list[str]) -> int:
         p.error(str(exc))
     stop = _stop_on_signals()
     print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
-    counts = record(cfg, stop)
+    try:
+        counts = record(cfg, stop)
+    except OSError as exc:
+        print(f"covey record: cannot write {cfg.path}: {exc}", file=sys.stderr)
+        return 2
     total = sum(counts.values())
     print(
         f"wrote {total} messages to {cfg.path}: "
