@@ -153,9 +153,11 @@ def test_policy_fault_makes_the_vehicle_hold() -> None:
     assert v.mode is Px4Mode.HOLD and not v.goto_active and "Guidance fault: holding" in v.events
 
 
-def check_separation(closest_m: float) -> None:
+def check_separation(closest_m: float, placeholder_may_fail: bool = False) -> None:
+    """Never within 3 m. Only where the placeholder weights are known to fall short (a neighbour
+    that faces away) is a miss with those weights an expected failure rather than a failure."""
     episodes = trained_episodes()
-    if closest_m < 3.0 and episodes < TRAINED_EPISODES:
+    if closest_m < 3.0 and placeholder_may_fail and episodes < TRAINED_EPISODES:
         pytest.xfail(f"the shipped weights are a placeholder ({episodes} episodes) and came within "
                      f"{closest_m:.2f} m; the plumbing works (it arrived), the avoidance needs trained weights")
     assert closest_m >= 3.0
@@ -170,7 +172,7 @@ def test_goto_with_the_c_policy_avoids_a_neighbour_on_the_path(heading_rad) -> N
     store = TrafficStore(5.0)
     v = airborne(PolicyGuidance(policy, store, HOME, rate_hz=10.0))
     closest = fly_goto(v, store, (30.0, 0.0, -5.0), (15.0, 0.0, -5.0), heading_rad=heading_rad)
-    check_separation(closest)
+    check_separation(closest, placeholder_may_fail=heading_rad == 0.0)
 
 
 @pytest.mark.e2e
@@ -179,7 +181,7 @@ def test_onboard_emulator_behind_the_relay_flies_around_traffic() -> None:
     port = free_udp_port()
     home = f"{HOME.lat_deg},{HOME.lon_deg},{HOME.alt_m}"
     args = ["--id", "2", "--connect", f"udpout:127.0.0.1:{port}", "--home", home, "--onboard",
-            "--separation", "4", "--policy-speed", "3", "--takeoff-speed", "5", "--pos-gain", "3", "--accel", "10"]
+            "--separation", "4", "--policy-speed", "5", "--takeoff-speed", "5", "--pos-gain", "3", "--accel", "10"]
     cfg = RelayConfig(connection=f"udpin:127.0.0.1:{port}")
     stop = threading.Event()
     with SitlProcess(args) as proc, RelayBackend(cfg, HOME) as relay:
@@ -189,7 +191,7 @@ def test_onboard_emulator_behind_the_relay_flies_around_traffic() -> None:
         while (t := relay.telemetry()) is None or t.pos_ned_m[2] > -4.7:
             assert time.monotonic() < deadline, f"no takeoff: {t}"
             time.sleep(0.05)
-        neighbour = Traffic(9, (15.0, 0.0, -5.0), (0.0, 0.0, 0.0), math.pi, 0.0)
+        neighbour = Traffic(9, (12.0, 0.0, -5.0), (0.0, 0.0, 0.0), math.pi, 0.0)
 
         def report() -> None:  # the mesh side of the relay, at the paper's 3 Hz
             while not stop.wait(1.0 / 3.0):
@@ -200,12 +202,12 @@ def test_onboard_emulator_behind_the_relay_flies_around_traffic() -> None:
         reporter.start()
         try:
             time.sleep(0.2)
-            relay.goto_local((30.0, 0.0, -5.0))
+            relay.goto_local((24.0, 0.0, -5.0))
             closest, deadline = math.inf, time.monotonic() + 40.0
             while True:
                 t = relay.telemetry()
                 closest = min(closest, math.dist(t.pos_ned_m[:2], neighbour.pos_ned_m[:2]))
-                if math.dist(t.pos_ned_m[:2], (30.0, 0.0)) < 1.2 and math.hypot(*t.vel_ned_m_s[:2]) < 0.3:
+                if math.dist(t.pos_ned_m[:2], (24.0, 0.0)) < 1.2 and math.hypot(*t.vel_ned_m_s[:2]) < 0.3:
                     break
                 assert time.monotonic() < deadline, f"did not arrive: {t}\n{proc.output()[-2000:]}"
                 time.sleep(0.02)
