@@ -1,0 +1,160 @@
+"""`covey agent`: run the agent of one vehicle.
+
+    covey agent --id 3                                   # built-in simulator, embedded mesh
+    covey agent --id 3 --vehicle mavsdk:udpin://0.0.0.0:14543   # PX4 via MAVSDK (companion mode)
+    covey agent --id 3 --vehicle relay:udpin:0.0.0.0:14553      # PX4 runs the policy (onboard mode)
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import signal
+import threading
+import time
+
+from agent.app import Agent, AgentConfig
+from agent.backends.base import VehicleBackend
+from agent.failsafe import FailsafeConfig
+from agent.guidance import GuidanceConfig
+from comms.geo import GeoOrigin
+from comms.mesh import Mesh
+from comms.session import DEFAULT_PORT, MeshConfig
+
+log = logging.getLogger("covey.agent")
+
+
+def make_backend(spec: str, cfg: AgentConfig, start_ned_m: tuple[float, float, float], clock_s) -> VehicleBackend:
+    """Build the backend named by `spec`: sim | mavsdk:<url> | relay:<url>."""
+    kind, _, url = spec.partition(":")
+    if kind == "sim":
+        from agent.backends.sim import SimBackend, SimConfig
+
+        return SimBackend(SimConfig(start_ned_m=start_ned_m), now_s=clock_s())
+    if kind == "mavsdk":
+        from agent.backends.mavsdk_backend import MavsdkBackend
+
+        return MavsdkBackend(url or "udpin://0.0.0.0:14540", origin=cfg.origin)
+    if kind == "relay":
+        from agent.backends.relay import RelayBackend
+
+        return RelayBackend(url or "udpin:0.0.0.0:14550", origin=cfg.origin)
+    raise ValueError(f"unknown vehicle {spec!r}: use sim, mavsdk:<url> or relay:<url>")
+
+
+def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what} must be {n} comma-separated numbers, got {text!r}") from None
+    if len(values) != n or not all(v == v and abs(v) != float("inf") for v in values):
+        raise argparse.ArgumentTypeError(f"{what} must be {n} finite comma-separated numbers, got {text!r}")
+    return values
+
+
+def add_mesh_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("mesh")
+    g.add_argument("--fleet", default="covey", help="fleet name (default covey)")
+    g.add_argument("--connect", action="append", default=None,
+                   help=f"Zenoh endpoint to join (repeatable; default tcp/127.0.0.1:{DEFAULT_PORT})")  # fmt: skip
+    g.add_argument("--listen", action="append", default=None, help="endpoint to listen on (default tcp/127.0.0.1:0)")
+    g.add_argument("--mesh-mode", choices=["peer", "client", "router"], default="peer")
+    g.add_argument("--zenoh-config", default=None, help="full Zenoh JSON5 config file (TLS, auth, ACL)")
+
+
+def mesh_config(args: argparse.Namespace) -> MeshConfig:
+    kw = {}
+    if args.connect:
+        kw["connect"] = tuple(args.connect)
+    if args.listen:
+        kw["listen"] = tuple(args.listen)
+    return MeshConfig(fleet=args.fleet, mode=args.mesh_mode, config_file=args.zenoh_config, **kw)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="covey agent", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--id", type=int, required=True, help="vehicle id, 1..65000")
+    p.add_argument("--vehicle", default="sim", help="sim (default) | mavsdk:<url> | relay:<url>")
+    p.add_argument("--start", type=lambda s: _floats(s, 2, "--start"), default=(0.0, 0.0),
+                   help="sim start position N,E in metres")  # fmt: skip
+    p.add_argument("--origin", type=lambda s: _floats(s, 3, "--origin"), default=None, help="fleet origin lat,lon,alt")
+    p.add_argument("--link", default="perfect", help="emulated radio link: perfect | xbee | wifi | rate=3,loss=0.2,...")
+    p.add_argument("--separation-m", type=float, default=3.0)
+    p.add_argument("--cruise-speed-m-s", type=float, default=1.0)
+    p.add_argument("--no-safety-filter", action="store_true", help="fly the pure learned policy")
+    p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
+    p.add_argument("--geofence-radius-m", type=float, default=500.0, help="0 = no fence")
+    p.add_argument("--gcs-lost-hold-s", type=float, default=5.0)
+    p.add_argument("--gcs-lost-land-s", type=float, default=30.0)
+    p.add_argument("--no-gcs-failsafe", action="store_true", help="keep flying without a ground station")
+    p.add_argument("--tick-hz", type=float, default=10.0)
+    p.add_argument("--state-hz", type=float, default=10.0)
+    p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    add_mesh_args(p)
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> AgentConfig:
+    return AgentConfig(
+        vehicle_id=args.id,
+        mesh=mesh_config(args),
+        tick_hz=args.tick_hz,
+        state_hz=args.state_hz,
+        origin=GeoOrigin(*args.origin) if args.origin else GeoOrigin(),
+        guidance=GuidanceConfig(
+            separation_m=args.separation_m, cruise_speed_m_s=args.cruise_speed_m_s,
+            safety_filter=not args.no_safety_filter, policy_path=args.policy,
+        ),  # fmt: skip
+        failsafe=FailsafeConfig(
+            require_gcs=not args.no_gcs_failsafe, gcs_lost_hold_s=args.gcs_lost_hold_s,
+            gcs_lost_land_s=args.gcs_lost_land_s, geofence_radius_m=args.geofence_radius_m,
+        ),  # fmt: skip
+        link=args.link,
+    )
+
+
+def make_link(spec: str, vehicle_id: int):
+    if spec in ("", "perfect"):
+        return None
+    from comms import link
+
+    return link.emulator_from_spec(spec, seed=vehicle_id)
+
+
+def main(cfg: AgentConfig, vehicle: str = "sim", start_ne_m=(0.0, 0.0), stop: threading.Event | None = None,
+         duration_s: float | None = None) -> int:  # fmt: skip
+    stop = stop or threading.Event()
+    clock_s = time.monotonic
+    with contextlib.ExitStack() as stack:
+        backend = stack.enter_context(make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s))
+        mesh = stack.enter_context(Mesh(cfg.mesh))
+        link = make_link(cfg.link, cfg.vehicle_id)
+        if link is not None and hasattr(link, "__enter__"):
+            link = stack.enter_context(link)
+        agent = Agent(cfg, backend, mesh, clock_s=clock_s, link=link)
+        log.info("vehicle %d up: fleet %s, %s, link %s", cfg.vehicle_id, cfg.mesh.fleet, vehicle, cfg.link)
+        if duration_s is not None:
+            threading.Timer(duration_s, stop.set).start()
+        agent.run(stop)
+    return 0
+
+
+def cli(argv: list[str]) -> int:
+    p = parser()
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")  # fmt: skip
+    try:
+        cfg = config_from_args(args)
+    except ValueError as exc:
+        p.error(str(exc))
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        return main(cfg, vehicle=args.vehicle, start_ne_m=args.start, stop=stop, duration_s=args.duration_s)
+    except (ValueError, FileNotFoundError) as exc:
+        p.error(str(exc))
+    return 2

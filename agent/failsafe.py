@@ -1,0 +1,126 @@
+"""Failsafes: ground station lost, low battery, geofence. Pure logic with injected time.
+
+`Failsafes.evaluate()` is called every guidance tick and returns what should happen; the agent
+applies it through the mode machine and publishes each transition as an Event.
+
+- Ground station lost (no station's liveliness token on the mesh) for `gcs_lost_hold_s`:
+  stop and hold; still lost after `gcs_lost_land_s`: land. If a station comes back while the
+  vehicle holds, it resumes the goto it was flying.
+- Battery below `low_battery_return_pct`: return home; below `critical_battery_land_pct`: land.
+- Outside the geofence while flying a goto: hold (the fence also rejects gotos outside it).
+The autopilot-link failsafe lives in the autopilot (PX4 has its own); the agent flags it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.modes import AIRBORNE, Trigger
+from comms.schema import Mode, StateFlag
+
+
+@dataclass(frozen=True)
+class FailsafeConfig:
+    """Thresholds of the agent's failsafes."""
+
+    require_gcs: bool = True
+    """Hold, then land, when no ground station is on the mesh."""
+    gcs_lost_hold_s: float = 5.0
+    gcs_lost_land_s: float = 30.0
+    low_battery_return_pct: float = 25.0
+    critical_battery_land_pct: float = 10.0
+    geofence_radius_m: float = 500.0
+    """Horizontal radius around the fleet origin; 0 switches the fence off."""
+    max_alt_m: float = 120.0
+    """Highest goto or takeoff altitude above the origin."""
+    min_alt_m: float = 1.0
+    """Lowest goto altitude above the origin (landing is a command of its own)."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.gcs_lost_hold_s <= self.gcs_lost_land_s:
+            raise ValueError("need 0 < gcs_lost_hold_s <= gcs_lost_land_s")
+        if self.geofence_radius_m < 0 or not math.isfinite(self.geofence_radius_m):
+            raise ValueError(f"geofence_radius_m must be >= 0, got {self.geofence_radius_m}")
+        if not 0 <= self.min_alt_m < self.max_alt_m:
+            raise ValueError("need 0 <= min_alt_m < max_alt_m")
+
+    def check_target(self, target_ned_m: np.ndarray) -> str | None:
+        """Why a goto target is refused, or None if it is fine."""
+        alt_m = -float(target_ned_m[2])
+        if not self.min_alt_m <= alt_m <= self.max_alt_m:
+            return f"target altitude {alt_m:.1f} m is outside [{self.min_alt_m:g}, {self.max_alt_m:g}] m"
+        if self.geofence_radius_m:
+            r_m = float(np.hypot(target_ned_m[0], target_ned_m[1]))
+            if r_m > self.geofence_radius_m:
+                return f"target is {r_m:.0f} m from the origin, outside the {self.geofence_radius_m:g} m geofence"
+        return None
+
+    def inside_fence(self, pos_ned_m: np.ndarray) -> bool:
+        return not self.geofence_radius_m or float(np.hypot(pos_ned_m[0], pos_ned_m[1])) <= self.geofence_radius_m
+
+
+@dataclass(frozen=True)
+class FailsafeAction:
+    trigger: Trigger
+    reason: str
+    flag: StateFlag
+
+
+class Failsafes:
+    def __init__(self, cfg: FailsafeConfig, now_s: float) -> None:
+        self.cfg = cfg
+        self._gcs_seen_s = now_s
+        self._gcs_failsafe = 0  # 0 none, 1 holding, 2 landing
+        self._battery_stage = 0  # 0 fine, 1 returning, 2 landing
+        self._fence_tripped = False
+        self.flags = StateFlag.NONE
+
+    def gcs_back(self, now_s: float) -> bool:
+        """Record a station's presence; True if this ends a ground-station failsafe hold."""
+        self._gcs_seen_s = now_s
+        resumed = self._gcs_failsafe == 1
+        self._gcs_failsafe = 0
+        self.flags &= ~StateFlag.FAILSAFE_GCS_LOST
+        return resumed
+
+    def evaluate(
+        self, now_s: float, mode: Mode, gcs_alive: bool, battery_pct: float, pos_ned_m: np.ndarray
+    ) -> FailsafeAction | None:
+        cfg = self.cfg
+        if gcs_alive:
+            self._gcs_seen_s = now_s
+        airborne = mode in AIRBORNE
+        if cfg.require_gcs and not gcs_alive and airborne:
+            lost_s = now_s - self._gcs_seen_s
+            if lost_s >= cfg.gcs_lost_land_s and self._gcs_failsafe < 2 and mode is not Mode.LANDING:
+                self._gcs_failsafe = 2
+                self.flags |= StateFlag.FAILSAFE_GCS_LOST
+                return FailsafeAction(Trigger.FAILSAFE_LAND, f"no ground station for {lost_s:.0f} s: landing", StateFlag.FAILSAFE_GCS_LOST)
+            if lost_s >= cfg.gcs_lost_hold_s and self._gcs_failsafe < 1:
+                self._gcs_failsafe = 1
+                self.flags |= StateFlag.FAILSAFE_GCS_LOST
+                if mode in (Mode.GOTO, Mode.RETURNING, Mode.TAKING_OFF):
+                    return FailsafeAction(Trigger.FAILSAFE_HOLD, f"no ground station for {lost_s:.0f} s: holding", StateFlag.FAILSAFE_GCS_LOST)
+        if airborne and mode is not Mode.LANDING:
+            if battery_pct <= cfg.critical_battery_land_pct and self._battery_stage < 2:
+                self._battery_stage = 2
+                return FailsafeAction(Trigger.FAILSAFE_LAND, f"battery critical ({battery_pct:.0f} %): landing", StateFlag.NONE)
+            if battery_pct <= cfg.low_battery_return_pct and self._battery_stage < 1 and mode is not Mode.RETURNING:
+                self._battery_stage = 1
+                return FailsafeAction(Trigger.FAILSAFE_RETURN, f"battery low ({battery_pct:.0f} %): returning home", StateFlag.NONE)
+        inside = self.cfg.inside_fence(pos_ned_m)
+        if inside:
+            self._fence_tripped = False
+            self.flags &= ~StateFlag.GEOFENCE
+        elif mode is Mode.GOTO and not self._fence_tripped:
+            self._fence_tripped = True
+            self.flags |= StateFlag.GEOFENCE
+            return FailsafeAction(Trigger.FAILSAFE_HOLD, "left the geofence: holding", StateFlag.GEOFENCE)
+        return None
+
+    @property
+    def gcs_failsafe_active(self) -> bool:
+        return self._gcs_failsafe > 0

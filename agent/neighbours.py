@@ -1,0 +1,108 @@
+"""The neighbour table: what this vehicle knows about the others, built from the mesh.
+
+Each entry keeps its receive time. While fresh, a neighbour is dead-reckoned at constant
+velocity (p(t) = p + v (t - t_rx)), which hides a 3 Hz link's staleness; past `stale_s` it is
+flagged stale (guidance slows down); past `drop_s` it is forgotten.
+Times are on the agent's clock (receive time), so clock skew between vehicles does not matter.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from comms.schema import Mode, VehicleState
+
+
+@dataclass(frozen=True)
+class NeighbourConfig:
+    """How long neighbour data stays useful."""
+
+    stale_s: float = 1.0
+    """Older than this, a neighbour is stale: guidance slows down near it."""
+    drop_s: float = 3.0
+    """Older than this, a neighbour is forgotten."""
+    vertical_band_m: float = 5.0
+    """Neighbours more than this far above or below are not traffic (e.g. landed vehicles)."""
+
+
+@dataclass(frozen=True)
+class NeighbourSnapshot:
+    pos_ned_m: np.ndarray
+    """(K, 3)"""
+    vel_ned_m_s: np.ndarray
+    """(K, 3)"""
+    heading_rad: np.ndarray
+    """(K,)"""
+    ids: tuple[int, ...]
+    age_s: np.ndarray
+    stale_ids: tuple[int, ...]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+class NeighbourTable:
+    """Thread-safe: the mesh callback writes, the guidance loop reads."""
+
+    def __init__(self, own_id: int, cfg: NeighbourConfig = NeighbourConfig()) -> None:
+        self.own_id = own_id
+        self.cfg = cfg
+        self._lock = threading.Lock()
+        self._latest: dict[int, tuple[VehicleState, float]] = {}
+
+    def update(self, state: VehicleState, recv_s: float) -> None:
+        if state.vehicle_id == self.own_id:
+            return
+        with self._lock:
+            prev = self._latest.get(state.vehicle_id)
+            # Latest wins, but a reordered older sample must not overwrite a newer one.
+            if prev is not None and _seq_older(state.seq, prev[0].seq) and state.stamp_ns <= prev[0].stamp_ns:
+                return
+            self._latest[state.vehicle_id] = (state, recv_s)
+
+    def forget(self, vehicle_id: int) -> None:
+        with self._lock:
+            self._latest.pop(vehicle_id, None)
+
+    def snapshot(self, now_s: float, own_pos_ned_m: np.ndarray | None = None) -> NeighbourSnapshot:
+        """Neighbours that are flying, fresh enough and in our vertical band, dead-reckoned to now."""
+        with self._lock:
+            for vid in [v for v, (_, t) in self._latest.items() if now_s - t > self.cfg.drop_s]:
+                del self._latest[vid]
+            items = list(self._latest.values())
+        pos, vel, hdg, ids, ages, stale = [], [], [], [], [], []
+        for state, recv_s in items:
+            if state.mode in (Mode.LANDED, Mode.KILLED) and not state.armed:
+                continue
+            age_s = max(0.0, now_s - recv_s)
+            p = np.asarray(state.pos_ned_m, dtype=float) + np.asarray(state.vel_ned_m_s) * age_s
+            if own_pos_ned_m is not None and abs(p[2] - own_pos_ned_m[2]) > self.cfg.vertical_band_m:
+                continue
+            pos.append(p)
+            vel.append(state.vel_ned_m_s)
+            hdg.append(state.heading_rad)
+            ids.append(state.vehicle_id)
+            ages.append(age_s)
+            if age_s > self.cfg.stale_s:
+                stale.append(state.vehicle_id)
+        k = len(ids)
+        return NeighbourSnapshot(
+            pos_ned_m=np.array(pos, dtype=float).reshape(k, 3),
+            vel_ned_m_s=np.array(vel, dtype=float).reshape(k, 3),
+            heading_rad=np.array(hdg, dtype=float).reshape(k),
+            ids=tuple(ids),
+            age_s=np.array(ages, dtype=float).reshape(k),
+            stale_ids=tuple(stale),
+        )
+
+    def latest(self) -> dict[int, VehicleState]:
+        with self._lock:
+            return {vid: s for vid, (s, _) in self._latest.items()}
+
+
+def _seq_older(a: int, b: int) -> bool:
+    """True if 32-bit sequence number a comes before b (serial-number arithmetic, RFC 1982)."""
+    return a != b and ((b - a) & 0xFFFFFFFF) < 0x80000000
