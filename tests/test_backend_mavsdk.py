@@ -97,6 +97,8 @@ async def raw_flight(port: int) -> None:
                     and abs(p.absolute_altitude_m - alt) < 0.3)
         with pytest.raises(ActionError):  # out of range: denied
             await action.goto_location(123.0, lon, alt, 0.0)
+        with pytest.raises(ActionError):  # NaN: denied (MAVSDK sends it as an out-of-range degE7)
+            await action.goto_location(math.nan, math.nan, alt, 0.0)
 
         await action.hold()
         await until(tel.subscribe_velocity_ned(), lambda v: math.hypot(v.north_m_s, v.east_m_s) < 0.1)
@@ -217,3 +219,18 @@ def test_backend_reports_a_bad_connection_url() -> None:
     with MavsdkBackend(MavsdkConfig(connection="udpin://256.0.0.1:1"), ORIGIN) as vb, \
             pytest.raises(BackendError, match="connection"):
         vb.land()
+
+
+def test_backend_picks_its_vehicle_among_several_on_one_port() -> None:
+    port = free_udp_port()
+    other = GeoOrigin(48.7500, 9.1070, 455.0)
+    cfg = MavsdkConfig(connection=f"udpin://127.0.0.1:{port}", system_id=2)
+    with sitl(port) as first, MavsdkBackend(cfg, ORIGIN) as vb:
+        # Vehicle 1 is heard first; the backend must keep waiting for vehicle 2.
+        assert not vb.wait_connected(1.0)
+        second = SitlProcess(["--id", "2", "--connect", f"udpout:127.0.0.1:{port}",
+                              "--home", f"{other.lat_deg},{other.lon_deg},{other.alt_m}"])
+        with second:
+            assert vb.wait_connected(), first.output() + second.output()
+            t = wait_for(vb, lambda t: True, what="telemetry of vehicle 2")
+            assert t.pos_ned_m == pytest.approx(ORIGIN.to_local(other.lat_deg, other.lon_deg, other.alt_m), abs=0.05)

@@ -43,6 +43,8 @@ class MavsdkConfig:
     """Agent silence after which the re-sent setpoint becomes zero velocity (hover)."""
     link_timeout_s: float = 2.0
     """No position for this long means the link is down (`Telemetry.link_ok` False)."""
+    system_id: int | None = None
+    """Fly the autopilot with this MAVLink system id (several may share one port); None: the first."""
 
     def __post_init__(self) -> None:
         if not self.connection.startswith(("udpin://", "udpout://", "udp://", "tcpin://", "tcpout://",
@@ -115,7 +117,14 @@ class MavsdkBackend(VehicleBackend):
 
         system = None
         while system is None and not self._closed:
-            system = await self._sdk.first_autopilot(timeout_s=1.0)
+            if self.cfg.system_id is None:
+                system = await self._sdk.first_autopilot(timeout_s=1.0)
+                continue
+            for candidate in await self._sdk.get_systems():
+                if await candidate.has_autopilot() and await candidate.get_system_id() == self.cfg.system_id:
+                    system = candidate
+            if system is None:
+                await asyncio.sleep(0.1)
         if system is None:
             return
         self._system = system
