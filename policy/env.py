@@ -61,6 +61,10 @@ class EnvConfig:
     """Weight of R_TME."""
     w_arr: float = 1.0
     """Weight of R_ARR."""
+    ccd: bool = False
+    """Check collisions along each step (closest approach of the two straight segments),
+    not only at its end. With dt = 1 s and closing speeds up to 2 m/s, end-of-step
+    checks miss pairs that pass through each other; the paper checks at the end."""
     w_prog: float = 0.0
     """Weight of a progress term (metres gained towards the goal this step); 0 in the
     paper. It is potential-based shaping (Phi = -distance), so it does not change
@@ -170,6 +174,10 @@ class SwarmEnv:
         m = cfg.max_vehicles
         pair = act[:, :, None] & act[:, None, :] & ~np.eye(m, dtype=bool)
         r_cav = np.where(pair, cav_reward(d, cfg), 0.0).sum(-1)
+        if cfg.ccd:
+            d = np.minimum(
+                d, _closest_approach(rel - (disp[:, None, :, :] - disp[:, :, None, :]), rel)
+            )
         collided = (pair & (d <= cfg.eps_cav_m)).any(-1)
         gd = self.goal - self.pos
         arrived = act & (np.hypot(gd[..., 0], gd[..., 1]) <= cfg.eps_arr_m)
@@ -216,9 +224,19 @@ class SwarmEnv:
         return out
 
 
+def _closest_approach(rel0, rel1):
+    """min over s in [0, 1] of |rel0 + s (rel1 - rel0)| (vectorised over pairs)."""
+    b = rel1 - rel0
+    bb = (b * b).sum(-1)
+    s = np.clip(-(rel0 * b).sum(-1) / np.maximum(bb, 1e-12), 0.0, 1.0)
+    p = rel0 + s[..., None] * b
+    return np.hypot(p[..., 0], p[..., 1])
+
+
 def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfig):
     """Plain per-agent loop of SwarmEnv.step on copies; returns the same quantities."""
     e_n, m = active.shape
+    pos0 = pos
     pos, heading, active = pos.copy(), heading.copy(), active.copy()
     reward = np.zeros((e_n, m))
     done = np.zeros((e_n, m), dtype=bool)
@@ -249,6 +267,16 @@ def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfi
                     continue
                 dij = math.hypot(*(pos[e, j] - pos[e, i]))
                 reward[e, i] += cfg.w_cav * float(cav_reward(dij, cfg))
+                if cfg.ccd:
+                    (ax0, ay0), (ax1, ay1) = pos0[e, j] - pos0[e, i], pos[e, j] - pos[e, i]
+                    bx, by = ax1 - ax0, ay1 - ay0
+                    s = (
+                        0.0
+                        if bx * bx + by * by < 1e-12
+                        else -(ax0 * bx + ay0 * by) / (bx * bx + by * by)
+                    )
+                    s = min(max(s, 0.0), 1.0)
+                    dij = min(dij, math.hypot(ax0 + s * bx, ay0 + s * by))
                 hit |= dij <= cfg.eps_cav_m
             arrived = math.hypot(*(goal[e, i] - pos[e, i])) <= cfg.eps_arr_m
             if arrived:

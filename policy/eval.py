@@ -228,7 +228,9 @@ def main(cfg: EvalConfig) -> dict:
     if cfg.controllers:
         unknown = set(cfg.controllers) - set(ctrls)
         if unknown:
-            raise ValueError(f"unknown or unavailable controllers {sorted(unknown)}; have {sorted(ctrls)}")
+            raise ValueError(
+                f"unknown or unavailable controllers {sorted(unknown)}; have {sorted(ctrls)}"
+            )
         ctrls = {k: v for k, v in ctrls.items() if k in cfg.controllers}
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     all_cases = cases(cfg)

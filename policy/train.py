@@ -70,6 +70,10 @@ class TrainConfig:
     """Weight of the time term."""
     w_prog: float = 10.0
     """Weight of the progress shaping term (0 = the paper's reward)."""
+    ccd: bool = True
+    """Check collisions along each 1 s step, not only at its end (see EnvConfig.ccd)."""
+    init: str = ""
+    """Start from this trainer checkpoint (.pt) instead of fresh weights (fine-tuning)."""
     fwd_bias: float = 0.5
     """Initial bias of the forward output, so that vehicles start by flying forward."""
     threads: int = 2
@@ -103,11 +107,19 @@ def main(cfg: TrainConfig) -> dict:
         w_acc=cfg.w_acc,
         w_tme=cfg.w_tme,
         w_prog=cfg.w_prog,
+        ccd=cfg.ccd,
     )
     env = SwarmEnv(env_cfg, model_cfg.obs)
     model = ActorCritic(model_cfg, cfg.init_log_std)
     with torch.no_grad():
         model.head[-1].bias[0] = cfg.fwd_bias
+    if cfg.init:
+        ck = torch.load(cfg.init, map_location="cpu", weights_only=False)
+        if ck["model_cfg"] != model_cfg.to_dict():
+            raise ValueError(
+                f"--init {cfg.init} has model config {ck['model_cfg']}, not {model_cfg.to_dict()}"
+            )
+        model.load_state_dict(ck["state_dict"])
     optim = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=1e-5)
 
     t_n, e_n, m_n = cfg.num_steps, cfg.num_envs, cfg.max_vehicles

@@ -26,7 +26,10 @@ def test_xbee_link_thins_delays_and_counts_a_live_stream():
     delivered: list[tuple[int, int, int]] = []  # (seq, wire recv_ns, delivery ns)
     recv_by_seq: dict[int, int] = {}
     lock = threading.Lock()
-    with Mesh(embedded_router(port, fleet=fleet)) as mesh, emulator_from_spec("xbee", seed=4) as link:
+    with (
+        Mesh(embedded_router(port, fleet=fleet)) as mesh,
+        emulator_from_spec("xbee", seed=4) as link,
+    ):
 
         class Tap:  # records what the wire offered, then hands it to the link
             def offer(self, state, recv_ns, deliver):

@@ -7,9 +7,9 @@ from policy.env import EnvConfig, SwarmEnv, cav_reward, reference_step, sample_s
 from policy.features import ObsConfig
 
 
-@pytest.mark.parametrize("w_prog", [0.0, 10.0])
-def test_step_matches_reference_loop(w_prog):
-    cfg = EnvConfig(num_envs=16, max_vehicles=5, w_prog=w_prog, max_steps=30)
+@pytest.mark.parametrize(("w_prog", "ccd"), [(0.0, False), (10.0, True)])
+def test_step_matches_reference_loop(w_prog, ccd):
+    cfg = EnvConfig(num_envs=16, max_vehicles=5, w_prog=w_prog, max_steps=30, ccd=ccd)
     env = SwarmEnv(cfg, ObsConfig("sincos", "closest_last", 10.0, 20.0))
     env.reset(seed=3)
     rng = np.random.default_rng(4)
@@ -80,6 +80,21 @@ def test_arrival_and_collision_leave_the_scene():
     assert info["arrived"][0].tolist() == [False, False, True]
     assert d[0].all() and info["env_done"][0]
     assert r[0, 2] == pytest.approx(1000 - 1.5 * 100 / 0.5)
+
+
+@pytest.mark.parametrize("ccd", [False, True])
+def test_ccd_catches_a_pass_between_steps(ccd):
+    """Both ends of the step are 3.07 m apart, the closest approach is 2.9 m."""
+    cfg = EnvConfig(num_envs=1, max_vehicles=2, ccd=ccd)
+    env = SwarmEnv(cfg, ObsConfig())
+    env.reset(seed=0)
+    env.pos[0] = [[0.0, 0.0], [-1.0, 2.9]]
+    env.goal[0] = [[-30.0, 0.0], [30.0, 2.9]]
+    env.heading[0] = [np.pi, 0.0]
+    env.active[0] = True
+    _, _, info = env.step(np.array([[[1.0, 0.0], [1.0, 0.0]]]))
+    assert np.hypot(*(env.pos[0, 0] - env.pos[0, 1])) > 3.0
+    assert info["collided"][0].all() == ccd
 
 
 def test_sample_scenario_counts():

@@ -56,7 +56,9 @@ def test_replay_keeps_the_recorded_pace(tmp_path):
     _write(path, n=30)
     items = prepare(read_recording(path), start_s=0.099)
     assert items[0].offset_ns == 0 and len(items) == 27
-    assert all(isinstance(p.message, VehicleState) and p.message.flags & StateFlag.REPLAY for p in items)
+    assert all(
+        isinstance(p.message, VehicleState) and p.message.flags & StateFlag.REPLAY for p in items
+    )
 
     class FakeMesh:
         def __init__(self):
@@ -94,7 +96,10 @@ def test_recording_commands_does_not_disturb_acks(tmp_path):
         return CommandAck(7, cmd.nonce, time.time_ns(), AckResult.ACCEPTED)
 
     path = tmp_path / "cmds.mcap"
-    with Mesh(embedded_router(port, fleet=fleet)) as gcs, Mesh(embedded_peer(port, fleet=fleet)) as veh:
+    with (
+        Mesh(embedded_router(port, fleet=fleet)) as gcs,
+        Mesh(embedded_peer(port, fleet=fleet)) as veh,
+    ):
         veh.serve_commands(7, handler)
         veh.declare_vehicle(7)
         assert gcs.presence().wait_for(lambda v, _g: 7 in v, 10.0)

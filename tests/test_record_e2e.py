@@ -75,9 +75,17 @@ def flight(tmp_path_factory):
                 ))  # fmt: skip
             assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 20.0)
             stamp = time.time_ns
-            _command_all(mesh, lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)))
+            _command_all(
+                mesh,
+                lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)),
+            )
             time.sleep(3.5)
-            _command_all(mesh, lambda v: Command.goto_local(*GOALS[v], nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)))
+            _command_all(
+                mesh,
+                lambda v: Command.goto_local(
+                    *GOALS[v], nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)
+                ),
+            )
             time.sleep(5.0)
             procs[1].send_signal(signal.SIGKILL)
             procs[0].send_signal(signal.SIGTERM)
@@ -130,15 +138,22 @@ def _replay_and_watch(flight, target: str, **kw):
     def on_state(state: VehicleState, recv_ns: int) -> None:
         model.on_state(state, recv_ns)
         with lock:
-            track[(state.vehicle_id, state.stamp_ns)] = (model.positions()[state.vehicle_id], state.flags)
+            track[(state.vehicle_id, state.stamp_ns)] = (
+                model.positions()[state.vehicle_id],
+                state.flags,
+            )
 
     with Mesh(embedded_peer(flight["port"], fleet=target)) as watcher:
         watcher.subscribe_states(on_state)
         for vid in VEHICLES:  # vehicles of the target fleet: nothing may query them
             watcher.serve_commands(vid, lambda c: queries.append(c))
-        watcher.session.declare_queryable(keys.everything(target), lambda q: queries.append(q), complete=False)
+        watcher.session.declare_queryable(
+            keys.everything(target), lambda q: queries.append(q), complete=False
+        )
         time.sleep(0.5)
-        cfg = ReplayConfig(str(flight["clean"]), embedded_peer(flight["port"], fleet=target), speed=4.0, **kw)
+        cfg = ReplayConfig(
+            str(flight["clean"]), embedded_peer(flight["port"], fleet=target), speed=4.0, **kw
+        )
         result = replay(cfg)
         time.sleep(0.5)
         with lock:
@@ -168,7 +183,9 @@ def test_replay_reproduces_the_tracks_and_sends_no_commands(flight):
 
 def test_replay_refuses_a_live_fleet(flight, capsys):
     with pytest.raises(LiveFleetError, match=r"live vehicles \[1, 2, 3\]"):
-        replay(ReplayConfig(str(flight["clean"]), embedded_peer(flight["port"], fleet=flight["fleet"])))
+        replay(
+            ReplayConfig(str(flight["clean"]), embedded_peer(flight["port"], fleet=flight["fleet"]))
+        )
     code = replay_cli([str(flight["clean"]), "--connect", f"tcp/127.0.0.1:{flight['port']}"])
     assert code == 1 and "Replay into another fleet" in capsys.readouterr().err
 

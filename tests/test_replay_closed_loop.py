@@ -62,7 +62,13 @@ def _fly(path, n_ticks=120, traces=True, cruise=1.0):
                     sink.put(keys.event(FLEET, v), ev.encode(), t_ns + v + 1)
                 for dst in pos:
                     if dst != v and rng.random() > 0.2:  # 20 % loss, 0-250 ms late
-                        inflight.append((t_ns + int(rng.uniform(0, 0.25e9)), dst, VehicleState.decode(state.encode())))
+                        inflight.append(
+                            (
+                                t_ns + int(rng.uniform(0, 0.25e9)),
+                                dst,
+                                VehicleState.decode(state.encode()),
+                            )
+                        )
                 heading[v] = out.heading_rad
                 vel[v] = out.vel_ned_m_s
             for v in pos:
@@ -73,7 +79,9 @@ def _fly(path, n_ticks=120, traces=True, cruise=1.0):
 def test_trace_text_round_trips_and_fits():
     text = trace_text(42, -1.25, (0.5, -0.25, 0.0), (2, 3), (41, 40), (0.0123456, 0.2))
     tr = parse_trace(text)
-    assert tr.state_seq == 42 and tr.heading_rad == -1.25 and tr.cmd_vel_ned_m_s == (0.5, -0.25, 0.0)
+    assert (
+        tr.state_seq == 42 and tr.heading_rad == -1.25 and tr.cmd_vel_ned_m_s == (0.5, -0.25, 0.0)
+    )
     assert tr.neighbours == ((2, 41, 0.012346), (3, 40, 0.2)) and tr.complete
     many = trace_text(7, 0.1, (0.1, 0.2, 0.3), range(1, 40), range(1000, 1039), [0.1] * 39)
     assert len(many.encode()) <= 120 and many.endswith("+")
@@ -125,7 +133,9 @@ def test_cli_prints_a_table_and_writes_json(tmp_path, capsys):
 
     path, out = tmp_path / "cl.mcap", tmp_path / "report.json"
     _fly(path, n_ticks=30)
-    code = replay_cli([str(path), "--policy", str(DEFAULT_WEIGHTS), "--vehicle", "2", "--json-out", str(out)])
+    code = replay_cli(
+        [str(path), "--policy", str(DEFAULT_WEIGHTS), "--vehicle", "2", "--json-out", str(out)]
+    )
     assert code == 0
     printed = capsys.readouterr().out
     assert "closed-loop replay of vehicle 2" in printed and "diff m/s" in printed

@@ -109,9 +109,17 @@ def test_same_policy_on_a_real_flight_reports_zero_difference(tmp_path):
                 ))  # fmt: skip
             assert mesh.presence().wait_for(lambda v, _g: set(STARTS) <= v, 20.0)
             now = time.time_ns
-            _until_accepted(mesh, lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=now(), targets=(v,)))
+            _until_accepted(
+                mesh,
+                lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=now(), targets=(v,)),
+            )
             time.sleep(3.5)
-            _until_accepted(mesh, lambda v: Command.goto_local(*GOALS[v], nonce=new_nonce(), stamp_ns=now(), targets=(v,)))
+            _until_accepted(
+                mesh,
+                lambda v: Command.goto_local(
+                    *GOALS[v], nonce=new_nonce(), stamp_ns=now(), targets=(v,)
+                ),
+            )
             time.sleep(5.0)
         finally:
             for p in procs:
@@ -124,7 +132,11 @@ def test_same_policy_on_a_real_flight_reports_zero_difference(tmp_path):
         assert rep["exact"] and rep["ticks"] >= 30, rep
         assert rep["skipped_ticks"] <= 0.1 * (rep["ticks"] + rep["skipped_ticks"])
         assert rep["max_diff_m_s"] < 1e-4, rep["worst"]
-        print(f"vehicle {vid}: {rep['ticks']} ticks, {rep['skipped_ticks']} skipped, max {rep['max_diff_m_s']:.2e} m/s")
+        print(
+            f"vehicle {vid}: {rep['ticks']} ticks, {rep['skipped_ticks']} skipped, max {rep['max_diff_m_s']:.2e} m/s"
+        )
     # The same flight through different settings is not zero: the check can fail.
-    rep = run_closed_loop(ClosedLoopConfig(str(path), vehicle_id=1, cruise_speed_m_s=0.5), recording=rec)
+    rep = run_closed_loop(
+        ClosedLoopConfig(str(path), vehicle_id=1, cruise_speed_m_s=0.5), recording=rec
+    )
     assert rep["max_diff_m_s"] > 0.1

@@ -76,7 +76,7 @@ def test_takeoff_without_altitude_uses_mis_takeoff_alt() -> None:
         ("ground", lambda v: v.set_mode(Px4Mode.OFFBOARD, 0.0), px4.TEMPORARILY_REJECTED),  # no setpoints
         ("ground", lambda v: v.set_mode(Px4Mode.MISSION, 0.0), px4.TEMPORARILY_REJECTED),
         ("ground", lambda v: v.set_mode(Px4Mode.RTL, 0.0), px4.TEMPORARILY_REJECTED),
-        ("ground", lambda v: v.land(0.0), px4.TEMPORARILY_REJECTED),
+        ("ground", lambda v: v.land(0.0), px4.ACCEPTED),  # a mode switch; it stays on the ground
         ("unhealthy", lambda v: v.arm(0.0), px4.TEMPORARILY_REJECTED),
         ("ground", lambda v: v.arm(0.0), px4.ACCEPTED),
         ("armed", lambda v: v.disarm(0.0), px4.ACCEPTED),
@@ -258,3 +258,29 @@ def test_battery_drains_only_while_armed() -> None:
     assert v.battery_pct == 100.0
     v = flying()
     assert v.battery_pct < 100.0
+
+
+def test_rearming_after_a_kill_or_a_landing_does_not_resume_old_targets() -> None:
+    v = flying(alt_m=6.0)
+    v.reposition(np.array([20.0, 0.0, -6.0]), v.now_s)
+    run(v, v.now_s + 1.0)
+    v.kill(v.now_s)
+    run(v, v.now_s + 5.0)
+    assert v.landed and v.mode is Px4Mode.HOLD and v.target_ned_m is None
+    assert v.arm(v.now_s).ok
+    here = v.pos_ned_m.copy()
+    run(v, v.now_s + 3.0)
+    assert v.landed and np.allclose(v.pos_ned_m, here)  # armed, but nobody asked it to fly
+
+
+def test_landing_from_offboard_disarms_like_any_landing() -> None:
+    v = flying()
+    t = v.now_s
+    v.offboard_setpoint(t, vel_ned_m_s=np.array([0.0, 0.0, 1.5]))
+    assert v.set_mode(Px4Mode.OFFBOARD, t).ok
+    t_end = t + 30.0
+    while v.armed and t < t_end:
+        t += 0.05
+        v.offboard_setpoint(t, vel_ned_m_s=np.array([0.0, 0.0, 1.5]))
+        v.step(t)
+    assert v.landed and not v.armed and "Disarmed by landing" in v.events
