@@ -1,0 +1,165 @@
+"""Wire schema: every message type round-trips, and decoders only ever raise DecodeError."""
+
+from __future__ import annotations
+
+import math
+import random
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from comms import schema
+from comms.schema import (
+    AckResult,
+    Command,
+    CommandAck,
+    CommandKind,
+    DecodeError,
+    Event,
+    EventKind,
+    Mode,
+    Severity,
+    StateFlag,
+    VehicleState,
+    decode,
+)
+
+f32 = st.floats(-1e5, 1e5, allow_nan=False, width=32)
+vid = st.integers(1, schema.MAX_VEHICLE_ID)
+u64 = st.integers(0, 2**64 - 1)
+
+
+@st.composite
+def states(draw) -> VehicleState:
+    return VehicleState(
+        vehicle_id=draw(vid), seq=draw(st.integers(0, 2**32 - 1)), stamp_ns=draw(u64),
+        pos_ned_m=tuple(draw(f32) for _ in range(3)), vel_ned_m_s=tuple(draw(st.floats(-100, 100, width=32)) for _ in range(3)),
+        heading_rad=draw(st.floats(-3.0, 3.0, width=32)), mode=draw(st.sampled_from(Mode)),
+        armed=draw(st.booleans()), battery_pct=draw(st.floats(0.0, 100.0, width=32)),
+        flags=StateFlag(draw(st.integers(0, 255))), goal_ned_m=tuple(draw(f32) for _ in range(3)),
+    )  # fmt: skip
+
+
+@st.composite
+def commands(draw) -> Command:
+    kind = draw(st.sampled_from(CommandKind))
+    if kind is CommandKind.TAKEOFF:
+        params = (draw(st.floats(0.5, 500)), 0.0, 0.0)
+    elif kind is CommandKind.GOTO_LOCAL:
+        params = (draw(st.floats(-1e5, 1e5)), draw(st.floats(-1e5, 1e5)), draw(st.floats(-1e4, 100)))
+    elif kind is CommandKind.GOTO_GLOBAL:
+        params = (draw(st.floats(-90, 90)), draw(st.floats(-180, 180)), draw(st.floats(-500, 1e4)))
+    else:
+        params = (0.0, 0.0, 0.0)
+    targets = tuple(draw(st.lists(vid, max_size=20, unique=True)))
+    return Command(
+        kind=kind, nonce=draw(u64), stamp_ns=draw(u64), params=params, targets=targets,
+        source_id=draw(st.integers(0, schema.MAX_VEHICLE_ID)), seq=draw(st.integers(0, 2**32 - 1)),
+        tag=draw(st.binary(min_size=32, max_size=32)),
+    )  # fmt: skip
+
+
+acks = st.builds(
+    CommandAck, vehicle_id=vid, nonce=u64, stamp_ns=u64, result=st.sampled_from(AckResult),
+    reason=st.text(max_size=30), mode=st.sampled_from(Mode), tag=st.binary(min_size=32, max_size=32),
+)  # fmt: skip
+events = st.builds(
+    Event, vehicle_id=st.integers(0, schema.MAX_VEHICLE_ID), stamp_ns=u64, text=st.text(max_size=40),
+    severity=st.sampled_from(Severity), kind=st.sampled_from(EventKind),
+)  # fmt: skip
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(states(), commands(), acks, events))
+def test_every_message_round_trips(msg) -> None:
+    data = msg.encode()
+    assert data[0] == msg.TYPE and data[1] == schema.SCHEMA_VERSION
+    back = decode(data)
+    assert type(back) is type(msg)
+    assert back == msg
+    assert back.encode() == data
+
+
+def test_reason_text_is_cut_on_a_character_boundary() -> None:
+    ack = CommandAck(1, 2, 3, AckResult.REJECTED, "é" * 200)
+    back = decode(ack.encode())
+    assert back.reason == "é" * (schema.REASON_BYTES // 2)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "why"),
+    [
+        (lambda b: b[:-1], "must be 64 bytes"),
+        (lambda b: bytes([9]) + b[1:], "unknown message type 9"),
+        (lambda b: b[:1] + bytes([7]) + b[2:], "unsupported VEHICLE_STATE version 7"),
+        (lambda b: b[:16] + struct.pack("<f", math.nan) + b[20:], "must be finite"),
+        (lambda b: b[:16] + struct.pack("<f", math.inf) + b[20:], "must be finite"),
+        (lambda b: b[:56] + bytes([99]) + b[57:], "not a valid Mode"),
+        (lambda b: b[:2] + struct.pack("<H", 0) + b[4:], "vehicle_id=0"),
+    ],
+)
+def test_state_decoder_says_why(mutate, why) -> None:
+    good = VehicleState(3, 1, 5, (1, 2, 3), (0, 0, 0), 0.5).encode()
+    with pytest.raises(DecodeError, match=why):
+        decode(mutate(good))
+
+
+@pytest.mark.parametrize(
+    ("params", "kind", "why"),
+    [
+        ((math.nan, 0, 0), CommandKind.TAKEOFF, "must be finite"),
+        ((1000.0, 0, 0), CommandKind.TAKEOFF, "outside"),
+        ((0, 0, 0), CommandKind.TAKEOFF, "outside"),
+        ((91.0, 0, 0), CommandKind.GOTO_GLOBAL, "lat_deg"),
+        ((1.0, 0, 0), CommandKind.LAND, "unused ones must be 0"),
+    ],
+)
+def test_command_validation_rejects_bad_fields(params, kind, why) -> None:
+    with pytest.raises(DecodeError, match=why):
+        Command(kind=kind, nonce=1, stamp_ns=1, params=params).encode()
+
+
+def test_command_with_wrong_target_count_is_refused() -> None:
+    data = bytearray(Command(CommandKind.LAND, 1, 1, targets=(1, 2)).encode())
+    struct.pack_into("<H", data, 49, 3)  # claims 3 targets, carries 2
+    with pytest.raises(DecodeError, match="3 targets must be"):
+        decode(bytes(data))
+
+
+def test_random_bytes_only_raise_decode_error() -> None:
+    """10,000 random byte strings plus 10,000 mutations of valid messages."""
+    rng = random.Random(1234)
+    valid = [
+        VehicleState(3, 1, 5, (1, 2, 3), (0, 0, 0), 0.5).encode(),
+        Command.goto_local(1, 2, -3, nonce=7, stamp_ns=9, targets=(1, 2)).encode(),
+        CommandAck(1, 7, 9, AckResult.REJECTED, "no").encode(),
+        Event(1, 5, "hi").encode(),
+    ]
+    decoded = rejected = 0
+    for i in range(20_000):
+        if i < 10_000:
+            data = bytes(rng.getrandbits(8) for _ in range(rng.randrange(0, 200)))
+            if data and rng.random() < 0.5:  # half of them get a plausible header
+                data = bytes([rng.randrange(1, 5), 1]) + data[2:]
+        else:
+            data = bytearray(rng.choice(valid))
+            for _ in range(rng.randrange(1, 4)):
+                data[rng.randrange(len(data))] = rng.getrandbits(8)
+            data = bytes(data)
+        try:
+            decode(data)
+            decoded += 1
+        except DecodeError:
+            rejected += 1
+    assert decoded + rejected == 20_000
+    assert rejected > 10_000  # nearly all random strings are invalid
+    print(f"fuzz: {decoded} decoded, {rejected} rejected with DecodeError")
+
+
+def test_float32_positions_keep_centimetres_at_10_km() -> None:
+    s = VehicleState(1, 1, 1, (9999.987, -9999.993, -120.004), (0, 0, 0), 0.0)
+    back = decode(s.encode())
+    assert np.allclose(back.pos_ned_m, s.pos_ned_m, atol=0.005)
