@@ -135,8 +135,8 @@ class Vehicle:
                              Px4Mode.MISSION, Px4Mode.LAND, Px4Mode.READY):
             return self._refuse(px4.TEMPORARILY_REJECTED, f"Arming denied: not in {self.mode.name}")
         self.armed, self.armed_at_s, self.took_off = True, now_s, False
-        if self.mode is Px4Mode.LAND:
-            self._enter(Px4Mode.HOLD, now_s)
+        if self.mode is not Px4Mode.OFFBOARD:
+            self._enter(Px4Mode.HOLD, now_s)  # hold on the ground until told to climb
         self._say("Armed by external command")
         return ACCEPTED
 
@@ -145,13 +145,19 @@ class Vehicle:
             return ACCEPTED
         if not force and not self.landed:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Disarming denied: not landed")
-        self.armed = False
         if not self.landed:
             self.falling = True
             self._say("Kill switch engaged: motors off in the air")
         else:
             self._say("Disarmed by external command")
+        self._disarmed()
         return ACCEPTED
+
+    def _disarmed(self) -> None:
+        # Forget every target, so that re-arming never resumes a stale takeoff or goto.
+        self.armed, self.goto_active, self.target_ned_m = False, False, None
+        if self.mode is not Px4Mode.OFFBOARD:
+            self.mode = Px4Mode.HOLD
 
     def kill(self, now_s: float) -> Outcome:
         return self.disarm(now_s, force=True)
@@ -188,8 +194,7 @@ class Vehicle:
         return ACCEPTED
 
     def land(self, now_s: float) -> Outcome:
-        if not self.armed:
-            return self._refuse(px4.TEMPORARILY_REJECTED, "Land denied: disarmed")
+        # PX4 takes LAND as a mode switch, disarmed or not; on the ground it just stays there.
         self._enter(Px4Mode.LAND, now_s)
         return ACCEPTED
 
@@ -255,7 +260,7 @@ class Vehicle:
             self.vel_ned_m_s[:] = 0.0
             self._ground_checks(now)
             return
-        self.landed_at_s = math.inf
+        self.landed_at_s, self.took_off = math.inf, True
         dv = _clip_norm(vel_cmd - self.vel_ned_m_s, p.accel_m_s2 * dt)
         self.vel_ned_m_s += dv
         self.pos_ned_m += self.vel_ned_m_s * dt
@@ -286,10 +291,10 @@ class Vehicle:
         if self.landed_at_s == math.inf:
             self.landed_at_s = now
         if self.took_off and now - self.landed_at_s >= p.disarm_after_land_s:
-            self.armed = False
+            self._disarmed()
             self._say("Disarmed by landing")
         elif not self.took_off and now - self.armed_at_s >= p.disarm_preflight_s:
-            self.armed = False
+            self._disarmed()
             self._say("Disarmed by auto preflight disarming")
 
     def _failsafes(self, now: float) -> None:
