@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import socket
 import time
 
 import pytest
@@ -234,3 +235,28 @@ def test_backend_picks_its_vehicle_among_several_on_one_port() -> None:
             assert vb.wait_connected(), first.output() + second.output()
             t = wait_for(vb, lambda t: True, what="telemetry of vehicle 2")
             assert t.pos_ned_m == pytest.approx(ORIGIN.to_local(other.lat_deg, other.lon_deg, other.alt_m), abs=0.05)
+
+
+def test_backend_does_not_grab_control_back_after_a_takeover() -> None:
+    """A ground station on PX4's other link switches to HOLD mid-offboard: the agent is told."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    port = free_udp_port()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as gcs:
+        gcs.bind(("127.0.0.1", 0))
+        gcs.settimeout(5.0)
+        cfg = MavsdkConfig(connection=f"udpin://127.0.0.1:{port}", action_timeout_s=4.0)
+        with sitl(port, "--connect", f"udpout:127.0.0.1:{gcs.getsockname()[1]}") as proc, MavsdkBackend(cfg, ORIGIN) as vb:
+            assert vb.wait_connected(), proc.output()
+            _, emulator = gcs.recvfrom(65535)
+            vb.takeoff(3.0)
+            wait_for(vb, lambda t: t.pos_ned_m[2] < -2.7, what="takeoff")
+            vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
+            wait_for(vb, lambda t: vb.flight_mode == "OFFBOARD", what="OFFBOARD")
+            hold = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 4, 3, 0, 0, 0, 0)
+            gcs.sendto(hold.pack(mavlink.MAVLink(None, srcSystem=250, srcComponent=190)), emulator)
+            wait_for(vb, lambda t: vb.flight_mode == "HOLD", what="HOLD by the other ground station")
+            with pytest.raises(BackendError, match="left offboard"):
+                vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
+            vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)  # the agent decides to take over again
+            wait_for(vb, lambda t: vb.flight_mode == "OFFBOARD", what="OFFBOARD again")

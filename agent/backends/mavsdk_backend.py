@@ -82,6 +82,7 @@ class MavsdkBackend(VehicleBackend):
         self._setpoint: tuple[float, float, float, float] | None = None  # n, e, d m/s, yaw deg
         self._setpoint_s = -math.inf
         self._streaming = False
+        self._seen_offboard = False  # PX4 confirmed OFFBOARD since we started streaming
         self._fatal: str | None = None
         self._closed = False
         self._system: Any = None
@@ -138,7 +139,7 @@ class MavsdkBackend(VehicleBackend):
             (tel.subscribe_armed(), lambda a: setattr(self._latest, "armed", bool(a))),
             (tel.subscribe_in_air(), lambda a: setattr(self._latest, "in_air", bool(a))),
             (tel.subscribe_battery(), lambda b: setattr(self._latest, "battery_pct", float(b.remaining_percent))),
-            (tel.subscribe_flight_mode(), lambda m: setattr(self._latest, "flight_mode", m.name)),
+            (tel.subscribe_flight_mode(), self._on_flight_mode),
             (system.is_connected_state(), lambda c: setattr(self._latest, "connected", bool(c))),
         ]
         self._latest.connected = await system.is_connected()
@@ -161,6 +162,12 @@ class MavsdkBackend(VehicleBackend):
 
     def _on_velocity(self, v: Any) -> None:
         self._latest.vel_ned_m_s = (float(v.north_m_s), float(v.east_m_s), float(v.down_m_s))
+
+    def _on_flight_mode(self, mode: Any) -> None:
+        with self._lock:
+            self._latest.flight_mode = mode.name
+            if self._streaming and mode.name == "OFFBOARD":
+                self._seen_offboard = True
 
     def _on_heading(self, h: Any) -> None:
         if math.isfinite(h.heading_deg):
@@ -268,15 +275,20 @@ class MavsdkBackend(VehicleBackend):
         if not self._latest.armed:
             raise BackendError("cannot fly a velocity setpoint: vehicle is disarmed (take off first)")
         with self._lock:
+            mode = self._latest.flight_mode
+            if self._streaming and self._seen_offboard and mode != "OFFBOARD":
+                # PX4 left offboard (a failsafe, or a pilot or ground station took over): do not
+                # grab control back silently. The agent sees the error; its next setpoint re-enters.
+                self._streaming, self._setpoint = False, None
+                raise BackendError(f"vehicle left offboard (now {mode}); the next setpoint re-enters it")
             self._setpoint = (v[0], v[1], v[2], math.degrees(heading_rad))
             self._setpoint_s = self.clock()
-            start = not self._streaming or self._latest.flight_mode != "OFFBOARD"
-        if not start:
-            return  # the stream task sends it within 1 / setpoint_hz
+            if self._streaming:
+                return  # the stream task sends it within 1 / setpoint_hz
         # PX4 refuses offboard unless setpoints already stream: send one first, then switch.
         self._call("offboard setpoint", lambda: offboard.set_velocity_ned(self._velocity_ned_yaw()))
         with self._lock:
-            self._streaming = True
+            self._streaming, self._seen_offboard = True, False
         try:
             self._call("start offboard", offboard.start)
         except BackendError:
