@@ -266,6 +266,24 @@ def main(cfg: EvalConfig) -> dict:
     return result
 
 
+def merge(paths, out: str | Path) -> dict:
+    """Combines the runs of several results.json files into one table."""
+    rows = []
+    for p in paths:
+        rows += json.loads(Path(p).read_text())["runs"]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    result = {
+        "merged": [str(p) for p in paths],
+        "flops_20": flops(20),
+        "summary": summarise(rows),
+        "runs": rows,
+    }
+    (out / "results.json").write_text(json.dumps(result, indent=1))
+    (out / "results.md").write_text(markdown(result["summary"]))
+    return result
+
+
 def cli(argv=None) -> dict:
     """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`."""
     ap = argparse.ArgumentParser(
@@ -285,7 +303,12 @@ def cli(argv=None) -> dict:
     ap.add_argument("--controllers", default="", help="comma list, e.g. policy,orca (default all)")
     ap.add_argument("--no-figures", action="store_true")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")
     a = ap.parse_args(argv)
+    if a.merge:
+        result = merge([p for p in a.merge.split(",") if p], a.out)
+        print(markdown(result["summary"]))
+        return result
     links = tuple(s for s in a.links.split(",") if s)
     if not set(links) <= {"perfect", "degraded"}:
         ap.error(f"--links takes perfect and/or degraded, got {a.links!r}")

@@ -24,13 +24,27 @@ HOME = GeoOrigin(48.7490, 9.1050, 450.0)
 ORIGIN = GeoOrigin(48.7489, 9.1049, 450.0)
 """The fleet origin: about 11 m south and 7 m west of the emulator's home."""
 HOME_NED_M = ORIGIN.to_local(HOME.lat_deg, HOME.lon_deg, HOME.alt_m)
-FAST = ["--takeoff-speed", "5", "--pos-gain", "3", "--accel", "15", "--land-speed", "4",
-        "--cruise-speed", "8", "--disarm-after-land", "0.3"]
+FAST = [
+    "--takeoff-speed",
+    "5",
+    "--pos-gain",
+    "3",
+    "--accel",
+    "15",
+    "--land-speed",
+    "4",
+    "--cruise-speed",
+    "8",
+    "--disarm-after-land",
+    "0.3",
+]
 
 
 def sitl(port: int, *extra: str) -> SitlProcess:
     home = f"{HOME.lat_deg},{HOME.lon_deg},{HOME.alt_m}"
-    return SitlProcess(["--id", "1", "--connect", f"udpout:127.0.0.1:{port}", "--home", home, *FAST, *extra])
+    return SitlProcess(
+        ["--id", "1", "--connect", f"udpout:127.0.0.1:{port}", "--home", home, *FAST, *extra]
+    )
 
 
 # ---- raw MAVSDK ----------------------------------------------------------------------------------
@@ -86,7 +100,9 @@ async def raw_flight(port: int) -> None:
         await offboard.set_velocity_ned(VelocityNedYaw(0.0, 3.0, 0.0, 90.0))
         await offboard.start()
         await until(tel.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD)
-        moved = await until(tel.subscribe_position(), lambda p: p.longitude_deg > start.longitude_deg + 4e-5)
+        moved = await until(
+            tel.subscribe_position(), lambda p: p.longitude_deg > start.longitude_deg + 4e-5
+        )
         assert abs(moved.latitude_deg - start.latitude_deg) < 1e-5  # east, not north
         await offboard.stop()
         await until(tel.subscribe_flight_mode(), lambda m: m == FlightMode.HOLD)
@@ -94,15 +110,23 @@ async def raw_flight(port: int) -> None:
         # goto: COMMAND_INT DO_REPOSITION.
         lat, lon, alt = HOME.to_global(10.0, 5.0, -6.0)
         await action.goto_location(lat, lon, alt, 0.0)
-        await until(tel.subscribe_position(), lambda p: abs(p.latitude_deg - lat) < 2e-6 and abs(p.longitude_deg - lon) < 3e-6
-                    and abs(p.absolute_altitude_m - alt) < 0.3)
+        await until(
+            tel.subscribe_position(),
+            lambda p: (
+                abs(p.latitude_deg - lat) < 2e-6
+                and abs(p.longitude_deg - lon) < 3e-6
+                and abs(p.absolute_altitude_m - alt) < 0.3
+            ),
+        )
         with pytest.raises(ActionError):  # out of range: denied
             await action.goto_location(123.0, lon, alt, 0.0)
         with pytest.raises(ActionError):  # NaN: denied (MAVSDK sends it as an out-of-range degE7)
             await action.goto_location(math.nan, math.nan, alt, 0.0)
 
         await action.hold()
-        await until(tel.subscribe_velocity_ned(), lambda v: math.hypot(v.north_m_s, v.east_m_s) < 0.1)
+        await until(
+            tel.subscribe_velocity_ned(), lambda v: math.hypot(v.north_m_s, v.east_m_s) < 0.1
+        )
         assert await tel.flight_mode() == FlightMode.HOLD
 
         await action.land()
@@ -141,12 +165,16 @@ def wait_for(backend, pred, timeout_s: float = 15.0, what: str = "condition"):
 
 def test_backend_flies_the_emulator_in_the_fleet_frame() -> None:
     port = free_udp_port()
-    cfg = MavsdkConfig(connection=f"udpin://127.0.0.1:{port}", link_timeout_s=1.0, action_timeout_s=4.0)
+    cfg = MavsdkConfig(
+        connection=f"udpin://127.0.0.1:{port}", link_timeout_s=1.0, action_timeout_s=4.0
+    )
     with sitl(port) as proc, MavsdkBackend(cfg, ORIGIN) as vb:
         assert vb.capabilities == {Capability.VELOCITY_SETPOINT}
         assert vb.wait_connected()
         t = wait_for(vb, lambda t: True, what="first telemetry")
-        assert t.pos_ned_m == pytest.approx(HOME_NED_M, abs=0.05)  # home, seen from the fleet origin
+        assert t.pos_ned_m == pytest.approx(
+            HOME_NED_M, abs=0.05
+        )  # home, seen from the fleet origin
         assert t.link_ok and not t.armed and not t.in_air
         with pytest.raises(BackendError, match="disarmed"):
             vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
@@ -162,11 +190,17 @@ def test_backend_flies_the_emulator_in_the_fleet_frame() -> None:
             vb.set_velocity_ned((2.0, -2.0, 0.0), -math.pi / 4)
             time.sleep(0.05)
         wait_for(vb, lambda t: vb.flight_mode == "OFFBOARD", what="OFFBOARD mode")
-        t = wait_for(vb, lambda t: t.pos_ned_m[0] - start[0] > 1.5 and start[1] - t.pos_ned_m[1] > 1.5, what="offboard motion")
+        t = wait_for(
+            vb,
+            lambda t: t.pos_ned_m[0] - start[0] > 1.5 and start[1] - t.pos_ned_m[1] > 1.5,
+            what="offboard motion",
+        )
         assert t.vel_ned_m_s[0] > 1.0 and t.vel_ned_m_s[1] < -1.0
         # The agent goes quiet: the backend's re-send turns into a hover, not a fly-away.
         time.sleep(cfg.setpoint_stale_s + 0.2)
-        wait_for(vb, lambda t: math.hypot(*t.vel_ned_m_s[:2]) < 0.05, what="stale setpoint -> hover")
+        wait_for(
+            vb, lambda t: math.hypot(*t.vel_ned_m_s[:2]) < 0.05, what="stale setpoint -> hover"
+        )
         assert vb.flight_mode == "OFFBOARD"
         wait_for(vb, lambda t: abs(t.heading_rad - 7 * math.pi / 4) < 0.05, what="heading")
 
@@ -196,7 +230,9 @@ def test_backend_reports_refusals_as_backend_errors() -> None:
         assert vb.wait_connected()
         with pytest.raises(BackendError, match="takeoff altitude"):
             vb.takeoff(math.nan)
-        with pytest.raises(BackendError, match="arm"):  # PX4: "Arming denied: preflight checks failed"
+        with pytest.raises(
+            BackendError, match="arm"
+        ):  # PX4: "Arming denied: preflight checks failed"
             vb.takeoff(3.0)
         with pytest.raises(BackendError, match="finite"):
             vb.set_velocity_ned((math.inf, 0.0, 0.0), 0.0)
@@ -217,8 +253,10 @@ def test_backend_without_an_autopilot_fails_with_a_reason() -> None:
 def test_backend_reports_a_bad_connection_url() -> None:
     with pytest.raises(ValueError, match="connection"):
         MavsdkConfig(connection="14540")
-    with MavsdkBackend(MavsdkConfig(connection="udpin://256.0.0.1:1"), ORIGIN) as vb, \
-            pytest.raises(BackendError, match="connection"):
+    with (
+        MavsdkBackend(MavsdkConfig(connection="udpin://256.0.0.1:1"), ORIGIN) as vb,
+        pytest.raises(BackendError, match="connection"),
+    ):
         vb.land()
 
 
@@ -229,12 +267,22 @@ def test_backend_picks_its_vehicle_among_several_on_one_port() -> None:
     with sitl(port) as first, MavsdkBackend(cfg, ORIGIN) as vb:
         # Vehicle 1 is heard first; the backend must keep waiting for vehicle 2.
         assert not vb.wait_connected(1.0)
-        second = SitlProcess(["--id", "2", "--connect", f"udpout:127.0.0.1:{port}",
-                              "--home", f"{other.lat_deg},{other.lon_deg},{other.alt_m}"])
+        second = SitlProcess(
+            [
+                "--id",
+                "2",
+                "--connect",
+                f"udpout:127.0.0.1:{port}",
+                "--home",
+                f"{other.lat_deg},{other.lon_deg},{other.alt_m}",
+            ]
+        )
         with second:
             assert vb.wait_connected(), first.output() + second.output()
             t = wait_for(vb, lambda t: True, what="telemetry of vehicle 2")
-            assert t.pos_ned_m == pytest.approx(ORIGIN.to_local(other.lat_deg, other.lon_deg, other.alt_m), abs=0.05)
+            assert t.pos_ned_m == pytest.approx(
+                ORIGIN.to_local(other.lat_deg, other.lon_deg, other.alt_m), abs=0.05
+            )
 
 
 def test_backend_does_not_grab_control_back_after_a_takeover() -> None:
@@ -246,16 +294,23 @@ def test_backend_does_not_grab_control_back_after_a_takeover() -> None:
         gcs.bind(("127.0.0.1", 0))
         gcs.settimeout(5.0)
         cfg = MavsdkConfig(connection=f"udpin://127.0.0.1:{port}", action_timeout_s=4.0)
-        with sitl(port, "--connect", f"udpout:127.0.0.1:{gcs.getsockname()[1]}") as proc, MavsdkBackend(cfg, ORIGIN) as vb:
+        with (
+            sitl(port, "--connect", f"udpout:127.0.0.1:{gcs.getsockname()[1]}") as proc,
+            MavsdkBackend(cfg, ORIGIN) as vb,
+        ):
             assert vb.wait_connected(), proc.output()
             _, emulator = gcs.recvfrom(65535)
             vb.takeoff(3.0)
             wait_for(vb, lambda t: t.pos_ned_m[2] < -2.7, what="takeoff")
             vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
             wait_for(vb, lambda t: vb.flight_mode == "OFFBOARD", what="OFFBOARD")
-            hold = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 4, 3, 0, 0, 0, 0)
+            hold = mavlink.MAVLink_command_long_message(
+                1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 4, 3, 0, 0, 0, 0
+            )
             gcs.sendto(hold.pack(mavlink.MAVLink(None, srcSystem=250, srcComponent=190)), emulator)
-            wait_for(vb, lambda t: vb.flight_mode == "HOLD", what="HOLD by the other ground station")
+            wait_for(
+                vb, lambda t: vb.flight_mode == "HOLD", what="HOLD by the other ground station"
+            )
             with pytest.raises(BackendError, match="left offboard"):
                 vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
             vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)  # the agent decides to take over again

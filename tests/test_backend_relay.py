@@ -23,8 +23,20 @@ from firmware.sitl.process import SitlProcess, free_udp_port
 HOME = GeoOrigin(48.7490, 9.1050, 450.0)
 ORIGIN = GeoOrigin(48.7489, 9.1049, 450.0)
 HOME_NED_M = ORIGIN.to_local(HOME.lat_deg, HOME.lon_deg, HOME.alt_m)
-FAST = ["--takeoff-speed", "5", "--pos-gain", "3", "--accel", "15", "--land-speed", "4",
-        "--cruise-speed", "8", "--disarm-after-land", "0.3"]
+FAST = [
+    "--takeoff-speed",
+    "5",
+    "--pos-gain",
+    "3",
+    "--accel",
+    "15",
+    "--land-speed",
+    "4",
+    "--cruise-speed",
+    "8",
+    "--disarm-after-land",
+    "0.3",
+]
 
 
 class Observer:
@@ -66,8 +78,17 @@ def wait_for(backend, pred, timeout_s: float = 15.0, what: str = "condition"):
 def relay_and_sitl():
     port, obs = free_udp_port(), Observer()
     home = f"{HOME.lat_deg},{HOME.lon_deg},{HOME.alt_m}"
-    args = ["--id", "3", "--connect", f"udpout:127.0.0.1:{port}", "--connect", f"udpout:127.0.0.1:{obs.port}",
-            "--home", home, *FAST]
+    args = [
+        "--id",
+        "3",
+        "--connect",
+        f"udpout:127.0.0.1:{port}",
+        "--connect",
+        f"udpout:127.0.0.1:{obs.port}",
+        "--home",
+        home,
+        *FAST,
+    ]
     cfg = RelayConfig(connection=f"udpin:127.0.0.1:{port}", link_timeout_s=1.0)
     with SitlProcess(args) as proc, RelayBackend(cfg, ORIGIN) as relay:
         assert relay.wait_connected(), proc.output()
@@ -92,8 +113,10 @@ def test_relay_flies_the_emulator_and_forwards_traffic(relay_and_sitl) -> None:
     t = wait_for(relay, lambda t: t.pos_ned_m[2] < -3.7, what="takeoff altitude")
     assert t.armed and t.in_air and t.battery_pct <= 100.0
 
-    neighbours = [Traffic(7, (30.0, 5.0, -4.0), (1.0, 1.0, 0.0), math.pi / 4, 0.2),
-                  Traffic(8, (-3.0, 20.0, -6.0), (0.0, -2.0, -0.5), 3 * math.pi / 2, 0.0)]
+    neighbours = [
+        Traffic(7, (30.0, 5.0, -4.0), (1.0, 1.0, 0.0), math.pi / 4, 0.2),
+        Traffic(8, (-3.0, 20.0, -6.0), (0.0, -2.0, -0.5), 3 * math.pi / 2, 0.0),
+    ]
     relay.send_traffic(neighbours)
     for n in neighbours:
         echo = obs.adsb(lambda m, n=n: m.ICAO_address == n.vehicle_id)
@@ -102,7 +125,9 @@ def test_relay_flies_the_emulator_and_forwards_traffic(relay_and_sitl) -> None:
         assert echo.heading == round(math.degrees(n.heading_rad) * 100) % 36000
         assert echo.hor_velocity == round(math.hypot(*n.vel_ned_m_s[:2]) * 100)
         assert echo.ver_velocity == round(-n.vel_ned_m_s[2] * 100)
-        assert echo.flags & mavlink.ADSB_FLAGS_VALID_COORDS and echo.callsign == f"COVEY{n.vehicle_id}"
+        assert (
+            echo.flags & mavlink.ADSB_FLAGS_VALID_COORDS and echo.callsign == f"COVEY{n.vehicle_id}"
+        )
 
     target = (HOME_NED_M[0] + 12.0, HOME_NED_M[1] - 6.0, -6.0)
     relay.goto_local(target)
@@ -131,7 +156,10 @@ def test_relay_refuses_bad_input_without_sending_it(relay_and_sitl) -> None:
             relay.goto_local(bad)
     with pytest.raises(BackendError, match="takeoff altitude"):
         relay.takeoff(-1.0)
-    good, bad = Traffic(11, (5.0, 5.0, -4.0), (0.0, 0.0, 0.0), 0.0, 0.1), Traffic(12, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0)
+    good, bad = (
+        Traffic(11, (5.0, 5.0, -4.0), (0.0, 0.0, 0.0), 0.0, 0.1),
+        Traffic(12, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0),
+    )
     with pytest.raises(BackendError, match=r"\[12\]"):
         relay.send_traffic([bad, good])
     assert obs.adsb(lambda m: m.ICAO_address == 11)  # the good neighbour still went out
@@ -141,8 +169,10 @@ def test_relay_refuses_bad_input_without_sending_it(relay_and_sitl) -> None:
 @pytest.mark.e2e
 def test_relay_connects_out_to_a_listening_emulator() -> None:
     port = free_udp_port()
-    with SitlProcess(["--id", "5", "--listen", f"udpin:127.0.0.1:{port}"]) as proc, \
-            RelayBackend(RelayConfig(connection=f"udpout:127.0.0.1:{port}"), GeoOrigin()) as relay:
+    with (
+        SitlProcess(["--id", "5", "--listen", f"udpin:127.0.0.1:{port}"]) as proc,
+        RelayBackend(RelayConfig(connection=f"udpout:127.0.0.1:{port}"), GeoOrigin()) as relay,
+    ):
         assert relay.wait_connected(), proc.output()
         t = wait_for(relay, lambda t: True, what="telemetry")
         assert t.pos_ned_m == pytest.approx((0.0, 0.0, 0.0), abs=0.05)
@@ -179,7 +209,9 @@ class FakeAutopilot:
                     if self.result is not None:
                         why = mavlink.MAVLink_statustext_message(6, b"Denied: a test")
                         self.sock.sendto(why.pack(self.mav), self.relay)
-                        ack = mavlink.MAVLink_command_ack_message(m.command, self.result, 0, 0, 245, 191)
+                        ack = mavlink.MAVLink_command_ack_message(
+                            m.command, self.result, 0, 0, 245, 191
+                        )
                         self.sock.sendto(ack.pack(self.mav), self.relay)
 
     def __enter__(self) -> FakeAutopilot:
@@ -192,9 +224,14 @@ class FakeAutopilot:
         self.sock.close()
 
 
-@pytest.mark.parametrize(("result", "match"), [(None, "no COMMAND_ACK after 2 tries"),
-                                               (mavlink.MAV_RESULT_DENIED, "refused: MAV_RESULT_DENIED.*Denied: a test"),
-                                               (mavlink.MAV_RESULT_FAILED, "refused: MAV_RESULT_FAILED")])
+@pytest.mark.parametrize(
+    ("result", "match"),
+    [
+        (None, "no COMMAND_ACK after 2 tries"),
+        (mavlink.MAV_RESULT_DENIED, "refused: MAV_RESULT_DENIED.*Denied: a test"),
+        (mavlink.MAV_RESULT_FAILED, "refused: MAV_RESULT_FAILED"),
+    ],
+)
 def test_relay_maps_missing_and_negative_acks_to_backend_errors(result, match) -> None:
     port = free_udp_port()
     cfg = RelayConfig(connection=f"udpin:127.0.0.1:{port}", ack_timeout_s=0.3, attempts=2)
@@ -203,7 +240,11 @@ def test_relay_maps_missing_and_negative_acks_to_backend_errors(result, match) -
         with pytest.raises(BackendError, match=match):
             relay.land()
         # The command protocol: a retry carries confirmation + 1; a refusal is not retried.
-        expected = [(mavlink.MAV_CMD_NAV_LAND, 0), (mavlink.MAV_CMD_NAV_LAND, 1)] if result is None else [(mavlink.MAV_CMD_NAV_LAND, 0)]
+        expected = (
+            [(mavlink.MAV_CMD_NAV_LAND, 0), (mavlink.MAV_CMD_NAV_LAND, 1)]
+            if result is None
+            else [(mavlink.MAV_CMD_NAV_LAND, 0)]
+        )
         assert ap.commands == expected
 
 
@@ -223,6 +264,14 @@ def test_relay_config_and_adsb_encoding_validate() -> None:
             RelayConfig(connection=bad)
     with pytest.raises(ValueError, match="attempts"):
         RelayConfig(attempts=0)
-    msg = adsb_vehicle(Traffic(0xABCDEF, (0.0, 0.0, -10.0), (3.0, 4.0, 1.0), -math.pi / 2, 300.0), ORIGIN)
-    assert (msg.ICAO_address, msg.heading, msg.hor_velocity, msg.ver_velocity, msg.tslc) == (0xABCDEF, 27000, 500, -100, 255)
+    msg = adsb_vehicle(
+        Traffic(0xABCDEF, (0.0, 0.0, -10.0), (3.0, 4.0, 1.0), -math.pi / 2, 300.0), ORIGIN
+    )
+    assert (msg.ICAO_address, msg.heading, msg.hor_velocity, msg.ver_velocity, msg.tslc) == (
+        0xABCDEF,
+        27000,
+        500,
+        -100,
+        255,
+    )
     assert msg.altitude == round((ORIGIN.alt_m + 10.0) * 1000)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from policy import safety, scenarios, sim
-from policy.eval import EvalConfig, flops, main
+from policy.eval import EvalConfig, flops, main, merge
 
 
 def test_flops_match_the_paper():
@@ -69,3 +69,5 @@ def test_eval_smoke(tmp_path):
     assert (tmp_path / "fig5_heading_change.png").stat().st_size > 1000
     straight = [s for s in res["summary"] if s["controller"] == "straight"][0]
     assert straight["collisions"] > 0
+    merged = merge([tmp_path / "results.json", tmp_path / "results.json"], tmp_path / "merged")
+    assert len(merged["runs"]) == 2 * len(res["runs"])

@@ -55,7 +55,12 @@ def ack_of(replies):
 
 def fly(ap: Autopilot, alt_m: float = 5.0) -> float:
     assert ack_of(ap.handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), 0.0)) == px4.ACCEPTED
-    assert ack_of(ap.handle(long(mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 6, HOME.alt_m + alt_m), 0.0)) == px4.ACCEPTED
+    assert (
+        ack_of(
+            ap.handle(long(mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 6, HOME.alt_m + alt_m), 0.0)
+        )
+        == px4.ACCEPTED
+    )
     t = 0.0
     while ap.vehicle.mode is not Px4Mode.HOLD and t < 30.0:
         t += 0.05
@@ -70,13 +75,19 @@ def fly(ap: Autopilot, alt_m: float = 5.0) -> float:
         (long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), px4.ACCEPTED),
         (long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, math.nan), px4.DENIED),
         (long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 7), px4.DENIED),
-        (long(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0), px4.TEMPORARILY_REJECTED),  # offboard, no setpoints
+        (
+            long(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0),
+            px4.TEMPORARILY_REJECTED,
+        ),  # offboard, no setpoints
         (long(mavlink.MAV_CMD_DO_SET_MODE, 1, 42, 0), px4.DENIED),  # no such PX4 mode
         (long(mavlink.MAV_CMD_DO_SET_MODE, 0, 4, 3), px4.DENIED),  # not a custom mode
         (long(mavlink.MAV_CMD_DO_SET_MODE, math.nan, 4, 3), px4.DENIED),
         (long(mavlink.MAV_CMD_DO_SET_MODE, 1, 4, 3), px4.ACCEPTED),
         (long(mavlink.MAV_CMD_NAV_TAKEOFF), px4.TEMPORARILY_REJECTED),  # disarmed
-        (long(mavlink.MAV_CMD_DO_REPOSITION, -1, 1, 0, math.nan, math.nan, math.nan, 500.0), px4.DENIED),
+        (
+            long(mavlink.MAV_CMD_DO_REPOSITION, -1, 1, 0, math.nan, math.nan, math.nan, 500.0),
+            px4.DENIED,
+        ),
         (long(mavlink.MAV_CMD_DO_REPOSITION, -1, 1, 0, math.nan, 95.0, 8.0, 500.0), px4.DENIED),
         (long(mavlink.MAV_CMD_DO_MOTOR_TEST, 1, 0, 0), px4.UNSUPPORTED),
         (long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 33, 50000), px4.ACCEPTED),
@@ -88,12 +99,18 @@ def test_command_results(msg, result) -> None:
 
 def test_commands_for_another_system_are_ignored() -> None:
     assert autopilot().handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, target=9), 0.0) == []
-    assert ack_of(autopilot().handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, target=0), 0.0)) == px4.ACCEPTED
+    assert (
+        ack_of(autopilot().handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, target=0), 0.0))
+        == px4.ACCEPTED
+    )
 
 
 def test_arm_with_bad_health_is_refused_with_a_reason() -> None:
     ap = autopilot(healthy=False)
-    assert ack_of(ap.handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), 0.0)) == px4.TEMPORARILY_REJECTED
+    assert (
+        ack_of(ap.handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), 0.0))
+        == px4.TEMPORARILY_REJECTED
+    )
     assert "Arming denied" in ap.vehicle.events[-1]
     status = streams.sys_status(ap.vehicle, healthy=False)
     assert not status.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
@@ -103,9 +120,15 @@ def test_arm_with_bad_health_is_refused_with_a_reason() -> None:
 def test_disarm_in_the_air_needs_the_kill_magic() -> None:
     ap = autopilot()
     fly(ap)
-    assert ack_of(ap.handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0), 0.0)) == px4.TEMPORARILY_REJECTED
+    assert (
+        ack_of(ap.handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0), 0.0))
+        == px4.TEMPORARILY_REJECTED
+    )
     assert ap.vehicle.armed
-    assert ack_of(ap.handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, px4.KILL_MAGIC), 0.0)) == px4.ACCEPTED
+    assert (
+        ack_of(ap.handle(long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, px4.KILL_MAGIC), 0.0))
+        == px4.ACCEPTED
+    )
     assert not ap.vehicle.armed and ap.vehicle.falling
 
 
@@ -113,20 +136,79 @@ def test_reposition_command_int_global_and_relative_frames() -> None:
     ap = autopilot()
     t = fly(ap)
     lat, lon, alt = HOME.to_global(12.0, -7.0, -6.0)
-    msg = wire(mavlink.MAVLink_command_int_message(1, 1, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_DO_REPOSITION, 0, 0,
-                                                   -1, 1, 0, math.nan, round(lat * 1e7), round(lon * 1e7), alt))
+    msg = wire(
+        mavlink.MAVLink_command_int_message(
+            1,
+            1,
+            mavlink.MAV_FRAME_GLOBAL,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            1,
+            0,
+            math.nan,
+            round(lat * 1e7),
+            round(lon * 1e7),
+            alt,
+        )
+    )
     assert ack_of(ap.handle(msg, t)) == px4.ACCEPTED
     assert np.allclose(ap.vehicle.target_ned_m, [12.0, -7.0, -6.0], atol=0.02)
-    msg = wire(mavlink.MAVLink_command_int_message(1, 1, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-                                                   mavlink.MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, math.nan,
-                                                   round(lat * 1e7), round(lon * 1e7), 9.0))
+    msg = wire(
+        mavlink.MAVLink_command_int_message(
+            1,
+            1,
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            1,
+            0,
+            math.nan,
+            round(lat * 1e7),
+            round(lon * 1e7),
+            9.0,
+        )
+    )
     assert ack_of(ap.handle(msg, t)) == px4.ACCEPTED
     assert ap.vehicle.target_ned_m[2] == pytest.approx(-9.0, abs=0.01)
-    msg = wire(mavlink.MAVLink_command_int_message(1, 1, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_DO_REPOSITION, 0, 0,
-                                                   -1, 1, 0, math.nan, 1_000_000_000, 0, alt))
+    msg = wire(
+        mavlink.MAVLink_command_int_message(
+            1,
+            1,
+            mavlink.MAV_FRAME_GLOBAL,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            1,
+            0,
+            math.nan,
+            1_000_000_000,
+            0,
+            alt,
+        )
+    )
     assert ack_of(ap.handle(msg, t)) == px4.DENIED  # latitude 100 degrees
-    msg = wire(mavlink.MAVLink_command_int_message(1, 1, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_CMD_DO_REPOSITION, 0, 0,
-                                                   -1, 1, 0, math.nan, 0, 0, alt))
+    msg = wire(
+        mavlink.MAVLink_command_int_message(
+            1,
+            1,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            1,
+            0,
+            math.nan,
+            0,
+            0,
+            alt,
+        )
+    )
     assert ack_of(ap.handle(msg, t)) == px4.UNSUPPORTED
 
 
@@ -135,12 +217,19 @@ def test_params_read_set_and_refuse() -> None:
     read = wire(mavlink.MAVLink_param_request_read_message(1, 1, b"MIS_TAKEOFF_ALT", -1))
     (value,) = ap.handle(read, 0.0)
     assert value.param_id == "MIS_TAKEOFF_ALT" and value.param_value == pytest.approx(2.5)
-    (value,) = ap.handle(wire(mavlink.MAVLink_param_set_message(1, 1, b"MIS_TAKEOFF_ALT", 7.5, 9)), 0.0)
+    (value,) = ap.handle(
+        wire(mavlink.MAVLink_param_set_message(1, 1, b"MIS_TAKEOFF_ALT", 7.5, 9)), 0.0
+    )
     assert value.param_value == pytest.approx(7.5) and ap.vehicle.params.takeoff_alt_m == 7.5
     for bad in (math.nan, math.inf, -3.0, 1e6):
-        (value,) = ap.handle(wire(mavlink.MAVLink_param_set_message(1, 1, b"MIS_TAKEOFF_ALT", bad, 9)), 0.0)
+        (value,) = ap.handle(
+            wire(mavlink.MAVLink_param_set_message(1, 1, b"MIS_TAKEOFF_ALT", bad, 9)), 0.0
+        )
         assert value.param_value == pytest.approx(7.5)  # the old value comes back: refused
-    assert ap.handle(wire(mavlink.MAVLink_param_set_message(1, 1, b"NO_SUCH_PARAM", 1.0, 9)), 0.0) == []
+    assert (
+        ap.handle(wire(mavlink.MAVLink_param_set_message(1, 1, b"NO_SUCH_PARAM", 1.0, 9)), 0.0)
+        == []
+    )
     listed = ap.handle(wire(mavlink.MAVLink_param_request_list_message(1, 1)), 0.0)
     assert {p.param_id for p in listed} >= {"MIS_TAKEOFF_ALT", "COM_OF_LOSS_T"}
     assert sorted(p.param_index for p in listed) == list(range(len(listed)))
@@ -148,16 +237,26 @@ def test_params_read_set_and_refuse() -> None:
 
 def test_request_message_answers_autopilot_version_and_home() -> None:
     ap = autopilot()
-    replies = ap.handle(long(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION), 0.0)
+    replies = ap.handle(
+        long(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION), 0.0
+    )
     assert replies[0].get_type() == "AUTOPILOT_VERSION" and ack_of(replies) == px4.ACCEPTED
     assert replies[0].capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-    replies = ap.handle(long(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION), 0.0)
-    assert replies[0].get_type() == "HOME_POSITION" and replies[0].latitude == round(HOME.lat_deg * 1e7)
+    replies = ap.handle(
+        long(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION), 0.0
+    )
+    assert replies[0].get_type() == "HOME_POSITION" and replies[0].latitude == round(
+        HOME.lat_deg * 1e7
+    )
     assert ack_of(ap.handle(long(mavlink.MAV_CMD_REQUEST_MESSAGE, 12345), 0.0)) == px4.UNSUPPORTED
 
 
 def setpoint(frame=mavlink.MAV_FRAME_LOCAL_NED, vel=(1.0, 0.0, 0.0), mask=0b1001_1100_0111):
-    return wire(mavlink.MAVLink_set_position_target_local_ned_message(0, 1, 1, frame, mask, 0, 0, 0, *vel, 0, 0, 0, 0.5, 0))
+    return wire(
+        mavlink.MAVLink_set_position_target_local_ned_message(
+            0, 1, 1, frame, mask, 0, 0, 0, *vel, 0, 0, 0, 0.5, 0
+        )
+    )
 
 
 def test_offboard_setpoints_local_and_body_frames() -> None:
@@ -173,11 +272,28 @@ def test_offboard_setpoints_local_and_body_frames() -> None:
     assert ack_of(ap.handle(long(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0), t)) == px4.ACCEPTED
 
 
-def adsb(icao=7, lat=None, lon=None, flags=0b1_1101_1111, alt_mm=493_000, heading_cdeg=9000, hor_cm_s=150):
+def adsb(
+    icao=7, lat=None, lon=None, flags=0b1_1101_1111, alt_mm=493_000, heading_cdeg=9000, hor_cm_s=150
+):
     lat = HOME.lat_deg + 1e-4 if lat is None else lat
     lon = HOME.lon_deg if lon is None else lon
-    return wire(mavlink.MAVLink_adsb_vehicle_message(icao, round(lat * 1e7), round(lon * 1e7), 1, alt_mm, heading_cdeg,
-                                                     hor_cm_s, -20, b"COVEY7", 14, 0, flags, 0))
+    return wire(
+        mavlink.MAVLink_adsb_vehicle_message(
+            icao,
+            round(lat * 1e7),
+            round(lon * 1e7),
+            1,
+            alt_mm,
+            heading_cdeg,
+            hor_cm_s,
+            -20,
+            b"COVEY7",
+            14,
+            0,
+            flags,
+            0,
+        )
+    )
 
 
 def test_traffic_is_stored_per_icao_and_ages_out() -> None:
@@ -206,7 +322,9 @@ def test_streams_look_like_px4() -> None:
     assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4 and hb.custom_mode == Px4Mode.HOLD.custom_mode
     assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     gpi = streams.global_position_int(v, HOME, 1234)
-    assert HOME.to_local(gpi.lat * 1e-7, gpi.lon * 1e-7, gpi.alt * 1e-3) == pytest.approx((10.0, -5.0, -3.0), abs=0.02)
+    assert HOME.to_local(gpi.lat * 1e-7, gpi.lon * 1e-7, gpi.alt * 1e-3) == pytest.approx(
+        (10.0, -5.0, -3.0), abs=0.02
+    )
     assert (gpi.relative_alt, gpi.vx, gpi.vy, gpi.vz, gpi.hdg) == (3000, 100, 200, -50, 27000)
     st = streams.sys_status(v, healthy=True)
     assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
@@ -229,21 +347,40 @@ def test_handle_never_raises_on_random_input() -> None:
     ap = autopilot()
     fly(ap)
     for _ in range(2000):
-        params = [rng.choice([math.nan, math.inf, -math.inf, 0.0, 1.0, 21196.0, 1e30, rng.uniform(-1e3, 1e3)])
-                  for _ in range(7)]
+        params = [
+            rng.choice(
+                [math.nan, math.inf, -math.inf, 0.0, 1.0, 21196.0, 1e30, rng.uniform(-1e3, 1e3)]
+            )
+            for _ in range(7)
+        ]
         cmd = rng.choice([400, 176, 22, 21, 20, 192, 185, 511, 512, 520, 410, rng.randrange(65536)])
         if rng.random() < 0.5:
             msg = wire(mavlink.MAVLink_command_long_message(1, 1, cmd, 0, *params))
         else:
-            msg = wire(mavlink.MAVLink_command_int_message(1, 1, rng.randrange(20), cmd, 0, 0, *params[:4],
-                                                           rng.randrange(-2**31, 2**31), rng.randrange(-2**31, 2**31),
-                                                           params[6]))
+            msg = wire(
+                mavlink.MAVLink_command_int_message(
+                    1,
+                    1,
+                    rng.randrange(20),
+                    cmd,
+                    0,
+                    0,
+                    *params[:4],
+                    rng.randrange(-(2**31), 2**31),
+                    rng.randrange(-(2**31), 2**31),
+                    params[6],
+                )
+            )
         ap.handle(msg, ap.vehicle.now_s)
         ap.vehicle.step(ap.vehicle.now_s + 0.01)
-        assert np.all(np.isfinite(ap.vehicle.pos_ned_m)) and np.all(np.isfinite(ap.vehicle.vel_ned_m_s))
+        assert np.all(np.isfinite(ap.vehicle.pos_ned_m)) and np.all(
+            np.isfinite(ap.vehicle.vel_ned_m_s)
+        )
 
 
-@pytest.mark.parametrize("url", ["udp:1.2.3.4:5", "udpout:host", "udpin::14540", "udpout:127.0.0.1:0", "tcp:x:1"])
+@pytest.mark.parametrize(
+    "url", ["udp:1.2.3.4:5", "udpout:host", "udpin::14540", "udpout:127.0.0.1:0", "tcp:x:1"]
+)
 def test_bad_link_urls_are_refused(url) -> None:
     with pytest.raises(ValueError, match="udp"):
         LinkUrl.parse(url)
@@ -257,7 +394,9 @@ def test_emulator_tick_on_a_fake_clock_over_real_udp() -> None:
         addr = ("127.0.0.1", emu.links[0].local_port)
         gcs.sendto(b"\xfd\xff" + bytes(300), addr)  # a header that claims more than is there
         gcs.sendto(bytes(range(256)), addr)
-        arm = mavlink.MAVLink_command_long_message(4, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        arm = mavlink.MAVLink_command_long_message(
+            4, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0
+        )
         gcs.sendto(arm.pack(GCS), addr)
         time.sleep(0.05)  # let the datagrams land; the emulator's clock is the injected one
         emu.tick(100.0)
@@ -306,7 +445,9 @@ class RawGcs:
         for confirmation in range(attempts):
             self.send(mavlink.MAVLink_command_long_message(1, 1, command, confirmation, *p))
             try:
-                return self.recv("COMMAND_ACK", timeout_s=1.5, pred=lambda m: m.command == command).result
+                return self.recv(
+                    "COMMAND_ACK", timeout_s=1.5, pred=lambda m: m.command == command
+                ).result
             except AssertionError:
                 continue
         raise AssertionError(f"no COMMAND_ACK for command {command} after {attempts} tries")
@@ -315,13 +456,26 @@ class RawGcs:
         self.sock.close()
 
 
-FAST_ARGS = ["--takeoff-speed", "5", "--pos-gain", "3", "--accel", "15", "--land-speed", "4", "--disarm-after-land", "0.3"]
+FAST_ARGS = [
+    "--takeoff-speed",
+    "5",
+    "--pos-gain",
+    "3",
+    "--accel",
+    "15",
+    "--land-speed",
+    "4",
+    "--disarm-after-land",
+    "0.3",
+]
 
 
 @pytest.fixture
 def raw_sitl():
     gcs = RawGcs()
-    with SitlProcess(["--id", "1", "--connect", f"udpout:127.0.0.1:{gcs.port}", *FAST_ARGS]) as proc:
+    with SitlProcess(
+        ["--id", "1", "--connect", f"udpout:127.0.0.1:{gcs.port}", *FAST_ARGS]
+    ) as proc:
         gcs.recv("HEARTBEAT")
         yield gcs, proc
     gcs.close()
@@ -339,7 +493,10 @@ def test_refusals_over_the_wire(raw_sitl) -> None:
     assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0) == px4.TEMPORARILY_REJECTED
     gcs.recv("HEARTBEAT", pred=lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
     # A NaN goto: denied, with PX4-style words in a STATUSTEXT.
-    assert gcs.command(mavlink.MAV_CMD_DO_REPOSITION, -1, 1, 0, math.nan, math.nan, math.nan, 500) == px4.DENIED
+    assert (
+        gcs.command(mavlink.MAV_CMD_DO_REPOSITION, -1, 1, 0, math.nan, math.nan, math.nan, 500)
+        == px4.DENIED
+    )
     assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 6, math.inf) == px4.DENIED
     assert proc.alive()
 
@@ -348,8 +505,15 @@ def test_refusals_over_the_wire(raw_sitl) -> None:
 def test_garbage_on_the_udp_port_does_not_kill_the_emulator(raw_sitl) -> None:
     gcs, proc = raw_sitl
     rng = random.Random(3)
-    payloads = [b"", b"\xfd", b"\xfe\xff" + bytes(255), b"\xfd\x09\x00\x00\x00\x01\x01\x4c\x00\x00" + bytes(40)]
-    payloads += [bytes(rng.randrange(256) for _ in range(rng.randrange(1, 600))) for _ in range(300)]
+    payloads = [
+        b"",
+        b"\xfd",
+        b"\xfe\xff" + bytes(255),
+        b"\xfd\x09\x00\x00\x00\x01\x01\x4c\x00\x00" + bytes(40),
+    ]
+    payloads += [
+        bytes(rng.randrange(256) for _ in range(rng.randrange(1, 600))) for _ in range(300)
+    ]
     # Valid frames with corrupted bytes, too: they get past the magic byte and the header.
     good = mavlink.MAVLink_command_long_message(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs.mav)
     for _ in range(200):
@@ -366,8 +530,10 @@ def test_garbage_on_the_udp_port_does_not_kill_the_emulator(raw_sitl) -> None:
 @pytest.mark.e2e
 def test_listen_mode_answers_whoever_speaks() -> None:
     port = free_udp_port()
-    with SitlProcess(["--id", "6", "--listen", f"127.0.0.1:{port}"]) as proc, \
-            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+    with (
+        SitlProcess(["--id", "6", "--listen", f"127.0.0.1:{port}"]) as proc,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock,
+    ):
         sock.settimeout(0.2)
         hb = mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3).pack(GCS)
         end = time.monotonic() + 10.0

@@ -59,7 +59,9 @@ class Recorder:
         self.calls: list[tuple] = []
 
     def command(self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad):
-        self.calls.append((np.array(pos_m), np.array(nbr_pos_m), np.array(nbr_vel_m_s), np.array(nbr_heading_rad)))
+        self.calls.append(
+            (np.array(pos_m), np.array(nbr_pos_m), np.array(nbr_vel_m_s), np.array(nbr_heading_rad))
+        )
         d = np.asarray(goal_m) - np.asarray(pos_m)
         return 2.0 * d / max(np.linalg.norm(d), 1e-9)
 
@@ -79,7 +81,9 @@ class Repulsion:
         return 2.0 * v / max(np.linalg.norm(v), 1.0)
 
 
-def entry(icao: int, n_m: float, e_m: float, d_m: float, t_s: float, heading_rad=0.0, speed_m_s=0.0) -> TrafficEntry:
+def entry(
+    icao: int, n_m: float, e_m: float, d_m: float, t_s: float, heading_rad=0.0, speed_m_s=0.0
+) -> TrafficEntry:
     lat, lon, alt = HOME.to_global(n_m, e_m, d_m)
     return TrafficEntry(icao, lat, lon, alt, heading_rad, speed_m_s, 0.0, f"COVEY{icao}", t_s)
 
@@ -94,8 +98,14 @@ def airborne(guidance) -> Vehicle:
     return v
 
 
-def fly_goto(v: Vehicle, store: TrafficStore, goal, neighbour_ned, heading_rad: float = math.pi,
-             timeout_s: float = 120.0) -> float:
+def fly_goto(
+    v: Vehicle,
+    store: TrafficStore,
+    goal,
+    neighbour_ned,
+    heading_rad: float = math.pi,
+    timeout_s: float = 120.0,
+) -> float:
     """Fly a goto with one standing neighbour re-reported at 3 Hz; returns the closest approach (m)."""
     assert v.reposition(np.array(goal, float), v.now_s).ok
     t_end, closest, next_report = v.now_s + timeout_s, math.inf, v.now_s
@@ -104,7 +114,9 @@ def fly_goto(v: Vehicle, store: TrafficStore, goal, neighbour_ned, heading_rad: 
             store.add(entry(9, *neighbour_ned, v.now_s, heading_rad=heading_rad))
             next_report += 1.0 / 3.0
         v.step(v.now_s + 0.02)
-        closest = min(closest, float(np.linalg.norm(v.pos_ned_m[:2] - np.asarray(neighbour_ned[:2]))))
+        closest = min(
+            closest, float(np.linalg.norm(v.pos_ned_m[:2] - np.asarray(neighbour_ned[:2])))
+        )
     assert not v.goto_active, f"did not arrive; at {v.pos_ned_m}"
     return closest
 
@@ -158,13 +170,18 @@ def check_separation(closest_m: float, placeholder_may_fail: bool = False) -> No
     that faces away) is a miss with those weights an expected failure rather than a failure."""
     episodes = trained_episodes()
     if closest_m < 3.0 and placeholder_may_fail and episodes < TRAINED_EPISODES:
-        pytest.xfail(f"the shipped weights are a placeholder ({episodes} episodes) and came within "
-                     f"{closest_m:.2f} m; the plumbing works (it arrived), the avoidance needs trained weights")
+        pytest.xfail(
+            f"the shipped weights are a placeholder ({episodes} episodes) and came within "
+            f"{closest_m:.2f} m; the plumbing works (it arrived), the avoidance needs trained weights"
+        )
     assert closest_m >= 3.0
 
 
-@pytest.mark.parametrize("heading_rad", [math.pi, math.pi / 2, -math.pi / 2, 0.0],
-                         ids=["facing-us", "facing-east", "facing-west", "facing-away"])
+@pytest.mark.parametrize(
+    "heading_rad",
+    [math.pi, math.pi / 2, -math.pi / 2, 0.0],
+    ids=["facing-us", "facing-east", "facing-west", "facing-away"],
+)
 def test_goto_with_the_c_policy_avoids_a_neighbour_on_the_path(heading_rad) -> None:
     """The neighbour stands still; its reported heading is all the policy knows of its motion
     (the observation has no speed), so "facing away" looks like a vehicle flying off."""
@@ -180,8 +197,25 @@ def test_onboard_emulator_behind_the_relay_flies_around_traffic() -> None:
     c_policy_or_skip()
     port = free_udp_port()
     home = f"{HOME.lat_deg},{HOME.lon_deg},{HOME.alt_m}"
-    args = ["--id", "2", "--connect", f"udpout:127.0.0.1:{port}", "--home", home, "--onboard",
-            "--separation", "4", "--policy-speed", "5", "--takeoff-speed", "5", "--pos-gain", "3", "--accel", "10"]
+    args = [
+        "--id",
+        "2",
+        "--connect",
+        f"udpout:127.0.0.1:{port}",
+        "--home",
+        home,
+        "--onboard",
+        "--separation",
+        "4",
+        "--policy-speed",
+        "5",
+        "--takeoff-speed",
+        "5",
+        "--pos-gain",
+        "3",
+        "--accel",
+        "10",
+    ]
     cfg = RelayConfig(connection=f"udpin:127.0.0.1:{port}")
     stop = threading.Event()
     with SitlProcess(args) as proc, RelayBackend(cfg, HOME) as relay:
@@ -207,7 +241,10 @@ def test_onboard_emulator_behind_the_relay_flies_around_traffic() -> None:
             while True:
                 t = relay.telemetry()
                 closest = min(closest, math.dist(t.pos_ned_m[:2], neighbour.pos_ned_m[:2]))
-                if math.dist(t.pos_ned_m[:2], (24.0, 0.0)) < 1.2 and math.hypot(*t.vel_ned_m_s[:2]) < 0.3:
+                if (
+                    math.dist(t.pos_ned_m[:2], (24.0, 0.0)) < 1.2
+                    and math.hypot(*t.vel_ned_m_s[:2]) < 0.3
+                ):
                     break
                 assert time.monotonic() < deadline, f"did not arrive: {t}\n{proc.output()[-2000:]}"
                 time.sleep(0.02)

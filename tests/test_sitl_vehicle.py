@@ -11,8 +11,14 @@ from firmware.sitl import px4
 from firmware.sitl.px4 import Px4Mode
 from firmware.sitl.vehicle import Vehicle, VehicleParams
 
-FAST = VehicleParams(takeoff_speed_m_s=3.0, land_speed_m_s=2.0, accel_m_s2=8.0, pos_gain_1_s=2.0,
-                     disarm_after_land_s=1.0, disarm_preflight_s=5.0)
+FAST = VehicleParams(
+    takeoff_speed_m_s=3.0,
+    land_speed_m_s=2.0,
+    accel_m_s2=8.0,
+    pos_gain_1_s=2.0,
+    disarm_after_land_s=1.0,
+    disarm_preflight_s=5.0,
+)
 
 
 def run(v: Vehicle, until_s: float, dt_s: float = 0.05, stop=lambda v: False) -> float:
@@ -72,8 +78,16 @@ def test_takeoff_without_altitude_uses_mis_takeoff_alt() -> None:
         ("armed", lambda v: v.takeoff(math.inf, 0.0), px4.DENIED),
         ("armed", lambda v: v.takeoff(-2.0, 0.0), px4.DENIED),
         ("armed", lambda v: v.takeoff(500.0, 0.0), px4.DENIED),
-        ("armed", lambda v: v.reposition(np.array([5.0, 0.0, -5.0]), 0.0), px4.TEMPORARILY_REJECTED),
-        ("ground", lambda v: v.set_mode(Px4Mode.OFFBOARD, 0.0), px4.TEMPORARILY_REJECTED),  # no setpoints
+        (
+            "armed",
+            lambda v: v.reposition(np.array([5.0, 0.0, -5.0]), 0.0),
+            px4.TEMPORARILY_REJECTED,
+        ),
+        (
+            "ground",
+            lambda v: v.set_mode(Px4Mode.OFFBOARD, 0.0),
+            px4.TEMPORARILY_REJECTED,
+        ),  # no setpoints
         ("ground", lambda v: v.set_mode(Px4Mode.MISSION, 0.0), px4.TEMPORARILY_REJECTED),
         ("ground", lambda v: v.set_mode(Px4Mode.RTL, 0.0), px4.TEMPORARILY_REJECTED),
         ("ground", lambda v: v.land(0.0), px4.ACCEPTED),  # a mode switch; it stays on the ground
@@ -97,7 +111,10 @@ def test_command_table_on_the_ground(setup, command, result) -> None:
 @pytest.mark.parametrize(
     ("command", "result"),
     [
-        (lambda v: v.disarm(v.now_s), px4.TEMPORARILY_REJECTED),  # PX4: "Disarming denied: not landed"
+        (
+            lambda v: v.disarm(v.now_s),
+            px4.TEMPORARILY_REJECTED,
+        ),  # PX4: "Disarming denied: not landed"
         (lambda v: v.takeoff(5.0, v.now_s), px4.TEMPORARILY_REJECTED),  # already flying
         (lambda v: v.reposition(np.array([math.nan, 0.0, -5.0]), v.now_s), px4.DENIED),
         (lambda v: v.reposition(np.array([0.0, math.inf, -5.0]), v.now_s), px4.DENIED),
@@ -206,7 +223,11 @@ def test_rtl_climbs_returns_and_lands() -> None:
     run(v, v.now_s + 20.0)
     assert v.set_mode(Px4Mode.RTL, v.now_s).ok
     peak = [0.0]
-    run(v, v.now_s + 120.0, stop=lambda v: (peak.__setitem__(0, max(peak[0], v.alt_m)), not v.armed)[1])
+    run(
+        v,
+        v.now_s + 120.0,
+        stop=lambda v: (peak.__setitem__(0, max(peak[0], v.alt_m)), not v.armed)[1],
+    )
     assert peak[0] > FAST.rtl_alt_m - 0.5
     assert np.linalg.norm(v.pos_ned_m[:2]) < FAST.arrive_radius_m + 0.2 and v.landed and not v.armed
 
@@ -219,7 +240,9 @@ def test_one_big_step_equals_many_small_ones() -> None:
     a.step(t0 + 4.0)
     for k in range(1, 201):
         b.step(t0 + k * 0.02)
-    assert np.allclose(a.pos_ned_m, b.pos_ned_m, atol=1e-9) and np.allclose(a.vel_ned_m_s, b.vel_ned_m_s, atol=1e-9)
+    assert np.allclose(a.pos_ned_m, b.pos_ned_m, atol=1e-9) and np.allclose(
+        a.vel_ned_m_s, b.vel_ned_m_s, atol=1e-9
+    )
 
 
 class Steer:
