@@ -89,7 +89,7 @@ class SimBackend(VehicleBackend):
 
     @property
     def in_air(self) -> bool:
-        return self.pos_m[2] < -0.05
+        return bool(self.pos_m[2] < -0.05)
 
     def takeoff(self, alt_m: float) -> None:
         self._check_open()
