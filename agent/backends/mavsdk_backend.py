@@ -47,10 +47,17 @@ class MavsdkConfig:
     """Fly the autopilot with this MAVLink system id (several may share one port); None: the first."""
 
     def __post_init__(self) -> None:
-        if not self.connection.startswith(("udpin://", "udpout://", "udp://", "tcpin://", "tcpout://",
-                                           "tcp://", "serial://")):
+        if not self.connection.startswith(
+            ("udpin://", "udpout://", "udp://", "tcpin://", "tcpout://", "tcp://", "serial://")
+        ):
             raise ValueError(f"not a MAVSDK connection URL: {self.connection!r}")
-        for name in ("connect_timeout_s", "action_timeout_s", "setpoint_hz", "setpoint_stale_s", "link_timeout_s"):
+        for name in (
+            "connect_timeout_s",
+            "action_timeout_s",
+            "setpoint_hz",
+            "setpoint_stale_s",
+            "link_timeout_s",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
@@ -75,7 +82,9 @@ class MavsdkBackend(VehicleBackend):
 
     capabilities = frozenset({Capability.VELOCITY_SETPOINT})
 
-    def __init__(self, cfg: MavsdkConfig, origin: GeoOrigin, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, cfg: MavsdkConfig, origin: GeoOrigin, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.cfg, self.origin, self.clock = cfg, origin, clock
         self._latest = _Latest()
         self._lock = threading.Lock()
@@ -90,7 +99,9 @@ class MavsdkBackend(VehicleBackend):
         self._ready = threading.Event()
         self._tasks: list[asyncio.Task[Any]] = []
         self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, name="mavsdk-backend", daemon=True)
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name="mavsdk-backend", daemon=True
+        )
         self._thread.start()
         self._submit(self._start())
 
@@ -103,7 +114,9 @@ class MavsdkBackend(VehicleBackend):
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
 
         try:
-            self._sdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+            self._sdk = Mavsdk(
+                Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+            )
             await self._sdk.add_any_connection(self.cfg.connection)
         except Exception as exc:  # noqa: BLE001 - MavsdkConnectionError, bad URL, port in use
             self._fatal = f"cannot open MAVSDK connection {self.cfg.connection}: {exc}"
@@ -122,15 +135,21 @@ class MavsdkBackend(VehicleBackend):
                 system = await self._sdk.first_autopilot(timeout_s=1.0)
                 continue
             for candidate in await self._sdk.get_systems():
-                if await candidate.has_autopilot() and await candidate.get_system_id() == self.cfg.system_id:
+                if (
+                    await candidate.has_autopilot()
+                    and await candidate.get_system_id() == self.cfg.system_id
+                ):
                     system = candidate
             if system is None:
                 await asyncio.sleep(0.1)
         if system is None:
             return
         self._system = system
-        self._plugins = {"action": ActionAsync(system), "offboard": OffboardAsync(system),
-                         "telemetry": TelemetryAsync(system)}
+        self._plugins = {
+            "action": ActionAsync(system),
+            "offboard": OffboardAsync(system),
+            "telemetry": TelemetryAsync(system),
+        }
         tel = self._plugins["telemetry"]
         watchers = [
             (tel.subscribe_position(), self._on_position),
@@ -138,7 +157,10 @@ class MavsdkBackend(VehicleBackend):
             (tel.subscribe_heading(), self._on_heading),
             (tel.subscribe_armed(), lambda a: setattr(self._latest, "armed", bool(a))),
             (tel.subscribe_in_air(), lambda a: setattr(self._latest, "in_air", bool(a))),
-            (tel.subscribe_battery(), lambda b: setattr(self._latest, "battery_pct", float(b.remaining_percent))),
+            (
+                tel.subscribe_battery(),
+                lambda b: setattr(self._latest, "battery_pct", float(b.remaining_percent)),
+            ),
             (tel.subscribe_flight_mode(), self._on_flight_mode),
             (system.is_connected_state(), lambda c: setattr(self._latest, "connected", bool(c))),
         ]
@@ -154,7 +176,9 @@ class MavsdkBackend(VehicleBackend):
                 on_item(item)
 
     def _on_position(self, p: Any) -> None:
-        if not all(math.isfinite(x) for x in (p.latitude_deg, p.longitude_deg, p.absolute_altitude_m)):
+        if not all(
+            math.isfinite(x) for x in (p.latitude_deg, p.longitude_deg, p.absolute_altitude_m)
+        ):
             return
         ned = self.origin.to_local(p.latitude_deg, p.longitude_deg, p.absolute_altitude_m)
         with self._lock:
@@ -194,7 +218,10 @@ class MavsdkBackend(VehicleBackend):
 
     def wait_connected(self, timeout_s: float | None = None) -> bool:
         """Block until the autopilot has been discovered (True) or the timeout passes (False)."""
-        return self._ready.wait(self.cfg.connect_timeout_s if timeout_s is None else timeout_s) and not self._fatal
+        return (
+            self._ready.wait(self.cfg.connect_timeout_s if timeout_s is None else timeout_s)
+            and not self._fatal
+        )
 
     # ---- calls into the loop -------------------------------------------------------------------
 
@@ -202,7 +229,9 @@ class MavsdkBackend(VehicleBackend):
         if self._closed:
             raise BackendError("MAVSDK backend is closed")
         if not self._ready.wait(self.cfg.connect_timeout_s):
-            raise BackendError(f"no autopilot on {self.cfg.connection} after {self.cfg.connect_timeout_s} s")
+            raise BackendError(
+                f"no autopilot on {self.cfg.connection} after {self.cfg.connect_timeout_s} s"
+            )
         if self._fatal:
             raise BackendError(self._fatal)
         return self._plugins[name]
@@ -214,14 +243,18 @@ class MavsdkBackend(VehicleBackend):
             return future.result(timeout=self.cfg.action_timeout_s)
         except concurrent.futures.TimeoutError:
             future.cancel()
-            raise BackendError(f"{what}: no answer from the autopilot in {self.cfg.action_timeout_s} s"
-                               f"{self._link_note()}") from None
+            raise BackendError(
+                f"{what}: no answer from the autopilot in {self.cfg.action_timeout_s} s"
+                f"{self._link_note()}"
+            ) from None
         except Exception as exc:  # noqa: BLE001 - ActionError, OffboardError, ... all carry a reason
             raise BackendError(f"{what}: {exc}{self._link_note()}") from exc
 
     def _link_note(self) -> str:
         t = self.telemetry()
-        return "" if t is not None and t.link_ok else " (autopilot link lost: no heartbeat/telemetry)"
+        return (
+            "" if t is not None and t.link_ok else " (autopilot link lost: no heartbeat/telemetry)"
+        )
 
     # ---- VehicleBackend ------------------------------------------------------------------------
 
@@ -231,9 +264,16 @@ class MavsdkBackend(VehicleBackend):
             if lt.pos_ned_m is None:
                 return None
             fresh = self.clock() - lt.pos_stamp_s < self.cfg.link_timeout_s
-            return Telemetry(stamp_s=lt.pos_stamp_s, pos_ned_m=lt.pos_ned_m, vel_ned_m_s=lt.vel_ned_m_s,
-                             heading_rad=lt.heading_rad, armed=lt.armed, in_air=lt.in_air,
-                             battery_pct=lt.battery_pct, link_ok=lt.connected and fresh and not self._closed)
+            return Telemetry(
+                stamp_s=lt.pos_stamp_s,
+                pos_ned_m=lt.pos_ned_m,
+                vel_ned_m_s=lt.vel_ned_m_s,
+                heading_rad=lt.heading_rad,
+                armed=lt.armed,
+                in_air=lt.in_air,
+                battery_pct=lt.battery_pct,
+                link_ok=lt.connected and fresh and not self._closed,
+            )
 
     @property
     def flight_mode(self) -> str:
@@ -270,17 +310,23 @@ class MavsdkBackend(VehicleBackend):
     def set_velocity_ned(self, vel_ned_m_s: Sequence[float], heading_rad: float) -> None:
         v = tuple(float(x) for x in vel_ned_m_s)
         if len(v) != 3 or not all(math.isfinite(x) for x in v) or not math.isfinite(heading_rad):
-            raise BackendError(f"velocity setpoint must be 3 finite numbers and a finite heading, got {vel_ned_m_s}, {heading_rad}")
+            raise BackendError(
+                f"velocity setpoint must be 3 finite numbers and a finite heading, got {vel_ned_m_s}, {heading_rad}"
+            )
         offboard = self._plugin("offboard")
         if not self._latest.armed:
-            raise BackendError("cannot fly a velocity setpoint: vehicle is disarmed (take off first)")
+            raise BackendError(
+                "cannot fly a velocity setpoint: vehicle is disarmed (take off first)"
+            )
         with self._lock:
             mode = self._latest.flight_mode
             if self._streaming and self._seen_offboard and mode != "OFFBOARD":
                 # PX4 left offboard (a failsafe, or a pilot or ground station took over): do not
                 # grab control back silently. The agent sees the error; its next setpoint re-enters.
                 self._streaming, self._setpoint = False, None
-                raise BackendError(f"vehicle left offboard (now {mode}); the next setpoint re-enters it")
+                raise BackendError(
+                    f"vehicle left offboard (now {mode}); the next setpoint re-enters it"
+                )
             self._setpoint = (v[0], v[1], v[2], math.degrees(heading_rad))
             self._setpoint_s = self.clock()
             if self._streaming:

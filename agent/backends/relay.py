@@ -10,10 +10,8 @@ the MAV_RESULT and the autopilot's own STATUSTEXT explanation when it sent one.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import select
-import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -24,15 +22,30 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
 from comms.geo import GeoOrigin
+from firmware.sitl.mavlink_io import LinkUrl, UdpLink  # the one tested MAVLink-over-UDP link
 
 KILL_MAGIC = 21196.0
 """ARM_DISARM param2 that forces a disarm in the air."""
 PX4_HOLD = (4, 3)
 """PX4 (main, sub) mode of HOLD (AUTO_LOITER)."""
-ADSB_FLAGS = (mavlink.ADSB_FLAGS_VALID_COORDS | mavlink.ADSB_FLAGS_VALID_ALTITUDE
-              | mavlink.ADSB_FLAGS_VALID_HEADING | mavlink.ADSB_FLAGS_VALID_VELOCITY
-              | mavlink.ADSB_FLAGS_VALID_CALLSIGN | mavlink.ADSB_FLAGS_SIMULATED
-              | mavlink.ADSB_FLAGS_VERTICAL_VELOCITY_VALID)
+ADSB_FLAGS = (
+    mavlink.ADSB_FLAGS_VALID_COORDS
+    | mavlink.ADSB_FLAGS_VALID_ALTITUDE
+    | mavlink.ADSB_FLAGS_VALID_HEADING
+    | mavlink.ADSB_FLAGS_VALID_VELOCITY
+    | mavlink.ADSB_FLAGS_VALID_CALLSIGN
+    | mavlink.ADSB_FLAGS_SIMULATED
+    | mavlink.ADSB_FLAGS_VERTICAL_VELOCITY_VALID
+)
+HEARTBEAT = mavlink.MAVLink_heartbeat_message(
+    mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+    mavlink.MAV_AUTOPILOT_INVALID,
+    0,
+    0,
+    mavlink.MAV_STATE_ACTIVE,
+    3,
+)
+"""Ours: a companion computer, not an autopilot."""
 RESULT_BY_VALUE = {k: v.name for k, v in mavlink.enums["MAV_RESULT"].items()}
 
 
@@ -60,20 +73,12 @@ class RelayConfig:
     """Our own heartbeat rate (PX4 watches companion heartbeats)."""
 
     def __post_init__(self) -> None:
-        _parse_url(self.connection)
+        LinkUrl.parse(self.connection)  # raises ValueError with the expected form
         if self.attempts < 1:
             raise ValueError(f"attempts must be at least 1, got {self.attempts}")
         for name in ("ack_timeout_s", "connect_timeout_s", "link_timeout_s", "heartbeat_hz"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-
-
-def _parse_url(url: str) -> tuple[bool, str, int]:
-    scheme, _, rest = url.partition(":")
-    host, _, port = rest.removeprefix("//").rpartition(":")
-    if scheme not in ("udpin", "udpout") or not host or not port.isdigit():
-        raise ValueError(f"connection must be udpin:HOST:PORT or udpout:HOST:PORT, got {url!r}")
-    return scheme == "udpin", host, int(port)
 
 
 @dataclass
@@ -97,20 +102,14 @@ class RelayBackend(VehicleBackend):
 
     capabilities = frozenset({Capability.ONBOARD_GUIDANCE, Capability.TRAFFIC_INPUT})
 
-    def __init__(self, cfg: RelayConfig, origin: GeoOrigin, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, cfg: RelayConfig, origin: GeoOrigin, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.cfg, self.origin, self.clock = cfg, origin, clock
-        self._listen, host, port = _parse_url(cfg.connection)
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._peer: tuple[str, int] | None = None
         try:
-            if self._listen:
-                self._sock.bind((host, port))
-            else:
-                self._peer = (host, port)
+            self._link = UdpLink(cfg.connection, cfg.source_system, cfg.source_component)
         except OSError as exc:
-            self._sock.close()
             raise BackendError(f"cannot open {cfg.connection}: {exc}") from exc
-        self._mav = mavlink.MAVLink(self, srcSystem=cfg.source_system, srcComponent=cfg.source_component)
         self._target = cfg.target_system
         self._state = _State()
         self._cond = threading.Condition()
@@ -124,58 +123,36 @@ class RelayBackend(VehicleBackend):
 
     # ---- link ----------------------------------------------------------------------------------
 
-    def write(self, buf: bytes) -> None:
-        """pymavlink's output hook."""
-        if self._peer is not None:
-            # UDP: a lost packet is the command protocol's problem (it retries).
-            with contextlib.suppress(OSError):
-                self._sock.sendto(buf, self._peer)
-
     def _receive_loop(self) -> None:
         next_hb_s = 0.0
         while not self._closed:
             now = self.clock()
             if now >= next_hb_s:
                 next_hb_s = now + 1.0 / self.cfg.heartbeat_hz
-                self._send(mavlink.MAVLink_heartbeat_message(
-                    mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3))
+                self._send(HEARTBEAT)
             try:
-                ready, _, _ = select.select([self._sock], [], [], 0.05)
-                if not ready:
-                    continue
-                data, addr = self._sock.recvfrom(65535)
-            except (OSError, ValueError):  # closed under us, or ICMP unreachable
-                if self._closed:
-                    return
-                time.sleep(0.05)
-                continue
-            for msg in self._parse(data):
-                self._on_message(msg, addr)
-
-    @staticmethod
-    def _parse(data: bytes) -> list[Any]:
-        parser = mavlink.MAVLink(None)
-        parser.robust_parsing = True
-        try:
-            msgs = parser.parse_buffer(data) or []
-        except Exception:  # noqa: BLE001 - garbage on the link is dropped, never fatal
-            return []
-        return [m for m in msgs if m.get_type() != "BAD_DATA"]
+                select.select([self._link], [], [], 0.05)
+            except (OSError, ValueError):  # closed under us
+                return
+            for msg in self._link.receive():  # garbage is dropped there, never raised
+                self._on_message(msg)
 
     def _send(self, msg: Any) -> None:
         try:
             with self._send_lock:
-                self._mav.send(msg)
+                self._link.send(msg)
         except Exception as exc:  # noqa: BLE001 - struct.error on an out-of-range field
             raise BackendError(f"cannot encode {msg.get_type()}: {exc}") from exc
 
-    def _on_message(self, msg: Any, addr: tuple[str, int]) -> None:
+    def _on_message(self, msg: Any) -> None:
         kind, src = msg.get_type(), msg.get_srcSystem()
-        if kind == "HEARTBEAT" and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and self._target in (None, src):
+        if (
+            kind == "HEARTBEAT"
+            and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID
+            and self._target in (None, src)
+        ):
             with self._cond:
                 self._target = src
-                if self._listen:
-                    self._peer = addr  # udpin: answer whoever the autopilot is
                 s = self._state
                 s.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                 s.custom_mode, s.heartbeat_s = msg.custom_mode, self.clock()
@@ -215,26 +192,36 @@ class RelayBackend(VehicleBackend):
             return
         self._closed = True
         self._thread.join(timeout=2.0)
-        self._sock.close()
+        self._link.close()
 
     def wait_connected(self, timeout_s: float | None = None) -> bool:
         """Block until a PX4 heartbeat has been heard (True) or the timeout passes (False)."""
         with self._cond:
-            return self._cond.wait_for(lambda: self._target is not None and self._peer is not None,
-                                       self.cfg.connect_timeout_s if timeout_s is None else timeout_s)
+            return self._cond.wait_for(
+                lambda: self._target is not None and self._link.peer is not None,
+                self.cfg.connect_timeout_s if timeout_s is None else timeout_s,
+            )
 
     def _require_link(self) -> int:
         if self._closed:
             raise BackendError("relay is closed")
         if not self.wait_connected():
-            raise BackendError(f"no autopilot heartbeat on {self.cfg.connection} after {self.cfg.connect_timeout_s} s")
+            raise BackendError(
+                f"no autopilot heartbeat on {self.cfg.connection} after {self.cfg.connect_timeout_s} s"
+            )
         assert self._target is not None
         return self._target
 
     # ---- commands ------------------------------------------------------------------------------
 
-    def _command(self, what: str, command: int, params: Sequence[float], *,
-                 global_xyz: tuple[int, int, float] | None = None) -> None:
+    def _command(
+        self,
+        what: str,
+        command: int,
+        params: Sequence[float],
+        *,
+        global_xyz: tuple[int, int, float] | None = None,
+    ) -> None:
         """Send COMMAND_LONG (or COMMAND_INT with x/y/z) and wait for an ACCEPTED ack."""
         target = self._require_link()
         sent_s = self.clock()
@@ -246,18 +233,27 @@ class RelayBackend(VehicleBackend):
                 self._send(mavlink.MAVLink_command_long_message(target, 1, command, attempt, *p))
             else:
                 x, y, z = global_xyz
-                self._send(mavlink.MAVLink_command_int_message(target, 1, mavlink.MAV_FRAME_GLOBAL, command,
-                                                               0, 0, *p[:4], x, y, z))
+                self._send(
+                    mavlink.MAVLink_command_int_message(
+                        target, 1, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, *p[:4], x, y, z
+                    )
+                )
             with self._cond:
-                got = self._cond.wait_for(lambda: self._acks.get(command, -1) not in (-1, mavlink.MAV_RESULT_IN_PROGRESS),
-                                          self.cfg.ack_timeout_s)
+                got = self._cond.wait_for(
+                    lambda: self._acks.get(command, -1) not in (-1, mavlink.MAV_RESULT_IN_PROGRESS),
+                    self.cfg.ack_timeout_s,
+                )
                 result = self._acks.get(command)
             if got and result == mavlink.MAV_RESULT_ACCEPTED:
                 return
             if got:
-                raise BackendError(f"{what} refused: {RESULT_BY_VALUE.get(result, result)}{self._explain(sent_s)}")
-        raise BackendError(f"{what}: no COMMAND_ACK after {self.cfg.attempts} tries of {self.cfg.ack_timeout_s} s"
-                           f"{'' if self.link_ok else ' (autopilot link lost)'}")
+                raise BackendError(
+                    f"{what} refused: {RESULT_BY_VALUE.get(result, result)}{self._explain(sent_s)}"
+                )
+        raise BackendError(
+            f"{what}: no COMMAND_ACK after {self.cfg.attempts} tries of {self.cfg.ack_timeout_s} s"
+            f"{'' if self.link_ok else ' (autopilot link lost)'}"
+        )
 
     def _explain(self, since_s: float) -> str:
         """The autopilot's STATUSTEXTs since the command was sent (PX4 says why it refused)."""
@@ -271,10 +267,19 @@ class RelayBackend(VehicleBackend):
         for _ in range(self.cfg.attempts):
             with self._cond:
                 self._param = None
-            self._send(mavlink.MAVLink_param_set_message(target, 1, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32))
+            self._send(
+                mavlink.MAVLink_param_set_message(
+                    target, 1, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32
+                )
+            )
             with self._cond:
-                if self._cond.wait_for(lambda: self._param is not None and self._param[0] == name, self.cfg.ack_timeout_s):
-                    if self._param is not None and math.isclose(self._param[1], value, rel_tol=1e-6):
+                if self._cond.wait_for(
+                    lambda: self._param is not None and self._param[0] == name,
+                    self.cfg.ack_timeout_s,
+                ):
+                    if self._param is not None and math.isclose(
+                        self._param[1], value, rel_tol=1e-6
+                    ):
                         return
                     raise BackendError(f"parameter {name} = {value} refused by the autopilot")
         raise BackendError(f"parameter {name}: no PARAM_VALUE after {self.cfg.attempts} tries")
@@ -288,12 +293,26 @@ class RelayBackend(VehicleBackend):
             s = self._state
             if s.pos_ned_m is None:
                 return None
-            in_air = (s.landed_state in (mavlink.MAV_LANDED_STATE_IN_AIR, mavlink.MAV_LANDED_STATE_TAKEOFF,
-                                         mavlink.MAV_LANDED_STATE_LANDING)
-                      if s.landed_state != mavlink.MAV_LANDED_STATE_UNDEFINED else s.rel_alt_m > 0.3)
-            return Telemetry(stamp_s=s.pos_stamp_s, pos_ned_m=s.pos_ned_m, vel_ned_m_s=s.vel_ned_m_s,
-                             heading_rad=s.heading_rad, armed=s.armed, in_air=in_air,
-                             battery_pct=s.battery_pct, link_ok=self.link_ok)
+            in_air = (
+                s.landed_state
+                in (
+                    mavlink.MAV_LANDED_STATE_IN_AIR,
+                    mavlink.MAV_LANDED_STATE_TAKEOFF,
+                    mavlink.MAV_LANDED_STATE_LANDING,
+                )
+                if s.landed_state != mavlink.MAV_LANDED_STATE_UNDEFINED
+                else s.rel_alt_m > 0.3
+            )
+            return Telemetry(
+                stamp_s=s.pos_stamp_s,
+                pos_ned_m=s.pos_ned_m,
+                vel_ned_m_s=s.vel_ned_m_s,
+                heading_rad=s.heading_rad,
+                armed=s.armed,
+                in_air=in_air,
+                battery_pct=s.battery_pct,
+                link_ok=self.link_ok,
+            )
 
     def takeoff(self, alt_m: float) -> None:
         if not (math.isfinite(alt_m) and 0.5 <= alt_m <= 120.0):
@@ -308,7 +327,11 @@ class RelayBackend(VehicleBackend):
 
     def hold(self) -> None:
         main, sub = PX4_HOLD
-        self._command("hold", mavlink.MAV_CMD_DO_SET_MODE, [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub])
+        self._command(
+            "hold",
+            mavlink.MAV_CMD_DO_SET_MODE,
+            [mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub],
+        )
 
     def kill(self) -> None:
         self._command("kill", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0, KILL_MAGIC])
@@ -319,8 +342,12 @@ class RelayBackend(VehicleBackend):
             raise BackendError(f"goto position must be 3 finite numbers (NED m), got {pos_ned_m}")
         lat, lon, alt = self.origin.to_global(*p)
         # DO_REPOSITION: speed default (-1), switch mode (flag 1), yaw unchanged (NaN).
-        self._command("goto", mavlink.MAV_CMD_DO_REPOSITION, [-1.0, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0.0, math.nan],
-                      global_xyz=(round(lat * 1e7), round(lon * 1e7), alt))
+        self._command(
+            "goto",
+            mavlink.MAV_CMD_DO_REPOSITION,
+            [-1.0, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0.0, math.nan],
+            global_xyz=(round(lat * 1e7), round(lon * 1e7), alt),
+        )
 
     def send_traffic(self, traffic: Sequence[Traffic]) -> None:
         self._require_link()
@@ -332,7 +359,9 @@ class RelayBackend(VehicleBackend):
                 continue
             self._send(adsb_vehicle(t, self.origin))
         if bad:
-            raise BackendError(f"traffic of vehicles {bad} not sent: non-finite fields or id out of the 24-bit ICAO range")
+            raise BackendError(
+                f"traffic of vehicles {bad} not sent: non-finite fields or id out of the 24-bit ICAO range"
+            )
 
 
 def adsb_vehicle(t: Traffic, origin: GeoOrigin) -> Any:
@@ -341,7 +370,17 @@ def adsb_vehicle(t: Traffic, origin: GeoOrigin) -> Any:
     vn, ve, vd = t.vel_ned_m_s
     heading_cdeg = round(math.degrees(t.heading_rad) * 100.0) % 36000
     return mavlink.MAVLink_adsb_vehicle_message(
-        t.vehicle_id, round(lat * 1e7), round(lon * 1e7), mavlink.ADSB_ALTITUDE_TYPE_GEOMETRIC,
-        round(alt * 1000.0), heading_cdeg, min(65535, round(math.hypot(vn, ve) * 100.0)),
-        max(-32767, min(32767, round(-vd * 100.0))), f"COVEY{t.vehicle_id}".encode()[:9],
-        mavlink.ADSB_EMITTER_TYPE_UAV, min(255, round(t.age_s)), ADSB_FLAGS, 0)
+        t.vehicle_id,
+        round(lat * 1e7),
+        round(lon * 1e7),
+        mavlink.ADSB_ALTITUDE_TYPE_GEOMETRIC,
+        round(alt * 1000.0),
+        heading_cdeg,
+        min(65535, round(math.hypot(vn, ve) * 100.0)),
+        max(-32767, min(32767, round(-vd * 100.0))),
+        f"COVEY{t.vehicle_id}".encode()[:9],
+        mavlink.ADSB_EMITTER_TYPE_UAV,
+        min(255, round(t.age_s)),
+        ADSB_FLAGS,
+        0,
+    )

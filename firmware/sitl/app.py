@@ -36,17 +36,32 @@ class Emulator:
         self.traffic = TrafficStore(cfg.traffic_timeout_s, own_icao=cfg.vehicle_id)
         guidance = None
         if cfg.onboard:
-            guidance = PolicyGuidance(load_c_policy(cfg.policy_weights, cfg.separation_m, cfg.policy_speed_m_s),
-                                      self.traffic, cfg.home, cfg.policy_hz)
-        self.vehicle = Vehicle(params=cfg.params, healthy=cfg.healthy, guidance=guidance, now_s=now_s)
+            guidance = PolicyGuidance(
+                load_c_policy(cfg.policy_weights, cfg.separation_m, cfg.policy_speed_m_s),
+                self.traffic,
+                cfg.home,
+                cfg.policy_hz,
+            )
+        self.vehicle = Vehicle(
+            params=cfg.params, healthy=cfg.healthy, guidance=guidance, now_s=now_s
+        )
         self.autopilot = Autopilot(self.vehicle, cfg.home, cfg.vehicle_id, self.traffic)
         self._stack = ExitStack()
-        self.links = [self._stack.enter_context(UdpLink(url, cfg.vehicle_id, AUTOPILOT_COMPONENT))
-                      for url in cfg.links]
-        self.scheduler = streams.Scheduler({
-            "heartbeat": 1.0, "sys_status": 2.0, "extended_sys_state": 2.0, "home": 1.0, "gps": 2.0,
-            "position": cfg.position_hz, "traffic": 2.0,
-        })
+        self.links = [
+            self._stack.enter_context(UdpLink(url, cfg.vehicle_id, AUTOPILOT_COMPONENT))
+            for url in cfg.links
+        ]
+        self.scheduler = streams.Scheduler(
+            {
+                "heartbeat": 1.0,
+                "sys_status": 2.0,
+                "extended_sys_state": 2.0,
+                "home": 1.0,
+                "gps": 2.0,
+                "position": cfg.position_hz,
+                "traffic": 2.0,
+            }
+        )
         self.handle_errors = 0
 
     def close(self) -> None:
@@ -96,8 +111,11 @@ class Emulator:
             elif name == "gps":
                 out.append(streams.gps_raw_int(v, home, boot_ms))
             elif name == "position":
-                out += [streams.global_position_int(v, home, boot_ms), streams.local_position_ned(v, boot_ms),
-                        streams.attitude(v, boot_ms)]
+                out += [
+                    streams.global_position_int(v, home, boot_ms),
+                    streams.local_position_ned(v, boot_ms),
+                    streams.attitude(v, boot_ms),
+                ]
             elif name == "traffic":
                 held = self.traffic.fresh(now_s)
                 out += [streams.adsb_vehicle(e, now_s) for e in held]

@@ -16,9 +16,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from comms.geo import GeoOrigin
 from firmware.sitl import px4, streams
-from firmware.sitl.px4 import Px4Mode
+from firmware.sitl.px4 import Outcome, Px4Mode
 from firmware.sitl.traffic import TrafficStore, entry_from_adsb
-from firmware.sitl.vehicle import Outcome, Vehicle
+from firmware.sitl.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,9 @@ YAW_IGNORE = 1 << 10
 class Autopilot:
     """The MAVLink face of one vehicle: commands, parameters, setpoints, traffic."""
 
-    def __init__(self, vehicle: Vehicle, home: GeoOrigin, system_id: int, traffic: TrafficStore) -> None:
+    def __init__(
+        self, vehicle: Vehicle, home: GeoOrigin, system_id: int, traffic: TrafficStore
+    ) -> None:
         self.vehicle, self.home, self.system_id, self.traffic = vehicle, home, system_id, traffic
         self.boot_ms = 0
 
@@ -55,10 +57,26 @@ class Autopilot:
     def handle(self, msg: Any, now_s: float) -> list[Any]:
         kind = msg.get_type()
         if kind == "COMMAND_LONG" and self._for_us(msg):
-            params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7]
+            params = [
+                msg.param1,
+                msg.param2,
+                msg.param3,
+                msg.param4,
+                msg.param5,
+                msg.param6,
+                msg.param7,
+            ]
             return self._command(msg, msg.command, params, None, now_s)
         if kind == "COMMAND_INT" and self._for_us(msg):
-            params = [msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z]
+            params = [
+                msg.param1,
+                msg.param2,
+                msg.param3,
+                msg.param4,
+                float(msg.x),
+                float(msg.y),
+                msg.z,
+            ]
             return self._command(msg, msg.command, params, msg.frame, now_s)
         if kind == "SET_POSITION_TARGET_LOCAL_NED" and self._for_us(msg):
             self._setpoint(msg, now_s)
@@ -66,7 +84,9 @@ class Autopilot:
             entry = entry_from_adsb(msg, now_s)
             if entry is not None:
                 self.traffic.add(entry)
-        elif kind in ("PARAM_REQUEST_READ", "PARAM_SET", "PARAM_REQUEST_LIST") and self._for_us(msg):
+        elif kind in ("PARAM_REQUEST_READ", "PARAM_SET", "PARAM_REQUEST_LIST") and self._for_us(
+            msg
+        ):
             return self._param(msg)
         elif kind == "TIMESYNC" and msg.tc1 == 0:
             return [mavlink.MAVLink_timesync_message(int(now_s * 1e9), msg.ts1)]
@@ -74,7 +94,9 @@ class Autopilot:
 
     # ---- commands ------------------------------------------------------------------------------
 
-    def _command(self, msg: Any, command: int, p: list[float], frame: int | None, now_s: float) -> list[Any]:
+    def _command(
+        self, msg: Any, command: int, p: list[float], frame: int | None, now_s: float
+    ) -> list[Any]:
         extra: list[Any] = []
         try:
             outcome = self._dispatch(command, p, frame, now_s, extra)
@@ -82,10 +104,14 @@ class Autopilot:
             outcome = Outcome(px4.DENIED, f"Command {command} denied: {exc}")
             self.vehicle.events.append(outcome.reason)
         log.debug("command %d %s -> result %d %s", command, p, outcome.result, outcome.reason)
-        ack = mavlink.MAVLink_command_ack_message(command, outcome.result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        ack = mavlink.MAVLink_command_ack_message(
+            command, outcome.result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+        )
         return [*extra, ack]
 
-    def _dispatch(self, command: int, p: list[float], frame: int | None, now_s: float, extra: list[Any]) -> Outcome:
+    def _dispatch(
+        self, command: int, p: list[float], frame: int | None, now_s: float, extra: list[Any]
+    ) -> Outcome:
         v = self.vehicle
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] == 1.0:
@@ -111,17 +137,24 @@ class Autopilot:
             return v.set_mode(Px4Mode.RTL, now_s)
         if command == mavlink.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, frame, now_s)
-        if command in (mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                       mavlink.MAV_CMD_GET_HOME_POSITION):
-            msg_id = {mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
-                      mavlink.MAV_CMD_GET_HOME_POSITION: mavlink.MAVLINK_MSG_ID_HOME_POSITION}.get(command, int(p[0]))
+        if command in (
+            mavlink.MAV_CMD_REQUEST_MESSAGE,
+            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+            mavlink.MAV_CMD_GET_HOME_POSITION,
+        ):
+            msg_id = {
+                mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+                mavlink.MAV_CMD_GET_HOME_POSITION: mavlink.MAVLINK_MSG_ID_HOME_POSITION,
+            }.get(command, int(p[0]))
             reply = self._requested(msg_id, now_s)
             if reply is None:
                 return Outcome(px4.UNSUPPORTED, f"message {msg_id} not available")
             extra.append(reply)
             return Outcome(px4.ACCEPTED)
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return Outcome(px4.ACCEPTED)  # streams run at fixed rates; accepted like PX4 so MAVSDK is happy
+            return Outcome(
+                px4.ACCEPTED
+            )  # streams run at fixed rates; accepted like PX4 so MAVSDK is happy
         return Outcome(px4.UNSUPPORTED)
 
     def _reposition(self, p: list[float], frame: int | None, now_s: float) -> Outcome:
@@ -132,10 +165,15 @@ class Autopilot:
                 cur = self.home.to_global(*map(float, v.pos_ned_m))
                 lat, lon = cur[0] * 1e7, cur[1] * 1e7
             lat, lon = lat * 1e-7, lon * 1e-7
-            if frame in (mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT):
+            if frame in (
+                mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            ):
                 alt += self.home.alt_m
             elif frame not in (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT):
-                return self._refused(px4.UNSUPPORTED, f"Reposition denied: frame {frame} not supported")
+                return self._refused(
+                    px4.UNSUPPORTED, f"Reposition denied: frame {frame} not supported"
+                )
         if not (math.isfinite(lat) and math.isfinite(lon)):
             return self._refused(px4.DENIED, "Reposition denied: latitude/longitude not finite")
         if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
@@ -176,16 +214,28 @@ class Autopilot:
     def _param_value(self, name: str) -> Any:
         field, _, _ = PARAMS[name]
         return mavlink.MAVLink_param_value_message(
-            name.encode(), float(getattr(self.vehicle.params, field)), mavlink.MAV_PARAM_TYPE_REAL32,
-            len(PARAMS), list(PARAMS).index(name))
+            name.encode(),
+            float(getattr(self.vehicle.params, field)),
+            mavlink.MAV_PARAM_TYPE_REAL32,
+            len(PARAMS),
+            list(PARAMS).index(name),
+        )
 
     def _param(self, msg: Any) -> list[Any]:
         kind, names = msg.get_type(), list(PARAMS)
         if kind == "PARAM_REQUEST_LIST":
             return [self._param_value(n) for n in names]
-        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode("ascii", "replace")
+        name = (
+            msg.param_id
+            if isinstance(msg.param_id, str)
+            else msg.param_id.decode("ascii", "replace")
+        )
         name = name.rstrip("\x00")
-        if kind == "PARAM_REQUEST_READ" and name not in PARAMS and 0 <= msg.param_index < len(names):
+        if (
+            kind == "PARAM_REQUEST_READ"
+            and name not in PARAMS
+            and 0 <= msg.param_index < len(names)
+        ):
             name = names[msg.param_index]
         if name not in PARAMS:
             return []  # PX4 stays silent about unknown parameters
@@ -195,5 +245,7 @@ class Autopilot:
             if math.isfinite(value) and lo <= value <= hi:
                 self.vehicle.params = dataclasses.replace(self.vehicle.params, **{field: value})
             else:  # echo the old value: the setter sees it was not taken
-                self.vehicle.events.append(f"Parameter {name} = {value} rejected: outside [{lo}, {hi}]")
+                self.vehicle.events.append(
+                    f"Parameter {name} = {value} rejected: outside [{lo}, {hi}]"
+                )
         return [self._param_value(name)]

@@ -45,10 +45,18 @@ class SitlConfig:
 
     def __post_init__(self) -> None:
         if not 1 <= self.vehicle_id <= 254:
-            raise ValueError(f"vehicle_id must be within 1..254 (a MAVLink system id), got {self.vehicle_id}")
+            raise ValueError(
+                f"vehicle_id must be within 1..254 (a MAVLink system id), got {self.vehicle_id}"
+            )
         if not self.links:
             raise ValueError("at least one MAVLink link is needed")
-        for name in ("physics_hz", "position_hz", "traffic_timeout_s", "policy_hz", "separation_m",
-                     "policy_speed_m_s"):
+        for name in (
+            "physics_hz",
+            "position_hz",
+            "traffic_timeout_s",
+            "policy_hz",
+            "separation_m",
+            "policy_speed_m_s",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")

@@ -37,7 +37,9 @@ class LinkUrl:
         rest = rest.removeprefix("//")
         host, _, port_text = rest.rpartition(":")
         if not sep or scheme not in ("udpin", "udpout") or not host or not port_text.isdigit():
-            raise ValueError(f"link must look like udpin:HOST:PORT or udpout:HOST:PORT, got {url!r}")
+            raise ValueError(
+                f"link must look like udpin:HOST:PORT or udpout:HOST:PORT, got {url!r}"
+            )
         port = int(port_text)
         if not 0 <= port <= 65535 or (port == 0 and scheme == "udpout"):
             raise ValueError(f"bad UDP port in {url!r}")

@@ -19,11 +19,32 @@ from firmware.sitl.traffic import TrafficStore
 log = logging.getLogger(__name__)
 
 
+class Guidance(Protocol):
+    """Onboard guidance: the horizontal velocity to fly toward `goal_ned_m` (onboard mode)."""
+
+    def velocity_ne_m_s(
+        self,
+        pos_ned_m: np.ndarray,
+        vel_ned_m_s: np.ndarray,
+        heading_rad: float,
+        goal_ned_m: np.ndarray,
+        now_s: float,
+    ) -> tuple[float, float]: ...
+
+
 class Policy(Protocol):
     """`firmware.cpolicy.CPolicy` (and `policy.runtime.GuidancePolicy`) look like this."""
 
-    def command(self, pos_m: Any, vel_m_s: Any, heading_rad: float, goal_m: Any,
-                nbr_pos_m: Any, nbr_vel_m_s: Any, nbr_heading_rad: Any) -> Any: ...
+    def command(
+        self,
+        pos_m: Any,
+        vel_m_s: Any,
+        heading_rad: float,
+        goal_m: Any,
+        nbr_pos_m: Any,
+        nbr_vel_m_s: Any,
+        nbr_heading_rad: Any,
+    ) -> Any: ...
 
 
 def load_c_policy(weights: str | None, separation_m: float, cruise_speed_m_s: float) -> Policy:
@@ -31,14 +52,18 @@ def load_c_policy(weights: str | None, separation_m: float, cruise_speed_m_s: fl
     try:
         from firmware.cpolicy import CPolicy
     except ImportError as exc:
-        raise RuntimeError(f"onboard mode needs firmware.cpolicy (the C policy wrapper): {exc}") from exc
+        raise RuntimeError(
+            f"onboard mode needs firmware.cpolicy (the C policy wrapper): {exc}"
+        ) from exc
     return CPolicy.load(weights, separation_m=separation_m, cruise_speed_m_s=cruise_speed_m_s)
 
 
 class PolicyGuidance:
     """Implements `vehicle.Guidance` with a policy and the traffic store."""
 
-    def __init__(self, policy: Policy, traffic: TrafficStore, home: GeoOrigin, rate_hz: float) -> None:
+    def __init__(
+        self, policy: Policy, traffic: TrafficStore, home: GeoOrigin, rate_hz: float
+    ) -> None:
         self.policy, self.traffic, self.home = policy, traffic, home
         self.period_s = 1.0 / rate_hz
         self._next_s = -math.inf
@@ -58,11 +83,20 @@ class PolicyGuidance:
             pos.append(np.array([n, east]) + v * age_s)
             vel.append(v)
             hdg.append(course)
-        return (np.array(pos, dtype=float).reshape(-1, 2), np.array(vel, dtype=float).reshape(-1, 2),
-                np.array(hdg, dtype=float))
+        return (
+            np.array(pos, dtype=float).reshape(-1, 2),
+            np.array(vel, dtype=float).reshape(-1, 2),
+            np.array(hdg, dtype=float),
+        )
 
-    def velocity_ne_m_s(self, pos_ned_m: np.ndarray, vel_ned_m_s: np.ndarray, heading_rad: float,
-                        goal_ned_m: np.ndarray, now_s: float) -> tuple[float, float]:
+    def velocity_ne_m_s(
+        self,
+        pos_ned_m: np.ndarray,
+        vel_ned_m_s: np.ndarray,
+        heading_rad: float,
+        goal_ned_m: np.ndarray,
+        now_s: float,
+    ) -> tuple[float, float]:
         if now_s < self._next_s:
             return self._last
         # Keep the phase (a fixed 10 Hz, not "10 Hz plus the physics step"), never a backlog.
@@ -70,8 +104,18 @@ class PolicyGuidance:
         self._next_s = nxt if nxt > now_s else now_s + self.period_s
         nbr_pos, nbr_vel, nbr_hdg = self.neighbours(now_s)
         try:
-            cmd = np.asarray(self.policy.command(pos_ned_m[:2], vel_ned_m_s[:2], heading_rad, goal_ned_m[:2],
-                                                 nbr_pos, nbr_vel, nbr_hdg), dtype=float).reshape(-1)
+            cmd = np.asarray(
+                self.policy.command(
+                    pos_ned_m[:2],
+                    vel_ned_m_s[:2],
+                    heading_rad,
+                    goal_ned_m[:2],
+                    nbr_pos,
+                    nbr_vel,
+                    nbr_hdg,
+                ),
+                dtype=float,
+            ).reshape(-1)
         except (ValueError, ArithmeticError) as exc:  # the core refused its inputs (CPolicyError)
             log.warning("policy fault: %s", exc)
             cmd = np.full(2, math.nan)  # the vehicle holds on a non-finite command

@@ -27,8 +27,15 @@ class SitlProcess:
         self.args = [sys.executable, "-m", "firmware.sitl", *args]
         self.stop_timeout_s = stop_timeout_s
         self._log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - closed in __exit__
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
-        self.proc = subprocess.Popen(self.args, stdout=self._log, stderr=subprocess.STDOUT, cwd=REPO_ROOT, env=env)
+        env = {
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join(
+                filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])
+            ),
+        }
+        self.proc = subprocess.Popen(
+            self.args, stdout=self._log, stderr=subprocess.STDOUT, cwd=REPO_ROOT, env=env
+        )
 
     def alive(self) -> bool:
         return self.proc.poll() is None

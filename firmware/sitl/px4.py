@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+from dataclasses import dataclass
 
 # MAV_RESULT values (MAVLink common).
 ACCEPTED = 0
@@ -15,6 +16,22 @@ FAILED = 4
 
 KILL_MAGIC = 21196.0
 """ARM_DISARM param2 that forces a disarm in the air (MAVSDK `kill`)."""
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """How a command went: a MAV_RESULT value and, if refused, PX4-style words why."""
+
+    result: int
+    reason: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.result == ACCEPTED
+
+
+OK = Outcome(ACCEPTED)
+"""The outcome of every command that went through."""
 
 
 class Px4Mode(enum.Enum):

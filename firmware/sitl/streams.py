@@ -74,15 +74,27 @@ def heartbeat(v: Vehicle) -> Any:
     if v.falling:
         state = mavlink.MAV_STATE_FLIGHT_TERMINATION
     return mavlink.MAVLink_heartbeat_message(
-        mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, v.mode.custom_mode, state, 3)
+        mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, v.mode.custom_mode, state, 3
+    )
 
 
 def sys_status(v: Vehicle, healthy: bool) -> Any:
     health = SENSORS | PREARM_OK if healthy else SENSORS & ~mavlink.MAV_SYS_STATUS_SENSOR_GPS
     return mavlink.MAVLink_sys_status_message(
-        SENSORS | PREARM_OK, SENSORS | PREARM_OK, health, 250,
-        int(14800 + 2000 * v.battery_pct / 100.0), 1000 if v.armed else 50,
-        int(round(v.battery_pct)), 0, 0, 0, 0, 0, 0)
+        SENSORS | PREARM_OK,
+        SENSORS | PREARM_OK,
+        health,
+        250,
+        int(14800 + 2000 * v.battery_pct / 100.0),
+        1000 if v.armed else 50,
+        int(round(v.battery_pct)),
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+    )
 
 
 def global_position_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
@@ -90,14 +102,23 @@ def global_position_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
     vel = np.clip(np.round(v.vel_ned_m_s * 100.0), -32767, 32767).astype(int)
     hdg_cdeg = int(round(math.degrees(v.heading_rad) * 100.0)) % 36000
     return mavlink.MAVLink_global_position_int_message(
-        boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000.0)),
-        int(round(v.alt_m * 1000.0)), int(vel[0]), int(vel[1]), int(vel[2]), hdg_cdeg)
+        boot_ms,
+        int(round(lat * 1e7)),
+        int(round(lon * 1e7)),
+        int(round(alt * 1000.0)),
+        int(round(v.alt_m * 1000.0)),
+        int(vel[0]),
+        int(vel[1]),
+        int(vel[2]),
+        hdg_cdeg,
+    )
 
 
 def local_position_ned(v: Vehicle, boot_ms: int) -> Any:
     p, u = v.pos_ned_m, v.vel_ned_m_s
     return mavlink.MAVLink_local_position_ned_message(
-        boot_ms, float(p[0]), float(p[1]), float(p[2]), float(u[0]), float(u[1]), float(u[2]))
+        boot_ms, float(p[0]), float(p[1]), float(p[2]), float(u[0]), float(u[1]), float(u[2])
+    )
 
 
 def attitude(v: Vehicle, boot_ms: int) -> Any:
@@ -105,26 +126,48 @@ def attitude(v: Vehicle, boot_ms: int) -> Any:
 
 
 def extended_sys_state(v: Vehicle) -> Any:
-    return mavlink.MAVLink_extended_sys_state_message(mavlink.MAV_VTOL_STATE_UNDEFINED, _landed_state(v))
+    return mavlink.MAVLink_extended_sys_state_message(
+        mavlink.MAV_VTOL_STATE_UNDEFINED, _landed_state(v)
+    )
 
 
 def home_position(home: GeoOrigin, boot_ms: int) -> Any:
     return mavlink.MAVLink_home_position_message(
-        int(round(home.lat_deg * 1e7)), int(round(home.lon_deg * 1e7)), int(round(home.alt_m * 1000.0)),
-        0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, boot_ms * 1000)
+        int(round(home.lat_deg * 1e7)),
+        int(round(home.lon_deg * 1e7)),
+        int(round(home.alt_m * 1000.0)),
+        0.0,
+        0.0,
+        0.0,
+        [1.0, 0.0, 0.0, 0.0],
+        0.0,
+        0.0,
+        0.0,
+        boot_ms * 1000,
+    )
 
 
 def gps_raw_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
     lat, lon, alt = home.to_global(*map(float, v.pos_ned_m))
     speed_cm_s = int(min(65534, round(float(np.linalg.norm(v.vel_ned_m_s[:2])) * 100.0)))
     return mavlink.MAVLink_gps_raw_int_message(
-        boot_ms * 1000, mavlink.GPS_FIX_TYPE_3D_FIX, int(round(lat * 1e7)), int(round(lon * 1e7)),
-        int(round(alt * 1000.0)), 80, 120, speed_cm_s, 65535, 12)
+        boot_ms * 1000,
+        mavlink.GPS_FIX_TYPE_3D_FIX,
+        int(round(lat * 1e7)),
+        int(round(lon * 1e7)),
+        int(round(alt * 1000.0)),
+        80,
+        120,
+        speed_cm_s,
+        65535,
+        12,
+    )
 
 
 def autopilot_version(vehicle_id: int) -> Any:
     return mavlink.MAVLink_autopilot_version_message(
-        CAPABILITIES, PX4_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x0C0E7000 + vehicle_id)
+        CAPABILITIES, PX4_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x0C0E7000 + vehicle_id
+    )
 
 
 def adsb_vehicle(e: TrafficEntry, now_s: float) -> Any:
@@ -133,13 +176,24 @@ def adsb_vehicle(e: TrafficEntry, now_s: float) -> Any:
     flags |= 0 if math.isnan(e.alt_m) else ADSB_FLAGS_VALID_ALTITUDE
     flags |= 0 if math.isnan(e.heading_rad) else ADSB_FLAGS_VALID_HEADING
     flags |= ADSB_FLAGS_VALID_VELOCITY | ADSB_FLAGS_VERTICAL_VELOCITY_VALID
-    heading_cdeg = 0 if math.isnan(e.heading_rad) else int(round(math.degrees(e.heading_rad) * 100)) % 36000
+    heading_cdeg = (
+        0 if math.isnan(e.heading_rad) else int(round(math.degrees(e.heading_rad) * 100)) % 36000
+    )
     return mavlink.MAVLink_adsb_vehicle_message(
-        e.icao_address, int(round(e.lat_deg * 1e7)), int(round(e.lon_deg * 1e7)),
-        mavlink.ADSB_ALTITUDE_TYPE_GEOMETRIC, 0 if math.isnan(e.alt_m) else int(round(e.alt_m * 1000)),
-        heading_cdeg, int(min(65535, round(e.hor_speed_m_s * 100))),
-        int(max(-32767, min(32767, round(e.ver_speed_m_s * 100)))), e.callsign.encode()[:9],
-        mavlink.ADSB_EMITTER_TYPE_UAV, int(min(255, max(0, now_s - e.received_s))), flags, 0)
+        e.icao_address,
+        int(round(e.lat_deg * 1e7)),
+        int(round(e.lon_deg * 1e7)),
+        mavlink.ADSB_ALTITUDE_TYPE_GEOMETRIC,
+        0 if math.isnan(e.alt_m) else int(round(e.alt_m * 1000)),
+        heading_cdeg,
+        int(min(65535, round(e.hor_speed_m_s * 100))),
+        int(max(-32767, min(32767, round(e.ver_speed_m_s * 100)))),
+        e.callsign.encode()[:9],
+        mavlink.ADSB_EMITTER_TYPE_UAV,
+        int(min(255, max(0, now_s - e.received_s))),
+        flags,
+        0,
+    )
 
 
 def statustext(text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> Any:

@@ -46,9 +46,22 @@ def entry_from_adsb(msg: Any, now_s: float) -> TrafficEntry | None:
     speed_ok = flags & ADSB_FLAGS_VALID_VELOCITY
     hor_m_s = msg.hor_velocity * 0.01 if speed_ok else 0.0
     ver_m_s = msg.ver_velocity * 0.01 if flags & ADSB_FLAGS_VERTICAL_VELOCITY_VALID else 0.0
-    callsign = msg.callsign if isinstance(msg.callsign, str) else bytes(msg.callsign).decode("ascii", "replace")
-    return TrafficEntry(int(msg.ICAO_address), lat_deg, lon_deg, alt_m, heading_rad,
-                        hor_m_s, ver_m_s, callsign.rstrip("\x00"), now_s)
+    callsign = (
+        msg.callsign
+        if isinstance(msg.callsign, str)
+        else bytes(msg.callsign).decode("ascii", "replace")
+    )
+    return TrafficEntry(
+        int(msg.ICAO_address),
+        lat_deg,
+        lon_deg,
+        alt_m,
+        heading_rad,
+        hor_m_s,
+        ver_m_s,
+        callsign.rstrip("\x00"),
+        now_s,
+    )
 
 
 class TrafficStore:

@@ -10,47 +10,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from firmware.sitl import px4
 from firmware.sitl.params import VehicleParams
-from firmware.sitl.px4 import Px4Mode
+from firmware.sitl.px4 import OK, Outcome, Px4Mode
+
+if TYPE_CHECKING:
+    from firmware.sitl.onboard import Guidance
 
 GRAVITY_M_S2 = 9.80665
 MAX_SUBSTEP_S = 0.02
 """Integration step; `step()` splits longer gaps so the controllers stay stable."""
 TAKEOFF_ACCEPT_M = 0.25
 """TAKEOFF is done within this vertical distance of the takeoff altitude."""
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """How a command went: a MAV_RESULT value and, if refused, PX4-style words why."""
-
-    result: int
-    reason: str = ""
-
-    @property
-    def ok(self) -> bool:
-        return self.result == px4.ACCEPTED
-
-
-ACCEPTED = Outcome(px4.ACCEPTED)
-
-
-class Guidance(Protocol):
-    """Onboard guidance: the horizontal velocity to fly toward `goal_ned_m` (onboard mode)."""
-
-    def velocity_ne_m_s(
-        self,
-        pos_ned_m: np.ndarray,
-        vel_ned_m_s: np.ndarray,
-        heading_rad: float,
-        goal_ned_m: np.ndarray,
-        now_s: float,
-    ) -> tuple[float, float]: ...
 
 
 def _clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
@@ -116,7 +91,13 @@ class Vehicle:
     def _enter(self, mode: Px4Mode, now_s: float) -> None:
         self.mode = mode
         self.goto_active = False
-        if mode in (Px4Mode.HOLD, Px4Mode.POSCTL, Px4Mode.ALTCTL, Px4Mode.MANUAL, Px4Mode.STABILIZED):
+        if mode in (
+            Px4Mode.HOLD,
+            Px4Mode.POSCTL,
+            Px4Mode.ALTCTL,
+            Px4Mode.MANUAL,
+            Px4Mode.STABILIZED,
+        ):
             # Brake and hold where we are; on the ground, stay on the ground.
             self.target_ned_m = self.pos_ned_m.copy()
         elif mode is Px4Mode.LAND:
@@ -126,23 +107,30 @@ class Vehicle:
 
     def arm(self, now_s: float) -> Outcome:
         if self.armed:
-            return ACCEPTED
+            return OK
         if not self.healthy:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Arming denied: preflight checks failed")
         if self.falling:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Arming denied: vehicle is falling")
-        if self.mode not in (Px4Mode.HOLD, Px4Mode.POSCTL, Px4Mode.TAKEOFF, Px4Mode.OFFBOARD,
-                             Px4Mode.MISSION, Px4Mode.LAND, Px4Mode.READY):
+        if self.mode not in (
+            Px4Mode.HOLD,
+            Px4Mode.POSCTL,
+            Px4Mode.TAKEOFF,
+            Px4Mode.OFFBOARD,
+            Px4Mode.MISSION,
+            Px4Mode.LAND,
+            Px4Mode.READY,
+        ):
             return self._refuse(px4.TEMPORARILY_REJECTED, f"Arming denied: not in {self.mode.name}")
         self.armed, self.armed_at_s, self.took_off = True, now_s, False
         if self.mode is not Px4Mode.OFFBOARD:
             self._enter(Px4Mode.HOLD, now_s)  # hold on the ground until told to climb
         self._say("Armed by external command")
-        return ACCEPTED
+        return OK
 
     def disarm(self, now_s: float, force: bool = False) -> Outcome:
         if not self.armed:
-            return ACCEPTED
+            return OK
         if not force and not self.landed:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Disarming denied: not landed")
         if not self.landed:
@@ -151,7 +139,7 @@ class Vehicle:
         else:
             self._say("Disarmed by external command")
         self._disarmed()
-        return ACCEPTED
+        return OK
 
     def _disarmed(self) -> None:
         # Forget every target, so that re-arming never resumes a stale takeoff or goto.
@@ -164,11 +152,16 @@ class Vehicle:
 
     def set_mode(self, mode: Px4Mode, now_s: float) -> Outcome:
         if mode is self.mode:
-            return ACCEPTED
+            return OK
         if mode is Px4Mode.OFFBOARD and now_s - self.sp_stamp_s > self.params.offboard_loss_s:
-            return self._refuse(px4.TEMPORARILY_REJECTED, "Switching to Offboard is currently not possible: no setpoints")
+            return self._refuse(
+                px4.TEMPORARILY_REJECTED,
+                "Switching to Offboard is currently not possible: no setpoints",
+            )
         if mode in (Px4Mode.MISSION, Px4Mode.READY):
-            return self._refuse(px4.TEMPORARILY_REJECTED, f"Switching to {mode.name} is not possible: no mission")
+            return self._refuse(
+                px4.TEMPORARILY_REJECTED, f"Switching to {mode.name} is not possible: no mission"
+            )
         if mode is Px4Mode.TAKEOFF:
             return self.takeoff(math.nan, now_s)
         if mode is Px4Mode.RTL and self.landed:
@@ -177,13 +170,16 @@ class Vehicle:
         if mode is Px4Mode.RTL:
             alt_m = max(self.alt_m, self.params.rtl_alt_m)
             self.target_ned_m = np.array([self.pos_ned_m[0], self.pos_ned_m[1], -alt_m])
-        return ACCEPTED
+        return OK
 
     def takeoff(self, alt_m: float, now_s: float) -> Outcome:
         if math.isnan(alt_m):
             alt_m = self.params.takeoff_alt_m
         if not math.isfinite(alt_m) or not 0.5 <= alt_m <= self.params.max_alt_m:
-            return self._refuse(px4.DENIED, f"Takeoff denied: altitude {alt_m} m outside [0.5, {self.params.max_alt_m}]")
+            return self._refuse(
+                px4.DENIED,
+                f"Takeoff denied: altitude {alt_m} m outside [0.5, {self.params.max_alt_m}]",
+            )
         if not self.armed:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Takeoff denied: disarmed")
         if not self.landed:
@@ -191,12 +187,12 @@ class Vehicle:
         self._enter(Px4Mode.TAKEOFF, now_s)
         self.target_ned_m = np.array([self.pos_ned_m[0], self.pos_ned_m[1], -alt_m])
         self.took_off = True
-        return ACCEPTED
+        return OK
 
     def land(self, now_s: float) -> Outcome:
         # PX4 takes LAND as a mode switch, disarmed or not; on the ground it just stays there.
         self._enter(Px4Mode.LAND, now_s)
-        return ACCEPTED
+        return OK
 
     def reposition(self, target_ned_m: np.ndarray, now_s: float) -> Outcome:
         """DO_REPOSITION: fly to the target and hold there. NaN down keeps the altitude."""
@@ -206,12 +202,15 @@ class Vehicle:
         if math.isnan(target[2]):
             target[2] = self.pos_ned_m[2]
         if not math.isfinite(target[2]) or not 0.5 <= -target[2] <= self.params.max_alt_m:
-            return self._refuse(px4.DENIED, f"Reposition denied: altitude {-target[2]:.1f} m outside [0.5, {self.params.max_alt_m}]")
+            return self._refuse(
+                px4.DENIED,
+                f"Reposition denied: altitude {-target[2]:.1f} m outside [0.5, {self.params.max_alt_m}]",
+            )
         if not self.armed or self.landed:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Reposition denied: not flying")
         self._enter(Px4Mode.HOLD, now_s)
         self.target_ned_m, self.goto_active = target, True
-        return ACCEPTED
+        return OK
 
     def offboard_setpoint(
         self,
@@ -301,16 +300,22 @@ class Vehicle:
         if self.mode is Px4Mode.OFFBOARD and now - self.sp_stamp_s > self.params.offboard_loss_s:
             self._say("Failsafe: no offboard setpoints, holding")
             self._enter(Px4Mode.HOLD, now)
-        if self.mode is Px4Mode.TAKEOFF and self.target_ned_m is not None \
-                and abs(self.pos_ned_m[2] - self.target_ned_m[2]) < TAKEOFF_ACCEPT_M:
+        if (
+            self.mode is Px4Mode.TAKEOFF
+            and self.target_ned_m is not None
+            and abs(self.pos_ned_m[2] - self.target_ned_m[2]) < TAKEOFF_ACCEPT_M
+        ):
             # PX4 switches to HOLD at the takeoff altitude.
             alt_d_m = self.target_ned_m[2]
             self._say("Takeoff complete")
             self._enter(Px4Mode.HOLD, now)
             assert self.target_ned_m is not None
             self.target_ned_m[2] = alt_d_m
-        if self.mode is Px4Mode.RTL and self.target_ned_m is not None \
-                and float(np.linalg.norm(self.pos_ned_m[:2])) < self.params.arrive_radius_m:
+        if (
+            self.mode is Px4Mode.RTL
+            and self.target_ned_m is not None
+            and float(np.linalg.norm(self.pos_ned_m[:2])) < self.params.arrive_radius_m
+        ):
             self._enter(Px4Mode.LAND, now)
 
     def _control(self, now: float) -> tuple[np.ndarray, float | None]:
@@ -349,14 +354,21 @@ class Vehicle:
             self._say("Reposition: target reached")
             self.goto_active = False
             return self._fly_to(goal, p.climb_speed_m_s)
-        v_ne = np.asarray(self.guidance.velocity_ne_m_s(
-            self.pos_ned_m.copy(), self.vel_ned_m_s.copy(), self.heading_rad, goal.copy(), now), float)
+        v_ne = np.asarray(
+            self.guidance.velocity_ne_m_s(
+                self.pos_ned_m.copy(), self.vel_ned_m_s.copy(), self.heading_rad, goal.copy(), now
+            ),
+            float,
+        )
         if v_ne.shape != (2,) or not np.all(np.isfinite(v_ne)):
             self._say("Guidance fault: holding")
             self._enter(Px4Mode.HOLD, now)
             return np.zeros(3), None
         v_ne = _clip_norm(v_ne, p.max_speed_m_s)
-        v_d = max(-p.climb_speed_m_s, min(p.descent_speed_m_s, p.pos_gain_1_s * (goal[2] - self.pos_ned_m[2])))
+        v_d = max(
+            -p.climb_speed_m_s,
+            min(p.descent_speed_m_s, p.pos_gain_1_s * (goal[2] - self.pos_ned_m[2])),
+        )
         # The policy's heading is the direction of motion (as in the paper).
         yaw = math.atan2(v_ne[1], v_ne[0]) if float(np.linalg.norm(v_ne)) > 0.2 else None
         return np.array([v_ne[0], v_ne[1], v_d]), yaw
