@@ -53,7 +53,9 @@ def trace_text(state_seq: int, heading_rad: float, cmd_vel_ned_m_s, nbr_ids, nbr
     `+` marks a cut neighbour list)."""
     v = ",".join(f"{float(x):.9g}" for x in cmd_vel_ned_m_s)
     text = f"{TRACE_PREFIX}{state_seq} {float(heading_rad):.9g} {v} "
-    items = [f"{i}:{s}:{round(a * 1e6)}" for i, s, a in zip(nbr_ids, nbr_seqs, nbr_ages_s, strict=True)]
+    items = [
+        f"{i}:{s}:{round(a * 1e6)}" for i, s, a in zip(nbr_ids, nbr_seqs, nbr_ages_s, strict=True)
+    ]
     body = ";".join(items)
     if len((text + body).encode()) <= max_bytes:
         return text + body
@@ -68,7 +70,11 @@ def parse_trace(text: str) -> Trace | None:
         return None
     parts = text[len(TRACE_PREFIX) :].split(" ")
     try:
-        seq, heading, vel = int(parts[0]), float(parts[1]), tuple(float(x) for x in parts[2].split(","))
+        seq, heading, vel = (
+            int(parts[0]),
+            float(parts[1]),
+            tuple(float(x) for x in parts[2].split(",")),
+        )
         body = parts[3] if len(parts) > 3 else ""
         complete = not body.endswith("+")
         nbrs = tuple(
@@ -124,7 +130,9 @@ def _index(rec: Recording, vid: int):
         try:
             if parsed[2] == "state":
                 s = VehicleState.decode(m.data)
-                (own if s.vehicle_id == vid else others.setdefault(s.vehicle_id, [])).append(_Sample(m.log_time_ns, s))
+                (own if s.vehicle_id == vid else others.setdefault(s.vehicle_id, [])).append(
+                    _Sample(m.log_time_ns, s)
+                )
             elif parsed[2] == "event" and parsed[1] == vid:
                 tr = parse_trace(Event.decode(m.data).text)
                 if tr is not None:
@@ -193,7 +201,10 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
     if not own:
         raise ValueError(f"{cfg.path}: no states of vehicle {cfg.vehicle_id} in the recording")
     t0 = rec.messages[0].log_time_ns
-    lo, hi = t0 + round(cfg.start_s * 1e9), None if cfg.end_s is None else t0 + round(cfg.end_s * 1e9)
+    lo, hi = (
+        t0 + round(cfg.start_s * 1e9),
+        None if cfg.end_s is None else t0 + round(cfg.end_s * 1e9),
+    )
     use_traces = bool(traces)
     rows_out, skipped = [], 0
     prev_heading = None
@@ -216,13 +227,19 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
             nbr_rows = _rebuilt_rows(timed, t_ns, s, cfg.neighbours)
             v = s.vel_ned_m_s
             if math.hypot(v[0], v[1]) > 0.2 * cfg.cruise_speed_m_s or heading_in is None:
-                heading_in = math.atan2(v[1], v[0]) if math.hypot(v[0], v[1]) > 1e-9 else s.heading_rad
+                heading_in = (
+                    math.atan2(v[1], v[0]) if math.hypot(v[0], v[1]) > 1e-9 else s.heading_rad
+                )
             ref = np.array(v[:2])
         snap = _snapshot(nbr_rows, cfg.neighbours.stale_s)
-        pos, vel, goal = (np.asarray(x, dtype=float) for x in (s.pos_ned_m, s.vel_ned_m_s, s.goal_ned_m))
+        pos, vel, goal = (
+            np.asarray(x, dtype=float) for x in (s.pos_ned_m, s.vel_ned_m_s, s.goal_ned_m)
+        )
         step = guidance.hold if s.mode is Mode.HOLDING else guidance.goto
         out = step(pos, vel, heading_in, goal, snap).vel_ned_m_s[:2]
-        rows_out.append(((t_ns - t0) / 1e9, s.seq, s.pos_ned_m, out, ref, float(np.linalg.norm(out - ref))))
+        rows_out.append(
+            ((t_ns - t0) / 1e9, s.seq, s.pos_ned_m, out, ref, float(np.linalg.norm(out - ref)))
+        )
     return _report(cfg, rows_out, skipped, "trace" if use_traces else "recorded_velocity")
 
 
@@ -251,7 +268,9 @@ def _report(cfg: ClosedLoopConfig, rows: list, skipped: int, reference: str) -> 
 
 
 def format_report(rep: dict) -> str:
-    ref = "traced commands (exact)" if rep["exact"] else "recorded velocity (approximate: no traces)"
+    ref = (
+        "traced commands (exact)" if rep["exact"] else "recorded velocity (approximate: no traces)"
+    )
     lines = [
         f"closed-loop replay of vehicle {rep['vehicle_id']} with policy {rep['policy']}",
         f"reference   {ref}",

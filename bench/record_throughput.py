@@ -91,7 +91,10 @@ def bench_replay(path: Path, port: int, fleet: str) -> tuple[float, float]:
         with lock:
             received[0] += 1
 
-    with Mesh(embedded_peer(port, fleet=fleet)) as watcher, Mesh(embedded_peer(port, fleet=fleet)) as out:
+    with (
+        Mesh(embedded_peer(port, fleet=fleet)) as watcher,
+        Mesh(embedded_peer(port, fleet=fleet)) as out,
+    ):
         watcher.subscribe_states(on_state)
         time.sleep(0.5)
         t0 = time.perf_counter()
@@ -137,5 +140,9 @@ if __name__ == "__main__":
     res = main(a.messages, a.runs)
     for name, value in res["median"].items():
         unit = "msgs/s" if name.endswith("msgs_s") else "(share)"
-        print(f"{name:24s} {value:12.1f} {unit}" if unit == "msgs/s" else f"{name:24s} {value:12.3f} {unit}")
+        print(
+            f"{name:24s} {value:12.1f} {unit}"
+            if unit == "msgs/s"
+            else f"{name:24s} {value:12.3f} {unit}"
+        )
     print(f"wrote {RESULTS}")

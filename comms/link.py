@@ -57,7 +57,9 @@ class GilbertElliott:
         for name in ("p_good_bad", "p_bad_good", "loss_good", "loss_bad"):
             _check_prob(f"ge {name}", getattr(self, name))
         if self.p_good_bad + self.p_bad_good == 0.0:
-            raise LinkSpecError("ge: p_good_bad and p_bad_good cannot both be 0 (the chain never moves)")
+            raise LinkSpecError(
+                "ge: p_good_bad and p_bad_good cannot both be 0 (the chain never moves)"
+            )
 
     @property
     def mean_loss(self) -> float:
@@ -134,7 +136,9 @@ def parse_link_spec(spec: str) -> LinkProfile:
     """`xbee`, `wifi,loss=0.1`, or `rate=3,loss=0.2,latency=0.1,jitter=0.03,ge=0.05:0.3`."""
     help_text = "; ".join(f"{k}= {v}" for k, v in _SPEC_KEYS.items())
     if not isinstance(spec, str) or not spec.strip():
-        raise LinkSpecError(f"empty --link spec: give a profile ({', '.join(PROFILES)}) or {help_text}")
+        raise LinkSpecError(
+            f"empty --link spec: give a profile ({', '.join(PROFILES)}) or {help_text}"
+        )
     tokens = [t.strip() for t in spec.split(",")]
     base = LinkProfile(name=spec)
     if "=" not in tokens[0]:
@@ -162,11 +166,18 @@ def parse_link_spec(spec: str) -> LinkProfile:
         elif key == "range":
             parts = [_number("range", p) for p in value.split(":")]
             if len(parts) not in (1, 2):
-                raise LinkSpecError(f"--link range={value!r} needs 1 or 2 numbers: {_SPEC_KEYS['range']}")
+                raise LinkSpecError(
+                    f"--link range={value!r} needs 1 or 2 numbers: {_SPEC_KEYS['range']}"
+                )
             fields["range_m"] = parts[0]
             fields["falloff_m"] = parts[1] if len(parts) == 2 else 0.0
         else:
-            name = {"rate": "rate_hz", "loss": "loss", "latency": "latency_s", "jitter": "jitter_s"}[key]
+            name = {
+                "rate": "rate_hz",
+                "loss": "loss",
+                "latency": "latency_s",
+                "jitter": "jitter_s",
+            }[key]
             fields[name] = _number(key, value)
     if "loss" in seen and "ge" in seen:
         raise LinkSpecError("give either loss= (Bernoulli) or ge= (Gilbert-Elliott), not both")
@@ -227,7 +238,11 @@ def decide(
         if chan.next_slot_ns is not None and recv_ns < chan.next_slot_ns:
             return Decision(None, "rate"), chan
         slot = chan.next_slot_ns
-        nxt = slot + period_ns if slot is not None and recv_ns - slot < period_ns else recv_ns + period_ns
+        nxt = (
+            slot + period_ns
+            if slot is not None and recv_ns - slot < period_ns
+            else recv_ns + period_ns
+        )
         chan = replace(chan, next_slot_ns=nxt)
     if profile.ge is not None:
         ge = profile.ge
@@ -351,7 +366,9 @@ class LinkEmulator:
                 return
             immediate = decision.deliver_ns <= recv_ns and not self._queue
             if not immediate:
-                heapq.heappush(self._queue, (decision.deliver_ns, next(self._tie), state, recv_ns, deliver))
+                heapq.heappush(
+                    self._queue, (decision.deliver_ns, next(self._tie), state, recv_ns, deliver)
+                )
                 self._lock.notify_all()
                 return
             self._account(c, state, recv_ns, recv_ns)

@@ -98,7 +98,9 @@ class McapSink:
         self._out = out
         self._writer = Writer(out, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._writer.start(profile="covey", library="covey-record")
-        self._writer.add_metadata("covey", {"fleet": fleet, "schema_version": str(schema.SCHEMA_VERSION)})
+        self._writer.add_metadata(
+            "covey", {"fleet": fleet, "schema_version": str(schema.SCHEMA_VERSION)}
+        )
         self._out.flush()
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -119,7 +121,9 @@ class McapSink:
             name, layout = _LAYOUTS.get(leaf, _LAYOUTS["other"])
             sid = self._schemas.get(name)
             if sid is None:
-                sid = self._schemas[name] = self._writer.register_schema(name, SCHEMA_ENCODING, layout.encode())
+                sid = self._schemas[name] = self._writer.register_schema(
+                    name, SCHEMA_ENCODING, layout.encode()
+                )
             enc = PRESENCE_ENCODING if leaf == "alive" else MESSAGE_ENCODING
             cid = self._channels[topic] = self._writer.register_channel(topic, enc, sid)
         return cid
@@ -175,12 +179,16 @@ class Recorder:
             s = self._session
             self._entities.append(s.declare_subscriber(keys.everything(fleet), self._on_sample))
             self._entities.append(
-                s.liveliness().declare_subscriber(keys.everything(fleet), self._on_alive, history=True)
+                s.liveliness().declare_subscriber(
+                    keys.everything(fleet), self._on_alive, history=True
+                )
             )
             if cfg.record_commands:
                 # complete=False: a get that asks for complete answers never routes here, and
                 # this queryable never replies, so vehicles' acks are untouched.
-                self._entities.append(s.declare_queryable(keys.all_cmds(fleet), self._on_query, complete=False))
+                self._entities.append(
+                    s.declare_queryable(keys.all_cmds(fleet), self._on_query, complete=False)
+                )
         except Exception:
             self.close()
             raise

@@ -119,7 +119,9 @@ def live_vehicles(mesh: Mesh, wait_s: float) -> set[int]:
     pres = mesh.presence()
     time.sleep(wait_s)
     live = pres.vehicles
-    for reply in mesh.session.liveliness().get(keys.all_alive(mesh.fleet), timeout=max(wait_s, 0.1)):
+    for reply in mesh.session.liveliness().get(
+        keys.all_alive(mesh.fleet), timeout=max(wait_s, 0.1)
+    ):
         if reply.ok is not None:
             parsed = keys.parse_vehicle_key(str(reply.ok.key_expr))
             if parsed is not None and parsed[0] == mesh.fleet:

@@ -15,6 +15,8 @@ from comms.replay import ReplayConfig, play, prepare
 from comms.schema import AckResult, Command, CommandAck, CommandKind, Event, StateFlag, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 
+PROBE_ID = 99
+
 
 def _state(vid: int, seq: int, t_ns: int) -> VehicleState:
     return VehicleState(vid, seq, t_ns, (seq * 0.1, vid * 1.0, -3.0), (1.0, 0.0, 0.0), 0.0)
@@ -104,9 +106,12 @@ def test_recording_commands_does_not_disturb_acks(tmp_path):
         veh.declare_vehicle(7)
         assert gcs.presence().wait_for(lambda v, _g: 7 in v, 10.0)
         with Recorder(RecordConfig(str(path), embedded_peer(port, fleet=fleet))) as rec:
-            # The recorder's queryable is up once its session has met the router.
+            # Probe with commands to a vehicle that does not exist (only the recorder's
+            # v/*/cmd queryable matches) until the recorder has met the mesh and records them.
             deadline = time.monotonic() + 10.0
-            while "alive" not in rec.counts and time.monotonic() < deadline:
+            while "cmd" not in rec.counts and time.monotonic() < deadline:
+                probe = Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(PROBE_ID,))
+                assert not gcs.send_command(probe, timeout_s=0.5).ok
                 time.sleep(0.05)
             sent = []
             for targets in ((7,), ()):
@@ -119,6 +124,7 @@ def test_recording_commands_does_not_disturb_acks(tmp_path):
     assert seen == [c.nonce for c in sent]  # each command reached the vehicle exactly once
     rec = read_recording(path)
     cmds = [Command.decode(m.data) for m in rec.messages if m.topic.endswith("/cmd")]
+    cmds = [c for c in cmds if c.targets != (PROBE_ID,)]
     assert [c.nonce for c in cmds] == [c.nonce for c in sent]
     topics = {m.topic for m in rec.messages}
     assert keys.cmd(fleet, 7) in topics and keys.all_cmds(fleet) in topics

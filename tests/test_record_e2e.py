@@ -23,7 +23,7 @@ from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.record import read_recording, summarise
 from comms.replay import LiveFleetError, ReplayConfig, replay
-from comms.schema import Command, StateFlag, VehicleState
+from comms.schema import Command, CommandKind, StateFlag, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 from groundstation.recording_cli import info_main, record_cli, replay_cli
 
@@ -49,6 +49,14 @@ def _command_all(mesh: Mesh, make, deadline_s: float = 10.0) -> None:
     assert not pending, f"vehicles {pending} did not accept"
 
 
+PROBE_ID = 99
+
+
+def _has_command(path) -> bool:
+    """Reading a recording that is still being written works (the reader stops at its tail)."""
+    return path.exists() and any(m.topic.endswith("/cmd") for m in read_recording(path).messages)
+
+
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("flight")
@@ -65,7 +73,16 @@ def flight(tmp_path_factory):
                     [sys.executable, "-c", RECORD, "-o", str(out), "--fleet", fleet, "--connect", connect],
                     env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                 ))  # fmt: skip
-            time.sleep(1.0)  # recorders join before the agents, so they see the whole flight
+            # Both recorders must be on the mesh before the agents start. Probe with commands
+            # to a vehicle that does not exist until both (still open) files hold one.
+            deadline = time.monotonic() + 30.0
+            while time.monotonic() < deadline:
+                probe = Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(PROBE_ID,))
+                mesh.send_command(probe, timeout_s=0.2)
+                time.sleep(0.3)
+                if all(_has_command(p) for p in (clean, killed)):
+                    break
+            assert all(_has_command(p) for p in (clean, killed)), "recorders did not come up"
             for vid in VEHICLES:
                 n, e = STARTS[vid]
                 procs.append(subprocess.Popen(
