@@ -112,13 +112,13 @@ PROFILES: dict[str, LinkProfile] = {
 }
 """Named profiles for --link. xbee follows the paper's 3 Hz XBee relay."""
 
-_SPEC_KEYS = {
-    "rate": "rate_hz (Hz, 0 = unlimited)",
-    "loss": "Bernoulli loss probability 0..1",
-    "latency": "latency_s (seconds)",
-    "jitter": "jitter_s (seconds)",
-    "ge": "Gilbert-Elliott p_good_bad:p_bad_good[:loss_good:loss_bad]",
-    "range": "range_m[:falloff_m] (metres)",
+_SPEC = {  # key: (LinkProfile fields it sets, how many numbers it takes, help)
+    "rate": (("rate_hz",), (1,), "rate_hz (Hz, 0 = unlimited)"),
+    "loss": (("loss",), (1,), "Bernoulli loss probability 0..1"),
+    "latency": (("latency_s",), (1,), "latency_s (seconds)"),
+    "jitter": (("jitter_s",), (1,), "jitter_s (seconds)"),
+    "ge": (("ge",), (2, 4), "Gilbert-Elliott p_good_bad:p_bad_good[:loss_good:loss_bad]"),
+    "range": (("range_m", "falloff_m"), (1, 2), "range_m[:falloff_m] (metres)"),
 }
 
 
@@ -134,7 +134,7 @@ def _number(key: str, text: str) -> float:
 
 def parse_link_spec(spec: str) -> LinkProfile:
     """`xbee`, `wifi,loss=0.1`, or `rate=3,loss=0.2,latency=0.1,jitter=0.03,ge=0.05:0.3`."""
-    help_text = "; ".join(f"{k}= {v}" for k, v in _SPEC_KEYS.items())
+    help_text = "; ".join(f"{k}= {v[2]}" for k, v in _SPEC.items())
     if not isinstance(spec, str) or not spec.strip():
         raise LinkSpecError(
             f"empty --link spec: give a profile ({', '.join(PROFILES)}) or {help_text}"
@@ -149,36 +149,23 @@ def parse_link_spec(spec: str) -> LinkProfile:
     fields: dict[str, Any] = {}
     seen: set[str] = set()
     for tok in tokens:
-        key, sep, value = tok.partition("=")
-        key = key.strip()
-        if not sep or not value.strip():
+        key, sep, value = (x.strip() for x in tok.partition("="))
+        if not sep or not value:
             raise LinkSpecError(f"--link item {tok!r} must look like key=value ({help_text})")
-        if key not in _SPEC_KEYS:
+        if key not in _SPEC:
             raise LinkSpecError(f"--link: unknown key {key!r}; known keys: {help_text}")
         if key in seen:
             raise LinkSpecError(f"--link: {key}= given twice")
         seen.add(key)
+        names, counts, text = _SPEC[key]
+        nums = [_number(key, p) for p in value.split(":")]
+        if len(nums) not in counts:
+            need = " or ".join(map(str, counts)) + " numbers" if len(counts) > 1 else "one number"
+            raise LinkSpecError(f"--link {key}={value!r} needs {need}: {text}")
         if key == "ge":
-            parts = [_number("ge", p) for p in value.split(":")]
-            if len(parts) not in (2, 4):
-                raise LinkSpecError(f"--link ge={value!r} needs 2 or 4 numbers: {_SPEC_KEYS['ge']}")
-            fields["ge"] = GilbertElliott(*parts)
-        elif key == "range":
-            parts = [_number("range", p) for p in value.split(":")]
-            if len(parts) not in (1, 2):
-                raise LinkSpecError(
-                    f"--link range={value!r} needs 1 or 2 numbers: {_SPEC_KEYS['range']}"
-                )
-            fields["range_m"] = parts[0]
-            fields["falloff_m"] = parts[1] if len(parts) == 2 else 0.0
+            fields["ge"] = GilbertElliott(*nums)
         else:
-            name = {
-                "rate": "rate_hz",
-                "loss": "loss",
-                "latency": "latency_s",
-                "jitter": "jitter_s",
-            }[key]
-            fields[name] = _number(key, value)
+            fields.update(zip(names, nums + [0.0] * (len(names) - len(nums)), strict=True))
     if "loss" in seen and "ge" in seen:
         raise LinkSpecError("give either loss= (Bernoulli) or ge= (Gilbert-Elliott), not both")
     if "ge" in seen:
