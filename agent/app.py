@@ -39,6 +39,8 @@ from comms.schema import (
 from comms.session import MeshConfig
 
 log = logging.getLogger(__name__)
+LINK_STATS_PERIOD_S = 5.0
+"""How often an agent behind an emulated link publishes the link's statistics as an Event."""
 
 
 @dataclass(frozen=True)
@@ -113,6 +115,8 @@ class Agent:
         self._last_traffic_s = -math.inf
         self._link_was_ok = True
         self.link = link
+        self.on_position: Callable[[tuple[float, float, float]], None] | None = None
+        self._last_link_stats_s = clock_s()
         self.presence = mesh.presence()
         mesh.subscribe_states(lambda s, _t: self.table.update(s, self.clock_s()), link=link)
         # Answer commands before announcing presence: whoever sees us alive can command us.
@@ -242,6 +246,11 @@ class Agent:
                         Severity.INFO if tel.link_ok else Severity.CRITICAL)  # fmt: skip
         pos = np.array(tel.pos_ned_m)
         vel = np.array(tel.vel_ned_m_s)
+        if self.on_position is not None:
+            self.on_position(tel.pos_ned_m)
+        if self.link is not None and now_s - self._last_link_stats_s >= LINK_STATS_PERIOD_S:
+            self._last_link_stats_s = now_s
+            self._event(self.link.stats_text(), EventKind.LINK_STATS, Severity.DEBUG)
         if math.hypot(vel[0], vel[1]) > 0.2 * self.cfg.guidance.cruise_speed_m_s:
             fl.heading_rad = math.atan2(vel[1], vel[0])
         # Vehicle events.

@@ -115,12 +115,13 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
     )
 
 
-def make_link(spec: str, vehicle_id: int):
+def make_link(spec: str, vehicle_id: int, receiver_pos=None):
+    """The emulated radio between this agent and its neighbours, or None for a perfect link."""
     if spec in ("", "perfect"):
         return None
     from comms import link
 
-    return link.emulator_from_spec(spec, seed=vehicle_id)
+    return link.emulator_from_spec(spec, seed=vehicle_id, receiver_pos=receiver_pos)
 
 
 def main(cfg: AgentConfig, vehicle: str = "sim", start_ne_m=(0.0, 0.0), stop: threading.Event | None = None,
@@ -130,10 +131,13 @@ def main(cfg: AgentConfig, vehicle: str = "sim", start_ne_m=(0.0, 0.0), stop: th
     with contextlib.ExitStack() as stack:
         backend = stack.enter_context(make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s))
         mesh = stack.enter_context(Mesh(cfg.mesh))
-        link = make_link(cfg.link, cfg.vehicle_id)
-        if link is not None and hasattr(link, "__enter__"):
+        own_pos: list = [None]  # filled once the agent exists; range-dependent loss needs it
+        link = make_link(cfg.link, cfg.vehicle_id, receiver_pos=lambda: own_pos[0])
+        if link is not None:
             link = stack.enter_context(link)
         agent = Agent(cfg, backend, mesh, clock_s=clock_s, link=link)
+        own_pos[0] = None
+        agent.on_position = lambda p: own_pos.__setitem__(0, p)
         log.info("vehicle %d up: fleet %s, %s, link %s", cfg.vehicle_id, cfg.mesh.fleet, vehicle, cfg.link)
         if duration_s is not None:
             threading.Timer(duration_s, stop.set).start()
