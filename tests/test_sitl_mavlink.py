@@ -91,6 +91,10 @@ def fly(ap: Autopilot, alt_m: float = 5.0) -> float:
         (long(mavlink.MAV_CMD_DO_REPOSITION, -1, 1, 0, math.nan, 95.0, 8.0, 500.0), px4.DENIED),
         (long(mavlink.MAV_CMD_DO_MOTOR_TEST, 1, 0, 0), px4.UNSUPPORTED),
         (long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 33, 50000), px4.ACCEPTED),
+        (long(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, 7.5), px4.ACCEPTED),
+        (long(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, -1), px4.ACCEPTED),
+        (long(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, math.nan), px4.DENIED),
+        (long(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, 99.0), px4.DENIED),
     ],
 )
 def test_command_results(msg, result) -> None:

@@ -16,7 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from comms.geo import GeoOrigin
 from firmware.sitl import px4, streams
-from firmware.sitl.px4 import Outcome, Px4Mode
+from firmware.sitl.px4 import OK, Outcome, Px4Mode
 from firmware.sitl.traffic import TrafficStore, entry_from_adsb
 from firmware.sitl.vehicle import Vehicle
 
@@ -150,7 +150,9 @@ class Autopilot:
             if reply is None:
                 return Outcome(px4.UNSUPPORTED, f"message {msg_id} not available")
             extra.append(reply)
-            return Outcome(px4.ACCEPTED)
+            return OK
+        if command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
+            return self._change_speed(p[1])
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             return Outcome(
                 px4.ACCEPTED
@@ -180,6 +182,18 @@ class Autopilot:
             return self._refused(px4.DENIED, f"Reposition denied: lat {lat} lon {lon} out of range")
         n, e, d = self.home.to_local(lat, lon, alt if math.isfinite(alt) else self.home.alt_m)
         return v.reposition(np.array([n, e, d if math.isfinite(alt) else math.nan]), now_s)
+
+    def _change_speed(self, speed_m_s: float) -> Outcome:
+        """DO_CHANGE_SPEED param2: the cruise speed of goto flight; -1 keeps it (PX4)."""
+        if speed_m_s == -1.0:
+            return OK
+        lo, hi = 0.5, self.vehicle.params.max_speed_m_s
+        if not (math.isfinite(speed_m_s) and lo <= speed_m_s <= hi):
+            return self._refused(
+                px4.DENIED, f"Speed change denied: {speed_m_s} m/s outside [{lo}, {hi}]"
+            )
+        self.vehicle.params = dataclasses.replace(self.vehicle.params, cruise_speed_m_s=speed_m_s)
+        return OK
 
     def _refused(self, result: int, reason: str) -> Outcome:
         self.vehicle.events.append(reason)
