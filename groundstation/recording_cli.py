@@ -151,6 +151,9 @@ def replay_parser() -> argparse.ArgumentParser:
     cl.add_argument("--no-safety-filter", action="store_true")
     add_mesh_args(p)
     p.set_defaults(fleet=None)  # default: the recorded fleet
+    for action in p._actions:  # meshargs documents its own default; replay's differs
+        if action.dest == "fleet":
+            action.help = "fleet to replay into (default: the recorded fleet)"
     return p
 
 
