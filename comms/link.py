@@ -310,11 +310,14 @@ class LinkEmulator:
         rng: _Uniform,
         clock_ns: Callable[[], int] = time.time_ns,
         receiver_pos: Callable[[], tuple[float, float, float] | None] | None = None,
+        own_id: int | None = None,
     ) -> None:
         """`rng`: numpy Generator or random.Random. `clock_ns` must be the mesh's clock (the
         one that stamps recv_ns). `receiver_pos()` gives this receiver's NED position for
-        range loss (None = unknown, no range loss)."""
+        range loss (None = unknown, no range loss). States of `own_id` (the receiver's own,
+        echoed by the mesh) pass straight through and are not counted."""
         self.profile = profile
+        self.own_id = own_id
         self._rng = rng
         self._clock_ns = clock_ns
         self._receiver_pos = receiver_pos
@@ -337,6 +340,9 @@ class LinkEmulator:
 
     def offer(self, state: VehicleState, recv_ns: int, deliver: Deliver) -> None:
         """Decide the fate of `state`; `deliver(state, t_ns)` is called now, later or never."""
+        if state.vehicle_id == self.own_id:
+            deliver(state, recv_ns)
+            return
         distance = self._distance_m(state)
         with self._lock:
             draws = [self._rng.random() for _ in range(4)]
@@ -446,9 +452,11 @@ def emulator_from_spec(
     seed: int | None = None,
     clock_ns: Callable[[], int] = time.time_ns,
     receiver_pos: Callable[[], tuple[float, float, float] | None] | None = None,
+    own_id: int | None = None,
 ) -> LinkEmulator:
     """A LinkEmulator for a --link spec, seeded (e.g. with the vehicle id) for repeatable runs.
     Enter it as a context manager to run its scheduler thread."""
     import numpy as np
 
-    return LinkEmulator(parse_link_spec(spec), np.random.default_rng(seed), clock_ns, receiver_pos)
+    profile = parse_link_spec(spec)
+    return LinkEmulator(profile, np.random.default_rng(seed), clock_ns, receiver_pos, own_id)

@@ -195,3 +195,11 @@ def test_parse_overrides_and_ge():
 def test_bad_specs_say_why(spec, message):
     with pytest.raises(LinkSpecError, match=message.replace("(", r"\(")):
         parse_link_spec(spec)
+
+
+def test_own_states_pass_through_uncounted():
+    link = LinkEmulator(PROFILES["xbee"], random.Random(0), clock_ns=lambda: 0, own_id=7)
+    got = []
+    for k in range(10):
+        link.offer(_state(7, k, k), k, lambda s, t: got.append(s.seq))
+    assert got == list(range(10)) and link.stats() == {}
