@@ -225,8 +225,9 @@ def test_backend_flies_the_emulator_in_the_fleet_frame() -> None:
 
 def test_backend_reports_refusals_as_backend_errors() -> None:
     port = free_udp_port()
-    cfg = MavsdkConfig(connection=f"udpin://127.0.0.1:{port}", action_timeout_s=4.0)
-    with sitl(port, "--unhealthy") as proc, MavsdkBackend(cfg, ORIGIN) as vb:
+    # A bare URL, as `covey agent --vehicle mavsdk:<url>` passes it.
+    url = f"udpin://127.0.0.1:{port}"
+    with sitl(port, "--unhealthy") as proc, MavsdkBackend(url, origin=ORIGIN) as vb:
         assert vb.wait_connected()
         with pytest.raises(BackendError, match="takeoff altitude"):
             vb.takeoff(math.nan)

@@ -171,7 +171,8 @@ def test_relay_connects_out_to_a_listening_emulator() -> None:
     port = free_udp_port()
     with (
         SitlProcess(["--id", "5", "--listen", f"udpin:127.0.0.1:{port}"]) as proc,
-        RelayBackend(RelayConfig(connection=f"udpout:127.0.0.1:{port}"), GeoOrigin()) as relay,
+        # A bare URL, as `covey agent --vehicle relay:<url>` passes it.
+        RelayBackend(f"udpout:127.0.0.1:{port}", origin=GeoOrigin()) as relay,
     ):
         assert relay.wait_connected(), proc.output()
         t = wait_for(relay, lambda t: True, what="telemetry")

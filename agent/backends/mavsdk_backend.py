@@ -83,8 +83,13 @@ class MavsdkBackend(VehicleBackend):
     capabilities = frozenset({Capability.VELOCITY_SETPOINT})
 
     def __init__(
-        self, cfg: MavsdkConfig, origin: GeoOrigin, clock: Callable[[], float] = time.monotonic
+        self,
+        cfg: MavsdkConfig | str,
+        origin: GeoOrigin,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """`cfg` may be just the connection URL (`covey agent --vehicle mavsdk:<url>`)."""
+        cfg = MavsdkConfig(connection=cfg) if isinstance(cfg, str) else cfg
         self.cfg, self.origin, self.clock = cfg, origin, clock
         self._latest = _Latest()
         self._lock = threading.Lock()

@@ -103,8 +103,13 @@ class RelayBackend(VehicleBackend):
     capabilities = frozenset({Capability.ONBOARD_GUIDANCE, Capability.TRAFFIC_INPUT})
 
     def __init__(
-        self, cfg: RelayConfig, origin: GeoOrigin, clock: Callable[[], float] = time.monotonic
+        self,
+        cfg: RelayConfig | str,
+        origin: GeoOrigin,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """`cfg` may be just the connection URL (`covey agent --vehicle relay:<url>`)."""
+        cfg = RelayConfig(connection=cfg) if isinstance(cfg, str) else cfg
         self.cfg, self.origin, self.clock = cfg, origin, clock
         try:
             self._link = UdpLink(cfg.connection, cfg.source_system, cfg.source_component)
