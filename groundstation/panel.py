@@ -110,7 +110,7 @@ class CommandPanel:
                 return
             self.north.value, self.east.value = round(hit[0], 1), round(hit[1], 1)
             marker = ned_to_scene((hit[0], hit[1], 0.0))
-            self.server.scene.add_icosphere("/target", radius=0.4, color=(255, 200, 0), opacity=0.7,
+            self.server.scene.add_icosphere("/target", radius=0.4, color=(255, 200, 0), opacity=0.7, cast_shadow=False, receive_shadow=False,
                                             position=tuple(float(x) for x in marker))  # fmt: skip
             self.say(f"Goto target set to N {hit[0]:.1f} E {hit[1]:.1f}; press 'Goto local'.")
 

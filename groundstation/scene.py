@@ -30,6 +30,10 @@ from groundstation.palette import (
     mode_rgb,
 )
 
+# Shadows need an extra render pass per light; without a GPU (software WebGL) that halves the frame
+# rate, and an operator reads height from the stalks and labels anyway.
+NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
+
 
 def circle_segments(radius_m: float, n: int = 48, z_m: float = 0.0) -> np.ndarray:
     """(n, 2, 3) line segments of a horizontal circle in the scene frame."""
@@ -98,14 +102,14 @@ class FleetScene:
         scene = server.scene
         extent_m = max(20.0, 2.2 * cfg.geofence_radius_m)
         scene.add_grid("/ground", width=extent_m, height=extent_m, cell_size=1.0, section_size=10.0,
-                       plane="xy", fade_distance=4 * extent_m, plane_color=(235, 240, 235),
+                       plane="xy", fade_distance=4 * extent_m, shadow_opacity=0.0, plane_color=(235, 240, 235),
                        plane_opacity=0.6)  # fmt: skip
         if cfg.geofence_radius_m > 0:
             ring = circle_segments(cfg.geofence_radius_m, 128, 0.02)
             scene.add_line_segments("/geofence", ring, _rgb(GEOFENCE_RGB), thickness=4.0,
                                     thickness_units="screen")  # fmt: skip
         scene.add_frame("/origin", axes_length=2.0, axes_radius=0.06)
-        self.target_marker = scene.add_icosphere("/target", radius=0.4, color=GOAL_RGB, opacity=0.6,
+        self.target_marker = scene.add_icosphere("/target", radius=0.4, color=GOAL_RGB, opacity=0.6, cast_shadow=False, receive_shadow=False,
                                                  visible=False)  # fmt: skip
 
     def _create(self, vid: int) -> _VehicleHandles:
@@ -114,7 +118,7 @@ class FleetScene:
         ring = circle_segments(self.cfg.separation_m / 2.0)
         h = _VehicleHandles(
             frame=scene.add_frame(root, show_axes=False),
-            body=scene.add_box(f"{root}/body", color=mode_rgb(None), dimensions=(0.6, 0.9, 0.25)),
+            body=scene.add_box(f"{root}/body", color=mode_rgb(None), dimensions=(0.6, 0.9, 0.25), **NO_SHADOW),
             label=scene.add_label(f"{root}/label", f"{vid}", position=(0.0, 0.0, 0.7),
                                   anchor="bottom-center", font_screen_scale=0.9),
             ring=scene.add_line_segments(f"{root}/ring", ring, _rgb(RING_OK_RGB),
@@ -123,7 +127,7 @@ class FleetScene:
                                       shaft_radius=0.05, head_radius=0.15, head_length=0.3),
             stalk=scene.add_line_segments(f"{root}/stalk", np.zeros((1, 2, 3), np.float32),
                                           (120, 120, 120), thickness=1.0, thickness_units="screen"),
-            goal=scene.add_icosphere(f"/goals/{vid}", radius=0.35, color=GOAL_RGB, visible=False),
+            goal=scene.add_icosphere(f"/goals/{vid}", radius=0.35, color=GOAL_RGB, visible=False, subdivisions=2, **NO_SHADOW),
             trail=scene.add_line_segments(f"/trails/{vid}", np.zeros((1, 2, 3), np.float32),
                                           (120, 120, 120), thickness=2.0, thickness_units="screen"),
         )  # fmt: skip

@@ -1,0 +1,206 @@
+"""The ground station in real Chromium, driving a real `covey demo` (3 sim agents).
+
+Every effect on the fleet is checked through the mesh (a test subscriber), not the DOM alone.
+The tests run in file order on one demo and one page (module fixtures): table, input
+validation, takeoff, goto, ground click, guarded kill, screenshot.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import shutil
+import threading
+import time
+
+import pytest
+
+from comms.mesh import Mesh
+from comms.schema import Mode, StateFlag, VehicleState
+from comms.session import MeshConfig
+from groundstation.demo_proc import DemoProcess
+
+pytestmark = [pytest.mark.browser, pytest.mark.e2e]
+
+CHROMIUM = shutil.which("chromium")
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]  # fmt: skip
+if CHROMIUM is None:
+    pytest.skip(
+        "Debian chromium is not installed (apt-get install chromium); CI installs it",
+        allow_module_level=True,
+    )
+sync_api = pytest.importorskip("playwright.sync_api")
+
+
+class StateLog:
+    """Latest state of every vehicle, as a test subscriber on the mesh sees it."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.latest: dict[int, VehicleState] = {}
+
+    def __call__(self, state: VehicleState, _recv_ns: int) -> None:
+        with self._lock:
+            self.latest[state.vehicle_id] = state
+
+    def get(self) -> dict[int, VehicleState]:
+        with self._lock:
+            return dict(self.latest)
+
+    def wait(self, predicate, timeout_s: float, what: str) -> dict[int, VehicleState]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            states = self.get()
+            if predicate(states):
+                return states
+            time.sleep(0.1)
+        states = self.get()
+        assert predicate(states), f"{what}: not seen within {timeout_s} s; states: {states}"
+        return states
+
+
+@pytest.fixture(scope="module")
+def demo():
+    with DemoProcess(["--vehicles", "3", "--port", "0"]) as proc:
+        yield proc
+
+
+@pytest.fixture(scope="module")
+def states(demo):
+    log = StateLog()
+    with Mesh(MeshConfig(mode="peer", connect=(demo.mesh_endpoint,))) as mesh:
+        mesh.subscribe_states(log)
+        log.wait(lambda s: set(s) >= {1, 2, 3}, 30.0, "states of vehicles 1-3")
+        yield log
+
+
+@pytest.fixture(scope="module")
+def page(demo):
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        pg = browser.new_page(viewport={"width": 1200, "height": 800})
+        pg.set_default_timeout(20_000)
+        pg.goto(demo.url)
+        pg.get_by_role("button", name="Takeoff").wait_for()
+        pg.gui_shown_s = time.monotonic()
+        yield pg
+        browser.close()
+
+
+# Clicks use force=True: Playwright's "stable" check waits for animation frames, which software
+# WebGL (no GPU here) makes slow; force still clicks the element where it is, with a real mouse.
+
+
+def field(page, label: str):
+    """The input of a viser GUI control, found by its visible label."""
+    return page.locator(
+        f"xpath=//label[normalize-space()='{label}']/ancestor::div[contains(@class,'mantine-Flex-root')][1]//input"
+    )
+
+
+def fill(page, label: str, value: str) -> None:
+    # viser sends every change at once, so the value reaches the server before the next click.
+    field(page, label).fill(value)
+
+
+def wait_ack(page, n: int, status: str = "accepted") -> None:
+    page.locator(f"span[data-status='{status}']").nth(n - 1).wait_for()
+
+
+def test_vehicles_appear_in_the_fleet_table(page):
+    page.locator("tr[data-vehicle='3']").wait_for()
+    assert page.locator("tr[data-vehicle]").count() == 3
+    assert page.get_by_text("3 of 3 vehicles present").count() == 1
+
+
+def test_bad_input_is_refused_in_the_gui_and_nothing_is_sent(page, states):
+    fill(page, "Takeoff alt (m)", "1000")
+    page.get_by_role("button", name="Takeoff").click(force=True)
+    msg = page.locator("[data-msg=error]")
+    msg.wait_for()
+    assert "outside the allowed range" in msg.inner_text()
+    fill(page, "Targets", "7")
+    page.get_by_role("button", name="Hold").click(force=True)
+    page.get_by_text("Targets: no vehicle 7 in the fleet").wait_for()
+    assert all(s.mode is Mode.LANDED for s in states.get().values())
+
+
+def test_takeoff_to_all_makes_them_airborne(page, states):
+    fill(page, "Targets", "all")
+    fill(page, "Takeoff alt (m)", "5")
+    page.get_by_role("button", name="Takeoff").click(force=True)
+    wait_ack(page, 3)
+    states.wait(
+        lambda s: all(v.armed and -v.pos_ned_m[2] > 3.0 for v in s.values()) and len(s) == 3,
+        30.0,
+        "all three airborne above 3 m",
+    )
+
+
+def test_goto_from_the_form_moves_a_vehicle(page, states):
+    start = states.get()[2].pos_ned_m
+    target = (start[0] + 4.0, start[1], -5.0)
+    fill(page, "Targets", "2")
+    fill(page, "North (m)", f"{target[0]:g}")
+    fill(page, "East (m)", f"{target[1]:g}")
+    fill(page, "Down (m)", "-5")
+    page.get_by_role("button", name="Goto local", exact=True).click(force=True)
+    states.wait(
+        lambda s: (
+            s[2].flags & StateFlag.HAS_GOAL and math.dist(s[2].goal_ned_m[:2], target[:2]) < 0.1
+        ),
+        10.0,
+        "vehicle 2 flying to the form's goal",
+    )
+    states.wait(
+        lambda s: math.dist(s[2].pos_ned_m[:2], start[:2]) > 1.5,
+        20.0,
+        "vehicle 2 moving to its goal",
+    )
+    assert math.dist(states.get()[2].pos_ned_m[:2], target[:2]) < math.dist(start[:2], target[:2])
+
+
+def test_ground_click_places_the_goto_target(page):
+    field(page, "Click ground to set N/E").check(force=True)
+    north, east = field(page, "North (m)"), field(page, "East (m)")
+    before = (north.input_value(), east.input_value())
+    page.mouse.click(380, 620)  # below the horizon, left of the panel: the ground
+    page.wait_for_function(
+        "([n0, e0]) => { const v = [...document.querySelectorAll('[data-msg]')].map(e => e.innerText).join();"
+        " return v.includes('Goto target set to'); }",
+        arg=list(before),
+    )
+    assert (north.input_value(), east.input_value()) != before
+    field(page, "Click ground to set N/E").uncheck(force=True)
+
+
+def test_kill_needs_its_confirmation(page, states):
+    fill(page, "Targets", "3")
+    page.get_by_role("button", name="Arm kill").click(force=True)
+    page.get_by_text("Kill ARMED").wait_for()
+    # One click alone never kills: vehicle 3 keeps flying (checked on the mesh for a while).
+    armed_at = time.monotonic()
+    while time.monotonic() - armed_at < 1.5:
+        assert states.get()[3].mode is not Mode.KILLED
+        time.sleep(0.1)
+    page.get_by_role("button", name="CONFIRM KILL").click(force=True)
+    states.wait(lambda s: s[3].mode is Mode.KILLED, 10.0, "vehicle 3 killed after confirmation")
+    assert states.get()[1].mode is not Mode.KILLED and states.get()[2].mode is not Mode.KILLED
+    sync_api.expect(page.get_by_role("button", name="CONFIRM KILL")).to_be_disabled()
+
+
+def test_screenshot_of_the_scene_is_not_blank(page, tmp_path_factory):
+    import numpy as np
+    from PIL import Image
+
+    # The WebGL canvas fades in after the GUI; by now it has (the earlier steps take > 5 s).
+    page.wait_for_timeout(max(0.0, 5.0 - (time.monotonic() - page.gui_shown_s)) * 1000)
+    path = tmp_path_factory.mktemp("gcs") / "gcs.png"
+    png = page.screenshot(path=str(path))
+    img = Image.open(io.BytesIO(png)).convert("L")
+    scene = np.asarray(
+        img.crop((0, 150, 800, 800)), dtype=np.float64
+    )  # the 3D view, left of the panel
+    variance = float(scene.var())
+    assert variance > 50.0, f"scene looks blank (variance {variance:.1f}); screenshot at {path}"
