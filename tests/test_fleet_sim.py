@@ -1,0 +1,104 @@
+"""`covey fleet-sim`: one process, many vehicles, each a citizen of the mesh on its own."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from agent.fleet_sim import FleetSimConfig, start_grid
+from comms.commands import OutcomeStatus, new_nonce
+from comms.mesh import Mesh
+from comms.schema import Command, CommandKind, Mode, VehicleState
+from comms.session import embedded_router, free_tcp_port
+
+N = 20
+IDS = tuple(range(101, 101 + N))
+ALT_M = 6.0
+
+
+class Latest:
+    """Latest state per vehicle, as seen over the mesh by this test process."""
+
+    def __init__(self, mesh: Mesh) -> None:
+        self.lock = threading.Lock()
+        self.states: dict[int, VehicleState] = {}
+        mesh.subscribe_states(self.on_state)
+
+    def on_state(self, s: VehicleState, _t: int) -> None:
+        with self.lock:
+            self.states[s.vehicle_id] = s
+
+    def wait(self, pred, timeout_s: float, what: str) -> dict[int, VehicleState]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self.lock:
+                snap = dict(self.states)
+            if pred(snap):
+                return snap
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}: {sorted(snap)}")
+
+
+def test_start_grid_is_square_and_spaced() -> None:
+    g = start_grid(5, 4.0, (10.0, 20.0))
+    assert g.shape == (5, 3)
+    assert g[:, 2].tolist() == [0.0] * 5
+    assert g[0].tolist() == [10.0, 20.0, 0.0] and g[3].tolist() == [14.0, 20.0, 0.0]
+
+
+def test_config_is_checked() -> None:
+    with pytest.raises(ValueError, match="vehicles"):
+        FleetSimConfig(vehicles=0)
+    with pytest.raises(ValueError, match="rate_hz"):
+        FleetSimConfig(rate_hz=0.0)
+    with pytest.raises(ValueError):
+        FleetSimConfig(first_id=64_990, vehicles=20)  # ids past the schema's limit
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_fleet_sim_answers_broadcasts_and_flies(procs) -> None:
+    port = free_tcp_port()
+    with Mesh(embedded_router(port, fleet="fs")) as mesh:
+        latest = Latest(mesh)
+        presence = mesh.presence()
+        sim = procs.start(
+            "-m", "covey_cli", "fleet-sim", "--vehicles", str(N), "--first-id", str(IDS[0]),
+            "--fleet", "fs", "--connect", f"tcp/127.0.0.1:{port}", "--cruise-speed-m-s", "3",
+        )  # fmt: skip
+        procs.wait_line(sim, "READY", timeout_s=60)
+        assert presence.wait_for(lambda v, _g: v >= set(IDS), timeout_s=30), "tokens missing"
+        latest.wait(lambda s: set(s) >= set(IDS), 20, "a state from every vehicle")
+
+        # A goto while landed is refused by every vehicle, with the agent's reason.
+        refused = mesh.send_command(Command.goto_local(0, 0, -5, nonce=new_nonce(), stamp_ns=0), expect=IDS, timeout_s=10)
+        assert refused.by_status(OutcomeStatus.REJECTED) == list(IDS)
+        assert "landed" in refused.outcomes[IDS[0]].reason
+
+        # One broadcast, twenty acks.
+        up = mesh.send_command(Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=0), expect=IDS, timeout_s=10)
+        assert up.ok and sorted(up.outcomes) == list(IDS), up.summary()
+        at_alt = latest.wait(lambda s: all(s[v].mode is Mode.HOLDING for v in IDS), 60, "all holding")
+        assert all(abs(at_alt[v].pos_ned_m[2] + ALT_M) < 0.6 for v in IDS)
+        before = {v: np.array(at_alt[v].pos_ned_m) for v in IDS}
+
+        # A goto to each vehicle's own point 15 m north of its start moves all of them.
+        for v in IDS:
+            n, e, _ = before[v]
+            r = mesh.send_command(Command.goto_local(n + 15, e, -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(v,)), timeout_s=10)
+            assert r.ok, r.summary()
+        moved = latest.wait(
+            lambda s: all(s[v].pos_ned_m[0] - before[v][0] > 5.0 for v in IDS), 60, "all moved north"
+        )
+        assert all(moved[v].mode in (Mode.GOTO, Mode.HOLDING) for v in IDS)
+        arrived = latest.wait(lambda s: all(s[v].mode is Mode.HOLDING for v in IDS), 90, "all arrived")
+        for v in IDS:
+            assert np.hypot(arrived[v].pos_ned_m[0] - before[v][0] - 15, arrived[v].pos_ned_m[1] - before[v][1]) < 1.5
+
+        # Land all; every vehicle touches down and disarms.
+        down = mesh.send_command(Command(CommandKind.LAND, new_nonce(), 0), expect=IDS, timeout_s=10)
+        assert down.ok, down.summary()
+        latest.wait(lambda s: all(s[v].mode is Mode.LANDED and not s[v].armed for v in IDS), 90, "all landed")
