@@ -393,7 +393,6 @@ def test_emulator_tick_on_a_fake_clock_over_real_udp() -> None:
     """The whole stack in-process: garbage and commands in on a real socket, time injected."""
     cfg = SitlConfig(vehicle_id=4, links=("udpin:127.0.0.1:0",), home=HOME)
     with Emulator(cfg, now_s=100.0) as emu, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as gcs:
-        gcs.settimeout(2.0)
         addr = ("127.0.0.1", emu.links[0].local_port)
         gcs.sendto(b"\xfd\xff" + bytes(300), addr)  # a header that claims more than is there
         gcs.sendto(bytes(range(256)), addr)
@@ -401,11 +400,16 @@ def test_emulator_tick_on_a_fake_clock_over_real_udp() -> None:
             4, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0
         )
         gcs.sendto(arm.pack(GCS), addr)
-        time.sleep(0.05)  # let the datagrams land; the emulator's clock is the injected one
-        emu.tick(100.0)
-        got = mavlink.MAVLink(None).parse_buffer(gcs.recv(65535)) or []
+        gcs.settimeout(0.05)
+        got: list = []
+        deadline = time.monotonic() + 10.0  # wall time only bounds the wait for the datagrams
         while not any(m.get_type() == "COMMAND_ACK" for m in got):
-            got += mavlink.MAVLink(None).parse_buffer(gcs.recv(65535)) or []
+            assert time.monotonic() < deadline, "no COMMAND_ACK from the emulator"
+            emu.tick(100.0)  # the emulator's clock stands still: it is the injected one
+            try:
+                got += mavlink.MAVLink(None).parse_buffer(gcs.recv(65535)) or []
+            except TimeoutError:
+                continue
         ack = next(m for m in got if m.get_type() == "COMMAND_ACK")
         assert ack.result == px4.ACCEPTED and emu.vehicle.armed
         assert emu.links[0].bad_packets >= 2
