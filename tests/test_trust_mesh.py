@@ -1,0 +1,230 @@
+"""Encrypted, authenticated mesh: the shipped Zenoh configs (comms/zenoh_configs/) on loopback.
+
+A router in this process, the ground station as a client in this process, a real agent process
+as a client. Two setups share the same access-control shape: mutual TLS with identities from
+certificate common names, and user/password with identities from user names. Checked:
+- the fleet works through them (states flow, commands are acked);
+- a peer without credentials cannot join: its put never arrives, its query gets no ack;
+- a peer WITH credentials but the wrong identity cannot impersonate: another vehicle's state
+  never arrives, and a vehicle cannot command a vehicle.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from comms import keys
+from comms.commands import OutcomeStatus, new_nonce
+from comms.mesh import Mesh
+from comms.schema import Command, CommandKind, VehicleState
+from comms.session import MeshConfig, free_tcp_port
+
+pytestmark = [pytest.mark.e2e]
+
+CONFIGS = Path(__file__).resolve().parent.parent / "comms" / "zenoh_configs"
+FLEET = "trust"
+PLACEHOLDER_DIR = "/etc/covey/tls/"
+PLACEHOLDER_USERS = "/etc/covey/users.txt"
+# Give up quickly on a link that will never be accepted, instead of retrying forever.
+QUICK = (
+    ("connect/timeout_ms", "1500"),
+    ("connect/exit_on_failure", "false"),
+    ("listen/endpoints", "[]"),
+)
+
+needs_openssl = pytest.mark.skipif(
+    shutil.which("openssl") is None, reason="openssl CLI not installed"
+)
+
+
+def make_certs(out: Path, *names: str) -> Path:
+    subprocess.run(["sh", str(CONFIGS / "make_certs.sh"), str(out), *names], check=True, timeout=60)
+    return out
+
+
+def identity_config(template: str, tmp: Path, name: str, certs: Path | None = None,
+                    user: str | None = None, password: str | None = None) -> str:  # fmt: skip
+    """Write a copy of a shipped config with its placeholders pointing at `name`'s files."""
+    text = (CONFIGS / template).read_text()
+    if certs is not None:
+        for leaf in ("client", "router"):
+            text = text.replace(f"{PLACEHOLDER_DIR}{leaf}.pem", str(certs / f"{name}.pem"))
+            text = text.replace(f"{PLACEHOLDER_DIR}{leaf}.key", str(certs / f"{name}.key"))
+        text = text.replace(f"{PLACEHOLDER_DIR}ca.pem", str(certs / "ca.pem"))
+    text = text.replace(PLACEHOLDER_USERS, str(tmp / "users.txt"))
+    if user is not None:
+        text = text.replace('user: "vehicle-1"', f'user: "{user}"').replace(
+            '"CHANGE-ME"', f'"{password}"'
+        )
+    path = tmp / f"{name}-{template}"
+    path.write_text(text)
+    path.chmod(0o600)
+    return str(path)
+
+
+class Setup:
+    """Endpoints and per-identity config files of one secured fleet."""
+
+    def __init__(self, kind: str, tmp: Path) -> None:
+        self.kind = kind
+        self.port = free_tcp_port()
+        self.tmp = tmp
+        if kind == "mtls":
+            self.certs = make_certs(tmp / "certs", "router", "gcs-1", "vehicle-1", "vehicle-2")
+            self.rogue_certs = make_certs(tmp / "rogue", "gcs-1")  # right name, wrong CA
+            self.listen = f"tls/127.0.0.1:{self.port}"
+            self.connect = f"tls/localhost:{self.port}"
+        else:
+            self.certs = None
+            (tmp / "users.txt").write_text(
+                "gcs-1:pw-gcs-1\nvehicle-1:pw-vehicle-1\nvehicle-2:pw-vehicle-2\n"
+            )
+            (tmp / "users.txt").chmod(0o600)
+            self.listen = f"tcp/127.0.0.1:{self.port}"
+            self.connect = f"tcp/127.0.0.1:{self.port}"
+
+    def router(self) -> MeshConfig:
+        template = "router_mtls_acl.json5" if self.kind == "mtls" else "router_usrpwd_acl.json5"
+        path = identity_config(template, self.tmp, "router", self.certs)
+        return MeshConfig(
+            fleet=FLEET, mode="router", connect=(), listen=(self.listen,), config_file=path
+        )
+
+    def client_file(self, name: str, password: str | None = None) -> str:
+        if self.kind == "mtls":
+            return identity_config("client_mtls.json5", self.tmp, name, self.certs)
+        return identity_config(
+            "client_usrpwd.json5", self.tmp, name, user=name, password=password or f"pw-{name}"
+        )
+
+    def client(self, name: str, password: str | None = None, extra=()) -> MeshConfig:
+        return MeshConfig(
+            fleet=FLEET,
+            mode="client",
+            connect=(self.connect,),
+            config_file=self.client_file(name, password),
+            extra=extra,
+        )
+
+    def intruders(self) -> list[tuple[str, MeshConfig]]:
+        """Configs that must not get in at all."""
+        # Peers: a peer's session opens even when nobody lets it in, so it can try to send.
+        bare = MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=QUICK)
+        if self.kind == "mtls":
+            wrong_ca = identity_config("client_mtls.json5", self.tmp, "gcs-1", self.rogue_certs)
+            no_cert = MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=(
+                *QUICK, ("transport/link/tls/root_ca_certificate", f'"{self.certs / "ca.pem"}"')))  # fmt: skip
+            return [("plain", bare), ("tls-without-certificate", no_cert),
+                    ("certificate-from-another-ca", MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), config_file=wrong_ca, extra=QUICK))]  # fmt: skip
+        wrong = MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=QUICK,
+                           config_file=self.client_file("gcs-1", password="guess"))  # fmt: skip
+        return [("no-password", bare), ("wrong-password", wrong)]
+
+
+@pytest.fixture(params=["mtls", "usrpwd"])
+def secured(request, tmp_path, procs):
+    if request.param == "mtls" and shutil.which("openssl") is None:
+        pytest.skip("openssl CLI not installed")
+    setup = Setup(request.param, tmp_path)
+    with Mesh(setup.router()) as router, Mesh(setup.client("gcs-1")) as gcs:
+        received: list[VehicleState] = []
+        gcs.subscribe_states(lambda s, _t: received.append(s))
+        presence = gcs.presence()
+        gcs.declare_gcs(1)
+        agent = procs.start(
+            "-m", "covey_cli", "agent", "--id", "1", "--fleet", FLEET, "--mesh-mode", "client",
+            "--connect", setup.connect, "--zenoh-config", setup.client_file("vehicle-1"), "--no-gcs-failsafe",
+        )  # fmt: skip
+        assert presence.wait_for(lambda v, _g: 1 in v, timeout_s=30), (
+            "the agent did not join through the secured router"
+        )
+        yield setup, router, gcs, received, agent
+
+
+def wait(pred, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return pred()
+
+
+def forged_state(vid: int, seq: int) -> VehicleState:
+    return VehicleState(vid, seq, time.time_ns(), (66.0, 66.0, -6.0), (0.0, 0.0, 0.0), 0.0)
+
+
+def test_secured_fleet_works_and_strangers_cannot_join_or_inject(secured) -> None:
+    setup, _router, gcs, received, _agent = secured
+    assert wait(lambda: any(s.vehicle_id == 1 for s in received), 10), "no state from the agent"
+    ack = gcs.send_command(
+        Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(1,)), timeout_s=5
+    )
+    assert set(ack.outcomes) == {1} and ack.outcomes[1].ack is not None, ack.summary()
+
+    for name, cfg in setup.intruders():
+        t0 = time.monotonic()
+        try:
+            rogue_mesh = Mesh(cfg)
+        except zenoh.ZError as exc:  # a client that cannot connect does not open at all
+            print(f"{setup.kind}/{name}: refused at open: {exc}")
+            continue
+        with rogue_mesh as rogue:
+            try:
+                rogue.publish_state(forged_state(1, 999_999))
+            except Exception:  # noqa: BLE001 - refusing to send at all is a pass too
+                pass
+            replies = list(
+                rogue.session.get(
+                    keys.cmd(FLEET, 1),
+                    payload=Command(CommandKind.KILL, new_nonce(), 0).encode(),
+                    timeout=1.0,
+                )
+            )
+            time.sleep(0.5)
+        assert not [r for r in replies if r.ok is not None], f"{name}: its kill query was answered"
+        assert not [s for s in received if s.seq == 999_999], f"{name}: its forged state arrived"
+        print(f"{setup.kind}/{name}: refused in {time.monotonic() - t0:.1f} s")
+
+
+def test_an_insider_cannot_impersonate_a_vehicle_or_command(secured) -> None:
+    """vehicle-2 holds valid credentials: it may publish its own state, not vehicle 1's, and it
+    may not send commands at all (only ground stations may)."""
+    setup, _router, gcs, received, _agent = secured
+    with Mesh(setup.client("vehicle-2")) as v2:
+        answered = threading.Event()
+        v2.declare_vehicle(2)
+        for seq in range(1, 20):
+            v2.publish_state(forged_state(2, seq))
+            v2.publish_state(forged_state(1, 1_000_000 + seq))
+            time.sleep(0.02)
+        assert wait(lambda: any(s.vehicle_id == 2 for s in received), 5), (
+            "vehicle 2's own state did not arrive"
+        )
+        replies = list(
+            v2.session.get(
+                keys.cmd(FLEET, 1),
+                payload=Command(CommandKind.KILL, new_nonce(), 0).encode(),
+                timeout=1.0,
+            )
+        )
+        if any(r.ok is not None for r in replies):
+            answered.set()
+    assert not [s for s in received if s.vehicle_id == 1 and s.seq > 1_000_000], (
+        "vehicle 2 spoofed vehicle 1's state"
+    )
+    assert not answered.is_set(), "a vehicle's command reached another vehicle"
+    # The station still commands vehicle 1.
+    result = gcs.send_command(
+        Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(1,)), timeout_s=5
+    )
+    assert result.outcomes[1].status in (OutcomeStatus.ACCEPTED, OutcomeStatus.REJECTED), (
+        result.summary()
+    )
