@@ -63,6 +63,9 @@ class AgentConfig:
     """Radio link emulated between this agent and the others (comms.link spec)."""
     open_mode: bool = True
     """Commands are not authenticated (simulator demo only)."""
+    trace_guidance: bool = False
+    """Publish a guidance trace Event after each state (what the policy saw and commanded), so
+    that `covey replay --policy` can replay this flight closed-loop exactly."""
 
     def __post_init__(self) -> None:
         from comms.keys import check_vehicle_id
@@ -126,8 +129,11 @@ class Agent:
             self.flight.flags |= StateFlag.OPEN_MODE
 
     # -- events ------------------------------------------------------------------------------
-    def _event(self, text: str, kind: EventKind = EventKind.STATUS, severity: Severity = Severity.INFO) -> None:
-        log.info("vehicle %d: %s", self.vid, text)
+    def _event(
+        self, text: str, kind: EventKind = EventKind.STATUS, severity: Severity = Severity.INFO, quiet: bool = False
+    ) -> None:
+        if not quiet:
+            log.info("vehicle %d: %s", self.vid, text)
         try:
             self.mesh.event(self.vid, text, kind=kind, severity=severity)
         except Exception as exc:  # noqa: BLE001 - an event that cannot be sent must not stop flying
@@ -279,8 +285,9 @@ class Agent:
         if not tel.link_ok:
             flags |= StateFlag.FAILSAFE_LINK_LOST
         # Fly.
+        out = None
+        heading_in_rad = fl.heading_rad
         if tel.link_ok and self.velocity_mode and tel.armed:
-            out = None
             if fl.mode in (Mode.GOTO, Mode.RETURNING) and fl.goal_m is not None:
                 out = self.guidance.goto(pos, vel, fl.heading_rad, fl.goal_m, nbrs)
             elif fl.mode is Mode.HOLDING and fl.hold_m is not None:
@@ -308,9 +315,18 @@ class Agent:
                 log.warning("traffic forward failed: %s", exc)
         if nbrs.stale_ids:
             flags |= StateFlag.NEIGHBOURS_STALE
-        if now_s - self._last_state_s >= 1.0 / self.cfg.state_hz - 1e-3:
+        # Half a tick of tolerance: with equal tick and state rates, jitter must not skip states.
+        if now_s - self._last_state_s >= 1.0 / self.cfg.state_hz - 0.5 / self.cfg.tick_hz:
             self._last_state_s = now_s
             self._publish(tel, pos, vel, flags)
+            if self.cfg.trace_guidance and out is not None:
+                self._trace(heading_in_rad, out.vel_ned_m_s, nbrs)
+
+    def _trace(self, heading_in_rad: float, cmd_vel_ned_m_s: np.ndarray, nbrs) -> None:
+        from agent.closed_loop import trace_text
+
+        text = trace_text(self.flight.seq, heading_in_rad, cmd_vel_ned_m_s, nbrs.ids, nbrs.seqs, nbrs.age_s)
+        self._event(text, EventKind.STATUS, Severity.DEBUG, quiet=True)
 
     def _arrived(self, pos: np.ndarray, goal: np.ndarray) -> bool:
         if self.guidance is not None:

@@ -91,6 +91,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--tick-hz", type=float, default=10.0)
     p.add_argument("--state-hz", type=float, default=10.0)
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
+    p.add_argument("--trace-guidance", action="store_true",
+                   help="publish guidance traces so `covey replay --policy` can replay the flight exactly")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true")
     add_mesh_args(p)
     return p
@@ -112,6 +114,7 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
             gcs_lost_land_s=args.gcs_lost_land_s, geofence_radius_m=args.geofence_radius_m,
         ),  # fmt: skip
         link=args.link,
+        trace_guidance=args.trace_guidance,
     )
 
 
@@ -121,7 +124,7 @@ def make_link(spec: str, vehicle_id: int, receiver_pos=None):
         return None
     from comms import link
 
-    return link.emulator_from_spec(spec, seed=vehicle_id, receiver_pos=receiver_pos)
+    return link.emulator_from_spec(spec, seed=vehicle_id, receiver_pos=receiver_pos, own_id=vehicle_id)
 
 
 def main(cfg: AgentConfig, vehicle: str = "sim", start_ne_m=(0.0, 0.0), stop: threading.Event | None = None,
@@ -139,9 +142,15 @@ def main(cfg: AgentConfig, vehicle: str = "sim", start_ne_m=(0.0, 0.0), stop: th
         own_pos[0] = None
         agent.on_position = lambda p: own_pos.__setitem__(0, p)
         log.info("vehicle %d up: fleet %s, %s, link %s", cfg.vehicle_id, cfg.mesh.fleet, vehicle, cfg.link)
-        if duration_s is not None:
-            threading.Timer(duration_s, stop.set).start()
-        agent.run(stop)
+        timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
+        if timer is not None:
+            timer.daemon = True
+            timer.start()
+        try:
+            agent.run(stop)
+        finally:
+            if timer is not None:
+                timer.cancel()
     return 0
 
 

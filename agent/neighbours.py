@@ -39,6 +39,8 @@ class NeighbourSnapshot:
     ids: tuple[int, ...]
     age_s: np.ndarray
     stale_ids: tuple[int, ...]
+    seqs: tuple[int, ...] = ()
+    """The seq of each neighbour's state used (guidance traces for closed-loop replay)."""
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -73,7 +75,7 @@ class NeighbourTable:
             for vid in [v for v, (_, t) in self._latest.items() if now_s - t > self.cfg.drop_s]:
                 del self._latest[vid]
             items = list(self._latest.values())
-        pos, vel, hdg, ids, ages, stale = [], [], [], [], [], []
+        pos, vel, hdg, ids, ages, stale, seqs = [], [], [], [], [], [], []
         for state, recv_s in items:
             if state.mode in (Mode.LANDED, Mode.KILLED) and not state.armed:
                 continue
@@ -85,6 +87,7 @@ class NeighbourTable:
             vel.append(state.vel_ned_m_s)
             hdg.append(state.heading_rad)
             ids.append(state.vehicle_id)
+            seqs.append(state.seq)
             ages.append(age_s)
             if age_s > self.cfg.stale_s:
                 stale.append(state.vehicle_id)
@@ -96,6 +99,7 @@ class NeighbourTable:
             ids=tuple(ids),
             age_s=np.array(ages, dtype=float).reshape(k),
             stale_ids=tuple(stale),
+            seqs=tuple(seqs),
         )
 
     def latest(self) -> dict[int, VehicleState]:

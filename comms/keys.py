@@ -2,6 +2,7 @@
 
     covey/<fleet>/v/<id>/state    pub/sub, latest-wins VehicleState
     covey/<fleet>/v/<id>/cmd      queryable: Command -> CommandAck
+    covey/<fleet>/v/<id>/ack      pub/sub: a copy of every CommandAck the vehicle sent (recorders)
     covey/<fleet>/v/<id>/alive    liveliness token of a vehicle's agent
     covey/<fleet>/v/<id>/event    pub/sub Event
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
@@ -18,7 +19,7 @@ from comms.schema import MAX_VEHICLE_ID
 
 ROOT = "covey"
 _FLEET_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
-_VEHICLE_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|alive|event)$")
+_VEHICLE_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event)$")
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
 
 
@@ -54,6 +55,10 @@ def cmd(fleet: str, vehicle_id: int) -> str:
 
 def all_cmds(fleet: str) -> str:
     return _vehicle(fleet, "*", "cmd")
+
+
+def ack(fleet: str, vehicle_id: int) -> str:
+    return _vehicle(fleet, vehicle_id, "ack")
 
 
 def alive(fleet: str, vehicle_id: int) -> str:

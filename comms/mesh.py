@@ -204,6 +204,7 @@ class Mesh:
         """Answer commands for `vehicle_id`; `handler` returns the ack (never raise from it:
         an exception becomes a FAILED ack with the exception text)."""
         reply_key = keys.cmd(self.fleet, vehicle_id)
+        ack_key = keys.ack(self.fleet, vehicle_id)
 
         def ack(nonce: int, result: AckResult, reason: str) -> CommandAck:
             return CommandAck(vehicle_id, nonce, self.clock_ns(), result, reason[:96], Mode.LANDED)
@@ -230,10 +231,15 @@ class Mesh:
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
             if self.auth is not None:
                 answer = self.auth.sign_ack(answer)
+            payload = answer.encode()
             try:
-                query.reply(reply_key, answer.encode())
+                query.reply(reply_key, payload)
             except Exception as exc:  # noqa: BLE001 - the querier may be gone
                 log.warning("could not reply to a command: %s", exc)
+            try:  # a copy for recorders: replies are seen only by the querier
+                self.session.put(ack_key, payload)
+            except Exception as exc:  # noqa: BLE001
+                log.warning("could not publish the ack copy: %s", exc)
 
         return self._keep(self.session.declare_queryable(reply_key, on_query))
 

@@ -87,7 +87,7 @@ def flight(tmp_path_factory):
                 n, e = STARTS[vid]
                 procs.append(subprocess.Popen(
                     [sys.executable, "-m", "covey_cli", "agent", "--id", str(vid), "--fleet", fleet,
-                     "--connect", connect, "--start", f"{n},{e}", "--no-gcs-failsafe"],
+                     "--connect", connect, f"--start={n},{e}", "--no-gcs-failsafe", "--trace-guidance"],
                     env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                 ))  # fmt: skip
             assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 20.0)
@@ -220,6 +220,5 @@ def test_closed_loop_on_the_real_flight(flight):
 
     rep = run_closed_loop(ClosedLoopConfig(str(flight["clean"]), vehicle_id=1))
     assert rep["ticks"] >= 10
-    if not rep["exact"]:
-        pytest.xfail("the agent does not publish guidance trace events yet (agent/closed_loop.py)")
+    assert rep["exact"], "the agent published no usable guidance traces"
     assert rep["max_diff_m_s"] < 1e-4 and rep["skipped_ticks"] <= 0.05 * rep["ticks"]

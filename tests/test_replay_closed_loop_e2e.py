@@ -1,9 +1,7 @@
 """Closed-loop replay of a real agent flight reports zero difference for the same policy.
 
-The agents are real `agent.cli` processes whose guidance loop is wrapped, in the subprocess only,
-to publish the guidance trace (agent/closed_loop.py: `trace_text`) after each published state.
-This wrapper is the reference for the change the agent itself needs; once the agent publishes
-traces, tests/test_record_e2e.py checks the unwrapped agent the same way.
+The agents are real `covey agent --trace-guidance` processes: after each published state they
+publish the guidance trace (agent/closed_loop.py: `trace_text`) that makes the replay exact.
 """
 
 from __future__ import annotations
@@ -25,57 +23,6 @@ from comms.schema import Command
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 
 pytestmark = pytest.mark.e2e
-
-AGENT_WITH_TRACES = r"""
-import sys
-import numpy as np
-import agent.app as app
-import agent.neighbours as nb
-from agent.closed_loop import trace_text
-from comms.schema import Event, EventKind, Severity
-
-_snapshot = nb.NeighbourTable.snapshot
-def snapshot(self, now_s, own_pos_ned_m=None):
-    snap = _snapshot(self, now_s, own_pos_ned_m)
-    latest = self.latest()
-    seqs, ok = [], True
-    for vid, p, a in zip(snap.ids, snap.pos_ned_m, snap.age_s):
-        s = latest.get(vid)  # a state that arrived in between makes the trace unusable
-        ok = ok and s is not None and np.array_equal(np.asarray(s.pos_ned_m) + np.asarray(s.vel_ned_m_s) * a, p)
-        seqs.append(s.seq if s is not None else 0)
-    self.last_trace_seqs = (seqs, ok)
-    return snap
-nb.NeighbourTable.snapshot = snapshot
-
-def wrap(name):
-    orig = getattr(app.Guidance, name)
-    def guided(self, pos, vel, heading_rad, goal, nbrs):
-        out = orig(self, pos, vel, heading_rad, goal, nbrs)
-        self.captured = (heading_rad, out.vel_ned_m_s, nbrs)
-        return out
-    setattr(app.Guidance, name, guided)
-wrap("goto"); wrap("hold")
-
-_tick, _publish = app.Agent._tick, app.Agent._publish
-def tick(self, now_s):
-    self.guidance.captured = None
-    _tick(self, now_s)
-def publish(self, tel, pos, vel, flags):
-    _publish(self, tel, pos, vel, flags)
-    cap = self.guidance.captured
-    if cap is None:
-        return
-    heading_rad, cmd, nbrs = cap
-    seqs, ok = self.table.last_trace_seqs
-    text = trace_text(self.flight.seq, heading_rad, cmd, nbrs.ids, seqs, nbrs.age_s)
-    if not ok:
-        text = text.rstrip("+") + "+"
-    self.mesh.publish_event(Event(self.vid, self.mesh.clock_ns(), text, Severity.DEBUG, EventKind.STATUS))
-app.Agent._tick, app.Agent._publish = tick, publish
-
-from agent.cli import cli
-sys.exit(cli(sys.argv[1:]))
-"""
 
 STARTS = {1: (0.0, 0.0), 2: (0.0, 6.0), 3: (6.0, 3.0)}
 GOALS = {1: (6.0, 6.0, -3.0), 2: (6.0, 0.0, -3.0), 3: (0.0, 3.0, -3.0)}
@@ -103,8 +50,9 @@ def test_same_policy_on_a_real_flight_reports_zero_difference(tmp_path):
         try:
             for vid, (n, e) in STARTS.items():
                 procs.append(subprocess.Popen(
-                    [sys.executable, "-c", AGENT_WITH_TRACES, "--id", str(vid), "--fleet", fleet,
-                     "--connect", f"tcp/127.0.0.1:{port}", "--start", f"{n},{e}", "--no-gcs-failsafe"],
+                    [sys.executable, "-m", "covey_cli", "agent", "--id", str(vid), "--fleet", fleet,
+                     "--connect", f"tcp/127.0.0.1:{port}", f"--start={n},{e}", "--no-gcs-failsafe",
+                     "--trace-guidance"],
                     env={**os.environ}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                 ))  # fmt: skip
             assert mesh.presence().wait_for(lambda v, _g: set(STARTS) <= v, 20.0)
