@@ -163,6 +163,18 @@ def wait_for(backend, pred, timeout_s: float = 15.0, what: str = "condition"):
     raise AssertionError(f"timed out waiting for {what}; last telemetry {backend.telemetry()}")
 
 
+def fly_until(backend, vel_ned_m_s, heading_rad, pred, timeout_s: float = 15.0):
+    """Stream velocity setpoints at 20 Hz, as the agent's loop does, until `pred(telemetry)`."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        backend.set_velocity_ned(vel_ned_m_s, heading_rad)
+        t = backend.telemetry()
+        if t is not None and pred(t) and backend.flight_mode == "OFFBOARD":
+            return t
+        time.sleep(0.05)
+    raise AssertionError(f"offboard flight did not get there; last telemetry {backend.telemetry()}")
+
+
 def test_backend_flies_the_emulator_in_the_fleet_frame() -> None:
     port = free_udp_port()
     cfg = MavsdkConfig(
@@ -186,15 +198,13 @@ def test_backend_flies_the_emulator_in_the_fleet_frame() -> None:
         assert t.armed and t.in_air and t.battery_pct <= 100.0
 
         start = t.pos_ned_m
-        for _ in range(25):  # the agent's loop at 20 Hz
-            vb.set_velocity_ned((2.0, -2.0, 0.0), -math.pi / 4)
-            time.sleep(0.05)
-        wait_for(vb, lambda t: vb.flight_mode == "OFFBOARD", what="OFFBOARD mode")
-        t = wait_for(
+        t = fly_until(
             vb,
+            (2.0, -2.0, 0.0),
+            -math.pi / 4,
             lambda t: t.pos_ned_m[0] - start[0] > 1.5 and start[1] - t.pos_ned_m[1] > 1.5,
-            what="offboard motion",
         )
+        assert vb.flight_mode == "OFFBOARD"
         assert t.vel_ned_m_s[0] > 1.0 and t.vel_ned_m_s[1] < -1.0
         # The agent goes quiet: the backend's re-send turns into a hover, not a fly-away.
         time.sleep(cfg.setpoint_stale_s + 0.2)
@@ -303,8 +313,7 @@ def test_backend_does_not_grab_control_back_after_a_takeover() -> None:
             _, emulator = gcs.recvfrom(65535)
             vb.takeoff(3.0)
             wait_for(vb, lambda t: t.pos_ned_m[2] < -2.7, what="takeoff")
-            vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
-            wait_for(vb, lambda t: vb.flight_mode == "OFFBOARD", what="OFFBOARD")
+            fly_until(vb, (1.0, 0.0, 0.0), 0.0, lambda t: True)
             hold = mavlink.MAVLink_command_long_message(
                 1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 4, 3, 0, 0, 0, 0
             )
@@ -314,5 +323,5 @@ def test_backend_does_not_grab_control_back_after_a_takeover() -> None:
             )
             with pytest.raises(BackendError, match="left offboard"):
                 vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
-            vb.set_velocity_ned((1.0, 0.0, 0.0), 0.0)  # the agent decides to take over again
-            wait_for(vb, lambda t: vb.flight_mode == "OFFBOARD", what="OFFBOARD again")
+            # The agent decides to take over again.
+            fly_until(vb, (1.0, 0.0, 0.0), 0.0, lambda t: True)
