@@ -195,9 +195,11 @@ class GroundStation:
         """One update burst; returns its duration in seconds."""
         assert self.server is not None
         t0 = time.perf_counter()
-        snap = self.fleet.snapshot(self._clock_ns())
+        now_ns = self._clock_ns()
+        trails = self.scene.trails_due(now_ns)
+        snap = self.fleet.snapshot(now_ns, trails=trails)
         with self.server.atomic():
-            self.scene.update(snap)
+            self.scene.update(snap, send_trails=trails)
             if with_table:
                 self.table.content = fleet_table(snap)
         return time.perf_counter() - t0

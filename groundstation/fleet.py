@@ -177,12 +177,21 @@ class FleetModel:
                 vid: t.state.pos_ned_m for vid, t in self._tracks.items() if t.state is not None
             }
 
-    def snapshot(self, now_ns: int) -> FleetSnapshot:
+    def snapshot(self, now_ns: int, trails: bool = True) -> FleetSnapshot:
+        """The fleet at `now_ns`. `trails=False` leaves every trail empty (they are the costly
+        part, and the scene re-sends them only about once a second)."""
         cfg = self.cfg
         with self._lock:
             items = sorted(self._tracks.items())
             raw = [
-                (vid, t.state, t.alive, t.last_recv_ns, tuple(t.window), [p for _, p in t.trail])
+                (
+                    vid,
+                    t.state,
+                    t.alive,
+                    t.last_recv_ns,
+                    tuple(t.window),
+                    list(t.trail) if trails else [],
+                )
                 for vid, t in items
             ]
         horizon_ns = now_ns - int(cfg.rate_window_s * NS_PER_S)
@@ -202,7 +211,7 @@ class FleetModel:
                     age_s=age_s,
                     rate_hz=rate_hz,
                     loss_pct=loss_pct,
-                    trail_ned_m=np.asarray(trail, dtype=np.float32).reshape(-1, 3),
+                    trail_ned_m=np.array([p for _, p in trail], dtype=np.float32).reshape(-1, 3),
                     too_close=vid in close_ids,
                     stale=age_s > cfg.stale_after_s,
                 )
@@ -224,13 +233,27 @@ def link_health(window: list[tuple[int, int]] | tuple[tuple[int, int], ...]) -> 
 def close_pairs(
     positions: list[tuple[int, tuple[float, float, float]]], separation_m: float
 ) -> list[tuple[int, int, float]]:
-    """Every pair of vehicles closer than `separation_m` (3D), as (id_a, id_b, distance_m)."""
-    if len(positions) < 2:
-        return []
-    ids = np.array([vid for vid, _ in positions])
-    pos = np.array([p for _, p in positions], dtype=np.float64)
-    # Pairwise distances: |p_i - p_j|; fine up to a few thousand vehicles.
-    diff = pos[:, None, :] - pos[None, :, :]
-    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
-    ii, jj = np.nonzero(np.triu(dist < separation_m, k=1))
-    return [(int(ids[i]), int(ids[j]), float(dist[i, j])) for i, j in zip(ii, jj, strict=True)]
+    """Every pair of vehicles closer than `separation_m` (3D), as (id_a, id_b, distance_m), id_a < id_b.
+
+    Spatial hash on (north, east) cells of the separation size: a close pair lies in the same or
+    a neighbouring cell, so each vehicle is compared with a handful of others, not all n.
+    """
+    cells: dict[tuple[int, int], list[tuple[int, tuple[float, float, float]]]] = {}
+    for vid, p in positions:
+        cells.setdefault(
+            (math.floor(p[0] / separation_m), math.floor(p[1] / separation_m)), []
+        ).append((vid, p))
+    sep2 = separation_m * separation_m
+    pairs = []
+    for (cn, ce), members in cells.items():
+        near = [
+            m for dn in (-1, 0, 1) for de in (-1, 0, 1) for m in cells.get((cn + dn, ce + de), ())
+        ]
+        for va, pa in members:
+            for vb, pb in near:
+                if vb <= va:
+                    continue  # each pair once, from its lower id
+                d2 = (pa[0] - pb[0]) ** 2 + (pa[1] - pb[1]) ** 2 + (pa[2] - pb[2]) ** 2
+                if d2 < sep2:
+                    pairs.append((va, vb, math.sqrt(d2)))
+    return sorted(pairs)

@@ -33,6 +33,7 @@ from groundstation.palette import (
 # Shadows need an extra render pass per light; without a GPU (software WebGL) that halves the frame
 # rate, and an operator reads height from the stalks and labels anyway.
 NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
+HEADING_STEP_RAD = math.radians(2.0)
 
 
 def circle_segments(radius_m: float, n: int = 48, z_m: float = 0.0) -> np.ndarray:
@@ -67,12 +68,14 @@ class _VehicleHandles:
     trail: Any
     cache: dict[str, Any] = field(default_factory=dict)
 
-    def set(self, key: str, handle: Any, prop: str, value: Any) -> None:
-        """Assign handle.prop = value unless it is already that (cache compared by repr)."""
+    def set(
+        self, key: str, handle: Any, prop: str, value: Any, make: Callable[[Any], Any] | None = None
+    ) -> None:
+        """Assign handle.prop = make(value) (or value) unless `value` is what was set last time."""
         marker = value.tobytes() if isinstance(value, np.ndarray) else value
         if self.cache.get(key) != marker:
             self.cache[key] = marker
-            setattr(handle, prop, value)
+            setattr(handle, prop, make(value) if make is not None else value)
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,9 @@ class SceneConfig:
     """Separation distance; each vehicle's ring has half this radius, so rings touch at it."""
     trail_period_s: float = 1.0
     """How often trails are re-sent (they are the heaviest part of an update)."""
+    trail_max_points: int = 120
+    """Trails are thinned to at most this many points when sent (500 vehicles x 300 points is
+    too much to re-send every second)."""
     velocity_scale_s: float = 1.0
     """Velocity arrows show where the vehicle will be in this many seconds."""
 
@@ -136,10 +142,15 @@ class FleetScene:
             h.body.on_click(lambda _event, vid=vid: cb(vid))
         return h
 
-    def update(self, snap: FleetSnapshot) -> None:
-        send_trails = snap.now_ns - self._last_trail_ns >= self.cfg.trail_period_s * 1e9
-        if send_trails:
-            self._last_trail_ns = snap.now_ns
+    def trails_due(self, now_ns: int) -> bool:
+        """True (once per trail period) when the next update should carry trails."""
+        if now_ns - self._last_trail_ns >= self.cfg.trail_period_s * 1e9:
+            self._last_trail_ns = now_ns
+            return True
+        return False
+
+    def update(self, snap: FleetSnapshot, send_trails: bool = False) -> None:
+        """Draw `snap`; trails only with `send_trails` (the snapshot must then carry them)."""
         for v in snap.vehicles:
             h = self._vehicles.get(v.vehicle_id)
             if h is None:
@@ -152,14 +163,21 @@ class FleetScene:
                 handle.remove()
 
     def _update_vehicle(self, h: _VehicleHandles, v: VehicleView, send_trails: bool) -> None:
+        # Values are quantised (1 cm, 2 deg, 0.1 m/s) so that a hovering vehicle sends nothing and a
+        # moving one sends only what an operator could see change.
         s = v.state
         if s is None:
             h.set("visible", h.frame, "visible", False)
             return
         h.set("visible", h.frame, "visible", True)
-        pos = ned_to_scene(s.pos_ned_m)
-        h.set("pos", h.frame, "position", tuple(round(float(x), 3) for x in pos))
-        h.set("wxyz", h.body, "wxyz", heading_to_wxyz(round(s.heading_rad, 3)))
+        x, y, z = (float(c) for c in ned_to_scene(s.pos_ned_m))
+        h.set("pos", h.frame, "position", (round(x, 2), round(y, 2), round(z, 2)))
+        h.set(
+            "wxyz",
+            h.body,
+            "wxyz",
+            heading_to_wxyz(round(s.heading_rad / HEADING_STEP_RAD) * HEADING_STEP_RAD),
+        )
         lost = not v.alive
         colour = LOST_RGB if lost else mode_rgb(s.mode)
         h.set("color", h.body, "color", colour)
@@ -167,20 +185,40 @@ class FleetScene:
         h.set(
             "text", h.label, "text", f"{v.vehicle_id} {status} {v.alt_m:.1f}m {s.battery_pct:.0f}%"
         )
-        ring_rgb = ALERT_RGB if v.too_close else RING_OK_RGB
-        h.set("ring", h.ring, "colors", _rgb(ring_rgb))
-        vel = ned_to_scene(s.vel_ned_m_s) * self.cfg.velocity_scale_s
-        moving = float(np.linalg.norm(vel)) > 0.05
+        h.set("ring", h.ring, "colors", ALERT_RGB if v.too_close else RING_OK_RGB, _rgb)
+        vx, vy, vz = (
+            round(float(c) * self.cfg.velocity_scale_s, 1) for c in ned_to_scene(s.vel_ned_m_s)
+        )
+        moving = abs(vx) + abs(vy) + abs(vz) > 0.0
         h.set("vel_vis", h.velocity, "visible", moving)
         if moving:
-            pts = np.round(np.stack([np.zeros(3, np.float32), vel])[None], 2).astype(np.float32)
-            h.set("vel", h.velocity, "points", pts)
-        stalk = np.array([[[0, 0, 0], [0, 0, -max(0.0, float(pos[2]))]]], np.float32).round(2)
-        h.set("stalk", h.stalk, "points", stalk)
+            h.set(
+                "vel",
+                h.velocity,
+                "points",
+                (vx, vy, vz),
+                lambda p: np.array([[[0, 0, 0], p]], np.float32),
+            )
+        h.set(
+            "stalk",
+            h.stalk,
+            "points",
+            round(max(0.0, z), 1),
+            lambda a: np.array([[[0, 0, 0], [0, 0, -a]]], np.float32),
+        )
         h.set("goal_vis", h.goal, "visible", v.has_goal and not lost)
         if v.has_goal:
-            h.set("goal", h.goal, "position", tuple(float(x) for x in ned_to_scene(s.goal_ned_m)))
+            h.set(
+                "goal",
+                h.goal,
+                "position",
+                tuple(round(float(c), 2) for c in ned_to_scene(s.goal_ned_m)),
+            )
             h.set("goal_rgb", h.goal, "color", colour)
         if send_trails and len(v.trail_ned_m):
-            h.set("trail", h.trail, "points", polyline_segments(ned_to_scene(v.trail_ned_m)))
-            h.set("trail_rgb", h.trail, "colors", _rgb(colour))
+            trail = v.trail_ned_m
+            if len(trail) > self.cfg.trail_max_points:
+                keep = np.linspace(0, len(trail) - 1, self.cfg.trail_max_points).round().astype(int)
+                trail = trail[keep]  # evenly thinned, first and latest points kept
+            h.set("trail", h.trail, "points", polyline_segments(ned_to_scene(trail)))
+            h.set("trail_rgb", h.trail, "colors", colour, _rgb)
