@@ -95,6 +95,9 @@ class CommandAuth:
         self._floor_ns = -1
         self.rejected = 0
         """How many commands this instance refused (read only)."""
+        self.on_reject: Callable[[Command, int, str], None] | None = None
+        """Called with (command, vehicle_id, reason) for every refused command, on the Zenoh
+        thread; the agent publishes a SECURITY event from it. Exceptions are logged, not raised."""
 
     @property
     def key_id(self) -> str:
@@ -121,6 +124,11 @@ class CommandAuth:
                 self.rejected += 1
             log.warning("vehicle %d refused %s from station %d: %s", vehicle_id,
                         getattr(cmd.kind, "name", cmd.kind), cmd.source_id, reason)  # fmt: skip
+            if self.on_reject is not None:
+                try:
+                    self.on_reject(cmd, vehicle_id, reason)
+                except Exception:  # noqa: BLE001 - a listener bug must not turn a refusal into a crash
+                    log.exception("on_reject listener failed")
         return reason
 
     def _check_command(self, cmd: Command, vehicle_id: int) -> str | None:
