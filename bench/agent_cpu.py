@@ -1,0 +1,144 @@
+"""CPU of one agent process at 10 Hz with 10 neighbours, and its guidance-tick jitter.
+
+    python -m bench.agent_cpu [--quick]      # writes agent_cpu.json
+
+A real `covey agent` (sim backend) joins a mesh hosted by this process; a second child
+publishes 10 neighbours at 10 Hz on a ring 6-14 m around wherever the agent is, at its
+altitude and velocity, so that every guidance tick runs the policy and the safety filter on
+10 neighbours. The agent takes off and flies a long goto; its CPU time (user + system, all
+threads, from /proc/<pid>/stat) is read over a fixed window, first while it sits landed
+(the mesh and state publishing alone), then while it flies. Tick jitter is the spread of the
+intervals between the stamps of its published states (one per tick, stamped after guidance).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import threading
+import time
+
+import numpy as np
+
+from bench import common
+from comms.session import embedded_peer, embedded_router, free_tcp_port
+
+FLEET = "benchagent"
+NEIGHBOURS = 10
+AGENT_ID = 1
+TICK_HZ = 10.0
+
+
+def role_neighbours(port: int) -> None:
+    """Publish NEIGHBOURS vehicles on a ring around the agent's latest state, at 10 Hz."""
+    from comms.mesh import Mesh
+    from comms.schema import Mode, VehicleState
+
+    latest: list[VehicleState | None] = [None]
+    with Mesh(embedded_peer(port, fleet=FLEET)) as mesh:
+        mesh.subscribe_states(lambda s, _t: latest.__setitem__(0, s), vehicle_id=AGENT_ID)
+        print("READY", flush=True)
+        period_s, next_s, seq = 1.0 / TICK_HZ, time.monotonic(), 0
+        while True:
+            seq += 1
+            me = latest[0]
+            c = np.array(me.pos_ned_m) if me is not None else np.array([0.0, 0.0, -10.0])
+            v = me.vel_ned_m_s if me is not None else (0.0, 0.0, 0.0)
+            for k in range(NEIGHBOURS):
+                r_m, th = 6.0 + 8.0 * k / NEIGHBOURS, 2 * math.pi * k / NEIGHBOURS + 0.3
+                pos = (c[0] + r_m * math.cos(th), c[1] + r_m * math.sin(th), c[2])
+                mesh.publish_state(VehicleState(100 + k, seq, time.time_ns(), pos, tuple(v), 0.0, mode=Mode.GOTO, armed=True))
+            next_s += period_s
+            time.sleep(max(0.0, next_s - time.monotonic()))
+
+
+class StateLog:
+    """Stamps and receive times of the agent's states, as this process sees them."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.rows: list[tuple[int, int]] = []
+        self.latest = None
+
+    def on_state(self, s, _t: int) -> None:
+        now = time.time_ns()
+        with self.lock:
+            self.rows.append((now, s.stamp_ns))
+            self.latest = s
+
+    def wait(self, pred, timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.latest is not None and pred(self.latest):
+                return
+            time.sleep(0.05)
+        raise RuntimeError(f"agent never got to {what}")
+
+    def window(self, t0_ns: int, t1_ns: int) -> np.ndarray:
+        with self.lock:
+            return np.array([r for r in self.rows if t0_ns <= r[0] < t1_ns], dtype=np.int64).reshape(-1, 2)
+
+
+def measure(pid: int, log: StateLog, window_s: float) -> dict:
+    c0, t0, w0 = common.cpu_seconds(pid), time.time_ns(), time.perf_counter()
+    time.sleep(window_s)
+    c1, t1, w1 = common.cpu_seconds(pid), time.time_ns(), time.perf_counter()
+    rows = log.window(t0, t1)
+    period_ms = np.diff(np.sort(rows[:, 1])) / 1e6
+    jitter_ms = np.abs(period_ms - 1e3 / TICK_HZ)
+    return {
+        "window_s": w1 - w0, "cpu_share_of_one_core": (c1 - c0) / (w1 - w0),
+        "cpu_ms_per_tick": (c1 - c0) * 1e3 / ((w1 - w0) * TICK_HZ), "states": int(len(rows)),
+        "tick_period_ms_p50": common.pct(period_ms, 50), "tick_jitter_ms_p50": common.pct(jitter_ms, 50),
+        "tick_jitter_ms_p99": common.pct(jitter_ms, 99),
+        "state_latency_ms_p50": common.pct((rows[:, 0] - rows[:, 1]) / 1e6, 50),
+    }  # fmt: skip
+
+
+def main(quick: bool = False) -> dict:
+    from comms.commands import new_nonce
+    from comms.mesh import Mesh
+    from comms.schema import Command, Mode
+
+    window_s = 6.0 if quick else 25.0
+    port = free_tcp_port()
+    log = StateLog()
+    with Mesh(embedded_router(port, fleet=FLEET)) as mesh, common.Children() as kids:
+        mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
+        nb = kids.start("-m", "bench.agent_cpu", "--role", "neighbours", "--port", str(port))
+        kids.wait_line(nb, "READY")
+        agent = kids.start("-m", "covey_cli", "agent", "--id", str(AGENT_ID), "--fleet", FLEET, "--connect", f"tcp/127.0.0.1:{port}",
+                           "--no-gcs-failsafe", "--geofence-radius-m", "0", "--tick-hz", str(TICK_HZ), "--state-hz", str(TICK_HZ))  # fmt: skip
+        log.wait(lambda s: True, 60, "its first state")
+        time.sleep(1.0)
+        landed = measure(agent.pid, log, 3.0 if quick else 10.0)
+        common.say(f"landed: {100 * landed['cpu_share_of_one_core']:.1f} % of a core")
+        res = mesh.send_command(Command.takeoff(10.0, nonce=new_nonce(), stamp_ns=time.time_ns()), expect=(AGENT_ID,), timeout_s=5)
+        if not res.ok:
+            raise RuntimeError(f"takeoff refused: {res.summary()}")
+        log.wait(lambda s: s.mode is Mode.HOLDING, 30, "holding at altitude")
+        res = mesh.send_command(Command.goto_local(5000.0, 0.0, -10.0, nonce=new_nonce(), stamp_ns=time.time_ns()), expect=(AGENT_ID,), timeout_s=5)
+        if not res.ok:
+            raise RuntimeError(f"goto refused: {res.summary()}")
+        log.wait(lambda s: s.mode is Mode.GOTO, 10, "flying the goto")
+        time.sleep(1.0)
+        flying = measure(agent.pid, log, window_s)
+        still_goto = log.latest.mode is Mode.GOTO
+    common.say(f"flying with {NEIGHBOURS} neighbours: {100 * flying['cpu_share_of_one_core']:.1f} % of a core, "
+               f"jitter p50 {flying['tick_jitter_ms_p50']:.2f} ms p99 {flying['tick_jitter_ms_p99']:.2f} ms")  # fmt: skip
+    result = {"quick": quick, "tick_hz": TICK_HZ, "neighbours": NEIGHBOURS, "landed": landed, "flying": flying,
+              "stayed_in_goto": still_goto}  # fmt: skip
+    common.write_json("agent_cpu", result)
+    return result
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--role", default="bench", choices=["bench", "neighbours"])
+    ap.add_argument("--port", type=int, default=0)
+    a = ap.parse_args()
+    if a.role == "neighbours":
+        role_neighbours(a.port)
+    else:
+        main(a.quick)

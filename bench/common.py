@@ -1,0 +1,165 @@
+"""What every benchmark section shares: machine facts, timing, child processes, output.
+
+The BLAS environment (one thread, passive waits) is set by bench/__init__.py, which Python
+imports before this module and before numpy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+RESULTS = BENCH / "results"
+DOCS = REPO / "docs"
+OUT_ENV = "COVEY_BENCH_OUT"
+"""The runner tells a section where to write through this variable (default bench/results)."""
+
+
+def out_dir() -> Path:
+    d = Path(os.environ.get(OUT_ENV, RESULTS))
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def machine() -> dict:
+    """Facts that make numbers comparable: CPU, cores, load average now, versions."""
+    model = ""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    load1, load5, load15 = os.getloadavg()
+    return {
+        "cpu": model or platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "loadavg_1_5_15": [round(load1, 2), round(load5, 2), round(load15, 2)],
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+
+
+def time_calls_s(fn: Callable[[], object], repeats: int, batch: int = 1, warmup: int = 2) -> np.ndarray:
+    """Seconds per call of `fn`, one entry per timed batch of `batch` calls."""
+    for _ in range(warmup):
+        fn()
+    out = np.empty(repeats)
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(batch):
+            fn()
+        out[r] = (time.perf_counter() - t0) / batch
+    return out
+
+
+def pct(values, q: float) -> float:
+    """Percentile q (0-100) of `values`, NaN when empty."""
+    v = np.asarray(values, dtype=float)
+    return float(np.percentile(v, q)) if v.size else float("nan")
+
+
+def write_json(name: str, result: dict) -> Path:
+    """bench/results/<name>.json (or the runner's output folder), with machine facts added."""
+    result = {"section": name, "machine": machine(), **result}
+    path = out_dir() / f"{name}.json"
+    path.write_text(json.dumps(result, indent=2, default=float) + "\n")
+    return path
+
+
+def save_figure(fig, name: str) -> list[Path]:
+    """Save a matplotlib figure as <name>.png in the output folder, and under docs/ when the
+    output folder is bench/results (a test run must not overwrite the docs)."""
+    paths = [out_dir() / f"{name}.png"]
+    if out_dir().resolve() == RESULTS.resolve():
+        paths.append(DOCS / f"bench_{name}.png")
+    for p in paths:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(p, dpi=80)
+    return paths
+
+
+def pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def say(text: str) -> None:
+    """Progress goes to stderr so that stdout stays machine-readable."""
+    print(f"  {time.strftime('%H:%M:%S')} {text}", file=sys.stderr, flush=True)
+
+
+class Children:
+    """Child Python processes in their own process groups, all killed on exit."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def __enter__(self) -> Children:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self, *args: str) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
+        p = subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.DEVNULL, text=True, start_new_session=True)  # fmt: skip
+        self.procs.append(p)
+        return p
+
+    def wait_line(self, p: subprocess.Popen, prefix: str, timeout_s: float = 60.0) -> str:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            line = p.stdout.readline()
+            if line.startswith(prefix):
+                return line[len(prefix) :].strip()
+            if not line and p.poll() is not None:
+                raise RuntimeError(f"{p.args[1:4]} exited ({p.returncode}) before printing {prefix!r}")
+        raise RuntimeError(f"{p.args[1:4]}: no {prefix!r} line within {timeout_s:g} s")
+
+    def stop(self, p: subprocess.Popen, timeout_s: float = 10.0) -> None:
+        if p.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+            try:
+                p.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=5)
+
+    def close(self) -> None:
+        for p in self.procs:
+            self.stop(p, timeout_s=3.0)
+            if p.stdout:
+                p.stdout.close()
+        self.procs.clear()
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process `pid` and its threads so far (from /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@contextlib.contextmanager
+def stopwatch() -> Iterator[Callable[[], float]]:
+    t0 = time.perf_counter()
+    yield lambda: time.perf_counter() - t0

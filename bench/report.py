@@ -1,0 +1,165 @@
+"""SUMMARY.md from the JSON files in the results folder (the README quotes it).
+
+Own sections get tables with their anchors (paper FLOPs, CPU peak, raw Zenoh); any other
+section's JSON is rendered generically: tables for lists of records, key = value otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+OWN = ("inference", "training", "mesh", "agent_cpu")
+
+
+def _f(x, digits: int = 3) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return str(x)
+    if x != x:  # NaN
+        return "-"
+    if isinstance(x, int) or abs(x) >= 1000:
+        return f"{x:,.0f}"
+    return f"{x:.{digits}g}"
+
+
+def _table(head: list[str], rows: list[list]) -> list[str]:
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out += ["| " + " | ".join(_f(c) for c in r) + " |" for r in rows]
+    return out + [""]
+
+
+def _load(out: Path, name: str) -> dict | None:
+    p = out / f"{name}.json"
+    return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _stamp(d: dict) -> str:
+    m = d.get("machine", {})
+    q = " (quick)" if d.get("quick") else ""
+    return f"_{m.get('utc', '?')}{q}, load average {m.get('loadavg_1_5_15', '?')}_"
+
+
+def inference(d: dict) -> list[str]:
+    pk = d["peak"]["best_flop_s"]
+    lines = ["## Policy inference", _stamp(d), "",
+             f"CPU peak (float32 {d['peak']['matmul_n']}^3 matmul, one thread, best of runs): **{pk / 1e9:.1f} GFLOP/s** "
+             f"(median {d['peak']['median_flop_s'] / 1e9:.1f}). Paper FLOPs = (N-1) x 34,902 + 17,160.", ""]  # fmt: skip
+    rows = [[r["vehicles"], r["paper_flops"], r["paper_flops_at_peak_us"], r["numpy_median_us"], r["numpy_min_us"], 100 * r["numpy_share_of_peak"],
+             r.get("c_median_us"), r.get("c_min_us"), 100 * r["c_share_of_peak"] if "c_share_of_peak" in r else None] for r in d["single"]]  # fmt: skip
+    lines += _table(["N vehicles", "paper FLOPs", "us at CPU peak", "numpy us median", "numpy us min", "numpy % of peak",
+                     "C us median", "C us min", "C % of peak"], rows)  # fmt: skip
+    lines += ["One vehicle: `GuidancePolicy.action` (features + network, no safety filter) and `CPolicy.action` (C core via ctypes; "
+              "at most 64 reports, so no N = 100). % of peak = the shipped network's FLOPs / median time / CPU peak.", ""]  # fmt: skip
+    b = d["batch"]
+    lines += [f"Batched, {b['vehicles']} vehicles, nearest {b['nearest']} ({_f(b['paper_flops'])} paper FLOPs):", ""]
+    rows = [["numpy command_batch (features + network)", b["numpy_command_batch_ms"], b["per_vehicle_us"], None],
+            ["numpy command_batch + safety filter", b["numpy_command_batch_ms_filter"], 1e3 * b["numpy_command_batch_ms_filter"] / b["vehicles"], None],
+            ["numpy network only", b["numpy_network_ms"], 1e3 * b["numpy_network_ms"] / b["vehicles"], 100 * b["numpy_network_share_of_peak"]]]  # fmt: skip
+    if "torch_network_ms" in b:
+        rows.append([f"torch {b['torch']} network only, 1 thread", b["torch_network_ms"], 1e3 * b["torch_network_ms"] / b["vehicles"], 100 * b["torch_network_share_of_peak"]])
+    else:
+        rows.append([f"torch: {b.get('torch', 'skipped')}", None, None, None])
+    return lines + _table(["path", "ms per batch", "us per vehicle", "% of CPU peak"], rows)
+
+
+def training(d: dict) -> list[str]:
+    e, p, s = d["env"], d["ppo"], d["shipped"]
+    lines = ["## Training", _stamp(d), ""]
+    rows = [["vectorized env (random actions)", f"{_f(e['arena_steps_s'])} arena-steps/s, {_f(e['vehicle_steps_s'])} vehicle-steps/s"]]
+    if "samples_s" in p:
+        rows.append([f"PPO trainer ({p['preset']}, {p['num_envs']} arenas x {p['num_steps']} steps, {p['torch_threads']} torch thread)",
+                     f"{_f(p['samples_s'])} samples/s, {_f(p['episodes_s'])} episodes/s ({p['updates']} updates, {_f(p['wall_s'])} s)"])  # fmt: skip
+    else:
+        rows.append(["PPO trainer", p.get("skipped", "-")])
+    shipped = f"{_f(s.get('trained_episodes'))} episodes"
+    if "log_wall_s" in s:
+        shipped += (f"; log {s['log']}: {_f(s['log_wall_s'] / 60)} min wall in total, 95 % of the final success "
+                    f"({_f(s['final_success'])}) after {_f(s['wall_s_to_95pct_of_final_success'] / 60)} min")  # fmt: skip
+    elif "estimated_wall_s" in s:
+        shipped += f"; about {_f(s['estimated_wall_s'] / 60)} min at the PPO rate above ({s['estimate_note']})"
+    rows.append([f"shipped policy ({s['weights']})", shipped])
+    lines += _table(["what", "measured"], rows)
+    lines += [f"- {ln}" for ln in s.get("readme_lines", [])]
+    return lines + ([""] if s.get("readme_lines") else [])
+
+
+def mesh(d: dict) -> list[str]:
+    r = d["ratios"]
+    lines = ["## Mesh (loopback, one hub + two publisher processes)", _stamp(d), "",
+             f"States at {d['rate_hz']:g} Hz per vehicle, {d['state_bytes']} B each; latency = receive time in the hub's callback minus the sender's stamp.", ""]  # fmt: skip
+    rows = [[x["kind"], x["vehicles"], x.get("latency_ms_p50"), x.get("latency_ms_p99"), x.get("delivered_share"),
+             r.get(f"state_p50_{x['kind']}_over_raw_n{x['vehicles']}", 1.0 if x["kind"] == "raw" else None)] for x in d["states"]]  # fmt: skip
+    lines += _table(["publisher", "vehicles", "p50 ms", "p99 ms", "delivered share", "p50 / raw Zenoh"], rows)
+    lines += ["Broadcast command (one query to `v/*/cmd`) until every vehicle's ack is in:", ""]
+    rows = [[x["kind"], x["vehicles"], x.get("all_acks_ms_p50"), x.get("all_acks_ms_p99"), x.get("incomplete"),
+             r.get(f"command_p50_{x['kind']}_over_raw_n{x['vehicles']}", 1.0 if x["kind"] == "raw" else None)] for x in d["commands"]]  # fmt: skip
+    return lines + _table(["responder", "vehicles", "p50 ms", "p99 ms", "incomplete rounds", "p50 / raw Zenoh"], rows)
+
+
+def agent_cpu(d: dict) -> list[str]:
+    lines = ["## Agent process", _stamp(d), "",
+             f"One `covey agent` (sim backend) at {d['tick_hz']:g} Hz with {d['neighbours']} neighbours publishing at 10 Hz; CPU from /proc over the window.", ""]  # fmt: skip
+    rows = [[phase, x["window_s"], 100 * x["cpu_share_of_one_core"], x["cpu_ms_per_tick"], x["tick_jitter_ms_p50"], x["tick_jitter_ms_p99"]]
+            for phase, x in (("landed (mesh + states only)", d["landed"]), ("flying a goto (policy + safety filter)", d["flying"]))]  # fmt: skip
+    return lines + _table(["phase", "window s", "% of one core", "CPU ms per tick", "tick jitter p50 ms", "tick jitter p99 ms"], rows)
+
+
+def generic(name: str, d) -> list[str]:
+    """Any other section's JSON: lists of records as tables, scalars as key = value."""
+    lines = [f"## {name} (from its own script)", ""]
+    scalars: list[str] = []
+
+    def walk(prefix: str, v, depth: int) -> None:
+        if isinstance(v, dict) and depth < 3:
+            for k, x in v.items():
+                walk(f"{prefix}.{k}" if prefix else str(k), x, depth + 1)
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            cols = [c for c in v[0] if isinstance(v[0][c], int | float | str)][:9]
+            lines.extend([f"{prefix}:", ""] + _table(cols, [[x.get(c) for c in cols] for x in v[:15]]))
+        elif isinstance(v, int | float | str | bool) and prefix not in ("section",):
+            scalars.append(f"- {prefix} = {_f(v)}")
+
+    walk("", {k: v for k, v in d.items() if k != "machine"} if isinstance(d, dict) else {"value": d}, 0)
+    return lines + scalars[:40] + [""]
+
+
+def write_summary(out: Path) -> Path:
+    run = _load(out, "run") or {}
+    m = run.get("machine", {})
+    lines = ["# covey benchmarks", "",
+             f"Machine: {m.get('cpu', '?')}, {m.get('cores', '?')} cores, shared (load average at the end of the run "
+             f"{m.get('loadavg_1_5_15', '?')}). Medians unless marked; ratios are the point, absolute numbers move with the load.",
+             f"Regenerate: `covey bench` (full, {_f(run.get('wall_s'))} s here{' - this was a --quick run' if run.get('quick') else ''}) "
+             "or `covey bench --quick`; one section: `covey bench --only mesh`. Details: docs/performance.md.", ""]  # fmt: skip
+    if run.get("sections"):
+        lines += _table(["section", "how it ran", "status", "wall s"], [[r["section"], r["how"], r["status"], r["wall_s"]] for r in run["sections"]])
+    renderers = {"inference": inference, "training": training, "mesh": mesh, "agent_cpu": agent_cpu}
+    for name, fn in renderers.items():
+        d = _load(out, name)
+        if d is not None:
+            try:
+                lines += fn(d)
+            except (KeyError, TypeError, ZeroDivisionError) as exc:
+                lines += [f"## {name}", "", f"(could not render {name}.json: {exc!r})", ""]
+    for r in run.get("sections", []):
+        if r.get("output_tail"):
+            lines += [f"## {r['section']} (printed output; it writes no JSON)", "", "```", *r["output_tail"], "```", ""]
+    for p in sorted(out.glob("*.json")):
+        if p.stem not in (*OWN, "run"):
+            try:
+                lines += generic(p.stem, json.loads(p.read_text()))
+            except (ValueError, KeyError) as exc:
+                lines += [f"## {p.stem}", "", f"(unreadable: {exc})", ""]
+    path = out / "SUMMARY.md"
+    path.write_text("\n".join(lines).rstrip() + "\n")
+    return path
+
+
+if __name__ == "__main__":
+    import sys
+
+    from bench.common import RESULTS
+
+    print(write_summary(Path(sys.argv[1]) if len(sys.argv) > 1 else RESULTS))
