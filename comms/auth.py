@@ -283,8 +283,11 @@ def keygen_cli(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 1
-    except OSError as exc:
-        print(f"covey keygen: cannot write {args.output}: {exc.strerror or exc}", file=sys.stderr)
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
+        print(
+            f"covey keygen: cannot write {args.output!r}: {getattr(exc, 'strerror', None) or exc}",
+            file=sys.stderr,
+        )
         return 1
     key_id = CommandAuth(read_key_file(path)).key_id
     print(f"wrote fleet key {key_id} to {path} (mode 0600)")

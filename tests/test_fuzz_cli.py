@@ -1,0 +1,134 @@
+"""Fuzz the command-line parsers of `covey agent`, `covey cmd`, `covey sitl` and `covey keygen`.
+
+Random argument lists built from each parser's own options and hostile values (NaN, inf, huge,
+negative, empty, unicode, separators). Each must end in a parsed config or a clear usage error:
+argparse's SystemExit(2) with a message, or ValueError / InputError with a message. Nothing
+reaches the network: only parsing and config building run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import random
+
+import pytest
+
+SEED = 8
+N_PER_PARSER = 1500
+VALUES = ["0", "1", "-1", "3", "65000", "65001", "1e309", "nan", "NaN", "inf", "-inf", "", " ", "1,2", "1,2,3",
+          "1,,2", "nan,0", "0,inf,0", "abc", "ä✈", "--", "-", "all", "1-4", "4-1", "1-100000", "tcp/127.0.0.1:7447",
+          "tcp/", "udp/[::1]:1", "no-slash", "peer", "client", "router", "sim", "mavsdk:", "relay:x", "bogus:1",
+          "rate=3,loss=0.2", "rate=-1", "xbee", "0x10", "1_000", "9" * 400, "\x00", "-5", "-0.0"]  # fmt: skip
+
+
+def options_of(p: argparse.ArgumentParser) -> list[str]:
+    opts = [s for a in p._actions for s in a.option_strings if s not in ("-h", "--help")]
+    return sorted(set(opts))
+
+
+def random_argv(rng: random.Random, opts: list[str], prefix: list[str] | None = None) -> list[str]:
+    argv = list(prefix or [])
+    for _ in range(rng.randint(0, 8)):
+        r = rng.random()
+        if r < 0.6:
+            argv.append(rng.choice(opts))
+            if rng.random() < 0.85:
+                argv.append(rng.choice(VALUES))
+        elif r < 0.8:
+            argv.append(rng.choice(VALUES))
+        else:
+            argv.append(f"{rng.choice(opts)}={rng.choice(VALUES)}")
+    return argv
+
+
+def expect_clean(
+    fn, argv: list[str], ok_errors: tuple[type[BaseException], ...], stats: dict[str, int]
+) -> None:
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            fn(argv)
+    except SystemExit as exc:
+        assert exc.code == 2 and "error:" in err.getvalue(), (argv, exc.code, err.getvalue())
+        stats["usage_error"] += 1
+    except ok_errors as exc:
+        assert str(exc), argv
+        stats["value_error"] += 1
+    else:
+        stats["parsed"] += 1
+
+
+@pytest.fixture
+def stats():
+    s = {"parsed": 0, "usage_error": 0, "value_error": 0}
+    yield s
+    print(f"{sum(s.values())} argument lists: {s}")
+
+
+def test_covey_agent_parser(stats) -> None:
+    from agent import cli
+
+    def parse(argv: list[str]) -> None:
+        cli.config_from_args(cli.parser().parse_args(argv))
+
+    rng = random.Random(SEED)
+    opts = options_of(cli.parser())
+    for _ in range(N_PER_PARSER):
+        expect_clean(
+            parse,
+            random_argv(rng, opts, ["--id", rng.choice(VALUES)] if rng.random() < 0.7 else None),
+            (ValueError,),
+            stats,
+        )
+    assert stats["parsed"] > 10 and stats["usage_error"] > 100
+
+
+def test_covey_cmd_parser(stats) -> None:
+    ops = pytest.importorskip("groundstation.ops")
+    from groundstation import inputs
+    from groundstation.meshargs import mesh_config
+
+    def parse(argv: list[str]) -> None:
+        p = ops.cmd_parser()
+        args = p.parse_args(argv)
+        ops._request(args)
+        inputs.targets(args.to)
+        mesh_config(args, p)
+
+    rng = random.Random(SEED + 1)
+    verbs = ["takeoff", "land", "hold", "return", "goto", "goto-global", "kill", "fly", ""]
+    opts = ["--to", "--timeout", "--yes", "--fleet", "--connect", "--listen", "--mesh-mode"]
+    for _ in range(N_PER_PARSER):
+        prefix = (
+            [rng.choice(verbs)]
+            + [rng.choice(VALUES) for _ in range(rng.randint(0, 3))]
+            + ["--to", rng.choice(VALUES)]
+        )
+        expect_clean(parse, random_argv(rng, opts, prefix), (inputs.InputError, ValueError), stats)
+    assert stats["parsed"] > 10 and stats["usage_error"] > 100
+
+
+def test_covey_sitl_parser(stats) -> None:
+    sitl_cli = pytest.importorskip("firmware.sitl.cli")
+    rng = random.Random(SEED + 2)
+    opts = options_of(sitl_cli.parser())
+    for _ in range(N_PER_PARSER):
+        expect_clean(sitl_cli.config_from_args, random_argv(rng, opts), (ValueError,), stats)
+    assert stats["parsed"] > 10
+
+
+def test_covey_keygen_parser(stats, tmp_path, monkeypatch) -> None:
+    from comms.auth import keygen_cli
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    rng = random.Random(SEED + 3)
+    for _ in range(300):
+        expect_clean(
+            lambda a: keygen_cli(a),
+            random_argv(rng, ["-o", "--output", "--force", "-x"]),
+            (ValueError,),
+            stats,
+        )

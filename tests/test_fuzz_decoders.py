@@ -1,0 +1,158 @@
+"""Fuzz every wire decoder with random and mutated inputs (seeded, so a failure reproduces).
+
+Each input must either decode into a message that re-encodes to the same bytes, or raise
+DecodeError with a non-empty reason; nothing else may escape, and no input may take long.
+Decoded commands also go through CommandAuth.check_command, which must answer a reason string.
+"""
+
+from __future__ import annotations
+
+import random
+import struct
+import time
+
+import pytest
+
+from comms.auth import CommandAuth
+from comms.schema import (
+    AckResult,
+    Command,
+    CommandAck,
+    CommandKind,
+    DecodeError,
+    Event,
+    EventKind,
+    Mode,
+    Severity,
+    StateFlag,
+    VehicleState,
+    decode,
+)
+
+SEED = 20261122
+N_MUTATED = 60_000
+N_RANDOM = 20_000
+SLOWEST_INPUT_S = 2.0
+"""A hang guard, not a benchmark: the machine is shared, so only a stuck decoder trips it.
+The slowest input is printed."""
+
+
+def valid_messages(rng: random.Random) -> list[bytes]:
+    out = [
+        VehicleState(
+            3,
+            42,
+            10**18,
+            (1.0, -2.0, -10.0),
+            (0.5, 0.0, 0.0),
+            0.3,
+            Mode.GOTO,
+            True,
+            88.0,
+            StateFlag.HAS_GOAL | StateFlag.OPEN_MODE,
+            (5.0, 5.0, -10.0),
+        ).encode(),  # fmt: skip
+        Command.takeoff(10.0, nonce=9, stamp_ns=1, targets=(1, 2, 3)).encode(),
+        Command.goto_local(10.0, -5.0, -8.0, nonce=10, stamp_ns=2).encode(),
+        Command.goto_global(47.4, 8.5, 500.0, nonce=11, stamp_ns=3, targets=(7,)).encode(),
+        Command(CommandKind.KILL, 12, 4, targets=tuple(range(1, 200))).encode(),
+        CommandAck(5, 9, 1, AckResult.REJECTED, "too high — über", Mode.HOLDING).encode(),
+        Event(2, 1, "battery low ✈", Severity.WARNING, EventKind.FAILSAFE).encode(),
+    ]
+    auth = CommandAuth(bytes(32))
+    out.append(auth.sign_command(Command(CommandKind.HOLD, 0, 0, targets=(4,))).encode())
+    return out
+
+
+INTERESTING = [b"\x00", b"\xff", b"\x7f", b"\x80", struct.pack("<f", float("nan")), struct.pack("<d", float("inf")),
+               struct.pack("<H", 65535), struct.pack("<I", 2**32 - 1), b"\xff\xff", b"\x00\x00"]  # fmt: skip
+
+
+def mutate(data: bytes, rng: random.Random) -> bytes:
+    """One to four of: flip bits, set interesting bytes, insert, delete, truncate, extend, splice."""
+    b = bytearray(data)
+    for _ in range(rng.randint(1, 4)):
+        op = rng.randrange(8)
+        if op == 0 and b:
+            i = rng.randrange(len(b))
+            b[i] ^= 1 << rng.randrange(8)
+        elif op == 1 and b:
+            v = rng.choice(INTERESTING)
+            i = rng.randrange(len(b))
+            b[i : i + len(v)] = v
+        elif op == 2:
+            i = rng.randrange(len(b) + 1)
+            b[i:i] = rng.randbytes(rng.randint(1, 8))
+        elif op == 3 and b:
+            i = rng.randrange(len(b))
+            del b[i : i + rng.randint(1, 8)]
+        elif op == 4:
+            b = b[: rng.randrange(len(b) + 1)]
+        elif op == 5:
+            b += rng.randbytes(rng.randint(1, 64))
+        elif op == 6 and len(b) > 2:
+            b[rng.randrange(2, len(b))] = rng.randrange(256)  # payload byte, header intact
+        elif op == 7 and len(b) > 60:
+            # Command target count: a lie about how many targets follow.
+            b[49:51] = struct.pack("<H", rng.choice([0, 1, 2, 1023, 1024, 1025, 65535]))
+    return bytes(b)
+
+
+def check_one(data: bytes, auth: CommandAuth, stats: dict[str, int]) -> None:
+    t0 = time.perf_counter()
+    try:
+        msg = decode(data)
+    except DecodeError as exc:
+        assert str(exc), f"empty DecodeError for {data.hex()}"
+        stats["rejected"] += 1
+    else:
+        assert msg.encode() == data, f"decoded but does not round-trip: {data.hex()}"
+        stats["decoded"] += 1
+        if isinstance(msg, Command):
+            reason = auth.check_command(msg, 1)
+            assert reason is None or isinstance(reason, str)
+    # Also through the typed decoders: they must refuse foreign types with DecodeError too.
+    for cls in (VehicleState, Command, CommandAck, Event):
+        try:
+            cls.decode(data)
+        except DecodeError:
+            pass
+    elapsed_s = time.perf_counter() - t0
+    stats["slowest_us"] = max(stats["slowest_us"], int(elapsed_s * 1e6))
+    assert elapsed_s < SLOWEST_INPUT_S, f"{elapsed_s * 1e3:.1f} ms for {data[:32].hex()}..."
+
+
+@pytest.fixture
+def auth() -> CommandAuth:
+    import logging
+
+    logging.getLogger("comms.auth").setLevel(logging.ERROR)  # thousands of refusals
+    return CommandAuth(bytes(32))
+
+
+def test_mutated_valid_messages_only_raise_decode_error(auth) -> None:
+    rng = random.Random(SEED)
+    seeds = valid_messages(rng)
+    stats = {"decoded": 0, "rejected": 0, "slowest_us": 0}
+    for i in range(N_MUTATED):
+        check_one(mutate(seeds[i % len(seeds)], rng), auth, stats)
+    print(f"fuzz mutated: {N_MUTATED} inputs, {stats}")
+    assert stats["decoded"] > 100 and stats["rejected"] > 1000  # the mutator reaches both sides
+
+
+def test_random_bytes_only_raise_decode_error(auth) -> None:
+    rng = random.Random(SEED + 1)
+    stats = {"decoded": 0, "rejected": 0, "slowest_us": 0}
+    for _ in range(N_RANDOM):
+        n = rng.choice([0, 1, 2, 3, 64, 83, 150, 134, rng.randrange(4096)])
+        head = bytes(
+            [rng.randint(0, 5), rng.choice([1, 1, 1, 0, 2, 255])]
+        )  # mostly plausible headers
+        check_one((head + rng.randbytes(n))[:n] if n >= 2 else rng.randbytes(n), auth, stats)
+    check_one(b"\x02\x01" + bytes(10**6), auth, stats)  # a 1 MB command
+    print(f"fuzz random: {N_RANDOM + 1} inputs, {stats}")
+
+
+def test_decode_accepts_every_bytes_like_type() -> None:
+    data = Event(2, 1, "x").encode()
+    assert decode(bytearray(data)) == decode(memoryview(data)) == decode(data)
