@@ -52,7 +52,7 @@ class GcsConfig:
     """Vehicles closer than this are flagged red."""
     scene_rate_hz: float = 10.0
     """Scene updates per second."""
-    table_rate_hz: float = 4.0
+    table_rate_hz: float = 5.0
     """Fleet table updates per second (presence loss shows within 1 / rate)."""
     command_timeout_s: float = 2.0
     """How long to wait for every vehicle's ack."""

@@ -64,13 +64,6 @@ class CommandPanel:
             self.down = gui.add_number("Down (m)", -5.0, step=0.5)
             self.pick = gui.add_checkbox("Click ground to set N/E", False)
             self.goto = gui.add_button("Goto local", icon=viser.Icon.TARGET)
-        with gui.add_folder("Goto global", expand_by_default=False):
-            self.lat = gui.add_number("Latitude (deg)", origin.lat_deg, step=1e-5)
-            self.lon = gui.add_number("Longitude (deg)", origin.lon_deg, step=1e-5)
-            self.galt = gui.add_number("Altitude (m)", origin.alt_m + 5.0, step=0.5)
-            self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
-        with gui.add_folder("Scenarios"):
-            self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
         with gui.add_folder("Kill (motors off, vehicles fall)"):
             self.kill_arm = gui.add_button(
                 "Arm kill", color="orange", icon=viser.Icon.ALERT_TRIANGLE
@@ -78,6 +71,13 @@ class CommandPanel:
             self.kill_confirm = gui.add_button(
                 "CONFIRM KILL", color="red", disabled=True, icon=viser.Icon.SKULL
             )
+        with gui.add_folder("Goto global", expand_by_default=False):
+            self.lat = gui.add_number("Latitude (deg)", origin.lat_deg, step=1e-5)
+            self.lon = gui.add_number("Longitude (deg)", origin.lon_deg, step=1e-5)
+            self.galt = gui.add_number("Altitude (m)", origin.alt_m + 5.0, step=0.5)
+            self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
+        with gui.add_folder("Scenarios (demo)"):
+            self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
         self._wire()
 
     # -- wiring --------------------------------------------------------------------------

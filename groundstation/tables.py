@@ -14,7 +14,7 @@ _TABLE = (
     '<table style="width:100%;border-collapse:collapse;font-size:0.78em;'
     'font-variant-numeric:tabular-nums">'
 )
-_TH = '<th style="text-align:{a};padding:1px 3px;border-bottom:1px solid #999">{t}</th>'
+_TH = '<th style="text-align:{a};padding:1px 3px;border-bottom:1px solid #999;white-space:nowrap">{t}</th>'
 _TD = '<td style="text-align:{a};padding:1px 3px;{s}">{t}</td>'
 
 

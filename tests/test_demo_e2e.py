@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import pytest
@@ -11,6 +13,7 @@ import pytest
 from comms.mesh import Mesh
 from comms.schema import Mode
 from comms.session import MeshConfig
+from groundstation.app import GcsConfig, GroundStation
 from groundstation.demo_proc import DemoProcess, descendants, process_alive, processes_in_groups
 
 pytestmark = pytest.mark.e2e
@@ -55,3 +58,31 @@ def test_demo_children_die_with_a_killed_demo():
         assert wait_until(lambda: not any(process_alive(p) for p in tree), 15.0), [
             p for p in tree if process_alive(p)
         ]
+
+
+def run_covey(*argv: str, stdin: str = "") -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "covey_cli", *argv], input=stdin, capture_output=True,
+                          text=True, timeout=60)  # fmt: skip
+
+
+def test_late_station_status_and_cmd_against_a_running_demo():
+    with DemoProcess(["--vehicles", "2", "--port", "0"]) as demo:
+        ep = demo.mesh_endpoint
+        # A second station started late sees the vehicles already there (liveliness history).
+        cfg = GcsConfig(mesh=MeshConfig(mode="peer", connect=(ep,)), port=0, gcs_id=2)
+        with GroundStation(cfg) as gcs:
+            assert wait_until(lambda: {v.vehicle_id for v in gcs.fleet.snapshot(time.time_ns()).vehicles
+                                       if v.alive and v.state} >= {1, 2}, 20.0)  # fmt: skip
+        status = run_covey("status", "--connect", ep)
+        assert status.returncode == 0, status.stderr
+        assert "LANDED" in status.stdout and "ground stations: 1" in status.stdout
+        ok = run_covey("cmd", "takeoff", "3", "--to", "1,2", "--connect", ep)
+        assert ok.returncode == 0, ok.stdout + ok.stderr
+        assert ok.stdout.count("accepted") == 2
+        missing = run_covey("cmd", "land", "--to", "1,9", "--timeout", "1", "--connect", ep)
+        assert missing.returncode == 1
+        assert "vehicle     9: timeout" in missing.stdout
+        refused = run_covey("cmd", "kill", "--to", "all", "--connect", ep, stdin="nope\n")
+        assert refused.returncode == 1 and "nothing sent" in refused.stderr
+        killed = run_covey("cmd", "kill", "--to", "2", "--connect", ep, stdin="kill\n")
+        assert killed.returncode == 0 and "vehicle     2: accepted" in killed.stdout, killed.stdout

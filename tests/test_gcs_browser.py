@@ -2,14 +2,16 @@
 
 Every effect on the fleet is checked through the mesh (a test subscriber), not the DOM alone.
 The tests run in file order on one demo and one page (module fixtures): table, input
-validation, takeoff, goto, ground click, guarded kill, screenshot.
+validation, takeoff, goto, ground click, guarded kill, presence loss, screenshot.
 """
 
 from __future__ import annotations
 
 import io
 import math
+import os
 import shutil
+import signal
 import threading
 import time
 
@@ -80,9 +82,13 @@ def page(demo):
     with sync_api.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
         pg = browser.new_page(viewport={"width": 1200, "height": 800})
-        pg.set_default_timeout(20_000)
+        # Generous bounds: without a GPU, the first frames (shader compiles) can hold the page's
+        # main thread for tens of seconds on a loaded machine.
+        pg.set_default_timeout(60_000)
         pg.goto(demo.url)
         pg.get_by_role("button", name="Takeoff").wait_for()
+        pg.locator("canvas").first.wait_for()
+        pg.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
         pg.gui_shown_s = time.monotonic()
         yield pg
         browser.close()
@@ -188,6 +194,14 @@ def test_kill_needs_its_confirmation(page, states):
     states.wait(lambda s: s[3].mode is Mode.KILLED, 10.0, "vehicle 3 killed after confirmation")
     assert states.get()[1].mode is not Mode.KILLED and states.get()[2].mode is not Mode.KILLED
     sync_api.expect(page.get_by_role("button", name="CONFIRM KILL")).to_be_disabled()
+
+
+def test_a_lost_vehicle_is_shown_lost(page, demo):
+    os.kill(demo.agent_pids[1], signal.SIGKILL)  # its liveliness token vanishes with its TCP link
+    t0 = time.monotonic()
+    page.locator("tr[data-vehicle='1']", has_text="LOST").wait_for(timeout=10_000)
+    print(f"vehicle 1 shown LOST {time.monotonic() - t0:.2f} s after its agent was killed")
+    page.get_by_text("2 of 3 vehicles present").wait_for()
 
 
 def test_screenshot_of_the_scene_is_not_blank(page, tmp_path_factory):
