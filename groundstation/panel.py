@@ -58,12 +58,20 @@ class CommandPanel:
             self.alt = gui.add_number("Takeoff alt (m)", 5.0, step=0.5)
             self.takeoff = gui.add_button("Takeoff", icon=viser.Icon.ARROW_BAR_UP)
             self.simple = gui.add_button_group("Now", ("Land", "Hold", "Return"))
-        with gui.add_folder("Goto local (NED m)"):
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Goto local", viser.Icon.TARGET):
             self.north = gui.add_number("North (m)", 0.0, step=0.5)
             self.east = gui.add_number("East (m)", 0.0, step=0.5)
             self.down = gui.add_number("Down (m)", -5.0, step=0.5)
             self.pick = gui.add_checkbox("Click ground to set N/E", False)
             self.goto = gui.add_button("Goto local", icon=viser.Icon.TARGET)
+        with tabs.add_tab("Goto global", viser.Icon.WORLD):
+            self.lat = gui.add_number("Latitude (deg)", origin.lat_deg, step=1e-5)
+            self.lon = gui.add_number("Longitude (deg)", origin.lon_deg, step=1e-5)
+            self.galt = gui.add_number("Altitude (m)", origin.alt_m + 5.0, step=0.5)
+            self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
+        with tabs.add_tab("Scenarios", viser.Icon.ROUTE):
+            self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
         with gui.add_folder("Kill (motors off, vehicles fall)"):
             self.kill_arm = gui.add_button(
                 "Arm kill", color="orange", icon=viser.Icon.ALERT_TRIANGLE
@@ -71,13 +79,6 @@ class CommandPanel:
             self.kill_confirm = gui.add_button(
                 "CONFIRM KILL", color="red", disabled=True, icon=viser.Icon.SKULL
             )
-        with gui.add_folder("Goto global", expand_by_default=False):
-            self.lat = gui.add_number("Latitude (deg)", origin.lat_deg, step=1e-5)
-            self.lon = gui.add_number("Longitude (deg)", origin.lon_deg, step=1e-5)
-            self.galt = gui.add_number("Altitude (m)", origin.alt_m + 5.0, step=0.5)
-            self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
-        with gui.add_folder("Scenarios (demo)"):
-            self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
         self._wire()
 
     # -- wiring --------------------------------------------------------------------------
