@@ -228,3 +228,42 @@ def test_an_insider_cannot_impersonate_a_vehicle_or_command(secured) -> None:
     assert result.outcomes[1].status in (OutcomeStatus.ACCEPTED, OutcomeStatus.REJECTED), (
         result.summary()
     )
+
+
+def test_every_shipped_config_loads() -> None:
+    for path in sorted(CONFIGS.glob("*.json5")):
+        zenoh.Config.from_file(str(path))  # raises on a syntax or schema error
+
+
+def test_peer_mesh_with_usrpwd_lets_only_dictionary_members_in(tmp_path) -> None:
+    """peer_usrpwd.json5: the radio-mesh topology, where every peer checks who connects."""
+    (tmp_path / "users.txt").write_text("vehicle-1:pw-1\nvehicle-2:pw-2\n")
+    port = free_tcp_port()
+
+    def peer(name: str, password: str, listen: bool, extra=()) -> MeshConfig:
+        text = (
+            (CONFIGS / "peer_usrpwd.json5")
+            .read_text()
+            .replace(PLACEHOLDER_USERS, str(tmp_path / "users.txt"))
+        )
+        text = text.replace('user: "vehicle-1"', f'user: "{name}"').replace(
+            '"CHANGE-ME"', f'"{password}"'
+        )
+        path = tmp_path / f"{name}-{password}.json5"
+        path.write_text(text)
+        return MeshConfig(fleet=FLEET, mode="peer", connect=() if listen else (f"tcp/127.0.0.1:{port}",),
+                          listen=(f"tcp/127.0.0.1:{port}",) if listen else (), config_file=str(path), extra=extra)  # fmt: skip
+
+    got: list[VehicleState] = []
+    with Mesh(peer("vehicle-1", "pw-1", listen=True)) as a:
+        a.subscribe_states(lambda s, _t: got.append(s))
+        with Mesh(peer("vehicle-2", "pw-2", listen=False)) as b:
+            assert wait(lambda: (b.publish_state(forged_state(2, 1)), bool(got))[1], 5), (
+                "a member could not join"
+            )
+        got.clear()
+        with Mesh(peer("vehicle-2", "guess", listen=False, extra=QUICK)) as rogue:
+            for seq in range(5):
+                rogue.publish_state(forged_state(2, 100 + seq))
+            time.sleep(0.5)
+        assert not got, "a peer with a wrong password got a state in"
