@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -21,7 +22,7 @@ import viser
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.presence import Presence
-from comms.schema import CommandKind
+from comms.schema import CommandKind, Event
 from comms.session import MeshConfig
 from groundstation import dispatch, scenarios
 from groundstation.dispatch import CommandWorker, Dispatched
@@ -29,7 +30,7 @@ from groundstation.fleet import FleetConfig, FleetModel
 from groundstation.inputs import CommandRequest
 from groundstation.panel import CommandPanel, Job, PanelHooks
 from groundstation.scene import FleetScene, SceneConfig
-from groundstation.tables import fleet_table, legend
+from groundstation.tables import event_log, fleet_table, legend
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +85,9 @@ class GroundStation:
         self._thread: threading.Thread | None = None
         self._rng = np.random.default_rng(cfg.seed)
         self.update_times_s: list[float] = []
+        self.events: deque[tuple[str, Event]] = deque(maxlen=8)
+        self._events_shown = 0
+        self._events_seen = 0
         self.last_result: Dispatched | None = None
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -102,6 +106,7 @@ class GroundStation:
         cfg = self.cfg
         self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns)
         self.mesh.subscribe_states(self.fleet.on_state)
+        self.mesh.subscribe_events(self._on_event)
         self.presence = self.mesh.presence(self._on_presence)
         self.mesh.declare_gcs(cfg.gcs_id)
         self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="covey", verbose=False)
@@ -121,6 +126,8 @@ class GroundStation:
         with gui.add_folder("Fleet"):
             self.table = gui.add_html("<i>waiting for vehicles…</i>")
             gui.add_html(legend())
+        with gui.add_folder("Events", expand_by_default=False):
+            self.event_html = gui.add_html(event_log([]))
         hooks = PanelHooks(known_ids=self.known_ids, dispatch=self.dispatch, scenario=self.scenario_jobs,
                            now_s=time.monotonic)  # fmt: skip
         self.panel = CommandPanel(self.server, hooks, self.cfg.origin, goto_limit_m=self.cfg.geofence_radius_m,
@@ -158,6 +165,10 @@ class GroundStation:
     def _on_presence(self, kind: str, ident: int, alive: bool) -> None:
         if kind == "vehicle":
             self.fleet.on_presence(ident, alive, self._clock_ns())
+
+    def _on_event(self, event: Event, _recv_ns: int) -> None:
+        self.events.append((time.strftime("%H:%M:%S"), event))
+        self._events_seen += 1
 
     # -- panel hooks ---------------------------------------------------------------------
     def known_ids(self) -> set[int]:
@@ -202,6 +213,9 @@ class GroundStation:
             self.scene.update(snap, send_trails=trails)
             if with_table:
                 self.table.content = fleet_table(snap)
+                if self._events_shown != self._events_seen:
+                    self._events_shown = self._events_seen
+                    self.event_html.content = event_log(list(self.events))
         return time.perf_counter() - t0
 
     def _loop(self) -> None:

@@ -6,6 +6,7 @@ import html
 import math
 
 from comms.commands import OutcomeStatus
+from comms.schema import Event
 from groundstation.dispatch import Dispatched
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.palette import ALERT_RGB, MODE_RGB, css, mode_rgb
@@ -128,6 +129,21 @@ def ack_matrix(done: Dispatched) -> str:
         + f"<div style='font-size:0.75em;line-height:1.5'>{''.join(chips)}</div>"
         + f"<div style='font-size:0.75em'>{''.join(problems[:20])}{errs}</div>"
     )
+
+
+_SEVERITY_COLOR = {0: "#777", 1: "#333", 2: "#b06000", 3: "#c5221f", 4: "#c5221f"}
+
+
+def event_log(events: list[tuple[str, Event]]) -> str:
+    """The latest events, newest first: (local time text, event)."""
+    if not events:
+        return "<div style='font-size:0.75em;color:#777'>no events yet</div>"
+    rows = "".join(
+        f"<div style='color:{_SEVERITY_COLOR.get(int(ev.severity), '#333')}'>{when} <b>{ev.vehicle_id}</b> "
+        f"{html.escape(ev.text)}</div>"
+        for when, ev in reversed(events)
+    )
+    return f"<div style='font-size:0.72em;line-height:1.3'>{rows}</div>"
 
 
 def legend() -> str:
