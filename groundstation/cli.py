@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import secrets
 import signal
 import sys
 
@@ -15,7 +16,10 @@ def main(cfg: GcsConfig) -> int:
     with GroundStation(cfg) as gcs:
         if cfg.port and gcs.server.get_port() != cfg.port:
             print(f"covey gcs: port {cfg.port} is busy; using {gcs.server.get_port()}", flush=True)
-        print(f"covey gcs: open {gcs.url}  (fleet {cfg.mesh.fleet}, Ctrl-C to stop)", flush=True)
+        print(
+            f"covey gcs: open {gcs.url}  (fleet {cfg.mesh.fleet}, station id {cfg.gcs_id}, Ctrl-C to stop)",
+            flush=True,
+        )
         stop = lambda *_: gcs.close()  # noqa: E731
         signal.signal(signal.SIGTERM, stop)
         with contextlib.suppress(KeyboardInterrupt):
@@ -33,8 +37,10 @@ def parser() -> argparse.ArgumentParser:
         "--port", type=int, default=8080, help="web port (default: 8080; next free if busy)"
     )
     p.add_argument(
-        "--gcs-id", type=int, default=1, help="this station's id on the mesh (default: 1)"
-    )
+        "--gcs-id", type=int, default=None,
+        help="this station's id on the mesh (default: random in 2..65000, so that two stations "
+        "never share a liveliness token)",
+    )  # fmt: skip
     p.add_argument(
         "--geofence-radius-m", type=float, default=50.0, help="geofence radius drawn (default: 50)"
     )
@@ -46,6 +52,8 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not 0 <= args.port <= 65535:
         p.error(f"--port {args.port} must be within 0..65535")
+    if args.gcs_id is None:
+        args.gcs_id = secrets.randbelow(64999) + 2
     if not 1 <= args.gcs_id <= 65000:
         p.error(f"--gcs-id {args.gcs_id} must be within 1..65000")
     if not 0 < args.geofence_radius_m < 100_000:
