@@ -136,6 +136,7 @@ def secured(request, tmp_path, procs):
     with Mesh(setup.router()) as router, Mesh(setup.client("gcs-1")) as gcs:
         received: list[VehicleState] = []
         gcs.subscribe_states(lambda s, _t: received.append(s))
+        gcs.subscribe_events(lambda e, _t: None)
         presence = gcs.presence()
         gcs.declare_gcs(1)
         agent = procs.start(
@@ -217,6 +218,18 @@ def test_an_insider_cannot_impersonate_a_vehicle_or_command(secured) -> None:
         )
         if any(r.ok is not None for r in replies):
             answered.set()
+        # Hardening block of the router configs: an oversized message never gets through, a
+        # small malformed one does (and the station's decoder drops and counts it).
+        errors0 = gcs.stats.decode_errors
+        v2.session.put(keys.event(FLEET, 2), bytes(5000))
+        v2.session.put(keys.event(FLEET, 2), bytes(3))
+        assert wait(lambda: gcs.stats.decode_errors > errors0, 5), (
+            "the small malformed event did not arrive"
+        )
+        time.sleep(0.3)
+        assert gcs.stats.decode_errors == errors0 + 1, (
+            "the 5000-byte message got through the size limit"
+        )
     assert not [s for s in received if s.vehicle_id == 1 and s.seq > 1_000_000], (
         "vehicle 2 spoofed vehicle 1's state"
     )
