@@ -10,7 +10,7 @@ Sections are the modules in bench/. Each runs in its own child process, in order
   which writes bench/results/NAME.json from the returned dict;
 - any other module with a `__main__` block runs as `python -m bench.NAME` (with `--quick`
   only if the module accepts it; without it the module is skipped in a quick run) and writes
-  its own results.
+  its own results (into bench/results, so such scripts are skipped when --out points elsewhere).
 Then bench/report.py turns every JSON in the results folder into SUMMARY.md.
 """
 
@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
+RESULTS = BENCH / "results"
 OWN_ORDER = ("inference", "training", "mesh", "agent_cpu")
 NOT_SECTIONS = {"__init__", "__main__", "common", "report"}
 
@@ -49,11 +50,13 @@ class Section:
     def runnable(self) -> bool:
         return self.convention or self.script
 
-    def how(self, quick: bool) -> str:
+    def how(self, quick: bool, default_out: bool = True) -> str:
         if self.convention:
             return f"main(quick={quick})"
         if not self.script:
             return "skipped: no main(quick) and no __main__ block"
+        if not default_out:
+            return "skipped with --out: the script writes into bench/results itself"
         if quick and not self.takes_quick:
             return "skipped in --quick: its command line has no --quick"
         return f"python -m bench.{self.name}" + (" --quick" if quick else "")
@@ -94,7 +97,7 @@ def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
         cmd = [sys.executable, "-m", "bench", "--run-one", sec.name] + (["--quick"] if quick else [])
     else:
         cmd = [sys.executable, "-m", f"bench.{sec.name}"] + (["--quick"] if quick else [])
-    t0, started = time.monotonic(), time.time() - 1.0
+    t0, started = time.monotonic(), time.time()
     log_path = out / f"{sec.name}.log"
     done = threading.Event()
 
@@ -115,7 +118,7 @@ def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
     rec = {"section": sec.name, "how": sec.how(quick), "status": status, "wall_s": round(time.monotonic() - t0, 1),
            "log": log_path.name}  # fmt: skip
     # Scripts pick their own file names (or print only): note what this one wrote.
-    wrote = sorted(p.name for p in out.glob("*.json") if p.stat().st_mtime >= started and p.name != "run.json")
+    wrote = sorted({p.name for d in (out, RESULTS) for p in d.glob("*.json") if p.stat().st_mtime >= started and p.name != "run.json"})
     rec["wrote"] = wrote
     if not wrote:
         rec["output_tail"] = log_path.read_text(errors="replace").splitlines()[-15:]
@@ -151,10 +154,11 @@ def cli(argv: list[str] | None = None) -> int:
 
     out = (args.out or common.RESULTS).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    default_out = out == RESULTS.resolve()
     sections = discover()
     if args.list:
         for s in sections:
-            print(f"{s.name:20s} {s.how(args.quick)}")
+            print(f"{s.name:20s} {s.how(args.quick, default_out)}")
         return 0
     if args.only:
         unknown = set(args.only) - {s.name for s in sections}
@@ -165,7 +169,7 @@ def cli(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     records = []
     for i, sec in enumerate(sections, 1):
-        how = sec.how(args.quick)
+        how = sec.how(args.quick, default_out)
         print(f"[{i}/{len(sections)}] {sec.name}: {how}  (elapsed {time.monotonic() - t0:.0f} s)", file=sys.stderr, flush=True)
         if how.startswith("skipped"):
             records.append({"section": sec.name, "how": how, "status": "skipped", "wall_s": 0.0})

@@ -55,7 +55,7 @@ def single(quick: bool, peak: float) -> list[dict]:
     for n in N_VEHICLES:
         nbr, hdg = scatter(rng, n - 1)
         goal = np.array([40.0, 25.0])
-        t = common.time_calls_s(lambda nbr=nbr, hdg=hdg, goal=goal: pol.action(np.zeros(2), 0.3, goal, nbr, hdg), 15 if quick else 40, batch=5)
+        t = common.time_calls_s(lambda nbr=nbr, hdg=hdg, goal=goal: pol.action(np.zeros(2), 0.3, goal, nbr, hdg), 15 if quick else 100, batch=5)
         f_paper = paper_flops(n)
         f_shipped = paper_flops(n, h=cfg["hidden"], x=cfg["input"], layers=tuple(cfg["head"][:-1]), a=cfg["head"][-1])
         row = {
@@ -65,7 +65,7 @@ def single(quick: bool, peak: float) -> list[dict]:
             "paper_flops_at_peak_us": f_paper / peak * 1e6,
         }  # fmt: skip
         if cpol is not None and n - 1 <= 64:
-            tc = common.time_calls_s(lambda nbr=nbr, hdg=hdg, goal=goal: cpol.action(np.zeros(2), 0.3, goal, nbr, hdg), 15 if quick else 40, batch=10)
+            tc = common.time_calls_s(lambda nbr=nbr, hdg=hdg, goal=goal: cpol.action(np.zeros(2), 0.3, goal, nbr, hdg), 15 if quick else 100, batch=10)
             row["c_median_us"] = float(np.median(tc) * 1e6)
             row["c_min_us"] = float(tc.min() * 1e6)
             row["c_share_of_peak"] = f_shipped / float(np.median(tc)) / peak
@@ -92,7 +92,7 @@ def batched(quick: bool, peak: float) -> dict:
     side_m = 8.0 * np.sqrt(n)  # about one vehicle per 64 m^2: every vehicle has 10 in range
     pos, goal = rng.uniform(0, side_m, (n, 2)), rng.uniform(0, side_m, (n, 2))
     vel, hdg = rng.normal(0, 0.7, (n, 2)), rng.uniform(-np.pi, np.pi, n)
-    reps = 5 if quick else 15
+    reps = 5 if quick else 25
     out = {"vehicles": n, "nearest": BATCH_NEIGHBOURS, "paper_flops": n * paper_flops(BATCH_NEIGHBOURS + 1)}
     for filt in (False, True):
         pol = GuidancePolicy.load(safety_filter=filt, max_neighbours=BATCH_NEIGHBOURS)

@@ -115,9 +115,9 @@ def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
         if not all_seen.wait(90.0):
             return {"error": f"saw {len(seen)} of {n} vehicles"}
         time.sleep(1.0)  # let every publisher settle into its rhythm
-        t0 = time.time_ns()
+        t0, cpu0 = time.time_ns(), time.process_time()
         time.sleep(window_s)
-        t1 = time.time_ns()
+        t1, cpu1 = time.time_ns(), time.process_time()
         with lock:
             got = np.array([r for r in rows if t0 <= r[0] < t1], dtype=np.int64).reshape(-1, 2)
     lat_ms = (got[:, 0] - got[:, 1]) / 1e6
@@ -126,6 +126,7 @@ def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
         "delivered_share": len(got) / (n * RATE_HZ * window_s),
         "latency_ms_p50": common.pct(lat_ms, 50), "latency_ms_p99": common.pct(lat_ms, 99),
         "latency_ms_max": float(lat_ms.max()) if len(lat_ms) else float("nan"),
+        "hub_cpu_us_per_state": (cpu1 - cpu0) * 1e6 / max(len(got), 1),
     }  # fmt: skip
 
 
@@ -232,7 +233,7 @@ def main(quick: bool = False) -> dict:
     state_plan = [(k, n) for n in ((10, 100) if quick else (10, 100, 500)) for k in ("covey", "raw")]
     state_plan += [] if quick else [("fleet-sim", 500)]
     cmd_plan = [(k, n) for n in ((10,) if quick else (10, 50)) for k in ("covey", "raw")]
-    cmd_plan += [] if quick else [("raw", 500), ("fleet-sim", 500)]
+    cmd_plan += [] if quick else [("covey", 500), ("raw", 500), ("fleet-sim", 500)]
     states, cmds = [], []
     for kind, n in state_plan:
         states.append(run_one("states", kind, n, window_s, repeats))

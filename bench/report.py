@@ -90,8 +90,9 @@ def mesh(d: dict) -> list[str]:
     lines = ["## Mesh (loopback, one hub + two publisher processes)", _stamp(d), "",
              f"States at {d['rate_hz']:g} Hz per vehicle, {d['state_bytes']} B each; latency = receive time in the hub's callback minus the sender's stamp.", ""]  # fmt: skip
     rows = [[x["kind"], x["vehicles"], x.get("latency_ms_p50"), x.get("latency_ms_p99"), x.get("delivered_share"),
-             r.get(f"state_p50_{x['kind']}_over_raw_n{x['vehicles']}", 1.0 if x["kind"] == "raw" else None)] for x in d["states"]]  # fmt: skip
-    lines += _table(["publisher", "vehicles", "p50 ms", "p99 ms", "delivered share", "p50 / raw Zenoh"], rows)
+             r.get(f"state_p50_{x['kind']}_over_raw_n{x['vehicles']}", 1.0 if x["kind"] == "raw" else None),
+             x.get("hub_cpu_us_per_state")] for x in d["states"]]  # fmt: skip
+    lines += _table(["publisher", "vehicles", "p50 ms", "p99 ms", "delivered share", "p50 / raw Zenoh", "receiver CPU us per state"], rows)
     lines += ["Broadcast command (one query to `v/*/cmd`) until every vehicle's ack is in:", ""]
     rows = [[x["kind"], x["vehicles"], x.get("all_acks_ms_p50"), x.get("all_acks_ms_p99"), x.get("incomplete"),
              r.get(f"command_p50_{x['kind']}_over_raw_n{x['vehicles']}", 1.0 if x["kind"] == "raw" else None)] for x in d["commands"]]  # fmt: skip
