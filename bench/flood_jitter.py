@@ -47,9 +47,11 @@ class FloodConfig:
     seconds: float = 5.0
     fleet: str = "covey"
     seed: int = 1
+    mix: str = "all"
+    """all | malformed (bad bytes and spoofed ids only) | phantom (well-formed phantom vehicles only)."""
 
 
-def bogus_messages(fleet: str, rng: random.Random):
+def bogus_messages(fleet: str, rng: random.Random, mix: str = "all"):
     """Endless (key, payload) pairs: malformed, mismatched and phantom states, mixed."""
     from comms import keys
     from comms.schema import VehicleState
@@ -58,6 +60,10 @@ def bogus_messages(fleet: str, rng: random.Random):
     while True:
         seq += 1
         r = rng.random()
+        if mix == "malformed":
+            r *= 0.5
+        elif mix == "phantom":
+            r = 0.5 + 0.5 * r
         if r < 0.3:  # malformed bytes on a real vehicle's key
             yield (
                 keys.state(fleet, rng.choice((1, 2))),
@@ -83,7 +89,7 @@ def flood(cfg: FloodConfig) -> int:
     from comms.session import embedded_peer, open_session
 
     rng = random.Random(cfg.seed)
-    gen = bogus_messages(cfg.fleet, rng)
+    gen = bogus_messages(cfg.fleet, rng, cfg.mix)
     sent = 0
     with open_session(embedded_peer(cfg.port, fleet=cfg.fleet)) as session:
         pubs: dict[str, zenoh.Publisher] = {}
@@ -173,10 +179,10 @@ def start_agents(port: int, ids=(1, 2)) -> list[subprocess.Popen]:
     ]
 
 
-def start_flooder(port: int, rate_hz: float, seconds: float) -> subprocess.Popen:
+def start_flooder(port: int, rate_hz: float, seconds: float, mix: str = "all") -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     return subprocess.Popen([sys.executable, "-m", "bench.flood_jitter", "flood", "--port", str(port),
-                             "--rate", str(rate_hz), "--seconds", str(seconds)],
+                             "--rate", str(rate_hz), "--seconds", str(seconds), "--mix", mix],
                             cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)  # fmt: skip
 
 
@@ -198,7 +204,7 @@ def fly(mesh, ids=(1, 2)) -> None:
         )
 
 
-def run(seconds: float, rate_hz: float, out=print) -> dict:
+def run(seconds: float, rate_hz: float, mix: str = "all", out=print) -> dict:
     """Baseline for `seconds`, then a flood for `seconds`, on one fleet of two agents."""
     from comms.mesh import Mesh
     from comms.session import embedded_router, free_tcp_port
@@ -222,7 +228,7 @@ def run(seconds: float, rate_hz: float, out=print) -> dict:
             out(f"baseline: {results['baseline']}")
             samples.clear()
             errors0 = mesh.stats.decode_errors
-            rogue = start_flooder(port, rate_hz, seconds + 1.0)
+            rogue = start_flooder(port, rate_hz, seconds + 1.0, mix)
             time.sleep(0.5)
             samples.clear()
             time.sleep(seconds)
@@ -246,6 +252,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--rate", type=float, default=10_000.0, help="bogus messages per second")
     p.add_argument("--port", type=int, default=None, help="flood mode: the mesh's router port")
+    p.add_argument(
+        "--mix", choices=("all", "malformed", "phantom"), default="all", help="what the rogue sends"
+    )
     p.add_argument("--json", default=None, help="also write the results here")
     args = p.parse_args(argv)
     if not 0 < args.seconds <= 600 or not 0 < args.rate <= 1e6:
@@ -254,13 +263,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.port is None:
             p.error("flood needs --port")
         t0 = time.monotonic()
-        n = flood(FloodConfig(port=args.port, rate_hz=args.rate, seconds=args.seconds))
+        n = flood(
+            FloodConfig(port=args.port, rate_hz=args.rate, seconds=args.seconds, mix=args.mix)
+        )
         print(
             f"FLOOD sent {n} in {time.monotonic() - t0:.1f} s ({n / (time.monotonic() - t0):.0f}/s)",
             flush=True,
         )
         return 0
-    results = run(args.seconds, args.rate)
+    results = run(args.seconds, args.rate, args.mix)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0
