@@ -8,8 +8,9 @@ to it as peers.
 - states: n vehicles at 10 Hz, each state stamped just before it is sent; the hub measures
   receive-time minus stamp (in its callback, after covey's decode and checks) and the share of
   states delivered over a fixed window. "raw" sends the same 64-byte payloads on the same keys
-  through bare Zenoh publishers/subscribers with the same options; "fleet-sim" is covey with
-  the vehicles simulated by two `covey fleet-sim` processes.
+  through bare Zenoh publishers/subscribers with the same options; "raw-batched" is the same
+  without Zenoh's express flag (Zenoh may batch); "fleet-sim" is covey with the vehicles
+  simulated by two `covey fleet-sim` processes.
 - commands: one broadcast command to all n vehicles, time until every ack is in (covey:
   `Mesh.send_command` to `Mesh.serve_commands` handlers; raw: a `get` on the same wildcard key
   with same-size payloads, answered by bare queryables).
@@ -53,16 +54,17 @@ def role_pub(kind: str, port: int, first: int, count: int) -> None:
     cfg = embedded_peer(port, fleet=FLEET)
     stop = threading.Event()
     with Mesh(cfg) as mesh:
-        if kind == "raw":
+        if kind != "covey":  # raw: covey's publisher options; raw-batched: Zenoh may batch
             sess = mesh.session  # the same session config; bare Zenoh from here on
-            pubs = [sess.declare_publisher(keys.state(FLEET, v), congestion_control=zenoh.CongestionControl.DROP, express=True) for v in ids]
+            express = kind == "raw"
+            pubs = [sess.declare_publisher(keys.state(FLEET, v), congestion_control=zenoh.CongestionControl.DROP, express=express) for v in ids]
             tmpl = [bytearray(VehicleState(v, 0, 0, (1.0, 2.0, -3.0), (0.1, 0.2, 0.0), 0.5).encode()) for v in ids]
         print("READY", flush=True)
         period_s, next_s, seq = 1.0 / RATE_HZ, time.monotonic(), 0
         while not stop.is_set():
             seq += 1
             for k, v in enumerate(ids):
-                if kind == "raw":
+                if kind != "covey":
                     buf = tmpl[k]
                     buf[4:16] = seq.to_bytes(4, "little") + time.time_ns().to_bytes(8, "little")
                     pubs[k].put(bytes(buf))
@@ -107,7 +109,7 @@ def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
                     all_seen.set()
 
     with Mesh(embedded_router(port, fleet=FLEET)) as mesh:
-        if kind == "raw":
+        if kind != "covey":
             mesh.session.declare_subscriber(keys.all_states(FLEET), lambda s: (lambda b: record(int.from_bytes(b[2:4], "little"), int.from_bytes(b[8:16], "little")))(s.payload.to_bytes()))
         else:
             mesh.subscribe_states(lambda s, _t: record(s.vehicle_id, s.stamp_ns))
@@ -209,7 +211,7 @@ def run_one(what: str, kind: str, n: int, window_s: float, repeats: int) -> dict
 def plot(states: list[dict], cmds: list[dict]) -> None:
     plt = common.pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(8, 3.4))
-    for kind, color in (("covey", "C0"), ("raw", "C2"), ("fleet-sim", "C1")):
+    for kind, color in (("covey", "C0"), ("raw", "C2"), ("raw-batched", "C7"), ("fleet-sim", "C1")):
         rs = sorted((r for r in states if r["kind"] == kind and "latency_ms_p50" in r), key=lambda r: r["vehicles"])
         if rs:
             n = [r["vehicles"] for r in rs]
@@ -231,7 +233,7 @@ def plot(states: list[dict], cmds: list[dict]) -> None:
 def main(quick: bool = False) -> dict:
     window_s, repeats = (3.0, 5) if quick else (8.0, 20)
     state_plan = [(k, n) for n in ((10, 100) if quick else (10, 100, 500)) for k in ("covey", "raw")]
-    state_plan += [] if quick else [("fleet-sim", 500)]
+    state_plan += [] if quick else [("raw-batched", n) for n in (10, 100, 500)] + [("fleet-sim", 500)]
     cmd_plan = [(k, n) for n in ((10,) if quick else (10, 50)) for k in ("covey", "raw")]
     cmd_plan += [] if quick else [("covey", 500), ("raw", 500), ("fleet-sim", 500)]
     states, cmds = [], []
@@ -266,7 +268,7 @@ def cli(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--role", default="bench", choices=["bench", "pub", "resp", "hub-states", "hub-cmds"])
-    ap.add_argument("--kind", default="covey", choices=["covey", "raw", "fleet-sim"])
+    ap.add_argument("--kind", default="covey", choices=["covey", "raw", "raw-batched", "fleet-sim"])
     ap.add_argument("--port", type=int, default=0)
     ap.add_argument("--first", type=int, default=1)
     ap.add_argument("--count", type=int, default=10)
