@@ -271,21 +271,23 @@ class Fleet:
         self.heading_rad[moving] = np.arctan2(vel[moving, 1], vel[moving, 0])
 
     def _vehicle_events(self) -> None:
+        """Reached altitude, arrived, touched down: found with array masks, then each one goes
+        through the mode machine like the agent's."""
         g = self.cfg.guidance
+        modes = np.array([int(m) for m in self.modes])
         alt_m = -self.pos_m[:, 2]
-        for i, mode in enumerate(self.modes):
-            if mode is Mode.TAKING_OFF and alt_m[i] >= self.takeoff_alt_m[i] - 0.3:
-                trig = Trigger.REACHED_ALTITUDE
-            elif mode in FLYING and (np.hypot(*(self.goal_m[i, :2] - self.pos_m[i, :2])) <= g.arrive_radius_m
-                                     and abs(self.goal_m[i, 2] - self.pos_m[i, 2]) <= g.arrive_alt_tol_m):  # fmt: skip
-                trig = Trigger.ARRIVED
-            elif mode in (Mode.LANDING, Mode.KILLED) and alt_m[i] <= 0.05 and not self.armed[i]:
-                trig = Trigger.TOUCHED_DOWN
-            else:
-                continue
-            res = step(mode, trig)
-            if res.accepted:
-                self._enter(i, res.mode, trig)
+        miss = self.goal_m - self.pos_m
+        arrived = (np.hypot(miss[:, 0], miss[:, 1]) <= g.arrive_radius_m) & (np.abs(miss[:, 2]) <= g.arrive_alt_tol_m)
+        events = (
+            (Trigger.REACHED_ALTITUDE, (modes == Mode.TAKING_OFF) & (alt_m >= self.takeoff_alt_m - 0.3)),
+            (Trigger.ARRIVED, np.isin(modes, FLYING) & arrived),
+            (Trigger.TOUCHED_DOWN, np.isin(modes, (Mode.LANDING, Mode.KILLED)) & (alt_m <= 0.05) & ~self.armed),
+        )  # fmt: skip
+        for trig, mask in events:
+            for i in np.flatnonzero(mask).tolist():
+                res = step(self.modes[i], trig)
+                if res.accepted:
+                    self._enter(i, res.mode, trig)
 
     def _guidance_inputs(self, now_s: float):
         """Copies of what guidance needs: our vehicles that fly by velocity, plus all airborne

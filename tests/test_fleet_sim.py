@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from agent.fleet_sim import FleetSimConfig, start_grid
+from agent.fleet_sim import Fleet, FleetSimConfig, start_grid
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
-from comms.schema import Command, CommandKind, Mode, VehicleState
+from comms.schema import AckResult, Command, CommandKind, Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
 
 N = 20
@@ -56,6 +56,45 @@ def test_config_is_checked() -> None:
         FleetSimConfig(rate_hz=0.0)
     with pytest.raises(ValueError):
         FleetSimConfig(first_id=64_990, vehicles=20)  # ids past the schema's limit
+
+
+def _fly(fleet: Fleet, clock: list[float], seconds: float) -> None:
+    for _ in range(round(seconds * 10)):
+        clock[0] += 0.1
+        fleet.tick(clock[0])
+
+
+def _cmd(kind: CommandKind, *params: float) -> Command:
+    return Command(kind, new_nonce(), 0, params=tuple(params) + (0.0,) * (3 - len(params)))
+
+
+def test_fleet_in_process_follows_the_agents_mode_machine() -> None:
+    """Injected time, no child process: takeoff, a refused goto, kill one, return the others."""
+    clock = [0.0]
+    port = free_tcp_port()
+    cfg = FleetSimConfig(vehicles=3, first_id=7, mesh=embedded_router(port, fleet="unit"), spacing_m=10.0)
+    with Mesh(cfg.mesh) as mesh:
+        fleet = Fleet(cfg, mesh, clock_s=lambda: clock[0])
+        assert fleet.handle_command(0, _cmd(CommandKind.GOTO_LOCAL, 5, 5, -5)).result is AckResult.REJECTED
+        for i in range(3):
+            ack = fleet.handle_command(i, _cmd(CommandKind.TAKEOFF, 5.0))
+            assert ack.result is AckResult.ACCEPTED and ack.vehicle_id == 7 + i and ack.mode is Mode.TAKING_OFF
+        _fly(fleet, clock, 8.0)
+        assert fleet.modes == [Mode.HOLDING] * 3 and np.allclose(fleet.pos_m[:, 2], -5.0, atol=0.3)
+        far = fleet.handle_command(1, _cmd(CommandKind.GOTO_LOCAL, 5000, 0, -5))
+        assert far.result is AckResult.REJECTED and "geofence" in far.reason
+        assert fleet.handle_command(0, _cmd(CommandKind.KILL)).result is AckResult.ACCEPTED
+        for i in (1, 2):
+            assert fleet.handle_command(i, _cmd(CommandKind.GOTO_LOCAL, 20.0, 10.0 * i, -5)).result is AckResult.ACCEPTED
+        _fly(fleet, clock, 4.0)
+        assert fleet.modes[0] is Mode.KILLED and fleet.pos_m[0, 2] == 0.0 and not fleet.armed[0]
+        assert all(fleet.pos_m[i, 0] > 3.0 for i in (1, 2)), fleet.pos_m
+        for i in (1, 2):
+            assert fleet.handle_command(i, _cmd(CommandKind.RETURN)).result is AckResult.ACCEPTED
+        _fly(fleet, clock, 60.0)
+        assert fleet.modes[1:] == [Mode.LANDED, Mode.LANDED] and not fleet.armed[1:].any()
+        assert np.allclose(fleet.pos_m[1:, :2], fleet.home_m[1:, :2], atol=1.0)
+        assert fleet.stats.ticks == 720
 
 
 @pytest.mark.e2e
