@@ -143,7 +143,7 @@ def _torch(seq, lengths, goal_feat, reps: int, f_net: float, peak: float) -> dic
     return {"torch": torch.__version__, "torch_network_ms": ms, "torch_network_share_of_peak": f_net / (ms / 1e3) / peak}
 
 
-def plot(rows: list[dict], peak: float) -> None:
+def plot(rows: list[dict], peak: float, batch: dict) -> None:
     plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.6))
     n = [r["vehicles"] for r in rows]
@@ -151,12 +151,16 @@ def plot(rows: list[dict], peak: float) -> None:
     c = [r for r in rows if "c_median_us" in r]
     if c:
         ax.plot([r["vehicles"] for r in c], [r["c_median_us"] for r in c], "s-", label="C (host, ctypes)")
+    k = batch["nearest"] + 1
+    ax.plot([k], [batch["per_vehicle_us"]], "^", color="C2", label=f"numpy batched, per vehicle ({batch['vehicles']}, nearest {k - 1})")
+    if "torch_network_ms" in batch:
+        ax.plot([k], [1e3 * batch["torch_network_ms"] / batch["vehicles"]], "v", color="C3", label="torch batched network, per vehicle")
     ax.plot(n, [r["paper_flops_at_peak_us"] for r in rows], "k--", label=f"paper FLOPs at peak ({peak / 1e9:.0f} GFLOP/s)")
     ax.set_xlabel("vehicles N (N-1 neighbours)")
     ax.set_ylabel("time per evaluation (us, median)")
     ax.set_yscale("log")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     common.save_figure(fig, "inference")
     plt.close(fig)
@@ -168,7 +172,7 @@ def main(quick: bool = False) -> dict:
     peak = pk["best_flop_s"]
     rows = single(quick, peak)
     result = {"quick": quick, "peak": pk, "single": rows, "batch": batched(quick, peak)}
-    plot(rows, peak)
+    plot(rows, peak, result["batch"])
     common.write_json("inference", result)
     return result
 

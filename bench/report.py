@@ -75,8 +75,12 @@ def training(d: dict) -> list[str]:
         rows.append(["PPO trainer", p.get("skipped", "-")])
     shipped = f"{_f(s.get('trained_episodes'))} episodes"
     if "log_wall_s" in s:
-        shipped += (f"; log {s['log']}: {_f(s['log_wall_s'] / 60)} min wall in total, 95 % of the final success "
-                    f"({_f(s['final_success'])}) after {_f(s['wall_s_to_95pct_of_final_success'] / 60)} min")  # fmt: skip
+        where = "" if s.get("log_in_git") else " (the run directory named in policy/weights/README.md; not in git)"
+        same = "" if s.get("log_matches_weights") else " - its last row does not match the shipped episode count"
+        shipped += (f"; log {s['log']}{where}: {_f(s['log_wall_s'] / 60)} min wall in total, 95 % of the final success "
+                    f"({_f(s['final_success'])}) after {_f(s['wall_s_to_95pct_of_final_success'] / 60)} min "
+                    f"({_f(s['episodes_to_95pct_of_final_success'])} episodes), 95 % of the final reward ({_f(s['final_reward'])}) "
+                    f"after {_f(s['wall_s_to_95pct_of_final_reward'] / 60)} min ({_f(s['episodes_to_95pct_of_final_reward'])} episodes){same}")  # fmt: skip
     elif "estimated_wall_s" in s:
         shipped += f"; about {_f(s['estimated_wall_s'] / 60)} min at the PPO rate above ({s['estimate_note']})"
     rows.append([f"shipped policy ({s['weights']})", shipped])

@@ -86,8 +86,16 @@ def ppo(quick: bool) -> dict:
 
 
 def shipped_log() -> tuple[Path | None, list[dict]]:
-    """The shipped training log (the trainer's CSV columns), if the policy ships one."""
-    for path in sorted(WEIGHTS_DIR.glob("*.csv")):
+    """The shipped training log (the trainer's CSV columns): a CSV shipped beside the weights,
+    else the log.csv of the run directory that policy/weights/README.md names (`--out DIR`),
+    if that run is still on this machine."""
+    candidates = sorted(WEIGHTS_DIR.glob("*.csv"))
+    readme = WEIGHTS_DIR / "README.md"
+    if readme.is_file():
+        candidates += [common.REPO / m / "log.csv" for m in re.findall(r"--out\s+(\S+)", readme.read_text())]
+    for path in candidates:
+        if not path.is_file():
+            continue
         with open(path) as f:
             rows = list(csv.DictReader(f))
         if rows and {"episodes", "wall_s", "reward", "success"} <= set(rows[0]):
@@ -106,10 +114,15 @@ def shipped_quality(ppo_result: dict) -> dict:
         succ = np.array([float(r["success"]) for r in rows])
         final = float(np.mean(succ[-5:]))
         reach = int(np.argmax(succ >= 0.95 * final))
+        rew = np.array([float(r["reward"]) for r in rows])
+        final_rew = float(np.mean(rew[-5:]))
+        reach_rew = int(np.argmax(rew >= final_rew - 0.05 * abs(final_rew)))
         out.update({
             "log": str(path.relative_to(common.REPO)), "log_episodes": int(ep[-1]), "log_wall_s": float(wall[-1]),
-            "final_success": final, "final_reward": float(np.mean([float(r["reward"]) for r in rows[-5:]])),
+            "final_success": final, "final_reward": final_rew,
             "wall_s_to_95pct_of_final_success": float(wall[reach]), "episodes_to_95pct_of_final_success": int(ep[reach]),
+            "wall_s_to_95pct_of_final_reward": float(wall[reach_rew]), "episodes_to_95pct_of_final_reward": int(ep[reach_rew]),
+            "log_matches_weights": int(ep[-1]) == out["trained_episodes"], "log_in_git": WEIGHTS_DIR in path.parents,
         })  # fmt: skip
     readme = WEIGHTS_DIR / "README.md"
     if readme.is_file():
