@@ -42,6 +42,7 @@ from policy.runtime import GuidancePolicy
 
 log = logging.getLogger("covey.fleet_sim")
 FLYING = (Mode.GOTO, Mode.RETURNING)
+_HAS_GOAL = StateFlag.OPEN_MODE | StateFlag.HAS_GOAL
 
 
 @dataclass(frozen=True)
@@ -328,16 +329,18 @@ class Fleet:
     def _states(self) -> list[VehicleState]:
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         stamp_ns = self.mesh.clock_ns()
+        # whole arrays to Python floats once: per-row numpy access costs more than the rest
+        pos, vel, goal, hold = (a.tolist() for a in (self.pos_m, self.vel_m_s, self.goal_m, self.hold_m))
+        hdg = np.remainder(self.heading_rad + math.pi, 2 * math.pi) - math.pi
         out = []
-        for i, vid in enumerate(self.ids.tolist()):
+        for i, (vid, h, armed, batt) in enumerate(zip(self.ids.tolist(), hdg.tolist(), self.armed.tolist(),
+                                                       self.battery_pct.tolist(), strict=True)):  # fmt: skip
             mode = self.modes[i]
-            goal = self.goal_m[i] if mode in FLYING else self.hold_m[i] if mode is Mode.HOLDING else None
-            flags = StateFlag.OPEN_MODE | (StateFlag.HAS_GOAL if goal is not None else StateFlag.NONE)
+            g = goal[i] if mode in FLYING else hold[i] if mode is Mode.HOLDING else None
             out.append(VehicleState(
-                vehicle_id=vid, seq=self.seq, stamp_ns=stamp_ns, pos_ned_m=tuple(self.pos_m[i].tolist()),
-                vel_ned_m_s=tuple(self.vel_m_s[i].tolist()), heading_rad=math.remainder(float(self.heading_rad[i]), 2 * math.pi),
-                mode=mode, armed=bool(self.armed[i]), battery_pct=float(self.battery_pct[i]), flags=flags,
-                goal_ned_m=tuple(goal.tolist()) if goal is not None else (0.0, 0.0, 0.0),
+                vehicle_id=vid, seq=self.seq, stamp_ns=stamp_ns, pos_ned_m=tuple(pos[i]), vel_ned_m_s=tuple(vel[i]),
+                heading_rad=h, mode=mode, armed=armed, battery_pct=batt,
+                flags=_HAS_GOAL if g is not None else StateFlag.OPEN_MODE, goal_ned_m=tuple(g) if g is not None else (0.0, 0.0, 0.0),
             ))  # fmt: skip
         return out
 

@@ -95,6 +95,44 @@ def measure(pid: int, log: StateLog, window_s: float) -> dict:
     }  # fmt: skip
 
 
+def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
+    """Wall time of one `covey fleet-sim` tick for `vehicles` in one process (in-process, with
+    a real mesh session and injected time): landed, holding at altitude, flying a goto."""
+    from agent.fleet_sim import Fleet, FleetSimConfig
+    from comms.mesh import Mesh
+    from comms.schema import Command, CommandKind
+
+    clock = [0.0]
+    cfg = FleetSimConfig(vehicles=vehicles, mesh=embedded_router(free_tcp_port(), fleet=FLEET + "fs"))
+    reps = 10 if quick else 30
+    out = {"vehicles": vehicles, "budget_ms_at_10hz": 100.0}
+    with Mesh(cfg.mesh) as mesh:
+        fleet = Fleet(cfg, mesh, clock_s=lambda: clock[0])
+
+        def ticks(n: int) -> list[float]:
+            ms = []
+            for _ in range(n):
+                clock[0] += 0.1
+                t0 = time.perf_counter()
+                fleet.tick(clock[0])
+                ms.append((time.perf_counter() - t0) * 1e3)
+            return ms
+
+        def command(kind: CommandKind, params) -> None:
+            for i in range(vehicles):
+                fleet.handle_command(i, Command(kind, 1, 0, params=params(i)))
+
+        out["landed_tick_ms_p50"] = common.pct(ticks(reps), 50)
+        command(CommandKind.TAKEOFF, lambda i: (10.0, 0.0, 0.0))
+        ticks(60)  # climb to 10 m at 2 m/s
+        out["holding_tick_ms_p50"] = common.pct(ticks(reps), 50)
+        command(CommandKind.GOTO_LOCAL, lambda i: (fleet.pos_m[i, 0] + 60.0, fleet.pos_m[i, 1] + 30.0, -10.0))
+        flying = ticks(reps)
+        out["goto_tick_ms_p50"], out["goto_tick_ms_p99"] = common.pct(flying, 50), common.pct(flying, 99)
+        out["in_goto"] = sum(m.name == "GOTO" for m in fleet.modes)
+    return out
+
+
 def main(quick: bool = False) -> dict:
     from comms.commands import new_nonce
     from comms.mesh import Mesh
@@ -126,8 +164,11 @@ def main(quick: bool = False) -> dict:
         still_goto = log.latest.mode is Mode.GOTO
     common.say(f"flying with {NEIGHBOURS} neighbours: {100 * flying['cpu_share_of_one_core']:.1f} % of a core, "
                f"jitter p50 {flying['tick_jitter_ms_p50']:.2f} ms p99 {flying['tick_jitter_ms_p99']:.2f} ms")  # fmt: skip
+    fs = fleet_sim_ticks(quick)
+    common.say(f"fleet-sim tick at {fs['vehicles']} vehicles: landed {fs['landed_tick_ms_p50']:.0f} ms, "
+               f"holding {fs['holding_tick_ms_p50']:.0f} ms, goto {fs['goto_tick_ms_p50']:.0f} ms (budget 100 ms)")  # fmt: skip
     result = {"quick": quick, "tick_hz": TICK_HZ, "neighbours": NEIGHBOURS, "landed": landed, "flying": flying,
-              "stayed_in_goto": still_goto}  # fmt: skip
+              "stayed_in_goto": still_goto, "fleet_sim": fs}  # fmt: skip
     common.write_json("agent_cpu", result)
     return result
 

@@ -108,7 +108,14 @@ def agent_cpu(d: dict) -> list[str]:
              f"One `covey agent` (sim backend) at {d['tick_hz']:g} Hz with {d['neighbours']} neighbours publishing at 10 Hz; CPU from /proc over the window.", ""]  # fmt: skip
     rows = [[phase, x["window_s"], 100 * x["cpu_share_of_one_core"], x["cpu_ms_per_tick"], x["tick_jitter_ms_p50"], x["tick_jitter_ms_p99"]]
             for phase, x in (("landed (mesh + states only)", d["landed"]), ("flying a goto (policy + safety filter)", d["flying"]))]  # fmt: skip
-    return lines + _table(["phase", "window s", "% of one core", "CPU ms per tick", "tick jitter p50 ms", "tick jitter p99 ms"], rows)
+    lines += _table(["phase", "window s", "% of one core", "CPU ms per tick", "tick jitter p50 ms", "tick jitter p99 ms"], rows)
+    fs = d.get("fleet_sim")
+    if fs:
+        lines += [f"`covey fleet-sim`, {fs['vehicles']} vehicles in one process, wall time of one tick (physics, mode events, "
+                  f"batched policy + safety filter, {fs['vehicles']} states published); the budget at 10 Hz is {_f(fs['budget_ms_at_10hz'])} ms:", ""]  # fmt: skip
+        lines += _table(["landed ms", "holding ms", "goto ms p50", "goto ms p99", "vehicles in goto"],
+                        [[fs["landed_tick_ms_p50"], fs["holding_tick_ms_p50"], fs["goto_tick_ms_p50"], fs["goto_tick_ms_p99"], fs["in_goto"]]])  # fmt: skip
+    return lines
 
 
 def generic(name: str, d) -> list[str]:
