@@ -113,6 +113,11 @@ class Setup:
             extra=extra,
         )
 
+    def peer(self, name: str) -> MeshConfig:
+        """`name`'s credentials in a peer session that gives up quickly (same path as intruders)."""
+        return MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=QUICK,
+                          config_file=self.client_file(name))  # fmt: skip
+
     def intruders(self) -> list[tuple[str, MeshConfig]]:
         """Configs that must not get in at all."""
         # Peers: a peer's session opens even when nobody lets it in, so it can try to send.
@@ -170,29 +175,38 @@ def test_secured_fleet_works_and_strangers_cannot_join_or_inject(secured) -> Non
     )
     assert set(ack.outcomes) == {1} and ack.outcomes[1].ack is not None, ack.summary()
 
-    for name, cfg in setup.intruders():
-        t0 = time.monotonic()
+    def attempt(cfg: MeshConfig, seq: int, kind: CommandKind) -> tuple[bool, bool] | None:
+        """Open a session with `cfg`, publish a state of vehicle 1 and send it a command:
+        (the state arrived, the command was answered), or None if the session did not open."""
         try:
-            rogue_mesh = Mesh(cfg)
-        except zenoh.ZError as exc:  # a client that cannot connect does not open at all
-            print(f"{setup.kind}/{name}: refused at open: {exc}")
-            continue
-        with rogue_mesh as rogue:
+            mesh = Mesh(cfg)
+        except zenoh.ZError:  # a client that cannot connect does not open at all
+            return None
+        with mesh:
             try:
-                rogue.publish_state(forged_state(1, 999_999))
+                mesh.publish_state(forged_state(1, seq))
             except Exception:  # noqa: BLE001 - refusing to send at all is a pass too
                 pass
-            replies = list(
-                rogue.session.get(
-                    keys.cmd(FLEET, 1),
-                    payload=Command(CommandKind.KILL, new_nonce(), 0).encode(),
-                    timeout=1.0,
-                )
-            )
+            payload = Command(kind, new_nonce(), 0, targets=(1,)).encode()
+            replies = list(mesh.session.get(keys.cmd(FLEET, 1), payload=payload, timeout=1.0))
             time.sleep(0.5)
-        assert not [r for r in replies if r.ok is not None], f"{name}: its kill query was answered"
-        assert not [s for s in received if s.seq == 999_999], f"{name}: its forged state arrived"
-        print(f"{setup.kind}/{name}: refused in {time.monotonic() - t0:.1f} s")
+        return any(s.seq == seq for s in received), any(r.ok is not None for r in replies)
+
+    # Controls through the very same path: it does reach the fleet with the right identity.
+    assert attempt(setup.peer("vehicle-1"), 888_001, CommandKind.HOLD) == (True, False), (
+        "control: vehicle-1"
+    )
+    assert attempt(setup.peer("gcs-1"), 888_002, CommandKind.HOLD) == (False, True), (
+        "control: gcs-1"
+    )
+    for i, (name, cfg) in enumerate(setup.intruders()):
+        t0 = time.monotonic()
+        outcome = attempt(cfg, 999_000 + i, CommandKind.KILL)
+        assert outcome in (None, (False, False)), (
+            f"{name}: (state arrived, kill answered) = {outcome}"
+        )
+        how = "refused at open" if outcome is None else "joined nothing"
+        print(f"{setup.kind}/{name}: {how} ({time.monotonic() - t0:.1f} s)")
 
 
 def test_an_insider_cannot_impersonate_a_vehicle_or_command(secured) -> None:
