@@ -106,6 +106,14 @@ class FleetScene:
         self._vehicles: dict[int, _VehicleHandles] = {}
         self._last_trail_ns = 0
         scene = server.scene
+        # No environment map and no shadow-casting lights: both cost seconds of CPU per frame set-up
+        # without a GPU, and flat lighting reads fine for boxes and lines.
+        scene.configure_environment_map(hdri=None)
+        scene.configure_default_lights(enabled=True, cast_shadow=False)
+        # The environment map also lit the shaded sides; a sky/ground light stands in for it.
+        scene.add_light_hemisphere(
+            "/light/sky", sky_color=(255, 255, 255), ground_color=(180, 180, 180), intensity=1.2
+        )
         extent_m = max(20.0, 2.2 * cfg.geofence_radius_m)
         scene.add_grid("/ground", width=extent_m, height=extent_m, cell_size=1.0, section_size=10.0,
                        plane="xy", fade_distance=4 * extent_m, shadow_opacity=0.0, plane_color=(235, 240, 235),
