@@ -314,7 +314,9 @@ def test_agents_with_a_key_file_accept_only_fresh_correctly_signed_commands(
                 o.ack is not None for o in both.outcomes.values()
             ), both.summary()
             if cli_has_key_file("groundstation.ops", "cmd_parser", "hold", "--to", "1"):
-                run = [sys.executable, "-m", "covey_cli", "cmd", "land", "--to", "1",
+                # --to all: `covey cmd` then waits for presence before sending; with --to N it sends
+                # at once and a fresh session may not know the route yet ("not reachable").
+                run = [sys.executable, "-m", "covey_cli", "cmd", "land", "--to", "all",
                        "--connect", f"tcp/127.0.0.1:{port}"]  # fmt: skip
                 env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parent.parent))
                 env.pop("COVEY_FLEET_KEY", None)
