@@ -67,6 +67,9 @@ class GcsConfig:
     """Seed of the random-goals scenario."""
     view_radius_m: float = 20.0
     """The initial camera frames about this radius around the origin."""
+    link: str = "perfect"
+    """Emulated radio link between the vehicles and this station (comms.link spec: perfect, xbee,
+    wifi, ...); the station sits at the origin. The link-health columns then show its effect."""
 
 
 class GroundStation:
@@ -89,6 +92,7 @@ class GroundStation:
         self._events_shown = 0
         self._events_seen = 0
         self.last_result: Dispatched | None = None
+        self._link = None
 
     # -- lifecycle -----------------------------------------------------------------------
     def __enter__(self) -> GroundStation:
@@ -105,7 +109,14 @@ class GroundStation:
     def _start(self) -> None:
         cfg = self.cfg
         self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns)
-        self.mesh.subscribe_states(self.fleet.on_state)
+        if cfg.link not in ("", "perfect"):
+            from comms.link import emulator_from_spec
+
+            self._link = emulator_from_spec(
+                cfg.link, seed=cfg.seed, receiver_pos=lambda: (0.0, 0.0, 0.0)
+            )
+            self._link.__enter__()
+        self.mesh.subscribe_states(self.fleet.on_state, link=self._link)
         self.mesh.subscribe_events(self._on_event)
         self.presence = self.mesh.presence(self._on_presence)
         self.mesh.declare_gcs(cfg.gcs_id)
@@ -150,6 +161,9 @@ class GroundStation:
         if self.mesh is not None and self._given_mesh is None:
             self.mesh.close()
         self.mesh = None
+        if self._link is not None:
+            self._link.close()
+            self._link = None
 
     @property
     def url(self) -> str:

@@ -44,6 +44,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--geofence-radius-m", type=float, default=50.0, help="geofence radius drawn (default: 50)"
     )
+    p.add_argument(
+        "--link",
+        default="perfect",
+        help="emulated radio link to the vehicles: perfect | xbee | wifi | spec",
+    )
     return p
 
 
@@ -58,8 +63,14 @@ def cli(argv: list[str] | None = None) -> int:
         p.error(f"--gcs-id {args.gcs_id} must be within 1..65000")
     if not 0 < args.geofence_radius_m < 100_000:
         p.error("--geofence-radius-m must be positive")
+    try:
+        from comms.link import parse_link_spec
+
+        parse_link_spec(args.link)
+    except ValueError as exc:
+        p.error(f"--link: {exc}")
     cfg = GcsConfig(mesh=mesh_config(args, p), host=args.host, port=args.port, gcs_id=args.gcs_id,
-                    geofence_radius_m=args.geofence_radius_m)  # fmt: skip
+                    geofence_radius_m=args.geofence_radius_m, link=args.link)  # fmt: skip
     return main(cfg)
 
 

@@ -107,7 +107,7 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
     stop = stop or threading.Event()
     mesh_port = cfg.mesh_port or free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{mesh_port}"
-    gcs_cfg = GcsConfig(port=cfg.port, geofence_radius_m=cfg.geofence_radius_m)
+    gcs_cfg = GcsConfig(port=cfg.port, geofence_radius_m=cfg.geofence_radius_m, link=cfg.link)
     with (
         Mesh(embedded_router(mesh_port, fleet=cfg.fleet)) as mesh,
         GroundStation(gcs_cfg, mesh=mesh) as gcs,
