@@ -3,7 +3,7 @@
 Drives the fleet model directly (no mesh: this measures the station, not Zenoh) with vehicles
 flying circles at 10 Hz in simulated time, with 60 s of trail history already built. One update
 is what the station's render loop does each tick: snapshot the model, then inside
-`server.atomic()` move every changed scene handle (trails every 1 s) and, every tick here,
+`server.atomic()` move every changed scene handle (a tenth of the trails) and, every tick here,
 rebuild the fleet table. A real viser server runs; no browser is connected.
 
     python -m bench.gcs_update [--vehicles 100,500] [--updates 100]
@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import time
 from dataclasses import dataclass
@@ -76,11 +77,11 @@ def measure(n: int, cfg: BenchConfig) -> dict:
             for s in fleet_states(n, k * period_s, k):
                 model.on_state(s, s.stamp_ns)
             t0 = time.perf_counter()
-            trails = scene.trails_due(now_ns)
+            trails = scene.trail_ids(model.ids())
             snap = model.snapshot(now_ns, trails=trails)
             t1 = time.perf_counter()
             with server.atomic():
-                scene.update(snap, send_trails=trails)
+                scene.update(snap)
                 table = fleet_table(snap)
             t2 = time.perf_counter()
             if j >= 5:  # the first updates create the handles
@@ -109,6 +110,7 @@ def main(cfg: BenchConfig) -> dict:
         "python": platform.python_version(),
         "viser": viser.__version__,
         "note": "server side only (no browser connected); one update = snapshot + scene + table",
+        "load_avg_1min": round(os.getloadavg()[0], 2),
         "results": [],
     }
     for n in cfg.vehicles:

@@ -221,10 +221,10 @@ class GroundStation:
         assert self.server is not None
         t0 = time.perf_counter()
         now_ns = self._clock_ns()
-        trails = self.scene.trails_due(now_ns)
+        trails = self.scene.trail_ids(self.fleet.ids())
         snap = self.fleet.snapshot(now_ns, trails=trails)
         with self.server.atomic():
-            self.scene.update(snap, send_trails=trails)
+            self.scene.update(snap)
             if with_table:
                 self.table.content = fleet_table(snap)
                 if self._events_shown != self._events_seen:

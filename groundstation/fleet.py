@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -177,9 +178,10 @@ class FleetModel:
                 vid: t.state.pos_ned_m for vid, t in self._tracks.items() if t.state is not None
             }
 
-    def snapshot(self, now_ns: int, trails: bool = True) -> FleetSnapshot:
-        """The fleet at `now_ns`. `trails=False` leaves every trail empty (they are the costly
-        part, and the scene re-sends them only about once a second)."""
+    def snapshot(self, now_ns: int, trails: bool | Collection[int] = True) -> FleetSnapshot:
+        """The fleet at `now_ns`. Trails are the costly part: `trails` is True (all), False
+        (none: every trail empty), or the ids whose trails to include."""
+        want = (lambda _vid: trails) if isinstance(trails, bool) else trails.__contains__
         cfg = self.cfg
         with self._lock:
             items = sorted(self._tracks.items())
@@ -190,7 +192,7 @@ class FleetModel:
                     t.alive,
                     t.last_recv_ns,
                     tuple(t.window),
-                    list(t.trail) if trails else [],
+                    list(t.trail) if want(vid) else [],
                 )
                 for vid, t in items
             ]

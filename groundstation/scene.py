@@ -86,8 +86,9 @@ class SceneConfig:
     """Radius of the geofence circle around the origin, in metres (0 = none drawn)."""
     separation_m: float = 3.0
     """Separation distance; each vehicle's ring has half this radius, so rings touch at it."""
-    trail_period_s: float = 1.0
-    """How often trails are re-sent (they are the heaviest part of an update)."""
+    trail_spread_updates: int = 10
+    """Each vehicle's trail is re-sent every this many updates (1 s at 10 Hz), a slice of the
+    fleet per update, so that no single update carries every trail (they are the heaviest part)."""
     trail_max_points: int = 120
     """Trails are thinned to at most this many points when sent (500 vehicles x 300 points is
     too much to re-send every second)."""
@@ -104,7 +105,7 @@ class FleetScene:
         self.cfg = cfg
         self._on_vehicle_click = on_vehicle_click
         self._vehicles: dict[int, _VehicleHandles] = {}
-        self._last_trail_ns = 0
+        self._trail_tick = 0
         scene = server.scene
         # No environment map and no shadow-casting lights: both cost seconds of CPU per frame set-up
         # without a GPU, and flat lighting reads fine for boxes and lines.
@@ -150,15 +151,14 @@ class FleetScene:
             h.body.on_click(lambda _event, vid=vid: cb(vid))
         return h
 
-    def trails_due(self, now_ns: int) -> bool:
-        """True (once per trail period) when the next update should carry trails."""
-        if now_ns - self._last_trail_ns >= self.cfg.trail_period_s * 1e9:
-            self._last_trail_ns = now_ns
-            return True
-        return False
+    def trail_ids(self, ids: list[int]) -> set[int]:
+        """The vehicles whose trails the next update should carry (round robin over `ids`)."""
+        k = max(1, self.cfg.trail_spread_updates)
+        tick, self._trail_tick = self._trail_tick, self._trail_tick + 1
+        return {vid for i, vid in enumerate(sorted(ids)) if i % k == tick % k}
 
-    def update(self, snap: FleetSnapshot, send_trails: bool = False) -> None:
-        """Draw `snap`; trails only with `send_trails` (the snapshot must then carry them)."""
+    def update(self, snap: FleetSnapshot, send_trails: bool = True) -> None:
+        """Draw `snap`. Trails are drawn for the vehicles whose trail the snapshot carries."""
         for v in snap.vehicles:
             h = self._vehicles.get(v.vehicle_id)
             if h is None:

@@ -80,3 +80,15 @@ def test_a_hovering_vehicle_sends_nothing_new(server):
     put(model, 1, 2, (1.001, 1.001, -5.001), 0.1, mode=Mode.HOLDING)  # sub-centimetre jitter
     scene.update(model.snapshot(int(0.1 * NS_PER_S)))
     assert scene._vehicles[1].cache == cache
+
+
+def test_trails_are_re_sent_round_robin_a_slice_per_update(server):
+    model = FleetModel()
+    for vid in range(1, 26):
+        put(model, vid, 1, (float(vid) * 5, 0.0, -5.0), 0.0, mode=Mode.GOTO)
+    scene = FleetScene(server, SceneConfig(trail_spread_updates=10))
+    slices = [scene.trail_ids(model.ids()) for _ in range(10)]
+    assert set().union(*slices) == set(range(1, 26))  # every vehicle once per 10 updates
+    assert max(len(s) for s in slices) == 3 and sum(len(s) for s in slices) == 25
+    snap = model.snapshot(0, trails=slices[0])
+    assert {v.vehicle_id for v in snap.vehicles if len(v.trail_ned_m)} == slices[0]
