@@ -107,6 +107,9 @@ def test_fleet_sim_answers_broadcasts_and_flies(procs) -> None:
         sim = procs.start(
             "-m", "covey_cli", "fleet-sim", "--vehicles", str(N), "--first-id", str(IDS[0]),
             "--fleet", "fs", "--connect", f"tcp/127.0.0.1:{port}", "--cruise-speed-m-s", "3",
+            # goals 15 m apart: the policy treats neighbours inside 10 m as conflicts and may
+            # circle a goal that has hovering neighbours closer than that
+            "--spacing-m", "15",
         )  # fmt: skip
         procs.wait_line(sim, "READY", timeout_s=60)
         assert presence.wait_for(lambda v, _g: v >= set(IDS), timeout_s=30), "tokens missing"
