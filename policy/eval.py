@@ -52,6 +52,9 @@ class EvalConfig:
     """Optional trainer checkpoint (.pt) of the occupancy-map baseline (needs torch)."""
     max_neighbours: int = 10
     """Nearest neighbours fed to the learned policies."""
+    policy_separation_m: float = 3.0
+    """Separation the learned policies are told to keep (> 3 adds a margin; collisions
+    are still counted below 3 m)."""
     quick: bool = False
     """Small smoke suite."""
     seed: int = 0
@@ -107,7 +110,12 @@ def controllers(cfg: EvalConfig) -> dict:
     ]:
         if name == "paper-config" and not path:
             continue
-        pol = GuidancePolicy.load(path, safety_filter=False, max_neighbours=cfg.max_neighbours)
+        pol = GuidancePolicy.load(
+            path,
+            separation_m=cfg.policy_separation_m,
+            safety_filter=False,
+            max_neighbours=cfg.max_neighbours,
+        )
         out[name] = Held(pol.command_views, cfg.policy_period_s, safety_cfg if filt else None)
     if cfg.occupancy:
         out["occupancy"] = Held(
@@ -294,6 +302,7 @@ def cli(argv=None) -> dict:
     ap.add_argument("--paper-weights", default=None)
     ap.add_argument("--occupancy", default=None, help="occupancy-map trainer checkpoint (.pt)")
     ap.add_argument("--max-neighbours", type=int, default=EvalConfig.max_neighbours)
+    ap.add_argument("--policy-separation", type=float, default=EvalConfig.policy_separation_m)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--links", default="perfect,degraded")
@@ -322,6 +331,7 @@ def cli(argv=None) -> dict:
         max_neighbours=a.max_neighbours, quick=a.quick, seed=a.seed, links=links, dt_s=a.dt,
         figures=not a.no_figures, progress=not a.no_progress, suites=suites,
         policy_period_s=a.policy_period, controllers=tuple(c for c in a.controllers.split(",") if c),
+        policy_separation_m=a.policy_separation,
     )  # fmt: skip
     result = main(cfg)
     print(markdown(result["summary"]))

@@ -210,15 +210,20 @@ def main(cfg: TrainConfig) -> dict:
         b_val = torch.from_numpy(val_buf[b])
         n = b_seq.shape[0]
         stats = []
+        # advantages normalised over the whole batch: a per-minibatch std is NaN for a
+        # minibatch of one sample (this once turned every weight into NaN)
+        adv_mean, adv_std = b_adv.mean(), b_adv.std() + 1e-8
         for _ in range(cfg.update_epochs):
             perm = torch.randperm(n)
             for s in range(0, n, cfg.minibatch_size):
                 mb = perm[s : s + cfg.minibatch_size]
+                if mb.numel() < 2:
+                    continue
                 mean, value = model(b_seq[mb], b_len[mb], b_goal[mb])
                 dist = torch.distributions.Normal(mean, model.log_std.exp())
                 logp = dist.log_prob(b_act[mb]).sum(-1)
                 ratio = (logp - b_logp[mb]).exp()
-                mb_adv = (b_adv[mb] - b_adv[mb].mean()) / (b_adv[mb].std() + 1e-8)
+                mb_adv = (b_adv[mb] - adv_mean) / adv_std
                 pg_loss = torch.max(
                     -mb_adv * ratio, -mb_adv * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef)
                 ).mean()
@@ -228,6 +233,10 @@ def main(cfg: TrainConfig) -> dict:
                 v_loss = 0.5 * torch.max((value - b_ret[mb]) ** 2, (v_clip - b_ret[mb]) ** 2).mean()
                 ent = dist.entropy().sum(-1).mean()
                 loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * ent
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(
+                        f"non-finite loss at update {update}; last checkpoint is intact"
+                    )
                 optim.zero_grad()
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
