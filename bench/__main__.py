@@ -98,7 +98,8 @@ def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
     else:
         cmd = [sys.executable, "-m", f"bench.{sec.name}"] + (["--quick"] if quick else [])
     t0, started = time.monotonic(), time.time()
-    log_path = out / f"{sec.name}.log"
+    log_path = out / "logs" / f"{sec.name}.log"
+    log_path.parent.mkdir(exist_ok=True)
     done = threading.Event()
 
     def ticker() -> None:
@@ -116,7 +117,7 @@ def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
         finally:
             done.set()
     rec = {"section": sec.name, "how": sec.how(quick), "status": status, "wall_s": round(time.monotonic() - t0, 1),
-           "log": log_path.name}  # fmt: skip
+           "log": f"logs/{log_path.name}"}  # fmt: skip
     # Scripts pick their own file names (or print only): note what this one wrote.
     wrote = sorted({p.name for d in (out, RESULTS) for p in d.glob("*.json") if p.stat().st_mtime >= started and p.name != "run.json"})
     rec["wrote"] = wrote
