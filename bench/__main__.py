@@ -1,7 +1,7 @@
 """`covey bench` / `python -m bench`: run every benchmark, write JSON and a markdown summary.
 
     python -m bench                  # everything (< 15 min on 2 cores)
-    python -m bench --quick          # smoke-sized (< 2 min)
+    python -m bench --quick          # smoke-sized (< 2 min), into bench/results/quick
     python -m bench --only mesh      # one section (repeatable); the summary keeps the others
     python -m bench --list           # what would run, and how
 
@@ -144,7 +144,7 @@ def cli(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="covey bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smoke-sized runs (< 2 min)")
     ap.add_argument("--only", action="append", default=None, metavar="SECTION", help="run only this section (repeatable)")
-    ap.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
+    ap.add_argument("--out", type=Path, default=None, help="results folder (default bench/results, quick: bench/results/quick)")
     ap.add_argument("--list", action="store_true", help="list the sections and exit")
     ap.add_argument("--timeout-s", type=float, default=None, help="per-section limit (default 600, quick 120)")
     ap.add_argument("--run-one", default=None, help=argparse.SUPPRESS)
@@ -153,7 +153,8 @@ def cli(argv: list[str] | None = None) -> int:
         return run_one(args.run_one, args.quick)
     from bench import common, report
 
-    out = (args.out or common.RESULTS).resolve()
+    # A quick run must not replace the full run's results that the README quotes.
+    out = (args.out or (common.RESULTS / "quick" if args.quick else common.RESULTS)).resolve()
     out.mkdir(parents=True, exist_ok=True)
     default_out = out == RESULTS.resolve()
     sections = discover()
