@@ -56,7 +56,7 @@ class Section:
         if not self.script:
             return "skipped: no main(quick) and no __main__ block"
         if not default_out:
-            return "skipped with --out: the script writes into bench/results itself"
+            return "skipped: it writes into bench/results itself, and this run writes elsewhere"
         if quick and not self.takes_quick:
             return "skipped in --quick: its command line has no --quick"
         return f"python -m bench.{self.name}" + (" --quick" if quick else "")
