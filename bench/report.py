@@ -73,9 +73,9 @@ def training(d: dict) -> list[str]:
                      f"{_f(p['samples_s'])} samples/s, {_f(p['episodes_s'])} episodes/s ({p['updates']} updates, {_f(p['wall_s'])} s)"])  # fmt: skip
     else:
         rows.append(["PPO trainer", p.get("skipped", "-")])
-    shipped = f"{_f(s.get('trained_episodes'))} episodes"
+    shipped = f"{_f(s.get('trained_episodes'))} episodes (last stage)"
     if "log_wall_s" in s:
-        where = "" if s.get("log_in_git") else " (the run directory named in policy/weights/README.md; not in git)"
+        where = "" if s.get("log_in_git") else " (the run directories named in policy/weights/README.md, joined; not in git)"
         same = "" if s.get("log_matches_weights") else " - its last row does not match the shipped episode count"
         shipped += (f"; log {s['log']}{where}: {_f(s['log_wall_s'] / 60)} min wall in total, 95 % of the final success "
                     f"({_f(s['final_success'])}) after {_f(s['wall_s_to_95pct_of_final_success'] / 60)} min "
@@ -159,7 +159,7 @@ def headline(out: Path) -> list[str]:
         if "samples_s" in p:
             rows.append(["PPO trainer", f"{_f(p['samples_s'])} samples/s", f"{_f(p['episodes_s'])} episodes/s, 1 torch thread"])
         if "log_wall_s" in s:
-            rows.append(["shipped policy", f"{_f(s['trained_episodes'])} episodes in {_f(s['log_wall_s'] / 60)} min",
+            rows.append(["shipped policy", f"{_f(s['log_episodes'])} episodes in {_f(s['log_wall_s'] / 60)} min",
                          f"95 % of final reward after {_f(s['wall_s_to_95pct_of_final_reward'] / 60)} min; final success {_f(s['final_success'])}"])  # fmt: skip
     if me:
         by = {(x["kind"], x["vehicles"]): x for x in me["states"]}

@@ -87,20 +87,36 @@ def ppo(quick: bool) -> dict:
 
 def shipped_log() -> tuple[Path | None, list[dict]]:
     """The shipped training log (the trainer's CSV columns): a CSV shipped beside the weights,
-    else the log.csv of the run directory that policy/weights/README.md names (`--out DIR`),
-    if that run is still on this machine."""
-    candidates = sorted(WEIGHTS_DIR.glob("*.csv"))
-    readme = WEIGHTS_DIR / "README.md"
-    if readme.is_file():
-        candidates += [common.REPO / m / "log.csv" for m in re.findall(r"--out\s+(\S+)", readme.read_text())]
-    for path in candidates:
-        if not path.is_file():
-            continue
+    else the log.csv files of the run directories that policy/weights/README.md names
+    (`--out DIR`, in order: a staged run is fine-tuned from the previous stage), joined with
+    episodes and wall time carried over, if those runs are still on this machine."""
+    def read(path: Path) -> list[dict]:
         with open(path) as f:
             rows = list(csv.DictReader(f))
-        if rows and {"episodes", "wall_s", "reward", "success"} <= set(rows[0]):
+        ok = rows and {"episodes", "wall_s", "reward", "success"} <= set(rows[0])
+        return [r for r in rows if np.isfinite(float(r["reward"]))] if ok else []
+
+    for path in sorted(WEIGHTS_DIR.glob("*.csv")):
+        if rows := read(path):
             return path, rows
-    return None, []
+    readme = WEIGHTS_DIR / "README.md"
+    if not readme.is_file():
+        return None, []
+    dirs = list(dict.fromkeys(re.findall(r"--out\s+(\S+)", readme.read_text())))
+    joined: list[dict] = []
+    first = None
+    for d in dirs:
+        path = common.REPO / d / "log.csv"
+        rows = read(path) if path.is_file() else []
+        if not rows:
+            continue
+        first = first or path
+        ep0 = float(joined[-1]["episodes"]) if joined else 0.0
+        wall0 = float(joined[-1]["wall_s"]) if joined else 0.0
+        for r in rows:
+            joined.append({**r, "episodes": float(r["episodes"]) + ep0, "wall_s": float(r["wall_s"]) + wall0,
+                           "stage": d, "stage_episodes": r["episodes"]})  # fmt: skip
+    return first, joined
 
 
 def shipped_quality(ppo_result: dict) -> dict:
@@ -118,11 +134,12 @@ def shipped_quality(ppo_result: dict) -> dict:
         final_rew = float(np.mean(rew[-5:]))
         reach_rew = int(np.argmax(rew >= final_rew - 0.05 * abs(final_rew)))
         out.update({
-            "log": str(path.relative_to(common.REPO)), "log_episodes": int(ep[-1]), "log_wall_s": float(wall[-1]),
+            "log": ", ".join(dict.fromkeys(r.get("stage", str(path.relative_to(common.REPO))) for r in rows)),
+            "log_episodes": int(ep[-1]), "log_wall_s": float(wall[-1]),
             "final_success": final, "final_reward": final_rew,
             "wall_s_to_95pct_of_final_success": float(wall[reach]), "episodes_to_95pct_of_final_success": int(ep[reach]),
             "wall_s_to_95pct_of_final_reward": float(wall[reach_rew]), "episodes_to_95pct_of_final_reward": int(ep[reach_rew]),
-            "log_matches_weights": int(ep[-1]) == out["trained_episodes"], "log_in_git": WEIGHTS_DIR in path.parents,
+            "log_matches_weights": out["trained_episodes"] in (int(ep[-1]), int(float(rows[-1].get("stage_episodes", ep[-1])))), "log_in_git": WEIGHTS_DIR in path.parents,
         })  # fmt: skip
     readme = WEIGHTS_DIR / "README.md"
     if readme.is_file():
@@ -145,6 +162,9 @@ def plot(rows: list[dict]) -> None:
     ax2.plot(ep, [float(r["success"]) for r in rows], color="C1", label="success")
     if "collision" in rows[0]:
         ax2.plot(ep, [float(r["collision"]) for r in rows], color="C3", ls="--", label="collision")
+    for k in range(1, len(rows)):  # fine-tuning stages (e.g. with the continuous collision check)
+        if rows[k].get("stage") != rows[k - 1].get("stage"):
+            ax.axvline(float(rows[k]["episodes"]), color="grey", lw=0.8, ls=":")
     ax2.set_ylim(0, 1)
     ax2.set_ylabel("share of vehicles")
     ax2.legend(loc="center right", fontsize=8)
