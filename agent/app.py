@@ -122,6 +122,8 @@ class Agent:
         self._last_link_stats_s = clock_s()
         self.presence = mesh.presence()
         mesh.subscribe_states(lambda s, _t: self.table.update(s, self.clock_s()), link=link)
+        if getattr(mesh, "auth", None) is not None:
+            mesh.auth.on_reject = self._on_auth_refusal  # refused before handle_command runs
         # Answer commands before announcing presence: whoever sees us alive can command us.
         mesh.serve_commands(self.vid, self.handle_command)
         mesh.declare_vehicle(self.vid)
@@ -138,6 +140,10 @@ class Agent:
             self.mesh.event(self.vid, text, kind=kind, severity=severity)
         except Exception as exc:  # noqa: BLE001 - an event that cannot be sent must not stop flying
             log.warning("could not publish event: %s", exc)
+
+    def _on_auth_refusal(self, cmd: Command, _vehicle_id: int, reason: str) -> None:
+        self._event(f"refused {cmd.kind.name.lower()} from station {cmd.source_id}: {reason}",
+                    EventKind.SECURITY, Severity.WARNING)  # fmt: skip
 
     # -- commands (Zenoh thread) ---------------------------------------------------------------
     def handle_command(self, cmd: Command) -> CommandAck:

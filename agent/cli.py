@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import signal
 import threading
@@ -18,6 +19,7 @@ from agent.app import Agent, AgentConfig
 from agent.backends.base import VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
+from comms.auth import CommandAuth, load_auth
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.session import DEFAULT_PORT, MeshConfig
@@ -94,6 +96,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--trace-guidance", action="store_true",
                    help="publish guidance traces so `covey replay --policy` can replay the flight exactly")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("--key-file", default=None,
+                   help="fleet key for signed commands (covey keygen); or $COVEY_FLEET_KEY_FILE / "
+                   "$COVEY_FLEET_KEY. Without a key the agent runs in open mode")  # fmt: skip
     add_mesh_args(p)
     return p
 
@@ -128,12 +133,12 @@ def make_link(spec: str, vehicle_id: int, receiver_pos=None):
 
 
 def main(cfg: AgentConfig, vehicle: str = "sim", start_ne_m=(0.0, 0.0), stop: threading.Event | None = None,
-         duration_s: float | None = None) -> int:  # fmt: skip
+         duration_s: float | None = None, auth: CommandAuth | None = None) -> int:  # fmt: skip
     stop = stop or threading.Event()
     clock_s = time.monotonic
     with contextlib.ExitStack() as stack:
         backend = stack.enter_context(make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s))
-        mesh = stack.enter_context(Mesh(cfg.mesh))
+        mesh = stack.enter_context(Mesh(cfg.mesh, auth=auth))
         own_pos: list = [None]  # filled once the agent exists; range-dependent loss needs it
         link = make_link(cfg.link, cfg.vehicle_id, receiver_pos=lambda: own_pos[0])
         if link is not None:
@@ -161,13 +166,16 @@ def cli(argv: list[str]) -> int:
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")  # fmt: skip
     try:
         cfg = config_from_args(args)
+        auth = load_auth(args.key_file)  # FleetKeyError (a ValueError) says what is wrong
     except ValueError as exc:
         p.error(str(exc))
+    cfg = dataclasses.replace(cfg, open_mode=auth is None)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
-        return main(cfg, vehicle=args.vehicle, start_ne_m=args.start, stop=stop, duration_s=args.duration_s)
+        return main(cfg, vehicle=args.vehicle, start_ne_m=args.start, stop=stop, duration_s=args.duration_s,
+                    auth=auth)
     except (ValueError, FileNotFoundError) as exc:
         p.error(str(exc))
     return 2

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import viser
 
+from comms.auth import load_auth
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.presence import Presence
@@ -70,6 +71,9 @@ class GcsConfig:
     link: str = "perfect"
     """Emulated radio link between the vehicles and this station (comms.link spec: perfect, xbee,
     wifi, ...); the station sits at the origin. The link-health columns then show its effect."""
+    key_file: str | None = None
+    """Fleet key that signs commands (comms/auth.py); None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY,
+    else open mode (ignored when a Mesh is passed to GroundStation)."""
 
 
 class GroundStation:
@@ -108,7 +112,7 @@ class GroundStation:
 
     def _start(self) -> None:
         cfg = self.cfg
-        self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns)
+        self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file))
         if cfg.link not in ("", "perfect"):
             from comms.link import emulator_from_spec
 

@@ -8,6 +8,7 @@ import secrets
 import signal
 import sys
 
+from comms.auth import FleetKeyError
 from groundstation.app import GcsConfig, GroundStation
 from groundstation.meshargs import add_mesh_args, mesh_config
 
@@ -70,8 +71,12 @@ def cli(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         p.error(f"--link: {exc}")
     cfg = GcsConfig(mesh=mesh_config(args, p), host=args.host, port=args.port, gcs_id=args.gcs_id,
-                    geofence_radius_m=args.geofence_radius_m, link=args.link)  # fmt: skip
-    return main(cfg)
+                    geofence_radius_m=args.geofence_radius_m, link=args.link,
+                    key_file=args.key_file)  # fmt: skip
+    try:
+        return main(cfg)
+    except FleetKeyError as exc:  # unreadable, loose permissions or malformed key
+        p.error(str(exc))
 
 
 if __name__ == "__main__":

@@ -17,13 +17,19 @@ def add_mesh_args(parser: argparse.ArgumentParser) -> None:
                    help="Zenoh role of this process (default: peer)")  # fmt: skip
     g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to listen on (default: tcp/127.0.0.1:0 for a peer)")  # fmt: skip
+    g.add_argument("--zenoh-config", default=None, metavar="FILE",
+                   help="full Zenoh JSON5 config: TLS, user/password, access control "
+                   "(comms/zenoh_configs/)")  # fmt: skip
+    g.add_argument("--key-file", default=None, metavar="FILE",
+                   help="fleet key to sign commands (covey keygen); or $COVEY_FLEET_KEY_FILE / "
+                   "$COVEY_FLEET_KEY. Without a key: open mode")  # fmt: skip
 
 
 def mesh_config(args: argparse.Namespace, parser: argparse.ArgumentParser) -> MeshConfig:
     """The MeshConfig the options describe; a bad combination is an argparse error."""
     connect = tuple(e for item in (args.connect or []) for e in item.split(",") if e)
     listen = tuple(e for item in (args.listen or []) for e in item.split(",") if e)
-    kw: dict = {"fleet": args.fleet, "mode": args.mesh_mode}
+    kw: dict = {"fleet": args.fleet, "mode": args.mesh_mode, "config_file": args.zenoh_config}
     if args.connect is not None:
         kw["connect"] = connect
     elif args.mesh_mode == "router":

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from comms.auth import FleetKeyError, load_auth
 from comms.commands import CommandResult, OutcomeStatus
 from comms.mesh import Mesh
 from comms.schema import CommandKind
@@ -104,6 +105,8 @@ class CmdConfig:
     """For `--to all`: how long to wait for presence to learn who should answer."""
     source_id: int = 1
     """Source id written into the command."""
+    key_file: str | None = None
+    """Fleet key that signs the command; None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY, else open mode."""
 
 
 def format_result(res: CommandResult) -> str:
@@ -116,7 +119,7 @@ def format_result(res: CommandResult) -> str:
 
 
 def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
-    with Mesh(cfg.mesh) as mesh:
+    with Mesh(cfg.mesh, auth=load_auth(cfg.key_file)) as mesh:
         pres = mesh.presence()
         if not cfg.targets:
             # Wait until presence is quiet: no new vehicle for a while, bounded by discover_s.
@@ -180,7 +183,8 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
         p.error(str(exc))
     if not 0.1 <= args.timeout <= 60:
         p.error(f"--timeout {args.timeout} must be within 0.1..60 s")
-    cfg = CmdConfig(mesh=mesh_config(args, p), request=req, targets=targets, timeout_s=args.timeout)
+    cfg = CmdConfig(mesh=mesh_config(args, p), request=req, targets=targets, timeout_s=args.timeout,
+                    key_file=args.key_file)  # fmt: skip
     if args.verb == "kill" and not args.yes:
         who = "ALL vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))
         print(
@@ -192,4 +196,7 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
         if answer != "kill":
             print("not confirmed; nothing sent", file=sys.stderr)
             return 1
-    return cmd_main(cfg)
+    try:
+        return cmd_main(cfg)
+    except FleetKeyError as exc:  # unreadable, loose permissions or malformed key
+        p.error(str(exc))

@@ -123,11 +123,14 @@ def check_one(data: bytes, auth: CommandAuth, stats: dict[str, int]) -> None:
 
 
 @pytest.fixture
-def auth() -> CommandAuth:
+def auth():
     import logging
 
-    logging.getLogger("comms.auth").setLevel(logging.ERROR)  # thousands of refusals
-    return CommandAuth(bytes(32))
+    logger = logging.getLogger("comms.auth")
+    level = logger.level
+    logger.setLevel(logging.ERROR)  # thousands of refusals
+    yield CommandAuth(bytes(32))
+    logger.setLevel(level)  # other tests read this logger's warnings
 
 
 def test_mutated_valid_messages_only_raise_decode_error(auth) -> None:

@@ -185,7 +185,7 @@ def test_key_sources_and_their_errors(tmp_path, caplog) -> None:
     raw.write_bytes(key)
     raw.chmod(0o600)
     assert read_key_file(raw) == key
-    with caplog.at_level("WARNING"):
+    with caplog.at_level("WARNING", logger="comms.auth"):
         assert load_auth(None, env={}) is None
     assert "OPEN MODE" in caplog.text
     path.chmod(0o644)

@@ -10,6 +10,7 @@ the MAV_RESULT and the autopilot's own STATUSTEXT explanation when it sent one.
 
 from __future__ import annotations
 
+import logging
 import math
 import select
 import threading
@@ -22,7 +23,10 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
 from comms.geo import GeoOrigin
+from comms.schema import POSITION_LIMIT_M, SPEED_LIMIT_M_S
 from firmware.sitl.mavlink_io import LinkUrl, UdpLink  # the one tested MAVLink-over-UDP link
+
+log = logging.getLogger(__name__)
 
 KILL_MAGIC = 21196.0
 """ARM_DISARM param2 that forces a disarm in the air."""
@@ -46,6 +50,32 @@ HEARTBEAT = mavlink.MAVLink_heartbeat_message(
     3,
 )
 """Ours: a companion computer, not an autopilot."""
+_CHECKED = frozenset({"GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "ATTITUDE"})
+"""Messages whose values become the vehicle's published state: checked before use."""
+
+
+def _plausible(msg: Any) -> bool:
+    """Whether a state message's values can be a real vehicle's (finite, within the wire limits).
+
+    A corrupt or hostile autopilot message is dropped rather than copied into Telemetry, where it
+    would stop the agent from encoding its VehicleState."""
+    kind = msg.get_type()
+    if kind == "GLOBAL_POSITION_INT":
+        return (
+            abs(msg.lat) <= 90e7
+            and abs(msg.lon) <= 180e7
+            and abs(msg.alt) <= POSITION_LIMIT_M * 1e3
+        )
+    if kind == "LOCAL_POSITION_NED":
+        vals = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
+        return all(math.isfinite(v) for v in vals) and all(
+            abs(v) < SPEED_LIMIT_M_S for v in vals[3:]
+        )
+    if kind == "ATTITUDE":
+        return math.isfinite(msg.yaw) and abs(msg.yaw) <= 4.0 * math.pi
+    return True
+
+
 RESULT_BY_VALUE = {k: v.name for k, v in mavlink.enums["MAV_RESULT"].items()}
 
 
@@ -123,6 +153,8 @@ class RelayBackend(VehicleBackend):
         self._param: tuple[str, float] | None = None  # newest PARAM_VALUE (name, value)
         self._send_lock = threading.Lock()
         self._closed = False
+        self.rejected_messages = 0
+        """Autopilot state messages dropped as implausible (NaN, inf, out of range)."""
         self._thread = threading.Thread(target=self._receive_loop, name="relay-rx", daemon=True)
         self._thread.start()
 
@@ -167,12 +199,23 @@ class RelayBackend(VehicleBackend):
             return
         with self._cond:
             s = self._state
+            if kind in _CHECKED and not _plausible(msg):
+                self.rejected_messages += 1  # one bad value must not poison the vehicle's state
+                if self.rejected_messages in (1, 10, 100, 1000):
+                    log.warning("ignored implausible %s from the autopilot (%d so far): %s",
+                                kind, self.rejected_messages, msg)  # fmt: skip
+                return
             if kind == "GLOBAL_POSITION_INT":
-                s.pos_ned_m = self.origin.to_local(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+                pos = self.origin.to_local(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+                if not all(abs(v) <= POSITION_LIMIT_M for v in pos):
+                    self.rejected_messages += 1
+                    log.warning("ignored a position %s m from the fleet origin", pos)
+                    return
+                s.pos_ned_m = pos
                 s.pos_stamp_s, s.rel_alt_m = self.clock(), msg.relative_alt * 1e-3
                 s.vel_ned_m_s = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
                 if msg.hdg != 65535:
-                    s.heading_rad = math.radians(msg.hdg * 0.01)
+                    s.heading_rad = math.radians(msg.hdg * 0.01) % (2.0 * math.pi)
             elif kind == "LOCAL_POSITION_NED":
                 s.vel_ned_m_s = (msg.vx, msg.vy, msg.vz)  # finer than GLOBAL_POSITION_INT's cm/s
             elif kind == "ATTITUDE":
@@ -180,7 +223,7 @@ class RelayBackend(VehicleBackend):
             elif kind == "EXTENDED_SYS_STATE":
                 s.landed_state = msg.landed_state
             elif kind == "SYS_STATUS" and msg.battery_remaining >= 0:
-                s.battery_pct = float(msg.battery_remaining)
+                s.battery_pct = float(min(msg.battery_remaining, 100))
             elif kind == "COMMAND_ACK" and msg.target_system in (0, self.cfg.source_system):
                 self._acks[msg.command] = msg.result
                 self._cond.notify_all()
