@@ -124,6 +124,11 @@ def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
         if not cfg.targets:
             # Wait until presence is quiet: no new vehicle for a while, bounded by discover_s.
             pres.wait_for(lambda v, _g: False, timeout_s=cfg.discover_s)
+        else:
+            # A fresh session learns the mesh in a few ms: wait (bounded) until every target is
+            # seen, so a present vehicle is not reported unreachable because we were too quick.
+            wanted = set(cfg.targets)
+            pres.wait_for(lambda v, _g: wanted <= set(v), timeout_s=cfg.discover_s)
         res = dispatch.send(mesh, cfg.request, cfg.targets, present=pres.vehicles, source_id=cfg.source_id,
                             timeout_s=cfg.timeout_s)  # fmt: skip
     out(f"{cfg.request.describe()}:")
