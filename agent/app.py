@@ -293,9 +293,14 @@ class Agent:
         # Fly.
         out = None
         heading_in_rad = fl.heading_rad
+        # Half a tick of tolerance: with equal tick and state rates, jitter must not skip states.
+        publish = now_s - self._last_state_s >= 1.0 / self.cfg.state_hz - 0.5 / self.cfg.tick_hz
         if tel.link_ok and self.velocity_mode and tel.armed:
             if fl.mode in (Mode.GOTO, Mode.RETURNING) and fl.goal_m is not None:
-                out = self.guidance.goto(pos, vel, fl.heading_rad, fl.goal_m, nbrs)
+                decide = self.guidance.decision_due(now_s, fl.goal_m)
+                if decide and self.cfg.trace_guidance and not publish:
+                    decide = not self.guidance.has_decision  # decide on traced ticks: replayable
+                out = self.guidance.goto(pos, vel, fl.heading_rad, fl.goal_m, nbrs, now_s, decide)
             elif fl.mode is Mode.HOLDING and fl.hold_m is not None:
                 out = self.guidance.hold(pos, vel, fl.heading_rad, fl.hold_m, nbrs)
             if out is not None:
@@ -321,17 +326,17 @@ class Agent:
                 log.warning("traffic forward failed: %s", exc)
         if nbrs.stale_ids:
             flags |= StateFlag.NEIGHBOURS_STALE
-        # Half a tick of tolerance: with equal tick and state rates, jitter must not skip states.
-        if now_s - self._last_state_s >= 1.0 / self.cfg.state_hz - 0.5 / self.cfg.tick_hz:
+        if publish:
             self._last_state_s = now_s
             self._publish(tel, pos, vel, flags)
             if self.cfg.trace_guidance and out is not None:
-                self._trace(heading_in_rad, out.vel_ned_m_s, nbrs)
+                self._trace(heading_in_rad, out, nbrs)
 
-    def _trace(self, heading_in_rad: float, cmd_vel_ned_m_s: np.ndarray, nbrs) -> None:
+    def _trace(self, heading_in_rad: float, out, nbrs) -> None:
         from agent.closed_loop import trace_text
 
-        text = trace_text(self.flight.seq, heading_in_rad, cmd_vel_ned_m_s, nbrs.ids, nbrs.seqs, nbrs.age_s)
+        text = trace_text(self.flight.seq, heading_in_rad, out.vel_ned_m_s, nbrs.ids, nbrs.seqs, nbrs.age_s,
+                          decided=out.decided)  # fmt: skip
         self._event(text, EventKind.STATUS, Severity.DEBUG, quiet=True)
 
     def _arrived(self, pos: np.ndarray, goal: np.ndarray) -> bool:

@@ -85,6 +85,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--separation-m", type=float, default=3.0)
     p.add_argument("--cruise-speed-m-s", type=float, default=1.0)
     p.add_argument("--no-safety-filter", action="store_true", help="fly the pure learned policy")
+    p.add_argument("--decision-period-s", type=float, default=None,
+                   help="seconds between policy decisions, held in between (default: the policy's "
+                   "trained period, 1 s x separation/3 / cruise speed; 0: every tick)")  # fmt: skip
     p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
     p.add_argument("--geofence-radius-m", type=float, default=500.0, help="0 = no fence")
     p.add_argument("--gcs-lost-hold-s", type=float, default=5.0)
@@ -113,6 +116,7 @@ def config_from_args(args: argparse.Namespace) -> AgentConfig:
         guidance=GuidanceConfig(
             separation_m=args.separation_m, cruise_speed_m_s=args.cruise_speed_m_s,
             safety_filter=not args.no_safety_filter, policy_path=args.policy,
+            decision_period_s=args.decision_period_s,
         ),  # fmt: skip
         failsafe=FailsafeConfig(
             require_gcs=not args.no_gcs_failsafe, gcs_lost_hold_s=args.gcs_lost_hold_s,

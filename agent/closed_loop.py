@@ -45,14 +45,17 @@ class Trace:
     """(vehicle id, seq of its state, age in s) of every neighbour in the snapshot."""
     complete: bool = True
     """False when the neighbour list did not fit the event and was cut."""
+    decided: bool = True
+    """The policy decided in this tick (False: guidance held its last decision). Traces from
+    before decisions were held carry no flag: every tick decided."""
 
 
 def trace_text(state_seq: int, heading_rad: float, cmd_vel_ned_m_s, nbr_ids, nbr_seqs, nbr_ages_s,
-               max_bytes: int = 120) -> str:  # fmt: skip
-    """`trace <seq> <heading> <vn>,<ve>,<vd> <id>:<seq>:<age_us>;...` cut to max_bytes (a final
-    `+` marks a cut neighbour list)."""
+               max_bytes: int = 120, decided: bool = True) -> str:  # fmt: skip
+    """`trace <seq> <heading> <vn>,<ve>,<vd> D|H <id>:<seq>:<age_us>;...` cut to max_bytes (a
+    final `+` marks a cut neighbour list); D: the policy decided in this tick, H: held."""
     v = ",".join(f"{float(x):.9g}" for x in cmd_vel_ned_m_s)
-    text = f"{TRACE_PREFIX}{state_seq} {float(heading_rad):.9g} {v} "
+    text = f"{TRACE_PREFIX}{state_seq} {float(heading_rad):.9g} {v} {'D' if decided else 'H'} "
     items = [
         f"{i}:{s}:{round(a * 1e6)}" for i, s, a in zip(nbr_ids, nbr_seqs, nbr_ages_s, strict=True)
     ]
@@ -75,7 +78,11 @@ def parse_trace(text: str) -> Trace | None:
             float(parts[1]),
             tuple(float(x) for x in parts[2].split(",")),
         )
-        body = parts[3] if len(parts) > 3 else ""
+        rest = parts[3:]
+        decided = True
+        if rest and rest[0] in ("D", "H"):
+            decided, rest = rest[0] == "D", rest[1:]
+        body = rest[0] if rest else ""
         complete = not body.endswith("+")
         nbrs = tuple(
             (int(i), int(s), int(a) / 1e6)
@@ -85,7 +92,7 @@ def parse_trace(text: str) -> Trace | None:
         return None
     if len(vel) != 3 or not all(map(math.isfinite, (heading, *vel))):
         return None
-    return Trace(seq, heading, vel, nbrs, complete)  # type: ignore[arg-type]
+    return Trace(seq, heading, vel, nbrs, complete, decided)  # type: ignore[arg-type]
 
 
 # -- replay ----------------------------------------------------------------------------------
@@ -208,6 +215,7 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
     use_traces = bool(traces)
     rows_out, skipped = [], 0
     prev_heading = None
+    chain_ok = False  # traced: the held decision was replayed too (else held ticks are skipped)
     for sample in own:
         s, t_ns = sample.state, sample.t_ns
         heading_in = prev_heading
@@ -215,13 +223,18 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
         if t_ns < lo or (hi is not None and t_ns >= hi):
             continue
         if not (s.armed and s.mode in GUIDED_MODES and s.flags & StateFlag.HAS_GOAL):
+            guidance.reset()
+            chain_ok = False
             continue
+        decide = None  # recorded velocities: guidance decides on its own clock
         if use_traces:
             tr = traces.get(s.seq)
             nbr_rows = _traced_rows(tr, by_seq, t_ns) if tr is not None and tr.complete else None
-            if nbr_rows is None:
+            if nbr_rows is None or not (tr.decided or chain_ok or s.mode is Mode.HOLDING):
                 skipped += 1
+                chain_ok = False
                 continue
+            chain_ok, decide = True, tr.decided
             heading_in, ref = tr.heading_rad, np.array(tr.cmd_vel_ned_m_s[:2])
         else:
             nbr_rows = _rebuilt_rows(timed, t_ns, s, cfg.neighbours)
@@ -235,8 +248,10 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
         pos, vel, goal = (
             np.asarray(x, dtype=float) for x in (s.pos_ned_m, s.vel_ned_m_s, s.goal_ned_m)
         )
-        step = guidance.hold if s.mode is Mode.HOLDING else guidance.goto
-        out = step(pos, vel, heading_in, goal, snap).vel_ned_m_s[:2]
+        if s.mode is Mode.HOLDING:
+            out = guidance.hold(pos, vel, heading_in, goal, snap).vel_ned_m_s[:2]
+        else:
+            out = guidance.goto(pos, vel, heading_in, goal, snap, t_ns / 1e9, decide).vel_ned_m_s[:2]
         rows_out.append(
             ((t_ns - t0) / 1e9, s.seq, s.pos_ned_m, out, ref, float(np.linalg.norm(out - ref)))
         )

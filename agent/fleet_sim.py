@@ -133,6 +133,12 @@ class Fleet:
         self.modes = [Mode.LANDED] * n
         self.goal_m = np.zeros((n, 3))
         self.hold_m = self.pos_m.copy()
+        # Held policy decisions, as agent.guidance: decide once per period, filter every tick.
+        period = g.decision_period_s
+        self.decision_period_s = self.policy.decision_period_s if period is None else period
+        self._held_pref_m_s = np.zeros((n, 2))
+        self._held_goal_m = np.full((n, 3), np.nan)  # NaN: nothing held
+        self._decided_s = np.full(n, -np.inf)
         self.home_m = self.pos_m.copy()
         self.takeoff_alt_m = np.full(n, 10.0)
         self.seq = 0
@@ -218,7 +224,7 @@ class Fleet:
                 self._integrate(dt_s)
             self._vehicle_events()
             snap = self._guidance_inputs(now_s)
-        cmd = self._guidance(*snap) if snap is not None else None
+        cmd = self._guidance(*snap, now_s=now_s) if snap is not None else None
         with self._lock:
             if cmd is not None:
                 rows, v_h = cmd
@@ -312,15 +318,28 @@ class Fleet:
             np.array([m is Mode.HOLDING for m in modes]),
         )  # fmt: skip
 
-    def _guidance(self, pos, vel, heading, goal, active, guided, holding):
-        """(rows, horizontal velocity commands (len(rows), 2)): the policy in goto and return,
-        position hold otherwise, then the safety filter for everyone (as agent.guidance)."""
+    def _guidance(self, pos, vel, heading, goal, active, guided, holding, now_s: float = 0.0):
+        """(rows, horizontal velocity commands (len(rows), 2)): the policy in goto and return
+        (decided once per decision period and held in between), position hold otherwise, then
+        the safety filter for everyone (as agent.guidance)."""
         g, s = self.cfg.guidance, self.policy.dist_scale_m
         a, nbr = self.policy.action_batch(pos[:, :2] / s, heading, goal[:, :2] / s, active)
         pref = features.action_to_velocity(a, heading) * g.cruise_speed_m_s
         hold = g.hold_gain_1_s * (goal[:, :2] - pos[:, :2])
         hold *= (g.cruise_speed_m_s / np.maximum(np.hypot(hold[:, 0], hold[:, 1]), g.cruise_speed_m_s))[:, None]
         n = len(holding)
+        flying = np.zeros(n, bool)
+        flying[guided] = True
+        flying &= ~holding
+        due = flying & (
+            (now_s - self._decided_s >= 0.95 * self.decision_period_s)
+            | ~np.all(self._held_goal_m == goal[:n], axis=1)  # new goal, or nothing held (NaN)
+        )
+        self._held_pref_m_s[due] = pref[:n][due]
+        self._held_goal_m[due] = goal[:n][due]
+        self._decided_s[due] = now_s
+        self._held_goal_m[~flying] = np.nan  # a hold or landing forgets the decision
+        pref[:n][flying] = self._held_pref_m_s[flying]
         pref[:n][holding] = hold[:n][holding]
         if g.safety_filter:
             pref = safety.filter_batch(pos[:, :2], vel[:, :2], pref, nbr, self.policy.safety_cfg)

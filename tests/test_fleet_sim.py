@@ -86,7 +86,15 @@ def test_fleet_in_process_follows_the_agents_mode_machine() -> None:
         assert fleet.handle_command(0, _cmd(CommandKind.KILL)).result is AckResult.ACCEPTED
         for i in (1, 2):
             assert fleet.handle_command(i, _cmd(CommandKind.GOTO_LOCAL, 20.0, 10.0 * i, -5)).result is AckResult.ACCEPTED
-        _fly(fleet, clock, 4.0)
+        # The policy decides once per decision period (1 s here) and its velocity is held.
+        _fly(fleet, clock, 0.1)
+        decided = fleet._decided_s.copy()
+        assert decided[1:].tolist() == [clock[0]] * 2  # the new goal: decided at once
+        _fly(fleet, clock, 0.5)
+        assert np.array_equal(fleet._decided_s, decided)
+        _fly(fleet, clock, 0.5)
+        assert (fleet._decided_s[1:] > decided[1:]).all()
+        _fly(fleet, clock, 2.9)
         assert fleet.modes[0] is Mode.KILLED and fleet.pos_m[0, 2] == 0.0 and not fleet.armed[0]
         assert all(fleet.pos_m[i, 0] > 3.0 for i in (1, 2)), fleet.pos_m
         for i in (1, 2):

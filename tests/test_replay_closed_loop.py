@@ -27,13 +27,14 @@ TICK_S = 0.1
 def _fly(path, n_ticks=120, traces=True, cruise=1.0):
     """Three vehicles crossing, each run by agent.guidance as the agent does it, with neighbour
     states that arrive late (ages vary) and are dead-reckoned; writes states and traces to MCAP."""
-    guidance = Guidance(GuidanceConfig(cruise_speed_m_s=cruise))
     starts = {1: (0.0, 0.0), 2: (10.0, 10.0), 3: (10.0, -10.0)}
     goals = {1: (20.0, 0.0), 2: (0.0, -8.0), 3: (0.0, 8.0)}
     pos = {v: np.array([*p, -5.0]) for v, p in starts.items()}
     vel = {v: np.zeros(3) for v in pos}
     heading = {v: math.atan2(goals[v][1] - starts[v][1], goals[v][0] - starts[v][0]) for v in pos}
     tables = {v: NeighbourTable(v) for v in pos}
+    # One Guidance per vehicle, as one agent each: the policy decides once a second and holds.
+    guidance = {v: Guidance(GuidanceConfig(cruise_speed_m_s=cruise)) for v in pos}
     rng = np.random.default_rng(3)
     t_ns = 1_700_000_000_000_000_000
     with open(path, "wb") as f:
@@ -49,7 +50,7 @@ def _fly(path, n_ticks=120, traces=True, cruise=1.0):
                 goal = np.array([*goals[v], -5.0])
                 snap = tables[v].snapshot(now_s, pos[v])
                 h_in = heading[v]
-                out = guidance.goto(pos[v], vel[v], h_in, goal, snap)
+                out = guidance[v].goto(pos[v], vel[v], h_in, goal, snap, now_s)
                 state = VehicleState(
                     v, k, t_ns, tuple(pos[v]), tuple(vel[v]), float(math.remainder(out.heading_rad, 2 * math.pi)),
                     mode=Mode.GOTO, armed=True, flags=StateFlag.HAS_GOAL, goal_ned_m=tuple(goal),
@@ -57,7 +58,8 @@ def _fly(path, n_ticks=120, traces=True, cruise=1.0):
                 sink.put(keys.state(FLEET, v), state.encode(), t_ns + v)
                 if traces:
                     seqs = [tables[v].latest()[i].seq for i in snap.ids]
-                    text = trace_text(k, h_in, out.vel_ned_m_s, snap.ids, seqs, snap.age_s)
+                    text = trace_text(k, h_in, out.vel_ned_m_s, snap.ids, seqs, snap.age_s,
+                                      decided=out.decided)  # fmt: skip
                     ev = Event(v, t_ns, text, Severity.DEBUG)
                     sink.put(keys.event(FLEET, v), ev.encode(), t_ns + v + 1)
                 for dst in pos:

@@ -1,0 +1,97 @@
+"""Guidance decides at the policy's trained period and holds in between; the filter runs every tick."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.guidance import Guidance, GuidanceConfig
+from agent.neighbours import NeighbourSnapshot
+
+GOAL = np.array([20.0, 0.0, -5.0])
+
+
+def snapshot(pos_ne_m=(), vel_ne_m_s=()) -> NeighbourSnapshot:
+    k = len(pos_ne_m)
+    return NeighbourSnapshot(
+        pos_ned_m=np.array([[*p, -5.0] for p in pos_ne_m]).reshape(k, 3),
+        vel_ned_m_s=np.array([[*v, 0.0] for v in vel_ne_m_s]).reshape(k, 3),
+        heading_rad=np.zeros(k),
+        ids=tuple(range(2, 2 + k)),
+        age_s=np.zeros(k),
+        stale_ids=(),
+    )
+
+
+def fly(g: Guidance, ticks: int, nbrs: NeighbourSnapshot, dt_s: float = 0.1):
+    """Point-mass loop at 10 Hz; returns (outputs, positions)."""
+    pos, vel, heading = np.array([0.0, 0.0, -5.0]), np.zeros(3), 0.0
+    outs, track = [], []
+    for k in range(ticks):
+        out = g.goto(pos, vel, heading, GOAL, nbrs, now_s=k * dt_s)
+        vel, heading = out.vel_ned_m_s, out.heading_rad
+        pos = pos + vel * dt_s
+        outs.append(out)
+        track.append(pos.copy())
+    return outs, np.array(track)
+
+
+def test_decides_once_per_period_and_holds_in_between():
+    g = Guidance(GuidanceConfig())
+    assert g.decision_period_s == pytest.approx(g.policy.decision_period_s) == pytest.approx(1.0)
+    outs, _ = fly(g, 35, snapshot())
+    decided = [k for k, o in enumerate(outs) if o.decided]
+    assert decided == [0, 10, 20, 30]
+    for k in range(1, 10):  # no neighbours, no filter: exactly the held velocity
+        np.testing.assert_array_equal(outs[k].vel_ned_m_s[:2], outs[0].vel_ned_m_s[:2])
+
+
+def test_every_tick_when_configured_or_without_a_clock():
+    g = Guidance(GuidanceConfig(decision_period_s=0.0))
+    outs, _ = fly(g, 5, snapshot())
+    assert all(o.decided for o in outs)
+    g = Guidance(GuidanceConfig())
+    pos, vel = np.array([0.0, 0.0, -5.0]), np.zeros(3)
+    assert all(g.goto(pos, vel, 0.0, GOAL, snapshot()).decided for _ in range(3))
+
+
+def test_new_goal_or_a_hold_forces_a_decision():
+    g = Guidance(GuidanceConfig())
+    pos, vel, nb = np.array([0.0, 0.0, -5.0]), np.zeros(3), snapshot()
+    assert g.goto(pos, vel, 0.0, GOAL, nb, now_s=0.0).decided
+    assert not g.goto(pos, vel, 0.0, GOAL, nb, now_s=0.1).decided
+    assert g.goto(pos, vel, 0.0, GOAL + [0.0, 5.0, 0.0], nb, now_s=0.2).decided  # new goal
+    g.hold(pos, vel, 0.0, pos, nb)
+    assert g.goto(pos, vel, 0.0, GOAL, nb, now_s=0.3).decided  # after a hold
+    assert not g.goto(pos, vel, 0.0, GOAL, nb, now_s=0.4, decide=False).decided
+    assert g.goto(pos, vel, 0.0, GOAL, nb, now_s=0.5, decide=True).decided
+
+
+def test_filter_acts_on_held_ticks():
+    """A neighbour head-on: the held policy velocity still goes through the filter every tick."""
+    g = Guidance(GuidanceConfig())
+    pos, vel = np.array([0.0, 0.0, -5.0]), np.array([1.0, 0.0, 0.0])
+    g.goto(pos, vel, 0.0, GOAL, snapshot(), now_s=0.0)  # decided with nobody around
+    out = g.goto(pos, vel, 0.0, GOAL, snapshot([(4.0, 0.0)], [(-1.0, 0.0)]), now_s=0.1)
+    assert not out.decided and out.filtered
+
+
+def test_arrives_smoothly():
+    """Held decisions give the smooth tracks of training (docs/policy.md: about 0.2 m/s^2)."""
+    outs, track = fly(Guidance(GuidanceConfig()), 400, snapshot())
+    assert math.dist(track[-1][:2], GOAL[:2]) < 1.5
+    v = np.array([o.vel_ned_m_s[:2] for o in outs])
+    mean_acc = np.mean(np.linalg.norm(np.diff(v, axis=0), axis=1)) / 0.1
+    every_tick, _ = fly(Guidance(GuidanceConfig(decision_period_s=0.0)), 400, snapshot())
+    v_tick = np.array([o.vel_ned_m_s[:2] for o in every_tick])
+    mean_acc_tick = np.mean(np.linalg.norm(np.diff(v_tick, axis=0), axis=1)) / 0.1
+    print(f"mean |accel| held {mean_acc:.3f} m/s^2, every tick {mean_acc_tick:.3f} m/s^2")
+    assert mean_acc <= mean_acc_tick
+
+
+def test_bad_period_is_refused():
+    for bad in (-1.0, math.nan, 11.0):
+        with pytest.raises(ValueError, match="decision_period_s"):
+            GuidanceConfig(decision_period_s=bad)
