@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import dataclasses
 import logging
+import math
 import signal
 import threading
 import time
@@ -168,6 +169,8 @@ def cli(argv: list[str]) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")  # fmt: skip
+    if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
+        p.error(f"--duration-s must be a positive number of seconds, got {args.duration_s}")
     try:
         cfg = config_from_args(args)
         auth = load_auth(args.key_file)  # FleetKeyError (a ValueError) says what is wrong

@@ -132,3 +132,12 @@ def test_covey_keygen_parser(stats, tmp_path, monkeypatch) -> None:
             (ValueError,),
             stats,
         )
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "0", "-1"])
+def test_agent_refuses_a_bad_duration_before_starting(bad, capsys) -> None:
+    from agent import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.cli(["--id", "1", "--duration-s", bad])  # refused before any backend or mesh exists
+    assert exc.value.code == 2 and "--duration-s must be a positive" in capsys.readouterr().err
