@@ -322,18 +322,36 @@ def plot_curve(log_csv: Path, png: Path) -> None:
     plt.close(fig)
 
 
+def _field_help(cls) -> dict[str, str]:
+    """The docstring under each field of a dataclass (the --help text of its flag)."""
+    import ast
+    import inspect
+
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {
+        a.target.id: " ".join(b.value.value.split())
+        for a, b in zip(body, body[1:], strict=False)
+        if isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name)
+        and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str)
+    }  # fmt: skip
+
+
 def cli(argv=None) -> dict:
     """`covey train [--field value ...]`: one flag per TrainConfig field."""
     ap = argparse.ArgumentParser(
-        prog="covey train", description="Train the guidance policy with PPO."
+        prog="covey train",
+        description="Train the guidance policy with PPO.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
+    docs = _field_help(TrainConfig)
     for f in fields(TrainConfig):
         name = "--" + f.name.replace("_", "-")
+        text = docs.get(f.name, "").replace("%", "%%")
         if f.type == "bool":
-            ap.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default)
+            ap.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default, help=text)
         else:
             typ = {"int": int, "float": float, "str": str}[f.type]
-            ap.add_argument(name, type=typ, default=f.default)
+            ap.add_argument(name, type=typ, default=f.default, help=text)
     ap.add_argument("--episodes-k", type=float, default=None, help="episodes in thousands")
     args = vars(ap.parse_args(argv))
     k = args.pop("episodes_k")

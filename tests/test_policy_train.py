@@ -1,5 +1,6 @@
 """Tiny-budget trainer smoke runs, the occupancy encoder and export."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -60,3 +61,13 @@ def test_training_smoke_run(tmp_path, encoder):
         with np.load(out) as z:
             assert json.loads(str(z["config"]))["encoding"] == "sincos"
             assert all(z[k].dtype == np.float32 for k in z.files if k != "config")
+
+
+def test_every_train_flag_has_help(capsys):
+    from policy.train import _field_help, cli
+
+    docs = _field_help(TrainConfig)
+    assert set(docs) == {f.name for f in dataclasses.fields(TrainConfig)}, "a field without a docstring"
+    with pytest.raises(SystemExit):
+        cli(["--help"])
+    assert "Adam learning rate" in capsys.readouterr().out
