@@ -83,23 +83,23 @@ def parser() -> argparse.ArgumentParser:
                    help="sim start position N,E in metres")  # fmt: skip
     p.add_argument("--origin", type=lambda s: _floats(s, 3, "--origin"), default=None, help="fleet origin lat,lon,alt")
     p.add_argument("--link", default="perfect", help="emulated radio link: perfect | xbee | wifi | rate=3,loss=0.2,...")
-    p.add_argument("--separation-m", type=float, default=3.0)
-    p.add_argument("--cruise-speed-m-s", type=float, default=1.0)
+    p.add_argument("--separation-m", type=float, default=3.0, help="minimum distance kept from other vehicles (default 3)")
+    p.add_argument("--cruise-speed-m-s", type=float, default=1.0, help="speed the policy flies at (default 1)")
     p.add_argument("--no-safety-filter", action="store_true", help="fly the pure learned policy")
     p.add_argument("--decision-period-s", type=float, default=None,
                    help="seconds between policy decisions, held in between (default: the policy's "
                    "trained period, 1 s x separation/3 / cruise speed; 0: every tick)")  # fmt: skip
     p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
     p.add_argument("--geofence-radius-m", type=float, default=500.0, help="0 = no fence")
-    p.add_argument("--gcs-lost-hold-s", type=float, default=5.0)
-    p.add_argument("--gcs-lost-land-s", type=float, default=30.0)
+    p.add_argument("--gcs-lost-hold-s", type=float, default=5.0, help="no ground station this long: hold (default 5)")
+    p.add_argument("--gcs-lost-land-s", type=float, default=30.0, help="no ground station this long: land (default 30)")
     p.add_argument("--no-gcs-failsafe", action="store_true", help="keep flying without a ground station")
-    p.add_argument("--tick-hz", type=float, default=10.0)
-    p.add_argument("--state-hz", type=float, default=10.0)
+    p.add_argument("--tick-hz", type=float, default=10.0, help="guidance loop rate (default 10)")
+    p.add_argument("--state-hz", type=float, default=10.0, help="state broadcast rate on the mesh (default 10)")
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
     p.add_argument("--trace-guidance", action="store_true",
                    help="publish guidance traces so `covey replay --policy` can replay the flight exactly")  # fmt: skip
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     p.add_argument("--key-file", default=None,
                    help="fleet key for signed commands (covey keygen); or $COVEY_FLEET_KEY_FILE / "
                    "$COVEY_FLEET_KEY. Without a key the agent runs in open mode")  # fmt: skip

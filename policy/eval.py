@@ -297,21 +297,25 @@ def cli(argv=None) -> dict:
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
     )
-    ap.add_argument("--out", default=EvalConfig.out)
-    ap.add_argument("--weights", default=None)
-    ap.add_argument("--paper-weights", default=None)
+    ap.add_argument("--out", default=EvalConfig.out, help="directory for results.json, results.md and PNGs")
+    ap.add_argument("--weights", default=None, help="policy .npz to evaluate (default: the shipped weights)")
+    ap.add_argument("--paper-weights", default=None, help="weights of the paper configuration (.npz), evaluated side by side")
     ap.add_argument("--occupancy", default=None, help="occupancy-map trainer checkpoint (.pt)")
-    ap.add_argument("--max-neighbours", type=int, default=EvalConfig.max_neighbours)
-    ap.add_argument("--policy-separation", type=float, default=EvalConfig.policy_separation_m)
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--links", default="perfect,degraded")
-    ap.add_argument("--suites", default="circle,conflict,large")
-    ap.add_argument("--dt", type=float, default=EvalConfig.dt_s)
-    ap.add_argument("--policy-period", type=float, default=EvalConfig.policy_period_s)
+    ap.add_argument("--max-neighbours", type=int, default=EvalConfig.max_neighbours,
+                    help="nearest neighbours fed to the policy")  # fmt: skip
+    ap.add_argument("--policy-separation", type=float, default=EvalConfig.policy_separation_m,
+                    help="separation the policy is told to keep, in policy metres (collisions count inside 3 m)")  # fmt: skip
+    ap.add_argument("--quick", action="store_true", help="small suites (about a minute)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the random cases and the link emulation")
+    ap.add_argument("--links", default="perfect,degraded",
+                    help="comma list: perfect, degraded (3 Hz, 20 %% loss, 100 ms)")  # fmt: skip
+    ap.add_argument("--suites", default="circle,conflict,large", help="comma list of scenario suites")
+    ap.add_argument("--dt", type=float, default=EvalConfig.dt_s, help="simulation step in seconds")
+    ap.add_argument("--policy-period", type=float, default=EvalConfig.policy_period_s,
+                    help="seconds between learned-policy decisions (held in between)")  # fmt: skip
     ap.add_argument("--controllers", default="", help="comma list, e.g. policy,orca (default all)")
-    ap.add_argument("--no-figures", action="store_true")
-    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--no-figures", action="store_true", help="skip the track and Fig. 5 PNGs")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")
     a = ap.parse_args(argv)
     if a.merge:
