@@ -140,6 +140,8 @@ def _check_vehicle_id(name: str, vid: int, allow_zero: bool = False) -> None:
 
 def _text_field(raw: bytes, name: str) -> str:
     text = raw.rstrip(b"\0")
+    if b"\0" in text:
+        raise DecodeError(f"{name} has bytes after its NUL padding")
     try:
         return text.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -147,8 +149,9 @@ def _text_field(raw: bytes, name: str) -> str:
 
 
 def _fit_text(text: str, size: int) -> bytes:
-    """Encode to UTF-8 and cut to `size` bytes without splitting a character."""
-    raw = text.encode("utf-8")
+    """Encode to UTF-8 and cut to `size` bytes without splitting a character. NUL pads the
+    field on the wire, so a NUL in the text is sent as U+FFFD (it could not come back)."""
+    raw = text.replace("\0", "\ufffd").encode("utf-8", errors="replace")  # lone surrogates: "?"
     if len(raw) <= size:
         return raw
     return raw[:size].decode("utf-8", errors="ignore").encode("utf-8")

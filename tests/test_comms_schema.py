@@ -64,10 +64,10 @@ def commands(draw) -> Command:
 
 acks = st.builds(
     CommandAck, vehicle_id=vid, nonce=u64, stamp_ns=u64, result=st.sampled_from(AckResult),
-    reason=st.text(max_size=30), mode=st.sampled_from(Mode), tag=st.binary(min_size=32, max_size=32),
+    reason=st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=30), mode=st.sampled_from(Mode), tag=st.binary(min_size=32, max_size=32),
 )  # fmt: skip
 events = st.builds(
-    Event, vehicle_id=st.integers(0, schema.MAX_VEHICLE_ID), stamp_ns=u64, text=st.text(max_size=40),
+    Event, vehicle_id=st.integers(0, schema.MAX_VEHICLE_ID), stamp_ns=u64, text=st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=40),
     severity=st.sampled_from(Severity), kind=st.sampled_from(EventKind),
 )  # fmt: skip
 
@@ -163,3 +163,15 @@ def test_float32_positions_keep_centimetres_at_10_km() -> None:
     s = VehicleState(1, 1, 1, (9999.987, -9999.993, -120.004), (0, 0, 0), 0.0)
     back = decode(s.encode())
     assert np.allclose(back.pos_ned_m, s.pos_ned_m, atol=0.005)
+
+
+def test_nul_in_text_is_sent_as_replacement_character():
+    """NUL pads text fields on the wire; a NUL in the text must not vanish or cut the text."""
+    ack = CommandAck(1, 0, 0, AckResult.REJECTED, "bad\0", Mode.LANDED)
+    assert CommandAck.decode(ack.encode()).reason == "bad\ufffd"
+    ev = Event(1, 0, "a\0b")
+    assert Event.decode(ev.encode()).text == "a\ufffdb"
+    raw = bytearray(Event(1, 0, "ab").encode())
+    raw[-1] = 0x41  # a byte after the padding: not a text this codec writes
+    with pytest.raises(DecodeError, match="after its NUL padding"):
+        Event.decode(bytes(raw))
