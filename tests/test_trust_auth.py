@@ -202,57 +202,6 @@ def test_key_sources_and_their_errors(tmp_path, caplog) -> None:
 
 
 # -- across real processes -------------------------------------------------------------------
-def cli_has_key_file(module: str, parser_fn: str, *argv: str) -> bool:
-    """Whether a covey CLI already takes --key-file (wiring requested in docs/security.md)."""
-    import contextlib
-    import importlib
-    import io
-
-    try:
-        p = getattr(importlib.import_module(module), parser_fn)()
-    except (ImportError, AttributeError):
-        return False
-    with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.suppress(SystemExit):
-        p.parse_args([*argv, "--help"])
-    return "--key-file" in out.getvalue()
-
-
-def run_agent(argv: list[str]) -> int:
-    """`covey agent` plus --key-file: the wiring asked for in agent/cli.py."""
-    import logging
-    import signal
-
-    from agent import cli as agent_cli
-    from agent.app import Agent
-    from comms.mesh import Mesh
-    from comms.schema import Severity
-
-    p = agent_cli.parser()
-    p.add_argument("--key-file", default=None)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO)
-    auth = load_auth(args.key_file)
-    cfg = dataclasses.replace(agent_cli.config_from_args(args), open_mode=auth is None)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    clock_s = time.monotonic
-    start = (args.start[0], args.start[1], 0.0)
-    with (
-        agent_cli.make_backend(args.vehicle, cfg, start, clock_s) as backend,
-        Mesh(cfg.mesh, auth=auth) as mesh,
-    ):
-        agent = Agent(cfg, backend, mesh, clock_s=clock_s)
-        if auth is not None:
-            auth.on_reject = lambda cmd, vid, reason: agent._event(
-                f"refused {cmd.kind.name.lower()} from station {cmd.source_id}: {reason}",
-                EventKind.SECURITY,
-                Severity.WARNING,
-            )
-        print("READY", flush=True)
-        agent.run(stop)
-    return 0
-
-
 @pytest.mark.e2e
 def test_agents_with_a_key_file_accept_only_fresh_correctly_signed_commands(
     procs, tmp_path
@@ -268,10 +217,7 @@ def test_agents_with_a_key_file_accept_only_fresh_correctly_signed_commands(
     with Mesh(embedded_router(port), auth=CommandAuth(key)) as gcs:
         gcs.subscribe_events(lambda e, _t: events.append(e))
         presence = gcs.presence()
-        # The real `covey agent --key-file` once agent/cli.py has it; this file's launcher until then.
-        launcher = (
-            ["-m", "covey_cli", "agent"] if cli_has_key_file("agent.cli", "parser") else [__file__]
-        )
+        launcher = ["-m", "covey_cli", "agent"]  # the real `covey agent --key-file`
         for vid in (1, 2):
             procs.start(*launcher, "--key-file", str(key_file), "--id", str(vid), "--connect", f"tcp/127.0.0.1:{port}",
                         f"--start={3 * vid},0", "--no-gcs-failsafe")  # fmt: skip
@@ -313,34 +259,46 @@ def test_agents_with_a_key_file_accept_only_fresh_correctly_signed_commands(
             assert set(both.outcomes) == {1, 2} and all(
                 o.ack is not None for o in both.outcomes.values()
             ), both.summary()
-            if cli_has_key_file("groundstation.ops", "cmd_parser", "hold", "--to", "1"):
-                # --to all: `covey cmd` then waits for presence before sending; with --to N it sends
-                # at once and a fresh session may not know the route yet ("not reachable").
-                run = [sys.executable, "-m", "covey_cli", "cmd", "land", "--to", "all",
-                       "--connect", f"tcp/127.0.0.1:{port}"]  # fmt: skip
-                env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parent.parent))
-                env.pop("COVEY_FLEET_KEY", None)
-                env.pop("COVEY_FLEET_KEY_FILE", None)
-                signed = subprocess.run(
-                    [*run, "--key-file", str(key_file)],
-                    capture_output=True,
-                    text=True,
-                    timeout=60,
-                    env=env,
-                )
-                unsigned = subprocess.run(run, capture_output=True, text=True, timeout=60, env=env)
-                print(
-                    "covey cmd --key-file:",
-                    signed.stdout.strip(),
-                    "| without:",
-                    unsigned.stdout.strip(),
-                )
-                assert "accepted" in signed.stdout and "unsigned" not in signed.stdout, (
-                    signed.stdout + signed.stderr
-                )
-                assert "unsigned" in unsigned.stdout and "OPEN MODE" in unsigned.stderr, (
-                    unsigned.stdout + unsigned.stderr
-                )
+            # The real `covey cmd --key-file`, and without a key (open mode: refused as unsigned).
+            run = [sys.executable, "-m", "covey_cli", "cmd", "land", "--to", "all",
+                   "--connect", f"tcp/127.0.0.1:{port}"]  # fmt: skip
+            env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parent.parent))
+            env.pop("COVEY_FLEET_KEY", None)
+            env.pop("COVEY_FLEET_KEY_FILE", None)
+            signed = subprocess.run(
+                [*run, "--key-file", str(key_file)],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env=env,
+            )
+            unsigned = subprocess.run(run, capture_output=True, text=True, timeout=60, env=env)
+            print(
+                "covey cmd --key-file:",
+                signed.stdout.strip(),
+                "| without:",
+                unsigned.stdout.strip(),
+            )
+            assert "accepted" in signed.stdout and "unsigned" not in signed.stdout, (
+                signed.stdout + signed.stderr
+            )
+            assert "unsigned" in unsigned.stdout and "OPEN MODE" in unsigned.stderr, (
+                unsigned.stdout + unsigned.stderr
+            )
+            # The browser station's own mesh signs with --key-file (GcsConfig.key_file).
+            from comms.schema import CommandKind as Kind
+            from comms.session import MeshConfig
+            from groundstation import dispatch, inputs
+            from groundstation.app import GcsConfig, GroundStation
+
+            station = GcsConfig(mesh=MeshConfig(mode="peer", connect=(f"tcp/127.0.0.1:{port}",)), port=0,
+                                gcs_id=5, key_file=str(key_file))  # fmt: skip
+            with GroundStation(station) as gs:
+                res = dispatch.send(gs.mesh, inputs.takeoff(4.0), (1, 2), source_id=5, timeout_s=10)
+                assert res.ok, res.summary()
+            with GroundStation(dataclasses.replace(station, key_file=None, gcs_id=6)) as gs:
+                res = dispatch.send(gs.mesh, inputs.simple(Kind.LAND), (1,), source_id=6, timeout_s=10)
+                assert "unsigned" in res.outcomes[1].reason, res.summary()
         deadline = time.monotonic() + 5
         while (
             time.monotonic() < deadline
@@ -352,9 +310,3 @@ def test_agents_with_a_key_file_accept_only_fresh_correctly_signed_commands(
         for name in ("unsigned", "bad signature", "stale", "replayed"):
             assert any(name in e.text for e in security), name
         print(f"{len(security)} SECURITY events, e.g. {security[0].text!r}")
-
-
-if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    sys.exit(run_agent(sys.argv[1:]))
