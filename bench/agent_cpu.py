@@ -7,7 +7,9 @@ publishes 10 neighbours at 10 Hz on a ring 6-14 m around wherever the agent is, 
 altitude and velocity, so that every guidance tick runs the policy and the safety filter on
 10 neighbours. The agent takes off and flies a long goto; its CPU time (user + system, all
 threads, from /proc/<pid>/stat) is read over a fixed window, first while it sits landed
-(the mesh and state publishing alone), then while it flies. Tick jitter is the spread of the
+(the mesh and state publishing alone), then while it flies: once as shipped (the policy decides
+at its trained period, the safety filter runs every tick) and once with the policy every tick
+(`--decision-period-s 0`). Tick jitter is the spread of the
 intervals between the stamps of its published states (one per tick, stamped after guidance).
 """
 
@@ -133,7 +135,9 @@ def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
     return out
 
 
-def main(quick: bool = False) -> dict:
+def agent_flight(quick: bool, decision_period_s: float | None = None) -> dict:
+    """One real `covey agent` with 10 neighbours: CPU and tick jitter landed, then flying a goto.
+    `decision_period_s` None: the policy's trained period (the default); 0: every tick."""
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, Mode
@@ -141,16 +145,17 @@ def main(quick: bool = False) -> dict:
     window_s = 6.0 if quick else 25.0
     port = free_tcp_port()
     log = StateLog()
+    extra = [] if decision_period_s is None else ["--decision-period-s", str(decision_period_s)]
     with Mesh(embedded_router(port, fleet=FLEET)) as mesh, common.Children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
         nb = kids.start("-m", "bench.agent_cpu", "--role", "neighbours", "--port", str(port))
         kids.wait_line(nb, "READY")
         agent = kids.start("-m", "covey_cli", "agent", "--id", str(AGENT_ID), "--fleet", FLEET, "--connect", f"tcp/127.0.0.1:{port}",
-                           "--no-gcs-failsafe", "--geofence-radius-m", "0", "--tick-hz", str(TICK_HZ), "--state-hz", str(TICK_HZ))  # fmt: skip
+                           "--no-gcs-failsafe", "--geofence-radius-m", "0", "--tick-hz", str(TICK_HZ), "--state-hz", str(TICK_HZ),
+                           *extra)  # fmt: skip
         log.wait(lambda s: True, 60, "its first state")
         time.sleep(1.0)
         landed = measure(agent.pid, log, 3.0 if quick else 10.0)
-        common.say(f"landed: {100 * landed['cpu_share_of_one_core']:.1f} % of a core")
         res = mesh.send_command(Command.takeoff(10.0, nonce=new_nonce(), stamp_ns=time.time_ns()), expect=(AGENT_ID,), timeout_s=5)
         if not res.ok:
             raise RuntimeError(f"takeoff refused: {res.summary()}")
@@ -162,13 +167,22 @@ def main(quick: bool = False) -> dict:
         time.sleep(1.0)
         flying = measure(agent.pid, log, window_s)
         still_goto = log.latest.mode is Mode.GOTO
-    common.say(f"flying with {NEIGHBOURS} neighbours: {100 * flying['cpu_share_of_one_core']:.1f} % of a core, "
-               f"jitter p50 {flying['tick_jitter_ms_p50']:.2f} ms p99 {flying['tick_jitter_ms_p99']:.2f} ms")  # fmt: skip
+    return {"landed": landed, "flying": flying, "stayed_in_goto": still_goto}
+
+
+def main(quick: bool = False) -> dict:
+    held = agent_flight(quick)
+    f = held["flying"]
+    common.say(f"landed: {100 * held['landed']['cpu_share_of_one_core']:.1f} % of a core; flying with {NEIGHBOURS} "
+               f"neighbours: {100 * f['cpu_share_of_one_core']:.1f} % of a core, "
+               f"jitter p50 {f['tick_jitter_ms_p50']:.2f} ms p99 {f['tick_jitter_ms_p99']:.2f} ms")  # fmt: skip
+    every = agent_flight(quick, decision_period_s=0.0)
+    common.say(f"policy every tick (--decision-period-s 0): {100 * every['flying']['cpu_share_of_one_core']:.1f} % of a core")
     fs = fleet_sim_ticks(quick)
     common.say(f"fleet-sim tick at {fs['vehicles']} vehicles: landed {fs['landed_tick_ms_p50']:.0f} ms, "
                f"holding {fs['holding_tick_ms_p50']:.0f} ms, goto {fs['goto_tick_ms_p50']:.0f} ms (budget 100 ms)")  # fmt: skip
-    result = {"quick": quick, "tick_hz": TICK_HZ, "neighbours": NEIGHBOURS, "landed": landed, "flying": flying,
-              "stayed_in_goto": still_goto, "fleet_sim": fs}  # fmt: skip
+    result = {"quick": quick, "tick_hz": TICK_HZ, "neighbours": NEIGHBOURS, **held,
+              "flying_policy_every_tick": every["flying"], "fleet_sim": fs}  # fmt: skip
     common.write_json("agent_cpu", result)
     return result
 

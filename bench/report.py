@@ -178,6 +178,10 @@ def headline(out: Path) -> list[str]:
         f = ag["flying"]
         rows.append([f"agent process, 10 Hz, {ag['neighbours']} neighbours", f"{_f(100 * f['cpu_share_of_one_core'])} % of a core",
                      f"{_f(f['cpu_ms_per_tick'])} ms CPU per tick; tick jitter p50 {_f(f['tick_jitter_ms_p50'])} ms, p99 {_f(f['tick_jitter_ms_p99'])} ms"])  # fmt: skip
+        e = ag.get("flying_policy_every_tick")
+        if e:
+            rows.append(["agent process, policy every tick (old behaviour)", f"{_f(100 * e['cpu_share_of_one_core'])} % of a core",
+                         f"{_f(e['cpu_ms_per_tick'])} ms CPU per tick; as shipped the policy decides once per decision period"])  # fmt: skip
         fs = ag.get("fleet_sim")
         if fs:
             rows.append([f"fleet-sim tick, {fs['vehicles']} vehicles flying", f"{_f(fs['goto_tick_ms_p50'])} ms",
