@@ -50,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
             print("Install the training extra: pip install -e '.[train]'", file=sys.stderr)
         return 2
     result = getattr(module, func_name)(rest)
-    return int(result or 0)
+    # An int is an exit status; a subcommand may also return its results (train, eval): success.
+    return result if isinstance(result, int) and not isinstance(result, bool) else 0
 
 
 if __name__ == "__main__":

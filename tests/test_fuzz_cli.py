@@ -141,3 +141,22 @@ def test_agent_refuses_a_bad_duration_before_starting(bad, capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         cli.cli(["--id", "1", "--duration-s", bad])  # refused before any backend or mesh exists
     assert exc.value.code == 2 and "--duration-s must be a positive" in capsys.readouterr().err
+
+
+def test_covey_exit_status_from_what_a_subcommand_returns(monkeypatch, capsys) -> None:
+    """`covey train`/`covey eval` return their results (a dict): that is success, not a crash."""
+    import sys
+    import types
+
+    import covey_cli
+
+    fake = types.ModuleType("covey_fake_sub")
+    fake.returns = None
+    fake.cli = lambda argv: fake.returns
+    monkeypatch.setitem(sys.modules, "covey_fake_sub", fake)
+    monkeypatch.setitem(covey_cli.SUBCOMMANDS, "fake", ("covey_fake_sub", "cli", "test"))
+    for returned, status in (({"success": 1.0}, 0), (None, 0), (0, 0), (3, 3), (True, 0)):
+        fake.returns = returned
+        assert covey_cli.main(["fake"]) == status, returned
+    assert covey_cli.main(["no-such-command"]) == 2
+    assert "unknown command" in capsys.readouterr().err
