@@ -362,7 +362,11 @@ def cli(argv=None) -> dict:
         ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
     if cfg.encoder not in ("lstm", "occupancy"):
         ap.error(f"--encoder must be lstm or occupancy, got {cfg.encoder!r}")
-    return main(cfg)
+    last = main(cfg)
+    print(f"covey train: {last.get('episodes', 0):,} episodes in {last.get('wall_s', 0.0) / 60:.1f} min; "
+          f"last success {last.get('success', float('nan')):.3f}, collision {last.get('collision', float('nan')):.3f}; "
+          f"wrote {cfg.out}/ (final.npz, final.pt, log.csv, curve.png)")  # fmt: skip
+    return last
 
 
 if __name__ == "__main__":
