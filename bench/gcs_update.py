@@ -3,7 +3,7 @@
 Drives the fleet model directly (no mesh: this measures the station, not Zenoh) with vehicles
 flying circles at 10 Hz in simulated time, with 60 s of trail history already built. One update
 is what the station's render loop does each tick: snapshot the model, then inside
-`server.atomic()` move every changed scene handle (a tenth of the trails) and, every tick here,
+`server.atomic()` move every changed scene node (the trail node once all trails were re-read, a tenth per update) and, every tick here,
 rebuild the fleet table. A real viser server runs; no browser is connected.
 
     python -m bench.gcs_update [--vehicles 100,500] [--updates 100]

@@ -1,24 +1,30 @@
-"""The 3D scene: renders a FleetSnapshot into viser handles (one subtree per vehicle).
+"""The 3D scene: renders a FleetSnapshot into a constant number of viser nodes.
 
-    /ground, /geofence, /origin                       static
-    /vehicles/<id>                                    frame at the vehicle's position
-    /vehicles/<id>/body | label | ring | velocity | stalk
-    /goals/<id>, /trails/<id>                         in world coordinates
+    /ground, /geofence, /origin, /target                static
+    /fleet/bodies, /fleet/rings, /fleet/goals           batched meshes, one instance per vehicle
+    /fleet/velocity, /fleet/stalks                      line segments, every vehicle in one node
+    /fleet/trails                                       point cloud, every vehicle's trail
+    /labels/<id>                                        only a few (see SceneConfig.labels_*)
 
-Handles are created once and changed by assigning properties, and only when the value changed,
-so an update burst carries just what moved. The caller wraps `update` in `server.atomic()`.
+A browser pays per scene node (a draw call, a React component, an update message), so the fleet
+is drawn in batches: the node count does not grow with the fleet. Trails are dots: as one line node
+(a quad instance per segment) they cut software WebGL's frame rate by 3x at 100 vehicles. Nodes are
+rebuilt only when the set of drawn vehicles changes; otherwise their arrays are re-assigned, and
+only when the quantised value changed, so an update burst carries just what moved. The caller wraps
+`update` in `server.atomic()`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import viser
 
+from groundstation import scene_geometry as geo
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.frames import heading_to_wxyz, ned_to_scene
 from groundstation.palette import (
@@ -34,48 +40,10 @@ from groundstation.palette import (
 # rate, and an operator reads height from the stalks and labels anyway.
 NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
 HEADING_STEP_RAD = math.radians(2.0)
-
-
-def circle_segments(radius_m: float, n: int = 48, z_m: float = 0.0) -> np.ndarray:
-    """(n, 2, 3) line segments of a horizontal circle in the scene frame."""
-    a = np.linspace(0.0, 2.0 * math.pi, n + 1)
-    pts = np.stack([radius_m * np.cos(a), radius_m * np.sin(a), np.full_like(a, z_m)], axis=-1)
-    return np.stack([pts[:-1], pts[1:]], axis=1).astype(np.float32)
-
-
-def polyline_segments(points: np.ndarray) -> np.ndarray:
-    """(K, 3) points -> (K-1, 2, 3) segments (at least one, degenerate if K < 2)."""
-    if len(points) < 2:
-        p = points[0] if len(points) else np.zeros(3, np.float32)
-        return np.stack([p, p])[None].astype(np.float32)
-    return np.stack([points[:-1], points[1:]], axis=1).astype(np.float32)
-
-
-def _rgb(rgb: tuple[int, int, int]) -> np.ndarray:
-    """One colour for a whole line-segments node (viser accepts shape (3,))."""
-    return np.array(rgb, np.uint8)
-
-
-@dataclass
-class _VehicleHandles:
-    frame: Any
-    body: Any
-    label: Any
-    ring: Any
-    velocity: Any
-    stalk: Any
-    goal: Any
-    trail: Any
-    cache: dict[str, Any] = field(default_factory=dict)
-
-    def set(
-        self, key: str, handle: Any, prop: str, value: Any, make: Callable[[Any], Any] | None = None
-    ) -> None:
-        """Assign handle.prop = make(value) (or value) unless `value` is what was set last time."""
-        marker = value.tobytes() if isinstance(value, np.ndarray) else value
-        if self.cache.get(key) != marker:
-            self.cache[key] = marker
-            setattr(handle, prop, make(value) if make is not None else value)
+BODY_SIZE_M = (0.6, 0.9, 0.25)
+LABEL_HEIGHT_M = 0.7
+VELOCITY_RGB = (20, 20, 20)
+STALK_RGB = (120, 120, 120)
 
 
 @dataclass(frozen=True)
@@ -87,13 +55,64 @@ class SceneConfig:
     separation_m: float = 3.0
     """Separation distance; each vehicle's ring has half this radius, so rings touch at it."""
     trail_spread_updates: int = 10
-    """Each vehicle's trail is re-sent every this many updates (1 s at 10 Hz), a slice of the
-    fleet per update, so that no single update carries every trail (they are the heaviest part)."""
-    trail_max_points: int = 120
-    """Trails are thinned to at most this many points when sent (500 vehicles x 300 points is
-    too much to re-send every second)."""
+    """Each vehicle's trail is read from the model every this many updates (1 s at 10 Hz), a
+    slice of the fleet per update (`trail_ids`), so that no update copies every trail; the one
+    trail node is re-sent once every vehicle's trail has been read again."""
+    trail_max_points: int = 60
+    """Trails are thinned to this many dots when sent (every vehicle's trail takes this many,
+    padded, so the trail node keeps its shape)."""
+    trail_dot_m: float = 0.12
+    """Diameter of a trail dot, in metres."""
     velocity_scale_s: float = 1.0
-    """Velocity arrows show where the vehicle will be in this many seconds."""
+    """Velocity lines show where the vehicle will be in this many seconds."""
+    labels_all_max_vehicles: int = 20
+    """Every vehicle is labelled up to this fleet size. Above it, only vehicles that need the
+    operator (lost, stale, too close) are, at most `labels_max` of them: 100 labels halved the
+    frame rate in Chromium without a GPU (bench/gcs_browser: 6.8 -> 3.0 frames/s)."""
+    labels_max: int = 20
+    """At most this many labels above `labels_all_max_vehicles` vehicles."""
+
+
+@dataclass(frozen=True)
+class _Fleet:
+    """The drawn vehicles' quantised values, as arrays in `ids` order."""
+
+    ids: tuple[int, ...]
+    pos_m: np.ndarray  # (N, 3) scene frame, 1 cm
+    wxyz: np.ndarray  # (N, 4) heading in 2-degree steps
+    rgb: np.ndarray  # (N, 3) uint8, by mode; lost = grey
+    vel_m: np.ndarray  # (N, 3) where it will be in velocity_scale_s, 0.1 m
+    ring_rgb: np.ndarray  # (N, 3) uint8
+    goal_m: np.ndarray  # (N, 3)
+    goal_scale: np.ndarray  # (N,) 1 with a goal, 0 (hidden) without
+
+
+def _xyz(rows: list) -> np.ndarray:
+    """NED rows -> (N, 3) scene-frame float32, also for N = 0."""
+    return ned_to_scene(np.array(rows, np.float32).reshape(-1, 3))
+
+
+def _fleet(vehicles: list[VehicleView], velocity_scale_s: float) -> _Fleet:
+    states = [v.state for v in vehicles]
+    heading = [round(s.heading_rad / HEADING_STEP_RAD) * HEADING_STEP_RAD for s in states]
+    with_goal = [v.has_goal and v.alive for v in vehicles]
+    return _Fleet(
+        ids=tuple(v.vehicle_id for v in vehicles),
+        pos_m=_xyz([s.pos_ned_m for s in states]).round(2),
+        wxyz=np.array([heading_to_wxyz(h) for h in heading], np.float32).reshape(-1, 4),
+        rgb=np.array([mode_rgb(s.mode) if v.alive else LOST_RGB for v, s in zip(vehicles, states, strict=True)], np.uint8),
+        vel_m=(_xyz([s.vel_ned_m_s for s in states]) * velocity_scale_s).round(1),
+        ring_rgb=np.array([ALERT_RGB if v.too_close else RING_OK_RGB for v in vehicles], np.uint8),
+        goal_m=_xyz([s.goal_ned_m if g else (0.0, 0.0, 0.0) for s, g in zip(states, with_goal, strict=True)]).round(2),
+        goal_scale=np.array(with_goal, np.float32),
+    )  # fmt: skip
+
+
+def label_text(v: VehicleView) -> str:
+    s = v.state
+    assert s is not None
+    status = "LOST" if not v.alive else ("STALE" if v.stale else s.mode.name)
+    return f"{v.vehicle_id} {status} {v.alt_m:.1f}m {s.battery_pct:.0f}%"
 
 
 class FleetScene:
@@ -104,8 +123,22 @@ class FleetScene:
         self.server = server
         self.cfg = cfg
         self._on_vehicle_click = on_vehicle_click
-        self._vehicles: dict[int, _VehicleHandles] = {}
+        self.ids: tuple[int, ...] = ()
+        """The drawn vehicles (those with a state), in batch-instance order."""
+        self.nodes: dict[str, Any] = {}
+        """The fleet's batched nodes by layer: bodies, rings, goals, velocity, stalks, trails."""
+        self.labels: dict[int, Any] = {}
+        self._label_sent: dict[int, tuple] = {}
+        self.sent: dict[str, Any] = {}
+        """What was last assigned to each node property (quantised), to send only changes."""
+        self._trails: dict[int, np.ndarray] = {}
+        self._fresh: set[int] = set()
         self._trail_tick = 0
+        self._meshes = {
+            "bodies": geo.box_mesh(BODY_SIZE_M),
+            "rings": geo.band_mesh(cfg.separation_m / 2.0, 0.15),
+            "goals": geo.icosahedron_mesh(0.35),
+        }
         scene = server.scene
         # No environment map and no shadow-casting lights: both cost seconds of CPU per frame set-up
         # without a GPU, and flat lighting reads fine for boxes and lines.
@@ -120,36 +153,12 @@ class FleetScene:
                        plane="xy", fade_distance=4 * extent_m, shadow_opacity=0.0, plane_color=(235, 240, 235),
                        plane_opacity=0.6)  # fmt: skip
         if cfg.geofence_radius_m > 0:
-            ring = circle_segments(cfg.geofence_radius_m, 128, 0.02)
-            scene.add_line_segments("/geofence", ring, _rgb(GEOFENCE_RGB), thickness=4.0,
+            ring = geo.circle_segments(cfg.geofence_radius_m, 128, 0.02)
+            scene.add_line_segments("/geofence", ring, np.array(GEOFENCE_RGB, np.uint8), thickness=4.0,
                                     thickness_units="screen")  # fmt: skip
         scene.add_frame("/origin", axes_length=2.0, axes_radius=0.06)
         self.target_marker = scene.add_icosphere("/target", radius=0.4, color=GOAL_RGB, opacity=0.6, cast_shadow=False, receive_shadow=False,
                                                  visible=False)  # fmt: skip
-
-    def _create(self, vid: int) -> _VehicleHandles:
-        scene = self.server.scene
-        root = f"/vehicles/{vid}"
-        ring = circle_segments(self.cfg.separation_m / 2.0)
-        h = _VehicleHandles(
-            frame=scene.add_frame(root, show_axes=False),
-            body=scene.add_box(f"{root}/body", color=mode_rgb(None), dimensions=(0.6, 0.9, 0.25), **NO_SHADOW),
-            label=scene.add_label(f"{root}/label", f"{vid}", position=(0.0, 0.0, 0.7),
-                                  anchor="bottom-center", font_screen_scale=0.9),
-            ring=scene.add_line_segments(f"{root}/ring", ring, _rgb(RING_OK_RGB),
-                                         thickness=2.0, thickness_units="screen"),
-            velocity=scene.add_arrows(f"{root}/velocity", np.zeros((1, 2, 3), np.float32), (20, 20, 20),
-                                      shaft_radius=0.05, head_radius=0.15, head_length=0.3),
-            stalk=scene.add_line_segments(f"{root}/stalk", np.zeros((1, 2, 3), np.float32),
-                                          (120, 120, 120), thickness=1.0, thickness_units="screen"),
-            goal=scene.add_icosphere(f"/goals/{vid}", radius=0.35, color=GOAL_RGB, visible=False, subdivisions=2, **NO_SHADOW),
-            trail=scene.add_line_segments(f"/trails/{vid}", np.zeros((1, 2, 3), np.float32),
-                                          (120, 120, 120), thickness=2.0, thickness_units="screen"),
-        )  # fmt: skip
-        if self._on_vehicle_click is not None:
-            cb = self._on_vehicle_click
-            h.body.on_click(lambda _event, vid=vid: cb(vid))
-        return h
 
     def trail_ids(self, ids: list[int]) -> set[int]:
         """The vehicles whose trails the next update should carry (round robin over `ids`)."""
@@ -158,75 +167,115 @@ class FleetScene:
         return {vid for i, vid in enumerate(sorted(ids)) if i % k == tick % k}
 
     def update(self, snap: FleetSnapshot, send_trails: bool = True) -> None:
-        """Draw `snap`. Trails are drawn for the vehicles whose trail the snapshot carries."""
-        for v in snap.vehicles:
-            h = self._vehicles.get(v.vehicle_id)
-            if h is None:
-                h = self._vehicles[v.vehicle_id] = self._create(v.vehicle_id)
-            self._update_vehicle(h, v, send_trails)
-        gone = set(self._vehicles) - {v.vehicle_id for v in snap.vehicles}
-        for vid in gone:
-            h = self._vehicles.pop(vid)
-            for handle in (h.frame, h.goal, h.trail):
-                handle.remove()
+        """Draw `snap`. Trails are redrawn once the snapshots since the last time carried every
+        drawn vehicle's trail (see `trail_ids`)."""
+        drawn = [v for v in snap.vehicles if v.state is not None]
+        fleet = _fleet(drawn, self.cfg.velocity_scale_s)
+        if fleet.ids != self.ids:
+            self._rebuild(fleet)
+        if fleet.ids:
+            self._update_layers(fleet)
+            self._update_trails(fleet, drawn if send_trails else [])
+        self._update_labels(fleet, drawn, len(snap.vehicles))
 
-    def _update_vehicle(self, h: _VehicleHandles, v: VehicleView, send_trails: bool) -> None:
-        # Values are quantised (1 cm, 2 deg, 0.1 m/s) so that a hovering vehicle sends nothing and a
-        # moving one sends only what an operator could see change.
-        s = v.state
-        if s is None:
-            h.set("visible", h.frame, "visible", False)
+    def _put(
+        self, layer: str, prop: str, value: Any, make: Callable[[Any], Any] | None = None
+    ) -> None:
+        """nodes[layer].prop = make(value) (or value), unless `value` is what was put last time."""
+        marker = value.tobytes() if isinstance(value, np.ndarray) else value
+        if self.sent.get(f"{layer}.{prop}") != marker:
+            self.sent[f"{layer}.{prop}"] = marker
+            setattr(self.nodes[layer], prop, make(value) if make is not None else value)
+
+    def _rebuild(self, fleet: _Fleet) -> None:
+        """New nodes sized for `fleet` (its vehicles changed); none for an empty fleet."""
+        for node in self.nodes.values():
+            node.remove()
+        self.nodes.clear()
+        self.sent.clear()
+        self.ids = fleet.ids
+        self._trails = {vid: t for vid, t in self._trails.items() if vid in fleet.ids}
+        n = len(fleet.ids)
+        if n == 0:
             return
-        h.set("visible", h.frame, "visible", True)
-        x, y, z = (float(c) for c in ned_to_scene(s.pos_ned_m))
-        h.set("pos", h.frame, "position", (round(x, 2), round(y, 2), round(z, 2)))
-        h.set(
-            "wxyz",
-            h.body,
-            "wxyz",
-            heading_to_wxyz(round(s.heading_rad / HEADING_STEP_RAD) * HEADING_STEP_RAD),
-        )
-        lost = not v.alive
-        colour = LOST_RGB if lost else mode_rgb(s.mode)
-        h.set("color", h.body, "color", colour)
-        status = "LOST" if lost else ("STALE" if v.stale else s.mode.name)
-        h.set(
-            "text", h.label, "text", f"{v.vehicle_id} {status} {v.alt_m:.1f}m {s.battery_pct:.0f}%"
-        )
-        h.set("ring", h.ring, "colors", ALERT_RGB if v.too_close else RING_OK_RGB, _rgb)
-        vx, vy, vz = (
-            round(float(c) * self.cfg.velocity_scale_s, 1) for c in ned_to_scene(s.vel_ned_m_s)
-        )
-        moving = abs(vx) + abs(vy) + abs(vz) > 0.0
-        h.set("vel_vis", h.velocity, "visible", moving)
-        if moving:
-            h.set(
-                "vel",
-                h.velocity,
-                "points",
-                (vx, vy, vz),
-                lambda p: np.array([[[0, 0, 0], p]], np.float32),
-            )
-        h.set(
-            "stalk",
-            h.stalk,
-            "points",
-            round(max(0.0, z), 1),
-            lambda a: np.array([[[0, 0, 0], [0, 0, -a]]], np.float32),
-        )
-        h.set("goal_vis", h.goal, "visible", v.has_goal and not lost)
-        if v.has_goal:
-            h.set(
-                "goal",
-                h.goal,
-                "position",
-                tuple(round(float(c), 2) for c in ned_to_scene(s.goal_ned_m)),
-            )
-            h.set("goal_rgb", h.goal, "color", colour)
-        if send_trails and len(v.trail_ned_m):
-            trail = v.trail_ned_m
-            if len(trail) > self.cfg.trail_max_points:
-                keep = np.linspace(0, len(trail) - 1, self.cfg.trail_max_points).round().astype(int)
-                trail = trail[keep]  # evenly thinned, first and latest points kept
-            h.set("trail", h.trail, "points", polyline_segments(ned_to_scene(trail)))
-            h.set("trail_rgb", h.trail, "colors", colour, _rgb)
+        scene = self.server.scene
+        for layer, side in (("bodies", "front"), ("rings", "double"), ("goals", "front")):
+            vertices, faces = self._meshes[layer]
+            self.nodes[layer] = scene.add_batched_meshes_simple(
+                f"/fleet/{layer}", vertices, faces, batched_wxyzs=fleet.wxyz, batched_positions=fleet.pos_m,
+                batched_colors=fleet.rgb, lod="off", side=side, flat_shading=True, **NO_SHADOW)  # fmt: skip
+        for layer in ("velocity", "stalks"):
+            self.nodes[layer] = scene.add_line_segments(
+                f"/fleet/{layer}", np.zeros((n, 2, 3), np.float32), np.zeros((n, 2, 3), np.uint8),
+                thickness=2.0 if layer == "velocity" else 1.0, thickness_units="screen")  # fmt: skip
+        dots = n * self.cfg.trail_max_points
+        self.nodes["trails"] = scene.add_point_cloud(
+            "/fleet/trails", np.zeros((dots, 3), np.float32), np.zeros((dots, 3), np.uint8),
+            point_size=self.cfg.trail_dot_m, point_shape="circle", precision="float32")  # fmt: skip
+        if self._on_vehicle_click is not None:
+            cb, ids = self._on_vehicle_click, fleet.ids
+
+            def clicked(event: Any) -> None:
+                if event.instance_index is not None and 0 <= event.instance_index < len(ids):
+                    cb(ids[event.instance_index])
+
+            self.nodes["bodies"].on_click(clicked)
+
+    def _update_layers(self, fleet: _Fleet) -> None:
+        n, pos = len(fleet.ids), fleet.pos_m
+        self._put("bodies", "batched_positions", pos)
+        self._put("bodies", "batched_wxyzs", fleet.wxyz)
+        self._put("bodies", "batched_colors", fleet.rgb)
+        self._put("rings", "batched_positions", pos)
+        self._put("rings", "batched_colors", fleet.ring_rgb)
+        self._put("goals", "batched_positions", fleet.goal_m)
+        self._put("goals", "batched_scales", fleet.goal_scale)
+        self._put("goals", "batched_colors", fleet.rgb)
+        self._put("velocity", "points", np.stack([pos, pos + fleet.vel_m], axis=1))
+        self._put("velocity", "colors", n, lambda k: np.full((k, 2, 3), VELOCITY_RGB, np.uint8))
+        ground = pos * np.array([1.0, 1.0, 0.0], np.float32)
+        self._put("stalks", "points", np.stack([pos, ground], axis=1))
+        self._put("stalks", "colors", n, lambda k: np.full((k, 2, 3), STALK_RGB, np.uint8))
+        dots = self.cfg.trail_max_points
+        self._put("trails", "colors", fleet.rgb, lambda rgb: np.repeat(rgb, dots, axis=0))
+
+    def _update_trails(self, fleet: _Fleet, vehicles: list[VehicleView]) -> None:
+        """Keep the trails the snapshot carries; re-send the trail node once all are fresh."""
+        for v in vehicles:
+            if len(v.trail_ned_m):
+                trail = geo.thin(v.trail_ned_m, self.cfg.trail_max_points)
+                self._trails[v.vehicle_id] = ned_to_scene(trail)
+                self._fresh.add(v.vehicle_id)
+        complete = self._fresh.issuperset(fleet.ids)
+        if complete or "trails.points" not in self.sent:  # a new node shows what there is
+            if complete:
+                self._fresh.clear()
+            lines = [
+                self._trails.get(vid, pos[None])
+                for vid, pos in zip(fleet.ids, fleet.pos_m, strict=True)
+            ]
+            self._put("trails", "points", geo.padded_points(lines, self.cfg.trail_max_points))
+
+    def _update_labels(self, fleet: _Fleet, drawn: list[VehicleView], fleet_size: int) -> None:
+        cfg = self.cfg
+        if fleet_size <= cfg.labels_all_max_vehicles:
+            wanted = drawn
+        else:
+            wanted = [v for v in drawn if not v.alive or v.stale or v.too_close][: cfg.labels_max]
+        index = {vid: i for i, vid in enumerate(fleet.ids)}
+        for vid in set(self.labels) - {v.vehicle_id for v in wanted}:
+            self.labels.pop(vid).remove()
+            del self._label_sent[vid]
+        for v in wanted:
+            x, y, z = (float(c) for c in fleet.pos_m[index[v.vehicle_id]])
+            key = (label_text(v), (x, y, round(z + LABEL_HEIGHT_M, 2)))
+            if self._label_sent.get(v.vehicle_id) == key:
+                continue
+            self._label_sent[v.vehicle_id] = key
+            label = self.labels.get(v.vehicle_id)
+            if label is None:
+                self.labels[v.vehicle_id] = self.server.scene.add_label(
+                    f"/labels/{v.vehicle_id}", key[0], position=key[1], anchor="bottom-center",
+                    font_screen_scale=0.9)  # fmt: skip
+            else:
+                label.text, label.position = key
