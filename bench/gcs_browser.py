@@ -79,7 +79,8 @@ def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (
     if chromium is None or sync_api is None:
         common.say("skipped: needs Debian chromium and playwright (make test installs both)")
         return {"skipped": "chromium or playwright missing"}
-    window_s = 5.0 if quick else 15.0
+    window_s = 3.0 if quick else 15.0
+    settle_s = 0.5 if quick else 1.0  # scale of the waits for the page and the fleet
     port = free_tcp_port()
     cfg = GcsConfig(mesh=embedded_router(port, fleet=FLEET), port=0, geofence_radius_m=400.0,
                     view_radius_m=60.0, key_file=None)  # fmt: skip
@@ -100,24 +101,24 @@ def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (
             page.goto(gs.url)
             page.get_by_role("button", name="Takeoff").wait_for()
             page.locator("canvas").first.wait_for()
-            time.sleep(3.0)  # shader compiles and the first scene
+            time.sleep(3.0 * settle_s)  # shader compiles and the first scene
             result["landed"] = measure_page(page, window_s)
             common.say(f"landed: {result['landed']['frames_per_s']} frames/s, "
                        f"timer lag p99 {result['landed']['timer_lag_ms_p99']:.0f} ms")  # fmt: skip
             up = gs.mesh.send_command(Command.takeoff(8.0, nonce=new_nonce(), stamp_ns=0), expect=ids, timeout_s=10)
             if not up.ok:
                 raise RuntimeError(f"takeoff: {up.summary()}")
-            time.sleep(6.0)
+            time.sleep(6.0 * settle_s)
             go = gs.mesh.send_command(Command.goto_local(150.0, 40.0, -8.0, nonce=new_nonce(), stamp_ns=0),
                                       expect=ids, timeout_s=10)  # fmt: skip
             if not go.ok:
                 raise RuntimeError(f"goto: {go.summary()}")
-            time.sleep(2.0)
+            time.sleep(2.0 * settle_s)
             result["flying"] = measure_page(page, window_s)
             f = result["flying"]
             common.say(f"{vehicles} flying: {f['frames_per_s']} frames/s, timer lag p50 {f['timer_lag_ms_p50']:.0f} ms "
                        f"p99 {f['timer_lag_ms_p99']:.0f} ms max {f['timer_lag_ms_max']:.0f} ms")  # fmt: skip
-            rt = input_round_trip_ms(page, 5 if quick else 20)
+            rt = input_round_trip_ms(page, 3 if quick else 20)
             result["input_round_trip_ms_p50"] = common.pct(rt, 50)
             result["input_round_trip_ms_max"] = round(float(max(rt)), 1)
             common.say(f"typing into a field: p50 {result['input_round_trip_ms_p50']:.0f} ms, "
