@@ -323,10 +323,6 @@ class Fleet:
         (decided once per decision period and held in between), position hold otherwise, then
         the safety filter for everyone (as agent.guidance)."""
         g, s = self.cfg.guidance, self.policy.dist_scale_m
-        a, nbr = self.policy.action_batch(pos[:, :2] / s, heading, goal[:, :2] / s, active)
-        pref = features.action_to_velocity(a, heading) * g.cruise_speed_m_s
-        hold = g.hold_gain_1_s * (goal[:, :2] - pos[:, :2])
-        hold *= (g.cruise_speed_m_s / np.maximum(np.hypot(hold[:, 0], hold[:, 1]), g.cruise_speed_m_s))[:, None]
         n = len(holding)
         flying = np.zeros(n, bool)
         flying[guided] = True
@@ -335,10 +331,15 @@ class Fleet:
             (now_s - self._decided_s >= 0.95 * self.decision_period_s)
             | ~np.all(self._held_goal_m == goal[:n], axis=1)  # new goal, or nothing held (NaN)
         )
-        self._held_pref_m_s[due] = pref[:n][due]
-        self._held_goal_m[due] = goal[:n][due]
-        self._decided_s[due] = now_s
+        rows = np.flatnonzero(due)  # the network runs for these only; the others hold
+        a, nbr = self.policy.action_batch(pos[:, :2] / s, heading, goal[:, :2] / s, active, rows=rows)
+        self._held_pref_m_s[rows] = features.action_to_velocity(a, heading[rows]) * g.cruise_speed_m_s
+        self._held_goal_m[rows] = goal[rows]
+        self._decided_s[rows] = now_s
         self._held_goal_m[~flying] = np.nan  # a hold or landing forgets the decision
+        hold = g.hold_gain_1_s * (goal[:, :2] - pos[:, :2])
+        hold *= (g.cruise_speed_m_s / np.maximum(np.hypot(hold[:, 0], hold[:, 1]), g.cruise_speed_m_s))[:, None]
+        pref = np.zeros((len(pos), 2))
         pref[:n][flying] = self._held_pref_m_s[flying]
         pref[:n][holding] = hold[:n][holding]
         if g.safety_filter:

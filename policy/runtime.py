@@ -237,11 +237,17 @@ class GuidancePolicy:
         )
         return features.clip_unit(self.net.head_forward(self.net.lstm_last(seq), goal_feat))
 
-    def action_batch(self, pos, heading_rad, goal, active):
-        """Raw actions (N, 2) and neighbour indices (N, K) of all vehicles; policy units."""
+    def action_batch(self, pos, heading_rad, goal, active, rows=None):
+        """Raw actions (N, 2) and neighbour indices (N, K) of all vehicles; policy units.
+
+        `rows` (indices): run the network for these vehicles only and return their actions
+        (len(rows), 2); the neighbour indices are still every vehicle's (a safety filter needs them).
+        """
         seq, lengths, goal_feat, nbr = features.observe_batch(
             pos, heading_rad, goal, active, self.obs_cfg, self.max_neighbours
         )
+        if rows is not None:
+            seq, lengths, goal_feat = seq[rows], lengths[rows], goal_feat[rows]
         h = self.net.lstm_last_batch(seq, lengths)
         return features.clip_unit(self.net.head_forward(h, goal_feat)), nbr
 

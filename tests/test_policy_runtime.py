@@ -124,8 +124,14 @@ def test_runtime_matches_torch(preset, tmp_path):
             torch.tensor(lengths),
             torch.tensor(g, dtype=torch.float32),
         )
-    a_np, _ = pol.action_batch(pos, h, goal, active)
+    a_np, nbr_all = pol.action_batch(pos, h, goal, active)
     np.testing.assert_allclose(a_np, features.clip_unit(a_t.numpy()), atol=1e-5)
+    # a subset of rows (fleet-sim: only the vehicles whose decision is due) = those rows of the whole
+    rows = np.array([3, 0, 17, 29])
+    a_rows, nbr_rows = pol.action_batch(pos, h, goal, active, rows=rows)
+    np.testing.assert_allclose(a_rows, a_np[rows], atol=1e-6)
+    np.testing.assert_array_equal(nbr_rows, nbr_all)
+    assert pol.action_batch(pos, h, goal, active, rows=np.array([], int))[0].shape == (0, 2)
 
 
 def test_runtime_does_not_import_torch():
