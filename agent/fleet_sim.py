@@ -31,7 +31,7 @@ import numpy as np
 
 from agent.backends.sim import GRAVITY_M_S2, SimConfig
 from agent.failsafe import FailsafeConfig
-from agent.guidance import GuidanceConfig
+from agent.guidance import DECISION_DUE_SHARE, GuidanceConfig
 from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
@@ -328,7 +328,7 @@ class Fleet:
         flying[guided] = True
         flying &= ~holding
         due = flying & (
-            (now_s - self._decided_s >= 0.95 * self.decision_period_s)
+            (now_s - self._decided_s >= DECISION_DUE_SHARE * self.decision_period_s)
             | ~np.all(self._held_goal_m == goal[:n], axis=1)  # new goal, or nothing held (NaN)
         )
         rows = np.flatnonzero(due)  # the network runs for these only; the others hold

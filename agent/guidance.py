@@ -21,6 +21,10 @@ from agent.neighbours import NeighbourSnapshot
 from policy import safety
 from policy.runtime import GuidancePolicy
 
+DECISION_DUE_SHARE = 0.95
+"""A decision is due once this share of the decision period has passed (tick jitter must not
+push a decision a whole tick late). Used by Guidance and by fleet-sim's batched copy of it."""
+
 
 @dataclass(frozen=True)
 class GuidanceConfig:
@@ -86,13 +90,13 @@ class Guidance:
         self._decided_s = -math.inf
 
     def decision_due(self, now_s: float, goal_m: np.ndarray) -> bool:
-        """Whether the policy should decide now: its period has passed (5 % early is allowed
+        """Whether the policy should decide now: its period has passed (DECISION_DUE_SHARE of it,
         for tick jitter), the goal changed, or nothing is held (first tick, after a hold)."""
         return (
             self._held_m_s is None
             or self._held_goal_m is None
             or not np.array_equal(self._held_goal_m, goal_m)
-            or now_s - self._decided_s >= 0.95 * self.decision_period_s
+            or now_s - self._decided_s >= DECISION_DUE_SHARE * self.decision_period_s
         )
 
     @property
