@@ -1,8 +1,13 @@
 """The command panel: target selection, commands, the guarded kill, scenarios, and the ack matrix.
 
-Every button validates its inputs (groundstation.inputs) and shows a clear message instead of
-sending when something is wrong. Sending happens on the station's command worker, never on
-viser's callback thread.
+Every button builds its command from what the pressing tab's form showed at the moment of the
+click (groundstation.browser_form), never from the server's copies of the fields, which viser's
+client can leave stale. The values are validated (groundstation.inputs); anything wrong or
+unknown is a clear message and nothing is sent. Sending happens on the station's command
+worker, never on viser's callback thread.
+
+A kill is armed for the targets the arming tab showed, and only that tab's CONFIRM within the
+window kills exactly those vehicles; if its Targets changed in between, nothing is sent.
 """
 
 from __future__ import annotations
@@ -16,12 +21,28 @@ import viser
 from comms.geo import GeoOrigin
 from comms.schema import CommandKind
 from groundstation import inputs
+from groundstation.browser_form import BrowserForms, FormSnapshot
 from groundstation.dispatch import Dispatched, KillGuard
 from groundstation.frames import ground_hit_ned, ned_to_scene
 from groundstation.inputs import CommandRequest, InputError
 from groundstation.tables import ack_matrix
 
 Job = tuple[CommandRequest, tuple[int, ...]]
+
+# The labels of the inputs a command is built from (each tab reports these at every click).
+TARGETS, TAKEOFF_ALT = "Targets", "Takeoff alt (m)"
+NORTH, EAST, DOWN = "North (m)", "East (m)", "Down (m)"
+LAT, LON, GLOBAL_ALT = "Latitude (deg)", "Longitude (deg)", "Altitude (m)"
+FORM_LABELS = (TARGETS, TAKEOFF_ALT, NORTH, EAST, DOWN, LAT, LON, GLOBAL_ALT)
+
+
+@dataclass(frozen=True)
+class ArmedKill:
+    """A kill armed in one tab, for the targets that tab showed."""
+
+    client_id: int | None
+    targets_text: str
+    targets: tuple[int, ...]
 
 
 @dataclass(frozen=True)
@@ -45,30 +66,32 @@ class CommandPanel:
         self.hooks = hooks
         self.goto_limit_m = goto_limit_m
         self.kill_guard = KillGuard(kill_window_s)
+        self._armed: ArmedKill | None = None
+        self.forms = BrowserForms(server, FORM_LABELS)
         gui = server.gui
         # Messages and acks first: the operator must see what happened without scrolling.
         self.message = gui.add_html("")
         self.acks = gui.add_html("")
         with gui.add_folder("Command"):
             self.targets = gui.add_text(
-                "Targets",
+                TARGETS,
                 "all",
                 hint="'all', an id, or ids like 1,2,5 or 1-4. Click a vehicle to select it.",
             )
-            self.alt = gui.add_number("Takeoff alt (m)", 5.0, step=0.5)
+            self.alt = gui.add_number(TAKEOFF_ALT, 5.0, step=0.5)
             self.takeoff = gui.add_button("Takeoff", icon=viser.Icon.ARROW_BAR_UP)
             self.simple = gui.add_button_group("Now", ("Land", "Hold", "Return"))
         tabs = gui.add_tab_group()
         with tabs.add_tab("Goto local", viser.Icon.TARGET):
-            self.north = gui.add_number("North (m)", 0.0, step=0.5)
-            self.east = gui.add_number("East (m)", 0.0, step=0.5)
-            self.down = gui.add_number("Down (m)", -5.0, step=0.5)
+            self.north = gui.add_number(NORTH, 0.0, step=0.5)
+            self.east = gui.add_number(EAST, 0.0, step=0.5)
+            self.down = gui.add_number(DOWN, -5.0, step=0.5)
             self.pick = gui.add_checkbox("Click ground to set N/E", False)
             self.goto = gui.add_button("Goto local", icon=viser.Icon.TARGET)
         with tabs.add_tab("Goto global", viser.Icon.WORLD):
-            self.lat = gui.add_number("Latitude (deg)", origin.lat_deg, step=1e-5)
-            self.lon = gui.add_number("Longitude (deg)", origin.lon_deg, step=1e-5)
-            self.galt = gui.add_number("Altitude (m)", origin.alt_m + 5.0, step=0.5)
+            self.lat = gui.add_number(LAT, origin.lat_deg, step=1e-5)
+            self.lon = gui.add_number(LON, origin.lon_deg, step=1e-5)
+            self.galt = gui.add_number(GLOBAL_ALT, origin.alt_m + 5.0, step=0.5)
             self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
         with tabs.add_tab("Scenarios", viser.Icon.ROUTE):
             self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
@@ -83,18 +106,22 @@ class CommandPanel:
 
     # -- wiring --------------------------------------------------------------------------
     def _wire(self) -> None:
-        self.takeoff.on_click(lambda _: self._send(lambda: inputs.takeoff(self.alt.value)))
+        self.takeoff.on_click(
+            lambda e: self._send(e, "Takeoff", lambda f: inputs.takeoff(f.get(TAKEOFF_ALT)))
+        )
         kinds = {"Land": CommandKind.LAND, "Hold": CommandKind.HOLD, "Return": CommandKind.RETURN}
-        self.simple.on_click(lambda e: self._send(lambda: inputs.simple(kinds[e.target.value])))
-        self.goto.on_click(lambda _: self._send(lambda: inputs.goto_local(
-            self.north.value, self.east.value, self.down.value, self.goto_limit_m)))  # fmt: skip
-        self.goto_global.on_click(lambda _: self._send(lambda: inputs.goto_global(
-            self.lat.value, self.lon.value, self.galt.value)))  # fmt: skip
+        self.simple.on_click(
+            lambda e: self._send(e, e.target.value, lambda _f: inputs.simple(kinds[e.target.value]))
+        )
+        self.goto.on_click(lambda e: self._send(e, "Goto local", lambda f: inputs.goto_local(
+            f.get(NORTH), f.get(EAST), f.get(DOWN), self.goto_limit_m)))  # fmt: skip
+        self.goto_global.on_click(lambda e: self._send(e, "Goto global", lambda f: inputs.goto_global(
+            f.get(LAT), f.get(LON), f.get(GLOBAL_ALT))))  # fmt: skip
         self.scenarios.on_click(
             lambda e: self._scenario("swap" if e.target.value == "Swap" else "random")
         )
-        self.kill_arm.on_click(lambda _: self.arm_kill())
-        self.kill_confirm.on_click(lambda _: self.confirm_kill())
+        self.kill_arm.on_click(self.arm_kill)
+        self.kill_confirm.on_click(self.confirm_kill)
         self.pick.on_update(lambda _: self._pick_mode(self.pick.value))
 
     def _pick_mode(self, on: bool) -> None:
@@ -128,18 +155,26 @@ class CommandPanel:
             f"font-size:0.82em'>{html.escape(text)}</div>"
         )
 
-    def parsed_targets(self) -> tuple[int, ...]:
-        return inputs.targets(self.targets.value, known=self.hooks.known_ids())
+    def _form(self, event: viser.GuiEvent, button: str) -> FormSnapshot:
+        """What the pressing tab showed at the click (InputError if the station cannot know)."""
+        return self.forms.read(event.client, button)
 
-    def _send(self, build: Callable[[], CommandRequest]) -> None:
+    def _targets(self, form: FormSnapshot) -> tuple[int, ...]:
+        return inputs.targets(form.get(TARGETS), known=self.hooks.known_ids())
+
+    def _send(self, event: viser.GuiEvent, button: str,
+              build: Callable[[FormSnapshot], CommandRequest]) -> None:  # fmt: skip
         try:
-            req = build()
-            targets = self.parsed_targets()
+            form = self._form(event, button)
+            req = build(form)
+            targets = self._targets(form)
         except InputError as exc:
             self.say(str(exc), error=True)
             return
-        who = "all vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))
-        label = f"{req.describe()} → {who}"
+        self._dispatch(req, targets)
+
+    def _dispatch(self, req: CommandRequest, targets: tuple[int, ...]) -> None:
+        label = f"{req.describe()} → {_who(targets)}"
         self.say(f"Sending {label} …")
         self.hooks.dispatch(label, [(req, targets)])
 
@@ -151,32 +186,54 @@ class CommandPanel:
         self.say(f"Scenario {name}: sending {len(jobs)} goals …")
         self.hooks.dispatch(f"scenario {name} ({len(jobs)} vehicles)", jobs)
 
-    def arm_kill(self) -> None:
+    def arm_kill(self, event: viser.GuiEvent) -> None:
         try:
-            targets = self.parsed_targets()
+            form = self._form(event, "Arm kill")
+            targets = self._targets(form)
         except InputError as exc:
             self.say(str(exc), error=True)
             return
+        self._armed = ArmedKill(event.client_id, form.get(TARGETS), targets)
         self.kill_guard.arm(self.hooks.now_s())
         self.kill_confirm.disabled = False
-        who = "ALL vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))
         self.say(
-            f"Kill ARMED for {who}: press CONFIRM KILL within {self.kill_guard.window_s:g} s.",
+            f"Kill ARMED for {_who(targets).replace('all vehicles', 'ALL vehicles')}: press "
+            f"CONFIRM KILL within {self.kill_guard.window_s:g} s.",
             error=True,
         )
 
-    def confirm_kill(self) -> None:
-        if not self.kill_guard.confirm(self.hooks.now_s()):
-            self.kill_confirm.disabled = True
+    def confirm_kill(self, event: viser.GuiEvent) -> None:
+        armed, self._armed = self._armed, None
+        in_window = self.kill_guard.confirm(self.hooks.now_s())
+        self.kill_confirm.disabled = True
+        if armed is None or not in_window:
             self.say("Kill not armed (or the window passed): press 'Arm kill' first.", error=True)
             return
-        self.kill_confirm.disabled = True
-        self._send(lambda: inputs.simple(CommandKind.KILL))
+        try:
+            form = self._form(event, "CONFIRM KILL")
+        except InputError as exc:
+            self.say(f"Kill disarmed: {exc}", error=True)
+            return
+        if event.client_id != armed.client_id:
+            self.say(
+                "Kill disarmed: it was armed in another browser tab; nothing sent.", error=True
+            )
+            return
+        shown = form.values.get(TARGETS)
+        if shown != armed.targets_text:
+            self.say(
+                f"Kill disarmed: Targets changed from {armed.targets_text!r} to {shown!r} after "
+                "arming; nothing sent. Arm again for the vehicles you mean.",
+                error=True,
+            )
+            return
+        self._dispatch(inputs.simple(CommandKind.KILL), armed.targets)
 
     def tick(self) -> None:
         """Called by the station's loop: closes an expired kill window."""
         if not self.kill_confirm.disabled and not self.kill_guard.armed(self.hooks.now_s()):
             self.kill_confirm.disabled = True
+            self._armed = None
             self.say("Kill window expired; nothing was sent.")
 
     def show_result(self, done: Dispatched) -> None:
@@ -185,3 +242,7 @@ class CommandPanel:
             f"Done: {done.label}" if not done.error else f"Failed: {done.error}",
             error=bool(done.error),
         )
+
+
+def _who(targets: tuple[int, ...]) -> str:
+    return "all vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))

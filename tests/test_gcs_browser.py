@@ -17,9 +17,10 @@ import time
 
 import pytest
 
+from comms import keys
 from comms.mesh import Mesh
-from comms.schema import Mode, StateFlag, VehicleState
-from comms.session import MeshConfig
+from comms.schema import Command, CommandKind, Mode, StateFlag, VehicleState
+from comms.session import MeshConfig, open_session
 from groundstation.demo_proc import DemoProcess
 
 pytestmark = [pytest.mark.browser, pytest.mark.e2e]
@@ -77,6 +78,43 @@ def states(demo):
         yield log
 
 
+class CommandLog:
+    """Every command sent to the fleet, as a silent queryable on the mesh sees it (it never
+    replies, so the vehicles' acks are untouched)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.commands: list[Command] = []
+
+    def __call__(self, query) -> None:
+        cmd = Command.decode(query.payload.to_bytes())
+        with self._lock:
+            self.commands.append(cmd)
+
+    def since(self, n: int) -> list[Command]:
+        with self._lock:
+            return self.commands[n:]
+
+    def wait_new(self, n: int, timeout_s: float, what: str) -> Command:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            new = self.since(n)
+            if new:
+                return new[0]
+            time.sleep(0.05)
+        raise AssertionError(f"{what}: no command on the mesh within {timeout_s} s")
+
+
+@pytest.fixture(scope="module")
+def commands(demo):
+    log = CommandLog()
+    with open_session(MeshConfig(mode="peer", connect=(demo.mesh_endpoint,))) as session:
+        q = session.declare_queryable(keys.all_cmds("covey"), log, complete=False)
+        time.sleep(0.5)  # let the queryable's declaration reach the station's router
+        yield log
+        q.undeclare()
+
+
 @pytest.fixture(scope="module")
 def page(demo):
     with sync_api.sync_playwright() as p:
@@ -106,8 +144,27 @@ def field(page, label: str):
 
 
 def fill(page, label: str, value: str) -> None:
-    # viser sends every change at once, so the value reaches the server before the next click.
+    # The station reads the form from the page at each click (groundstation/browser_form.py), so
+    # nothing here waits for the edit to reach the server.
     field(page, label).fill(value)
+
+
+TYPE_THEN_CLICK_JS = """([values, button]) => {
+  // One task: every field is typed and the button clicked before the page renders a frame or
+  // any timer runs, as a fast operator (or a busy browser) does.
+  const setter = Object.getOwnPropertyDescriptor(HTMLInputElement.prototype, 'value').set;
+  for (const [label, value] of Object.entries(values)) {
+    const el = [...document.querySelectorAll('label')].find(l => l.textContent.trim() === label)
+      .closest('.mantine-Flex-root').querySelector('input');
+    setter.call(el, value);
+    el.dispatchEvent(new Event('input', {bubbles: true}));
+  }
+  [...document.querySelectorAll('button')].find(b => b.textContent.trim() === button).click();
+}"""
+
+
+def type_then_click(page, values: dict[str, str], button: str) -> None:
+    page.evaluate(TYPE_THEN_CLICK_JS, [values, button])
 
 
 def wait_ack(page, n: int, status: str = "accepted") -> None:
@@ -130,6 +187,36 @@ def test_bad_input_is_refused_in_the_gui_and_nothing_is_sent(page, states):
     page.get_by_role("button", name="Hold").click(force=True)
     page.get_by_text("Targets: no vehicle 7 in the fleet").wait_for()
     assert all(s.mode is Mode.LANDED for s in states.get().values())
+
+
+def test_typed_values_and_a_click_in_the_same_frame_are_what_is_sent(page, states, commands):
+    # The fields hold other values first (the station knows them), then the operator types new
+    # ones and clicks before the page could send each edit: the command carries the typed ones.
+    fill(page, "Targets", "2")
+    fill(page, "Takeoff alt (m)", "9")
+    page.wait_for_timeout(300)
+    n = len(commands.since(0))
+    type_then_click(page, {"Targets": "1,3", "Takeoff alt (m)": "4.5"}, "Takeoff")
+    cmd = commands.wait_new(n, 15.0, "takeoff typed and clicked in one frame")
+    assert (cmd.kind, cmd.targets, cmd.params[0]) == (CommandKind.TAKEOFF, (1, 3), 4.5)
+    states.wait(lambda s: s[1].armed and s[3].armed, 15.0, "vehicles 1 and 3 armed")
+    assert not states.get()[2].armed, "vehicle 2 was not typed but took off"
+
+    fill(page, "North (m)", "1")
+    fill(page, "East (m)", "1")
+    fill(page, "Down (m)", "-3")
+    page.wait_for_timeout(300)
+    n = len(commands.since(0))
+    typed = {"Targets": "3", "North (m)": "-7.5", "East (m)": "6", "Down (m)": "-4"}
+    type_then_click(page, typed, "Goto local")
+    cmd = commands.wait_new(n, 15.0, "goto typed and clicked in one frame")
+    assert (cmd.kind, cmd.targets, cmd.params) == (CommandKind.GOTO_LOCAL, (3,), (-7.5, 6.0, -4.0))
+    states.wait(
+        lambda s: math.dist(s[3].goal_ned_m[:2], (-7.5, 6.0)) < 0.1, 15.0, "vehicle 3's new goal"
+    )
+    # Land them again, so that the takeoff test below starts from a landed fleet.
+    type_then_click(page, {"Targets": "all"}, "Land")
+    states.wait(lambda s: all(v.mode is Mode.LANDED for v in s.values()), 60.0, "all landed")
 
 
 def test_takeoff_to_all_makes_them_airborne(page, states):
@@ -182,6 +269,18 @@ def test_ground_click_places_the_goto_target(page):
     )
     assert (north.input_value(), east.input_value()) != before
     field(page, "Click ground to set N/E").uncheck(force=True)
+
+
+def test_a_kill_armed_for_one_vehicle_is_disarmed_when_targets_change(page, states, commands):
+    fill(page, "Targets", "1")
+    page.get_by_role("button", name="Arm kill").click(force=True)
+    page.get_by_text("Kill ARMED for vehicle(s) 1").wait_for()
+    n = len(commands.since(0))
+    type_then_click(page, {"Targets": "all"}, "CONFIRM KILL")
+    page.get_by_text("Kill disarmed: Targets changed").wait_for()
+    time.sleep(1.0)
+    assert [c for c in commands.since(n) if c.kind is CommandKind.KILL] == []
+    assert all(s.mode is not Mode.KILLED for s in states.get().values())
 
 
 def test_kill_needs_its_confirmation(page, states):
