@@ -61,6 +61,10 @@ def ack(fleet: str, vehicle_id: int) -> str:
     return _vehicle(fleet, vehicle_id, "ack")
 
 
+def all_acks(fleet: str) -> str:
+    return _vehicle(fleet, "*", "ack")
+
+
 def alive(fleet: str, vehicle_id: int) -> str:
     return _vehicle(fleet, vehicle_id, "alive")
 

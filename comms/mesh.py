@@ -243,6 +243,34 @@ class Mesh:
 
         return self._keep(self.session.declare_queryable(reply_key, on_query))
 
+    def observe_commands(
+        self, on_command: Callable[[Command, int], None], on_ack: Callable[[CommandAck, int], None]
+    ) -> None:
+        """See every command sent to the fleet, from any station, and every vehicle's ack copy
+        (`v/<id>/ack`), each with its receive stamp. A silent queryable (complete=False) sees each
+        command query and never replies, so the vehicles' answers to the sender are untouched."""
+
+        def on_query(query: zenoh.Query) -> None:
+            recv_ns = self.clock_ns()
+            try:
+                command = Command.decode(query.payload.to_bytes() if query.payload else b"")
+            except DecodeError as exc:
+                self._bad(str(query.key_expr), exc)
+                return
+            _guarded(on_command, command, recv_ns)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            recv_ns = self.clock_ns()
+            try:
+                ack = CommandAck.decode(sample.payload.to_bytes())
+            except DecodeError as exc:
+                self._bad(str(sample.key_expr), exc)
+                return
+            _guarded(on_ack, ack, recv_ns)
+
+        self._keep(self.session.declare_queryable(keys.all_cmds(self.fleet), on_query, complete=False))
+        self._keep(self.session.declare_subscriber(keys.all_acks(self.fleet), on_sample))
+
     def send_command(
         self,
         command: Command,

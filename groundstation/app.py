@@ -10,9 +10,10 @@ The mesh feeds the FleetModel from Zenoh threads; one render thread draws the sc
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 import time
-from collections import deque
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -23,15 +24,18 @@ from comms.auth import load_auth
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.presence import Presence
-from comms.schema import CommandKind, Event
+from comms.schema import Command, CommandAck, CommandKind
 from comms.session import MeshConfig
 from groundstation import dispatch, scenarios
+from groundstation.browser_form import BrowserForms
+from groundstation.command_log import CommandLog, LoggedCommand
 from groundstation.dispatch import CommandWorker, Dispatched
+from groundstation.events import EventBuffer, EventsView
 from groundstation.fleet import FleetConfig, FleetModel
 from groundstation.inputs import CommandRequest
-from groundstation.panel import CommandPanel, Job, PanelHooks
+from groundstation.panel import FORM_LABELS, CommandPanel, Job, PanelHooks
 from groundstation.scene import FleetScene, SceneConfig
-from groundstation.tables import event_log, fleet_table, legend
+from groundstation.tables import command_log_html, fleet_table, legend
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +80,22 @@ class GcsConfig:
     else open mode (ignored when a Mesh is passed to GroundStation)."""
 
 
+def web_host_problem(host: str) -> str | None:
+    """Why the web app cannot listen on `host` (not an address of this machine, or not an
+    address at all), or None. Checked before the station joins the mesh."""
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError) as exc:
+        return f"--host {host!r} is not an address this machine can listen on ({exc})"
+    family, _, _, _, addr = infos[0]
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as sock:
+            sock.bind(addr)
+    except OSError as exc:
+        return f"--host {host!r}: cannot listen there ({exc.strerror or exc})"
+    return None
+
+
 class GroundStation:
     """Context manager: the running ground station."""
 
@@ -92,9 +112,13 @@ class GroundStation:
         self._thread: threading.Thread | None = None
         self._rng = np.random.default_rng(cfg.seed)
         self.update_times_s: list[float] = []
-        self.events: deque[tuple[str, Event]] = deque(maxlen=8)
-        self._events_shown = 0
-        self._events_seen = 0
+        self.events = EventBuffer()
+        self.commands = CommandLog(on_superseded=self._on_superseded)
+        self._commands_shown = -1
+        self._tabs_lock = threading.Lock()
+        self.panels: dict[int, CommandPanel] = {}
+        self._event_views: dict[int, EventsView] = {}
+        self._sent_by: OrderedDict[int, int] = OrderedDict()  # nonce -> client id that sent it
         self.last_result: Dispatched | None = None
         self._link = None
 
@@ -112,6 +136,9 @@ class GroundStation:
 
     def _start(self) -> None:
         cfg = self.cfg
+        problem = web_host_problem(cfg.host)
+        if problem:  # before anything joins the mesh
+            raise ValueError(problem)
         self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file))
         if cfg.link not in ("", "perfect"):
             from comms.link import emulator_from_spec
@@ -121,9 +148,9 @@ class GroundStation:
             )
             self._link.__enter__()
         self.mesh.subscribe_states(self.fleet.on_state, link=self._link)
-        self.mesh.subscribe_events(self._on_event)
+        self.mesh.subscribe_events(self.events.add)
+        self.mesh.observe_commands(self.commands.on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
-        self.mesh.declare_gcs(cfg.gcs_id)
         self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="covey", verbose=False)
         self.server.gui.configure_theme(control_width="large", show_share_button=False,
                                         brand_color=(20, 110, 160))  # fmt: skip
@@ -133,22 +160,50 @@ class GroundStation:
         self._worker = CommandWorker(self._on_result)
         self._thread = threading.Thread(target=self._loop, name="gcs-render", daemon=True)
         self._thread.start()
+        # Present on the mesh only once the web app and the mesh are both up: vehicles treat a
+        # present station as one that an operator can use.
+        self.mesh.declare_gcs(cfg.gcs_id)
 
     def _build_gui(self) -> None:
         assert self.server is not None
         gui = self.server.gui
-        gui.add_markdown(f"**covey** ground station · fleet `{self.mesh.fleet}`")
+        gui.add_markdown(f"**covey** ground station · fleet `{self.mesh.fleet}` · station {self.cfg.gcs_id}")
         with gui.add_folder("Fleet"):
             self.table = gui.add_html("<i>waiting for vehicles…</i>")
             gui.add_html(legend())
-        with gui.add_folder("Events", expand_by_default=False):
-            self.event_html = gui.add_html(event_log([]))
-        hooks = PanelHooks(known_ids=self.known_ids, dispatch=self.dispatch, scenario=self.scenario_jobs,
-                           now_s=time.monotonic)  # fmt: skip
-        self.panel = CommandPanel(self.server, hooks, self.cfg.origin, goto_limit_m=self.cfg.geofence_radius_m,
-                                  kill_window_s=self.cfg.kill_window_s)  # fmt: skip
+        with gui.add_folder("Command log (every station)", expand_by_default=False):
+            self.command_log_html = gui.add_html(command_log_html([], self.cfg.gcs_id))
+        self.forms = BrowserForms(self.server, FORM_LABELS)
+        self._hooks = PanelHooks(known_ids=self.known_ids, dispatch=self.dispatch, scenario=self.scenario_jobs,
+                                 now_s=time.monotonic)  # fmt: skip
+        self.server.on_client_connect(self._open_tab)
+        self.server.on_client_disconnect(self._close_tab)
         self.scene = FleetScene(self.server, SceneConfig(self.cfg.geofence_radius_m, self.cfg.separation_m),
-                                on_vehicle_click=self.panel.select)  # fmt: skip
+                                on_vehicle_click=self._select)  # fmt: skip
+
+    # -- browser tabs: each has its own events filter and command panel ------------------
+    def _open_tab(self, client: viser.ClientHandle) -> None:
+        view = EventsView(client.gui, self.events)
+        panel = CommandPanel(client, self._hooks, self.forms, self.cfg.origin,
+                             goto_limit_m=self.cfg.geofence_radius_m, kill_window_s=self.cfg.kill_window_s)  # fmt: skip
+        with self._tabs_lock:
+            self._event_views[client.client_id] = view
+            self.panels[client.client_id] = panel
+
+    def _close_tab(self, client: viser.ClientHandle) -> None:
+        with self._tabs_lock:
+            self._event_views.pop(client.client_id, None)
+            self.panels.pop(client.client_id, None)
+
+    def _tabs(self) -> tuple[list[CommandPanel], list[EventsView]]:
+        with self._tabs_lock:
+            return list(self.panels.values()), list(self._event_views.values())
+
+    def _select(self, vehicle_id: int, client_id: int | None) -> None:
+        with self._tabs_lock:
+            panel = self.panels.get(client_id) if client_id is not None else None
+        if panel is not None:
+            panel.select(vehicle_id)
 
     def close(self) -> None:
         self._stop.set()
@@ -184,24 +239,49 @@ class GroundStation:
         if kind == "vehicle":
             self.fleet.on_presence(ident, alive, self._clock_ns())
 
-    def _on_event(self, event: Event, _recv_ns: int) -> None:
-        self.events.append((time.strftime("%H:%M:%S"), event))
-        self._events_seen += 1
+    def _on_ack(self, ack: CommandAck, recv_ns: int) -> None:
+        auth = self.mesh.auth if self.mesh is not None else None
+        check = auth.check_ack if auth is not None else None
+        self.commands.on_ack(ack, recv_ns, check=check)
+
+    def _on_superseded(self, before: LoggedCommand, vehicle_id: int, later: LoggedCommand) -> None:
+        """Tell the tab that sent `before` that another tab or station replaced it on a vehicle."""
+        with self._tabs_lock:
+            mine = self._sent_by.get(before.command.nonce)
+            theirs = self._sent_by.get(later.command.nonce)
+            panel = self.panels.get(mine) if mine is not None else None
+        if panel is None or theirs == mine:
+            return
+        by = "another tab of this station" if later.source_id == self.cfg.gcs_id else f"station {later.source_id}"
+        panel.say(f"Superseded on vehicle {vehicle_id}: your {before.describe()} was replaced by "
+                  f"{by}'s {later.describe()}.", error=True)  # fmt: skip
 
     # -- panel hooks ---------------------------------------------------------------------
     def known_ids(self) -> set[int]:
         present = self.presence.vehicles if self.presence else set()
         return present | set(self.fleet.ids())
 
-    def dispatch(self, label: str, jobs: list[Job]) -> None:
+    def dispatch(self, label: str, jobs: list[Job], on_done: Callable[[Dispatched], None],
+                 client_id: int | None = None) -> None:  # fmt: skip
         mesh, present = self.mesh, self.presence.vehicles if self.presence else set()
         timeout_s, source = self.cfg.command_timeout_s, self.cfg.gcs_id
 
-        def run() -> list:
-            return [dispatch.send(mesh, req, targets, present=present, source_id=source, timeout_s=timeout_s)
-                    for req, targets in jobs]  # fmt: skip
+        def remember(cmd: Command) -> None:
+            self._remember_sender(cmd, client_id)
 
-        self._worker.submit(label, run)
+        def run() -> list:
+            return [dispatch.send(mesh, req, targets, present=present, source_id=source, timeout_s=timeout_s,
+                                  on_built=remember) for req, targets in jobs]  # fmt: skip
+
+        self._worker.submit(label, run, on_done)
+
+    def _remember_sender(self, cmd: Command, client_id: int | None) -> None:
+        if client_id is None:
+            return
+        with self._tabs_lock:
+            self._sent_by[cmd.nonce] = client_id
+            while len(self._sent_by) > 1000:
+                self._sent_by.popitem(last=False)
 
     def scenario_jobs(self, name: str) -> list[Job]:
         positions = {v: p for v, p in self.fleet.positions().items() if v in self.known_ids()}
@@ -217,7 +297,6 @@ class GroundStation:
 
     def _on_result(self, done: Dispatched) -> None:
         self.last_result = done
-        self.panel.show_result(done)
 
     # -- render loop ---------------------------------------------------------------------
     def render_once(self, with_table: bool) -> float:
@@ -231,9 +310,11 @@ class GroundStation:
             self.scene.update(snap)
             if with_table:
                 self.table.content = fleet_table(snap)
-                if self._events_shown != self._events_seen:
-                    self._events_shown = self._events_seen
-                    self.event_html.content = event_log(list(self.events))
+                if self._commands_shown != self.commands.version:
+                    self._commands_shown = self.commands.version
+                    self.command_log_html.content = command_log_html(self.commands.entries(), self.cfg.gcs_id)
+                for view in self._tabs()[1]:
+                    view.render()
         return time.perf_counter() - t0
 
     def _loop(self) -> None:
@@ -245,7 +326,8 @@ class GroundStation:
             try:
                 self.update_times_s.append(self.render_once(with_table=tick % table_every == 0))
                 del self.update_times_s[:-1000]
-                self.panel.tick()
+                for panel in self._tabs()[0]:
+                    panel.tick()
             except Exception:  # noqa: BLE001 - the display must keep going
                 log.exception("render update failed")
             tick += 1

@@ -9,7 +9,7 @@ import signal
 import sys
 
 from comms.auth import FleetKeyError
-from groundstation.app import GcsConfig, GroundStation
+from groundstation.app import GcsConfig, GroundStation, web_host_problem
 from groundstation.meshargs import add_mesh_args, mesh_config
 
 
@@ -58,6 +58,10 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not 0 <= args.port <= 65535:
         p.error(f"--port {args.port} must be within 0..65535")
+    problem = web_host_problem(args.host)
+    if problem:  # one line, before anything joins the mesh
+        print(f"covey gcs: error: {problem}", file=sys.stderr)
+        return 2
     if args.gcs_id is None:
         args.gcs_id = secrets.randbelow(64999) + 2
     if not 1 <= args.gcs_id <= 65000:

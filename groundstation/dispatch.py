@@ -41,10 +41,14 @@ def send(
     present: Iterable[int] = (),
     source_id: int = 0,
     timeout_s: float = 2.0,
+    on_built: Callable[[Command], None] | None = None,
 ) -> CommandResult:
     """Send one command (one query) and collect every answer. For the whole fleet (targets=()),
-    every vehicle in `present` is expected to answer, so a silent one shows as a timeout."""
+    every vehicle in `present` is expected to answer, so a silent one shows as a timeout.
+    `on_built` sees the command (its nonce) before it goes out."""
     cmd = build_command(req, targets, source_id, mesh.clock_ns())
+    if on_built is not None:
+        on_built(cmd)
     expect = set(targets) if targets else set(present)
     return mesh.send_command(cmd, expect=expect, timeout_s=timeout_s)
 
@@ -68,15 +72,27 @@ class CommandWorker:
         self._on_done = on_done
 
     def submit(
-        self, label: str, job: Callable[[], list[CommandResult]]
+        self,
+        label: str,
+        job: Callable[[], list[CommandResult]],
+        on_done: Callable[[Dispatched], None] | None = None,
     ) -> concurrent.futures.Future:
+        """Run `job` after the jobs before it; its result goes to the worker's `on_done`, then
+        to this submission's own `on_done` (the tab that sent it)."""
+
         def run() -> None:
             try:
                 done = Dispatched(label, tuple(job()))
             except Exception as exc:  # noqa: BLE001 - shown to the operator, not raised into a pool
                 log.exception("command %s failed", label)
                 done = Dispatched(label, (), error=f"{type(exc).__name__}: {exc}")
-            self._on_done(done)
+            for callback in (self._on_done, on_done):
+                if callback is None:
+                    continue
+                try:
+                    callback(done)
+                except Exception:  # noqa: BLE001 - a closed tab must not stop the worker
+                    log.exception("showing the result of %s failed", label)
 
         return self._pool.submit(run)
 

@@ -4,6 +4,13 @@ Pure and thread-safe: no viser, no Zenoh, no clock. Mesh callbacks feed it (`on_
 `on_presence`) with the receive stamps they carry; the renderer asks for a `snapshot(now_ns)`.
 The replay tool and the benchmark drive it the same way.
 
+Bounded: ids come from the network, so the table holds at most `max_vehicles` (states of new
+ids beyond that are refused and counted in `refused_states`; a present vehicle may take the place
+of one that never held a liveliness token), and it forgets vehicles that are not present on the
+mesh: one that never held a liveliness token `unconfirmed_expire_s` after its first state, one
+that lost its token `lost_expire_s` after the loss. A phantom flood therefore leaves the table
+within `unconfirmed_expire_s` of its end.
+
 Link health per vehicle, over a sliding window of `rate_window_s`:
     rate_hz  = (received - 1) / (t_last - t_first)
     loss     = 1 - received / (seq_last - seq_first + 1)      (from VehicleState.seq gaps)
@@ -38,14 +45,24 @@ class FleetConfig:
     """Two vehicles closer than this (3D distance) raise a separation alert."""
     stale_after_s: float = 1.0
     """A vehicle whose last state is older than this is shown as stale."""
+    unconfirmed_expire_s: float = 10.0
+    """A vehicle that never held a liveliness token is forgotten this long after its first state."""
+    lost_expire_s: float = 60.0
+    """A vehicle that lost its liveliness token is shown LOST this long, then forgotten."""
+    max_vehicles: int = 2000
+    """The most vehicles the table holds; states of new ids beyond it are refused (counted)."""
 
     def __post_init__(self) -> None:
+        if not 1 <= self.max_vehicles <= 1_000_000:
+            raise ValueError(f"max_vehicles={self.max_vehicles} must be within 1..1000000")
         for name in (
             "trail_s",
             "trail_min_step_s",
             "rate_window_s",
             "separation_m",
             "stale_after_s",
+            "unconfirmed_expire_s",
+            "lost_expire_s",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -60,6 +77,8 @@ class _Track:
     last_recv_ns: int = 0
     alive: bool = False
     lost_ns: int | None = None
+    first_ns: int = 0
+    ever_alive: bool = False
     window: deque[tuple[int, int]] = field(default_factory=deque)  # (recv_ns, seq)
     trail: deque[tuple[int, tuple[float, float, float]]] = field(default_factory=deque)
     duplicates: int = 0
@@ -126,13 +145,51 @@ class FleetModel:
         self.cfg = cfg or FleetConfig()
         self._lock = threading.Lock()
         self._tracks: dict[int, _Track] = {}
+        self.refused_states = 0
+        """States of new vehicle ids refused because the table was full."""
+        self.expired = 0
+        """Vehicles forgotten because they were not present on the mesh (see the module doc)."""
+
+    def _track(self, vehicle_id: int, now_ns: int, present: bool) -> _Track | None:
+        """The track of `vehicle_id`, made if there is room (lock held). A present vehicle may
+        push out one that never held a token; anything else waits for room."""
+        track = self._tracks.get(vehicle_id)
+        if track is not None:
+            return track
+        if len(self._tracks) >= self.cfg.max_vehicles:
+            victim = next((v for v, t in self._tracks.items() if not t.ever_alive), None)
+            if not present or victim is None:
+                return None
+            del self._tracks[victim]
+        track = self._tracks[vehicle_id] = _Track(first_ns=now_ns)
+        return track
+
+    def _expire(self, now_ns: int) -> None:
+        """Forget vehicles that are not present on the mesh for too long (lock held)."""
+        cfg = self.cfg
+        unconfirmed_ns, lost_ns = int(cfg.unconfirmed_expire_s * NS_PER_S), int(cfg.lost_expire_s * NS_PER_S)
+        gone = [
+            vid
+            for vid, t in self._tracks.items()
+            if not t.alive
+            and (
+                (not t.ever_alive and now_ns - t.first_ns > unconfirmed_ns)
+                or (t.ever_alive and t.lost_ns is not None and now_ns - t.lost_ns > lost_ns)
+            )
+        ]
+        for vid in gone:
+            del self._tracks[vid]
+        self.expired += len(gone)
 
     # -- inputs ------------------------------------------------------------------------------
     def on_state(self, state: VehicleState, recv_ns: int) -> None:
         """Record one received state (a Mesh.subscribe_states callback)."""
         cfg = self.cfg
         with self._lock:
-            track = self._tracks.setdefault(state.vehicle_id, _Track())
+            track = self._track(state.vehicle_id, recv_ns, present=False)
+            if track is None:
+                self.refused_states += 1
+                return
             prev = track.state
             if prev is not None:
                 if state.seq == prev.seq:
@@ -158,8 +215,11 @@ class FleetModel:
     def on_presence(self, vehicle_id: int, alive: bool, now_ns: int) -> None:
         """Record a liveliness change (a Mesh.presence on_change callback, vehicles only)."""
         with self._lock:
-            track = self._tracks.setdefault(vehicle_id, _Track())
+            track = self._track(vehicle_id, now_ns, present=alive)
+            if track is None:
+                return
             track.alive = alive
+            track.ever_alive = track.ever_alive or alive
             track.lost_ns = None if alive else now_ns
 
     def forget(self, vehicle_id: int) -> None:
@@ -184,6 +244,7 @@ class FleetModel:
         want = (lambda _vid: trails) if isinstance(trails, bool) else trails.__contains__
         cfg = self.cfg
         with self._lock:
+            self._expire(now_ns)
             items = sorted(self._tracks.items())
             raw = [
                 (

@@ -6,8 +6,11 @@ client can leave stale. The values are validated (groundstation.inputs); anythin
 unknown is a clear message and nothing is sent. Sending happens on the station's command
 worker, never on viser's callback thread.
 
-A kill is armed for the targets the arming tab showed, and only that tab's CONFIRM within the
-window kills exactly those vehicles; if its Targets changed in between, nothing is sent.
+One panel per browser tab (viser's client-scope GUI): each operator has their own form values,
+their own ack matrix for their own commands, and their own kill guard. A kill is armed for the
+targets the tab showed; only that tab's CONFIRM within the window kills exactly those vehicles,
+and if its Targets changed in between, it disarms and says why. The fleet table, the command
+log and the scene stay shared (groundstation.app).
 """
 
 from __future__ import annotations
@@ -38,9 +41,8 @@ FORM_LABELS = (TARGETS, TAKEOFF_ALT, NORTH, EAST, DOWN, LAT, LON, GLOBAL_ALT)
 
 @dataclass(frozen=True)
 class ArmedKill:
-    """A kill armed in one tab, for the targets that tab showed."""
+    """A kill armed in this tab, for the targets it showed."""
 
-    client_id: int | None
     targets_text: str
     targets: tuple[int, ...]
 
@@ -51,8 +53,9 @@ class PanelHooks:
 
     known_ids: Callable[[], set[int]]
     """Ids of the vehicles the station knows (present or with a state)."""
-    dispatch: Callable[[str, list[Job]], None]
-    """Send these (request, targets) jobs in order, then render the answers."""
+    dispatch: Callable[[str, list[Job], Callable[[Dispatched], None], int | None], None]
+    """Send these (request, targets) jobs in order for a tab (its client id), then hand the
+    answers to the callback."""
     scenario: Callable[[str], list[Job]]
     """Build the jobs of a named scenario ("swap", "random")."""
     now_s: Callable[[], float]
@@ -60,15 +63,18 @@ class PanelHooks:
 
 
 class CommandPanel:
-    def __init__(self, server: viser.ViserServer, hooks: PanelHooks, origin: GeoOrigin,
-                 goto_limit_m: float, kill_window_s: float = 5.0) -> None:  # fmt: skip
-        self.server = server
+    """The command panel of one browser tab."""
+
+    def __init__(self, client: viser.ClientHandle, hooks: PanelHooks, forms: BrowserForms,
+                 origin: GeoOrigin, goto_limit_m: float, kill_window_s: float = 5.0) -> None:  # fmt: skip
+        self.client = client
         self.hooks = hooks
+        self.forms = forms
         self.goto_limit_m = goto_limit_m
         self.kill_guard = KillGuard(kill_window_s)
         self._armed: ArmedKill | None = None
-        self.forms = BrowserForms(server, FORM_LABELS)
-        gui = server.gui
+        self._ground_click: Callable | None = None
+        gui = client.gui
         # Messages and acks first: the operator must see what happened without scrolling.
         self.message = gui.add_html("")
         self.acks = gui.add_html("")
@@ -125,22 +131,26 @@ class CommandPanel:
         self.pick.on_update(lambda _: self._pick_mode(self.pick.value))
 
     def _pick_mode(self, on: bool) -> None:
-        scene = self.server.scene
+        scene = self.client.scene
+        if self._ground_click is not None:
+            scene.remove_click_callback(self._ground_click)
+            self._ground_click = None
         if not on:
-            scene.remove_click_callback("all")
             return
 
         @scene.on_click()
-        def _(event: viser.SceneClickEvent) -> None:
+        def ground_click(event: viser.SceneClickEvent) -> None:
             hit = ground_hit_ned(event.ray_origin, event.ray_direction)
             if hit is None:
                 self.say("That click does not hit the ground; aim below the horizon.", error=True)
                 return
             self.north.value, self.east.value = round(hit[0], 1), round(hit[1], 1)
             marker = ned_to_scene((hit[0], hit[1], 0.0))
-            self.server.scene.add_icosphere("/target", radius=0.4, color=(255, 200, 0), opacity=0.7, cast_shadow=False, receive_shadow=False,
+            scene.add_icosphere("/target", radius=0.4, color=(255, 200, 0), opacity=0.7, cast_shadow=False, receive_shadow=False,
                                             position=tuple(float(x) for x in marker))  # fmt: skip
             self.say(f"Goto target set to N {hit[0]:.1f} E {hit[1]:.1f}; press 'Goto local'.")
+
+        self._ground_click = ground_click
 
     # -- actions -------------------------------------------------------------------------
     def select(self, vehicle_id: int) -> None:
@@ -176,7 +186,7 @@ class CommandPanel:
     def _dispatch(self, req: CommandRequest, targets: tuple[int, ...]) -> None:
         label = f"{req.describe()} → {_who(targets)}"
         self.say(f"Sending {label} …")
-        self.hooks.dispatch(label, [(req, targets)])
+        self.hooks.dispatch(label, [(req, targets)], self.show_result, self.client.client_id)
 
     def _scenario(self, name: str) -> None:
         jobs = self.hooks.scenario(name)
@@ -184,7 +194,9 @@ class CommandPanel:
             self.say(f"Scenario {name}: no vehicle with a known position.", error=True)
             return
         self.say(f"Scenario {name}: sending {len(jobs)} goals …")
-        self.hooks.dispatch(f"scenario {name} ({len(jobs)} vehicles)", jobs)
+        self.hooks.dispatch(
+            f"scenario {name} ({len(jobs)} vehicles)", jobs, self.show_result, self.client.client_id
+        )
 
     def arm_kill(self, event: viser.GuiEvent) -> None:
         try:
@@ -193,7 +205,7 @@ class CommandPanel:
         except InputError as exc:
             self.say(str(exc), error=True)
             return
-        self._armed = ArmedKill(event.client_id, form.get(TARGETS), targets)
+        self._armed = ArmedKill(form.get(TARGETS), targets)
         self.kill_guard.arm(self.hooks.now_s())
         self.kill_confirm.disabled = False
         self.say(
@@ -213,11 +225,6 @@ class CommandPanel:
             form = self._form(event, "CONFIRM KILL")
         except InputError as exc:
             self.say(f"Kill disarmed: {exc}", error=True)
-            return
-        if event.client_id != armed.client_id:
-            self.say(
-                "Kill disarmed: it was armed in another browser tab; nothing sent.", error=True
-            )
             return
         shown = form.values.get(TARGETS)
         if shown != armed.targets_text:

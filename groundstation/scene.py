@@ -119,7 +119,7 @@ class FleetScene:
     """Owns every scene handle of the fleet. Call `update(snapshot)` from one thread."""
 
     def __init__(self, server: viser.ViserServer, cfg: SceneConfig,
-                 on_vehicle_click: Callable[[int], None] | None = None) -> None:  # fmt: skip
+                 on_vehicle_click: Callable[[int, int | None], None] | None = None) -> None:  # fmt: skip
         self.server = server
         self.cfg = cfg
         self._on_vehicle_click = on_vehicle_click
@@ -217,7 +217,7 @@ class FleetScene:
 
             def clicked(event: Any) -> None:
                 if event.instance_index is not None and 0 <= event.instance_index < len(ids):
-                    cb(ids[event.instance_index])
+                    cb(ids[event.instance_index], event.client_id)
 
             self.nodes["bodies"].on_click(clicked)
 

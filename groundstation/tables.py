@@ -1,12 +1,15 @@
-"""HTML for the fleet table, the ack matrix and the mode legend (pure: snapshot in, str out)."""
+"""HTML for the fleet table, the ack matrix, the command log and the mode legend (pure: data
+in, str out)."""
 
 from __future__ import annotations
 
 import html
 import math
+import time
 
 from comms.commands import OutcomeStatus
-from comms.schema import Event
+from comms.schema import AckResult, Event
+from groundstation.command_log import LoggedCommand
 from groundstation.dispatch import Dispatched
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.palette import ALERT_RGB, MODE_RGB, css, mode_rgb
@@ -129,6 +132,47 @@ def ack_matrix(done: Dispatched) -> str:
         + f"<div style='font-size:0.75em;line-height:1.5'>{''.join(chips)}</div>"
         + f"<div style='font-size:0.75em'>{''.join(problems[:20])}{errs}</div>"
     )
+
+
+_ANSWER_STYLE = {
+    AckResult.ACCEPTED: ("accepted", "#188038"),
+    AckResult.REJECTED: ("rejected", "#c5221f"),
+    AckResult.FAILED: ("failed", "#b06000"),
+}
+
+
+def command_log_html(entries: list[LoggedCommand], own_station: int, max_rows: int = 20,
+                     max_chips: int = 24) -> str:  # fmt: skip
+    """Every command on the fleet from any station, newest first: who sent what to whom, and
+    each vehicle's answer ("superseded" once a later accepted command replaced it there)."""
+    if not entries:
+        return "<div style='font-size:0.75em;color:#777'>no commands yet</div>"
+    rows = []
+    for e in entries[:max_rows]:
+        when = time.strftime("%H:%M:%S", time.localtime(e.recv_ns / 1e9))
+        who = "this station" if e.source_id == own_station else f"station {e.source_id}"
+        chips, tally = [], {}
+        for vid in sorted(e.answers):
+            name, color = _ANSWER_STYLE.get(e.answers[vid].result, ("failed", "#b06000"))
+            if vid in e.superseded and name == "accepted":
+                name, color = "superseded", "#777"
+            tally[name] = tally.get(name, 0) + 1
+            if len(chips) < max_chips:
+                reason = html.escape(e.answers[vid].reason)
+                chips.append(
+                    f'<span data-vehicle="{vid}" data-answer="{name}" title="{name} {reason}" '
+                    f'style="display:inline-block;margin:1px;padding:0 3px;border-radius:3px;'
+                    f'color:white;background:{color}">{vid} {name}</span>'
+                )
+        more = len(e.answers) - len(chips)
+        summary = " · ".join(f"{n} {k}" for k, n in tally.items()) or "no answer yet"
+        rows.append(
+            f'<div data-command="{e.command.nonce}" data-station="{e.source_id}" '
+            f'style="margin-bottom:3px"><b>{when}</b> {html.escape(who)}: '
+            f"{html.escape(e.describe())} <span style='color:#555'>({summary})</span><br>"
+            f"{''.join(chips)}{f' +{more} more' if more > 0 else ''}</div>"
+        )
+    return f"<div style='font-size:0.72em;line-height:1.35'>{''.join(rows)}</div>"
 
 
 _SEVERITY_COLOR = {0: "#777", 1: "#333", 2: "#b06000", 3: "#c5221f", 4: "#c5221f"}

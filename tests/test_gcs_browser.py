@@ -283,6 +283,32 @@ def test_a_kill_armed_for_one_vehicle_is_disarmed_when_targets_change(page, stat
     assert all(s.mode is not Mode.KILLED for s in states.get().values())
 
 
+def test_a_second_tab_cannot_confirm_a_kill_armed_in_the_first(page, states, commands):
+    # Tab 1 arms a kill for vehicle 3. Tab 2 (another operator, its own form and guard) types
+    # Targets = all and presses CONFIRM: nothing is killed. Each tab has its own kill guard.
+    other = page.context.browser.new_context(viewport={"width": 1200, "height": 800}).new_page()
+    try:
+        other.set_default_timeout(60_000)
+        other.goto(page.url)
+        other.get_by_role("button", name="Arm kill").wait_for()
+        fill(page, "Targets", "3")
+        page.get_by_role("button", name="Arm kill").click(force=True)
+        page.get_by_text("Kill ARMED for vehicle(s) 3").wait_for()
+        assert field(other, "Targets").input_value() == "all"  # tab 2 kept its own form
+        sync_api.expect(other.get_by_role("button", name="CONFIRM KILL")).to_be_disabled()
+        n = len(commands.since(0))
+        fill(other, "Targets", "all")
+        other.evaluate(  # press it the way a script could: disabled buttons ignore clicks
+            "() => [...document.querySelectorAll('button')].find("
+            "b => b.textContent.trim() === 'CONFIRM KILL').click()"
+        )
+        time.sleep(1.5)
+        assert [c for c in commands.since(n) if c.kind is CommandKind.KILL] == []
+        assert all(s.mode is not Mode.KILLED for s in states.get().values())
+    finally:
+        other.context.close()
+
+
 def test_kill_needs_its_confirmation(page, states):
     fill(page, "Targets", "3")
     page.get_by_role("button", name="Arm kill").click(force=True)

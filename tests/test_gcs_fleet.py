@@ -77,6 +77,7 @@ def test_duplicates_and_late_states_are_ignored_restart_resets():
 def test_trail_keeps_60_s_thinned():
     cfg = FleetConfig(trail_s=60.0, trail_min_step_s=0.2)
     model = FleetModel(cfg)
+    model.on_presence(1, True, 0)  # present: a vehicle without a token is forgotten after 10 s
     t = feed(model, 1, 1200, 10.0, pos=lambda seq: (seq * 0.1, 0.0, -5.0))  # 120 s at 10 Hz
     trail = model.snapshot(int(t * NS_PER_S)).vehicles[0].trail_ned_m
     assert trail.shape[1] == 3
@@ -138,3 +139,27 @@ def test_link_health_edge_cases():
 def test_config_rejects_bad_values(field, bad):
     with pytest.raises(ValueError, match=field):
         FleetConfig(**{field: bad})
+
+
+def test_vehicles_without_a_token_expire_and_the_table_is_bounded():
+    model = FleetModel(FleetConfig(unconfirmed_expire_s=10.0, lost_expire_s=60.0, max_vehicles=50))
+    model.on_presence(1, True, 0)
+    model.on_presence(2, True, 0)
+    model.on_presence(2, False, int(5 * NS_PER_S))  # vehicle 2 lost at 5 s
+    # A flood of 5,000 made-up ids for 20 s: the table never holds more than max_vehicles.
+    for k in range(5000):
+        t_ns = int(k * 20.0 / 5000 * NS_PER_S)
+        model.on_state(state(100 + k, 1), t_ns)
+        model.on_state(state(1, k + 1), t_ns)
+        assert len(model.ids()) <= 50
+    assert model.refused_states > 4000
+    # A real vehicle that joins during the flood takes the place of a phantom.
+    model.on_presence(3, True, int(20 * NS_PER_S))
+    assert 3 in model.ids()
+    # Within the expiry time after the flood, only real vehicles are listed (2 is shown LOST).
+    snap = model.snapshot(int(31 * NS_PER_S))
+    assert [v.vehicle_id for v in snap.vehicles] == [1, 2, 3]
+    assert not snap.by_id()[2].alive
+    # A lost vehicle is forgotten lost_expire_s after it was lost.
+    assert [v.vehicle_id for v in model.snapshot(int(66 * NS_PER_S)).vehicles] == [1, 3]
+    assert model.expired > 0
