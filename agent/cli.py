@@ -23,6 +23,7 @@ from agent.guidance import GuidanceConfig
 from comms.auth import CommandAuth, load_auth
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
+from comms.schema import POSITION_LIMIT_M
 from comms.session import DEFAULT_PORT, MeshConfig
 
 log = logging.getLogger("covey.agent")
@@ -56,6 +57,16 @@ def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
     return values
 
 
+def _start_ne(text: str) -> tuple[float, ...]:
+    """--start: two finite numbers that a VehicleState can carry (else no state is ever sent)."""
+    ne = _floats(text, 2, "--start")
+    if any(abs(v) > POSITION_LIMIT_M for v in ne):
+        raise argparse.ArgumentTypeError(
+            f"--start {text!r}: each coordinate must be within ±{POSITION_LIMIT_M:g} m"
+        )
+    return ne
+
+
 def add_mesh_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("mesh")
     g.add_argument("--fleet", default="covey", help="fleet name (default covey)")
@@ -79,8 +90,8 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="covey agent", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--id", type=int, required=True, help="vehicle id, 1..65000")
     p.add_argument("--vehicle", default="sim", help="sim (default) | mavsdk:<url> | relay:<url>")
-    p.add_argument("--start", type=lambda s: _floats(s, 2, "--start"), default=(0.0, 0.0),
-                   help="sim start position N,E in metres")  # fmt: skip
+    p.add_argument("--start", type=_start_ne, default=(0.0, 0.0),
+                   help=f"sim start position N,E in metres (each within ±{POSITION_LIMIT_M:g})")  # fmt: skip
     p.add_argument("--origin", type=lambda s: _floats(s, 3, "--origin"), default=None, help="fleet origin lat,lon,alt")
     p.add_argument("--link", default="perfect", help="emulated radio link: perfect | xbee | wifi | rate=3,loss=0.2,...")
     p.add_argument("--separation-m", type=float, default=3.0, help="minimum distance kept from other vehicles (default 3)")

@@ -178,6 +178,12 @@ def cmd_parser() -> argparse.ArgumentParser:
 
 def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
     p = cmd_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # argparse takes "-inf" / "-nan" for unknown options and then asks for the missing
+    # coordinate; say what is really wrong instead.
+    for token in argv:
+        if token.lower().lstrip("-") in ("inf", "infinity", "nan") and token.startswith("-"):
+            p.error(f"{token}: coordinates and altitudes must be finite numbers")
     args = p.parse_args(argv)
     # Negative numbers after a verb (goto 10 0 -5) are positional values, which argparse handles
     # because no option of ours looks like a number.
