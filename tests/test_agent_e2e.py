@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import holds
 
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
@@ -45,7 +46,7 @@ class Watch:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             with self.lock:
-                if pred(dict(self.states)):
+                if holds(pred, dict(self.states)):
                     return
             time.sleep(0.05)
         with self.lock:

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import holds
 
 from comms.commands import new_nonce
 from comms.mesh import Mesh
@@ -46,8 +47,9 @@ class Watch:
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout_s:
             with self.lock:
-                if pred(dict(self.states)):
-                    return time.monotonic() - t0
+                states = dict(self.states)
+            if holds(pred, states):
+                return time.monotonic() - t0
             time.sleep(0.02)
         with self.lock:
             summary = {

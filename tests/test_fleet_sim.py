@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import holds
 
 from agent.fleet_sim import Fleet, FleetSimConfig, start_grid
 from comms.commands import OutcomeStatus, new_nonce
@@ -36,7 +37,7 @@ class Latest:
         while time.monotonic() < deadline:
             with self.lock:
                 snap = dict(self.states)
-            if pred(snap):
+            if holds(pred, snap):
                 return snap
             time.sleep(0.05)
         raise AssertionError(f"timed out waiting for {what}: {sorted(snap)}")

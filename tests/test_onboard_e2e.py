@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import holds
 
 from comms.commands import new_nonce
 from comms.geo import GeoOrigin
@@ -51,7 +52,7 @@ def test_two_onboard_emulators_swap_behind_relay_agents(procs) -> None:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             with lock:
-                if set(states) >= set(STARTS) and pred(states):
+                if set(states) >= set(STARTS) and holds(pred, states):
                     return
             time.sleep(0.05)
         raise AssertionError(f"timed out waiting for {what}: { {v: (s.mode.name, s.pos_ned_m) for v, s in states.items()} }")
