@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Protocol
 
 import zenoh
 from mcap.exceptions import EndOfFile
@@ -193,19 +193,35 @@ class McapSink:
         self._out.flush()
 
 
+class Sink(Protocol):
+    """Where a Recorder puts what it hears (called from Zenoh's callback threads)."""
+
+    counts: dict[str, int]
+
+    def put(self, topic: str, data: bytes, recv_ns: int) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class Recorder:
     """Records one fleet's mesh traffic while open. Use it as a context manager."""
 
-    def __init__(self, cfg: RecordConfig, clock_ns: Callable[[], int] = time.time_ns) -> None:
+    def __init__(self, cfg: RecordConfig, clock_ns: Callable[[], int] = time.time_ns,
+                 sink: Sink | None = None) -> None:  # fmt: skip
+        """`sink` replaces the MCAP file (cfg.path is then unused): the live Foxglove bridge is
+        a recorder whose sink is a WebSocket server."""
         self.cfg = cfg
         self._clock_ns = clock_ns
         fleet = cfg.mesh.fleet
-        self._file = open(cfg.path, "wb")  # noqa: SIM115 - closed in close()
+        self._file = None if sink is not None else open(cfg.path, "wb")  # noqa: SIM115 - closed in close()
         self._entities: list = []
         try:
-            converter = Converter(cfg.foxglove) if cfg.foxglove is not None else None
-            self.sink = McapSink(self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s,
-                                 converter=converter)  # fmt: skip
+            if sink is not None:
+                self.sink: Sink = sink
+            else:
+                converter = Converter(cfg.foxglove) if cfg.foxglove is not None else None
+                self.sink = McapSink(self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s,
+                                     converter=converter)  # fmt: skip
             self._session: zenoh.Session | None = open_session(cfg.mesh)
             s = self._session
             self._entities.append(s.declare_subscriber(keys.everything(fleet), self._on_sample))
@@ -258,7 +274,7 @@ class Recorder:
         if hasattr(self, "sink"):
             self.sink.close()
             del self.sink
-        if not self._file.closed:
+        if self._file is not None and not self._file.closed:
             self._file.close()
 
 
