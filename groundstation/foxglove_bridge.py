@@ -103,7 +103,7 @@ class FoxgloveBridge:
 
     @property
     def port(self) -> int:
-        return self.sink.server.port()
+        return self.sink.server.port
 
     def __enter__(self) -> FoxgloveBridge:
         return self
