@@ -139,11 +139,7 @@ class Mesh:
         """Call `callback(state, recv_ns)` for every valid state. `link` (comms.link) stands
         between the wire and the callback and emulates a radio per sender: it may drop, delay or
         thin states, and calls `link.offer(state, recv_ns, deliver)` instead of the callback."""
-        key = (
-            keys.all_states(self.fleet)
-            if vehicle_id is None
-            else keys.state(self.fleet, vehicle_id)
-        )
+        key = keys.all_states(self.fleet) if vehicle_id is None else keys.state(self.fleet, vehicle_id)
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
@@ -151,9 +147,7 @@ class Mesh:
                 state = VehicleState.decode(sample.payload.to_bytes())
                 parsed = keys.parse_vehicle_key(str(sample.key_expr))
                 if parsed is None or parsed[1] != state.vehicle_id:
-                    raise DecodeError(
-                        f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}"
-                    )
+                    raise DecodeError(f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}")
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
                 return
@@ -188,14 +182,10 @@ class Mesh:
     # -- presence --------------------------------------------------------------------------
     def declare_vehicle(self, vehicle_id: int) -> zenoh.LivelinessToken:
         """Announce this process as vehicle `vehicle_id` until the token is undeclared."""
-        return self._keep(
-            self.session.liveliness().declare_token(keys.alive(self.fleet, vehicle_id))
-        )
+        return self._keep(self.session.liveliness().declare_token(keys.alive(self.fleet, vehicle_id)))
 
     def declare_gcs(self, gcs_id: int) -> zenoh.LivelinessToken:
-        return self._keep(
-            self.session.liveliness().declare_token(keys.gcs_alive(self.fleet, gcs_id))
-        )
+        return self._keep(self.session.liveliness().declare_token(keys.gcs_alive(self.fleet, gcs_id)))
 
     def presence(
         self,
@@ -206,9 +196,7 @@ class Mesh:
         pres = Presence(self.fleet, on_change=on_change, clock_ns=self.clock_ns)
         lv = self.session.liveliness()
         self._keep(lv.declare_subscriber(keys.all_alive(self.fleet), pres.on_sample, history=True))
-        self._keep(
-            lv.declare_subscriber(keys.all_gcs_alive(self.fleet), pres.on_sample, history=True)
-        )
+        self._keep(lv.declare_subscriber(keys.all_gcs_alive(self.fleet), pres.on_sample, history=True))
         return pres
 
     # -- commands --------------------------------------------------------------------------
@@ -304,9 +292,7 @@ class Mesh:
             if ack.nonce != command.nonce and ack.nonce != 0:
                 problem = f"ack nonce {ack.nonce} does not match command nonce {command.nonce}"
             if problem:
-                outcomes[ack.vehicle_id] = Outcome(
-                    ack.vehicle_id, OutcomeStatus.ERROR, problem, ack, latency_s
-                )
+                outcomes[ack.vehicle_id] = Outcome(ack.vehicle_id, OutcomeStatus.ERROR, problem, ack, latency_s)
                 continue
             outcomes[ack.vehicle_id] = Outcome.from_ack(ack, latency_s)
             waiting.discard(ack.vehicle_id)
@@ -315,11 +301,7 @@ class Mesh:
         elapsed_s = time.monotonic() - t0
         # The query ends early when every reachable queryable has answered: a vehicle missing
         # then is not on the mesh at all; one missing at the deadline is on it but silent.
-        why = (
-            f"no answer within {timeout_s:g} s"
-            if elapsed_s >= 0.9 * timeout_s
-            else "not reachable on the mesh"
-        )
+        why = f"no answer within {timeout_s:g} s" if elapsed_s >= 0.9 * timeout_s else "not reachable on the mesh"
         for vid in sorted(expected - outcomes.keys()):
             outcomes[vid] = Outcome(vid, OutcomeStatus.TIMEOUT, why, None, elapsed_s)
         return CommandResult(command=command, outcomes=outcomes, errors=tuple(errors))

@@ -163,9 +163,7 @@ def _header(data: bytes, expected: MsgType) -> None:
     if data[0] != expected:
         raise DecodeError(f"expected message type {expected.value}, got {data[0]}")
     if data[1] != SCHEMA_VERSION:
-        raise DecodeError(
-            f"unsupported {expected.name} version {data[1]} (this covey speaks {SCHEMA_VERSION})"
-        )
+        raise DecodeError(f"unsupported {expected.name} version {data[1]} (this covey speaks {SCHEMA_VERSION})")
 
 
 @dataclass(frozen=True)

@@ -82,9 +82,7 @@ def embedded_router(port: int, fleet: str = "covey", host: str = "127.0.0.1") ->
 
 def embedded_peer(port: int, fleet: str = "covey", host: str = "127.0.0.1") -> MeshConfig:
     """The config of a process that joins an embedded mesh hosted on `port`."""
-    return MeshConfig(
-        fleet=fleet, mode="peer", connect=(f"tcp/{host}:{port}",), listen=(f"tcp/{host}:0",)
-    )
+    return MeshConfig(fleet=fleet, mode="peer", connect=(f"tcp/{host}:{port}",), listen=(f"tcp/{host}:0",))
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:

@@ -112,9 +112,7 @@ class GroundStation:
 
     def _start(self) -> None:
         cfg = self.cfg
-        self.mesh = self._given_mesh or Mesh(
-            cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file)
-        )
+        self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file))
         if cfg.link not in ("", "perfect"):
             from comms.link import emulator_from_spec
 
