@@ -29,6 +29,16 @@ from comms.session import embedded_peer, embedded_router, free_tcp_port
 VEHICLES, RATE_HZ, LOG_S = 10, 10.0, 120.0
 
 
+def proto_class(name: str, fds: bytes):
+    """The class protobuf builds from a FileDescriptorSet (protobuf is in the test extra)."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(fds).file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
 def _traffic(n_vehicles: int, rate_hz: float, duration_s: float) -> list[tuple[str, bytes, int]]:
     """A fleet circling: states at rate_hz, an event per vehicle every 10 s."""
     out = []
@@ -56,13 +66,9 @@ def bench_sink(traffic, foxglove: bool) -> tuple[float, int]:
 
 
 def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) -> dict:
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
     from websockets.sync.client import connect
 
-    pool = descriptor_pool.DescriptorPool()
-    for fd in descriptor_pb2.FileDescriptorSet.FromString(POSE_IN_FRAME.data).file:
-        pool.Add(fd)
-    pose_cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(POSE_IN_FRAME.name))
+    pose_cls = proto_class(POSE_IN_FRAME.name, POSE_IN_FRAME.data)
     port, fleet = free_tcp_port(), "fx" + uuid.uuid4().hex[:6]
     latencies_ms: list[float] = []
     with Mesh(embedded_router(port, fleet=fleet)) as router, Children() as kids:
