@@ -1,11 +1,12 @@
-"""Foxglove channels: what they cost. `python -m bench.foxglove [--runs R] [--live-s S]`
+"""Foxglove channels: what they cost. `python -m bench.foxglove [--quick] [--runs R] [--live-s S]`
 
 - record: McapSink (the recorder's writer thread: queue, MCAP writer, zstd, flushes) with the
   standard Foxglove channels on vs off, msg/s of covey messages in, median of R runs (same run);
 - size: file bytes per vehicle-hour both ways, 10 vehicles at 10 Hz for 120 s of log time;
 - live: `covey foxglove` as a child process serving 100 vehicles publishing at 10 Hz; its CPU share
   (of one core) and the latency from a state's stamp to a WebSocket client decoding its pose.
-Writes bench/results/foxglove.json.
+Writes bench/results/foxglove.json. `--figure flight.mcap` instead draws a recording's standard
+channels with matplotlib (docs/foxglove_view.png), decoded with protobuf as Foxglove decodes them.
 """
 
 from __future__ import annotations
@@ -17,8 +18,11 @@ import statistics
 import threading
 import time
 import uuid
+from pathlib import Path
 
-from bench.common import Children, cpu_seconds, pct, say, write_json
+from mcap.reader import make_reader
+
+from bench.common import DOCS, Children, cpu_seconds, pct, pyplot, say, write_json
 from comms import keys
 from comms.foxglove_channels import POSE_IN_FRAME, Converter
 from comms.mesh import Mesh
@@ -133,7 +137,88 @@ def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) 
     }  # fmt: skip
 
 
-def main(runs: int = 3, live_s: float = 10.0) -> dict:
+def read_standard(path: str | Path) -> dict[str, list[tuple[int, object]]]:
+    """topic -> [(log_time_ns, decoded message)] for the protobuf and JSON channels."""
+    out: dict[str, list] = {}
+    classes: dict[int, object] = {}
+    with open(path, "rb") as f:
+        for sch, ch, msg in make_reader(f).iter_messages():
+            if ch.message_encoding == "protobuf":
+                if sch.id not in classes:
+                    classes[sch.id] = proto_class(sch.name, sch.data)
+                out.setdefault(ch.topic, []).append(
+                    (msg.log_time, classes[sch.id].FromString(msg.data))
+                )
+            elif ch.message_encoding == "json":
+                out.setdefault(ch.topic, []).append((msg.log_time, json.loads(msg.data)))
+    return out
+
+
+def figure(path: str | Path, out_png: Path) -> Path:
+    """Draw a recording's standard channels in the docs layout's arrangement (3D from above,
+    Map, Plot, Log): a stand-in for a Foxglove screenshot, from what Foxglove would decode."""
+    std = read_standard(path)
+    plt = pyplot()
+    fig, ((ax3d, axmap), (axplot, axlog)) = plt.subplots(2, 2, figsize=(12, 9))
+    vids = sorted(int(t.split("/")[2]) for t in std if t.endswith("/pose"))
+    t0 = min(ts for t in std for ts, _ in std[t])
+    for vid in vids:
+        poses = [m.pose.position for _, m in std[f"/vehicles/{vid}/pose"]]
+        times = [(ts - t0) / 1e9 for ts, _ in std[f"/vehicles/{vid}/pose"]]
+        (line,) = ax3d.plot(
+            [p.y for p in poses], [p.x for p in poses], lw=1, label=f"vehicle {vid}"
+        )
+        fixes = [m for _, m in std[f"/vehicles/{vid}/fix"]]
+        axmap.plot(
+            [f.longitude for f in fixes], [f.latitude for f in fixes], lw=1, color=line.get_color()
+        )
+        axplot.plot(times, [-p.z for p in poses], lw=1, color=line.get_color())
+    # the last scene entity of each vehicle: body coloured by mode, separation ring
+    last = {}
+    for _, upd in std.get("/scene", []):
+        for ent in upd.entities:
+            last[ent.id] = ent
+    for ent in last.values():
+        cube, ring = ent.cubes[0], ent.cylinders[0]
+        c = (cube.color.r, cube.color.g, cube.color.b)
+        ax3d.plot(cube.pose.position.y, cube.pose.position.x, "s", color=c, ms=8)
+        ax3d.add_patch(plt.Circle((ring.pose.position.y, ring.pose.position.x), ring.size.x / 2,
+                                  fill=False, color=(ring.color.r, ring.color.g, ring.color.b)))  # fmt: skip
+    ax3d.set(
+        title="3D (/scene, /vehicles/*/pose), from above",
+        xlabel="east m",
+        ylabel="north m",
+        aspect="equal",
+    )
+    ax3d.legend(fontsize=7)
+    axmap.set(title="Map (/vehicles/*/fix)", xlabel="longitude deg", ylabel="latitude deg")
+    axmap.ticklabel_format(useOffset=False)
+    axplot.set(title="Plot: altitude (-pose.position.z)", xlabel="s", ylabel="m")
+    lines = [
+        f"{(ts - t0) / 1e9:6.1f}s  {m.name:10s} {m.message}" for ts, m in std.get("/events", [])
+    ]
+    lines += [f"{(ts - t0) / 1e9:6.1f}s  ack vehicle/{a['vehicle_id']} {a['command_kind']} {a['result']}"
+              for ts, a in std.get("/acks", [])]  # fmt: skip
+    lines.sort()
+    axlog.axis("off")
+    axlog.set_title("Log (/events) and /acks")
+    axlog.text(
+        0,
+        1,
+        "\n".join(lines[:28]),
+        va="top",
+        family="monospace",
+        fontsize=7,
+        transform=axlog.transAxes,
+    )
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=80)
+    return out_png
+
+
+def main(quick: bool = False, runs: int = 3, live_s: float = 10.0) -> dict:
+    if quick:
+        runs, live_s = 1, 4.0
     traffic = _traffic(VEHICLES, RATE_HZ, LOG_S)
     rows: dict[str, list[float]] = {"off_msgs_s": [], "on_msgs_s": []}
     sizes = {}
@@ -160,8 +245,14 @@ def cli(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--live-s", type=float, default=10.0)
+    ap.add_argument("--quick", action="store_true", help="one run, a 4 s live window")
+    ap.add_argument("--figure", metavar="MCAP", default=None,
+                    help="instead: draw this recording's standard channels to docs/foxglove_view.png")  # fmt: skip
     a = ap.parse_args(argv)
-    res = main(a.runs, a.live_s)
+    if a.figure:
+        print(f"wrote {figure(a.figure, DOCS / 'foxglove_view.png')}")
+        return 0
+    res = main(a.quick, a.runs, a.live_s)
     rec, size, live = res["record"], res["bytes_per_vehicle_hour"], res["live"]
     print(
         f"record msg/s (median of {a.runs})  foxglove off {rec['off_msgs_s']:10.0f}   on {rec['on_msgs_s']:10.0f}"
