@@ -318,6 +318,8 @@ class Converter:
         return Out(COMMANDS_TOPIC, COMMAND_JSON, json.dumps(body).encode(), recv_ns)
 
     def ack(self, a: schema.CommandAck, recv_ns: int) -> Out:
+        # The command's kind and sender when it reached us first; an ack can overtake its
+        # command (it travels another Zenoh path): then "" and -1, and /commands has it by nonce.
         cmd = self._commands.get(a.nonce)
         body = {
             "vehicle_id": a.vehicle_id, "nonce": a.nonce, "stamp_ns": a.stamp_ns,
