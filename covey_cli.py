@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "export": ("policy.export", "cli", "export a checkpoint to runtime weights (--format npz|c)"),
     "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
     "record": ("groundstation.recording_cli", "record_cli", "record the mesh to MCAP (--info FILE summarises)"),
+    "foxglove": ("groundstation.foxglove_bridge", "cli", "serve the live fleet to Foxglove (WebSocket), same channels as a recording"),
     "replay": ("groundstation.recording_cli", "replay_cli", "replay an MCAP recording into a fleet"),
     "keygen": ("comms.auth", "keygen_cli", "create a fleet key for signed commands"),
     "fleet-sim": ("agent.fleet_sim", "cli", "simulate hundreds of vehicles in one process"),

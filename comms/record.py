@@ -8,6 +8,11 @@ schema record holds the binary layout from comms.schema), log_time = receive tim
     covey/<fleet>/v/*/cmd       Command             (a queryable that records and never replies)
     covey/<fleet>/v/<id>/alive  one byte, 1 = token appeared, 0 = gone (liveliness, with history)
 
+Beside them, unless RecordConfig.foxglove is off, the same traffic in Foxglove's well-known
+schemas (/tf, /scene, /vehicles/<id>/pose|fix|link, /events, /commands, /acks; see
+comms/foxglove_channels.py), so that Foxglove opens the file as it is. Readers here skip those:
+`read_recording` returns only covey's own channels, so replay is unchanged by them.
+
 Acks are Zenoh replies that only the querier sees; the recorder cannot see them. Anything
 published under covey/<fleet>/** is recorded, so an ack that its vehicle also publishes on
 covey/<fleet>/v/<id>/ack lands in the channel of that key (schema covey.CommandAck).
@@ -27,7 +32,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Protocol
 
 import zenoh
 from mcap.exceptions import EndOfFile
@@ -36,6 +41,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from comms import keys, schema
+from comms.foxglove_channels import Converter, FoxgloveConfig, SchemaSpec
 from comms.session import MeshConfig, open_session
 
 log = logging.getLogger(__name__)
@@ -70,6 +76,8 @@ class RecordConfig:
     """Close a chunk once it holds this many bytes."""
     record_commands: bool = True
     """Declare a non-replying queryable on the fleet's cmd keys to record commands."""
+    foxglove: FoxgloveConfig | None = field(default_factory=FoxgloveConfig)
+    """Also write Foxglove's standard channels, drawn this way; None = covey's channels only."""
 
     def __post_init__(self) -> None:
         if self.duration_s is not None and not self.duration_s > 0:
@@ -94,8 +102,10 @@ class McapSink:
     """Thread-safe MCAP writer: callbacks `put()`, one writer thread writes and flushes."""
 
     def __init__(self, out: BinaryIO, fleet: str, chunk_bytes: int, flush_interval_s: float,
-                 clock_s: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+                 clock_s: Callable[[], float] = time.monotonic,
+                 converter: Converter | None = None) -> None:  # fmt: skip
         self._out = out
+        self._converter = converter
         self._writer = Writer(out, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._writer.start(profile="covey", library="covey-record")
         self._writer.add_metadata(
@@ -104,6 +114,7 @@ class McapSink:
         self._out.flush()
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._std_channels: dict[str, int] = {}
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._flush_interval_s = flush_interval_s
         self._clock_s = clock_s
@@ -128,11 +139,29 @@ class McapSink:
             cid = self._channels[topic] = self._writer.register_channel(topic, enc, sid)
         return cid
 
+    def _std_channel(self, topic: str, spec: SchemaSpec) -> int:
+        cid = self._std_channels.get(topic)
+        if cid is None:
+            sid = self._schemas.get(spec.name)
+            if sid is None:
+                sid = self._schemas[spec.name] = self._writer.register_schema(
+                    spec.name, spec.encoding, spec.data
+                )
+            cid = self._std_channels[topic] = self._writer.register_channel(
+                topic, spec.message_encoding, sid
+            )
+        return cid
+
     def _write(self, item: tuple[str, bytes, int]) -> None:
         topic, data, recv_ns = item
         self._writer.add_message(self._channel(topic), recv_ns, data, recv_ns)
         leaf = _leaf(topic)
         self.counts[leaf] = self.counts.get(leaf, 0) + 1
+        if self._converter is not None:
+            for out in self._converter.convert(topic, data, recv_ns):
+                cid = self._std_channel(out.topic, out.schema)
+                self._writer.add_message(cid, out.log_time_ns, out.data, recv_ns)
+                self.counts["foxglove"] = self.counts.get("foxglove", 0) + 1
 
     def _run(self) -> None:
         last_flush_s = self._clock_s()
@@ -164,17 +193,35 @@ class McapSink:
         self._out.flush()
 
 
+class Sink(Protocol):
+    """Where a Recorder puts what it hears (called from Zenoh's callback threads)."""
+
+    counts: dict[str, int]
+
+    def put(self, topic: str, data: bytes, recv_ns: int) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class Recorder:
     """Records one fleet's mesh traffic while open. Use it as a context manager."""
 
-    def __init__(self, cfg: RecordConfig, clock_ns: Callable[[], int] = time.time_ns) -> None:
+    def __init__(self, cfg: RecordConfig, clock_ns: Callable[[], int] = time.time_ns,
+                 sink: Sink | None = None) -> None:  # fmt: skip
+        """`sink` replaces the MCAP file (cfg.path is then unused): the live Foxglove bridge is
+        a recorder whose sink is a WebSocket server."""
         self.cfg = cfg
         self._clock_ns = clock_ns
         fleet = cfg.mesh.fleet
-        self._file = open(cfg.path, "wb")  # noqa: SIM115 - closed in close()
+        self._file = None if sink is not None else open(cfg.path, "wb")  # noqa: SIM115 - closed in close()
         self._entities: list = []
         try:
-            self.sink = McapSink(self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s)
+            if sink is not None:
+                self.sink: Sink = sink
+            else:
+                converter = Converter(cfg.foxglove) if cfg.foxglove is not None else None
+                self.sink = McapSink(self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s,
+                                     converter=converter)  # fmt: skip
             self._session: zenoh.Session | None = open_session(cfg.mesh)
             s = self._session
             self._entities.append(s.declare_subscriber(keys.everything(fleet), self._on_sample))
@@ -227,7 +274,7 @@ class Recorder:
         if hasattr(self, "sink"):
             self.sink.close()
             del self.sink
-        if not self._file.closed:
+        if self._file is not None and not self._file.closed:
             self._file.close()
 
 
@@ -265,14 +312,19 @@ class Recording:
     """Why reading stopped early (a torn tail after a kill), or empty for a complete file."""
 
 
+COVEY_ENCODINGS = (MESSAGE_ENCODING, PRESENCE_ENCODING)
+
+
 def iter_recording(path: str | Path) -> Iterator[Recorded | str]:
-    """Messages in file order. Stops at a torn tail, yielding one final str saying why."""
+    """covey's messages in file order (standard Foxglove channels are skipped). Stops at a torn
+    tail, yielding one final str saying why."""
     channels: dict[int, Channel] = {}
     with open(path, "rb") as f:
         try:
             for rec in StreamReader(f).records:
                 if isinstance(rec, Channel):
-                    channels[rec.id] = rec
+                    if rec.message_encoding in COVEY_ENCODINGS:
+                        channels[rec.id] = rec
                 elif isinstance(rec, Message):
                     ch = channels.get(rec.channel_id)
                     if ch is not None:
@@ -310,6 +362,32 @@ def read_recording(path: str | Path) -> Recording:
                 break
     msgs.sort(key=lambda m: m.log_time_ns)
     return Recording(msgs, fleet, truncated)
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def add_foxglove_channels(src: str | Path, dst: str | Path,
+                          cfg: FoxgloveConfig = FoxgloveConfig()) -> dict[str, int]:  # fmt: skip
+    """Write `dst`: the covey channels of recording `src`, unchanged (same bytes and log times),
+    plus the standard Foxglove channels made from them. Returns message counts by kind.
+
+    Raises FileNotFoundError or ValueError (not an MCAP file, or dst is src) saying why."""
+    src, dst = Path(src), Path(dst)
+    if not src.is_file():
+        raise FileNotFoundError(f"no recording at {src}")
+    with open(src, "rb") as f:
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise ValueError(f"{src} is not an MCAP file (it does not start with the MCAP magic)")
+    if dst.exists() and dst.resolve() == src.resolve():
+        raise ValueError(f"the output {dst} would overwrite the recording it reads")
+    rec = read_recording(src)
+    with open(dst, "wb") as out:
+        sink = McapSink(out, rec.fleet or "covey", 1024 * 1024, 60.0, converter=Converter(cfg))
+        for m in rec.messages:
+            sink.put(m.topic, m.data, m.log_time_ns)
+        sink.close()
+    return dict(sink.counts)
 
 
 def summarise(rec: Recording) -> dict:

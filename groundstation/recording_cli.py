@@ -3,6 +3,7 @@ or replay one vehicle's recorded traffic through a policy (closed loop).
 
     covey record -o flight.mcap --fleet demo --connect tcp/127.0.0.1:7447 --duration 60
     covey record --info flight.mcap [--json]
+    covey record --foxglove-from old.mcap -o new.mcap     (add Foxglove's channels to a recording)
     covey replay flight.mcap --fleet demo-replay --speed 2 --loop
     covey replay flight.mcap --policy policy/weights/policy.npz --vehicle 3 [--json out.json]
 
@@ -20,8 +21,16 @@ import sys
 import threading
 from pathlib import Path
 
-from comms.record import RecordConfig, format_info, read_recording, record, summarise
+from comms.record import (
+    RecordConfig,
+    add_foxglove_channels,
+    format_info,
+    read_recording,
+    record,
+    summarise,
+)
 from comms.replay import LiveFleetError, ReplayConfig, replay
+from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
 from groundstation.meshargs import add_mesh_args, mesh_config
 
 
@@ -68,8 +77,27 @@ def record_parser() -> argparse.ArgumentParser:
         "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
     )
     p.add_argument("--json", action="store_true", help="with --info: print JSON")
+    p.add_argument("--foxglove-from", metavar="OLD", default=None,
+                   help="instead of recording: copy recording OLD to -o with Foxglove's standard "
+                   "channels added (its covey channels stay byte for byte)")  # fmt: skip
+    p.add_argument("--no-foxglove", action="store_true",
+                   help="record covey's channels only, without Foxglove's standard ones")  # fmt: skip
+    add_foxglove_args(p)
     add_mesh_args(p)
     return p
+
+
+def foxglove_from_main(src: str, dst: str, args: argparse.Namespace) -> int:
+    try:
+        counts = add_foxglove_channels(src, dst, foxglove_config(args))
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"covey record: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"covey record: cannot write {dst}: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {dst}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    return 0
 
 
 def info_main(path: str, as_json: bool = False, out=sys.stdout) -> int:
@@ -86,8 +114,13 @@ def record_cli(argv: list[str]) -> int:
             return info_main(args.info, args.json)
         except FileNotFoundError as exc:
             p.error(str(exc))
+    if args.foxglove_from:
+        if args.no_foxglove:
+            p.error("--foxglove-from adds the Foxglove channels; it cannot take --no-foxglove")
+        return foxglove_from_main(args.foxglove_from, args.output, args)
     try:
-        cfg = RecordConfig(path=args.output, mesh=mesh_config(args, p), duration_s=args.duration)
+        cfg = RecordConfig(path=args.output, mesh=mesh_config(args, p), duration_s=args.duration,
+                           foxglove=None if args.no_foxglove else foxglove_config(args))  # fmt: skip
     except ValueError as exc:
         p.error(str(exc))
     stop = _stop_on_signals()

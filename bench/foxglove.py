@@ -1,0 +1,270 @@
+"""Foxglove channels: what they cost. `python -m bench.foxglove [--quick] [--runs R] [--live-s S]`
+
+- record: McapSink (the recorder's writer thread: queue, MCAP writer, zstd, flushes) with the
+  standard Foxglove channels on vs off, msg/s of covey messages in, median of R runs (same run);
+- size: file bytes per vehicle-hour both ways, 10 vehicles at 10 Hz for 120 s of log time;
+- live: `covey foxglove` as a child process serving 100 vehicles publishing at 10 Hz; its CPU share
+  (of one core) and the latency from a state's stamp to a WebSocket client decoding its pose.
+Writes bench/results/foxglove.json. `--figure flight.mcap` instead draws a recording's standard
+channels with matplotlib (docs/foxglove_view.png), decoded with protobuf as Foxglove decodes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import statistics
+import threading
+import time
+import uuid
+from pathlib import Path
+
+from mcap.reader import make_reader
+
+from bench.common import DOCS, Children, cpu_seconds, pct, pyplot, say, write_json
+from comms import keys
+from comms.foxglove_channels import POSE_IN_FRAME, Converter
+from comms.mesh import Mesh
+from comms.record import McapSink
+from comms.schema import Event, Mode, VehicleState
+from comms.session import embedded_peer, embedded_router, free_tcp_port
+
+VEHICLES, RATE_HZ, LOG_S = 10, 10.0, 120.0
+
+
+def proto_class(name: str, fds: bytes):
+    """The class protobuf builds from a FileDescriptorSet (protobuf is in the test extra)."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(fds).file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
+def _traffic(n_vehicles: int, rate_hz: float, duration_s: float) -> list[tuple[str, bytes, int]]:
+    """A fleet circling: states at rate_hz, an event per vehicle every 10 s."""
+    out = []
+    t0 = 1_700_000_000_000_000_000
+    for k in range(int(duration_s * rate_hz)):
+        t_ns = t0 + int(k / rate_hz * 1e9)
+        for v in range(1, n_vehicles + 1):
+            s = VehicleState(v, k, t_ns, (v + 0.01 * k, 0.02 * k, -5.0), (1.0, 2.0, 0.0), 0.5,
+                             mode=Mode.GOTO, armed=True)  # fmt: skip
+            out.append((keys.state("bench", v), s.encode(), t_ns + 1_000_000))
+            if k % int(10 * rate_hz) == 0:
+                out.append((keys.event("bench", v), Event(v, t_ns, "waypoint").encode(), t_ns))
+    return out
+
+
+def bench_sink(traffic, foxglove: bool) -> tuple[float, int]:
+    """(covey msg/s through the sink, file bytes)."""
+    buf = io.BytesIO()
+    t0 = time.perf_counter()
+    sink = McapSink(buf, "bench", 16 * 1024, 0.2, converter=Converter() if foxglove else None)
+    for topic, data, recv_ns in traffic:
+        sink.put(topic, data, recv_ns)
+    sink.close()
+    return len(traffic) / (time.perf_counter() - t0), len(buf.getvalue())
+
+
+def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) -> dict:
+    from websockets.sync.client import connect
+
+    pose_cls = proto_class(POSE_IN_FRAME.name, POSE_IN_FRAME.data)
+    port, fleet = free_tcp_port(), "fx" + uuid.uuid4().hex[:6]
+    latencies_ms: list[float] = []
+    with Mesh(embedded_router(port, fleet=fleet)) as router, Children() as kids:
+        bridge = kids.start("-m", "covey_cli", "foxglove", "--port", "0", "--fleet", fleet,
+                            "--connect", f"tcp/127.0.0.1:{port}")  # fmt: skip
+        ws_port = int(kids.wait_line(bridge, "foxglove bridge: ").split(":")[-1].split()[0])
+        stop = threading.Event()
+
+        def publish() -> None:
+            with Mesh(embedded_peer(port, fleet=fleet)) as pub:
+                k = 0
+                next_s = time.monotonic()
+                while not stop.is_set():
+                    for v in range(1, n_vehicles + 1):
+                        pub.publish_state(
+                            VehicleState(
+                                v, k, time.time_ns(), (v, 0.01 * k, -5.0), (1.0, 0.0, 0.0), 0.0
+                            )
+                        )
+                    k += 1
+                    next_s += 1 / rate_hz
+                    time.sleep(max(0.0, next_s - time.monotonic()))
+
+        with connect(f"ws://127.0.0.1:{ws_port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+                     max_size=None) as ws:  # fmt: skip
+            pub_thread = threading.Thread(target=publish, daemon=True)
+            pub_thread.start()
+            subs, n_ids = {}, 0
+            warm_s, t_end = time.monotonic() + 3.0, time.monotonic() + 3.0 + duration_s
+            cpu0 = wall0 = None
+            while time.monotonic() < t_end:
+                if cpu0 is None and time.monotonic() >= warm_s:  # discovery and subscriptions done
+                    cpu0, wall0 = cpu_seconds(bridge.pid), time.monotonic()
+                try:
+                    frame = ws.recv(timeout=0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, str):
+                    msg = json.loads(frame)
+                    new = []
+                    for ch in msg.get("channels", []) if msg.get("op") == "advertise" else []:
+                        if ch["topic"].endswith("/pose"):
+                            n_ids += 1
+                            subs[n_ids] = ch["topic"]
+                            new.append({"id": n_ids, "channelId": ch["id"]})
+                    if new:
+                        ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                elif frame[0] == 0x01 and cpu0 is not None:
+                    ts = pose_cls.FromString(frame[13:]).timestamp
+                    latencies_ms.append((time.time_ns() - (ts.seconds * 10**9 + ts.nanos)) / 1e6)
+            cpu_share = (cpu_seconds(bridge.pid) - cpu0) / (time.monotonic() - wall0)
+            stop.set()
+            pub_thread.join(5)
+        del router
+    expected = n_vehicles * rate_hz * duration_s
+    return {
+        "vehicles": n_vehicles, "rate_hz": rate_hz, "seconds": duration_s,
+        "bridge_cpu_share_of_one_core": cpu_share,
+        "poses_received_share": len(latencies_ms) / expected,
+        "latency_ms_p50": pct(latencies_ms, 50), "latency_ms_p95": pct(latencies_ms, 95),
+        "latency_ms_max": max(latencies_ms, default=float("nan")),
+    }  # fmt: skip
+
+
+def read_standard(path: str | Path) -> dict[str, list[tuple[int, object]]]:
+    """topic -> [(log_time_ns, decoded message)] for the protobuf and JSON channels."""
+    out: dict[str, list] = {}
+    classes: dict[int, object] = {}
+    with open(path, "rb") as f:
+        for sch, ch, msg in make_reader(f).iter_messages():
+            if ch.message_encoding == "protobuf":
+                if sch.id not in classes:
+                    classes[sch.id] = proto_class(sch.name, sch.data)
+                out.setdefault(ch.topic, []).append(
+                    (msg.log_time, classes[sch.id].FromString(msg.data))
+                )
+            elif ch.message_encoding == "json":
+                out.setdefault(ch.topic, []).append((msg.log_time, json.loads(msg.data)))
+    return out
+
+
+def figure(path: str | Path, out_png: Path) -> Path:
+    """Draw a recording's standard channels in the docs layout's arrangement (3D from above,
+    Map, Plot, Log): a stand-in for a Foxglove screenshot, from what Foxglove would decode."""
+    std = read_standard(path)
+    plt = pyplot()
+    fig, ((ax3d, axmap), (axplot, axlog)) = plt.subplots(2, 2, figsize=(12, 9))
+    vids = sorted(int(t.split("/")[2]) for t in std if t.endswith("/pose"))
+    t0 = min(ts for t in std for ts, _ in std[t])
+    for vid in vids:
+        poses = [m.pose.position for _, m in std[f"/vehicles/{vid}/pose"]]
+        times = [(ts - t0) / 1e9 for ts, _ in std[f"/vehicles/{vid}/pose"]]
+        (line,) = ax3d.plot(
+            [p.y for p in poses], [p.x for p in poses], lw=1, label=f"vehicle {vid}"
+        )
+        fixes = [m for _, m in std[f"/vehicles/{vid}/fix"]]
+        axmap.plot(
+            [f.longitude for f in fixes], [f.latitude for f in fixes], lw=1, color=line.get_color()
+        )
+        axplot.plot(times, [-p.z for p in poses], lw=1, color=line.get_color())
+    # the last scene entity of each vehicle: body coloured by mode, separation ring
+    last = {}
+    for _, upd in std.get("/scene", []):
+        for ent in upd.entities:
+            last[ent.id] = ent
+    for ent in last.values():
+        cube, ring = ent.cubes[0], ent.cylinders[0]
+        c = (cube.color.r, cube.color.g, cube.color.b)
+        ax3d.plot(cube.pose.position.y, cube.pose.position.x, "s", color=c, ms=8)
+        ax3d.add_patch(plt.Circle((ring.pose.position.y, ring.pose.position.x), ring.size.x / 2,
+                                  fill=False, color=(ring.color.r, ring.color.g, ring.color.b)))  # fmt: skip
+    ax3d.set(
+        title="3D (/scene, /vehicles/*/pose), from above",
+        xlabel="east m",
+        ylabel="north m",
+        aspect="equal",
+    )
+    ax3d.legend(fontsize=7)
+    axmap.set(title="Map (/vehicles/*/fix)", xlabel="longitude deg", ylabel="latitude deg")
+    axmap.ticklabel_format(useOffset=False)
+    axplot.set(title="Plot: altitude (-pose.position.z)", xlabel="s", ylabel="m")
+    lines = [
+        f"{(ts - t0) / 1e9:6.1f}s  {m.name:10s} {m.message}" for ts, m in std.get("/events", [])
+    ]
+    lines += [f"{(ts - t0) / 1e9:6.1f}s  ack vehicle/{a['vehicle_id']} {a['command_kind']} {a['result']}"
+              for ts, a in std.get("/acks", [])]  # fmt: skip
+    lines.sort()
+    axlog.axis("off")
+    axlog.set_title("Log (/events) and /acks")
+    axlog.text(
+        0,
+        1,
+        "\n".join(lines[:28]),
+        va="top",
+        family="monospace",
+        fontsize=7,
+        transform=axlog.transAxes,
+    )
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=80)
+    return out_png
+
+
+def main(quick: bool = False, runs: int = 3, live_s: float = 10.0) -> dict:
+    if quick:
+        runs, live_s = 1, 4.0
+    traffic = _traffic(VEHICLES, RATE_HZ, LOG_S)
+    rows: dict[str, list[float]] = {"off_msgs_s": [], "on_msgs_s": []}
+    sizes = {}
+    for r in range(runs):
+        say(f"record run {r + 1}/{runs} ({len(traffic)} messages)")
+        for name, on in (("off", False), ("on", True)):
+            rate, size = bench_sink(traffic, on)
+            rows[f"{name}_msgs_s"].append(rate)
+            sizes[name] = size
+    vehicle_h = VEHICLES * LOG_S / 3600
+    say(f"live bridge: 100 vehicles at 10 Hz for {live_s:g} s")
+    live = bench_live(live_s)
+    result = {
+        "record": {k: statistics.median(v) for k, v in rows.items()},
+        "record_all": rows,
+        "bytes_per_vehicle_hour": {k: v / vehicle_h for k, v in sizes.items()},
+        "live": live,
+    }
+    write_json("foxglove", result)
+    return result
+
+
+def cli(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--live-s", type=float, default=10.0)
+    ap.add_argument("--quick", action="store_true", help="one run, a 4 s live window")
+    ap.add_argument("--figure", metavar="MCAP", default=None,
+                    help="instead: draw this recording's standard channels to docs/foxglove_view.png")  # fmt: skip
+    a = ap.parse_args(argv)
+    if a.figure:
+        print(f"wrote {figure(a.figure, DOCS / 'foxglove_view.png')}")
+        return 0
+    res = main(a.quick, a.runs, a.live_s)
+    rec, size, live = res["record"], res["bytes_per_vehicle_hour"], res["live"]
+    print(
+        f"record msg/s (median of {a.runs})  foxglove off {rec['off_msgs_s']:10.0f}   on {rec['on_msgs_s']:10.0f}"
+    )
+    print(
+        f"MB per vehicle-hour            foxglove off {size['off'] / 1e6:10.2f}   on {size['on'] / 1e6:10.2f}"
+    )
+    print(f"live bridge, {live['vehicles']} vehicles at {live['rate_hz']:g} Hz: CPU {100 * live['bridge_cpu_share_of_one_core']:.0f} % "
+          f"of one core, latency p50 {live['latency_ms_p50']:.1f} ms p95 {live['latency_ms_p95']:.1f} ms, "
+          f"{100 * live['poses_received_share']:.0f} % of poses received")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(cli())

@@ -1,0 +1,363 @@
+"""covey messages -> Foxglove's well-known messages: the one conversion that recordings and the
+live bridge (`covey foxglove`) share.
+
+Standard channels (schemas and encoders from foxglove-sdk; protobuf unless marked JSON):
+
+    /tf                       FrameTransform  world (ENU, z up) -> ned, and ned -> vehicle/<id>
+    /vehicles/<id>/pose       PoseInFrame     frame "ned": position = pos_ned_m, yaw = heading
+    /vehicles/<id>/fix        LocationFix     WGS-84 from the fleet origin (comms.geo)
+    /vehicles/<id>/link       JSON            rate_hz, age_s, loss_share of its state stream
+    /scene                    SceneUpdate     per vehicle: body, velocity arrow, separation ring,
+                                              goal, coloured by mode; deleted when it leaves
+    /events                   Log             every Event, level from its severity
+    /commands                 JSON            who sent which command to whom
+    /acks                     JSON            each vehicle's answer to a command
+
+Poses stay in NED (frame "ned", metres, exactly the wire values); the static world -> ned
+transform turns them upright for Foxglove's z-up 3D panel. A Converter is not thread-safe:
+callers feed it from one thread (the recorder's writer thread) or under a lock (the bridge).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+
+from foxglove import messages as fm
+
+from comms import keys, schema
+from comms.geo import GeoOrigin
+from comms.palette import GOAL_RGB, RING_OK_RGB, mode_rgb
+
+WORLD_FRAME = "world"
+NED_FRAME = "ned"
+TF_TOPIC = "/tf"
+SCENE_TOPIC = "/scene"
+EVENTS_TOPIC = "/events"
+COMMANDS_TOPIC = "/commands"
+ACKS_TOPIC = "/acks"
+# world (ENU) -> ned is a half turn about (1, 1, 0)/sqrt(2): R = 2nn^T - I swaps x, y and flips z.
+_ENU_TO_NED_Q = (math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0)
+_LOG_LEVEL = {
+    schema.Severity.DEBUG: fm.LogLevel.Debug,
+    schema.Severity.INFO: fm.LogLevel.Info,
+    schema.Severity.WARNING: fm.LogLevel.Warning,
+    schema.Severity.ERROR: fm.LogLevel.Error,
+    schema.Severity.CRITICAL: fm.LogLevel.Fatal,
+}
+
+
+def vehicle_frame(vehicle_id: int) -> str:
+    return f"vehicle/{vehicle_id}"
+
+
+def pose_topic(vehicle_id: int) -> str:
+    return f"/vehicles/{vehicle_id}/pose"
+
+
+def fix_topic(vehicle_id: int) -> str:
+    return f"/vehicles/{vehicle_id}/fix"
+
+
+def link_topic(vehicle_id: int) -> str:
+    return f"/vehicles/{vehicle_id}/link"
+
+
+def _object(props: dict, title: str) -> dict:
+    return {"title": title, "type": "object", "properties": props, "required": sorted(props)}
+
+
+_INT, _NUM, _STR = {"type": "integer"}, {"type": "number"}, {"type": "string"}
+COMMAND_JSON_SCHEMA = _object(
+    {
+        "nonce": _INT, "stamp_ns": _INT, "source_id": _INT, "kind": _STR, "params": {"type": "array", "items": _NUM},
+        "targets": {"type": "array", "items": _INT, "description": "empty = the whole fleet"},
+        "seq": _INT, "signed": {"type": "boolean"},
+    },
+    "covey.CommandJson",
+)  # fmt: skip
+ACK_JSON_SCHEMA = _object(
+    {"vehicle_id": _INT, "nonce": _INT, "stamp_ns": _INT, "result": _STR, "accepted": {"type": "boolean"},
+     "mode": _STR, "reason": _STR, "command_kind": _STR, "source_id": _INT},
+    "covey.CommandAckJson",
+)  # fmt: skip
+LINK_JSON_SCHEMA = _object(
+    {"vehicle_id": _INT, "rate_hz": _NUM, "age_s": _NUM, "loss_share": _NUM, "states": _INT},
+    "covey.LinkHealthJson",
+)
+
+
+@dataclass(frozen=True)
+class SchemaSpec:
+    """A channel's schema and message encoding, as MCAP and the WebSocket protocol name them."""
+
+    name: str
+    """Schema name, e.g. foxglove.SceneUpdate."""
+    encoding: str
+    """Schema encoding: protobuf (a FileDescriptorSet) or jsonschema."""
+    data: bytes = field(repr=False)
+    """The schema itself."""
+    message_encoding: str
+    """protobuf or json."""
+
+
+def _proto(cls: type) -> SchemaSpec:
+    s = cls.get_schema()
+    return SchemaSpec(s.name, s.encoding, bytes(s.data), "protobuf")
+
+
+def _json(js: dict) -> SchemaSpec:
+    return SchemaSpec(js["title"], "jsonschema", json.dumps(js).encode(), "json")
+
+
+FRAME_TRANSFORM = _proto(fm.FrameTransform)
+POSE_IN_FRAME = _proto(fm.PoseInFrame)
+LOCATION_FIX = _proto(fm.LocationFix)
+SCENE_UPDATE = _proto(fm.SceneUpdate)
+LOG = _proto(fm.Log)
+COMMAND_JSON = _json(COMMAND_JSON_SCHEMA)
+ACK_JSON = _json(ACK_JSON_SCHEMA)
+LINK_JSON = _json(LINK_JSON_SCHEMA)
+
+
+@dataclass(frozen=True)
+class Out:
+    """One standard message to write or send."""
+
+    topic: str
+    schema: SchemaSpec
+    data: bytes
+    log_time_ns: int
+
+
+@dataclass(frozen=True)
+class FoxgloveConfig:
+    """How covey traffic is drawn in Foxglove."""
+
+    origin: GeoOrigin = field(default_factory=GeoOrigin)
+    """Fleet origin: local NED (0, 0, 0) on WGS-84, for the LocationFix channels."""
+    separation_m: float = 3.0
+    """Radius of the separation ring drawn around each vehicle."""
+    link_interval_s: float = 1.0
+    """Publish each vehicle's link health this often (by receive time)."""
+    body_size_m: float = 0.6
+    """Edge of the cube drawn for a vehicle's body."""
+    entity_lifetime_s: float = 5.0
+    """A vehicle's 3D entity fades after this long without a state (0 = forever)."""
+
+    def __post_init__(self) -> None:
+        for name in ("separation_m", "link_interval_s", "body_size_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}={v} must be a finite number > 0")
+        if not (math.isfinite(self.entity_lifetime_s) and self.entity_lifetime_s >= 0):
+            raise ValueError(f"entity_lifetime_s={self.entity_lifetime_s} must be >= 0")
+
+
+def _ts(stamp_ns: int) -> fm.Timestamp:
+    return fm.Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
+
+
+def _v3(x: float, y: float, z: float) -> fm.Vector3:
+    return fm.Vector3(x=float(x), y=float(y), z=float(z))
+
+
+def _q(x: float, y: float, z: float, w: float) -> fm.Quaternion:
+    return fm.Quaternion(x=x, y=y, z=z, w=w)
+
+
+def _colour(rgb: tuple[int, int, int], a: float = 1.0) -> fm.Color:
+    return fm.Color(r=rgb[0] / 255, g=rgb[1] / 255, b=rgb[2] / 255, a=a)
+
+
+def yaw_quaternion(heading_rad: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a turn by heading_rad about the NED z axis (down): q = (0, 0, sin h/2, cos h/2)."""
+    return 0.0, 0.0, math.sin(heading_rad / 2), math.cos(heading_rad / 2)
+
+
+def x_to(v: tuple[float, float, float]) -> tuple[float, float, float, float]:
+    """(x, y, z, w) turning +x onto v: q ~ (x cross v_hat, 1 + x . v_hat), normalised."""
+    n = math.sqrt(sum(c * c for c in v))
+    if n < 1e-9:
+        return 0.0, 0.0, 0.0, 1.0
+    a, b, c = (comp / n for comp in v)
+    if a < -1 + 1e-9:  # opposite: any half turn about an axis normal to x
+        return 0.0, 0.0, 1.0, 0.0
+    x, y, z, w = 0.0, -c, b, 1.0 + a
+    k = math.sqrt(y * y + z * z + w * w)
+    return x, y / k, z / k, w / k
+
+
+@dataclass
+class _Link:
+    first_seq: int
+    last_seq: int
+    window_start_ns: int
+    states: int = 0
+    window_states: int = 0
+    window_first_seq: int = 0
+
+
+class Converter:
+    """Turns covey wire messages (by Zenoh key) into standard Foxglove messages.
+
+    Keeps a little state per vehicle (link statistics, for the command <-> ack join the last
+    commands by nonce); both tables are bounded by the vehicles and commands seen.
+    """
+
+    MAX_COMMANDS = 1024
+
+    def __init__(self, cfg: FoxgloveConfig = FoxgloveConfig()) -> None:
+        self.cfg = cfg
+        self._links: dict[int, _Link] = {}
+        self._commands: dict[int, schema.Command] = {}
+        self._tf_due_ns = 0
+
+    def convert(self, topic: str, data: bytes, recv_ns: int) -> list[Out]:
+        """Standard messages for one recorded/received message; [] for anything undecodable."""
+        parsed = keys.parse_vehicle_key(topic)
+        leaf = parsed[2] if parsed else ("cmd" if topic.endswith("/cmd") else "other")
+        if leaf == "alive":
+            return self._alive(parsed[1], data, recv_ns) if parsed else []
+        try:
+            msg = schema.decode(data)
+        except schema.DecodeError:
+            return []
+        if isinstance(msg, schema.VehicleState):
+            return self.state(msg, recv_ns)
+        if isinstance(msg, schema.Event):
+            return [self.event(msg, recv_ns)]
+        if isinstance(msg, schema.Command):
+            return [self.command(msg, recv_ns)]
+        if isinstance(msg, schema.CommandAck):
+            return [self.ack(msg, recv_ns)]
+        return []
+
+    # -- per message kind ------------------------------------------------------------------
+    def state(self, s: schema.VehicleState, recv_ns: int) -> list[Out]:
+        vid, stamp = s.vehicle_id, _ts(s.stamp_ns)
+        n, e, d = s.pos_ned_m
+        q = _q(*yaw_quaternion(s.heading_rad))
+        out: list[Out] = []
+        if recv_ns >= self._tf_due_ns:
+            self._tf_due_ns = recv_ns + int(self.cfg.link_interval_s * 1e9)
+            world = fm.FrameTransform(timestamp=_ts(recv_ns), parent_frame_id=WORLD_FRAME,
+                                      child_frame_id=NED_FRAME, translation=_v3(0, 0, 0),
+                                      rotation=_q(*_ENU_TO_NED_Q))  # fmt: skip
+            out.append(Out(TF_TOPIC, FRAME_TRANSFORM, world.encode(), recv_ns))
+        tf = fm.FrameTransform(timestamp=stamp, parent_frame_id=NED_FRAME,
+                               child_frame_id=vehicle_frame(vid), translation=_v3(n, e, d), rotation=q)  # fmt: skip
+        out.append(Out(TF_TOPIC, FRAME_TRANSFORM, tf.encode(), recv_ns))
+        pose = fm.PoseInFrame(timestamp=stamp, frame_id=NED_FRAME,
+                              pose=fm.Pose(position=_v3(n, e, d), orientation=q))  # fmt: skip
+        out.append(Out(pose_topic(vid), POSE_IN_FRAME, pose.encode(), recv_ns))
+        lat, lon, alt = self.cfg.origin.to_global(n, e, d)
+        # LocationFix.heading: degrees clockwise from north, as NED's heading is.
+        fix = fm.LocationFix(timestamp=stamp, frame_id=vehicle_frame(vid), latitude=lat, longitude=lon,
+                             altitude=alt, heading=math.degrees(s.heading_rad) % 360.0,
+                             color=_colour(mode_rgb(s.mode)))  # fmt: skip
+        out.append(Out(fix_topic(vid), LOCATION_FIX, fix.encode(), recv_ns))
+        out.append(Out(SCENE_TOPIC, SCENE_UPDATE, self.scene_update([s]).encode(), recv_ns))
+        link = self._link(s, recv_ns)
+        if link is not None:
+            out.append(Out(link_topic(vid), LINK_JSON, json.dumps(link).encode(), recv_ns))
+        return out
+
+    def scene_entity(self, s: schema.VehicleState) -> fm.SceneEntity:
+        """A vehicle drawn in the ned frame: body, velocity arrow, separation ring and goal."""
+        n, e, d = s.pos_ned_m
+        rgb = mode_rgb(s.mode)
+        size = self.cfg.body_size_m
+        body = fm.CubePrimitive(pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*yaw_quaternion(s.heading_rad))),
+                                size=_v3(size, size, size * 0.3), color=_colour(rgb))  # fmt: skip
+        ring_d = 2 * self.cfg.separation_m
+        ring = fm.CylinderPrimitive(pose=fm.Pose(position=_v3(n, e, d), orientation=_q(0, 0, 0, 1)),
+                                    size=_v3(ring_d, ring_d, 0.02), bottom_scale=1.0, top_scale=1.0,
+                                    color=_colour(RING_OK_RGB, 0.25))  # fmt: skip
+        speed = math.sqrt(sum(v * v for v in s.vel_ned_m_s))
+        arrows = []
+        if speed > 0.05:
+            arrows.append(fm.ArrowPrimitive(
+                pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*x_to(s.vel_ned_m_s))),
+                shaft_length=speed, shaft_diameter=0.08, head_length=0.3, head_diameter=0.2,
+                color=_colour(rgb),
+            ))  # fmt: skip
+        spheres = []
+        if s.flags & schema.StateFlag.HAS_GOAL:
+            spheres.append(fm.SpherePrimitive(pose=fm.Pose(position=_v3(*s.goal_ned_m), orientation=_q(0, 0, 0, 1)),
+                                              size=_v3(0.4, 0.4, 0.4), color=_colour(GOAL_RGB)))  # fmt: skip
+        label = fm.TextPrimitive(pose=fm.Pose(position=_v3(n, e, d - 0.8), orientation=_q(0, 0, 0, 1)),
+                                 billboard=True, font_size=14.0, scale_invariant=True,
+                                 color=_colour((255, 255, 255)), text=f"{s.vehicle_id} {s.mode.name}")  # fmt: skip
+        lifetime = self.cfg.entity_lifetime_s
+        return fm.SceneEntity(
+            timestamp=_ts(s.stamp_ns), frame_id=NED_FRAME, id=vehicle_frame(s.vehicle_id),
+            lifetime=fm.Duration.from_secs(lifetime) if lifetime > 0 else None,
+            metadata=[fm.KeyValuePair(key="mode", value=s.mode.name), fm.KeyValuePair(key="armed", value=str(s.armed))],
+            cubes=[body], cylinders=[ring], arrows=arrows, spheres=spheres, texts=[label],
+        )  # fmt: skip
+
+    def scene_update(self, states: list[schema.VehicleState]) -> fm.SceneUpdate:
+        return fm.SceneUpdate(entities=[self.scene_entity(s) for s in states])
+
+    def event(self, ev: schema.Event, recv_ns: int) -> Out:
+        log = fm.Log(timestamp=_ts(ev.stamp_ns), level=_LOG_LEVEL[ev.severity],
+                     message=f"[{ev.kind.name}] {ev.text}", name=vehicle_frame(ev.vehicle_id))  # fmt: skip
+        return Out(EVENTS_TOPIC, LOG, log.encode(), recv_ns)
+
+    def command(self, c: schema.Command, recv_ns: int) -> Out:
+        if len(self._commands) >= self.MAX_COMMANDS:
+            self._commands.pop(next(iter(self._commands)))
+        self._commands[c.nonce] = c
+        body = {
+            "nonce": c.nonce, "stamp_ns": c.stamp_ns, "source_id": c.source_id, "kind": c.kind.name,
+            "params": list(c.params), "targets": list(c.targets), "seq": c.seq,
+            "signed": any(c.tag),
+        }  # fmt: skip
+        return Out(COMMANDS_TOPIC, COMMAND_JSON, json.dumps(body).encode(), recv_ns)
+
+    def ack(self, a: schema.CommandAck, recv_ns: int) -> Out:
+        # The command's kind and sender when it reached us first; an ack can overtake its
+        # command (it travels another Zenoh path): then "" and -1, and /commands has it by nonce.
+        cmd = self._commands.get(a.nonce)
+        body = {
+            "vehicle_id": a.vehicle_id, "nonce": a.nonce, "stamp_ns": a.stamp_ns,
+            "result": a.result.name, "accepted": a.accepted, "mode": a.mode.name, "reason": a.reason,
+            "command_kind": cmd.kind.name if cmd else "", "source_id": cmd.source_id if cmd else -1,
+        }  # fmt: skip
+        return Out(ACKS_TOPIC, ACK_JSON, json.dumps(body).encode(), recv_ns)
+
+    def _alive(self, vid: int, data: bytes, recv_ns: int) -> list[Out]:
+        if data != b"\x00":
+            return []
+        self._links.pop(vid, None)
+        gone = fm.SceneUpdate(deletions=[fm.SceneEntityDeletion(
+            timestamp=_ts(recv_ns), type=fm.SceneEntityDeletionType.MatchingId, id=vehicle_frame(vid))])  # fmt: skip
+        log = fm.Log(timestamp=_ts(recv_ns), level=fm.LogLevel.Warning, message="left the mesh",
+                     name=vehicle_frame(vid))  # fmt: skip
+        return [
+            Out(SCENE_TOPIC, SCENE_UPDATE, gone.encode(), recv_ns),
+            Out(EVENTS_TOPIC, LOG, log.encode(), recv_ns),
+        ]
+
+    def _link(self, s: schema.VehicleState, recv_ns: int) -> dict | None:
+        """Every link_interval_s: rate = states / window, loss = 1 - states / seq advance."""
+        link = self._links.get(s.vehicle_id)
+        if link is None or s.seq < link.last_seq:  # new vehicle, or its agent restarted
+            link = self._links[s.vehicle_id] = _Link(s.seq, s.seq, recv_ns, window_first_seq=s.seq)
+        link.states += 1
+        link.window_states += 1
+        link.last_seq = s.seq
+        window_s = (recv_ns - link.window_start_ns) / 1e9
+        if window_s < self.cfg.link_interval_s:
+            return None
+        expected = s.seq - link.window_first_seq + 1
+        body = {
+            "vehicle_id": s.vehicle_id, "rate_hz": link.window_states / window_s,
+            "age_s": (recv_ns - s.stamp_ns) / 1e9,
+            "loss_share": max(0.0, 1.0 - link.window_states / expected) if expected > 0 else 0.0,
+            "states": link.states,
+        }  # fmt: skip
+        link.window_start_ns, link.window_states, link.window_first_seq = recv_ns, 0, s.seq + 1
+        return body

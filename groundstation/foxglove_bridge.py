@@ -1,0 +1,212 @@
+"""`covey foxglove`: serve a live fleet to Foxglove over its WebSocket protocol.
+
+    covey foxglove --fleet demo --connect tcp/127.0.0.1:7447 [--port 8765] [--host 127.0.0.1]
+
+then in Foxglove: Open connection -> Foxglove WebSocket -> ws://127.0.0.1:8765. The channels are
+the ones every recording carries (comms/foxglove_channels.py), from the same conversion: the
+bridge is a Recorder (same Zenoh taps) whose sink is foxglove-sdk's WebSocket server.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import foxglove
+
+from comms.foxglove_channels import Converter, FoxgloveConfig, Out
+from comms.geo import GeoOrigin
+from comms.record import RecordConfig, Recorder
+from comms.session import MeshConfig
+from groundstation.meshargs import add_mesh_args, mesh_config
+
+DEFAULT_PORT = 8765
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """What `covey foxglove` serves, and where."""
+
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    """How to join the mesh; mesh.fleet is the fleet served."""
+    host: str = "127.0.0.1"
+    """Address the WebSocket server binds to (loopback by default: the protocol has no auth)."""
+    port: int = DEFAULT_PORT
+    """TCP port of the WebSocket server; 0 = any free port (see FoxgloveBridge.port)."""
+    foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
+    """How the fleet is drawn (origin for the map, separation ring)."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port {self.port} must be within 0..65535")
+        if not self.host:
+            raise ValueError("host must not be empty")
+
+
+class WebSocketSink:
+    """Converts what the recorder hears and logs it on foxglove-sdk channels (one per topic)."""
+
+    def __init__(self, cfg: BridgeConfig) -> None:
+        self._ctx = foxglove.Context()
+        self._converter = Converter(cfg.foxglove)
+        self._channels: dict[str, foxglove.Channel] = {}
+        self._lock = threading.Lock()
+        self.counts: dict[str, int] = {}
+        self.server = foxglove.start_server(
+            name=f"covey {cfg.mesh.fleet}", host=cfg.host, port=cfg.port, context=self._ctx
+        )
+
+    def _channel(self, out: Out) -> foxglove.Channel:
+        ch = self._channels.get(out.topic)
+        if ch is None:
+            spec = out.schema
+            schema = foxglove.Schema(name=spec.name, encoding=spec.encoding, data=spec.data)
+            ch = self._channels[out.topic] = foxglove.Channel(
+                out.topic, schema=schema, message_encoding=spec.message_encoding, context=self._ctx
+            )
+        return ch
+
+    def put(self, topic: str, data: bytes, recv_ns: int) -> None:
+        # Zenoh calls back from several threads; the converter keeps per-vehicle state.
+        with self._lock:
+            for out in self._converter.convert(topic, data, recv_ns):
+                self._channel(out).log(out.data, log_time=out.log_time_ns)
+                self.counts[out.topic] = self.counts.get(out.topic, 0) + 1
+
+    def close(self) -> None:
+        server, self.server = self.server, None
+        if server is None:
+            return
+        server.stop()
+        with self._lock:
+            for ch in self._channels.values():
+                ch.close()
+            self._channels.clear()
+
+
+class FoxgloveBridge:
+    """The live bridge while open: joins the mesh and serves it. Use it as a context manager."""
+
+    def __init__(self, cfg: BridgeConfig, clock_ns: Callable[[], int] = time.time_ns) -> None:
+        self.cfg = cfg
+        self.sink = WebSocketSink(cfg)
+        try:
+            self._recorder = Recorder(RecordConfig(mesh=cfg.mesh), clock_ns, sink=self.sink)
+        except Exception:
+            self.sink.close()
+            raise
+
+    @property
+    def port(self) -> int:
+        return self.sink.server.port
+
+    def __enter__(self) -> FoxgloveBridge:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._recorder.close()  # closes the sink too
+
+
+# -- command line ----------------------------------------------------------------------------
+def parse_origin(text: str) -> GeoOrigin:
+    """'LAT,LON,ALT' in degrees, degrees, metres -> GeoOrigin (an argparse type)."""
+    parts = text.split(",")
+    try:
+        lat, lon, alt = (float(p) for p in parts)
+        return GeoOrigin(lat, lon, alt)
+    except ValueError as exc:
+        why = "expected LAT,LON,ALT" if len(parts) != 3 else str(exc)
+        raise argparse.ArgumentTypeError(f"{text!r}: {why}") from None
+
+
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"{v} is outside 0..65535")
+    return v
+
+
+def _metres(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of metres") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of metres > 0")
+    return v
+
+
+def _positive_s(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of seconds > 0")
+    return v
+
+
+def add_foxglove_args(p: argparse.ArgumentParser) -> None:
+    """Options for how the fleet is drawn, shared with `covey record`."""
+    g = p.add_argument_group("foxglove channels")
+    g.add_argument("--origin", type=parse_origin, default=GeoOrigin(), metavar="LAT,LON,ALT",
+                   help="fleet origin (NED 0,0,0) on WGS-84 for the map; default: covey's")  # fmt: skip
+    g.add_argument("--separation-m", type=_metres, default=3.0,
+                   help="radius of the ring drawn around each vehicle (default 3)")  # fmt: skip
+
+
+def foxglove_config(args: argparse.Namespace) -> FoxgloveConfig:
+    return FoxgloveConfig(origin=args.origin, separation_m=args.separation_m)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey foxglove",
+        description="Serve a live fleet to Foxglove (WebSocket protocol): the same channels as "
+        "a recording. In Foxglove: Open connection -> Foxglove WebSocket -> ws://HOST:PORT.",
+    )
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default 127.0.0.1; the protocol has no auth)")  # fmt: skip
+    p.add_argument("--port", type=_port, default=DEFAULT_PORT,
+                   help=f"WebSocket port (default {DEFAULT_PORT}; 0 = any free port)")  # fmt: skip
+    p.add_argument("--duration", type=_positive_s, default=None, metavar="S",
+                   help="stop after S seconds (default: until Ctrl-C)")  # fmt: skip
+    add_foxglove_args(p)
+    add_mesh_args(p)
+    return p
+
+
+def main(cfg: BridgeConfig, stop: threading.Event, duration_s: float | None = None) -> int:
+    try:
+        bridge = FoxgloveBridge(cfg)
+    except Exception as exc:  # noqa: BLE001 - the server or the session could not start
+        print(f"covey foxglove: cannot serve on {cfg.host}:{cfg.port}: {exc}", file=sys.stderr)
+        return 2
+    with bridge:
+        print(f"foxglove bridge: ws://{cfg.host}:{bridge.port} fleet {cfg.mesh.fleet}", flush=True)
+        stop.wait(duration_s)
+    return 0
+
+
+def cli(argv: list[str]) -> int:
+    from groundstation.recording_cli import _stop_on_signals
+
+    p = parser()
+    args = p.parse_args(argv)
+    try:
+        cfg = BridgeConfig(mesh=mesh_config(args, p), host=args.host, port=args.port,
+                           foxglove=foxglove_config(args))  # fmt: skip
+    except ValueError as exc:
+        p.error(str(exc))
+    return main(cfg, _stop_on_signals(), args.duration)

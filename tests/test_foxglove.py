@@ -1,0 +1,388 @@
+"""Foxglove's standard channels: in a real recording, added to an old one, and live over the
+Foxglove WebSocket protocol. Everything is read back with the schemas' own decoders (protobuf from
+the FileDescriptorSet in the file, JSON), never with covey's.
+
+One real flight serves the e2e tests: two `covey agent` processes take off and fly to goals while
+an in-process Recorder records and the live bridge serves, and a WebSocket client listens.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+import uuid
+
+import pytest
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from mcap.reader import make_reader
+from websockets.sync.client import connect
+
+from comms import foxglove_channels as fc
+from comms import keys, schema
+from comms.commands import new_nonce
+from comms.geo import GeoOrigin
+from comms.mesh import Mesh
+from comms.record import RecordConfig, Recorder, add_foxglove_channels, read_recording
+from comms.session import embedded_peer, embedded_router, free_tcp_port
+from groundstation.foxglove_bridge import BridgeConfig, FoxgloveBridge
+from groundstation.recording_cli import record_cli
+
+VEHICLES = (1, 2)
+STARTS = {1: (0.0, 0.0), 2: (0.0, 8.0)}
+GOALS = {1: (6.0, 6.0, -3.0), 2: (6.0, 0.0, -3.0)}
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+ORIGIN = GeoOrigin(47.3977, 8.5456, 488.0)
+
+
+def proto_class(name: str, fds: bytes):
+    """The message class that protobuf itself builds from a channel's FileDescriptorSet."""
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(fds).file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
+def read_standard(path) -> dict[str, list]:
+    """topic -> decoded messages (protobuf objects or JSON dicts), via the mcap library."""
+    out: dict[str, list] = {}
+    classes: dict[int, object] = {}
+    with open(path, "rb") as f:
+        for sch, ch, msg in make_reader(f).iter_messages():
+            if ch.message_encoding == "protobuf":
+                assert sch.encoding == "protobuf"
+                cls = classes.get(sch.id) or classes.setdefault(
+                    sch.id, proto_class(sch.name, sch.data)
+                )
+                out.setdefault(ch.topic, []).append(cls.FromString(msg.data))
+            elif ch.message_encoding == "json":
+                assert sch.encoding == "jsonschema" and json.loads(sch.data)["type"] == "object"
+                out.setdefault(ch.topic, []).append(json.loads(msg.data))
+    return out
+
+
+def _ns(ts) -> int:
+    return ts.seconds * 1_000_000_000 + ts.nanos
+
+
+# -- the conversion alone ----------------------------------------------------------------------
+def test_state_converts_to_every_standard_message():
+    conv = fc.Converter(fc.FoxgloveConfig(origin=ORIGIN))
+    s = schema.VehicleState(7, 3, 1_700_000_000_123_456_789, (10.0, -4.0, -12.5), (0.0, 2.0, 0.0),
+                            math.pi / 2, mode=schema.Mode.GOTO, flags=schema.StateFlag.HAS_GOAL,
+                            goal_ned_m=(20.0, 0.0, -12.0))  # fmt: skip
+    outs = {o.topic: o for o in conv.convert(keys.state("f", 7), s.encode(), 5)}
+    assert set(outs) == {"/tf", "/vehicles/7/pose", "/vehicles/7/fix", "/scene"}
+    pose = proto_class("foxglove.PoseInFrame", fc.POSE_IN_FRAME.data).FromString(
+        outs["/vehicles/7/pose"].data
+    )
+    assert pose.frame_id == "ned" and _ns(pose.timestamp) == s.stamp_ns
+    p = pose.pose.position
+    assert (p.x, p.y, p.z) == pytest.approx(s.pos_ned_m, abs=1e-6)
+    assert pose.pose.orientation.z == pytest.approx(math.sqrt(0.5))
+    fix = proto_class("foxglove.LocationFix", fc.LOCATION_FIX.data).FromString(
+        outs["/vehicles/7/fix"].data
+    )
+    assert (fix.latitude, fix.longitude, fix.altitude) == pytest.approx(
+        ORIGIN.to_global(*s.pos_ned_m), abs=1e-9
+    )
+    assert fix.heading == pytest.approx(90.0)
+    scene = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data).FromString(
+        outs["/scene"].data
+    )
+    (ent,) = scene.entities
+    assert ent.id == "vehicle/7" and len(ent.cubes) == len(ent.arrows) == len(ent.spheres) == 1
+    assert ent.cylinders[0].size.x == pytest.approx(6.0)  # ring diameter = 2 * separation
+    arrow = ent.arrows[0]
+    assert arrow.shaft_length == pytest.approx(2.0)
+    # the arrow's +x, turned by its quaternion, points east (NED y)
+    q = arrow.pose.orientation
+    x_axis = (1 - 2 * (q.y**2 + q.z**2), 2 * (q.x * q.y + q.w * q.z), 2 * (q.x * q.z - q.w * q.y))
+    assert x_axis == pytest.approx((0.0, 1.0, 0.0), abs=1e-9)
+    # no link health before a full interval of states
+    later = schema.VehicleState(7, 13, s.stamp_ns, s.pos_ned_m, s.vel_ned_m_s, 0.0)
+    outs = {o.topic: o for o in conv.convert(keys.state("f", 7), later.encode(), 5 + 2_000_000_000)}
+    link = json.loads(outs["/vehicles/7/link"].data)
+    assert link["rate_hz"] == pytest.approx(1.0) and link["loss_share"] == pytest.approx(1 - 2 / 11)
+
+
+@pytest.mark.parametrize(
+    ("severity", "level"),
+    [(schema.Severity.DEBUG, 1), (schema.Severity.INFO, 2), (schema.Severity.WARNING, 3),
+     (schema.Severity.ERROR, 4), (schema.Severity.CRITICAL, 5)],
+)  # fmt: skip
+def test_event_becomes_a_log_with_its_level(severity, level):
+    ev = schema.Event(4, 123, "geofence", severity, schema.EventKind.FAILSAFE)
+    (out,) = fc.Converter().convert(keys.event("f", 4), ev.encode(), 9)
+    log = proto_class("foxglove.Log", fc.LOG.data).FromString(out.data)
+    assert log.level == level and log.name == "vehicle/4" and "geofence" in log.message
+
+
+def test_garbage_and_departures():
+    conv = fc.Converter()
+    assert conv.convert(keys.state("f", 1), b"\x01\x01junk", 0) == []
+    outs = conv.convert(keys.alive("f", 1), b"\x00", 0)
+    scene = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data).FromString(outs[0].data)
+    assert scene.deletions[0].id == "vehicle/1"
+
+
+# -- a real flight -------------------------------------------------------------------------------
+def _command_all(mesh: Mesh, make, deadline_s: float = 15.0) -> None:
+    pending = set(VEHICLES)
+    end = time.monotonic() + deadline_s
+    while pending and time.monotonic() < end:
+        for vid in sorted(pending):
+            if mesh.send_command(make(vid), timeout_s=1.0).ok:
+                pending.discard(vid)
+        if pending:
+            time.sleep(0.2)
+    assert not pending, f"vehicles {pending} did not accept"
+
+
+class WsListener(threading.Thread):
+    """A Foxglove WebSocket client: collects advertisements and subscribes to the pose topics."""
+
+    def __init__(self, port: int) -> None:
+        super().__init__(daemon=True)
+        self.port, self.stop = port, threading.Event()
+        self.channels: dict[int, dict] = {}
+        self.poses: list[tuple[str, bytes]] = []
+        self.subprotocol = None
+        self.subs_sent: list = []
+
+    def run(self) -> None:
+        uri = f"ws://127.0.0.1:{self.port}"
+        # foxglove-sdk 0.30 names the protocol foxglove.sdk.v1 and refuses the old
+        # foxglove.websocket.v1 name with HTTP 400; current Foxglove offers both.
+        with connect(uri, subprotocols=SUBPROTOCOLS, max_size=None) as ws:
+            self.subprotocol = ws.subprotocol
+            subs: dict[int, str] = {}
+            while not self.stop.is_set():
+                try:
+                    frame = ws.recv(timeout=0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, str):
+                    msg = json.loads(frame)
+                    if msg.get("op") == "advertise":
+                        new = []
+                        for ch in msg["channels"]:
+                            self.channels[ch["id"]] = ch
+                            if ch["topic"].endswith("/pose"):
+                                sub_id = len(subs) + 1
+                                subs[sub_id] = ch["topic"]
+                                new.append({"id": sub_id, "channelId": ch["id"]})
+                        if new:
+                            ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                            self.subs_sent.append(new)
+                elif frame[0] == 0x01:  # message data: op, subscription id, log time, payload
+                    sub_id, _log_ns = struct.unpack_from("<IQ", frame, 1)
+                    self.poses.append((subs[sub_id], frame[13:]))
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("foxflight")
+    fleet = "fox" + uuid.uuid4().hex[:8]
+    port = free_tcp_port()
+    path, raw_only = tmp / "flight.mcap", tmp / "raw.mcap"
+    fox = fc.FoxgloveConfig(origin=ORIGIN)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    procs: list[subprocess.Popen] = []
+    mesh_states: dict[tuple[int, int], tuple] = {}
+    with Mesh(embedded_router(port, fleet=fleet)) as mesh:
+        mesh.subscribe_states(
+            lambda s, _t: mesh_states.__setitem__((s.vehicle_id, s.stamp_ns), s.pos_ned_m)
+        )
+        peer = embedded_peer(port, fleet=fleet)
+        with (
+            Recorder(RecordConfig(str(path), peer, foxglove=fox)),
+            Recorder(RecordConfig(str(raw_only), peer, foxglove=None)),
+            FoxgloveBridge(BridgeConfig(mesh=peer, port=0, foxglove=fox)) as bridge,
+        ):
+            ws = WsListener(bridge.port)
+            ws.start()
+            try:
+                time.sleep(1.0)  # discovery
+                connect_ep = f"tcp/127.0.0.1:{port}"
+                for vid in VEHICLES:
+                    n, e = STARTS[vid]
+                    procs.append(subprocess.Popen(
+                        [sys.executable, "-m", "covey_cli", "agent", "--id", str(vid), "--fleet", fleet,
+                         "--connect", connect_ep, f"--start={n},{e}", "--no-gcs-failsafe"],
+                        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                    ))  # fmt: skip
+                assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 30.0)
+                stamp = time.time_ns
+                _command_all(
+                    mesh,
+                    lambda v: schema.Command.takeoff(
+                        3.0, nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)
+                    ),
+                )
+                time.sleep(2.5)
+                _command_all(
+                    mesh,
+                    lambda v: schema.Command.goto_local(
+                        *GOALS[v], nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)
+                    ),
+                )
+                time.sleep(2.5)
+            finally:
+                ws.stop.set()
+                ws.join(5)
+                for p in procs:
+                    p.send_signal(signal.SIGTERM)
+                for p in procs:
+                    try:
+                        p.wait(10)
+                    except subprocess.TimeoutExpired:
+                        p.kill()
+        yield {
+            "path": path,
+            "raw": raw_only,
+            "tmp": tmp,
+            "ws": ws,
+            "mesh_states": dict(mesh_states),
+            "fox": fox,
+        }
+
+
+@pytest.mark.e2e
+def test_every_standard_channel_decodes_and_matches_the_raw_one(flight):
+    std = read_standard(flight["path"])
+    for vid in VEHICLES:
+        for leaf in ("pose", "fix", "link"):
+            assert std.get(f"/vehicles/{vid}/{leaf}"), f"no /vehicles/{vid}/{leaf}"
+    for topic in ("/tf", "/scene", "/events", "/commands", "/acks"):
+        assert std.get(topic), f"no {topic}"
+    raw = {}
+    for m in read_recording(flight["path"]).messages:  # covey's channels, as replay reads them
+        if m.topic.endswith("/state"):
+            s = schema.VehicleState.decode(m.data)
+            raw[(s.vehicle_id, s.stamp_ns)] = s
+    moved = 0
+    for vid in VEHICLES:
+        poses, fixes = std[f"/vehicles/{vid}/pose"], std[f"/vehicles/{vid}/fix"]
+        assert len(poses) == len(fixes) == sum(k[0] == vid for k in raw)
+        for pose, fix in zip(poses, fixes, strict=True):
+            s = raw[(vid, _ns(pose.timestamp))]
+            p = pose.pose.position
+            assert (
+                max(abs(a - b) for a, b in zip((p.x, p.y, p.z), s.pos_ned_m, strict=True)) <= 0.01
+            )
+            lat, lon, alt = ORIGIN.to_global(*s.pos_ned_m)
+            assert abs(fix.latitude - lat) < 1e-9 and abs(fix.longitude - lon) < 1e-9
+            assert abs(fix.altitude - alt) < 0.01
+            moved += p.z < -1.0
+    assert moved >= 20, "the recording holds the flight, not just the ground"
+
+
+@pytest.mark.e2e
+def test_acks_name_the_vehicles_commanded(flight):
+    std = read_standard(flight["path"])
+    commands = {c["nonce"]: c for c in std["/commands"]}
+    accepted: dict[str, set[int]] = {}
+    joined = 0
+    for ack in std["/acks"]:
+        cmd = commands[ack["nonce"]]
+        assert ack["vehicle_id"] in cmd["targets"], (ack, cmd)
+        # the join by nonce is filled in when the command reached the recorder first; an ack
+        # may overtake its command (another Zenoh path), then the kind is left empty
+        assert ack["command_kind"] in ("", cmd["kind"])
+        joined += ack["command_kind"] == cmd["kind"]
+        if ack["accepted"]:
+            accepted.setdefault(cmd["kind"], set()).add(ack["vehicle_id"])
+    assert accepted["TAKEOFF"] == accepted["GOTO_LOCAL"] == set(VEHICLES)
+    assert joined >= len(std["/acks"]) // 2
+    raw_events = [schema.Event.decode(m.data) for m in read_recording(flight["path"]).messages
+                  if m.topic.endswith("/event")]  # fmt: skip
+    logs = std["/events"]
+    assert len(logs) >= len(raw_events) > 0
+    for ev in raw_events:
+        assert any(_ns(lg.timestamp) == ev.stamp_ns and lg.name == f"vehicle/{ev.vehicle_id}"
+                   and lg.level == int(ev.severity) + 1 for lg in logs)  # fmt: skip
+
+
+@pytest.mark.e2e
+def test_live_bridge_serves_the_poses_the_mesh_carries(flight):
+    ws = flight["ws"]
+    assert ws.subprotocol in SUBPROTOCOLS
+    topics = {ch["topic"]: ch for ch in ws.channels.values()}
+    for vid in VEHICLES:
+        assert f"/vehicles/{vid}/pose" in topics and f"/vehicles/{vid}/fix" in topics
+    ch = topics["/vehicles/1/pose"]
+    assert ch["encoding"] == "protobuf" and ch["schemaName"] == "foxglove.PoseInFrame"
+    cls = proto_class(ch["schemaName"], base64.b64decode(ch["schema"]))
+    got = {vid: 0 for vid in VEHICLES}
+    for topic, payload in ws.poses:
+        pose = cls.FromString(payload)
+        vid = int(topic.split("/")[2])
+        expected = flight["mesh_states"][(vid, _ns(pose.timestamp))]
+        p = pose.pose.position
+        assert max(abs(a - b) for a, b in zip((p.x, p.y, p.z), expected, strict=True)) <= 0.01
+        got[vid] += 1
+    assert all(n >= 20 for n in got.values()), (got, ws.subs_sent, sorted(topics))
+
+
+@pytest.mark.e2e
+def test_foxglove_from_adds_the_channels_and_keeps_covey_bytes(flight, capsys):
+    out = flight["tmp"] / "added.mcap"
+    assert (
+        record_cli(
+            [
+                "--foxglove-from",
+                str(flight["raw"]),
+                "-o",
+                str(out),
+                "--origin",
+                "47.3977,8.5456,488",
+            ]
+        )
+        == 0
+    )
+    assert not read_standard(flight["raw"])  # recorded with --no-foxglove: covey's only
+    before, after = read_recording(flight["raw"]), read_recording(out)
+    assert [(m.topic, m.log_time_ns, m.data) for m in before.messages] == [
+        (m.topic, m.log_time_ns, m.data) for m in after.messages
+    ]
+    std = read_standard(out)
+    n_states = sum(m.topic.endswith("/state") for m in before.messages)
+    assert sum(len(std[f"/vehicles/{v}/pose"]) for v in VEHICLES) == n_states
+    # the same conversion as recording live: identical standard messages per state
+    direct = add_foxglove_channels(flight["raw"], flight["tmp"] / "again.mcap", flight["fox"])
+    assert direct["foxglove"] > n_states
+
+
+def test_foxglove_from_bad_input_is_one_line(tmp_path, capsys):
+    not_mcap = tmp_path / "notes.mcap"
+    not_mcap.write_text("hello")
+    assert record_cli(["--foxglove-from", str(not_mcap), "-o", str(tmp_path / "o.mcap")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "is not an MCAP file" in err and "\n" not in err and "Traceback" not in err
+    assert (
+        record_cli(
+            ["--foxglove-from", str(tmp_path / "missing.mcap"), "-o", str(tmp_path / "o.mcap")]
+        )
+        == 2
+    )
+    err = capsys.readouterr().err.strip()
+    assert "no recording at" in err and "\n" not in err
+
+
+def test_bridge_cli_refuses_bad_ports(capsys):
+    from covey_cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["foxglove", "--port", "70000"])
+    assert exc.value.code == 2 and "outside 0..65535" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["foxglove", "--origin", "1,2"])
+    assert exc.value.code == 2 and "LAT,LON,ALT" in capsys.readouterr().err
