@@ -141,13 +141,16 @@ class FoxgloveConfig:
     """Radius of the separation ring drawn around each vehicle."""
     link_interval_s: float = 1.0
     """Publish each vehicle's link health this often (by receive time)."""
+    scene_interval_s: float = 0.2
+    """Redraw a vehicle's 3D entity at most this often (by receive time); poses and /tf keep
+    every state. The SceneUpdate is most of the conversion's cost (bench/foxglove.py)."""
     body_size_m: float = 0.6
     """Edge of the cube drawn for a vehicle's body."""
     entity_lifetime_s: float = 5.0
     """A vehicle's 3D entity fades after this long without a state (0 = forever)."""
 
     def __post_init__(self) -> None:
-        for name in ("separation_m", "link_interval_s", "body_size_m"):
+        for name in ("separation_m", "link_interval_s", "scene_interval_s", "body_size_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}={v} must be a finite number > 0")
@@ -213,6 +216,8 @@ class Converter:
         self._links: dict[int, _Link] = {}
         self._commands: dict[int, schema.Command] = {}
         self._tf_due_ns = 0
+        self._scene_due_ns: dict[int, int] = {}  # vehicle -> next receive time to redraw it
+        self._scene_mode: dict[int, schema.Mode] = {}  # a mode change is drawn at once
 
     def convert(self, topic: str, data: bytes, recv_ns: int) -> list[Out]:
         """Standard messages for one recorded/received message; [] for anything undecodable."""
@@ -258,7 +263,10 @@ class Converter:
                              altitude=alt, heading=math.degrees(s.heading_rad) % 360.0,
                              color=_colour(mode_rgb(s.mode)))  # fmt: skip
         out.append(Out(fix_topic(vid), LOCATION_FIX, fix.encode(), recv_ns))
-        out.append(Out(SCENE_TOPIC, SCENE_UPDATE, self.scene_update([s]).encode(), recv_ns))
+        if recv_ns >= self._scene_due_ns.get(vid, 0) or s.mode != self._scene_mode.get(vid):
+            self._scene_due_ns[vid] = recv_ns + int(self.cfg.scene_interval_s * 1e9)
+            self._scene_mode[vid] = s.mode
+            out.append(Out(SCENE_TOPIC, SCENE_UPDATE, self.scene_update([s]).encode(), recv_ns))
         link = self._link(s, recv_ns)
         if link is not None:
             out.append(Out(link_topic(vid), LINK_JSON, json.dumps(link).encode(), recv_ns))
@@ -332,6 +340,8 @@ class Converter:
         if data != b"\x00":
             return []
         self._links.pop(vid, None)
+        self._scene_due_ns.pop(vid, None)
+        self._scene_mode.pop(vid, None)
         gone = fm.SceneUpdate(deletions=[fm.SceneEntityDeletion(
             timestamp=_ts(recv_ns), type=fm.SceneEntityDeletionType.MatchingId, id=vehicle_frame(vid))])  # fmt: skip
         log = fm.Log(timestamp=_ts(recv_ns), level=fm.LogLevel.Warning, message="left the mesh",
