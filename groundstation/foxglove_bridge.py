@@ -10,7 +10,6 @@ bridge is a Recorder (same Zenoh taps) whose sink is foxglove-sdk's WebSocket se
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import threading
 import time
@@ -23,6 +22,7 @@ from comms.foxglove_channels import Converter, FoxgloveConfig, Out
 from comms.geo import GeoOrigin
 from comms.record import RecordConfig, Recorder
 from comms.session import MeshConfig
+from groundstation.argtypes import finite, port
 from groundstation.meshargs import add_mesh_args, mesh_config
 
 DEFAULT_PORT = 8765
@@ -127,42 +127,12 @@ def parse_origin(text: str) -> GeoOrigin:
         raise argparse.ArgumentTypeError(f"{text!r}: {why}") from None
 
 
-def _port(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"{v} is outside 0..65535")
-    return v
-
-
-def _metres(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of metres") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of metres > 0")
-    return v
-
-
-def _positive_s(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of seconds > 0")
-    return v
-
-
 def add_foxglove_args(p: argparse.ArgumentParser) -> None:
     """Options for how the fleet is drawn, shared with `covey record`."""
     g = p.add_argument_group("foxglove channels")
     g.add_argument("--origin", type=parse_origin, default=GeoOrigin(), metavar="LAT,LON,ALT",
                    help="fleet origin (NED 0,0,0) on WGS-84 for the map; default: covey's")  # fmt: skip
-    g.add_argument("--separation-m", type=_metres, default=3.0,
+    g.add_argument("--separation-m", type=finite("metres"), default=3.0,
                    help="radius of the ring drawn around each vehicle (default 3)")  # fmt: skip
 
 
@@ -178,9 +148,9 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; the protocol has no auth)")  # fmt: skip
-    p.add_argument("--port", type=_port, default=DEFAULT_PORT,
+    p.add_argument("--port", type=port, default=DEFAULT_PORT,
                    help=f"WebSocket port (default {DEFAULT_PORT}; 0 = any free port)")  # fmt: skip
-    p.add_argument("--duration", type=_positive_s, default=None, metavar="S",
+    p.add_argument("--duration-s", type=finite("seconds"), default=None, metavar="S",
                    help="stop after S seconds (default: until Ctrl-C)")  # fmt: skip
     add_foxglove_args(p)
     add_mesh_args(p)
@@ -209,4 +179,4 @@ def cli(argv: list[str]) -> int:
                            foxglove=foxglove_config(args))  # fmt: skip
     except ValueError as exc:
         p.error(str(exc))
-    return main(cfg, _stop_on_signals(), args.duration)
+    return main(cfg, _stop_on_signals(), args.duration_s)

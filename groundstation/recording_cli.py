@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 import threading
@@ -30,28 +29,9 @@ from comms.record import (
     summarise,
 )
 from comms.replay import LiveFleetError, ReplayConfig, replay
+from groundstation.argtypes import finite
 from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
 from groundstation.meshargs import add_mesh_args, mesh_config
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0 or math.isnan(v):
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return v
-
-
-def _seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of seconds >= 0")
-    return v
 
 
 def _stop_on_signals() -> threading.Event:
@@ -71,7 +51,7 @@ def record_parser() -> argparse.ArgumentParser:
         "-o", "--output", default="flight.mcap", help="MCAP file to write (default flight.mcap)"
     )
     p.add_argument(
-        "--duration", type=_positive, default=None, metavar="S", help="stop after S seconds"
+        "--duration", type=finite("seconds"), default=None, metavar="S", help="stop after S seconds"
     )
     p.add_argument(
         "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
@@ -148,22 +128,22 @@ def replay_parser() -> argparse.ArgumentParser:
     p.add_argument("file", help="MCAP recording")
     p.add_argument(
         "--speed",
-        type=_positive,
+        type=finite("times real time", allow_inf=True),
         default=1.0,
         help="playback speed (default 1; inf = as fast as possible)",
     )
     p.add_argument("--loop", action="store_true", help="start over at the end")
     p.add_argument(
         "--start",
-        type=_seconds,
+        type=finite("seconds", inclusive=True),
         default=0.0,
         metavar="S",
         help="start S seconds into the recording",
     )
     p.add_argument(
-        "--end", type=_seconds, default=None, metavar="S", help="stop S seconds into the recording"
+        "--end", type=finite("seconds", inclusive=True), default=None, metavar="S", help="stop S seconds into the recording"
     )
-    p.add_argument("--presence-wait", type=_seconds, default=1.0, metavar="S",
+    p.add_argument("--presence-wait", type=finite("seconds", inclusive=True), default=1.0, metavar="S",
                    help="listen this long for live vehicles before replaying (default 1)")  # fmt: skip
     cl = p.add_argument_group("closed loop")
     cl.add_argument(
@@ -179,8 +159,8 @@ def replay_parser() -> argparse.ArgumentParser:
     cl.add_argument(
         "--json-out", default=None, metavar="PATH", help="also write the closed-loop report as JSON"
     )
-    cl.add_argument("--separation-m", type=_positive, default=3.0)
-    cl.add_argument("--cruise-speed-m-s", type=_positive, default=1.0)
+    cl.add_argument("--separation-m", type=finite("metres"), default=3.0)
+    cl.add_argument("--cruise-speed-m-s", type=finite("m/s"), default=1.0)
     cl.add_argument("--no-safety-filter", action="store_true")
     add_mesh_args(p)
     p.set_defaults(fleet=None)  # default: the recorded fleet

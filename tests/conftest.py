@@ -17,6 +17,16 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+def wait_until(predicate, timeout_s: float, period_s: float = 0.05) -> bool:
+    """Poll `predicate` until it holds or `timeout_s` passes; its last value."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period_s)
+    return bool(predicate())
+
+
 def holds(pred, states) -> bool:
     """pred(states), where a vehicle that is present but not heard from yet (KeyError: it
     happens on a loaded machine) counts as "not yet" rather than as a test error."""

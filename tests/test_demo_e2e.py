@@ -9,6 +9,7 @@ import sys
 import time
 
 import pytest
+from conftest import wait_until
 
 from comms.mesh import Mesh
 from comms.schema import Mode
@@ -17,15 +18,6 @@ from groundstation.app import GcsConfig, GroundStation
 from groundstation.demo_proc import DemoProcess, descendants, process_alive, processes_in_groups
 
 pytestmark = pytest.mark.e2e
-
-
-def wait_until(predicate, timeout_s: float, period_s: float = 0.1) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period_s)
-    return predicate()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])

@@ -10,6 +10,7 @@ import threading
 import time
 
 import pytest
+from conftest import wait_until
 
 from comms.schema import AckResult, CommandKind, Mode
 from comms.session import MeshConfig
@@ -18,15 +19,6 @@ from groundstation.demo_proc import DemoProcess
 from groundstation.inputs import CommandRequest
 
 pytestmark = pytest.mark.e2e
-
-
-def wait_until(predicate, timeout_s: float, period_s: float = 0.05) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period_s)
-    return predicate()
 
 
 @pytest.fixture(scope="module")
