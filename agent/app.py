@@ -23,6 +23,7 @@ from agent.failsafe import FailsafeConfig, Failsafes
 from agent.guidance import Guidance, GuidanceConfig, heading_towards
 from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
 from agent.neighbours import NeighbourConfig, NeighbourTable
+from comms.gate import GateConfig
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import (
@@ -121,9 +122,12 @@ class Agent:
         self.on_position: Callable[[tuple[float, float, float]], None] | None = None
         self._last_link_stats_s = clock_s()
         self.presence = mesh.presence()
-        mesh.subscribe_states(lambda s, _t: self.table.update(s, self.clock_s()), link=link)
         if getattr(mesh, "auth", None) is not None:
             mesh.auth.on_reject = self._on_auth_refusal  # refused before handle_command runs
+            # Refused neighbour states (forged, replayed...): one SECURITY event per cause a second.
+            mesh.on_security = lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING, quiet=True)
+        mesh.subscribe_states(lambda s, _t: self.table.update(s, self.clock_s()), link=link,
+                              gate=GateConfig(min_interval_s=cfg.neighbours.verify_min_interval_s))  # fmt: skip
         # Answer commands before announcing presence: whoever sees us alive can command us.
         mesh.serve_commands(self.vid, self.handle_command)
         mesh.declare_vehicle(self.vid)

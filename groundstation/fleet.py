@@ -4,6 +4,12 @@ Pure and thread-safe: no viser, no Zenoh, no clock. Mesh callbacks feed it (`on_
 `on_presence`) with the receive stamps they carry; the renderer asks for a `snapshot(now_ns)`.
 The replay tool and the benchmark drive it the same way.
 
+Keyed mode: the mesh drops states that do not verify and tells `on_state_refused`; a vehicle
+whose claimed states were refused lately is marked `unverified` (a forger speaks for it, or its
+own key is revoked or wrong). Refusals for ids the model does not know (phantoms) only bump a
+counter: they never create a vehicle. Vehicles that never had a presence token are forgotten
+`forget_after_s` after their last state, so made-up ids in open mode do not pile up either.
+
 Link health per vehicle, over a sliding window of `rate_window_s`:
     rate_hz  = (received - 1) / (t_last - t_first)
     loss     = 1 - received / (seq_last - seq_first + 1)      (from VehicleState.seq gaps)
@@ -38,6 +44,11 @@ class FleetConfig:
     """Two vehicles closer than this (3D distance) raise a separation alert."""
     stale_after_s: float = 1.0
     """A vehicle whose last state is older than this is shown as stale."""
+    unverified_window_s: float = 3.0
+    """A vehicle stays marked unverified this long after a state claiming it was refused."""
+    forget_after_s: float = 30.0
+    """A vehicle never seen present (no liveliness token) is forgotten this long after its last
+    state: ids that the network makes up expire."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -46,6 +57,8 @@ class FleetConfig:
             "rate_window_s",
             "separation_m",
             "stale_after_s",
+            "unverified_window_s",
+            "forget_after_s",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -63,6 +76,10 @@ class _Track:
     window: deque[tuple[int, int]] = field(default_factory=deque)  # (recv_ns, seq)
     trail: deque[tuple[int, tuple[float, float, float]]] = field(default_factory=deque)
     duplicates: int = 0
+    ever_alive: bool = False
+    refused: int = 0
+    refused_ns: int | None = None
+    refused_cause: str = ""
 
 
 @dataclass(frozen=True)
@@ -86,6 +103,14 @@ class VehicleView:
     """Closer than the separation distance to another vehicle."""
     stale: bool
     """No state for longer than FleetConfig.stale_after_s."""
+    unverified: bool = False
+    """A state claiming to be this vehicle was refused (forged, replayed, unsigned, or signed by a
+    revoked key) within FleetConfig.unverified_window_s. With `stale` as well, the vehicle's own
+    states do not verify. The station shows it in red with `refused_cause`."""
+    refused_states: int = 0
+    """States claiming this vehicle that the mesh refused, since the station started."""
+    refused_cause: str = ""
+    """Why the latest one was refused ("forged", "replayed", "unknown signer", ...)."""
 
     @property
     def speed_m_s(self) -> float:
@@ -126,6 +151,8 @@ class FleetModel:
         self.cfg = cfg or FleetConfig()
         self._lock = threading.Lock()
         self._tracks: dict[int, _Track] = {}
+        self.phantom_refusals = 0
+        """Refused states for ids this model does not know (never created a vehicle)."""
 
     # -- inputs ------------------------------------------------------------------------------
     def on_state(self, state: VehicleState, recv_ns: int) -> None:
@@ -155,11 +182,24 @@ class FleetModel:
             while track.trail and track.trail[0][0] < trail_horizon_ns:
                 track.trail.popleft()
 
+    def on_state_refused(self, vehicle_id: int, cause: str, recv_ns: int) -> None:
+        """Record a state the mesh refused (keyed mode; Mesh.subscribe_states finds this method).
+        Never creates a vehicle: an unknown id only bumps `phantom_refusals`."""
+        with self._lock:
+            track = self._tracks.get(vehicle_id)
+            if track is None:
+                self.phantom_refusals += 1
+                return
+            track.refused += 1
+            track.refused_ns = recv_ns
+            track.refused_cause = cause
+
     def on_presence(self, vehicle_id: int, alive: bool, now_ns: int) -> None:
         """Record a liveliness change (a Mesh.presence on_change callback, vehicles only)."""
         with self._lock:
             track = self._tracks.setdefault(vehicle_id, _Track())
             track.alive = alive
+            track.ever_alive |= alive
             track.lost_ns = None if alive else now_ns
 
     def forget(self, vehicle_id: int) -> None:
@@ -184,6 +224,10 @@ class FleetModel:
         want = (lambda _vid: trails) if isinstance(trails, bool) else trails.__contains__
         cfg = self.cfg
         with self._lock:
+            forget_ns = now_ns - int(cfg.forget_after_s * NS_PER_S)
+            for vid in [v for v, t in self._tracks.items()
+                        if not t.ever_alive and t.last_recv_ns < forget_ns]:  # fmt: skip
+                del self._tracks[vid]
             items = sorted(self._tracks.items())
             raw = [
                 (
@@ -193,6 +237,7 @@ class FleetModel:
                     t.last_recv_ns,
                     tuple(t.window),
                     list(t.trail) if want(vid) else [],
+                    (t.refused, t.refused_ns, t.refused_cause),
                 )
                 for vid, t in items
             ]
@@ -201,7 +246,8 @@ class FleetModel:
         pairs = close_pairs(with_pos, cfg.separation_m)
         close_ids = {a for a, _, _ in pairs} | {b for _, b, _ in pairs}
         views = []
-        for vid, state, alive, last_ns, window, trail in raw:
+        unverified_ns = int(cfg.unverified_window_s * NS_PER_S)
+        for vid, state, alive, last_ns, window, trail, (refused, refused_ns, cause) in raw:
             recent = [(t, s) for t, s in window if t >= horizon_ns]
             rate_hz, loss_pct = link_health(recent)
             age_s = (now_ns - last_ns) / NS_PER_S if state is not None else math.inf
@@ -216,6 +262,9 @@ class FleetModel:
                     trail_ned_m=np.array([p for _, p in trail], dtype=np.float32).reshape(-1, 3),
                     too_close=vid in close_ids,
                     stale=age_s > cfg.stale_after_s,
+                    unverified=refused_ns is not None and now_ns - refused_ns <= unverified_ns,
+                    refused_states=refused,
+                    refused_cause=cause,
                 )
             )
         return FleetSnapshot(now_ns=now_ns, vehicles=tuple(views), close_pairs=tuple(pairs))

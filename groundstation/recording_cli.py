@@ -22,7 +22,7 @@ from pathlib import Path
 
 from comms.record import RecordConfig, format_info, read_recording, record, summarise
 from comms.replay import LiveFleetError, ReplayConfig, replay
-from groundstation.meshargs import add_mesh_args, mesh_config
+from groundstation.meshargs import add_mesh_args, die, mesh_config
 
 
 def _positive(text: str) -> float:
@@ -68,7 +68,7 @@ def record_parser() -> argparse.ArgumentParser:
         "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
     )
     p.add_argument("--json", action="store_true", help="with --info: print JSON")
-    add_mesh_args(p)
+    add_mesh_args(p, key_file=False)  # records raw bytes; signs nothing
     return p
 
 
@@ -97,6 +97,8 @@ def record_cli(argv: list[str]) -> int:
     except OSError as exc:
         print(f"covey record: cannot write {cfg.path}: {exc}", file=sys.stderr)
         return 2
+    except ValueError as exc:  # MeshConfigError: bad --zenoh-config, endpoint, busy port
+        die(p, str(exc))
     total = sum(counts.values())
     print(
         f"wrote {total} messages to {cfg.path}: "
@@ -149,7 +151,7 @@ def replay_parser() -> argparse.ArgumentParser:
     cl.add_argument("--separation-m", type=_positive, default=3.0)
     cl.add_argument("--cruise-speed-m-s", type=_positive, default=1.0)
     cl.add_argument("--no-safety-filter", action="store_true")
-    add_mesh_args(p)
+    add_mesh_args(p, key_file=False)  # a recording cannot be re-signed: open-mode fleets only
     p.set_defaults(fleet=None)  # default: the recorded fleet
     for action in p._actions:  # meshargs documents its own default; replay's differs
         if action.dest == "fleet":
