@@ -90,6 +90,10 @@ def record_cli(argv: list[str]) -> int:
         cfg = RecordConfig(path=args.output, mesh=mesh_config(args, p), duration_s=args.duration)
     except ValueError as exc:
         p.error(str(exc))
+    try:
+        cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
+    except ValueError as exc:
+        die(p, str(exc))
     stop = _stop_on_signals()
     print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
     try:
