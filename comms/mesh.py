@@ -311,10 +311,12 @@ class Mesh:
         return pres
 
     # -- commands --------------------------------------------------------------------------
-    def serve_commands(self, vehicle_id: int, handler: CommandHandler) -> Any:
+    def serve_commands(self, vehicle_id: int, handler: CommandHandler, *, auth: Any = None) -> Any:
         """Answer commands for `vehicle_id`; `handler` returns the ack (never raise from it:
-        an exception becomes a FAILED ack with the exception text)."""
+        an exception becomes a FAILED ack with the exception text). `auth`: that vehicle's own
+        FleetAuth when one process serves several vehicles (benches); default the mesh's."""
         reply_key = keys.cmd(self.fleet, vehicle_id)
+        auth = auth if auth is not None else self.auth
         ack_key = keys.ack(self.fleet, vehicle_id)
 
         def ack(nonce: int, result: AckResult, reason: str) -> CommandAck:
@@ -334,13 +336,13 @@ class Mesh:
                     # Sent to this vehicle by name but addressed to others: a retargeting attempt
                     # or a station bug. Say so, signed, instead of staying silent.
                     why = f"not for this vehicle: addressed to {', '.join(map(str, command.targets[:8]))}"
-                    if self.auth is not None:
-                        self.auth.refuse(command, vehicle_id, why)
+                    if auth is not None:
+                        auth.refuse(command, vehicle_id, why)
                     answer = ack(command.nonce, AckResult.REJECTED, why)
-                    self._answer(query, reply_key, ack_key, answer, payload)
+                    self._answer(query, reply_key, ack_key, answer, payload, auth)
                     return
                 self.stats.bump("commands_served")
-                problem = self.auth.check_command(command, vehicle_id) if self.auth else None
+                problem = auth.check_command(command, vehicle_id) if auth is not None else None
                 if problem:
                     answer = ack(command.nonce, AckResult.REJECTED, problem)
                 else:
@@ -349,14 +351,14 @@ class Mesh:
                     except Exception as exc:  # noqa: BLE001 - a handler bug must not kill the agent
                         log.exception("command handler failed")
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
-            self._answer(query, reply_key, ack_key, answer, payload)
+            self._answer(query, reply_key, ack_key, answer, payload, auth)
 
         return self._keep(self.session.declare_queryable(reply_key, on_query))
 
     def _answer(self, query: zenoh.Query, reply_key: str, ack_key: str, answer: CommandAck,
-                command_payload: bytes) -> None:  # fmt: skip
-        if self.auth is not None:
-            answer = self.auth.sign_ack(answer, command_digest(command_payload))
+                command_payload: bytes, auth: Any) -> None:  # fmt: skip
+        if auth is not None:
+            answer = auth.sign_ack(answer, command_digest(command_payload))
         payload = answer.encode()
         try:
             query.reply(reply_key, payload)
