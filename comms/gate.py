@@ -61,6 +61,34 @@ class GateConfig:
                 raise ValueError(f"{name}={value} must be within [0, 3600]")
 
 
+class Summaries:
+    """At most one line per cause per `period_s`: the first refusal of a quiet cause at once, then
+    a count of what happened since. Thread-safe. `emit(line)` exceptions are swallowed."""
+
+    def __init__(self, emit: Callable[[str], None] | None, period_s: float = 1.0) -> None:
+        self.emit = emit
+        self._period_ns = int(period_s * 1e9)
+        self._lock = threading.Lock()
+        self._pending: dict[object, int] = {}
+        self._emitted_ns: dict[object, int] = {}
+
+    def note(self, cause: object, now_ns: int, describe: Callable[[int], str]) -> None:
+        """Count one `cause`; if its line is due, emit `describe(count since the last line)`."""
+        with self._lock:
+            count = self._pending.get(cause, 0) + 1
+            last = self._emitted_ns.get(cause)
+            if last is not None and now_ns - last < self._period_ns:
+                self._pending[cause] = count
+                return
+            self._emitted_ns[cause] = now_ns
+            self._pending.pop(cause, None)
+        if self.emit is not None:
+            try:
+                self.emit(describe(count)[:119])
+            except Exception:  # noqa: BLE001 - reporting must not break receiving
+                pass
+
+
 class Gate:
     """One subscription's gate (each keeps its own 'last accepted' per vehicle). Thread-safe."""
 
@@ -77,15 +105,13 @@ class Gate:
         self.on_summary = on_summary
         self._skew_ns = int(cfg.max_skew_s * 1e9)
         self._min_ns = int(cfg.min_interval_s * 1e9)
-        self._period_ns = int(cfg.summary_period_s * 1e9)
+        self._summaries = Summaries(on_summary, cfg.summary_period_s)
         self._lock = threading.Lock()
         self._last: dict[int, tuple[int, int]] = {}  # vehicle -> (stamp_ns, recv_ns) accepted
         self.accepted = 0
         self.skipped = 0
         self.refused: dict[Refusal, int] = dict.fromkeys(Refusal, 0)
         """Refusals per cause since start (read only)."""
-        self._pending: dict[Refusal, tuple[int, int, str]] = {}  # cause -> (count, vehicle, detail)
-        self._emitted_ns: dict[Refusal, int] = {}
 
     def admit_state(self, state: VehicleState, recv_ns: int) -> Refusal | str | None:
         """None: accept. A Refusal: drop and count. SKIPPED: drop silently (thinning)."""
@@ -141,20 +167,8 @@ class Gate:
         return sum(self.refused.values())
 
     def _refuse(self, cause: Refusal, vid: int, detail: str, recv_ns: int) -> Refusal:
-        line = None
         with self._lock:
             self.refused[cause] += 1
-            count = self._pending.get(cause, (0, 0, ""))[0] + 1
-            self._pending[cause] = (count, vid, detail)
-            last = self._emitted_ns.get(cause)
-            if last is None or recv_ns - last >= self._period_ns:
-                self._emitted_ns[cause] = recv_ns
-                del self._pending[cause]
-                line = (f"refused {count} {cause.value} {self.what}{'s' if count > 1 else ''}"
-                        f" (latest claims vehicle {vid}: {detail})")  # fmt: skip
-        if line is not None and self.on_summary is not None:
-            try:
-                self.on_summary(line[:119])
-            except Exception:  # noqa: BLE001 - reporting must not break receiving
-                pass
+        self._summaries.note(cause, recv_ns, lambda n: (
+            f"refused {n} {cause.value} {self.what}{'s' if n > 1 else ''} (latest claims vehicle {vid}: {detail})"))
         return cause

@@ -223,6 +223,7 @@ class Mesh:
         *,
         on_refused: RefusedCallback | None = None,
         gate: GateConfig = GateConfig(),
+        ignore_id: int | None = None,
     ) -> Any:
         """Call `callback(state, recv_ns)` for every valid state. `link` (comms.link) stands
         between the wire and the callback and emulates a radio per sender: it may drop, delay or
@@ -230,7 +231,8 @@ class Mesh:
 
         Keyed mode: only states that pass a Gate(`gate`) reach the callback; `on_refused(vid,
         cause, recv_ns)` hears of the others. If not given and `callback` is a bound method of an
-        object with `on_state_refused` (the ground station's FleetModel), that is used."""
+        object with `on_state_refused` (the ground station's FleetModel), that is used.
+        `ignore_id`: drop this vehicle's states unchecked (an agent's own, echoed back)."""
         key = keys.all_states(self.fleet) if vehicle_id is None else keys.state(self.fleet, vehicle_id)
         if on_refused is None:
             on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
@@ -245,6 +247,8 @@ class Mesh:
                     raise DecodeError(f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}")
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
+                return
+            if state.vehicle_id == ignore_id:
                 return
             if checker is not None:
                 verdict = checker.admit_state(state, recv_ns)

@@ -19,7 +19,7 @@ Layouts (all little-endian, packed; `<` struct codes):
         tag (Ed25519 of vehicle_id over these bytes AND the SHA-256 of the command answered)
     Event         type 4 v1  <BBHQBB120s [+ 64s]      134 bytes, 198 signed
         type, version, vehicle_id, stamp_ns, severity, kind, text (utf-8, zero padded), [sig]
-    Roster        type 5 v1  <BB32sIQH + n*<BH32s + 64s  52 bytes + 35 per member + 64 sig
+    Roster        type 5 v1  <BB32sIQH + n*<BH32s + 64s  48 bytes + 35 per member + 64 sig
         type, version, fleet (ascii, zero padded), roster version, stamp_ns, n_members,
         members[n] (role, id, Ed25519 public key), sig (the fleet authority's Ed25519)
 
@@ -567,11 +567,7 @@ class Roster:
         for i in range(n):
             role, mid, key = cls._MEMBER.unpack_from(data, cls._HEAD.size + i * cls._MEMBER.size)
             members.append(Member(_enum(Role, "role", role), mid, key))  # type: ignore[arg-type]
-        try:
-            fleet = _text_field(fleet_raw, "fleet")
-        except DecodeError:
-            raise
-        msg = cls(fleet=fleet, version=version, stamp_ns=stamp_ns, members=tuple(members),
+        msg = cls(fleet=_text_field(fleet_raw, "fleet"), version=version, stamp_ns=stamp_ns, members=tuple(members),
                   sig=data[-TAG_BYTES:])  # fmt: skip
         msg.validate()
         return msg

@@ -190,6 +190,54 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
     assert len(security) <= limit, f"{len(security)} SECURITY events: not rate-limited"
 
 
+def swap(station: Station, a_ne, b_ne, forger_port: int | None) -> float:
+    """Vehicle 1 flies from a to b and vehicle 2 from b to a; closest approach as the station saw it
+    (verified states only), optionally with a forger showing both LANDED elsewhere all along."""
+
+    def attack(seq: int, now_ns: int):
+        for vid, pos in ((1, (40.0, -30.0, 0.0)), (2, (-40.0, 30.0, 0.0))):
+            yield keys.state(FLEET, vid), VehicleState(vid, seq, now_ns, pos, (0.0, 0.0, 0.0), 0.0).encode()
+
+    res = station.send(Command(CommandKind.HOLD, new_nonce(), 0, targets=(1, 2)), (1, 2))
+    assert res.ok, res.summary()
+    min_sep_m = math.inf
+    forger = Forger(forger_port, attack) if forger_port else None
+    try:
+        if forger is not None:
+            forger.__enter__()
+        for vid, (n, e) in ((1, b_ne), (2, a_ne)):
+            res = station.send(Command.goto_local(n, e, -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(vid,)), (vid,))
+            assert res.ok, res.summary()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            v = station.views()
+            min_sep_m = min(min_sep_m, float(np.linalg.norm(np.subtract(v[1].state.pos_ned_m, v[2].state.pos_ned_m))))
+            done = all(v[i].mode is Mode.HOLDING and np.hypot(*np.subtract(v[i].state.pos_ned_m[:2], goal)) < 1.0
+                       for i, goal in ((1, b_ne), (2, a_ne)))  # fmt: skip
+            if done:
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError(f"swap did not finish: {station.views()}")
+    finally:
+        if forger is not None:
+            forger.__exit__()
+    return min_sep_m
+
+
+def test_a_forger_does_not_squeeze_a_swap(keyed) -> None:
+    """The issue's squeezed swap: the same swap with and without a forger showing both vehicles
+    LANDED elsewhere; the closest approaches agree within 0.5 m."""
+    station: Station = keyed["station"]
+    a_ne, b_ne = (0.0, 0.0), V2_AT
+    swap(station, b_ne, a_ne, None)  # back to the start: vehicle 1 at a, vehicle 2 at b
+    clean_m = swap(station, a_ne, b_ne, None)
+    swap(station, b_ne, a_ne, None)  # and back again, to fly the very same swap
+    attacked_m = swap(station, a_ne, b_ne, keyed["port"])
+    print(f"swap closest approach: {clean_m:.2f} m without a forger, {attacked_m:.2f} m with one")
+    assert abs(attacked_m - clean_m) <= 0.5 and attacked_m >= 3.0
+
+
 def test_recorded_states_resent_later_are_refused(keyed) -> None:
     station: Station = keyed["station"]
     recorded = list(keyed["raw_states"])
