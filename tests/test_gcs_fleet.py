@@ -138,3 +138,26 @@ def test_link_health_edge_cases():
 def test_config_rejects_bad_values(field, bad):
     with pytest.raises(ValueError, match=field):
         FleetConfig(**{field: bad})
+
+
+def test_refused_states_mark_a_known_vehicle_and_never_create_a_phantom() -> None:
+    m = FleetModel(FleetConfig(unverified_window_s=3.0))
+    m.on_presence(1, True, 0)
+    m.on_state(state(1, 1), 0)
+    m.on_state_refused(1, "forged", 1 * NS_PER_S)
+    for vid in range(100, 5100):  # 5000 phantom ids whose states the mesh refused
+        m.on_state_refused(vid, "unknown signer", 1 * NS_PER_S)
+    snap = m.snapshot(2 * NS_PER_S).by_id()
+    assert set(snap) == {1} and m.phantom_refusals == 5000
+    assert snap[1].unverified and snap[1].refused_states == 1 and snap[1].refused_cause == "forged"
+    assert not m.snapshot(5 * NS_PER_S).by_id()[1].unverified  # the mark fades after the window
+
+
+def test_vehicles_never_present_are_forgotten_but_present_ones_stay() -> None:
+    m = FleetModel(FleetConfig(forget_after_s=30.0))
+    m.on_presence(1, True, 0)
+    m.on_state(state(1, 1), 0)
+    m.on_state(state(7, 1), 0)  # states, but never a liveliness token (open mode phantom)
+    assert m.ids() == [1, 7]
+    m.on_presence(1, False, 1 * NS_PER_S)  # a real vehicle that left stays, shown LOST
+    assert [v.vehicle_id for v in m.snapshot(31 * NS_PER_S).vehicles] == [1]
