@@ -128,7 +128,8 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
             auth = load_auth(str(paths[0]), fleet=cfg.fleet)
             key_args = lambda vid: ["--key-file", str(authority.member_path(Role.VEHICLE, vid))]  # noqa: E731
             print(f"covey demo: keyed mode: a throwaway fleet authority signed keys for {cfg.vehicles} "
-                  f"vehicles and station {gcs_cfg.gcs_id} in {keys_dir} (deleted on exit)", flush=True)  # fmt: skip
+                  f"vehicles and stations {gcs_cfg.gcs_id} (this one) and {cli_station} (for covey cmd) "
+                  f"in {keys_dir} (deleted on exit)", flush=True)  # fmt: skip
         else:
             print("covey demo: OPEN MODE (--open-mode): commands, states and events are NOT "
                   "authenticated; anyone on the mesh can fly these vehicles", flush=True)  # fmt: skip
