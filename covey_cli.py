@@ -20,7 +20,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "record": ("groundstation.recording_cli", "record_cli", "record the mesh to MCAP (--info FILE summarises)"),
     "foxglove": ("groundstation.foxglove_bridge", "cli", "serve the live fleet to Foxglove (WebSocket), same channels as a recording"),
     "replay": ("groundstation.recording_cli", "replay_cli", "replay an MCAP recording into a fleet"),
-    "keygen": ("comms.auth", "keygen_cli", "create a fleet key for signed commands"),
+    "keygen": ("groundstation.keygen_cli", "keygen_cli", "fleet authority: init, add/revoke members, push the roster"),
     "fleet-sim": ("agent.fleet_sim", "cli", "simulate hundreds of vehicles in one process"),
     "bench": ("bench.__main__", "cli", "run the benchmark suite"),
 }

@@ -23,6 +23,7 @@ from agent.failsafe import FailsafeConfig, Failsafes
 from agent.guidance import Guidance, GuidanceConfig, heading_towards
 from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
 from agent.neighbours import NeighbourConfig, NeighbourTable
+from comms.gate import GateConfig, Summaries
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import (
@@ -121,9 +122,14 @@ class Agent:
         self.on_position: Callable[[tuple[float, float, float]], None] | None = None
         self._last_link_stats_s = clock_s()
         self.presence = mesh.presence()
-        mesh.subscribe_states(lambda s, _t: self.table.update(s, self.clock_s()), link=link)
+        # Refused commands: one SECURITY event per cause a second (a flood must not become one).
+        self._refusals = Summaries(lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING))
         if getattr(mesh, "auth", None) is not None:
             mesh.auth.on_reject = self._on_auth_refusal  # refused before handle_command runs
+            # Refused neighbour states (forged, replayed...): one SECURITY event per cause a second.
+            mesh.on_security = lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING, quiet=True)
+        mesh.subscribe_states(lambda s, _t: self.table.update(s, self.clock_s()), link=link, ignore_id=self.vid,
+                              gate=GateConfig(min_interval_s=cfg.neighbours.verify_min_interval_s))  # fmt: skip
         # Answer commands before announcing presence: whoever sees us alive can command us.
         mesh.serve_commands(self.vid, self.handle_command)
         mesh.declare_vehicle(self.vid)
@@ -142,8 +148,10 @@ class Agent:
             log.warning("could not publish event: %s", exc)
 
     def _on_auth_refusal(self, cmd: Command, _vehicle_id: int, reason: str) -> None:
-        self._event(f"refused {cmd.kind.name.lower()} from station {cmd.source_id}: {reason}",
-                    EventKind.SECURITY, Severity.WARNING)  # fmt: skip
+        cause = reason.split(":", 1)[0]
+        self._refusals.note(cause, self.mesh.clock_ns(), lambda n: (
+            f"refused {cmd.kind.name.lower()} from station {cmd.source_id}: {reason}" if n == 1
+            else f"refused {n} commands ({cause}); latest {cmd.kind.name.lower()} from station {cmd.source_id}"))
 
     # -- commands (Zenoh thread) ---------------------------------------------------------------
     def handle_command(self, cmd: Command) -> CommandAck:

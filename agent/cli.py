@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import math
 import signal
+import sys
 import threading
 import time
 
@@ -20,7 +21,7 @@ from agent.app import Agent, AgentConfig
 from agent.backends.base import VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
-from comms.auth import CommandAuth, load_auth
+from comms.auth import FleetAuth, load_auth
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import POSITION_LIMIT_M
@@ -74,6 +75,7 @@ def add_mesh_args(p: argparse.ArgumentParser) -> None:
                    help=f"Zenoh endpoint to join (repeatable; default tcp/127.0.0.1:{DEFAULT_PORT})")  # fmt: skip
     g.add_argument("--listen", action="append", default=None, help="endpoint to listen on (default tcp/127.0.0.1:0)")
     g.add_argument("--mesh-mode", choices=["peer", "client", "router"], default="peer")
+    # A bad endpoint (port 99999) or --zenoh-config is refused in one line by MeshConfig/Mesh.
     g.add_argument("--zenoh-config", default=None, help="full Zenoh JSON5 config file (TLS, auth, ACL)")
 
 
@@ -112,8 +114,8 @@ def parser() -> argparse.ArgumentParser:
                    help="publish guidance traces so `covey replay --policy` can replay the flight exactly")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     p.add_argument("--key-file", default=None,
-                   help="fleet key for signed commands (covey keygen); or $COVEY_FLEET_KEY_FILE / "
-                   "$COVEY_FLEET_KEY. Without a key the agent runs in open mode")  # fmt: skip
+                   help="this vehicle's key file (covey keygen add vehicle N); or $COVEY_FLEET_KEY_FILE. "
+                   "Without one the agent runs in OPEN MODE (nothing authenticated; tests only)")  # fmt: skip
     add_mesh_args(p)
     return p
 
@@ -149,7 +151,7 @@ def make_link(spec: str, vehicle_id: int, receiver_pos=None):
 
 
 def main(cfg: AgentConfig, vehicle: str = "sim", start_ne_m=(0.0, 0.0), stop: threading.Event | None = None,
-         duration_s: float | None = None, auth: CommandAuth | None = None) -> int:  # fmt: skip
+         duration_s: float | None = None, auth: FleetAuth | None = None) -> int:  # fmt: skip
     stop = stop or threading.Event()
     clock_s = time.monotonic
     with contextlib.ExitStack() as stack:
@@ -184,9 +186,14 @@ def cli(argv: list[str]) -> int:
         p.error(f"--duration-s must be a positive number of seconds, got {args.duration_s}")
     try:
         cfg = config_from_args(args)
-        auth = load_auth(args.key_file)  # FleetKeyError (a ValueError) says what is wrong
     except ValueError as exc:
-        p.error(str(exc))
+        _die(str(exc))
+    try:
+        auth = load_auth(args.key_file, fleet=cfg.mesh.fleet)
+    except ValueError as exc:  # FleetKeyError: empty path, unreadable, malformed, wrong fleet
+        _die(str(exc))
+    if auth is not None and not (auth.role.name == "VEHICLE" and auth.member_id == cfg.vehicle_id):
+        _die(f"--key-file is {auth.key.name}'s key, not vehicle {cfg.vehicle_id}'s")
     cfg = dataclasses.replace(cfg, open_mode=auth is None)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -194,6 +201,12 @@ def cli(argv: list[str]) -> int:
     try:
         return main(cfg, vehicle=args.vehicle, start_ne_m=args.start, stop=stop, duration_s=args.duration_s,
                     auth=auth)
-    except (ValueError, FileNotFoundError) as exc:
-        p.error(str(exc))
+    except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad --zenoh-config, busy port
+        _die(str(exc))
     return 2
+
+
+def _die(message: str) -> int:
+    """A set-up error: one line on stderr, exit status 2, no traceback."""
+    print(f"covey agent: error: {' '.join(message.split())}", file=sys.stderr)
+    raise SystemExit(2)

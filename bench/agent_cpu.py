@@ -31,13 +31,27 @@ AGENT_ID = 1
 TICK_HZ = 10.0
 
 
-def role_neighbours(port: int) -> None:
-    """Publish NEIGHBOURS vehicles on a ring around the agent's latest state, at 10 Hz."""
-    from comms.mesh import Mesh
-    from comms.schema import Mode, VehicleState
+def neighbour_ids() -> list[int]:
+    return [100 + k for k in range(NEIGHBOURS)]
 
+
+def role_neighbours(port: int, keys_dir: str | None = None) -> None:
+    """Publish NEIGHBOURS vehicles on a ring around the agent's latest state, at 10 Hz; with
+    `keys_dir` (a bench fleet, bench/trust.py) each state is signed with its vehicle's key."""
+    from comms import keys
+    from comms.auth import load_auth
+    from comms.mesh import Mesh
+    from comms.schema import Mode, Role, VehicleState
+
+    signers = {}
+    if keys_dir is not None:
+        from comms.authority import Authority
+
+        fleet = Authority(keys_dir)
+        signers = {v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in neighbour_ids()}
     latest: list[VehicleState | None] = [None]
-    with Mesh(embedded_peer(port, fleet=FLEET)) as mesh:
+    auth = load_auth(str(Authority(keys_dir).member_path(Role.STATION, 1))) if keys_dir else None
+    with Mesh(embedded_peer(port, fleet=FLEET), auth=auth) as mesh:
         mesh.subscribe_states(lambda s, _t: latest.__setitem__(0, s), vehicle_id=AGENT_ID)
         print("READY", flush=True)
         period_s, next_s, seq = 1.0 / TICK_HZ, time.monotonic(), 0
@@ -49,7 +63,11 @@ def role_neighbours(port: int) -> None:
             for k in range(NEIGHBOURS):
                 r_m, th = 6.0 + 8.0 * k / NEIGHBOURS, 2 * math.pi * k / NEIGHBOURS + 0.3
                 pos = (c[0] + r_m * math.cos(th), c[1] + r_m * math.sin(th), c[2])
-                mesh.publish_state(VehicleState(100 + k, seq, time.time_ns(), pos, tuple(v), 0.0, mode=Mode.GOTO, armed=True))
+                st = VehicleState(100 + k, seq, time.time_ns(), pos, tuple(v), 0.0, mode=Mode.GOTO, armed=True)
+                if signers:
+                    mesh.session.put(keys.state(FLEET, st.vehicle_id), signers[st.vehicle_id].sign_state(st).encode())
+                else:
+                    mesh.publish_state(st)
             next_s += period_s
             time.sleep(max(0.0, next_s - time.monotonic()))
 
@@ -135,20 +153,30 @@ def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
     return out
 
 
-def agent_flight(quick: bool, decision_period_s: float | None = None) -> dict:
+def agent_flight(quick: bool, decision_period_s: float | None = None, keys_dir: str | None = None) -> dict:
     """One real `covey agent` with 10 neighbours: CPU and tick jitter landed, then flying a goto.
-    `decision_period_s` None: the policy's trained period (the default); 0: every tick."""
+    `decision_period_s` None: the policy's trained period (the default); 0: every tick.
+    `keys_dir`: a keyed fleet (bench/trust.py): every state signed and verified."""
+    from comms.auth import load_auth
     from comms.commands import new_nonce
     from comms.mesh import Mesh
-    from comms.schema import Command, Mode
+    from comms.schema import Command, Mode, Role
 
     window_s = 6.0 if quick else 25.0
     port = free_tcp_port()
     log = StateLog()
     extra = [] if decision_period_s is None else ["--decision-period-s", str(decision_period_s)]
-    with Mesh(embedded_router(port, fleet=FLEET)) as mesh, common.Children() as kids:
+    auth, nb_extra = None, []
+    if keys_dir is not None:
+        from comms.authority import Authority
+
+        fleet = Authority(keys_dir)
+        auth = load_auth(str(fleet.member_path(Role.STATION, 1)))
+        extra += ["--key-file", str(fleet.member_path(Role.VEHICLE, AGENT_ID))]
+        nb_extra = ["--keys-dir", keys_dir]
+    with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.Children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
-        nb = kids.start("-m", "bench.agent_cpu", "--role", "neighbours", "--port", str(port))
+        nb = kids.start("-m", "bench.agent_cpu", "--role", "neighbours", "--port", str(port), *nb_extra)
         kids.wait_line(nb, "READY")
         agent = kids.start("-m", "covey_cli", "agent", "--id", str(AGENT_ID), "--fleet", FLEET, "--connect", f"tcp/127.0.0.1:{port}",
                            "--no-gcs-failsafe", "--geofence-radius-m", "0", "--tick-hz", str(TICK_HZ), "--state-hz", str(TICK_HZ),
@@ -193,8 +221,9 @@ if __name__ == "__main__":
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--role", default="bench", choices=["bench", "neighbours"])
     ap.add_argument("--port", type=int, default=0)
+    ap.add_argument("--keys-dir", default=None, help="neighbours: sign with this bench fleet's keys")
     a = ap.parse_args()
     if a.role == "neighbours":
-        role_neighbours(a.port)
+        role_neighbours(a.port, a.keys_dir)
     else:
         main(a.quick)

@@ -34,8 +34,8 @@ from comms.session import embedded_peer, embedded_router, free_tcp_port
 FLEET = "bench"
 RATE_HZ = 10.0
 STATE_BYTES = 64
-CMD_BYTES = 83  # a broadcast Command: 51-byte header, no targets, 32-byte tag
-ACK_BYTES = 150
+CMD_BYTES = 115  # a broadcast Command: 51-byte header, no targets, 64-byte signature
+ACK_BYTES = 182
 
 
 # -- child roles --------------------------------------------------------------------------------

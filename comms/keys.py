@@ -6,6 +6,7 @@
     covey/<fleet>/v/<id>/alive    liveliness token of a vehicle's agent
     covey/<fleet>/v/<id>/event    pub/sub Event
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
+    covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
 
 Ground-station tokens carry the station id so that two stations can come and go independently
 (a shared key would make one station's leave look like all of them leaving).
@@ -87,6 +88,11 @@ def gcs_alive(fleet: str, gcs_id: int) -> str:
 
 def all_gcs_alive(fleet: str) -> str:
     return f"{ROOT}/{check_fleet(fleet)}/gcs/*/alive"
+
+
+def roster(fleet: str) -> str:
+    """Where a new fleet roster is pushed, and where every keyed member answers with its own."""
+    return f"{ROOT}/{check_fleet(fleet)}/roster"
 
 
 def everything(fleet: str) -> str:

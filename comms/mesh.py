@@ -4,6 +4,12 @@ Telemetry is latest-wins pub/sub; commands are request/reply with a timeout and 
 ack per vehicle; presence is Zenoh liveliness. Every incoming payload is decoded at this boundary:
 a malformed one is counted and reported, never raised into Zenoh's callback thread, so one bad
 message cannot kill a process.
+
+Keyed mode (`auth`, comms/auth.py): every state, event, command and ack this process sends is
+signed with its own key; every state and event it receives passes a comms/gate.py Gate first
+(unsigned, forged, stale, replayed and out-of-order ones are dropped and counted); newer rosters
+pushed on `keys.roster` are applied at once, and this process answers roster queries with its
+own, so a member that missed a push catches up when it (re)joins.
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ from typing import Any
 import zenoh
 
 from comms import keys
+from comms.auth import FleetKeyError, command_digest
 from comms.commands import CommandResult, Outcome, OutcomeStatus
+from comms.gate import SKIPPED, Gate, GateConfig
 from comms.presence import Presence
 from comms.schema import (
     AckResult,
@@ -28,6 +36,7 @@ from comms.schema import (
     DecodeError,
     Event,
     Mode,
+    Roster,
     VehicleState,
 )
 from comms.session import MeshConfig, open_session
@@ -38,6 +47,8 @@ StateCallback = Callable[[VehicleState, int], None]
 """Called with (state, receive stamp in ns) on a Zenoh thread."""
 EventCallback = Callable[[Event, int], None]
 CommandHandler = Callable[[Command], CommandAck]
+RefusedCallback = Callable[[int, str, int], None]
+"""Called with (claimed vehicle id, refusal cause, receive stamp in ns) for a refused state."""
 
 
 @dataclass
@@ -50,6 +61,10 @@ class MeshStats:
     commands_served: int = 0
     decode_errors: int = 0
     last_decode_error: str = ""
+    states_refused: int = 0
+    """States dropped by the keyed-mode gate (unsigned, forged, stale, replayed, unknown)."""
+    events_refused: int = 0
+    rosters_applied: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def bump(self, name: str, n: int = 1) -> None:
@@ -67,18 +82,32 @@ class Mesh:
         clock_ns: Callable[[], int] = time.time_ns,
         auth: Any = None,
     ) -> None:
-        """`auth` is a comms.auth.CommandAuth (signs and checks commands and acks), or None
-        for open mode."""
+        """`auth` is a comms.auth.FleetAuth (this member's key and the roster), or None for
+        open mode. Raises FleetKeyError if the key is for another fleet."""
+        if auth is not None and auth.fleet != cfg.fleet:
+            raise FleetKeyError(f"the key file is for fleet {auth.fleet!r}, but this process joins "
+                                f"fleet {cfg.fleet!r}")  # fmt: skip
         self.cfg = cfg
         self.fleet = cfg.fleet
         self.clock_ns = clock_ns
         self.auth = auth
         self.stats = MeshStats()
+        self.gates: list[Gate] = []
+        """Every receive gate of this process (keyed mode), for counters."""
+        self.on_security: Callable[[str], None] | None = None
+        """Gets one-line summaries of refused states/events (rate-limited per cause); the agent
+        publishes them as SECURITY events. Default: a log warning."""
         self._session: zenoh.Session | None = open_session(cfg)
         self._publishers: dict[int, zenoh.Publisher] = {}
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._error_log_ns = 0
+        if auth is not None:
+            try:
+                self._follow_roster()
+            except BaseException:
+                self.close()
+                raise
 
     # -- lifecycle -------------------------------------------------------------------------
     @property
@@ -119,8 +148,61 @@ class Mesh:
             self._error_log_ns = now
             log.warning("dropped a malformed message on %s: %s", where, exc)
 
+    # -- keyed mode ------------------------------------------------------------------------
+    def _summary(self, line: str) -> None:
+        if self.on_security is not None:
+            self.on_security(line)
+        else:
+            log.warning("SECURITY: %s", line)
+
+    def new_gate(self, cfg: GateConfig = GateConfig(), what: str = "state") -> Gate:
+        gate = Gate(self.auth, cfg, on_summary=self._summary, what=what)
+        self.gates.append(gate)
+        return gate
+
+    def _follow_roster(self) -> None:
+        key = keys.roster(self.fleet)
+
+        def offer(payload: bytes, where: str) -> None:
+            try:
+                roster = Roster.decode(payload)
+            except DecodeError as exc:
+                self._bad(where, exc)
+                return
+            if roster.version <= self.auth.roster.version:
+                return  # the common case (re-pushes, answers from members): no verification
+            problem = self.auth.apply_roster(roster)
+            if problem:
+                self._summary(f"refused roster v{roster.version}: {problem}"[:119])
+            else:
+                self.stats.bump("rosters_applied")
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            offer(sample.payload.to_bytes(), str(sample.key_expr))
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                query.reply(key, self.auth.roster.encode())
+            except Exception as exc:  # noqa: BLE001 - the querier may be gone
+                log.debug("could not answer a roster query: %s", exc)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                offer(reply.ok.payload.to_bytes(), key)
+
+        self._keep(self.session.declare_subscriber(key, on_sample))
+        self._keep(self.session.declare_queryable(key, on_query))
+        # Catch up with a roster pushed while this process was away (answers arrive on a Zenoh thread).
+        self.session.get(key, on_reply, target=zenoh.QueryTarget.ALL, timeout=5.0)
+
+    def publish_roster(self, roster: Roster) -> None:
+        """Push a roster (the fleet authority's tool: covey keygen push). Members check it."""
+        self.session.put(keys.roster(self.fleet), roster.encode())
+
     # -- states ----------------------------------------------------------------------------
     def publish_state(self, state: VehicleState) -> None:
+        if self.auth is not None:
+            state = self.auth.sign_state(state)
         payload = state.encode()
         pub = self._publishers.get(state.vehicle_id)
         if pub is None:
@@ -134,12 +216,27 @@ class Mesh:
         self.stats.bump("states_sent")
 
     def subscribe_states(
-        self, callback: StateCallback, vehicle_id: int | None = None, link: Any = None
+        self,
+        callback: StateCallback,
+        vehicle_id: int | None = None,
+        link: Any = None,
+        *,
+        on_refused: RefusedCallback | None = None,
+        gate: GateConfig = GateConfig(),
+        ignore_id: int | None = None,
     ) -> Any:
         """Call `callback(state, recv_ns)` for every valid state. `link` (comms.link) stands
         between the wire and the callback and emulates a radio per sender: it may drop, delay or
-        thin states, and calls `link.offer(state, recv_ns, deliver)` instead of the callback."""
+        thin states, and calls `link.offer(state, recv_ns, deliver)` instead of the callback.
+
+        Keyed mode: only states that pass a Gate(`gate`) reach the callback; `on_refused(vid,
+        cause, recv_ns)` hears of the others. If not given and `callback` is a bound method of an
+        object with `on_state_refused` (the ground station's FleetModel), that is used.
+        `ignore_id`: drop this vehicle's states unchecked (an agent's own, echoed back)."""
         key = keys.all_states(self.fleet) if vehicle_id is None else keys.state(self.fleet, vehicle_id)
+        if on_refused is None:
+            on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
+        checker = self.new_gate(gate) if self.auth is not None else None
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
@@ -151,6 +248,17 @@ class Mesh:
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
                 return
+            if state.vehicle_id == ignore_id:
+                return
+            if checker is not None:
+                verdict = checker.admit_state(state, recv_ns)
+                if verdict is SKIPPED:
+                    return
+                if verdict is not None:
+                    self.stats.bump("states_refused")
+                    if on_refused is not None:
+                        _guarded(on_refused, state.vehicle_id, verdict.value, recv_ns)
+                    return
             self.stats.bump("states_received")
             if link is None:
                 _guarded(callback, state, recv_ns)
@@ -161,18 +269,25 @@ class Mesh:
 
     # -- events ----------------------------------------------------------------------------
     def publish_event(self, event: Event) -> None:
+        if self.auth is not None:
+            event = self.auth.sign_event(event)
         self.session.put(keys.event(self.fleet, event.vehicle_id or 1), event.encode())
 
     def event(self, vehicle_id: int, text: str, **kw: Any) -> None:
         self.publish_event(Event(vehicle_id=vehicle_id, stamp_ns=self.clock_ns(), text=text, **kw))
 
     def subscribe_events(self, callback: EventCallback) -> Any:
+        checker = self.new_gate(what="event") if self.auth is not None else None
+
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
             try:
                 ev = Event.decode(sample.payload.to_bytes())
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
+                return
+            if checker is not None and checker.admit_event(ev, recv_ns) is not None:
+                self.stats.bump("events_refused")
                 return
             self.stats.bump("events_received")
             _guarded(callback, ev, recv_ns)
@@ -200,10 +315,12 @@ class Mesh:
         return pres
 
     # -- commands --------------------------------------------------------------------------
-    def serve_commands(self, vehicle_id: int, handler: CommandHandler) -> Any:
+    def serve_commands(self, vehicle_id: int, handler: CommandHandler, *, auth: Any = None) -> Any:
         """Answer commands for `vehicle_id`; `handler` returns the ack (never raise from it:
-        an exception becomes a FAILED ack with the exception text)."""
+        an exception becomes a FAILED ack with the exception text). `auth`: that vehicle's own
+        FleetAuth when one process serves several vehicles (benches); default the mesh's."""
         reply_key = keys.cmd(self.fleet, vehicle_id)
+        auth = auth if auth is not None else self.auth
         ack_key = keys.ack(self.fleet, vehicle_id)
 
         def ack(nonce: int, result: AckResult, reason: str) -> CommandAck:
@@ -218,9 +335,18 @@ class Mesh:
                 answer = ack(0, AckResult.REJECTED, f"malformed command: {exc}")
             else:
                 if not command.applies_to(vehicle_id):
+                    if str(query.key_expr) != reply_key:
+                        return  # a multi-vehicle query (v/*/cmd) for others: not ours to answer
+                    # Sent to this vehicle by name but addressed to others: a retargeting attempt
+                    # or a station bug. Say so, signed, instead of staying silent.
+                    why = f"not for this vehicle: addressed to {', '.join(map(str, command.targets[:8]))}"
+                    if auth is not None:
+                        auth.refuse(command, vehicle_id, why)
+                    answer = ack(command.nonce, AckResult.REJECTED, why)
+                    self._answer(query, reply_key, ack_key, answer, payload, auth)
                     return
                 self.stats.bump("commands_served")
-                problem = self.auth.check_command(command, vehicle_id) if self.auth else None
+                problem = auth.check_command(command, vehicle_id) if auth is not None else None
                 if problem:
                     answer = ack(command.nonce, AckResult.REJECTED, problem)
                 else:
@@ -229,35 +355,43 @@ class Mesh:
                     except Exception as exc:  # noqa: BLE001 - a handler bug must not kill the agent
                         log.exception("command handler failed")
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
-            if self.auth is not None:
-                answer = self.auth.sign_ack(answer)
-            payload = answer.encode()
-            try:
-                query.reply(reply_key, payload)
-            except Exception as exc:  # noqa: BLE001 - the querier may be gone
-                log.warning("could not reply to a command: %s", exc)
-            try:  # a copy for recorders: replies are seen only by the querier
-                self.session.put(ack_key, payload)
-            except Exception as exc:  # noqa: BLE001
-                log.warning("could not publish the ack copy: %s", exc)
+            self._answer(query, reply_key, ack_key, answer, payload, auth)
 
         return self._keep(self.session.declare_queryable(reply_key, on_query))
 
+    def _answer(self, query: zenoh.Query, reply_key: str, ack_key: str, answer: CommandAck,
+                command_payload: bytes, auth: Any) -> None:  # fmt: skip
+        if auth is not None:
+            answer = auth.sign_ack(answer, command_digest(command_payload))
+        payload = answer.encode()
+        try:
+            query.reply(reply_key, payload)
+        except Exception as exc:  # noqa: BLE001 - the querier may be gone
+            log.warning("could not reply to a command: %s", exc)
+        try:  # a copy for recorders: replies are seen only by the querier
+            self.session.put(ack_key, payload)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("could not publish the ack copy: %s", exc)
+
     def observe_commands(
-        self, on_command: Callable[[Command, int], None], on_ack: Callable[[CommandAck, int], None]
+        self,
+        on_command: Callable[[Command, int, bytes], None],
+        on_ack: Callable[[CommandAck, int], None],
     ) -> None:
-        """See every command sent to the fleet, from any station, and every vehicle's ack copy
-        (`v/<id>/ack`), each with its receive stamp. A silent queryable (complete=False) sees each
-        command query and never replies, so the vehicles' answers to the sender are untouched."""
+        """See every command sent to the fleet, from any station, with its receive stamp and the
+        digest its acks are bound to (`auth.command_digest`), and every vehicle's ack copy
+        (`v/<id>/ack`). A silent queryable (complete=False) sees each command query and never
+        replies, so the vehicles' answers to the sender are untouched."""
 
         def on_query(query: zenoh.Query) -> None:
             recv_ns = self.clock_ns()
+            payload = query.payload.to_bytes() if query.payload else b""
             try:
-                command = Command.decode(query.payload.to_bytes() if query.payload else b"")
+                command = Command.decode(payload)
             except DecodeError as exc:
                 self._bad(str(query.key_expr), exc)
                 return
-            _guarded(on_command, command, recv_ns)
+            _guarded(on_command, command, recv_ns, command_digest(payload))
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
@@ -288,6 +422,7 @@ class Mesh:
         if self.auth is not None:
             command = self.auth.sign_command(command)
         payload = command.encode()
+        digest = command_digest(payload)
         expected = set(command.targets if expect is None else expect)
         waiting = set(expected)
         key = (
@@ -297,6 +432,7 @@ class Mesh:
         )
         t0 = time.monotonic()
         outcomes: dict[int, Outcome] = {}
+        verified: set[int] = set()  # a forged ack arriving later must not overwrite a real one
         errors: list[str] = []
         replies = self.session.get(
             key,
@@ -316,12 +452,16 @@ class Mesh:
                 self._bad(str(reply.ok.key_expr), exc)
                 errors.append(f"malformed ack from {reply.ok.key_expr}: {exc}")
                 continue
-            problem = self.auth.check_ack(ack, command) if self.auth else None
+            problem = self.auth.check_ack(ack, command, digest) if self.auth else None
             if ack.nonce != command.nonce and ack.nonce != 0:
-                problem = f"ack nonce {ack.nonce} does not match command nonce {command.nonce}"
+                problem = f"forged ack: nonce {ack.nonce} does not match command nonce {command.nonce}"
             if problem:
-                outcomes[ack.vehicle_id] = Outcome(ack.vehicle_id, OutcomeStatus.ERROR, problem, ack, latency_s)
+                errors.append(f"vehicle {ack.vehicle_id}: {problem}")
+                log.warning("vehicle %d: %s", ack.vehicle_id, problem)
+                if ack.vehicle_id not in outcomes or ack.vehicle_id not in verified:
+                    outcomes[ack.vehicle_id] = Outcome(ack.vehicle_id, OutcomeStatus.ERROR, problem, ack, latency_s)
                 continue
+            verified.add(ack.vehicle_id)
             outcomes[ack.vehicle_id] = Outcome.from_ack(ack, latency_s)
             waiting.discard(ack.vehicle_id)
             if expected and not waiting:  # O(1) per ack: a 500-vehicle broadcast stays linear

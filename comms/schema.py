@@ -7,16 +7,23 @@ out-of-range fields. Nothing else escapes a decoder.
 
 Layouts (all little-endian, packed; `<` struct codes):
 
-    VehicleState  type 1 v1  <BBHIQ3f3ff3fBBHf       64 bytes
+    VehicleState  type 1 v1  <BBHIQ3f3ff3fBBHf [+ 64s]  64 bytes, 128 signed
         type, version, vehicle_id, seq, stamp_ns, pos_ned_m[3], vel_ned_m_s[3], heading_rad,
-        goal_ned_m[3], mode, armed, flags, battery_pct
-    Command       type 2 v1  <BBQQHB3dIH + n*H + 32s  header 51 bytes + 2 per target + 32 tag
+        goal_ned_m[3], mode, armed, flags, battery_pct, [sig: Ed25519 of vehicle_id]
+    Command       type 2 v2  <BBQQHB3dIH + n*H + 64s  header 51 bytes + 2 per target + 64 tag
         type, version, nonce, stamp_ns, source_id, kind, params[3] (float64), seq, n_targets,
-        targets[n_targets] (empty = the whole fleet), tag (HMAC-SHA256 or zeros in open mode)
-    CommandAck    type 3 v1  <BBHQQBB96s32s           150 bytes
-        type, version, vehicle_id, nonce, stamp_ns, result, mode, reason (utf-8, zero padded), tag
-    Event         type 4 v1  <BBHQBB120s              134 bytes
-        type, version, vehicle_id, stamp_ns, severity, kind, text (utf-8, zero padded)
+        targets[n_targets] (empty = the whole fleet), tag (Ed25519 of station source_id, or
+        zeros in open mode)
+    CommandAck    type 3 v2  <BBHQQBB96s64s           182 bytes
+        type, version, vehicle_id, nonce, stamp_ns, result, mode, reason (utf-8, zero padded),
+        tag (Ed25519 of vehicle_id over these bytes AND the SHA-256 of the command answered)
+    Event         type 4 v1  <BBHQBB120s [+ 64s]      134 bytes, 198 signed
+        type, version, vehicle_id, stamp_ns, severity, kind, text (utf-8, zero padded), [sig]
+    Roster        type 5 v1  <BB32sIQH + n*<BH32s + 64s  48 bytes + 35 per member + 64 sig
+        type, version, fleet (ascii, zero padded), roster version, stamp_ns, n_members,
+        members[n] (role, id, Ed25519 public key), sig (the fleet authority's Ed25519)
+
+Signatures are made and checked in comms/auth.py; this module only carries their bytes.
 """
 
 from __future__ import annotations
@@ -28,12 +35,19 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 SCHEMA_VERSION = 1
+"""Version of VehicleState, Event and Roster (the signature is an optional trailer)."""
+SIGNED_SCHEMA_VERSION = 2
+"""Version of Command and CommandAck: v2 carries a 64-byte Ed25519 tag (v1 had HMAC-SHA256)."""
 MAX_VEHICLE_ID = 65000
 """Vehicle ids are 1..MAX_VEHICLE_ID; 0 means 'none' (a ground station, or an undecodable sender)."""
 MAX_TARGETS = 1024
 REASON_BYTES = 96
 EVENT_TEXT_BYTES = 120
-TAG_BYTES = 32
+TAG_BYTES = 64
+"""An Ed25519 signature."""
+PUBLIC_KEY_BYTES = 32
+MAX_ROSTER_MEMBERS = 4096
+FLEET_NAME_BYTES = 32
 
 TAKEOFF_ALT_RANGE_M = (0.5, 500.0)
 LOCAL_HORIZONTAL_LIMIT_M = 100_000.0
@@ -52,6 +66,16 @@ class MsgType(enum.IntEnum):
     COMMAND = 2
     COMMAND_ACK = 3
     EVENT = 4
+    ROSTER = 5
+
+
+class Role(enum.IntEnum):
+    """What a fleet member's key may do (comms/auth.py enforces it)."""
+
+    VEHICLE = 1
+    """Signs its own states, events and acks; can never command."""
+    STATION = 2
+    """Signs commands."""
 
 
 class Mode(enum.IntEnum):
@@ -157,13 +181,18 @@ def _fit_text(text: str, size: int) -> bytes:
     return raw[:size].decode("utf-8", errors="ignore").encode("utf-8")
 
 
-def _header(data: bytes, expected: MsgType) -> None:
+def _header(data: bytes, expected: MsgType, version: int = SCHEMA_VERSION) -> None:
     if len(data) < 2:
         raise DecodeError(f"message too short for a header: {len(data)} bytes")
     if data[0] != expected:
         raise DecodeError(f"expected message type {expected.value}, got {data[0]}")
-    if data[1] != SCHEMA_VERSION:
-        raise DecodeError(f"unsupported {expected.name} version {data[1]} (this covey speaks {SCHEMA_VERSION})")
+    if data[1] != version:
+        raise DecodeError(f"unsupported {expected.name} version {data[1]} (this covey speaks {version})")
+
+
+def _check_sig(sig: bytes) -> None:
+    if len(sig) not in (0, TAG_BYTES):
+        raise DecodeError(f"signature must be empty or {TAG_BYTES} bytes, got {len(sig)}")
 
 
 @dataclass(frozen=True)
@@ -182,6 +211,8 @@ class VehicleState:
     flags: StateFlag = StateFlag.NONE
     goal_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Where guidance is flying to; meaningful only with StateFlag.HAS_GOAL."""
+    sig: bytes = b""
+    """Ed25519 signature of the vehicle over `signed_bytes()` (comms/auth.py); empty: unsigned."""
 
     TYPE: ClassVar[MsgType] = MsgType.VEHICLE_STATE
     _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ3f3ff3fBBHf")
@@ -206,22 +237,29 @@ class VehicleState:
         _enum(Mode, "mode", int(self.mode))
         if int(self.flags) & ~0xFF:
             raise DecodeError(f"flags={int(self.flags):#x} has unknown bits")
+        _check_sig(self.sig)
 
-    def encode(self) -> bytes:
-        self.validate()
+    def signed_bytes(self) -> bytes:
+        """Every byte that the signature covers (the whole state but the signature)."""
         return self._FMT.pack(
             self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.seq, self.stamp_ns,
             *self.pos_ned_m, *self.vel_ned_m_s, self.heading_rad, *self.goal_ned_m,
             int(self.mode), int(self.armed), int(self.flags), self.battery_pct,
         )  # fmt: skip
 
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.sig
+
     @classmethod
     def decode(cls, data: bytes) -> VehicleState:
         _header(data, cls.TYPE)
-        if len(data) != cls._FMT.size:
-            raise DecodeError(f"VehicleState must be {cls._FMT.size} bytes, got {len(data)}")
+        if len(data) not in (cls._FMT.size, cls._FMT.size + TAG_BYTES):
+            raise DecodeError(
+                f"VehicleState must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), got {len(data)}"
+            )
         # f: type, version, id, seq, stamp, pos[3], vel[3], heading, goal[3], mode, armed, flags, battery
-        f = cls._FMT.unpack(data)
+        f = cls._FMT.unpack_from(data)
         if f[16] not in (0, 1):
             raise DecodeError(f"armed must be 0 or 1, got {f[16]}")
         if f[17] > 0xFF:
@@ -230,6 +268,7 @@ class VehicleState:
             vehicle_id=f[2], seq=f[3], stamp_ns=f[4], pos_ned_m=f[5:8], vel_ned_m_s=f[8:11],
             heading_rad=f[11], goal_ned_m=f[12:15], mode=_enum(Mode, "mode", f[15]),
             armed=bool(f[16]), flags=StateFlag(f[17]), battery_pct=f[18],
+            sig=data[cls._FMT.size :],
         )  # fmt: skip
         msg.validate()
         return msg
@@ -249,9 +288,11 @@ class Command:
     """Who sent it (a ground station id); part of the signed bytes."""
     seq: int = 0
     tag: bytes = bytes(TAG_BYTES)
-    """HMAC-SHA256 over every byte before it; zeros in open mode (comms/auth.py)."""
+    """Ed25519 signature of station `source_id` over every byte before it (and the fleet name);
+    zeros in open mode (comms/auth.py)."""
 
     TYPE: ClassVar[MsgType] = MsgType.COMMAND
+    VERSION: ClassVar[int] = SIGNED_SCHEMA_VERSION
     _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBQQHB3dIH")
 
     @staticmethod
@@ -308,7 +349,7 @@ class Command:
     def signed_bytes(self) -> bytes:
         """Every byte that the tag covers."""
         head = self._HEAD.pack(
-            self.TYPE, SCHEMA_VERSION, self.nonce, self.stamp_ns, self.source_id, int(self.kind),
+            self.TYPE, self.VERSION, self.nonce, self.stamp_ns, self.source_id, int(self.kind),
             *self.params, self.seq, len(self.targets),
         )  # fmt: skip
         return head + struct.pack(f"<{len(self.targets)}H", *self.targets)
@@ -319,7 +360,7 @@ class Command:
 
     @classmethod
     def decode(cls, data: bytes) -> Command:
-        _header(data, cls.TYPE)
+        _header(data, cls.TYPE, cls.VERSION)
         if len(data) < cls._HEAD.size + TAG_BYTES:
             raise DecodeError(f"Command too short: {len(data)} bytes")
         f = cls._HEAD.unpack_from(data)
@@ -351,8 +392,11 @@ class CommandAck:
     mode: Mode = Mode.LANDED
     """The vehicle's mode after handling the command."""
     tag: bytes = bytes(TAG_BYTES)
+    """Ed25519 signature of `vehicle_id` over `signed_bytes()` and the answered command's
+    SHA-256 (comms/auth.py): an ack cannot be replayed as the answer to another command."""
 
     TYPE: ClassVar[MsgType] = MsgType.COMMAND_ACK
+    VERSION: ClassVar[int] = SIGNED_SCHEMA_VERSION
     _FMT: ClassVar[struct.Struct] = struct.Struct(f"<BBHQQBB{REASON_BYTES}s{TAG_BYTES}s")
 
     @property
@@ -370,7 +414,7 @@ class CommandAck:
 
     def signed_bytes(self) -> bytes:
         return self._FMT.pack(
-            self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.nonce, self.stamp_ns,
+            self.TYPE, self.VERSION, self.vehicle_id, self.nonce, self.stamp_ns,
             int(self.result), int(self.mode), _fit_text(self.reason, REASON_BYTES), b"",
         )[: -TAG_BYTES]  # fmt: skip
 
@@ -380,7 +424,7 @@ class CommandAck:
 
     @classmethod
     def decode(cls, data: bytes) -> CommandAck:
-        _header(data, cls.TYPE)
+        _header(data, cls.TYPE, cls.VERSION)
         if len(data) != cls._FMT.size:
             raise DecodeError(f"CommandAck must be {cls._FMT.size} bytes, got {len(data)}")
         f = cls._FMT.unpack(data)
@@ -401,6 +445,8 @@ class Event:
     text: str
     severity: Severity = Severity.INFO
     kind: EventKind = EventKind.STATUS
+    sig: bytes = b""
+    """Ed25519 signature of vehicle `vehicle_id` over `signed_bytes()`; empty: unsigned."""
 
     TYPE: ClassVar[MsgType] = MsgType.EVENT
     _FMT: ClassVar[struct.Struct] = struct.Struct(f"<BBHQBB{EVENT_TEXT_BYTES}s")
@@ -411,34 +457,129 @@ class Event:
             raise DecodeError("stamp_ns must fit 64 bits")
         _enum(Severity, "severity", int(self.severity))
         _enum(EventKind, "kind", int(self.kind))
+        _check_sig(self.sig)
 
-    def encode(self) -> bytes:
-        self.validate()
+    def signed_bytes(self) -> bytes:
         return self._FMT.pack(
             self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.stamp_ns, int(self.severity),
             int(self.kind), _fit_text(self.text, EVENT_TEXT_BYTES),
         )  # fmt: skip
 
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.sig
+
     @classmethod
     def decode(cls, data: bytes) -> Event:
         _header(data, cls.TYPE)
-        if len(data) != cls._FMT.size:
-            raise DecodeError(f"Event must be {cls._FMT.size} bytes, got {len(data)}")
-        f = cls._FMT.unpack(data)
+        if len(data) not in (cls._FMT.size, cls._FMT.size + TAG_BYTES):
+            raise DecodeError(f"Event must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), got {len(data)}")
+        f = cls._FMT.unpack_from(data)
         msg = cls(
             vehicle_id=f[2], stamp_ns=f[3], severity=_enum(Severity, "severity", f[4]),
             kind=_enum(EventKind, "kind", f[5]), text=_text_field(f[6], "text"),
+            sig=data[cls._FMT.size :],
         )  # fmt: skip
         msg.validate()
         return msg
 
 
-Message = VehicleState | Command | CommandAck | Event
+@dataclass(frozen=True)
+class Member:
+    """One key of a fleet roster: who holds it and what it may sign."""
+
+    role: Role
+    member_id: int
+    """Vehicle id (role VEHICLE) or ground-station id (role STATION), 1..MAX_VEHICLE_ID."""
+    public_key: bytes
+    """Raw Ed25519 public key (32 bytes)."""
+
+
+@dataclass(frozen=True)
+class Roster:
+    """The fleet's members, signed by the fleet authority. A higher `version` replaces a lower
+    one on every member (comms/auth.py); a member left out is revoked."""
+
+    fleet: str
+    version: int
+    stamp_ns: int
+    members: tuple[Member, ...]
+    """Sorted by (role, member_id); one key per (role, id), every key distinct."""
+    sig: bytes = bytes(TAG_BYTES)
+
+    TYPE: ClassVar[MsgType] = MsgType.ROSTER
+    _HEAD: ClassVar[struct.Struct] = struct.Struct(f"<BB{FLEET_NAME_BYTES}sIQH")
+    _MEMBER: ClassVar[struct.Struct] = struct.Struct(f"<BH{PUBLIC_KEY_BYTES}s")
+
+    def member(self, role: Role, member_id: int) -> Member | None:
+        for m in self.members:
+            if m.role is role and m.member_id == member_id:
+                return m
+        return None
+
+    def validate(self) -> None:
+        if not isinstance(self.fleet, str) or not 1 <= len(self.fleet.encode()) <= FLEET_NAME_BYTES:
+            raise DecodeError(f"roster fleet name {self.fleet!r} must be 1-{FLEET_NAME_BYTES} bytes")
+        if not self.fleet.isascii() or not all(c.isalnum() or c in "_-" for c in self.fleet):
+            raise DecodeError(f"roster fleet name {self.fleet!r} must be A-Z a-z 0-9 _ -")
+        if not 1 <= self.version < 2**32:
+            raise DecodeError(f"roster version {self.version} must be within 1..2^32-1")
+        if not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError("stamp_ns must fit 64 bits")
+        if len(self.members) > MAX_ROSTER_MEMBERS:
+            raise DecodeError(f"{len(self.members)} roster members, at most {MAX_ROSTER_MEMBERS}")
+        order = [(int(m.role), m.member_id) for m in self.members]
+        if order != sorted(set(order)):
+            raise DecodeError("roster members must be sorted by (role, id) without duplicates")
+        if len({m.public_key for m in self.members}) != len(self.members):
+            raise DecodeError("two roster members share a public key")
+        for m in self.members:
+            _enum(Role, "role", int(m.role))
+            _check_vehicle_id("member id", m.member_id)
+            if len(m.public_key) != PUBLIC_KEY_BYTES:
+                raise DecodeError(f"public key must be {PUBLIC_KEY_BYTES} bytes")
+        if len(self.sig) != TAG_BYTES:
+            raise DecodeError(f"roster signature must be {TAG_BYTES} bytes, got {len(self.sig)}")
+
+    def signed_bytes(self) -> bytes:
+        head = self._HEAD.pack(self.TYPE, SCHEMA_VERSION, self.fleet.encode(), self.version,
+                               self.stamp_ns, len(self.members))  # fmt: skip
+        return head + b"".join(
+            self._MEMBER.pack(int(m.role), m.member_id, m.public_key) for m in self.members
+        )
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.sig
+
+    @classmethod
+    def decode(cls, data: bytes) -> Roster:
+        _header(data, cls.TYPE)
+        if len(data) < cls._HEAD.size + TAG_BYTES:
+            raise DecodeError(f"Roster too short: {len(data)} bytes")
+        _, _, fleet_raw, version, stamp_ns, n = cls._HEAD.unpack_from(data)
+        if n > MAX_ROSTER_MEMBERS:
+            raise DecodeError(f"{n} roster members, at most {MAX_ROSTER_MEMBERS}")
+        expected = cls._HEAD.size + n * cls._MEMBER.size + TAG_BYTES
+        if len(data) != expected:
+            raise DecodeError(f"Roster with {n} members must be {expected} bytes, got {len(data)}")
+        members = []
+        for i in range(n):
+            role, mid, key = cls._MEMBER.unpack_from(data, cls._HEAD.size + i * cls._MEMBER.size)
+            members.append(Member(_enum(Role, "role", role), mid, key))  # type: ignore[arg-type]
+        msg = cls(fleet=_text_field(fleet_raw, "fleet"), version=version, stamp_ns=stamp_ns, members=tuple(members),
+                  sig=data[-TAG_BYTES:])  # fmt: skip
+        msg.validate()
+        return msg
+
+
+Message = VehicleState | Command | CommandAck | Event | Roster
 _DECODERS: dict[int, type] = {
     MsgType.VEHICLE_STATE: VehicleState,
     MsgType.COMMAND: Command,
     MsgType.COMMAND_ACK: CommandAck,
     MsgType.EVENT: Event,
+    MsgType.ROSTER: Roster,
 }
 
 
@@ -460,5 +601,5 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
 
 __all__ = [
     "AckResult", "Command", "CommandAck", "CommandKind", "DecodeError", "Event", "EventKind",
-    "Message", "Mode", "MsgType", "Severity", "StateFlag", "VehicleState", "decode",
+    "Member", "Message", "Mode", "MsgType", "Role", "Roster", "Severity", "StateFlag", "VehicleState", "decode",
 ]  # fmt: skip

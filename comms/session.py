@@ -14,6 +14,8 @@ Multicast scouting is off unless asked for: it floods the LAN and makes tests fl
 from __future__ import annotations
 
 import json
+import os
+import re
 import socket
 from dataclasses import dataclass, field
 from typing import Literal
@@ -22,6 +24,51 @@ import zenoh
 
 DEFAULT_PORT = 7447
 Mode = Literal["peer", "client", "router"]
+_ENDPOINT_RE = re.compile(r"^([a-z0-9]+)/(.+):([0-9]+)(#.*|\?.*)?$")
+MAX_CONFIG_BYTES = 1_000_000
+
+
+class MeshConfigError(ValueError):
+    """The mesh cannot be set up as configured (bad Zenoh config file, endpoint, busy port); the
+    message is one line that says why. CLIs turn it into exit status 2."""
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    text = re.sub(r" at /\S+?\.rs:\d+\.?", "", text)  # Rust source locations: noise to a user
+    return text[:300] + ("..." if len(text) > 300 else "")
+
+
+def check_endpoint(ep: object) -> str:
+    """Return `ep` if it looks like proto/host:port with a port in 0..65535, else raise."""
+    if not isinstance(ep, str) or "/" not in ep:
+        raise MeshConfigError(f"endpoint {ep!r} must look like tcp/127.0.0.1:7447")
+    m = _ENDPOINT_RE.match(ep)
+    if m and not 0 <= int(m.group(3)) <= 65535:
+        raise MeshConfigError(f"endpoint {ep!r}: port {m.group(3)} is outside 0..65535")
+    return ep
+
+
+def check_config_file(path: str) -> None:
+    """Refuse a --zenoh-config that is missing, not a file, unreadable, not UTF-8 or too big,
+    before Zenoh sees it (its errors are multi-line)."""
+    if not isinstance(path, str) or not path.strip():
+        raise MeshConfigError("--zenoh-config path is empty (an unset variable?)")
+    try:
+        if os.path.isdir(path):
+            raise MeshConfigError(f"Zenoh config {path} is a directory, not a JSON5 file")
+        with open(path, "rb") as f:
+            raw = f.read(MAX_CONFIG_BYTES + 1)
+    except FileNotFoundError:
+        raise MeshConfigError(f"Zenoh config {path} does not exist") from None
+    except OSError as exc:
+        raise MeshConfigError(f"Zenoh config {path}: cannot read it ({exc.strerror or exc})") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise MeshConfigError(f"Zenoh config {path} is over {MAX_CONFIG_BYTES} bytes")
+    try:
+        raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise MeshConfigError(f"Zenoh config {path} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
 
 
 @dataclass(frozen=True)
@@ -52,14 +99,25 @@ class MeshConfig:
         if self.mode not in ("peer", "client", "router"):
             raise ValueError(f"mesh mode must be peer, client or router, got {self.mode!r}")
         for ep in (*self.connect, *self.listen):
-            if not isinstance(ep, str) or "/" not in ep:
-                raise ValueError(f"endpoint {ep!r} must look like tcp/127.0.0.1:7447")
+            check_endpoint(ep)
         if self.mode == "client" and not self.connect:
             raise ValueError("a client needs at least one --connect endpoint (its router)")
         if not 100 <= self.lease_ms <= 600_000:
             raise ValueError(f"lease_ms={self.lease_ms} must be within 100..600000")
 
     def zenoh_config(self) -> zenoh.Config:
+        """The Zenoh config; raises MeshConfigError (one line) for a bad config file."""
+        try:
+            return self._zenoh_config()
+        except MeshConfigError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - zenoh.ZError and friends: say it in one line
+            where = f"Zenoh config {self.config_file}" if self.config_file else "Zenoh config"
+            raise MeshConfigError(f"{where}: {_one_line(exc)}") from None
+
+    def _zenoh_config(self) -> zenoh.Config:
+        if self.config_file is not None:
+            check_config_file(self.config_file)
         conf = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
@@ -93,5 +151,11 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
 
 
 def open_session(cfg: MeshConfig) -> zenoh.Session:
-    """Open a Zenoh session; the caller closes it (or uses it as a context manager)."""
-    return zenoh.open(cfg.zenoh_config())
+    """Open a Zenoh session; the caller closes it (or uses it as a context manager).
+    Raises MeshConfigError (one line) when Zenoh refuses: a busy port, a bad certificate..."""
+    conf = cfg.zenoh_config()
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:  # noqa: BLE001 - zenoh.ZError: one line, not a traceback
+        raise MeshConfigError(f"cannot join the mesh ({', '.join(cfg.listen) or 'no listen'}): "
+                              f"{_one_line(exc)}") from None  # fmt: skip

@@ -24,7 +24,7 @@ from comms.auth import load_auth
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.presence import Presence
-from comms.schema import Command, CommandAck, CommandKind
+from comms.schema import Command, CommandAck, CommandKind, Event, EventKind, Severity
 from comms.session import MeshConfig
 from groundstation import dispatch, scenarios
 from groundstation.browser_form import BrowserForms
@@ -147,7 +147,8 @@ class GroundStation:
                 cfg.link, seed=cfg.seed, receiver_pos=lambda: (0.0, 0.0, 0.0)
             )
             self._link.__enter__()
-        self.mesh.subscribe_states(self.fleet.on_state, link=self._link)
+        self.mesh.subscribe_states(self.fleet.on_state, link=self._link, on_refused=self.fleet.on_state_refused)
+        self.mesh.on_security = self._on_security
         self.mesh.subscribe_events(self.events.add)
         self.mesh.observe_commands(self.commands.on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
@@ -167,7 +168,10 @@ class GroundStation:
     def _build_gui(self) -> None:
         assert self.server is not None
         gui = self.server.gui
-        gui.add_markdown(f"**covey** ground station · fleet `{self.mesh.fleet}` · station {self.cfg.gcs_id}")
+        auth = self.mesh.auth
+        trust = (f"keyed, roster v{auth.roster.version}" if auth is not None
+                 else "**OPEN MODE**: commands and states are not signed")  # fmt: skip
+        gui.add_markdown(f"**covey** ground station · fleet `{self.mesh.fleet}` · station {self.cfg.gcs_id} · {trust}")
         with gui.add_folder("Fleet"):
             self.table = gui.add_html("<i>waiting for vehicles…</i>")
             gui.add_html(legend())
@@ -239,6 +243,11 @@ class GroundStation:
         if kind == "vehicle":
             self.fleet.on_presence(ident, alive, self._clock_ns())
 
+    def _on_security(self, line: str) -> None:
+        """The mesh's own refusal summaries (one per cause a second) go to the events panel."""
+        self.events.add(Event(vehicle_id=0, stamp_ns=self._clock_ns(), text=line[:119],
+                              kind=EventKind.SECURITY, severity=Severity.WARNING))  # fmt: skip
+
     def _on_ack(self, ack: CommandAck, recv_ns: int) -> None:
         auth = self.mesh.auth if self.mesh is not None else None
         check = auth.check_ack if auth is not None else None
@@ -309,7 +318,7 @@ class GroundStation:
         with self.server.atomic():
             self.scene.update(snap)
             if with_table:
-                self.table.content = fleet_table(snap)
+                self.table.content = fleet_table(snap, refused_states=self.fleet.phantom_refusals)
                 if self._commands_shown != self.commands.version:
                     self._commands_shown = self.commands.version
                     self.command_log_html.content = command_log_html(self.commands.entries(), self.cfg.gcs_id)

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import secrets
 import signal
 import sys
 
-from comms.auth import FleetKeyError
+from comms.auth import ENV_KEY_FILE
+from comms.identity import read_member_key
+from comms.schema import Role
 from groundstation.app import GcsConfig, GroundStation, web_host_problem
-from groundstation.meshargs import add_mesh_args, mesh_config
+from groundstation.meshargs import add_mesh_args, die, mesh_config
 
 
 def main(cfg: GcsConfig) -> int:
@@ -60,8 +63,20 @@ def cli(argv: list[str] | None = None) -> int:
         p.error(f"--port {args.port} must be within 0..65535")
     problem = web_host_problem(args.host)
     if problem:  # one line, before anything joins the mesh
-        print(f"covey gcs: error: {problem}", file=sys.stderr)
-        return 2
+        die(p, problem)
+    key = None
+    try:
+        if args.key_file is not None or os.environ.get(ENV_KEY_FILE):
+            key = read_member_key(args.key_file if args.key_file is not None else os.environ[ENV_KEY_FILE])
+    except ValueError as exc:
+        die(p, str(exc))
+    if key is not None:
+        if key.role is not Role.STATION:
+            die(p, f"--key-file is {key.name}'s key: a ground station needs a station key")
+        if args.gcs_id is None:
+            args.gcs_id = key.member_id
+        elif args.gcs_id != key.member_id:
+            die(p, f"--gcs-id {args.gcs_id} but --key-file is {key.name}'s key")
     if args.gcs_id is None:
         args.gcs_id = secrets.randbelow(64999) + 2
     if not 1 <= args.gcs_id <= 65000:
@@ -79,8 +94,8 @@ def cli(argv: list[str] | None = None) -> int:
                     key_file=args.key_file)  # fmt: skip
     try:
         return main(cfg)
-    except FleetKeyError as exc:  # unreadable, loose permissions or malformed key
-        p.error(str(exc))
+    except ValueError as exc:  # FleetKeyError (key file), MeshConfigError (Zenoh config, port)
+        die(p, str(exc))
 
 
 if __name__ == "__main__":

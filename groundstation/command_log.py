@@ -78,6 +78,7 @@ class _Entry:
     seq: int
     recv_ns: int
     command: Command
+    digest: bytes = b""
     answers: dict[int, Answer] = field(default_factory=dict)
     superseded: dict[int, int] = field(default_factory=dict)
     dropped_answers: int = 0
@@ -91,8 +92,9 @@ SupersededCallback = Callable[[LoggedCommand, int, LoggedCommand], None]
 """Called with (the earlier command, the vehicle, the later command) when a vehicle accepts a
 command that replaces one it had accepted before."""
 
-AckCheck = Callable[[CommandAck, Command], str | None]
-"""Returns why an ack must not be believed for a command (bad signature...), or None."""
+AckCheck = Callable[[CommandAck, Command, bytes], str | None]
+"""Returns why an ack must not be believed for a command whose wire bytes hash to the digest
+(a forged or replayed ack), or None."""
 
 
 class CommandLog:
@@ -109,12 +111,13 @@ class CommandLog:
         self.refused_acks = 0
         """Acks that answered no kept command or failed the check (counted, not shown)."""
 
-    def on_command(self, command: Command, recv_ns: int) -> None:
+    def on_command(self, command: Command, recv_ns: int, digest: bytes = b"") -> None:
+        """`digest`: SHA-256 of the command's wire bytes (its acks are signed over it)."""
         with self._lock:
             if command.nonce in self._entries:  # the same query seen twice (or resent)
                 return
             self._seq += 1
-            self._entries[command.nonce] = _Entry(self._seq, recv_ns, command)
+            self._entries[command.nonce] = _Entry(self._seq, recv_ns, command, digest)
             while len(self._entries) > self.cfg.max_commands:
                 nonce, _ = self._entries.popitem(last=False)
                 for vid in [v for v, n in self._last_accepted.items() if n == nonce]:
@@ -126,7 +129,7 @@ class CommandLog:
         notify: tuple[LoggedCommand, int, LoggedCommand] | None = None
         with self._lock:
             entry = self._entries.get(ack.nonce)
-            if entry is None or (check is not None and check(ack, entry.command) is not None):
+            if entry is None or (check is not None and check(ack, entry.command, entry.digest) is not None):
                 self.refused_acks += 1
                 return
             vid = ack.vehicle_id

@@ -16,10 +16,15 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 from dataclasses import dataclass, field
+from pathlib import Path
 
+from comms.auth import load_auth
+from comms.authority import Authority
 from comms.mesh import Mesh
+from comms.schema import Role
 from comms.session import embedded_router, free_tcp_port
 from groundstation.app import GcsConfig, GroundStation
 
@@ -50,6 +55,9 @@ class DemoConfig:
     """Extra arguments for every agent."""
     stop_timeout_s: float = 5.0
     """How long children get to exit after SIGTERM before SIGKILL."""
+    keyed: bool = True
+    """Run keyed: a throwaway fleet authority and one key per vehicle and for the station, in a
+    temporary directory deleted on exit. False (--open-mode): nothing is authenticated."""
 
 
 def grid_starts(n: int, spacing_m: float) -> list[tuple[float, float]]:
@@ -108,8 +116,30 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
     mesh_port = cfg.mesh_port or free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{mesh_port}"
     gcs_cfg = GcsConfig(port=cfg.port, geofence_radius_m=cfg.geofence_radius_m, link=cfg.link)
+    with contextlib.ExitStack() as stack:
+        auth, key_args, cli_key = None, lambda _vid: [], ""
+        if cfg.keyed:
+            keys_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="covey-demo-keys-")))
+            authority = Authority.init(keys_dir, cfg.fleet)
+            cli_station = gcs_cfg.gcs_id + 1  # for `covey cmd` / `covey status` from a terminal
+            paths = authority.add_many([(Role.STATION, gcs_cfg.gcs_id), (Role.STATION, cli_station)]
+                                       + [(Role.VEHICLE, v) for v in range(1, cfg.vehicles + 1)])  # fmt: skip
+            cli_key = f" --key-file {paths[1]}"
+            auth = load_auth(str(paths[0]), fleet=cfg.fleet)
+            key_args = lambda vid: ["--key-file", str(authority.member_path(Role.VEHICLE, vid))]  # noqa: E731
+            print(f"covey demo: keyed mode: a throwaway fleet authority signed keys for {cfg.vehicles} "
+                  f"vehicles and stations {gcs_cfg.gcs_id} (this one) and {cli_station} (for covey cmd) "
+                  f"in {keys_dir} (deleted on exit)", flush=True)  # fmt: skip
+        else:
+            print("covey demo: OPEN MODE (--open-mode): commands, states and events are NOT "
+                  "authenticated; anyone on the mesh can fly these vehicles", flush=True)  # fmt: skip
+        return _run(cfg, stop, mesh_port, endpoint, gcs_cfg, auth, key_args, cli_key)
+
+
+def _run(cfg: DemoConfig, stop: threading.Event, mesh_port: int, endpoint: str, gcs_cfg: GcsConfig,
+         auth, key_args, cli_key: str) -> int:  # fmt: skip
     with (
-        Mesh(embedded_router(mesh_port, fleet=cfg.fleet)) as mesh,
+        Mesh(embedded_router(mesh_port, fleet=cfg.fleet), auth=auth) as mesh,
         GroundStation(gcs_cfg, mesh=mesh) as gcs,
         Children(cfg.stop_timeout_s) as children,
     ):
@@ -117,14 +147,14 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
             proc = children.start([
                 *cfg.agent_argv, "--id", str(vid), "--fleet", cfg.fleet, "--connect", endpoint,
                 "--vehicle", "sim", "--link", cfg.link, f"--start={n:g},{e:g}",
-                "--geofence-radius-m", f"{cfg.geofence_radius_m:g}", *cfg.agent_extra,
+                "--geofence-radius-m", f"{cfg.geofence_radius_m:g}", *key_args(vid), *cfg.agent_extra,
             ])  # fmt: skip
             print(f"covey demo: vehicle {vid} pid {proc.pid} start N {n:g} E {e:g}", flush=True)
         port = gcs.server.get_port()
         if cfg.port and port != cfg.port:
             print(f"covey demo: web port {cfg.port} is busy; using {port} instead", flush=True)
         print(
-            f"covey demo: mesh {endpoint} (covey status --connect {endpoint} --fleet {cfg.fleet})",
+            f"covey demo: mesh {endpoint} (covey status --connect {endpoint} --fleet {cfg.fleet}{cli_key})",
             flush=True,
         )
         print(f"covey demo: ground station at {gcs.url}  (Ctrl-C to stop)", flush=True)
@@ -159,6 +189,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--geofence-radius-m", type=float, default=50.0, help="geofence radius (default 50 m)"
     )
+    p.add_argument("--open-mode", action="store_true",
+                   help="run without keys: nothing authenticated (tests only; default: keyed with "
+                   "throwaway keys)")  # fmt: skip
     return p
 
 
@@ -175,7 +208,7 @@ def cli(argv: list[str] | None = None) -> int:
         p.error("--geofence-radius-m must be positive")
     cfg = DemoConfig(vehicles=args.vehicles, link=args.link, port=args.port, fleet=args.fleet,
                      mesh_port=args.mesh_port, spacing_m=args.spacing_m,
-                     geofence_radius_m=args.geofence_radius_m)  # fmt: skip
+                     geofence_radius_m=args.geofence_radius_m, keyed=not args.open_mode)  # fmt: skip
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

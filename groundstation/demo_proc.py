@@ -19,6 +19,7 @@ import time
 _MESH_RE = re.compile(r"covey demo: mesh (tcp/\S+)")
 _URL_RE = re.compile(r"covey demo: ground station at (http://\S+)")
 _PID_RE = re.compile(r"covey demo: vehicle (\d+) pid (\d+)")
+_KEY_RE = re.compile(r"covey demo: mesh .*--key-file (\S+)\)")
 
 
 def process_alive(pid: int) -> bool:
@@ -72,6 +73,8 @@ class DemoProcess:
         self._queue: queue.Queue[str | None] = queue.Queue()
         self.proc: subprocess.Popen | None = None
         self.mesh_endpoint = ""
+        self.cli_key_file = ""
+        """A station key for `covey cmd` / `covey status` (keyed demos; "" in open mode)."""
         self.url = ""
         self.agent_pids: dict[int, int] = {}
 
@@ -102,6 +105,8 @@ class DemoProcess:
         self.lines.append(line)
         if m := _MESH_RE.search(line):
             self.mesh_endpoint = m.group(1)
+        if m := _KEY_RE.search(line):
+            self.cli_key_file = m.group(1)
         if m := _URL_RE.search(line):
             self.url = m.group(1)
         if m := _PID_RE.search(line):

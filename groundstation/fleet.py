@@ -11,6 +11,11 @@ mesh: one that never held a liveliness token `unconfirmed_expire_s` after its fi
 that lost its token `lost_expire_s` after the loss. A phantom flood therefore leaves the table
 within `unconfirmed_expire_s` of its end.
 
+Keyed mode: the mesh drops states that do not verify and tells `on_state_refused`; a vehicle
+whose claimed states were refused lately is marked `unverified` (a forger speaks for it, or its
+own key is revoked or wrong). Refusals for ids the model does not know (phantoms) only bump a
+counter: they never create a vehicle. Made-up ids in open mode expire as above.
+
 Link health per vehicle, over a sliding window of `rate_window_s`:
     rate_hz  = (received - 1) / (t_last - t_first)
     loss     = 1 - received / (seq_last - seq_first + 1)      (from VehicleState.seq gaps)
@@ -51,6 +56,8 @@ class FleetConfig:
     """A vehicle that lost its liveliness token is shown LOST this long, then forgotten."""
     max_vehicles: int = 2000
     """The most vehicles the table holds; states of new ids beyond it are refused (counted)."""
+    unverified_window_s: float = 3.0
+    """A vehicle stays marked unverified this long after a state claiming it was refused."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.max_vehicles <= 1_000_000:
@@ -63,6 +70,7 @@ class FleetConfig:
             "stale_after_s",
             "unconfirmed_expire_s",
             "lost_expire_s",
+            "unverified_window_s",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -82,6 +90,9 @@ class _Track:
     window: deque[tuple[int, int]] = field(default_factory=deque)  # (recv_ns, seq)
     trail: deque[tuple[int, tuple[float, float, float]]] = field(default_factory=deque)
     duplicates: int = 0
+    refused: int = 0
+    refused_ns: int | None = None
+    refused_cause: str = ""
 
 
 @dataclass(frozen=True)
@@ -105,6 +116,14 @@ class VehicleView:
     """Closer than the separation distance to another vehicle."""
     stale: bool
     """No state for longer than FleetConfig.stale_after_s."""
+    unverified: bool = False
+    """A state claiming to be this vehicle was refused (forged, replayed, unsigned, or signed by a
+    revoked key) within FleetConfig.unverified_window_s. With `stale` as well, the vehicle's own
+    states do not verify. The station shows it in red with `refused_cause`."""
+    refused_states: int = 0
+    """States claiming this vehicle that the mesh refused, since the station started."""
+    refused_cause: str = ""
+    """Why the latest one was refused ("forged", "replayed", "unknown signer", ...)."""
 
     @property
     def speed_m_s(self) -> float:
@@ -149,6 +168,8 @@ class FleetModel:
         """States of new vehicle ids refused because the table was full."""
         self.expired = 0
         """Vehicles forgotten because they were not present on the mesh (see the module doc)."""
+        self.phantom_refusals = 0
+        """Refused states for ids this model does not know (never created a vehicle)."""
 
     def _track(self, vehicle_id: int, now_ns: int, present: bool) -> _Track | None:
         """The track of `vehicle_id`, made if there is room (lock held). A present vehicle may
@@ -212,6 +233,18 @@ class FleetModel:
             while track.trail and track.trail[0][0] < trail_horizon_ns:
                 track.trail.popleft()
 
+    def on_state_refused(self, vehicle_id: int, cause: str, recv_ns: int) -> None:
+        """Record a state the mesh refused (keyed mode; Mesh.subscribe_states finds this method).
+        Never creates a vehicle: an unknown id only bumps `phantom_refusals`."""
+        with self._lock:
+            track = self._tracks.get(vehicle_id)
+            if track is None:
+                self.phantom_refusals += 1
+                return
+            track.refused += 1
+            track.refused_ns = recv_ns
+            track.refused_cause = cause
+
     def on_presence(self, vehicle_id: int, alive: bool, now_ns: int) -> None:
         """Record a liveliness change (a Mesh.presence on_change callback, vehicles only)."""
         with self._lock:
@@ -219,7 +252,7 @@ class FleetModel:
             if track is None:
                 return
             track.alive = alive
-            track.ever_alive = track.ever_alive or alive
+            track.ever_alive |= alive
             track.lost_ns = None if alive else now_ns
 
     def forget(self, vehicle_id: int) -> None:
@@ -254,6 +287,7 @@ class FleetModel:
                     t.last_recv_ns,
                     tuple(t.window),
                     list(t.trail) if want(vid) else [],
+                    (t.refused, t.refused_ns, t.refused_cause),
                 )
                 for vid, t in items
             ]
@@ -262,7 +296,8 @@ class FleetModel:
         pairs = close_pairs(with_pos, cfg.separation_m)
         close_ids = {a for a, _, _ in pairs} | {b for _, b, _ in pairs}
         views = []
-        for vid, state, alive, last_ns, window, trail in raw:
+        unverified_ns = int(cfg.unverified_window_s * NS_PER_S)
+        for vid, state, alive, last_ns, window, trail, (refused, refused_ns, cause) in raw:
             recent = [(t, s) for t, s in window if t >= horizon_ns]
             rate_hz, loss_pct = link_health(recent)
             age_s = (now_ns - last_ns) / NS_PER_S if state is not None else math.inf
@@ -277,6 +312,9 @@ class FleetModel:
                     trail_ned_m=np.array([p for _, p in trail], dtype=np.float32).reshape(-1, 3),
                     too_close=vid in close_ids,
                     stale=age_s > cfg.stale_after_s,
+                    unverified=refused_ns is not None and now_ns - refused_ns <= unverified_ns,
+                    refused_states=refused,
+                    refused_cause=cause,
                 )
             )
         return FleetSnapshot(now_ns=now_ns, vehicles=tuple(views), close_pairs=tuple(pairs))

@@ -3,11 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from typing import NoReturn
 
 from comms.session import DEFAULT_PORT, MeshConfig
 
 
-def add_mesh_args(parser: argparse.ArgumentParser) -> None:
+def die(parser: argparse.ArgumentParser, message: str) -> NoReturn:
+    """A set-up error (key file, roster, Zenoh config, endpoint): one line, exit status 2."""
+    print(f"{parser.prog}: error: {' '.join(message.split())}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def add_mesh_args(parser: argparse.ArgumentParser, key_file: bool = True) -> None:
     g = parser.add_argument_group("mesh")
     g.add_argument("--fleet", default="covey", help="fleet name (default: covey)")
     g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
@@ -20,9 +28,10 @@ def add_mesh_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--zenoh-config", default=None, metavar="FILE",
                    help="full Zenoh JSON5 config: TLS, user/password, access control "
                    "(comms/zenoh_configs/)")  # fmt: skip
-    g.add_argument("--key-file", default=None, metavar="FILE",
-                   help="fleet key to sign commands (covey keygen); or $COVEY_FLEET_KEY_FILE / "
-                   "$COVEY_FLEET_KEY. Without a key: open mode")  # fmt: skip
+    if key_file:
+        g.add_argument("--key-file", default=None, metavar="FILE",
+                       help="this member's key file (covey keygen add); or $COVEY_FLEET_KEY_FILE. "
+                       "Without one: OPEN MODE (nothing authenticated; tests only)")  # fmt: skip
 
 
 def mesh_config(args: argparse.Namespace, parser: argparse.ArgumentParser) -> MeshConfig:
@@ -41,5 +50,4 @@ def mesh_config(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Me
     try:
         return MeshConfig(**kw)
     except ValueError as exc:
-        parser.error(str(exc))
-        raise  # unreachable: parser.error exits
+        die(parser, str(exc))

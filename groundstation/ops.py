@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from comms.auth import FleetKeyError, load_auth
+from comms.auth import load_auth
 from comms.commands import CommandResult, OutcomeStatus
 from comms.mesh import Mesh
 from comms.schema import CommandKind
@@ -24,7 +24,7 @@ from comms.session import MeshConfig
 from groundstation import dispatch, inputs
 from groundstation.fleet import FleetModel, FleetSnapshot
 from groundstation.inputs import CommandRequest, InputError
-from groundstation.meshargs import add_mesh_args, mesh_config
+from groundstation.meshargs import add_mesh_args, die, mesh_config
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,8 @@ class StatusConfig:
     """How to join the mesh."""
     listen_s: float = 1.5
     """How long to listen for presence and states before printing."""
+    key_file: str | None = None
+    """A member key file: only states that verify against its roster are shown; None: open mode."""
 
 
 def format_status(snap: FleetSnapshot) -> str:
@@ -59,7 +61,7 @@ def format_status(snap: FleetSnapshot) -> str:
 
 def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
     fleet = FleetModel()
-    with Mesh(cfg.mesh) as mesh:
+    with Mesh(cfg.mesh, auth=load_auth(cfg.key_file, fleet=cfg.mesh.fleet)) as mesh:
         mesh.subscribe_states(fleet.on_state)
         pres = mesh.presence(
             lambda kind, vid, alive: (
@@ -69,7 +71,11 @@ def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
         time.sleep(cfg.listen_s)
         snap = fleet.snapshot(time.time_ns())
         stations = sorted(pres.ground_stations)
+        refused = mesh.stats.states_refused
     out(format_status(snap) if snap.vehicles else "no vehicles on the mesh")
+    if refused:
+        out(f"SECURITY: {refused} states refused (forged, replayed or unsigned); "
+            f"unverified: {', '.join(str(v.vehicle_id) for v in snap.vehicles if v.unverified) or 'none'}")  # fmt: skip
     out(f"ground stations: {', '.join(map(str, stations)) or 'none'}")
     return 0 if snap.vehicles else 1
 
@@ -85,7 +91,11 @@ def status_cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not 0.1 <= args.listen_s <= 60:
         p.error("--listen-s must be within 0.1..60")
-    return status_main(StatusConfig(mesh=mesh_config(args, p), listen_s=args.listen_s))
+    cfg = StatusConfig(mesh=mesh_config(args, p), listen_s=args.listen_s, key_file=args.key_file)
+    try:
+        return status_main(cfg)
+    except ValueError as exc:  # FleetKeyError, MeshConfigError: one line, exit 2
+        die(p, str(exc))
 
 
 # -- covey cmd ---------------------------------------------------------------------------------
@@ -106,7 +116,8 @@ class CmdConfig:
     source_id: int = 1
     """Source id written into the command."""
     key_file: str | None = None
-    """Fleet key that signs the command; None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY, else open mode."""
+    """The station's member key file that signs the command; None: $COVEY_FLEET_KEY_FILE, else
+    open mode."""
 
 
 def format_result(res: CommandResult) -> str:
@@ -119,7 +130,7 @@ def format_result(res: CommandResult) -> str:
 
 
 def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
-    with Mesh(cfg.mesh, auth=load_auth(cfg.key_file)) as mesh:
+    with Mesh(cfg.mesh, auth=load_auth(cfg.key_file, fleet=cfg.mesh.fleet)) as mesh:
         pres = mesh.presence()
         if not cfg.targets:
             # Wait until presence is quiet: no new vehicle for a while, bounded by discover_s.
@@ -209,5 +220,5 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
             return 1
     try:
         return cmd_main(cfg)
-    except FleetKeyError as exc:  # unreadable, loose permissions or malformed key
-        p.error(str(exc))
+    except ValueError as exc:  # FleetKeyError, MeshConfigError: one line, exit 2
+        die(p, str(exc))

@@ -31,7 +31,7 @@ from comms.record import (
 from comms.replay import LiveFleetError, ReplayConfig, replay
 from groundstation.argtypes import finite
 from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
-from groundstation.meshargs import add_mesh_args, mesh_config
+from groundstation.meshargs import add_mesh_args, die, mesh_config
 
 
 def _stop_on_signals() -> threading.Event:
@@ -63,7 +63,7 @@ def record_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-foxglove", action="store_true",
                    help="record covey's channels only, without Foxglove's standard ones")  # fmt: skip
     add_foxglove_args(p)
-    add_mesh_args(p)
+    add_mesh_args(p, key_file=False)  # records raw bytes; signs nothing
     return p
 
 
@@ -103,6 +103,10 @@ def record_cli(argv: list[str]) -> int:
                            foxglove=None if args.no_foxglove else foxglove_config(args))  # fmt: skip
     except ValueError as exc:
         p.error(str(exc))
+    try:
+        cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
+    except ValueError as exc:
+        die(p, str(exc))
     stop = _stop_on_signals()
     print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
     try:
@@ -110,6 +114,8 @@ def record_cli(argv: list[str]) -> int:
     except OSError as exc:
         print(f"covey record: cannot write {cfg.path}: {exc}", file=sys.stderr)
         return 2
+    except ValueError as exc:  # MeshConfigError: bad --zenoh-config, endpoint, busy port
+        die(p, str(exc))
     total = sum(counts.values())
     print(
         f"wrote {total} messages to {cfg.path}: "
@@ -162,7 +168,7 @@ def replay_parser() -> argparse.ArgumentParser:
     cl.add_argument("--separation-m", type=finite("metres"), default=3.0)
     cl.add_argument("--cruise-speed-m-s", type=finite("m/s"), default=1.0)
     cl.add_argument("--no-safety-filter", action="store_true")
-    add_mesh_args(p)
+    add_mesh_args(p, key_file=False)  # a recording cannot be re-signed: open-mode fleets only
     p.set_defaults(fleet=None)  # default: the recorded fleet
     for action in p._actions:  # meshargs documents its own default; replay's differs
         if action.dest == "fleet":

@@ -47,15 +47,21 @@ def _link(v: VehicleView) -> str:
     )
 
 
-def fleet_table(snap: FleetSnapshot, max_rows: int = 60) -> str:
-    """One row per vehicle: id, mode, armed, N/E/alt, speed, battery, Hz, age, loss."""
+def fleet_table(snap: FleetSnapshot, max_rows: int = 60, refused_states: int = 0) -> str:
+    """One row per vehicle: id, mode, armed, N/E/alt, speed, battery, Hz, age, loss.
+    `refused_states`: states the mesh refused (keyed mode), shown as a counter."""
     heads = [("id", "right"), ("mode", "left"), ("arm", "center"), ("N m", "right"), ("E m", "right"),
              ("alt m", "right"), ("m/s", "right"), ("bat %", "right"), ("Hz", "right"),
              ("age s", "right"), ("loss %", "right")]  # fmt: skip
     rows = ["<tr>" + "".join(_TH.format(a=a, t=t) for t, a in heads) + "</tr>"]
     for v in snap.vehicles[:max_rows]:
-        row_style = "background:#fde2e2" if (v.too_close or (not v.alive and v.state)) else ""
-        cells = [_td(f"<b>{v.vehicle_id}</b>"), _td(_mode_badge(v), "left")]
+        alert = v.too_close or (not v.alive and v.state) or v.unverified
+        row_style = "background:#fde2e2" if alert else ""
+        mode = _mode_badge(v)
+        if v.unverified:  # keyed mode: states claiming this vehicle failed verification lately
+            mode += (f" <b data-unverified='1' style='color:{css(ALERT_RGB)}'>UNVERIFIED "
+                     f"({html.escape(v.refused_cause)})</b>")  # fmt: skip
+        cells = [_td(f"<b>{v.vehicle_id}</b>"), _td(mode, "left")]
         s = v.state
         if s is None:
             cells += [_td("—", "center")] + [_td("")] * 5
@@ -77,6 +83,8 @@ def fleet_table(snap: FleetSnapshot, max_rows: int = 60) -> str:
     foot = f"<div style='font-size:0.75em'>… and {more} more</div>" if more > 0 else ""
     alive = sum(v.alive for v in snap.vehicles)
     summary = f"<div style='font-size:0.8em;margin-bottom:2px'><b>{alive}</b> of {len(snap.vehicles)} vehicles present"
+    if refused_states:
+        summary += f" · {refused_states} states from unknown vehicles refused"
     if snap.close_pairs:
         pairs = ", ".join(f"{a}–{b} ({d:.1f} m)" for a, b, d in snap.close_pairs[:5])
         summary += f" · <b style='color:{css(ALERT_RGB)}'>TOO CLOSE: {html.escape(pairs)}</b>"

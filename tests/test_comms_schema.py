@@ -40,6 +40,7 @@ def states(draw) -> VehicleState:
         heading_rad=draw(st.floats(-3.0, 3.0, width=32)), mode=draw(st.sampled_from(Mode)),
         armed=draw(st.booleans()), battery_pct=draw(st.floats(0.0, 100.0, width=32)),
         flags=StateFlag(draw(st.integers(0, 255))), goal_ned_m=tuple(draw(f32) for _ in range(3)),
+        sig=draw(st.sampled_from([b"", bytes(64)]) | st.binary(min_size=64, max_size=64)),
     )  # fmt: skip
 
 
@@ -58,25 +59,37 @@ def commands(draw) -> Command:
     return Command(
         kind=kind, nonce=draw(u64), stamp_ns=draw(u64), params=params, targets=targets,
         source_id=draw(st.integers(0, schema.MAX_VEHICLE_ID)), seq=draw(st.integers(0, 2**32 - 1)),
-        tag=draw(st.binary(min_size=32, max_size=32)),
+        tag=draw(st.binary(min_size=64, max_size=64)),
     )  # fmt: skip
 
 
 acks = st.builds(
     CommandAck, vehicle_id=vid, nonce=u64, stamp_ns=u64, result=st.sampled_from(AckResult),
-    reason=st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=30), mode=st.sampled_from(Mode), tag=st.binary(min_size=32, max_size=32),
+    reason=st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=30), mode=st.sampled_from(Mode), tag=st.binary(min_size=64, max_size=64),
 )  # fmt: skip
 events = st.builds(
     Event, vehicle_id=st.integers(0, schema.MAX_VEHICLE_ID), stamp_ns=u64, text=st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=40),
     severity=st.sampled_from(Severity), kind=st.sampled_from(EventKind),
+    sig=st.sampled_from([b""]) | st.binary(min_size=64, max_size=64),
 )  # fmt: skip
 
 
+@st.composite
+def rosters(draw) -> schema.Roster:
+    ids = draw(st.lists(st.tuples(st.sampled_from(schema.Role), vid), max_size=12, unique=True))
+    keys = draw(st.lists(st.binary(min_size=32, max_size=32), min_size=len(ids), max_size=len(ids), unique=True))
+    members = sorted((schema.Member(r, i, k) for (r, i), k in zip(ids, keys, strict=True)),
+                     key=lambda m: (int(m.role), m.member_id))  # fmt: skip
+    return schema.Roster(fleet=draw(st.from_regex(r"[A-Za-z0-9_-]{1,32}", fullmatch=True)),
+                         version=draw(st.integers(1, 2**32 - 1)), stamp_ns=draw(u64),
+                         members=tuple(members), sig=draw(st.binary(min_size=64, max_size=64)))  # fmt: skip
+
+
 @settings(max_examples=300, deadline=None)
-@given(st.one_of(states(), commands(), acks, events))
+@given(st.one_of(states(), commands(), acks, events, rosters()))
 def test_every_message_round_trips(msg) -> None:
     data = msg.encode()
-    assert data[0] == msg.TYPE and data[1] == schema.SCHEMA_VERSION
+    assert data[0] == msg.TYPE and data[1] == getattr(msg, "VERSION", schema.SCHEMA_VERSION)
     back = decode(data)
     assert type(back) is type(msg)
     assert back == msg

@@ -68,13 +68,18 @@ def test_late_station_status_and_cmd_against_a_running_demo():
         status = run_covey("status", "--connect", ep)
         assert status.returncode == 0, status.stderr
         assert "LANDED" in status.stdout and "ground stations: 1" in status.stdout
-        ok = run_covey("cmd", "takeoff", "3", "--to", "1,2", "--connect", ep)
+        # Secure by default: the demo is keyed, so a command without a station key is refused.
+        assert "keyed mode" in demo.output() and demo.cli_key_file, demo.output()
+        unsigned = run_covey("cmd", "takeoff", "3", "--to", "1", "--connect", ep)
+        assert unsigned.returncode == 1 and "unsigned command" in unsigned.stdout, unsigned.stdout
+        key = ("--key-file", demo.cli_key_file)
+        ok = run_covey("cmd", "takeoff", "3", "--to", "1,2", "--connect", ep, *key)
         assert ok.returncode == 0, ok.stdout + ok.stderr
         assert ok.stdout.count("accepted") == 2
-        missing = run_covey("cmd", "land", "--to", "1,9", "--timeout", "1", "--connect", ep)
+        missing = run_covey("cmd", "land", "--to", "1,9", "--timeout", "1", "--connect", ep, *key)
         assert missing.returncode == 1
         assert "vehicle     9: timeout" in missing.stdout
-        refused = run_covey("cmd", "kill", "--to", "all", "--connect", ep, stdin="nope\n")
+        refused = run_covey("cmd", "kill", "--to", "all", "--connect", ep, *key, stdin="nope\n")
         assert refused.returncode == 1 and "nothing sent" in refused.stderr
-        killed = run_covey("cmd", "kill", "--to", "2", "--connect", ep, stdin="kill\n")
+        killed = run_covey("cmd", "kill", "--to", "2", "--connect", ep, *key, stdin="kill\n")
         assert killed.returncode == 0 and "vehicle     2: accepted" in killed.stdout, killed.stdout

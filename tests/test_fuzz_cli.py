@@ -120,18 +120,16 @@ def test_covey_sitl_parser(stats) -> None:
 
 
 def test_covey_keygen_parser(stats, tmp_path, monkeypatch) -> None:
-    from comms.auth import keygen_cli
+    from groundstation.keygen_cli import VERBS, keygen_cli
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("HOME", str(tmp_path))
     rng = random.Random(SEED + 3)
+    verbs = [v for v in VERBS if v != "push"]  # push joins a mesh: tested end to end
     for _ in range(300):
-        expect_clean(
-            lambda a: keygen_cli(a),
-            random_argv(rng, ["-o", "--output", "--force", "-x"]),
-            (ValueError,),
-            stats,
-        )
+        argv = random_argv(rng, ["--dir", "--fleet", "vehicle", "station", "-x"], prefix=[rng.choice(verbs)])
+        expect_clean(keygen_cli, argv, (ValueError,), stats)
+    assert stats["parsed"] > 10
 
 
 @pytest.mark.parametrize("bad", ["nan", "inf", "0", "-1"])
@@ -160,3 +158,80 @@ def test_covey_exit_status_from_what_a_subcommand_returns(monkeypatch, capsys) -
         assert covey_cli.main(["fake"]) == status, returned
     assert covey_cli.main(["no-such-command"]) == 2
     assert "unknown command" in capsys.readouterr().err
+
+
+# -- files and endpoints: one line, exit 2, never a traceback ----------------------------------
+def bad_setups(tmp_path) -> dict[str, list[str]]:
+    """Hostile --zenoh-config files, endpoints and key files, as argument lists."""
+    import socket
+
+    d = tmp_path / "bad"
+    d.mkdir(exist_ok=True)
+    files = {
+        "not-utf8.json5": b"\xff\xfe{ mode: 'peer' }",
+        "bad.json5": b"{ mode: ",
+        "unknown-field.json5": b"{ no_such_field: 1 }",
+        "wrong-type.json5": b"{ mode: 3 }",
+        "mtls-no-certs.json5": b'{ transport: { link: { tls: { enable_mtls: true, root_ca_certificate: "/nonexistent/ca.pem" } } } }',
+    }
+    for name, data in files.items():
+        (d / name).write_bytes(data)
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    bad_setups.keep = busy  # held open for the whole test
+    cases = {
+        "config missing": ["--zenoh-config", str(d / "missing.json5")],
+        "config is a directory": ["--zenoh-config", str(d)],
+        "config empty path": ["--zenoh-config", ""],
+        **{f"config {name}": ["--zenoh-config", str(d / name)] for name in files if "mtls" not in name},
+        "config mtls without certificates": ["--zenoh-config", str(d / "mtls-no-certs.json5"),
+                                             "--listen", "tls/127.0.0.1:0", "--connect", "tls/127.0.0.1:1"],
+        "connect port 99999": ["--connect", "tcp/127.0.0.1:99999"],
+        "listen port 99999": ["--listen", "tcp/127.0.0.1:99999"],
+        "listen on a busy port": ["--listen", f"tcp/127.0.0.1:{busy.getsockname()[1]}", "--connect", "tcp/127.0.0.1:1"],
+    }  # fmt: skip
+    (d / "garbage.key").write_text("not a key")
+    (d / "garbage.key").chmod(0o600)
+    keys = {
+        "key empty path": ["--key-file", ""],
+        "key missing": ["--key-file", str(d / "missing.key")],
+        "key malformed": ["--key-file", str(d / "garbage.key")],
+        "key is a directory": ["--key-file", str(d)],
+    }
+    return cases, keys
+
+
+def run_one_line(fn, argv: list[str]) -> str:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), pytest.raises(SystemExit) as exc:
+        fn(argv)
+    text = err.getvalue()
+    errors = [ln for ln in text.splitlines() if "error" in ln.lower()]
+    assert exc.value.code == 2, (argv, exc.value.code, text)
+    assert "Traceback" not in text, (argv, text)
+    assert len(errors) == 1 and "error:" in errors[0], (argv, text)
+    return errors[0]
+
+
+def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_path) -> None:
+    from agent import cli as agent_cli
+    from groundstation import cli as gcs_cli
+    from groundstation import ops, recording_cli
+
+    mesh_cases, key_cases = bad_setups(tmp_path)
+    subcommands = {
+        "agent": (agent_cli.cli, ["--id", "1", "--duration-s", "1"], True),
+        "gcs": (gcs_cli.cli, ["--port", "0"], True),
+        "cmd": (ops.cmd_cli, ["hold", "--to", "1", "--timeout", "0.5"], True),
+        "status": (ops.status_cli, ["--listen-s", "0.1"], True),
+        "record": (recording_cli.record_cli, ["-o", str(tmp_path / "r.mcap"), "--duration", "0.5"], False),
+    }
+    seen = 0
+    for name, (fn, base, takes_key) in subcommands.items():
+        cases = {**mesh_cases, **(key_cases if takes_key else {})}
+        for case, extra in cases.items():
+            line = run_one_line(fn, [*base, *extra])
+            seen += 1
+            print(f"covey {name} [{case}]: {line}")
+    assert seen == 5 * len(mesh_cases) + 4 * len(key_cases)

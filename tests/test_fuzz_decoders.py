@@ -2,7 +2,9 @@
 
 Each input must either decode into a message that re-encodes to the same bytes, or raise
 DecodeError with a non-empty reason; nothing else may escape, and no input may take long.
-Decoded commands also go through CommandAuth.check_command, which must answer a reason string.
+Decoded commands, acks, states, events and rosters also go through the keyed-mode checks
+(FleetAuth: signature, roster, freshness), which must answer a reason string or accept only the
+exact signed original: mutated signatures and rosters are refused, never a crash.
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ import time
 
 import pytest
 
-from comms.auth import CommandAuth
+from comms.auth import FleetAuth, command_digest, load_auth
+from comms.authority import throwaway_fleet
 from comms.schema import (
     AckResult,
     Command,
@@ -23,6 +26,8 @@ from comms.schema import (
     Event,
     EventKind,
     Mode,
+    Role,
+    Roster,
     Severity,
     StateFlag,
     VehicleState,
@@ -37,7 +42,7 @@ SLOWEST_INPUT_S = 2.0
 The slowest input is printed."""
 
 
-def valid_messages(rng: random.Random) -> list[bytes]:
+def valid_messages(rng: random.Random, keys: dict | None = None) -> list[bytes]:
     out = [
         VehicleState(
             3,
@@ -59,8 +64,16 @@ def valid_messages(rng: random.Random) -> list[bytes]:
         CommandAck(5, 9, 1, AckResult.REJECTED, "too high — über", Mode.HOLDING).encode(),
         Event(2, 1, "battery low ✈", Severity.WARNING, EventKind.FAILSAFE).encode(),
     ]
-    auth = CommandAuth(bytes(32))
-    out.append(auth.sign_command(Command(CommandKind.HOLD, 0, 0, targets=(4,))).encode())
+    if keys is not None:
+        station, vehicle = keys["station"], keys["vehicle"]
+        cmd = station.sign_command(Command(CommandKind.HOLD, 0, 0, targets=(4,)))
+        out.append(cmd.encode())
+        ack = CommandAck(1, cmd.nonce, 5, AckResult.ACCEPTED, "", Mode.HOLDING)
+        out.append(vehicle.sign_ack(ack, command_digest(cmd.encode())).encode())
+        out.append(vehicle.sign_state(VehicleState(1, 7, 10**18, (1.0, 2.0, -3.0), (0.0, 0.0, 0.0), 0.1)).encode())
+        out.append(vehicle.sign_event(Event(1, 10**18, "signed", Severity.WARNING, EventKind.SECURITY)).encode())
+        out.append(keys["newer_roster"].encode())
+        keys["cmd"] = cmd
     return out
 
 
@@ -98,7 +111,8 @@ def mutate(data: bytes, rng: random.Random) -> bytes:
     return bytes(b)
 
 
-def check_one(data: bytes, auth: CommandAuth, stats: dict[str, int]) -> None:
+def check_one(data: bytes, keys: dict, stats: dict[str, int]) -> None:
+    vehicle: FleetAuth = keys["vehicle"]
     t0 = time.perf_counter()
     try:
         msg = decode(data)
@@ -109,10 +123,25 @@ def check_one(data: bytes, auth: CommandAuth, stats: dict[str, int]) -> None:
         assert msg.encode() == data, f"decoded but does not round-trip: {data.hex()}"
         stats["decoded"] += 1
         if isinstance(msg, Command):
-            reason = auth.check_command(msg, 1)
+            reason = vehicle.check_command(msg, 1)
             assert reason is None or isinstance(reason, str)
+        elif isinstance(msg, CommandAck):
+            cmd = keys["cmd"]
+            reason = keys["station"].check_ack(msg, cmd, command_digest(cmd.encode()))
+            assert reason is None or (isinstance(reason, str) and reason.startswith("forged ack"))
+            assert reason is not None or data == keys["valid"]["ack"], "a mutated ack verified"
+        elif isinstance(msg, VehicleState | Event):
+            check = vehicle.check_state if isinstance(msg, VehicleState) else vehicle.check_event
+            reason = check(msg)
+            assert reason is None or isinstance(reason, str)
+            assert reason is not None or data in keys["valid"].values(), "a mutated state/event verified"
+        elif isinstance(msg, Roster):
+            reason = vehicle.apply_roster(msg)  # never newer AND genuine unless unmutated
+            assert reason is not None or data == keys["valid"]["roster"], "a mutated roster applied"
+            if reason is None:
+                keys["reset"]()
     # Also through the typed decoders: they must refuse foreign types with DecodeError too.
-    for cls in (VehicleState, Command, CommandAck, Event):
+    for cls in (VehicleState, Command, CommandAck, Event, Roster):
         try:
             cls.decode(data)
         except DecodeError:
@@ -123,22 +152,45 @@ def check_one(data: bytes, auth: CommandAuth, stats: dict[str, int]) -> None:
 
 
 @pytest.fixture
-def auth():
+def auth(tmp_path):
+    """A throwaway fleet: station 1's and vehicle 1's FleetAuth, and a newer genuine roster."""
+    import dataclasses
     import logging
 
     logger = logging.getLogger("comms.auth")
     level = logger.level
-    logger.setLevel(logging.ERROR)  # thousands of refusals
-    yield CommandAuth(bytes(32))
+    logger.setLevel(logging.CRITICAL)  # thousands of refusals
+    authority = throwaway_fleet(tmp_path / "keys", "fuzz", vehicles=[1, 4], stations=[1])
+    first = authority.roster
+    authority.add(Role.VEHICLE, 9)
+    clock = lambda: 10**18  # noqa: E731 - every stamp in the seeds is "now"
+    keys = {
+        "station": load_auth(str(authority.member_path(Role.STATION, 1)), clock_ns=clock),
+        "vehicle": load_auth(str(authority.member_path(Role.VEHICLE, 1)), clock_ns=clock),
+        "newer_roster": authority.roster,
+    }
+
+    base = keys["vehicle"].key
+
+    def reset() -> None:  # back to the first roster, so that the genuine newer one applies again
+        keys["vehicle"] = FleetAuth(dataclasses.replace(base, roster=first), clock_ns=clock)
+
+    keys["reset"] = reset
+    reset()
+    seeds = valid_messages(random.Random(0), keys)
+    keys["valid"] = {"cmd": seeds[-5], "ack": seeds[-4], "state": seeds[-3], "event": seeds[-2], "roster": seeds[-1]}
+    yield keys
     logger.setLevel(level)  # other tests read this logger's warnings
 
 
 def test_mutated_valid_messages_only_raise_decode_error(auth) -> None:
     rng = random.Random(SEED)
-    seeds = valid_messages(rng)
+    seeds = valid_messages(rng) + list(auth["valid"].values())  # the signed ones last
     stats = {"decoded": 0, "rejected": 0, "slowest_us": 0}
     for i in range(N_MUTATED):
         check_one(mutate(seeds[i % len(seeds)], rng), auth, stats)
+    for data in seeds[-5:]:  # control: the unmutated signed originals do pass
+        check_one(data, auth, stats)
     print(f"fuzz mutated: {N_MUTATED} inputs, {stats}")
     assert stats["decoded"] > 100 and stats["rejected"] > 1000  # the mutator reaches both sides
 

@@ -22,7 +22,7 @@ def test_answers_are_kept_per_command_and_stray_acks_are_refused():
     log.on_ack(ack(1, 10), 2)
     log.on_ack(ack(2, 10, AckResult.REJECTED), 3)
     log.on_ack(ack(1, 99), 4)  # answers nothing we saw
-    log.on_ack(ack(1, 10), 5, check=lambda a, c: "bad tag")  # fails the signature check
+    log.on_ack(ack(1, 10), 5, check=lambda a, c, d: "bad tag")  # fails the signature check
     (e,) = log.entries()
     assert {v: a.result for v, a in e.answers.items()} == {1: AckResult.ACCEPTED, 2: AckResult.REJECTED}
     assert log.refused_acks == 2

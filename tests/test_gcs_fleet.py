@@ -163,3 +163,26 @@ def test_vehicles_without_a_token_expire_and_the_table_is_bounded():
     # A lost vehicle is forgotten lost_expire_s after it was lost.
     assert [v.vehicle_id for v in model.snapshot(int(66 * NS_PER_S)).vehicles] == [1, 3]
     assert model.expired > 0
+
+
+def test_refused_states_mark_a_known_vehicle_and_never_create_a_phantom() -> None:
+    m = FleetModel(FleetConfig(unverified_window_s=3.0))
+    m.on_presence(1, True, 0)
+    m.on_state(state(1, 1), 0)
+    m.on_state_refused(1, "forged", 1 * NS_PER_S)
+    for vid in range(100, 5100):  # 5000 phantom ids whose states the mesh refused
+        m.on_state_refused(vid, "unknown signer", 1 * NS_PER_S)
+    snap = m.snapshot(2 * NS_PER_S).by_id()
+    assert set(snap) == {1} and m.phantom_refusals == 5000
+    assert snap[1].unverified and snap[1].refused_states == 1 and snap[1].refused_cause == "forged"
+    assert not m.snapshot(5 * NS_PER_S).by_id()[1].unverified  # the mark fades after the window
+
+
+def test_vehicles_never_present_are_forgotten_but_present_ones_stay() -> None:
+    m = FleetModel(FleetConfig(unconfirmed_expire_s=10.0, lost_expire_s=60.0))
+    m.on_presence(1, True, 0)
+    m.on_state(state(1, 1), 0)
+    m.on_state(state(7, 1), 0)  # states, but never a liveliness token (open mode phantom)
+    assert m.ids() == [1, 7]
+    m.on_presence(1, False, 1 * NS_PER_S)  # a real vehicle that left stays, shown LOST
+    assert [v.vehicle_id for v in m.snapshot(31 * NS_PER_S).vehicles] == [1]

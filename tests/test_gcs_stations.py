@@ -23,7 +23,8 @@ pytestmark = pytest.mark.e2e
 
 @pytest.fixture(scope="module")
 def demo():
-    with DemoProcess(["--vehicles", "2", "--port", "0"]) as proc:
+    # Open mode: two stations need two station keys; signing is covered by test_trust_keyed.py.
+    with DemoProcess(["--vehicles", "2", "--port", "0", "--open-mode"]) as proc:
         yield proc
 
 

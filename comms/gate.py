@@ -1,0 +1,174 @@
+"""The receive-side gate for signed states and events: what a keyed process lets in.
+
+Per state, cheapest check first, so that junk costs no signature verification:
+
+    1. signed at all                               else UNSIGNED
+    2. |recv - stamp_ns| <= max_skew_s             else STALE       (a recording re-sent later)
+    3. stamp_ns newer than the last accepted one   else REPLAYED (same stamp) / OUT_OF_ORDER
+    4. [thinning] at least min_interval_s since the last accepted state of that vehicle, else
+       skipped unverified (not a refusal: an agent does not need every 10 Hz state; the neighbour
+       table dead-reckons in between)
+    5. signer in the roster, signature verifies    else UNKNOWN / FORGED
+
+Only a state that passed 5 moves the vehicle's "last accepted" stamp and time, so a forger can
+neither push a vehicle's states out (3) nor make real ones skipped (4). The per-vehicle table
+holds roster members only (5 comes before any insert), so phantom ids never grow it.
+
+Refusals are counted per cause; `on_summary(text)` gets at most one line per cause per
+`summary_period_s`, which the agent publishes as a SECURITY event and the station logs.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from comms.schema import Event, Role, VehicleState
+
+
+class Refusal(enum.Enum):
+    UNSIGNED = "unsigned"
+    STALE = "stale"
+    REPLAYED = "replayed"
+    OUT_OF_ORDER = "out of order"
+    UNKNOWN = "unknown signer"
+    FORGED = "forged"
+
+
+SKIPPED = "skipped"
+"""admit() result for a state thinned before verification (neither accepted nor refused)."""
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    """How strict a receiver is, and how often it reports."""
+
+    max_skew_s: float = 5.0
+    """A state or event stamped further than this from the receiver's clock is refused as stale
+    (clocks agree within this: NTP or GPS time)."""
+    min_interval_s: float = 0.0
+    """Skip (without verifying) a vehicle's state arriving sooner than this after its last
+    accepted one. 0: verify every state (the ground station); agents use 0.15 (about 5 Hz)."""
+    summary_period_s: float = 1.0
+    """At most one summary line per refusal cause per this many seconds."""
+
+    def __post_init__(self) -> None:
+        for name in ("max_skew_s", "min_interval_s", "summary_period_s"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 3600.0:
+                raise ValueError(f"{name}={value} must be within [0, 3600]")
+
+
+class Summaries:
+    """At most one line per cause per `period_s`: the first refusal of a quiet cause at once, then
+    a count of what happened since. Thread-safe. `emit(line)` exceptions are swallowed."""
+
+    def __init__(self, emit: Callable[[str], None] | None, period_s: float = 1.0) -> None:
+        self.emit = emit
+        self._period_ns = int(period_s * 1e9)
+        self._lock = threading.Lock()
+        self._pending: dict[object, int] = {}
+        self._emitted_ns: dict[object, int] = {}
+
+    def note(self, cause: object, now_ns: int, describe: Callable[[int], str]) -> None:
+        """Count one `cause`; if its line is due, emit `describe(count since the last line)`."""
+        with self._lock:
+            count = self._pending.get(cause, 0) + 1
+            last = self._emitted_ns.get(cause)
+            if last is not None and now_ns - last < self._period_ns:
+                self._pending[cause] = count
+                return
+            self._emitted_ns[cause] = now_ns
+            self._pending.pop(cause, None)
+        if self.emit is not None:
+            try:
+                self.emit(describe(count)[:119])
+            except Exception:  # noqa: BLE001 - reporting must not break receiving
+                pass
+
+
+class Gate:
+    """One subscription's gate (each keeps its own 'last accepted' per vehicle). Thread-safe."""
+
+    def __init__(
+        self,
+        auth,
+        cfg: GateConfig = GateConfig(),
+        on_summary: Callable[[str], None] | None = None,
+        what: str = "state",
+    ) -> None:
+        self.auth = auth
+        self.cfg = cfg
+        self.what = what
+        self.on_summary = on_summary
+        self._skew_ns = int(cfg.max_skew_s * 1e9)
+        self._min_ns = int(cfg.min_interval_s * 1e9)
+        self._summaries = Summaries(on_summary, cfg.summary_period_s)
+        self._lock = threading.Lock()
+        self._last: dict[int, tuple[int, int]] = {}  # vehicle -> (stamp_ns, recv_ns) accepted
+        self.accepted = 0
+        self.skipped = 0
+        self.refused: dict[Refusal, int] = dict.fromkeys(Refusal, 0)
+        """Refusals per cause since start (read only)."""
+
+    def admit_state(self, state: VehicleState, recv_ns: int) -> Refusal | str | None:
+        """None: accept. A Refusal: drop and count. SKIPPED: drop silently (thinning)."""
+        vid = state.vehicle_id
+        if not state.sig:
+            return self._refuse(Refusal.UNSIGNED, vid, "no signature", recv_ns)
+        age_ns = recv_ns - state.stamp_ns
+        if abs(age_ns) > self._skew_ns:
+            return self._refuse(Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns)
+        last = self._last.get(vid)
+        if last is not None:
+            if state.stamp_ns == last[0]:
+                return self._refuse(Refusal.REPLAYED, vid, f"seq {state.seq} again", recv_ns)
+            if state.stamp_ns < last[0]:
+                return self._refuse(Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {state.seq})", recv_ns)
+            if recv_ns - last[1] < self._min_ns:
+                with self._lock:
+                    self.skipped += 1
+                return SKIPPED
+        problem = self.auth.check_state(state)
+        if problem:
+            cause = Refusal.UNKNOWN if problem.startswith("unknown") else Refusal.FORGED
+            return self._refuse(cause, vid, problem, recv_ns)
+        with self._lock:
+            last = self._last.get(vid)
+            if last is not None and state.stamp_ns <= last[0]:  # a newer one won the race
+                return self._refuse(Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {state.seq})", recv_ns)
+            self._last[vid] = (state.stamp_ns, recv_ns)
+            self.accepted += 1
+            if len(self._last) > 2 * len(self.auth.roster.members) + 16:  # revoked members go
+                for gone in [v for v in self._last if not self.auth.is_member(Role.VEHICLE, v)]:
+                    del self._last[gone]
+        return None
+
+    def admit_event(self, event: Event, recv_ns: int) -> Refusal | None:
+        """Events: signed by their vehicle and fresh (no ordering: events are not latest-wins)."""
+        vid = event.vehicle_id
+        if not event.sig:
+            return self._refuse(Refusal.UNSIGNED, vid, "no signature", recv_ns)
+        age_ns = recv_ns - event.stamp_ns
+        if abs(age_ns) > self._skew_ns:
+            return self._refuse(Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns)
+        problem = self.auth.check_event(event)
+        if problem:
+            cause = Refusal.UNKNOWN if problem.startswith("unknown") else Refusal.FORGED
+            return self._refuse(cause, vid, problem, recv_ns)
+        with self._lock:
+            self.accepted += 1
+        return None
+
+    @property
+    def refused_total(self) -> int:
+        return sum(self.refused.values())
+
+    def _refuse(self, cause: Refusal, vid: int, detail: str, recv_ns: int) -> Refusal:
+        with self._lock:
+            self.refused[cause] += 1
+        self._summaries.note(cause, recv_ns, lambda n: (
+            f"refused {n} {cause.value} {self.what}{'s' if n > 1 else ''} (latest claims vehicle {vid}: {detail})"))
+        return cause
