@@ -15,6 +15,7 @@
 #define COVEY_W_ORDER_CLOSEST_LAST 1
 #define COVEY_W_DIST_SCALE 10.0f
 #define COVEY_W_SENSE_RANGE 20.0f /* policy units; 0 = unlimited */
+#define COVEY_W_DT 1.0f /* policy units of time per decision */
 
 #ifdef COVEY_WEIGHTS_IMPLEMENTATION
 static const float covey_w_lstm_ih[1260] = {

@@ -112,6 +112,7 @@ def header_text(npz_path) -> str:
         f"#define COVEY_W_ORDER_CLOSEST_LAST {int(cfg.get('order', 'index') == 'closest_last')}",
         f"#define COVEY_W_DIST_SCALE {c_float(cfg.get('dist_scale', 1.0))}",
         f"#define COVEY_W_SENSE_RANGE {c_float(sense)} /* policy units; 0 = unlimited */",
+        f"#define COVEY_W_DT {c_float(cfg.get('dt_s', 1.0))} /* policy units of time per decision */",
         "",
         "#ifdef COVEY_WEIGHTS_IMPLEMENTATION",
         _c_array("covey_w_lstm_ih", w["lstm.weight_ih"]),
