@@ -37,7 +37,15 @@ WARN_FLAGS = (
     "-Wfloat-conversion",
     "-Werror",
 )
-OPT_FLAGS = ("-O2",)
+# -O3 vectorises the transposed matvecs and the activation loops; -fno-trapping-math lets
+# the clamps inside exp_f become selects (no value changes: no reassociation, no contraction
+# under -std=c99); -march=native uses this host's vector width (AVX2: 183 -> 26 us at N = 20).
+# COVEY_PORTABLE=1 drops -march=native (a baseline x86-64 / arm64 build, about 60 us).
+OPT_FLAGS = (
+    "-O3",
+    "-fno-trapping-math",
+    *(() if os.environ.get("COVEY_PORTABLE") == "1" else ("-march=native",)),
+)
 SANITIZE_FLAGS = (
     "-O1",
     "-g",
