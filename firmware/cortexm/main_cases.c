@@ -4,8 +4,8 @@
  *   R <case> <status> <vel_n> <vel_e> <a_fwd> <a_right> <n_used>  (floats as hex bits)
  *   CAL <loop iterations> <systick ticks>     (a 2-instruction loop, for calibration)
  *   B <neighbours> <systick ticks>            (one covey_command, min of BENCH_REPS)
- *   F <neighbours> <systick ticks>            (one covey_safety_filter, same neighbours,
- *                                              all closing in: every one a half-plane)
+ *   F <neighbours> <systick ticks> <lines> <infeasible>  (one covey_safety_filter, same
+ *                                              neighbours, all closing in)
  * The cases come from a generated header (firmware/cortexm.py writes it).
  */
 #include <math.h>
@@ -124,6 +124,10 @@ int main(void)
         sh_put_dec(k);
         sh_puts(" ");
         sh_put_dec((int32_t)best);
+        sh_puts(" ");
+        sh_put_dec(fout.n_lines);
+        sh_puts(" ");
+        sh_put_dec(fout.infeasible);
         sh_puts("\n");
     }
     sh_puts("DONE\n");
