@@ -122,7 +122,10 @@ class CPolicy:
         max_own_age_s: float = 0.5,
         safety_filter: bool = True,
         safety_cfg=None,
+        policy_separation_m: float | None = None,
     ):
+        """`policy_separation_m`: the separation the network is told (its distance scale,
+        3 policy units = this); None = separation_m. The filter always keeps separation_m."""
         if max_neighbours is None:
             max_neighbours = MAX_NEIGHBOURS
         if not 0 <= max_neighbours <= MAX_NEIGHBOURS:
@@ -133,7 +136,7 @@ class CPolicy:
         self._lib = load_library(npz_path)
         self._scratch = ctypes.create_string_buffer(self._lib.covey_scratch_bytes())
         self._cfg = _Config(
-            separation_m,
+            separation_m if policy_separation_m is None else policy_separation_m,
             cruise_speed_m_s,
             _us(max_neighbour_age_s),
             _us(max_own_age_s),

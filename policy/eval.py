@@ -135,7 +135,8 @@ def controllers(cfg: EvalConfig) -> dict:
 
         cpol = CPolicy.load(
             cfg.weights,
-            separation_m=cfg.policy_separation_m,
+            separation_m=safety_cfg.radius_m,  # the filter keeps 3 m, as policy+filter's
+            policy_separation_m=cfg.policy_separation_m,
             max_neighbours=cfg.max_neighbours,
             safety_cfg=safety_cfg,
         )

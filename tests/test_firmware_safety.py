@@ -196,3 +196,17 @@ def test_onboard_faults_hover_and_forget_the_hold(cpol):
     r = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=5.0,
                   nbr_stamp_s=[1.0])  # fmt: skip
     assert r.status == "ok" and not r.filtered
+
+
+def test_policy_separation_scales_the_network_not_the_filter():
+    """policy_separation_m changes what the network sees; the filter keeps separation_m."""
+    from firmware.cpolicy import CPolicy
+
+    wide = CPolicy.load(separation_m=3.0, policy_separation_m=2.0, safety_filter=False)
+    scaled = CPolicy.load(separation_m=2.0, safety_filter=False)
+    rng = np.random.default_rng(9)
+    pos, vel, hdg = _scene(rng)
+    args = (pos[0], vel[0], hdg[0], [20.0, 3.0], pos[1:], vel[1:], hdg[1:])
+    np.testing.assert_array_equal(wide.command(*args), scaled.command(*args))
+    filt = CPolicy.load(separation_m=3.0, policy_separation_m=2.0)
+    assert filt.safety_cfg.radius_m == 3.0
