@@ -166,8 +166,16 @@ class CPolicy:
 
     @property
     def decision_period_s(self) -> float:
-        """The trained decision period (covey_trained_period_s), as GuidancePolicy's."""
-        return float(self._lib.covey_trained_period_s(ctypes.byref(self._cfg)))
+        """The trained decision period (covey_trained_period_s) at separation_m, as
+        GuidancePolicy's (a narrower policy_separation_m does not shorten it)."""
+        cfg = _Config(
+            self.separation_m,
+            self.cruise_speed_m_s,
+            self._cfg.max_neighbour_age_us,
+            self._cfg.max_own_age_us,
+            self._cfg.max_neighbours,
+        )
+        return float(self._lib.covey_trained_period_s(ctypes.byref(cfg)))
 
     def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
         """The C safety filter alone (world units); raises ValueError on a fault."""

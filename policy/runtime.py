@@ -216,7 +216,12 @@ class GuidancePolicy:
         safety_filter: bool = True,
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
+        policy_separation_m: float | None = None,
     ):
+        """`policy_separation_m`: the separation the network is told, i.e. its distance scale
+        (3 policy units = this many metres); None = separation_m. Smaller than separation_m
+        makes the policy keep a narrower berth while the filter still keeps separation_m
+        (docs/policy.md, "A narrower berth"). The decision period stays separation_m's."""
         if not (np.isfinite(separation_m) and separation_m > 0):
             raise ValueError(f"separation_m must be finite and > 0, got {separation_m}")
         if not (np.isfinite(cruise_speed_m_s) and cruise_speed_m_s > 0):
@@ -226,8 +231,16 @@ class GuidancePolicy:
         self.net = net
         self.obs_cfg = obs_cfg
         self.config = config
-        self.dist_scale_m = separation_m / 3.0
-        """World metres per policy unit of distance."""
+        if policy_separation_m is None:
+            policy_separation_m = separation_m
+        if not (np.isfinite(policy_separation_m) and policy_separation_m > 0):
+            raise ValueError(
+                f"policy_separation_m must be finite and > 0, got {policy_separation_m}"
+            )
+        self.dist_scale_m = policy_separation_m / 3.0
+        """World metres per policy unit of distance (what the network sees)."""
+        self.separation_m = float(separation_m)
+        """The separation the filter keeps."""
         self.cruise_speed_m_s = cruise_speed_m_s
         self.max_neighbours = max_neighbours
         self.safety_filter = safety_filter
@@ -243,6 +256,7 @@ class GuidancePolicy:
         safety_filter: bool = True,
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
+        policy_separation_m: float | None = None,
     ) -> GuidancePolicy:
         """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights."""
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
@@ -272,13 +286,14 @@ class GuidancePolicy:
             safety_filter,
             max_neighbours,
             safety_cfg,
+            policy_separation_m,
         )
 
     @property
     def decision_period_s(self) -> float:
         """World time of one training step (1 s in policy units): call `command` at this
         period and hold the velocity in between; run `filter` at the control rate."""
-        return float(self.config.get("dt_s", 1.0)) * self.dist_scale_m / self.cruise_speed_m_s
+        return float(self.config.get("dt_s", 1.0)) * self.separation_m / 3.0 / self.cruise_speed_m_s
 
     def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
         """The safety filter alone (world units): pref_vel_m_s changed as little as possible."""
