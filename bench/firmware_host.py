@@ -2,10 +2,11 @@
 
     python -m bench.firmware_host        # prints a table, writes bench/results/firmware_host.json
 
-Builds firmware/host/covey_bench.c (-O2, system cc) against the shipped weights; for
-each neighbour count it times 15 batches of 20 covey_command calls and reports the
-median and the fastest batch per call. For comparison it times the numpy runtime
-(`GuidancePolicy.action`, the same network without the safety filter) the same way.
+Builds firmware/host/covey_bench.c (hostbuild.OPT_FLAGS: -O3 -march=native, system cc)
+against the shipped weights; for each neighbour count it times 15 batches of 20
+covey_command calls and reports the median and the fastest batch per call. For comparison
+it times the numpy runtime the same way: `GuidancePolicy.action` (the same network without
+the safety filter) and `GuidancePolicy.command` (world units, checks, and the filter).
 The machine is shared, so the minimum is the steadier number.
 """
 
@@ -34,20 +35,36 @@ def time_c(neighbours) -> dict[int, tuple[float, float]]:
     return {int(t[0]): (float(t[1]), float(t[2])) for t in (ln.split() for ln in out.splitlines())}
 
 
-def time_numpy(neighbours, repeats: int = 15, batch: int = 5) -> dict[int, tuple[float, float]]:
+def time_numpy(
+    neighbours, repeats: int = 15, batch: int = 5, command: bool = False
+) -> dict[int, tuple[float, float]]:
+    """`action` (policy units, no filter) or, with `command`, `command` with the filter."""
     from policy.runtime import GuidancePolicy
 
-    pol = GuidancePolicy.load(safety_filter=False)
+    pol = GuidancePolicy.load(safety_filter=command)
     rng = np.random.default_rng(0)
     out = {}
+    own, vel, goal = np.zeros(2), np.array([1.0, 0.0]), np.array([40.0, 25.0])
+    # action: the old dense scene (all within 6 m, every neighbour fed); command: neighbours
+    # spread over +-15 m (bench.policy_runtime's scene), as a separation-keeping swarm flies
+    spread_m = 15.0 if command else 6.0
     for k in neighbours:
-        nbr = rng.uniform(-6, 6, (k, 2))
+        nbr = rng.uniform(-spread_m, spread_m, (k, 2))
         hdg = rng.uniform(-np.pi, np.pi, k)
+        nbr_vel = rng.normal(0, 0.7, (k, 2))
+
+        def call(nbr=nbr, hdg=hdg, nbr_vel=nbr_vel):
+            if command:
+                pol.command(own, vel, 0.3, goal, nbr, nbr_vel, hdg)
+            else:
+                pol.action(own, 0.3, goal, nbr, hdg)
+
+        call()
         per_call = []
         for _ in range(repeats):
             t0 = time.perf_counter_ns()
             for _ in range(batch):
-                pol.action(np.zeros(2), 0.3, np.array([40.0, 25.0]), nbr, hdg)
+                call()
             per_call.append((time.perf_counter_ns() - t0) / batch)
         out[k] = (float(np.median(per_call)), float(np.min(per_call)))
     return out
@@ -60,6 +77,7 @@ def main(argv=None) -> int:
     ks = [n - 1 for n in N_VEHICLES]
     c_ns = time_c(ks)
     np_ns = time_numpy(ks)
+    cmd_ns = time_numpy(ks, command=True)
     rows = [
         {
             "vehicles": k + 1,
@@ -68,14 +86,17 @@ def main(argv=None) -> int:
             "c_min_us": c_ns[k][1] / 1e3,
             "numpy_median_us": np_ns[k][0] / 1e3,
             "numpy_min_us": np_ns[k][1] / 1e3,
+            "numpy_command_filter_median_us": cmd_ns[k][0] / 1e3,
+            "numpy_command_filter_min_us": cmd_ns[k][1] / 1e3,
         }
         for k in ks
     ]
-    print(" N   C median us   C min us   numpy median us   numpy min us")
+    print(" N   C median us   C min us   numpy median us   numpy min us   command+filter med/min")
     for r in rows:
         print(
             f"{r['vehicles']:2d} {r['c_median_us']:12.1f} {r['c_min_us']:10.1f} "
-            f"{r['numpy_median_us']:16.1f} {r['numpy_min_us']:14.1f}"
+            f"{r['numpy_median_us']:16.1f} {r['numpy_min_us']:14.1f} "
+            f"{r['numpy_command_filter_median_us']:12.1f} {r['numpy_command_filter_min_us']:8.1f}"
         )
     result = {
         "machine": platform.processor() or platform.machine(),

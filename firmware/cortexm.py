@@ -156,9 +156,14 @@ class QemuRun:
     """SysTick ticks per instruction from the calibration loop (1/40 expected)."""
     bench_ticks: dict
     """Neighbour count -> SysTick ticks of one evaluation."""
+    filter_ticks: dict = None
+    """Neighbour count -> SysTick ticks of one covey_safety_filter (all neighbours closing in)."""
 
     def instructions(self, k: int) -> float:
         return self.bench_ticks[k] / self.ticks_per_instruction
+
+    def filter_instructions(self, k: int) -> float:
+        return self.filter_ticks[k] / self.ticks_per_instruction
 
 
 def run_qemu(elf: Path) -> QemuRun:
@@ -184,7 +189,7 @@ def run_qemu(elf: Path) -> QemuRun:
     def f(h: str) -> float:
         return float(np.float32(struct.unpack("<f", struct.pack("<I", int(h, 16)))[0]))
 
-    results, bench, cal = [], {}, None
+    results, bench, filt, cal = [], {}, {}, None
     for line in text.splitlines():
         t = line.split()
         if t and t[0] == "R":
@@ -193,7 +198,9 @@ def run_qemu(elf: Path) -> QemuRun:
             cal = int(t[2]) / (2.0 * int(t[1]))
         elif t and t[0] == "B":
             bench[int(t[1])] = int(t[2])
-    return QemuRun(results, cal, bench)
+        elif t and t[0] == "F":
+            filt[int(t[1])] = int(t[2])
+    return QemuRun(results, cal, bench, filt)
 
 
 def paper_flops(n_vehicles: int, hidden: int = 63, x: int = 3, head=(64, 64), a: int = 2) -> int:
@@ -221,7 +228,10 @@ def main() -> int:
     run = run_qemu(elfs["cases"])
     print(f"calibration: {1 / run.ticks_per_instruction:.3f} instructions per SysTick tick")
     for k in run.bench_ticks:
-        print(f"{k:3d} neighbours: {run.instructions(k):,.0f} instructions")
+        print(
+            f"{k:3d} neighbours: {run.instructions(k):,.0f} instructions, "
+            f"filter {run.filter_instructions(k):,.0f}"
+        )
     return 0
 
 

@@ -25,7 +25,18 @@ static covey_status_t check_report(const covey_vehicle_t *v)
     return COVEY_OK;
 }
 
-covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_vehicle_t *report)
+static void store(covey_traffic_t *t, int32_t i, uint32_t id, const covey_vehicle_t *report,
+                  float vel_n_m_s, float vel_e_m_s)
+{
+    t->id[i] = id;
+    t->report[i] = *report;
+    t->vel_m_s[i][0] = vel_n_m_s;
+    t->vel_m_s[i][1] = vel_e_m_s;
+}
+
+covey_status_t covey_traffic_put_track(covey_traffic_t *t, uint32_t id,
+                                       const covey_vehicle_t *report, float vel_n_m_s,
+                                       float vel_e_m_s)
 {
     if (t == NULL || report == NULL) {
         return COVEY_ERR_NULL;
@@ -37,10 +48,16 @@ covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_ve
     if (st != COVEY_OK) {
         return st;
     }
+    if (!isfinite(vel_n_m_s) || !isfinite(vel_e_m_s)) {
+        return COVEY_ERR_NONFINITE;
+    }
+    if (fabsf(vel_n_m_s) > COVEY_MAX_ABS_VEL_M_S || fabsf(vel_e_m_s) > COVEY_MAX_ABS_VEL_M_S) {
+        return COVEY_ERR_RANGE;
+    }
     int32_t oldest = 0;
     for (int32_t i = 0; i < t->n; ++i) {
         if (t->id[i] == id) {
-            t->report[i] = *report;
+            store(t, i, id, report, vel_n_m_s, vel_e_m_s);
             return COVEY_OK;
         }
         if (t->report[i].stamp_us < t->report[oldest].stamp_us) {
@@ -48,14 +65,17 @@ covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_ve
         }
     }
     if (t->n < COVEY_MAX_INPUTS) {
-        t->id[t->n] = id;
-        t->report[t->n] = *report;
+        store(t, t->n, id, report, vel_n_m_s, vel_e_m_s);
         t->n++;
     } else if (report->stamp_us > t->report[oldest].stamp_us) {
-        t->id[oldest] = id;
-        t->report[oldest] = *report;
+        store(t, oldest, id, report, vel_n_m_s, vel_e_m_s);
     }
     return COVEY_OK;
+}
+
+covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_vehicle_t *report)
+{
+    return covey_traffic_put_track(t, id, report, 0.0f, 0.0f);
 }
 
 int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_age_us)
@@ -67,8 +87,7 @@ int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_ag
     for (int32_t i = 0; i < t->n; ++i) {
         const uint64_t stamp = t->report[i].stamp_us;
         if (stamp <= now_us && now_us - stamp <= max_age_us) {
-            t->id[kept] = t->id[i];
-            t->report[kept] = t->report[i];
+            store(t, kept, t->id[i], &t->report[i], t->vel_m_s[i][0], t->vel_m_s[i][1]);
             kept++;
         }
     }

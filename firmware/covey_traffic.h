@@ -12,6 +12,7 @@
 #define COVEY_TRAFFIC_H
 
 #include "covey_policy.h"
+#include "covey_safety.h" /* COVEY_MAX_ABS_VEL_M_S */
 
 #ifdef __cplusplus
 extern "C" {
@@ -20,10 +21,12 @@ extern "C" {
 /* Below this commanded speed the heading is kept (hover does not turn the vehicle). */
 #define COVEY_HEADING_MIN_SPEED_M_S 0.05f
 
-/* Latest report per neighbour id; entries [0, n) are valid, in insertion order. */
+/* Latest report per neighbour id; entries [0, n) are valid, in insertion order.
+ * vel_m_s[i] is report i's (north, east) velocity, the layout covey_guidance_step takes. */
 typedef struct {
     uint32_t id[COVEY_MAX_INPUTS];
     covey_vehicle_t report[COVEY_MAX_INPUTS];
+    float vel_m_s[COVEY_MAX_INPUTS][2];
     int32_t n;
 } covey_traffic_t;
 
@@ -36,6 +39,15 @@ void covey_traffic_init(covey_traffic_t *t);
  * refuse (the table keeps its previous entry), COVEY_OK otherwise.
  */
 covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_vehicle_t *report);
+
+/*
+ * The same with the neighbour's velocity (north, east), which the separation filter
+ * needs; covey_traffic_put stores (0, 0). A non-finite velocity is refused
+ * (COVEY_ERR_NONFINITE), one beyond COVEY_MAX_ABS_VEL_M_S too (COVEY_ERR_RANGE).
+ */
+covey_status_t covey_traffic_put_track(covey_traffic_t *t, uint32_t id,
+                                       const covey_vehicle_t *report, float vel_n_m_s,
+                                       float vel_e_m_s);
 
 /* Removes entries older than max_age_us (or stamped after now_us); returns how many. */
 int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_age_us);

@@ -3,8 +3,10 @@
     pol = CPolicy.load(separation_m=3.0, cruise_speed_m_s=1.0)   # shipped weights
     v_m_s = pol.command(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
 
-`command` mirrors `policy.runtime.GuidancePolicy.command` without the safety filter
-(the C core has none; the velocities are accepted for the same signature and ignored).
+`command` mirrors `policy.runtime.GuidancePolicy.command`: the network, then (with
+`safety_filter=True`, the default) the C separation filter (covey_safety.c) on the
+neighbours' positions and velocities. `onboard()` gives one vehicle's guidance tick as the
+PX4 module flies it (covey_guidance.c): decide at the trained period, filter every tick.
 Freshness is optional: pass `now_s` with `stamp_s` / `nbr_stamp_s` (seconds on one
 clock) and neighbours older than `max_neighbour_age_s` are dropped, an own state older
 than `max_own_age_s` raises. The shared library is built on demand into firmware/build/
@@ -15,12 +17,12 @@ build is never loaded).
 from __future__ import annotations
 
 import ctypes
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from firmware import hostbuild
+from firmware import csafety, hostbuild
 
 MAX_NEIGHBOURS = 40
 """COVEY_MAX_NEIGHBOURS: most neighbours fed to the LSTM."""
@@ -29,14 +31,7 @@ MAX_INPUTS = 64
 STATUS_NAMES = {0: "ok", 1: "null", 2: "nonfinite", 3: "range", 4: "stale"}
 
 
-class _Config(ctypes.Structure):
-    _fields_ = [
-        ("separation_m", ctypes.c_float),
-        ("cruise_speed_m_s", ctypes.c_float),
-        ("max_neighbour_age_us", ctypes.c_uint64),
-        ("max_own_age_us", ctypes.c_uint64),
-        ("max_neighbours", ctypes.c_int32),
-    ]
+_Config = csafety.ConfigC
 
 
 class _Vehicle(ctypes.Structure):
@@ -52,16 +47,7 @@ class _Goal(ctypes.Structure):
     _fields_ = [("pos_n_m", ctypes.c_float), ("pos_e_m", ctypes.c_float)]
 
 
-class _Command(ctypes.Structure):
-    _fields_ = [
-        ("vel_n_m_s", ctypes.c_float),
-        ("vel_e_m_s", ctypes.c_float),
-        ("action", ctypes.c_float * 2),
-        ("n_used", ctypes.c_int32),
-        ("n_stale", ctypes.c_int32),
-        ("n_far", ctypes.c_int32),
-        ("n_excess", ctypes.c_int32),
-    ]
+_Command = csafety.CommandC
 
 
 class CPolicyError(ValueError):
@@ -119,11 +105,12 @@ def load_library(npz_path=None) -> ctypes.CDLL:
     ]
     lib.covey_scratch_bytes.restype = ctypes.c_uint32
     lib.covey_scratch_bytes.argtypes = []
+    csafety.bind(lib)
     return lib
 
 
 class CPolicy:
-    """The C policy core with world-unit scaling (no safety filter)."""
+    """The C policy core with world-unit scaling and the C separation filter."""
 
     def __init__(
         self,
@@ -133,7 +120,12 @@ class CPolicy:
         max_neighbours: int | None = None,
         max_neighbour_age_s: float = 1.0,
         max_own_age_s: float = 0.5,
+        safety_filter: bool = True,
+        safety_cfg=None,
+        policy_separation_m: float | None = None,
     ):
+        """`policy_separation_m`: the separation the network is told (its distance scale,
+        3 policy units = this); None = separation_m. The filter always keeps separation_m."""
         if max_neighbours is None:
             max_neighbours = MAX_NEIGHBOURS
         if not 0 <= max_neighbours <= MAX_NEIGHBOURS:
@@ -144,7 +136,7 @@ class CPolicy:
         self._lib = load_library(npz_path)
         self._scratch = ctypes.create_string_buffer(self._lib.covey_scratch_bytes())
         self._cfg = _Config(
-            separation_m,
+            separation_m if policy_separation_m is None else policy_separation_m,
             cruise_speed_m_s,
             _us(max_neighbour_age_s),
             _us(max_own_age_s),
@@ -153,6 +145,12 @@ class CPolicy:
         self.separation_m = float(separation_m)
         self.cruise_speed_m_s = float(cruise_speed_m_s)
         self.max_neighbours = max_neighbours
+        self.safety_filter = bool(safety_filter)
+        from policy.safety import SafetyConfig  # numpy only: the config's one definition
+
+        base = safety_cfg or SafetyConfig()
+        self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
+        self._filter = csafety.CSafetyFilter(self._lib, self.safety_cfg)
 
     @classmethod
     def load(
@@ -164,9 +162,30 @@ class CPolicy:
         **kwargs,
     ) -> CPolicy:
         """Same call as GuidancePolicy.load (path None = shipped weights)."""
-        kwargs.pop("safety_filter", None)  # the C core has no safety filter
-        kwargs.pop("safety_cfg", None)
         return cls(path, separation_m, cruise_speed_m_s, max_neighbours, **kwargs)
+
+    @property
+    def decision_period_s(self) -> float:
+        """The trained decision period (covey_trained_period_s) at separation_m, as
+        GuidancePolicy's (a narrower policy_separation_m does not shorten it)."""
+        cfg = _Config(
+            self.separation_m,
+            self.cruise_speed_m_s,
+            self._cfg.max_neighbour_age_us,
+            self._cfg.max_own_age_us,
+            self._cfg.max_neighbours,
+        )
+        return float(self._lib.covey_trained_period_s(ctypes.byref(cfg)))
+
+    def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
+        """The C safety filter alone (world units); raises ValueError on a fault."""
+        return self._filter(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
+
+    def onboard(self, decision_period_s: float | None = None) -> csafety.COnboard:
+        """One vehicle's guidance tick (covey_guidance_step) with its own hold state;
+        None = the trained period, 0 = decide every tick."""
+        p = self.decision_period_s if decision_period_s is None else float(decision_period_s)
+        return csafety.COnboard(self._lib, self._cfg, self.safety_cfg, p, self.safety_filter)
 
     def evaluate(
         self,
@@ -237,14 +256,26 @@ class CPolicy:
         stamp_s=None,
         nbr_stamp_s=None,
     ) -> np.ndarray:
-        """Velocity command (2,) in m/s (north, east); raises CPolicyError on a fault."""
-        del vel_m_s, nbr_vel_m_s  # only the safety filter of the numpy runtime uses them
+        """Velocity command (2,) in m/s (north, east); raises CPolicyError on a fault.
+
+        With the filter on, it sees the neighbours the network kept fresh (stale ones dropped)."""
         r = self.evaluate(
             pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s, stamp_s, nbr_stamp_s
         )
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
-        return r.vel_m_s
+        nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
+        if not self.safety_filter or nbr_pos.shape[0] == 0:
+            return r.vel_m_s
+        nbr_vel = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
+        if nbr_stamp_s is not None and now_s is not None:
+            age_s = now_s - np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
+            fresh = age_s * 1e6 <= self._cfg.max_neighbour_age_us
+            nbr_pos, nbr_vel = nbr_pos[fresh], nbr_vel[fresh]
+        f = self._filter.evaluate(pos_m, vel_m_s, r.vel_m_s, nbr_pos, nbr_vel)
+        if f.status != "ok":
+            raise CPolicyError(STATUS_NAMES_INV[f.status])
+        return f.vel_m_s
 
     def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
         """Clipped network action (fwd, right); inputs in policy units, like GuidancePolicy."""

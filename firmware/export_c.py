@@ -112,21 +112,24 @@ def header_text(npz_path) -> str:
         f"#define COVEY_W_ORDER_CLOSEST_LAST {int(cfg.get('order', 'index') == 'closest_last')}",
         f"#define COVEY_W_DIST_SCALE {c_float(cfg.get('dist_scale', 1.0))}",
         f"#define COVEY_W_SENSE_RANGE {c_float(sense)} /* policy units; 0 = unlimited */",
+        f"#define COVEY_W_DT {c_float(cfg.get('dt_s', 1.0))} /* policy units of time per decision */",
         "",
         "#ifdef COVEY_WEIGHTS_IMPLEMENTATION",
-        _c_array("covey_w_lstm_ih", w["lstm.weight_ih"]),
-        _c_array("covey_w_lstm_hh", w["lstm.weight_hh"]),
+        # transposed (input-major, W^T row k = the weights of input k), so that
+        # y += W x runs as axpys over contiguous output rows: the loop a compiler vectorises
+        _c_array("covey_w_lstm_ih_t", w["lstm.weight_ih"].T),
+        _c_array("covey_w_lstm_hh_t", w["lstm.weight_hh"].T),
         _c_array("covey_w_lstm_b", w["lstm.bias"]),
     ]
     for k in range(n_layers):
-        out.append(_c_array(f"covey_w_head{k}_w", w[f"head.{k}.weight"]))
+        out.append(_c_array(f"covey_w_head{k}_wt", w[f"head.{k}.weight"].T))
         out.append(_c_array(f"covey_w_head{k}_b", w[f"head.{k}.bias"]))
-    wl = ", ".join(f"covey_w_head{k}_w" for k in range(n_layers))
+    wl = ", ".join(f"covey_w_head{k}_wt" for k in range(n_layers))
     bl = ", ".join(f"covey_w_head{k}_b" for k in range(n_layers))
     out += [
         f"static const int covey_w_head_in[{n_layers}] = {{{', '.join(map(str, ins))}}};",
         f"static const int covey_w_head_out[{n_layers}] = {{{', '.join(map(str, outs))}}};",
-        f"static const float *const covey_w_head_w[{n_layers}] = {{{wl}}};",
+        f"static const float *const covey_w_head_wt[{n_layers}] = {{{wl}}};",
         f"static const float *const covey_w_head_b[{n_layers}] = {{{bl}}};",
         "#endif /* COVEY_WEIGHTS_IMPLEMENTATION */",
         "",

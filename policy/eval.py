@@ -8,7 +8,8 @@ Suites (policy units): antipodal circle (N up to 50), random forced conflicts
 (N = 2-10), random large swarms (N = 35 and 100); links perfect and degraded
 (3 Hz, 20 % loss, 100 ms latency). Controllers: the policy with and without the
 safety filter, optional paper-config and occupancy-map policies, ORCA and the
-straight line. Writes results.json, results.md, trajectory PNGs and the paper's
+straight line; on request (`--controllers c+filter,...`) the C core as flown onboard
+(firmware/ceval.py: C decision hold + C separation filter). Writes results.json, results.md, trajectory PNGs and the paper's
 Fig. 5 heading-change maps.
 """
 
@@ -128,6 +129,18 @@ def controllers(cfg: EvalConfig) -> dict:
 
     out["orca"] = orca
     out["straight"] = sim.straight_line
+    if "c+filter" in cfg.controllers:  # needs a C compiler: only when asked for
+        from firmware.ceval import COnboardFleet
+        from firmware.cpolicy import CPolicy
+
+        cpol = CPolicy.load(
+            cfg.weights,
+            separation_m=safety_cfg.radius_m,  # the filter keeps 3 m, as policy+filter's
+            policy_separation_m=cfg.policy_separation_m,
+            max_neighbours=cfg.max_neighbours,
+            safety_cfg=safety_cfg,
+        )
+        out["c+filter"] = COnboardFleet(cpol, cfg.policy_period_s)
     return out
 
 
@@ -313,7 +326,7 @@ def cli(argv=None) -> dict:
     ap.add_argument("--dt", type=float, default=EvalConfig.dt_s, help="simulation step in seconds")
     ap.add_argument("--policy-period", type=float, default=EvalConfig.policy_period_s,
                     help="seconds between learned-policy decisions (held in between)")  # fmt: skip
-    ap.add_argument("--controllers", default="", help="comma list, e.g. policy,orca (default all)")
+    ap.add_argument("--controllers", default="", help="comma list, e.g. policy,orca (default all but c+filter, the C core as onboard, which runs only when named)")
     ap.add_argument("--no-figures", action="store_true", help="skip the track and Fig. 5 PNGs")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")

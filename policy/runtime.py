@@ -10,6 +10,7 @@ The contract is docs/POLICY_SPEC.md; observations come from policy.features.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -68,8 +69,60 @@ class Network:
             w_ih * scale[:, None], (w_hh * scale[:, None]).T.copy(), bias * scale, tuple(head), h
         )
 
+    def __post_init__(self) -> None:
+        hs = self.hidden
+        # fast path (lstm_last): gate columns reordered to (o, i, f, g), float32, the recurrent
+        # rows halved because the loop carries h2 = 2h; see lstm_last
+        perm = np.r_[2 * hs : 3 * hs, 0 : 2 * hs, 3 * hs : 4 * hs]
+        object.__setattr__(self, "_w_ih_t32", self.w_ih.T[:, perm].astype(np.float32).copy())
+        object.__setattr__(self, "_b32", self.bias[perm].astype(np.float32))
+        object.__setattr__(self, "_w_hh_half32", (0.5 * self.w_hh_t[:, perm]).astype(np.float32))
+
     def lstm_last(self, seq: np.ndarray) -> np.ndarray:
-        """Final hidden state of one sequence (L, X) -> (H,); zeros when L = 0."""
+        """Final hidden state of one sequence (L, X) -> (H,); zeros when L = 0.
+
+        The fast path of `lstm_last_reference` (equal within 1e-5, tests/test_policy_speed.py),
+        float32 like torch. Per step it makes 8 numpy calls on one buffer B = [o, i, f, g, c]:
+          B[:4H] = [h2, e_t] @ [W_hh / 2; XP]   (XP = X W_ih^T + b for all steps at once,
+                                                e_t one-hot: the input projection is a row)
+          B[:4H] = tanh(B[:4H]);  B[:3H] += 1   (2 sigma(x) = 1 + tanh(x / 2))
+          P = B[H:3H] * B[3H:5H]                ([2 s_i g, 2 s_f c])
+          c = (P[:H] + P[H:]) / 2;  h2 = (1 + tanh o) tanh(c) = 2 h
+        """
+        hs = self.hidden
+        n = seq.shape[0]
+        if n == 0:
+            return np.zeros(hs)
+        # the input projection of every neighbour in one matmul: (L, X) @ (X, 4H)
+        xp = np.asarray(seq, dtype=np.float32) @ self._w_ih_t32
+        xp += self._b32
+        w = np.concatenate([self._w_hh_half32, xp])  # (H + L, 4H)
+        haug = np.zeros(hs + n, np.float32)  # [h2, e_t]
+        h2 = haug[:hs]
+        buf = np.zeros(5 * hs, np.float32)
+        gates, sig, pair, c = buf[: 4 * hs], buf[: 3 * hs], buf[hs : 3 * hs], buf[4 * hs :]
+        tail = buf[3 * hs :]
+        prod = np.empty(2 * hs, np.float32)
+        lo, hi = prod[:hs], prod[hs:]
+        th = np.empty(hs, np.float32)
+        o_gate = buf[:hs]
+        dot, tanh, mul, add = np.dot, np.tanh, np.multiply, np.add
+        for t in range(n):
+            haug[hs + t] = 1.0
+            if t:
+                haug[hs + t - 1] = 0.0
+            dot(haug, w, out=gates)
+            tanh(gates, out=gates)
+            sig += 1.0
+            mul(pair, tail, out=prod)
+            add(lo, hi, out=c)
+            c *= 0.5
+            tanh(c, out=th)
+            mul(th, o_gate, out=h2)
+        return 0.5 * h2.astype(np.float64)
+
+    def lstm_last_reference(self, seq: np.ndarray) -> np.ndarray:
+        """Final hidden state of one sequence (L, X) -> (H,), float64, one step at a time."""
         hs = self.hidden
         h = np.zeros(hs)
         c = np.zeros(hs)
@@ -124,16 +177,28 @@ class Network:
         return z
 
 
-def _check(name: str, x, shape: tuple) -> np.ndarray:
-    """Array of the given shape (-1 = any length), finite, or a ValueError saying which."""
-    try:
-        a = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{name} must be numeric, got {type(x).__name__}") from e
+def _finite(**arrays) -> None:
+    """One isfinite over all of them (the hot path); on a failure, the named ValueError."""
+    if not np.isfinite(np.concatenate([a.ravel() for a in arrays.values()])).all():
+        for name, a in arrays.items():
+            if not np.isfinite(a).all():
+                raise ValueError(f"{name} must be finite, got {a!r}")
+
+
+def _check(name: str, x, shape: tuple, finite: bool = True) -> np.ndarray:
+    """Array of the given shape (-1 = any length), finite (unless `finite` is False: the
+    caller checks with `_finite`), or a ValueError saying which."""
+    if type(x) is np.ndarray and x.dtype == np.float64:
+        a = x  # the common case, without asarray's dispatch
+    else:
+        try:
+            a = np.asarray(x, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{name} must be numeric, got {type(x).__name__}") from e
     if a.ndim != len(shape) or any(s != -1 and s != d for s, d in zip(shape, a.shape, strict=True)):
         want = "(" + ", ".join("K" if s == -1 else str(s) for s in shape) + ")"
         raise ValueError(f"{name} must have shape {want}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if finite and not np.isfinite(a).all():
         raise ValueError(f"{name} must be finite, got {a!r}")
     return a
 
@@ -151,7 +216,12 @@ class GuidancePolicy:
         safety_filter: bool = True,
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
+        policy_separation_m: float | None = None,
     ):
+        """`policy_separation_m`: the separation the network is told, i.e. its distance scale
+        (3 policy units = this many metres); None = separation_m. Smaller than separation_m
+        makes the policy keep a narrower berth while the filter still keeps separation_m
+        (docs/policy.md, "A narrower berth"). The decision period stays separation_m's."""
         if not (np.isfinite(separation_m) and separation_m > 0):
             raise ValueError(f"separation_m must be finite and > 0, got {separation_m}")
         if not (np.isfinite(cruise_speed_m_s) and cruise_speed_m_s > 0):
@@ -161,8 +231,16 @@ class GuidancePolicy:
         self.net = net
         self.obs_cfg = obs_cfg
         self.config = config
-        self.dist_scale_m = separation_m / 3.0
-        """World metres per policy unit of distance."""
+        if policy_separation_m is None:
+            policy_separation_m = separation_m
+        if not (np.isfinite(policy_separation_m) and policy_separation_m > 0):
+            raise ValueError(
+                f"policy_separation_m must be finite and > 0, got {policy_separation_m}"
+            )
+        self.dist_scale_m = policy_separation_m / 3.0
+        """World metres per policy unit of distance (what the network sees)."""
+        self.separation_m = float(separation_m)
+        """The separation the filter keeps."""
         self.cruise_speed_m_s = cruise_speed_m_s
         self.max_neighbours = max_neighbours
         self.safety_filter = safety_filter
@@ -178,6 +256,7 @@ class GuidancePolicy:
         safety_filter: bool = True,
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
+        policy_separation_m: float | None = None,
     ) -> GuidancePolicy:
         """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights."""
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
@@ -207,13 +286,14 @@ class GuidancePolicy:
             safety_filter,
             max_neighbours,
             safety_cfg,
+            policy_separation_m,
         )
 
     @property
     def decision_period_s(self) -> float:
         """World time of one training step (1 s in policy units): call `command` at this
         period and hold the velocity in between; run `filter` at the control rate."""
-        return float(self.config.get("dt_s", 1.0)) * self.dist_scale_m / self.cruise_speed_m_s
+        return float(self.config.get("dt_s", 1.0)) * self.separation_m / 3.0 / self.cruise_speed_m_s
 
     def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
         """The safety filter alone (world units): pref_vel_m_s changed as little as possible."""
@@ -231,11 +311,28 @@ class GuidancePolicy:
     # --- policy units -------------------------------------------------------------
 
     def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
-        """Raw network action (a_fwd, a_right), clipped to |a| <= 1; inputs in policy units."""
+        """Raw network action (a_fwd, a_right), clipped to |a| <= 1; inputs in policy units.
+
+        The fast path (features.observe_fast, Network.lstm_last in float32) of
+        `action_reference`, equal within 1e-5 (tests/test_policy_speed.py)."""
+        seq, goal_feat, _ = features.observe_fast(
+            pos, heading_rad, goal, nbr_pos, nbr_heading_rad, self.obs_cfg, self.max_neighbours
+        )
+        z = np.tanh(self.net.lstm_last(seq))
+        z = np.concatenate([z, goal_feat])
+        for w, b in self.net.head:
+            z = np.tanh(w @ z + b)
+        a0, a1 = float(z[0]), float(z[1])
+        n = math.hypot(a0, a1)
+        return np.array([a0 / n, a1 / n]) if n > 1.0 else np.array([a0, a1])
+
+    def action_reference(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
+        """`action` the plain way: features.observe, float64 LSTM one step at a time."""
         seq, goal_feat, _ = features.observe(
             pos, heading_rad, goal, nbr_pos, nbr_heading_rad, self.obs_cfg, self.max_neighbours
         )
-        return features.clip_unit(self.net.head_forward(self.net.lstm_last(seq), goal_feat))
+        h = self.net.lstm_last_reference(seq)
+        return features.clip_unit(self.net.head_forward(h, goal_feat))
 
     def action_batch(self, pos, heading_rad, goal, active, rows=None):
         """Raw actions (N, 2) and neighbour indices (N, K) of all vehicles; policy units.
@@ -255,19 +352,27 @@ class GuidancePolicy:
 
     def command(self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad):
         """Velocity command (2,) in m/s (north, east) for one vehicle."""
-        pos_m = _check("pos_m", pos_m, (2,))
-        vel_m_s = _check("vel_m_s", vel_m_s, (2,))
-        heading = float(_check("heading_rad", heading_rad, ()))
-        goal_m = _check("goal_m", goal_m, (2,))
-        nbr_pos_m = _check("nbr_pos_m", nbr_pos_m, (-1, 2))
+        pos_m = _check("pos_m", pos_m, (2,), finite=False)
+        vel_m_s = _check("vel_m_s", vel_m_s, (2,), finite=False)
+        heading_a = _check("heading_rad", heading_rad, (), finite=False)
+        goal_m = _check("goal_m", goal_m, (2,), finite=False)
+        nbr_pos_m = _check("nbr_pos_m", nbr_pos_m, (-1, 2), finite=False)
         k = nbr_pos_m.shape[0]
-        nbr_vel_m_s = _check("nbr_vel_m_s", nbr_vel_m_s, (k, 2))
-        nbr_heading = _check("nbr_heading_rad", nbr_heading_rad, (k,))
+        nbr_vel_m_s = _check("nbr_vel_m_s", nbr_vel_m_s, (k, 2), finite=False)
+        nbr_heading = _check("nbr_heading_rad", nbr_heading_rad, (k,), finite=False)
+        _finite(
+            pos_m=pos_m, vel_m_s=vel_m_s, heading_rad=heading_a, goal_m=goal_m,
+            nbr_pos_m=nbr_pos_m, nbr_vel_m_s=nbr_vel_m_s, nbr_heading_rad=nbr_heading,
+        )  # fmt: skip
+        heading = float(heading_a)
         s = self.dist_scale_m
         a = self.action(pos_m / s, heading, goal_m / s, nbr_pos_m / s, nbr_heading)
-        v = features.action_to_velocity(a, heading) * self.cruise_speed_m_s
+        # body (fwd, right) -> (north, east), times the cruise speed
+        c, sn, u = math.cos(heading), math.sin(heading), self.cruise_speed_m_s
+        a0, a1 = float(a[0]), float(a[1])
+        v = np.array([(a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u])
         if self.safety_filter and k:
-            v = safety.filter_velocity(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
+            v = safety.filter_one(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
         return v
 
     def command_batch(self, pos_m, vel_m_s, heading_rad, goal_m, active=None):

@@ -10,6 +10,7 @@ al., "Reciprocal n-body collision avoidance" (2011); the LP is their incremental
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -185,6 +186,60 @@ def filter_velocity(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: S
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
     point, direction = orca_lines(rel_pos[near], rel_vel[near], np.asarray(vel_m_s, float), cfg)
     return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
+
+
+def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
+    """`orca_lines` for one neighbour in Python floats (the branch it takes, not all three)."""
+    tau = cfg.time_horizon_s
+    dist_sq = px * px + py * py
+    if dist_sq <= r * r:
+        inv_dt = 1.0 / cfg.dt_s
+        cx, cy = vx - inv_dt * px, vy - inv_dt * py
+        c_len = math.sqrt(max(cx * cx + cy * cy, EPS))
+        ux, uy = cx / c_len, cy / c_len
+        d, u = (uy, -ux), ((r * inv_dt - c_len) * ux, (r * inv_dt - c_len) * uy)
+    else:
+        wx, wy = vx - px / tau, vy - py / tau
+        w_len_sq = wx * wx + wy * wy
+        dot1 = wx * px + wy * py
+        if dot1 < 0 and dot1 * dot1 > r * r * w_len_sq:
+            w_len = math.sqrt(max(w_len_sq, EPS))
+            ux, uy = wx / w_len, wy / w_len
+            d, u = (uy, -ux), ((r / tau - w_len) * ux, (r / tau - w_len) * uy)
+        else:
+            leg = math.sqrt(max(dist_sq - r * r, 0.0))
+            inv = 1.0 / max(dist_sq, EPS)
+            if px * wy - py * wx > 0:
+                lx, ly = (px * leg - py * r) * inv, (px * r + py * leg) * inv
+            else:
+                lx, ly = -(px * leg + py * r) * inv, -(-px * r + py * leg) * inv
+            dot2 = vx * lx + vy * ly
+            d, u = (lx, ly), (dot2 * lx - vx, dot2 * ly - vy)
+    k = cfg.responsibility
+    return (own_vx + k * u[0], own_vy + k * u[1]), d
+
+
+def filter_one(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: SafetyConfig):
+    """`filter_velocity` for one vehicle in Python floats: the runtime's hot path, faster for
+    the few neighbours within reach (equal within 1e-12, tests/test_policy_speed.py)."""
+    r = cfg.radius_m * (1 + cfg.margin)
+    reach = r + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
+    x, y = float(pos_m[0]), float(pos_m[1])
+    own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
+    lines = []
+    for (nx, ny), (nvx, nvy) in zip(
+        np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True
+    ):
+        px, py = nx - x, ny - y
+        if px * px + py * py < reach * reach:
+            lines.append(_orca_line(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, r, cfg))
+    pref = (float(pref_vel_m_s[0]), float(pref_vel_m_s[1]))
+    if not lines:
+        return _clip_speed(np.array(pref), cfg.max_speed_m_s)
+    fail, result = _lp2(lines, cfg.max_speed_m_s, pref, False)
+    if fail < len(lines):
+        result = _lp3(lines, fail, cfg.max_speed_m_s, result)
+    return np.array(result)
 
 
 def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig):

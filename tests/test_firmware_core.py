@@ -186,13 +186,13 @@ def test_exporter_writes_sizes_and_config(tmp_path):
         "#define COVEY_W_ORDER_CLOSEST_LAST 1",
         "#define COVEY_W_DIST_SCALE 4.0f",
         "#define COVEY_W_SENSE_RANGE 2.5f",
-        "static const float covey_w_lstm_hh[324]",
+        "static const float covey_w_lstm_hh_t[324]",
     ):
         assert line in text
     # the weights round-trip exactly through the %.9g literals
     with np.load(npz) as z:
-        w = z["head.1.weight"].ravel()
-    body = text.split("covey_w_head1_w[14] = {")[1].split("};")[0]
+        w = z["head.1.weight"].T.ravel()  # stored transposed (input-major)
+    body = text.split("covey_w_head1_wt[14] = {")[1].split("};")[0]
     parsed = np.array(
         [float(v.strip().rstrip("f")) for v in body.split(",") if v.strip()], dtype=np.float32
     )

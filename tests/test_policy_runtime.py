@@ -159,3 +159,27 @@ def test_head_on_with_filter_keeps_separation():
         pos, vel = pos + disp, v
         min_d = min(min_d, float(np.hypot(*(pos[0] - pos[1]))))
     assert min_d >= 3.0 - 1e-6
+
+
+def test_policy_separation_narrows_the_berth_not_the_filter():
+    """policy_separation_m scales what the network sees; the filter and the decision period
+    keep separation_m."""
+    from policy.runtime import GuidancePolicy
+
+    narrow = GuidancePolicy.load(separation_m=3.0, policy_separation_m=1.5, safety_filter=False)
+    scaled = GuidancePolicy.load(separation_m=1.5, safety_filter=False)
+    rng = np.random.default_rng(4)
+    nbr = rng.uniform(-8, 8, (5, 2))
+    args = (
+        np.zeros(2),
+        np.zeros(2),
+        0.2,
+        np.array([30.0, 4.0]),
+        nbr,
+        np.zeros((5, 2)),
+        np.zeros(5),
+    )
+    np.testing.assert_array_equal(narrow.command(*args), scaled.command(*args))
+    assert narrow.safety_cfg.radius_m == 3.0 and narrow.decision_period_s == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="policy_separation_m"):
+        GuidancePolicy.load(policy_separation_m=0.0)

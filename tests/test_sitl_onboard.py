@@ -253,3 +253,20 @@ def test_onboard_emulator_behind_the_relay_flies_around_traffic() -> None:
             reporter.join(2.0)
         assert proc.alive()
     check_separation(closest)
+
+
+def test_c_onboard_tick_decides_at_the_trained_period_and_filters_every_tick() -> None:
+    """The C tick (covey_guidance_step): 10 Hz ticks, decisions every trained period
+    (separation 4 m at 3 m/s: 4/3/3 = 0.44 s), the filter on the neighbour in between."""
+    policy = c_policy_or_skip()
+    assert policy.decision_period_s == pytest.approx(4.0 / 3.0 / 3.0, rel=1e-6)
+    store = TrafficStore(5.0)
+    g = PolicyGuidance(policy, store, HOME, rate_hz=10.0)
+    v = airborne(g)
+    ticks0, decisions0 = g.ticks, g.decisions
+    closest = fly_goto(v, store, (30.0, 0.0, -5.0), (15.0, 0.0, -5.0), heading_rad=0.0)
+    ticks, decisions = g.ticks - ticks0, g.decisions - decisions0
+    # one decision per period: 10 Hz ticks, 0.44 s period -> due on every 5th tick (0.5 s)
+    assert ticks / decisions == pytest.approx(5.0, rel=0.15)
+    assert g.filtered > 0  # the standing neighbour on the path made the filter act
+    assert closest >= 3.0  # with the filter even the "facing-away" case keeps 3 m

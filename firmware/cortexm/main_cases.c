@@ -4,11 +4,15 @@
  *   R <case> <status> <vel_n> <vel_e> <a_fwd> <a_right> <n_used>  (floats as hex bits)
  *   CAL <loop iterations> <systick ticks>     (a 2-instruction loop, for calibration)
  *   B <neighbours> <systick ticks>            (one covey_command, min of BENCH_REPS)
+ *   F <neighbours> <systick ticks> <lines> <infeasible>  (one covey_safety_filter, same
+ *                                              neighbours, all closing in)
  * The cases come from a generated header (firmware/cortexm.py writes it).
  */
+#include <math.h>
 #include <string.h>
 
 #include "covey_policy.h"
+#include "covey_safety.h"
 #include "cortexm_cases.h"
 #include "semihost.h"
 
@@ -16,6 +20,8 @@
 #define CAL_ITERATIONS 200000u
 
 static covey_scratch_t scratch;
+static covey_safety_scratch_t safety_scratch;
+static covey_track_t tracks[COVEY_MAX_INPUTS];
 
 static uint32_t bits(float x)
 {
@@ -83,6 +89,45 @@ int main(void)
         sh_put_dec(cm_bench_k[b]);
         sh_puts(" ");
         sh_put_dec((int32_t)best);
+        sh_puts("\n");
+    }
+    /* the filter on the same scene: every neighbour flies at us at 1 m/s, we fly north */
+    const covey_safety_config_t scfg = covey_safety_defaults(cm_bench_cfg.separation_m,
+                                                             cm_bench_cfg.cruise_speed_m_s);
+    const covey_track_t me = {cm_bench_own.pos_n_m, cm_bench_own.pos_e_m, 1.0f, 0.0f};
+    const float pref[2] = {1.0f, 0.0f};
+    for (int32_t b = 0; b < CM_N_BENCH; ++b) {
+        const int32_t k = cm_bench_k[b];
+        for (int32_t i = 0; i < k; ++i) {
+            const float dn = me.pos_n_m - cm_bench_nbrs[i].pos_n_m;
+            const float de = me.pos_e_m - cm_bench_nbrs[i].pos_e_m;
+            const float d = sqrtf(dn * dn + de * de) + 1e-6f;
+            tracks[i].pos_n_m = cm_bench_nbrs[i].pos_n_m;
+            tracks[i].pos_e_m = cm_bench_nbrs[i].pos_e_m;
+            tracks[i].vel_n_m_s = dn / d;
+            tracks[i].vel_e_m_s = de / d;
+        }
+        uint32_t best = 0xFFFFFFFFu;
+        covey_safety_out_t fout;
+        for (int rep = 0; rep < BENCH_REPS; ++rep) {
+            uint32_t t0 = systick_now();
+            covey_status_t st = covey_safety_filter(&scfg, &me, pref, tracks, k, &safety_scratch,
+                                                    &fout);
+            uint32_t dt = systick_elapsed(t0, systick_now());
+            if (st != COVEY_OK) {
+                sh_puts("BENCHFAIL\n");
+                return 2;
+            }
+            best = (dt < best) ? dt : best;
+        }
+        sh_puts("F ");
+        sh_put_dec(k);
+        sh_puts(" ");
+        sh_put_dec((int32_t)best);
+        sh_puts(" ");
+        sh_put_dec(fout.n_lines);
+        sh_puts(" ");
+        sh_put_dec(fout.infeasible);
         sh_puts("\n");
     }
     sh_puts("DONE\n");

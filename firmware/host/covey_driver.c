@@ -7,15 +7,19 @@
  *     own_n own_e own_h own_stamp_us goal_n goal_e now_us n_nbrs n_rec
  *     [n e h stamp_us] * n_rec
  *   A n_steps n_values [value] * n_values      (seq then goal features)
+ *   S radius_m margin horizon_s dt_s max_speed_m_s responsibility
+ *     own_n own_e own_vn own_ve pref_n pref_e n_nbrs n_rec [n e vn ve] * n_rec
  * stdout, one line per case:
  *   C: status vel_n vel_e a_fwd a_right n_used n_stale n_far n_excess
  *   A: status a_fwd a_right
+ *   S: status vel_n vel_e n_lines changed infeasible
  * Floats are %.9g (exact for float32); "nan", "inf" parse with strtof.
  * n_nbrs is passed to the core as given (it may be negative or too large: the
  * core must say RANGE before touching the array); n_rec <= COVEY_MAX_INPUTS
  * records are read into a zero-filled array.
  */
 #include "covey_policy.h"
+#include "covey_safety.h"
 
 #include <stdio.h>
 #include <stdlib.h>
@@ -114,11 +118,42 @@ static int run_action_case(covey_scratch_t *scratch, float *values)
     return 1;
 }
 
+static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *tracks)
+{
+    covey_safety_config_t cfg;
+    covey_track_t own;
+    float pref[2];
+    long long n_nbrs, n_rec;
+    int ok = read_f(&cfg.radius_m) && read_f(&cfg.margin) && read_f(&cfg.time_horizon_s) &&
+             read_f(&cfg.dt_s) && read_f(&cfg.max_speed_m_s) && read_f(&cfg.responsibility) &&
+             read_f(&own.pos_n_m) && read_f(&own.pos_e_m) && read_f(&own.vel_n_m_s) &&
+             read_f(&own.vel_e_m_s) && read_f(&pref[0]) && read_f(&pref[1]) &&
+             read_i64(&n_nbrs) && read_i64(&n_rec);
+    if (!ok || n_rec < 0 || n_rec > COVEY_MAX_INPUTS) {
+        return 0;
+    }
+    memset(tracks, 0, sizeof(covey_track_t) * COVEY_MAX_INPUTS);
+    for (long long i = 0; i < n_rec; ++i) {
+        if (!(read_f(&tracks[i].pos_n_m) && read_f(&tracks[i].pos_e_m) &&
+              read_f(&tracks[i].vel_n_m_s) && read_f(&tracks[i].vel_e_m_s))) {
+            return 0;
+        }
+    }
+    covey_safety_out_t out;
+    covey_status_t st =
+        covey_safety_filter(&cfg, &own, pref, tracks, (int32_t)n_nbrs, scratch, &out);
+    printf("%d %.9g %.9g %d %d %d\n", (int)st, (double)out.vel_n_m_s, (double)out.vel_e_m_s,
+           (int)out.n_lines, (int)out.changed, (int)out.infeasible);
+    return 1;
+}
+
 int main(void)
 {
     static covey_scratch_t scratch;
     static covey_vehicle_t nbrs[COVEY_MAX_INPUTS];
     static float values[MAX_VALUES];
+    static covey_safety_scratch_t safety_scratch;
+    static covey_track_t tracks[COVEY_MAX_INPUTS];
     char kind[8];
     while (read_token(kind, sizeof kind)) {
         int ok = 0;
@@ -126,6 +161,8 @@ int main(void)
             ok = run_command_case(&scratch, nbrs);
         } else if (strcmp(kind, "A") == 0) {
             ok = run_action_case(&scratch, values);
+        } else if (strcmp(kind, "S") == 0) {
+            ok = run_safety_case(&safety_scratch, tracks);
         }
         if (!ok) {
             fprintf(stderr, "covey_driver: malformed case\n");

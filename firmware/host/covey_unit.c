@@ -3,6 +3,7 @@
  * cases that the random parity cases cannot reach (NULL pointers, ties,
  * +-pi wrap). Prints "covey_unit: <n> checks passed"; exits 1 on a failure.
  */
+#include "covey_guidance.h"
 #include "covey_traffic.h"
 
 #include <math.h>
@@ -63,6 +64,17 @@ static void test_traffic(void)
     removed = covey_traffic_prune(&t, 1540u, 500u); /* drops stamps < 1040 */
     CHECK(removed == 39 && t.n == COVEY_MAX_INPUTS - 40);
     CHECK(t.id[0] == 140u); /* order kept */
+
+    /* velocities travel with their reports (put_track, replace, prune) */
+    covey_traffic_init(&t);
+    covey_vehicle_t b = veh(1.0f, 1.0f, 0.0f, 10u);
+    CHECK(covey_traffic_put_track(&t, 1u, &b, 0.5f, -0.25f) == COVEY_OK);
+    b.stamp_us = 20u;
+    CHECK(covey_traffic_put_track(&t, 2u, &b, 1.5f, 2.0f) == COVEY_OK);
+    CHECK(covey_traffic_put_track(&t, 3u, &b, NAN, 0.0f) == COVEY_ERR_NONFINITE && t.n == 2);
+    CHECK(covey_traffic_put_track(&t, 3u, &b, 0.0f, 2.0e3f) == COVEY_ERR_RANGE && t.n == 2);
+    CHECK(covey_traffic_prune(&t, 25u, 10u) == 1 && t.n == 1);
+    CHECK(t.id[0] == 2u && t.vel_m_s[0][0] == 1.5f && t.vel_m_s[0][1] == 2.0f);
 }
 
 static void test_heading(void)
@@ -158,11 +170,78 @@ static void test_loop(void)
     }
 }
 
+static void test_safety_edges(void)
+{
+    static covey_safety_scratch_t ss;
+    covey_safety_config_t sc = covey_safety_defaults(3.0f, 1.0f);
+    CHECK(covey_safety_config_check(&sc) == COVEY_OK);
+    CHECK(covey_safety_config_check(NULL) == COVEY_ERR_NULL);
+    covey_safety_config_t bad = sc;
+    bad.responsibility = 0.0f;
+    CHECK(covey_safety_config_check(&bad) == COVEY_ERR_RANGE);
+    bad = sc;
+    bad.dt_s = NAN;
+    CHECK(covey_safety_config_check(&bad) == COVEY_ERR_NONFINITE);
+    covey_track_t me = {0.0f, 0.0f, 1.0f, 0.0f};
+    covey_track_t other = {6.0f, 0.0f, -1.0f, 0.0f};
+    float pref[2] = {1.0f, 0.0f};
+    covey_safety_out_t o;
+    CHECK(covey_safety_filter(&sc, &me, pref, NULL, 1, &ss, &o) == COVEY_ERR_NULL);
+    CHECK(covey_safety_filter(&sc, &me, NULL, &other, 1, &ss, &o) == COVEY_ERR_NULL);
+    CHECK(covey_safety_filter(&sc, &me, pref, &other, -1, &ss, &o) == COVEY_ERR_RANGE);
+    CHECK(covey_safety_filter(&sc, &me, pref, NULL, 0, &ss, &o) == COVEY_OK && !o.changed);
+    /* head-on at 6 m, closing at 2 m/s: it must steer off the line and keep |v| <= 1 */
+    CHECK(covey_safety_filter(&sc, &me, pref, &other, 1, &ss, &o) == COVEY_OK);
+    CHECK(o.changed && o.n_lines == 1 && fabsf(o.vel_e_m_s) > 0.1f);
+    CHECK(o.vel_n_m_s * o.vel_n_m_s + o.vel_e_m_s * o.vel_e_m_s <= 1.0f + 1e-6f);
+    /* the same point twice (coincident vehicles): finite, inside the disc */
+    covey_track_t twins[2] = {me, me};
+    CHECK(covey_safety_filter(&sc, &me, pref, twins, 2, &ss, &o) == COVEY_OK);
+    CHECK(isfinite(o.vel_n_m_s) && isfinite(o.vel_e_m_s));
+    CHECK(o.vel_n_m_s * o.vel_n_m_s + o.vel_e_m_s * o.vel_e_m_s <= 1.0f + 1e-6f);
+
+    /* decision hold: due when nothing is held, after 95 % of the period, on a new goal */
+    covey_hold_t h;
+    covey_hold_reset(&h);
+    covey_goal_t g = {10.0f, 0.0f};
+    CHECK(covey_hold_due(&h, &g, 0u, 1.0f) == 1);
+    h.valid = 1;
+    h.goal = g;
+    h.decided_us = 1000000u;
+    CHECK(covey_hold_due(&h, &g, 1940000u, 1.0f) == 0);
+    CHECK(covey_hold_due(&h, &g, 1950000u, 1.0f) == 1);
+    CHECK(covey_hold_due(&h, &g, 999999u, 1.0f) == 1); /* clock went back */
+    covey_goal_t g2 = {10.0f, 1.0f};
+    CHECK(covey_hold_due(&h, &g2, 1000001u, 1.0f) == 1);
+    CHECK(covey_hold_due(&h, &g, 1000001u, 0.0f) == 1); /* period 0: every tick */
+
+    static covey_guidance_scratch_t gs;
+    covey_config_t cfg = {3.0f, 1.0f, 1000000u, 500000u, COVEY_MAX_NEIGHBOURS};
+    covey_guidance_config_t gc = covey_guidance_defaults(&cfg);
+    CHECK(fabsf(gc.decision_period_s - 1.0f) < 1e-6f && gc.safety_filter == 1);
+    covey_vehicle_t own = veh(0.0f, 0.0f, 0.0f, 0u);
+    covey_vehicle_t nb = veh(6.0f, 0.0f, 3.1415927f, 0u);
+    float own_v[2] = {1.0f, 0.0f};
+    float nb_v[2] = {-1.0f, 0.0f};
+    covey_guidance_out_t go;
+    covey_hold_reset(&h);
+    CHECK(covey_guidance_step(&gc, &h, &own, own_v, &g, &nb, NULL, 1, 0u, &gs, &go) == COVEY_ERR_NULL);
+    CHECK(covey_guidance_step(&gc, &h, &own, own_v, &g, &nb, nb_v, 1, 0u, &gs, &go) == COVEY_OK);
+    CHECK(go.decided == 1 && h.valid == 1 && go.filter.n_lines == 1);
+    CHECK(covey_guidance_step(&gc, &h, &own, own_v, &g, &nb, nb_v, 1, 100000u, &gs, &go) == COVEY_OK);
+    CHECK(go.decided == 0);
+    covey_guidance_config_t gbad = gc;
+    gbad.decision_period_s = 11.0f;
+    CHECK(covey_guidance_step(&gbad, &h, &own, own_v, &g, &nb, nb_v, 1, 0u, &gs, &go) == COVEY_ERR_RANGE);
+    CHECK(h.valid == 0 && go.vel_n_m_s == 0.0f && go.vel_e_m_s == 0.0f);
+}
+
 int main(void)
 {
     test_traffic();
     test_heading();
     test_core_edges();
+    test_safety_edges();
     test_loop();
     if (failures) {
         fprintf(stderr, "covey_unit: %d of %d checks failed\n", failures, checks);

@@ -2,7 +2,9 @@
 
 This is what the PX4 module does on a real Pixhawk: neighbours arrive as ADSB_VEHICLE
 (lat/lon/alt, course, horizontal speed), become local positions and velocities, and the policy
-turns them into a horizontal velocity setpoint at a fixed rate.
+turns them into a horizontal velocity setpoint at a fixed rate. With the C policy that is the
+module's own tick (covey_guidance_step): the policy decides at its trained period, its velocity
+is held in between and the separation filter runs at every tick against the latest traffic.
 """
 
 from __future__ import annotations
@@ -59,7 +61,10 @@ def load_c_policy(weights: str | None, separation_m: float, cruise_speed_m_s: fl
 
 
 class PolicyGuidance:
-    """Implements `vehicle.Guidance` with a policy and the traffic store."""
+    """Implements `vehicle.Guidance` with a policy and the traffic store.
+
+    A policy with `onboard()` (firmware.cpolicy.CPolicy) flies the C guidance tick: decision
+    hold + filter, as the PX4 module does. Any other policy is called at every tick."""
 
     def __init__(
         self, policy: Policy, traffic: TrafficStore, home: GeoOrigin, rate_hz: float
@@ -68,6 +73,14 @@ class PolicyGuidance:
         self.period_s = 1.0 / rate_hz
         self._next_s = -math.inf
         self._last = (0.0, 0.0)
+        onboard = getattr(policy, "onboard", None)
+        self._tick = onboard() if callable(onboard) else None
+        self.ticks = 0
+        """Guidance ticks run."""
+        self.decisions = 0
+        """Ticks on which the policy decided (C tick: at its trained period)."""
+        self.filtered = 0
+        """Ticks on which the C filter changed the held velocity."""
 
     def neighbours(self, now_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fresh traffic in the vehicle's local frame: positions (k,2), velocities (k,2), headings (k,)."""
@@ -103,6 +116,21 @@ class PolicyGuidance:
         nxt = self._next_s + self.period_s
         self._next_s = nxt if nxt > now_s else now_s + self.period_s
         nbr_pos, nbr_vel, nbr_hdg = self.neighbours(now_s)
+        self.ticks += 1
+        if self._tick is not None:
+            r = self._tick.step(
+                pos_ned_m[:2], vel_ned_m_s[:2], heading_rad, goal_ned_m[:2],
+                nbr_pos, nbr_vel, nbr_hdg, now_s,
+            )  # fmt: skip
+            if r.status != "ok":
+                log.warning("onboard guidance fault: %s", r.status)
+                self._last = (math.nan, math.nan)  # the vehicle holds on a non-finite command
+                return self._last
+            self.decisions += r.decided
+            self.filtered += r.filtered
+            self._last = (float(r.vel_m_s[0]), float(r.vel_m_s[1]))
+            return self._last
+        self.decisions += 1
         try:
             cmd = np.asarray(
                 self.policy.command(

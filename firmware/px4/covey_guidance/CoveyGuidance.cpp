@@ -1,6 +1,7 @@
 /*
  * CoveyGuidance.cpp - see CoveyGuidance.hpp. No guidance logic here: data in,
- * covey_command(), data out.
+ * covey_guidance_step() (decision hold + separation filter around covey_command()),
+ * data out.
  */
 #include "CoveyGuidance.hpp"
 
@@ -30,6 +31,10 @@ void CoveyGuidance::update_parameters()
 	_config.max_own_age_us = (uint64_t)(1e6f * math::max(_param_own_age_s.get(), 0.f));
 	_config.max_neighbours = math::constrain((int32_t)_param_max_neighbours.get(), (int32_t)0,
 				 (int32_t)COVEY_MAX_NEIGHBOURS);
+	_guidance = covey_guidance_defaults(&_config); // trained decision period, filter on
+	_guidance.safety_filter = _param_filter.get() ? 1 : 0;
+	_guidance.safety.dt_s = 1.f / math::constrain(_param_rate_hz.get(), 1.f, 50.f);
+	covey_hold_reset(&_hold); // decide afresh with the new parameters
 	const float rate_hz = math::constrain(_param_rate_hz.get(), 1.f, 50.f);
 	ScheduleOnInterval((uint32_t)(1e6f / rate_hz));
 }
@@ -53,7 +58,11 @@ void CoveyGuidance::ingest_traffic()
 		float east_m = NAN;
 		_ref.project(report.lat, report.lon, north_m, east_m);
 		const covey_vehicle_t v{north_m, east_m, report.heading, report.timestamp};
-		covey_traffic_put(&_traffic, report.icao_address, &v); // refuses non-finite/out of range
+		// velocity over ground from course and horizontal speed (the filter needs it)
+		const float speed_m_s = (report.flags & transponder_report_s::PX4_ADSB_FLAGS_VALID_VELOCITY)
+					? report.hor_velocity : 0.f;
+		covey_traffic_put_track(&_traffic, report.icao_address, &v, speed_m_s * cosf(report.heading),
+					speed_m_s * sinf(report.heading)); // refuses non-finite/out of range
 	}
 }
 
@@ -115,16 +124,28 @@ void CoveyGuidance::Run()
 	if (_have_goal && _local_position.xy_valid) {
 		heading_rad = covey_heading_for_goal(&_heading, _local_position.x, _local_position.y, &_goal);
 		const covey_vehicle_t own{_local_position.x, _local_position.y, heading_rad, _local_position.timestamp};
-		_last_status = covey_command(&_config, &own, &_goal, _traffic.report, _traffic.n, now, &_scratch, &cmd);
-		_evaluations++;
+		const float own_vel_m_s[2] {_local_position.vx, _local_position.vy};
+		// decides at the trained period (the held velocity in between), filters every tick
+		covey_guidance_out_t out{};
+		_last_status = covey_guidance_step(&_guidance, &_hold, &own, own_vel_m_s, &_goal, _traffic.report,
+						   &_traffic.vel_m_s[0][0], _traffic.n, now, &_scratch, &out);
+		_ticks++;
 		_faults[math::min((int)_last_status, 4)]++;
 
 		if (_last_status == COVEY_OK) {
-			covey_heading_after_command(&_heading, &cmd);
-			_last_used = cmd.n_used;
+			cmd.vel_n_m_s = out.vel_n_m_s;
+			cmd.vel_e_m_s = out.vel_e_m_s;
+			_evaluations += out.decided ? 1 : 0;
+			_filtered += out.filter.changed ? 1 : 0;
+
+			if (out.decided) {
+				// the heading follows the policy's decisions, as in training (not the filter)
+				covey_heading_after_command(&_heading, &out.command);
+				_last_used = out.command.n_used;
+			}
 
 		} else {
-			PX4_WARN("covey policy fault: %s (holding)", covey_status_name(_last_status));
+			PX4_WARN("covey guidance fault: %s (holding)", covey_status_name(_last_status));
 		}
 	}
 
@@ -160,6 +181,8 @@ int CoveyGuidance::print_status()
 	PX4_INFO("enabled %d, goal %d (%.1f, %.1f) m, neighbours tracked %d, used %d",
 		 (int)_param_enable.get(), (int)_have_goal, (double)_goal.pos_n_m, (double)_goal.pos_e_m,
 		 (int)_traffic.n, (int)_last_used);
+	PX4_INFO("ticks %u, decisions %u (every %.2f s), filtered %u, filter %d", _ticks, _evaluations,
+		 (double)_guidance.decision_period_s, _filtered, (int)_guidance.safety_filter);
 	PX4_INFO("evaluations %u; ok %u nonfinite %u range %u stale %u; last %s", _evaluations,
 		 _faults[COVEY_OK], _faults[COVEY_ERR_NONFINITE], _faults[COVEY_ERR_RANGE], _faults[COVEY_ERR_STALE],
 		 covey_status_name(_last_status));

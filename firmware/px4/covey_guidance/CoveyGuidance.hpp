@@ -2,8 +2,9 @@
  * CoveyGuidance - PX4 module shim around the covey C policy core.
  *
  * Thin on purpose: every line of guidance logic (input checks, freshness,
- * neighbour table, heading, observation, network, scaling) lives in the
- * host-tested core (covey_policy.c, covey_traffic.c). This file only moves
+ * neighbour table, heading, observation, network, scaling, decision hold,
+ * separation filter) lives in the host-tested core (covey_policy.c,
+ * covey_traffic.c, covey_safety.c, covey_guidance.c). This file only moves
  * uORB data in and out:
  *   in:  vehicle_local_position (own state, map reference),
  *        transponder_report     (neighbours, ADS-B / MAVLink ADSB_VEHICLE),
@@ -29,6 +30,7 @@
 #include <uORB/topics/vehicle_local_position.h>
 
 extern "C" {
+#include "covey_guidance.h"
 #include "covey_traffic.h"
 }
 
@@ -65,7 +67,9 @@ private:
 
 	// state and scratch of the core, owned here (allocated once with the module)
 	covey_config_t _config{};
-	covey_scratch_t _scratch{};
+	covey_guidance_config_t _guidance{};
+	covey_hold_t _hold{};
+	covey_guidance_scratch_t _scratch{};
 	covey_traffic_t _traffic{};
 	covey_heading_t _heading{};
 	covey_goal_t _goal{};
@@ -73,7 +77,9 @@ private:
 	bool _have_goal{false};
 
 	// counters for `covey_guidance status`
+	uint32_t _ticks{0};
 	uint32_t _evaluations{0};
+	uint32_t _filtered{0};
 	uint32_t _faults[5] {};
 	covey_status_t _last_status{COVEY_OK};
 	int32_t _last_used{0};
@@ -83,6 +89,7 @@ private:
 		(ParamFloat<px4::params::CVY_SEP_M>) _param_separation_m,
 		(ParamFloat<px4::params::CVY_CRUISE>) _param_cruise_speed_m_s,
 		(ParamFloat<px4::params::CVY_RATE_HZ>) _param_rate_hz,
+		(ParamBool<px4::params::CVY_FILTER>) _param_filter,
 		(ParamFloat<px4::params::CVY_NBR_AGE>) _param_nbr_age_s,
 		(ParamFloat<px4::params::CVY_OWN_AGE>) _param_own_age_s,
 		(ParamInt<px4::params::CVY_MAX_NBR>) _param_max_neighbours,

@@ -1,0 +1,53 @@
+"""`covey eval` controller that flies the C core as the PX4 module does (`c+filter`).
+
+Each vehicle runs its own covey_guidance_step (firmware/covey_guidance.c): the C policy
+decides at the trained period, the velocity is held in between, and the C separation filter
+runs at every simulation step against what the link delivered. Nothing of the numpy runtime
+is in the loop, so `covey eval --controllers c+filter,policy+filter,orca` compares the onboard
+C core with the companion's numpy runtime on the same cases.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from firmware.csafety import MAX_INPUTS
+
+
+class COnboardFleet:
+    """controller(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)
+    of policy.sim, one C guidance tick per vehicle."""
+
+    def __init__(self, policy, decision_period_s: float):
+        """`policy` is a firmware.cpolicy.CPolicy (its filter setting and config are used)."""
+        self.policy = policy
+        self.decision_period_s = float(decision_period_s)
+        self._ticks: dict = {}
+
+    def reset(self) -> None:
+        """A new scenario: every vehicle forgets its held decision."""
+        self._ticks = {}
+
+    def _tick(self, vid: int):
+        t = self._ticks.get(vid)
+        if t is None:
+            t = self._ticks[vid] = self.policy.onboard(self.decision_period_s)
+        return t
+
+    def __call__(self, ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
+        out = np.zeros((len(ids), 2))
+        for row, vid in enumerate(np.asarray(ids).tolist()):
+            m = np.flatnonzero(nbr_valid[row])
+            if m.size > MAX_INPUTS:  # the C core takes 64 reports: keep the nearest, in order
+                d = ((nbr_pos[row, m] - pos[row]) ** 2).sum(-1)
+                m = np.sort(m[np.argsort(d, kind="stable")[:MAX_INPUTS]])
+            r = self._tick(vid).step(
+                pos[row], vel[row], heading[row], goal[row],
+                nbr_pos[row, m], nbr_vel[row, m], nbr_heading[row, m], t_s,
+            )  # fmt: skip
+            if r.status != "ok":
+                raise RuntimeError(
+                    f"C guidance fault for vehicle {vid} at t={t_s:.2f} s: {r.status}"
+                )
+            out[row] = r.vel_m_s
+        return out

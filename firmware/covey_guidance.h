@@ -1,0 +1,92 @@
+/*
+ * covey_guidance.h - one control tick of covey's onboard guidance, in C99:
+ * the policy decides at its trained period, its velocity is held in between,
+ * and the separation filter (covey_safety.h) runs on the held velocity at every
+ * tick against the latest neighbours. This is what agent/guidance.py does in
+ * the companion, so the PX4 module and the emulator's onboard mode fly the
+ * same thing.
+ *
+ * Same rules as covey_policy.h: caller-owned state and scratch, no malloc,
+ * float32, time passed in, faults as covey_status_t with a zero (hover) output.
+ */
+#ifndef COVEY_GUIDANCE_H
+#define COVEY_GUIDANCE_H
+
+#include "covey_safety.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* A decision is due once this share of the period has passed (agent/guidance.py
+ * DECISION_DUE_SHARE): tick jitter must not push a decision a whole tick late. */
+#define COVEY_DECISION_DUE_SHARE 0.95f
+#define COVEY_MAX_DECISION_PERIOD_S 10.0f
+
+typedef struct {
+    covey_config_t policy;          /* the policy core's configuration */
+    covey_safety_config_t safety;   /* the filter's (radius_m = policy.separation_m as a rule) */
+    float decision_period_s;        /* [0, 10]: seconds between decisions; 0 = every tick */
+    int32_t safety_filter;          /* 1: filter every tick; 0: the policy alone (the paper) */
+} covey_guidance_config_t;
+
+/* The held decision, owned by the caller; zero-initialise or covey_hold_reset. */
+typedef struct {
+    float vel_n_m_s;      /* the last decision's velocity */
+    float vel_e_m_s;
+    covey_goal_t goal;    /* the goal it was made for */
+    uint64_t decided_us;  /* when */
+    int32_t valid;        /* 0: nothing held, the next tick decides */
+} covey_hold_t;
+
+typedef struct {
+    covey_scratch_t policy;
+    covey_safety_scratch_t safety;
+    covey_track_t tracks[COVEY_MAX_INPUTS]; /* fresh neighbours with velocities */
+} covey_guidance_scratch_t;
+
+typedef struct {
+    float vel_n_m_s;            /* the velocity to fly (filtered); zero on a fault */
+    float vel_e_m_s;
+    int32_t decided;            /* 1: the policy ran this tick */
+    covey_command_t command;    /* the policy's output when decided (else zero counts) */
+    covey_safety_out_t filter;  /* the filter's result (n_lines = 0 when off) */
+} covey_guidance_out_t;
+
+/* The trained decision period in seconds: dt (1 policy unit of time, from the
+ * weights header) times (separation / 3) / cruise speed. */
+float covey_trained_period_s(const covey_config_t *cfg);
+
+/* The default guidance config: trained period, filter on, policy/safety.py defaults. */
+covey_guidance_config_t covey_guidance_defaults(const covey_config_t *policy);
+
+void covey_hold_reset(covey_hold_t *hold);
+
+/* 1 when a decision is due: nothing held, a new goal, the clock went back, or
+ * now - decided >= COVEY_DECISION_DUE_SHARE * period. */
+int32_t covey_hold_due(const covey_hold_t *hold, const covey_goal_t *goal, uint64_t now_us,
+                       float decision_period_s);
+
+/*
+ * One tick. own_vel_m_s is (north, east); nbr_vel_m_s is n_nbrs x 2 row-major
+ * (may be NULL when n_nbrs == 0 or the filter is off). Checks, first failure
+ * returned: NULL, configs, decision_period_s; then the policy core's checks
+ * when deciding (covey_policy.h), the own stamp every tick (future: RANGE,
+ * older than max_own_age_us: STALE); then, with the filter on, neighbours
+ * in index order (future stamp: RANGE; stale: dropped; fields checked by
+ * covey_safety_filter). A fault forgets the held decision.
+ */
+covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hold_t *hold,
+                                   const covey_vehicle_t *own, const float own_vel_m_s[2],
+                                   const covey_goal_t *goal, const covey_vehicle_t *nbrs,
+                                   const float *nbr_vel_m_s, int32_t n_nbrs, uint64_t now_us,
+                                   covey_guidance_scratch_t *scratch, covey_guidance_out_t *out);
+
+/* sizeof(covey_guidance_scratch_t), for bindings (ctypes). */
+uint32_t covey_guidance_scratch_bytes(void);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COVEY_GUIDANCE_H */

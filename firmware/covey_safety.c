@@ -1,0 +1,392 @@
+/*
+ * covey_safety.c - ORCA half-planes and the incremental 2-D LP; see
+ * covey_safety.h. A line-by-line port of policy/safety.py in float32; the
+ * parity tests (tests/test_firmware_safety.py) compare the two on shared vectors.
+ */
+#include "covey_safety.h"
+
+#include <math.h>
+#include <stddef.h>
+
+typedef covey_real_t real_t;
+typedef covey_halfplane_t line_t;
+#if COVEY_SAFETY_DOUBLE
+#define R(x) ((double)(x))
+#define R_SQRT sqrt
+#define R_FABS fabs
+#define R_FMIN fmin
+#define R_FMAX fmax
+#else
+#define R(x) ((float)(x))
+#define R_SQRT sqrtf
+#define R_FABS fabsf
+#define R_FMIN fminf
+#define R_FMAX fmaxf
+#endif
+
+/* Guard of divisions and parallel-line tests; policy/safety.py EPS. */
+#define COVEY_SAFETY_EPS R(1.0e-9)
+
+
+covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_m_s)
+{
+    covey_safety_config_t c;
+    c.radius_m = separation_m;
+    c.margin = 0.1f;
+    c.time_horizon_s = 4.0f;
+    c.dt_s = 0.1f;
+    c.max_speed_m_s = max_speed_m_s;
+    c.responsibility = 0.5f;
+    return c;
+}
+
+static int in_range(float x, float lo, float hi)
+{
+    return x >= lo && x <= hi;
+}
+
+covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
+{
+    if (cfg == NULL) {
+        return COVEY_ERR_NULL;
+    }
+    if (!isfinite(cfg->radius_m) || !isfinite(cfg->margin) || !isfinite(cfg->time_horizon_s) ||
+        !isfinite(cfg->dt_s) || !isfinite(cfg->max_speed_m_s) || !isfinite(cfg->responsibility)) {
+        return COVEY_ERR_NONFINITE;
+    }
+    if (!in_range(cfg->radius_m, COVEY_SAFETY_MIN_RADIUS_M, COVEY_SAFETY_MAX_RADIUS_M) ||
+        !in_range(cfg->margin, 0.0f, COVEY_SAFETY_MAX_MARGIN) ||
+        !in_range(cfg->time_horizon_s, COVEY_SAFETY_MIN_TIME_S, COVEY_SAFETY_MAX_TIME_S) ||
+        !in_range(cfg->dt_s, COVEY_SAFETY_MIN_TIME_S, COVEY_SAFETY_MAX_TIME_S) ||
+        !in_range(cfg->max_speed_m_s, COVEY_MIN_CRUISE_SPEED_M_S, COVEY_MAX_CRUISE_SPEED_M_S) ||
+        !(cfg->responsibility > 0.0f && cfg->responsibility <= 1.0f)) {
+        return COVEY_ERR_RANGE;
+    }
+    return COVEY_OK;
+}
+
+/* Non-finite first (over all four fields), then range. */
+static covey_status_t check_track(const covey_track_t *t)
+{
+    if (!isfinite(t->pos_n_m) || !isfinite(t->pos_e_m) || !isfinite(t->vel_n_m_s) ||
+        !isfinite(t->vel_e_m_s)) {
+        return COVEY_ERR_NONFINITE;
+    }
+    if (fabsf(t->pos_n_m) > COVEY_MAX_ABS_POS_M || fabsf(t->pos_e_m) > COVEY_MAX_ABS_POS_M ||
+        fabsf(t->vel_n_m_s) > COVEY_MAX_ABS_VEL_M_S || fabsf(t->vel_e_m_s) > COVEY_MAX_ABS_VEL_M_S) {
+        return COVEY_ERR_RANGE;
+    }
+    return COVEY_OK;
+}
+
+/* v / max(|v| / radius, 1), as lp2 computes it (so "changed" compares equal bits) */
+static void clip_to_disc(const real_t v[2], real_t radius, real_t out[2])
+{
+    const real_t n = R_SQRT(v[0] * v[0] + v[1] * v[1]);
+    if (n <= radius) {
+        out[0] = v[0];
+        out[1] = v[1];
+    } else {
+        out[0] = v[0] / n * radius;
+        out[1] = v[1] / n * radius;
+    }
+}
+
+/* det(a, b) = a_x b_y - a_y b_x */
+static real_t det2(real_t ax, real_t ay, real_t bx, real_t by)
+{
+    return ax * by - ay * bx;
+}
+
+/*
+ * The ORCA half-plane of one neighbour. p = p_j - p_i, v = v_i - v_j, r = radius (1 + margin):
+ *   not overlapping (|p| > r): w = v - p / tau is v's offset from the cut-off circle centre;
+ *     if v projects onto the cut-off circle (w.p < 0 and (w.p)^2 > r^2 |w|^2):
+ *       u = (r / tau - |w|) w / |w|, the line is perpendicular to w;
+ *     else onto the nearer leg l of the cone (tangent from the origin to the disc):
+ *       u = (v.l) l - v, the line runs along l;
+ *   overlapping: the same with the disc centred on p / dt, to separate within one period.
+ *   point = v_own + responsibility u.
+ */
+static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t px, real_t py, real_t vx,
+                      real_t vy, const covey_track_t *own, line_t *line)
+{
+    const real_t tau = R(cfg->time_horizon_s);
+    const real_t dist_sq = px * px + py * py;
+    real_t dir_x, dir_y, u_x, u_y;
+    if (dist_sq <= r * r) {
+        const real_t inv_dt = R(1.0) / R(cfg->dt_s);
+        const real_t cx = vx - inv_dt * px;
+        const real_t cy = vy - inv_dt * py;
+        const real_t c_len = R_SQRT(R_FMAX(cx * cx + cy * cy, COVEY_SAFETY_EPS));
+        const real_t ucx = cx / c_len;
+        const real_t ucy = cy / c_len;
+        dir_x = ucy;
+        dir_y = -ucx;
+        u_x = (r * inv_dt - c_len) * ucx;
+        u_y = (r * inv_dt - c_len) * ucy;
+    } else {
+        const real_t wx = vx - px / tau;
+        const real_t wy = vy - py / tau;
+        const real_t w_len_sq = wx * wx + wy * wy;
+        const real_t dot1 = wx * px + wy * py;
+        if (dot1 < R(0.0) && dot1 * dot1 > r * r * w_len_sq) {
+            const real_t w_len = R_SQRT(R_FMAX(w_len_sq, COVEY_SAFETY_EPS));
+            const real_t ux_c = wx / w_len;
+            const real_t uy_c = wy / w_len;
+            dir_x = uy_c;
+            dir_y = -ux_c;
+            u_x = (r / tau - w_len) * ux_c;
+            u_y = (r / tau - w_len) * uy_c;
+        } else {
+            /* leg = sqrt(|p|^2 - r^2); left leg when det(p, w) > 0, else the right one */
+            const real_t leg = R_SQRT(R_FMAX(dist_sq - r * r, R(0.0)));
+            const real_t inv = R(1.0) / R_FMAX(dist_sq, COVEY_SAFETY_EPS);
+            real_t lx, ly;
+            if (px * wy - py * wx > R(0.0)) {
+                lx = (px * leg - py * r) * inv;
+                ly = (px * r + py * leg) * inv;
+            } else {
+                lx = -(px * leg + py * r) * inv;
+                ly = -(-px * r + py * leg) * inv;
+            }
+            const real_t dot2 = vx * lx + vy * ly;
+            dir_x = lx;
+            dir_y = ly;
+            u_x = dot2 * lx - vx;
+            u_y = dot2 * ly - vy;
+        }
+    }
+    const real_t k = R(cfg->responsibility);
+    line->point[0] = R(own->vel_n_m_s) + k * u_x;
+    line->point[1] = R(own->vel_e_m_s) + k * u_y;
+    line->dir[0] = dir_x;
+    line->dir[1] = dir_y;
+}
+
+/*
+ * Optimum on line n, subject to lines [0, n) and |v| <= radius (the speed disc).
+ * Line n is point + t dir; the disc leaves t in [-d.p - s, -d.p + s] with
+ * s^2 = (d.p)^2 + radius^2 - |p|^2; every earlier line cuts that interval at
+ * t = det(e, p - q) / det(d, e). Returns 0 when the interval is empty.
+ */
+static int lp1(const line_t *lines, int32_t n, real_t radius, const real_t opt[2],
+               int direction_opt, real_t result[2])
+{
+    const real_t px = lines[n].point[0], py = lines[n].point[1];
+    const real_t dx = lines[n].dir[0], dy = lines[n].dir[1];
+    const real_t dot = px * dx + py * dy;
+    const real_t disc = dot * dot + radius * radius - (px * px + py * py);
+    if (disc < R(0.0)) {
+        return 0;
+    }
+    const real_t sq = R_SQRT(disc);
+    real_t t_left = -dot - sq;
+    real_t t_right = -dot + sq;
+    for (int32_t i = 0; i < n; ++i) {
+        const real_t qx = lines[i].point[0], qy = lines[i].point[1];
+        const real_t ex = lines[i].dir[0], ey = lines[i].dir[1];
+        const real_t denom = det2(dx, dy, ex, ey);
+        const real_t numer = det2(ex, ey, px - qx, py - qy);
+        if (R_FABS(denom) <= COVEY_SAFETY_EPS) {
+            if (numer < R(0.0)) {
+                return 0; /* parallel and entirely on the forbidden side */
+            }
+            continue;
+        }
+        const real_t t = numer / denom;
+        if (denom >= R(0.0)) {
+            t_right = R_FMIN(t_right, t);
+        } else {
+            t_left = R_FMAX(t_left, t);
+        }
+        if (t_left > t_right) {
+            return 0;
+        }
+    }
+    real_t t;
+    if (direction_opt) {
+        t = (opt[0] * dx + opt[1] * dy > R(0.0)) ? t_right : t_left;
+    } else {
+        /* projection of opt onto the line, clamped to the interval */
+        t = R_FMIN(R_FMAX(dx * (opt[0] - px) + dy * (opt[1] - py), t_left), t_right);
+    }
+    result[0] = px + t * dx;
+    result[1] = py + t * dy;
+    return 1;
+}
+
+/*
+ * Incremental 2-D LP (Seidel-style, in index order): the point of the disc that
+ * is closest to opt (or farthest along the direction opt) inside lines [0, count).
+ * Returns count on success, else the first line that made it infeasible; result
+ * then holds the optimum of the lines before it.
+ */
+static int32_t lp2(const line_t *lines, int32_t count, real_t radius, const real_t opt[2],
+                   int direction_opt, real_t result[2])
+{
+    if (direction_opt) {
+        result[0] = opt[0] * radius;
+        result[1] = opt[1] * radius;
+    } else {
+        clip_to_disc(opt, radius, result);
+    }
+    for (int32_t i = 0; i < count; ++i) {
+        const line_t *l = &lines[i];
+        if (det2(l->dir[0], l->dir[1], l->point[0] - result[0], l->point[1] - result[1]) > R(0.0)) {
+            real_t tmp[2];
+            if (!lp1(lines, i, radius, opt, direction_opt, tmp)) {
+                return i;
+            }
+            result[0] = tmp[0];
+            result[1] = tmp[1];
+        }
+    }
+    return count;
+}
+
+/*
+ * Fallback when infeasible: minimise the largest violation max_i det(d_i, p_i - v).
+ * For each line i still violated by more than the current worst, solve a 2-D LP in
+ * the space of lines [0, i) projected onto line i (their bisectors with it),
+ * pushing as far as possible along the normal (-d_y, d_x).
+ */
+static void lp3(const line_t *lines, int32_t count, int32_t begin, real_t radius,
+                line_t *proj, real_t result[2])
+{
+    real_t distance = R(0.0);
+    for (int32_t i = begin; i < count; ++i) {
+        const real_t px = lines[i].point[0], py = lines[i].point[1];
+        const real_t dx = lines[i].dir[0], dy = lines[i].dir[1];
+        if (det2(dx, dy, px - result[0], py - result[1]) <= distance) {
+            continue;
+        }
+        int32_t n_proj = 0;
+        for (int32_t j = 0; j < i; ++j) {
+            const real_t qx = lines[j].point[0], qy = lines[j].point[1];
+            const real_t ex = lines[j].dir[0], ey = lines[j].dir[1];
+            const real_t determinant = det2(dx, dy, ex, ey);
+            real_t ptx, pty;
+            if (R_FABS(determinant) <= COVEY_SAFETY_EPS) {
+                if (dx * ex + dy * ey > R(0.0)) {
+                    continue; /* same direction: line j adds nothing */
+                }
+                ptx = R(0.5) * (px + qx);
+                pty = R(0.5) * (py + qy);
+            } else {
+                const real_t t = det2(ex, ey, px - qx, py - qy) / determinant;
+                ptx = px + t * dx;
+                pty = py + t * dy;
+            }
+            const real_t nx = ex - dx;
+            const real_t ny = ey - dy;
+            const real_t nn = R_FMAX(R_SQRT(nx * nx + ny * ny), COVEY_SAFETY_EPS);
+            proj[n_proj].point[0] = ptx;
+            proj[n_proj].point[1] = pty;
+            proj[n_proj].dir[0] = nx / nn;
+            proj[n_proj].dir[1] = ny / nn;
+            ++n_proj;
+        }
+        const real_t normal[2] = {-dy, dx};
+        real_t candidate[2];
+        if (lp2(proj, n_proj, radius, normal, 1, candidate) >= n_proj) {
+            result[0] = candidate[0];
+            result[1] = candidate[1];
+        }
+        distance = det2(dx, dy, px - result[0], py - result[1]);
+    }
+}
+
+static covey_status_t fail(covey_safety_out_t *out, covey_status_t status)
+{
+    if (out != NULL) {
+        out->vel_n_m_s = 0.0f;
+        out->vel_e_m_s = 0.0f;
+    }
+    return status;
+}
+
+covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey_track_t *own,
+                                   const float pref_vel_m_s[2], const covey_track_t *nbrs,
+                                   int32_t n_nbrs, covey_safety_scratch_t *scratch,
+                                   covey_safety_out_t *out)
+{
+    if (out != NULL) {
+        out->n_lines = 0;
+        out->changed = 0;
+        out->infeasible = 0;
+    }
+    if (cfg == NULL || own == NULL || pref_vel_m_s == NULL || scratch == NULL || out == NULL ||
+        (nbrs == NULL && n_nbrs > 0)) {
+        return fail(out, COVEY_ERR_NULL);
+    }
+    covey_status_t st = covey_safety_config_check(cfg);
+    if (st != COVEY_OK) {
+        return fail(out, st);
+    }
+    if (n_nbrs < 0 || n_nbrs > COVEY_MAX_INPUTS) {
+        return fail(out, COVEY_ERR_RANGE);
+    }
+    st = check_track(own);
+    if (st != COVEY_OK) {
+        return fail(out, st);
+    }
+    if (!isfinite(pref_vel_m_s[0]) || !isfinite(pref_vel_m_s[1])) {
+        return fail(out, COVEY_ERR_NONFINITE);
+    }
+    if (fabsf(pref_vel_m_s[0]) > COVEY_MAX_ABS_VEL_M_S ||
+        fabsf(pref_vel_m_s[1]) > COVEY_MAX_ABS_VEL_M_S) {
+        return fail(out, COVEY_ERR_RANGE);
+    }
+    for (int32_t i = 0; i < n_nbrs; ++i) {
+        st = check_track(&nbrs[i]);
+        if (st != COVEY_OK) {
+            return fail(out, st);
+        }
+    }
+
+    /* neighbours that cannot meet us within the horizon add no line:
+     * |p| >= r (1 + margin) + 2 max_speed tau */
+    const real_t r = R(cfg->radius_m) * (R(1.0) + R(cfg->margin));
+    const real_t vmax = R(cfg->max_speed_m_s);
+    const real_t reach = r + R(2.0) * vmax * R(cfg->time_horizon_s);
+    int32_t n_lines = 0;
+    for (int32_t i = 0; i < n_nbrs; ++i) {
+        const real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
+        const real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
+        if (px * px + py * py >= reach * reach) {
+            continue;
+        }
+        const real_t vx = R(own->vel_n_m_s) - R(nbrs[i].vel_n_m_s);
+        const real_t vy = R(own->vel_e_m_s) - R(nbrs[i].vel_e_m_s);
+        orca_line(cfg, r, px, py, vx, vy, own, &scratch->lines[n_lines++]);
+    }
+
+    const real_t pref[2] = {R(pref_vel_m_s[0]), R(pref_vel_m_s[1])};
+    real_t v[2];
+    const int32_t failed = lp2(scratch->lines, n_lines, vmax, pref, 0, v);
+    if (failed < n_lines) {
+        lp3(scratch->lines, n_lines, failed, vmax, scratch->proj, v);
+        out->infeasible = 1;
+    }
+    real_t start[2]; /* what lp2 starts from: the preference clipped to the speed disc */
+    clip_to_disc(pref, vmax, start);
+    out->changed = (v[0] != start[0] || v[1] != start[1]) ? 1 : 0;
+    out->n_lines = n_lines;
+    /* a net under rounding: the output never leaves the speed disc, never non-finite */
+    real_t clipped[2];
+    clip_to_disc(v, vmax, clipped);
+    const float v_n = (float)clipped[0];
+    const float v_e = (float)clipped[1];
+    if (!isfinite(v_n) || !isfinite(v_e)) {
+        return fail(out, COVEY_ERR_NONFINITE); /* unreachable with checked inputs; never fly it */
+    }
+    out->vel_n_m_s = v_n;
+    out->vel_e_m_s = v_e;
+    return COVEY_OK;
+}
+
+uint32_t covey_safety_scratch_bytes(void)
+{
+    return (uint32_t)sizeof(covey_safety_scratch_t);
+}

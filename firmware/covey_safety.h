@@ -1,0 +1,116 @@
+/*
+ * covey_safety.h - the separation filter of covey, in C99: the same ORCA
+ * half-planes and 2-D linear program as policy/safety.py (van den Berg et al.,
+ * "Reciprocal n-body collision avoidance", 2011).
+ *
+ * Each vehicle alone, from its neighbours' positions and velocities, changes
+ * the preferred velocity (the policy's) as little as possible, in the
+ * Euclidean sense, so that it stays outside every neighbour's velocity
+ * obstacle for time_horizon_s, taking `responsibility` of the effort. When no
+ * velocity satisfies every half-plane, the largest violation is minimised
+ * (ORCA's fallback), so the output always exists.
+ *
+ * Same rules as covey_policy.h: caller-owned scratch, no malloc, float32,
+ * inputs checked with isfinite then range, faults as covey_status_t with a
+ * zero (hover) output.
+ */
+#ifndef COVEY_SAFETY_H
+#define COVEY_SAFETY_H
+
+#include "covey_policy.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Input ranges beyond COVEY_MAX_ABS_POS_M: a finite value beyond these is COVEY_ERR_RANGE. */
+#define COVEY_MAX_ABS_VEL_M_S 1.0e3f          /* any vehicle's velocity component */
+#define COVEY_SAFETY_MIN_RADIUS_M 0.01f
+#define COVEY_SAFETY_MAX_RADIUS_M 1000.0f
+#define COVEY_SAFETY_MAX_MARGIN 10.0f         /* margin in [0, this] */
+#define COVEY_SAFETY_MIN_TIME_S 1.0e-3f       /* time_horizon_s and dt_s in [this, max] */
+#define COVEY_SAFETY_MAX_TIME_S 1000.0f
+
+/* Filter parameters in world units (policy/safety.py SafetyConfig, same defaults). */
+typedef struct {
+    float radius_m;        /* [0.01, 1000]: combined radius kept between centres (the separation), 3 */
+    float margin;          /* [0, 10]: relative padding on radius_m, 0.1 */
+    float time_horizon_s;  /* [1e-3, 1000]: how far ahead velocity obstacles look, 4 */
+    float dt_s;            /* [1e-3, 1000]: control period, used only when vehicles overlap, 0.1 */
+    float max_speed_m_s;   /* [0.01, 100]: speed limit of the output, 1 */
+    float responsibility;  /* (0, 1]: share of the avoidance this vehicle takes, 0.5 */
+} covey_safety_config_t;
+
+/* A vehicle for the filter: position and velocity in the local frame (north, east). */
+typedef struct {
+    float pos_n_m;
+    float pos_e_m;
+    float vel_n_m_s;
+    float vel_e_m_s;
+} covey_track_t;
+
+/*
+ * The LP runs in double by default: near-parallel half-planes in a dense,
+ * infeasible crowd meet far away, and float32 cancellation there (|p|^2 - r^2
+ * of a point 1e4 m out) can put the answer outside the speed disc. The
+ * Cortex-M7 of a Pixhawk 4/6 (fpv5-d16) has a double-precision FPU; build with
+ * -DCOVEY_SAFETY_DOUBLE=0 for a single-precision-only part (the output is still
+ * clipped to the speed disc; parity with policy/safety.py degrades in
+ * infeasible crowds, see docs/policy.md). Inputs and outputs stay float32.
+ */
+#ifndef COVEY_SAFETY_DOUBLE
+#define COVEY_SAFETY_DOUBLE 1
+#endif
+#if COVEY_SAFETY_DOUBLE
+typedef double covey_real_t;
+#else
+typedef float covey_real_t;
+#endif
+
+/* One ORCA half-plane: velocities v with det(dir, point - v) <= 0 are allowed. */
+typedef struct {
+    covey_real_t point[2];
+    covey_real_t dir[2];
+} covey_halfplane_t;
+
+/* Caller-owned working memory (4 KB at COVEY_MAX_INPUTS = 64 in double). */
+typedef struct {
+    covey_halfplane_t lines[COVEY_MAX_INPUTS];
+    covey_halfplane_t proj[COVEY_MAX_INPUTS]; /* the fallback's projected lines */
+} covey_safety_scratch_t;
+
+/* Result of one filter call. */
+typedef struct {
+    float vel_n_m_s;     /* filtered velocity, |v| <= max_speed_m_s; zero on a fault */
+    float vel_e_m_s;
+    int32_t n_lines;     /* neighbours within reach: r (1 + margin) + 2 max_speed time_horizon */
+    int32_t changed;     /* 1: the preferred velocity (speed-clipped) broke a half-plane */
+    int32_t infeasible;  /* 1: no velocity met every half-plane; the worst violation was minimised */
+} covey_safety_out_t;
+
+/* The defaults of policy/safety.py for a separation and a speed. */
+covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_m_s);
+
+/* Checks a filter configuration: NULL, then non-finite, then the ranges above. */
+covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg);
+
+/*
+ * Filters pref_vel (north, east) of `own` against n_nbrs neighbours.
+ * Checks, first failure returned: NULL pointers (nbrs may be NULL when n_nbrs
+ * == 0), the config, n_nbrs in [0, COVEY_MAX_INPUTS], own, pref_vel, each
+ * neighbour in index order (non-finite before range). The caller drops stale
+ * neighbours first (covey_traffic_prune).
+ */
+covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey_track_t *own,
+                                   const float pref_vel_m_s[2], const covey_track_t *nbrs,
+                                   int32_t n_nbrs, covey_safety_scratch_t *scratch,
+                                   covey_safety_out_t *out);
+
+/* sizeof(covey_safety_scratch_t), for bindings (ctypes). */
+uint32_t covey_safety_scratch_bytes(void);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COVEY_SAFETY_H */

@@ -1,0 +1,293 @@
+"""ctypes bindings of the C separation filter (covey_safety.h) and guidance tick (covey_guidance.h).
+
+    filt = CSafetyFilter(lib, SafetyConfig())            # policy.safety's config, world units
+    v_m_s = filt(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
+
+    tick = COnboard(lib, policy_cfg, safety_cfg, decision_period_s=1.0)
+    r = tick.step(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, now_s)
+
+`firmware.cpolicy.CPolicy` builds these from its library; the structures mirror the headers
+field for field. Arrays cross as numpy structured arrays (no per-neighbour Python loop).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+
+import numpy as np
+
+STATUS_NAMES = {0: "ok", 1: "null", 2: "nonfinite", 3: "range", 4: "stale"}
+MAX_INPUTS = 64
+"""COVEY_MAX_INPUTS: most neighbours per call."""
+
+VEHICLE_DTYPE = np.dtype(
+    [("pos_n_m", "<f4"), ("pos_e_m", "<f4"), ("heading_rad", "<f4"), ("stamp_us", "<u8")],
+    align=True,
+)
+"""covey_vehicle_t (24 bytes: 4 of padding before the stamp)."""
+TRACK_DTYPE = np.dtype(
+    [("pos_n_m", "<f4"), ("pos_e_m", "<f4"), ("vel_n_m_s", "<f4"), ("vel_e_m_s", "<f4")]
+)
+"""covey_track_t."""
+
+
+class ConfigC(ctypes.Structure):
+    """covey_config_t."""
+
+    _fields_ = [
+        ("separation_m", ctypes.c_float),
+        ("cruise_speed_m_s", ctypes.c_float),
+        ("max_neighbour_age_us", ctypes.c_uint64),
+        ("max_own_age_us", ctypes.c_uint64),
+        ("max_neighbours", ctypes.c_int32),
+    ]
+
+
+class CommandC(ctypes.Structure):
+    """covey_command_t."""
+
+    _fields_ = [
+        ("vel_n_m_s", ctypes.c_float),
+        ("vel_e_m_s", ctypes.c_float),
+        ("action", ctypes.c_float * 2),
+        ("n_used", ctypes.c_int32),
+        ("n_stale", ctypes.c_int32),
+        ("n_far", ctypes.c_int32),
+        ("n_excess", ctypes.c_int32),
+    ]
+
+
+class SafetyConfigC(ctypes.Structure):
+    """covey_safety_config_t."""
+
+    _fields_ = [
+        ("radius_m", ctypes.c_float),
+        ("margin", ctypes.c_float),
+        ("time_horizon_s", ctypes.c_float),
+        ("dt_s", ctypes.c_float),
+        ("max_speed_m_s", ctypes.c_float),
+        ("responsibility", ctypes.c_float),
+    ]
+
+    @classmethod
+    def of(cls, cfg) -> SafetyConfigC:
+        """From a policy.safety.SafetyConfig."""
+        return cls(
+            cfg.radius_m,
+            cfg.margin,
+            cfg.time_horizon_s,
+            cfg.dt_s,
+            cfg.max_speed_m_s,
+            cfg.responsibility,
+        )
+
+
+class TrackC(ctypes.Structure):
+    """covey_track_t."""
+
+    _fields_ = [(n, ctypes.c_float) for n in TRACK_DTYPE.names]
+
+
+class SafetyOutC(ctypes.Structure):
+    """covey_safety_out_t."""
+
+    _fields_ = [
+        ("vel_n_m_s", ctypes.c_float),
+        ("vel_e_m_s", ctypes.c_float),
+        ("n_lines", ctypes.c_int32),
+        ("changed", ctypes.c_int32),
+        ("infeasible", ctypes.c_int32),
+    ]
+
+
+class HoldC(ctypes.Structure):
+    """covey_hold_t."""
+
+    _fields_ = [
+        ("vel_n_m_s", ctypes.c_float),
+        ("vel_e_m_s", ctypes.c_float),
+        ("goal_n_m", ctypes.c_float),
+        ("goal_e_m", ctypes.c_float),
+        ("decided_us", ctypes.c_uint64),
+        ("valid", ctypes.c_int32),
+    ]
+
+
+class GuidanceConfigC(ctypes.Structure):
+    """covey_guidance_config_t."""
+
+    _fields_ = [
+        ("policy", ConfigC),
+        ("safety", SafetyConfigC),
+        ("decision_period_s", ctypes.c_float),
+        ("safety_filter", ctypes.c_int32),
+    ]
+
+
+class GuidanceOutC(ctypes.Structure):
+    """covey_guidance_out_t."""
+
+    _fields_ = [
+        ("vel_n_m_s", ctypes.c_float),
+        ("vel_e_m_s", ctypes.c_float),
+        ("decided", ctypes.c_int32),
+        ("command", CommandC),
+        ("filter", SafetyOutC),
+    ]
+
+
+def bind(lib: ctypes.CDLL) -> None:
+    """Declares the filter and guidance functions of `lib`."""
+    vp = ctypes.c_void_p
+    fp = ctypes.POINTER(ctypes.c_float)
+    lib.covey_safety_filter.restype = ctypes.c_int
+    lib.covey_safety_filter.argtypes = [
+        ctypes.POINTER(SafetyConfigC), ctypes.POINTER(TrackC), fp, vp, ctypes.c_int32, vp,
+        ctypes.POINTER(SafetyOutC),
+    ]  # fmt: skip
+    lib.covey_safety_scratch_bytes.restype = ctypes.c_uint32
+    lib.covey_safety_scratch_bytes.argtypes = []
+    lib.covey_guidance_scratch_bytes.restype = ctypes.c_uint32
+    lib.covey_guidance_scratch_bytes.argtypes = []
+    lib.covey_trained_period_s.restype = ctypes.c_float
+    lib.covey_trained_period_s.argtypes = [ctypes.POINTER(ConfigC)]
+    lib.covey_guidance_step.restype = ctypes.c_int
+    lib.covey_guidance_step.argtypes = [
+        vp, ctypes.POINTER(HoldC), vp, fp, vp, vp, vp, ctypes.c_int32, ctypes.c_uint64, vp, vp,
+    ]  # fmt: skip
+
+
+def _tracks(pos_m, vel_m_s) -> np.ndarray:
+    pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
+    vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
+    if vel.shape != pos.shape:
+        raise ValueError(f"{pos.shape[0]} neighbour positions but {vel.shape[0]} velocities")
+    if pos.shape[0] > MAX_INPUTS:
+        raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbours, got {pos.shape[0]}")
+    t = np.zeros(max(pos.shape[0], 1), TRACK_DTYPE)[: pos.shape[0]]
+    t["pos_n_m"], t["pos_e_m"] = pos[:, 0], pos[:, 1]
+    t["vel_n_m_s"], t["vel_e_m_s"] = vel[:, 0], vel[:, 1]
+    return t
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """One covey_safety_filter call."""
+
+    status: str
+    """"ok" or the fault name."""
+    vel_m_s: np.ndarray
+    """Filtered (north, east) velocity; zero on a fault."""
+    n_lines: int
+    """Neighbours within reach (one half-plane each)."""
+    changed: bool
+    """The (speed-clipped) preference broke a half-plane."""
+    infeasible: bool
+    """No velocity met every half-plane; the worst violation was minimised."""
+
+
+class CSafetyFilter:
+    """The C separation filter with a policy.safety.SafetyConfig."""
+
+    def __init__(self, lib: ctypes.CDLL, cfg):
+        self._lib = lib
+        self.cfg = cfg
+        self._ccfg = SafetyConfigC.of(cfg)
+        self._scratch = ctypes.create_string_buffer(lib.covey_safety_scratch_bytes())
+
+    def evaluate(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> FilterResult:
+        """One call; faults come back in `status`, never raised."""
+        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
+        v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
+        pref = (ctypes.c_float * 2)(*np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2))
+        t = _tracks(nbr_pos_m, nbr_vel_m_s)
+        out = SafetyOutC()
+        st = self._lib.covey_safety_filter(
+            ctypes.byref(self._ccfg), ctypes.byref(TrackC(p[0], p[1], v[0], v[1])), pref,
+            t.ctypes.data, t.shape[0], self._scratch, ctypes.byref(out),
+        )  # fmt: skip
+        return FilterResult(
+            STATUS_NAMES.get(st, str(st)),
+            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
+            out.n_lines,
+            bool(out.changed),
+            bool(out.infeasible),
+        )
+
+    def __call__(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
+        """Filtered velocity (2,); raises ValueError on a fault."""
+        r = self.evaluate(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
+        if r.status != "ok":
+            raise ValueError(f"C safety filter fault: {r.status}")
+        return r.vel_m_s
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """One covey_guidance_step call."""
+
+    status: str
+    vel_m_s: np.ndarray
+    """The velocity to fly (held decision, filtered); zero on a fault."""
+    decided: bool
+    """The policy ran this tick."""
+    filtered: bool
+    """The filter changed the held velocity."""
+
+
+class COnboard:
+    """One vehicle's onboard guidance tick: its own hold state and scratch (covey_guidance.h)."""
+
+    def __init__(self, lib, policy_cfg, safety_cfg, decision_period_s: float, safety_filter=True):
+        self._lib = lib
+        self._cfg = GuidanceConfigC(
+            policy_cfg, SafetyConfigC.of(safety_cfg), decision_period_s, int(bool(safety_filter))
+        )
+        self._hold = HoldC()
+        self._scratch = ctypes.create_string_buffer(lib.covey_guidance_scratch_bytes())
+        self._out = GuidanceOutC()
+
+    def reset(self) -> None:
+        """Forget the held decision (the next step decides)."""
+        self._hold = HoldC()
+
+    def step(
+        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad,
+        now_s: float, stamp_s: float | None = None, nbr_stamp_s=None,
+    ) -> StepResult:  # fmt: skip
+        """One tick at `now_s` (stamps default to now: fresh)."""
+        now_us = int(round(now_s * 1e6))
+        nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
+        k = nbr_pos.shape[0]
+        if k > MAX_INPUTS:
+            raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbours, got {k}")
+        nb = np.zeros(max(k, 1), VEHICLE_DTYPE)
+        nb["pos_n_m"][:k], nb["pos_e_m"][:k] = nbr_pos[:, 0], nbr_pos[:, 1]
+        nb["heading_rad"][:k] = np.asarray(nbr_heading_rad, dtype=np.float64).reshape(k)
+        nb["stamp_us"][:k] = (
+            now_us
+            if nbr_stamp_s is None
+            else np.round(np.asarray(nbr_stamp_s, dtype=np.float64) * 1e6).astype(np.uint64)
+        )
+        nv = np.ascontiguousarray(np.asarray(nbr_vel_m_s, dtype=np.float32).reshape(k, 2))
+        if k == 0:
+            nv = np.zeros((1, 2), np.float32)
+        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
+        own = np.zeros(1, VEHICLE_DTYPE)
+        own["pos_n_m"], own["pos_e_m"], own["heading_rad"] = p[0], p[1], float(heading_rad)
+        own["stamp_us"] = now_us if stamp_s is None else int(round(stamp_s * 1e6))
+        ov = (ctypes.c_float * 2)(*np.asarray(vel_m_s, dtype=np.float64).reshape(2))
+        goal = np.asarray(goal_m, dtype=np.float32).reshape(2)
+        out = self._out
+        st = self._lib.covey_guidance_step(
+            ctypes.addressof(self._cfg), ctypes.byref(self._hold), own.ctypes.data, ov,
+            goal.ctypes.data, nb.ctypes.data, nv.ctypes.data, k, now_us, self._scratch,
+            ctypes.addressof(out),
+        )  # fmt: skip
+        return StepResult(
+            STATUS_NAMES.get(st, str(st)),
+            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
+            bool(out.decided),
+            bool(out.filter.changed),
+        )

@@ -1,0 +1,212 @@
+"""The C separation filter (covey_safety.c) and guidance tick (covey_guidance.c).
+
+- parity with policy/safety.py on shared float32 vectors (feasible and infeasible crowds);
+- fuzz under ASan + UBSan: every hostile input gets exactly the predicted fault, never a crash;
+- the decision hold: decide at the trained period, filter every tick, as agent/guidance.py;
+- CPolicy.command with the filter = the numpy filter on the C network's output.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from firmware import hostbuild
+from firmware import safety_cases as sc
+from firmware.cases import STATUS
+from policy import safety
+
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
+
+N_PARITY = 3000
+N_FUZZ_VALID = 300
+N_FUZZ_MUTATED = 8000
+PARITY_TOL = 1e-6
+"""Max |C - numpy| per component, as a share of max_speed (measured 4e-8: float32 output)."""
+
+
+@pytest.fixture(scope="module")
+def cpol():
+    from firmware.cpolicy import CPolicy
+
+    return CPolicy.load()
+
+
+def _ref(c: sc.FilterCase) -> np.ndarray:
+    nb = np.array(c.nbrs, dtype=np.float64).reshape(-1, 4)
+    own = np.array(c.own, dtype=np.float64)
+    cfg = safety.SafetyConfig(*c.cfg)
+    return safety.filter_velocity(own[:2], own[2:], np.array(c.pref), nb[:, :2], nb[:, 2:], cfg)
+
+
+def test_filter_parity_with_numpy(cpol, capsys):
+    from firmware.csafety import CSafetyFilter
+
+    rng = np.random.default_rng(16)
+    errs, n_changed, n_infeasible = [], 0, 0
+    for _ in range(N_PARITY):
+        c = sc.random_case(rng, scale=float(rng.choice([0.5, 1.0, 3.0])))
+        cfg = safety.SafetyConfig(*c.cfg)
+        nb = np.array(c.nbrs, dtype=np.float64).reshape(-1, 4)
+        r = CSafetyFilter(cpol._lib, cfg).evaluate(
+            c.own[:2], c.own[2:], c.pref, nb[:, :2], nb[:, 2:]
+        )
+        assert r.status == "ok"
+        ref = _ref(c)
+        errs.append(np.abs(r.vel_m_s - ref).max() / cfg.max_speed_m_s)
+        assert np.hypot(*r.vel_m_s) <= cfg.max_speed_m_s * (1 + 1e-6)
+        n_changed += r.changed
+        n_infeasible += r.infeasible
+    worst = float(np.max(errs))
+    assert worst <= PARITY_TOL, worst
+    # the vectors reach every branch: untouched, moved, infeasible (the fallback LP)
+    assert n_changed > N_PARITY // 2 and n_infeasible > N_PARITY // 10
+    assert n_changed < N_PARITY
+    with capsys.disabled():
+        print(
+            f"\n[C filter parity] {N_PARITY} cases ({n_changed} moved, {n_infeasible} infeasible):"
+            f" max |C - numpy| = {worst:.2e} of max speed"
+        )
+
+
+def test_filter_keeps_a_head_on_pair_apart(cpol):
+    """Two vehicles nose to nose at 1 m/s: the filtered velocity leaves the collision course."""
+    v = cpol.filter([0.0, 0.0], [1.0, 0.0], [1.0, 0.0], [[6.0, 0.0]], [[-1.0, 0.0]])
+    assert abs(v[1]) > 0.1  # it steers sideways
+    assert np.allclose(v, _ref(sc.FilterCase(own=(0, 0, 1, 0), pref=(1, 0), nbrs=[(6, 0, -1, 0)])))
+    # far away: untouched, only the speed clipped
+    v = cpol.filter([0.0, 0.0], [0.0, 0.0], [3.0, 4.0], [[500.0, 0.0]], [[0.0, 0.0]])
+    assert np.allclose(v, [0.6, 0.8], atol=1e-6)
+
+
+def test_filter_fuzz_under_sanitizers(capsys):
+    header = hostbuild.header_for(hostbuild.SHIPPED_NPZ)
+    try:
+        asan = hostbuild.build_driver(header, sanitize=True)
+    except RuntimeError as e:
+        if "sanitize" in str(e) or "asan" in str(e).lower():
+            pytest.skip(f"the C compiler cannot build with sanitizers: {str(e)[-300:]}")
+        raise
+    plain = hostbuild.build_driver(header)
+    rng = np.random.default_rng(61)
+    valid = [sc.random_case(rng) for _ in range(N_FUZZ_VALID)]
+    mutated = []
+    for k in range(N_FUZZ_MUTATED):
+        base = sc.random_case(rng, n_nbrs=None if k % 20 == 0 else int(rng.integers(0, 5)))
+        mutated.append(sc.mutate(base, rng))
+    all_cases = valid + mutated
+    text = "\n".join(map(sc.line, all_cases)) + "\n"
+    lines, stderr = hostbuild.run_driver(asan, text)
+    assert "runtime error" not in stderr and "Sanitizer" not in stderr, stderr[-2000:]
+    assert len(lines) == len(all_cases)
+    assert hostbuild.run_driver(plain, text)[0] == lines  # same bits as the -O2 build
+
+    counts = dict.fromkeys(STATUS, 0)
+    for c, text_line in zip(all_cases, lines, strict=True):
+        out = sc.parse_output(text_line)
+        expect = sc.expected_status(c)
+        assert out["status"] == expect, (text_line, c)
+        counts[next(k for k, v in STATUS.items() if v == expect)] += 1
+        assert np.all(np.isfinite(out["vel"]))
+        if expect == STATUS["ok"]:
+            assert np.hypot(*out["vel"]) <= float(np.float32(c.cfg[4])) * (1 + 1e-6)
+        else:
+            assert not np.any(out["vel"]), "a fault must command zero velocity"
+    assert counts["ok"] >= N_FUZZ_VALID and counts["nonfinite"] > 500 and counts["range"] > 500
+    with capsys.disabled():
+        print(
+            f"\n[C filter fuzz] {len(all_cases)} inputs ({len(mutated)} mutated) under ASan+UBSan:"
+            f" statuses {counts}, clean"
+        )
+
+
+def _scene(rng, n=6):
+    pos = rng.uniform(-8, 8, (n, 2))
+    vel = rng.uniform(-0.7, 0.7, (n, 2))
+    heading = rng.uniform(-np.pi, np.pi, n)
+    return pos, vel, heading
+
+
+def test_command_with_filter_is_the_filter_of_the_network(cpol):
+    from firmware.cpolicy import CPolicy
+
+    bare = CPolicy.load(safety_filter=False)
+    rng = np.random.default_rng(3)
+    moved = 0
+    for _ in range(100):
+        pos, vel, hdg = _scene(rng)
+        goal = rng.uniform(-20, 20, 2)
+        args = (pos[0], vel[0], hdg[0], goal, pos[1:], vel[1:], hdg[1:])
+        v_net = bare.command(*args)
+        v = cpol.command(*args)
+        ref = safety.filter_velocity(pos[0], vel[0], v_net, pos[1:], vel[1:], cpol.safety_cfg)
+        assert np.abs(v - ref).max() <= 1e-5  # float64 inputs rounded to float32 in C
+        moved += not np.allclose(v, v_net)
+    assert moved > 10
+
+
+def test_onboard_decides_at_the_trained_period_and_filters_every_tick(cpol):
+    """covey_guidance_step against agent/guidance.py's rule, reimplemented here in numpy:
+    decide when 95 % of the period has passed (or the goal changed), filter every tick."""
+    from firmware.cpolicy import CPolicy
+
+    bare = CPolicy.load(safety_filter=False)
+    assert cpol.decision_period_s == pytest.approx(1.0)
+    assert CPolicy.load(separation_m=6.0, cruise_speed_m_s=2.0).decision_period_s == pytest.approx(
+        1.0
+    )
+    assert CPolicy.load(separation_m=6.0).decision_period_s == pytest.approx(2.0)
+    tick = cpol.onboard()
+    rng = np.random.default_rng(5)
+    pos, vel, hdg = _scene(rng)
+    goal = np.array([30.0, 5.0])
+    decided_at, held = [], None
+    for k in range(31):
+        t = 0.1 * k
+        if k == 25:
+            goal = np.array([-30.0, 0.0])  # a new goal decides at once
+        pos = pos + 0.1 * vel
+        vel = vel + rng.normal(0, 0.05, vel.shape)
+        r = tick.step(pos[0], vel[0], hdg[0], goal, pos[1:], vel[1:], hdg[1:], now_s=t)
+        assert r.status == "ok"
+        if r.decided:
+            decided_at.append(round(t, 1))
+            held = bare.command(pos[0], vel[0], hdg[0], goal, pos[1:], vel[1:], hdg[1:])
+        ref = safety.filter_velocity(pos[0], vel[0], held, pos[1:], vel[1:], cpol.safety_cfg)
+        assert np.abs(r.vel_m_s - ref).max() <= 1e-5, (t, r, ref)
+    assert decided_at == [0.0, 1.0, 2.0, 2.5]
+
+
+def test_onboard_faults_hover_and_forget_the_hold(cpol):
+    tick = cpol.onboard()
+    p = np.zeros(2)
+    nbr = np.array([[4.0, 0.0]])
+    ok = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.0)
+    assert ok.status == "ok" and ok.decided
+    bad = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[np.nan, 0.0]], [np.pi], now_s=1.1)
+    assert bad.status == "nonfinite" and not np.any(bad.vel_m_s)
+    stale = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.2,
+                      stamp_s=0.1)  # fmt: skip
+    assert stale.status == "stale" and not np.any(stale.vel_m_s)
+    again = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.3)
+    assert again.status == "ok" and again.decided  # the fault dropped the held decision
+    # a stale neighbour is dropped from the filter, not a fault
+    r = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=5.0,
+                  nbr_stamp_s=[1.0])  # fmt: skip
+    assert r.status == "ok" and not r.filtered
+
+
+def test_policy_separation_scales_the_network_not_the_filter():
+    """policy_separation_m changes what the network sees; the filter keeps separation_m."""
+    from firmware.cpolicy import CPolicy
+
+    wide = CPolicy.load(separation_m=3.0, policy_separation_m=2.0, safety_filter=False)
+    scaled = CPolicy.load(separation_m=2.0, safety_filter=False)
+    rng = np.random.default_rng(9)
+    pos, vel, hdg = _scene(rng)
+    args = (pos[0], vel[0], hdg[0], [20.0, 3.0], pos[1:], vel[1:], hdg[1:])
+    np.testing.assert_array_equal(wide.command(*args), scaled.command(*args))
+    filt = CPolicy.load(separation_m=3.0, policy_separation_m=2.0)
+    assert filt.safety_cfg.radius_m == 3.0
