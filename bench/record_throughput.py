@@ -25,6 +25,7 @@ import uuid
 from pathlib import Path
 
 from comms import keys
+from comms.foxglove_channels import FoxgloveConfig
 from comms.mesh import Mesh
 from comms.record import McapSink, RecordConfig, Recorder, read_recording
 from comms.replay import play, prepare
@@ -49,10 +50,13 @@ def bench_sink(path: Path, n: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
-def bench_record(path: Path, n: int, port: int, fleet: str) -> tuple[float, float]:
+def bench_record(path: Path, n: int, port: int, fleet: str, foxglove: bool = True) -> tuple[float, float, float]:
+    """(receive rate, share received, end-to-end rate: first receive -> file closed, i.e.
+    with the writer thread's conversion and compression drained)."""
     stamps: list[int] = []
+    fox = FoxgloveConfig() if foxglove else None
     with Mesh(embedded_peer(port, fleet=fleet)) as pub:
-        rec = Recorder(RecordConfig(str(path), embedded_peer(port, fleet=fleet)))
+        rec = Recorder(RecordConfig(str(path), embedded_peer(port, fleet=fleet), foxglove=fox))
         orig = rec._on_sample
 
         def timed(sample):  # the receive times the rate is taken over
@@ -71,9 +75,11 @@ def bench_record(path: Path, n: int, port: int, fleet: str) -> tuple[float, floa
                 time.sleep(0.2)
                 if len(stamps) == last:
                     break
+        closed_ns = time.perf_counter_ns()  # `with rec` ended: the writer drained and closed
     got = len(stamps)
     rate = (got - 1) / ((stamps[-1] - stamps[0]) / 1e9) if got > 1 else 0.0
-    return rate, got / n
+    end_to_end = got / ((closed_ns - stamps[0]) / 1e9) if got else 0.0
+    return rate, got / n, end_to_end
 
 
 def bench_read(path: Path) -> float:
@@ -112,9 +118,16 @@ def main(messages: int = 20_000, runs: int = 3) -> dict:
             fleet = "b" + uuid.uuid4().hex[:8]
             path = Path(tmp) / f"run{r}.mcap"
             rows.setdefault("sink_msgs_s", []).append(bench_sink(Path(tmp) / "sink.mcap", messages))
-            rate, share = bench_record(path, messages, port, fleet)
-            rows.setdefault("record_msgs_s", []).append(rate)
-            rows.setdefault("record_share", []).append(share)
+            for fox in (False, True):  # the same run, with and without Foxglove's channels
+                tag = "_foxglove" if fox else "_covey_only"
+                out = path if fox else Path(tmp) / f"run{r}{tag}.mcap"  # read/replay use `path`
+                rate, share, e2e = bench_record(out, messages, port, f"{fleet}{int(fox)}", foxglove=fox)
+                rows.setdefault(f"record{tag}_msgs_s", []).append(rate)
+                rows.setdefault(f"record{tag}_end_to_end_msgs_s", []).append(e2e)
+                rows.setdefault(f"record{tag}_share", []).append(share)
+                if fox:  # what a recording is by default
+                    rows.setdefault("record_msgs_s", []).append(rate)
+                    rows.setdefault("record_share", []).append(share)
             rows.setdefault("read_msgs_s", []).append(bench_read(path))
             rate, share = bench_replay(path, port, fleet + "r")
             rows.setdefault("replay_msgs_s", []).append(rate)
