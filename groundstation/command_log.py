@@ -105,11 +105,13 @@ class CommandLog:
         self._lock = threading.Lock()
         self._entries: OrderedDict[int, _Entry] = OrderedDict()  # nonce -> entry, oldest first
         self._last_accepted: dict[int, int] = {}  # vehicle -> nonce of its latest accepted command
+        # Acks that arrived before their command, by nonce (bounded like the log itself).
+        self._early: OrderedDict[int, list[tuple[CommandAck, AckCheck | None]]] = OrderedDict()
         self._seq = 0
         self.version = 0
         """Bumped on every change (a renderer redraws only when it moved)."""
         self.refused_acks = 0
-        """Acks that answered no kept command or failed the check (counted, not shown)."""
+        """Acks that failed the check, or whose command never arrived (counted, not shown)."""
 
     def on_command(self, command: Command, recv_ns: int, digest: bytes = b"") -> None:
         """`digest`: SHA-256 of the command's wire bytes (its acks are signed over it)."""
@@ -123,13 +125,24 @@ class CommandLog:
                 for vid in [v for v, n in self._last_accepted.items() if n == nonce]:
                     del self._last_accepted[vid]
             self.version += 1
+            early = self._early.pop(command.nonce, [])
+        # An ack can overtake its command on the mesh (it takes another path): apply it now.
+        for ack, check in early:
+            self.on_ack(ack, recv_ns, check)
 
     def on_ack(self, ack: CommandAck, recv_ns: int, check: AckCheck | None = None) -> None:
-        del recv_ns  # kept for symmetry with on_command; answers are ordered by their command
         notify: tuple[LoggedCommand, int, LoggedCommand] | None = None
         with self._lock:
             entry = self._entries.get(ack.nonce)
-            if entry is None or (check is not None and check(ack, entry.command, entry.digest) is not None):
+            if entry is None:  # not seen yet, or long gone: keep a few, briefly
+                waiting = self._early.setdefault(ack.nonce, [])
+                if len(waiting) < self.cfg.max_answers:
+                    waiting.append((ack, check))
+                while len(self._early) > self.cfg.max_commands:
+                    _, dropped = self._early.popitem(last=False)
+                    self.refused_acks += len(dropped)
+                return
+            if check is not None and check(ack, entry.command, entry.digest) is not None:
                 self.refused_acks += 1
                 return
             vid = ack.vehicle_id

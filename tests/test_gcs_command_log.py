@@ -21,11 +21,14 @@ def test_answers_are_kept_per_command_and_stray_acks_are_refused():
     log.on_command(cmd(10, targets=(1, 2)), 1)
     log.on_ack(ack(1, 10), 2)
     log.on_ack(ack(2, 10, AckResult.REJECTED), 3)
-    log.on_ack(ack(1, 99), 4)  # answers nothing we saw
+    log.on_ack(ack(1, 99), 4)  # answers nothing we saw (yet)
     log.on_ack(ack(1, 10), 5, check=lambda a, c, d: "bad tag")  # fails the signature check
     (e,) = log.entries()
     assert {v: a.result for v, a in e.answers.items()} == {1: AckResult.ACCEPTED, 2: AckResult.REJECTED}
-    assert log.refused_acks == 2
+    assert log.refused_acks == 1
+    # An ack that overtook its command is applied when the command arrives.
+    log.on_command(cmd(99), 6)
+    assert log.entries()[0].answers[1].result is AckResult.ACCEPTED
     assert e.describe() == "goto N 1 E 2 D -3 m → 1,2"
 
 
@@ -62,6 +65,9 @@ def test_the_log_is_bounded_in_commands_and_answers():
     assert len(entries) == 5 and [e.command.nonce for e in entries] == [100, 99, 98, 97, 96]
     assert all(len(e.answers) == 3 and e.dropped_answers == 7 for e in entries)
     assert len(log._last_accepted) <= 5 * 3
+    for n in range(1000, 1100):  # acks for commands never seen stay bounded
+        log.on_ack(ack(1, n), n)
+    assert len(log._early) <= 5 and log.refused_acks >= 95
 
 
 def test_a_flood_of_one_event_kind_never_hides_another():
