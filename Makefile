@@ -42,10 +42,12 @@ demo: $(VENV)/.runtime
 
 test: system-deps $(VENV)/.test
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 lint: $(VENV)/.test
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 # Fresh resolution in a throw-away venv: newest versions within pyproject.toml's ranges.
 lock:

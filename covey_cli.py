@@ -8,19 +8,43 @@ import sys
 
 # name: (module, function taking argv, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
-    "demo": ("groundstation.demo", "cli", "simulated fleet + browser ground station, no external services"),
+    "demo": (
+        "groundstation.demo",
+        "cli",
+        "simulated fleet + browser ground station, no external services",
+    ),
     "agent": ("agent.cli", "cli", "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)"),
     "gcs": ("groundstation.cli", "cli", "browser ground station (viser)"),
-    "status": ("groundstation.ops", "status_cli", "print the fleet: presence, last state, link age"),
+    "status": (
+        "groundstation.ops",
+        "status_cli",
+        "print the fleet: presence, last state, link age",
+    ),
     "cmd": ("groundstation.ops", "cmd_cli", "send one command and print every vehicle's ack"),
     "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
     "eval": ("policy.eval", "cli", "evaluate policies against ORCA and straight-line baselines"),
     "export": ("policy.export", "cli", "export a checkpoint to runtime weights (--format npz|c)"),
     "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
-    "record": ("groundstation.recording_cli", "record_cli", "record the mesh to MCAP (--info FILE summarises)"),
-    "foxglove": ("groundstation.foxglove_bridge", "cli", "serve the live fleet to Foxglove (WebSocket), same channels as a recording"),
-    "replay": ("groundstation.recording_cli", "replay_cli", "replay an MCAP recording into a fleet"),
-    "keygen": ("groundstation.keygen_cli", "keygen_cli", "fleet authority: init, add/revoke members, push the roster"),
+    "record": (
+        "groundstation.recording_cli",
+        "record_cli",
+        "record the mesh to MCAP (--info FILE summarises)",
+    ),
+    "foxglove": (
+        "groundstation.foxglove_bridge",
+        "cli",
+        "serve the live fleet to Foxglove (WebSocket), same channels as a recording",
+    ),
+    "replay": (
+        "groundstation.recording_cli",
+        "replay_cli",
+        "replay an MCAP recording into a fleet",
+    ),
+    "keygen": (
+        "groundstation.keygen_cli",
+        "keygen_cli",
+        "fleet authority: init, add/revoke members, push the roster",
+    ),
     "fleet-sim": ("agent.fleet_sim", "cli", "simulate hundreds of vehicles in one process"),
     "bench": ("bench.__main__", "cli", "run the benchmark suite"),
 }
@@ -28,7 +52,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
 
 def usage() -> str:
     width = max(map(len, SUBCOMMANDS))
-    lines = ["usage: covey <command> [options]   (covey <command> --help for its options)", "", "commands:"]
+    lines = [
+        "usage: covey <command> [options]   (covey <command> --help for its options)",
+        "",
+        "commands:",
+    ]
     lines += [f"  {name:<{width}}  {text}" for name, (_, _, text) in SUBCOMMANDS.items()]
     return "\n".join(lines)
 

@@ -123,13 +123,21 @@ class Agent:
         self._last_link_stats_s = clock_s()
         self.presence = mesh.presence()
         # Refused commands: one SECURITY event per cause a second (a flood must not become one).
-        self._refusals = Summaries(lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING))
+        self._refusals = Summaries(
+            lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING)
+        )
         if getattr(mesh, "auth", None) is not None:
             mesh.auth.on_reject = self._on_auth_refusal  # refused before handle_command runs
             # Refused neighbour states (forged, replayed...): one SECURITY event per cause a second.
-            mesh.on_security = lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING, quiet=True)
-        mesh.subscribe_states(lambda s, _t: self.table.update(s, self.clock_s()), link=link, ignore_id=self.vid,
-                              gate=GateConfig(min_interval_s=cfg.neighbours.verify_min_interval_s))  # fmt: skip
+            mesh.on_security = lambda line: self._event(
+                line, EventKind.SECURITY, Severity.WARNING, quiet=True
+            )
+        mesh.subscribe_states(
+            lambda s, _t: self.table.update(s, self.clock_s()),
+            link=link,
+            ignore_id=self.vid,
+            gate=GateConfig(min_interval_s=cfg.neighbours.verify_min_interval_s),
+        )
         # Answer commands before announcing presence: whoever sees us alive can command us.
         mesh.serve_commands(self.vid, self.handle_command)
         mesh.declare_vehicle(self.vid)
@@ -138,7 +146,11 @@ class Agent:
 
     # -- events ------------------------------------------------------------------------------
     def _event(
-        self, text: str, kind: EventKind = EventKind.STATUS, severity: Severity = Severity.INFO, quiet: bool = False
+        self,
+        text: str,
+        kind: EventKind = EventKind.STATUS,
+        severity: Severity = Severity.INFO,
+        quiet: bool = False,
     ) -> None:
         if not quiet:
             log.info("vehicle %d: %s", self.vid, text)
@@ -149,9 +161,15 @@ class Agent:
 
     def _on_auth_refusal(self, cmd: Command, _vehicle_id: int, reason: str) -> None:
         cause = reason.split(":", 1)[0]
-        self._refusals.note(cause, self.mesh.clock_ns(), lambda n: (
-            f"refused {cmd.kind.name.lower()} from station {cmd.source_id}: {reason}" if n == 1
-            else f"refused {n} commands ({cause}); latest {cmd.kind.name.lower()} from station {cmd.source_id}"))
+        self._refusals.note(
+            cause,
+            self.mesh.clock_ns(),
+            lambda n: (
+                f"refused {cmd.kind.name.lower()} from station {cmd.source_id}: {reason}"
+                if n == 1
+                else f"refused {n} commands ({cause}); latest {cmd.kind.name.lower()} from station {cmd.source_id}"
+            ),
+        )
 
     # -- commands (Zenoh thread) ---------------------------------------------------------------
     def handle_command(self, cmd: Command) -> CommandAck:
@@ -159,7 +177,9 @@ class Agent:
             result, reason = self._apply_command(cmd)
             mode = self.flight.mode
         if result is not AckResult.ACCEPTED:
-            self._event(f"refused {cmd.kind.name.lower()}: {reason}", EventKind.COMMAND, Severity.WARNING)
+            self._event(
+                f"refused {cmd.kind.name.lower()}: {reason}", EventKind.COMMAND, Severity.WARNING
+            )
         return CommandAck(self.vid, cmd.nonce, self.mesh.clock_ns(), result, reason, mode)
 
     def _target_of(self, cmd: Command, pos_m: np.ndarray) -> np.ndarray:
@@ -182,7 +202,10 @@ class Agent:
             if problem:
                 return AckResult.REJECTED, problem
         if cmd.kind is CommandKind.TAKEOFF and cmd.params[0] > self.cfg.failsafe.max_alt_m:
-            return AckResult.REJECTED, f"takeoff altitude {cmd.params[0]:g} m is above the {self.cfg.failsafe.max_alt_m:g} m limit"
+            return (
+                AckResult.REJECTED,
+                f"takeoff altitude {cmd.params[0]:g} m is above the {self.cfg.failsafe.max_alt_m:g} m limit",
+            )
         res = step(self.flight.mode, trigger)
         if not res.accepted:
             return AckResult.REJECTED, res.reason
@@ -192,21 +215,34 @@ class Agent:
             return AckResult.FAILED, f"vehicle refused: {exc}"
         return AckResult.ACCEPTED, ""
 
-    def _enter(self, mode: Mode, trigger: Trigger, pos_m: np.ndarray, target: np.ndarray | None, cmd: Command | None = None) -> None:
+    def _enter(
+        self,
+        mode: Mode,
+        trigger: Trigger,
+        pos_m: np.ndarray,
+        target: np.ndarray | None,
+        cmd: Command | None = None,
+    ) -> None:
         """Make the vehicle do what `mode` means, then record the mode. Raises BackendError."""
         fl, be = self.flight, self.backend
         previous = fl.mode
         if mode is Mode.KILLED:
             be.kill()
         elif mode is Mode.TAKING_OFF:
-            alt_m = cmd.params[0] if cmd is not None and cmd.kind is CommandKind.TAKEOFF else fl.takeoff_alt_m
+            alt_m = (
+                cmd.params[0]
+                if cmd is not None and cmd.kind is CommandKind.TAKEOFF
+                else fl.takeoff_alt_m
+            )
             if previous is Mode.LANDED:
                 fl.home_m = pos_m.copy()
             be.takeoff(alt_m)
             fl.takeoff_alt_m = alt_m
             fl.goal_m = None
         elif mode is Mode.HOLDING:
-            fl.hold_m = (fl.goal_m if trigger is Trigger.ARRIVED and fl.goal_m is not None else pos_m).copy()
+            fl.hold_m = (
+                fl.goal_m if trigger is Trigger.ARRIVED and fl.goal_m is not None else pos_m
+            ).copy()
             if trigger is Trigger.REACHED_ALTITUDE:
                 fl.hold_m[2] = -fl.takeoff_alt_m
             if trigger is Trigger.FAILSAFE_HOLD and previous is Mode.GOTO:
@@ -217,7 +253,11 @@ class Agent:
             assert target is not None
             fl.goal_m = target
             fl.resume_goal_m = None
-            fl.heading_rad = heading_towards(pos_m, target, fl.heading_rad) if previous is not Mode.GOTO else fl.heading_rad
+            fl.heading_rad = (
+                heading_towards(pos_m, target, fl.heading_rad)
+                if previous is not Mode.GOTO
+                else fl.heading_rad
+            )
             if not self.velocity_mode:
                 be.goto_local(tuple(target))
         elif mode is Mode.RETURNING:
@@ -229,7 +269,10 @@ class Agent:
         elif mode is Mode.LANDING:
             be.land()
         if mode is not previous:
-            self._event(f"{previous.name.lower()} -> {mode.name.lower()} ({trigger.value})", EventKind.MODE_CHANGE)
+            self._event(
+                f"{previous.name.lower()} -> {mode.name.lower()} ({trigger.value})",
+                EventKind.MODE_CHANGE,
+            )
         fl.mode = mode
         if mode not in (Mode.GOTO, Mode.RETURNING):
             fl.goal_m = None if mode is not Mode.HOLDING else fl.goal_m
@@ -262,8 +305,11 @@ class Agent:
             return
         if tel.link_ok != self._link_was_ok:
             self._link_was_ok = tel.link_ok
-            self._event("autopilot link " + ("restored" if tel.link_ok else "LOST"), EventKind.FAILSAFE,
-                        Severity.INFO if tel.link_ok else Severity.CRITICAL)  # fmt: skip
+            self._event(
+                "autopilot link " + ("restored" if tel.link_ok else "LOST"),
+                EventKind.FAILSAFE,
+                Severity.INFO if tel.link_ok else Severity.CRITICAL,
+            )
         pos = np.array(tel.pos_ned_m)
         vel = np.array(tel.vel_ned_m_s)
         if self.on_position is not None:
@@ -276,13 +322,19 @@ class Agent:
         # Vehicle events.
         if fl.mode is Mode.TAKING_OFF and -pos[2] >= fl.takeoff_alt_m - 0.3:
             self._internal(Trigger.REACHED_ALTITUDE, pos)
-        elif fl.mode in (Mode.GOTO, Mode.RETURNING) and fl.goal_m is not None and self._arrived(pos, fl.goal_m):
+        elif (
+            fl.mode in (Mode.GOTO, Mode.RETURNING)
+            and fl.goal_m is not None
+            and self._arrived(pos, fl.goal_m)
+        ):
             self._internal(Trigger.ARRIVED, pos)
         elif fl.mode in (Mode.LANDING, Mode.KILLED) and not tel.in_air and not tel.armed:
             self._internal(Trigger.TOUCHED_DOWN, pos)
         elif fl.mode in AIRBORNE - {Mode.TAKING_OFF} and not tel.armed and not tel.in_air:
             fl.mode = Mode.LANDED
-            self._event("vehicle is on the ground and disarmed", EventKind.MODE_CHANGE, Severity.WARNING)
+            self._event(
+                "vehicle is on the ground and disarmed", EventKind.MODE_CHANGE, Severity.WARNING
+            )
         # Failsafes.
         gcs_alive = bool(self.presence.ground_stations)
         if gcs_alive and self.failsafes.gcs_failsafe_active:
@@ -322,11 +374,22 @@ class Agent:
                     flags |= StateFlag.FILTER_ACTIVE
                 if out.slowed_for_stale:
                     flags |= StateFlag.NEIGHBOURS_STALE
-        elif tel.link_ok and Capability.TRAFFIC_INPUT in be.capabilities and now_s - self._last_traffic_s >= 0.1:
+        elif (
+            tel.link_ok
+            and Capability.TRAFFIC_INPUT in be.capabilities
+            and now_s - self._last_traffic_s >= 0.1
+        ):
             self._last_traffic_s = now_s
             traffic = [
                 Traffic(vid, tuple(p), tuple(v), float(h), float(a))
-                for vid, p, v, h, a in zip(nbrs.ids, nbrs.pos_ned_m, nbrs.vel_ned_m_s, nbrs.heading_rad, nbrs.age_s, strict=True)
+                for vid, p, v, h, a in zip(
+                    nbrs.ids,
+                    nbrs.pos_ned_m,
+                    nbrs.vel_ned_m_s,
+                    nbrs.heading_rad,
+                    nbrs.age_s,
+                    strict=True,
+                )
             ]
             try:
                 be.send_traffic(traffic)
@@ -343,8 +406,15 @@ class Agent:
     def _trace(self, heading_in_rad: float, out, nbrs) -> None:
         from agent.closed_loop import trace_text
 
-        text = trace_text(self.flight.seq, heading_in_rad, out.vel_ned_m_s, nbrs.ids, nbrs.seqs, nbrs.age_s,
-                          decided=out.decided)  # fmt: skip
+        text = trace_text(
+            self.flight.seq,
+            heading_in_rad,
+            out.vel_ned_m_s,
+            nbrs.ids,
+            nbrs.seqs,
+            nbrs.age_s,
+            decided=out.decided,
+        )
         self._event(text, EventKind.STATUS, Severity.DEBUG, quiet=True)
 
     def _arrived(self, pos: np.ndarray, goal: np.ndarray) -> bool:
@@ -354,17 +424,25 @@ class Agent:
 
     def _publish(self, tel, pos: np.ndarray, vel: np.ndarray, flags: StateFlag) -> None:
         fl = self.flight
-        goal = fl.goal_m if fl.goal_m is not None else (fl.hold_m if fl.mode is Mode.HOLDING else None)
+        goal = (
+            fl.goal_m if fl.goal_m is not None else (fl.hold_m if fl.mode is Mode.HOLDING else None)
+        )
         if goal is not None:
             flags |= StateFlag.HAS_GOAL
         fl.seq = (fl.seq + 1) & 0xFFFFFFFF
         state = VehicleState(
-            vehicle_id=self.vid, seq=fl.seq, stamp_ns=self.mesh.clock_ns(),
-            pos_ned_m=tuple(float(x) for x in pos), vel_ned_m_s=tuple(float(x) for x in vel),
-            heading_rad=float(math.remainder(fl.heading_rad, 2 * math.pi)), mode=fl.mode, armed=tel.armed,
-            battery_pct=float(min(100.0, max(0.0, tel.battery_pct))), flags=flags,
+            vehicle_id=self.vid,
+            seq=fl.seq,
+            stamp_ns=self.mesh.clock_ns(),
+            pos_ned_m=tuple(float(x) for x in pos),
+            vel_ned_m_s=tuple(float(x) for x in vel),
+            heading_rad=float(math.remainder(fl.heading_rad, 2 * math.pi)),
+            mode=fl.mode,
+            armed=tel.armed,
+            battery_pct=float(min(100.0, max(0.0, tel.battery_pct))),
+            flags=flags,
             goal_ned_m=tuple(float(x) for x in goal) if goal is not None else (0.0, 0.0, 0.0),
-        )  # fmt: skip
+        )
         try:
             self.mesh.publish_state(state)
         except Exception as exc:  # noqa: BLE001 - a full network buffer must not stop guidance

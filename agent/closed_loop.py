@@ -50,8 +50,16 @@ class Trace:
     before decisions were held carry no flag: every tick decided."""
 
 
-def trace_text(state_seq: int, heading_rad: float, cmd_vel_ned_m_s, nbr_ids, nbr_seqs, nbr_ages_s,
-               max_bytes: int = 120, decided: bool = True) -> str:  # fmt: skip
+def trace_text(
+    state_seq: int,
+    heading_rad: float,
+    cmd_vel_ned_m_s,
+    nbr_ids,
+    nbr_seqs,
+    nbr_ages_s,
+    max_bytes: int = 120,
+    decided: bool = True,
+) -> str:
     """`trace <seq> <heading> <vn>,<ve>,<vd> D|H <id>:<seq>:<age_us>;...` cut to max_bytes (a
     final `+` marks a cut neighbour list); D: the policy decided in this tick, H: held."""
     v = ",".join(f"{float(x):.9g}" for x in cmd_vel_ned_m_s)
@@ -175,8 +183,12 @@ def _traced_rows(tr: Trace, by_seq: dict[tuple[int, int], list[_Sample]], t_ns: 
     return rows
 
 
-def _rebuilt_rows(others: dict[int, tuple[list[int], list[_Sample]]], t_ns: int, own: VehicleState,
-                  cfg: NeighbourConfig):  # fmt: skip
+def _rebuilt_rows(
+    others: dict[int, tuple[list[int], list[_Sample]]],
+    t_ns: int,
+    own: VehicleState,
+    cfg: NeighbourConfig,
+):
     rows = []
     for times, samples in others.values():
         i = bisect.bisect_right(times, t_ns) - 1
@@ -191,14 +203,19 @@ def _rebuilt_rows(others: dict[int, tuple[list[int], list[_Sample]]], t_ns: int,
     return rows
 
 
-def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
-                    guidance: Guidance | None = None) -> dict:  # fmt: skip
+def run_closed_loop(
+    cfg: ClosedLoopConfig, recording: Recording | None = None, guidance: Guidance | None = None
+) -> dict:
     """Replay and compare; returns the report (JSON-ready)."""
     rec = recording if recording is not None else read_recording(cfg.path)
-    guidance = guidance or Guidance(GuidanceConfig(
-        separation_m=cfg.separation_m, cruise_speed_m_s=cfg.cruise_speed_m_s,
-        safety_filter=cfg.safety_filter, policy_path=cfg.policy_path,
-    ))  # fmt: skip
+    guidance = guidance or Guidance(
+        GuidanceConfig(
+            separation_m=cfg.separation_m,
+            cruise_speed_m_s=cfg.cruise_speed_m_s,
+            safety_filter=cfg.safety_filter,
+            policy_path=cfg.policy_path,
+        )
+    )
     own, others, traces = _index(rec, cfg.vehicle_id)
     by_seq: dict[tuple[int, int], list[_Sample]] = {}
     for samples in others.values():
@@ -251,7 +268,9 @@ def run_closed_loop(cfg: ClosedLoopConfig, recording: Recording | None = None,
         if s.mode is Mode.HOLDING:
             out = guidance.hold(pos, vel, heading_in, goal, snap).vel_ned_m_s[:2]
         else:
-            out = guidance.goto(pos, vel, heading_in, goal, snap, t_ns / 1e9, decide).vel_ned_m_s[:2]
+            out = guidance.goto(pos, vel, heading_in, goal, snap, t_ns / 1e9, decide).vel_ned_m_s[
+                :2
+            ]
         rows_out.append(
             ((t_ns - t0) / 1e9, s.seq, s.pos_ned_m, out, ref, float(np.linalg.norm(out - ref)))
         )
@@ -271,15 +290,20 @@ def _report(cfg: ClosedLoopConfig, rows: list, skipped: int, reference: str) -> 
         "max_diff_m_s": float(diffs.max()) if rows else 0.0,
         "p95_diff_m_s": float(np.percentile(diffs, 95)) if rows else 0.0,
         "mean_diff_m_s": float(diffs.mean()) if rows else 0.0,
-        "worst": None if worst is None else {
-            "t_s": worst[0], "seq": worst[1], "pos_ned_m": list(worst[2]),
-            "commanded_m_s": worst[3].tolist(), "reference_m_s": worst[4].tolist(),
+        "worst": None
+        if worst is None
+        else {
+            "t_s": worst[0],
+            "seq": worst[1],
+            "pos_ned_m": list(worst[2]),
+            "commanded_m_s": worst[3].tolist(),
+            "reference_m_s": worst[4].tolist(),
         },
         "largest": [
             {"t_s": r[0], "seq": r[1], "pos_ned_m": list(r[2]), "diff_m_s": r[5]}
             for r in sorted(rows, key=lambda r: -r[5])[:10]
         ],
-    }  # fmt: skip
+    }
 
 
 def format_report(rep: dict) -> str:

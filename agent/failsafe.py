@@ -59,7 +59,10 @@ class FailsafeConfig:
         return None
 
     def inside_fence(self, pos_ned_m: np.ndarray) -> bool:
-        return not self.geofence_radius_m or float(np.hypot(pos_ned_m[0], pos_ned_m[1])) <= self.geofence_radius_m
+        return (
+            not self.geofence_radius_m
+            or float(np.hypot(pos_ned_m[0], pos_ned_m[1])) <= self.geofence_radius_m
+        )
 
 
 @dataclass(frozen=True)
@@ -95,22 +98,46 @@ class Failsafes:
         airborne = mode in AIRBORNE
         if cfg.require_gcs and not gcs_alive and airborne:
             lost_s = now_s - self._gcs_seen_s
-            if lost_s >= cfg.gcs_lost_land_s and self._gcs_failsafe < 2 and mode is not Mode.LANDING:
+            if (
+                lost_s >= cfg.gcs_lost_land_s
+                and self._gcs_failsafe < 2
+                and mode is not Mode.LANDING
+            ):
                 self._gcs_failsafe = 2
                 self.flags |= StateFlag.FAILSAFE_GCS_LOST
-                return FailsafeAction(Trigger.FAILSAFE_LAND, f"no ground station for {lost_s:.0f} s: landing", StateFlag.FAILSAFE_GCS_LOST)
+                return FailsafeAction(
+                    Trigger.FAILSAFE_LAND,
+                    f"no ground station for {lost_s:.0f} s: landing",
+                    StateFlag.FAILSAFE_GCS_LOST,
+                )
             if lost_s >= cfg.gcs_lost_hold_s and self._gcs_failsafe < 1:
                 self._gcs_failsafe = 1
                 self.flags |= StateFlag.FAILSAFE_GCS_LOST
                 if mode in (Mode.GOTO, Mode.RETURNING, Mode.TAKING_OFF):
-                    return FailsafeAction(Trigger.FAILSAFE_HOLD, f"no ground station for {lost_s:.0f} s: holding", StateFlag.FAILSAFE_GCS_LOST)
+                    return FailsafeAction(
+                        Trigger.FAILSAFE_HOLD,
+                        f"no ground station for {lost_s:.0f} s: holding",
+                        StateFlag.FAILSAFE_GCS_LOST,
+                    )
         if airborne and mode is not Mode.LANDING:
             if battery_pct <= cfg.critical_battery_land_pct and self._battery_stage < 2:
                 self._battery_stage = 2
-                return FailsafeAction(Trigger.FAILSAFE_LAND, f"battery critical ({battery_pct:.0f} %): landing", StateFlag.NONE)
-            if battery_pct <= cfg.low_battery_return_pct and self._battery_stage < 1 and mode is not Mode.RETURNING:
+                return FailsafeAction(
+                    Trigger.FAILSAFE_LAND,
+                    f"battery critical ({battery_pct:.0f} %): landing",
+                    StateFlag.NONE,
+                )
+            if (
+                battery_pct <= cfg.low_battery_return_pct
+                and self._battery_stage < 1
+                and mode is not Mode.RETURNING
+            ):
                 self._battery_stage = 1
-                return FailsafeAction(Trigger.FAILSAFE_RETURN, f"battery low ({battery_pct:.0f} %): returning home", StateFlag.NONE)
+                return FailsafeAction(
+                    Trigger.FAILSAFE_RETURN,
+                    f"battery low ({battery_pct:.0f} %): returning home",
+                    StateFlag.NONE,
+                )
         inside = self.cfg.inside_fence(pos_ned_m)
         if inside:
             self._fence_tripped = False
@@ -118,7 +145,9 @@ class Failsafes:
         elif mode is Mode.GOTO and not self._fence_tripped:
             self._fence_tripped = True
             self.flags |= StateFlag.GEOFENCE
-            return FailsafeAction(Trigger.FAILSAFE_HOLD, "left the geofence: holding", StateFlag.GEOFENCE)
+            return FailsafeAction(
+                Trigger.FAILSAFE_HOLD, "left the geofence: holding", StateFlag.GEOFENCE
+            )
         return None
 
     @property

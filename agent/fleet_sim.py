@@ -101,29 +101,49 @@ class TickStats:
 
     def summary(self) -> dict:
         t = np.array(self.tick_ms[-10_000:]) if self.tick_ms else np.zeros(1)
-        return {"ticks": self.ticks, "overruns": self.overruns,
-                "tick_ms_p50": float(np.median(t)), "tick_ms_p99": float(np.percentile(t, 99))}  # fmt: skip
+        return {
+            "ticks": self.ticks,
+            "overruns": self.overruns,
+            "tick_ms_p50": float(np.median(t)),
+            "tick_ms_p99": float(np.percentile(t, 99)),
+        }
 
 
 def start_grid(n: int, spacing_m: float, corner_ne_m: tuple[float, float]) -> np.ndarray:
     """(n, 3) NED start positions on the ground, a square grid filled row by row."""
     side = math.ceil(math.sqrt(n))
     k = np.arange(n)
-    return np.stack([corner_ne_m[0] + spacing_m * (k // side), corner_ne_m[1] + spacing_m * (k % side), np.zeros(n)], axis=1)
+    return np.stack(
+        [
+            corner_ne_m[0] + spacing_m * (k // side),
+            corner_ne_m[1] + spacing_m * (k % side),
+            np.zeros(n),
+        ],
+        axis=1,
+    )
 
 
 class Fleet:
     """The vehicles of one process: arrays for physics, a mode per vehicle, one mesh session."""
 
-    def __init__(self, cfg: FleetSimConfig, mesh: Mesh, *, policy: GuidancePolicy | None = None,
-                 clock_s: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cfg: FleetSimConfig,
+        mesh: Mesh,
+        *,
+        policy: GuidancePolicy | None = None,
+        clock_s: Callable[[], float] = time.monotonic,
+    ) -> None:
         n, g = cfg.vehicles, cfg.guidance
         self.cfg, self.mesh, self.clock_s = cfg, mesh, clock_s
         self.ids = np.arange(cfg.first_id, cfg.first_id + n)
         self.policy = policy or GuidancePolicy.load(
-            g.policy_path, separation_m=g.separation_m, cruise_speed_m_s=g.cruise_speed_m_s,
-            safety_filter=False, max_neighbours=cfg.max_neighbours,
-        )  # fmt: skip
+            g.policy_path,
+            separation_m=g.separation_m,
+            cruise_speed_m_s=g.cruise_speed_m_s,
+            safety_filter=False,
+            max_neighbours=cfg.max_neighbours,
+        )
         self.pos_m = start_grid(n, cfg.spacing_m, cfg.start_ne_m)
         self.vel_m_s = np.zeros((n, 3))
         self.cmd_vel_m_s = np.zeros((n, 3))
@@ -171,21 +191,35 @@ class Fleet:
         target = None
         if trigger is Trigger.GOTO:
             p = cmd.params
-            target = np.array(self.cfg.origin.to_local(*p) if cmd.kind is CommandKind.GOTO_GLOBAL else p, float)
+            target = np.array(
+                self.cfg.origin.to_local(*p) if cmd.kind is CommandKind.GOTO_GLOBAL else p, float
+            )
             problem = self.cfg.failsafe.check_target(target)
             if problem:
                 return AckResult.REJECTED, problem
         if cmd.kind is CommandKind.TAKEOFF and cmd.params[0] > self.cfg.failsafe.max_alt_m:
-            return AckResult.REJECTED, f"takeoff altitude {cmd.params[0]:g} m is above the {self.cfg.failsafe.max_alt_m:g} m limit"
-        if cmd.kind is CommandKind.TAKEOFF and not (math.isfinite(cmd.params[0]) and cmd.params[0] > 0):
-            return AckResult.FAILED, f"vehicle refused: takeoff altitude must be positive, got {cmd.params[0]}"
+            return (
+                AckResult.REJECTED,
+                f"takeoff altitude {cmd.params[0]:g} m is above the {self.cfg.failsafe.max_alt_m:g} m limit",
+            )
+        if cmd.kind is CommandKind.TAKEOFF and not (
+            math.isfinite(cmd.params[0]) and cmd.params[0] > 0
+        ):
+            return (
+                AckResult.FAILED,
+                f"vehicle refused: takeoff altitude must be positive, got {cmd.params[0]}",
+            )
         res = step(self.modes[i], trigger)
         if not res.accepted:
             return AckResult.REJECTED, res.reason
-        self._enter(i, res.mode, trigger, target, cmd.params[0] if cmd.kind is CommandKind.TAKEOFF else None)
+        self._enter(
+            i, res.mode, trigger, target, cmd.params[0] if cmd.kind is CommandKind.TAKEOFF else None
+        )
         return AckResult.ACCEPTED, ""
 
-    def _enter(self, i: int, mode: Mode, trigger: Trigger, target=None, alt_m: float | None = None) -> None:
+    def _enter(
+        self, i: int, mode: Mode, trigger: Trigger, target=None, alt_m: float | None = None
+    ) -> None:
         """Record `mode` for vehicle i and set what the physics and guidance need for it."""
         pos, previous = self.pos_m[i], self.modes[i]
         if mode is Mode.TAKING_OFF:
@@ -218,7 +252,9 @@ class Fleet:
         """Physics, vehicle events, batched guidance, then every vehicle's state."""
         t0 = time.perf_counter()
         with self._lock:
-            dt_s = min(max(now_s - self._now_s, 0.0), 0.5)  # a stalled process must not teleport vehicles
+            dt_s = min(
+                max(now_s - self._now_s, 0.0), 0.5
+            )  # a stalled process must not teleport vehicles
             self._now_s = now_s
             if dt_s > 0:
                 self._integrate(dt_s)
@@ -231,7 +267,9 @@ class Fleet:
                 keep = [k for k, i in enumerate(rows) if self.modes[i] in (*FLYING, Mode.HOLDING)]
                 self.cmd_vel_m_s[rows[keep], :2] = v_h[keep]
                 fast = np.hypot(v_h[keep, 0], v_h[keep, 1]) > 0.05
-                self.heading_rad[rows[keep][fast]] = np.arctan2(v_h[keep][fast, 1], v_h[keep][fast, 0])
+                self.heading_rad[rows[keep][fast]] = np.arctan2(
+                    v_h[keep][fast, 1], v_h[keep][fast, 0]
+                )
             states = self._states()
         for s in states:
             try:
@@ -250,13 +288,19 @@ class Fleet:
         held = np.isin(modes, (Mode.TAKING_OFF, Mode.LANDING))
         want[held] = sim.hold_gain_1_s * (self.hold_m[held] - pos[held])
         up = held & (modes == Mode.TAKING_OFF)
-        want[up, 2] = np.where(-pos[up, 2] < self.takeoff_alt_m[up] - 0.05, -sim.climb_rate_m_s, 0.0)
+        want[up, 2] = np.where(
+            -pos[up, 2] < self.takeoff_alt_m[up] - 0.05, -sim.climb_rate_m_s, 0.0
+        )
         down = held & (modes == Mode.LANDING)
         want[down, 2] = np.where(-pos[down, 2] > 2.0, 1.0, 0.5) * sim.descent_rate_m_s
         guided = np.isin(modes, (Mode.GOTO, Mode.RETURNING, Mode.HOLDING)) & self.armed
         want[guided, :2] = self.cmd_vel_m_s[guided, :2]
         goal_d = np.where(modes == Mode.HOLDING, self.hold_m[:, 2], self.goal_m[:, 2])
-        want[guided, 2] = np.clip(g.vertical_gain_1_s * (goal_d - pos[:, 2]), -g.max_vertical_speed_m_s, g.max_vertical_speed_m_s)[guided]
+        want[guided, 2] = np.clip(
+            g.vertical_gain_1_s * (goal_d - pos[:, 2]),
+            -g.max_vertical_speed_m_s,
+            g.max_vertical_speed_m_s,
+        )[guided]
         dv = want - vel
         norm = np.linalg.norm(dv, axis=1)
         dv *= (np.minimum(1.0, sim.max_accel_m_s2 * dt_s / np.maximum(norm, 1e-12)))[:, None]
@@ -273,7 +317,9 @@ class Fleet:
         vel[stop] = 0.0
         self.armed[stop & np.isin(modes, (Mode.LANDING, Mode.KILLED))] = False
         flying = (pos[:, 2] < -0.05) & self.armed
-        self.battery_pct[flying] = np.maximum(0.0, self.battery_pct[flying] - sim.battery_drain_pct_s * dt_s)
+        self.battery_pct[flying] = np.maximum(
+            0.0, self.battery_pct[flying] - sim.battery_drain_pct_s * dt_s
+        )
         moving = (np.hypot(vel[:, 0], vel[:, 1]) > 0.2 * g.cruise_speed_m_s) & ~guided
         self.heading_rad[moving] = np.arctan2(vel[moving, 1], vel[moving, 0])
 
@@ -284,12 +330,20 @@ class Fleet:
         modes = np.array([int(m) for m in self.modes])
         alt_m = -self.pos_m[:, 2]
         miss = self.goal_m - self.pos_m
-        arrived = (np.hypot(miss[:, 0], miss[:, 1]) <= g.arrive_radius_m) & (np.abs(miss[:, 2]) <= g.arrive_alt_tol_m)
+        arrived = (np.hypot(miss[:, 0], miss[:, 1]) <= g.arrive_radius_m) & (
+            np.abs(miss[:, 2]) <= g.arrive_alt_tol_m
+        )
         events = (
-            (Trigger.REACHED_ALTITUDE, (modes == Mode.TAKING_OFF) & (alt_m >= self.takeoff_alt_m - 0.3)),
+            (
+                Trigger.REACHED_ALTITUDE,
+                (modes == Mode.TAKING_OFF) & (alt_m >= self.takeoff_alt_m - 0.3),
+            ),
             (Trigger.ARRIVED, np.isin(modes, FLYING) & arrived),
-            (Trigger.TOUCHED_DOWN, np.isin(modes, (Mode.LANDING, Mode.KILLED)) & (alt_m <= 0.05) & ~self.armed),
-        )  # fmt: skip
+            (
+                Trigger.TOUCHED_DOWN,
+                np.isin(modes, (Mode.LANDING, Mode.KILLED)) & (alt_m <= 0.05) & ~self.armed,
+            ),
+        )
         for trig, mask in events:
             for i in np.flatnonzero(mask).tolist():
                 res = step(self.modes[i], trig)
@@ -301,22 +355,33 @@ class Fleet:
         vehicles (ours and others') as the policy's world."""
         modes = self.modes
         airborne = np.array([m in AIRBORNE for m in modes]) & self.armed
-        guided = np.flatnonzero(np.array([m in (*FLYING, Mode.HOLDING) for m in modes]) & self.armed)
+        guided = np.flatnonzero(
+            np.array([m in (*FLYING, Mode.HOLDING) for m in modes]) & self.armed
+        )
         if guided.size == 0:
             return None
         for vid in [v for v, (_, t) in self._others.items() if now_s - t > self.cfg.drop_s]:
             del self._others[vid]
-        ext = [(s, now_s - t) for s, t in self._others.values() if s.armed or s.mode not in (Mode.LANDED, Mode.KILLED)]
-        ext_pos = np.array([np.add(s.pos_ned_m, np.multiply(s.vel_ned_m_s, age)) for s, age in ext]).reshape(-1, 3)
+        ext = [
+            (s, now_s - t)
+            for s, t in self._others.values()
+            if s.armed or s.mode not in (Mode.LANDED, Mode.KILLED)
+        ]
+        ext_pos = np.array(
+            [np.add(s.pos_ned_m, np.multiply(s.vel_ned_m_s, age)) for s, age in ext]
+        ).reshape(-1, 3)
         ext_vel = np.array([s.vel_ned_m_s for s, _ in ext]).reshape(-1, 3)
         ext_hdg = np.array([s.heading_rad for s, _ in ext]).reshape(-1)
         goal = np.where(np.array([m in FLYING for m in modes])[:, None], self.goal_m, self.hold_m)
         return (
-            np.concatenate([self.pos_m, ext_pos]), np.concatenate([self.vel_m_s, ext_vel]),
-            np.concatenate([self.heading_rad, ext_hdg]), np.concatenate([goal, ext_pos]),
-            np.concatenate([airborne, np.ones(len(ext), bool)]), guided,
+            np.concatenate([self.pos_m, ext_pos]),
+            np.concatenate([self.vel_m_s, ext_vel]),
+            np.concatenate([self.heading_rad, ext_hdg]),
+            np.concatenate([goal, ext_pos]),
+            np.concatenate([airborne, np.ones(len(ext), bool)]),
+            guided,
             np.array([m is Mode.HOLDING for m in modes]),
-        )  # fmt: skip
+        )
 
     def _guidance(self, pos, vel, heading, goal, active, guided, holding, now_s: float = 0.0):
         """(rows, horizontal velocity commands (len(rows), 2)): the policy in goto and return
@@ -332,13 +397,19 @@ class Fleet:
             | ~np.all(self._held_goal_m == goal[:n], axis=1)  # new goal, or nothing held (NaN)
         )
         rows = np.flatnonzero(due)  # the network runs for these only; the others hold
-        a, nbr = self.policy.action_batch(pos[:, :2] / s, heading, goal[:, :2] / s, active, rows=rows)
-        self._held_pref_m_s[rows] = features.action_to_velocity(a, heading[rows]) * g.cruise_speed_m_s
+        a, nbr = self.policy.action_batch(
+            pos[:, :2] / s, heading, goal[:, :2] / s, active, rows=rows
+        )
+        self._held_pref_m_s[rows] = (
+            features.action_to_velocity(a, heading[rows]) * g.cruise_speed_m_s
+        )
         self._held_goal_m[rows] = goal[rows]
         self._decided_s[rows] = now_s
         self._held_goal_m[~flying] = np.nan  # a hold or landing forgets the decision
         hold = g.hold_gain_1_s * (goal[:, :2] - pos[:, :2])
-        hold *= (g.cruise_speed_m_s / np.maximum(np.hypot(hold[:, 0], hold[:, 1]), g.cruise_speed_m_s))[:, None]
+        hold *= (
+            g.cruise_speed_m_s / np.maximum(np.hypot(hold[:, 0], hold[:, 1]), g.cruise_speed_m_s)
+        )[:, None]
         pref = np.zeros((len(pos), 2))
         pref[:n][flying] = self._held_pref_m_s[flying]
         pref[:n][holding] = hold[:n][holding]
@@ -350,18 +421,37 @@ class Fleet:
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         stamp_ns = self.mesh.clock_ns()
         # whole arrays to Python floats once: per-row numpy access costs more than the rest
-        pos, vel, goal, hold = (a.tolist() for a in (self.pos_m, self.vel_m_s, self.goal_m, self.hold_m))
+        pos, vel, goal, hold = (
+            a.tolist() for a in (self.pos_m, self.vel_m_s, self.goal_m, self.hold_m)
+        )
         hdg = np.remainder(self.heading_rad + math.pi, 2 * math.pi) - math.pi
         out = []
-        for i, (vid, h, armed, batt) in enumerate(zip(self.ids.tolist(), hdg.tolist(), self.armed.tolist(),
-                                                       self.battery_pct.tolist(), strict=True)):  # fmt: skip
+        for i, (vid, h, armed, batt) in enumerate(
+            zip(
+                self.ids.tolist(),
+                hdg.tolist(),
+                self.armed.tolist(),
+                self.battery_pct.tolist(),
+                strict=True,
+            )
+        ):
             mode = self.modes[i]
             g = goal[i] if mode in FLYING else hold[i] if mode is Mode.HOLDING else None
-            out.append(VehicleState(
-                vehicle_id=vid, seq=self.seq, stamp_ns=stamp_ns, pos_ned_m=tuple(pos[i]), vel_ned_m_s=tuple(vel[i]),
-                heading_rad=h, mode=mode, armed=armed, battery_pct=batt,
-                flags=_HAS_GOAL if g is not None else StateFlag.OPEN_MODE, goal_ned_m=tuple(g) if g is not None else (0.0, 0.0, 0.0),
-            ))  # fmt: skip
+            out.append(
+                VehicleState(
+                    vehicle_id=vid,
+                    seq=self.seq,
+                    stamp_ns=stamp_ns,
+                    pos_ned_m=tuple(pos[i]),
+                    vel_ned_m_s=tuple(vel[i]),
+                    heading_rad=h,
+                    mode=mode,
+                    armed=armed,
+                    battery_pct=batt,
+                    flags=_HAS_GOAL if g is not None else StateFlag.OPEN_MODE,
+                    goal_ned_m=tuple(g) if g is not None else (0.0, 0.0, 0.0),
+                )
+            )
         return out
 
     def run(self, stop: threading.Event) -> None:
@@ -381,8 +471,12 @@ class Fleet:
             stop.wait(max(0.0, next_s - now))
 
 
-def main(cfg: FleetSimConfig, stop: threading.Event | None = None, duration_s: float | None = None,
-         ready: Callable[[Fleet], None] | None = None) -> dict:  # fmt: skip
+def main(
+    cfg: FleetSimConfig,
+    stop: threading.Event | None = None,
+    duration_s: float | None = None,
+    ready: Callable[[Fleet], None] | None = None,
+) -> dict:
     """Run the fleet until `stop` (or `duration_s`); returns the tick statistics."""
     stop = stop or threading.Event()
     with Mesh(cfg.mesh) as mesh:
@@ -404,17 +498,35 @@ def main(cfg: FleetSimConfig, stop: threading.Event | None = None, duration_s: f
 def parser() -> argparse.ArgumentParser:
     from agent.cli import _floats, add_mesh_args
 
-    p = argparse.ArgumentParser(prog="covey fleet-sim", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--vehicles", type=int, default=500, help="vehicles in this process (default 500)")
+    p = argparse.ArgumentParser(
+        prog="covey fleet-sim",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--vehicles", type=int, default=500, help="vehicles in this process (default 500)"
+    )
     p.add_argument("--first-id", type=int, default=1, help="id of the first vehicle (default 1)")
     p.add_argument("--rate-hz", type=float, default=10.0, help="tick and state rate (default 10)")
     p.add_argument("--spacing-m", type=float, default=8.0, help="start grid spacing (default 8)")
-    p.add_argument("--start", type=lambda s: _floats(s, 2, "--start"), default=(0.0, 0.0), help="grid corner N,E in metres")
-    p.add_argument("--max-neighbours", type=int, default=10, help="nearest neighbours per policy call (default 10)")
+    p.add_argument(
+        "--start",
+        type=lambda s: _floats(s, 2, "--start"),
+        default=(0.0, 0.0),
+        help="grid corner N,E in metres",
+    )
+    p.add_argument(
+        "--max-neighbours",
+        type=int,
+        default=10,
+        help="nearest neighbours per policy call (default 10)",
+    )
     p.add_argument("--separation-m", type=float, default=3.0)
     p.add_argument("--cruise-speed-m-s", type=float, default=1.0)
     p.add_argument("--no-safety-filter", action="store_true", help="fly the pure learned policy")
-    p.add_argument("--no-see-others", action="store_true", help="ignore vehicles of other processes")
+    p.add_argument(
+        "--no-see-others", action="store_true", help="ignore vehicles of other processes"
+    )
     p.add_argument("--geofence-radius-m", type=float, default=2000.0, help="0 = no fence")
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long")
     p.add_argument("-v", "--verbose", action="store_true")
@@ -427,17 +539,27 @@ def cli(argv: list[str]) -> int:
 
     p = parser()
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")  # fmt: skip
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+    )
     try:
         cfg = FleetSimConfig(
-            vehicles=args.vehicles, first_id=args.first_id, mesh=mesh_config(args), rate_hz=args.rate_hz,
-            spacing_m=args.spacing_m, start_ne_m=args.start, max_neighbours=args.max_neighbours,
+            vehicles=args.vehicles,
+            first_id=args.first_id,
+            mesh=mesh_config(args),
+            rate_hz=args.rate_hz,
+            spacing_m=args.spacing_m,
+            start_ne_m=args.start,
+            max_neighbours=args.max_neighbours,
             see_others=not args.no_see_others,
-            guidance=GuidanceConfig(separation_m=args.separation_m, cruise_speed_m_s=args.cruise_speed_m_s,
-                                    safety_filter=not args.no_safety_filter),
+            guidance=GuidanceConfig(
+                separation_m=args.separation_m,
+                cruise_speed_m_s=args.cruise_speed_m_s,
+                safety_filter=not args.no_safety_filter,
+            ),
             failsafe=FailsafeConfig(require_gcs=False, geofence_radius_m=args.geofence_radius_m),
-        )  # fmt: skip
+        )
     except ValueError as exc:
         p.error(str(exc))
     stop = threading.Event()
@@ -445,7 +567,10 @@ def cli(argv: list[str]) -> int:
         signal.signal(sig, lambda *_: stop.set())
 
     def ready(fleet: Fleet) -> None:
-        print(f"READY {cfg.vehicles} vehicles {cfg.first_id}..{cfg.first_id + cfg.vehicles - 1}", flush=True)
+        print(
+            f"READY {cfg.vehicles} vehicles {cfg.first_id}..{cfg.first_id + cfg.vehicles - 1}",
+            flush=True,
+        )
 
     with contextlib.suppress(KeyboardInterrupt):
         stats = main(cfg, stop=stop, duration_s=args.duration_s, ready=ready)

@@ -116,7 +116,10 @@ class Guidance:
         if not nbrs.stale_ids:
             return 1.0
         for vid, p in zip(nbrs.ids, nbrs.pos_ned_m, strict=True):
-            if vid in nbrs.stale_ids and np.hypot(*(p[:2] - pos_m[:2])) < self.cfg.stale_caution_radius_m:
+            if (
+                vid in nbrs.stale_ids
+                and np.hypot(*(p[:2] - pos_m[:2])) < self.cfg.stale_caution_radius_m
+            ):
                 return self.cfg.stale_slowdown
         return 1.0
 
@@ -124,14 +127,25 @@ class Guidance:
         if not self.cfg.safety_filter or len(nbrs) == 0:
             return pref_m_s, False
         out = safety.filter_velocity(
-            pos_m[:2], vel_m_s[:2], pref_m_s, nbrs.pos_ned_m[:, :2], nbrs.vel_ned_m_s[:, :2], self.safety_cfg
+            pos_m[:2],
+            vel_m_s[:2],
+            pref_m_s,
+            nbrs.pos_ned_m[:, :2],
+            nbrs.vel_ned_m_s[:, :2],
+            self.safety_cfg,
         )
         return out, bool(np.linalg.norm(out - pref_m_s) > 1e-6)
 
     def goto(
-        self, pos_m: np.ndarray, vel_m_s: np.ndarray, heading_rad: float, goal_m: np.ndarray,
-        nbrs: NeighbourSnapshot, now_s: float | None = None, decide: bool | None = None,
-    ) -> GuidanceOutput:  # fmt: skip
+        self,
+        pos_m: np.ndarray,
+        vel_m_s: np.ndarray,
+        heading_rad: float,
+        goal_m: np.ndarray,
+        nbrs: NeighbourSnapshot,
+        now_s: float | None = None,
+        decide: bool | None = None,
+    ) -> GuidanceOutput:
         """Policy guidance towards `goal_m` (NED).
 
         `decide` forces (True) or skips (False) a policy decision; None decides when
@@ -139,10 +153,18 @@ class Guidance:
         if decide is None:
             decide = now_s is None or self.decision_due(now_s, goal_m)
         if decide or self._held_m_s is None:
-            self._held_m_s = np.asarray(self.policy.command(
-                pos_m[:2], vel_m_s[:2], heading_rad, goal_m[:2],
-                nbrs.pos_ned_m[:, :2], nbrs.vel_ned_m_s[:, :2], nbrs.heading_rad,
-            ), dtype=float)  # fmt: skip
+            self._held_m_s = np.asarray(
+                self.policy.command(
+                    pos_m[:2],
+                    vel_m_s[:2],
+                    heading_rad,
+                    goal_m[:2],
+                    nbrs.pos_ned_m[:, :2],
+                    nbrs.vel_ned_m_s[:, :2],
+                    nbrs.heading_rad,
+                ),
+                dtype=float,
+            )
             self._held_goal_m = np.array(goal_m, dtype=float)
             self._decided_s = -math.inf if now_s is None else now_s
             decide = True
@@ -152,7 +174,12 @@ class Guidance:
         return GuidanceOutput(vel, _heading_of(v_h, heading_rad), filtered, factor < 1.0, decide)
 
     def hold(
-        self, pos_m: np.ndarray, vel_m_s: np.ndarray, heading_rad: float, hold_m: np.ndarray, nbrs: NeighbourSnapshot
+        self,
+        pos_m: np.ndarray,
+        vel_m_s: np.ndarray,
+        heading_rad: float,
+        hold_m: np.ndarray,
+        nbrs: NeighbourSnapshot,
     ) -> GuidanceOutput:
         """Keep `hold_m`, stepping aside for neighbours that come too close."""
         self.reset()  # a later goto starts from a fresh decision
@@ -163,7 +190,9 @@ class Guidance:
         v_h, filtered = self._filter(pos_m, vel_m_s, pref, nbrs)
         vel = np.array([v_h[0], v_h[1], self._vertical(pos_m[2], hold_m[2])])
         # Hovering does not turn the vehicle: keep the heading unless it really moves.
-        return GuidanceOutput(vel, _heading_of(v_h, heading_rad, min_speed_m_s=0.5), filtered, False)
+        return GuidanceOutput(
+            vel, _heading_of(v_h, heading_rad, min_speed_m_s=0.5), filtered, False
+        )
 
     def arrived(self, pos_m: np.ndarray, goal_m: np.ndarray) -> bool:
         return bool(

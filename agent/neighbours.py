@@ -65,7 +65,11 @@ class NeighbourTable:
         with self._lock:
             prev = self._latest.get(state.vehicle_id)
             # Latest wins, but a reordered older sample must not overwrite a newer one.
-            if prev is not None and _seq_older(state.seq, prev[0].seq) and state.stamp_ns <= prev[0].stamp_ns:
+            if (
+                prev is not None
+                and _seq_older(state.seq, prev[0].seq)
+                and state.stamp_ns <= prev[0].stamp_ns
+            ):
                 return
             self._latest[state.vehicle_id] = (state, recv_s)
 
@@ -85,7 +89,10 @@ class NeighbourTable:
                 continue
             age_s = max(0.0, now_s - recv_s)
             p = np.asarray(state.pos_ned_m, dtype=float) + np.asarray(state.vel_ned_m_s) * age_s
-            if own_pos_ned_m is not None and abs(p[2] - own_pos_ned_m[2]) > self.cfg.vertical_band_m:
+            if (
+                own_pos_ned_m is not None
+                and abs(p[2] - own_pos_ned_m[2]) > self.cfg.vertical_band_m
+            ):
                 continue
             pos.append(p)
             vel.append(state.vel_ned_m_s)

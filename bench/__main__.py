@@ -84,9 +84,13 @@ def discover() -> list[Section]:
 def _env(out: Path) -> dict:
     from bench.common import OUT_ENV
 
-    env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_WAIT_POLICY="PASSIVE", OPENBLAS_NUM_THREADS="1")
+    env = dict(
+        os.environ, PYTHONUNBUFFERED="1", OMP_WAIT_POLICY="PASSIVE", OPENBLAS_NUM_THREADS="1"
+    )
     env.setdefault("OMP_NUM_THREADS", "1")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(BENCH.parent), env.get("PYTHONPATH", "")]))
+    env["PYTHONPATH"] = os.pathsep.join(
+        filter(None, [str(BENCH.parent), env.get("PYTHONPATH", "")])
+    )
     env[OUT_ENV] = str(out)
     return env
 
@@ -94,7 +98,9 @@ def _env(out: Path) -> dict:
 def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
     """Run one section in a child process, showing elapsed time; returns its run record."""
     if sec.convention:
-        cmd = [sys.executable, "-m", "bench", "--run-one", sec.name] + (["--quick"] if quick else [])
+        cmd = [sys.executable, "-m", "bench", "--run-one", sec.name] + (
+            ["--quick"] if quick else []
+        )
     else:
         cmd = [sys.executable, "-m", f"bench.{sec.name}"] + (["--quick"] if quick else [])
     t0, started = time.monotonic(), time.time()
@@ -104,22 +110,44 @@ def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
 
     def ticker() -> None:
         while not done.wait(30.0):
-            print(f"    ... {sec.name} still running, {time.monotonic() - t0:.0f} s", file=sys.stderr, flush=True)
+            print(
+                f"    ... {sec.name} still running, {time.monotonic() - t0:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
 
     threading.Thread(target=ticker, daemon=True).start()
     with open(log_path, "w") as log:
         try:
-            rc = subprocess.run(cmd, cwd=BENCH.parent, env=_env(out), stdout=log, stderr=subprocess.STDOUT,
-                                timeout=timeout_s).returncode  # fmt: skip
+            rc = subprocess.run(
+                cmd,
+                cwd=BENCH.parent,
+                env=_env(out),
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                timeout=timeout_s,
+            ).returncode
             status = "ok" if rc == 0 else f"failed (exit {rc})"
         except subprocess.TimeoutExpired:
             status = f"timed out after {timeout_s:.0f} s"
         finally:
             done.set()
-    rec = {"section": sec.name, "how": sec.how(quick), "status": status, "wall_s": round(time.monotonic() - t0, 1),
-           "log": f"logs/{log_path.name}"}  # fmt: skip
+    rec = {
+        "section": sec.name,
+        "how": sec.how(quick),
+        "status": status,
+        "wall_s": round(time.monotonic() - t0, 1),
+        "log": f"logs/{log_path.name}",
+    }
     # Scripts pick their own file names (or print only): note what this one wrote.
-    wrote = sorted({p.name for d in (out, RESULTS) for p in d.glob("*.json") if p.stat().st_mtime >= started and p.name != "run.json"})
+    wrote = sorted(
+        {
+            p.name
+            for d in (out, RESULTS)
+            for p in d.glob("*.json")
+            if p.stat().st_mtime >= started and p.name != "run.json"
+        }
+    )
     rec["wrote"] = wrote
     if not wrote:
         rec["output_tail"] = log_path.read_text(errors="replace").splitlines()[-15:]
@@ -141,12 +169,29 @@ def run_one(name: str, quick: bool) -> int:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="covey bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="covey bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("--quick", action="store_true", help="smoke-sized runs (< 2 min)")
-    ap.add_argument("--only", action="append", default=None, metavar="SECTION", help="run only this section (repeatable)")
-    ap.add_argument("--out", type=Path, default=None, help="results folder (default bench/results, quick: bench/results/quick)")
+    ap.add_argument(
+        "--only",
+        action="append",
+        default=None,
+        metavar="SECTION",
+        help="run only this section (repeatable)",
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="results folder (default bench/results, quick: bench/results/quick)",
+    )
     ap.add_argument("--list", action="store_true", help="list the sections and exit")
-    ap.add_argument("--timeout-s", type=float, default=None, help="per-section limit (default 600, quick 120)")
+    ap.add_argument(
+        "--timeout-s", type=float, default=None, help="per-section limit (default 600, quick 120)"
+    )
     ap.add_argument("--run-one", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.run_one:
@@ -172,7 +217,11 @@ def cli(argv: list[str] | None = None) -> int:
     records = []
     for i, sec in enumerate(sections, 1):
         how = sec.how(args.quick, default_out)
-        print(f"[{i}/{len(sections)}] {sec.name}: {how}  (elapsed {time.monotonic() - t0:.0f} s)", file=sys.stderr, flush=True)
+        print(
+            f"[{i}/{len(sections)}] {sec.name}: {how}  (elapsed {time.monotonic() - t0:.0f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
         if how.startswith("skipped"):
             records.append({"section": sec.name, "how": how, "status": "skipped", "wall_s": 0.0})
             continue
@@ -180,14 +229,23 @@ def cli(argv: list[str] | None = None) -> int:
         records.append(rec)
         print(f"      {rec['status']} in {rec['wall_s']:.0f} s", file=sys.stderr, flush=True)
     wall_s = round(time.monotonic() - t0, 1)
-    run = {"quick": args.quick, "only": args.only, "wall_s": wall_s,
-           "machine": common.machine(), "sections": records}  # fmt: skip
+    run = {
+        "quick": args.quick,
+        "only": args.only,
+        "wall_s": wall_s,
+        "machine": common.machine(),
+        "sections": records,
+    }
     run_path = out / "run.json"
     if args.only and run_path.is_file():  # keep the last full run's record of the other sections
         last = json.loads(run_path.read_text())
         ran = {r["section"] for r in records}
-        last["sections"] = [r for r in last.get("sections", []) if r["section"] not in ran] + records
-        last.setdefault("partial_reruns", []).append({k: run[k] for k in ("quick", "only", "wall_s")})
+        last["sections"] = [
+            r for r in last.get("sections", []) if r["section"] not in ran
+        ] + records
+        last.setdefault("partial_reruns", []).append(
+            {k: run[k] for k in ("quick", "only", "wall_s")}
+        )
         run = last
     run_path.write_text(json.dumps(run, indent=2) + "\n")
     summary = report.write_summary(out)

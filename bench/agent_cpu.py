@@ -63,9 +63,14 @@ def role_neighbours(port: int, keys_dir: str | None = None) -> None:
             for k in range(NEIGHBOURS):
                 r_m, th = 6.0 + 8.0 * k / NEIGHBOURS, 2 * math.pi * k / NEIGHBOURS + 0.3
                 pos = (c[0] + r_m * math.cos(th), c[1] + r_m * math.sin(th), c[2])
-                st = VehicleState(100 + k, seq, time.time_ns(), pos, tuple(v), 0.0, mode=Mode.GOTO, armed=True)
+                st = VehicleState(
+                    100 + k, seq, time.time_ns(), pos, tuple(v), 0.0, mode=Mode.GOTO, armed=True
+                )
                 if signers:
-                    mesh.session.put(keys.state(FLEET, st.vehicle_id), signers[st.vehicle_id].sign_state(st).encode())
+                    mesh.session.put(
+                        keys.state(FLEET, st.vehicle_id),
+                        signers[st.vehicle_id].sign_state(st).encode(),
+                    )
                 else:
                     mesh.publish_state(st)
             next_s += period_s
@@ -96,7 +101,9 @@ class StateLog:
 
     def window(self, t0_ns: int, t1_ns: int) -> np.ndarray:
         with self.lock:
-            return np.array([r for r in self.rows if t0_ns <= r[0] < t1_ns], dtype=np.int64).reshape(-1, 2)
+            return np.array(
+                [r for r in self.rows if t0_ns <= r[0] < t1_ns], dtype=np.int64
+            ).reshape(-1, 2)
 
 
 def measure(pid: int, log: StateLog, window_s: float) -> dict:
@@ -107,12 +114,15 @@ def measure(pid: int, log: StateLog, window_s: float) -> dict:
     period_ms = np.diff(np.sort(rows[:, 1])) / 1e6
     jitter_ms = np.abs(period_ms - 1e3 / TICK_HZ)
     return {
-        "window_s": w1 - w0, "cpu_share_of_one_core": (c1 - c0) / (w1 - w0),
-        "cpu_ms_per_tick": (c1 - c0) * 1e3 / ((w1 - w0) * TICK_HZ), "states": int(len(rows)),
-        "tick_period_ms_p50": common.pct(period_ms, 50), "tick_jitter_ms_p50": common.pct(jitter_ms, 50),
+        "window_s": w1 - w0,
+        "cpu_share_of_one_core": (c1 - c0) / (w1 - w0),
+        "cpu_ms_per_tick": (c1 - c0) * 1e3 / ((w1 - w0) * TICK_HZ),
+        "states": int(len(rows)),
+        "tick_period_ms_p50": common.pct(period_ms, 50),
+        "tick_jitter_ms_p50": common.pct(jitter_ms, 50),
         "tick_jitter_ms_p99": common.pct(jitter_ms, 99),
         "state_latency_ms_p50": common.pct((rows[:, 0] - rows[:, 1]) / 1e6, 50),
-    }  # fmt: skip
+    }
 
 
 def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
@@ -123,7 +133,9 @@ def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
     from comms.schema import Command, CommandKind
 
     clock = [0.0]
-    cfg = FleetSimConfig(vehicles=vehicles, mesh=embedded_router(free_tcp_port(), fleet=FLEET + "fs"))
+    cfg = FleetSimConfig(
+        vehicles=vehicles, mesh=embedded_router(free_tcp_port(), fleet=FLEET + "fs")
+    )
     reps = 10 if quick else 30
     out = {"vehicles": vehicles, "budget_ms_at_10hz": 100.0}
     with Mesh(cfg.mesh) as mesh:
@@ -146,14 +158,22 @@ def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
         command(CommandKind.TAKEOFF, lambda i: (10.0, 0.0, 0.0))
         ticks(60)  # climb to 10 m at 2 m/s
         out["holding_tick_ms_p50"] = common.pct(ticks(reps), 50)
-        command(CommandKind.GOTO_LOCAL, lambda i: (fleet.pos_m[i, 0] + 60.0, fleet.pos_m[i, 1] + 30.0, -10.0))
+        command(
+            CommandKind.GOTO_LOCAL,
+            lambda i: (fleet.pos_m[i, 0] + 60.0, fleet.pos_m[i, 1] + 30.0, -10.0),
+        )
         flying = ticks(reps)
-        out["goto_tick_ms_p50"], out["goto_tick_ms_p99"] = common.pct(flying, 50), common.pct(flying, 99)
+        out["goto_tick_ms_p50"], out["goto_tick_ms_p99"] = (
+            common.pct(flying, 50),
+            common.pct(flying, 99),
+        )
         out["in_goto"] = sum(m.name == "GOTO" for m in fleet.modes)
     return out
 
 
-def agent_flight(quick: bool, decision_period_s: float | None = None, keys_dir: str | None = None) -> dict:
+def agent_flight(
+    quick: bool, decision_period_s: float | None = None, keys_dir: str | None = None
+) -> dict:
     """One real `covey agent` with 10 neighbours: CPU and tick jitter landed, then flying a goto.
     `decision_period_s` None: the policy's trained period (the default); 0: every tick.
     `keys_dir`: a keyed fleet (bench/trust.py): every state signed and verified."""
@@ -176,19 +196,45 @@ def agent_flight(quick: bool, decision_period_s: float | None = None, keys_dir: 
         nb_extra = ["--keys-dir", keys_dir]
     with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.Children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
-        nb = kids.start("-m", "bench.agent_cpu", "--role", "neighbours", "--port", str(port), *nb_extra)
+        nb = kids.start(
+            "-m", "bench.agent_cpu", "--role", "neighbours", "--port", str(port), *nb_extra
+        )
         kids.wait_line(nb, "READY")
-        agent = kids.start("-m", "covey_cli", "agent", "--id", str(AGENT_ID), "--fleet", FLEET, "--connect", f"tcp/127.0.0.1:{port}",
-                           "--no-gcs-failsafe", "--geofence-radius-m", "0", "--tick-hz", str(TICK_HZ), "--state-hz", str(TICK_HZ),
-                           *extra)  # fmt: skip
+        agent = kids.start(
+            "-m",
+            "covey_cli",
+            "agent",
+            "--id",
+            str(AGENT_ID),
+            "--fleet",
+            FLEET,
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+            "--no-gcs-failsafe",
+            "--geofence-radius-m",
+            "0",
+            "--tick-hz",
+            str(TICK_HZ),
+            "--state-hz",
+            str(TICK_HZ),
+            *extra,
+        )
         log.wait(lambda s: True, 60, "its first state")
         time.sleep(1.0)
         landed = measure(agent.pid, log, 3.0 if quick else 10.0)
-        res = mesh.send_command(Command.takeoff(10.0, nonce=new_nonce(), stamp_ns=time.time_ns()), expect=(AGENT_ID,), timeout_s=5)
+        res = mesh.send_command(
+            Command.takeoff(10.0, nonce=new_nonce(), stamp_ns=time.time_ns()),
+            expect=(AGENT_ID,),
+            timeout_s=5,
+        )
         if not res.ok:
             raise RuntimeError(f"takeoff refused: {res.summary()}")
         log.wait(lambda s: s.mode is Mode.HOLDING, 30, "holding at altitude")
-        res = mesh.send_command(Command.goto_local(5000.0, 0.0, -10.0, nonce=new_nonce(), stamp_ns=time.time_ns()), expect=(AGENT_ID,), timeout_s=5)
+        res = mesh.send_command(
+            Command.goto_local(5000.0, 0.0, -10.0, nonce=new_nonce(), stamp_ns=time.time_ns()),
+            expect=(AGENT_ID,),
+            timeout_s=5,
+        )
         if not res.ok:
             raise RuntimeError(f"goto refused: {res.summary()}")
         log.wait(lambda s: s.mode is Mode.GOTO, 10, "flying the goto")
@@ -201,17 +247,31 @@ def agent_flight(quick: bool, decision_period_s: float | None = None, keys_dir: 
 def main(quick: bool = False) -> dict:
     held = agent_flight(quick)
     f = held["flying"]
-    common.say(f"landed: {100 * held['landed']['cpu_share_of_one_core']:.1f} % of a core; flying with {NEIGHBOURS} "
-               f"neighbours: {100 * f['cpu_share_of_one_core']:.1f} % of a core, "
-               f"jitter p50 {f['tick_jitter_ms_p50']:.2f} ms p99 {f['tick_jitter_ms_p99']:.2f} ms")  # fmt: skip
-    every = None if quick else agent_flight(quick, decision_period_s=0.0)  # --quick: a smoke run, no comparison
+    common.say(
+        f"landed: {100 * held['landed']['cpu_share_of_one_core']:.1f} % of a core; flying with {NEIGHBOURS} "
+        f"neighbours: {100 * f['cpu_share_of_one_core']:.1f} % of a core, "
+        f"jitter p50 {f['tick_jitter_ms_p50']:.2f} ms p99 {f['tick_jitter_ms_p99']:.2f} ms"
+    )
+    every = (
+        None if quick else agent_flight(quick, decision_period_s=0.0)
+    )  # --quick: a smoke run, no comparison
     if every is not None:
-        common.say(f"policy every tick (--decision-period-s 0): {100 * every['flying']['cpu_share_of_one_core']:.1f} % of a core")
+        common.say(
+            f"policy every tick (--decision-period-s 0): {100 * every['flying']['cpu_share_of_one_core']:.1f} % of a core"
+        )
     fs = fleet_sim_ticks(quick)
-    common.say(f"fleet-sim tick at {fs['vehicles']} vehicles: landed {fs['landed_tick_ms_p50']:.0f} ms, "
-               f"holding {fs['holding_tick_ms_p50']:.0f} ms, goto {fs['goto_tick_ms_p50']:.0f} ms (budget 100 ms)")  # fmt: skip
-    result = {"quick": quick, "tick_hz": TICK_HZ, "neighbours": NEIGHBOURS, **held,
-              "flying_policy_every_tick": every["flying"] if every else None, "fleet_sim": fs}  # fmt: skip
+    common.say(
+        f"fleet-sim tick at {fs['vehicles']} vehicles: landed {fs['landed_tick_ms_p50']:.0f} ms, "
+        f"holding {fs['holding_tick_ms_p50']:.0f} ms, goto {fs['goto_tick_ms_p50']:.0f} ms (budget 100 ms)"
+    )
+    result = {
+        "quick": quick,
+        "tick_hz": TICK_HZ,
+        "neighbours": NEIGHBOURS,
+        **held,
+        "flying_policy_every_tick": every["flying"] if every else None,
+        "fleet_sim": fs,
+    }
     common.write_json("agent_cpu", result)
     return result
 
@@ -221,7 +281,9 @@ if __name__ == "__main__":
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--role", default="bench", choices=["bench", "neighbours"])
     ap.add_argument("--port", type=int, default=0)
-    ap.add_argument("--keys-dir", default=None, help="neighbours: sign with this bench fleet's keys")
+    ap.add_argument(
+        "--keys-dir", default=None, help="neighbours: sign with this bench fleet's keys"
+    )
     a = ap.parse_args()
     if a.role == "neighbours":
         role_neighbours(a.port, a.keys_dir)

@@ -52,7 +52,9 @@ def machine() -> dict:
     }
 
 
-def time_calls_s(fn: Callable[[], object], repeats: int, batch: int = 1, warmup: int = 2) -> np.ndarray:
+def time_calls_s(
+    fn: Callable[[], object], repeats: int, batch: int = 1, warmup: int = 2
+) -> np.ndarray:
     """Seconds per call of `fn`, one entry per timed batch of `batch` calls."""
     for _ in range(warmup):
         fn()
@@ -119,8 +121,15 @@ class Children:
 
     def start(self, *args: str) -> subprocess.Popen:
         env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
-        p = subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.DEVNULL, text=True, start_new_session=True)  # fmt: skip
+        p = subprocess.Popen(
+            [sys.executable, *args],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            start_new_session=True,
+        )
         self.procs.append(p)
         return p
 
@@ -131,7 +140,9 @@ class Children:
             if line.startswith(prefix):
                 return line[len(prefix) :].strip()
             if not line and p.poll() is not None:
-                raise RuntimeError(f"{p.args[1:4]} exited ({p.returncode}) before printing {prefix!r}")
+                raise RuntimeError(
+                    f"{p.args[1:4]} exited ({p.returncode}) before printing {prefix!r}"
+                )
         raise RuntimeError(f"{p.args[1:4]}: no {prefix!r} line within {timeout_s:g} s")
 
     def stop(self, p: subprocess.Popen, timeout_s: float = 10.0) -> None:

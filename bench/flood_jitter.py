@@ -77,8 +77,14 @@ def bogus_messages(fleet: str, rng: random.Random, mix: str = "all"):
         else:  # phantom vehicles far away
             vid = rng.choice(PHANTOM_IDS)
             ang = rng.uniform(0, 2 * np.pi)
-            s = VehicleState(vid, seq & 0xFFFFFFFF, time.time_ns(), (5000.0 * np.cos(ang), 5000.0 * np.sin(ang), -3.0),
-                             (0.0, 0.0, 0.0), 0.0)  # fmt: skip
+            s = VehicleState(
+                vid,
+                seq & 0xFFFFFFFF,
+                time.time_ns(),
+                (5000.0 * np.cos(ang), 5000.0 * np.sin(ang), -3.0),
+                (0.0, 0.0, 0.0),
+                0.0,
+            )
             yield keys.state(fleet, vid), s.encode()
 
 
@@ -146,10 +152,17 @@ def summarise(samples: Samples) -> dict:
     def pct(a, q):
         return round(float(np.percentile(a, q)), 2) if a.size else None
 
-    return {"states": received, "missing_by_seq": missing,
-            "interval_ms_p50": pct(iv, 50), "interval_ms_p99": pct(iv, 99), "interval_ms_max": pct(iv, 100),
-            "jitter_ms_p50": pct(jit, 50), "jitter_ms_p99": pct(jit, 99),
-            "latency_ms_p50": pct(lat, 50), "latency_ms_p99": pct(lat, 99)}  # fmt: skip
+    return {
+        "states": received,
+        "missing_by_seq": missing,
+        "interval_ms_p50": pct(iv, 50),
+        "interval_ms_p99": pct(iv, 99),
+        "interval_ms_max": pct(iv, 100),
+        "jitter_ms_p50": pct(jit, 50),
+        "jitter_ms_p99": pct(jit, 99),
+        "latency_ms_p50": pct(lat, 50),
+        "latency_ms_p99": pct(lat, 99),
+    }
 
 
 def start_agents(port: int, ids=(1, 2)) -> list[subprocess.Popen]:
@@ -174,16 +187,33 @@ def start_agents(port: int, ids=(1, 2)) -> list[subprocess.Popen]:
             env=env,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
-        )  # fmt: skip
+        )
         for v in ids
     ]
 
 
 def start_flooder(port: int, rate_hz: float, seconds: float, mix: str = "all") -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.Popen([sys.executable, "-m", "bench.flood_jitter", "flood", "--port", str(port),
-                             "--rate", str(rate_hz), "--seconds", str(seconds), "--mix", mix],
-                            cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)  # fmt: skip
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "bench.flood_jitter",
+            "flood",
+            "--port",
+            str(port),
+            "--rate",
+            str(rate_hz),
+            "--seconds",
+            str(seconds),
+            "--mix",
+            mix,
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
 
 
 def fly(mesh, ids=(1, 2)) -> None:
@@ -246,8 +276,11 @@ def run(seconds: float, rate_hz: float, mix: str = "all", out=print) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.flood_jitter", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p = argparse.ArgumentParser(
+        prog="python -m bench.flood_jitter",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("mode", nargs="?", choices=("run", "flood"), default="run")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--rate", type=float, default=10_000.0, help="bogus messages per second")

@@ -50,8 +50,16 @@ def _traffic(n_vehicles: int, rate_hz: float, duration_s: float) -> list[tuple[s
     for k in range(int(duration_s * rate_hz)):
         t_ns = t0 + int(k / rate_hz * 1e9)
         for v in range(1, n_vehicles + 1):
-            s = VehicleState(v, k, t_ns, (v + 0.01 * k, 0.02 * k, -5.0), (1.0, 2.0, 0.0), 0.5,
-                             mode=Mode.GOTO, armed=True)  # fmt: skip
+            s = VehicleState(
+                v,
+                k,
+                t_ns,
+                (v + 0.01 * k, 0.02 * k, -5.0),
+                (1.0, 2.0, 0.0),
+                0.5,
+                mode=Mode.GOTO,
+                armed=True,
+            )
             out.append((keys.state("bench", v), s.encode(), t_ns + 1_000_000))
             if k % int(10 * rate_hz) == 0:
                 out.append((keys.event("bench", v), Event(v, t_ns, "waypoint").encode(), t_ns))
@@ -76,8 +84,17 @@ def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) 
     port, fleet = free_tcp_port(), "fx" + uuid.uuid4().hex[:6]
     latencies_ms: list[float] = []
     with Mesh(embedded_router(port, fleet=fleet)) as router, Children() as kids:
-        bridge = kids.start("-m", "covey_cli", "foxglove", "--port", "0", "--fleet", fleet,
-                            "--connect", f"tcp/127.0.0.1:{port}")  # fmt: skip
+        bridge = kids.start(
+            "-m",
+            "covey_cli",
+            "foxglove",
+            "--port",
+            "0",
+            "--fleet",
+            fleet,
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+        )
         ws_port = int(kids.wait_line(bridge, "foxglove bridge: ").split(":")[-1].split()[0])
         stop = threading.Event()
 
@@ -96,8 +113,11 @@ def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) 
                     next_s += 1 / rate_hz
                     time.sleep(max(0.0, next_s - time.monotonic()))
 
-        with connect(f"ws://127.0.0.1:{ws_port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
-                     max_size=None) as ws:  # fmt: skip
+        with connect(
+            f"ws://127.0.0.1:{ws_port}",
+            subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+            max_size=None,
+        ) as ws:
             pub_thread = threading.Thread(target=publish, daemon=True)
             pub_thread.start()
             subs, n_ids = {}, 0
@@ -129,12 +149,15 @@ def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) 
         del router
     expected = n_vehicles * rate_hz * duration_s
     return {
-        "vehicles": n_vehicles, "rate_hz": rate_hz, "seconds": duration_s,
+        "vehicles": n_vehicles,
+        "rate_hz": rate_hz,
+        "seconds": duration_s,
         "bridge_cpu_share_of_one_core": cpu_share,
         "poses_received_share": len(latencies_ms) / expected,
-        "latency_ms_p50": pct(latencies_ms, 50), "latency_ms_p95": pct(latencies_ms, 95),
+        "latency_ms_p50": pct(latencies_ms, 50),
+        "latency_ms_p95": pct(latencies_ms, 95),
         "latency_ms_max": max(latencies_ms, default=float("nan")),
-    }  # fmt: skip
+    }
 
 
 def read_standard(path: str | Path) -> dict[str, list[tuple[int, object]]]:
@@ -182,8 +205,14 @@ def figure(path: str | Path, out_png: Path) -> Path:
         cube, ring = ent.cubes[0], ent.cylinders[0]
         c = (cube.color.r, cube.color.g, cube.color.b)
         ax3d.plot(cube.pose.position.y, cube.pose.position.x, "s", color=c, ms=8)
-        ax3d.add_patch(plt.Circle((ring.pose.position.y, ring.pose.position.x), ring.size.x / 2,
-                                  fill=False, color=(ring.color.r, ring.color.g, ring.color.b)))  # fmt: skip
+        ax3d.add_patch(
+            plt.Circle(
+                (ring.pose.position.y, ring.pose.position.x),
+                ring.size.x / 2,
+                fill=False,
+                color=(ring.color.r, ring.color.g, ring.color.b),
+            )
+        )
     ax3d.set(
         title="3D (/scene, /vehicles/*/pose), from above",
         xlabel="east m",
@@ -197,8 +226,10 @@ def figure(path: str | Path, out_png: Path) -> Path:
     lines = [
         f"{(ts - t0) / 1e9:6.1f}s  {m.name:10s} {m.message}" for ts, m in std.get("/events", [])
     ]
-    lines += [f"{(ts - t0) / 1e9:6.1f}s  ack vehicle/{a['vehicle_id']} {a['command_kind']} {a['result']}"
-              for ts, a in std.get("/acks", [])]  # fmt: skip
+    lines += [
+        f"{(ts - t0) / 1e9:6.1f}s  ack vehicle/{a['vehicle_id']} {a['command_kind']} {a['result']}"
+        for ts, a in std.get("/acks", [])
+    ]
     lines.sort()
     axlog.axis("off")
     axlog.set_title("Log (/events) and /acks")
@@ -246,8 +277,12 @@ def cli(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--live-s", type=float, default=10.0)
     ap.add_argument("--quick", action="store_true", help="one run, a 4 s live window")
-    ap.add_argument("--figure", metavar="MCAP", default=None,
-                    help="instead: draw this recording's standard channels to docs/foxglove_view.png")  # fmt: skip
+    ap.add_argument(
+        "--figure",
+        metavar="MCAP",
+        default=None,
+        help="instead: draw this recording's standard channels to docs/foxglove_view.png",
+    )
     a = ap.parse_args(argv)
     if a.figure:
         print(f"wrote {figure(a.figure, DOCS / 'foxglove_view.png')}")
@@ -260,9 +295,11 @@ def cli(argv: list[str] | None = None) -> int:
     print(
         f"MB per vehicle-hour            foxglove off {size['off'] / 1e6:10.2f}   on {size['on'] / 1e6:10.2f}"
     )
-    print(f"live bridge, {live['vehicles']} vehicles at {live['rate_hz']:g} Hz: CPU {100 * live['bridge_cpu_share_of_one_core']:.0f} % "
-          f"of one core, latency p50 {live['latency_ms_p50']:.1f} ms p95 {live['latency_ms_p95']:.1f} ms, "
-          f"{100 * live['poses_received_share']:.0f} % of poses received")  # fmt: skip
+    print(
+        f"live bridge, {live['vehicles']} vehicles at {live['rate_hz']:g} Hz: CPU {100 * live['bridge_cpu_share_of_one_core']:.0f} % "
+        f"of one core, latency p50 {live['latency_ms_p50']:.1f} ms p95 {live['latency_ms_p95']:.1f} ms, "
+        f"{100 * live['poses_received_share']:.0f} % of poses received"
+    )
     return 0
 
 

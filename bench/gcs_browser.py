@@ -25,8 +25,16 @@ from bench import common
 from comms.session import embedded_router, free_tcp_port
 
 FLEET = "benchgcs"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]  # fmt: skip
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 LAG_PROBE_JS = """(ms) => new Promise(resolve => {
   const lags = []; let frames = 0; let last = performance.now();
@@ -82,14 +90,37 @@ def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (
     window_s = 3.0 if quick else 15.0
     settle_s = 0.5 if quick else 1.0  # scale of the waits for the page and the fleet
     port = free_tcp_port()
-    cfg = GcsConfig(mesh=embedded_router(port, fleet=FLEET), port=0, geofence_radius_m=400.0,
-                    view_radius_m=60.0, key_file=None)  # fmt: skip
-    result: dict = {"vehicles": vehicles, "quick": quick, "chromium": "headless, software WebGL",
-                    "viewport": f"{viewport[0]}x{viewport[1]}"}
+    cfg = GcsConfig(
+        mesh=embedded_router(port, fleet=FLEET),
+        port=0,
+        geofence_radius_m=400.0,
+        view_radius_m=60.0,
+        key_file=None,
+    )
+    result: dict = {
+        "vehicles": vehicles,
+        "quick": quick,
+        "chromium": "headless, software WebGL",
+        "viewport": f"{viewport[0]}x{viewport[1]}",
+    }
     with GroundStation(cfg) as gs, common.Children() as kids:
-        sim = kids.start("-m", "covey_cli", "fleet-sim", "--vehicles", str(vehicles), "--fleet", FLEET,
-                         "--connect", f"tcp/127.0.0.1:{port}", "--spacing-m", "8", "--cruise-speed-m-s", "2",
-                         "--geofence-radius-m", "0")  # fmt: skip
+        sim = kids.start(
+            "-m",
+            "covey_cli",
+            "fleet-sim",
+            "--vehicles",
+            str(vehicles),
+            "--fleet",
+            FLEET,
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+            "--spacing-m",
+            "8",
+            "--cruise-speed-m-s",
+            "2",
+            "--geofence-radius-m",
+            "0",
+        )
         kids.wait_line(sim, "READY", timeout_s=120)
         ids = set(range(1, vehicles + 1))
         if not gs.presence.wait_for(lambda v, _g: v >= ids, timeout_s=60):
@@ -103,26 +134,37 @@ def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (
             page.locator("canvas").first.wait_for()
             time.sleep(3.0 * settle_s)  # shader compiles and the first scene
             result["landed"] = measure_page(page, window_s)
-            common.say(f"landed: {result['landed']['frames_per_s']} frames/s, "
-                       f"timer lag p99 {result['landed']['timer_lag_ms_p99']:.0f} ms")  # fmt: skip
-            up = gs.mesh.send_command(Command.takeoff(8.0, nonce=new_nonce(), stamp_ns=0), expect=ids, timeout_s=10)
+            common.say(
+                f"landed: {result['landed']['frames_per_s']} frames/s, "
+                f"timer lag p99 {result['landed']['timer_lag_ms_p99']:.0f} ms"
+            )
+            up = gs.mesh.send_command(
+                Command.takeoff(8.0, nonce=new_nonce(), stamp_ns=0), expect=ids, timeout_s=10
+            )
             if not up.ok:
                 raise RuntimeError(f"takeoff: {up.summary()}")
             time.sleep(6.0 * settle_s)
-            go = gs.mesh.send_command(Command.goto_local(150.0, 40.0, -8.0, nonce=new_nonce(), stamp_ns=0),
-                                      expect=ids, timeout_s=10)  # fmt: skip
+            go = gs.mesh.send_command(
+                Command.goto_local(150.0, 40.0, -8.0, nonce=new_nonce(), stamp_ns=0),
+                expect=ids,
+                timeout_s=10,
+            )
             if not go.ok:
                 raise RuntimeError(f"goto: {go.summary()}")
             time.sleep(2.0 * settle_s)
             result["flying"] = measure_page(page, window_s)
             f = result["flying"]
-            common.say(f"{vehicles} flying: {f['frames_per_s']} frames/s, timer lag p50 {f['timer_lag_ms_p50']:.0f} ms "
-                       f"p99 {f['timer_lag_ms_p99']:.0f} ms max {f['timer_lag_ms_max']:.0f} ms")  # fmt: skip
+            common.say(
+                f"{vehicles} flying: {f['frames_per_s']} frames/s, timer lag p50 {f['timer_lag_ms_p50']:.0f} ms "
+                f"p99 {f['timer_lag_ms_p99']:.0f} ms max {f['timer_lag_ms_max']:.0f} ms"
+            )
             rt = input_round_trip_ms(page, 3 if quick else 20)
             result["input_round_trip_ms_p50"] = common.pct(rt, 50)
             result["input_round_trip_ms_max"] = round(float(max(rt)), 1)
-            common.say(f"typing into a field: p50 {result['input_round_trip_ms_p50']:.0f} ms, "
-                       f"max {result['input_round_trip_ms_max']:.0f} ms")  # fmt: skip
+            common.say(
+                f"typing into a field: p50 {result['input_round_trip_ms_p50']:.0f} ms, "
+                f"max {result['input_round_trip_ms_max']:.0f} ms"
+            )
             browser.close()
         upd = np.array(gs.update_times_s[-200:]) * 1e3
         result["server_update_ms_p50"] = common.pct(upd, 50)

@@ -53,8 +53,21 @@ def fleet_states(n: int, t_s: float, seq: int) -> list[VehicleState]:
         a = t_s / r + 2 * math.pi * i / n
         pos = (r * math.cos(a), r * math.sin(a), -5.0 - (i // 20) * 0.5)
         vel = (-math.sin(a), math.cos(a), 0.0)
-        out.append(VehicleState(i + 1, seq, int(t_s * NS_PER_S), pos, vel, (a + math.pi / 2) % math.pi,
-                                Mode.GOTO, True, 90.0, StateFlag.HAS_GOAL, (0.0, 0.0, -5.0)))  # fmt: skip
+        out.append(
+            VehicleState(
+                i + 1,
+                seq,
+                int(t_s * NS_PER_S),
+                pos,
+                vel,
+                (a + math.pi / 2) % math.pi,
+                Mode.GOTO,
+                True,
+                90.0,
+                StateFlag.HAS_GOAL,
+                (0.0, 0.0, -5.0),
+            )
+        )
     return out
 
 
@@ -115,8 +128,11 @@ def main(cfg: BenchConfig) -> dict:
     }
     for n in cfg.vehicles:
         r = measure(n, cfg)
-        print(f"{n:4d} vehicles: median {r['median_ms']:7.2f} ms  p99 {r['p99_ms']:7.2f} ms  "
-              f"-> up to {r['max_rate_hz']:6.1f} updates/s  (snapshot {r['snapshot_median_ms']:.2f} ms)", flush=True)  # fmt: skip
+        print(
+            f"{n:4d} vehicles: median {r['median_ms']:7.2f} ms  p99 {r['p99_ms']:7.2f} ms  "
+            f"-> up to {r['max_rate_hz']:6.1f} updates/s  (snapshot {r['snapshot_median_ms']:.2f} ms)",
+            flush=True,
+        )
         results["results"].append(r)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(results, indent=2) + "\n")

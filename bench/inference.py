@@ -36,7 +36,11 @@ def peak_flops(quick: bool) -> dict:
     a, b = rng.standard_normal((n, n), np.float32), rng.standard_normal((n, n), np.float32)
     t = common.time_calls_s(lambda: a @ b, 20 if quick else 60, batch=5, warmup=3)
     rate = 2 * n**3 / t
-    return {"best_flop_s": float(rate.max()), "median_flop_s": float(np.median(rate)), "matmul_n": n}
+    return {
+        "best_flop_s": float(rate.max()),
+        "median_flop_s": float(np.median(rate)),
+        "matmul_n": n,
+    }
 
 
 def scatter(rng, k: int, radius_m: float = 18.0):
@@ -55,22 +59,39 @@ def single(quick: bool, peak: float) -> list[dict]:
     for n in N_VEHICLES:
         nbr, hdg = scatter(rng, n - 1)
         goal = np.array([40.0, 25.0])
-        t = common.time_calls_s(lambda nbr=nbr, hdg=hdg, goal=goal: pol.action(np.zeros(2), 0.3, goal, nbr, hdg), 15 if quick else 100, batch=5)
+        t = common.time_calls_s(
+            lambda nbr=nbr, hdg=hdg, goal=goal: pol.action(np.zeros(2), 0.3, goal, nbr, hdg),
+            15 if quick else 100,
+            batch=5,
+        )
         f_paper = paper_flops(n)
-        f_shipped = paper_flops(n, h=cfg["hidden"], x=cfg["input"], layers=tuple(cfg["head"][:-1]), a=cfg["head"][-1])
+        f_shipped = paper_flops(
+            n, h=cfg["hidden"], x=cfg["input"], layers=tuple(cfg["head"][:-1]), a=cfg["head"][-1]
+        )
         row = {
-            "vehicles": n, "neighbours": n - 1, "numpy_median_us": float(np.median(t) * 1e6),
-            "numpy_min_us": float(t.min() * 1e6), "paper_flops": f_paper, "shipped_flops": f_shipped,
+            "vehicles": n,
+            "neighbours": n - 1,
+            "numpy_median_us": float(np.median(t) * 1e6),
+            "numpy_min_us": float(t.min() * 1e6),
+            "paper_flops": f_paper,
+            "shipped_flops": f_shipped,
             "numpy_share_of_peak": f_shipped / float(np.median(t)) / peak,
             "paper_flops_at_peak_us": f_paper / peak * 1e6,
-        }  # fmt: skip
+        }
         if cpol is not None and n - 1 <= 64:
-            tc = common.time_calls_s(lambda nbr=nbr, hdg=hdg, goal=goal: cpol.action(np.zeros(2), 0.3, goal, nbr, hdg), 15 if quick else 100, batch=10)
+            tc = common.time_calls_s(
+                lambda nbr=nbr, hdg=hdg, goal=goal: cpol.action(np.zeros(2), 0.3, goal, nbr, hdg),
+                15 if quick else 100,
+                batch=10,
+            )
             row["c_median_us"] = float(np.median(tc) * 1e6)
             row["c_min_us"] = float(tc.min() * 1e6)
             row["c_share_of_peak"] = f_shipped / float(np.median(tc)) / peak
         rows.append(row)
-        common.say(f"N={n:3d}: numpy {row['numpy_median_us']:8.1f} us" + (f", C {row['c_median_us']:7.1f} us" if "c_median_us" in row else ""))
+        common.say(
+            f"N={n:3d}: numpy {row['numpy_median_us']:8.1f} us"
+            + (f", C {row['c_median_us']:7.1f} us" if "c_median_us" in row else "")
+        )
     return rows
 
 
@@ -93,15 +114,23 @@ def batched(quick: bool, peak: float) -> dict:
     pos, goal = rng.uniform(0, side_m, (n, 2)), rng.uniform(0, side_m, (n, 2))
     vel, hdg = rng.normal(0, 0.7, (n, 2)), rng.uniform(-np.pi, np.pi, n)
     reps = 5 if quick else 25
-    out = {"vehicles": n, "nearest": BATCH_NEIGHBOURS, "paper_flops": n * paper_flops(BATCH_NEIGHBOURS + 1)}
+    out = {
+        "vehicles": n,
+        "nearest": BATCH_NEIGHBOURS,
+        "paper_flops": n * paper_flops(BATCH_NEIGHBOURS + 1),
+    }
     for filt in (False, True):
         pol = GuidancePolicy.load(safety_filter=filt, max_neighbours=BATCH_NEIGHBOURS)
         t = common.time_calls_s(lambda pol=pol: pol.command_batch(pos, vel, hdg, goal), reps)
         out[f"numpy_command_batch_ms{'_filter' if filt else ''}"] = float(np.median(t) * 1e3)
-    seq, lengths, goal_feat, _ = features.observe_batch(pos, hdg, goal, np.ones(n, bool), pol.obs_cfg, BATCH_NEIGHBOURS)
+    seq, lengths, goal_feat, _ = features.observe_batch(
+        pos, hdg, goal, np.ones(n, bool), pol.obs_cfg, BATCH_NEIGHBOURS
+    )
     out["mean_neighbours"] = float(lengths.mean())
     net = pol.net
-    t = common.time_calls_s(lambda: net.head_forward(net.lstm_last_batch(seq, lengths), goal_feat), reps)
+    t = common.time_calls_s(
+        lambda: net.head_forward(net.lstm_last_batch(seq, lengths), goal_feat), reps
+    )
     out["numpy_network_ms"] = float(np.median(t) * 1e3)
     cfg = pol.config
     f_net = float(sum(paper_flops(int(k) + 1, h=cfg["hidden"], x=cfg["input"]) for k in lengths))
@@ -109,7 +138,9 @@ def batched(quick: bool, peak: float) -> dict:
     out["numpy_network_share_of_peak"] = f_net / (out["numpy_network_ms"] / 1e3) / peak
     out["per_vehicle_us"] = out["numpy_command_batch_ms"] * 1e3 / n
     out.update(_torch(seq, lengths, goal_feat, reps, f_net, peak))
-    common.say(f"batch {n}: numpy {out['numpy_command_batch_ms']:.1f} ms, network {out['numpy_network_ms']:.1f} ms, torch {out.get('torch_network_ms', float('nan')):.1f} ms")
+    common.say(
+        f"batch {n}: numpy {out['numpy_command_batch_ms']:.1f} ms, network {out['numpy_network_ms']:.1f} ms, torch {out.get('torch_network_ms', float('nan')):.1f} ms"
+    )
     return out
 
 
@@ -140,7 +171,11 @@ def _torch(seq, lengths, goal_feat, reps: int, f_net: float, peak: float) -> dic
     with torch.inference_mode():
         t = common.time_calls_s(lambda: model.actor_mean(s, ln, g), reps)
     ms = float(np.median(t) * 1e3)
-    return {"torch": torch.__version__, "torch_network_ms": ms, "torch_network_share_of_peak": f_net / (ms / 1e3) / peak}
+    return {
+        "torch": torch.__version__,
+        "torch_network_ms": ms,
+        "torch_network_share_of_peak": f_net / (ms / 1e3) / peak,
+    }
 
 
 def plot(rows: list[dict], peak: float, batch: dict) -> None:
@@ -150,12 +185,34 @@ def plot(rows: list[dict], peak: float, batch: dict) -> None:
     ax.plot(n, [r["numpy_median_us"] for r in rows], "o-", label="numpy, one vehicle")
     c = [r for r in rows if "c_median_us" in r]
     if c:
-        ax.plot([r["vehicles"] for r in c], [r["c_median_us"] for r in c], "s-", label="C (host, ctypes)")
+        ax.plot(
+            [r["vehicles"] for r in c],
+            [r["c_median_us"] for r in c],
+            "s-",
+            label="C (host, ctypes)",
+        )
     k = batch["nearest"] + 1
-    ax.plot([k], [batch["per_vehicle_us"]], "^", color="C2", label=f"numpy batched, per vehicle ({batch['vehicles']}, nearest {k - 1})")
+    ax.plot(
+        [k],
+        [batch["per_vehicle_us"]],
+        "^",
+        color="C2",
+        label=f"numpy batched, per vehicle ({batch['vehicles']}, nearest {k - 1})",
+    )
     if "torch_network_ms" in batch:
-        ax.plot([k], [1e3 * batch["torch_network_ms"] / batch["vehicles"]], "v", color="C3", label="torch batched network, per vehicle")
-    ax.plot(n, [r["paper_flops_at_peak_us"] for r in rows], "k--", label=f"paper FLOPs at peak ({peak / 1e9:.0f} GFLOP/s)")
+        ax.plot(
+            [k],
+            [1e3 * batch["torch_network_ms"] / batch["vehicles"]],
+            "v",
+            color="C3",
+            label="torch batched network, per vehicle",
+        )
+    ax.plot(
+        n,
+        [r["paper_flops_at_peak_us"] for r in rows],
+        "k--",
+        label=f"paper FLOPs at peak ({peak / 1e9:.0f} GFLOP/s)",
+    )
     ax.set_xlabel("vehicles N (N-1 neighbours)")
     ax.set_ylabel("time per evaluation (us, median)")
     ax.set_yscale("log")
@@ -168,7 +225,9 @@ def plot(rows: list[dict], peak: float, batch: dict) -> None:
 
 def main(quick: bool = False) -> dict:
     pk = peak_flops(quick)
-    common.say(f"peak float32 single core: {pk['best_flop_s'] / 1e9:.1f} GFLOP/s (median {pk['median_flop_s'] / 1e9:.1f})")
+    common.say(
+        f"peak float32 single core: {pk['best_flop_s'] / 1e9:.1f} GFLOP/s (median {pk['median_flop_s'] / 1e9:.1f})"
+    )
     peak = pk["best_flop_s"]
     rows = single(quick, peak)
     result = {"quick": quick, "peak": pk, "single": rows, "batch": batched(quick, peak)}

@@ -57,8 +57,18 @@ def role_pub(kind: str, port: int, first: int, count: int) -> None:
         if kind != "covey":  # raw: covey's publisher options; raw-batched: Zenoh may batch
             sess = mesh.session  # the same session config; bare Zenoh from here on
             express = kind == "raw"
-            pubs = [sess.declare_publisher(keys.state(FLEET, v), congestion_control=zenoh.CongestionControl.DROP, express=express) for v in ids]
-            tmpl = [bytearray(VehicleState(v, 0, 0, (1.0, 2.0, -3.0), (0.1, 0.2, 0.0), 0.5).encode()) for v in ids]
+            pubs = [
+                sess.declare_publisher(
+                    keys.state(FLEET, v),
+                    congestion_control=zenoh.CongestionControl.DROP,
+                    express=express,
+                )
+                for v in ids
+            ]
+            tmpl = [
+                bytearray(VehicleState(v, 0, 0, (1.0, 2.0, -3.0), (0.1, 0.2, 0.0), 0.5).encode())
+                for v in ids
+            ]
         print("READY", flush=True)
         period_s, next_s, seq = 1.0 / RATE_HZ, time.monotonic(), 0
         while not stop.is_set():
@@ -69,7 +79,18 @@ def role_pub(kind: str, port: int, first: int, count: int) -> None:
                     buf[4:16] = seq.to_bytes(4, "little") + time.time_ns().to_bytes(8, "little")
                     pubs[k].put(bytes(buf))
                 else:
-                    mesh.publish_state(VehicleState(v, seq, time.time_ns(), (1.0, 2.0, -3.0), (0.1, 0.2, 0.0), 0.5, mode=Mode.HOLDING, armed=True))
+                    mesh.publish_state(
+                        VehicleState(
+                            v,
+                            seq,
+                            time.time_ns(),
+                            (1.0, 2.0, -3.0),
+                            (0.1, 0.2, 0.0),
+                            0.5,
+                            mode=Mode.HOLDING,
+                            armed=True,
+                        )
+                    )
             next_s += period_s
             stop.wait(max(0.0, next_s - time.monotonic()))
 
@@ -83,9 +104,16 @@ def role_resp(kind: str, port: int, first: int, count: int) -> None:
         for v in _ids(first, count):
             if kind == "raw":
                 ack = bytes(ACK_BYTES)
-                mesh.session.declare_queryable(keys.cmd(FLEET, v), lambda q, k=keys.cmd(FLEET, v), a=ack: q.reply(k, a))
+                mesh.session.declare_queryable(
+                    keys.cmd(FLEET, v), lambda q, k=keys.cmd(FLEET, v), a=ack: q.reply(k, a)
+                )
             else:
-                mesh.serve_commands(v, lambda c, v=v: CommandAck(v, c.nonce, mesh.clock_ns(), AckResult.ACCEPTED, "", Mode.LANDED))
+                mesh.serve_commands(
+                    v,
+                    lambda c, v=v: CommandAck(
+                        v, c.nonce, mesh.clock_ns(), AckResult.ACCEPTED, "", Mode.LANDED
+                    ),
+                )
                 mesh.declare_vehicle(v)
         print("READY", flush=True)
         threading.Event().wait()
@@ -110,7 +138,14 @@ def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
 
     with Mesh(embedded_router(port, fleet=FLEET)) as mesh:
         if kind != "covey":
-            mesh.session.declare_subscriber(keys.all_states(FLEET), lambda s: (lambda b: record(int.from_bytes(b[2:4], "little"), int.from_bytes(b[8:16], "little")))(s.payload.to_bytes()))
+            mesh.session.declare_subscriber(
+                keys.all_states(FLEET),
+                lambda s: (
+                    lambda b: record(
+                        int.from_bytes(b[2:4], "little"), int.from_bytes(b[8:16], "little")
+                    )
+                )(s.payload.to_bytes()),
+            )
         else:
             mesh.subscribe_states(lambda s, _t: record(s.vehicle_id, s.stamp_ns))
         print("READY", flush=True)
@@ -124,12 +159,15 @@ def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
             got = np.array([r for r in rows if t0 <= r[0] < t1], dtype=np.int64).reshape(-1, 2)
     lat_ms = (got[:, 0] - got[:, 1]) / 1e6
     return {
-        "vehicles": n, "window_s": window_s, "received": int(len(got)),
+        "vehicles": n,
+        "window_s": window_s,
+        "received": int(len(got)),
         "delivered_share": len(got) / (n * RATE_HZ * window_s),
-        "latency_ms_p50": common.pct(lat_ms, 50), "latency_ms_p99": common.pct(lat_ms, 99),
+        "latency_ms_p50": common.pct(lat_ms, 50),
+        "latency_ms_p99": common.pct(lat_ms, 99),
         "latency_ms_max": float(lat_ms.max()) if len(lat_ms) else float("nan"),
         "hub_cpu_us_per_state": (cpu1 - cpu0) * 1e6 / max(len(got), 1),
-    }  # fmt: skip
+    }
 
 
 def role_hub_cmds(kind: str, port: int, n: int, repeats: int) -> dict:
@@ -146,8 +184,13 @@ def role_hub_cmds(kind: str, port: int, n: int, repeats: int) -> dict:
         def raw_once(timeout_s: float = 5.0) -> tuple[int, float]:
             t0 = time.perf_counter()
             got = 0
-            for reply in mesh.session.get(keys.all_cmds(FLEET), payload=bytes(CMD_BYTES), timeout=timeout_s,
-                                          target=_zenoh().QueryTarget.ALL, consolidation=_zenoh().ConsolidationMode.NONE):  # fmt: skip
+            for reply in mesh.session.get(
+                keys.all_cmds(FLEET),
+                payload=bytes(CMD_BYTES),
+                timeout=timeout_s,
+                target=_zenoh().QueryTarget.ALL,
+                consolidation=_zenoh().ConsolidationMode.NONE,
+            ):
                 got += reply.ok is not None
                 if got >= n:
                     break
@@ -165,13 +208,25 @@ def role_hub_cmds(kind: str, port: int, n: int, repeats: int) -> dict:
                 got, dt_s = raw_once()
             else:
                 t0 = time.perf_counter()
-                res = mesh.send_command(Command(CommandKind.LAND, new_nonce(), time.time_ns()), expect=ids, timeout_s=5.0)
-                dt_s, got = time.perf_counter() - t0, sum(o.ack is not None for o in res.outcomes.values())
+                res = mesh.send_command(
+                    Command(CommandKind.LAND, new_nonce(), time.time_ns()),
+                    expect=ids,
+                    timeout_s=5.0,
+                )
+                dt_s, got = (
+                    time.perf_counter() - t0,
+                    sum(o.ack is not None for o in res.outcomes.values()),
+                )
             errors += got < n
             all_ms.append(dt_s * 1e3)
             time.sleep(0.05)
-    return {"vehicles": n, "repeats": repeats, "incomplete": errors,
-            "all_acks_ms_p50": common.pct(all_ms, 50), "all_acks_ms_p99": common.pct(all_ms, 99)}  # fmt: skip
+    return {
+        "vehicles": n,
+        "repeats": repeats,
+        "incomplete": errors,
+        "all_acks_ms_p50": common.pct(all_ms, 50),
+        "all_acks_ms_p99": common.pct(all_ms, 99),
+    }
 
 
 def _zenoh():
@@ -189,18 +244,59 @@ def _children_for(kids: common.Children, what: str, kind: str, port: int, n: int
         if count <= 0:
             continue
         if kind == "fleet-sim":
-            p = kids.start("-m", "covey_cli", "fleet-sim", "--vehicles", str(count), "--first-id", str(first), "--fleet", FLEET,
-                           "--connect", f"tcp/127.0.0.1:{port}", "--no-see-others", "--rate-hz", str(RATE_HZ))  # fmt: skip
+            p = kids.start(
+                "-m",
+                "covey_cli",
+                "fleet-sim",
+                "--vehicles",
+                str(count),
+                "--first-id",
+                str(first),
+                "--fleet",
+                FLEET,
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+                "--no-see-others",
+                "--rate-hz",
+                str(RATE_HZ),
+            )
         else:
-            p = kids.start("-m", "bench.mesh", "--role", what, "--kind", kind, "--port", str(port), "--first", str(first), "--count", str(count))
+            p = kids.start(
+                "-m",
+                "bench.mesh",
+                "--role",
+                what,
+                "--kind",
+                kind,
+                "--port",
+                str(port),
+                "--first",
+                str(first),
+                "--count",
+                str(count),
+            )
         kids.wait_line(p, "READY", timeout_s=90)
 
 
 def run_one(what: str, kind: str, n: int, window_s: float, repeats: int) -> dict:
     port = free_tcp_port()
     with common.Children() as kids:
-        hub = kids.start("-m", "bench.mesh", "--role", f"hub-{what}", "--kind", kind, "--port", str(port),
-                         "--count", str(n), "--window-s", str(window_s), "--repeats", str(repeats))  # fmt: skip
+        hub = kids.start(
+            "-m",
+            "bench.mesh",
+            "--role",
+            f"hub-{what}",
+            "--kind",
+            kind,
+            "--port",
+            str(port),
+            "--count",
+            str(n),
+            "--window-s",
+            str(window_s),
+            "--repeats",
+            str(repeats),
+        )
         kids.wait_line(hub, "READY", timeout_s=60)
         _children_for(kids, "pub" if what == "states" else "resp", kind, port, n)
         res = json.loads(kids.wait_line(hub, "RESULT", timeout_s=180))
@@ -212,16 +308,36 @@ def plot(states: list[dict], cmds: list[dict]) -> None:
     plt = common.pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(8, 3.4))
     for kind, color in (("covey", "C0"), ("raw", "C2"), ("raw-batched", "C7"), ("fleet-sim", "C1")):
-        rs = sorted((r for r in states if r["kind"] == kind and "latency_ms_p50" in r), key=lambda r: r["vehicles"])
+        rs = sorted(
+            (r for r in states if r["kind"] == kind and "latency_ms_p50" in r),
+            key=lambda r: r["vehicles"],
+        )
         if rs:
             n = [r["vehicles"] for r in rs]
             a1.plot(n, [r["latency_ms_p50"] for r in rs], "o-", color=color, label=f"{kind} p50")
             a1.plot(n, [r["latency_ms_p99"] for r in rs], "o--", color=color, label=f"{kind} p99")
-        cs = sorted((r for r in cmds if r["kind"] == kind and "all_acks_ms_p50" in r), key=lambda r: r["vehicles"])
+        cs = sorted(
+            (r for r in cmds if r["kind"] == kind and "all_acks_ms_p50" in r),
+            key=lambda r: r["vehicles"],
+        )
         if cs:
-            a2.plot([r["vehicles"] for r in cs], [r["all_acks_ms_p50"] for r in cs], "o-", color=color, label=f"{kind} p50")
-    a1.set(xscale="log", yscale="log", xlabel="vehicles at 10 Hz", ylabel="state latency (ms)", title="state stamp -> receive")
-    a2.set(xscale="log", yscale="log", xlabel="vehicles", ylabel="ms", title="broadcast -> all acks")
+            a2.plot(
+                [r["vehicles"] for r in cs],
+                [r["all_acks_ms_p50"] for r in cs],
+                "o-",
+                color=color,
+                label=f"{kind} p50",
+            )
+    a1.set(
+        xscale="log",
+        yscale="log",
+        xlabel="vehicles at 10 Hz",
+        ylabel="state latency (ms)",
+        title="state stamp -> receive",
+    )
+    a2.set(
+        xscale="log", yscale="log", xlabel="vehicles", ylabel="ms", title="broadcast -> all acks"
+    )
     for a in (a1, a2):
         a.grid(alpha=0.3)
         a.legend(fontsize=7)
@@ -232,21 +348,35 @@ def plot(states: list[dict], cmds: list[dict]) -> None:
 
 def main(quick: bool = False) -> dict:
     window_s, repeats = (3.0, 5) if quick else (8.0, 20)
-    state_plan = [(k, n) for n in ((10, 100) if quick else (10, 100, 500)) for k in ("covey", "raw")]
-    state_plan += [] if quick else [("raw-batched", n) for n in (10, 100, 500)] + [("fleet-sim", 500)]
+    state_plan = [
+        (k, n) for n in ((10, 100) if quick else (10, 100, 500)) for k in ("covey", "raw")
+    ]
+    state_plan += (
+        [] if quick else [("raw-batched", n) for n in (10, 100, 500)] + [("fleet-sim", 500)]
+    )
     cmd_plan = [(k, n) for n in ((10,) if quick else (10, 50)) for k in ("covey", "raw")]
     cmd_plan += [] if quick else [("covey", 500), ("raw", 500), ("fleet-sim", 500)]
     states, cmds = [], []
     for kind, n in state_plan:
         states.append(run_one("states", kind, n, window_s, repeats))
         r = states[-1]
-        common.say(f"states {kind:9s} n={n:3d}: p50 {r.get('latency_ms_p50', float('nan')):6.2f} ms, p99 {r.get('latency_ms_p99', float('nan')):6.2f} ms, delivered {r.get('delivered_share', 0):.3f}")
+        common.say(
+            f"states {kind:9s} n={n:3d}: p50 {r.get('latency_ms_p50', float('nan')):6.2f} ms, p99 {r.get('latency_ms_p99', float('nan')):6.2f} ms, delivered {r.get('delivered_share', 0):.3f}"
+        )
     for kind, n in cmd_plan:
         cmds.append(run_one("cmds", kind, n, window_s, repeats))
         r = cmds[-1]
-        common.say(f"command {kind:9s} n={n:3d}: all acks p50 {r.get('all_acks_ms_p50', float('nan')):6.2f} ms, p99 {r.get('all_acks_ms_p99', float('nan')):6.2f} ms")
-    result = {"quick": quick, "rate_hz": RATE_HZ, "state_bytes": STATE_BYTES, "states": states, "commands": cmds,
-              "ratios": ratios(states, cmds)}  # fmt: skip
+        common.say(
+            f"command {kind:9s} n={n:3d}: all acks p50 {r.get('all_acks_ms_p50', float('nan')):6.2f} ms, p99 {r.get('all_acks_ms_p99', float('nan')):6.2f} ms"
+        )
+    result = {
+        "quick": quick,
+        "rate_hz": RATE_HZ,
+        "state_bytes": STATE_BYTES,
+        "states": states,
+        "commands": cmds,
+        "ratios": ratios(states, cmds),
+    }
     plot(states, cmds)
     common.write_json("mesh", result)
     return result
@@ -255,7 +385,11 @@ def main(quick: bool = False) -> dict:
 def ratios(states: list[dict], cmds: list[dict]) -> dict:
     """covey / raw for each fleet size: what covey's own layer costs."""
     out = {}
-    for rows, key, tag in ((states, "latency_ms_p50", "state_p50"), (states, "latency_ms_p99", "state_p99"), (cmds, "all_acks_ms_p50", "command_p50")):
+    for rows, key, tag in (
+        (states, "latency_ms_p50", "state_p50"),
+        (states, "latency_ms_p99", "state_p99"),
+        (cmds, "all_acks_ms_p50", "command_p50"),
+    ):
         by = {(r["kind"], r["vehicles"]): r.get(key) for r in rows}
         for (kind, n), v in by.items():
             raw = by.get(("raw", n))
@@ -267,7 +401,9 @@ def ratios(states: list[dict], cmds: list[dict]) -> dict:
 def cli(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--role", default="bench", choices=["bench", "pub", "resp", "hub-states", "hub-cmds"])
+    ap.add_argument(
+        "--role", default="bench", choices=["bench", "pub", "resp", "hub-states", "hub-cmds"]
+    )
     ap.add_argument("--kind", default="covey", choices=["covey", "raw", "raw-batched", "fleet-sim"])
     ap.add_argument("--port", type=int, default=0)
     ap.add_argument("--first", type=int, default=1)

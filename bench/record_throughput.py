@@ -50,7 +50,9 @@ def bench_sink(path: Path, n: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
-def bench_record(path: Path, n: int, port: int, fleet: str, foxglove: bool = True) -> tuple[float, float, float]:
+def bench_record(
+    path: Path, n: int, port: int, fleet: str, foxglove: bool = True
+) -> tuple[float, float, float]:
     """(receive rate, share received, end-to-end rate: first receive -> file closed, i.e.
     with the writer thread's conversion and compression drained)."""
     stamps: list[int] = []
@@ -121,7 +123,9 @@ def main(messages: int = 20_000, runs: int = 3) -> dict:
             for fox in (False, True):  # the same run, with and without Foxglove's channels
                 tag = "_foxglove" if fox else "_covey_only"
                 out = path if fox else Path(tmp) / f"run{r}{tag}.mcap"  # read/replay use `path`
-                rate, share, e2e = bench_record(out, messages, port, f"{fleet}{int(fox)}", foxglove=fox)
+                rate, share, e2e = bench_record(
+                    out, messages, port, f"{fleet}{int(fox)}", foxglove=fox
+                )
                 rows.setdefault(f"record{tag}_msgs_s", []).append(rate)
                 rows.setdefault(f"record{tag}_end_to_end_msgs_s", []).append(e2e)
                 rows.setdefault(f"record{tag}_share", []).append(share)

@@ -50,7 +50,11 @@ def env_steps(quick: bool) -> dict:
         if info["env_done"].any():
             env.reset_envs(info["env_done"])
     wall_s = time.perf_counter() - t0
-    return {"num_envs": env.cfg.num_envs, "arena_steps_s": arena_steps / wall_s, "vehicle_steps_s": vehicle_steps / wall_s}
+    return {
+        "num_envs": env.cfg.num_envs,
+        "arena_steps_s": arena_steps / wall_s,
+        "vehicle_steps_s": vehicle_steps / wall_s,
+    }
 
 
 def ppo(quick: bool) -> dict:
@@ -65,9 +69,15 @@ def ppo(quick: bool) -> dict:
         preset = "improved" if json.loads(str(z["config"])).get("encoding") == "sincos" else "paper"
     with tempfile.TemporaryDirectory() as tmp:
         cfg = TrainConfig(
-            preset=preset, episodes=10**9, max_minutes=0.08 if quick else 1.5, threads=1, out=tmp,
-            progress=False, checkpoint_every=10**6, **({"num_envs": 32, "num_steps": 16} if quick else {}),
-        )  # fmt: skip
+            preset=preset,
+            episodes=10**9,
+            max_minutes=0.08 if quick else 1.5,
+            threads=1,
+            out=tmp,
+            progress=False,
+            checkpoint_every=10**6,
+            **({"num_envs": 32, "num_steps": 16} if quick else {}),
+        )
         t0 = time.perf_counter()
         train(cfg)
         total_s = time.perf_counter() - t0
@@ -79,10 +89,18 @@ def ppo(quick: bool) -> dict:
     samples = sum(int(r["samples"]) for r in rows)
     episodes = int(rows[-1]["episodes"])
     return {
-        "preset": preset, "num_envs": cfg.num_envs, "num_steps": cfg.num_steps, "torch_threads": cfg.threads,
-        "updates": len(rows), "samples": samples, "episodes": episodes, "wall_s": wall_s,
-        "samples_s": samples / wall_s, "episodes_s": episodes / wall_s, "run_with_setup_s": total_s,
-    }  # fmt: skip
+        "preset": preset,
+        "num_envs": cfg.num_envs,
+        "num_steps": cfg.num_steps,
+        "torch_threads": cfg.threads,
+        "updates": len(rows),
+        "samples": samples,
+        "episodes": episodes,
+        "wall_s": wall_s,
+        "samples_s": samples / wall_s,
+        "episodes_s": episodes / wall_s,
+        "run_with_setup_s": total_s,
+    }
 
 
 def shipped_log() -> tuple[Path | None, list[dict]]:
@@ -90,6 +108,7 @@ def shipped_log() -> tuple[Path | None, list[dict]]:
     else the log.csv files of the run directories that policy/weights/README.md names
     (`--out DIR`, in order: a staged run is fine-tuned from the previous stage), joined with
     episodes and wall time carried over, if those runs are still on this machine."""
+
     def read(path: Path) -> list[dict]:
         with open(path) as f:
             rows = list(csv.DictReader(f))
@@ -114,15 +133,25 @@ def shipped_log() -> tuple[Path | None, list[dict]]:
         ep0 = float(joined[-1]["episodes"]) if joined else 0.0
         wall0 = float(joined[-1]["wall_s"]) if joined else 0.0
         for r in rows:
-            joined.append({**r, "episodes": float(r["episodes"]) + ep0, "wall_s": float(r["wall_s"]) + wall0,
-                           "stage": d, "stage_episodes": r["episodes"]})  # fmt: skip
+            joined.append(
+                {
+                    **r,
+                    "episodes": float(r["episodes"]) + ep0,
+                    "wall_s": float(r["wall_s"]) + wall0,
+                    "stage": d,
+                    "stage_episodes": r["episodes"],
+                }
+            )
     return first, joined
 
 
 def shipped_quality(ppo_result: dict) -> dict:
     with np.load(DEFAULT_WEIGHTS) as z:
         cfg = json.loads(str(z["config"]))
-    out: dict = {"weights": str(DEFAULT_WEIGHTS.relative_to(common.REPO)), "trained_episodes": cfg.get("trained_episodes")}
+    out: dict = {
+        "weights": str(DEFAULT_WEIGHTS.relative_to(common.REPO)),
+        "trained_episodes": cfg.get("trained_episodes"),
+    }
     path, rows = shipped_log()
     if rows:
         ep = np.array([float(r["episodes"]) for r in rows])
@@ -133,21 +162,35 @@ def shipped_quality(ppo_result: dict) -> dict:
         rew = np.array([float(r["reward"]) for r in rows])
         final_rew = float(np.mean(rew[-5:]))
         reach_rew = int(np.argmax(rew >= final_rew - 0.05 * abs(final_rew)))
-        out.update({
-            "log": ", ".join(dict.fromkeys(r.get("stage", str(path.relative_to(common.REPO))) for r in rows)),
-            "log_episodes": int(ep[-1]), "log_wall_s": float(wall[-1]),
-            "final_success": final, "final_reward": final_rew,
-            "wall_s_to_95pct_of_final_success": float(wall[reach]), "episodes_to_95pct_of_final_success": int(ep[reach]),
-            "wall_s_to_95pct_of_final_reward": float(wall[reach_rew]), "episodes_to_95pct_of_final_reward": int(ep[reach_rew]),
-            "log_matches_weights": out["trained_episodes"] in (int(ep[-1]), int(float(rows[-1].get("stage_episodes", ep[-1])))), "log_in_git": WEIGHTS_DIR in path.parents,
-        })  # fmt: skip
+        out.update(
+            {
+                "log": ", ".join(
+                    dict.fromkeys(r.get("stage", str(path.relative_to(common.REPO))) for r in rows)
+                ),
+                "log_episodes": int(ep[-1]),
+                "log_wall_s": float(wall[-1]),
+                "final_success": final,
+                "final_reward": final_rew,
+                "wall_s_to_95pct_of_final_success": float(wall[reach]),
+                "episodes_to_95pct_of_final_success": int(ep[reach]),
+                "wall_s_to_95pct_of_final_reward": float(wall[reach_rew]),
+                "episodes_to_95pct_of_final_reward": int(ep[reach_rew]),
+                "log_matches_weights": out["trained_episodes"]
+                in (int(ep[-1]), int(float(rows[-1].get("stage_episodes", ep[-1])))),
+                "log_in_git": WEIGHTS_DIR in path.parents,
+            }
+        )
     readme = WEIGHTS_DIR / "README.md"
     if readme.is_file():
         lines = [ln.strip() for ln in readme.read_text().splitlines()]
-        out["readme_lines"] = [ln for ln in lines if re.search(r"\b(wall|minutes?|hours?|min\b|episodes/s)", ln, re.I)][:8]
+        out["readme_lines"] = [
+            ln for ln in lines if re.search(r"\b(wall|minutes?|hours?|min\b|episodes/s)", ln, re.I)
+        ][:8]
     if "log_wall_s" not in out and out["trained_episodes"] and ppo_result.get("episodes_s"):
         out["estimated_wall_s"] = out["trained_episodes"] / ppo_result["episodes_s"]
-        out["estimate_note"] = "no shipped training log: trained_episodes / PPO episodes/s measured here"
+        out["estimate_note"] = (
+            "no shipped training log: trained_episodes / PPO episodes/s measured here"
+        )
     return out
 
 
@@ -176,10 +219,14 @@ def plot(rows: list[dict]) -> None:
 
 def main(quick: bool = False) -> dict:
     env = env_steps(quick)
-    common.say(f"env: {env['arena_steps_s']:,.0f} arena-steps/s, {env['vehicle_steps_s']:,.0f} vehicle-steps/s")
+    common.say(
+        f"env: {env['arena_steps_s']:,.0f} arena-steps/s, {env['vehicle_steps_s']:,.0f} vehicle-steps/s"
+    )
     p = ppo(quick)
     if "samples_s" in p:
-        common.say(f"PPO: {p['samples_s']:,.0f} samples/s, {p['episodes_s']:.1f} episodes/s over {p['wall_s']:.0f} s")
+        common.say(
+            f"PPO: {p['samples_s']:,.0f} samples/s, {p['episodes_s']:.1f} episodes/s over {p['wall_s']:.0f} s"
+        )
     q = shipped_quality(p)
     _, rows = shipped_log()
     if rows:

@@ -37,7 +37,10 @@ def crypto(n: int) -> dict:
         v1 = load_auth(str(fleet.member_path(Role.VEHICLE, 1)))
         receiver = load_auth(str(fleet.member_path(Role.VEHICLE, 2)))
     now = time.time_ns()
-    states = [VehicleState(1, i, now + i, (1.0, 2.0, -10.0), (1.0, 0.0, 0.0), 0.1, Mode.GOTO, True) for i in range(n)]
+    states = [
+        VehicleState(1, i, now + i, (1.0, 2.0, -10.0), (1.0, 0.0, 0.0), 0.1, Mode.GOTO, True)
+        for i in range(n)
+    ]
     t0 = time.process_time()
     signed = [v1.sign_state(s) for s in states]
     t1 = time.process_time()
@@ -56,8 +59,15 @@ def crypto(n: int) -> dict:
     t5 = time.process_time()
     assert gate.accepted == n, gate.refused
     us = lambda dt: dt * 1e6 / n  # noqa: E731
-    return {"states": n, "sign_us": us(t1 - t0), "verify_us": us(t2 - t1), "open_receive_us": us(t4 - t3),
-            "keyed_receive_us": us(t5 - t4), "state_bytes_open": len(open_bytes[0]), "state_bytes_keyed": len(keyed_bytes[0])}  # fmt: skip
+    return {
+        "states": n,
+        "sign_us": us(t1 - t0),
+        "verify_us": us(t2 - t1),
+        "open_receive_us": us(t4 - t3),
+        "keyed_receive_us": us(t5 - t4),
+        "state_bytes_open": len(open_bytes[0]),
+        "state_bytes_keyed": len(keyed_bytes[0]),
+    }
 
 
 def agent(quick: bool, pairs: int) -> dict:
@@ -65,16 +75,27 @@ def agent(quick: bool, pairs: int) -> dict:
 
     runs: dict[str, list[dict]] = {"open": [], "keyed": []}
     with tempfile.TemporaryDirectory() as d:
-        throwaway_fleet(d, agent_cpu.FLEET, vehicles=[agent_cpu.AGENT_ID, *agent_cpu.neighbour_ids()], stations=[1])
+        throwaway_fleet(
+            d,
+            agent_cpu.FLEET,
+            vehicles=[agent_cpu.AGENT_ID, *agent_cpu.neighbour_ids()],
+            stations=[1],
+        )
         for _ in range(pairs):
             for kind, keys_dir in (("open", None), ("keyed", d)):
                 r = agent_cpu.agent_flight(quick, keys_dir=keys_dir)
                 runs[kind].append(r["flying"])
-                common.say(f"agent {kind}: {100 * r['flying']['cpu_share_of_one_core']:.2f} % of a core, "
-                           f"jitter p99 {r['flying']['tick_jitter_ms_p99']:.2f} ms")  # fmt: skip
+                common.say(
+                    f"agent {kind}: {100 * r['flying']['cpu_share_of_one_core']:.2f} % of a core, "
+                    f"jitter p99 {r['flying']['tick_jitter_ms_p99']:.2f} ms"
+                )
     mean = {k: sum(r["cpu_share_of_one_core"] for r in v) / len(v) for k, v in runs.items()}
-    return {"runs": runs, "cpu_share_open": mean["open"], "cpu_share_keyed": mean["keyed"],
-            "ratio": mean["keyed"] / mean["open"]}  # fmt: skip
+    return {
+        "runs": runs,
+        "cpu_share_open": mean["open"],
+        "cpu_share_keyed": mean["keyed"],
+        "ratio": mean["keyed"] / mean["open"],
+    }
 
 
 def role_resp(port: int, first: int, count: int, keys_dir: str | None) -> None:
@@ -89,12 +110,20 @@ def role_resp(port: int, first: int, count: int, keys_dir: str | None) -> None:
         from comms.authority import Authority
 
         fleet = Authority(keys_dir)
-        auths = {v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in range(first, first + count)}
+        auths = {
+            v: load_auth(str(fleet.member_path(Role.VEHICLE, v)))
+            for v in range(first, first + count)
+        }
         mesh_auth = auths[first]
     with Mesh(embedded_peer(port, fleet=FLEET), auth=mesh_auth) as mesh:
         for v in range(first, first + count):
-            mesh.serve_commands(v, lambda c, v=v: CommandAck(v, c.nonce, mesh.clock_ns(), AckResult.ACCEPTED, "", Mode.LANDED),
-                                auth=auths.get(v))  # fmt: skip
+            mesh.serve_commands(
+                v,
+                lambda c, v=v: CommandAck(
+                    v, c.nonce, mesh.clock_ns(), AckResult.ACCEPTED, "", Mode.LANDED
+                ),
+                auth=auths.get(v),
+            )
             mesh.declare_vehicle(v)
         print("READY", flush=True)
         threading.Event().wait()
@@ -120,33 +149,55 @@ def commands(n: int, repeats: int, keys_dir: str | None) -> dict:
         for first, count in ((1, half), (half + 1, n - half)):
             if count > 0:
                 extra = ["--keys-dir", keys_dir] if keys_dir else []
-                p = kids.start("-m", "bench.trust", "--role", "resp", "--port", str(port), "--first", str(first),
-                               "--count", str(count), *extra)  # fmt: skip
+                p = kids.start(
+                    "-m",
+                    "bench.trust",
+                    "--role",
+                    "resp",
+                    "--port",
+                    str(port),
+                    "--first",
+                    str(first),
+                    "--count",
+                    str(count),
+                    *extra,
+                )
                 kids.wait_line(p, "READY", timeout_s=120)
         if not pres.wait_for(lambda v, _g: v >= ids, 90.0):
             raise RuntimeError(f"only {len(pres.vehicles)} of {n} vehicles present")
         time.sleep(1.0)
         for _ in range(repeats):
             t0 = time.perf_counter()
-            res = mesh.send_command(Command(CommandKind.LAND, new_nonce(), time.time_ns()), expect=ids, timeout_s=5.0)
+            res = mesh.send_command(
+                Command(CommandKind.LAND, new_nonce(), time.time_ns()), expect=ids, timeout_s=5.0
+            )
             dt_s = time.perf_counter() - t0
             incomplete += len(res.by_status(OutcomeStatus.ACCEPTED)) < n
             all_ms.append(dt_s * 1e3)
             time.sleep(0.05)
-    return {"vehicles": n, "repeats": repeats, "incomplete": incomplete,
-            "all_acks_ms_p50": common.pct(all_ms, 50), "all_acks_ms_p99": common.pct(all_ms, 99)}  # fmt: skip
+    return {
+        "vehicles": n,
+        "repeats": repeats,
+        "incomplete": incomplete,
+        "all_acks_ms_p50": common.pct(all_ms, 50),
+        "all_acks_ms_p99": common.pct(all_ms, 99),
+    }
 
 
 def main(quick: bool = False) -> dict:
     from comms.authority import throwaway_fleet
 
     c = crypto(500 if quick else 3000)
-    common.say(f"Ed25519 per state: sign {c['sign_us']:.0f} us, verify {c['verify_us']:.0f} us; receive path "
-               f"open {c['open_receive_us']:.0f} us vs keyed {c['keyed_receive_us']:.0f} us; state "
-               f"{c['state_bytes_open']} -> {c['state_bytes_keyed']} bytes")  # fmt: skip
+    common.say(
+        f"Ed25519 per state: sign {c['sign_us']:.0f} us, verify {c['verify_us']:.0f} us; receive path "
+        f"open {c['open_receive_us']:.0f} us vs keyed {c['keyed_receive_us']:.0f} us; state "
+        f"{c['state_bytes_open']} -> {c['state_bytes_keyed']} bytes"
+    )
     a = agent(quick, pairs=1 if quick else 2)
-    common.say(f"agent at 10 neighbours, 10 Hz: open {100 * a['cpu_share_open']:.2f} % vs keyed "
-               f"{100 * a['cpu_share_keyed']:.2f} % of a core ({a['ratio']:.2f}x)")  # fmt: skip
+    common.say(
+        f"agent at 10 neighbours, 10 Hz: open {100 * a['cpu_share_open']:.2f} % vs keyed "
+        f"{100 * a['cpu_share_keyed']:.2f} % of a core ({a['ratio']:.2f}x)"
+    )
     cmds = []
     with tempfile.TemporaryDirectory() as d:
         throwaway_fleet(d, FLEET, vehicles=range(1, 101), stations=[1])
@@ -155,8 +206,10 @@ def main(quick: bool = False) -> dict:
                 r = commands(n, 5 if quick else 20, keys_dir)
                 r["kind"] = kind
                 cmds.append(r)
-                common.say(f"command to all acks, {kind:5s} n={n:3d}: p50 {r['all_acks_ms_p50']:.1f} ms, "
-                           f"p99 {r['all_acks_ms_p99']:.1f} ms, incomplete {r['incomplete']}")  # fmt: skip
+                common.say(
+                    f"command to all acks, {kind:5s} n={n:3d}: p50 {r['all_acks_ms_p50']:.1f} ms, "
+                    f"p99 {r['all_acks_ms_p99']:.1f} ms, incomplete {r['incomplete']}"
+                )
     return {"quick": quick, "crypto": c, "agent_cpu": a, "commands": cmds}
 
 
@@ -174,7 +227,13 @@ def cli(argv=None) -> None:
         return
     result = main(a.quick)
     common.write_json("trust", result)
-    print(json.dumps({k: v for k, v in result.items() if k != "agent_cpu"} | {"agent_ratio": result["agent_cpu"]["ratio"]}, indent=1))
+    print(
+        json.dumps(
+            {k: v for k, v in result.items() if k != "agent_cpu"}
+            | {"agent_ratio": result["agent_cpu"]["ratio"]},
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

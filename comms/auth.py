@@ -131,10 +131,15 @@ class FleetAuth:
             self._roster, self._keys = roster, keys
         me = roster.member(self.role, self.member_id)
         if me is None or me.public_key != public_bytes(self.key.private_key):
-            log.critical("roster v%d REVOKES this %s: the fleet refuses what it signs from now on",
-                         roster.version, self.key.name)  # fmt: skip
+            log.critical(
+                "roster v%d REVOKES this %s: the fleet refuses what it signs from now on",
+                roster.version,
+                self.key.name,
+            )
         else:
-            log.warning("applied fleet roster v%d (%d members)", roster.version, len(roster.members))
+            log.warning(
+                "applied fleet roster v%d (%d members)", roster.version, len(roster.members)
+            )
         if self.on_roster is not None:
             try:
                 self.on_roster(roster)
@@ -145,12 +150,16 @@ class FleetAuth:
     def _sign(self, label: str, data: bytes) -> bytes:
         return self.key.private_key.sign(signed_message(label, self.fleet, data))
 
-    def check_signature(self, role: Role, member_id: int, label: str, data: bytes, sig: bytes) -> str | None:
+    def check_signature(
+        self, role: Role, member_id: int, label: str, data: bytes, sig: bytes
+    ) -> str | None:
         """None if `sig` is `role member_id`'s signature under the current roster, else why not."""
         pub = self._keys.get((role, member_id))
         if pub is None:
-            return (f"unknown signer: {role.name.lower()} {member_id} is not in fleet roster "
-                    f"v{self._roster.version} (revoked, never enrolled, or another fleet)")  # fmt: skip
+            return (
+                f"unknown signer: {role.name.lower()} {member_id} is not in fleet roster "
+                f"v{self._roster.version} (revoked, never enrolled, or another fleet)"
+            )
         if not verify(pub, sig, label, self.fleet, data):
             return f"bad signature: not made by {role.name.lower()} {member_id}'s key for fleet {self.fleet}"
         return None
@@ -163,8 +172,9 @@ class FleetAuth:
         nonce = cmd.nonce
         while not nonce:
             nonce = self._rng(64)
-        stamped = dataclasses.replace(cmd, nonce=nonce, stamp_ns=self.clock_ns(),
-                                      source_id=self.member_id, tag=_NO_TAG)  # fmt: skip
+        stamped = dataclasses.replace(
+            cmd, nonce=nonce, stamp_ns=self.clock_ns(), source_id=self.member_id, tag=_NO_TAG
+        )
         return dataclasses.replace(stamped, tag=self._sign("cmd", stamped.signed_bytes()))
 
     def check_command(self, cmd: Command, vehicle_id: int) -> str | None:
@@ -178,8 +188,13 @@ class FleetAuth:
         """Count and report one refused command (also used for commands sent to the wrong vehicle)."""
         with self._lock:
             self.rejected += 1
-        log.warning("vehicle %d refused %s from station %d: %s", vehicle_id,
-                    getattr(cmd.kind, "name", cmd.kind), cmd.source_id, reason)  # fmt: skip
+        log.warning(
+            "vehicle %d refused %s from station %d: %s",
+            vehicle_id,
+            getattr(cmd.kind, "name", cmd.kind),
+            cmd.source_id,
+            reason,
+        )
         if self.on_reject is not None:
             try:
                 self.on_reject(cmd, vehicle_id, reason)
@@ -189,14 +204,18 @@ class FleetAuth:
     def _check_command(self, cmd: Command, vehicle_id: int) -> str | None:
         if cmd.tag == _NO_TAG:
             return "unsigned command: this vehicle requires commands signed by a fleet station"
-        problem = self.check_signature(Role.STATION, cmd.source_id, "cmd", cmd.signed_bytes(), cmd.tag)
+        problem = self.check_signature(
+            Role.STATION, cmd.source_id, "cmd", cmd.signed_bytes(), cmd.tag
+        )
         if problem:
             return problem
         now = self.clock_ns()
         age_ns = now - cmd.stamp_ns
         if abs(age_ns) > self.max_skew_ns:
-            return (f"stale command: stamped {age_ns / 1e9:+.1f} s from this vehicle's clock "
-                    f"(limit {self.max_skew_ns / 1e9:g} s)")  # fmt: skip
+            return (
+                f"stale command: stamped {age_ns / 1e9:+.1f} s from this vehicle's clock "
+                f"(limit {self.max_skew_ns / 1e9:g} s)"
+            )
         ident = (vehicle_id, cmd.nonce)
         with self._lock:
             # Forget what the skew check already refuses: the cache only spans the window.
@@ -220,7 +239,9 @@ class FleetAuth:
     def sign_ack(self, ack: CommandAck, digest: bytes) -> CommandAck:
         """Sign `ack` as this vehicle, bound to the command whose SHA-256 is `digest`."""
         unsigned = dataclasses.replace(ack, tag=_NO_TAG)
-        return dataclasses.replace(unsigned, tag=self._sign("ack", unsigned.signed_bytes() + digest))
+        return dataclasses.replace(
+            unsigned, tag=self._sign("ack", unsigned.signed_bytes() + digest)
+        )
 
     def check_ack(self, ack: CommandAck, cmd: Command, digest: bytes) -> str | None:
         """None if `ack` is signed by vehicle `ack.vehicle_id` and answers exactly the command
@@ -230,7 +251,9 @@ class FleetAuth:
             return "forged ack: unsigned (the vehicle runs in open mode?)" + said
         if ack.nonce not in (cmd.nonce, 0):
             return f"forged ack: nonce {ack.nonce:#x} does not answer command nonce {cmd.nonce:#x}"
-        problem = self.check_signature(Role.VEHICLE, ack.vehicle_id, "ack", ack.signed_bytes() + digest, ack.tag)
+        problem = self.check_signature(
+            Role.VEHICLE, ack.vehicle_id, "ack", ack.signed_bytes() + digest, ack.tag
+        )
         if problem:
             return f"forged ack: {problem} (or it answers another command)" + said
         return None
@@ -240,17 +263,24 @@ class FleetAuth:
         return dataclasses.replace(state, sig=self._sign("state", state.signed_bytes()))
 
     def check_state(self, state: VehicleState) -> str | None:
-        return self.check_signature(Role.VEHICLE, state.vehicle_id, "state", state.signed_bytes(), state.sig)
+        return self.check_signature(
+            Role.VEHICLE, state.vehicle_id, "state", state.signed_bytes(), state.sig
+        )
 
     def sign_event(self, event: Event) -> Event:
         return dataclasses.replace(event, sig=self._sign("event", event.signed_bytes()))
 
     def check_event(self, event: Event) -> str | None:
-        return self.check_signature(Role.VEHICLE, event.vehicle_id, "event", event.signed_bytes(), event.sig)
+        return self.check_signature(
+            Role.VEHICLE, event.vehicle_id, "event", event.signed_bytes(), event.sig
+        )
 
 
 def _public_keys(roster: Roster) -> dict[tuple[Role, int], Ed25519PublicKey]:
-    return {(m.role, m.member_id): Ed25519PublicKey.from_public_bytes(m.public_key) for m in roster.members}
+    return {
+        (m.role, m.member_id): Ed25519PublicKey.from_public_bytes(m.public_key)
+        for m in roster.members
+    }
 
 
 # -- loading -------------------------------------------------------------------------------------
@@ -265,20 +295,30 @@ def load_auth(
     Raises FleetKeyError when a key is configured but unusable (an empty path included): never
     fall back to open mode because of a typo or an empty variable."""
     if env.get(ENV_KEY):
-        raise FleetKeyError(f"${ENV_KEY} (a shared fleet secret) is no longer supported: every member "
-                            f"has its own key file now (covey keygen); unset it and use --key-file")  # fmt: skip
+        raise FleetKeyError(
+            f"${ENV_KEY} (a shared fleet secret) is no longer supported: every member "
+            f"has its own key file now (covey keygen); unset it and use --key-file"
+        )
     path = key_file if key_file is not None else env.get(ENV_KEY_FILE)
     if path is None:
         log.warning(
             "OPEN MODE: no key file (--key-file or $%s); commands, states and events are NOT "
             "authenticated and anyone on the mesh can fly or impersonate these vehicles. "
-            "Tests and simulator experiments only.", ENV_KEY_FILE,
-        )  # fmt: skip
+            "Tests and simulator experiments only.",
+            ENV_KEY_FILE,
+        )
         return None
     key = read_member_key(path)
     if fleet is not None and key.fleet != fleet:
-        raise FleetKeyError(f"key file {path} is for fleet {key.fleet!r}, but this process joins fleet {fleet!r}")
+        raise FleetKeyError(
+            f"key file {path} is for fleet {key.fleet!r}, but this process joins fleet {fleet!r}"
+        )
     auth = FleetAuth(key, **kw)  # type: ignore[arg-type]
-    log.info("keyed mode: %s of fleet %s (key %s, roster v%d)", key.name, key.fleet, auth.key_id,
-             key.roster.version)  # fmt: skip
+    log.info(
+        "keyed mode: %s of fleet %s (key %s, roster v%d)",
+        key.name,
+        key.fleet,
+        auth.key_id,
+        key.roster.version,
+    )
     return auth

@@ -52,7 +52,9 @@ class Authority:
         d = Path(directory).expanduser()
         check_fleet(fleet)
         if (d / AUTHORITY).exists():
-            raise FileExistsError(f"{d / AUTHORITY} already exists; not overwriting a fleet authority")
+            raise FileExistsError(
+                f"{d / AUTHORITY} already exists; not overwriting a fleet authority"
+            )
         key = Ed25519PrivateKey.generate()
         write_private_file(d / AUTHORITY, authority_doc(fleet, key))
         roster = sign_roster(key, Roster(fleet, 1, clock_ns(), ()))
@@ -70,7 +72,9 @@ class Authority:
         new = {}
         for role, member_id in who:
             if self.roster.member(role, member_id) is not None or (role, member_id) in new:
-                raise FileExistsError(f"{role.name.lower()} {member_id} is already enrolled; revoke it first")
+                raise FileExistsError(
+                    f"{role.name.lower()} {member_id} is already enrolled; revoke it first"
+                )
             new[(role, member_id)] = Ed25519PrivateKey.generate()
         added = [Member(r, i, public_bytes(k)) for (r, i), k in new.items()]
         members = sorted((*self.roster.members, *added), key=lambda m: (int(m.role), m.member_id))
@@ -79,18 +83,26 @@ class Authority:
         for (role, member_id), key in new.items():
             path = self.member_path(role, member_id)
             path.unlink(missing_ok=True)  # a revoked member's old file
-            write_private_file(path, member_doc(self.fleet, role, member_id, key, public_bytes(self.key), self.roster))
+            write_private_file(
+                path,
+                member_doc(self.fleet, role, member_id, key, public_bytes(self.key), self.roster),
+            )
             paths.append(path)
         return paths
 
     def revoke(self, role: Role, member_id: int, clock_ns=time.time_ns) -> None:
         if self.roster.member(role, member_id) is None:
             raise KeyError(f"{role.name.lower()} {member_id} is not in the roster")
-        self._publish(tuple(m for m in self.roster.members if (m.role, m.member_id) != (role, member_id)), clock_ns)
+        self._publish(
+            tuple(m for m in self.roster.members if (m.role, m.member_id) != (role, member_id)),
+            clock_ns,
+        )
         self.member_path(role, member_id).unlink(missing_ok=True)
 
     def _publish(self, members: tuple[Member, ...], clock_ns, skip: set = frozenset()) -> None:
-        self.roster = sign_roster(self.key, Roster(self.fleet, self.roster.version + 1, clock_ns(), members))
+        self.roster = sign_roster(
+            self.key, Roster(self.fleet, self.roster.version + 1, clock_ns(), members)
+        )
         tmp = self.dir / (ROSTER + ".tmp")
         tmp.write_bytes(self.roster.encode())
         tmp.replace(self.dir / ROSTER)
@@ -102,12 +114,23 @@ class Authority:
                 old = read_member_key(path)
             except FleetKeyError:
                 continue  # not here (already handed out and deleted) or not ours
-            doc = member_doc(self.fleet, old.role, old.member_id, old.private_key, public_bytes(self.key), self.roster)
+            doc = member_doc(
+                self.fleet,
+                old.role,
+                old.member_id,
+                old.private_key,
+                public_bytes(self.key),
+                self.roster,
+            )
             write_private_file(path, doc, overwrite=True)
 
 
-def throwaway_fleet(directory: str | Path, fleet: str, vehicles: range | list[int] = range(1, 3),
-                    stations: range | list[int] = (1,)) -> Authority:  # fmt: skip
+def throwaway_fleet(
+    directory: str | Path,
+    fleet: str,
+    vehicles: range | list[int] = range(1, 3),
+    stations: range | list[int] = (1,),
+) -> Authority:
     """A new authority with these members enrolled under one roster version (demo, tests, bench)."""
     auth = Authority.init(directory, fleet)
     auth.add_many([(Role.STATION, s) for s in stations] + [(Role.VEHICLE, v) for v in vehicles])

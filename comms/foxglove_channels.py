@@ -71,17 +71,31 @@ def _object(props: dict, title: str) -> dict:
 _INT, _NUM, _STR = {"type": "integer"}, {"type": "number"}, {"type": "string"}
 COMMAND_JSON_SCHEMA = _object(
     {
-        "nonce": _INT, "stamp_ns": _INT, "source_id": _INT, "kind": _STR, "params": {"type": "array", "items": _NUM},
+        "nonce": _INT,
+        "stamp_ns": _INT,
+        "source_id": _INT,
+        "kind": _STR,
+        "params": {"type": "array", "items": _NUM},
         "targets": {"type": "array", "items": _INT, "description": "empty = the whole fleet"},
-        "seq": _INT, "signed": {"type": "boolean"},
+        "seq": _INT,
+        "signed": {"type": "boolean"},
     },
     "covey.CommandJson",
-)  # fmt: skip
+)
 ACK_JSON_SCHEMA = _object(
-    {"vehicle_id": _INT, "nonce": _INT, "stamp_ns": _INT, "result": _STR, "accepted": {"type": "boolean"},
-     "mode": _STR, "reason": _STR, "command_kind": _STR, "source_id": _INT},
+    {
+        "vehicle_id": _INT,
+        "nonce": _INT,
+        "stamp_ns": _INT,
+        "result": _STR,
+        "accepted": {"type": "boolean"},
+        "mode": _STR,
+        "reason": _STR,
+        "command_kind": _STR,
+        "source_id": _INT,
+    },
     "covey.CommandAckJson",
-)  # fmt: skip
+)
 LINK_JSON_SCHEMA = _object(
     {"vehicle_id": _INT, "rate_hz": _NUM, "age_s": _NUM, "loss_share": _NUM, "states": _INT},
     "covey.LinkHealthJson",
@@ -247,21 +261,37 @@ class Converter:
         out: list[Out] = []
         if recv_ns >= self._tf_due_ns:
             self._tf_due_ns = recv_ns + int(self.cfg.link_interval_s * 1e9)
-            world = fm.FrameTransform(timestamp=_ts(recv_ns), parent_frame_id=WORLD_FRAME,
-                                      child_frame_id=NED_FRAME, translation=_v3(0, 0, 0),
-                                      rotation=_q(*_ENU_TO_NED_Q))  # fmt: skip
+            world = fm.FrameTransform(
+                timestamp=_ts(recv_ns),
+                parent_frame_id=WORLD_FRAME,
+                child_frame_id=NED_FRAME,
+                translation=_v3(0, 0, 0),
+                rotation=_q(*_ENU_TO_NED_Q),
+            )
             out.append(Out(TF_TOPIC, FRAME_TRANSFORM, world.encode(), recv_ns))
-        tf = fm.FrameTransform(timestamp=stamp, parent_frame_id=NED_FRAME,
-                               child_frame_id=vehicle_frame(vid), translation=_v3(n, e, d), rotation=q)  # fmt: skip
+        tf = fm.FrameTransform(
+            timestamp=stamp,
+            parent_frame_id=NED_FRAME,
+            child_frame_id=vehicle_frame(vid),
+            translation=_v3(n, e, d),
+            rotation=q,
+        )
         out.append(Out(TF_TOPIC, FRAME_TRANSFORM, tf.encode(), recv_ns))
-        pose = fm.PoseInFrame(timestamp=stamp, frame_id=NED_FRAME,
-                              pose=fm.Pose(position=_v3(n, e, d), orientation=q))  # fmt: skip
+        pose = fm.PoseInFrame(
+            timestamp=stamp, frame_id=NED_FRAME, pose=fm.Pose(position=_v3(n, e, d), orientation=q)
+        )
         out.append(Out(pose_topic(vid), POSE_IN_FRAME, pose.encode(), recv_ns))
         lat, lon, alt = self.cfg.origin.to_global(n, e, d)
         # LocationFix.heading: degrees clockwise from north, as NED's heading is.
-        fix = fm.LocationFix(timestamp=stamp, frame_id=vehicle_frame(vid), latitude=lat, longitude=lon,
-                             altitude=alt, heading=math.degrees(s.heading_rad) % 360.0,
-                             color=_colour(mode_rgb(s.mode)))  # fmt: skip
+        fix = fm.LocationFix(
+            timestamp=stamp,
+            frame_id=vehicle_frame(vid),
+            latitude=lat,
+            longitude=lon,
+            altitude=alt,
+            heading=math.degrees(s.heading_rad) % 360.0,
+            color=_colour(mode_rgb(s.mode)),
+        )
         out.append(Out(fix_topic(vid), LOCATION_FIX, fix.encode(), recv_ns))
         if recv_ns >= self._scene_due_ns.get(vid, 0) or s.mode != self._scene_mode.get(vid):
             self._scene_due_ns[vid] = recv_ns + int(self.cfg.scene_interval_s * 1e9)
@@ -277,41 +307,76 @@ class Converter:
         n, e, d = s.pos_ned_m
         rgb = mode_rgb(s.mode)
         size = self.cfg.body_size_m
-        body = fm.CubePrimitive(pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*yaw_quaternion(s.heading_rad))),
-                                size=_v3(size, size, size * 0.3), color=_colour(rgb))  # fmt: skip
+        body = fm.CubePrimitive(
+            pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*yaw_quaternion(s.heading_rad))),
+            size=_v3(size, size, size * 0.3),
+            color=_colour(rgb),
+        )
         ring_d = 2 * self.cfg.separation_m
-        ring = fm.CylinderPrimitive(pose=fm.Pose(position=_v3(n, e, d), orientation=_q(0, 0, 0, 1)),
-                                    size=_v3(ring_d, ring_d, 0.02), bottom_scale=1.0, top_scale=1.0,
-                                    color=_colour(RING_OK_RGB, 0.25))  # fmt: skip
+        ring = fm.CylinderPrimitive(
+            pose=fm.Pose(position=_v3(n, e, d), orientation=_q(0, 0, 0, 1)),
+            size=_v3(ring_d, ring_d, 0.02),
+            bottom_scale=1.0,
+            top_scale=1.0,
+            color=_colour(RING_OK_RGB, 0.25),
+        )
         speed = math.sqrt(sum(v * v for v in s.vel_ned_m_s))
         arrows = []
         if speed > 0.05:
-            arrows.append(fm.ArrowPrimitive(
-                pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*x_to(s.vel_ned_m_s))),
-                shaft_length=speed, shaft_diameter=0.08, head_length=0.3, head_diameter=0.2,
-                color=_colour(rgb),
-            ))  # fmt: skip
+            arrows.append(
+                fm.ArrowPrimitive(
+                    pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*x_to(s.vel_ned_m_s))),
+                    shaft_length=speed,
+                    shaft_diameter=0.08,
+                    head_length=0.3,
+                    head_diameter=0.2,
+                    color=_colour(rgb),
+                )
+            )
         spheres = []
         if s.flags & schema.StateFlag.HAS_GOAL:
-            spheres.append(fm.SpherePrimitive(pose=fm.Pose(position=_v3(*s.goal_ned_m), orientation=_q(0, 0, 0, 1)),
-                                              size=_v3(0.4, 0.4, 0.4), color=_colour(GOAL_RGB)))  # fmt: skip
-        label = fm.TextPrimitive(pose=fm.Pose(position=_v3(n, e, d - 0.8), orientation=_q(0, 0, 0, 1)),
-                                 billboard=True, font_size=14.0, scale_invariant=True,
-                                 color=_colour((255, 255, 255)), text=f"{s.vehicle_id} {s.mode.name}")  # fmt: skip
+            spheres.append(
+                fm.SpherePrimitive(
+                    pose=fm.Pose(position=_v3(*s.goal_ned_m), orientation=_q(0, 0, 0, 1)),
+                    size=_v3(0.4, 0.4, 0.4),
+                    color=_colour(GOAL_RGB),
+                )
+            )
+        label = fm.TextPrimitive(
+            pose=fm.Pose(position=_v3(n, e, d - 0.8), orientation=_q(0, 0, 0, 1)),
+            billboard=True,
+            font_size=14.0,
+            scale_invariant=True,
+            color=_colour((255, 255, 255)),
+            text=f"{s.vehicle_id} {s.mode.name}",
+        )
         lifetime = self.cfg.entity_lifetime_s
         return fm.SceneEntity(
-            timestamp=_ts(s.stamp_ns), frame_id=NED_FRAME, id=vehicle_frame(s.vehicle_id),
+            timestamp=_ts(s.stamp_ns),
+            frame_id=NED_FRAME,
+            id=vehicle_frame(s.vehicle_id),
             lifetime=fm.Duration.from_secs(lifetime) if lifetime > 0 else None,
-            metadata=[fm.KeyValuePair(key="mode", value=s.mode.name), fm.KeyValuePair(key="armed", value=str(s.armed))],
-            cubes=[body], cylinders=[ring], arrows=arrows, spheres=spheres, texts=[label],
-        )  # fmt: skip
+            metadata=[
+                fm.KeyValuePair(key="mode", value=s.mode.name),
+                fm.KeyValuePair(key="armed", value=str(s.armed)),
+            ],
+            cubes=[body],
+            cylinders=[ring],
+            arrows=arrows,
+            spheres=spheres,
+            texts=[label],
+        )
 
     def scene_update(self, states: list[schema.VehicleState]) -> fm.SceneUpdate:
         return fm.SceneUpdate(entities=[self.scene_entity(s) for s in states])
 
     def event(self, ev: schema.Event, recv_ns: int) -> Out:
-        log = fm.Log(timestamp=_ts(ev.stamp_ns), level=_LOG_LEVEL[ev.severity],
-                     message=f"[{ev.kind.name}] {ev.text}", name=vehicle_frame(ev.vehicle_id))  # fmt: skip
+        log = fm.Log(
+            timestamp=_ts(ev.stamp_ns),
+            level=_LOG_LEVEL[ev.severity],
+            message=f"[{ev.kind.name}] {ev.text}",
+            name=vehicle_frame(ev.vehicle_id),
+        )
         return Out(EVENTS_TOPIC, LOG, log.encode(), recv_ns)
 
     def command(self, c: schema.Command, recv_ns: int) -> Out:
@@ -319,10 +384,15 @@ class Converter:
             self._commands.pop(next(iter(self._commands)))
         self._commands[c.nonce] = c
         body = {
-            "nonce": c.nonce, "stamp_ns": c.stamp_ns, "source_id": c.source_id, "kind": c.kind.name,
-            "params": list(c.params), "targets": list(c.targets), "seq": c.seq,
+            "nonce": c.nonce,
+            "stamp_ns": c.stamp_ns,
+            "source_id": c.source_id,
+            "kind": c.kind.name,
+            "params": list(c.params),
+            "targets": list(c.targets),
+            "seq": c.seq,
             "signed": any(c.tag),
-        }  # fmt: skip
+        }
         return Out(COMMANDS_TOPIC, COMMAND_JSON, json.dumps(body).encode(), recv_ns)
 
     def ack(self, a: schema.CommandAck, recv_ns: int) -> Out:
@@ -330,10 +400,16 @@ class Converter:
         # command (it travels another Zenoh path): then "" and -1, and /commands has it by nonce.
         cmd = self._commands.get(a.nonce)
         body = {
-            "vehicle_id": a.vehicle_id, "nonce": a.nonce, "stamp_ns": a.stamp_ns,
-            "result": a.result.name, "accepted": a.accepted, "mode": a.mode.name, "reason": a.reason,
-            "command_kind": cmd.kind.name if cmd else "", "source_id": cmd.source_id if cmd else -1,
-        }  # fmt: skip
+            "vehicle_id": a.vehicle_id,
+            "nonce": a.nonce,
+            "stamp_ns": a.stamp_ns,
+            "result": a.result.name,
+            "accepted": a.accepted,
+            "mode": a.mode.name,
+            "reason": a.reason,
+            "command_kind": cmd.kind.name if cmd else "",
+            "source_id": cmd.source_id if cmd else -1,
+        }
         return Out(ACKS_TOPIC, ACK_JSON, json.dumps(body).encode(), recv_ns)
 
     def _alive(self, vid: int, data: bytes, recv_ns: int) -> list[Out]:
@@ -342,10 +418,21 @@ class Converter:
         self._links.pop(vid, None)
         self._scene_due_ns.pop(vid, None)
         self._scene_mode.pop(vid, None)
-        gone = fm.SceneUpdate(deletions=[fm.SceneEntityDeletion(
-            timestamp=_ts(recv_ns), type=fm.SceneEntityDeletionType.MatchingId, id=vehicle_frame(vid))])  # fmt: skip
-        log = fm.Log(timestamp=_ts(recv_ns), level=fm.LogLevel.Warning, message="left the mesh",
-                     name=vehicle_frame(vid))  # fmt: skip
+        gone = fm.SceneUpdate(
+            deletions=[
+                fm.SceneEntityDeletion(
+                    timestamp=_ts(recv_ns),
+                    type=fm.SceneEntityDeletionType.MatchingId,
+                    id=vehicle_frame(vid),
+                )
+            ]
+        )
+        log = fm.Log(
+            timestamp=_ts(recv_ns),
+            level=fm.LogLevel.Warning,
+            message="left the mesh",
+            name=vehicle_frame(vid),
+        )
         return [
             Out(SCENE_TOPIC, SCENE_UPDATE, gone.encode(), recv_ns),
             Out(EVENTS_TOPIC, LOG, log.encode(), recv_ns),
@@ -364,10 +451,11 @@ class Converter:
             return None
         expected = s.seq - link.window_first_seq + 1
         body = {
-            "vehicle_id": s.vehicle_id, "rate_hz": link.window_states / window_s,
+            "vehicle_id": s.vehicle_id,
+            "rate_hz": link.window_states / window_s,
             "age_s": (recv_ns - s.stamp_ns) / 1e9,
             "loss_share": max(0.0, 1.0 - link.window_states / expected) if expected > 0 else 0.0,
             "states": link.states,
-        }  # fmt: skip
+        }
         link.window_start_ns, link.window_states, link.window_first_seq = recv_ns, 0, s.seq + 1
         return body

@@ -120,13 +120,17 @@ class Gate:
             return self._refuse(Refusal.UNSIGNED, vid, "no signature", recv_ns)
         age_ns = recv_ns - state.stamp_ns
         if abs(age_ns) > self._skew_ns:
-            return self._refuse(Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns)
+            return self._refuse(
+                Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns
+            )
         last = self._last.get(vid)
         if last is not None:
             if state.stamp_ns == last[0]:
                 return self._refuse(Refusal.REPLAYED, vid, f"seq {state.seq} again", recv_ns)
             if state.stamp_ns < last[0]:
-                return self._refuse(Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {state.seq})", recv_ns)
+                return self._refuse(
+                    Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {state.seq})", recv_ns
+                )
             if recv_ns - last[1] < self._min_ns:
                 with self._lock:
                     self.skipped += 1
@@ -138,7 +142,9 @@ class Gate:
         with self._lock:
             last = self._last.get(vid)
             if last is not None and state.stamp_ns <= last[0]:  # a newer one won the race
-                return self._refuse(Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {state.seq})", recv_ns)
+                return self._refuse(
+                    Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {state.seq})", recv_ns
+                )
             self._last[vid] = (state.stamp_ns, recv_ns)
             self.accepted += 1
             if len(self._last) > 2 * len(self.auth.roster.members) + 16:  # revoked members go
@@ -153,7 +159,9 @@ class Gate:
             return self._refuse(Refusal.UNSIGNED, vid, "no signature", recv_ns)
         age_ns = recv_ns - event.stamp_ns
         if abs(age_ns) > self._skew_ns:
-            return self._refuse(Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns)
+            return self._refuse(
+                Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns
+            )
         problem = self.auth.check_event(event)
         if problem:
             cause = Refusal.UNKNOWN if problem.startswith("unknown") else Refusal.FORGED
@@ -169,6 +177,11 @@ class Gate:
     def _refuse(self, cause: Refusal, vid: int, detail: str, recv_ns: int) -> Refusal:
         with self._lock:
             self.refused[cause] += 1
-        self._summaries.note(cause, recv_ns, lambda n: (
-            f"refused {n} {cause.value} {self.what}{'s' if n > 1 else ''} (latest claims vehicle {vid}: {detail})"))
+        self._summaries.note(
+            cause,
+            recv_ns,
+            lambda n: (
+                f"refused {n} {cause.value} {self.what}{'s' if n > 1 else ''} (latest claims vehicle {vid}: {detail})"
+            ),
+        )
         return cause

@@ -29,7 +29,9 @@ class GeoOrigin:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.lat_deg) and -90.0 < self.lat_deg < 90.0):
-            raise ValueError(f"origin latitude must be finite and within (-90, 90), got {self.lat_deg}")
+            raise ValueError(
+                f"origin latitude must be finite and within (-90, 90), got {self.lat_deg}"
+            )
         if not (math.isfinite(self.lon_deg) and -180.0 <= self.lon_deg <= 180.0):
             raise ValueError(f"origin longitude must be within [-180, 180], got {self.lon_deg}")
         if not math.isfinite(self.alt_m):

@@ -69,7 +69,9 @@ def sign_roster(authority: Ed25519PrivateKey, roster: Roster) -> Roster:
     from dataclasses import replace
 
     roster.validate()
-    return replace(roster, sig=authority.sign(signed_message("roster", roster.fleet, roster.signed_bytes())))
+    return replace(
+        roster, sig=authority.sign(signed_message("roster", roster.fleet, roster.signed_bytes()))
+    )
 
 
 def check_roster(roster: Roster, authority_public_key: bytes, fleet: str) -> str | None:
@@ -113,8 +115,10 @@ def _read_private_file(path: str | os.PathLike[str], what: str) -> dict:
     if not stat.S_ISREG(st.st_mode):
         raise FleetKeyError(f"{what} {p} is not a regular file")
     if os.name == "posix" and st.st_mode & 0o077:
-        raise FleetKeyError(f"{what} {p} has mode {stat.S_IMODE(st.st_mode):04o}: group/others "
-                            f"may read it; run: chmod 600 {p}")  # fmt: skip
+        raise FleetKeyError(
+            f"{what} {p} has mode {stat.S_IMODE(st.st_mode):04o}: group/others "
+            f"may read it; run: chmod 600 {p}"
+        )
     if st.st_size > MAX_KEY_FILE_BYTES:
         raise FleetKeyError(f"{what} {p} is {st.st_size} bytes: not a covey key file")
     try:
@@ -158,8 +162,10 @@ def read_member_key(path: str | os.PathLike[str]) -> MemberKey:
     doc = _read_private_file(path, "key file")
     where = f"key file {Path(path).expanduser()}"
     if doc.get("covey") == AUTHORITY_FILE:
-        raise FleetKeyError(f"{where} is the fleet AUTHORITY key: it must stay with the operator; "
-                            "give each process its member key (covey keygen add)")  # fmt: skip
+        raise FleetKeyError(
+            f"{where} is the fleet AUTHORITY key: it must stay with the operator; "
+            "give each process its member key (covey keygen add)"
+        )
     if doc.get("covey") != MEMBER_FILE:
         raise FleetKeyError(f"{where} is not a covey member key file")
     fleet = _field(doc, "fleet", str, where)
@@ -183,8 +189,10 @@ def read_member_key(path: str | os.PathLike[str]) -> MemberKey:
     key = MemberKey(fleet, role, member_id, private, authority, roster)
     entry = roster.member(role, member_id)
     if entry is None or entry.public_key != public_bytes(private):
-        raise FleetKeyError(f"{where}: {key.name} is not in its roster (v{roster.version}) with "
-                            "this key: revoked or replaced; ask the operator for a new key file")  # fmt: skip
+        raise FleetKeyError(
+            f"{where}: {key.name} is not in its roster (v{roster.version}) with "
+            "this key: revoked or replaced; ask the operator for a new key file"
+        )
     return key
 
 
@@ -214,15 +222,30 @@ def write_private_file(path: Path, doc: dict, overwrite: bool = False) -> None:
         os.replace(target, path)
 
 
-def member_doc(fleet: str, role: Role, member_id: int, private: Ed25519PrivateKey,
-               authority_public_key: bytes, roster: Roster) -> dict:  # fmt: skip
+def member_doc(
+    fleet: str,
+    role: Role,
+    member_id: int,
+    private: Ed25519PrivateKey,
+    authority_public_key: bytes,
+    roster: Roster,
+) -> dict:
     return {
-        "covey": MEMBER_FILE, "version": 1, "fleet": fleet, "role": role.name.lower(),
-        "id": member_id, "private_key": private_bytes(private).hex(),
-        "authority_public_key": authority_public_key.hex(), "roster": roster.encode().hex(),
-    }  # fmt: skip
+        "covey": MEMBER_FILE,
+        "version": 1,
+        "fleet": fleet,
+        "role": role.name.lower(),
+        "id": member_id,
+        "private_key": private_bytes(private).hex(),
+        "authority_public_key": authority_public_key.hex(),
+        "roster": roster.encode().hex(),
+    }
 
 
 def authority_doc(fleet: str, private: Ed25519PrivateKey) -> dict:
-    return {"covey": AUTHORITY_FILE, "version": 1, "fleet": fleet,
-            "private_key": private_bytes(private).hex()}  # fmt: skip
+    return {
+        "covey": AUTHORITY_FILE,
+        "version": 1,
+        "fleet": fleet,
+        "private_key": private_bytes(private).hex(),
+    }

@@ -20,7 +20,9 @@ from comms.schema import MAX_VEHICLE_ID
 
 ROOT = "covey"
 _FLEET_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
-_VEHICLE_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event)$")
+_VEHICLE_KEY_RE = re.compile(
+    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event)$"
+)
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
 
 
@@ -32,7 +34,11 @@ def check_fleet(fleet: str) -> str:
 
 
 def check_vehicle_id(vehicle_id: int) -> int:
-    if not isinstance(vehicle_id, int) or isinstance(vehicle_id, bool) or not 1 <= vehicle_id <= MAX_VEHICLE_ID:
+    if (
+        not isinstance(vehicle_id, int)
+        or isinstance(vehicle_id, bool)
+        or not 1 <= vehicle_id <= MAX_VEHICLE_ID
+    ):
         raise ValueError(f"vehicle id {vehicle_id!r} must be an integer in 1..{MAX_VEHICLE_ID}")
     return vehicle_id
 

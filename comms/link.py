@@ -288,9 +288,16 @@ class _Counters:
     def snapshot(self, vid: int) -> LinkStats:
         n = max(self.delivered, 1)
         return LinkStats(
-            vid, self.offered, self.transmitted, self.delivered, dict(self.dropped),
-            self.age_sum_s / n, self.age_max_s, self.delay_sum_s / n, self.delay_max_s,
-        )  # fmt: skip
+            vid,
+            self.offered,
+            self.transmitted,
+            self.delivered,
+            dict(self.dropped),
+            self.age_sum_s / n,
+            self.age_max_s,
+            self.delay_sum_s / n,
+            self.delay_max_s,
+        )
 
 
 class _Uniform(Protocol):

@@ -85,8 +85,10 @@ class Mesh:
         """`auth` is a comms.auth.FleetAuth (this member's key and the roster), or None for
         open mode. Raises FleetKeyError if the key is for another fleet."""
         if auth is not None and auth.fleet != cfg.fleet:
-            raise FleetKeyError(f"the key file is for fleet {auth.fleet!r}, but this process joins "
-                                f"fleet {cfg.fleet!r}")  # fmt: skip
+            raise FleetKeyError(
+                f"the key file is for fleet {auth.fleet!r}, but this process joins "
+                f"fleet {cfg.fleet!r}"
+            )
         self.cfg = cfg
         self.fleet = cfg.fleet
         self.clock_ns = clock_ns
@@ -233,7 +235,11 @@ class Mesh:
         cause, recv_ns)` hears of the others. If not given and `callback` is a bound method of an
         object with `on_state_refused` (the ground station's FleetModel), that is used.
         `ignore_id`: drop this vehicle's states unchecked (an agent's own, echoed back)."""
-        key = keys.all_states(self.fleet) if vehicle_id is None else keys.state(self.fleet, vehicle_id)
+        key = (
+            keys.all_states(self.fleet)
+            if vehicle_id is None
+            else keys.state(self.fleet, vehicle_id)
+        )
         if on_refused is None:
             on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
         checker = self.new_gate(gate) if self.auth is not None else None
@@ -244,7 +250,9 @@ class Mesh:
                 state = VehicleState.decode(sample.payload.to_bytes())
                 parsed = keys.parse_vehicle_key(str(sample.key_expr))
                 if parsed is None or parsed[1] != state.vehicle_id:
-                    raise DecodeError(f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}")
+                    raise DecodeError(
+                        f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}"
+                    )
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
                 return
@@ -297,10 +305,14 @@ class Mesh:
     # -- presence --------------------------------------------------------------------------
     def declare_vehicle(self, vehicle_id: int) -> zenoh.LivelinessToken:
         """Announce this process as vehicle `vehicle_id` until the token is undeclared."""
-        return self._keep(self.session.liveliness().declare_token(keys.alive(self.fleet, vehicle_id)))
+        return self._keep(
+            self.session.liveliness().declare_token(keys.alive(self.fleet, vehicle_id))
+        )
 
     def declare_gcs(self, gcs_id: int) -> zenoh.LivelinessToken:
-        return self._keep(self.session.liveliness().declare_token(keys.gcs_alive(self.fleet, gcs_id)))
+        return self._keep(
+            self.session.liveliness().declare_token(keys.gcs_alive(self.fleet, gcs_id))
+        )
 
     def presence(
         self,
@@ -311,7 +323,9 @@ class Mesh:
         pres = Presence(self.fleet, on_change=on_change, clock_ns=self.clock_ns)
         lv = self.session.liveliness()
         self._keep(lv.declare_subscriber(keys.all_alive(self.fleet), pres.on_sample, history=True))
-        self._keep(lv.declare_subscriber(keys.all_gcs_alive(self.fleet), pres.on_sample, history=True))
+        self._keep(
+            lv.declare_subscriber(keys.all_gcs_alive(self.fleet), pres.on_sample, history=True)
+        )
         return pres
 
     # -- commands --------------------------------------------------------------------------
@@ -359,8 +373,15 @@ class Mesh:
 
         return self._keep(self.session.declare_queryable(reply_key, on_query))
 
-    def _answer(self, query: zenoh.Query, reply_key: str, ack_key: str, answer: CommandAck,
-                command_payload: bytes, auth: Any) -> None:  # fmt: skip
+    def _answer(
+        self,
+        query: zenoh.Query,
+        reply_key: str,
+        ack_key: str,
+        answer: CommandAck,
+        command_payload: bytes,
+        auth: Any,
+    ) -> None:
         if auth is not None:
             answer = auth.sign_ack(answer, command_digest(command_payload))
         payload = answer.encode()
@@ -402,7 +423,9 @@ class Mesh:
                 return
             _guarded(on_ack, ack, recv_ns)
 
-        self._keep(self.session.declare_queryable(keys.all_cmds(self.fleet), on_query, complete=False))
+        self._keep(
+            self.session.declare_queryable(keys.all_cmds(self.fleet), on_query, complete=False)
+        )
         self._keep(self.session.declare_subscriber(keys.all_acks(self.fleet), on_sample))
 
     def send_command(
@@ -454,12 +477,16 @@ class Mesh:
                 continue
             problem = self.auth.check_ack(ack, command, digest) if self.auth else None
             if ack.nonce != command.nonce and ack.nonce != 0:
-                problem = f"forged ack: nonce {ack.nonce} does not match command nonce {command.nonce}"
+                problem = (
+                    f"forged ack: nonce {ack.nonce} does not match command nonce {command.nonce}"
+                )
             if problem:
                 errors.append(f"vehicle {ack.vehicle_id}: {problem}")
                 log.warning("vehicle %d: %s", ack.vehicle_id, problem)
                 if ack.vehicle_id not in outcomes or ack.vehicle_id not in verified:
-                    outcomes[ack.vehicle_id] = Outcome(ack.vehicle_id, OutcomeStatus.ERROR, problem, ack, latency_s)
+                    outcomes[ack.vehicle_id] = Outcome(
+                        ack.vehicle_id, OutcomeStatus.ERROR, problem, ack, latency_s
+                    )
                 continue
             verified.add(ack.vehicle_id)
             outcomes[ack.vehicle_id] = Outcome.from_ack(ack, latency_s)
@@ -469,7 +496,11 @@ class Mesh:
         elapsed_s = time.monotonic() - t0
         # The query ends early when every reachable queryable has answered: a vehicle missing
         # then is not on the mesh at all; one missing at the deadline is on it but silent.
-        why = f"no answer within {timeout_s:g} s" if elapsed_s >= 0.9 * timeout_s else "not reachable on the mesh"
+        why = (
+            f"no answer within {timeout_s:g} s"
+            if elapsed_s >= 0.9 * timeout_s
+            else "not reachable on the mesh"
+        )
         for vid in sorted(expected - outcomes.keys()):
             outcomes[vid] = Outcome(vid, OutcomeStatus.TIMEOUT, why, None, elapsed_s)
         return CommandResult(command=command, outcomes=outcomes, errors=tuple(errors))

@@ -101,9 +101,15 @@ def _leaf(topic: str) -> str:
 class McapSink:
     """Thread-safe MCAP writer: callbacks `put()`, one writer thread writes and flushes."""
 
-    def __init__(self, out: BinaryIO, fleet: str, chunk_bytes: int, flush_interval_s: float,
-                 clock_s: Callable[[], float] = time.monotonic,
-                 converter: Converter | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        out: BinaryIO,
+        fleet: str,
+        chunk_bytes: int,
+        flush_interval_s: float,
+        clock_s: Callable[[], float] = time.monotonic,
+        converter: Converter | None = None,
+    ) -> None:
         self._out = out
         self._converter = converter
         self._writer = Writer(out, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
@@ -206,8 +212,12 @@ class Sink(Protocol):
 class Recorder:
     """Records one fleet's mesh traffic while open. Use it as a context manager."""
 
-    def __init__(self, cfg: RecordConfig, clock_ns: Callable[[], int] = time.time_ns,
-                 sink: Sink | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cfg: RecordConfig,
+        clock_ns: Callable[[], int] = time.time_ns,
+        sink: Sink | None = None,
+    ) -> None:
         """`sink` replaces the MCAP file (cfg.path is then unused): the live Foxglove bridge is
         a recorder whose sink is a WebSocket server."""
         self.cfg = cfg
@@ -220,8 +230,9 @@ class Recorder:
                 self.sink: Sink = sink
             else:
                 converter = Converter(cfg.foxglove) if cfg.foxglove is not None else None
-                self.sink = McapSink(self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s,
-                                     converter=converter)  # fmt: skip
+                self.sink = McapSink(
+                    self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s, converter=converter
+                )
             self._session: zenoh.Session | None = open_session(cfg.mesh)
             s = self._session
             self._entities.append(s.declare_subscriber(keys.everything(fleet), self._on_sample))
@@ -278,8 +289,11 @@ class Recorder:
             self._file.close()
 
 
-def record(cfg: RecordConfig, stop: threading.Event | None = None,
-           on_open: Callable[[Recorder], None] | None = None) -> dict[str, int]:  # fmt: skip
+def record(
+    cfg: RecordConfig,
+    stop: threading.Event | None = None,
+    on_open: Callable[[Recorder], None] | None = None,
+) -> dict[str, int]:
     """Record until cfg.duration_s passes or `stop` is set; returns message counts by kind."""
     stop = stop or threading.Event()
     with Recorder(cfg) as rec:
@@ -367,8 +381,9 @@ def read_recording(path: str | Path) -> Recording:
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
-def add_foxglove_channels(src: str | Path, dst: str | Path,
-                          cfg: FoxgloveConfig = FoxgloveConfig()) -> dict[str, int]:  # fmt: skip
+def add_foxglove_channels(
+    src: str | Path, dst: str | Path, cfg: FoxgloveConfig = FoxgloveConfig()
+) -> dict[str, int]:
     """Write `dst`: the covey channels of recording `src`, unchanged (same bytes and log times),
     plus the standard Foxglove channels made from them. Returns message counts by kind.
 
@@ -408,8 +423,14 @@ def summarise(rec: Recording) -> dict:
     t0 = rec.messages[0].log_time_ns if rec.messages else 0
     t1 = rec.messages[-1].log_time_ns if rec.messages else 0
     duration_s = (t1 - t0) / 1e9
-    names = {"state": "states", "event": "events", "cmd": "commands", "ack": "acks", "alive": "presence",
-             "other": "other"}  # fmt: skip
+    names = {
+        "state": "states",
+        "event": "events",
+        "cmd": "commands",
+        "ack": "acks",
+        "alive": "presence",
+        "other": "other",
+    }
 
     def rate(n: int) -> float:
         return n / duration_s if duration_s > 0 else 0.0

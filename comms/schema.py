@@ -187,7 +187,9 @@ def _header(data: bytes, expected: MsgType, version: int = SCHEMA_VERSION) -> No
     if data[0] != expected:
         raise DecodeError(f"expected message type {expected.value}, got {data[0]}")
     if data[1] != version:
-        raise DecodeError(f"unsupported {expected.name} version {data[1]} (this covey speaks {version})")
+        raise DecodeError(
+            f"unsupported {expected.name} version {data[1]} (this covey speaks {version})"
+        )
 
 
 def _check_sig(sig: bytes) -> None:
@@ -242,10 +244,20 @@ class VehicleState:
     def signed_bytes(self) -> bytes:
         """Every byte that the signature covers (the whole state but the signature)."""
         return self._FMT.pack(
-            self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.seq, self.stamp_ns,
-            *self.pos_ned_m, *self.vel_ned_m_s, self.heading_rad, *self.goal_ned_m,
-            int(self.mode), int(self.armed), int(self.flags), self.battery_pct,
-        )  # fmt: skip
+            self.TYPE,
+            SCHEMA_VERSION,
+            self.vehicle_id,
+            self.seq,
+            self.stamp_ns,
+            *self.pos_ned_m,
+            *self.vel_ned_m_s,
+            self.heading_rad,
+            *self.goal_ned_m,
+            int(self.mode),
+            int(self.armed),
+            int(self.flags),
+            self.battery_pct,
+        )
 
     def encode(self) -> bytes:
         self.validate()
@@ -265,11 +277,19 @@ class VehicleState:
         if f[17] > 0xFF:
             raise DecodeError(f"flags={f[17]:#x} has unknown bits")
         msg = cls(
-            vehicle_id=f[2], seq=f[3], stamp_ns=f[4], pos_ned_m=f[5:8], vel_ned_m_s=f[8:11],
-            heading_rad=f[11], goal_ned_m=f[12:15], mode=_enum(Mode, "mode", f[15]),
-            armed=bool(f[16]), flags=StateFlag(f[17]), battery_pct=f[18],
+            vehicle_id=f[2],
+            seq=f[3],
+            stamp_ns=f[4],
+            pos_ned_m=f[5:8],
+            vel_ned_m_s=f[8:11],
+            heading_rad=f[11],
+            goal_ned_m=f[12:15],
+            mode=_enum(Mode, "mode", f[15]),
+            armed=bool(f[16]),
+            flags=StateFlag(f[17]),
+            battery_pct=f[18],
             sig=data[cls._FMT.size :],
-        )  # fmt: skip
+        )
         msg.validate()
         return msg
 
@@ -349,9 +369,16 @@ class Command:
     def signed_bytes(self) -> bytes:
         """Every byte that the tag covers."""
         head = self._HEAD.pack(
-            self.TYPE, self.VERSION, self.nonce, self.stamp_ns, self.source_id, int(self.kind),
-            *self.params, self.seq, len(self.targets),
-        )  # fmt: skip
+            self.TYPE,
+            self.VERSION,
+            self.nonce,
+            self.stamp_ns,
+            self.source_id,
+            int(self.kind),
+            *self.params,
+            self.seq,
+            len(self.targets),
+        )
         return head + struct.pack(f"<{len(self.targets)}H", *self.targets)
 
     def encode(self) -> bytes:
@@ -372,10 +399,15 @@ class Command:
             raise DecodeError(f"Command with {n} targets must be {expected} bytes, got {len(data)}")
         targets = struct.unpack_from(f"<{n}H", data, cls._HEAD.size)
         msg = cls(
-            nonce=f[2], stamp_ns=f[3], source_id=f[4], kind=_enum(CommandKind, "kind", f[5]),
-            params=f[6:9], seq=seq,
-            targets=targets, tag=data[-TAG_BYTES:],
-        )  # fmt: skip
+            nonce=f[2],
+            stamp_ns=f[3],
+            source_id=f[4],
+            kind=_enum(CommandKind, "kind", f[5]),
+            params=f[6:9],
+            seq=seq,
+            targets=targets,
+            tag=data[-TAG_BYTES:],
+        )
         msg.validate()
         return msg
 
@@ -414,9 +446,16 @@ class CommandAck:
 
     def signed_bytes(self) -> bytes:
         return self._FMT.pack(
-            self.TYPE, self.VERSION, self.vehicle_id, self.nonce, self.stamp_ns,
-            int(self.result), int(self.mode), _fit_text(self.reason, REASON_BYTES), b"",
-        )[: -TAG_BYTES]  # fmt: skip
+            self.TYPE,
+            self.VERSION,
+            self.vehicle_id,
+            self.nonce,
+            self.stamp_ns,
+            int(self.result),
+            int(self.mode),
+            _fit_text(self.reason, REASON_BYTES),
+            b"",
+        )[:-TAG_BYTES]
 
     def encode(self) -> bytes:
         self.validate()
@@ -429,9 +468,14 @@ class CommandAck:
             raise DecodeError(f"CommandAck must be {cls._FMT.size} bytes, got {len(data)}")
         f = cls._FMT.unpack(data)
         msg = cls(
-            vehicle_id=f[2], nonce=f[3], stamp_ns=f[4], result=_enum(AckResult, "result", f[5]),
-            mode=_enum(Mode, "mode", f[6]), reason=_text_field(f[7], "reason"), tag=f[8],
-        )  # fmt: skip
+            vehicle_id=f[2],
+            nonce=f[3],
+            stamp_ns=f[4],
+            result=_enum(AckResult, "result", f[5]),
+            mode=_enum(Mode, "mode", f[6]),
+            reason=_text_field(f[7], "reason"),
+            tag=f[8],
+        )
         msg.validate()
         return msg
 
@@ -461,9 +505,14 @@ class Event:
 
     def signed_bytes(self) -> bytes:
         return self._FMT.pack(
-            self.TYPE, SCHEMA_VERSION, self.vehicle_id, self.stamp_ns, int(self.severity),
-            int(self.kind), _fit_text(self.text, EVENT_TEXT_BYTES),
-        )  # fmt: skip
+            self.TYPE,
+            SCHEMA_VERSION,
+            self.vehicle_id,
+            self.stamp_ns,
+            int(self.severity),
+            int(self.kind),
+            _fit_text(self.text, EVENT_TEXT_BYTES),
+        )
 
     def encode(self) -> bytes:
         self.validate()
@@ -473,13 +522,18 @@ class Event:
     def decode(cls, data: bytes) -> Event:
         _header(data, cls.TYPE)
         if len(data) not in (cls._FMT.size, cls._FMT.size + TAG_BYTES):
-            raise DecodeError(f"Event must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), got {len(data)}")
+            raise DecodeError(
+                f"Event must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), got {len(data)}"
+            )
         f = cls._FMT.unpack_from(data)
         msg = cls(
-            vehicle_id=f[2], stamp_ns=f[3], severity=_enum(Severity, "severity", f[4]),
-            kind=_enum(EventKind, "kind", f[5]), text=_text_field(f[6], "text"),
+            vehicle_id=f[2],
+            stamp_ns=f[3],
+            severity=_enum(Severity, "severity", f[4]),
+            kind=_enum(EventKind, "kind", f[5]),
+            text=_text_field(f[6], "text"),
             sig=data[cls._FMT.size :],
-        )  # fmt: skip
+        )
         msg.validate()
         return msg
 
@@ -519,7 +573,9 @@ class Roster:
 
     def validate(self) -> None:
         if not isinstance(self.fleet, str) or not 1 <= len(self.fleet.encode()) <= FLEET_NAME_BYTES:
-            raise DecodeError(f"roster fleet name {self.fleet!r} must be 1-{FLEET_NAME_BYTES} bytes")
+            raise DecodeError(
+                f"roster fleet name {self.fleet!r} must be 1-{FLEET_NAME_BYTES} bytes"
+            )
         if not self.fleet.isascii() or not all(c.isalnum() or c in "_-" for c in self.fleet):
             raise DecodeError(f"roster fleet name {self.fleet!r} must be A-Z a-z 0-9 _ -")
         if not 1 <= self.version < 2**32:
@@ -542,8 +598,14 @@ class Roster:
             raise DecodeError(f"roster signature must be {TAG_BYTES} bytes, got {len(self.sig)}")
 
     def signed_bytes(self) -> bytes:
-        head = self._HEAD.pack(self.TYPE, SCHEMA_VERSION, self.fleet.encode(), self.version,
-                               self.stamp_ns, len(self.members))  # fmt: skip
+        head = self._HEAD.pack(
+            self.TYPE,
+            SCHEMA_VERSION,
+            self.fleet.encode(),
+            self.version,
+            self.stamp_ns,
+            len(self.members),
+        )
         return head + b"".join(
             self._MEMBER.pack(int(m.role), m.member_id, m.public_key) for m in self.members
         )
@@ -567,8 +629,13 @@ class Roster:
         for i in range(n):
             role, mid, key = cls._MEMBER.unpack_from(data, cls._HEAD.size + i * cls._MEMBER.size)
             members.append(Member(_enum(Role, "role", role), mid, key))  # type: ignore[arg-type]
-        msg = cls(fleet=_text_field(fleet_raw, "fleet"), version=version, stamp_ns=stamp_ns, members=tuple(members),
-                  sig=data[-TAG_BYTES:])  # fmt: skip
+        msg = cls(
+            fleet=_text_field(fleet_raw, "fleet"),
+            version=version,
+            stamp_ns=stamp_ns,
+            members=tuple(members),
+            sig=data[-TAG_BYTES:],
+        )
         msg.validate()
         return msg
 
@@ -600,6 +667,21 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
 
 
 __all__ = [
-    "AckResult", "Command", "CommandAck", "CommandKind", "DecodeError", "Event", "EventKind",
-    "Member", "Message", "Mode", "MsgType", "Role", "Roster", "Severity", "StateFlag", "VehicleState", "decode",
-]  # fmt: skip
+    "AckResult",
+    "Command",
+    "CommandAck",
+    "CommandKind",
+    "DecodeError",
+    "Event",
+    "EventKind",
+    "Member",
+    "Message",
+    "Mode",
+    "MsgType",
+    "Role",
+    "Roster",
+    "Severity",
+    "StateFlag",
+    "VehicleState",
+    "decode",
+]

@@ -62,13 +62,17 @@ def check_config_file(path: str) -> None:
     except FileNotFoundError:
         raise MeshConfigError(f"Zenoh config {path} does not exist") from None
     except OSError as exc:
-        raise MeshConfigError(f"Zenoh config {path}: cannot read it ({exc.strerror or exc})") from None
+        raise MeshConfigError(
+            f"Zenoh config {path}: cannot read it ({exc.strerror or exc})"
+        ) from None
     if len(raw) > MAX_CONFIG_BYTES:
         raise MeshConfigError(f"Zenoh config {path} is over {MAX_CONFIG_BYTES} bytes")
     try:
         raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise MeshConfigError(f"Zenoh config {path} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+        raise MeshConfigError(
+            f"Zenoh config {path} is not UTF-8 text ({exc.reason} at byte {exc.start})"
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -140,7 +144,9 @@ def embedded_router(port: int, fleet: str = "covey", host: str = "127.0.0.1") ->
 
 def embedded_peer(port: int, fleet: str = "covey", host: str = "127.0.0.1") -> MeshConfig:
     """The config of a process that joins an embedded mesh hosted on `port`."""
-    return MeshConfig(fleet=fleet, mode="peer", connect=(f"tcp/{host}:{port}",), listen=(f"tcp/{host}:0",))
+    return MeshConfig(
+        fleet=fleet, mode="peer", connect=(f"tcp/{host}:{port}",), listen=(f"tcp/{host}:0",)
+    )
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
@@ -157,5 +163,6 @@ def open_session(cfg: MeshConfig) -> zenoh.Session:
     try:
         return zenoh.open(conf)
     except Exception as exc:  # noqa: BLE001 - zenoh.ZError: one line, not a traceback
-        raise MeshConfigError(f"cannot join the mesh ({', '.join(cfg.listen) or 'no listen'}): "
-                              f"{_one_line(exc)}") from None  # fmt: skip
+        raise MeshConfigError(
+            f"cannot join the mesh ({', '.join(cfg.listen) or 'no listen'}): {_one_line(exc)}"
+        ) from None

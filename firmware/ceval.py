@@ -42,9 +42,15 @@ class COnboardFleet:
                 d = ((nbr_pos[row, m] - pos[row]) ** 2).sum(-1)
                 m = np.sort(m[np.argsort(d, kind="stable")[:MAX_INPUTS]])
             r = self._tick(vid).step(
-                pos[row], vel[row], heading[row], goal[row],
-                nbr_pos[row, m], nbr_vel[row, m], nbr_heading[row, m], t_s,
-            )  # fmt: skip
+                pos[row],
+                vel[row],
+                heading[row],
+                goal[row],
+                nbr_pos[row, m],
+                nbr_vel[row, m],
+                nbr_heading[row, m],
+                t_s,
+            )
             if r.status != "ok":
                 raise RuntimeError(
                     f"C guidance fault for vehicle {vid} at t={t_s:.2f} s: {r.status}"

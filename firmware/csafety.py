@@ -143,9 +143,14 @@ def bind(lib: ctypes.CDLL) -> None:
     fp = ctypes.POINTER(ctypes.c_float)
     lib.covey_safety_filter.restype = ctypes.c_int
     lib.covey_safety_filter.argtypes = [
-        ctypes.POINTER(SafetyConfigC), ctypes.POINTER(TrackC), fp, vp, ctypes.c_int32, vp,
+        ctypes.POINTER(SafetyConfigC),
+        ctypes.POINTER(TrackC),
+        fp,
+        vp,
+        ctypes.c_int32,
+        vp,
         ctypes.POINTER(SafetyOutC),
-    ]  # fmt: skip
+    ]
     lib.covey_safety_scratch_bytes.restype = ctypes.c_uint32
     lib.covey_safety_scratch_bytes.argtypes = []
     lib.covey_guidance_scratch_bytes.restype = ctypes.c_uint32
@@ -154,8 +159,18 @@ def bind(lib: ctypes.CDLL) -> None:
     lib.covey_trained_period_s.argtypes = [ctypes.POINTER(ConfigC)]
     lib.covey_guidance_step.restype = ctypes.c_int
     lib.covey_guidance_step.argtypes = [
-        vp, ctypes.POINTER(HoldC), vp, fp, vp, vp, vp, ctypes.c_int32, ctypes.c_uint64, vp, vp,
-    ]  # fmt: skip
+        vp,
+        ctypes.POINTER(HoldC),
+        vp,
+        fp,
+        vp,
+        vp,
+        vp,
+        ctypes.c_int32,
+        ctypes.c_uint64,
+        vp,
+        vp,
+    ]
 
 
 def _tracks(pos_m, vel_m_s) -> np.ndarray:
@@ -204,9 +219,14 @@ class CSafetyFilter:
         t = _tracks(nbr_pos_m, nbr_vel_m_s)
         out = SafetyOutC()
         st = self._lib.covey_safety_filter(
-            ctypes.byref(self._ccfg), ctypes.byref(TrackC(p[0], p[1], v[0], v[1])), pref,
-            t.ctypes.data, t.shape[0], self._scratch, ctypes.byref(out),
-        )  # fmt: skip
+            ctypes.byref(self._ccfg),
+            ctypes.byref(TrackC(p[0], p[1], v[0], v[1])),
+            pref,
+            t.ctypes.data,
+            t.shape[0],
+            self._scratch,
+            ctypes.byref(out),
+        )
         return FilterResult(
             STATUS_NAMES.get(st, str(st)),
             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
@@ -253,9 +273,18 @@ class COnboard:
         self._hold = HoldC()
 
     def step(
-        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad,
-        now_s: float, stamp_s: float | None = None, nbr_stamp_s=None,
-    ) -> StepResult:  # fmt: skip
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        now_s: float,
+        stamp_s: float | None = None,
+        nbr_stamp_s=None,
+    ) -> StepResult:
         """One tick at `now_s` (stamps default to now: fresh)."""
         now_us = int(round(now_s * 1e6))
         nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
@@ -281,10 +310,18 @@ class COnboard:
         goal = np.asarray(goal_m, dtype=np.float32).reshape(2)
         out = self._out
         st = self._lib.covey_guidance_step(
-            ctypes.addressof(self._cfg), ctypes.byref(self._hold), own.ctypes.data, ov,
-            goal.ctypes.data, nb.ctypes.data, nv.ctypes.data, k, now_us, self._scratch,
+            ctypes.addressof(self._cfg),
+            ctypes.byref(self._hold),
+            own.ctypes.data,
+            ov,
+            goal.ctypes.data,
+            nb.ctypes.data,
+            nv.ctypes.data,
+            k,
+            now_us,
+            self._scratch,
             ctypes.addressof(out),
-        )  # fmt: skip
+        )
         return StepResult(
             STATUS_NAMES.get(st, str(st)),
             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),

@@ -99,8 +99,13 @@ def web_host_problem(host: str) -> str | None:
 class GroundStation:
     """Context manager: the running ground station."""
 
-    def __init__(self, cfg: GcsConfig, *, mesh: Mesh | None = None,
-                 clock_ns: Callable[[], int] = time.time_ns) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cfg: GcsConfig,
+        *,
+        mesh: Mesh | None = None,
+        clock_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
         self.cfg = cfg
         self._clock_ns = clock_ns
         self._given_mesh = mesh
@@ -139,7 +144,9 @@ class GroundStation:
         problem = web_host_problem(cfg.host)
         if problem:  # before anything joins the mesh
             raise ValueError(problem)
-        self.mesh = self._given_mesh or Mesh(cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file))
+        self.mesh = self._given_mesh or Mesh(
+            cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file)
+        )
         if cfg.link not in ("", "perfect"):
             from comms.link import emulator_from_spec
 
@@ -147,14 +154,17 @@ class GroundStation:
                 cfg.link, seed=cfg.seed, receiver_pos=lambda: (0.0, 0.0, 0.0)
             )
             self._link.__enter__()
-        self.mesh.subscribe_states(self.fleet.on_state, link=self._link, on_refused=self.fleet.on_state_refused)
+        self.mesh.subscribe_states(
+            self.fleet.on_state, link=self._link, on_refused=self.fleet.on_state_refused
+        )
         self.mesh.on_security = self._on_security
         self.mesh.subscribe_events(self.events.add)
         self.mesh.observe_commands(self.commands.on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
         self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="covey", verbose=False)
-        self.server.gui.configure_theme(control_width="large", show_share_button=False,
-                                        brand_color=(20, 110, 160))  # fmt: skip
+        self.server.gui.configure_theme(
+            control_width="large", show_share_button=False, brand_color=(20, 110, 160)
+        )
         cam, view_m = self.server.initial_camera, self.cfg.view_radius_m
         cam.position, cam.look_at = (-0.45 * view_m, -1.3 * view_m, 0.9 * view_m), (0.0, 0.0, 2.0)
         self._build_gui()
@@ -169,27 +179,45 @@ class GroundStation:
         assert self.server is not None
         gui = self.server.gui
         auth = self.mesh.auth
-        trust = (f"keyed, roster v{auth.roster.version}" if auth is not None
-                 else "**OPEN MODE**: commands and states are not signed")  # fmt: skip
-        gui.add_markdown(f"**covey** ground station · fleet `{self.mesh.fleet}` · station {self.cfg.gcs_id} · {trust}")
+        trust = (
+            f"keyed, roster v{auth.roster.version}"
+            if auth is not None
+            else "**OPEN MODE**: commands and states are not signed"
+        )
+        gui.add_markdown(
+            f"**covey** ground station · fleet `{self.mesh.fleet}` · station {self.cfg.gcs_id} · {trust}"
+        )
         with gui.add_folder("Fleet"):
             self.table = gui.add_html("<i>waiting for vehicles…</i>")
             gui.add_html(legend())
         with gui.add_folder("Command log (every station)", expand_by_default=False):
             self.command_log_html = gui.add_html(command_log_html([], self.cfg.gcs_id))
         self.forms = BrowserForms(self.server, FORM_LABELS)
-        self._hooks = PanelHooks(known_ids=self.known_ids, dispatch=self.dispatch, scenario=self.scenario_jobs,
-                                 now_s=time.monotonic)  # fmt: skip
+        self._hooks = PanelHooks(
+            known_ids=self.known_ids,
+            dispatch=self.dispatch,
+            scenario=self.scenario_jobs,
+            now_s=time.monotonic,
+        )
         self.server.on_client_connect(self._open_tab)
         self.server.on_client_disconnect(self._close_tab)
-        self.scene = FleetScene(self.server, SceneConfig(self.cfg.geofence_radius_m, self.cfg.separation_m),
-                                on_vehicle_click=self._select)  # fmt: skip
+        self.scene = FleetScene(
+            self.server,
+            SceneConfig(self.cfg.geofence_radius_m, self.cfg.separation_m),
+            on_vehicle_click=self._select,
+        )
 
     # -- browser tabs: each has its own events filter and command panel ------------------
     def _open_tab(self, client: viser.ClientHandle) -> None:
         view = EventsView(client.gui, self.events)
-        panel = CommandPanel(client, self._hooks, self.forms, self.cfg.origin,
-                             goto_limit_m=self.cfg.geofence_radius_m, kill_window_s=self.cfg.kill_window_s)  # fmt: skip
+        panel = CommandPanel(
+            client,
+            self._hooks,
+            self.forms,
+            self.cfg.origin,
+            goto_limit_m=self.cfg.geofence_radius_m,
+            kill_window_s=self.cfg.kill_window_s,
+        )
         with self._tabs_lock:
             self._event_views[client.client_id] = view
             self.panels[client.client_id] = panel
@@ -245,8 +273,15 @@ class GroundStation:
 
     def _on_security(self, line: str) -> None:
         """The mesh's own refusal summaries (one per cause a second) go to the events panel."""
-        self.events.add(Event(vehicle_id=0, stamp_ns=self._clock_ns(), text=line[:119],
-                              kind=EventKind.SECURITY, severity=Severity.WARNING))  # fmt: skip
+        self.events.add(
+            Event(
+                vehicle_id=0,
+                stamp_ns=self._clock_ns(),
+                text=line[:119],
+                kind=EventKind.SECURITY,
+                severity=Severity.WARNING,
+            )
+        )
 
     def _on_ack(self, ack: CommandAck, recv_ns: int) -> None:
         auth = self.mesh.auth if self.mesh is not None else None
@@ -261,17 +296,29 @@ class GroundStation:
             panel = self.panels.get(mine) if mine is not None else None
         if panel is None or theirs == mine:
             return
-        by = "another tab of this station" if later.source_id == self.cfg.gcs_id else f"station {later.source_id}"
-        panel.say(f"Superseded on vehicle {vehicle_id}: your {before.describe()} was replaced by "
-                  f"{by}'s {later.describe()}.", error=True)  # fmt: skip
+        by = (
+            "another tab of this station"
+            if later.source_id == self.cfg.gcs_id
+            else f"station {later.source_id}"
+        )
+        panel.say(
+            f"Superseded on vehicle {vehicle_id}: your {before.describe()} was replaced by "
+            f"{by}'s {later.describe()}.",
+            error=True,
+        )
 
     # -- panel hooks ---------------------------------------------------------------------
     def known_ids(self) -> set[int]:
         present = self.presence.vehicles if self.presence else set()
         return present | set(self.fleet.ids())
 
-    def dispatch(self, label: str, jobs: list[Job], on_done: Callable[[Dispatched], None],
-                 client_id: int | None = None) -> None:  # fmt: skip
+    def dispatch(
+        self,
+        label: str,
+        jobs: list[Job],
+        on_done: Callable[[Dispatched], None],
+        client_id: int | None = None,
+    ) -> None:
         mesh, present = self.mesh, self.presence.vehicles if self.presence else set()
         timeout_s, source = self.cfg.command_timeout_s, self.cfg.gcs_id
 
@@ -279,8 +326,18 @@ class GroundStation:
             self._remember_sender(cmd, client_id)
 
         def run() -> list:
-            return [dispatch.send(mesh, req, targets, present=present, source_id=source, timeout_s=timeout_s,
-                                  on_built=remember) for req, targets in jobs]  # fmt: skip
+            return [
+                dispatch.send(
+                    mesh,
+                    req,
+                    targets,
+                    present=present,
+                    source_id=source,
+                    timeout_s=timeout_s,
+                    on_built=remember,
+                )
+                for req, targets in jobs
+            ]
 
         self._worker.submit(label, run, on_done)
 
@@ -321,7 +378,9 @@ class GroundStation:
                 self.table.content = fleet_table(snap, refused_states=self.fleet.phantom_refusals)
                 if self._commands_shown != self.commands.version:
                     self._commands_shown = self.commands.version
-                    self.command_log_html.content = command_log_html(self.commands.entries(), self.cfg.gcs_id)
+                    self.command_log_html.content = command_log_html(
+                        self.commands.entries(), self.cfg.gcs_id
+                    )
                 for view in self._tabs()[1]:
                     view.render()
         return time.perf_counter() - t0

@@ -19,8 +19,9 @@ def port(text: str) -> int:
     return v
 
 
-def finite(unit: str, *, minimum: float = 0.0, inclusive: bool = False,
-           allow_inf: bool = False) -> Callable[[str], float]:  # fmt: skip
+def finite(
+    unit: str, *, minimum: float = 0.0, inclusive: bool = False, allow_inf: bool = False
+) -> Callable[[str], float]:
     """A finite number of `unit` above `minimum` (or at least it, with `inclusive`); with
     `allow_inf`, also "inf" (for "as fast as possible")."""
     bound = f">= {minimum:g}" if inclusive else f"> {minimum:g}"

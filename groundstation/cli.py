@@ -41,10 +41,12 @@ def parser() -> argparse.ArgumentParser:
         "--port", type=int, default=8080, help="web port (default: 8080; next free if busy)"
     )
     p.add_argument(
-        "--gcs-id", type=int, default=None,
+        "--gcs-id",
+        type=int,
+        default=None,
         help="this station's id on the mesh (default: random in 2..65000, so that two stations "
         "never share a liveliness token)",
-    )  # fmt: skip
+    )
     p.add_argument(
         "--geofence-radius-m", type=float, default=50.0, help="geofence radius drawn (default: 50)"
     )
@@ -67,7 +69,9 @@ def cli(argv: list[str] | None = None) -> int:
     key = None
     try:
         if args.key_file is not None or os.environ.get(ENV_KEY_FILE):
-            key = read_member_key(args.key_file if args.key_file is not None else os.environ[ENV_KEY_FILE])
+            key = read_member_key(
+                args.key_file if args.key_file is not None else os.environ[ENV_KEY_FILE]
+            )
     except ValueError as exc:
         die(p, str(exc))
     if key is not None:
@@ -89,9 +93,15 @@ def cli(argv: list[str] | None = None) -> int:
         parse_link_spec(args.link)
     except ValueError as exc:
         p.error(f"--link: {exc}")
-    cfg = GcsConfig(mesh=mesh_config(args, p), host=args.host, port=args.port, gcs_id=args.gcs_id,
-                    geofence_radius_m=args.geofence_radius_m, link=args.link,
-                    key_file=args.key_file)  # fmt: skip
+    cfg = GcsConfig(
+        mesh=mesh_config(args, p),
+        host=args.host,
+        port=args.port,
+        gcs_id=args.gcs_id,
+        geofence_radius_m=args.geofence_radius_m,
+        link=args.link,
+        key_file=args.key_file,
+    )
     try:
         return main(cfg)
     except ValueError as exc:  # FleetKeyError (key file), MeshConfigError (Zenoh config, port)

@@ -84,8 +84,14 @@ class _Entry:
     dropped_answers: int = 0
 
     def view(self) -> LoggedCommand:
-        return LoggedCommand(self.seq, self.recv_ns, self.command, dict(self.answers),
-                             dict(self.superseded), self.dropped_answers)  # fmt: skip
+        return LoggedCommand(
+            self.seq,
+            self.recv_ns,
+            self.command,
+            dict(self.answers),
+            dict(self.superseded),
+            self.dropped_answers,
+        )
 
 
 SupersededCallback = Callable[[LoggedCommand, int, LoggedCommand], None]
@@ -98,8 +104,9 @@ AckCheck = Callable[[CommandAck, Command, bytes], str | None]
 
 
 class CommandLog:
-    def __init__(self, cfg: CommandLogConfig | None = None,
-                 on_superseded: SupersededCallback | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, cfg: CommandLogConfig | None = None, on_superseded: SupersededCallback | None = None
+    ) -> None:
         self.cfg = cfg or CommandLogConfig()
         self.on_superseded = on_superseded
         self._lock = threading.Lock()

@@ -84,8 +84,9 @@ class Children:
     def start(self, argv: list[str]) -> subprocess.Popen:
         # process_group=0: its own group, so the terminal's Ctrl-C reaches only the demo, which
         # then stops the children in order (the agents land their state machines cleanly).
-        proc = subprocess.Popen(argv, process_group=0, preexec_fn=_die_with_parent,
-                                stdin=subprocess.DEVNULL)  # fmt: skip
+        proc = subprocess.Popen(
+            argv, process_group=0, preexec_fn=_die_with_parent, stdin=subprocess.DEVNULL
+        )
         self.procs.append(proc)
         return proc
 
@@ -119,36 +120,69 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
     with contextlib.ExitStack() as stack:
         auth, key_args, cli_key = None, lambda _vid: [], ""
         if cfg.keyed:
-            keys_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="covey-demo-keys-")))
+            keys_dir = Path(
+                stack.enter_context(tempfile.TemporaryDirectory(prefix="covey-demo-keys-"))
+            )
             authority = Authority.init(keys_dir, cfg.fleet)
             cli_station = gcs_cfg.gcs_id + 1  # for `covey cmd` / `covey status` from a terminal
-            paths = authority.add_many([(Role.STATION, gcs_cfg.gcs_id), (Role.STATION, cli_station)]
-                                       + [(Role.VEHICLE, v) for v in range(1, cfg.vehicles + 1)])  # fmt: skip
+            paths = authority.add_many(
+                [(Role.STATION, gcs_cfg.gcs_id), (Role.STATION, cli_station)]
+                + [(Role.VEHICLE, v) for v in range(1, cfg.vehicles + 1)]
+            )
             cli_key = f" --key-file {paths[1]}"
             auth = load_auth(str(paths[0]), fleet=cfg.fleet)
             key_args = lambda vid: ["--key-file", str(authority.member_path(Role.VEHICLE, vid))]  # noqa: E731
-            print(f"covey demo: keyed mode: a throwaway fleet authority signed keys for {cfg.vehicles} "
-                  f"vehicles and stations {gcs_cfg.gcs_id} (this one) and {cli_station} (for covey cmd) "
-                  f"in {keys_dir} (deleted on exit)", flush=True)  # fmt: skip
+            print(
+                f"covey demo: keyed mode: a throwaway fleet authority signed keys for {cfg.vehicles} "
+                f"vehicles and stations {gcs_cfg.gcs_id} (this one) and {cli_station} (for covey cmd) "
+                f"in {keys_dir} (deleted on exit)",
+                flush=True,
+            )
         else:
-            print("covey demo: OPEN MODE (--open-mode): commands, states and events are NOT "
-                  "authenticated; anyone on the mesh can fly these vehicles", flush=True)  # fmt: skip
+            print(
+                "covey demo: OPEN MODE (--open-mode): commands, states and events are NOT "
+                "authenticated; anyone on the mesh can fly these vehicles",
+                flush=True,
+            )
         return _run(cfg, stop, mesh_port, endpoint, gcs_cfg, auth, key_args, cli_key)
 
 
-def _run(cfg: DemoConfig, stop: threading.Event, mesh_port: int, endpoint: str, gcs_cfg: GcsConfig,
-         auth, key_args, cli_key: str) -> int:  # fmt: skip
+def _run(
+    cfg: DemoConfig,
+    stop: threading.Event,
+    mesh_port: int,
+    endpoint: str,
+    gcs_cfg: GcsConfig,
+    auth,
+    key_args,
+    cli_key: str,
+) -> int:
     with (
         Mesh(embedded_router(mesh_port, fleet=cfg.fleet), auth=auth) as mesh,
         GroundStation(gcs_cfg, mesh=mesh) as gcs,
         Children(cfg.stop_timeout_s) as children,
     ):
         for vid, (n, e) in enumerate(grid_starts(cfg.vehicles, cfg.spacing_m), start=1):
-            proc = children.start([
-                *cfg.agent_argv, "--id", str(vid), "--fleet", cfg.fleet, "--connect", endpoint,
-                "--vehicle", "sim", "--link", cfg.link, f"--start={n:g},{e:g}",
-                "--geofence-radius-m", f"{cfg.geofence_radius_m:g}", *key_args(vid), *cfg.agent_extra,
-            ])  # fmt: skip
+            proc = children.start(
+                [
+                    *cfg.agent_argv,
+                    "--id",
+                    str(vid),
+                    "--fleet",
+                    cfg.fleet,
+                    "--connect",
+                    endpoint,
+                    "--vehicle",
+                    "sim",
+                    "--link",
+                    cfg.link,
+                    f"--start={n:g},{e:g}",
+                    "--geofence-radius-m",
+                    f"{cfg.geofence_radius_m:g}",
+                    *key_args(vid),
+                    *cfg.agent_extra,
+                ]
+            )
             print(f"covey demo: vehicle {vid} pid {proc.pid} start N {n:g} E {e:g}", flush=True)
         port = gcs.server.get_port()
         if cfg.port and port != cfg.port:
@@ -189,9 +223,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--geofence-radius-m", type=float, default=50.0, help="geofence radius (default 50 m)"
     )
-    p.add_argument("--open-mode", action="store_true",
-                   help="run without keys: nothing authenticated (tests only; default: keyed with "
-                   "throwaway keys)")  # fmt: skip
+    p.add_argument(
+        "--open-mode",
+        action="store_true",
+        help="run without keys: nothing authenticated (tests only; default: keyed with "
+        "throwaway keys)",
+    )
     return p
 
 
@@ -206,9 +243,16 @@ def cli(argv: list[str] | None = None) -> int:
         p.error("--spacing-m must be at least 1 m")
     if not (math.isfinite(args.geofence_radius_m) and args.geofence_radius_m > 0):
         p.error("--geofence-radius-m must be positive")
-    cfg = DemoConfig(vehicles=args.vehicles, link=args.link, port=args.port, fleet=args.fleet,
-                     mesh_port=args.mesh_port, spacing_m=args.spacing_m,
-                     geofence_radius_m=args.geofence_radius_m, keyed=not args.open_mode)  # fmt: skip
+    cfg = DemoConfig(
+        vehicles=args.vehicles,
+        link=args.link,
+        port=args.port,
+        fleet=args.fleet,
+        mesh_port=args.mesh_port,
+        spacing_m=args.spacing_m,
+        geofence_radius_m=args.geofence_radius_m,
+        keyed=not args.open_mode,
+    )
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

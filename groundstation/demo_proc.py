@@ -81,9 +81,12 @@ class DemoProcess:
     def __enter__(self) -> DemoProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-u", "-m", "covey_cli", "demo", *self.args],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            text=True,
             env={**os.environ, **(self.env or {})},
-        )  # fmt: skip
+        )
         threading.Thread(target=self._read, daemon=True).start()
         try:
             self.wait_for_line(_URL_RE, self.start_timeout_s)

@@ -26,9 +26,13 @@ def build_command(
 ) -> Command:
     """A wire Command for `req` to `targets` (() = whole fleet)."""
     cmd = Command(
-        kind=req.kind, nonce=new_nonce(), stamp_ns=stamp_ns, params=req.params,
-        targets=targets, source_id=source_id,
-    )  # fmt: skip
+        kind=req.kind,
+        nonce=new_nonce(),
+        stamp_ns=stamp_ns,
+        params=req.params,
+        targets=targets,
+        source_id=source_id,
+    )
     cmd.validate()
     return cmd
 

@@ -40,8 +40,11 @@ class EventsConfig:
 class EventBuffer:
     """Thread-safe: Zenoh threads add, the render thread reads."""
 
-    def __init__(self, cfg: EventsConfig | None = None,
-                 clock_text: Callable[[], str] = lambda: time.strftime("%H:%M:%S")) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cfg: EventsConfig | None = None,
+        clock_text: Callable[[], str] = lambda: time.strftime("%H:%M:%S"),
+    ) -> None:
         self.cfg = cfg or EventsConfig()
         self._clock_text = clock_text
         self._lock = threading.Lock()
@@ -56,8 +59,12 @@ class EventBuffer:
             self._by_kind[event.kind].append((self._n, self._clock_text(), event))
             self.version += 1
 
-    def latest(self, kind: EventKind | None = None, min_severity: Severity = Severity.DEBUG,
-               n: int | None = None) -> list[tuple[str, Event]]:  # fmt: skip
+    def latest(
+        self,
+        kind: EventKind | None = None,
+        min_severity: Severity = Severity.DEBUG,
+        n: int | None = None,
+    ) -> list[tuple[str, Event]]:
         """The newest `n` events of `kind` (None: any) at `min_severity` or above, oldest first.
         Across all kinds, each kind fills at most a third of the lines, so a flood of one kind
         cannot push a rarer one (a mode change, a failsafe) off the panel."""

@@ -188,7 +188,10 @@ class FleetModel:
     def _expire(self, now_ns: int) -> None:
         """Forget vehicles that are not present on the mesh for too long (lock held)."""
         cfg = self.cfg
-        unconfirmed_ns, lost_ns = int(cfg.unconfirmed_expire_s * NS_PER_S), int(cfg.lost_expire_s * NS_PER_S)
+        unconfirmed_ns, lost_ns = (
+            int(cfg.unconfirmed_expire_s * NS_PER_S),
+            int(cfg.lost_expire_s * NS_PER_S),
+        )
         gone = [
             vid
             for vid, t in self._tracks.items()

@@ -130,10 +130,19 @@ def parse_origin(text: str) -> GeoOrigin:
 def add_foxglove_args(p: argparse.ArgumentParser) -> None:
     """Options for how the fleet is drawn, shared with `covey record`."""
     g = p.add_argument_group("foxglove channels")
-    g.add_argument("--origin", type=parse_origin, default=GeoOrigin(), metavar="LAT,LON,ALT",
-                   help="fleet origin (NED 0,0,0) on WGS-84 for the map; default: covey's")  # fmt: skip
-    g.add_argument("--separation-m", type=finite("metres"), default=3.0,
-                   help="radius of the ring drawn around each vehicle (default 3)")  # fmt: skip
+    g.add_argument(
+        "--origin",
+        type=parse_origin,
+        default=GeoOrigin(),
+        metavar="LAT,LON,ALT",
+        help="fleet origin (NED 0,0,0) on WGS-84 for the map; default: covey's",
+    )
+    g.add_argument(
+        "--separation-m",
+        type=finite("metres"),
+        default=3.0,
+        help="radius of the ring drawn around each vehicle (default 3)",
+    )
 
 
 def foxglove_config(args: argparse.Namespace) -> FoxgloveConfig:
@@ -146,12 +155,24 @@ def parser() -> argparse.ArgumentParser:
         description="Serve a live fleet to Foxglove (WebSocket protocol): the same channels as "
         "a recording. In Foxglove: Open connection -> Foxglove WebSocket -> ws://HOST:PORT.",
     )
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to serve on (default 127.0.0.1; the protocol has no auth)")  # fmt: skip
-    p.add_argument("--port", type=port, default=DEFAULT_PORT,
-                   help=f"WebSocket port (default {DEFAULT_PORT}; 0 = any free port)")  # fmt: skip
-    p.add_argument("--duration-s", type=finite("seconds"), default=None, metavar="S",
-                   help="stop after S seconds (default: until Ctrl-C)")  # fmt: skip
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to serve on (default 127.0.0.1; the protocol has no auth)",
+    )
+    p.add_argument(
+        "--port",
+        type=port,
+        default=DEFAULT_PORT,
+        help=f"WebSocket port (default {DEFAULT_PORT}; 0 = any free port)",
+    )
+    p.add_argument(
+        "--duration-s",
+        type=finite("seconds"),
+        default=None,
+        metavar="S",
+        help="stop after S seconds (default: until Ctrl-C)",
+    )
     add_foxglove_args(p)
     add_mesh_args(p)
     return p
@@ -175,8 +196,12 @@ def cli(argv: list[str]) -> int:
     p = parser()
     args = p.parse_args(argv)
     try:
-        cfg = BridgeConfig(mesh=mesh_config(args, p), host=args.host, port=args.port,
-                           foxglove=foxglove_config(args))  # fmt: skip
+        cfg = BridgeConfig(
+            mesh=mesh_config(args, p),
+            host=args.host,
+            port=args.port,
+            foxglove=foxglove_config(args),
+        )
     except ValueError as exc:
         p.error(str(exc))
     return main(cfg, _stop_on_signals(), args.duration_s)

@@ -32,13 +32,19 @@ VERBS = {
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="covey keygen", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p = argparse.ArgumentParser(
+        prog="covey keygen",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
     for verb, text in VERBS.items():
         sp = sub.add_parser(verb, help=text, description=text)
-        sp.add_argument("--dir", default=str(DEFAULT_DIR),
-                        help=f"the authority's directory (default {DEFAULT_DIR})")  # fmt: skip
+        sp.add_argument(
+            "--dir",
+            default=str(DEFAULT_DIR),
+            help=f"the authority's directory (default {DEFAULT_DIR})",
+        )
         if verb == "init":
             sp.add_argument("--fleet", default="covey", help="fleet name (default covey)")
         if verb in ("add", "revoke"):
@@ -46,8 +52,12 @@ def parser() -> argparse.ArgumentParser:
             sp.add_argument("id", type=int, help=f"vehicle id or station id, 1..{MAX_VEHICLE_ID}")
         if verb == "push":
             add_mesh_args(sp, key_file=False)
-            sp.add_argument("--duration-s", type=float, default=2.0,
-                            help="keep re-publishing this long while peers connect (default 2)")  # fmt: skip
+            sp.add_argument(
+                "--duration-s",
+                type=float,
+                default=2.0,
+                help="keep re-publishing this long while peers connect (default 2)",
+            )
     return p
 
 
@@ -60,18 +70,24 @@ def keygen_cli(argv: list[str]) -> int:
     try:
         if args.verb == "init":
             auth = Authority.init(args.dir, args.fleet)
-            print(f"fleet {auth.fleet}: authority key {auth.dir / AUTHORITY} (mode 0600; keep it off "
-                  f"the vehicles), roster v1 at {auth.dir / ROSTER}")  # fmt: skip
+            print(
+                f"fleet {auth.fleet}: authority key {auth.dir / AUTHORITY} (mode 0600; keep it off "
+                f"the vehicles), roster v1 at {auth.dir / ROSTER}"
+            )
             return 0
         auth = Authority(args.dir)
         if args.verb == "add":
             path = auth.add(role, args.id)
-            print(f"{args.role} {args.id}: key file {path} (mode 0600; copy it to that {args.role} "
-                  f"only); roster v{auth.roster.version}")  # fmt: skip
+            print(
+                f"{args.role} {args.id}: key file {path} (mode 0600; copy it to that {args.role} "
+                f"only); roster v{auth.roster.version}"
+            )
         elif args.verb == "revoke":
             auth.revoke(role, args.id)
-            print(f"{args.role} {args.id} revoked: roster v{auth.roster.version}; `covey keygen push` "
-                  "applies it to a running fleet")  # fmt: skip
+            print(
+                f"{args.role} {args.id} revoked: roster v{auth.roster.version}; `covey keygen push` "
+                "applies it to a running fleet"
+            )
         elif args.verb == "list":
             r = auth.roster
             print(f"fleet {r.fleet} roster v{r.version}, {len(r.members)} members")
@@ -107,5 +123,7 @@ def _push(auth: Authority, args: argparse.Namespace, p: argparse.ArgumentParser)
                 time.sleep(0.25)
     except ValueError as exc:  # MeshConfigError: busy port, bad config
         die(p, str(exc))
-    print(f"pushed fleet {auth.fleet} roster v{auth.roster.version} ({len(auth.roster.members)} members)")
+    print(
+        f"pushed fleet {auth.fleet} roster v{auth.roster.version} ({len(auth.roster.members)} members)"
+    )
     return 0

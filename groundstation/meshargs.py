@@ -18,20 +18,41 @@ def die(parser: argparse.ArgumentParser, message: str) -> NoReturn:
 def add_mesh_args(parser: argparse.ArgumentParser, key_file: bool = True) -> None:
     g = parser.add_argument_group("mesh")
     g.add_argument("--fleet", default="covey", help="fleet name (default: covey)")
-    g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
-                   help=f"endpoint to connect to, repeatable (default: tcp/127.0.0.1:{DEFAULT_PORT}; "
-                   "`covey demo` prints its own)")  # fmt: skip
-    g.add_argument("--mesh-mode", choices=("peer", "client", "router"), default="peer",
-                   help="Zenoh role of this process (default: peer)")  # fmt: skip
-    g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
-                   help="endpoint to listen on (default: tcp/127.0.0.1:0 for a peer)")  # fmt: skip
-    g.add_argument("--zenoh-config", default=None, metavar="FILE",
-                   help="full Zenoh JSON5 config: TLS, user/password, access control "
-                   "(comms/zenoh_configs/)")  # fmt: skip
+    g.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help=f"endpoint to connect to, repeatable (default: tcp/127.0.0.1:{DEFAULT_PORT}; "
+        "`covey demo` prints its own)",
+    )
+    g.add_argument(
+        "--mesh-mode",
+        choices=("peer", "client", "router"),
+        default="peer",
+        help="Zenoh role of this process (default: peer)",
+    )
+    g.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="endpoint to listen on (default: tcp/127.0.0.1:0 for a peer)",
+    )
+    g.add_argument(
+        "--zenoh-config",
+        default=None,
+        metavar="FILE",
+        help="full Zenoh JSON5 config: TLS, user/password, access control (comms/zenoh_configs/)",
+    )
     if key_file:
-        g.add_argument("--key-file", default=None, metavar="FILE",
-                       help="this member's key file (covey keygen add); or $COVEY_FLEET_KEY_FILE. "
-                       "Without one: OPEN MODE (nothing authenticated; tests only)")  # fmt: skip
+        g.add_argument(
+            "--key-file",
+            default=None,
+            metavar="FILE",
+            help="this member's key file (covey keygen add); or $COVEY_FLEET_KEY_FILE. "
+            "Without one: OPEN MODE (nothing authenticated; tests only)",
+        )
 
 
 def mesh_config(args: argparse.Namespace, parser: argparse.ArgumentParser) -> MeshConfig:

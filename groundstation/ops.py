@@ -40,8 +40,10 @@ class StatusConfig:
 
 
 def format_status(snap: FleetSnapshot) -> str:
-    lines = [f"{'id':>5} {'alive':>5} {'mode':<10} {'arm':>3} {'N m':>7} {'E m':>7} {'alt m':>6} "
-             f"{'m/s':>5} {'bat%':>5} {'Hz':>5} {'age s':>6} {'loss%':>5}"]  # fmt: skip
+    lines = [
+        f"{'id':>5} {'alive':>5} {'mode':<10} {'arm':>3} {'N m':>7} {'E m':>7} {'alt m':>6} "
+        f"{'m/s':>5} {'bat%':>5} {'Hz':>5} {'age s':>6} {'loss%':>5}"
+    ]
     for v in snap.vehicles:
         s = v.state
         if s is None:
@@ -74,8 +76,10 @@ def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
         refused = mesh.stats.states_refused
     out(format_status(snap) if snap.vehicles else "no vehicles on the mesh")
     if refused:
-        out(f"SECURITY: {refused} states refused (forged, replayed or unsigned); "
-            f"unverified: {', '.join(str(v.vehicle_id) for v in snap.vehicles if v.unverified) or 'none'}")  # fmt: skip
+        out(
+            f"SECURITY: {refused} states refused (forged, replayed or unsigned); "
+            f"unverified: {', '.join(str(v.vehicle_id) for v in snap.vehicles if v.unverified) or 'none'}"
+        )
     out(f"ground stations: {', '.join(map(str, stations)) or 'none'}")
     return 0 if snap.vehicles else 1
 
@@ -140,8 +144,14 @@ def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
             # seen, so a present vehicle is not reported unreachable because we were too quick.
             wanted = set(cfg.targets)
             pres.wait_for(lambda v, _g: wanted <= set(v), timeout_s=cfg.discover_s)
-        res = dispatch.send(mesh, cfg.request, cfg.targets, present=pres.vehicles, source_id=cfg.source_id,
-                            timeout_s=cfg.timeout_s)  # fmt: skip
+        res = dispatch.send(
+            mesh,
+            cfg.request,
+            cfg.targets,
+            present=pres.vehicles,
+            source_id=cfg.source_id,
+            timeout_s=cfg.timeout_s,
+        )
     out(f"{cfg.request.describe()}:")
     out(format_result(res))
     bad = [o for o in res.outcomes.values() if o.status is not OutcomeStatus.ACCEPTED]
@@ -205,8 +215,13 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
         p.error(str(exc))
     if not 0.1 <= args.timeout <= 60:
         p.error(f"--timeout {args.timeout} must be within 0.1..60 s")
-    cfg = CmdConfig(mesh=mesh_config(args, p), request=req, targets=targets, timeout_s=args.timeout,
-                    key_file=args.key_file)  # fmt: skip
+    cfg = CmdConfig(
+        mesh=mesh_config(args, p),
+        request=req,
+        targets=targets,
+        timeout_s=args.timeout,
+        key_file=args.key_file,
+    )
     if args.verb == "kill" and not args.yes:
         who = "ALL vehicles" if not targets else "vehicle(s) " + ",".join(map(str, targets))
         print(

@@ -15,6 +15,13 @@ from comms.palette import (
 )
 
 __all__ = [
-    "ALERT_RGB", "GEOFENCE_RGB", "GOAL_RGB", "LOST_RGB", "MODE_RGB", "RING_OK_RGB", "UNKNOWN_RGB",
-    "css", "mode_rgb",
-]  # fmt: skip
+    "ALERT_RGB",
+    "GEOFENCE_RGB",
+    "GOAL_RGB",
+    "LOST_RGB",
+    "MODE_RGB",
+    "RING_OK_RGB",
+    "UNKNOWN_RGB",
+    "css",
+    "mode_rgb",
+]

@@ -65,8 +65,15 @@ class PanelHooks:
 class CommandPanel:
     """The command panel of one browser tab."""
 
-    def __init__(self, client: viser.ClientHandle, hooks: PanelHooks, forms: BrowserForms,
-                 origin: GeoOrigin, goto_limit_m: float, kill_window_s: float = 5.0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        hooks: PanelHooks,
+        forms: BrowserForms,
+        origin: GeoOrigin,
+        goto_limit_m: float,
+        kill_window_s: float = 5.0,
+    ) -> None:
         self.client = client
         self.hooks = hooks
         self.forms = forms
@@ -119,10 +126,22 @@ class CommandPanel:
         self.simple.on_click(
             lambda e: self._send(e, e.target.value, lambda _f: inputs.simple(kinds[e.target.value]))
         )
-        self.goto.on_click(lambda e: self._send(e, "Goto local", lambda f: inputs.goto_local(
-            f.get(NORTH), f.get(EAST), f.get(DOWN), self.goto_limit_m)))  # fmt: skip
-        self.goto_global.on_click(lambda e: self._send(e, "Goto global", lambda f: inputs.goto_global(
-            f.get(LAT), f.get(LON), f.get(GLOBAL_ALT))))  # fmt: skip
+        self.goto.on_click(
+            lambda e: self._send(
+                e,
+                "Goto local",
+                lambda f: inputs.goto_local(
+                    f.get(NORTH), f.get(EAST), f.get(DOWN), self.goto_limit_m
+                ),
+            )
+        )
+        self.goto_global.on_click(
+            lambda e: self._send(
+                e,
+                "Goto global",
+                lambda f: inputs.goto_global(f.get(LAT), f.get(LON), f.get(GLOBAL_ALT)),
+            )
+        )
         self.scenarios.on_click(
             lambda e: self._scenario("swap" if e.target.value == "Swap" else "random")
         )
@@ -146,8 +165,15 @@ class CommandPanel:
                 return
             self.north.value, self.east.value = round(hit[0], 1), round(hit[1], 1)
             marker = ned_to_scene((hit[0], hit[1], 0.0))
-            scene.add_icosphere("/target", radius=0.4, color=(255, 200, 0), opacity=0.7, cast_shadow=False, receive_shadow=False,
-                                            position=tuple(float(x) for x in marker))  # fmt: skip
+            scene.add_icosphere(
+                "/target",
+                radius=0.4,
+                color=(255, 200, 0),
+                opacity=0.7,
+                cast_shadow=False,
+                receive_shadow=False,
+                position=tuple(float(x) for x in marker),
+            )
             self.say(f"Goto target set to N {hit[0]:.1f} E {hit[1]:.1f}; press 'Goto local'.")
 
         self._ground_click = ground_click
@@ -172,8 +198,9 @@ class CommandPanel:
     def _targets(self, form: FormSnapshot) -> tuple[int, ...]:
         return inputs.targets(form.get(TARGETS), known=self.hooks.known_ids())
 
-    def _send(self, event: viser.GuiEvent, button: str,
-              build: Callable[[FormSnapshot], CommandRequest]) -> None:  # fmt: skip
+    def _send(
+        self, event: viser.GuiEvent, button: str, build: Callable[[FormSnapshot], CommandRequest]
+    ) -> None:
         try:
             form = self._form(event, button)
             req = build(form)

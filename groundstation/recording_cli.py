@@ -57,11 +57,18 @@ def record_parser() -> argparse.ArgumentParser:
         "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
     )
     p.add_argument("--json", action="store_true", help="with --info: print JSON")
-    p.add_argument("--foxglove-from", metavar="OLD", default=None,
-                   help="instead of recording: copy recording OLD to -o with Foxglove's standard "
-                   "channels added (its covey channels stay byte for byte)")  # fmt: skip
-    p.add_argument("--no-foxglove", action="store_true",
-                   help="record covey's channels only, without Foxglove's standard ones")  # fmt: skip
+    p.add_argument(
+        "--foxglove-from",
+        metavar="OLD",
+        default=None,
+        help="instead of recording: copy recording OLD to -o with Foxglove's standard "
+        "channels added (its covey channels stay byte for byte)",
+    )
+    p.add_argument(
+        "--no-foxglove",
+        action="store_true",
+        help="record covey's channels only, without Foxglove's standard ones",
+    )
     add_foxglove_args(p)
     add_mesh_args(p, key_file=False)  # records raw bytes; signs nothing
     return p
@@ -99,8 +106,12 @@ def record_cli(argv: list[str]) -> int:
             p.error("--foxglove-from adds the Foxglove channels; it cannot take --no-foxglove")
         return foxglove_from_main(args.foxglove_from, args.output, args)
     try:
-        cfg = RecordConfig(path=args.output, mesh=mesh_config(args, p), duration_s=args.duration,
-                           foxglove=None if args.no_foxglove else foxglove_config(args))  # fmt: skip
+        cfg = RecordConfig(
+            path=args.output,
+            mesh=mesh_config(args, p),
+            duration_s=args.duration,
+            foxglove=None if args.no_foxglove else foxglove_config(args),
+        )
     except ValueError as exc:
         p.error(str(exc))
     try:
@@ -147,10 +158,19 @@ def replay_parser() -> argparse.ArgumentParser:
         help="start S seconds into the recording",
     )
     p.add_argument(
-        "--end", type=finite("seconds", inclusive=True), default=None, metavar="S", help="stop S seconds into the recording"
+        "--end",
+        type=finite("seconds", inclusive=True),
+        default=None,
+        metavar="S",
+        help="stop S seconds into the recording",
     )
-    p.add_argument("--presence-wait", type=finite("seconds", inclusive=True), default=1.0, metavar="S",
-                   help="listen this long for live vehicles before replaying (default 1)")  # fmt: skip
+    p.add_argument(
+        "--presence-wait",
+        type=finite("seconds", inclusive=True),
+        default=1.0,
+        metavar="S",
+        help="listen this long for live vehicles before replaying (default 1)",
+    )
     cl = p.add_argument_group("closed loop")
     cl.add_argument(
         "--policy", default=None, metavar="PATH", help="weights (.npz) to replay through"
@@ -195,9 +215,14 @@ def replay_cli(argv: list[str]) -> int:
         args.fleet = rec.fleet or "covey"
     try:
         cfg = ReplayConfig(
-            path=args.file, mesh=mesh_config(args, p), speed=args.speed, loop=args.loop,
-            start_s=args.start, end_s=args.end, presence_wait_s=args.presence_wait,
-        )  # fmt: skip
+            path=args.file,
+            mesh=mesh_config(args, p),
+            speed=args.speed,
+            loop=args.loop,
+            start_s=args.start,
+            end_s=args.end,
+            presence_wait_s=args.presence_wait,
+        )
     except ValueError as exc:
         p.error(str(exc))
     stop = _stop_on_signals()
@@ -222,10 +247,15 @@ def _closed_loop_cli(args: argparse.Namespace, p: argparse.ArgumentParser) -> in
 
     try:
         cfg = ClosedLoopConfig(
-            path=args.file, vehicle_id=args.vehicle, policy_path=args.policy,
-            separation_m=args.separation_m, cruise_speed_m_s=args.cruise_speed_m_s,
-            safety_filter=not args.no_safety_filter, start_s=args.start, end_s=args.end,
-        )  # fmt: skip
+            path=args.file,
+            vehicle_id=args.vehicle,
+            policy_path=args.policy,
+            separation_m=args.separation_m,
+            cruise_speed_m_s=args.cruise_speed_m_s,
+            safety_filter=not args.no_safety_filter,
+            start_s=args.start,
+            end_s=args.end,
+        )
         report = run_closed_loop(cfg)
     except (ValueError, FileNotFoundError) as exc:
         print(f"covey replay: {exc}", file=sys.stderr)

@@ -100,12 +100,20 @@ def _fleet(vehicles: list[VehicleView], velocity_scale_s: float) -> _Fleet:
         ids=tuple(v.vehicle_id for v in vehicles),
         pos_m=_xyz([s.pos_ned_m for s in states]).round(2),
         wxyz=np.array([heading_to_wxyz(h) for h in heading], np.float32).reshape(-1, 4),
-        rgb=np.array([mode_rgb(s.mode) if v.alive else LOST_RGB for v, s in zip(vehicles, states, strict=True)], np.uint8),
+        rgb=np.array(
+            [
+                mode_rgb(s.mode) if v.alive else LOST_RGB
+                for v, s in zip(vehicles, states, strict=True)
+            ],
+            np.uint8,
+        ),
         vel_m=(_xyz([s.vel_ned_m_s for s in states]) * velocity_scale_s).round(1),
         ring_rgb=np.array([ALERT_RGB if v.too_close else RING_OK_RGB for v in vehicles], np.uint8),
-        goal_m=_xyz([s.goal_ned_m if g else (0.0, 0.0, 0.0) for s, g in zip(states, with_goal, strict=True)]).round(2),
+        goal_m=_xyz(
+            [s.goal_ned_m if g else (0.0, 0.0, 0.0) for s, g in zip(states, with_goal, strict=True)]
+        ).round(2),
         goal_scale=np.array(with_goal, np.float32),
-    )  # fmt: skip
+    )
 
 
 def label_text(v: VehicleView) -> str:
@@ -118,8 +126,12 @@ def label_text(v: VehicleView) -> str:
 class FleetScene:
     """Owns every scene handle of the fleet. Call `update(snapshot)` from one thread."""
 
-    def __init__(self, server: viser.ViserServer, cfg: SceneConfig,
-                 on_vehicle_click: Callable[[int, int | None], None] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        cfg: SceneConfig,
+        on_vehicle_click: Callable[[int, int | None], None] | None = None,
+    ) -> None:
         self.server = server
         self.cfg = cfg
         self._on_vehicle_click = on_vehicle_click
@@ -149,16 +161,37 @@ class FleetScene:
             "/light/sky", sky_color=(255, 255, 255), ground_color=(180, 180, 180), intensity=1.2
         )
         extent_m = max(20.0, 2.2 * cfg.geofence_radius_m)
-        scene.add_grid("/ground", width=extent_m, height=extent_m, cell_size=1.0, section_size=10.0,
-                       plane="xy", fade_distance=4 * extent_m, shadow_opacity=0.0, plane_color=(235, 240, 235),
-                       plane_opacity=0.6)  # fmt: skip
+        scene.add_grid(
+            "/ground",
+            width=extent_m,
+            height=extent_m,
+            cell_size=1.0,
+            section_size=10.0,
+            plane="xy",
+            fade_distance=4 * extent_m,
+            shadow_opacity=0.0,
+            plane_color=(235, 240, 235),
+            plane_opacity=0.6,
+        )
         if cfg.geofence_radius_m > 0:
             ring = geo.circle_segments(cfg.geofence_radius_m, 128, 0.02)
-            scene.add_line_segments("/geofence", ring, np.array(GEOFENCE_RGB, np.uint8), thickness=4.0,
-                                    thickness_units="screen")  # fmt: skip
+            scene.add_line_segments(
+                "/geofence",
+                ring,
+                np.array(GEOFENCE_RGB, np.uint8),
+                thickness=4.0,
+                thickness_units="screen",
+            )
         scene.add_frame("/origin", axes_length=2.0, axes_radius=0.06)
-        self.target_marker = scene.add_icosphere("/target", radius=0.4, color=GOAL_RGB, opacity=0.6, cast_shadow=False, receive_shadow=False,
-                                                 visible=False)  # fmt: skip
+        self.target_marker = scene.add_icosphere(
+            "/target",
+            radius=0.4,
+            color=GOAL_RGB,
+            opacity=0.6,
+            cast_shadow=False,
+            receive_shadow=False,
+            visible=False,
+        )
 
     def trail_ids(self, ids: list[int]) -> set[int]:
         """The vehicles whose trails the next update should carry (round robin over `ids`)."""
@@ -202,16 +235,34 @@ class FleetScene:
         for layer, side in (("bodies", "front"), ("rings", "double"), ("goals", "front")):
             vertices, faces = self._meshes[layer]
             self.nodes[layer] = scene.add_batched_meshes_simple(
-                f"/fleet/{layer}", vertices, faces, batched_wxyzs=fleet.wxyz, batched_positions=fleet.pos_m,
-                batched_colors=fleet.rgb, lod="off", side=side, flat_shading=True, **NO_SHADOW)  # fmt: skip
+                f"/fleet/{layer}",
+                vertices,
+                faces,
+                batched_wxyzs=fleet.wxyz,
+                batched_positions=fleet.pos_m,
+                batched_colors=fleet.rgb,
+                lod="off",
+                side=side,
+                flat_shading=True,
+                **NO_SHADOW,
+            )
         for layer in ("velocity", "stalks"):
             self.nodes[layer] = scene.add_line_segments(
-                f"/fleet/{layer}", np.zeros((n, 2, 3), np.float32), np.zeros((n, 2, 3), np.uint8),
-                thickness=2.0 if layer == "velocity" else 1.0, thickness_units="screen")  # fmt: skip
+                f"/fleet/{layer}",
+                np.zeros((n, 2, 3), np.float32),
+                np.zeros((n, 2, 3), np.uint8),
+                thickness=2.0 if layer == "velocity" else 1.0,
+                thickness_units="screen",
+            )
         dots = n * self.cfg.trail_max_points
         self.nodes["trails"] = scene.add_point_cloud(
-            "/fleet/trails", np.zeros((dots, 3), np.float32), np.zeros((dots, 3), np.uint8),
-            point_size=self.cfg.trail_dot_m, point_shape="circle", precision="float32")  # fmt: skip
+            "/fleet/trails",
+            np.zeros((dots, 3), np.float32),
+            np.zeros((dots, 3), np.uint8),
+            point_size=self.cfg.trail_dot_m,
+            point_shape="circle",
+            precision="float32",
+        )
         if self._on_vehicle_click is not None:
             cb, ids = self._on_vehicle_click, fleet.ids
 
@@ -275,7 +326,11 @@ class FleetScene:
             label = self.labels.get(v.vehicle_id)
             if label is None:
                 self.labels[v.vehicle_id] = self.server.scene.add_label(
-                    f"/labels/{v.vehicle_id}", key[0], position=key[1], anchor="bottom-center",
-                    font_screen_scale=0.9)  # fmt: skip
+                    f"/labels/{v.vehicle_id}",
+                    key[0],
+                    position=key[1],
+                    anchor="bottom-center",
+                    font_screen_scale=0.9,
+                )
             else:
                 label.text, label.position = key

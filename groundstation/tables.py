@@ -50,17 +50,29 @@ def _link(v: VehicleView) -> str:
 def fleet_table(snap: FleetSnapshot, max_rows: int = 60, refused_states: int = 0) -> str:
     """One row per vehicle: id, mode, armed, N/E/alt, speed, battery, Hz, age, loss.
     `refused_states`: states the mesh refused (keyed mode), shown as a counter."""
-    heads = [("id", "right"), ("mode", "left"), ("arm", "center"), ("N m", "right"), ("E m", "right"),
-             ("alt m", "right"), ("m/s", "right"), ("bat %", "right"), ("Hz", "right"),
-             ("age s", "right"), ("loss %", "right")]  # fmt: skip
+    heads = [
+        ("id", "right"),
+        ("mode", "left"),
+        ("arm", "center"),
+        ("N m", "right"),
+        ("E m", "right"),
+        ("alt m", "right"),
+        ("m/s", "right"),
+        ("bat %", "right"),
+        ("Hz", "right"),
+        ("age s", "right"),
+        ("loss %", "right"),
+    ]
     rows = ["<tr>" + "".join(_TH.format(a=a, t=t) for t, a in heads) + "</tr>"]
     for v in snap.vehicles[:max_rows]:
         alert = v.too_close or (not v.alive and v.state) or v.unverified
         row_style = "background:#fde2e2" if alert else ""
         mode = _mode_badge(v)
         if v.unverified:  # keyed mode: states claiming this vehicle failed verification lately
-            mode += (f" <b data-unverified='1' style='color:{css(ALERT_RGB)}'>UNVERIFIED "
-                     f"({html.escape(v.refused_cause)})</b>")  # fmt: skip
+            mode += (
+                f" <b data-unverified='1' style='color:{css(ALERT_RGB)}'>UNVERIFIED "
+                f"({html.escape(v.refused_cause)})</b>"
+            )
         cells = [_td(f"<b>{v.vehicle_id}</b>"), _td(mode, "left")]
         s = v.state
         if s is None:
@@ -149,8 +161,9 @@ _ANSWER_STYLE = {
 }
 
 
-def command_log_html(entries: list[LoggedCommand], own_station: int, max_rows: int = 20,
-                     max_chips: int = 24) -> str:  # fmt: skip
+def command_log_html(
+    entries: list[LoggedCommand], own_station: int, max_rows: int = 20, max_chips: int = 24
+) -> str:
     """Every command on the fleet from any station, newest first: who sent what to whom, and
     each vehicle's answer ("superseded" once a later accepted command replaced it there)."""
     if not entries:

@@ -227,8 +227,20 @@ def summarise(rows: list) -> list:
 
 
 def markdown(summary: list) -> str:
-    cols = ["suite", "link", "controller", "cases", "vehicles", "success", "collisions", "timeouts",
-            "min_sep", "extra_time", "path_ratio", "mean_acc"]  # fmt: skip
+    cols = [
+        "suite",
+        "link",
+        "controller",
+        "cases",
+        "vehicles",
+        "success",
+        "collisions",
+        "timeouts",
+        "min_sep",
+        "extra_time",
+        "path_ratio",
+        "mean_acc",
+    ]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for s in sorted(summary, key=lambda s: (s["suite"], s["link"], s["controller"])):
         cells = []
@@ -310,23 +322,54 @@ def cli(argv=None) -> dict:
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
     )
-    ap.add_argument("--out", default=EvalConfig.out, help="directory for results.json, results.md and PNGs")
-    ap.add_argument("--weights", default=None, help="policy .npz to evaluate (default: the shipped weights)")
-    ap.add_argument("--paper-weights", default=None, help="weights of the paper configuration (.npz), evaluated side by side")
+    ap.add_argument(
+        "--out", default=EvalConfig.out, help="directory for results.json, results.md and PNGs"
+    )
+    ap.add_argument(
+        "--weights", default=None, help="policy .npz to evaluate (default: the shipped weights)"
+    )
+    ap.add_argument(
+        "--paper-weights",
+        default=None,
+        help="weights of the paper configuration (.npz), evaluated side by side",
+    )
     ap.add_argument("--occupancy", default=None, help="occupancy-map trainer checkpoint (.pt)")
-    ap.add_argument("--max-neighbours", type=int, default=EvalConfig.max_neighbours,
-                    help="nearest neighbours fed to the policy")  # fmt: skip
-    ap.add_argument("--policy-separation", type=float, default=EvalConfig.policy_separation_m,
-                    help="separation the policy is told to keep, in policy metres (collisions count inside 3 m)")  # fmt: skip
+    ap.add_argument(
+        "--max-neighbours",
+        type=int,
+        default=EvalConfig.max_neighbours,
+        help="nearest neighbours fed to the policy",
+    )
+    ap.add_argument(
+        "--policy-separation",
+        type=float,
+        default=EvalConfig.policy_separation_m,
+        help="separation the policy is told to keep, in policy metres (collisions count inside 3 m)",
+    )
     ap.add_argument("--quick", action="store_true", help="small suites (about a minute)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the random cases and the link emulation")
-    ap.add_argument("--links", default="perfect,degraded",
-                    help="comma list: perfect, degraded (3 Hz, 20 %% loss, 100 ms)")  # fmt: skip
-    ap.add_argument("--suites", default="circle,conflict,large", help="comma list of scenario suites")
+    ap.add_argument(
+        "--seed", type=int, default=0, help="seed of the random cases and the link emulation"
+    )
+    ap.add_argument(
+        "--links",
+        default="perfect,degraded",
+        help="comma list: perfect, degraded (3 Hz, 20 %% loss, 100 ms)",
+    )
+    ap.add_argument(
+        "--suites", default="circle,conflict,large", help="comma list of scenario suites"
+    )
     ap.add_argument("--dt", type=float, default=EvalConfig.dt_s, help="simulation step in seconds")
-    ap.add_argument("--policy-period", type=float, default=EvalConfig.policy_period_s,
-                    help="seconds between learned-policy decisions (held in between)")  # fmt: skip
-    ap.add_argument("--controllers", default="", help="comma list, e.g. policy,orca (default all but c+filter, the C core as onboard, which runs only when named)")
+    ap.add_argument(
+        "--policy-period",
+        type=float,
+        default=EvalConfig.policy_period_s,
+        help="seconds between learned-policy decisions (held in between)",
+    )
+    ap.add_argument(
+        "--controllers",
+        default="",
+        help="comma list, e.g. policy,orca (default all but c+filter, the C core as onboard, which runs only when named)",
+    )
     ap.add_argument("--no-figures", action="store_true", help="skip the track and Fig. 5 PNGs")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")
@@ -344,12 +387,22 @@ def cli(argv=None) -> dict:
     if not (a.dt > 0 and math.isfinite(a.dt)):
         ap.error("--dt must be > 0")
     cfg = EvalConfig(
-        out=a.out, weights=a.weights, paper_weights=a.paper_weights, occupancy=a.occupancy,
-        max_neighbours=a.max_neighbours, quick=a.quick, seed=a.seed, links=links, dt_s=a.dt,
-        figures=not a.no_figures, progress=not a.no_progress, suites=suites,
-        policy_period_s=a.policy_period, controllers=tuple(c for c in a.controllers.split(",") if c),
+        out=a.out,
+        weights=a.weights,
+        paper_weights=a.paper_weights,
+        occupancy=a.occupancy,
+        max_neighbours=a.max_neighbours,
+        quick=a.quick,
+        seed=a.seed,
+        links=links,
+        dt_s=a.dt,
+        figures=not a.no_figures,
+        progress=not a.no_progress,
+        suites=suites,
+        policy_period_s=a.policy_period,
+        controllers=tuple(c for c in a.controllers.split(",") if c),
         policy_separation_m=a.policy_separation,
-    )  # fmt: skip
+    )
     result = main(cfg)
     print(markdown(result["summary"]))
     return result

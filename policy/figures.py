@@ -69,9 +69,11 @@ def heading_change_maps(pol, png) -> None:
         im = ax.pcolormesh(east, north, ch, cmap="coolwarm", vmin=-10, vmax=10, shading="auto")
         for n_m, e_m, h in others:
             ax.annotate(
-                "", xy=(e_m + 4 * math.sin(h), n_m + 4 * math.cos(h)), xytext=(e_m, n_m),
+                "",
+                xy=(e_m + 4 * math.sin(h), n_m + 4 * math.cos(h)),
+                xytext=(e_m, n_m),
                 arrowprops={"arrowstyle": "->", "color": "k"},
-            )  # fmt: skip
+            )
             ax.plot(e_m, n_m, "ko", ms=4)
         ax.set_aspect("equal")
         ax.set_title(f"{title}\n(ego heading north, goal ahead)", fontsize=9)

@@ -361,9 +361,14 @@ class GuidancePolicy:
         nbr_vel_m_s = _check("nbr_vel_m_s", nbr_vel_m_s, (k, 2), finite=False)
         nbr_heading = _check("nbr_heading_rad", nbr_heading_rad, (k,), finite=False)
         _finite(
-            pos_m=pos_m, vel_m_s=vel_m_s, heading_rad=heading_a, goal_m=goal_m,
-            nbr_pos_m=nbr_pos_m, nbr_vel_m_s=nbr_vel_m_s, nbr_heading_rad=nbr_heading,
-        )  # fmt: skip
+            pos_m=pos_m,
+            vel_m_s=vel_m_s,
+            heading_rad=heading_a,
+            goal_m=goal_m,
+            nbr_pos_m=nbr_pos_m,
+            nbr_vel_m_s=nbr_vel_m_s,
+            nbr_heading_rad=nbr_heading,
+        )
         heading = float(heading_a)
         s = self.dist_scale_m
         a = self.action(pos_m / s, heading, goal_m / s, nbr_pos_m / s, nbr_heading)

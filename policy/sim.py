@@ -130,9 +130,17 @@ def run(
         idx = np.flatnonzero(active)
         v = np.zeros((n, 2))
         v[idx] = controller(
-            idx, t, pos[idx], vel[idx], heading[idx], goals[idx],
-            nbr_pos[idx], nbr_vel[idx], nbr_head[idx], valid[idx],
-        )  # fmt: skip
+            idx,
+            t,
+            pos[idx],
+            vel[idx],
+            heading[idx],
+            goals[idx],
+            nbr_pos[idx],
+            nbr_vel[idx],
+            nbr_head[idx],
+            valid[idx],
+        )
         acc = np.hypot(*(v[idx] - vel[idx]).T) / cfg.dt_s
         acc_sum += float(acc.sum())
         acc_n += idx.size

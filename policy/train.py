@@ -331,9 +331,12 @@ def _field_help(cls) -> dict[str, str]:
     return {
         a.target.id: " ".join(b.value.value.split())
         for a, b in zip(body, body[1:], strict=False)
-        if isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name)
-        and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str)
-    }  # fmt: skip
+        if isinstance(a, ast.AnnAssign)
+        and isinstance(a.target, ast.Name)
+        and isinstance(b, ast.Expr)
+        and isinstance(b.value, ast.Constant)
+        and isinstance(b.value.value, str)
+    }
 
 
 def cli(argv=None) -> dict:
@@ -348,7 +351,9 @@ def cli(argv=None) -> dict:
         name = "--" + f.name.replace("_", "-")
         text = docs.get(f.name, "").replace("%", "%%")
         if f.type == "bool":
-            ap.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default, help=text)
+            ap.add_argument(
+                name, action=argparse.BooleanOptionalAction, default=f.default, help=text
+            )
         else:
             typ = {"int": int, "float": float, "str": str}[f.type]
             ap.add_argument(name, type=typ, default=f.default, help=text)
@@ -363,9 +368,11 @@ def cli(argv=None) -> dict:
     if cfg.encoder not in ("lstm", "occupancy"):
         ap.error(f"--encoder must be lstm or occupancy, got {cfg.encoder!r}")
     last = main(cfg)
-    print(f"covey train: {last.get('episodes', 0):,} episodes in {last.get('wall_s', 0.0) / 60:.1f} min; "
-          f"last success {last.get('success', float('nan')):.3f}, collision {last.get('collision', float('nan')):.3f}; "
-          f"wrote {cfg.out}/ (final.npz, final.pt, log.csv, curve.png)")  # fmt: skip
+    print(
+        f"covey train: {last.get('episodes', 0):,} episodes in {last.get('wall_s', 0.0) / 60:.1f} min; "
+        f"last success {last.get('success', float('nan')):.3f}, collision {last.get('collision', float('nan')):.3f}; "
+        f"wrote {cfg.out}/ (final.npz, final.pt, log.csv, curve.png)"
+    )
     return last
 
 

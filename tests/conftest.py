@@ -45,9 +45,15 @@ class ProcessGroup:
     def start(self, *args: str, stdout=subprocess.PIPE, **kw) -> subprocess.Popen:
         env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
         p = subprocess.Popen(
-            [sys.executable, *args], cwd=REPO, env=env, stdout=stdout, stderr=subprocess.STDOUT,
-            text=True, start_new_session=True, **kw,
-        )  # fmt: skip
+            [sys.executable, *args],
+            cwd=REPO,
+            env=env,
+            stdout=stdout,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+            **kw,
+        )
         self.procs.append(p)
         return p
 
@@ -57,7 +63,9 @@ class ProcessGroup:
             line = p.stdout.readline()
             if not line:
                 if p.poll() is not None:
-                    raise AssertionError(f"process exited ({p.returncode}) before printing {prefix!r}")
+                    raise AssertionError(
+                        f"process exited ({p.returncode}) before printing {prefix!r}"
+                    )
                 continue
             if line.startswith(prefix):
                 return line

@@ -30,13 +30,19 @@ def main(port: int, vid: int, behaviour: str, fleet: str = "covey") -> None:
     with Mesh(embedded_peer(port, fleet=fleet)) as mesh:
         mesh.serve_commands(vid, handler)
         if behaviour == "echo-states":
-            mesh.subscribe_states(lambda s, t: print(f"STATE {s.vehicle_id} {s.seq} {s.stamp_ns} {t}", flush=True))
+            mesh.subscribe_states(
+                lambda s, t: print(f"STATE {s.vehicle_id} {s.seq} {s.stamp_ns} {t}", flush=True)
+            )
         mesh.declare_vehicle(vid)
         print("READY", flush=True)
         seq = 0
         while not stop.is_set():
             seq += 1
-            mesh.publish_state(VehicleState(vid, seq, time.time_ns(), (float(vid), 0.0, -10.0), (0.0, 0.0, 0.0), 0.0))
+            mesh.publish_state(
+                VehicleState(
+                    vid, seq, time.time_ns(), (float(vid), 0.0, -10.0), (0.0, 0.0, 0.0), 0.0
+                )
+            )
             stop.wait(0.1)
 
 

@@ -59,5 +59,7 @@ def test_leaving_the_geofence_holds() -> None:
     [((0, 0, -0.2), "altitude"), ((0, 0, -500), "altitude"), ((400, 400, -10), "geofence")],
 )
 def test_targets_outside_limits_are_refused(target, why) -> None:
-    assert why in FailsafeConfig(geofence_radius_m=500.0).check_target(np.array(target, dtype=float))
+    assert why in FailsafeConfig(geofence_radius_m=500.0).check_target(
+        np.array(target, dtype=float)
+    )
     assert FailsafeConfig().check_target(np.array([10.0, 10.0, -10.0])) is None

@@ -7,7 +7,15 @@ import pytest
 from agent.modes import COMMAND_TRIGGERS, Trigger, step
 from comms.schema import CommandKind, Mode
 
-L, TO, H, G, LD, R, K = Mode.LANDED, Mode.TAKING_OFF, Mode.HOLDING, Mode.GOTO, Mode.LANDING, Mode.RETURNING, Mode.KILLED
+L, TO, H, G, LD, R, K = (
+    Mode.LANDED,
+    Mode.TAKING_OFF,
+    Mode.HOLDING,
+    Mode.GOTO,
+    Mode.LANDING,
+    Mode.RETURNING,
+    Mode.KILLED,
+)
 X = None  # rejected
 
 # rows: mode; columns: takeoff, land, goto, hold, return, kill

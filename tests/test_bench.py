@@ -22,7 +22,9 @@ def test_discovery_finds_own_sections_first_and_reads_conventions(tmp_path: Path
     conv = tmp_path / "conv.py"
     conv.write_text("def main(quick: bool = False) -> dict:\n    return {}\n")
     script = tmp_path / "script.py"
-    script.write_text('import argparse\ndef main(argv=None):\n    pass\nif __name__ == "__main__":\n    main()\n')
+    script.write_text(
+        'import argparse\ndef main(argv=None):\n    pass\nif __name__ == "__main__":\n    main()\n'
+    )
     c, s = inspect(conv), inspect(script)
     assert c.convention and c.how(True) == "main(quick=True)"
     assert not s.convention and s.script and s.how(False) == "python -m bench.script"
@@ -30,7 +32,9 @@ def test_discovery_finds_own_sections_first_and_reads_conventions(tmp_path: Path
 
 
 def test_summary_renders_other_sections_generically(tmp_path: Path) -> None:
-    (tmp_path / "other.json").write_text(json.dumps({"rows": [{"n": 2, "ms": 1.5}], "median": {"rate": 1234.5}}))
+    (tmp_path / "other.json").write_text(
+        json.dumps({"rows": [{"n": 2, "ms": 1.5}], "median": {"rate": 1234.5}})
+    )
     text = report.write_summary(tmp_path).read_text()
     assert "## other" in text and "| n | ms |" in text and "median.rate = 1,234" in text
 
@@ -40,12 +44,19 @@ def test_quick_inference_section_writes_json_and_summary(tmp_path: Path) -> None
     out = tmp_path / "results"
     proc = subprocess.run(
         [sys.executable, "-m", "bench", "--quick", "--only", "inference", "--out", str(out)],
-        cwd=REPO, capture_output=True, text=True, timeout=280,
-    )  # fmt: skip
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=280,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "[1/1] inference" in proc.stderr  # progress names the running section
     d = json.loads((out / "inference.json").read_text())
-    assert d["quick"] is True and d["machine"]["cores"] >= 1 and len(d["machine"]["loadavg_1_5_15"]) == 3
+    assert (
+        d["quick"] is True
+        and d["machine"]["cores"] >= 1
+        and len(d["machine"]["loadavg_1_5_15"]) == 3
+    )
     assert d["peak"]["best_flop_s"] > 0
     assert [r["vehicles"] for r in d["single"]] == [2, 5, 10, 20, 35, 100]
     for r in d["single"]:

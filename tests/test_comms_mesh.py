@@ -74,7 +74,9 @@ def test_one_broadcast_reaches_ten_vehicles(hub, procs) -> None:
     cmd = Command(CommandKind.HOLD, new_nonce(), time.time_ns())
     result = mesh.send_command(cmd, expect=presence.vehicles, timeout_s=3.0)
     assert set(result.outcomes) == set(behaviours)
-    assert result.by_status(OutcomeStatus.ACCEPTED) == [v for v, b in behaviours.items() if b == "accept"]
+    assert result.by_status(OutcomeStatus.ACCEPTED) == [
+        v for v, b in behaviours.items() if b == "accept"
+    ]
     assert result.outcomes[4].status is OutcomeStatus.REJECTED
     assert result.outcomes[4].reason == "vehicle 4 says no"
     assert result.outcomes[9].status is OutcomeStatus.TIMEOUT
@@ -88,10 +90,14 @@ def test_command_to_a_list_reaches_only_that_list(hub, procs) -> None:
     for node in nodes:
         procs.wait_line(node, "READY", timeout_s=60)
     assert presence.wait_for(lambda v, g: v >= {1, 2, 3}, timeout_s=30)
-    result = mesh.send_command(Command(CommandKind.LAND, new_nonce(), 0, targets=(1, 3)), timeout_s=3.0)
+    result = mesh.send_command(
+        Command(CommandKind.LAND, new_nonce(), 0, targets=(1, 3)), timeout_s=3.0
+    )
     assert sorted(result.outcomes) == [1, 3]
     assert result.ok
-    missing = mesh.send_command(Command(CommandKind.LAND, new_nonce(), 0, targets=(5,)), timeout_s=1.0)
+    missing = mesh.send_command(
+        Command(CommandKind.LAND, new_nonce(), 0, targets=(5,)), timeout_s=1.0
+    )
     assert missing.outcomes[5].status is OutcomeStatus.TIMEOUT
 
 

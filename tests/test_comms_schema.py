@@ -35,13 +35,19 @@ u64 = st.integers(0, 2**64 - 1)
 @st.composite
 def states(draw) -> VehicleState:
     return VehicleState(
-        vehicle_id=draw(vid), seq=draw(st.integers(0, 2**32 - 1)), stamp_ns=draw(u64),
-        pos_ned_m=tuple(draw(f32) for _ in range(3)), vel_ned_m_s=tuple(draw(st.floats(-100, 100, width=32)) for _ in range(3)),
-        heading_rad=draw(st.floats(-3.0, 3.0, width=32)), mode=draw(st.sampled_from(Mode)),
-        armed=draw(st.booleans()), battery_pct=draw(st.floats(0.0, 100.0, width=32)),
-        flags=StateFlag(draw(st.integers(0, 255))), goal_ned_m=tuple(draw(f32) for _ in range(3)),
+        vehicle_id=draw(vid),
+        seq=draw(st.integers(0, 2**32 - 1)),
+        stamp_ns=draw(u64),
+        pos_ned_m=tuple(draw(f32) for _ in range(3)),
+        vel_ned_m_s=tuple(draw(st.floats(-100, 100, width=32)) for _ in range(3)),
+        heading_rad=draw(st.floats(-3.0, 3.0, width=32)),
+        mode=draw(st.sampled_from(Mode)),
+        armed=draw(st.booleans()),
+        battery_pct=draw(st.floats(0.0, 100.0, width=32)),
+        flags=StateFlag(draw(st.integers(0, 255))),
+        goal_ned_m=tuple(draw(f32) for _ in range(3)),
         sig=draw(st.sampled_from([b"", bytes(64)]) | st.binary(min_size=64, max_size=64)),
-    )  # fmt: skip
+    )
 
 
 @st.composite
@@ -50,39 +56,72 @@ def commands(draw) -> Command:
     if kind is CommandKind.TAKEOFF:
         params = (draw(st.floats(0.5, 500)), 0.0, 0.0)
     elif kind is CommandKind.GOTO_LOCAL:
-        params = (draw(st.floats(-1e5, 1e5)), draw(st.floats(-1e5, 1e5)), draw(st.floats(-1e4, 100)))
+        params = (
+            draw(st.floats(-1e5, 1e5)),
+            draw(st.floats(-1e5, 1e5)),
+            draw(st.floats(-1e4, 100)),
+        )
     elif kind is CommandKind.GOTO_GLOBAL:
         params = (draw(st.floats(-90, 90)), draw(st.floats(-180, 180)), draw(st.floats(-500, 1e4)))
     else:
         params = (0.0, 0.0, 0.0)
     targets = tuple(draw(st.lists(vid, max_size=20, unique=True)))
     return Command(
-        kind=kind, nonce=draw(u64), stamp_ns=draw(u64), params=params, targets=targets,
-        source_id=draw(st.integers(0, schema.MAX_VEHICLE_ID)), seq=draw(st.integers(0, 2**32 - 1)),
+        kind=kind,
+        nonce=draw(u64),
+        stamp_ns=draw(u64),
+        params=params,
+        targets=targets,
+        source_id=draw(st.integers(0, schema.MAX_VEHICLE_ID)),
+        seq=draw(st.integers(0, 2**32 - 1)),
         tag=draw(st.binary(min_size=64, max_size=64)),
-    )  # fmt: skip
+    )
 
 
 acks = st.builds(
-    CommandAck, vehicle_id=vid, nonce=u64, stamp_ns=u64, result=st.sampled_from(AckResult),
-    reason=st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=30), mode=st.sampled_from(Mode), tag=st.binary(min_size=64, max_size=64),
-)  # fmt: skip
+    CommandAck,
+    vehicle_id=vid,
+    nonce=u64,
+    stamp_ns=u64,
+    result=st.sampled_from(AckResult),
+    reason=st.text(
+        st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=30
+    ),
+    mode=st.sampled_from(Mode),
+    tag=st.binary(min_size=64, max_size=64),
+)
 events = st.builds(
-    Event, vehicle_id=st.integers(0, schema.MAX_VEHICLE_ID), stamp_ns=u64, text=st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=40),
-    severity=st.sampled_from(Severity), kind=st.sampled_from(EventKind),
+    Event,
+    vehicle_id=st.integers(0, schema.MAX_VEHICLE_ID),
+    stamp_ns=u64,
+    text=st.text(
+        st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"), max_size=40
+    ),
+    severity=st.sampled_from(Severity),
+    kind=st.sampled_from(EventKind),
     sig=st.sampled_from([b""]) | st.binary(min_size=64, max_size=64),
-)  # fmt: skip
+)
 
 
 @st.composite
 def rosters(draw) -> schema.Roster:
     ids = draw(st.lists(st.tuples(st.sampled_from(schema.Role), vid), max_size=12, unique=True))
-    keys = draw(st.lists(st.binary(min_size=32, max_size=32), min_size=len(ids), max_size=len(ids), unique=True))
-    members = sorted((schema.Member(r, i, k) for (r, i), k in zip(ids, keys, strict=True)),
-                     key=lambda m: (int(m.role), m.member_id))  # fmt: skip
-    return schema.Roster(fleet=draw(st.from_regex(r"[A-Za-z0-9_-]{1,32}", fullmatch=True)),
-                         version=draw(st.integers(1, 2**32 - 1)), stamp_ns=draw(u64),
-                         members=tuple(members), sig=draw(st.binary(min_size=64, max_size=64)))  # fmt: skip
+    keys = draw(
+        st.lists(
+            st.binary(min_size=32, max_size=32), min_size=len(ids), max_size=len(ids), unique=True
+        )
+    )
+    members = sorted(
+        (schema.Member(r, i, k) for (r, i), k in zip(ids, keys, strict=True)),
+        key=lambda m: (int(m.role), m.member_id),
+    )
+    return schema.Roster(
+        fleet=draw(st.from_regex(r"[A-Za-z0-9_-]{1,32}", fullmatch=True)),
+        version=draw(st.integers(1, 2**32 - 1)),
+        stamp_ns=draw(u64),
+        members=tuple(members),
+        sig=draw(st.binary(min_size=64, max_size=64)),
+    )
 
 
 @settings(max_examples=300, deadline=None)

@@ -54,23 +54,69 @@ def test_agent_flies_px4_emulator_through_mavsdk(procs) -> None:
     with Mesh(embedded_router(port)) as mesh:
         mesh.declare_gcs(1)
         mesh.subscribe_states(on_state)
-        procs.start("-m", "firmware.sitl", "--id", "1", "--connect", f"udpout:127.0.0.1:{udp}", "--home", origin,
-                    "--takeoff-speed", "4", "--land-speed", "3", "--accel", "8", stdout=None)  # fmt: skip
-        procs.start("-m", "covey_cli", "agent", "--id", "1", "--connect", f"tcp/127.0.0.1:{port}",
-                    "--vehicle", f"mavsdk:udpin://127.0.0.1:{udp}", "--origin", origin,
-                    "--cruise-speed-m-s", "3", stdout=None)  # fmt: skip
+        procs.start(
+            "-m",
+            "firmware.sitl",
+            "--id",
+            "1",
+            "--connect",
+            f"udpout:127.0.0.1:{udp}",
+            "--home",
+            origin,
+            "--takeoff-speed",
+            "4",
+            "--land-speed",
+            "3",
+            "--accel",
+            "8",
+            stdout=None,
+        )
+        procs.start(
+            "-m",
+            "covey_cli",
+            "agent",
+            "--id",
+            "1",
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+            "--vehicle",
+            f"mavsdk:udpin://127.0.0.1:{udp}",
+            "--origin",
+            origin,
+            "--cruise-speed-m-s",
+            "3",
+            stdout=None,
+        )
         wait(lambda s: True, 60, "telemetry through MAVSDK")
         send(Command.takeoff(4.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)))
-        wait(lambda s: s.mode is Mode.HOLDING and s.armed and -s.pos_ned_m[2] > 3.5, 40, "airborne and holding")
-        send(Command.goto_local(12.0, 6.0, -4.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)))
-        moving = wait(lambda s: s.mode is Mode.GOTO and math.hypot(*s.vel_ned_m_s[:2]) > 1.0, 20, "offboard velocity")
+        wait(
+            lambda s: s.mode is Mode.HOLDING and s.armed and -s.pos_ned_m[2] > 3.5,
+            40,
+            "airborne and holding",
+        )
+        send(
+            Command.goto_local(
+                12.0, 6.0, -4.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)
+            )
+        )
+        moving = wait(
+            lambda s: s.mode is Mode.GOTO and math.hypot(*s.vel_ned_m_s[:2]) > 1.0,
+            20,
+            "offboard velocity",
+        )
         assert moving.vel_ned_m_s[0] > 0  # towards the goal
         arrived = wait(lambda s: s.mode is Mode.HOLDING, 40, "arrival")
         assert math.dist(arrived.pos_ned_m[:2], (12.0, 6.0)) < 1.5
-        send(Command.goto_local(-10.0, 0.0, -4.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)))
+        send(
+            Command.goto_local(
+                -10.0, 0.0, -4.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)
+            )
+        )
         wait(lambda s: s.mode is Mode.GOTO, 10, "second goto")
         send(Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(1,)))
-        held = wait(lambda s: s.mode is Mode.HOLDING and math.hypot(*s.vel_ned_m_s[:2]) < 0.3, 20, "hold")
+        held = wait(
+            lambda s: s.mode is Mode.HOLDING and math.hypot(*s.vel_ned_m_s[:2]) < 0.3, 20, "hold"
+        )
         time.sleep(2.0)
         assert math.dist(latest[0].pos_ned_m[:2], held.pos_ned_m[:2]) < 1.0
         send(Command(CommandKind.LAND, new_nonce(), time.time_ns(), targets=(1,)))

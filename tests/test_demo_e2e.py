@@ -53,8 +53,13 @@ def test_demo_children_die_with_a_killed_demo():
 
 
 def run_covey(*argv: str, stdin: str = "") -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "covey_cli", *argv], input=stdin, capture_output=True,
-                          text=True, timeout=60)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "covey_cli", *argv],
+        input=stdin,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
 
 
 def test_late_station_status_and_cmd_against_a_running_demo():
@@ -63,8 +68,17 @@ def test_late_station_status_and_cmd_against_a_running_demo():
         # A second station started late sees the vehicles already there (liveliness history).
         cfg = GcsConfig(mesh=MeshConfig(mode="peer", connect=(ep,)), port=0, gcs_id=2)
         with GroundStation(cfg) as gcs:
-            assert wait_until(lambda: {v.vehicle_id for v in gcs.fleet.snapshot(time.time_ns()).vehicles
-                                       if v.alive and v.state} >= {1, 2}, 20.0)  # fmt: skip
+            assert wait_until(
+                lambda: (
+                    {
+                        v.vehicle_id
+                        for v in gcs.fleet.snapshot(time.time_ns()).vehicles
+                        if v.alive and v.state
+                    }
+                    >= {1, 2}
+                ),
+                20.0,
+            )
         status = run_covey("status", "--connect", ep)
         assert status.returncode == 0, status.stderr
         assert "LANDED" in status.stdout and "ground stations: 1" in status.stdout

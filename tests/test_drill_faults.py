@@ -63,8 +63,18 @@ class Watch:
 
 
 def agent_args(vid: int, *mesh: str, extra: tuple[str, ...] = ()) -> list[str]:
-    return ["-m", "covey_cli", "agent", "--id", str(vid), *mesh, f"--start=0,{4 * vid}",
-            "--cruise-speed-m-s", "2.0", *extra]  # fmt: skip
+    return [
+        "-m",
+        "covey_cli",
+        "agent",
+        "--id",
+        str(vid),
+        *mesh,
+        f"--start=0,{4 * vid}",
+        "--cruise-speed-m-s",
+        "2.0",
+        *extra,
+    ]
 
 
 def router_args(listen: str, *connect: str) -> list[str]:
@@ -135,8 +145,14 @@ def test_ground_station_restart_holds_then_resumes_and_a_fresh_station_rebuilds_
         station = procs.start("tests/gcs_standin.py", str(port))
         procs.wait_line(station, "READY")
         for vid in ids:
-            procs.start(*agent_args(vid, "--connect", f"tcp/127.0.0.1:{port}",
-                                    extra=("--gcs-lost-hold-s", "1", "--gcs-lost-land-s", "30")))  # fmt: skip
+            procs.start(
+                *agent_args(
+                    vid,
+                    "--connect",
+                    f"tcp/127.0.0.1:{port}",
+                    extra=("--gcs-lost-hold-s", "1", "--gcs-lost-land-s", "30"),
+                )
+            )
         assert presence.wait_for(lambda v, g: v >= set(ids) and g, timeout_s=60)
         fly_away(hub, watch, ids)
         os.kill(station.pid, signal.SIGKILL)
@@ -197,8 +213,16 @@ def test_partition_triggers_the_documented_failsafes_and_heals(procs) -> None:
         )
         procs.wait_line(bridge, "READY")
         for vid in ids:
-            procs.start(*agent_args(vid, "--mesh-mode", "client", "--connect", f"tcp/127.0.0.1:{veh_port}",
-                                    extra=("--gcs-lost-hold-s", "1", "--gcs-lost-land-s", "4")))  # fmt: skip
+            procs.start(
+                *agent_args(
+                    vid,
+                    "--mesh-mode",
+                    "client",
+                    "--connect",
+                    f"tcp/127.0.0.1:{veh_port}",
+                    extra=("--gcs-lost-hold-s", "1", "--gcs-lost-land-s", "4"),
+                )
+            )
         assert gcs_presence.wait_for(lambda v, _g: v >= set(ids), timeout_s=60), (
             "agents not visible across the bridge"
         )
@@ -259,8 +283,16 @@ def test_router_restart_on_the_same_port_everything_reconnects(procs) -> None:
         watch = Watch(gcs)
         presence = gcs.presence()
         for vid in ids:
-            procs.start(*agent_args(vid, "--mesh-mode", "client", "--connect", f"tcp/127.0.0.1:{port}",
-                                    extra=("--gcs-lost-hold-s", "5", "--gcs-lost-land-s", "30")))  # fmt: skip
+            procs.start(
+                *agent_args(
+                    vid,
+                    "--mesh-mode",
+                    "client",
+                    "--connect",
+                    f"tcp/127.0.0.1:{port}",
+                    extra=("--gcs-lost-hold-s", "5", "--gcs-lost-land-s", "30"),
+                )
+            )
         assert presence.wait_for(lambda v, _g: v >= set(ids), timeout_s=60)
         ok(gcs, Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=0), expect=ids)
         os.kill(router.pid, signal.SIGKILL)

@@ -26,8 +26,17 @@ pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 
 def agent(procs, port: int, vid: int):
-    return procs.start("-m", "covey_cli", "agent", "--id", str(vid), "--connect", f"tcp/127.0.0.1:{port}",
-                       f"--start=0,{4 * vid}", "--no-gcs-failsafe")  # fmt: skip
+    return procs.start(
+        "-m",
+        "covey_cli",
+        "agent",
+        "--id",
+        str(vid),
+        "--connect",
+        f"tcp/127.0.0.1:{port}",
+        f"--start=0,{4 * vid}",
+        "--no-gcs-failsafe",
+    )
 
 
 def test_a_drill_recording_holds_every_message_that_reached_the_recorder(procs, tmp_path) -> None:
@@ -85,8 +94,10 @@ def test_a_drill_recording_holds_every_message_that_reached_the_recorder(procs, 
         )
     v1 = sorted(s for v, s, _ in recorded_states if v == 1)
     sent_v1 = v1[-1] - v1[0] + 1
-    print(f"vehicle 1 sent {sent_v1} states while recorded (by seq), recording holds {len(v1)}; "
-          f"{len(recorded_cmds)}/{len(sent_cmds)} commands; presence edges {[d for _, d in alive_edges if '/v/2/' in _]}")  # fmt: skip
+    print(
+        f"vehicle 1 sent {sent_v1} states while recorded (by seq), recording holds {len(v1)}; "
+        f"{len(recorded_cmds)}/{len(sent_cmds)} commands; presence edges {[d for _, d in alive_edges if '/v/2/' in _]}"
+    )
     assert not missing, (
         f"{len(missing)} states reached the mesh but not the recording, e.g. {sorted(missing)[:5]}"
     )

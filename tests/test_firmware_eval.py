@@ -17,10 +17,15 @@ def test_eval_flies_the_c_core_with_its_filter(tmp_path):
 
     res = main(
         EvalConfig(
-            out=str(tmp_path), quick=True, suites=("circle", "conflict"), links=("perfect", "degraded"),
-            progress=False, figures=False, controllers=("c+filter",),
+            out=str(tmp_path),
+            quick=True,
+            suites=("circle", "conflict"),
+            links=("perfect", "degraded"),
+            progress=False,
+            figures=False,
+            controllers=("c+filter",),
         )
-    )  # fmt: skip
+    )
     rows = res["summary"]
     assert {r["controller"] for r in rows} == {"c+filter"} and len(rows) == 4
     for r in rows:

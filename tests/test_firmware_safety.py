@@ -187,14 +187,16 @@ def test_onboard_faults_hover_and_forget_the_hold(cpol):
     assert ok.status == "ok" and ok.decided
     bad = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[np.nan, 0.0]], [np.pi], now_s=1.1)
     assert bad.status == "nonfinite" and not np.any(bad.vel_m_s)
-    stale = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.2,
-                      stamp_s=0.1)  # fmt: skip
+    stale = tick.step(
+        p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.2, stamp_s=0.1
+    )
     assert stale.status == "stale" and not np.any(stale.vel_m_s)
     again = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.3)
     assert again.status == "ok" and again.decided  # the fault dropped the held decision
     # a stale neighbour is dropped from the filter, not a fault
-    r = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=5.0,
-                  nbr_stamp_s=[1.0])  # fmt: skip
+    r = tick.step(
+        p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=5.0, nbr_stamp_s=[1.0]
+    )
     assert r.status == "ok" and not r.filtered
 
 

@@ -73,20 +73,32 @@ def test_fleet_in_process_follows_the_agents_mode_machine() -> None:
     """Injected time, no child process: takeoff, a refused goto, kill one, return the others."""
     clock = [0.0]
     port = free_tcp_port()
-    cfg = FleetSimConfig(vehicles=3, first_id=7, mesh=embedded_router(port, fleet="unit"), spacing_m=10.0)
+    cfg = FleetSimConfig(
+        vehicles=3, first_id=7, mesh=embedded_router(port, fleet="unit"), spacing_m=10.0
+    )
     with Mesh(cfg.mesh) as mesh:
         fleet = Fleet(cfg, mesh, clock_s=lambda: clock[0])
-        assert fleet.handle_command(0, _cmd(CommandKind.GOTO_LOCAL, 5, 5, -5)).result is AckResult.REJECTED
+        assert (
+            fleet.handle_command(0, _cmd(CommandKind.GOTO_LOCAL, 5, 5, -5)).result
+            is AckResult.REJECTED
+        )
         for i in range(3):
             ack = fleet.handle_command(i, _cmd(CommandKind.TAKEOFF, 5.0))
-            assert ack.result is AckResult.ACCEPTED and ack.vehicle_id == 7 + i and ack.mode is Mode.TAKING_OFF
+            assert (
+                ack.result is AckResult.ACCEPTED
+                and ack.vehicle_id == 7 + i
+                and ack.mode is Mode.TAKING_OFF
+            )
         _fly(fleet, clock, 8.0)
         assert fleet.modes == [Mode.HOLDING] * 3 and np.allclose(fleet.pos_m[:, 2], -5.0, atol=0.3)
         far = fleet.handle_command(1, _cmd(CommandKind.GOTO_LOCAL, 5000, 0, -5))
         assert far.result is AckResult.REJECTED and "geofence" in far.reason
         assert fleet.handle_command(0, _cmd(CommandKind.KILL)).result is AckResult.ACCEPTED
         for i in (1, 2):
-            assert fleet.handle_command(i, _cmd(CommandKind.GOTO_LOCAL, 20.0, 10.0 * i, -5)).result is AckResult.ACCEPTED
+            assert (
+                fleet.handle_command(i, _cmd(CommandKind.GOTO_LOCAL, 20.0, 10.0 * i, -5)).result
+                is AckResult.ACCEPTED
+            )
         # The policy decides once per decision period (1 s here) and its velocity is held.
         _fly(fleet, clock, 0.1)
         decided = fleet._decided_s.copy()
@@ -114,42 +126,79 @@ def test_fleet_sim_answers_broadcasts_and_flies(procs) -> None:
         latest = Latest(mesh)
         presence = mesh.presence()
         sim = procs.start(
-            "-m", "covey_cli", "fleet-sim", "--vehicles", str(N), "--first-id", str(IDS[0]),
-            "--fleet", "fs", "--connect", f"tcp/127.0.0.1:{port}", "--cruise-speed-m-s", "3",
+            "-m",
+            "covey_cli",
+            "fleet-sim",
+            "--vehicles",
+            str(N),
+            "--first-id",
+            str(IDS[0]),
+            "--fleet",
+            "fs",
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+            "--cruise-speed-m-s",
+            "3",
             # goals 15 m apart: the policy treats neighbours inside 10 m as conflicts and may
             # circle a goal that has hovering neighbours closer than that
-            "--spacing-m", "15",
-        )  # fmt: skip
+            "--spacing-m",
+            "15",
+        )
         procs.wait_line(sim, "READY", timeout_s=60)
         assert presence.wait_for(lambda v, _g: v >= set(IDS), timeout_s=30), "tokens missing"
         latest.wait(lambda s: set(s) >= set(IDS), 20, "a state from every vehicle")
 
         # A goto while landed is refused by every vehicle, with the agent's reason.
-        refused = mesh.send_command(Command.goto_local(0, 0, -5, nonce=new_nonce(), stamp_ns=0), expect=IDS, timeout_s=10)
+        refused = mesh.send_command(
+            Command.goto_local(0, 0, -5, nonce=new_nonce(), stamp_ns=0), expect=IDS, timeout_s=10
+        )
         assert refused.by_status(OutcomeStatus.REJECTED) == list(IDS)
         assert "landed" in refused.outcomes[IDS[0]].reason
 
         # One broadcast, twenty acks.
-        up = mesh.send_command(Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=0), expect=IDS, timeout_s=10)
+        up = mesh.send_command(
+            Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=0), expect=IDS, timeout_s=10
+        )
         assert up.ok and sorted(up.outcomes) == list(IDS), up.summary()
-        at_alt = latest.wait(lambda s: all(s[v].mode is Mode.HOLDING for v in IDS), 60, "all holding")
+        at_alt = latest.wait(
+            lambda s: all(s[v].mode is Mode.HOLDING for v in IDS), 60, "all holding"
+        )
         assert all(abs(at_alt[v].pos_ned_m[2] + ALT_M) < 0.6 for v in IDS)
         before = {v: np.array(at_alt[v].pos_ned_m) for v in IDS}
 
         # A goto to each vehicle's own point 15 m north of its start moves all of them.
         for v in IDS:
             n, e, _ = before[v]
-            r = mesh.send_command(Command.goto_local(n + 15, e, -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(v,)), timeout_s=10)
+            r = mesh.send_command(
+                Command.goto_local(n + 15, e, -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(v,)),
+                timeout_s=10,
+            )
             assert r.ok, r.summary()
         moved = latest.wait(
-            lambda s: all(s[v].pos_ned_m[0] - before[v][0] > 5.0 for v in IDS), 60, "all moved north"
+            lambda s: all(s[v].pos_ned_m[0] - before[v][0] > 5.0 for v in IDS),
+            60,
+            "all moved north",
         )
         assert all(moved[v].mode in (Mode.GOTO, Mode.HOLDING) for v in IDS)
-        arrived = latest.wait(lambda s: all(s[v].mode is Mode.HOLDING for v in IDS), 90, "all arrived")
+        arrived = latest.wait(
+            lambda s: all(s[v].mode is Mode.HOLDING for v in IDS), 90, "all arrived"
+        )
         for v in IDS:
-            assert np.hypot(arrived[v].pos_ned_m[0] - before[v][0] - 15, arrived[v].pos_ned_m[1] - before[v][1]) < 1.5
+            assert (
+                np.hypot(
+                    arrived[v].pos_ned_m[0] - before[v][0] - 15,
+                    arrived[v].pos_ned_m[1] - before[v][1],
+                )
+                < 1.5
+            )
 
         # Land all; every vehicle touches down and disarms.
-        down = mesh.send_command(Command(CommandKind.LAND, new_nonce(), 0), expect=IDS, timeout_s=10)
+        down = mesh.send_command(
+            Command(CommandKind.LAND, new_nonce(), 0), expect=IDS, timeout_s=10
+        )
         assert down.ok, down.summary()
-        latest.wait(lambda s: all(s[v].mode is Mode.LANDED and not s[v].armed for v in IDS), 90, "all landed")
+        latest.wait(
+            lambda s: all(s[v].mode is Mode.LANDED and not s[v].armed for v in IDS),
+            90,
+            "all landed",
+        )

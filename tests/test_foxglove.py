@@ -75,9 +75,17 @@ def _ns(ts) -> int:
 # -- the conversion alone ----------------------------------------------------------------------
 def test_state_converts_to_every_standard_message():
     conv = fc.Converter(fc.FoxgloveConfig(origin=ORIGIN))
-    s = schema.VehicleState(7, 3, 1_700_000_000_123_456_789, (10.0, -4.0, -12.5), (0.0, 2.0, 0.0),
-                            math.pi / 2, mode=schema.Mode.GOTO, flags=schema.StateFlag.HAS_GOAL,
-                            goal_ned_m=(20.0, 0.0, -12.0))  # fmt: skip
+    s = schema.VehicleState(
+        7,
+        3,
+        1_700_000_000_123_456_789,
+        (10.0, -4.0, -12.5),
+        (0.0, 2.0, 0.0),
+        math.pi / 2,
+        mode=schema.Mode.GOTO,
+        flags=schema.StateFlag.HAS_GOAL,
+        goal_ned_m=(20.0, 0.0, -12.0),
+    )
     outs = {o.topic: o for o in conv.convert(keys.state("f", 7), s.encode(), 5)}
     assert set(outs) == {"/tf", "/vehicles/7/pose", "/vehicles/7/fix", "/scene"}
     pose = proto_class("foxglove.PoseInFrame", fc.POSE_IN_FRAME.data).FromString(
@@ -115,9 +123,14 @@ def test_state_converts_to_every_standard_message():
 
 @pytest.mark.parametrize(
     ("severity", "level"),
-    [(schema.Severity.DEBUG, 1), (schema.Severity.INFO, 2), (schema.Severity.WARNING, 3),
-     (schema.Severity.ERROR, 4), (schema.Severity.CRITICAL, 5)],
-)  # fmt: skip
+    [
+        (schema.Severity.DEBUG, 1),
+        (schema.Severity.INFO, 2),
+        (schema.Severity.WARNING, 3),
+        (schema.Severity.ERROR, 4),
+        (schema.Severity.CRITICAL, 5),
+    ],
+)
 def test_event_becomes_a_log_with_its_level(severity, level):
     ev = schema.Event(4, 123, "geofence", severity, schema.EventKind.FAILSAFE)
     (out,) = fc.Converter().convert(keys.event("f", 4), ev.encode(), 9)
@@ -175,7 +188,14 @@ class WsListener(threading.Thread):
                         new_id = len(subs) + 1
                         subs[new_id] = subs[sub_id]
                         ws.send(json.dumps({"op": "unsubscribe", "subscriptionIds": [sub_id]}))
-                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": new_id, "channelId": ch_id}]}))
+                        ws.send(
+                            json.dumps(
+                                {
+                                    "op": "subscribe",
+                                    "subscriptions": [{"id": new_id, "channelId": ch_id}],
+                                }
+                            )
+                        )
                         del asked[sub_id]
                         asked[new_id] = (ch_id, time.monotonic())
                         self.resubscribed.append(subs[sub_id])
@@ -230,11 +250,27 @@ def flight(tmp_path_factory):
                 connect_ep = f"tcp/127.0.0.1:{port}"
                 for vid in VEHICLES:
                     n, e = STARTS[vid]
-                    procs.append(subprocess.Popen(
-                        [sys.executable, "-m", "covey_cli", "agent", "--id", str(vid), "--fleet", fleet,
-                         "--connect", connect_ep, f"--start={n},{e}", "--no-gcs-failsafe"],
-                        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                    ))  # fmt: skip
+                    procs.append(
+                        subprocess.Popen(
+                            [
+                                sys.executable,
+                                "-m",
+                                "covey_cli",
+                                "agent",
+                                "--id",
+                                str(vid),
+                                "--fleet",
+                                fleet,
+                                "--connect",
+                                connect_ep,
+                                f"--start={n},{e}",
+                                "--no-gcs-failsafe",
+                            ],
+                            env=env,
+                            stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL,
+                        )
+                    )
                 assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 30.0)
                 stamp = time.time_ns
                 _command_all(
@@ -318,13 +354,20 @@ def test_acks_name_the_vehicles_commanded(flight):
             accepted.setdefault(cmd["kind"], set()).add(ack["vehicle_id"])
     assert accepted["TAKEOFF"] == accepted["GOTO_LOCAL"] == set(VEHICLES)
     assert joined >= len(std["/acks"]) // 2
-    raw_events = [schema.Event.decode(m.data) for m in read_recording(flight["path"]).messages
-                  if m.topic.endswith("/event")]  # fmt: skip
+    raw_events = [
+        schema.Event.decode(m.data)
+        for m in read_recording(flight["path"]).messages
+        if m.topic.endswith("/event")
+    ]
     logs = std["/events"]
     assert len(logs) >= len(raw_events) > 0
     for ev in raw_events:
-        assert any(_ns(lg.timestamp) == ev.stamp_ns and lg.name == f"vehicle/{ev.vehicle_id}"
-                   and lg.level == int(ev.severity) + 1 for lg in logs)  # fmt: skip
+        assert any(
+            _ns(lg.timestamp) == ev.stamp_ns
+            and lg.name == f"vehicle/{ev.vehicle_id}"
+            and lg.level == int(ev.severity) + 1
+            for lg in logs
+        )
 
 
 @pytest.mark.e2e

@@ -17,10 +17,54 @@ import pytest
 
 SEED = 8
 N_PER_PARSER = 1500
-VALUES = ["0", "1", "-1", "3", "65000", "65001", "1e309", "nan", "NaN", "inf", "-inf", "", " ", "1,2", "1,2,3",
-          "1,,2", "nan,0", "0,inf,0", "abc", "ä✈", "--", "-", "all", "1-4", "4-1", "1-100000", "tcp/127.0.0.1:7447",
-          "tcp/", "udp/[::1]:1", "no-slash", "peer", "client", "router", "sim", "mavsdk:", "relay:x", "bogus:1",
-          "rate=3,loss=0.2", "rate=-1", "xbee", "0x10", "1_000", "9" * 400, "\x00", "-5", "-0.0"]  # fmt: skip
+VALUES = [
+    "0",
+    "1",
+    "-1",
+    "3",
+    "65000",
+    "65001",
+    "1e309",
+    "nan",
+    "NaN",
+    "inf",
+    "-inf",
+    "",
+    " ",
+    "1,2",
+    "1,2,3",
+    "1,,2",
+    "nan,0",
+    "0,inf,0",
+    "abc",
+    "ä✈",
+    "--",
+    "-",
+    "all",
+    "1-4",
+    "4-1",
+    "1-100000",
+    "tcp/127.0.0.1:7447",
+    "tcp/",
+    "udp/[::1]:1",
+    "no-slash",
+    "peer",
+    "client",
+    "router",
+    "sim",
+    "mavsdk:",
+    "relay:x",
+    "bogus:1",
+    "rate=3,loss=0.2",
+    "rate=-1",
+    "xbee",
+    "0x10",
+    "1_000",
+    "9" * 400,
+    "\x00",
+    "-5",
+    "-0.0",
+]
 
 
 def options_of(p: argparse.ArgumentParser) -> list[str]:
@@ -127,7 +171,9 @@ def test_covey_keygen_parser(stats, tmp_path, monkeypatch) -> None:
     rng = random.Random(SEED + 3)
     verbs = [v for v in VERBS if v != "push"]  # push joins a mesh: tested end to end
     for _ in range(300):
-        argv = random_argv(rng, ["--dir", "--fleet", "vehicle", "station", "-x"], prefix=[rng.choice(verbs)])
+        argv = random_argv(
+            rng, ["--dir", "--fleet", "vehicle", "station", "-x"], prefix=[rng.choice(verbs)]
+        )
         expect_clean(keygen_cli, argv, (ValueError,), stats)
     assert stats["parsed"] > 10
 
@@ -184,13 +230,28 @@ def bad_setups(tmp_path) -> dict[str, list[str]]:
         "config missing": ["--zenoh-config", str(d / "missing.json5")],
         "config is a directory": ["--zenoh-config", str(d)],
         "config empty path": ["--zenoh-config", ""],
-        **{f"config {name}": ["--zenoh-config", str(d / name)] for name in files if "mtls" not in name},
-        "config mtls without certificates": ["--zenoh-config", str(d / "mtls-no-certs.json5"),
-                                             "--listen", "tls/127.0.0.1:0", "--connect", "tls/127.0.0.1:1"],
+        **{
+            f"config {name}": ["--zenoh-config", str(d / name)]
+            for name in files
+            if "mtls" not in name
+        },
+        "config mtls without certificates": [
+            "--zenoh-config",
+            str(d / "mtls-no-certs.json5"),
+            "--listen",
+            "tls/127.0.0.1:0",
+            "--connect",
+            "tls/127.0.0.1:1",
+        ],
         "connect port 99999": ["--connect", "tcp/127.0.0.1:99999"],
         "listen port 99999": ["--listen", "tcp/127.0.0.1:99999"],
-        "listen on a busy port": ["--listen", f"tcp/127.0.0.1:{busy.getsockname()[1]}", "--connect", "tcp/127.0.0.1:1"],
-    }  # fmt: skip
+        "listen on a busy port": [
+            "--listen",
+            f"tcp/127.0.0.1:{busy.getsockname()[1]}",
+            "--connect",
+            "tcp/127.0.0.1:1",
+        ],
+    }
     (d / "garbage.key").write_text("not a key")
     (d / "garbage.key").chmod(0o600)
     keys = {
@@ -204,7 +265,11 @@ def bad_setups(tmp_path) -> dict[str, list[str]]:
 
 def run_one_line(fn, argv: list[str]) -> str:
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), pytest.raises(SystemExit) as exc:
+    with (
+        contextlib.redirect_stderr(err),
+        contextlib.redirect_stdout(io.StringIO()),
+        pytest.raises(SystemExit) as exc,
+    ):
         fn(argv)
     text = err.getvalue()
     errors = [ln for ln in text.splitlines() if "error" in ln.lower()]
@@ -225,7 +290,11 @@ def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_pat
         "gcs": (gcs_cli.cli, ["--port", "0"], True),
         "cmd": (ops.cmd_cli, ["hold", "--to", "1", "--timeout", "0.5"], True),
         "status": (ops.status_cli, ["--listen-s", "0.1"], True),
-        "record": (recording_cli.record_cli, ["-o", str(tmp_path / "r.mcap"), "--duration", "0.5"], False),
+        "record": (
+            recording_cli.record_cli,
+            ["-o", str(tmp_path / "r.mcap"), "--duration", "0.5"],
+            False,
+        ),
     }
     seen = 0
     for name, (fn, base, takes_key) in subcommands.items():

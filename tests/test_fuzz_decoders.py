@@ -56,7 +56,7 @@ def valid_messages(rng: random.Random, keys: dict | None = None) -> list[bytes]:
             88.0,
             StateFlag.HAS_GOAL | StateFlag.OPEN_MODE,
             (5.0, 5.0, -10.0),
-        ).encode(),  # fmt: skip
+        ).encode(),
         Command.takeoff(10.0, nonce=9, stamp_ns=1, targets=(1, 2, 3)).encode(),
         Command.goto_local(10.0, -5.0, -8.0, nonce=10, stamp_ns=2).encode(),
         Command.goto_global(47.4, 8.5, 500.0, nonce=11, stamp_ns=3, targets=(7,)).encode(),
@@ -70,15 +70,33 @@ def valid_messages(rng: random.Random, keys: dict | None = None) -> list[bytes]:
         out.append(cmd.encode())
         ack = CommandAck(1, cmd.nonce, 5, AckResult.ACCEPTED, "", Mode.HOLDING)
         out.append(vehicle.sign_ack(ack, command_digest(cmd.encode())).encode())
-        out.append(vehicle.sign_state(VehicleState(1, 7, 10**18, (1.0, 2.0, -3.0), (0.0, 0.0, 0.0), 0.1)).encode())
-        out.append(vehicle.sign_event(Event(1, 10**18, "signed", Severity.WARNING, EventKind.SECURITY)).encode())
+        out.append(
+            vehicle.sign_state(
+                VehicleState(1, 7, 10**18, (1.0, 2.0, -3.0), (0.0, 0.0, 0.0), 0.1)
+            ).encode()
+        )
+        out.append(
+            vehicle.sign_event(
+                Event(1, 10**18, "signed", Severity.WARNING, EventKind.SECURITY)
+            ).encode()
+        )
         out.append(keys["newer_roster"].encode())
         keys["cmd"] = cmd
     return out
 
 
-INTERESTING = [b"\x00", b"\xff", b"\x7f", b"\x80", struct.pack("<f", float("nan")), struct.pack("<d", float("inf")),
-               struct.pack("<H", 65535), struct.pack("<I", 2**32 - 1), b"\xff\xff", b"\x00\x00"]  # fmt: skip
+INTERESTING = [
+    b"\x00",
+    b"\xff",
+    b"\x7f",
+    b"\x80",
+    struct.pack("<f", float("nan")),
+    struct.pack("<d", float("inf")),
+    struct.pack("<H", 65535),
+    struct.pack("<I", 2**32 - 1),
+    b"\xff\xff",
+    b"\x00\x00",
+]
 
 
 def mutate(data: bytes, rng: random.Random) -> bytes:
@@ -134,7 +152,9 @@ def check_one(data: bytes, keys: dict, stats: dict[str, int]) -> None:
             check = vehicle.check_state if isinstance(msg, VehicleState) else vehicle.check_event
             reason = check(msg)
             assert reason is None or isinstance(reason, str)
-            assert reason is not None or data in keys["valid"].values(), "a mutated state/event verified"
+            assert reason is not None or data in keys["valid"].values(), (
+                "a mutated state/event verified"
+            )
         elif isinstance(msg, Roster):
             reason = vehicle.apply_roster(msg)  # never newer AND genuine unless unmutated
             assert reason is not None or data == keys["valid"]["roster"], "a mutated roster applied"
@@ -178,7 +198,13 @@ def auth(tmp_path):
     keys["reset"] = reset
     reset()
     seeds = valid_messages(random.Random(0), keys)
-    keys["valid"] = {"cmd": seeds[-5], "ack": seeds[-4], "state": seeds[-3], "event": seeds[-2], "roster": seeds[-1]}
+    keys["valid"] = {
+        "cmd": seeds[-5],
+        "ack": seeds[-4],
+        "state": seeds[-3],
+        "event": seeds[-2],
+        "roster": seeds[-1],
+    }
     yield keys
     logger.setLevel(level)  # other tests read this logger's warnings
 

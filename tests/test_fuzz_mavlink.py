@@ -24,20 +24,40 @@ pytestmark = [pytest.mark.e2e]
 SEED = 77
 FLOATS = [math.nan, math.inf, -math.inf, 0.0, -0.0, 1e38, -1e38, 3.4e38, 1e-45, 1.0, -1.0]
 COMMAND_IDS = [400, 22, 21, 20, 176, 192, 511, 512, 246, 183, 178, 300, 0, 65535]
-INT_RANGES = {"int8_t": (-128, 127), "uint8_t": (0, 255), "int16_t": (-32768, 32767), "uint16_t": (0, 65535),
-              "int32_t": (-(2**31), 2**31 - 1), "uint32_t": (0, 2**32 - 1), "int64_t": (-(2**63), 2**63 - 1),
-              "uint64_t": (0, 2**64 - 1)}  # fmt: skip
+INT_RANGES = {
+    "int8_t": (-128, 127),
+    "uint8_t": (0, 255),
+    "int16_t": (-32768, 32767),
+    "uint16_t": (0, 65535),
+    "int32_t": (-(2**31), 2**31 - 1),
+    "uint32_t": (0, 2**32 - 1),
+    "int64_t": (-(2**63), 2**63 - 1),
+    "uint64_t": (0, 2**64 - 1),
+}
 
-SITL_INPUTS = [mavlink.MAVLink_command_long_message, mavlink.MAVLink_command_int_message,
-               mavlink.MAVLink_set_position_target_local_ned_message, mavlink.MAVLink_adsb_vehicle_message,
-               mavlink.MAVLink_timesync_message, mavlink.MAVLink_param_request_list_message,
-               mavlink.MAVLink_param_request_read_message, mavlink.MAVLink_param_set_message,
-               mavlink.MAVLink_set_mode_message, mavlink.MAVLink_heartbeat_message]  # fmt: skip
-RELAY_INPUTS = [mavlink.MAVLink_global_position_int_message, mavlink.MAVLink_local_position_ned_message,
-                mavlink.MAVLink_attitude_message, mavlink.MAVLink_extended_sys_state_message,
-                mavlink.MAVLink_sys_status_message, mavlink.MAVLink_command_ack_message,
-                mavlink.MAVLink_statustext_message, mavlink.MAVLink_param_value_message,
-                mavlink.MAVLink_heartbeat_message]  # fmt: skip
+SITL_INPUTS = [
+    mavlink.MAVLink_command_long_message,
+    mavlink.MAVLink_command_int_message,
+    mavlink.MAVLink_set_position_target_local_ned_message,
+    mavlink.MAVLink_adsb_vehicle_message,
+    mavlink.MAVLink_timesync_message,
+    mavlink.MAVLink_param_request_list_message,
+    mavlink.MAVLink_param_request_read_message,
+    mavlink.MAVLink_param_set_message,
+    mavlink.MAVLink_set_mode_message,
+    mavlink.MAVLink_heartbeat_message,
+]
+RELAY_INPUTS = [
+    mavlink.MAVLink_global_position_int_message,
+    mavlink.MAVLink_local_position_ned_message,
+    mavlink.MAVLink_attitude_message,
+    mavlink.MAVLink_extended_sys_state_message,
+    mavlink.MAVLink_sys_status_message,
+    mavlink.MAVLink_command_ack_message,
+    mavlink.MAVLink_statustext_message,
+    mavlink.MAVLink_param_value_message,
+    mavlink.MAVLink_heartbeat_message,
+]
 
 
 def random_value(ftype: str, length: int, name: str, rng: random.Random, target_id: int):
@@ -175,9 +195,16 @@ def relay_fuzz() -> dict:
     # A sane position fix near the origin before each block, so the hostile frames that follow
     # (velocity, attitude, far-away fixes) are what the snapshot can show.
     fix = mavlink.MAVLink_global_position_int_message(
-        0, round(origin.lat_deg * 1e7), round(origin.lon_deg * 1e7), round(origin.alt_m * 1e3),
-        0, 0, 0, 0, 65535,
-    )  # fmt: skip
+        0,
+        round(origin.lat_deg * 1e7),
+        round(origin.lon_deg * 1e7),
+        round(origin.alt_m * 1e3),
+        0,
+        0,
+        0,
+        0,
+        65535,
+    )
     out = {"bad_telemetry": [], "snapshots": 0}
     with RelayBackend(f"udpin:127.0.0.1:{port}", origin=origin) as relay:
         sock.sendto(hb.pack(px4_mav), addr)

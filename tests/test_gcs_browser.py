@@ -26,8 +26,16 @@ from groundstation.demo_proc import DemoProcess
 pytestmark = [pytest.mark.browser, pytest.mark.e2e]
 
 CHROMIUM = shutil.which("chromium")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]  # fmt: skip
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 if CHROMIUM is None:
     pytest.skip(
         "Debian chromium is not installed (apt-get install chromium); CI installs it",
@@ -236,8 +244,10 @@ def test_goto_from_the_form_moves_a_vehicle(page, states):
     start = now[2].pos_ned_m
     # 6 m away from the other vehicles, so the policy has no neighbour to swerve around.
     others = [s.pos_ned_m for vid, s in now.items() if vid != 2]
-    away = (start[0] - sum(p[0] for p in others) / len(others),
-            start[1] - sum(p[1] for p in others) / len(others))  # fmt: skip
+    away = (
+        start[0] - sum(p[0] for p in others) / len(others),
+        start[1] - sum(p[1] for p in others) / len(others),
+    )
     norm = math.hypot(*away) or 1.0
     target = (round(start[0] + 6.0 * away[0] / norm, 1), round(start[1] + 6.0 * away[1] / norm, 1))
     fill(page, "Targets", "2")

@@ -8,8 +8,14 @@ from groundstation.events import EventBuffer, EventsConfig
 
 
 def cmd(nonce: int, targets=(1,), source_id: int = 2, kind=CommandKind.GOTO_LOCAL) -> Command:
-    return Command(kind=kind, nonce=nonce, stamp_ns=nonce, params=(1.0, 2.0, -3.0),
-                   targets=targets, source_id=source_id)  # fmt: skip
+    return Command(
+        kind=kind,
+        nonce=nonce,
+        stamp_ns=nonce,
+        params=(1.0, 2.0, -3.0),
+        targets=targets,
+        source_id=source_id,
+    )
 
 
 def ack(vid: int, nonce: int, result=AckResult.ACCEPTED) -> CommandAck:
@@ -24,7 +30,10 @@ def test_answers_are_kept_per_command_and_stray_acks_are_refused():
     log.on_ack(ack(1, 99), 4)  # answers nothing we saw (yet)
     log.on_ack(ack(1, 10), 5, check=lambda a, c, d: "bad tag")  # fails the signature check
     (e,) = log.entries()
-    assert {v: a.result for v, a in e.answers.items()} == {1: AckResult.ACCEPTED, 2: AckResult.REJECTED}
+    assert {v: a.result for v, a in e.answers.items()} == {
+        1: AckResult.ACCEPTED,
+        2: AckResult.REJECTED,
+    }
     assert log.refused_acks == 1
     # An ack that overtook its command is applied when the command arrives.
     log.on_command(cmd(99), 6)
@@ -34,7 +43,9 @@ def test_answers_are_kept_per_command_and_stray_acks_are_refused():
 
 def test_a_later_accepted_command_supersedes_the_earlier_on_that_vehicle_only():
     seen = []
-    log = CommandLog(on_superseded=lambda before, vid, later: seen.append((before.seq, vid, later.seq)))
+    log = CommandLog(
+        on_superseded=lambda before, vid, later: seen.append((before.seq, vid, later.seq))
+    )
     log.on_command(cmd(1, targets=(1, 2), source_id=2), 1)
     log.on_ack(ack(1, 1), 2)
     log.on_ack(ack(2, 1), 2)
@@ -74,8 +85,15 @@ def test_a_flood_of_one_event_kind_never_hides_another():
     buf = EventBuffer(EventsConfig(per_kind=50, shown=12), clock_text=lambda: "t")
     buf.add(Event(vehicle_id=1, stamp_ns=0, text="mode GOTO", kind=EventKind.MODE_CHANGE))
     for k in range(10_000):
-        buf.add(Event(vehicle_id=2, stamp_ns=k, text="refused", kind=EventKind.SECURITY,
-                      severity=Severity.WARNING))  # fmt: skip
+        buf.add(
+            Event(
+                vehicle_id=2,
+                stamp_ns=k,
+                text="refused",
+                kind=EventKind.SECURITY,
+                severity=Severity.WARNING,
+            )
+        )
     assert [e.text for _, e in buf.latest(EventKind.MODE_CHANGE)] == ["mode GOTO"]
     shown = buf.latest()  # all kinds: the flood fills at most a third of the lines
     assert [e.kind for _, e in shown] == [EventKind.MODE_CHANGE] + [EventKind.SECURITY] * 4

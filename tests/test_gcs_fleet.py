@@ -12,12 +12,27 @@ from groundstation.fleet import NS_PER_S, FleetConfig, FleetModel, close_pairs, 
 
 
 def state(vid: int, seq: int, pos=(0.0, 0.0, -5.0), vel=(1.0, 0.0, 0.0), **kw) -> VehicleState:
-    return VehicleState(vehicle_id=vid, seq=seq, stamp_ns=seq, pos_ned_m=pos, vel_ned_m_s=vel,
-                        heading_rad=0.0, mode=kw.pop("mode", Mode.GOTO), **kw)  # fmt: skip
+    return VehicleState(
+        vehicle_id=vid,
+        seq=seq,
+        stamp_ns=seq,
+        pos_ned_m=pos,
+        vel_ned_m_s=vel,
+        heading_rad=0.0,
+        mode=kw.pop("mode", Mode.GOTO),
+        **kw,
+    )
 
 
-def feed(model: FleetModel, vid: int, n: int, rate_hz: float, t0_s: float = 0.0, drop=lambda seq: False,
-         pos=lambda seq: (0.0, 0.0, -5.0)) -> float:  # fmt: skip
+def feed(
+    model: FleetModel,
+    vid: int,
+    n: int,
+    rate_hz: float,
+    t0_s: float = 0.0,
+    drop=lambda seq: False,
+    pos=lambda seq: (0.0, 0.0, -5.0),
+) -> float:
     """Feed n states at rate_hz starting at t0_s; returns the time of the last one (s)."""
     t = t0_s
     for seq in range(n):

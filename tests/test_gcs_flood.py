@@ -30,7 +30,9 @@ def test_a_phantom_flood_leaves_only_real_vehicles_and_events_get_through() -> N
             presence = hub.presence()
             agents = start_agents(port)
             assert presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60)
-            cfg = GcsConfig(mesh=MeshConfig(mode="peer", connect=(f"tcp/127.0.0.1:{port}",)), port=0)
+            cfg = GcsConfig(
+                mesh=MeshConfig(mode="peer", connect=(f"tcp/127.0.0.1:{port}",)), port=0
+            )
             with GroundStation(cfg) as gcs:
                 rogue = start_flooder(port, 3000, FLOOD_S, mix="phantom")
                 deadline = time.monotonic() + 30
@@ -40,12 +42,16 @@ def test_a_phantom_flood_leaves_only_real_vehicles_and_events_get_through() -> N
                 samples.clear()
                 t0 = time.monotonic()
                 # A real mode change during the flood.
-                res = hub.send_command(Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=0), expect=(1,))
+                res = hub.send_command(
+                    Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=0), expect=(1,)
+                )
                 assert res.ok, res.summary()
                 while time.monotonic() - t0 < 3.0:
                     time.sleep(0.1)
                 shown = [ev for _, ev in gcs.events.latest()]  # what an "all kinds" panel shows
-                assert any(ev.kind is EventKind.MODE_CHANGE and ev.vehicle_id == 1 for ev in shown), shown
+                assert any(
+                    ev.kind is EventKind.MODE_CHANGE and ev.vehicle_id == 1 for ev in shown
+                ), shown
                 with samples.lock:
                     rows = {v: sorted(r) for v, r in samples.by_vehicle.items()}
                 for v in (1, 2):  # the agent's own publishing rate, and how much of it arrived

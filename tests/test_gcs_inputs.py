@@ -179,11 +179,14 @@ def test_fleet_table_and_ack_matrix_show_what_matters():
         and "<b>1</b> of 2 vehicles present" in page
     )
     cmd = build_command(inputs.takeoff(5), (), 1, 0)
-    res = CommandResult(cmd, {
-        1: Outcome(1, OutcomeStatus.ACCEPTED, "", None, 0.01),
-        2: Outcome(2, OutcomeStatus.REJECTED, "already flying <x>", None, 0.01),
-        3: Outcome(3, OutcomeStatus.TIMEOUT, "no answer within 2 s", None, 2.0),
-    })  # fmt: skip
+    res = CommandResult(
+        cmd,
+        {
+            1: Outcome(1, OutcomeStatus.ACCEPTED, "", None, 0.01),
+            2: Outcome(2, OutcomeStatus.REJECTED, "already flying <x>", None, 0.01),
+            3: Outcome(3, OutcomeStatus.TIMEOUT, "no answer within 2 s", None, 2.0),
+        },
+    )
     page = ack_matrix(Dispatched("takeoff to 5 m → all", (res,)))
     assert 'data-vehicle="2" data-status="rejected"' in page and "already flying &lt;x&gt;" in page
     assert 'data-status="timeout"' in page and "1 accepted · 1 rejected · 1 timeout" in page

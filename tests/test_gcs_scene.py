@@ -36,8 +36,17 @@ def node_names(server) -> set[str]:
 
 def test_vehicles_are_drawn_in_batched_nodes_in_the_scene_frame(server):
     model = FleetModel()
-    put(model, 3, 1, (10.0, -4.0, -6.0), 0.0, mode=Mode.GOTO, flags=StateFlag.HAS_GOAL, goal_ned_m=(20.0, 0.0, -6.0),
-        vel=(1.0, 0.0, 0.0))  # fmt: skip
+    put(
+        model,
+        3,
+        1,
+        (10.0, -4.0, -6.0),
+        0.0,
+        mode=Mode.GOTO,
+        flags=StateFlag.HAS_GOAL,
+        goal_ned_m=(20.0, 0.0, -6.0),
+        vel=(1.0, 0.0, 0.0),
+    )
     scene = FleetScene(server, SceneConfig())
     with server.atomic():
         scene.update(model.snapshot(0), send_trails=True)
@@ -49,23 +58,41 @@ def test_vehicles_are_drawn_in_batched_nodes_in_the_scene_frame(server):
     assert bodies.batched_positions[0] == pytest.approx((-4.0, 10.0, 6.0))  # ENU: east, north, up
     assert color_of(scene, "bodies", 3) == mode_rgb(Mode.GOTO)
     goals = scene.nodes["goals"]
-    assert goals.batched_positions[0] == pytest.approx((0.0, 20.0, 6.0)) and goals.batched_scales[0] == 1.0
+    assert (
+        goals.batched_positions[0] == pytest.approx((0.0, 20.0, 6.0))
+        and goals.batched_scales[0] == 1.0
+    )
     assert scene.labels[3].text == "3 GOTO 6.0m 100%"
     start, tip = scene.nodes["velocity"].points[0]
     assert tip - start == pytest.approx((0.0, 1.0, 0.0))  # north = scene +y
-    assert scene.nodes["stalks"].points[0][1] == pytest.approx((-4.0, 10.0, 0.0))  # down to the ground
+    assert scene.nodes["stalks"].points[0][1] == pytest.approx(
+        (-4.0, 10.0, 0.0)
+    )  # down to the ground
 
 
 def test_rings_turn_red_when_closer_than_separation_and_lost_vehicles_grey(server):
     model = FleetModel()
     put(model, 1, 1, (0.0, 0.0, -5.0), 0.0, mode=Mode.HOLDING)
     put(model, 2, 1, (0.0, 2.5, -5.0), 0.0, mode=Mode.HOLDING)
-    put(model, 3, 1, (0.0, 9.0, -5.0), 0.0, mode=Mode.HOLDING, flags=StateFlag.HAS_GOAL, goal_ned_m=(5.0, 9.0, -5.0))
+    put(
+        model,
+        3,
+        1,
+        (0.0, 9.0, -5.0),
+        0.0,
+        mode=Mode.HOLDING,
+        flags=StateFlag.HAS_GOAL,
+        goal_ned_m=(5.0, 9.0, -5.0),
+    )
     scene = FleetScene(server, SceneConfig(separation_m=3.0))
     scene.update(model.snapshot(0))
     assert [color_of(scene, "rings", v) for v in (1, 2, 3)] == [ALERT_RGB, ALERT_RGB, RING_OK_RGB]
     assert color_of(scene, "bodies", 3) == mode_rgb(Mode.HOLDING)
-    assert list(scene.nodes["goals"].batched_scales) == [0.0, 0.0, 1.0]  # goal shown only with a goal
+    assert list(scene.nodes["goals"].batched_scales) == [
+        0.0,
+        0.0,
+        1.0,
+    ]  # goal shown only with a goal
     put(model, 2, 2, (0.0, 4.0, -5.0), 0.1, mode=Mode.HOLDING)
     model.on_presence(3, False, 0)
     scene.update(model.snapshot(int(0.1 * NS_PER_S)))
@@ -149,8 +176,16 @@ def test_the_number_of_scene_nodes_does_not_grow_with_the_fleet():
     for n in (5, 50):
         model = FleetModel()
         for vid in range(1, n + 1):
-            put(model, vid, 1, (float(vid) * 5, 0.0, -5.0), 0.0, mode=Mode.HOLDING,
-                flags=StateFlag.HAS_GOAL, goal_ned_m=(0.0, 0.0, -5.0))  # fmt: skip
+            put(
+                model,
+                vid,
+                1,
+                (float(vid) * 5, 0.0, -5.0),
+                0.0,
+                mode=Mode.HOLDING,
+                flags=StateFlag.HAS_GOAL,
+                goal_ned_m=(0.0, 0.0, -5.0),
+            )
         srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
         try:
             scene = FleetScene(srv, SceneConfig(labels_all_max_vehicles=0))

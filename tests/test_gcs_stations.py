@@ -29,8 +29,11 @@ def demo():
 
 
 def station(demo, gcs_id: int) -> GroundStation:
-    return GroundStation(GcsConfig(mesh=MeshConfig(mode="peer", connect=(demo.mesh_endpoint,)),
-                                   port=0, gcs_id=gcs_id))  # fmt: skip
+    return GroundStation(
+        GcsConfig(
+            mesh=MeshConfig(mode="peer", connect=(demo.mesh_endpoint,)), port=0, gcs_id=gcs_id
+        )
+    )
 
 
 def send(gcs: GroundStation, req: CommandRequest, targets: tuple[int, ...]):
@@ -48,7 +51,9 @@ def entry(gcs: GroundStation, nonce: int):
 
 def test_every_station_logs_every_command_and_shows_superseded(demo):
     with station(demo, 2) as a, station(demo, 3) as b:
-        assert wait_until(lambda: a.presence.vehicles >= {1, 2} and b.presence.vehicles >= {1, 2}, 20)
+        assert wait_until(
+            lambda: a.presence.vehicles >= {1, 2} and b.presence.vehicles >= {1, 2}, 20
+        )
         send(a, CommandRequest(CommandKind.TAKEOFF, (4.0, 0.0, 0.0)), (1, 2))
         assert wait_until(lambda: a.fleet.snapshot(time.time_ns()).by_id()[1].alt_m > 2.0, 30)
         goto_a = send(a, CommandRequest(CommandKind.GOTO_LOCAL, (6.0, 0.0, -4.0)), (1,))
@@ -64,7 +69,8 @@ def test_every_station_logs_every_command_and_shows_superseded(demo):
         assert wait_until(lambda: 'data-answer="superseded"' in a.command_log_html.content, 5)
         send(a, CommandRequest(CommandKind.LAND), (1, 2))
         assert wait_until(
-            lambda: all(v.mode is Mode.LANDED for v in a.fleet.snapshot(time.time_ns()).vehicles), 60
+            lambda: all(v.mode is Mode.LANDED for v in a.fleet.snapshot(time.time_ns()).vehicles),
+            60,
         )
 
 
@@ -73,10 +79,22 @@ def test_a_station_that_cannot_serve_exits_2_in_one_line_and_never_joins(demo):
         assert wait_until(lambda: 4 in watcher.presence.ground_stations, 10)
         before = set(watcher.presence.ground_stations)
         bad = subprocess.run(
-            [sys.executable, "-m", "covey_cli", "gcs", "--host", "999.1.1.1", "--gcs-id", "9",
-             "--connect", demo.mesh_endpoint],
-            capture_output=True, text=True, timeout=60,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "covey_cli",
+                "gcs",
+                "--host",
+                "999.1.1.1",
+                "--gcs-id",
+                "9",
+                "--connect",
+                demo.mesh_endpoint,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert bad.returncode == 2
         assert len(bad.stderr.strip().splitlines()) == 1 and "999.1.1.1" in bad.stderr
         time.sleep(1.0)

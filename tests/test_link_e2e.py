@@ -44,10 +44,23 @@ def test_xbee_link_thins_delays_and_counts_a_live_stream():
 
         mesh.subscribe_states(on_state, link=Tap())
         agent = subprocess.Popen(
-            [sys.executable, "-m", "covey_cli", "agent", "--id", "5", "--fleet", fleet,
-             "--connect", f"tcp/127.0.0.1:{port}", "--no-gcs-failsafe"],
-            env={**os.environ}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "covey_cli",
+                "agent",
+                "--id",
+                "5",
+                "--fleet",
+                fleet,
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+                "--no-gcs-failsafe",
+            ],
+            env={**os.environ},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         try:
             deadline = time.monotonic() + 30.0
             while time.monotonic() < deadline:

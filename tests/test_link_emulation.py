@@ -157,10 +157,18 @@ def test_stats_text_fits_an_event():
     [
         ("xbee", PROFILES["xbee"]),
         ("perfect", LinkProfile(name="perfect")),
-        ("rate=3,loss=0.2,latency=0.1,jitter=0.03",
-         LinkProfile(name="rate=3,loss=0.2,latency=0.1,jitter=0.03", rate_hz=3, loss=0.2, latency_s=0.1, jitter_s=0.03)),
+        (
+            "rate=3,loss=0.2,latency=0.1,jitter=0.03",
+            LinkProfile(
+                name="rate=3,loss=0.2,latency=0.1,jitter=0.03",
+                rate_hz=3,
+                loss=0.2,
+                latency_s=0.1,
+                jitter_s=0.03,
+            ),
+        ),
     ],
-)  # fmt: skip
+)
 def test_parse_specs(spec, expected):
     assert parse_link_spec(spec) == expected
 

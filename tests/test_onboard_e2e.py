@@ -55,7 +55,9 @@ def test_two_onboard_emulators_swap_behind_relay_agents(procs) -> None:
                 if set(states) >= set(STARTS) and holds(pred, states):
                     return
             time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {what}: { {v: (s.mode.name, s.pos_ned_m) for v, s in states.items()} }")
+        raise AssertionError(
+            f"timed out waiting for {what}: { {v: (s.mode.name, s.pos_ned_m) for v, s in states.items()} }"
+        )
 
     with Mesh(embedded_router(port)) as mesh:
         mesh.declare_gcs(1)
@@ -65,24 +67,58 @@ def test_two_onboard_emulators_swap_behind_relay_agents(procs) -> None:
             udp = free_udp_port()
             lat, lon, alt = ORIGIN.to_global(n, e, 0.0)
             procs.start(
-                "-m", "firmware.sitl", "--id", str(vid), "--connect", f"udpout:127.0.0.1:{udp}",
-                "--home", f"{lat:.9f},{lon:.9f},{alt:.3f}", "--onboard", "--separation", str(SEPARATION_M),
-                "--policy-speed", "2", "--takeoff-speed", "3", "--pos-gain", "2", "--accel", "8",
+                "-m",
+                "firmware.sitl",
+                "--id",
+                str(vid),
+                "--connect",
+                f"udpout:127.0.0.1:{udp}",
+                "--home",
+                f"{lat:.9f},{lon:.9f},{alt:.3f}",
+                "--onboard",
+                "--separation",
+                str(SEPARATION_M),
+                "--policy-speed",
+                "2",
+                "--takeoff-speed",
+                "3",
+                "--pos-gain",
+                "2",
+                "--accel",
+                "8",
                 stdout=None,
-            )  # fmt: skip
+            )
             procs.start(
-                "-m", "covey_cli", "agent", "--id", str(vid), "--connect", f"tcp/127.0.0.1:{port}",
-                "--vehicle", f"relay:udpin:127.0.0.1:{udp}",
-                "--origin", f"{ORIGIN.lat_deg},{ORIGIN.lon_deg},{ORIGIN.alt_m}",
+                "-m",
+                "covey_cli",
+                "agent",
+                "--id",
+                str(vid),
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+                "--vehicle",
+                f"relay:udpin:127.0.0.1:{udp}",
+                "--origin",
+                f"{ORIGIN.lat_deg},{ORIGIN.lon_deg},{ORIGIN.alt_m}",
                 stdout=None,
-            )  # fmt: skip
+            )
         assert presence.wait_for(lambda v, g: v >= set(STARTS), timeout_s=60)
-        wait(lambda s: all(abs(s[v].pos_ned_m[0] - STARTS[v][0]) < 0.5 for v in STARTS), 30, "telemetry from both")
-        result = mesh.send_command(Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=time.time_ns()), expect=STARTS, timeout_s=10)
+        wait(
+            lambda s: all(abs(s[v].pos_ned_m[0] - STARTS[v][0]) < 0.5 for v in STARTS),
+            30,
+            "telemetry from both",
+        )
+        result = mesh.send_command(
+            Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=time.time_ns()),
+            expect=STARTS,
+            timeout_s=10,
+        )
         assert result.ok, result.summary()
         wait(lambda s: all(s[v].mode is Mode.HOLDING for v in STARTS), 40, "both at altitude")
         for vid, (n, e) in STARTS.items():
-            goal = Command.goto_local(-n, -e, -ALT_M, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(vid,))
+            goal = Command.goto_local(
+                -n, -e, -ALT_M, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(vid,)
+            )
             result = mesh.send_command(goal, timeout_s=10)
             assert result.ok, result.summary()
         wait(lambda s: all(s[v].mode is Mode.GOTO for v in STARTS), 10, "both flying")
@@ -91,5 +127,7 @@ def test_two_onboard_emulators_swap_behind_relay_agents(procs) -> None:
             assert np.hypot(states[vid].pos_ned_m[0] + n, states[vid].pos_ned_m[1] + e) < 1.5
         print(f"closest approach during the onboard swap: {closest[0]:.2f} m")
         assert closest[0] >= SEPARATION_M
-        result = mesh.send_command(Command(CommandKind.LAND, new_nonce(), time.time_ns()), expect=STARTS, timeout_s=10)
+        result = mesh.send_command(
+            Command(CommandKind.LAND, new_nonce(), time.time_ns()), expect=STARTS, timeout_s=10
+        )
         assert result.ok, result.summary()

@@ -110,9 +110,14 @@ def test_command_equals_the_reference_pipeline(pol):
 
 def test_command_checks_still_name_the_bad_input(pol):
     ok = dict(
-        pos_m=np.zeros(2), vel_m_s=np.zeros(2), heading_rad=0.0, goal_m=np.ones(2),
-        nbr_pos_m=np.ones((2, 2)), nbr_vel_m_s=np.zeros((2, 2)), nbr_heading_rad=np.zeros(2),
-    )  # fmt: skip
+        pos_m=np.zeros(2),
+        vel_m_s=np.zeros(2),
+        heading_rad=0.0,
+        goal_m=np.ones(2),
+        nbr_pos_m=np.ones((2, 2)),
+        nbr_vel_m_s=np.zeros((2, 2)),
+        nbr_heading_rad=np.zeros(2),
+    )
     for name in ok:
         bad = dict(ok)
         bad[name] = np.full_like(np.asarray(ok[name], dtype=float), np.nan)

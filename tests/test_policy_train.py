@@ -44,10 +44,17 @@ def test_occupancy_map_counts_by_bin_area():
 @pytest.mark.parametrize("encoder", ["lstm", "occupancy"])
 def test_training_smoke_run(tmp_path, encoder):
     cfg = TrainConfig(
-        preset="improved" if encoder == "lstm" else "paper", encoder=encoder, episodes=60,
-        num_envs=16, num_steps=16, minibatch_size=256, update_epochs=1, out=str(tmp_path),
-        progress=False, checkpoint_every=2,
-    )  # fmt: skip
+        preset="improved" if encoder == "lstm" else "paper",
+        encoder=encoder,
+        episodes=60,
+        num_envs=16,
+        num_steps=16,
+        minibatch_size=256,
+        update_epochs=1,
+        out=str(tmp_path),
+        progress=False,
+        checkpoint_every=2,
+    )
     row = main(cfg)
     assert row["episodes"] >= 60
     lines = (tmp_path / "log.csv").read_text().splitlines()
@@ -67,7 +74,9 @@ def test_every_train_flag_has_help(capsys):
     from policy.train import _field_help, cli
 
     docs = _field_help(TrainConfig)
-    assert set(docs) == {f.name for f in dataclasses.fields(TrainConfig)}, "a field without a docstring"
+    assert set(docs) == {f.name for f in dataclasses.fields(TrainConfig)}, (
+        "a field without a docstring"
+    )
     with pytest.raises(SystemExit):
         cli(["--help"])
     assert "Adam learning rate" in capsys.readouterr().out

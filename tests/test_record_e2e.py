@@ -69,10 +69,24 @@ def flight(tmp_path_factory):
         try:
             connect = f"tcp/127.0.0.1:{port}"
             for out in (clean, killed):
-                procs.append(subprocess.Popen(
-                    [sys.executable, "-c", RECORD, "-o", str(out), "--fleet", fleet, "--connect", connect],
-                    env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                ))  # fmt: skip
+                procs.append(
+                    subprocess.Popen(
+                        [
+                            sys.executable,
+                            "-c",
+                            RECORD,
+                            "-o",
+                            str(out),
+                            "--fleet",
+                            fleet,
+                            "--connect",
+                            connect,
+                        ],
+                        env=env,
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                    )
+                )
             # Both recorders must be on the mesh before the agents start. Probe with commands
             # to a vehicle that does not exist until both (still open) files hold one.
             deadline = time.monotonic() + 30.0
@@ -85,11 +99,28 @@ def flight(tmp_path_factory):
             assert all(_has_command(p) for p in (clean, killed)), "recorders did not come up"
             for vid in VEHICLES:
                 n, e = STARTS[vid]
-                procs.append(subprocess.Popen(
-                    [sys.executable, "-m", "covey_cli", "agent", "--id", str(vid), "--fleet", fleet,
-                     "--connect", connect, f"--start={n},{e}", "--no-gcs-failsafe", "--trace-guidance"],
-                    env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                ))  # fmt: skip
+                procs.append(
+                    subprocess.Popen(
+                        [
+                            sys.executable,
+                            "-m",
+                            "covey_cli",
+                            "agent",
+                            "--id",
+                            str(vid),
+                            "--fleet",
+                            fleet,
+                            "--connect",
+                            connect,
+                            f"--start={n},{e}",
+                            "--no-gcs-failsafe",
+                            "--trace-guidance",
+                        ],
+                        env=env,
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                    )
+                )
             assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 20.0)
             stamp = time.time_ns
             _command_all(

@@ -52,14 +52,23 @@ def _fly(path, n_ticks=120, traces=True, cruise=1.0):
                 h_in = heading[v]
                 out = guidance[v].goto(pos[v], vel[v], h_in, goal, snap, now_s)
                 state = VehicleState(
-                    v, k, t_ns, tuple(pos[v]), tuple(vel[v]), float(math.remainder(out.heading_rad, 2 * math.pi)),
-                    mode=Mode.GOTO, armed=True, flags=StateFlag.HAS_GOAL, goal_ned_m=tuple(goal),
-                )  # fmt: skip
+                    v,
+                    k,
+                    t_ns,
+                    tuple(pos[v]),
+                    tuple(vel[v]),
+                    float(math.remainder(out.heading_rad, 2 * math.pi)),
+                    mode=Mode.GOTO,
+                    armed=True,
+                    flags=StateFlag.HAS_GOAL,
+                    goal_ned_m=tuple(goal),
+                )
                 sink.put(keys.state(FLEET, v), state.encode(), t_ns + v)
                 if traces:
                     seqs = [tables[v].latest()[i].seq for i in snap.ids]
-                    text = trace_text(k, h_in, out.vel_ned_m_s, snap.ids, seqs, snap.age_s,
-                                      decided=out.decided)  # fmt: skip
+                    text = trace_text(
+                        k, h_in, out.vel_ned_m_s, snap.ids, seqs, snap.age_s, decided=out.decided
+                    )
                     ev = Event(v, t_ns, text, Severity.DEBUG)
                     sink.put(keys.event(FLEET, v), ev.encode(), t_ns + v + 1)
                 for dst in pos:

@@ -49,12 +49,28 @@ def test_same_policy_on_a_real_flight_reports_zero_difference(tmp_path):
     ):
         try:
             for vid, (n, e) in STARTS.items():
-                procs.append(subprocess.Popen(
-                    [sys.executable, "-m", "covey_cli", "agent", "--id", str(vid), "--fleet", fleet,
-                     "--connect", f"tcp/127.0.0.1:{port}", f"--start={n},{e}", "--no-gcs-failsafe",
-                     "--trace-guidance"],
-                    env={**os.environ}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                ))  # fmt: skip
+                procs.append(
+                    subprocess.Popen(
+                        [
+                            sys.executable,
+                            "-m",
+                            "covey_cli",
+                            "agent",
+                            "--id",
+                            str(vid),
+                            "--fleet",
+                            fleet,
+                            "--connect",
+                            f"tcp/127.0.0.1:{port}",
+                            f"--start={n},{e}",
+                            "--no-gcs-failsafe",
+                            "--trace-guidance",
+                        ],
+                        env={**os.environ},
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                    )
+                )
             assert mesh.presence().wait_for(lambda v, _g: set(STARTS) <= v, 20.0)
             now = time.time_ns
             _until_accepted(

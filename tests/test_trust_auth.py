@@ -56,13 +56,20 @@ def takeoff(nonce: int = 7, targets=(1,)) -> Command:
 
 
 def state(vid: int = 1, seq: int = 1, stamp_ns: int = T0_NS) -> VehicleState:
-    return VehicleState(vid, seq, stamp_ns, (1.0, 2.0, -10.0), (0.0, 0.0, 0.0), 0.0, Mode.HOLDING, True)
+    return VehicleState(
+        vid, seq, stamp_ns, (1.0, 2.0, -10.0), (0.0, 0.0, 0.0), 0.0, Mode.HOLDING, True
+    )
 
 
 # -- commands --------------------------------------------------------------------------------
-def test_station_signed_command_passes_once_and_everything_else_fails_with_its_reason(fleet) -> None:
+def test_station_signed_command_passes_once_and_everything_else_fails_with_its_reason(
+    fleet,
+) -> None:
     clock = Clock()
-    station, vehicle = member(fleet, Role.STATION, 1, clock_ns=clock), member(fleet, Role.VEHICLE, 1, clock_ns=clock)
+    station, vehicle = (
+        member(fleet, Role.STATION, 1, clock_ns=clock),
+        member(fleet, Role.VEHICLE, 1, clock_ns=clock),
+    )
     cmd = station.sign_command(takeoff())
     assert cmd.stamp_ns == T0_NS and cmd.source_id == 1 and len(cmd.tag) == 64
     assert Command.decode(cmd.encode()) == cmd  # the signature survives the wire
@@ -92,13 +99,20 @@ def test_a_captured_vehicle_key_cannot_command_anyone_not_even_itself(fleet) -> 
     captured = member(fleet, Role.VEHICLE, 2, clock_ns=clock)
     with pytest.raises(FleetKeyError, match="only a station key"):
         captured.sign_command(takeoff())
-    victim, itself = member(fleet, Role.VEHICLE, 1, clock_ns=clock), member(fleet, Role.VEHICLE, 2, clock_ns=clock)
+    victim, itself = (
+        member(fleet, Role.VEHICLE, 1, clock_ns=clock),
+        member(fleet, Role.VEHICLE, 2, clock_ns=clock),
+    )
     for source_id in (2, 1, 9):  # as "station 2" (its vehicle id), as station 1, as an unknown one
-        forged = dataclasses.replace(takeoff(nonce=source_id, targets=()), stamp_ns=T0_NS, source_id=source_id)
+        forged = dataclasses.replace(
+            takeoff(nonce=source_id, targets=()), stamp_ns=T0_NS, source_id=source_id
+        )
         forged = dataclasses.replace(forged, tag=captured._sign("cmd", forged.signed_bytes()))
         for vid, auth in ((1, victim), (2, itself)):
             reason = auth.check_command(forged, vid)
-            assert reason is not None and ("bad signature" in reason or "unknown signer" in reason), reason
+            assert reason is not None and (
+                "bad signature" in reason or "unknown signer" in reason
+            ), reason
 
 
 def test_a_signature_for_one_fleet_is_refused_in_another(tmp_path) -> None:
@@ -107,14 +121,19 @@ def test_a_signature_for_one_fleet_is_refused_in_another(tmp_path) -> None:
     covey = throwaway_fleet(tmp_path / "covey", "covey", vehicles=[1], stations=[1])
     beta_dir = tmp_path / "beta"
     beta_dir.mkdir()
-    (beta_dir / "authority.key").write_text(json.dumps({**json.loads((tmp_path / "covey" / "authority.key").read_text()),
-                                                        "fleet": "beta"}))  # fmt: skip
+    (beta_dir / "authority.key").write_text(
+        json.dumps(
+            {**json.loads((tmp_path / "covey" / "authority.key").read_text()), "fleet": "beta"}
+        )
+    )
     (beta_dir / "authority.key").chmod(0o600)
     from comms.identity import sign_roster
 
     beta_roster = sign_roster(covey.key, dataclasses.replace(covey.roster, fleet="beta"))
     key = read_member_key(covey.member_path(Role.VEHICLE, 1))
-    beta_vehicle = FleetAuth(dataclasses.replace(key, fleet="beta", roster=beta_roster), clock_ns=Clock())
+    beta_vehicle = FleetAuth(
+        dataclasses.replace(key, fleet="beta", roster=beta_roster), clock_ns=Clock()
+    )
     covey_station = member(covey, Role.STATION, 1, clock_ns=Clock())
     cmd = covey_station.sign_command(takeoff())
     assert member(covey, Role.VEHICLE, 1, clock_ns=Clock()).check_command(cmd, 1) is None  # control
@@ -129,7 +148,10 @@ def test_a_signature_for_one_fleet_is_refused_in_another(tmp_path) -> None:
 
 def test_acks_are_bound_to_the_exact_command_they_answer(fleet) -> None:
     clock = Clock()
-    station, v1 = member(fleet, Role.STATION, 1, clock_ns=clock), member(fleet, Role.VEHICLE, 1, clock_ns=clock)
+    station, v1 = (
+        member(fleet, Role.STATION, 1, clock_ns=clock),
+        member(fleet, Role.VEHICLE, 1, clock_ns=clock),
+    )
     a = station.sign_command(takeoff(nonce=1))
     b = station.sign_command(takeoff(nonce=2))
     da, db = command_digest(a.encode()), command_digest(b.encode())
@@ -139,11 +161,15 @@ def test_acks_are_bound_to_the_exact_command_they_answer(fleet) -> None:
     assert "forged ack" in station.check_ack(ack_a, b, db)
     assert "forged ack" in station.check_ack(dataclasses.replace(ack_a, nonce=b.nonce), b, db)
     # An ack to an undecodable command (nonce 0) cannot be replayed for any real command either.
-    ack0 = v1.sign_ack(CommandAck(1, 0, T0_NS, AckResult.REJECTED, "malformed"), command_digest(b"junk"))
+    ack0 = v1.sign_ack(
+        CommandAck(1, 0, T0_NS, AckResult.REJECTED, "malformed"), command_digest(b"junk")
+    )
     assert "forged ack" in station.check_ack(ack0, a, da)
     # Vehicle 2 cannot sign for vehicle 1; unsigned acks are reported too.
     v2 = member(fleet, Role.VEHICLE, 2, clock_ns=clock)
-    assert "forged ack" in station.check_ack(v2.sign_ack(dataclasses.replace(ack_a, tag=bytes(64)), da), a, da)
+    assert "forged ack" in station.check_ack(
+        v2.sign_ack(dataclasses.replace(ack_a, tag=bytes(64)), da), a, da
+    )
     assert "unsigned" in station.check_ack(dataclasses.replace(ack_a, tag=bytes(64)), a, da)
     lie = dataclasses.replace(ack_a, result=AckResult.REJECTED, reason="no")
     assert "it said: rejected: no" in station.check_ack(lie, a, da)
@@ -182,7 +208,10 @@ def test_nonce_cache_is_bounded_and_thread_safe(fleet) -> None:
 def test_a_newer_roster_revokes_and_an_old_or_foreign_one_is_refused(fleet, tmp_path) -> None:
     clock = Clock()
     vehicle = member(fleet, Role.VEHICLE, 1, clock_ns=clock)
-    s1, s2 = member(fleet, Role.STATION, 1, clock_ns=clock), member(fleet, Role.STATION, 2, clock_ns=clock)
+    s1, s2 = (
+        member(fleet, Role.STATION, 1, clock_ns=clock),
+        member(fleet, Role.STATION, 2, clock_ns=clock),
+    )
     old = fleet.roster
     assert vehicle.check_command(s2.sign_command(takeoff(nonce=1)), 1) is None
     fleet.revoke(Role.STATION, 2)
@@ -206,13 +235,19 @@ def test_a_newer_roster_revokes_and_an_old_or_foreign_one_is_refused(fleet, tmp_
 # -- states and the gate -----------------------------------------------------------------------
 def test_gate_drops_unsigned_forged_stale_replayed_out_of_order_and_phantom_states(fleet) -> None:
     clock = Clock()
-    v1, v2 = member(fleet, Role.VEHICLE, 1, clock_ns=clock), member(fleet, Role.VEHICLE, 2, clock_ns=clock)
+    v1, v2 = (
+        member(fleet, Role.VEHICLE, 1, clock_ns=clock),
+        member(fleet, Role.VEHICLE, 2, clock_ns=clock),
+    )
     lines: list[str] = []
     gate = Gate(member(fleet, Role.STATION, 1), GateConfig(), on_summary=lines.append)
     t = T0_NS
     assert gate.admit_state(v1.sign_state(state(1, 1, t)), t) is None
     assert gate.admit_state(state(1, 2, t + 1), t + 1) is Refusal.UNSIGNED
-    assert gate.admit_state(dataclasses.replace(v2.sign_state(state(1, 2, t + 1))), t + 1) is Refusal.FORGED
+    assert (
+        gate.admit_state(dataclasses.replace(v2.sign_state(state(1, 2, t + 1))), t + 1)
+        is Refusal.FORGED
+    )
     assert gate.admit_state(v2.sign_state(state(2, 2, t + 1)), t + 1) is None  # its own: fine
     assert gate.admit_state(v1.sign_state(state(9, 1, t)), t) is Refusal.UNKNOWN  # a phantom id
     assert gate.admit_state(v1.sign_state(state(1, 1, t)), t + 2) is Refusal.REPLAYED
@@ -243,7 +278,9 @@ def test_thinning_skips_only_genuine_extras_and_a_forger_cannot_use_it(fleet) ->
     assert gate.admit_state(v1.sign_state(state(1, 1, t)), t) is None
     assert gate.admit_state(v1.sign_state(state(1, 2, t + 100 * ms)), t + 100 * ms) is SKIPPED
     # Forged states right before each real one: refused, and they do not move "last accepted".
-    assert gate.admit_state(v2.sign_state(state(1, 3, t + 190 * ms)), t + 190 * ms) is Refusal.FORGED
+    assert (
+        gate.admit_state(v2.sign_state(state(1, 3, t + 190 * ms)), t + 190 * ms) is Refusal.FORGED
+    )
     assert gate.admit_state(v1.sign_state(state(1, 3, t + 200 * ms)), t + 200 * ms) is None
 
 
@@ -271,7 +308,16 @@ def test_keygen_init_add_revoke_list_and_file_modes(tmp_path, capsys) -> None:
     for name in ("authority.key", "vehicle-1.key", "station-1.key"):
         assert stat.S_IMODE((tmp_path / "fleet" / name).stat().st_mode) == 0o600
     doc = json.loads((tmp_path / "fleet" / "vehicle-1.key").read_text())
-    assert sorted(doc) == ["authority_public_key", "covey", "fleet", "id", "private_key", "role", "roster", "version"]
+    assert sorted(doc) == [
+        "authority_public_key",
+        "covey",
+        "fleet",
+        "id",
+        "private_key",
+        "role",
+        "roster",
+        "version",
+    ]
     key = read_member_key(tmp_path / "fleet" / "vehicle-1.key")  # refreshed with the latest roster
     assert key.roster.version == 4 and len(key.roster.members) == 3
     assert keygen_cli(["revoke", "--dir", d, "vehicle", "2"]) == 0
@@ -310,7 +356,9 @@ def test_key_files_that_cannot_be_used_refuse_to_start(fleet, tmp_path, caplog) 
         bad("noid.key", json.dumps({**doc, "id": "one"})): "'id' is missing or not a int",
         bad("badhex.key", json.dumps({**doc, "private_key": "zz"})): "not hex",
         bad("short.key", json.dumps({**doc, "private_key": "00" * 31})): "must be 32 bytes",
-        bad("badroster.key", json.dumps({**doc, "roster": doc["roster"][:-2]})): "roster is malformed",
+        bad(
+            "badroster.key", json.dumps({**doc, "roster": doc["roster"][:-2]})
+        ): "roster is malformed",
         bad("swapped.key", json.dumps({**doc, "id": 2})): "not in its roster",
         bad("foreign.key", json.dumps({**doc, "authority_public_key": "11" * 32})): "authority",
         str(fleet.dir / "authority.key"): "AUTHORITY key",
@@ -350,9 +398,19 @@ def test_agents_with_key_files_accept_only_station_signed_fresh_commands(procs, 
         gcs.subscribe_events(lambda e, _t: events.append(e))
         presence = gcs.presence()
         for vid in (1, 2):
-            procs.start("-m", "covey_cli", "agent", "--key-file", str(fleet.member_path(Role.VEHICLE, vid)),
-                        "--id", str(vid), "--connect", f"tcp/127.0.0.1:{port}", f"--start={3 * vid},0",
-                        "--no-gcs-failsafe")  # fmt: skip
+            procs.start(
+                "-m",
+                "covey_cli",
+                "agent",
+                "--key-file",
+                str(fleet.member_path(Role.VEHICLE, vid)),
+                "--id",
+                str(vid),
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+                f"--start={3 * vid},0",
+                "--no-gcs-failsafe",
+            )
         assert presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), "agents did not come up"
         with Mesh(embedded_peer(port)) as raw:  # open mode: sends exactly what it is given
             time.sleep(0.5)
@@ -361,48 +419,109 @@ def test_agents_with_key_files_accept_only_station_signed_fresh_commands(procs, 
                 return raw.send_command(cmd, expect=(vid,), timeout_s=5).outcomes[vid]
 
             captured = member(fleet, Role.VEHICLE, 2)
-            as_station = dataclasses.replace(takeoff(nonce=new_nonce(), targets=(1,)), stamp_ns=time.time_ns(), source_id=2)
-            as_station = dataclasses.replace(as_station, tag=captured._sign("cmd", as_station.signed_bytes()))
+            as_station = dataclasses.replace(
+                takeoff(nonce=new_nonce(), targets=(1,)), stamp_ns=time.time_ns(), source_id=2
+            )
+            as_station = dataclasses.replace(
+                as_station, tag=captured._sign("cmd", as_station.signed_bytes())
+            )
             self_cmd = dataclasses.replace(as_station, targets=(2,), nonce=new_nonce())
-            self_cmd = dataclasses.replace(self_cmd, tag=captured._sign("cmd", self_cmd.signed_bytes()))
+            self_cmd = dataclasses.replace(
+                self_cmd, tag=captured._sign("cmd", self_cmd.signed_bytes())
+            )
             retargeted = station.sign_command(takeoff(nonce=0, targets=(1,)))
             outcomes = {
-                "unsigned": raw_send(Command.takeoff(5.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)), 1),
+                "unsigned": raw_send(
+                    Command.takeoff(5.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)),
+                    1,
+                ),
                 "captured vehicle key": raw_send(as_station, 1),
                 "captured key, itself": raw_send(self_cmd, 2),
-                "tampered params": raw_send(dataclasses.replace(station.sign_command(takeoff(0)), params=(100.0, 0.0, 0.0)), 1),
-                "stale": raw_send(member(fleet, Role.STATION, 1, clock_ns=lambda: time.time_ns() - 60 * 10**9)
-                                  .sign_command(takeoff(0)), 1),
+                "tampered params": raw_send(
+                    dataclasses.replace(station.sign_command(takeoff(0)), params=(100.0, 0.0, 0.0)),
+                    1,
+                ),
+                "stale": raw_send(
+                    member(
+                        fleet, Role.STATION, 1, clock_ns=lambda: time.time_ns() - 60 * 10**9
+                    ).sign_command(takeoff(0)),
+                    1,
+                ),
                 "for 1, sent to 2": _send_to(raw, retargeted, 2),
-            }  # fmt: skip
-            expected = {"unsigned": "unsigned", "captured vehicle key": "bad signature",
-                        "captured key, itself": "bad signature", "tampered params": "bad signature",
-                        "stale": "stale", "for 1, sent to 2": "not for this vehicle"}  # fmt: skip
+            }
+            expected = {
+                "unsigned": "unsigned",
+                "captured vehicle key": "bad signature",
+                "captured key, itself": "bad signature",
+                "tampered params": "bad signature",
+                "stale": "stale",
+                "for 1, sent to 2": "not for this vehicle",
+            }
             for name, outcome in outcomes.items():
                 assert outcome.status is OutcomeStatus.REJECTED, (name, outcome)
                 assert expected[name] in outcome.reason, (name, outcome.reason)
-                assert outcome.ack is not None and outcome.ack.tag != bytes(64)  # the refusal is signed
-            ok = gcs.send_command(Command.takeoff(5.0, nonce=new_nonce(), stamp_ns=0, targets=(1,)), timeout_s=5)
+                assert outcome.ack is not None and outcome.ack.tag != bytes(
+                    64
+                )  # the refusal is signed
+            ok = gcs.send_command(
+                Command.takeoff(5.0, nonce=new_nonce(), stamp_ns=0, targets=(1,)), timeout_s=5
+            )
             assert ok.ok, ok.summary()
             replayed = raw_send(ok.command, 1)  # the exact bytes again: a replay
             assert replayed.status is OutcomeStatus.REJECTED and "replayed" in replayed.reason
-            both = gcs.send_command(Command(CommandKind.HOLD, new_nonce(), 0), expect=(1, 2), timeout_s=5)
-            assert set(both.outcomes) == {1, 2} and all(o.ack is not None for o in both.outcomes.values())
+            both = gcs.send_command(
+                Command(CommandKind.HOLD, new_nonce(), 0), expect=(1, 2), timeout_s=5
+            )
+            assert set(both.outcomes) == {1, 2} and all(
+                o.ack is not None for o in both.outcomes.values()
+            )
             # The real `covey cmd`: with a station key accepted; with a vehicle key or none refused.
-            run = [sys.executable, "-m", "covey_cli", "cmd", "land", "--to", "all", "--connect", f"tcp/127.0.0.1:{port}"]
+            run = [
+                sys.executable,
+                "-m",
+                "covey_cli",
+                "cmd",
+                "land",
+                "--to",
+                "all",
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+            ]
             env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parent.parent))
             env.pop("COVEY_FLEET_KEY_FILE", None)
-            signed = subprocess.run([*run, "--key-file", str(fleet.member_path(Role.STATION, 2))],
-                                    capture_output=True, text=True, timeout=60, env=env)  # fmt: skip
-            vehicle_key = subprocess.run([*run, "--key-file", str(fleet.member_path(Role.VEHICLE, 1))],
-                                         capture_output=True, text=True, timeout=60, env=env)  # fmt: skip
+            signed = subprocess.run(
+                [*run, "--key-file", str(fleet.member_path(Role.STATION, 2))],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env=env,
+            )
+            vehicle_key = subprocess.run(
+                [*run, "--key-file", str(fleet.member_path(Role.VEHICLE, 1))],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env=env,
+            )
             unsigned = subprocess.run(run, capture_output=True, text=True, timeout=60, env=env)
-            assert "accepted" in signed.stdout and "unsigned" not in signed.stdout, signed.stdout + signed.stderr
-            assert vehicle_key.returncode == 2 and "only a station key" in vehicle_key.stderr, vehicle_key.stderr
-            assert "Traceback" not in vehicle_key.stderr and len(vehicle_key.stderr.strip().splitlines()) == 1
-            assert "unsigned" in unsigned.stdout and "OPEN MODE" in unsigned.stderr, unsigned.stdout + unsigned.stderr
+            assert "accepted" in signed.stdout and "unsigned" not in signed.stdout, (
+                signed.stdout + signed.stderr
+            )
+            assert vehicle_key.returncode == 2 and "only a station key" in vehicle_key.stderr, (
+                vehicle_key.stderr
+            )
+            assert (
+                "Traceback" not in vehicle_key.stderr
+                and len(vehicle_key.stderr.strip().splitlines()) == 1
+            )
+            assert "unsigned" in unsigned.stdout and "OPEN MODE" in unsigned.stderr, (
+                unsigned.stdout + unsigned.stderr
+            )
         deadline = time.monotonic() + 5
-        while time.monotonic() < deadline and len([e for e in events if e.kind is EventKind.SECURITY]) < 6:
+        while (
+            time.monotonic() < deadline
+            and len([e for e in events if e.kind is EventKind.SECURITY]) < 6
+        ):
             time.sleep(0.05)
         security = [e for e in events if e.kind is EventKind.SECURITY]
         for name in ("unsigned", "bad signature", "stale", "replayed", "not for this vehicle"):
@@ -419,8 +538,9 @@ def _send_to(mesh, cmd: Command, vid: int):
     from comms import keys
     from comms.commands import Outcome
 
-    replies = mesh.session.get(keys.cmd(mesh.fleet, vid), payload=cmd.encode(), timeout=5.0,
-                               target=zenoh.QueryTarget.ALL)  # fmt: skip
+    replies = mesh.session.get(
+        keys.cmd(mesh.fleet, vid), payload=cmd.encode(), timeout=5.0, target=zenoh.QueryTarget.ALL
+    )
     for reply in replies:
         if reply.ok is not None:
             ack = CommandAck.decode(reply.ok.payload.to_bytes())

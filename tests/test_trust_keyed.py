@@ -54,7 +54,11 @@ class Station:
         self.events: list[Event] = []
         mesh.subscribe_states(self.fleet.on_state)  # finds fleet.on_state_refused by itself
         mesh.subscribe_events(lambda e, _t: self.events.append(e))
-        self.presence = mesh.presence(lambda kind, vid, alive: kind == "vehicle" and self.fleet.on_presence(vid, alive, time.time_ns()))
+        self.presence = mesh.presence(
+            lambda kind, vid, alive: (
+                kind == "vehicle" and self.fleet.on_presence(vid, alive, time.time_ns())
+            )
+        )
 
     def views(self):
         return self.fleet.snapshot(time.time_ns(), trails=False).by_id()
@@ -80,22 +84,57 @@ def keyed(tmp_path_factory):
     authority = throwaway_fleet(d, FLEET, vehicles=[1, 2, 3], stations=[1, 2])
     port = free_tcp_port()
     group = ProcessGroup()
-    raw_states: list[tuple[float, bytes]] = []  # what an eavesdropper records: signed states of vehicle 1
+    raw_states: list[
+        tuple[float, bytes]
+    ] = []  # what an eavesdropper records: signed states of vehicle 1
     try:
-        with Mesh(embedded_router(port, fleet=FLEET), auth=load_auth(str(authority.member_path(Role.STATION, 1)))) as mesh:
+        with Mesh(
+            embedded_router(port, fleet=FLEET),
+            auth=load_auth(str(authority.member_path(Role.STATION, 1))),
+        ) as mesh:
             station = Station(mesh)
-            mesh.session.declare_subscriber(keys.state(FLEET, 1), lambda s: raw_states.append((time.monotonic(), s.payload.to_bytes())))
+            mesh.session.declare_subscriber(
+                keys.state(FLEET, 1),
+                lambda s: raw_states.append((time.monotonic(), s.payload.to_bytes())),
+            )
             for vid, (n, e) in ((1, (0.0, 0.0)), (2, V2_AT)):
-                group.start("-m", "covey_cli", "agent", "--id", str(vid), "--key-file", str(authority.member_path(Role.VEHICLE, vid)),
-                            "--fleet", FLEET, "--connect", f"tcp/127.0.0.1:{port}", f"--start={n:g},{e:g}",
-                            "--no-gcs-failsafe")  # fmt: skip
-            assert station.presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), "agents did not come up"
-            station.wait(lambda v: all(i in v and v[i].state is not None for i in (1, 2)), 30, "first states")
-            res = station.send(Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(1, 2)), (1, 2))
+                group.start(
+                    "-m",
+                    "covey_cli",
+                    "agent",
+                    "--id",
+                    str(vid),
+                    "--key-file",
+                    str(authority.member_path(Role.VEHICLE, vid)),
+                    "--fleet",
+                    FLEET,
+                    "--connect",
+                    f"tcp/127.0.0.1:{port}",
+                    f"--start={n:g},{e:g}",
+                    "--no-gcs-failsafe",
+                )
+            assert station.presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), (
+                "agents did not come up"
+            )
+            station.wait(
+                lambda v: all(i in v and v[i].state is not None for i in (1, 2)), 30, "first states"
+            )
+            res = station.send(
+                Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(1, 2)), (1, 2)
+            )
             assert res.ok, res.summary()
-            station.wait(lambda v: all(v[i].mode is Mode.HOLDING for i in (1, 2)), 40, "both holding at altitude")
-            yield {"authority": authority, "port": port, "station": station, "raw_states": raw_states,
-                   "first_roster": authority.roster}
+            station.wait(
+                lambda v: all(v[i].mode is Mode.HOLDING for i in (1, 2)),
+                40,
+                "both holding at altitude",
+            )
+            yield {
+                "authority": authority,
+                "port": port,
+                "station": station,
+                "raw_states": raw_states,
+                "first_roster": authority.roster,
+            }
     finally:
         group.close()
 
@@ -134,9 +173,13 @@ def forged(vid: int, seq: int, now_ns: int, pos, sig: bytes = b"") -> bytes:
     return dataclasses.replace(s, sig=sig).encode() if sig else s.encode()
 
 
-def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_truth(keyed) -> None:
+def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_truth(
+    keyed,
+) -> None:
     station: Station = keyed["station"]
-    insider = load_auth(str(keyed["authority"].member_path(Role.VEHICLE, 3)))  # a captured vehicle's key
+    insider = load_auth(
+        str(keyed["authority"].member_path(Role.VEHICLE, 3))
+    )  # a captured vehicle's key
 
     def attack(seq: int, now_ns: int):
         # Both real vehicles "LANDED" far away: unsigned, and signed by the captured vehicle 3.
@@ -147,7 +190,9 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
         # 5000 made-up ids, 250 a round (about 5000/s), half signed by the insider.
         for k in range(250):
             pid = 100 + (seq * 250 + k) % 5000
-            s = VehicleState(pid, seq, now_ns, (float(k), 0.0, -ALT_M), (0.0, 0.0, 0.0), 0.0, Mode.GOTO, True)
+            s = VehicleState(
+                pid, seq, now_ns, (float(k), 0.0, -ALT_M), (0.0, 0.0, 0.0), 0.0, Mode.GOTO, True
+            )
             yield keys.state(FLEET, pid), (insider.sign_state(s) if k % 2 else s).encode()
 
     refused0 = station.mesh.stats.states_refused
@@ -155,7 +200,10 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
     duration_s = 25.0
     with Forger(keyed["port"], attack, rate_hz=20.0) as forger:
         time.sleep(1.0)
-        res = station.send(Command.goto_local(0.0, V2_AT[1], -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(1,)), (1,))
+        res = station.send(
+            Command.goto_local(0.0, V2_AT[1], -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(1,)),
+            (1,),
+        )
         assert res.ok, res.summary()
         t_end = time.monotonic() + duration_s - 1.0
         rates = []
@@ -165,7 +213,10 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
             min_sep_m = min(min_sep_m, float(np.linalg.norm(np.subtract(p1, p2))))
             max_e1 = max(max_e1, p1[1])
             # The station shows both where they are: flying, vehicle 2 on its spot, never the forgery.
-            assert v[1].mode is not Mode.LANDED and v[2].mode is Mode.HOLDING, (v[1].state, v[2].state)
+            assert v[1].mode is not Mode.LANDED and v[2].mode is Mode.HOLDING, (
+                v[1].state,
+                v[2].state,
+            )
             assert abs(p2[0] - V2_AT[0]) < 1.0 and abs(p2[1] - V2_AT[1]) < 1.0, p2
             assert set(v) == {1, 2}, sorted(v)[:10]  # no phantom
             rates.append((v[1].rate_hz, v[2].rate_hz))
@@ -173,20 +224,37 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
         sent = forger.sent
     views = station.views()
     refused = station.mesh.stats.states_refused - refused0
-    print(f"ghost attack: closest approach {min_sep_m:.2f} m, vehicle 1 reached E {max_e1:.1f} m; forger sent "
-          f"{sent}, station refused {refused} ({station.fleet.phantom_refusals} for phantom ids); "
-          f"state rates at the station during the flood: min {min(r[0] for r in rates[20:]):.1f} / "
-          f"{min(r[1] for r in rates[20:]):.1f} Hz")  # fmt: skip
-    assert max_e1 > V2_AT[1] - 6.0, "vehicle 1 never flew towards vehicle 2: the attack was not tested"
+    print(
+        f"ghost attack: closest approach {min_sep_m:.2f} m, vehicle 1 reached E {max_e1:.1f} m; forger sent "
+        f"{sent}, station refused {refused} ({station.fleet.phantom_refusals} for phantom ids); "
+        f"state rates at the station during the flood: min {min(r[0] for r in rates[20:]):.1f} / "
+        f"{min(r[1] for r in rates[20:]):.1f} Hz"
+    )
+    assert max_e1 > V2_AT[1] - 6.0, (
+        "vehicle 1 never flew towards vehicle 2: the attack was not tested"
+    )
     assert min_sep_m >= 3.0, f"closest approach {min_sep_m:.2f} m"
-    assert sent > 20_000 and refused > 0.5 * sent, (sent, refused)  # the forgery did reach the station
+    assert sent > 20_000 and refused > 0.5 * sent, (
+        sent,
+        refused,
+    )  # the forgery did reach the station
     assert station.fleet.phantom_refusals > 10_000
-    assert views[1].unverified and views[2].unverified and views[1].refused_cause  # marked, with a cause
-    assert np.median([r[0] for r in rates[20:]]) > 8.0 and np.median([r[1] for r in rates[20:]]) > 8.0
-    security = [e for e in station.events if e.kind is EventKind.SECURITY and e.vehicle_id in (1, 2)]
-    assert any("refused" in e.text and "state" in e.text for e in security), [e.text for e in station.events][-5:]
+    assert (
+        views[1].unverified and views[2].unverified and views[1].refused_cause
+    )  # marked, with a cause
+    assert (
+        np.median([r[0] for r in rates[20:]]) > 8.0 and np.median([r[1] for r in rates[20:]]) > 8.0
+    )
+    security = [
+        e for e in station.events if e.kind is EventKind.SECURITY and e.vehicle_id in (1, 2)
+    ]
+    assert any("refused" in e.text and "state" in e.text for e in security), [
+        e.text for e in station.events
+    ][-5:]
     limit = 2 * len(Refusal) * (duration_s + 3)  # one summary per cause per second per agent
-    print(f"{len(security)} SECURITY events from the agents (limit {limit:.0f}), e.g. {security[-1].text!r}")
+    print(
+        f"{len(security)} SECURITY events from the agents (limit {limit:.0f}), e.g. {security[-1].text!r}"
+    )
     assert len(security) <= limit, f"{len(security)} SECURITY events: not rate-limited"
 
 
@@ -196,7 +264,10 @@ def swap(station: Station, a_ne, b_ne, forger_port: int | None) -> float:
 
     def attack(seq: int, now_ns: int):
         for vid, pos in ((1, (40.0, -30.0, 0.0)), (2, (-40.0, 30.0, 0.0))):
-            yield keys.state(FLEET, vid), VehicleState(vid, seq, now_ns, pos, (0.0, 0.0, 0.0), 0.0).encode()
+            yield (
+                keys.state(FLEET, vid),
+                VehicleState(vid, seq, now_ns, pos, (0.0, 0.0, 0.0), 0.0).encode(),
+            )
 
     res = station.send(Command(CommandKind.HOLD, new_nonce(), 0, targets=(1, 2)), (1, 2))
     assert res.ok, res.summary()
@@ -206,14 +277,23 @@ def swap(station: Station, a_ne, b_ne, forger_port: int | None) -> float:
         if forger is not None:
             forger.__enter__()
         for vid, (n, e) in ((1, b_ne), (2, a_ne)):
-            res = station.send(Command.goto_local(n, e, -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(vid,)), (vid,))
+            res = station.send(
+                Command.goto_local(n, e, -ALT_M, nonce=new_nonce(), stamp_ns=0, targets=(vid,)),
+                (vid,),
+            )
             assert res.ok, res.summary()
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             v = station.views()
-            min_sep_m = min(min_sep_m, float(np.linalg.norm(np.subtract(v[1].state.pos_ned_m, v[2].state.pos_ned_m))))
-            done = all(v[i].mode is Mode.HOLDING and np.hypot(*np.subtract(v[i].state.pos_ned_m[:2], goal)) < 1.0
-                       for i, goal in ((1, b_ne), (2, a_ne)))  # fmt: skip
+            min_sep_m = min(
+                min_sep_m,
+                float(np.linalg.norm(np.subtract(v[1].state.pos_ned_m, v[2].state.pos_ned_m))),
+            )
+            done = all(
+                v[i].mode is Mode.HOLDING
+                and np.hypot(*np.subtract(v[i].state.pos_ned_m[:2], goal)) < 1.0
+                for i, goal in ((1, b_ne), (2, a_ne))
+            )
             if done:
                 break
             time.sleep(0.05)
@@ -243,7 +323,10 @@ def test_recorded_states_resent_later_are_refused(keyed) -> None:
     recorded = list(keyed["raw_states"])
     old = [payload for t, payload in recorded if time.monotonic() - t > 6.0][:50]
     assert len(old) == 50, "the eavesdropper recorded nothing to replay"
-    stale0, dup0 = station.gate_refused(Refusal.STALE), station.gate_refused(Refusal.REPLAYED) + station.gate_refused(Refusal.OUT_OF_ORDER)
+    stale0, dup0 = (
+        station.gate_refused(Refusal.STALE),
+        station.gate_refused(Refusal.REPLAYED) + station.gate_refused(Refusal.OUT_OF_ORDER),
+    )
     skipped0 = station.mesh.gates[0].skipped
     before = station.views()[1].state.pos_ned_m
     with zenoh.open(embedded_peer(keyed["port"], fleet=FLEET).zenoh_config()) as replayer:
@@ -255,11 +338,15 @@ def test_recorded_states_resent_later_are_refused(keyed) -> None:
             replayer.put(keys.state(FLEET, 1), fresh)
         time.sleep(1.0)
     after = station.views()[1].state
-    print(f"replay: station refused {station.gate_refused(Refusal.STALE) - stale0} stale and "
-          f"{station.gate_refused(Refusal.REPLAYED) + station.gate_refused(Refusal.OUT_OF_ORDER) - dup0} "
-          "replayed/out-of-order states")  # fmt: skip
+    print(
+        f"replay: station refused {station.gate_refused(Refusal.STALE) - stale0} stale and "
+        f"{station.gate_refused(Refusal.REPLAYED) + station.gate_refused(Refusal.OUT_OF_ORDER) - dup0} "
+        "replayed/out-of-order states"
+    )
     assert station.gate_refused(Refusal.STALE) - stale0 >= 50
-    dups = station.gate_refused(Refusal.REPLAYED) + station.gate_refused(Refusal.OUT_OF_ORDER) - dup0
+    dups = (
+        station.gate_refused(Refusal.REPLAYED) + station.gate_refused(Refusal.OUT_OF_ORDER) - dup0
+    )
     # The 20 copies of the newest genuine state: at most the first can be accepted (it is new);
     # the rest are refused as replayed/out of order, or skipped by the gate's thinning when they
     # land within its 0.15 s of the last accepted state (a loaded machine): never accepted.
@@ -268,8 +355,12 @@ def test_recorded_states_resent_later_are_refused(keyed) -> None:
     # On a loaded machine the newest recorded state may itself have aged past the window, and
     # Zenoh may drop some of a fast burst of puts: count what reached the gate, never accepted.
     assert stale + dups + skipped >= 50 + 19, (stale, dups, skipped)
-    assert np.linalg.norm(np.subtract(after.pos_ned_m, before)) < 2.0  # never jumped back to the start
-    assert VehicleState.decode(old[0]).sig  # they were genuine signed states: only time gives them away
+    assert (
+        np.linalg.norm(np.subtract(after.pos_ned_m, before)) < 2.0
+    )  # never jumped back to the start
+    assert VehicleState.decode(
+        old[0]
+    ).sig  # they were genuine signed states: only time gives them away
 
 
 def test_a_revoked_station_and_vehicle_are_refused_after_a_roster_push(keyed) -> None:
@@ -277,25 +368,48 @@ def test_a_revoked_station_and_vehicle_are_refused_after_a_roster_push(keyed) ->
     authority = keyed["authority"]
     s2_key = load_auth(str(authority.member_path(Role.STATION, 2)))
     v3 = load_auth(str(authority.member_path(Role.VEHICLE, 3)))
-    with Mesh(embedded_peer(keyed["port"], fleet=FLEET), auth=s2_key) as s2, \
-            Mesh(embedded_peer(keyed["port"], fleet=FLEET), auth=v3) as vehicle3:  # fmt: skip
+    with (
+        Mesh(embedded_peer(keyed["port"], fleet=FLEET), auth=s2_key) as s2,
+        Mesh(embedded_peer(keyed["port"], fleet=FLEET), auth=v3) as vehicle3,
+    ):
         time.sleep(0.7)
         hold = lambda: Command(CommandKind.HOLD, new_nonce(), 0, targets=(1, 2))  # noqa: E731
         before = station.send(hold(), (1, 2), mesh=s2)
         assert before.ok, before.summary()  # control: station 2 commands while enrolled
-        vehicle3.publish_state(VehicleState(3, 1, time.time_ns(), (30.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0))
+        vehicle3.publish_state(
+            VehicleState(3, 1, time.time_ns(), (30.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+        )
         station.wait(lambda v: 3 in v, 5, "vehicle 3 (enrolled) to appear")
         env = {**os.environ, "PYTHONPATH": str(REPO)}
-        for argv in (["revoke", "--dir", str(authority.dir), "station", "2"],
-                     ["revoke", "--dir", str(authority.dir), "vehicle", "3"],
-                     ["push", "--dir", str(authority.dir), "--connect", f"tcp/127.0.0.1:{keyed['port']}",
-                      "--duration-s", "1.5"]):  # fmt: skip
-            out = subprocess.run([sys.executable, "-m", "covey_cli", "keygen", *argv], capture_output=True,
-                                 text=True, timeout=60, cwd=REPO, env=env)  # fmt: skip
+        for argv in (
+            ["revoke", "--dir", str(authority.dir), "station", "2"],
+            ["revoke", "--dir", str(authority.dir), "vehicle", "3"],
+            [
+                "push",
+                "--dir",
+                str(authority.dir),
+                "--connect",
+                f"tcp/127.0.0.1:{keyed['port']}",
+                "--duration-s",
+                "1.5",
+            ],
+        ):
+            out = subprocess.run(
+                [sys.executable, "-m", "covey_cli", "keygen", *argv],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                cwd=REPO,
+                env=env,
+            )
             assert out.returncode == 0, out.stdout + out.stderr
         version = Authority(authority.dir).roster.version  # as the keygen processes left it
         assert version == keyed["first_roster"].version + 2
-        station.wait(lambda _v: station.mesh.auth.roster.version == version, 10, "the station to apply the roster")
+        station.wait(
+            lambda _v: station.mesh.auth.roster.version == version,
+            10,
+            "the station to apply the roster",
+        )
         deadline, after = time.monotonic() + 10, None
         while time.monotonic() < deadline:  # the agents apply it within a moment of the push
             after = station.send(hold(), (1, 2), mesh=s2)
@@ -309,7 +423,9 @@ def test_a_revoked_station_and_vehicle_are_refused_after_a_roster_push(keyed) ->
         assert still.ok, still.summary()
         refused0 = station.fleet.snapshot(time.time_ns()).by_id()[3].refused_states
         for k in range(5):
-            vehicle3.publish_state(VehicleState(3, 10 + k, time.time_ns(), (30.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0))
+            vehicle3.publish_state(
+                VehicleState(3, 10 + k, time.time_ns(), (30.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+            )
             time.sleep(0.05)
         time.sleep(0.5)
         v3_view = station.fleet.snapshot(time.time_ns()).by_id()[3]

@@ -49,8 +49,14 @@ def make_certs(out: Path, *names: str) -> Path:
     return out
 
 
-def identity_config(template: str, tmp: Path, name: str, certs: Path | None = None,
-                    user: str | None = None, password: str | None = None) -> str:  # fmt: skip
+def identity_config(
+    template: str,
+    tmp: Path,
+    name: str,
+    certs: Path | None = None,
+    user: str | None = None,
+    password: str | None = None,
+) -> str:
     """Write a copy of a shipped config with its placeholders pointing at `name`'s files."""
     text = (CONFIGS / template).read_text()
     if certs is not None:
@@ -115,8 +121,13 @@ class Setup:
 
     def peer(self, name: str) -> MeshConfig:
         """`name`'s credentials in a peer session that gives up quickly (same path as intruders)."""
-        return MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=QUICK,
-                          config_file=self.client_file(name))  # fmt: skip
+        return MeshConfig(
+            fleet=FLEET,
+            mode="peer",
+            connect=(self.connect,),
+            extra=QUICK,
+            config_file=self.client_file(name),
+        )
 
     def intruders(self) -> list[tuple[str, MeshConfig]]:
         """Configs that must not get in at all."""
@@ -124,12 +135,36 @@ class Setup:
         bare = MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=QUICK)
         if self.kind == "mtls":
             wrong_ca = identity_config("client_mtls.json5", self.tmp, "gcs-1", self.rogue_certs)
-            no_cert = MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=(
-                *QUICK, ("transport/link/tls/root_ca_certificate", f'"{self.certs / "ca.pem"}"')))  # fmt: skip
-            return [("plain", bare), ("tls-without-certificate", no_cert),
-                    ("certificate-from-another-ca", MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), config_file=wrong_ca, extra=QUICK))]  # fmt: skip
-        wrong = MeshConfig(fleet=FLEET, mode="peer", connect=(self.connect,), extra=QUICK,
-                           config_file=self.client_file("gcs-1", password="guess"))  # fmt: skip
+            no_cert = MeshConfig(
+                fleet=FLEET,
+                mode="peer",
+                connect=(self.connect,),
+                extra=(
+                    *QUICK,
+                    ("transport/link/tls/root_ca_certificate", f'"{self.certs / "ca.pem"}"'),
+                ),
+            )
+            return [
+                ("plain", bare),
+                ("tls-without-certificate", no_cert),
+                (
+                    "certificate-from-another-ca",
+                    MeshConfig(
+                        fleet=FLEET,
+                        mode="peer",
+                        connect=(self.connect,),
+                        config_file=wrong_ca,
+                        extra=QUICK,
+                    ),
+                ),
+            ]
+        wrong = MeshConfig(
+            fleet=FLEET,
+            mode="peer",
+            connect=(self.connect,),
+            extra=QUICK,
+            config_file=self.client_file("gcs-1", password="guess"),
+        )
         return [("no-password", bare), ("wrong-password", wrong)]
 
 
@@ -145,9 +180,21 @@ def secured(request, tmp_path, procs):
         presence = gcs.presence()
         gcs.declare_gcs(1)
         agent = procs.start(
-            "-m", "covey_cli", "agent", "--id", "1", "--fleet", FLEET, "--mesh-mode", "client",
-            "--connect", setup.connect, "--zenoh-config", setup.client_file("vehicle-1"), "--no-gcs-failsafe",
-        )  # fmt: skip
+            "-m",
+            "covey_cli",
+            "agent",
+            "--id",
+            "1",
+            "--fleet",
+            FLEET,
+            "--mesh-mode",
+            "client",
+            "--connect",
+            setup.connect,
+            "--zenoh-config",
+            setup.client_file("vehicle-1"),
+            "--no-gcs-failsafe",
+        )
         assert presence.wait_for(lambda v, _g: 1 in v, timeout_s=30), (
             "the agent did not join through the secured router"
         )
@@ -278,8 +325,14 @@ def test_peer_mesh_with_usrpwd_lets_only_dictionary_members_in(tmp_path) -> None
         )
         path = tmp_path / f"{name}-{password}.json5"
         path.write_text(text)
-        return MeshConfig(fleet=FLEET, mode="peer", connect=() if listen else (f"tcp/127.0.0.1:{port}",),
-                          listen=(f"tcp/127.0.0.1:{port}",) if listen else (), config_file=str(path), extra=extra)  # fmt: skip
+        return MeshConfig(
+            fleet=FLEET,
+            mode="peer",
+            connect=() if listen else (f"tcp/127.0.0.1:{port}",),
+            listen=(f"tcp/127.0.0.1:{port}",) if listen else (),
+            config_file=str(path),
+            extra=extra,
+        )
 
     got: list[VehicleState] = []
     with Mesh(peer("vehicle-1", "pw-1", listen=True)) as a:

@@ -202,8 +202,12 @@ class RelayBackend(VehicleBackend):
             if kind in _CHECKED and not _plausible(msg):
                 self.rejected_messages += 1  # one bad value must not poison the vehicle's state
                 if self.rejected_messages in (1, 10, 100, 1000):
-                    log.warning("ignored implausible %s from the autopilot (%d so far): %s",
-                                kind, self.rejected_messages, msg)  # fmt: skip
+                    log.warning(
+                        "ignored implausible %s from the autopilot (%d so far): %s",
+                        kind,
+                        self.rejected_messages,
+                        msg,
+                    )
                 return
             if kind == "GLOBAL_POSITION_INT":
                 pos = self.origin.to_local(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)

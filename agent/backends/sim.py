@@ -151,7 +151,10 @@ class SimBackend(VehicleBackend):
 
     def _desired_velocity(self) -> np.ndarray:
         cfg = self.cfg
-        if self._mode == "velocity" and self._now_s - self._setpoint_stamp_s > cfg.setpoint_timeout_s:
+        if (
+            self._mode == "velocity"
+            and self._now_s - self._setpoint_stamp_s > cfg.setpoint_timeout_s
+        ):
             self._hold_m = self.pos_m.copy()  # setpoints stopped: hold, as PX4 does
             self._mode = "hold"
         if self._mode == "velocity":

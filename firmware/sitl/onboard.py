@@ -119,9 +119,15 @@ class PolicyGuidance:
         self.ticks += 1
         if self._tick is not None:
             r = self._tick.step(
-                pos_ned_m[:2], vel_ned_m_s[:2], heading_rad, goal_ned_m[:2],
-                nbr_pos, nbr_vel, nbr_hdg, now_s,
-            )  # fmt: skip
+                pos_ned_m[:2],
+                vel_ned_m_s[:2],
+                heading_rad,
+                goal_ned_m[:2],
+                nbr_pos,
+                nbr_vel,
+                nbr_hdg,
+                now_s,
+            )
             if r.status != "ok":
                 log.warning("onboard guidance fault: %s", r.status)
                 self._last = (math.nan, math.nan)  # the vehicle holds on a non-finite command
