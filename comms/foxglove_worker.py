@@ -94,18 +94,18 @@ class FoxgloveChunks:
         the chunks they filled, the last one cut at the end (so that the file holds a flush's
         standard channels as soon as they are made)."""
         chunks = []
-        builder, messages = self._builder, self._reader.messages
-        for plain in plains:
-            for topic, recv_ns, data in messages(plain):
-                for out in self._conv.convert(topic, data, recv_ns):
-                    cid = self._channel(out)
-                    if cid is None:
-                        self.refused += 1
-                        continue
-                    builder.add(cid, out.log_time_ns, out.data, recv_ns)
-                    self.messages += 1
-                if builder.size >= self._max_chunk_bytes:
-                    chunks.append(builder.build())
+        builder = self._builder
+        items = [(t, d, r) for plain in plains for t, r, d in self._reader.messages(plain)]
+        for (_, _, recv_ns), outs in zip(items, self._conv.convert_all(items), strict=True):
+            for out in outs:
+                cid = self._channel(out)
+                if cid is None:
+                    self.refused += 1
+                    continue
+                builder.add(cid, out.log_time_ns, out.data, recv_ns)
+                self.messages += 1
+            if builder.size >= self._max_chunk_bytes:
+                chunks.append(builder.build())
         last = builder.build()
         if last is not None:
             chunks.append(last)
