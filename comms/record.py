@@ -206,6 +206,7 @@ class McapSink:
     def _run(self) -> None:
         last_flush_s = self._clock_s()
         get = self._queue.get
+        stopping = False
         while True:
             try:
                 item = get(timeout=self._flush_interval_s)
@@ -217,12 +218,18 @@ class McapSink:
                 self._write_foxglove(item)
             elif item is _STOP:
                 self._flush()
-                if self._worker is None:
+                if self._worker is None or self.foxglove_error:
                     return
                 self._worker.end()  # then write its chunks until it is done
+                stopping = True
             elif isinstance(item, WorkerDone):
-                self.foxglove_error = item.error
-                return
+                if stopping:
+                    self.foxglove_error = item.error
+                    return
+                # Died while recording: keep recording covey's channels, and say so now.
+                self.foxglove_error = item.error or "the Foxglove worker ended early"
+                self._plains = None
+                log.error("%s; recording covey's channels only from here", self.foxglove_error)
             if self._clock_s() - last_flush_s >= self._flush_interval_s:
                 self._flush()
                 last_flush_s = self._clock_s()
