@@ -2,21 +2,22 @@
 
 The recorder's writer thread writes covey's raw bytes in chunks, and at each flush hands the
 uncompressed records of the chunks it wrote since the last one (it has built them anyway) to
-`FoxgloveWorker`. The child
-(`python -m comms.foxglove_worker`) reads covey's messages back out of them, converts them
-(comms/foxglove_channels.py), packs the standard messages into finished, compressed MCAP chunks
-(comms/mcap_chunks.py), and sends those back; the writer thread writes each into the same file as
-one blob. The recorder's process so pays nothing per message for the standard channels, only a
-few pipe frames and blob writes per flush, and its GIL stays with Zenoh's callbacks: with the
+`FoxgloveWorker`. The child (`python -m comms.foxglove_worker`, at the lowest priority) reads
+covey's messages back out of them, converts them (comms/foxglove_channels.py, the states as
+arrays), packs the standard messages into finished, compressed MCAP chunks
+(comms/mcap_chunks.py), and sends those back; the writer thread writes each into the same file
+as one blob. The recorder's process so pays nothing per message for the standard channels, only
+a few pipe frames and blob writes per flush, and its GIL stays with Zenoh's callbacks: with the
 conversion in the writer thread, a saturating burst lost 18 % of its states (issue 17).
 
-`FoxgloveChunks` is the conversion -> chunks step itself. The child runs it; `add_foxglove_channels`
-and `McapSink(foxglove_worker=False)` run it in-process, which is the reference the child is
-tested against.
+`FoxgloveChunks` is the conversion -> chunks step itself. The child runs it;
+`add_foxglove_channels` and `McapSink(foxglove_worker=False)` run it in-process, which is the
+reference the child is tested against.
 
 Pipe protocol, both ways: frames of u32 length + pickle (the child is ours, started by us, and
 talks only to us). Parent -> child: a setup dict, then per flush a list of raw chunks' records
-(bytes), then None = end of input. Child -> parent: BuiltChunk, ..., then ("done", counts).
+(bytes), then None = end of input. Child -> parent: per flush the list of BuiltChunks made from
+it, then ("done", counts).
 """
 
 from __future__ import annotations
@@ -44,9 +45,11 @@ log = logging.getLogger(__name__)
 
 FIRST_ID = 0xC000
 """Schema and channel ids of the standard channels start here; covey's own stay below."""
-WORKER_NICE = 5
-"""The child runs this much nicer than the recorder: when the cores are short, receiving the
-mesh (what cannot be had again) goes first, and the conversion catches up later."""
+WORKER_NICE = 19
+"""The child runs at the lowest priority: where the cores are short, receiving the mesh (what
+cannot be had again) goes first, and the conversion catches up when they are free (close()
+waits for it). Measured in a saturating burst on 2 busy cores (bench/record_throughput.py):
+nice 0 and 5 cost the recording states, 19 did not, beyond the noise."""
 MAX_CHUNK_BYTES = 1024 * 1024
 """A chunk of standard channels is cut at the end of each flush's conversion, or here: few
 chunks keep the per-chunk costs (pipe frames, indexes) off the recorder."""
@@ -163,6 +166,10 @@ class FoxgloveWorker:
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._outbox.put({"cfg": cfg, "nice": WORKER_NICE})
         self._ended = False
+        self.sent = 0
+        """Flushes sent to the child."""
+        self.converted = 0
+        """Flushes whose chunks have come back: sent - converted is how far behind it is."""
         self._sender = threading.Thread(target=self._feed, name="covey-foxglove-feed", daemon=True)
         self._reader = threading.Thread(target=self._read, name="covey-foxglove-read", daemon=True)
         self._sender.start()
@@ -171,6 +178,7 @@ class FoxgloveWorker:
     def send(self, plains: list[bytes]) -> None:
         """Raw chunks' records (BuiltChunk.plain) to convert, in file order."""
         if not self._ended:
+            self.sent += 1
             self._outbox.put(plains)
 
     def end(self) -> None:
@@ -206,8 +214,10 @@ class FoxgloveWorker:
                     WorkerDone(f"the Foxglove worker stopped early (exit code {rc}: {exc})")
                 )
                 return
-            if isinstance(item, BuiltChunk):
-                self._deliver(item)
+            if isinstance(item, list):
+                for chunk in item:
+                    self._deliver(chunk)
+                self.converted += 1
             else:
                 self._deliver(WorkerDone(counts=item[1]))
                 return
@@ -236,8 +246,7 @@ def main() -> int:
             os.nice(setup["nice"])
         chunks = FoxgloveChunks(setup["cfg"])
         while (plains := _recv(inp)) is not None:
-            for built in chunks.add(plains):
-                _send(out, built)
+            _send(out, chunks.add(plains))
         _send(out, ("done", {"foxglove": chunks.messages, "foxglove_refused": chunks.refused}))
     except (EOFError, BrokenPipeError):
         return 0  # the recorder went away (killed?): nothing left to write to

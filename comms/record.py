@@ -10,8 +10,10 @@ schema record holds the binary layout from comms.schema), log_time = receive tim
 
 Beside them, unless RecordConfig.foxglove is off, the same traffic in Foxglove's well-known
 schemas (/tf, /scene, /vehicles/<id>/pose|fix|link, /events, /commands, /acks; see
-comms/foxglove_channels.py), so that Foxglove opens the file as it is. Readers here skip those:
-`read_recording` returns only covey's own channels, so replay is unchanged by them.
+comms/foxglove_channels.py), so that Foxglove opens the file as it is. They are made in a child
+process (comms/foxglove_worker.py) from the raw chunks, off the path that receives the mesh.
+Readers here skip those: `read_recording` returns only covey's own channels, so replay is
+unchanged by them.
 
 Acks are Zenoh replies that only the querier sees; the recorder cannot see them. Anything
 published under covey/<fleet>/** is recorded, so an ack that its vehicle also publishes on
@@ -19,7 +21,9 @@ covey/<fleet>/v/<id>/ack lands in the channel of that key (schema covey.CommandA
 
 The file survives a SIGKILL of the recorder: chunks are small and flushed every
 `flush_interval_s`, and `read_recording` streams records and stops cleanly at a torn tail
-(no summary or footer needed). At most the last flush interval is lost.
+(no summary or footer needed). At most the last flush interval of covey's channels is lost;
+the standard ones may lag further behind (the worker's backlog on busy cores), and
+`covey record --foxglove-from` remakes them.
 """
 
 from __future__ import annotations
@@ -111,10 +115,11 @@ class McapSink:
     """Thread-safe MCAP writer: callbacks `put()`, one writer thread writes and flushes.
 
     The writer thread writes covey's raw bytes only. With `foxglove` set, at each flush it hands
-    the uncompressed records of the raw chunks written since the last flush to the Foxglove worker (a child process,
-    comms/foxglove_worker.py), whose finished chunks of the standard channels come back through
-    the same queue and are written as they are; `foxglove_worker=False` converts in the writer
-    thread instead (the reference path, and what an offline conversion uses)."""
+    the uncompressed records of the raw chunks written since the last flush to the Foxglove
+    worker (a child process, comms/foxglove_worker.py), whose finished chunks of the standard
+    channels come back through the same queue and are written as they are;
+    `foxglove_worker=False` converts in the writer thread instead (the reference path, and what
+    an offline conversion uses)."""
 
     def __init__(
         self,
@@ -222,6 +227,9 @@ class McapSink:
                     return
                 self._worker.end()  # then write its chunks until it is done
                 stopping = True
+                behind = self._worker.sent - self._worker.converted
+                if behind > 1:  # it runs at low priority: on busy cores it lags, and we wait
+                    log.info("finishing the Foxglove channels: %d flushes to convert", behind)
             elif isinstance(item, WorkerDone):
                 if stopping:
                     self.foxglove_error = item.error
