@@ -17,7 +17,7 @@ reference the child is tested against.
 Pipe protocol, both ways: frames of u32 length + pickle (the child is ours, started by us, and
 talks only to us). Parent -> child: a setup dict, then per flush a list of raw chunks' records
 (bytes), then None = end of input. Child -> parent: per flush the list of BuiltChunks made from
-it, then ("done", counts).
+it, then ("done", refused).
 """
 
 from __future__ import annotations
@@ -140,7 +140,8 @@ class WorkerDone:
     """The worker has sent its last chunk (error empty), or died (error says how)."""
 
     error: str = ""
-    counts: dict | None = None
+    refused: int = 0
+    """Standard messages the worker did not write (FoxgloveChunks.refused)."""
 
 
 class FoxgloveWorker:
@@ -219,7 +220,7 @@ class FoxgloveWorker:
                     self._deliver(chunk)
                 self.converted += 1
             else:
-                self._deliver(WorkerDone(counts=item[1]))
+                self._deliver(WorkerDone(refused=item[1]))
                 return
 
     def close(self, timeout_s: float = 10.0) -> None:
@@ -247,7 +248,7 @@ def main() -> int:
         chunks = FoxgloveChunks(setup["cfg"])
         while (plains := _recv(inp)) is not None:
             _send(out, chunks.add(plains))
-        _send(out, ("done", {"foxglove": chunks.messages, "foxglove_refused": chunks.refused}))
+        _send(out, ("done", chunks.refused))
     except (EOFError, BrokenPipeError):
         return 0  # the recorder went away (killed?): nothing left to write to
     return 0
