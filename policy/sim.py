@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from policy.pointmass import integrate
+
 
 @dataclass(frozen=True)
 class LinkConfig:
@@ -144,10 +146,9 @@ def run(
         acc = np.hypot(*(v[idx] - vel[idx]).T) / cfg.dt_s
         acc_sum += float(acc.sum())
         acc_n += idx.size
-        disp = v * cfg.dt_s
+        integrate(pos, vel, v, cfg.dt_s)  # the point mass flies the command exactly
+        disp = vel * cfg.dt_s
         step_len = np.hypot(disp[:, 0], disp[:, 1])
-        pos = pos + disp
-        vel = v
         heading = np.where(step_len > 1e-9, np.arctan2(disp[:, 1], disp[:, 0]), heading)
         path += step_len
         t += cfg.dt_s

@@ -17,11 +17,11 @@ import numpy as np
 from firmware.sitl import px4
 from firmware.sitl.params import VehicleParams
 from firmware.sitl.px4 import OK, Outcome, Px4Mode
+from policy.pointmass import integrate
 
 if TYPE_CHECKING:
     from firmware.sitl.onboard import Guidance
 
-GRAVITY_M_S2 = 9.80665
 MAX_SUBSTEP_S = 0.02
 """Integration step; `step()` splits longer gaps so the controllers stay stable."""
 TAKEOFF_ACCEPT_M = 0.25
@@ -260,12 +260,10 @@ class Vehicle:
             self._ground_checks(now)
             return
         self.landed_at_s, self.took_off = math.inf, True
-        dv = _clip_norm(vel_cmd - self.vel_ned_m_s, p.accel_m_s2 * dt)
-        self.vel_ned_m_s += dv
-        self.pos_ned_m += self.vel_ned_m_s * dt
-        if self.pos_ned_m[2] > 0.0:
-            self.pos_ned_m[2] = 0.0
-            self.vel_ned_m_s[:] = 0.0
+        hit = integrate(
+            self.pos_ned_m[None], self.vel_ned_m_s[None], vel_cmd[None], dt, p.accel_m_s2
+        )
+        if hit[0]:
             self.landed_at_s = now
             self._say("Landing detected")
         if yaw_cmd is not None:
@@ -274,10 +272,10 @@ class Vehicle:
             self.heading_rad = _wrap_pi(self.heading_rad + step)
 
     def _fall(self, dt: float) -> None:
-        if self.pos_ned_m[2] < 0.0:
-            self.vel_ned_m_s[:2] *= max(0.0, 1.0 - 0.5 * dt)  # drag bleeds the horizontal speed
-            self.vel_ned_m_s[2] += GRAVITY_M_S2 * dt
-            self.pos_ned_m += self.vel_ned_m_s * dt
+        unpowered = np.zeros(1, bool)  # motors off: gravity and drag only
+        integrate(
+            self.pos_ned_m[None], self.vel_ned_m_s[None], np.zeros((1, 3)), dt, powered=unpowered
+        )
         if self.pos_ned_m[2] >= 0.0:
             self.pos_ned_m[2] = 0.0
             self.vel_ned_m_s[:] = 0.0
