@@ -40,6 +40,7 @@ class ActionQueue:
         self._pending: collections.deque[Action] = collections.deque()
         self._cv = threading.Condition()
         self._closed = False
+        self._busy = False
         self._threaded = threaded
         self._thread = threading.Thread(target=self._worker, name=name, daemon=True)
         if threaded:
@@ -98,7 +99,18 @@ class ActionQueue:
                 if self._closed:
                     return
                 action = self._pending.popleft()
-            self._execute(action)
+                self._busy = True
+            try:
+                self._execute(action)
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cv.notify_all()
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Block until nothing waits or runs (True), or the timeout passes (False)."""
+        with self._cv:
+            return self._cv.wait_for(lambda: not self._pending and not self._busy, timeout_s)
 
     def _execute(self, action: Action) -> None:
         try:

@@ -67,8 +67,8 @@ class FleetSimConfig:
     """Start positions form a square grid with this spacing."""
     start_ne_m: tuple[float, float] = (0.0, 0.0)
     """North-east corner of the start grid."""
-    max_neighbours: int = 10
-    """Nearest neighbours fed to each vehicle's policy."""
+    max_neighbours: int | None = 10
+    """Nearest neighbours fed to each vehicle's policy (None: all within its sense range)."""
     see_others: bool = True
     """Subscribe to other processes' vehicle states and avoid them too."""
     guidance: GuidanceConfig = GuidanceConfig()
@@ -93,7 +93,7 @@ class FleetSimConfig:
             raise ValueError(f"rate_hz must be within (0, 100], got {self.rate_hz}")
         if not (math.isfinite(self.spacing_m) and self.spacing_m > 0):
             raise ValueError(f"spacing_m must be positive, got {self.spacing_m}")
-        if self.max_neighbours < 0:
+        if self.max_neighbours is not None and self.max_neighbours < 0:
             raise ValueError(f"max_neighbours must be >= 0, got {self.max_neighbours}")
 
 

@@ -11,7 +11,7 @@ Vertical: a proportional altitude controller (the policy is planar, as in the pa
 `BatchGuidance` is the one decide-and-hold loop, for any number of vehicles; each row sees its
 own neighbours (`NeighbourViews`). `Guidance` is one vehicle's view of it (the N = 1 case) with
 a `NeighbourSnapshot` in and a `GuidanceOutput` out. For one row the policy and the filter run
-their single-vehicle fast paths; for many, their batched paths (equal within 1e-9,
+their single-vehicle fast paths; for many, their batched paths (equal within 1e-6 m/s,
 tests/test_flight_core.py).
 """
 
