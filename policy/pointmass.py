@@ -2,8 +2,8 @@
 
 Every simulator in covey flies its vehicles through `integrate`: the built-in vehicle simulator
 behind the agent and `covey fleet-sim` (agent/backends/sim.py), the PX4 emulator
-(firmware/sitl/vehicle.py, which adds PX4's modes on top) and the policy's evaluation simulator
-(policy/evalsim.py, 2-D with no acceleration limit). What differs between them is only how the
+(firmware/sitl/vehicle.py, which adds PX4's modes on top), the policy's evaluation simulator
+(policy/evalsim.py) and its training arenas (policy/env.py), both 2-D with no acceleration limit. What differs between them is only how the
 wanted velocity is chosen; the physics is this.
 
 Powered rows track their wanted velocity with a limited acceleration (the step of the velocity
