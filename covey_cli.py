@@ -22,8 +22,16 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     ),
     "cmd": ("groundstation.ops", "cmd_cli", "send one command and print every vehicle's ack"),
     "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
-    "eval": ("policy.eval", "cli", "evaluate policies against ORCA and straight-line baselines"),
-    "export": ("policy.export", "cli", "export a checkpoint to runtime weights (--format npz|c)"),
+    "eval": (
+        "firmware.ceval",
+        "eval_cli",
+        "evaluate policies against ORCA and straight-line baselines",
+    ),
+    "export": (
+        "firmware.export_c",
+        "export_cli",
+        "export a checkpoint to runtime weights (--format npz|c)",
+    ),
     "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
     "record": (
         "groundstation.recording_cli",

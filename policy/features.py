@@ -1,6 +1,6 @@
 """Numpy reference of the policy observation (docs/POLICY_SPEC.md).
 
-Everything here is in policy units (3 m separation at 1 m/s). The C firmware and
+Everything here is in policy units (3 m separation at 1 m/s). The onboard C core and
 the torch trainer follow this module; `observe` is the single-vehicle reference,
 `observe_batch` the vectorised form used by the environment and `command_batch`.
 """

@@ -13,7 +13,8 @@ pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C 
 
 
 def test_eval_flies_the_c_core_with_its_filter(tmp_path):
-    from policy.eval import EvalConfig, main
+    from firmware.ceval import main
+    from policy.eval import EvalConfig
 
     res = main(
         EvalConfig(
