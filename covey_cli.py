@@ -34,7 +34,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     ),
     "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
     "record": (
-        "groundstation.recording_cli",
+        "tools.record_cli",
         "record_cli",
         "record the mesh to MCAP (--info FILE summarises)",
     ),
@@ -44,7 +44,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "serve the live fleet to Foxglove (WebSocket), same channels as a recording",
     ),
     "replay": (
-        "groundstation.recording_cli",
+        "tools.replay_cli",
         "replay_cli",
         "replay an MCAP recording into a fleet",
     ),

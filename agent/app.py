@@ -404,7 +404,7 @@ class Agent:
                 self._trace(heading_in_rad, out, nbrs)
 
     def _trace(self, heading_in_rad: float, out, nbrs) -> None:
-        from agent.closed_loop import trace_text
+        from tools.closed_loop import trace_text
 
         text = trace_text(
             self.flight.seq,

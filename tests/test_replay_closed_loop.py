@@ -7,18 +7,18 @@ import math
 import numpy as np
 import pytest
 
-from agent.closed_loop import (
+from agent.guidance import Guidance, GuidanceConfig
+from agent.neighbours import NeighbourTable
+from comms import keys
+from comms.record import McapSink, read_recording
+from comms.schema import Event, Mode, Severity, StateFlag, VehicleState
+from tools.closed_loop import (
     ClosedLoopConfig,
     format_report,
     parse_trace,
     run_closed_loop,
     trace_text,
 )
-from agent.guidance import Guidance, GuidanceConfig
-from agent.neighbours import NeighbourTable
-from comms import keys
-from comms.record import McapSink, read_recording
-from comms.schema import Event, Mode, Severity, StateFlag, VehicleState
 
 FLEET = "cl"
 TICK_S = 0.1
@@ -139,8 +139,8 @@ def test_unknown_vehicle_is_a_clear_error(tmp_path):
 def test_cli_prints_a_table_and_writes_json(tmp_path, capsys):
     import json
 
-    from groundstation.recording_cli import replay_cli
     from policy.runtime import DEFAULT_WEIGHTS
+    from tools.replay_cli import replay_cli
 
     path, out = tmp_path / "cl.mcap", tmp_path / "report.json"
     _fly(path, n_ticks=30)
@@ -155,7 +155,7 @@ def test_cli_prints_a_table_and_writes_json(tmp_path, capsys):
 
 
 def test_cli_rejects_half_a_closed_loop_request(tmp_path):
-    from groundstation.recording_cli import replay_cli
+    from tools.replay_cli import replay_cli
 
     path = tmp_path / "cl.mcap"
     _fly(path, n_ticks=3)
