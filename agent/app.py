@@ -32,6 +32,7 @@ from comms.schema import (
     CommandAck,
     CommandKind,
     EventKind,
+    GuidanceTrace,
     Mode,
     Severity,
     StateFlag,
@@ -404,10 +405,10 @@ class Agent:
                 self._trace(heading_in_rad, out, nbrs)
 
     def _trace(self, heading_in_rad: float, out, nbrs) -> None:
-        from tools.closed_loop import trace_text
-
-        text = trace_text(
+        trace = GuidanceTrace.build(
+            self.vid,
             self.flight.seq,
+            self.mesh.clock_ns(),
             heading_in_rad,
             out.vel_ned_m_s,
             nbrs.ids,
@@ -415,7 +416,10 @@ class Agent:
             nbrs.age_s,
             decided=out.decided,
         )
-        self._event(text, EventKind.STATUS, Severity.DEBUG, quiet=True)
+        try:
+            self.mesh.publish_trace(trace)
+        except Exception as exc:  # noqa: BLE001 - a trace that cannot be sent must not stop flying
+            log.warning("could not publish a guidance trace: %s", exc)
 
     def _arrived(self, pos: np.ndarray, goal: np.ndarray) -> bool:
         if self.guidance is not None:
