@@ -7,7 +7,6 @@ the torch trainer follow this module; `observe` is the single-vehicle reference,
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass
 
@@ -63,9 +62,6 @@ class ObsConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict())
 
 
 def wrap_rad(angle_rad):
