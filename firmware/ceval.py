@@ -20,7 +20,7 @@ from policy import eval as policy_eval
 
 class COnboardFleet:
     """controller(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)
-    of policy.sim, one C guidance tick per vehicle."""
+    of policy.evalsim, one C guidance tick per vehicle."""
 
     def __init__(self, policy, decision_period_s: float):
         """`policy` is a firmware.cpolicy.CPolicy (its filter setting and config are used)."""

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from policy import scenarios, sim
-from policy.sim import DEGRADED, PERFECT, SimConfig
+from policy import evalsim, scenarios
+from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
 
 
 def flops(n: int, h: int = 63, x: int = 3, layers=(64, 64), a: int = 2) -> int:
@@ -133,11 +133,11 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
         )
 
     def orca(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
-        v = sim.straight_line(ids, t_s, pos, vel, heading, goal)
+        v = evalsim.straight_line(ids, t_s, pos, vel, heading, goal)
         return filter_padded(pos, vel, v, nbr_pos, nbr_vel, nbr_valid, safety_cfg)
 
     out["orca"] = orca
-    out["straight"] = sim.straight_line
+    out["straight"] = evalsim.straight_line
     for name, make in (extra or {}).items():
         if name in cfg.controllers:
             out[name] = make(cfg, safety_cfg)
@@ -276,11 +276,11 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
         record = (
             cfg.figures and link == "perfect" and case in ("circle-16", "circle-8", "large-35-s0")
         )
-        sim_cfg = SimConfig(dt_s=cfg.dt_s, record=record)
+        sim_cfg = EvalSimConfig(dt_s=cfg.dt_s, record=record)
         rng = np.random.default_rng([cfg.seed, len(rows)])
         if hasattr(ctrls[name], "reset"):
             ctrls[name].reset()
-        r = sim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
+        r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
         if record:
             tracks[(case, name)] = (r.pop("tracks"), r.pop("goals"))
         rows.append({"suite": suite, "case": case, "link": link, "controller": name, **r})

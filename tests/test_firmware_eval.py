@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from policy import scenarios, sim
+from policy import evalsim, scenarios
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 
@@ -52,5 +52,7 @@ def test_c_fleet_holds_decisions_between_periods():
     v2 = fleet(np.arange(2), 1.0, moved, v0, heading + 0.3, goal, *none)
     assert not np.allclose(v2, v1)  # decided again with the new heading
     fleet.reset()
-    r = sim.run(starts, goals, fleet, sim.PERFECT, sim.SimConfig(), np.random.default_rng(0))
+    r = evalsim.run(
+        starts, goals, fleet, evalsim.PERFECT, evalsim.EvalSimConfig(), np.random.default_rng(0)
+    )
     assert r["success"] and r["collisions"] == 0

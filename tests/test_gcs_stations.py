@@ -14,9 +14,9 @@ from conftest import views_by_id, wait_until
 
 from comms.schema import AckResult, CommandKind, Mode
 from comms.session import MeshConfig
-from groundstation.app import GcsConfig, GroundStation
 from groundstation.demo_proc import DemoProcess
 from groundstation.inputs import CommandRequest
+from groundstation.station import GcsConfig, GroundStation
 
 pytestmark = pytest.mark.e2e
 

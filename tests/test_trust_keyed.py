@@ -46,7 +46,7 @@ V2_AT = (0.0, 16.0)
 
 
 class Station:
-    """Station 1: a keyed Mesh feeding a FleetModel (what groundstation/app.py does)."""
+    """Station 1: a keyed Mesh feeding a FleetModel (what groundstation/station.py does)."""
 
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh

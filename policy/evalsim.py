@@ -38,7 +38,7 @@ DEGRADED = LinkConfig(rate_hz=3.0, loss=0.2, latency_s=0.1)
 
 
 @dataclass(frozen=True)
-class SimConfig:
+class EvalSimConfig:
     """Closed-loop evaluation settings (policy units: 3 m separation, 1 m/s)."""
 
     dt_s: float = 0.1
@@ -72,7 +72,7 @@ def run(
     goals,
     controller: Controller,
     link: LinkConfig,
-    cfg: SimConfig,
+    cfg: EvalSimConfig,
     rng: np.random.Generator,
 ) -> dict:
     """Flies one scenario to the end; returns its metrics (and tracks if cfg.record)."""
