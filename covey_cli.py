@@ -22,11 +22,19 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     ),
     "cmd": ("groundstation.ops", "cmd_cli", "send one command and print every vehicle's ack"),
     "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
-    "eval": ("policy.eval", "cli", "evaluate policies against ORCA and straight-line baselines"),
-    "export": ("policy.export", "cli", "export a checkpoint to runtime weights (--format npz|c)"),
+    "eval": (
+        "firmware.ceval",
+        "eval_cli",
+        "evaluate policies against ORCA and straight-line baselines",
+    ),
+    "export": (
+        "firmware.export_c",
+        "export_cli",
+        "export a checkpoint to runtime weights (--format npz|c)",
+    ),
     "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
     "record": (
-        "groundstation.recording_cli",
+        "tools.record_cli",
         "record_cli",
         "record the mesh to MCAP (--info FILE summarises)",
     ),
@@ -36,7 +44,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "serve the live fleet to Foxglove (WebSocket), same channels as a recording",
     ),
     "replay": (
-        "groundstation.recording_cli",
+        "tools.replay_cli",
         "replay_cli",
         "replay an MCAP recording into a fleet",
     ),

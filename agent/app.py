@@ -37,6 +37,7 @@ from comms.schema import (
     Command,
     CommandAck,
     EventKind,
+    GuidanceTrace,
     Mode,
     Severity,
     StateFlag,
@@ -347,10 +348,10 @@ class Agent:
                 self._trace(heading_in_rad, out, nbrs)
 
     def _trace(self, heading_in_rad: float, out, nbrs) -> None:
-        from agent.closed_loop import trace_text
-
-        text = trace_text(
+        trace = GuidanceTrace.build(
+            self.vid,
             self.seq,
+            self.mesh.clock_ns(),
             heading_in_rad,
             out.vel_ned_m_s[0],
             nbrs.ids,
@@ -358,7 +359,10 @@ class Agent:
             nbrs.age_s,
             decided=bool(out.decided[0]),
         )
-        self._event(text, EventKind.STATUS, Severity.DEBUG, quiet=True)
+        try:
+            self.mesh.publish_trace(trace)
+        except Exception as exc:  # noqa: BLE001 - a trace that cannot be sent must not stop flying
+            log.warning("could not publish a guidance trace: %s", exc)
 
     def _publish(self, tel, pos, vel, heading_rad, mode: Mode, target, flags: StateFlag) -> None:
         if target is not None:

@@ -77,7 +77,7 @@ def input_round_trip_ms(page, repeats: int) -> list[float]:
 def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (1200, 800)) -> dict:
     from comms.commands import new_nonce
     from comms.schema import Command
-    from groundstation.app import GcsConfig, GroundStation
+    from groundstation.station import GcsConfig, GroundStation
 
     chromium = shutil.which("chromium")
     try:

@@ -1,10 +1,13 @@
 """argparse value types shared by the station's and the tools' CLIs: each refuses a bad value
-with a message that names the unit (argparse turns it into a one-line error and exit 2)."""
+with a message that names the unit (argparse turns it into a one-line error and exit 2). Also
+`stop_on_signals`, the way those CLIs stop."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import signal
+import threading
 from collections.abc import Callable
 
 
@@ -39,3 +42,12 @@ def finite(
         return v
 
     return parse
+
+
+def stop_on_signals() -> threading.Event:
+    """An Event that SIGINT and SIGTERM set (from the main thread only: Python's rule)."""
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    return stop

@@ -12,8 +12,8 @@ import sys
 from comms.auth import ENV_KEY_FILE
 from comms.identity import read_member_key
 from comms.schema import Role
-from groundstation.app import GcsConfig, GroundStation, web_host_problem
 from groundstation.meshargs import add_mesh_args, die, mesh_config
+from groundstation.station import GcsConfig, GroundStation, web_host_problem
 
 
 def main(cfg: GcsConfig) -> int:

@@ -26,7 +26,7 @@ from comms.authority import Authority
 from comms.mesh import Mesh
 from comms.schema import Role
 from comms.session import embedded_router, free_tcp_port
-from groundstation.app import GcsConfig, GroundStation
+from groundstation.station import GcsConfig, GroundStation
 
 PR_SET_PDEATHSIG = 1
 

@@ -22,7 +22,7 @@ from comms.foxglove_channels import Converter, FoxgloveConfig, Out
 from comms.geo import GeoOrigin
 from comms.record import RecordConfig, Recorder
 from comms.session import MeshConfig
-from groundstation.argtypes import finite, port
+from groundstation.argtypes import finite, port, stop_on_signals
 from groundstation.meshargs import add_mesh_args, mesh_config
 
 DEFAULT_PORT = 8765
@@ -191,8 +191,6 @@ def main(cfg: BridgeConfig, stop: threading.Event, duration_s: float | None = No
 
 
 def cli(argv: list[str]) -> int:
-    from groundstation.recording_cli import _stop_on_signals
-
     p = parser()
     args = p.parse_args(argv)
     try:
@@ -204,4 +202,4 @@ def cli(argv: list[str]) -> int:
         )
     except ValueError as exc:
         p.error(str(exc))
-    return main(cfg, _stop_on_signals(), args.duration_s)
+    return main(cfg, stop_on_signals(), args.duration_s)

@@ -8,9 +8,9 @@ Suites (policy units): antipodal circle (N up to 50), random forced conflicts
 (N = 2-10), random large swarms (N = 35 and 100); links perfect and degraded
 (3 Hz, 20 % loss, 100 ms latency). Controllers: the policy with and without the
 safety filter, optional paper-config and occupancy-map policies, ORCA and the
-straight line; on request (`--controllers c+filter,...`) the C core as flown onboard
-(firmware/ceval.py: C decision hold + C separation filter). Writes results.json, results.md, trajectory PNGs and the paper's
-Fig. 5 heading-change maps.
+straight line; and controllers that a higher layer adds, which run only when named (`covey eval`
+adds `c+filter`, the C core as flown onboard). Writes results.json, results.md, trajectory PNGs
+and the paper's Fig. 5 heading-change maps.
 """
 
 from __future__ import annotations
@@ -18,13 +18,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from policy import scenarios, sim
-from policy.sim import DEGRADED, PERFECT, SimConfig
+from policy import evalsim, scenarios
+from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
 
 
 def flops(n: int, h: int = 63, x: int = 3, layers=(64, 64), a: int = 2) -> int:
@@ -97,8 +99,15 @@ def cases(cfg: EvalConfig):
     return out
 
 
-def controllers(cfg: EvalConfig) -> dict:
-    """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)."""
+ControllerFactory = Callable[[EvalConfig, Any], Callable]
+"""factory(cfg, safety_cfg) -> controller: an extra controller, built only when named (it may
+need what the built-in ones do not, such as a C compiler). safety_cfg is policy.safety's
+SafetyConfig that policy+filter flies with."""
+
+
+def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None = None) -> dict:
+    """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid).
+    `extra` controllers are built only when cfg.controllers names them."""
     from policy.runtime import GuidancePolicy
     from policy.safety import SafetyConfig, filter_padded
 
@@ -124,23 +133,14 @@ def controllers(cfg: EvalConfig) -> dict:
         )
 
     def orca(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
-        v = sim.straight_line(ids, t_s, pos, vel, heading, goal)
+        v = evalsim.straight_line(ids, t_s, pos, vel, heading, goal)
         return filter_padded(pos, vel, v, nbr_pos, nbr_vel, nbr_valid, safety_cfg)
 
     out["orca"] = orca
-    out["straight"] = sim.straight_line
-    if "c+filter" in cfg.controllers:  # needs a C compiler: only when asked for
-        from firmware.ceval import COnboardFleet
-        from firmware.cpolicy import CPolicy
-
-        cpol = CPolicy.load(
-            cfg.weights,
-            separation_m=safety_cfg.radius_m,  # the filter keeps 3 m, as policy+filter's
-            policy_separation_m=cfg.policy_separation_m,
-            max_neighbours=cfg.max_neighbours,
-            safety_cfg=safety_cfg,
-        )
-        out["c+filter"] = COnboardFleet(cpol, cfg.policy_period_s)
+    out["straight"] = evalsim.straight_line
+    for name, make in (extra or {}).items():
+        if name in cfg.controllers:
+            out[name] = make(cfg, safety_cfg)
     return out
 
 
@@ -251,13 +251,14 @@ def markdown(summary: list) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(cfg: EvalConfig) -> dict:
-    """Runs every (case, link, controller); writes results.json and results.md."""
+def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
+    """Runs every (case, link, controller); writes results.json and results.md.
+    `extra_controllers`: see `controllers`."""
     from tqdm import tqdm
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    ctrls = controllers(cfg)
+    ctrls = controllers(cfg, extra_controllers)
     if cfg.controllers:
         unknown = set(cfg.controllers) - set(ctrls)
         if unknown:
@@ -275,11 +276,11 @@ def main(cfg: EvalConfig) -> dict:
         record = (
             cfg.figures and link == "perfect" and case in ("circle-16", "circle-8", "large-35-s0")
         )
-        sim_cfg = SimConfig(dt_s=cfg.dt_s, record=record)
+        sim_cfg = EvalSimConfig(dt_s=cfg.dt_s, record=record)
         rng = np.random.default_rng([cfg.seed, len(rows)])
         if hasattr(ctrls[name], "reset"):
             ctrls[name].reset()
-        r = sim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
+        r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
         if record:
             tracks[(case, name)] = (r.pop("tracks"), r.pop("goals"))
         rows.append({"suite": suite, "case": case, "link": link, "controller": name, **r})
@@ -317,8 +318,10 @@ def merge(paths, out: str | Path) -> dict:
     return result
 
 
-def cli(argv=None) -> dict:
-    """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`."""
+def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
+    """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`.
+    `extra_controllers`: see `controllers` (named with --controllers)."""
+    extra = dict(extra_controllers or {})
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
     )
@@ -368,7 +371,8 @@ def cli(argv=None) -> dict:
     ap.add_argument(
         "--controllers",
         default="",
-        help="comma list, e.g. policy,orca (default all but c+filter, the C core as onboard, which runs only when named)",
+        help="comma list, e.g. policy,orca (default: all built in"
+        + (f"; also {', '.join(extra)}, each run only when named)" if extra else ")"),
     )
     ap.add_argument("--no-figures", action="store_true", help="skip the track and Fig. 5 PNGs")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -403,7 +407,7 @@ def cli(argv=None) -> dict:
         controllers=tuple(c for c in a.controllers.split(",") if c),
         policy_separation_m=a.policy_separation,
     )
-    result = main(cfg)
+    result = main(cfg, extra)
     print(markdown(result["summary"]))
     return result
 

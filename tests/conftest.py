@@ -27,6 +27,11 @@ def wait_until(predicate, timeout_s: float, period_s: float = 0.05) -> bool:
     return bool(predicate())
 
 
+def views_by_id(snapshot) -> dict:
+    """vehicle id -> VehicleView of a groundstation.fleet.FleetSnapshot."""
+    return {v.vehicle_id: v for v in snapshot.vehicles}
+
+
 def holds(pred, states) -> bool:
     """pred(states), where a vehicle that is present but not heard from yet (KeyError: it
     happens on a loaded machine) counts as "not yet" rather than as a test error."""

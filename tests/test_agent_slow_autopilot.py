@@ -17,7 +17,7 @@ from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, Mode, VehicleState
 from comms.session import MeshConfig, embedded_router, free_tcp_port
-from groundstation.app import GcsConfig, GroundStation
+from groundstation.station import GcsConfig, GroundStation
 from groundstation.tables import command_log_html
 
 ACTION_S = 5.0

@@ -14,8 +14,8 @@ from conftest import wait_until
 from comms.mesh import Mesh
 from comms.schema import Mode
 from comms.session import MeshConfig
-from groundstation.app import GcsConfig, GroundStation
 from groundstation.demo_proc import DemoProcess, descendants, process_alive, processes_in_groups
+from groundstation.station import GcsConfig, GroundStation
 
 pytestmark = pytest.mark.e2e
 

@@ -33,7 +33,7 @@ from comms.mesh import Mesh
 from comms.record import RecordConfig, Recorder, add_foxglove_channels, read_recording
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 from groundstation.foxglove_bridge import BridgeConfig, FoxgloveBridge
-from groundstation.recording_cli import record_cli
+from tools.record_cli import record_cli
 
 VEHICLES = (1, 2)
 STARTS = {1: (0.0, 0.0), 2: (0.0, 8.0)}

@@ -282,7 +282,8 @@ def run_one_line(fn, argv: list[str]) -> str:
 def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_path) -> None:
     from agent import cli as agent_cli
     from groundstation import cli as gcs_cli
-    from groundstation import ops, recording_cli
+    from groundstation import ops
+    from tools import record_cli
 
     mesh_cases, key_cases = bad_setups(tmp_path)
     subcommands = {
@@ -291,7 +292,7 @@ def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_pat
         "cmd": (ops.cmd_cli, ["hold", "--to", "1", "--timeout", "0.5"], True),
         "status": (ops.status_cli, ["--listen-s", "0.1"], True),
         "record": (
-            recording_cli.record_cli,
+            record_cli.record_cli,
             ["-o", str(tmp_path / "r.mcap"), "--duration", "0.5"],
             False,
         ),

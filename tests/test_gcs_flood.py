@@ -13,7 +13,7 @@ from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import Command, EventKind
 from comms.session import MeshConfig, embedded_router, free_tcp_port
-from groundstation.app import GcsConfig, GroundStation
+from groundstation.station import GcsConfig, GroundStation
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -25,14 +25,15 @@ from comms.record import read_recording, summarise
 from comms.replay import LiveFleetError, ReplayConfig, replay
 from comms.schema import Command, CommandKind, StateFlag, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
-from groundstation.recording_cli import info_main, record_cli, replay_cli
+from tools.record_cli import info_main, record_cli
+from tools.replay_cli import replay_cli
 
 pytestmark = pytest.mark.e2e
 
 VEHICLES = (1, 2, 3)
 STARTS = {1: (0.0, 0.0), 2: (0.0, 8.0), 3: (8.0, 4.0)}
 GOALS = {1: (8.0, 8.0, -3.0), 2: (8.0, 0.0, -3.0), 3: (0.0, 4.0, -3.0)}
-RECORD = "import sys; from groundstation.recording_cli import record_cli; sys.exit(record_cli(sys.argv[1:]))"
+RECORD = "import sys; from tools.record_cli import record_cli; sys.exit(record_cli(sys.argv[1:]))"
 
 
 def _command_all(mesh: Mesh, make, deadline_s: float = 10.0) -> None:
@@ -247,7 +248,7 @@ def test_replay_refuses_a_live_fleet(flight, capsys):
 
 
 def test_closed_loop_on_the_real_flight(flight):
-    from agent.closed_loop import ClosedLoopConfig, run_closed_loop
+    from tools.closed_loop import ClosedLoopConfig, run_closed_loop
 
     rep = run_closed_loop(ClosedLoopConfig(str(flight["clean"]), vehicle_id=1))
     assert rep["ticks"] >= 10

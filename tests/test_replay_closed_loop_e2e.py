@@ -1,7 +1,7 @@
 """Closed-loop replay of a real agent flight reports zero difference for the same policy.
 
 The agents are real `covey agent --trace-guidance` processes: after each published state they
-publish the guidance trace (agent/closed_loop.py: `trace_text`) that makes the replay exact.
+publish the guidance trace (tools/closed_loop.py: `trace_text`) that makes the replay exact.
 """
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ import uuid
 
 import pytest
 
-from agent.closed_loop import ClosedLoopConfig, run_closed_loop
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.record import RecordConfig, Recorder, read_recording
 from comms.schema import Command
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from tools.closed_loop import ClosedLoopConfig, run_closed_loop
 
 pytestmark = pytest.mark.e2e
 

@@ -23,8 +23,8 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
 from comms.geo import GeoOrigin
+from comms.mavlink_udp import LinkUrl, UdpLink
 from comms.schema import POSITION_LIMIT_M, SPEED_LIMIT_M_S
-from firmware.sitl.mavlink_io import LinkUrl, UdpLink  # the one tested MAVLink-over-UDP link
 
 log = logging.getLogger(__name__)
 

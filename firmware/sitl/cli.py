@@ -166,7 +166,7 @@ def cli(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s sitl %(levelname)s %(message)s",
     )
-    from firmware.sitl.app import main  # after parsing: --help stays fast
+    from firmware.sitl.emulator import main  # after parsing: --help stays fast
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

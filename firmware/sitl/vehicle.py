@@ -2,7 +2,7 @@
 
 Positions are NED metres relative to the home position (the ground is d = 0). Nothing here reads
 the clock: every call takes `now_s`, and `step(now_s)` integrates up to it, so tests drive hours of
-flight in milliseconds. Commands return an `Outcome` whose `result` is a MAV_RESULT value, and
+flight in milliseconds. Commands return a `Px4Result` whose `result` is a MAV_RESULT value, and
 whose `reason` is the STATUSTEXT PX4 would print.
 """
 
@@ -16,11 +16,11 @@ import numpy as np
 
 from firmware.sitl import px4
 from firmware.sitl.params import VehicleParams
-from firmware.sitl.px4 import OK, Outcome, Px4Mode
+from firmware.sitl.px4 import OK, Px4Mode, Px4Result
 from policy.pointmass import integrate
 
 if TYPE_CHECKING:
-    from firmware.sitl.onboard import Guidance
+    from firmware.sitl.onboard import OnboardGuidance
 
 MAX_SUBSTEP_S = 0.02
 """Integration step; `step()` splits longer gaps so the controllers stay stable."""
@@ -44,7 +44,7 @@ class Vehicle:
     params: VehicleParams = field(default_factory=VehicleParams)
     healthy: bool = True
     """Pre-arm checks pass (False emulates a failed sensor: arming is refused)."""
-    guidance: Guidance | None = None
+    guidance: OnboardGuidance | None = None
     """When set, goto targets are flown by this (onboard mode); otherwise straight at cruise speed."""
     now_s: float = 0.0
     pos_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -84,9 +84,9 @@ class Vehicle:
     def _say(self, text: str) -> None:
         self.events.append(text)
 
-    def _refuse(self, result: int, reason: str) -> Outcome:
+    def _refuse(self, result: int, reason: str) -> Px4Result:
         self._say(reason)
-        return Outcome(result, reason)
+        return Px4Result(result, reason)
 
     def _switch_px4_mode(self, mode: Px4Mode, now_s: float) -> None:
         """PX4's own flight modes (the emulated autopilot's), not covey's mode machine."""
@@ -106,7 +106,7 @@ class Vehicle:
 
     # ---- commands ------------------------------------------------------------------------------
 
-    def arm(self, now_s: float) -> Outcome:
+    def arm(self, now_s: float) -> Px4Result:
         if self.armed:
             return OK
         if not self.healthy:
@@ -129,7 +129,7 @@ class Vehicle:
         self._say("Armed by external command")
         return OK
 
-    def disarm(self, now_s: float, force: bool = False) -> Outcome:
+    def disarm(self, now_s: float, force: bool = False) -> Px4Result:
         if not self.armed:
             return OK
         if not force and not self.landed:
@@ -148,10 +148,10 @@ class Vehicle:
         if self.mode is not Px4Mode.OFFBOARD:
             self.mode = Px4Mode.HOLD
 
-    def kill(self, now_s: float) -> Outcome:
+    def kill(self, now_s: float) -> Px4Result:
         return self.disarm(now_s, force=True)
 
-    def set_mode(self, mode: Px4Mode, now_s: float) -> Outcome:
+    def set_mode(self, mode: Px4Mode, now_s: float) -> Px4Result:
         if mode is self.mode:
             return OK
         if mode is Px4Mode.OFFBOARD and now_s - self.sp_stamp_s > self.params.offboard_loss_s:
@@ -173,7 +173,7 @@ class Vehicle:
             self.target_ned_m = np.array([self.pos_ned_m[0], self.pos_ned_m[1], -alt_m])
         return OK
 
-    def takeoff(self, alt_m: float, now_s: float) -> Outcome:
+    def takeoff(self, alt_m: float, now_s: float) -> Px4Result:
         if math.isnan(alt_m):
             alt_m = self.params.takeoff_alt_m
         if not math.isfinite(alt_m) or not 0.5 <= alt_m <= self.params.max_alt_m:
@@ -190,12 +190,12 @@ class Vehicle:
         self.took_off = True
         return OK
 
-    def land(self, now_s: float) -> Outcome:
+    def land(self, now_s: float) -> Px4Result:
         # PX4 takes LAND as a mode switch, disarmed or not; on the ground it just stays there.
         self._switch_px4_mode(Px4Mode.LAND, now_s)
         return OK
 
-    def reposition(self, target_ned_m: np.ndarray, now_s: float) -> Outcome:
+    def reposition(self, target_ned_m: np.ndarray, now_s: float) -> Px4Result:
         """DO_REPOSITION: fly to the target and hold there. NaN down keeps the altitude."""
         target = np.asarray(target_ned_m, dtype=float).copy()
         if not np.all(np.isfinite(target[:2])):

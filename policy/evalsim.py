@@ -51,7 +51,7 @@ DEGRADED = LinkConfig.of(PROFILES["xbee"])
 
 
 @dataclass(frozen=True)
-class SimConfig:
+class EvalSimConfig:
     """Closed-loop evaluation settings (policy units: 3 m separation, 1 m/s)."""
 
     dt_s: float = 0.1
@@ -85,7 +85,7 @@ def run(
     goals,
     controller: Controller,
     link: LinkConfig,
-    cfg: SimConfig,
+    cfg: EvalSimConfig,
     rng: np.random.Generator,
 ) -> dict:
     """Flies one scenario to the end; returns its metrics (and tracks if cfg.record)."""

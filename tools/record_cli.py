@@ -1,0 +1,117 @@
+"""`covey record`: record a fleet's mesh to MCAP, summarise a recording, or add Foxglove's
+channels to one.
+
+    covey record -o flight.mcap --fleet demo --connect tcp/127.0.0.1:7447 --duration 60
+    covey record --info flight.mcap [--json]
+    covey record --foxglove-from old.mcap -o new.mcap     (add Foxglove's channels to a recording)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from comms.record import (
+    RecordConfig,
+    add_foxglove_channels,
+    format_info,
+    read_recording,
+    record,
+    summarise,
+)
+from groundstation.argtypes import finite, stop_on_signals
+from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
+from groundstation.meshargs import add_mesh_args, die, mesh_config
+
+
+def record_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey record", description="Record every message of a fleet's mesh to MCAP."
+    )
+    p.add_argument(
+        "-o", "--output", default="flight.mcap", help="MCAP file to write (default flight.mcap)"
+    )
+    p.add_argument(
+        "--duration", type=finite("seconds"), default=None, metavar="S", help="stop after S seconds"
+    )
+    p.add_argument(
+        "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
+    )
+    p.add_argument("--json", action="store_true", help="with --info: print JSON")
+    p.add_argument(
+        "--foxglove-from",
+        metavar="OLD",
+        default=None,
+        help="instead of recording: copy recording OLD to -o with Foxglove's standard "
+        "channels added (its covey channels stay byte for byte)",
+    )
+    p.add_argument(
+        "--no-foxglove",
+        action="store_true",
+        help="record covey's channels only, without Foxglove's standard ones",
+    )
+    add_foxglove_args(p)
+    add_mesh_args(p, key_file=False)  # records raw bytes; signs nothing
+    return p
+
+
+def foxglove_from_main(src: str, dst: str, args: argparse.Namespace) -> int:
+    try:
+        counts = add_foxglove_channels(src, dst, foxglove_config(args))
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"covey record: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"covey record: cannot write {dst}: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {dst}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    return 0
+
+
+def info_main(path: str, as_json: bool = False, out=sys.stdout) -> int:
+    info = summarise(read_recording(path))
+    print(json.dumps(info, indent=2) if as_json else format_info(info, path), file=out)
+    return 0
+
+
+def record_cli(argv: list[str]) -> int:
+    p = record_parser()
+    args = p.parse_args(argv)
+    if args.info:
+        try:
+            return info_main(args.info, args.json)
+        except FileNotFoundError as exc:
+            p.error(str(exc))
+    if args.foxglove_from:
+        if args.no_foxglove:
+            p.error("--foxglove-from adds the Foxglove channels; it cannot take --no-foxglove")
+        return foxglove_from_main(args.foxglove_from, args.output, args)
+    try:
+        cfg = RecordConfig(
+            path=args.output,
+            mesh=mesh_config(args, p),
+            duration_s=args.duration,
+            foxglove=None if args.no_foxglove else foxglove_config(args),
+        )
+    except ValueError as exc:
+        p.error(str(exc))
+    try:
+        cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
+    except ValueError as exc:
+        die(p, str(exc))
+    stop = stop_on_signals()
+    print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
+    try:
+        counts = record(cfg, stop)
+    except OSError as exc:
+        print(f"covey record: cannot write {cfg.path}: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # MeshConfigError: bad --zenoh-config, endpoint, busy port
+        die(p, str(exc))
+    total = sum(counts.values())
+    print(
+        f"wrote {total} messages to {cfg.path}: "
+        + ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    )
+    return 0
