@@ -22,14 +22,18 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from foxglove import messages as fm
 
 from comms import keys, schema
 from comms.geo import GeoOrigin
 from comms.palette import GOAL_RGB, RING_OK_RGB, mode_rgb
+from comms.state_batch import StateRow, decode_states
 
+_STATE_TYPE = bytes([schema.MsgType.VEHICLE_STATE])
 WORLD_FRAME = "world"
 NED_FRAME = "ned"
 TF_TOPIC = "/tf"
@@ -135,9 +139,9 @@ ACK_JSON = _json(ACK_JSON_SCHEMA)
 LINK_JSON = _json(LINK_JSON_SCHEMA)
 
 
-@dataclass(frozen=True)
-class Out:
-    """One standard message to write or send."""
+class Out(NamedTuple):
+    """One standard message to write or send (a tuple: a frozen dataclass took ~1 us to make,
+    and a state makes four or five)."""
 
     topic: str
     schema: SchemaSpec
@@ -224,6 +228,7 @@ class Converter:
     """
 
     MAX_COMMANDS = 1024
+    MAX_TOPICS = 100_000
 
     def __init__(self, cfg: FoxgloveConfig = FoxgloveConfig()) -> None:
         self.cfg = cfg
@@ -232,13 +237,53 @@ class Converter:
         self._tf_due_ns = 0
         self._scene_due_ns: dict[int, int] = {}  # vehicle -> next receive time to redraw it
         self._scene_mode: dict[int, schema.Mode] = {}  # a mode change is drawn at once
+        self._names: dict[int, tuple[str, str, str, str]] = {}  # vehicle -> frame and topics
+        self._kinds: dict[str, tuple[str, int]] = {}  # Zenoh key -> (leaf, vehicle id)
+        # Parts that never change, built once: each foxglove object costs ~0.5 us to make, and
+        # a conversion makes dozens per state (bench/foxglove.py).
+        size, ring_d = cfg.body_size_m, 2 * cfg.separation_m
+        self._identity = _q(0, 0, 0, 1)
+        self._body_size = _v3(size, size, size * 0.3)
+        self._ring_size = _v3(ring_d, ring_d, 0.02)
+        self._ring_colour = _colour(RING_OK_RGB, 0.25)
+        self._goal_size = _v3(0.4, 0.4, 0.4)
+        self._goal_colour = _colour(GOAL_RGB)
+        self._white = _colour((255, 255, 255))
+        self._mode_colours: dict[schema.Mode, fm.Color] = {
+            m: _colour(mode_rgb(m)) for m in schema.Mode
+        }
+        lifetime = cfg.entity_lifetime_s
+        self._lifetime = fm.Duration.from_secs(lifetime) if lifetime > 0 else None
+        self._world_tf_rotation = _q(*_ENU_TO_NED_Q)
+        self._zero = _v3(0, 0, 0)
+
+    def _vehicle_names(self, vid: int) -> tuple[str, str, str, str]:
+        """(frame, pose topic, fix topic, link topic) of a vehicle."""
+        names = self._names.get(vid)
+        if names is None:
+            names = (vehicle_frame(vid), pose_topic(vid), fix_topic(vid), link_topic(vid))
+            self._names[vid] = names
+        return names
+
+    def _kind(self, topic: str) -> tuple[str, int]:
+        """(leaf, vehicle id or 0) of a Zenoh key: state, event, alive, ack, cmd or other."""
+        kind = self._kinds.get(topic)
+        if kind is None:
+            parsed = keys.parse_vehicle_key(topic)
+            if parsed is not None:
+                kind = parsed[2], parsed[1]
+            else:
+                kind = ("cmd" if topic.endswith("/cmd") else "other"), 0
+            if len(self._kinds) >= self.MAX_TOPICS:  # keys come from the network: bounded
+                self._kinds.pop(next(iter(self._kinds)))
+            self._kinds[topic] = kind
+        return kind
 
     def convert(self, topic: str, data: bytes, recv_ns: int) -> list[Out]:
         """Standard messages for one recorded/received message; [] for anything undecodable."""
-        parsed = keys.parse_vehicle_key(topic)
-        leaf = parsed[2] if parsed else ("cmd" if topic.endswith("/cmd") else "other")
+        leaf, vid = self._kind(topic)
         if leaf == "alive":
-            return self._alive(parsed[1], data, recv_ns) if parsed else []
+            return self._alive(vid, data, recv_ns)
         try:
             msg = schema.decode(data)
         except schema.DecodeError:
@@ -253,10 +298,29 @@ class Converter:
             return [self.ack(msg, recv_ns)]
         return []
 
+    def convert_all(self, items: Sequence[tuple[str, bytes, int]]) -> Iterator[list[Out]]:
+        """convert() of each (topic, data, recv_ns), in order, with the states among them
+        decoded together (comms/state_batch.py, a fraction of the cost): the same outputs."""
+        states = [
+            i
+            for i, (topic, data, _) in enumerate(items)
+            if data[:1] == _STATE_TYPE and self._kind(topic)[0] != "alive"
+        ]
+        rows = dict(zip(states, decode_states([items[i][1] for i in states]), strict=True))
+        for i, (topic, data, recv_ns) in enumerate(items):
+            if i not in rows:
+                yield self.convert(topic, data, recv_ns)
+            elif (row := rows[i]) is not None:
+                yield self.state(row, recv_ns)
+            else:
+                yield []
+
     # -- per message kind ------------------------------------------------------------------
-    def state(self, s: schema.VehicleState, recv_ns: int) -> list[Out]:
+    def state(self, s: schema.VehicleState | StateRow, recv_ns: int) -> list[Out]:
         vid, stamp = s.vehicle_id, _ts(s.stamp_ns)
+        frame, pose_t, fix_t, link_t = self._vehicle_names(vid)
         n, e, d = s.pos_ned_m
+        position = fm.Vector3(x=n, y=e, z=d)
         q = _q(*yaw_quaternion(s.heading_rad))
         out: list[Out] = []
         if recv_ns >= self._tf_due_ns:
@@ -265,97 +329,118 @@ class Converter:
                 timestamp=_ts(recv_ns),
                 parent_frame_id=WORLD_FRAME,
                 child_frame_id=NED_FRAME,
-                translation=_v3(0, 0, 0),
-                rotation=_q(*_ENU_TO_NED_Q),
+                translation=self._zero,
+                rotation=self._world_tf_rotation,
             )
             out.append(Out(TF_TOPIC, FRAME_TRANSFORM, world.encode(), recv_ns))
         tf = fm.FrameTransform(
             timestamp=stamp,
             parent_frame_id=NED_FRAME,
-            child_frame_id=vehicle_frame(vid),
-            translation=_v3(n, e, d),
+            child_frame_id=frame,
+            translation=position,
             rotation=q,
         )
         out.append(Out(TF_TOPIC, FRAME_TRANSFORM, tf.encode(), recv_ns))
         pose = fm.PoseInFrame(
-            timestamp=stamp, frame_id=NED_FRAME, pose=fm.Pose(position=_v3(n, e, d), orientation=q)
+            timestamp=stamp, frame_id=NED_FRAME, pose=fm.Pose(position=position, orientation=q)
         )
-        out.append(Out(pose_topic(vid), POSE_IN_FRAME, pose.encode(), recv_ns))
+        out.append(Out(pose_t, POSE_IN_FRAME, pose.encode(), recv_ns))
         lat, lon, alt = self.cfg.origin.to_global(n, e, d)
         # LocationFix.heading: degrees clockwise from north, as NED's heading is.
         fix = fm.LocationFix(
             timestamp=stamp,
-            frame_id=vehicle_frame(vid),
+            frame_id=frame,
             latitude=lat,
             longitude=lon,
             altitude=alt,
             heading=math.degrees(s.heading_rad) % 360.0,
-            color=_colour(mode_rgb(s.mode)),
+            color=self._mode_colour(s.mode),
         )
-        out.append(Out(fix_topic(vid), LOCATION_FIX, fix.encode(), recv_ns))
+        out.append(Out(fix_t, LOCATION_FIX, fix.encode(), recv_ns))
         if recv_ns >= self._scene_due_ns.get(vid, 0) or s.mode != self._scene_mode.get(vid):
             self._scene_due_ns[vid] = recv_ns + int(self.cfg.scene_interval_s * 1e9)
             self._scene_mode[vid] = s.mode
-            out.append(Out(SCENE_TOPIC, SCENE_UPDATE, self.scene_update([s]).encode(), recv_ns))
+            entity = self._entity(s, stamp, frame, position, q)
+            out.append(
+                Out(SCENE_TOPIC, SCENE_UPDATE, fm.SceneUpdate(entities=[entity]).encode(), recv_ns)
+            )
         link = self._link(s, recv_ns)
         if link is not None:
-            out.append(Out(link_topic(vid), LINK_JSON, json.dumps(link).encode(), recv_ns))
+            out.append(Out(link_t, LINK_JSON, json.dumps(link).encode(), recv_ns))
         return out
+
+    def _mode_colour(self, mode: schema.Mode) -> fm.Color:
+        colour = self._mode_colours.get(mode)
+        return colour if colour is not None else _colour(mode_rgb(mode))
 
     def scene_entity(self, s: schema.VehicleState) -> fm.SceneEntity:
         """A vehicle drawn in the ned frame: body, velocity arrow, separation ring and goal."""
         n, e, d = s.pos_ned_m
-        rgb = mode_rgb(s.mode)
-        size = self.cfg.body_size_m
-        body = fm.CubePrimitive(
-            pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*yaw_quaternion(s.heading_rad))),
-            size=_v3(size, size, size * 0.3),
-            color=_colour(rgb),
+        return self._entity(
+            s,
+            _ts(s.stamp_ns),
+            vehicle_frame(s.vehicle_id),
+            fm.Vector3(x=n, y=e, z=d),
+            _q(*yaw_quaternion(s.heading_rad)),
         )
-        ring_d = 2 * self.cfg.separation_m
+
+    def _entity(
+        self,
+        s: schema.VehicleState | StateRow,
+        stamp: fm.Timestamp,
+        frame: str,
+        position: fm.Vector3,
+        yaw: fm.Quaternion,
+    ) -> fm.SceneEntity:
+        colour = self._mode_colour(s.mode)
+        body = fm.CubePrimitive(
+            pose=fm.Pose(position=position, orientation=yaw),
+            size=self._body_size,
+            color=colour,
+        )
         ring = fm.CylinderPrimitive(
-            pose=fm.Pose(position=_v3(n, e, d), orientation=_q(0, 0, 0, 1)),
-            size=_v3(ring_d, ring_d, 0.02),
+            pose=fm.Pose(position=position, orientation=self._identity),
+            size=self._ring_size,
             bottom_scale=1.0,
             top_scale=1.0,
-            color=_colour(RING_OK_RGB, 0.25),
+            color=self._ring_colour,
         )
         speed = math.sqrt(sum(v * v for v in s.vel_ned_m_s))
         arrows = []
         if speed > 0.05:
             arrows.append(
                 fm.ArrowPrimitive(
-                    pose=fm.Pose(position=_v3(n, e, d), orientation=_q(*x_to(s.vel_ned_m_s))),
+                    pose=fm.Pose(position=position, orientation=_q(*x_to(s.vel_ned_m_s))),
                     shaft_length=speed,
                     shaft_diameter=0.08,
                     head_length=0.3,
                     head_diameter=0.2,
-                    color=_colour(rgb),
+                    color=colour,
                 )
             )
         spheres = []
         if s.flags & schema.StateFlag.HAS_GOAL:
             spheres.append(
                 fm.SpherePrimitive(
-                    pose=fm.Pose(position=_v3(*s.goal_ned_m), orientation=_q(0, 0, 0, 1)),
-                    size=_v3(0.4, 0.4, 0.4),
-                    color=_colour(GOAL_RGB),
+                    pose=fm.Pose(position=_v3(*s.goal_ned_m), orientation=self._identity),
+                    size=self._goal_size,
+                    color=self._goal_colour,
                 )
             )
+        n, e, d = s.pos_ned_m
         label = fm.TextPrimitive(
-            pose=fm.Pose(position=_v3(n, e, d - 0.8), orientation=_q(0, 0, 0, 1)),
+            pose=fm.Pose(position=_v3(n, e, d - 0.8), orientation=self._identity),
             billboard=True,
             font_size=14.0,
             scale_invariant=True,
-            color=_colour((255, 255, 255)),
+            color=self._white,
             text=f"{s.vehicle_id} {s.mode.name}",
         )
-        lifetime = self.cfg.entity_lifetime_s
         return fm.SceneEntity(
-            timestamp=_ts(s.stamp_ns),
+            timestamp=stamp,
             frame_id=NED_FRAME,
-            id=vehicle_frame(s.vehicle_id),
-            lifetime=fm.Duration.from_secs(lifetime) if lifetime > 0 else None,
+            id=frame,
+            lifetime=self._lifetime,
             metadata=[
                 fm.KeyValuePair(key="mode", value=s.mode.name),
                 fm.KeyValuePair(key="armed", value=str(s.armed)),
@@ -416,6 +501,7 @@ class Converter:
         if data != b"\x00":
             return []
         self._links.pop(vid, None)
+        self._names.pop(vid, None)
         self._scene_due_ns.pop(vid, None)
         self._scene_mode.pop(vid, None)
         gone = fm.SceneUpdate(
@@ -438,7 +524,7 @@ class Converter:
             Out(EVENTS_TOPIC, LOG, log.encode(), recv_ns),
         ]
 
-    def _link(self, s: schema.VehicleState, recv_ns: int) -> dict | None:
+    def _link(self, s: schema.VehicleState | StateRow, recv_ns: int) -> dict | None:
         """Every link_interval_s: rate = states / window, loss = 1 - states / seq advance."""
         link = self._links.get(s.vehicle_id)
         if link is None or s.seq < link.last_seq:  # new vehicle, or its agent restarted

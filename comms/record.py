@@ -11,8 +11,10 @@ schema record holds the binary layout from comms.schema), log_time = receive tim
 
 Beside them, unless RecordConfig.foxglove is off, the same traffic in Foxglove's well-known
 schemas (/tf, /scene, /vehicles/<id>/pose|fix|link, /events, /commands, /acks; see
-comms/foxglove_channels.py), so that Foxglove opens the file as it is. Readers here skip those:
-`read_recording` returns only covey's own channels, so replay is unchanged by them.
+comms/foxglove_channels.py), so that Foxglove opens the file as it is. They are made in a child
+process (comms/foxglove_worker.py) from the raw chunks, off the path that receives the mesh.
+Readers here skip those: `read_recording` returns only covey's own channels, so replay is
+unchanged by them.
 
 Acks are Zenoh replies that only the querier sees; the recorder cannot see them. Anything
 published under covey/<fleet>/** is recorded, so an ack that its vehicle also publishes on
@@ -20,7 +22,9 @@ covey/<fleet>/v/<id>/ack lands in the channel of that key (schema covey.CommandA
 
 The file survives a SIGKILL of the recorder: chunks are small and flushed every
 `flush_interval_s`, and `read_recording` streams records and stops cleanly at a torn tail
-(no summary or footer needed). At most the last flush interval is lost.
+(no summary or footer needed). At most the last flush interval of covey's channels is lost;
+the standard ones may lag further behind (the worker's backlog on busy cores), and
+`covey record --foxglove-from` remakes them.
 """
 
 from __future__ import annotations
@@ -39,10 +43,11 @@ import zenoh
 from mcap.exceptions import EndOfFile
 from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
 
 from comms import keys, schema
-from comms.foxglove_channels import Converter, FoxgloveConfig, SchemaSpec
+from comms.foxglove_channels import FoxgloveConfig
+from comms.foxglove_worker import FIRST_ID, FoxgloveChunks, FoxgloveWorker, WorkerDone
+from comms.mcap_chunks import BuiltChunk, ChunkBuilder, McapFile
 from comms.session import MeshConfig, open_session
 
 log = logging.getLogger(__name__)
@@ -100,8 +105,23 @@ def _leaf(topic: str) -> str:
     return "other"
 
 
+class FoxgloveIncomplete(RuntimeError):
+    """The file is complete and covey's channels are whole, but the Foxglove worker stopped
+    early: the standard channels lack the rest (`covey record --foxglove-from` remakes them)."""
+
+
+_STOP = object()
+
+
 class McapSink:
-    """Thread-safe MCAP writer: callbacks `put()`, one writer thread writes and flushes."""
+    """Thread-safe MCAP writer: callbacks `put()`, one writer thread writes and flushes.
+
+    The writer thread writes covey's raw bytes only. With `foxglove` set, at each flush it hands
+    the uncompressed records of the raw chunks written since the last flush to the Foxglove
+    worker (a child process, comms/foxglove_worker.py), whose finished chunks of the standard
+    channels come back through the same queue and are written as they are;
+    `foxglove_worker=False` converts in the writer thread instead (the reference path, and what
+    an offline conversion uses)."""
 
     def __init__(
         self,
@@ -110,95 +130,146 @@ class McapSink:
         chunk_bytes: int,
         flush_interval_s: float,
         clock_s: Callable[[], float] = time.monotonic,
-        converter: Converter | None = None,
+        foxglove: FoxgloveConfig | None = None,
+        foxglove_worker: bool = True,
     ) -> None:
         self._out = out
-        self._converter = converter
-        self._writer = Writer(out, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
-        self._writer.start(profile="covey", library="covey-record")
-        self._writer.add_metadata(
+        self._file = McapFile(out, profile="covey", library="covey-record")
+        self._file.add_metadata(
             "covey", {"fleet": fleet, "schema_version": str(schema.SCHEMA_VERSION)}
         )
         self._out.flush()
+        self._raw = ChunkBuilder()
+        self._chunk_bytes = chunk_bytes
         self._schemas: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
-        self._std_channels: dict[str, int] = {}
+        self._channels: dict[str, tuple[int, str]] = {}  # topic -> (channel id, leaf)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._flush_interval_s = flush_interval_s
         self._clock_s = clock_s
         self.counts: dict[str, int] = {}
+        self.foxglove_error = ""
+        """Why the standard channels are incomplete (the worker died), or empty."""
+        self._inline: FoxgloveChunks | None = None
+        self._worker: FoxgloveWorker | None = None
+        if foxglove is not None and foxglove_worker:
+            self._worker = FoxgloveWorker(foxglove, self._queue.put)
+        elif foxglove is not None:
+            self._inline = FoxgloveChunks(foxglove)
+        self._plains: list[bytes] | None = None if foxglove is None else []
         self._thread = threading.Thread(target=self._run, name="covey-record", daemon=True)
         self._thread.start()
 
     def put(self, topic: str, data: bytes, recv_ns: int) -> None:
         self._queue.put((topic, data, recv_ns))
 
-    def _channel(self, topic: str) -> int:
-        cid = self._channels.get(topic)
-        if cid is None:
-            leaf = _leaf(topic)
-            name, layout = _LAYOUTS.get(leaf, _LAYOUTS["other"])
-            sid = self._schemas.get(name)
-            if sid is None:
-                sid = self._schemas[name] = self._writer.register_schema(
-                    name, SCHEMA_ENCODING, layout.encode()
-                )
-            enc = PRESENCE_ENCODING if leaf == "alive" else MESSAGE_ENCODING
-            cid = self._channels[topic] = self._writer.register_channel(topic, enc, sid)
-        return cid
-
-    def _std_channel(self, topic: str, spec: SchemaSpec) -> int:
-        cid = self._std_channels.get(topic)
-        if cid is None:
-            sid = self._schemas.get(spec.name)
-            if sid is None:
-                sid = self._schemas[spec.name] = self._writer.register_schema(
-                    spec.name, spec.encoding, spec.data
-                )
-            cid = self._std_channels[topic] = self._writer.register_channel(
-                topic, spec.message_encoding, sid
-            )
-        return cid
+    def _channel(self, topic: str) -> tuple[int, str]:
+        leaf = _leaf(topic)
+        name, layout = _LAYOUTS.get(leaf, _LAYOUTS["other"])
+        sid = self._schemas.get(name)
+        if sid is None:
+            sid = self._schemas[name] = len(self._schemas) + 1
+            self._raw.add_schema(Schema(sid, layout.encode(), SCHEMA_ENCODING, name))
+        cid = len(self._channels) + 1
+        if cid >= FIRST_ID:
+            raise ValueError(f"more than {FIRST_ID - 1} covey topics in one recording")
+        enc = PRESENCE_ENCODING if leaf == "alive" else MESSAGE_ENCODING
+        self._raw.add_channel(Channel(cid, topic, enc, {}, sid))
+        self._channels[topic] = (cid, leaf)
+        return cid, leaf
 
     def _write(self, item: tuple[str, bytes, int]) -> None:
         topic, data, recv_ns = item
-        self._writer.add_message(self._channel(topic), recv_ns, data, recv_ns)
-        leaf = _leaf(topic)
+        cid, leaf = self._channels.get(topic) or self._channel(topic)
+        self._raw.add(cid, recv_ns, data, recv_ns)
         self.counts[leaf] = self.counts.get(leaf, 0) + 1
-        if self._converter is not None:
-            for out in self._converter.convert(topic, data, recv_ns):
-                cid = self._std_channel(out.topic, out.schema)
-                self._writer.add_message(cid, out.log_time_ns, out.data, recv_ns)
-                self.counts["foxglove"] = self.counts.get("foxglove", 0) + 1
+        if self._raw.size > self._chunk_bytes:
+            self._write_raw_chunk()
+
+    def _write_raw_chunk(self) -> None:
+        """Write the raw chunk; keep its records for the standard channels."""
+        built = self._raw.build(keep_plain=self._plains is not None)
+        if built is not None:
+            self._file.write_chunk(built)
+            if self._plains is not None:
+                self._plains.append(built.plain)
+
+    def _write_foxglove(self, built: BuiltChunk) -> None:
+        self._file.write_chunk(built)
+        self.counts["foxglove"] = self.counts.get("foxglove", 0) + built.messages
+
+    def _flush(self) -> None:
+        """Write the raw chunk, pass what was written since the last flush on for the standard
+        channels, flush the file."""
+        self._write_raw_chunk()
+        if self._plains:
+            plains, self._plains = self._plains, []
+            if self._worker is not None:
+                self._worker.send(plains)
+            elif self._inline is not None:
+                for chunk in self._inline.add(plains):
+                    self._write_foxglove(chunk)
+        self._file.flush()
 
     def _run(self) -> None:
         last_flush_s = self._clock_s()
+        get = self._queue.get
+        stopping = False
         while True:
             try:
-                item = self._queue.get(timeout=self._flush_interval_s)
+                item = get(timeout=self._flush_interval_s)
             except queue.Empty:
                 item = None
-            if item == "stop":
-                return
-            if item is not None:
+            if item.__class__ is tuple:
                 self._write(item)
+            elif item.__class__ is BuiltChunk:
+                self._write_foxglove(item)
+            elif item is _STOP:
+                self._flush()
+                if self._worker is None or self.foxglove_error:
+                    return
+                self._worker.end()  # then write its chunks until it is done
+                stopping = True
+                behind = self._worker.sent - self._worker.converted
+                if behind > 1:  # it runs at low priority: on busy cores it lags, and we wait
+                    log.info("finishing the Foxglove channels: %d flushes to convert", behind)
+            elif isinstance(item, WorkerDone):
+                if stopping:
+                    self.foxglove_error = item.error
+                    return
+                # Died while recording: keep recording covey's channels, and say so now.
+                self.foxglove_error = item.error or "the Foxglove worker ended early"
+                self._plains = None
+                log.error("%s; recording covey's channels only from here", self.foxglove_error)
             if self._clock_s() - last_flush_s >= self._flush_interval_s:
-                self._writer.flush()
+                self._flush()
                 last_flush_s = self._clock_s()
 
     def close(self) -> None:
-        """Write what is queued, the summary and the footer."""
-        self._queue.put("stop")
+        """Write what is queued (and the Foxglove worker's last chunks), the summary and the
+        footer. Raises FoxgloveIncomplete, after finishing the file, if the worker died."""
+        self._queue.put(_STOP)
         self._thread.join()
+        if self._worker is not None:
+            self._worker.close()
+        self._worker = self._inline = self._plains = None  # after close(): covey's bytes only
         while True:
             try:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 break
-            if item != "stop":
+            if item.__class__ is tuple:
                 self._write(item)
-        self._writer.finish()
+        built = self._raw.build()
+        if built is not None:
+            self._file.write_chunk(built)
+        self._file.finish()
         self._out.flush()
+        if self.foxglove_error:
+            log.error("%s", self.foxglove_error)
+            raise FoxgloveIncomplete(
+                f"{self.foxglove_error}; covey's channels are whole, and "
+                "`covey record --foxglove-from` remakes the standard ones"
+            )
 
 
 class Sink(Protocol):
@@ -231,9 +302,8 @@ class Recorder:
             if sink is not None:
                 self.sink: Sink = sink
             else:
-                converter = Converter(cfg.foxglove) if cfg.foxglove is not None else None
                 self.sink = McapSink(
-                    self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s, converter=converter
+                    self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s, foxglove=cfg.foxglove
                 )
             self._session: zenoh.Session | None = open_session(cfg.mesh)
             s = self._session
@@ -400,7 +470,9 @@ def add_foxglove_channels(
         raise ValueError(f"the output {dst} would overwrite the recording it reads")
     rec = read_recording(src)
     with open(dst, "wb") as out:
-        sink = McapSink(out, rec.fleet or "covey", 1024 * 1024, 60.0, converter=Converter(cfg))
+        sink = McapSink(
+            out, rec.fleet or "covey", 1024 * 1024, 60.0, foxglove=cfg, foxglove_worker=False
+        )
         for m in rec.messages:
             sink.put(m.topic, m.data, m.log_time_ns)
         sink.close()

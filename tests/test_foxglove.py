@@ -12,6 +12,7 @@ import base64
 import json
 import math
 import os
+import random
 import signal
 import struct
 import subprocess
@@ -23,14 +24,24 @@ import uuid
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
+from mcap.records import Channel
 from websockets.sync.client import connect
 
 from comms import foxglove_channels as fc
 from comms import keys, schema
 from comms.commands import new_nonce
+from comms.foxglove_worker import FoxgloveChunks
 from comms.geo import GeoOrigin
+from comms.mcap_chunks import MAX_ID, ChunkBuilder
 from comms.mesh import Mesh
-from comms.record import RecordConfig, Recorder, add_foxglove_channels, read_recording
+from comms.record import (
+    FoxgloveIncomplete,
+    McapSink,
+    RecordConfig,
+    Recorder,
+    add_foxglove_channels,
+    read_recording,
+)
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 from groundstation.foxglove_bridge import BridgeConfig, FoxgloveBridge
 from tools.record_cli import record_cli
@@ -144,6 +155,165 @@ def test_garbage_and_departures():
     outs = conv.convert(keys.alive("f", 1), b"\x00", 0)
     scene = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data).FromString(outs[0].data)
     assert scene.deletions[0].id == "vehicle/1"
+
+
+def test_convert_all_equals_convert_one_by_one():
+    """The batch path (states decoded as arrays) gives what convert() gives, message by message,
+    on a fleet's traffic mixed with presence bytes, garbage and corrupt states."""
+    rng = random.Random(4)
+    items = _fleet_traffic(40)
+    for k in range(200):
+        topic, data, recv_ns = rng.choice(items)
+        kind = k % 4
+        if kind == 0:
+            data = bytes([1]) + rng.randbytes(rng.choice([63, 64, 127]))
+        elif kind == 1:
+            data = bytearray(data)
+            data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+            data = bytes(data)
+        elif kind == 2:
+            topic, data = keys.alive("w", rng.randint(1, 3)), rng.choice([b"\x00", b"\x01"])
+        items.insert(rng.randrange(len(items)), (topic, data, recv_ns))
+    one, many = fc.Converter(), fc.Converter()
+    want = [one.convert(*item) for item in items]
+    got = list(many.convert_all(items))
+    assert got == want and sum(map(len, got)) > len(items)
+
+
+# -- the worker process ------------------------------------------------------------------------
+def _fleet_traffic(n_steps: int = 60) -> list[tuple[str, bytes, int]]:
+    """Three vehicles at 10 Hz with goals, a mode change, events, a command and a departure."""
+    out = []
+    t0 = 1_700_000_000_000_000_000
+    for k in range(n_steps):
+        t = t0 + k * 100_000_000
+        for vid in (1, 2, 3):
+            mode = schema.Mode.GOTO if k > 20 else schema.Mode.HOLDING
+            s = schema.VehicleState(
+                vid,
+                k,
+                t - 3_000_000,
+                (0.1 * k, 2.0 * vid, -4.0),
+                (1.0, 0.5 * vid, 0.0),
+                0.3,
+                mode=mode,
+                armed=True,
+                flags=schema.StateFlag.HAS_GOAL,
+                goal_ned_m=(10.0, 2.0 * vid, -4.0),
+            )
+            out.append((keys.state("w", vid), s.encode(), t + vid))
+        if k % 15 == 0:
+            out.append((keys.event("w", 2), schema.Event(2, t, f"step {k}").encode(), t + 5))
+        if k == 10:
+            cmd = schema.Command.takeoff(3.0, nonce=77, stamp_ns=t, targets=(1, 2))
+            out.append((keys.cmd("w", 1), cmd.encode(), t + 6))
+    out.append((keys.alive("w", 3), b"\x00", t0 + n_steps * 100_000_000))
+    return out
+
+
+def _record_sink(path, traffic, **kw) -> dict[str, int]:
+    with open(path, "wb") as f:
+        sink = McapSink(f, "w", chunk_bytes=2048, flush_interval_s=0.05, **kw)
+        for item in traffic:
+            sink.put(*item)
+        sink.close()
+    return sink.counts
+
+
+def _by_topic(path) -> dict[str, list[tuple[int, bytes]]]:
+    out: dict[str, list] = {}
+    with open(path, "rb") as f:
+        for _s, ch, m in make_reader(f).iter_messages():
+            out.setdefault(ch.topic, []).append((m.log_time, m.data))
+    return out
+
+
+def test_the_worker_process_writes_what_the_writer_thread_would(tmp_path):
+    """The fast path (a child process) equals the reference (conversion in the writer thread):
+    the same standard messages, and covey's own unchanged."""
+    traffic = _fleet_traffic()
+    fox = fc.FoxgloveConfig(origin=ORIGIN)
+    inline = _record_sink(tmp_path / "inline.mcap", traffic, foxglove=fox, foxglove_worker=False)
+    worker = _record_sink(tmp_path / "worker.mcap", traffic, foxglove=fox)
+    assert inline == worker and worker["foxglove"] > len(traffic)
+    a, b = _by_topic(tmp_path / "inline.mcap"), _by_topic(tmp_path / "worker.mcap")
+    assert a == b
+    assert [
+        (m.topic, m.log_time_ns, m.data) for m in read_recording(tmp_path / "worker.mcap").messages
+    ] == sorted(((t, r, d) for t, d, r in traffic), key=lambda m: m[1])
+    std = read_standard(tmp_path / "worker.mcap")  # protobuf from the file's own schemas
+    assert all(len(std[f"/vehicles/{v}/pose"]) == 60 for v in (1, 2, 3))
+    assert std["/commands"][0]["targets"] == [1, 2]
+    assert std["/scene"][-1].deletions[0].id == "vehicle/3"
+
+
+def test_a_dead_worker_is_said_and_covey_channels_stay_whole(tmp_path):
+    traffic = _fleet_traffic(20)
+    path = tmp_path / "dead.mcap"
+    with open(path, "wb") as f:
+        sink = McapSink(f, "w", 2048, 0.05, foxglove=fc.FoxgloveConfig())
+        sink._worker._proc.kill()
+        for item in traffic:
+            sink.put(*item)
+        # still recording covey's channels, flushed as ever (a kill now would keep them)
+        deadline = time.monotonic() + 20.0
+        while len(read_recording(path).messages) < len(traffic) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(read_recording(path).messages) == len(traffic)
+        with pytest.raises(FoxgloveIncomplete, match="--foxglove-from"):
+            sink.close()
+    rec = read_recording(path)
+    assert not rec.truncated and len(rec.messages) == len(traffic)
+
+
+def test_the_worker_leaves_when_its_recorder_is_killed(tmp_path):
+    """SIGKILL the recording process: its worker reads the end of its pipe and exits."""
+    script = (
+        "import os, sys, time\n"
+        "from comms.foxglove_channels import FoxgloveConfig\n"
+        "from comms.record import McapSink\n"
+        f"sink = McapSink(open({str(tmp_path / 'k.mcap')!r}, 'wb'), 'w', 2048, 0.05,"
+        " foxglove=FoxgloveConfig())\n"
+        "print(sink._worker._proc.pid, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    worker_pid = int(proc.stdout.readline())
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 20.0
+    while _running(worker_pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _running(worker_pid), "the Foxglove worker outlived its recorder"
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except FileNotFoundError:
+        return False
+
+
+def test_channel_ids_run_out_without_breaking_the_recording():
+    chunks = FoxgloveChunks(fc.FoxgloveConfig())
+    chunks._next_id = MAX_ID - 4  # room for a few schemas and channels only
+    plain = _plain(_fleet_traffic(3))
+    built = chunks.add([plain])
+    ids = [c.id for b in built for c in b.channels] + [s.id for b in built for s in b.schemas]
+    assert ids and max(ids) <= MAX_ID and chunks.refused > 0 and chunks.messages > 0
+
+
+def _plain(traffic) -> bytes:
+    """Raw records as the recorder's writer thread hands them to the worker."""
+    b = ChunkBuilder()
+    ids: dict[str, int] = {}
+    for topic, data, recv_ns in traffic:
+        if topic not in ids:
+            ids[topic] = len(ids) + 1
+            b.add_channel(Channel(ids[topic], topic, "covey-v1", {}, 0))
+        b.add(ids[topic], recv_ns, data, recv_ns)
+    return b.build(keep_plain=True).plain
 
 
 # -- a real flight -------------------------------------------------------------------------------
