@@ -15,7 +15,9 @@ import logging
 import threading
 from collections.abc import Callable
 
+from agent.backends.base import VehicleBackend
 from agent.flight_core import Action, ActionKind
+from comms.schema import ActionOutcome, Mode
 
 log = logging.getLogger(__name__)
 
@@ -125,3 +127,56 @@ class ActionQueue:
             self._on_outcome(action, error)
         except Exception:  # noqa: BLE001 - a broken reporter must not stop the queue
             log.exception("action outcome handler failed")
+
+
+def perform(action: Action, backend: VehicleBackend) -> None:
+    """Run one action on a vehicle (the queue's worker calls this; errors are outcomes)."""
+    if action.kind is ActionKind.TAKEOFF:
+        backend.takeoff(action.alt_m)
+    elif action.kind is ActionKind.LAND:
+        backend.land()
+    elif action.kind is ActionKind.HOLD:
+        backend.hold()
+    elif action.kind is ActionKind.KILL:
+        backend.kill()
+    elif action.target_global is not None and backend.takes_global_targets:
+        backend.goto_global(*action.target_global)
+    else:
+        backend.goto_local(action.target_ned_m)
+
+
+def outcome_of(
+    action: Action, vehicle_id: int, error: str | None, back_to: Mode | None = None
+) -> ActionOutcome:
+    """What the station is told when `action` (asked for by a command) has ended."""
+    detail = action.describe()
+    if error is not None:
+        detail = f"{detail}: {error}" + (
+            f"; back to {back_to.name.lower()}" if back_to is not None else ""
+        )
+    return ActionOutcome(vehicle_id, action.nonce or 0, error is None, detail)
+
+
+def run_ticks(
+    tick: Callable[[float], None],
+    rate_hz: float,
+    clock_s: Callable[[], float],
+    stop: threading.Event,
+    on_overrun: Callable[[], None] | None = None,
+) -> None:
+    """Call `tick(now_s)` at `rate_hz` until `stop` is set; an overrun skips ahead instead of
+    bunching ticks up. A failing tick is logged and the loop goes on (keep flying)."""
+    period_s = 1.0 / rate_hz
+    next_s = clock_s()
+    while not stop.is_set():
+        try:
+            tick(clock_s())
+        except Exception:  # noqa: BLE001 - keep flying; the log has the traceback
+            log.exception("tick failed")
+        next_s += period_s
+        now = clock_s()
+        if next_s < now:
+            if on_overrun is not None:
+                on_overrun()
+            next_s = now + period_s
+        stop.wait(max(0.0, next_s - now))

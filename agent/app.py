@@ -22,10 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.actions import ActionQueue
+from agent.actions import ActionQueue, outcome_of, perform, run_ticks
 from agent.backends.base import BackendError, Capability, Traffic, VehicleBackend
 from agent.failsafe import FailsafeConfig
-from agent.flight_core import Action, ActionKind, CoreConfig, FlightCore, Note, Observed
+from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
 from comms.gate import GateConfig, Summaries
@@ -33,7 +33,6 @@ from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import (
     AckResult,
-    ActionOutcome,
     Command,
     CommandAck,
     EventKind,
@@ -125,7 +124,9 @@ class Agent:
         self.link = link
         self.on_position: Callable[[tuple[float, float, float]], None] | None = None
         self._last_link_stats_s = now
-        self.actions = ActionQueue(self._run_action, self._on_outcome, name=f"actions-{self.vid}")
+        self.actions = ActionQueue(
+            lambda a: perform(a, backend), self._on_outcome, name=f"actions-{self.vid}"
+        )
         self.presence = mesh.presence()
         # Refused commands: one SECURITY event per cause a second (a flood must not become one).
         self._refusals = Summaries(
@@ -219,21 +220,6 @@ class Agent:
         )
 
     # -- the action queue's thread -------------------------------------------------------------
-    def _run_action(self, action: Action) -> None:
-        be = self.backend
-        if action.kind is ActionKind.TAKEOFF:
-            be.takeoff(action.alt_m)
-        elif action.kind is ActionKind.LAND:
-            be.land()
-        elif action.kind is ActionKind.HOLD:
-            be.hold()
-        elif action.kind is ActionKind.KILL:
-            be.kill()
-        elif action.target_global is not None and be.takes_global_targets:
-            be.goto_global(*action.target_global)
-        else:
-            be.goto_local(action.target_ned_m)
-
     def _on_outcome(self, action: Action, error: str | None) -> None:
         rolled = False
         if error is not None:
@@ -243,12 +229,7 @@ class Agent:
             self._notes(notes)
         if action.nonce is None:
             return
-        detail = action.describe()
-        if error is not None:
-            detail = f"{detail}: {error}" + (
-                f"; back to {self.mode.name.lower()}" if rolled else ""
-            )
-        outcome = ActionOutcome(self.vid, action.nonce, error is None, detail)
+        outcome = outcome_of(action, self.vid, error, self.mode if rolled else None)
         try:
             self.mesh.publish_event(outcome.to_event(self.mesh.clock_ns()))
         except Exception as exc:  # noqa: BLE001 - an event that cannot be sent must not stop flying
@@ -387,16 +368,5 @@ class Agent:
             log.warning("state publish failed: %s", exc)
 
     def run(self, stop: threading.Event) -> None:
-        """Tick at `tick_hz` until `stop` is set. Overruns skip ticks instead of bunching up."""
-        period_s = 1.0 / self.cfg.tick_hz
-        next_s = self.clock_s()
-        while not stop.is_set():
-            try:
-                self.tick(self.clock_s())
-            except Exception:  # noqa: BLE001 - keep flying; the log has the traceback
-                log.exception("guidance tick failed")
-            next_s += period_s
-            now = self.clock_s()
-            if next_s < now:
-                next_s = now + period_s
-            stop.wait(max(0.0, next_s - now))
+        """Tick at `tick_hz` until `stop` is set."""
+        run_ticks(self.tick, self.cfg.tick_hz, self.clock_s, stop)

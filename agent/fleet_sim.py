@@ -28,13 +28,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from agent.actions import ActionQueue
-from agent.backends.sim import SimConfig, SimFleet
+from agent.actions import ActionQueue, outcome_of, perform, run_ticks
+from agent.backends.sim import SimBackend, SimConfig, SimFleet
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import (
     AIRBORNE_MODES,
     Action,
-    ActionKind,
     CoreConfig,
     FlightCore,
     Note,
@@ -44,7 +43,7 @@ from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
-from comms.schema import ActionOutcome, Command, CommandAck, Mode, StateFlag, VehicleState
+from comms.schema import Command, CommandAck, Mode, StateFlag, VehicleState
 from comms.session import MeshConfig
 from policy.runtime import GuidancePolicy
 
@@ -150,7 +149,11 @@ class Fleet:
         self.sim = SimFleet(cfg.sim, start_grid(n, cfg.spacing_m, cfg.start_ne_m), now_s=now)
         core_cfg = CoreConfig(origin=cfg.origin, guidance=g, failsafe=cfg.failsafe)
         self.core = FlightCore(core_cfg, n, now_s=now, guidance=BatchGuidance(g, n, self.policy))
-        self.actions = ActionQueue(self._run_action, self._on_outcome, threaded=False)
+        # Each vehicle's actions run on its row of the simulator, at once (its calls take microseconds).
+        self.backends = [SimBackend(fleet=self.sim, index=i) for i in range(n)]
+        self.actions = ActionQueue(
+            lambda a: perform(a, self.backends[a.index]), self._on_outcome, threaded=False
+        )
         self.filtered = np.zeros(n, bool)
         self.seq = 0
         self.stats = TickStats()
@@ -206,26 +209,12 @@ class Fleet:
         )
 
     # -- the simulated autopilots --------------------------------------------------------------
-    def _run_action(self, action: Action) -> None:
-        sim, i = self.sim, action.index
-        if action.kind is ActionKind.TAKEOFF:
-            sim.takeoff(i, action.alt_m)
-        elif action.kind is ActionKind.LAND:
-            sim.land(i)
-        elif action.kind is ActionKind.HOLD:
-            sim.hold(i)
-        elif action.kind is ActionKind.KILL:
-            sim.kill(i)
-        else:  # the core flies gotos with velocity setpoints: the simulator takes no goto
-            raise AssertionError(f"unexpected action {action}")
-
     def _on_outcome(self, action: Action, error: str | None) -> None:
         if error is not None:
             self.core.action_failed(action, error)
         if action.nonce is None:
             return
-        detail = action.describe() + ("" if error is None else f": {error}")
-        outcome = ActionOutcome(int(self.ids[action.index]), action.nonce, error is None, detail)
+        outcome = outcome_of(action, int(self.ids[action.index]), error)
         self._send(self.mesh.publish_event, outcome.to_event(self.mesh.clock_ns()))
 
     def _publish_notes(self, notes: list[Note]) -> None:
@@ -336,20 +325,12 @@ class Fleet:
         ]
 
     def run(self, stop: threading.Event) -> None:
-        """Tick at `rate_hz` until `stop` is set; an overrun skips ahead instead of bunching up."""
-        period_s = 1.0 / self.cfg.rate_hz
-        next_s = self.clock_s()
-        while not stop.is_set():
-            try:
-                self.tick(self.clock_s())
-            except Exception:  # noqa: BLE001 - keep the fleet alive; the log has the traceback
-                log.exception("fleet tick failed")
-            next_s += period_s
-            now = self.clock_s()
-            if next_s < now:
-                self.stats.overruns += 1
-                next_s = now + period_s
-            stop.wait(max(0.0, next_s - now))
+        """Tick at `rate_hz` until `stop` is set (overruns are counted in `stats`)."""
+
+        def overrun() -> None:
+            self.stats.overruns += 1
+
+        run_ticks(self.tick, self.cfg.rate_hz, self.clock_s, stop, overrun)
 
 
 def main(
