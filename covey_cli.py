@@ -13,8 +13,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "cli",
         "simulated fleet + browser ground station, no external services",
     ),
-    "agent": ("agent.cli", "cli", "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)"),
-    "gcs": ("groundstation.cli", "cli", "browser ground station (viser)"),
+    "agent": ("agent.agent_cli", "cli", "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)"),
+    "gcs": ("groundstation.gcs_cli", "cli", "browser ground station (viser)"),
     "status": (
         "groundstation.ops",
         "status_cli",
@@ -24,7 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
     "eval": ("policy.eval", "cli", "evaluate policies against ORCA and straight-line baselines"),
     "export": ("policy.export", "cli", "export a checkpoint to runtime weights (--format npz|c)"),
-    "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
+    "sitl": ("firmware.sitl.sitl_cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
     "record": (
         "groundstation.recording_cli",
         "record_cli",

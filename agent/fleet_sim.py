@@ -496,7 +496,7 @@ def main(
 
 
 def parser() -> argparse.ArgumentParser:
-    from agent.cli import _floats, add_mesh_args
+    from agent.agent_cli import _floats, add_mesh_args
 
     p = argparse.ArgumentParser(
         prog="covey fleet-sim",
@@ -535,7 +535,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def cli(argv: list[str]) -> int:
-    from agent.cli import mesh_config
+    from agent.agent_cli import mesh_config
 
     p = parser()
     args = p.parse_args(argv)

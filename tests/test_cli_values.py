@@ -7,7 +7,7 @@ import pytest
 
 @pytest.mark.parametrize("start", ["1e30,0", "0,-2e6"])
 def test_agent_refuses_a_start_no_state_could_carry(start, capsys) -> None:
-    from agent import cli
+    from agent import agent_cli as cli
 
     with pytest.raises(SystemExit) as exc:
         cli.cli(["--id", "1", "--start", start])  # refused before any backend or mesh exists

@@ -112,7 +112,7 @@ def stats():
 
 
 def test_covey_agent_parser(stats) -> None:
-    from agent import cli
+    from agent import agent_cli as cli
 
     def parse(argv: list[str]) -> None:
         cli.config_from_args(cli.parser().parse_args(argv))
@@ -155,7 +155,7 @@ def test_covey_cmd_parser(stats) -> None:
 
 
 def test_covey_sitl_parser(stats) -> None:
-    sitl_cli = pytest.importorskip("firmware.sitl.cli")
+    sitl_cli = pytest.importorskip("firmware.sitl.sitl_cli")
     rng = random.Random(SEED + 2)
     opts = options_of(sitl_cli.parser())
     for _ in range(N_PER_PARSER):
@@ -180,7 +180,7 @@ def test_covey_keygen_parser(stats, tmp_path, monkeypatch) -> None:
 
 @pytest.mark.parametrize("bad", ["nan", "inf", "0", "-1"])
 def test_agent_refuses_a_bad_duration_before_starting(bad, capsys) -> None:
-    from agent import cli
+    from agent import agent_cli as cli
 
     with pytest.raises(SystemExit) as exc:
         cli.cli(["--id", "1", "--duration-s", bad])  # refused before any backend or mesh exists
@@ -280,8 +280,8 @@ def run_one_line(fn, argv: list[str]) -> str:
 
 
 def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_path) -> None:
-    from agent import cli as agent_cli
-    from groundstation import cli as gcs_cli
+    from agent import agent_cli
+    from groundstation import gcs_cli
     from groundstation import ops, recording_cli
 
     mesh_cases, key_cases = bad_setups(tmp_path)
