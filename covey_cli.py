@@ -13,7 +13,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "cli",
         "simulated fleet + browser ground station, no external services",
     ),
-    "agent": ("agent.agent_cli", "cli", "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)"),
+    "agent": (
+        "agent.agent_cli",
+        "cli",
+        "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)",
+    ),
     "gcs": ("groundstation.gcs_cli", "cli", "browser ground station (viser)"),
     "status": (
         "groundstation.ops",
