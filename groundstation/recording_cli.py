@@ -1,10 +1,10 @@
 """`covey record` and `covey replay`: record a fleet's mesh to MCAP, summarise it, play it back,
 or replay one vehicle's recorded traffic through a policy (closed loop).
 
-    covey record -o flight.mcap --fleet demo --connect tcp/127.0.0.1:7447 --duration 60
+    covey record -o flight.mcap --fleet demo --connect tcp/127.0.0.1:7447 --duration-s 60
     covey record --info flight.mcap [--json]
     covey record --foxglove-from old.mcap -o new.mcap     (add Foxglove's channels to a recording)
-    covey replay flight.mcap --fleet demo-replay --speed 2 --loop
+    covey replay flight.mcap --fleet demo-replay --speed 2 --loop --start-s 10
     covey replay flight.mcap --policy policy/weights/policy.npz --vehicle 3 [--json out.json]
 
 This lives in groundstation/ because closed-loop replay needs the agent's guidance and the policy,
@@ -15,11 +15,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
-import threading
 from pathlib import Path
 
+from comms.cli_options import (
+    add_mesh_args,
+    die,
+    finite,
+    given,
+    key_env_note,
+    mesh_config,
+    refuse,
+    renamed,
+    stop_on_signals,
+)
 from comms.record import (
     RecordConfig,
     add_foxglove_channels,
@@ -29,17 +38,18 @@ from comms.record import (
     summarise,
 )
 from comms.replay import LiveFleetError, ReplayConfig, replay
-from groundstation.argtypes import finite
 from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
-from groundstation.meshargs import add_mesh_args, die, mesh_config
 
-
-def _stop_on_signals() -> threading.Event:
-    stop = threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
-    return stop
+RECORD_NO_KEY = (
+    "a recorder stores the mesh's bytes as they are, signatures included, and signs nothing "
+    "(covey record needs no key to record a keyed fleet)"
+)
+REPLAY_NO_KEY = (
+    "a replay cannot be signed: replayed states carry the REPLAY flag, which their vehicles' "
+    "signatures do not cover, and one member key cannot sign for every recorded vehicle; "
+    "replay into an open-mode fleet (--fleet NAME)"
+)
+MESH_DESTS = ("fleet", "connect", "listen", "mesh_mode", "zenoh_config")
 
 
 # -- record ----------------------------------------------------------------------------------
@@ -51,8 +61,13 @@ def record_parser() -> argparse.ArgumentParser:
         "-o", "--output", default="flight.mcap", help="MCAP file to write (default flight.mcap)"
     )
     p.add_argument(
-        "--duration", type=finite("seconds"), default=None, metavar="S", help="stop after S seconds"
+        "--duration-s",
+        type=finite("seconds"),
+        default=None,
+        metavar="S",
+        help="stop after S seconds",
     )
+    renamed(p, {"--duration": "--duration-s"})
     p.add_argument(
         "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
     )
@@ -70,7 +85,8 @@ def record_parser() -> argparse.ArgumentParser:
         help="record covey's channels only, without Foxglove's standard ones",
     )
     add_foxglove_args(p)
-    add_mesh_args(p, key_file=False)  # records raw bytes; signs nothing
+    add_mesh_args(p, key_file=False)
+    refuse(p, "--key-file", RECORD_NO_KEY, show=True)
     return p
 
 
@@ -96,6 +112,17 @@ def info_main(path: str, as_json: bool = False, out=sys.stdout) -> int:
 def record_cli(argv: list[str]) -> int:
     p = record_parser()
     args = p.parse_args(argv)
+    if args.json and not args.info:
+        p.error("--json prints the summary of --info FILE; a recording run prints no JSON")
+    if args.info or args.foxglove_from:
+        mode = "--info" if args.info else "--foxglove-from"
+        unused = ["duration_s", *MESH_DESTS] + (
+            ["output", "no_foxglove", "origin", "separation_m"] if args.info else []
+        )
+        if flags := given(p, args, *unused):
+            p.error(f"{', '.join(flags)}: not used with {mode}, which reads a recording file")
+    elif args.no_foxglove and (flags := given(p, args, "origin", "separation_m")):
+        p.error(f"{', '.join(flags)}: draws Foxglove's channels, which --no-foxglove leaves out")
     if args.info:
         try:
             return info_main(args.info, args.json)
@@ -109,7 +136,7 @@ def record_cli(argv: list[str]) -> int:
         cfg = RecordConfig(
             path=args.output,
             mesh=mesh_config(args, p),
-            duration_s=args.duration,
+            duration_s=args.duration_s,
             foxglove=None if args.no_foxglove else foxglove_config(args),
         )
     except ValueError as exc:
@@ -118,10 +145,11 @@ def record_cli(argv: list[str]) -> int:
         cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:
         die(p, str(exc))
-    stop = _stop_on_signals()
+    key_env_note(p, RECORD_NO_KEY)
     print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
     try:
-        counts = record(cfg, stop)
+        with stop_on_signals() as stop:
+            counts = record(cfg, stop)
     except OSError as exc:
         print(f"covey record: cannot write {cfg.path}: {exc}", file=sys.stderr)
         return 2
@@ -151,25 +179,33 @@ def replay_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--loop", action="store_true", help="start over at the end")
     p.add_argument(
-        "--start",
+        "--start-s",
         type=finite("seconds", inclusive=True),
         default=0.0,
         metavar="S",
         help="start S seconds into the recording",
     )
     p.add_argument(
-        "--end",
+        "--end-s",
         type=finite("seconds", inclusive=True),
         default=None,
         metavar="S",
         help="stop S seconds into the recording",
     )
     p.add_argument(
-        "--presence-wait",
+        "--presence-wait-s",
         type=finite("seconds", inclusive=True),
         default=1.0,
         metavar="S",
         help="listen this long for live vehicles before replaying (default 1)",
+    )
+    renamed(
+        p,
+        {
+            "--start": "--start-s",
+            "--end": "--end-s",
+            "--presence-wait": "--presence-wait-s",
+        },
     )
     cl = p.add_argument_group("closed loop")
     cl.add_argument(
@@ -185,15 +221,31 @@ def replay_parser() -> argparse.ArgumentParser:
     cl.add_argument(
         "--json-out", default=None, metavar="PATH", help="also write the closed-loop report as JSON"
     )
-    cl.add_argument("--separation-m", type=finite("metres"), default=3.0)
-    cl.add_argument("--cruise-speed-m-s", type=finite("m/s"), default=1.0)
-    cl.add_argument("--no-safety-filter", action="store_true")
-    add_mesh_args(p, key_file=False)  # a recording cannot be re-signed: open-mode fleets only
-    p.set_defaults(fleet=None)  # default: the recorded fleet
-    for action in p._actions:  # meshargs documents its own default; replay's differs
-        if action.dest == "fleet":
-            action.help = "fleet to replay into (default: the recorded fleet)"
+    cl.add_argument(
+        "--separation-m",
+        type=finite("metres"),
+        default=3.0,
+        help="separation the policy keeps (default 3)",
+    )
+    cl.add_argument(
+        "--cruise-speed-m-s",
+        type=finite("m/s"),
+        default=1.0,
+        help="cruise speed of the policy (default 1)",
+    )
+    cl.add_argument("--no-safety-filter", action="store_true", help="replay the pure policy")
+    add_mesh_args(
+        p,
+        key_file=False,
+        fleet_default=None,
+        fleet_help="fleet to replay into (default: the recorded fleet)",
+    )
+    refuse(p, "--key-file", REPLAY_NO_KEY, show=True)
     return p
+
+
+CLOSED_LOOP_ONLY = ("json_out", "separation_m", "cruise_speed_m_s", "no_safety_filter")
+INTO_FLEET_ONLY = ("speed", "loop", "presence_wait_s", *MESH_DESTS)
 
 
 def replay_cli(argv: list[str]) -> int:
@@ -204,7 +256,11 @@ def replay_cli(argv: list[str]) -> int:
     if args.policy is not None or args.vehicle is not None:
         if args.policy is None or args.vehicle is None:
             p.error("closed-loop replay needs both --policy PATH and --vehicle ID")
+        if flags := given(p, args, *INTO_FLEET_ONLY):
+            p.error(f"{', '.join(flags)}: closed-loop replay (--policy) publishes nothing")
         return _closed_loop_cli(args, p)
+    if flags := given(p, args, *CLOSED_LOOP_ONLY):
+        p.error(f"{', '.join(flags)}: closed-loop replay only (with --policy and --vehicle)")
     rec = read_recording(args.file)
     if rec.truncated:
         print(
@@ -219,16 +275,17 @@ def replay_cli(argv: list[str]) -> int:
             mesh=mesh_config(args, p),
             speed=args.speed,
             loop=args.loop,
-            start_s=args.start,
-            end_s=args.end,
-            presence_wait_s=args.presence_wait,
+            start_s=args.start_s,
+            end_s=args.end_s,
+            presence_wait_s=args.presence_wait_s,
         )
     except ValueError as exc:
         p.error(str(exc))
-    stop = _stop_on_signals()
+    key_env_note(p, REPLAY_NO_KEY)
     print(f"replaying {args.file} into fleet {cfg.mesh.fleet!r} at {cfg.speed:g}x", file=sys.stderr)
     try:
-        result = replay(cfg, stop, recording=rec)
+        with stop_on_signals() as stop:
+            result = replay(cfg, stop, recording=rec)
     except LiveFleetError as exc:
         print(f"covey replay: refused: {exc}", file=sys.stderr)
         return 1
@@ -253,8 +310,8 @@ def _closed_loop_cli(args: argparse.Namespace, p: argparse.ArgumentParser) -> in
             separation_m=args.separation_m,
             cruise_speed_m_s=args.cruise_speed_m_s,
             safety_filter=not args.no_safety_filter,
-            start_s=args.start,
-            end_s=args.end,
+            start_s=args.start_s,
+            end_s=args.end_s,
         )
         report = run_closed_loop(cfg)
     except (ValueError, FileNotFoundError) as exc:

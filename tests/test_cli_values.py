@@ -10,7 +10,7 @@ def test_agent_refuses_a_start_no_state_could_carry(start, capsys) -> None:
     from agent import agent_cli as cli
 
     with pytest.raises(SystemExit) as exc:
-        cli.cli(["--id", "1", "--start", start])  # refused before any backend or mesh exists
+        cli.cli(["--id", "1", "--start-ne-m", start])  # refused before any backend or mesh exists
     assert exc.value.code == 2 and "each coordinate must be within" in capsys.readouterr().err
 
 

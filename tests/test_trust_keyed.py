@@ -110,7 +110,7 @@ def keyed(tmp_path_factory):
                     FLEET,
                     "--connect",
                     f"tcp/127.0.0.1:{port}",
-                    f"--start={n:g},{e:g}",
+                    f"--start-ne-m={n:g},{e:g}",
                     "--no-gcs-failsafe",
                 )
             assert station.presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), (

@@ -4,30 +4,53 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
-import threading
 from collections.abc import Sequence
 
+from comms.cli_options import (
+    add_config_flags,
+    config_from_flags,
+    finite,
+    geo_origin,
+    given,
+    renamed,
+    stop_on_signals,
+    unit_of,
+)
 from comms.geo import GeoOrigin
 from firmware.sitl.config import SitlConfig
 from firmware.sitl.params import VehicleParams
 
+PARAM_FLAGS = (
+    "cruise_speed_m_s",
+    "takeoff_speed_m_s",
+    "land_speed_m_s",
+    "climb_speed_m_s",
+    "descent_speed_m_s",
+    "pos_gain_1_s",
+    "accel_m_s2",
+    "disarm_after_land_s",
+)
+"""The airframe settings a command line may change (flag = field name, unit included)."""
+CONFIG_FLAGS = ("onboard", "separation_m", "policy_speed_m_s", "duration_s")
+ONBOARD_ONLY = ("weights", "separation_m", "policy_speed_m_s")
+"""Settings of the onboard C policy: refused without --onboard, where nothing would read them."""
+RENAMED = {
+    "--separation": "--separation-m",
+    "--policy-speed": "--policy-speed-m-s",
+    "--cruise-speed": "--cruise-speed-m-s",
+    "--takeoff-speed": "--takeoff-speed-m-s",
+    "--land-speed": "--land-speed-m-s",
+    "--climb-speed": "--climb-speed-m-s",
+    "--descent-speed": "--descent-speed-m-s",
+    "--pos-gain": "--pos-gain-1-s",
+    "--accel": "--accel-m-s2",
+    "--disarm-after-land": "--disarm-after-land-s",
+    "--duration": "--duration-s",
+}
 
-def _home(text: str) -> GeoOrigin:
-    try:
-        lat, lon, alt = (float(x) for x in text.split(","))
-        return GeoOrigin(lat, lon, alt)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(
-            f"--home must be LAT,LON,ALT in degrees and metres: {exc}"
-        ) from exc
 
-
-def _positive(text: str) -> float:
-    value = float(text)
-    if not value > 0.0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
+def _positive(name: str):
+    return finite(unit_of(name) or "units")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -52,72 +75,29 @@ def parser() -> argparse.ArgumentParser:
         help="listen and answer whoever speaks (repeatable)",
     )
     p.add_argument(
-        "--home", type=_home, default=GeoOrigin(), metavar="LAT,LON,ALT", help="boot position"
-    )
-    p.add_argument(
-        "--onboard",
-        action="store_true",
-        help="fly goto targets with the C policy, avoiding traffic",
+        "--home",
+        type=geo_origin,
+        default=GeoOrigin(),
+        metavar="LAT,LON,ALT",
+        help="boot position in degrees, degrees, metres",
     )
     p.add_argument(
         "--weights", default=None, help="C policy weights (onboard mode; default: shipped)"
     )
     p.add_argument(
-        "--separation",
-        type=_positive,
-        default=3.0,
-        help="m kept from traffic by the onboard policy",
-    )
-    p.add_argument(
-        "--policy-speed", type=_positive, default=1.0, help="m/s cruise of the onboard policy"
-    )
-    p.add_argument(
         "--unhealthy", action="store_true", help="emulate a failed sensor: arming is refused"
     )
-    defaults = VehicleParams()
-    p.add_argument(
-        "--cruise-speed",
-        type=_positive,
-        default=defaults.cruise_speed_m_s,
-        help="m/s (MPC_XY_CRUISE)",
+    add_config_flags(
+        p,
+        SitlConfig,
+        only=CONFIG_FLAGS,
+        types={n: _positive(n) for n in CONFIG_FLAGS if n != "onboard"},
     )
-    p.add_argument(
-        "--takeoff-speed",
-        type=_positive,
-        default=defaults.takeoff_speed_m_s,
-        help="m/s (MPC_TKO_SPEED)",
+    g = p.add_argument_group("airframe (PX4 parameter names in brackets)")
+    add_config_flags(
+        g, VehicleParams, only=PARAM_FLAGS, types={n: _positive(n) for n in PARAM_FLAGS}
     )
-    p.add_argument(
-        "--land-speed", type=_positive, default=defaults.land_speed_m_s, help="m/s (MPC_LAND_SPEED)"
-    )
-    p.add_argument(
-        "--climb-speed",
-        type=_positive,
-        default=defaults.climb_speed_m_s,
-        help="m/s (MPC_Z_VEL_MAX_UP)",
-    )
-    p.add_argument(
-        "--descent-speed",
-        type=_positive,
-        default=defaults.descent_speed_m_s,
-        help="m/s (MPC_Z_VEL_MAX_DN)",
-    )
-    p.add_argument(
-        "--pos-gain",
-        type=_positive,
-        default=defaults.pos_gain_1_s,
-        help="1/s position loop gain (MPC_XY_P)",
-    )
-    p.add_argument(
-        "--accel", type=_positive, default=defaults.accel_m_s2, help="m/s^2 (MPC_ACC_HOR)"
-    )
-    p.add_argument(
-        "--disarm-after-land",
-        type=_positive,
-        default=defaults.disarm_after_land_s,
-        help="s (COM_DISARM_LAND)",
-    )
-    p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
+    renamed(p, RENAMED)
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 
@@ -132,48 +112,38 @@ def _config(a: argparse.Namespace) -> SitlConfig:
     links = [u if u.startswith("udp") else f"udpout:{u}" for u in links] or [
         "udpout:127.0.0.1:14540"
     ]
-    params = VehicleParams(
-        cruise_speed_m_s=a.cruise_speed,
-        takeoff_speed_m_s=a.takeoff_speed,
-        land_speed_m_s=a.land_speed,
-        climb_speed_m_s=a.climb_speed,
-        descent_speed_m_s=a.descent_speed,
-        accel_m_s2=a.accel,
-        pos_gain_1_s=a.pos_gain,
-        disarm_after_land_s=a.disarm_after_land,
-    )
-    return SitlConfig(
+    return config_from_flags(
+        SitlConfig,
+        a,
+        only=CONFIG_FLAGS,
         vehicle_id=a.id,
         links=tuple(links),
         home=a.home,
-        onboard=a.onboard,
         policy_weights=a.weights,
-        separation_m=a.separation,
-        policy_speed_m_s=a.policy_speed,
         healthy=not a.unhealthy,
-        params=params,
-        duration_s=a.duration,
+        params=config_from_flags(VehicleParams, a, only=PARAM_FLAGS),
     )
 
 
 def cli(argv: Sequence[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+    p = parser()
+    args = p.parse_args(argv)
+    if not args.onboard and (flags := given(p, args, *ONBOARD_ONLY)):
+        p.error(f"{', '.join(flags)}: settings of the onboard policy, which needs --onboard")
     try:
         cfg = _config(args)
     except ValueError as exc:
-        parser().error(str(exc))
+        p.error(str(exc))
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s sitl %(levelname)s %(message)s",
     )
     from firmware.sitl.app import main  # after parsing: --help stays fast
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        main(cfg, stop)
-    except (OSError, RuntimeError) as exc:
-        logging.getLogger(__name__).error("sitl failed: %s", exc)
-        return 1
+    with stop_on_signals() as stop:
+        try:
+            main(cfg, stop)
+        except (OSError, RuntimeError) as exc:
+            logging.getLogger(__name__).error("sitl failed: %s", exc)
+            return 1
     return 0
