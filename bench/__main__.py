@@ -166,7 +166,7 @@ def run_one(name: str, quick: bool) -> int:
     return 0
 
 
-def cli(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="covey bench",
         description=__doc__,
@@ -191,6 +191,11 @@ def cli(argv: list[str] | None = None) -> int:
         "--timeout-s", type=float, default=None, help="per-section limit (default 600, quick 120)"
     )
     ap.add_argument("--run-one", default=None, help=argparse.SUPPRESS)
+    return ap
+
+
+def cli(argv: list[str] | None = None) -> int:
+    ap = parser()
     args = ap.parse_args(argv)
     if args.run_one:
         return run_one(args.run_one, args.quick)

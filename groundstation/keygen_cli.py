@@ -31,7 +31,7 @@ VERBS = {
 }
 
 
-def parser() -> argparse.ArgumentParser:
+def keygen_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="covey keygen",
         description=__doc__,
@@ -68,7 +68,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def keygen_cli(argv: list[str]) -> int:
-    p = parser()
+    p = keygen_parser()
     args = p.parse_args(argv)
     role = Role[args.role.upper()] if getattr(args, "role", None) else None
     if role is not None and not 1 <= args.id <= MAX_VEHICLE_ID:

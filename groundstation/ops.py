@@ -84,7 +84,7 @@ def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
     return 0 if snap.vehicles else 1
 
 
-def status_cli(argv: list[str] | None = None) -> int:
+def status_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="covey status", description="print the fleet: presence, last state, link age"
     )
@@ -95,6 +95,11 @@ def status_cli(argv: list[str] | None = None) -> int:
         default=1.5,
         help="how long to listen first (default 1.5 s)",
     )
+    return p
+
+
+def status_cli(argv: list[str] | None = None) -> int:
+    p = status_parser()
     args = p.parse_args(argv)
     if not 0.1 <= args.listen_s <= 60:
         p.error("--listen-s must be within 0.1..60")

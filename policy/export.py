@@ -48,12 +48,17 @@ def load_checkpoint(path: str | Path):
     return model, ck
 
 
-def cli(argv=None) -> int:
-    """`covey export CHECKPOINT OUT [--format npz|c]`."""
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="covey export", description=__doc__.splitlines()[0])
     ap.add_argument("checkpoint", help="trainer checkpoint (.pt) or weights file (.npz)")
     ap.add_argument("out", help="output path (.npz, or .h with --format c)")
     ap.add_argument("--format", choices=("npz", "c"), default="npz")
+    return ap
+
+
+def cli(argv=None) -> int:
+    """`covey export CHECKPOINT OUT [--format npz|c]`."""
+    ap = parser()
     args = ap.parse_args(argv)
     src = Path(args.checkpoint)
     if not src.is_file():
