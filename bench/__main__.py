@@ -167,6 +167,8 @@ def run_one(name: str, quick: bool) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
+    from comms.cli_options import finite
+
     ap = argparse.ArgumentParser(
         prog="covey bench",
         description=__doc__,
@@ -188,7 +190,10 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--list", action="store_true", help="list the sections and exit")
     ap.add_argument(
-        "--timeout-s", type=float, default=None, help="per-section limit (default 600, quick 120)"
+        "--timeout-s",
+        type=finite("seconds"),
+        default=None,
+        help="per-section limit (default 600, quick 120)",
     )
     ap.add_argument("--run-one", default=None, help=argparse.SUPPRESS)
     return ap

@@ -58,11 +58,13 @@ def parser() -> argparse.ArgumentParser:
 
 def cli(argv=None) -> int:
     """`covey export CHECKPOINT OUT [--format npz|c]`."""
+    from comms.cli_options import die
+
     ap = parser()
     args = ap.parse_args(argv)
     src = Path(args.checkpoint)
     if not src.is_file():
-        ap.error(f"no such file: {src}")
+        die(ap, f"no such file: {src}")
     if src.suffix == ".npz":
         npz = src
     else:
@@ -73,7 +75,7 @@ def cli(argv=None) -> int:
         try:
             from firmware.export_c import export_c_header  # owned by firmware/
         except ImportError as e:
-            ap.error(f"--format c needs firmware.export_c.export_c_header: {e}")
+            die(ap, f"--format c needs firmware.export_c.export_c_header: {e}")
         export_c_header(str(npz), args.out)
     elif npz != Path(args.out):
         Path(args.out).write_bytes(npz.read_bytes())

@@ -341,10 +341,12 @@ def parser() -> argparse.ArgumentParser:
 
 def cli(argv=None) -> dict:
     """`covey train [--field value ...]`: one flag per TrainConfig field."""
-    from comms.cli_options import config_from_flags
+    from comms.cli_options import config_from_flags, given
 
     ap = parser()
     args = ap.parse_args(argv)
+    if args.episodes_k is not None and given(ap, args, "episodes"):
+        ap.error("--episodes and --episodes-k say the same thing: give one")
     over = {} if args.episodes_k is None else {"episodes": int(args.episodes_k * 1000)}
     cfg = config_from_flags(TrainConfig, args, **over)
     if cfg.preset not in ("paper", "improved"):

@@ -91,6 +91,7 @@ def test_a_key_in_the_environment_is_noted_not_silently_dropped(
         ("agent", ["--id", "1", "--vehicle", "relay:", "--policy", "p.npz"], "runs the policy"),
         ("agent", ["--id", "1", "--vehicle", "relay:", "--trace-guidance"], "onboard"),
         ("eval", ["--merge", "a.json", "--quick"], "--merge combines results files"),
+        ("train", ["--episodes", "500", "--episodes-k", "1"], "say the same thing"),
     ],
 )
 def test_a_flag_that_would_be_ignored_is_refused(name, argv, says, capsys) -> None:
