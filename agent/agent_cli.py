@@ -212,7 +212,7 @@ def main(
         link = make_link(cfg.link, cfg.vehicle_id, receiver_pos=lambda: own_pos[0])
         if link is not None:
             link = stack.enter_context(link)
-        agent = Agent(cfg, backend, mesh, clock_s=clock_s, link=link)
+        agent = stack.enter_context(Agent(cfg, backend, mesh, clock_s=clock_s, link=link))
         own_pos[0] = None
         agent.on_position = lambda p: own_pos.__setitem__(0, p)
         log.info(

@@ -136,6 +136,8 @@ class EventKind(enum.IntEnum):
     COMMAND = 3
     LINK_STATS = 4
     SECURITY = 5
+    ACTION = 6
+    """The autopilot's outcome of an accepted command (`ActionOutcome` in the text)."""
 
 
 def _check_finite(name: str, *values: float) -> None:
@@ -536,6 +538,42 @@ class Event:
         )
         msg.validate()
         return msg
+
+
+@dataclass(frozen=True)
+class ActionOutcome:
+    """How the autopilot's part of an accepted command ended: done, or failed with the reason.
+
+    A command is acked when the vehicle's mode machine accepts it; the autopilot's part runs
+    after (agent/actions.py) and its outcome follows as an Event of kind ACTION whose text is
+    `<nonce as 16 hex digits> done|failed: <detail>`, signed like every event."""
+
+    vehicle_id: int
+    nonce: int
+    ok: bool
+    detail: str = ""
+
+    def to_event(self, stamp_ns: int) -> Event:
+        text = f"{self.nonce:016x} {'done' if self.ok else 'failed'}: {self.detail}"
+        severity = Severity.INFO if self.ok else Severity.ERROR
+        return Event(self.vehicle_id, stamp_ns, text, severity, EventKind.ACTION)
+
+    @classmethod
+    def from_event(cls, event: Event) -> ActionOutcome:
+        """The outcome an ACTION event carries; DecodeError says what is wrong with it."""
+        if event.kind is not EventKind.ACTION:
+            raise DecodeError(f"an action outcome needs an ACTION event, got {event.kind.name}")
+        head, sep, detail = event.text.partition(": ")
+        nonce_hex, _, word = head.partition(" ")
+        if not sep or word not in ("done", "failed") or len(nonce_hex) != 16:
+            raise DecodeError(
+                f"action outcome text must be '<16 hex> done|failed: ...', got {event.text[:40]!r}"
+            )
+        try:
+            nonce = int(nonce_hex, 16)
+        except ValueError:
+            raise DecodeError(f"action outcome nonce is not hex: {nonce_hex!r}") from None
+        return cls(event.vehicle_id, nonce, word == "done", detail)
 
 
 @dataclass(frozen=True)
