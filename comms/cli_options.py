@@ -158,6 +158,7 @@ def refuse(
         action=Refused,
         message=f"{flag} is refused: {reason}",
         dest=f"_refused_{flag.lstrip('-').replace('-', '_')}",
+        metavar="VALUE",
         help=f"refused: {reason}" if show else argparse.SUPPRESS,
     )
 
