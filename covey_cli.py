@@ -1,8 +1,14 @@
 """`covey`: one command, many subcommands. Each subcommand lives in its own module and is imported
-only when used, so `covey --help` is fast and the runtime never imports torch."""
+only when used, so `covey --help` is fast and the runtime never imports torch.
+
+A subcommand's module has `<x>cli(argv)`, which parses and runs, and `<x>parser()`, which builds
+its argparse parser (`cli`/`parser`, `record_cli`/`record_parser`, ...): tests check every
+subcommand's options through `parser_of`. Shared options: comms/cli_options.py.
+"""
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
 
@@ -13,8 +19,12 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "cli",
         "simulated fleet + browser ground station, no external services",
     ),
-    "agent": ("agent.cli", "cli", "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)"),
-    "gcs": ("groundstation.cli", "cli", "browser ground station (viser)"),
+    "agent": (
+        "agent.agent_cli",
+        "cli",
+        "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)",
+    ),
+    "gcs": ("groundstation.gcs_cli", "cli", "browser ground station (viser)"),
     "status": (
         "groundstation.ops",
         "status_cli",
@@ -32,7 +42,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "export_cli",
         "export a checkpoint to runtime weights (--format npz|c)",
     ),
-    "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
+    "sitl": ("firmware.sitl.sitl_cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
     "record": (
         "tools.record_cli",
         "record_cli",
@@ -56,6 +66,13 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "fleet-sim": ("agent.fleet_sim", "cli", "simulate hundreds of vehicles in one process"),
     "bench": ("bench.__main__", "cli", "run the benchmark suite"),
 }
+
+
+def parser_of(name: str) -> argparse.ArgumentParser:
+    """The argparse parser of subcommand `name` (its module's `<x>parser()`)."""
+    module_name, func_name, _ = SUBCOMMANDS[name]
+    builder = func_name.removesuffix("cli") + "parser"
+    return getattr(importlib.import_module(module_name), builder)()
 
 
 def usage() -> str:

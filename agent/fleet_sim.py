@@ -20,7 +20,6 @@ import contextlib
 import json
 import logging
 import math
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -358,7 +357,7 @@ def main(
 
 
 def parser() -> argparse.ArgumentParser:
-    from agent.cli import _floats, add_mesh_args
+    from comms.cli_options import add_mesh_args, floats, refuse, renamed
 
     p = argparse.ArgumentParser(
         prog="covey fleet-sim",
@@ -372,11 +371,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--rate-hz", type=float, default=10.0, help="tick and state rate (default 10)")
     p.add_argument("--spacing-m", type=float, default=8.0, help="start grid spacing (default 8)")
     p.add_argument(
-        "--start",
-        type=lambda s: _floats(s, 2, "--start"),
+        "--start-ne-m",
+        type=lambda s: floats(s, 2, "--start-ne-m"),
         default=(0.0, 0.0),
-        help="grid corner N,E in metres",
+        metavar="N,E",
+        help="grid corner north,east in metres",
     )
+    renamed(p, {"--start": "--start-ne-m"})
     p.add_argument(
         "--max-neighbours",
         type=int,
@@ -392,12 +393,19 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--geofence-radius-m", type=float, default=2000.0, help="0 = no fence")
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long")
     p.add_argument("-v", "--verbose", action="store_true")
-    add_mesh_args(p)
+    add_mesh_args(p, key_file=False)
+    refuse(p, "--key-file", NO_KEY_REASON, show=True)
     return p
 
 
+NO_KEY_REASON = (
+    "fleet-sim signs nothing (a key signs for one vehicle, this process flies hundreds): "
+    "it joins open-mode fleets only"
+)
+
+
 def cli(argv: list[str]) -> int:
-    from agent.cli import mesh_config
+    from comms.cli_options import key_env_note, mesh_config, stop_on_signals
 
     p = parser()
     args = p.parse_args(argv)
@@ -405,14 +413,15 @@ def cli(argv: list[str]) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
+    key_env_note(p, NO_KEY_REASON)
     try:
         cfg = FleetSimConfig(
             vehicles=args.vehicles,
             first_id=args.first_id,
-            mesh=mesh_config(args),
+            mesh=mesh_config(args, p),
             rate_hz=args.rate_hz,
             spacing_m=args.spacing_m,
-            start_ne_m=args.start,
+            start_ne_m=args.start_ne_m,
             max_neighbours=args.max_neighbours,
             see_others=not args.no_see_others,
             guidance=GuidanceConfig(
@@ -424,9 +433,6 @@ def cli(argv: list[str]) -> int:
         )
     except ValueError as exc:
         p.error(str(exc))
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
 
     def ready(fleet: Fleet) -> None:
         print(
@@ -434,7 +440,7 @@ def cli(argv: list[str]) -> int:
             flush=True,
         )
 
-    with contextlib.suppress(KeyboardInterrupt):
+    with stop_on_signals() as stop, contextlib.suppress(KeyboardInterrupt):
         stats = main(cfg, stop=stop, duration_s=args.duration_s, ready=ready)
         print("STATS " + json.dumps(stats), flush=True)
     return 0

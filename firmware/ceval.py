@@ -91,3 +91,8 @@ def main(cfg: policy_eval.EvalConfig) -> dict:
 def eval_cli(argv=None) -> dict:
     """`covey eval`: policy.eval.cli with the C core's controllers available."""
     return policy_eval.cli(argv, CONTROLLERS)
+
+
+def eval_parser():
+    """`covey eval`'s parser (the same as policy.eval's)."""
+    return policy_eval.parser()

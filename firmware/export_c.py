@@ -150,6 +150,13 @@ def export_c_header(npz_path, out_h_path) -> Path:
     return out
 
 
+def export_parser() -> argparse.ArgumentParser:
+    """`covey export`'s parser: policy/export.py's, with `--format c`."""
+    from policy.export import parser
+
+    return parser({"c": export_c_header})
+
+
 def export_cli(argv=None) -> int:
     """`covey export`: policy/export.py's command, with this header as its `--format c`."""
     from policy.export import cli as policy_export_cli

@@ -16,8 +16,8 @@ and the paper's Fig. 5 heading-change maps.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -63,7 +63,7 @@ class EvalConfig:
     seed: int = 0
     """Scenario and link-loss seed."""
     links: tuple = ("perfect", "degraded")
-    """Link models to run."""
+    """Link models to run: perfect, degraded (3 Hz, 20 % loss, 100 ms)."""
     dt_s: float = 0.1
     """Simulation step (links, safety filter, collision checks)."""
     policy_period_s: float = 1.0
@@ -73,9 +73,10 @@ class EvalConfig:
     progress: bool = True
     """Show a tqdm bar."""
     suites: tuple = field(default=("circle", "conflict", "large"))
-    """Suites to run."""
+    """Scenario suites to run: circle, conflict, large."""
     controllers: tuple = ()
-    """Run only these controllers (empty = all available)."""
+    """Run only these controllers, e.g. policy,orca (empty = all available but c+filter, the C
+    core as onboard, which runs only when named)."""
 
 
 def cases(cfg: EvalConfig):
@@ -318,96 +319,54 @@ def merge(paths, out: str | Path) -> dict:
     return result
 
 
-def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
-    """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`.
-    `extra_controllers`: see `controllers` (named with --controllers)."""
-    extra = dict(extra_controllers or {})
+def parser() -> argparse.ArgumentParser:
+    """One flag per EvalConfig field (help: the docstring under it), plus --merge."""
+    from comms.cli_options import add_config_flags, finite, renamed
+
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
     )
-    ap.add_argument(
-        "--out", default=EvalConfig.out, help="directory for results.json, results.md and PNGs"
+    add_config_flags(
+        ap,
+        EvalConfig,
+        types={
+            "dt_s": finite("seconds"),
+            "policy_period_s": finite("seconds", inclusive=True),
+            "policy_separation_m": finite("metres"),
+        },
     )
-    ap.add_argument(
-        "--weights", default=None, help="policy .npz to evaluate (default: the shipped weights)"
-    )
-    ap.add_argument(
-        "--paper-weights",
-        default=None,
-        help="weights of the paper configuration (.npz), evaluated side by side",
-    )
-    ap.add_argument("--occupancy", default=None, help="occupancy-map trainer checkpoint (.pt)")
-    ap.add_argument(
-        "--max-neighbours",
-        type=int,
-        default=EvalConfig.max_neighbours,
-        help="nearest neighbours fed to the policy",
-    )
-    ap.add_argument(
-        "--policy-separation",
-        type=float,
-        default=EvalConfig.policy_separation_m,
-        help="separation the policy is told to keep, in policy metres (collisions count inside 3 m)",
-    )
-    ap.add_argument("--quick", action="store_true", help="small suites (about a minute)")
-    ap.add_argument(
-        "--seed", type=int, default=0, help="seed of the random cases and the link emulation"
-    )
-    ap.add_argument(
-        "--links",
-        default="perfect,degraded",
-        help="comma list: perfect, degraded (3 Hz, 20 %% loss, 100 ms)",
-    )
-    ap.add_argument(
-        "--suites", default="circle,conflict,large", help="comma list of scenario suites"
-    )
-    ap.add_argument("--dt", type=float, default=EvalConfig.dt_s, help="simulation step in seconds")
-    ap.add_argument(
-        "--policy-period",
-        type=float,
-        default=EvalConfig.policy_period_s,
-        help="seconds between learned-policy decisions (held in between)",
-    )
-    ap.add_argument(
-        "--controllers",
-        default="",
-        help="comma list, e.g. policy,orca (default: all built in"
-        + (f"; also {', '.join(extra)}, each run only when named)" if extra else ")"),
-    )
-    ap.add_argument("--no-figures", action="store_true", help="skip the track and Fig. 5 PNGs")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")
+    renamed(
+        ap,
+        {
+            "--dt": "--dt-s",
+            "--policy-period": "--policy-period-s",
+            "--policy-separation": "--policy-separation-m",
+        },
+    )
+    return ap
+
+
+def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
+    """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`.
+    `extra_controllers`: see `controllers` (named with --controllers)."""
+    from comms.cli_options import config_from_flags, given
+
+    ap = parser()
     a = ap.parse_args(argv)
+    runs = [f.name for f in dataclasses.fields(EvalConfig) if f.name != "out"]
+    if a.merge and (flags := given(ap, a, *runs)):
+        ap.error(f"{', '.join(flags)}: --merge combines results files and runs nothing")
     if a.merge:
         result = merge([p for p in a.merge.split(",") if p], a.out)
         print(markdown(result["summary"]))
         return result
-    links = tuple(s for s in a.links.split(",") if s)
-    if not set(links) <= {"perfect", "degraded"}:
-        ap.error(f"--links takes perfect and/or degraded, got {a.links!r}")
-    suites = tuple(s for s in a.suites.split(",") if s)
-    if not set(suites) <= {"circle", "conflict", "large"}:
-        ap.error(f"--suites takes circle, conflict, large, got {a.suites!r}")
-    if not (a.dt > 0 and math.isfinite(a.dt)):
-        ap.error("--dt must be > 0")
-    cfg = EvalConfig(
-        out=a.out,
-        weights=a.weights,
-        paper_weights=a.paper_weights,
-        occupancy=a.occupancy,
-        max_neighbours=a.max_neighbours,
-        quick=a.quick,
-        seed=a.seed,
-        links=links,
-        dt_s=a.dt,
-        figures=not a.no_figures,
-        progress=not a.no_progress,
-        suites=suites,
-        policy_period_s=a.policy_period,
-        controllers=tuple(c for c in a.controllers.split(",") if c),
-        policy_separation_m=a.policy_separation,
-    )
-    result = main(cfg, extra)
+    if not set(a.links) <= {"perfect", "degraded"}:
+        ap.error(f"--links takes perfect and/or degraded, got {','.join(a.links)!r}")
+    if not set(a.suites) <= {"circle", "conflict", "large"}:
+        ap.error(f"--suites takes circle, conflict, large, got {','.join(a.suites)!r}")
+    cfg = config_from_flags(EvalConfig, a)
+    result = main(cfg, extra_controllers)
     print(markdown(result["summary"]))
     return result
 

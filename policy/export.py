@@ -55,22 +55,29 @@ def load_checkpoint(path: str | Path):
     return model, ck
 
 
-def cli(argv=None, formats: Mapping[str, FormatWriter] | None = None) -> int:
-    """`covey export CHECKPOINT OUT [--format npz|...]`. `formats`: further output formats by
-    name, each a writer of the exported npz file (the npz is written beside OUT first)."""
-    formats = dict(formats or {})
-    if "npz" in formats:
-        raise ValueError("the npz format is this module's own; give other formats other names")
+def parser(formats: Mapping[str, FormatWriter] | None = None) -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="covey export", description=__doc__.splitlines()[0])
     ap.add_argument("checkpoint", help="trainer checkpoint (.pt) or weights file (.npz)")
     ap.add_argument(
         "out", help="output path (.npz, or the file of another --format, e.g. .h for c)"
     )
-    ap.add_argument("--format", choices=("npz", *formats), default="npz")
+    ap.add_argument("--format", choices=("npz", *(formats or {})), default="npz")
+    return ap
+
+
+def cli(argv=None, formats: Mapping[str, FormatWriter] | None = None) -> int:
+    """`covey export CHECKPOINT OUT [--format npz|...]`. `formats`: further output formats by
+    name, each a writer of the exported npz file (the npz is written beside OUT first)."""
+    from comms.cli_options import die
+
+    formats = dict(formats or {})
+    if "npz" in formats:
+        raise ValueError("the npz format is this module's own; give other formats other names")
+    ap = parser(formats)
     args = ap.parse_args(argv)
     src = Path(args.checkpoint)
     if not src.is_file():
-        ap.error(f"no such file: {src}")
+        die(ap, f"no such file: {src}")
     if src.suffix == ".npz":
         npz = src
     else:

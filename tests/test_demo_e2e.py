@@ -90,7 +90,7 @@ def test_late_station_status_and_cmd_against_a_running_demo():
         ok = run_covey("cmd", "takeoff", "3", "--to", "1,2", "--connect", ep, *key)
         assert ok.returncode == 0, ok.stdout + ok.stderr
         assert ok.stdout.count("accepted") == 2
-        missing = run_covey("cmd", "land", "--to", "1,9", "--timeout", "1", "--connect", ep, *key)
+        missing = run_covey("cmd", "land", "--to", "1,9", "--timeout-s", "1", "--connect", ep, *key)
         assert missing.returncode == 1
         assert "vehicle     9: timeout" in missing.stdout
         refused = run_covey("cmd", "kill", "--to", "all", "--connect", ep, *key, stdin="nope\n")

@@ -421,7 +421,7 @@ def test_agents_with_key_files_accept_only_station_signed_fresh_commands(procs, 
                 str(vid),
                 "--connect",
                 f"tcp/127.0.0.1:{port}",
-                f"--start={3 * vid},0",
+                f"--start-ne-m={3 * vid},0",
                 "--no-gcs-failsafe",
             )
         assert presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), "agents did not come up"

@@ -33,10 +33,11 @@ from comms.commands import OutcomeStatus, new_nonce
 from comms.gate import Refusal
 from comms.identity import read_member_key
 from comms.mesh import Mesh
+from comms.procs import ChildGroup, python_env
 from comms.schema import Command, CommandKind, Event, EventKind, Mode, Role, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
-from tests.conftest import REPO, ProcessGroup, views_by_id
+from tests.conftest import REPO, views_by_id
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -83,7 +84,7 @@ def keyed(tmp_path_factory):
     d = tmp_path_factory.mktemp("keyed") / "keys"
     authority = throwaway_fleet(d, FLEET, vehicles=[1, 2, 3], stations=[1, 2])
     port = free_tcp_port()
-    group = ProcessGroup()
+    group = ChildGroup(prefix=[sys.executable], cwd=REPO, env=python_env(REPO), grace_s=0.0)
     raw_states: list[
         tuple[float, bytes]
     ] = []  # what an eavesdropper records: signed states of vehicle 1
@@ -110,7 +111,7 @@ def keyed(tmp_path_factory):
                     FLEET,
                     "--connect",
                     f"tcp/127.0.0.1:{port}",
-                    f"--start={n:g},{e:g}",
+                    f"--start-ne-m={n:g},{e:g}",
                     "--no-gcs-failsafe",
                 )
             assert station.presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), (
@@ -136,7 +137,7 @@ def keyed(tmp_path_factory):
                 "first_roster": authority.roster,
             }
     finally:
-        group.close()
+        group.stop()
 
 
 class Forger:

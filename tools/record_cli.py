@@ -1,7 +1,7 @@
 """`covey record`: record a fleet's mesh to MCAP, summarise a recording, or add Foxglove's
 channels to one.
 
-    covey record -o flight.mcap --fleet demo --connect tcp/127.0.0.1:7447 --duration 60
+    covey record -o flight.mcap --fleet demo --connect tcp/127.0.0.1:7447 --duration-s 60
     covey record --info flight.mcap [--json]
     covey record --foxglove-from old.mcap -o new.mcap     (add Foxglove's channels to a recording)
 """
@@ -12,6 +12,17 @@ import argparse
 import json
 import sys
 
+from comms.cli_options import (
+    add_mesh_args,
+    die,
+    finite,
+    given,
+    key_env_note,
+    mesh_config,
+    refuse,
+    renamed,
+    stop_on_signals,
+)
 from comms.record import (
     RecordConfig,
     add_foxglove_channels,
@@ -20,9 +31,13 @@ from comms.record import (
     record,
     summarise,
 )
-from groundstation.argtypes import finite, stop_on_signals
 from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
-from groundstation.meshargs import add_mesh_args, die, mesh_config
+
+RECORD_NO_KEY = (
+    "a recorder stores the mesh's bytes as they are, signatures included, and signs nothing "
+    "(covey record needs no key to record a keyed fleet)"
+)
+MESH_DESTS = ("fleet", "connect", "listen", "mesh_mode", "zenoh_config")
 
 
 def record_parser() -> argparse.ArgumentParser:
@@ -33,8 +48,13 @@ def record_parser() -> argparse.ArgumentParser:
         "-o", "--output", default="flight.mcap", help="MCAP file to write (default flight.mcap)"
     )
     p.add_argument(
-        "--duration", type=finite("seconds"), default=None, metavar="S", help="stop after S seconds"
+        "--duration-s",
+        type=finite("seconds"),
+        default=None,
+        metavar="S",
+        help="stop after S seconds",
     )
+    renamed(p, {"--duration": "--duration-s"})
     p.add_argument(
         "--info", metavar="FILE", default=None, help="summarise a recording instead of recording"
     )
@@ -52,7 +72,8 @@ def record_parser() -> argparse.ArgumentParser:
         help="record covey's channels only, without Foxglove's standard ones",
     )
     add_foxglove_args(p)
-    add_mesh_args(p, key_file=False)  # records raw bytes; signs nothing
+    add_mesh_args(p, key_file=False)
+    refuse(p, "--key-file", RECORD_NO_KEY, show=True)
     return p
 
 
@@ -78,6 +99,17 @@ def info_main(path: str, as_json: bool = False, out=sys.stdout) -> int:
 def record_cli(argv: list[str]) -> int:
     p = record_parser()
     args = p.parse_args(argv)
+    if args.json and not args.info:
+        p.error("--json prints the summary of --info FILE; a recording run prints no JSON")
+    if args.info or args.foxglove_from:
+        mode = "--info" if args.info else "--foxglove-from"
+        unused = ["duration_s", *MESH_DESTS] + (
+            ["output", "no_foxglove", "origin", "separation_m"] if args.info else []
+        )
+        if flags := given(p, args, *unused):
+            p.error(f"{', '.join(flags)}: not used with {mode}, which reads a recording file")
+    elif args.no_foxglove and (flags := given(p, args, "origin", "separation_m")):
+        p.error(f"{', '.join(flags)}: draws Foxglove's channels, which --no-foxglove leaves out")
     if args.info:
         try:
             return info_main(args.info, args.json)
@@ -91,7 +123,7 @@ def record_cli(argv: list[str]) -> int:
         cfg = RecordConfig(
             path=args.output,
             mesh=mesh_config(args, p),
-            duration_s=args.duration,
+            duration_s=args.duration_s,
             foxglove=None if args.no_foxglove else foxglove_config(args),
         )
     except ValueError as exc:
@@ -100,10 +132,11 @@ def record_cli(argv: list[str]) -> int:
         cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:
         die(p, str(exc))
-    stop = stop_on_signals()
+    key_env_note(p, RECORD_NO_KEY)
     print(f"recording fleet {cfg.mesh.fleet!r} to {cfg.path} (Ctrl-C to stop)", file=sys.stderr)
     try:
-        counts = record(cfg, stop)
+        with stop_on_signals() as stop:
+            counts = record(cfg, stop)
     except OSError as exc:
         print(f"covey record: cannot write {cfg.path}: {exc}", file=sys.stderr)
         return 2

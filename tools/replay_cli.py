@@ -1,7 +1,7 @@
 """`covey replay`: play a recording into a fleet, or replay one vehicle's recorded traffic
 through a policy and compare its commands (closed loop, tools/closed_loop.py).
 
-    covey replay flight.mcap --fleet demo-replay --speed 2 --loop
+    covey replay flight.mcap --fleet demo-replay --speed 2 --loop --start-s 10
     covey replay flight.mcap --policy policy/weights/policy.npz --vehicle 3 [--json-out out.json]
 """
 
@@ -12,10 +12,27 @@ import json
 import sys
 from pathlib import Path
 
-from comms.record import read_recording
+from comms.cli_options import (
+    add_mesh_args,
+    finite,
+    given,
+    key_env_note,
+    mesh_config,
+    refuse,
+    renamed,
+    stop_on_signals,
+)
+from comms.record import (
+    read_recording,
+)
 from comms.replay import LiveFleetError, ReplayConfig, replay
-from groundstation.argtypes import finite, stop_on_signals
-from groundstation.meshargs import add_mesh_args, mesh_config
+
+REPLAY_NO_KEY = (
+    "a replay cannot be signed: replayed states carry the REPLAY flag, which their vehicles' "
+    "signatures do not cover, and one member key cannot sign for every recorded vehicle; "
+    "replay into an open-mode fleet (--fleet NAME)"
+)
+MESH_DESTS = ("fleet", "connect", "listen", "mesh_mode", "zenoh_config")
 
 
 def replay_parser() -> argparse.ArgumentParser:
@@ -33,25 +50,33 @@ def replay_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--loop", action="store_true", help="start over at the end")
     p.add_argument(
-        "--start",
+        "--start-s",
         type=finite("seconds", inclusive=True),
         default=0.0,
         metavar="S",
         help="start S seconds into the recording",
     )
     p.add_argument(
-        "--end",
+        "--end-s",
         type=finite("seconds", inclusive=True),
         default=None,
         metavar="S",
         help="stop S seconds into the recording",
     )
     p.add_argument(
-        "--presence-wait",
+        "--presence-wait-s",
         type=finite("seconds", inclusive=True),
         default=1.0,
         metavar="S",
         help="listen this long for live vehicles before replaying (default 1)",
+    )
+    renamed(
+        p,
+        {
+            "--start": "--start-s",
+            "--end": "--end-s",
+            "--presence-wait": "--presence-wait-s",
+        },
     )
     cl = p.add_argument_group("closed loop")
     cl.add_argument(
@@ -67,15 +92,31 @@ def replay_parser() -> argparse.ArgumentParser:
     cl.add_argument(
         "--json-out", default=None, metavar="PATH", help="also write the closed-loop report as JSON"
     )
-    cl.add_argument("--separation-m", type=finite("metres"), default=3.0)
-    cl.add_argument("--cruise-speed-m-s", type=finite("m/s"), default=1.0)
-    cl.add_argument("--no-safety-filter", action="store_true")
-    add_mesh_args(p, key_file=False)  # a recording cannot be re-signed: open-mode fleets only
-    p.set_defaults(fleet=None)  # default: the recorded fleet
-    for action in p._actions:  # meshargs documents its own default; replay's differs
-        if action.dest == "fleet":
-            action.help = "fleet to replay into (default: the recorded fleet)"
+    cl.add_argument(
+        "--separation-m",
+        type=finite("metres"),
+        default=3.0,
+        help="separation the policy keeps (default 3)",
+    )
+    cl.add_argument(
+        "--cruise-speed-m-s",
+        type=finite("m/s"),
+        default=1.0,
+        help="cruise speed of the policy (default 1)",
+    )
+    cl.add_argument("--no-safety-filter", action="store_true", help="replay the pure policy")
+    add_mesh_args(
+        p,
+        key_file=False,
+        fleet_default=None,
+        fleet_help="fleet to replay into (default: the recorded fleet)",
+    )
+    refuse(p, "--key-file", REPLAY_NO_KEY, show=True)
     return p
+
+
+CLOSED_LOOP_ONLY = ("json_out", "separation_m", "cruise_speed_m_s", "no_safety_filter")
+INTO_FLEET_ONLY = ("speed", "loop", "presence_wait_s", *MESH_DESTS)
 
 
 def replay_cli(argv: list[str]) -> int:
@@ -86,7 +127,11 @@ def replay_cli(argv: list[str]) -> int:
     if args.policy is not None or args.vehicle is not None:
         if args.policy is None or args.vehicle is None:
             p.error("closed-loop replay needs both --policy PATH and --vehicle ID")
+        if flags := given(p, args, *INTO_FLEET_ONLY):
+            p.error(f"{', '.join(flags)}: closed-loop replay (--policy) publishes nothing")
         return _closed_loop_cli(args, p)
+    if flags := given(p, args, *CLOSED_LOOP_ONLY):
+        p.error(f"{', '.join(flags)}: closed-loop replay only (with --policy and --vehicle)")
     rec = read_recording(args.file)
     if rec.truncated:
         print(
@@ -101,16 +146,17 @@ def replay_cli(argv: list[str]) -> int:
             mesh=mesh_config(args, p),
             speed=args.speed,
             loop=args.loop,
-            start_s=args.start,
-            end_s=args.end,
-            presence_wait_s=args.presence_wait,
+            start_s=args.start_s,
+            end_s=args.end_s,
+            presence_wait_s=args.presence_wait_s,
         )
     except ValueError as exc:
         p.error(str(exc))
-    stop = stop_on_signals()
+    key_env_note(p, REPLAY_NO_KEY)
     print(f"replaying {args.file} into fleet {cfg.mesh.fleet!r} at {cfg.speed:g}x", file=sys.stderr)
     try:
-        result = replay(cfg, stop, recording=rec)
+        with stop_on_signals() as stop:
+            result = replay(cfg, stop, recording=rec)
     except LiveFleetError as exc:
         print(f"covey replay: refused: {exc}", file=sys.stderr)
         return 1
@@ -135,8 +181,8 @@ def _closed_loop_cli(args: argparse.Namespace, p: argparse.ArgumentParser) -> in
             separation_m=args.separation_m,
             cruise_speed_m_s=args.cruise_speed_m_s,
             safety_filter=not args.no_safety_filter,
-            start_s=args.start,
-            end_s=args.end,
+            start_s=args.start_s,
+            end_s=args.end_s,
         )
         report = run_closed_loop(cfg)
     except (ValueError, FileNotFoundError) as exc:
