@@ -70,7 +70,7 @@ class AgentConfig:
     open_mode: bool = True
     """Commands are not authenticated (simulator demo only)."""
     trace_guidance: bool = False
-    """Publish a guidance trace Event after each state (what the policy saw and commanded), so
+    """Publish a GuidanceTrace message after each state (what the policy saw and commanded), so
     that `covey replay --policy` can replay this flight closed-loop exactly."""
 
     def __post_init__(self) -> None:
