@@ -1,8 +1,14 @@
 """`covey`: one command, many subcommands. Each subcommand lives in its own module and is imported
-only when used, so `covey --help` is fast and the runtime never imports torch."""
+only when used, so `covey --help` is fast and the runtime never imports torch.
+
+A subcommand's module has `<x>cli(argv)`, which parses and runs, and `<x>parser()`, which builds
+its argparse parser (`cli`/`parser`, `record_cli`/`record_parser`, ...): tests check every
+subcommand's options through `parser_of`. Shared options: comms/cli_options.py.
+"""
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
 
@@ -13,8 +19,12 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "cli",
         "simulated fleet + browser ground station, no external services",
     ),
-    "agent": ("agent.cli", "cli", "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)"),
-    "gcs": ("groundstation.cli", "cli", "browser ground station (viser)"),
+    "agent": (
+        "agent.agent_cli",
+        "cli",
+        "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)",
+    ),
+    "gcs": ("groundstation.gcs_cli", "cli", "browser ground station (viser)"),
     "status": (
         "groundstation.ops",
         "status_cli",
@@ -22,11 +32,19 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     ),
     "cmd": ("groundstation.ops", "cmd_cli", "send one command and print every vehicle's ack"),
     "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
-    "eval": ("policy.eval", "cli", "evaluate policies against ORCA and straight-line baselines"),
-    "export": ("policy.export", "cli", "export a checkpoint to runtime weights (--format npz|c)"),
-    "sitl": ("firmware.sitl.cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
+    "eval": (
+        "firmware.ceval",
+        "eval_cli",
+        "evaluate policies against ORCA and straight-line baselines",
+    ),
+    "export": (
+        "firmware.export_c",
+        "export_cli",
+        "export a checkpoint to runtime weights (--format npz|c)",
+    ),
+    "sitl": ("firmware.sitl.sitl_cli", "cli", "PX4-compatible MAVLink autopilot emulator"),
     "record": (
-        "groundstation.recording_cli",
+        "tools.record_cli",
         "record_cli",
         "record the mesh to MCAP (--info FILE summarises)",
     ),
@@ -36,7 +54,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "serve the live fleet to Foxglove (WebSocket), same channels as a recording",
     ),
     "replay": (
-        "groundstation.recording_cli",
+        "tools.replay_cli",
         "replay_cli",
         "replay an MCAP recording into a fleet",
     ),
@@ -48,6 +66,13 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "fleet-sim": ("agent.fleet_sim", "cli", "simulate hundreds of vehicles in one process"),
     "bench": ("bench.__main__", "cli", "run the benchmark suite"),
 }
+
+
+def parser_of(name: str) -> argparse.ArgumentParser:
+    """The argparse parser of subcommand `name` (its module's `<x>parser()`)."""
+    module_name, func_name, _ = SUBCOMMANDS[name]
+    builder = func_name.removesuffix("cli") + "parser"
+    return getattr(importlib.import_module(module_name), builder)()
 
 
 def usage() -> str:

@@ -1,13 +1,18 @@
-"""Guidance: turn (own state, goal, neighbour table) into a velocity setpoint.
+"""Guidance: turn (own state, target, neighbours) into velocity setpoints, for N vehicles.
 
-Horizontal: the learned policy (policy.runtime, plus its safety filter) in position modes. The
-policy was trained to decide once per training step (1 s in policy units,
-`GuidancePolicy.decision_period_s`), so it decides at that period and its velocity is held in
-between, as in training and in `covey eval`; the stale-data slowdown and the safety filter run
-on the held velocity every tick, against the latest neighbours. In
-hold, a position-hold controller whose output also goes through the safety filter, so a holding
-vehicle still steps aside for a neighbour that comes too close.
+Horizontal: the learned policy (policy.runtime) while flying a goto or a return. The policy was
+trained to decide once per training step (1 s in policy units, `GuidancePolicy.decision_period_s`),
+so it decides at that period and its velocity is held in between, as in training and in `covey
+eval`; the stale-data slowdown and the safety filter run on the held velocity every tick, against
+the latest neighbours. In hold, a position-hold controller whose output also goes through the
+safety filter, so a holding vehicle still steps aside for a neighbour that comes too close.
 Vertical: a proportional altitude controller (the policy is planar, as in the paper).
+
+`BatchGuidance` is the one decide-and-hold loop, for any number of vehicles; each row sees its
+own neighbours (`NeighbourViews`). `Guidance` is one vehicle's view of it (the N = 1 case) with
+a `NeighbourSnapshot` in and a `GuidanceOutput` out. For one row the policy and the filter run
+their single-vehicle fast paths; for many, their batched paths (equal within 1e-6 m/s,
+tests/test_flight_core.py).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from policy.runtime import GuidancePolicy
 
 DECISION_DUE_SHARE = 0.95
 """A decision is due once this share of the decision period has passed (tick jitter must not
-push a decision a whole tick late). Used by Guidance and by fleet-sim's batched copy of it."""
+push a decision a whole tick late)."""
 
 
 @dataclass(frozen=True)
@@ -51,6 +56,8 @@ class GuidanceConfig:
     decision_period_s: float | None = None
     """Seconds between policy decisions (the velocity is held in between). None: the policy's
     own period, as trained; 0: decide every tick (jerkier tracks, see docs/policy.md)."""
+    max_neighbours: int | None = None
+    """Nearest neighbours each decision sees; None: every neighbour within the sense range."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "cruise_speed_m_s", "arrive_radius_m"):
@@ -60,6 +67,236 @@ class GuidanceConfig:
         p = self.decision_period_s
         if p is not None and not (math.isfinite(p) and 0 <= p <= 10):
             raise ValueError(f"decision_period_s must be within 0..10 s (or None), got {p}")
+        if self.max_neighbours is not None and self.max_neighbours < 0:
+            raise ValueError(f"max_neighbours must be >= 0 or None, got {self.max_neighbours}")
+
+    def load_policy(self) -> GuidancePolicy:
+        """The policy this configuration flies (unfiltered: guidance filters, to see when)."""
+        return GuidancePolicy.load(
+            self.policy_path,
+            separation_m=self.separation_m,
+            cruise_speed_m_s=self.cruise_speed_m_s,
+            safety_filter=False,
+            max_neighbours=self.max_neighbours,
+        )
+
+
+@dataclass(frozen=True)
+class NeighbourViews:
+    """What each of k rows knows of its neighbours, padded to K: valid marks real entries."""
+
+    pos_m: np.ndarray
+    """(k, K, 3) NED"""
+    vel_m_s: np.ndarray
+    """(k, K, 3) NED"""
+    heading_rad: np.ndarray
+    """(k, K)"""
+    valid: np.ndarray
+    """(k, K) bool"""
+    stale: np.ndarray
+    """(k, K) bool: the entry's data is old (guidance slows down near it)."""
+
+    @classmethod
+    def of_snapshot(cls, nbrs: NeighbourSnapshot) -> NeighbourViews:
+        """One row: an agent's neighbour table."""
+        k = len(nbrs)
+        stale = np.array([vid in nbrs.stale_ids for vid in nbrs.ids], bool).reshape(1, k)
+        return cls(
+            np.asarray(nbrs.pos_ned_m, float).reshape(1, k, 3),
+            np.asarray(nbrs.vel_ned_m_s, float).reshape(1, k, 3),
+            np.asarray(nbrs.heading_rad, float).reshape(1, k),
+            np.ones((1, k), bool),
+            stale,
+        )
+
+    @classmethod
+    def nearest(
+        cls,
+        rows_pos_m: np.ndarray,
+        self_index: np.ndarray,
+        world_pos_m: np.ndarray,
+        world_vel_m_s: np.ndarray,
+        world_heading_rad: np.ndarray,
+        world_active: np.ndarray,
+        world_stale: np.ndarray,
+        max_neighbours: int | None,
+    ) -> NeighbourViews:
+        """Each row sees the nearest `max_neighbours` active world entries (horizontal
+        distance) other than itself (`self_index`, -1 = not in the world)."""
+        k, m = len(rows_pos_m), len(world_pos_m)
+        d = rows_pos_m[:, None, :2] - world_pos_m[None, :, :2]
+        key = np.einsum("ijk,ijk->ij", d, d)
+        key[:, ~world_active] = np.inf
+        inside = self_index >= 0
+        key[np.flatnonzero(inside), self_index[inside]] = np.inf
+        width = m if max_neighbours is None else min(max_neighbours, m)
+        if 0 < width < m:
+            cols = np.argpartition(key, width - 1, axis=1)[:, :width]
+        else:
+            cols = np.broadcast_to(np.arange(m), (k, m))
+        valid = np.isfinite(np.take_along_axis(key, cols, axis=1))
+        return cls(
+            world_pos_m[cols],
+            world_vel_m_s[cols],
+            world_heading_rad[cols],
+            valid,
+            world_stale[cols] & valid,
+        )
+
+    def row(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Row r's valid neighbours: positions (K', 3), velocities, headings, stale flags."""
+        v = self.valid[r]
+        return self.pos_m[r, v], self.vel_m_s[r, v], self.heading_rad[r, v], self.stale[r, v]
+
+
+@dataclass(frozen=True)
+class GuidanceStep:
+    """Setpoints for k rows."""
+
+    vel_ned_m_s: np.ndarray
+    """(k, 3)"""
+    heading_rad: np.ndarray
+    filtered: np.ndarray
+    """(k,) the safety filter changed the command."""
+    slowed_for_stale: np.ndarray
+    decided: np.ndarray
+    """(k,) the policy decided this tick (False: its last decision was held)."""
+
+
+class BatchGuidance:
+    """The decide-and-hold loop of n vehicles: each row's held decision, goal and time."""
+
+    def __init__(self, cfg: GuidanceConfig, n: int, policy: GuidancePolicy | None = None) -> None:
+        self.cfg = cfg
+        self.policy = policy or cfg.load_policy()
+        self.safety_cfg = self.policy.safety_cfg
+        p = cfg.decision_period_s
+        self.decision_period_s = self.policy.decision_period_s if p is None else p
+        self.held_m_s = np.full((n, 2), np.nan)
+        """The last decision's horizontal velocity per row (NaN: nothing held)."""
+        self.held_goal_m = np.full((n, 3), np.nan)
+        self.decided_s = np.full(n, -np.inf)
+
+    def due(self, now_s: float | None, rows: np.ndarray, goal_m: np.ndarray) -> np.ndarray:
+        """Whether each row's policy should decide now: nothing held (first tick, after a hold),
+        a new goal, or its period has passed (DECISION_DUE_SHARE of it, for tick jitter).
+        Without a clock (`now_s` None): always."""
+        if now_s is None:
+            return np.ones(len(rows), bool)
+        return (
+            np.isnan(self.held_m_s[rows, 0])
+            | ~np.all(self.held_goal_m[rows] == goal_m, axis=1)
+            | (now_s - self.decided_s[rows] >= DECISION_DUE_SHARE * self.decision_period_s)
+        )
+
+    def forget(self, rows: np.ndarray) -> None:
+        """Drop the held decisions of `rows` (their next goto decides at once)."""
+        self.held_m_s[rows] = np.nan
+        self.held_goal_m[rows] = np.nan
+
+    def step(
+        self,
+        now_s: float | None,
+        rows: np.ndarray,
+        pos_m: np.ndarray,
+        vel_m_s: np.ndarray,
+        heading_rad: np.ndarray,
+        target_m: np.ndarray,
+        holding: np.ndarray,
+        views: NeighbourViews,
+        decide: np.ndarray | None = None,
+    ) -> GuidanceStep:
+        """One tick for `rows`: goto rows fly the (held) policy towards `target_m`, holding rows
+        keep `target_m`; everyone goes through the filter. `decide` (k,) forces (True) or skips
+        (False) a decision; None: `due`. A goto row with nothing held decides regardless."""
+        cfg = self.cfg
+        k = len(rows)
+        goto = ~holding
+        self.forget(rows[holding])
+        want = self.due(now_s, rows, target_m) if decide is None else np.asarray(decide, bool)
+        deciding = goto & (want | np.isnan(self.held_m_s[rows, 0]))
+        d = np.flatnonzero(deciding)
+        if d.size:
+            r = rows[d]
+            self.held_m_s[r] = self._decide(
+                pos_m[d], vel_m_s[d], heading_rad[d], target_m[d], views, d
+            )
+            self.held_goal_m[r] = target_m[d]
+            self.decided_s[r] = -np.inf if now_s is None else now_s
+        factor = np.where(goto, self._stale_factor(pos_m, views), 1.0)
+        pref = np.zeros((k, 2))
+        pref[goto] = self.held_m_s[rows[goto]] * factor[goto, None]
+        hold = cfg.hold_gain_1_s * (target_m[holding, :2] - pos_m[holding, :2])
+        speed = np.hypot(hold[:, 0], hold[:, 1])
+        hold *= (cfg.cruise_speed_m_s / np.maximum(speed, cfg.cruise_speed_m_s))[:, None]
+        pref[holding] = hold
+        v_h, filtered = self._filter(pos_m, vel_m_s, pref, views)
+        vz = np.clip(
+            cfg.vertical_gain_1_s * (target_m[:, 2] - pos_m[:, 2]),
+            -cfg.max_vertical_speed_m_s,
+            cfg.max_vertical_speed_m_s,
+        )
+        # Heading is the direction of motion (the paper's definition); kept when (nearly) still.
+        # Hovering does not turn the vehicle: a holding row turns only when it really moves.
+        min_speed = np.where(holding, 0.5, 0.05)
+        moving = np.hypot(v_h[:, 0], v_h[:, 1]) >= min_speed
+        heading = np.where(moving, np.arctan2(v_h[:, 1], v_h[:, 0]), heading_rad)
+        vel = np.column_stack([v_h, vz])
+        return GuidanceStep(vel, heading, filtered, factor < 1.0, deciding)
+
+    def _decide(
+        self, pos_m, vel_m_s, heading_rad, goal_m, views: NeighbourViews, idx
+    ) -> np.ndarray:
+        """Unfiltered policy velocities (len(idx), 2) for view rows `idx`."""
+        pol = self.policy
+        if len(idx) == 1:  # one vehicle (an agent): the single-vehicle fast path
+            p, v, h, _ = views.row(int(idx[0]))
+            out = pol.command(
+                pos_m[0, :2], vel_m_s[0, :2], heading_rad[0], goal_m[0, :2], p[:, :2], v[:, :2], h
+            )
+            return np.asarray(out, float)[None]
+        return pol.command_views(
+            pos_m[:, :2],
+            vel_m_s[:, :2],
+            heading_rad,
+            goal_m[:, :2],
+            views.pos_m[idx, :, :2],
+            views.vel_m_s[idx, :, :2],
+            views.heading_rad[idx],
+            views.valid[idx],
+        )
+
+    def _stale_factor(self, pos_m: np.ndarray, views: NeighbourViews) -> np.ndarray:
+        cfg = self.cfg
+        if not views.stale.any():
+            return np.ones(len(pos_m))
+        d = np.hypot(*(views.pos_m[..., :2] - pos_m[:, None, :2]).transpose(2, 0, 1))
+        near = (views.stale & views.valid & (d < cfg.stale_caution_radius_m)).any(axis=1)
+        return np.where(near, cfg.stale_slowdown, 1.0)
+
+    def _filter(self, pos_m, vel_m_s, pref_m_s, views: NeighbourViews):
+        k = len(pos_m)
+        if not self.cfg.safety_filter or not views.valid.any():
+            return pref_m_s, np.zeros(k, bool)
+        if k == 1:  # the single-vehicle fast path
+            p, v, _, _ = views.row(0)
+            out = safety.filter_one(
+                pos_m[0, :2], vel_m_s[0, :2], pref_m_s[0], p[:, :2], v[:, :2], self.safety_cfg
+            )
+            out = np.asarray(out, float)[None]
+        else:
+            out = safety.filter_padded(
+                pos_m[:, :2],
+                vel_m_s[:, :2],
+                pref_m_s,
+                views.pos_m[..., :2],
+                views.vel_m_s[..., :2],
+                views.valid,
+                self.safety_cfg,
+            )
+            none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
+            out[none] = pref_m_s[none]
+        return out, np.linalg.norm(out - pref_m_s, axis=1) > 1e-6
 
 
 @dataclass(frozen=True)
@@ -74,67 +311,48 @@ class GuidanceOutput:
 
 
 class Guidance:
+    """One vehicle's guidance: `BatchGuidance` with one row."""
+
     def __init__(self, cfg: GuidanceConfig, policy: GuidancePolicy | None = None) -> None:
         self.cfg = cfg
-        self.policy = policy or GuidancePolicy.load(
-            cfg.policy_path,
-            separation_m=cfg.separation_m,
-            cruise_speed_m_s=cfg.cruise_speed_m_s,
-            safety_filter=False,  # applied here so that we can tell when it acted
-        )
-        self.safety_cfg = self.policy.safety_cfg
-        p = cfg.decision_period_s
-        self.decision_period_s = self.policy.decision_period_s if p is None else p
-        self._held_m_s: np.ndarray | None = None  # the last decision's horizontal velocity
-        self._held_goal_m: np.ndarray | None = None
-        self._decided_s = -math.inf
+        self.batch = BatchGuidance(cfg, 1, policy)
+        self.policy = self.batch.policy
+        self.safety_cfg = self.batch.safety_cfg
+        self.decision_period_s = self.batch.decision_period_s
+
+    _ROW = np.zeros(1, int)
 
     def decision_due(self, now_s: float, goal_m: np.ndarray) -> bool:
-        """Whether the policy should decide now: its period has passed (DECISION_DUE_SHARE of it,
-        for tick jitter), the goal changed, or nothing is held (first tick, after a hold)."""
-        return (
-            self._held_m_s is None
-            or self._held_goal_m is None
-            or not np.array_equal(self._held_goal_m, goal_m)
-            or now_s - self._decided_s >= DECISION_DUE_SHARE * self.decision_period_s
-        )
+        return bool(self.batch.due(now_s, self._ROW, np.asarray(goal_m, float)[None])[0])
 
     @property
     def has_decision(self) -> bool:
         """A decision is held (goto can skip deciding)."""
-        return self._held_m_s is not None
+        return not np.isnan(self.batch.held_m_s[0, 0])
 
     def reset(self) -> None:
         """Forget the held decision (the next goto decides at once)."""
-        self._held_m_s = self._held_goal_m = None
+        self.batch.forget(self._ROW)
 
-    def _vertical(self, pos_d_m: float, goal_d_m: float) -> float:
-        vz = self.cfg.vertical_gain_1_s * (goal_d_m - pos_d_m)
-        return float(np.clip(vz, -self.cfg.max_vertical_speed_m_s, self.cfg.max_vertical_speed_m_s))
-
-    def _stale_factor(self, pos_m: np.ndarray, nbrs: NeighbourSnapshot) -> float:
-        if not nbrs.stale_ids:
-            return 1.0
-        for vid, p in zip(nbrs.ids, nbrs.pos_ned_m, strict=True):
-            if (
-                vid in nbrs.stale_ids
-                and np.hypot(*(p[:2] - pos_m[:2])) < self.cfg.stale_caution_radius_m
-            ):
-                return self.cfg.stale_slowdown
-        return 1.0
-
-    def _filter(self, pos_m, vel_m_s, pref_m_s, nbrs: NeighbourSnapshot) -> tuple[np.ndarray, bool]:
-        if not self.cfg.safety_filter or len(nbrs) == 0:
-            return pref_m_s, False
-        out = safety.filter_velocity(
-            pos_m[:2],
-            vel_m_s[:2],
-            pref_m_s,
-            nbrs.pos_ned_m[:, :2],
-            nbrs.vel_ned_m_s[:, :2],
-            self.safety_cfg,
+    def _step(self, now_s, pos_m, vel_m_s, heading_rad, target_m, holding, nbrs, decide):
+        out = self.batch.step(
+            now_s,
+            self._ROW,
+            np.asarray(pos_m, float)[None],
+            np.asarray(vel_m_s, float)[None],
+            np.array([heading_rad], float),
+            np.asarray(target_m, float)[None],
+            np.array([holding]),
+            NeighbourViews.of_snapshot(nbrs),
+            None if decide is None else np.array([decide]),
         )
-        return out, bool(np.linalg.norm(out - pref_m_s) > 1e-6)
+        return GuidanceOutput(
+            out.vel_ned_m_s[0],
+            float(out.heading_rad[0]),
+            bool(out.filtered[0]),
+            bool(out.slowed_for_stale[0]),
+            bool(out.decided[0]),
+        )
 
     def goto(
         self,
@@ -146,32 +364,9 @@ class Guidance:
         now_s: float | None = None,
         decide: bool | None = None,
     ) -> GuidanceOutput:
-        """Policy guidance towards `goal_m` (NED).
-
-        `decide` forces (True) or skips (False) a policy decision; None decides when
-        `decision_due(now_s, goal_m)`, or every call when `now_s` is None. Nothing held: decide."""
-        if decide is None:
-            decide = now_s is None or self.decision_due(now_s, goal_m)
-        if decide or self._held_m_s is None:
-            self._held_m_s = np.asarray(
-                self.policy.command(
-                    pos_m[:2],
-                    vel_m_s[:2],
-                    heading_rad,
-                    goal_m[:2],
-                    nbrs.pos_ned_m[:, :2],
-                    nbrs.vel_ned_m_s[:, :2],
-                    nbrs.heading_rad,
-                ),
-                dtype=float,
-            )
-            self._held_goal_m = np.array(goal_m, dtype=float)
-            self._decided_s = -math.inf if now_s is None else now_s
-            decide = True
-        factor = self._stale_factor(pos_m, nbrs)
-        v_h, filtered = self._filter(pos_m, vel_m_s, self._held_m_s * factor, nbrs)
-        vel = np.array([v_h[0], v_h[1], self._vertical(pos_m[2], goal_m[2])])
-        return GuidanceOutput(vel, _heading_of(v_h, heading_rad), filtered, factor < 1.0, decide)
+        """Policy guidance towards `goal_m` (NED). `decide` forces (True) or skips (False) a
+        decision; None decides when due, or every call when `now_s` is None."""
+        return self._step(now_s, pos_m, vel_m_s, heading_rad, goal_m, False, nbrs, decide)
 
     def hold(
         self,
@@ -182,34 +377,10 @@ class Guidance:
         nbrs: NeighbourSnapshot,
     ) -> GuidanceOutput:
         """Keep `hold_m`, stepping aside for neighbours that come too close."""
-        self.reset()  # a later goto starts from a fresh decision
-        pref = self.cfg.hold_gain_1_s * (hold_m[:2] - pos_m[:2])
-        speed = float(np.linalg.norm(pref))
-        if speed > self.cfg.cruise_speed_m_s:
-            pref *= self.cfg.cruise_speed_m_s / speed
-        v_h, filtered = self._filter(pos_m, vel_m_s, pref, nbrs)
-        vel = np.array([v_h[0], v_h[1], self._vertical(pos_m[2], hold_m[2])])
-        # Hovering does not turn the vehicle: keep the heading unless it really moves.
-        return GuidanceOutput(
-            vel, _heading_of(v_h, heading_rad, min_speed_m_s=0.5), filtered, False
-        )
+        return self._step(None, pos_m, vel_m_s, heading_rad, hold_m, True, nbrs, None)
 
     def arrived(self, pos_m: np.ndarray, goal_m: np.ndarray) -> bool:
         return bool(
             np.hypot(*(goal_m[:2] - pos_m[:2])) <= self.cfg.arrive_radius_m
             and abs(goal_m[2] - pos_m[2]) <= self.cfg.arrive_alt_tol_m
         )
-
-
-def _heading_of(v_h: np.ndarray, fallback_rad: float, min_speed_m_s: float = 0.05) -> float:
-    """Heading is the direction of motion (the paper's definition); keep the last one when still."""
-    if float(np.hypot(v_h[0], v_h[1])) < min_speed_m_s:
-        return fallback_rad
-    return math.atan2(float(v_h[1]), float(v_h[0]))
-
-
-def heading_towards(pos_m: np.ndarray, goal_m: np.ndarray, fallback_rad: float) -> float:
-    d = goal_m[:2] - pos_m[:2]
-    if float(np.hypot(*d)) < 1e-6:
-        return fallback_rad
-    return math.atan2(float(d[1]), float(d[0]))

@@ -97,6 +97,8 @@ def _env(out: Path) -> dict:
 
 def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
     """Run one section in a child process, showing elapsed time; returns its run record."""
+    from comms.procs import Child
+
     if sec.convention:
         cmd = [sys.executable, "-m", "bench", "--run-one", sec.name] + (
             ["--quick"] if quick else []
@@ -118,15 +120,11 @@ def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
 
     threading.Thread(target=ticker, daemon=True).start()
     with open(log_path, "w") as log:
+        # Its own process group: a section that times out is stopped with whatever it started.
+        child = Child(cmd, cwd=BENCH.parent, env=_env(out), output=log, grace_s=10.0)
         try:
-            rc = subprocess.run(
-                cmd,
-                cwd=BENCH.parent,
-                env=_env(out),
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                timeout=timeout_s,
-            ).returncode
+            with child:
+                rc = child.wait(timeout_s)
             status = "ok" if rc == 0 else f"failed (exit {rc})"
         except subprocess.TimeoutExpired:
             status = f"timed out after {timeout_s:.0f} s"
@@ -168,7 +166,9 @@ def run_one(name: str, quick: bool) -> int:
     return 0
 
 
-def cli(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
+    from comms.cli_options import finite
+
     ap = argparse.ArgumentParser(
         prog="covey bench",
         description=__doc__,
@@ -190,9 +190,17 @@ def cli(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--list", action="store_true", help="list the sections and exit")
     ap.add_argument(
-        "--timeout-s", type=float, default=None, help="per-section limit (default 600, quick 120)"
+        "--timeout-s",
+        type=finite("seconds"),
+        default=None,
+        help="per-section limit (default 600, quick 120)",
     )
     ap.add_argument("--run-one", default=None, help=argparse.SUPPRESS)
+    return ap
+
+
+def cli(argv: list[str] | None = None) -> int:
+    ap = parser()
     args = ap.parse_args(argv)
     if args.run_one:
         return run_one(args.run_one, args.quick)

@@ -194,12 +194,12 @@ def agent_flight(
         auth = load_auth(str(fleet.member_path(Role.STATION, 1)))
         extra += ["--key-file", str(fleet.member_path(Role.VEHICLE, AGENT_ID))]
         nb_extra = ["--keys-dir", keys_dir]
-    with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.Children() as kids:
+    with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
         nb = kids.start(
             "-m", "bench.agent_cpu", "--role", "neighbours", "--port", str(port), *nb_extra
         )
-        kids.wait_line(nb, "READY")
+        nb.wait_for("READY")
         agent = kids.start(
             "-m",
             "covey_cli",

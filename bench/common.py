@@ -10,14 +10,14 @@ import contextlib
 import json
 import os
 import platform
-import signal
-import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from comms.procs import ChildGroup, python_env
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -107,70 +107,16 @@ def say(text: str) -> None:
     print(f"  {time.strftime('%H:%M:%S')} {text}", file=sys.stderr, flush=True)
 
 
-class Children:
-    """Child Python processes in their own process groups, all killed on exit."""
-
-    def __init__(self) -> None:
-        self.procs: list[subprocess.Popen] = []
-
-    def __enter__(self) -> Children:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def start(self, *args: str) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
-        p = subprocess.Popen(
-            [sys.executable, *args],
-            cwd=REPO,
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-            start_new_session=True,
-        )
-        self.procs.append(p)
-        return p
-
-    def wait_line(self, p: subprocess.Popen, prefix: str, timeout_s: float = 60.0) -> str:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            line = p.stdout.readline()
-            if line.startswith(prefix):
-                return line[len(prefix) :].strip()
-            if not line and p.poll() is not None:
-                raise RuntimeError(
-                    f"{p.args[1:4]} exited ({p.returncode}) before printing {prefix!r}"
-                )
-        raise RuntimeError(f"{p.args[1:4]}: no {prefix!r} line within {timeout_s:g} s")
-
-    def stop(self, p: subprocess.Popen, timeout_s: float = 10.0) -> None:
-        if p.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGTERM)
-            try:
-                p.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-                p.wait(timeout=5)
-
-    def close(self) -> None:
-        for p in self.procs:
-            self.stop(p, timeout_s=3.0)
-            if p.stdout:
-                p.stdout.close()
-        self.procs.clear()
+def children() -> ChildGroup:
+    """Python children of a benchmark (`kids.start("-m", "bench.mesh", ...)`), each in its own
+    process group, stdout captured (`child.wait_for("READY")`), stderr discarded; all stopped
+    (SIGTERM, SIGKILL after 3 s) when the `with` block ends."""
+    return ChildGroup(
+        prefix=[sys.executable], cwd=REPO, env=python_env(REPO), stderr="discard", grace_s=3.0
+    )
 
 
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of process `pid` and its threads so far (from /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-@contextlib.contextmanager
-def stopwatch() -> Iterator[Callable[[], float]]:
-    t0 = time.perf_counter()
-    yield lambda: time.perf_counter() - t0

@@ -1,8 +1,8 @@
 """Flood drill: does a rogue peer sending 10,000 bogus states/s disturb the agents' guidance tick?
 
     python -m bench.flood_jitter                      # baseline, then flood; prints p50/p99
-    python -m bench.flood_jitter --seconds 10 --rate 10000
-    python -m bench.flood_jitter flood --port P --rate 10000 --seconds 5   # the rogue alone
+    python -m bench.flood_jitter --duration-s 10 --rate-hz 10000
+    python -m bench.flood_jitter flood --port P --rate-hz 10000 --duration-s 5   # the rogue alone
 
 Two sim agents fly a goto (guidance and the policy run every tick) on an embedded mesh. The
 receiver (this process) subscribes to their states; each state carries the agent's stamp, so the
@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import random
-import subprocess
 import sys
 import threading
 import time
@@ -30,6 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from comms.cli_options import renamed
+from comms.procs import Child, python_env
 
 REPO = Path(__file__).resolve().parent.parent
 PERIOD_NS = 100_000_000
@@ -165,12 +166,11 @@ def summarise(samples: Samples) -> dict:
     }
 
 
-def start_agents(port: int, ids=(1, 2)) -> list[subprocess.Popen]:
-    env = dict(
-        os.environ, PYTHONPATH=str(REPO), OMP_WAIT_POLICY="PASSIVE", OPENBLAS_NUM_THREADS="1"
-    )
+def start_agents(port: int, ids=(1, 2)) -> list[Child]:
+    """Agents flying sim vehicles on the mesh at `port` (stopped by the caller: `a.stop()`)."""
+    env = python_env(REPO, OMP_WAIT_POLICY="PASSIVE", OPENBLAS_NUM_THREADS="1")
     return [
-        subprocess.Popen(
+        Child(
             [
                 sys.executable,
                 "-m",
@@ -180,21 +180,21 @@ def start_agents(port: int, ids=(1, 2)) -> list[subprocess.Popen]:
                 str(v),
                 "--connect",
                 f"tcp/127.0.0.1:{port}",
-                f"--start=0,{4 * v}",
+                f"--start-ne-m=0,{4 * v}",
                 "--no-gcs-failsafe",
             ],
             cwd=REPO,
             env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+            output="discard",
+            stderr="discard",
+        ).start()
         for v in ids
     ]
 
 
-def start_flooder(port: int, rate_hz: float, seconds: float, mix: str = "all") -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.Popen(
+def start_flooder(port: int, rate_hz: float, seconds: float, mix: str = "all") -> Child:
+    """The rogue (`flood` mode) for `seconds`; `wait_output()` is its FLOOD line."""
+    return Child(
         [
             sys.executable,
             "-m",
@@ -202,18 +202,17 @@ def start_flooder(port: int, rate_hz: float, seconds: float, mix: str = "all") -
             "flood",
             "--port",
             str(port),
-            "--rate",
+            "--rate-hz",
             str(rate_hz),
-            "--seconds",
+            "--duration-s",
             str(seconds),
             "--mix",
             mix,
         ],
         cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+        env=python_env(REPO),
+        stderr="inherit",
+    ).start()
 
 
 def fly(mesh, ids=(1, 2)) -> None:
@@ -240,7 +239,7 @@ def run(seconds: float, rate_hz: float, mix: str = "all", out=print) -> dict:
     from comms.session import embedded_router, free_tcp_port
 
     port = free_tcp_port()
-    agents: list[subprocess.Popen] = []
+    started: list[Child] = []  # stopped however this ends
     results = {}
     try:
         with Mesh(embedded_router(port)) as mesh:
@@ -248,6 +247,7 @@ def run(seconds: float, rate_hz: float, mix: str = "all", out=print) -> dict:
             mesh.subscribe_states(samples.on_state)
             presence = mesh.presence()
             agents = start_agents(port)
+            started += agents
             if not presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60):
                 raise RuntimeError("agents did not come up")
             fly(mesh)
@@ -259,19 +259,19 @@ def run(seconds: float, rate_hz: float, mix: str = "all", out=print) -> dict:
             samples.clear()
             errors0 = mesh.stats.decode_errors
             rogue = start_flooder(port, rate_hz, seconds + 1.0, mix)
+            started.append(rogue)
             time.sleep(0.5)
             samples.clear()
             time.sleep(seconds)
             results["flood"] = summarise(samples)
-            sent_line = rogue.communicate(timeout=30)[0].strip()
+            sent_line = rogue.wait_output(timeout_s=30).strip()
             results["flood"]["rogue"] = sent_line
             results["flood"]["decode_errors_at_receiver"] = mesh.stats.decode_errors - errors0
             results["flood"]["agents_alive"] = all(a.poll() is None for a in agents)
             out(f"flood:    {results['flood']}")
     finally:
-        for a in agents:
-            a.kill()
-            a.wait(10)
+        for child in started:
+            child.stop(grace_s=0.0)
     return results
 
 
@@ -282,29 +282,32 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("mode", nargs="?", choices=("run", "flood"), default="run")
-    p.add_argument("--seconds", type=float, default=10.0)
-    p.add_argument("--rate", type=float, default=10_000.0, help="bogus messages per second")
+    p.add_argument(
+        "--duration-s", type=float, default=10.0, help="length of the baseline and of the flood"
+    )
+    p.add_argument("--rate-hz", type=float, default=10_000.0, help="bogus messages per second")
+    renamed(p, {"--seconds": "--duration-s", "--rate": "--rate-hz"})
     p.add_argument("--port", type=int, default=None, help="flood mode: the mesh's router port")
     p.add_argument(
         "--mix", choices=("all", "malformed", "phantom"), default="all", help="what the rogue sends"
     )
     p.add_argument("--json", default=None, help="also write the results here")
     args = p.parse_args(argv)
-    if not 0 < args.seconds <= 600 or not 0 < args.rate <= 1e6:
-        p.error("--seconds must be within (0, 600] and --rate within (0, 1e6]")
+    if not 0 < args.duration_s <= 600 or not 0 < args.rate_hz <= 1e6:
+        p.error("--duration-s must be within (0, 600] and --rate-hz within (0, 1e6]")
     if args.mode == "flood":
         if args.port is None:
             p.error("flood needs --port")
         t0 = time.monotonic()
         n = flood(
-            FloodConfig(port=args.port, rate_hz=args.rate, seconds=args.seconds, mix=args.mix)
+            FloodConfig(port=args.port, rate_hz=args.rate_hz, seconds=args.duration_s, mix=args.mix)
         )
         print(
             f"FLOOD sent {n} in {time.monotonic() - t0:.1f} s ({n / (time.monotonic() - t0):.0f}/s)",
             flush=True,
         )
         return 0
-    results = run(args.seconds, args.rate, args.mix)
+    results = run(args.duration_s, args.rate_hz, args.mix)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
-from bench.common import DOCS, Children, cpu_seconds, pct, pyplot, say, write_json
+from bench.common import DOCS, children, cpu_seconds, pct, pyplot, say, write_json
 from comms import keys
 from comms.foxglove_channels import POSE_IN_FRAME, FoxgloveConfig
 from comms.mesh import Mesh
@@ -108,7 +108,7 @@ def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) 
     pose_cls = proto_class(POSE_IN_FRAME.name, POSE_IN_FRAME.data)
     port, fleet = free_tcp_port(), "fx" + uuid.uuid4().hex[:6]
     latencies_ms: list[float] = []
-    with Mesh(embedded_router(port, fleet=fleet)) as router, Children() as kids:
+    with Mesh(embedded_router(port, fleet=fleet)) as router, children() as kids:
         bridge = kids.start(
             "-m",
             "covey_cli",
@@ -120,7 +120,7 @@ def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) 
             "--connect",
             f"tcp/127.0.0.1:{port}",
         )
-        ws_port = int(kids.wait_line(bridge, "foxglove bridge: ").split(":")[-1].split()[0])
+        ws_port = int(bridge.wait_for("foxglove bridge: ").split(":")[-1].split()[0])
         stop = threading.Event()
 
         def publish() -> None:

@@ -77,7 +77,7 @@ def input_round_trip_ms(page, repeats: int) -> list[float]:
 def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (1200, 800)) -> dict:
     from comms.commands import new_nonce
     from comms.schema import Command
-    from groundstation.app import GcsConfig, GroundStation
+    from groundstation.station import GcsConfig, GroundStation
 
     chromium = shutil.which("chromium")
     try:
@@ -103,7 +103,7 @@ def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (
         "chromium": "headless, software WebGL",
         "viewport": f"{viewport[0]}x{viewport[1]}",
     }
-    with GroundStation(cfg) as gs, common.Children() as kids:
+    with GroundStation(cfg) as gs, common.children() as kids:
         sim = kids.start(
             "-m",
             "covey_cli",
@@ -121,7 +121,7 @@ def main(quick: bool = False, vehicles: int = 100, viewport: tuple[int, int] = (
             "--geofence-radius-m",
             "0",
         )
-        kids.wait_line(sim, "READY", timeout_s=120)
+        sim.wait_for("READY", timeout_s=120)
         ids = set(range(1, vehicles + 1))
         if not gs.presence.wait_for(lambda v, _g: v >= ids, timeout_s=60):
             raise RuntimeError("fleet-sim vehicles did not all appear")

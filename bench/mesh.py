@@ -29,6 +29,7 @@ import numpy as np
 
 from bench import common
 from comms import keys
+from comms.procs import ChildGroup
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 
 FLEET = "bench"
@@ -236,7 +237,7 @@ def _zenoh():
 
 
 # -- orchestration --------------------------------------------------------------------------------
-def _children_for(kids: common.Children, what: str, kind: str, port: int, n: int) -> None:
+def _children_for(kids: ChildGroup, what: str, kind: str, port: int, n: int) -> None:
     """Two processes holding the n vehicles (ids 1..n)."""
     half = (n + 1) // 2
     parts = [(1, half), (half + 1, n - half)]
@@ -275,12 +276,12 @@ def _children_for(kids: common.Children, what: str, kind: str, port: int, n: int
                 "--count",
                 str(count),
             )
-        kids.wait_line(p, "READY", timeout_s=90)
+        p.wait_for("READY", timeout_s=90)
 
 
 def run_one(what: str, kind: str, n: int, window_s: float, repeats: int) -> dict:
     port = free_tcp_port()
-    with common.Children() as kids:
+    with common.children() as kids:
         hub = kids.start(
             "-m",
             "bench.mesh",
@@ -297,9 +298,9 @@ def run_one(what: str, kind: str, n: int, window_s: float, repeats: int) -> dict
             "--repeats",
             str(repeats),
         )
-        kids.wait_line(hub, "READY", timeout_s=60)
+        hub.wait_for("READY", timeout_s=60)
         _children_for(kids, "pub" if what == "states" else "resp", kind, port, n)
-        res = json.loads(kids.wait_line(hub, "RESULT", timeout_s=180))
+        res = json.loads(hub.wait_for("RESULT", timeout_s=180).removeprefix("RESULT"))
     res["kind"] = kind
     return res
 

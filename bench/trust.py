@@ -143,7 +143,7 @@ def commands(n: int, repeats: int, keys_dir: str | None) -> dict:
         auth = load_auth(str(Authority(keys_dir).member_path(Role.STATION, 1)))
     ids = set(range(1, n + 1))
     all_ms, incomplete = [], 0
-    with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.Children() as kids:
+    with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.children() as kids:
         pres = mesh.presence()
         half = (n + 1) // 2
         for first, count in ((1, half), (half + 1, n - half)):
@@ -162,7 +162,7 @@ def commands(n: int, repeats: int, keys_dir: str | None) -> dict:
                     str(count),
                     *extra,
                 )
-                kids.wait_line(p, "READY", timeout_s=120)
+                p.wait_for("READY", timeout_s=120)
         if not pres.wait_for(lambda v, _g: v >= ids, 90.0):
             raise RuntimeError(f"only {len(pres.vehicles)} of {n} vehicles present")
         time.sleep(1.0)

@@ -45,7 +45,16 @@ from comms.identity import (
     signed_message,
     verify,
 )
-from comms.schema import TAG_BYTES, Command, CommandAck, Event, Role, Roster, VehicleState
+from comms.schema import (
+    TAG_BYTES,
+    Command,
+    CommandAck,
+    Event,
+    GuidanceTrace,
+    Role,
+    Roster,
+    VehicleState,
+)
 
 log = logging.getLogger(__name__)
 
@@ -273,6 +282,14 @@ class FleetAuth:
     def check_event(self, event: Event) -> str | None:
         return self.check_signature(
             Role.VEHICLE, event.vehicle_id, "event", event.signed_bytes(), event.sig
+        )
+
+    def sign_trace(self, trace: GuidanceTrace) -> GuidanceTrace:
+        return dataclasses.replace(trace, sig=self._sign("trace", trace.signed_bytes()))
+
+    def check_trace(self, trace: GuidanceTrace) -> str | None:
+        return self.check_signature(
+            Role.VEHICLE, trace.vehicle_id, "trace", trace.signed_bytes(), trace.sig
         )
 
 

@@ -5,6 +5,7 @@
     covey/<fleet>/v/<id>/ack      pub/sub: a copy of every CommandAck the vehicle sent (recorders)
     covey/<fleet>/v/<id>/alive    liveliness token of a vehicle's agent
     covey/<fleet>/v/<id>/event    pub/sub Event
+    covey/<fleet>/v/<id>/trace    pub/sub GuidanceTrace (agents with --trace-guidance; recorders)
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
     covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
 
@@ -21,7 +22,7 @@ from comms.schema import MAX_VEHICLE_ID
 ROOT = "covey"
 _FLEET_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 _VEHICLE_KEY_RE = re.compile(
-    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event)$"
+    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event|trace)$"
 )
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
 
@@ -86,6 +87,12 @@ def event(fleet: str, vehicle_id: int) -> str:
 
 def all_events(fleet: str) -> str:
     return _vehicle(fleet, "*", "event")
+
+
+def trace(fleet: str, vehicle_id: int) -> str:
+    """Where a vehicle's guidance traces go: off the event key, so that stations and agents
+    that follow events do not receive (and, keyed, verify) ten traces a second per vehicle."""
+    return _vehicle(fleet, vehicle_id, "trace")
 
 
 def gcs_alive(fleet: str, gcs_id: int) -> str:

@@ -35,6 +35,7 @@ from comms.schema import (
     CommandAck,
     DecodeError,
     Event,
+    GuidanceTrace,
     Mode,
     Roster,
     VehicleState,
@@ -301,6 +302,19 @@ class Mesh:
             _guarded(callback, ev, recv_ns)
 
         return self._keep(self.session.declare_subscriber(keys.all_events(self.fleet), on_sample))
+
+    # -- guidance traces -------------------------------------------------------------------
+    def publish_trace(self, trace: GuidanceTrace) -> None:
+        """Publish what guidance saw and commanded in one tick, signed in keyed mode, on the
+        vehicle's trace key. Recorders keep it for closed-loop replay; nothing live follows it,
+        and a full network drops it rather than wait."""
+        if self.auth is not None:
+            trace = self.auth.sign_trace(trace)
+        self.session.put(
+            keys.trace(self.fleet, trace.vehicle_id),
+            trace.encode(),
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
 
     # -- presence --------------------------------------------------------------------------
     def declare_vehicle(self, vehicle_id: int) -> zenoh.LivelinessToken:

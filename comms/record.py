@@ -5,6 +5,7 @@ schema record holds the binary layout from comms.schema), log_time = receive tim
 
     covey/<fleet>/v/<id>/state  VehicleState        (subscriber on covey/<fleet>/**)
     covey/<fleet>/v/<id>/event  Event               (same subscriber)
+    covey/<fleet>/v/<id>/trace  GuidanceTrace       (same subscriber; agents with --trace-guidance)
     covey/<fleet>/v/*/cmd       Command             (a queryable that records and never replies)
     covey/<fleet>/v/<id>/alive  one byte, 1 = token appeared, 0 = gone (liveliness, with history)
 
@@ -58,6 +59,7 @@ SCHEMA_ENCODING = "covey-struct"
 _LAYOUTS = {
     "state": ("covey.VehicleState", "<BBHIQ3f3ff3fBBHf (comms/schema.py)"),
     "event": ("covey.Event", "<BBHQBB120s (comms/schema.py)"),
+    "trace": ("covey.GuidanceTrace", "<BBHIQd3dBH + n*<HId (comms/schema.py)"),
     "cmd": ("covey.Command", "<BBQQHB3dIH + n*H + 32s (comms/schema.py); query payload"),
     "alive": ("covey.Presence", "1 byte: 1 = liveliness token appeared, 0 = it disappeared"),
     "ack": ("covey.CommandAck", "<BBHQQBB96s32s (comms/schema.py)"),
@@ -508,6 +510,7 @@ def summarise(rec: Recording) -> dict:
     names = {
         "state": "states",
         "event": "events",
+        "trace": "traces",
         "cmd": "commands",
         "ack": "acks",
         "alive": "presence",

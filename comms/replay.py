@@ -3,7 +3,8 @@
 States are republished with StateFlag.REPLAY set, events as recorded, at the recorded pace
 (scaled by `speed`, with an injected clock and sleep). Commands are never re-sent: the replayer
 has no code path that sends a query. Presence is not replayed either (no liveliness tokens), so
-nothing can mistake the replay for vehicles that take commands.
+nothing can mistake the replay for vehicles that take commands. Guidance traces are for
+closed-loop replay (tools/closed_loop.py), which reads the file itself: they are not republished.
 
 Replaying into a fleet where any recorded vehicle id is alive is refused: the live vehicles'
 agents would take the replayed states for their neighbours. Name another fleet to watch a replay
@@ -66,7 +67,7 @@ class ReplayResult:
     commands_skipped: int = 0
     """Recorded commands that were (by design) not sent."""
     other_skipped: int = 0
-    """Presence records, malformed bytes and unknown keys."""
+    """Presence records, guidance traces, malformed bytes and unknown keys."""
     loops: int = 0
 
 

@@ -22,6 +22,10 @@ Layouts (all little-endian, packed; `<` struct codes):
     Roster        type 5 v1  <BB32sIQH + n*<BH32s + 64s  48 bytes + 35 per member + 64 sig
         type, version, fleet (ascii, zero padded), roster version, stamp_ns, n_members,
         members[n] (role, id, Ed25519 public key), sig (the fleet authority's Ed25519)
+    GuidanceTrace type 6 v1  <BBHIQd3dBH + n*<HId [+ 64s]  51 bytes + 14 per neighbour [+ 64]
+        type, version, vehicle_id, state_seq, stamp_ns, heading_rad (float64),
+        cmd_vel_ned_m_s[3] (float64), flags (TraceFlag), n_neighbours,
+        neighbours[n] (vehicle id, seq of its state, age_s as float64), [sig]
 
 Signatures are made and checked in comms/auth.py; this module only carries their bytes.
 """
@@ -35,7 +39,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 SCHEMA_VERSION = 1
-"""Version of VehicleState, Event and Roster (the signature is an optional trailer)."""
+"""Version of VehicleState, Event, Roster and GuidanceTrace (the signature is an optional
+trailer)."""
 SIGNED_SCHEMA_VERSION = 2
 """Version of Command and CommandAck: v2 carries a 64-byte Ed25519 tag (v1 had HMAC-SHA256)."""
 MAX_VEHICLE_ID = 65000
@@ -48,6 +53,12 @@ TAG_BYTES = 64
 PUBLIC_KEY_BYTES = 32
 MAX_ROSTER_MEMBERS = 4096
 FLEET_NAME_BYTES = 32
+MAX_TRACE_NEIGHBOURS = 256
+"""A guidance trace lists at most this many neighbours; a longer list is cut (TraceFlag.CUT).
+The longest signed trace is then 3699 bytes: under the routers' 4 KiB message limit
+(comms/zenoh_configs/)."""
+MAX_TRACE_AGE_S = 3600.0
+"""A neighbour sample older than this is no neighbour: a trace that says so is malformed."""
 
 TAKEOFF_ALT_RANGE_M = (0.5, 500.0)
 LOCAL_HORIZONTAL_LIMIT_M = 100_000.0
@@ -67,6 +78,7 @@ class MsgType(enum.IntEnum):
     COMMAND_ACK = 3
     EVENT = 4
     ROSTER = 5
+    GUIDANCE_TRACE = 6
 
 
 class Role(enum.IntEnum):
@@ -136,6 +148,16 @@ class EventKind(enum.IntEnum):
     COMMAND = 3
     LINK_STATS = 4
     SECURITY = 5
+    ACTION = 6
+    """The autopilot's outcome of an accepted command (`ActionOutcome` in the text)."""
+
+
+class TraceFlag(enum.IntFlag):
+    NONE = 0
+    DECIDED = 1
+    """The policy decided in this tick (else guidance held its last decision)."""
+    CUT = 2
+    """The neighbour list was cut at MAX_TRACE_NEIGHBOURS: the trace cannot be replayed exactly."""
 
 
 def _check_finite(name: str, *values: float) -> None:
@@ -539,6 +561,187 @@ class Event:
 
 
 @dataclass(frozen=True)
+class ActionOutcome:
+    """How the autopilot's part of an accepted command ended: done, or failed with the reason.
+
+    A command is acked when the vehicle's mode machine accepts it; the autopilot's part runs
+    after (agent/actions.py) and its outcome follows as an Event of kind ACTION whose text is
+    `<nonce as 16 hex digits> done|failed: <detail>`, signed like every event."""
+
+    vehicle_id: int
+    nonce: int
+    ok: bool
+    detail: str = ""
+
+    def to_event(self, stamp_ns: int) -> Event:
+        text = f"{self.nonce:016x} {'done' if self.ok else 'failed'}: {self.detail}"
+        severity = Severity.INFO if self.ok else Severity.ERROR
+        return Event(self.vehicle_id, stamp_ns, text, severity, EventKind.ACTION)
+
+    @classmethod
+    def from_event(cls, event: Event) -> ActionOutcome:
+        """The outcome an ACTION event carries; DecodeError says what is wrong with it."""
+        if event.kind is not EventKind.ACTION:
+            raise DecodeError(f"an action outcome needs an ACTION event, got {event.kind.name}")
+        head, sep, detail = event.text.partition(": ")
+        nonce_hex, _, word = head.partition(" ")
+        if not sep or word not in ("done", "failed") or len(nonce_hex) != 16:
+            raise DecodeError(
+                f"action outcome text must be '<16 hex> done|failed: ...', got {event.text[:40]!r}"
+            )
+        try:
+            nonce = int(nonce_hex, 16)
+        except ValueError:
+            raise DecodeError(f"action outcome nonce is not hex: {nonce_hex!r}") from None
+        return cls(event.vehicle_id, nonce, word == "done", detail)
+
+
+@dataclass(frozen=True)
+class GuidanceTrace:
+    """What an agent fed guidance in one tick and what it commanded, so that closed-loop replay
+    (tools/closed_loop.py) can run the same policy on the same inputs. Published after the
+    VehicleState of the same tick (`covey agent --trace-guidance`)."""
+
+    vehicle_id: int
+    state_seq: int
+    """seq of the VehicleState published in the same tick (same pos, vel and goal)."""
+    stamp_ns: int
+    heading_rad: float
+    """Heading passed to guidance (the published heading is the one after guidance)."""
+    cmd_vel_ned_m_s: tuple[float, float, float]
+    """The velocity guidance commanded."""
+    neighbours: tuple[tuple[int, int, float], ...] = ()
+    """(vehicle id, seq of its state, age in s) of every neighbour in guidance's snapshot."""
+    complete: bool = True
+    """False when the neighbour list was cut (TraceFlag.CUT)."""
+    decided: bool = True
+    """The policy decided in this tick (False: guidance held its last decision)."""
+    sig: bytes = b""
+    """Ed25519 signature of the vehicle over `signed_bytes()` (comms/auth.py); empty: unsigned."""
+
+    TYPE: ClassVar[MsgType] = MsgType.GUIDANCE_TRACE
+    _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBHIQd3dBH")
+    _NEIGHBOUR: ClassVar[struct.Struct] = struct.Struct("<HId")
+
+    @classmethod
+    def build(
+        cls,
+        vehicle_id: int,
+        state_seq: int,
+        stamp_ns: int,
+        heading_rad: float,
+        cmd_vel_ned_m_s,
+        nbr_ids,
+        nbr_seqs,
+        nbr_ages_s,
+        decided: bool = True,
+    ) -> GuidanceTrace:
+        """A trace from guidance's inputs (numpy values welcome); neighbours past
+        MAX_TRACE_NEIGHBOURS are cut and the trace marked incomplete."""
+        nbrs = tuple(
+            (int(i), int(s), float(a))
+            for i, s, a in zip(nbr_ids, nbr_seqs, nbr_ages_s, strict=True)
+        )
+        return cls(
+            vehicle_id=int(vehicle_id),
+            state_seq=int(state_seq),
+            stamp_ns=int(stamp_ns),
+            heading_rad=float(heading_rad),
+            cmd_vel_ned_m_s=tuple(float(x) for x in cmd_vel_ned_m_s),  # type: ignore[arg-type]
+            neighbours=nbrs[:MAX_TRACE_NEIGHBOURS],
+            complete=len(nbrs) <= MAX_TRACE_NEIGHBOURS,
+            decided=bool(decided),
+        )
+
+    @property
+    def flags(self) -> TraceFlag:
+        return (TraceFlag.DECIDED if self.decided else TraceFlag.NONE) | (
+            TraceFlag.NONE if self.complete else TraceFlag.CUT
+        )
+
+    def validate(self) -> None:
+        _check_vehicle_id("vehicle_id", self.vehicle_id)
+        if not 0 <= self.state_seq < 2**32:
+            raise DecodeError(f"state_seq={self.state_seq} does not fit 32 bits")
+        if not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError("stamp_ns must fit 64 bits")
+        _check_finite("heading_rad", self.heading_rad)
+        _check_range("heading_rad", self.heading_rad, -2 * math.pi, 2 * math.pi)
+        if len(self.cmd_vel_ned_m_s) != 3:
+            raise DecodeError(f"cmd_vel_ned_m_s has {len(self.cmd_vel_ned_m_s)} axes, not 3")
+        _check_finite("cmd_vel_ned_m_s", *self.cmd_vel_ned_m_s)
+        for i, v in enumerate(self.cmd_vel_ned_m_s):
+            _check_range(f"cmd_vel_ned_m_s[{i}]", v, -SPEED_LIMIT_M_S, SPEED_LIMIT_M_S)
+        if len(self.neighbours) > MAX_TRACE_NEIGHBOURS:
+            raise DecodeError(
+                f"{len(self.neighbours)} neighbours, at most {MAX_TRACE_NEIGHBOURS} (cut the list)"
+            )
+        seen: set[int] = set()
+        for vid, seq, age_s in self.neighbours:
+            _check_vehicle_id("neighbour id", vid)
+            if vid == self.vehicle_id:
+                raise DecodeError(f"vehicle {vid} lists itself as its neighbour")
+            if vid in seen:
+                raise DecodeError(f"neighbour {vid} is listed twice")
+            seen.add(vid)
+            if not 0 <= seq < 2**32:
+                raise DecodeError(f"neighbour {vid}: seq={seq} does not fit 32 bits")
+            _check_finite(f"neighbour {vid} age_s", age_s)
+            _check_range(f"neighbour {vid} age_s", age_s, 0.0, MAX_TRACE_AGE_S)
+        _check_sig(self.sig)
+
+    def signed_bytes(self) -> bytes:
+        head = self._HEAD.pack(
+            self.TYPE,
+            SCHEMA_VERSION,
+            self.vehicle_id,
+            self.state_seq,
+            self.stamp_ns,
+            self.heading_rad,
+            *self.cmd_vel_ned_m_s,
+            int(self.flags),
+            len(self.neighbours),
+        )
+        return head + b"".join(self._NEIGHBOUR.pack(*n) for n in self.neighbours)
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.sig
+
+    @classmethod
+    def decode(cls, data: bytes) -> GuidanceTrace:
+        _header(data, cls.TYPE)
+        if len(data) < cls._HEAD.size:
+            raise DecodeError(f"GuidanceTrace too short: {len(data)} bytes")
+        # f: type, version, id, state_seq, stamp, heading, cmd_vel[3], flags, n
+        f = cls._HEAD.unpack_from(data)
+        flags, n = f[9], f[10]
+        if flags & ~int(TraceFlag.DECIDED | TraceFlag.CUT):
+            raise DecodeError(f"flags={flags:#x} has unknown bits")
+        if n > MAX_TRACE_NEIGHBOURS:
+            raise DecodeError(f"{n} neighbours, at most {MAX_TRACE_NEIGHBOURS}")
+        size = cls._HEAD.size + n * cls._NEIGHBOUR.size
+        if len(data) not in (size, size + TAG_BYTES):
+            raise DecodeError(
+                f"GuidanceTrace with {n} neighbours must be {size} bytes (+{TAG_BYTES} signed), "
+                f"got {len(data)}"
+            )
+        msg = cls(
+            vehicle_id=f[2],
+            state_seq=f[3],
+            stamp_ns=f[4],
+            heading_rad=f[5],
+            cmd_vel_ned_m_s=f[6:9],
+            neighbours=tuple(cls._NEIGHBOUR.iter_unpack(data[cls._HEAD.size : size])),
+            complete=not flags & TraceFlag.CUT,
+            decided=bool(flags & TraceFlag.DECIDED),
+            sig=data[size:],
+        )
+        msg.validate()
+        return msg
+
+
+@dataclass(frozen=True)
 class Member:
     """One key of a fleet roster: who holds it and what it may sign."""
 
@@ -640,13 +843,14 @@ class Roster:
         return msg
 
 
-Message = VehicleState | Command | CommandAck | Event | Roster
+Message = VehicleState | Command | CommandAck | Event | Roster | GuidanceTrace
 _DECODERS: dict[int, type] = {
     MsgType.VEHICLE_STATE: VehicleState,
     MsgType.COMMAND: Command,
     MsgType.COMMAND_ACK: CommandAck,
     MsgType.EVENT: Event,
     MsgType.ROSTER: Roster,
+    MsgType.GUIDANCE_TRACE: GuidanceTrace,
 }
 
 
@@ -674,6 +878,7 @@ __all__ = [
     "DecodeError",
     "Event",
     "EventKind",
+    "GuidanceTrace",
     "Member",
     "Message",
     "Mode",
@@ -682,6 +887,7 @@ __all__ = [
     "Roster",
     "Severity",
     "StateFlag",
+    "TraceFlag",
     "VehicleState",
     "decode",
 ]

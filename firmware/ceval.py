@@ -5,6 +5,9 @@ decides at the trained period, the velocity is held in between, and the C separa
 runs at every simulation step against what the link delivered. Nothing of the numpy runtime
 is in the loop, so `covey eval --controllers c+filter,policy+filter,orca` compares the onboard
 C core with the companion's numpy runtime on the same cases.
+
+`covey eval` enters here (`eval_cli`): policy/eval.py's command with `c+filter` added, since
+policy/ does not import the firmware built on it.
 """
 
 from __future__ import annotations
@@ -12,11 +15,12 @@ from __future__ import annotations
 import numpy as np
 
 from firmware.csafety import MAX_INPUTS
+from policy import eval as policy_eval
 
 
 class COnboardFleet:
     """controller(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)
-    of policy.sim, one C guidance tick per vehicle."""
+    of policy.evalsim, one C guidance tick per vehicle."""
 
     def __init__(self, policy, decision_period_s: float):
         """`policy` is a firmware.cpolicy.CPolicy (its filter setting and config are used)."""
@@ -57,3 +61,38 @@ class COnboardFleet:
                 )
             out[row] = r.vel_m_s
         return out
+
+
+def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
+    """The `c+filter` controller: the C policy with the C filter at policy+filter's settings
+    (`safety_cfg`, policy.safety.SafetyConfig: it keeps 3 m, as policy+filter does)."""
+    from firmware.cpolicy import CPolicy
+
+    cpol = CPolicy.load(
+        cfg.weights,
+        separation_m=safety_cfg.radius_m,
+        policy_separation_m=cfg.policy_separation_m,
+        max_neighbours=cfg.max_neighbours,
+        safety_cfg=safety_cfg,
+    )
+    return COnboardFleet(cpol, cfg.policy_period_s)
+
+
+CONTROLLERS: dict[str, policy_eval.ControllerFactory] = {"c+filter": c_filter}
+"""What `covey eval` adds to policy/eval.py's controllers; each runs only when named (it needs
+a C compiler)."""
+
+
+def main(cfg: policy_eval.EvalConfig) -> dict:
+    """policy.eval.main with the C core's controllers available."""
+    return policy_eval.main(cfg, CONTROLLERS)
+
+
+def eval_cli(argv=None) -> dict:
+    """`covey eval`: policy.eval.cli with the C core's controllers available."""
+    return policy_eval.cli(argv, CONTROLLERS)
+
+
+def eval_parser():
+    """`covey eval`'s parser (the same as policy.eval's)."""
+    return policy_eval.parser()

@@ -59,7 +59,7 @@ class CPolicyError(ValueError):
 
 
 @dataclass(frozen=True)
-class CommandResult:
+class CPolicyResult:
     """Everything one evaluation returns."""
 
     status: str
@@ -198,7 +198,7 @@ class CPolicy:
         stamp_s=None,
         nbr_stamp_s=None,
         cfg: _Config | None = None,
-    ) -> CommandResult:
+    ) -> CPolicyResult:
         """One call of covey_command; faults come back in `status`, never raised."""
         nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
         k = nbr_pos.shape[0]
@@ -233,7 +233,7 @@ class CPolicy:
             self._scratch,
             ctypes.byref(out),
         )
-        return CommandResult(
+        return CPolicyResult(
             STATUS_NAMES.get(st, str(st)),
             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
             np.array(out.action[:], dtype=np.float64),

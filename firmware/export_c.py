@@ -6,6 +6,7 @@ against. The arrays sit behind `COVEY_WEIGHTS_IMPLEMENTATION` so that only one
 translation unit holds them; every other includer only sees the constants.
 
     python -m firmware.export_c policy/weights/x.npz firmware/covey_weights.h
+    covey export runs/x/final.pt out.h --format c   # from a checkpoint (`export_cli`)
 """
 
 from __future__ import annotations
@@ -149,9 +150,23 @@ def export_c_header(npz_path, out_h_path) -> Path:
     return out
 
 
+def export_parser() -> argparse.ArgumentParser:
+    """`covey export`'s parser: policy/export.py's, with `--format c`."""
+    from policy.export import parser
+
+    return parser({"c": export_c_header})
+
+
+def export_cli(argv=None) -> int:
+    """`covey export`: policy/export.py's command, with this header as its `--format c`."""
+    from policy.export import cli as policy_export_cli
+
+    return policy_export_cli(argv, formats={"c": export_c_header})
+
+
 def cli(argv=None) -> int:
-    """`covey export --format c` lands here: cli([npz, out.h])."""
-    parser = argparse.ArgumentParser(prog="covey export --format c", description=__doc__)
+    """`python -m firmware.export_c NPZ [OUT.h]`: the header of a weights file."""
+    parser = argparse.ArgumentParser(prog="python -m firmware.export_c", description=__doc__)
     parser.add_argument("npz", help="policy weights file (.npz)")
     parser.add_argument(
         "out", nargs="?", default="firmware/covey_weights.h", help="header to write"

@@ -16,7 +16,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from comms.schema import AckResult, Command, CommandAck, CommandKind
+from comms.schema import AckResult, ActionOutcome, Command, CommandAck, CommandKind
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,9 @@ class LoggedCommand:
     superseded: dict[int, int]
     """Vehicle id -> seq of the later accepted command that replaced this one there."""
     dropped_answers: int = 0
+    done: dict[int, ActionOutcome] = field(default_factory=dict)
+    """Vehicle id -> how the autopilot's part ended (done, or failed with the reason); absent
+    while it runs, and for commands with no autopilot part (e.g. a goto flown by the agent)."""
 
     @property
     def source_id(self) -> int:
@@ -82,6 +85,7 @@ class _Entry:
     answers: dict[int, Answer] = field(default_factory=dict)
     superseded: dict[int, int] = field(default_factory=dict)
     dropped_answers: int = 0
+    done: dict[int, ActionOutcome] = field(default_factory=dict)
 
     def view(self) -> LoggedCommand:
         return LoggedCommand(
@@ -91,6 +95,7 @@ class _Entry:
             dict(self.answers),
             dict(self.superseded),
             self.dropped_answers,
+            dict(self.done),
         )
 
 
@@ -114,6 +119,8 @@ class CommandLog:
         self._last_accepted: dict[int, int] = {}  # vehicle -> nonce of its latest accepted command
         # Acks that arrived before their command, by nonce (bounded like the log itself).
         self._early: OrderedDict[int, list[tuple[CommandAck, AckCheck | None]]] = OrderedDict()
+        # Autopilot outcomes that arrived before the ack they follow, by (nonce, vehicle).
+        self._early_outcomes: OrderedDict[tuple[int, int], ActionOutcome] = OrderedDict()
         self._seq = 0
         self.version = 0
         """Bumped on every change (a renderer redraws only when it moved)."""
@@ -160,6 +167,9 @@ class CommandLog:
             self.version += 1
             if ack.result is not AckResult.ACCEPTED:
                 return
+            early_outcome = self._early_outcomes.pop((ack.nonce, vid), None)
+            if early_outcome is not None:
+                entry.done[vid] = early_outcome
             before = self._entries.get(self._last_accepted.get(vid, -1))
             if before is not None and before.seq > entry.seq:
                 entry.superseded[vid] = before.seq  # this ack arrived late: already replaced
@@ -170,6 +180,24 @@ class CommandLog:
                 notify = (before.view(), vid, entry.view())
         if notify is not None and self.on_superseded is not None:
             self.on_superseded(*notify)
+
+    def on_outcome(self, outcome: ActionOutcome) -> bool:
+        """The autopilot's outcome of a command a vehicle accepted (an ACTION event, already
+        verified like every event). False: no such command kept, or that vehicle did not accept
+        it (ignored)."""
+        with self._lock:
+            entry = self._entries.get(outcome.nonce)
+            answer = entry.answers.get(outcome.vehicle_id) if entry is not None else None
+            if answer is None:  # it overtook its ack (or command): keep it, bounded, for a while
+                self._early_outcomes[(outcome.nonce, outcome.vehicle_id)] = outcome
+                while len(self._early_outcomes) > self.cfg.max_answers:
+                    self._early_outcomes.popitem(last=False)
+                return False
+            if answer.result is not AckResult.ACCEPTED:
+                return False
+            entry.done[outcome.vehicle_id] = outcome
+            self.version += 1
+            return True
 
     def entries(self) -> list[LoggedCommand]:
         """Kept commands, newest first."""

@@ -1,20 +1,16 @@
 """`covey demo`: a simulated fleet and the browser ground station, with no external services.
 
 This process hosts the mesh (an embedded Zenoh router on a free loopback port) and the ground
-station; each vehicle is a `covey agent --vehicle sim` child process. Every child runs in its own
-process group and gets SIGTERM if this process dies (PR_SET_PDEATHSIG), so neither Ctrl-C, nor
-SIGTERM, nor a crash of the demo leaves orphans.
+station; each vehicle is a `covey agent --vehicle sim` child process (comms/procs.py). Every child
+runs in its own process group and gets SIGTERM if this process dies (PR_SET_PDEATHSIG), so
+neither Ctrl-C, nor SIGTERM, nor a crash of the demo leaves orphans.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
 import math
-import os
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -23,12 +19,13 @@ from pathlib import Path
 
 from comms.auth import load_auth
 from comms.authority import Authority
+from comms.cli_options import add_config_flags, config_from_flags, finite, stop_on_signals
+from comms.cli_options import port as tcp_port
 from comms.mesh import Mesh
+from comms.procs import ChildGroup
 from comms.schema import Role
 from comms.session import embedded_router, free_tcp_port
-from groundstation.app import GcsConfig, GroundStation
-
-PR_SET_PDEATHSIG = 1
+from groundstation.station import GcsConfig, GroundStation
 
 
 @dataclass(frozen=True)
@@ -66,50 +63,6 @@ def grid_starts(n: int, spacing_m: float) -> list[tuple[float, float]]:
     rows = math.ceil(n / cols)
     off_n, off_e = (rows - 1) * spacing_m / 2.0, (cols - 1) * spacing_m / 2.0
     return [((i // cols) * spacing_m - off_n, (i % cols) * spacing_m - off_e) for i in range(n)]
-
-
-def _die_with_parent() -> None:
-    """preexec_fn: SIGTERM this child when the demo process dies, however it dies."""
-    libc = ctypes.CDLL("libc.so.6", use_errno=True)
-    libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-
-
-class Children:
-    """The agent processes, each in its own process group; stops them all on exit."""
-
-    def __init__(self, stop_timeout_s: float) -> None:
-        self.procs: list[subprocess.Popen] = []
-        self.stop_timeout_s = stop_timeout_s
-
-    def start(self, argv: list[str]) -> subprocess.Popen:
-        # process_group=0: its own group, so the terminal's Ctrl-C reaches only the demo, which
-        # then stops the children in order (the agents land their state machines cleanly).
-        proc = subprocess.Popen(
-            argv, process_group=0, preexec_fn=_die_with_parent, stdin=subprocess.DEVNULL
-        )
-        self.procs.append(proc)
-        return proc
-
-    def __enter__(self) -> Children:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    def stop(self) -> None:
-        for proc in self.procs:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGTERM)
-        for proc in self.procs:
-            try:
-                proc.wait(timeout=self.stop_timeout_s)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-            # Anything the agent itself started, still in its group.
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGKILL)
 
 
 def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
@@ -160,11 +113,19 @@ def _run(
     with (
         Mesh(embedded_router(mesh_port, fleet=cfg.fleet), auth=auth) as mesh,
         GroundStation(gcs_cfg, mesh=mesh) as gcs,
-        Children(cfg.stop_timeout_s) as children,
+        # Each agent in its own process group, so that the terminal's Ctrl-C reaches only the
+        # demo, which then stops the agents in order (they land their state machines cleanly);
+        # the kernel SIGTERMs them if the demo dies without a chance to (PR_SET_PDEATHSIG).
+        ChildGroup(
+            output="inherit",
+            stderr="inherit",
+            die_with_parent=True,
+            grace_s=cfg.stop_timeout_s,
+        ) as children,
     ):
         for vid, (n, e) in enumerate(grid_starts(cfg.vehicles, cfg.spacing_m), start=1):
             proc = children.start(
-                [
+                *[
                     *cfg.agent_argv,
                     "--id",
                     str(vid),
@@ -176,7 +137,7 @@ def _run(
                     "sim",
                     "--link",
                     cfg.link,
-                    f"--start={n:g},{e:g}",
+                    f"--start-ne-m={n:g},{e:g}",
                     "--geofence-radius-m",
                     f"{cfg.geofence_radius_m:g}",
                     *key_args(vid),
@@ -192,10 +153,11 @@ def _run(
             flush=True,
         )
         print(f"covey demo: ground station at {gcs.url}  (Ctrl-C to stop)", flush=True)
+        reported: set[int] = set()
         while not stop.wait(0.5):
-            for proc in children.procs:
-                if proc.poll() is not None and not getattr(proc, "_reported", False):
-                    proc._reported = True  # type: ignore[attr-defined]
+            for proc in children:
+                if proc.poll() is not None and proc.pid not in reported:
+                    reported.add(proc.pid)
                     print(
                         f"covey demo: agent pid {proc.pid} exited with {proc.returncode}",
                         flush=True,
@@ -204,24 +166,24 @@ def _run(
     return 0
 
 
+DEMO_FLAGS = ("vehicles", "port", "fleet", "mesh_port", "spacing_m", "geofence_radius_m")
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="covey demo", description=__doc__.splitlines()[0])
-    p.add_argument(
-        "--vehicles", type=int, default=5, help="number of simulated vehicles (default 5)"
+    add_config_flags(
+        p,
+        DemoConfig,
+        only=DEMO_FLAGS,
+        types={
+            "port": tcp_port,
+            "mesh_port": tcp_port,
+            "spacing_m": finite("metres", minimum=1.0, inclusive=True),
+            "geofence_radius_m": finite("metres"),
+        },
     )
     p.add_argument(
         "--link", choices=("perfect", "xbee", "wifi"), default="perfect", help="emulated radio link"
-    )
-    p.add_argument(
-        "--port", type=int, default=8080, help="web port (default 8080; next free one if busy)"
-    )
-    p.add_argument("--fleet", default="covey", help="fleet name (default covey)")
-    p.add_argument(
-        "--mesh-port", type=int, default=0, help="Zenoh router port (default: a free one)"
-    )
-    p.add_argument("--spacing-m", type=float, default=6.0, help="start grid spacing (default 6 m)")
-    p.add_argument(
-        "--geofence-radius-m", type=float, default=50.0, help="geofence radius (default 50 m)"
     )
     p.add_argument(
         "--open-mode",
@@ -237,23 +199,8 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not 1 <= args.vehicles <= 200:
         p.error(f"--vehicles {args.vehicles} must be within 1..200 (one process each)")
-    if not 0 <= args.port <= 65535 or not 0 <= args.mesh_port <= 65535:
-        p.error("ports must be within 0..65535")
-    if not (math.isfinite(args.spacing_m) and args.spacing_m >= 1.0):
-        p.error("--spacing-m must be at least 1 m")
-    if not (math.isfinite(args.geofence_radius_m) and args.geofence_radius_m > 0):
-        p.error("--geofence-radius-m must be positive")
-    cfg = DemoConfig(
-        vehicles=args.vehicles,
-        link=args.link,
-        port=args.port,
-        fleet=args.fleet,
-        mesh_port=args.mesh_port,
-        spacing_m=args.spacing_m,
-        geofence_radius_m=args.geofence_radius_m,
-        keyed=not args.open_mode,
+    cfg = config_from_flags(
+        DemoConfig, args, only=DEMO_FLAGS, link=args.link, keyed=not args.open_mode
     )
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    return main(cfg, stop)
+    with stop_on_signals() as stop:
+        return main(cfg, stop)

@@ -8,13 +8,11 @@ from __future__ import annotations
 
 import contextlib
 import os
-import queue
 import re
 import signal
-import subprocess
 import sys
-import threading
-import time
+
+from comms.procs import Child
 
 _MESH_RE = re.compile(r"covey demo: mesh (tcp/\S+)")
 _URL_RE = re.compile(r"covey demo: ground station at (http://\S+)")
@@ -61,93 +59,67 @@ def processes_in_groups(pgids: set[int]) -> set[int]:
 
 
 class DemoProcess:
-    """Runs `python -m covey_cli demo ARGS`; `__exit__` stops it with SIGINT (then SIGKILL)."""
+    """Runs `python -m covey_cli demo ARGS`; `__exit__` stops it with SIGINT (then SIGKILL), as
+    Ctrl-C would: the demo stops its own children in order."""
 
     def __init__(
         self, args: list[str], start_timeout_s: float = 60.0, env: dict | None = None
     ) -> None:
         self.args = args
-        self.start_timeout_s = start_timeout_s
-        self.env = env
-        self.lines: list[str] = []
-        self._queue: queue.Queue[str | None] = queue.Queue()
-        self.proc: subprocess.Popen | None = None
-        self.mesh_endpoint = ""
-        self.cli_key_file = ""
-        """A station key for `covey cmd` / `covey status` (keyed demos; "" in open mode)."""
-        self.url = ""
-        self.agent_pids: dict[int, int] = {}
+        self.proc = Child(
+            [sys.executable, "-u", "-m", "covey_cli", "demo", *args],
+            env={**os.environ, **(env or {})},
+            own_group=False,  # signals reach the demo only; it stops its agents itself
+            stop_signal=signal.SIGINT,
+            grace_s=20.0,
+            ready=_URL_RE,
+            ready_timeout_s=start_timeout_s,
+            name="covey demo",
+        )
 
     def __enter__(self) -> DemoProcess:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-u", "-m", "covey_cli", "demo", *self.args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            env={**os.environ, **(self.env or {})},
-        )
-        threading.Thread(target=self._read, daemon=True).start()
-        try:
-            self.wait_for_line(_URL_RE, self.start_timeout_s)
-        except BaseException:
-            self.stop()
-            raise
+        self.proc.__enter__()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def _read(self) -> None:
-        assert self.proc is not None and self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self._queue.put(line.rstrip("\n"))
-        self._queue.put(None)
+    def _last(self, pattern: re.Pattern[str]) -> str:
+        found = [m.group(1) for line in self.proc.lines() if (m := pattern.search(line))]
+        return found[-1] if found else ""
 
-    def _take(self, line: str) -> None:
-        self.lines.append(line)
-        if m := _MESH_RE.search(line):
-            self.mesh_endpoint = m.group(1)
-        if m := _KEY_RE.search(line):
-            self.cli_key_file = m.group(1)
-        if m := _URL_RE.search(line):
-            self.url = m.group(1)
-        if m := _PID_RE.search(line):
-            self.agent_pids[int(m.group(1))] = int(m.group(2))
+    @property
+    def mesh_endpoint(self) -> str:
+        return self._last(_MESH_RE)
+
+    @property
+    def cli_key_file(self) -> str:
+        """A station key for `covey cmd` / `covey status` (keyed demos; "" in open mode)."""
+        return self._last(_KEY_RE)
+
+    @property
+    def url(self) -> str:
+        return self._last(_URL_RE)
+
+    @property
+    def agent_pids(self) -> dict[int, int]:
+        return {
+            int(m.group(1)): int(m.group(2))
+            for line in self.proc.lines()
+            if (m := _PID_RE.search(line))
+        }
+
+    @property
+    def lines(self) -> list[str]:
+        return self.proc.lines()
 
     def wait_for_line(self, pattern: re.Pattern[str], timeout_s: float) -> str:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            try:
-                line = self._queue.get(timeout=max(0.01, left))
-            except queue.Empty:
-                line = ""
-            if line is None:
-                raise RuntimeError("covey demo exited:\n" + "\n".join(self.lines[-30:]))
-            if line:
-                self._take(line)
-                if pattern.search(line):
-                    return line
-            if time.monotonic() >= deadline:
-                raise TimeoutError(
-                    f"no line matching {pattern.pattern!r}:\n" + "\n".join(self.lines[-30:])
-                )
+        """The next line matching `pattern`; ChildExited (a RuntimeError) if the demo exits
+        first, ChildTimeout (a TimeoutError) after timeout_s."""
+        return self.proc.wait_for(pattern, timeout_s)
 
     def output(self) -> str:
-        with contextlib.suppress(queue.Empty):
-            while (line := self._queue.get_nowait()) is not None:
-                self._take(line)
-        return "\n".join(self.lines)
+        return self.proc.output()
 
     def stop(self, sig: int = signal.SIGINT, timeout_s: float = 20.0) -> int | None:
-        if self.proc is None:
-            return None
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        return self.proc.returncode
+        return self.proc.stop(sig, timeout_s)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
-import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -136,7 +135,3 @@ class KillGuard:
         ok = self.armed(now_s)
         self._armed_at = None
         return ok
-
-
-def monotonic_s() -> float:
-    return time.monotonic()

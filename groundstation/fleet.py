@@ -153,9 +153,6 @@ class FleetSnapshot:
     close_pairs: tuple[tuple[int, int, float], ...]
     """(id_a, id_b, distance_m) for every pair closer than the separation distance."""
 
-    def by_id(self) -> dict[int, VehicleView]:
-        return {v.vehicle_id: v for v in self.vehicles}
-
 
 class FleetModel:
     """Latest-wins fleet state fed from the mesh. Every method is safe from any thread."""

@@ -18,12 +18,21 @@ from dataclasses import dataclass, field
 
 import foxglove
 
+from comms.cli_options import (
+    add_mesh_args,
+    die,
+    finite,
+    geo_origin,
+    key_env_note,
+    mesh_config,
+    port,
+    refuse,
+    stop_on_signals,
+)
 from comms.foxglove_channels import Converter, FoxgloveConfig, Out
 from comms.geo import GeoOrigin
 from comms.record import RecordConfig, Recorder
 from comms.session import MeshConfig
-from groundstation.argtypes import finite, port
-from groundstation.meshargs import add_mesh_args, mesh_config
 
 DEFAULT_PORT = 8765
 
@@ -116,23 +125,12 @@ class FoxgloveBridge:
 
 
 # -- command line ----------------------------------------------------------------------------
-def parse_origin(text: str) -> GeoOrigin:
-    """'LAT,LON,ALT' in degrees, degrees, metres -> GeoOrigin (an argparse type)."""
-    parts = text.split(",")
-    try:
-        lat, lon, alt = (float(p) for p in parts)
-        return GeoOrigin(lat, lon, alt)
-    except ValueError as exc:
-        why = "expected LAT,LON,ALT" if len(parts) != 3 else str(exc)
-        raise argparse.ArgumentTypeError(f"{text!r}: {why}") from None
-
-
 def add_foxglove_args(p: argparse.ArgumentParser) -> None:
     """Options for how the fleet is drawn, shared with `covey record`."""
     g = p.add_argument_group("foxglove channels")
     g.add_argument(
         "--origin",
-        type=parse_origin,
+        type=geo_origin,
         default=GeoOrigin(),
         metavar="LAT,LON,ALT",
         help="fleet origin (NED 0,0,0) on WGS-84 for the map; default: covey's",
@@ -174,8 +172,15 @@ def parser() -> argparse.ArgumentParser:
         help="stop after S seconds (default: until Ctrl-C)",
     )
     add_foxglove_args(p)
-    add_mesh_args(p)
+    add_mesh_args(p, key_file=False)
+    refuse(p, "--key-file", NO_KEY_REASON, show=True)
     return p
+
+
+NO_KEY_REASON = (
+    "the bridge forwards the mesh's bytes as they are and neither signs nor checks them "
+    "(covey gcs --key-file shows only verified vehicles)"
+)
 
 
 def main(cfg: BridgeConfig, stop: threading.Event, duration_s: float | None = None) -> int:
@@ -191,10 +196,9 @@ def main(cfg: BridgeConfig, stop: threading.Event, duration_s: float | None = No
 
 
 def cli(argv: list[str]) -> int:
-    from groundstation.recording_cli import _stop_on_signals
-
     p = parser()
     args = p.parse_args(argv)
+    key_env_note(p, NO_KEY_REASON)
     try:
         cfg = BridgeConfig(
             mesh=mesh_config(args, p),
@@ -203,5 +207,6 @@ def cli(argv: list[str]) -> int:
             foxglove=foxglove_config(args),
         )
     except ValueError as exc:
-        p.error(str(exc))
-    return main(cfg, _stop_on_signals(), args.duration_s)
+        die(p, str(exc))
+    with stop_on_signals() as stop:
+        return main(cfg, stop, args.duration_s)

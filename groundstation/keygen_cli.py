@@ -18,9 +18,9 @@ import sys
 import time
 
 from comms.authority import AUTHORITY, DEFAULT_DIR, ROSTER, Authority
+from comms.cli_options import add_mesh_args, die, mesh_config, refuse
 from comms.identity import FleetKeyError
 from comms.schema import MAX_VEHICLE_ID, Role
-from groundstation.meshargs import add_mesh_args, die, mesh_config
 
 VERBS = {
     "init": "create the fleet authority key and an empty signed roster",
@@ -31,7 +31,7 @@ VERBS = {
 }
 
 
-def parser() -> argparse.ArgumentParser:
+def keygen_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="covey keygen",
         description=__doc__,
@@ -52,6 +52,12 @@ def parser() -> argparse.ArgumentParser:
             sp.add_argument("id", type=int, help=f"vehicle id or station id, 1..{MAX_VEHICLE_ID}")
         if verb == "push":
             add_mesh_args(sp, key_file=False)
+            refuse(
+                sp,
+                "--key-file",
+                "the roster is signed by the authority key in --dir; a member key adds nothing",
+                show=True,
+            )
             sp.add_argument(
                 "--duration-s",
                 type=float,
@@ -62,7 +68,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def keygen_cli(argv: list[str]) -> int:
-    p = parser()
+    p = keygen_parser()
     args = p.parse_args(argv)
     role = Role[args.role.upper()] if getattr(args, "role", None) else None
     if role is not None and not 1 <= args.id <= MAX_VEHICLE_ID:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from comms.auth import load_auth
+from comms.cli_options import add_mesh_args, die, finite, mesh_config, renamed
 from comms.commands import CommandResult, OutcomeStatus
 from comms.mesh import Mesh
 from comms.schema import CommandKind
@@ -24,7 +25,6 @@ from comms.session import MeshConfig
 from groundstation import dispatch, inputs
 from groundstation.fleet import FleetModel, FleetSnapshot
 from groundstation.inputs import CommandRequest, InputError
-from groundstation.meshargs import add_mesh_args, die, mesh_config
 
 
 @dataclass(frozen=True)
@@ -84,14 +84,22 @@ def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
     return 0 if snap.vehicles else 1
 
 
-def status_cli(argv: list[str] | None = None) -> int:
+def status_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="covey status", description="print the fleet: presence, last state, link age"
     )
     add_mesh_args(p)
     p.add_argument(
-        "--listen-s", type=float, default=1.5, help="how long to listen first (default 1.5 s)"
+        "--listen-s",
+        type=finite("seconds"),
+        default=1.5,
+        help="how long to listen first (default 1.5 s)",
     )
+    return p
+
+
+def status_cli(argv: list[str] | None = None) -> int:
+    p = status_parser()
     args = p.parse_args(argv)
     if not 0.1 <= args.listen_s <= 60:
         p.error("--listen-s must be within 0.1..60")
@@ -189,8 +197,9 @@ def cmd_parser() -> argparse.ArgumentParser:
             sp.add_argument(name, type=str, help=name.replace("_", " "))
         sp.add_argument("--to", required=True, help="vehicle ids (1,2,5 or 1-4) or 'all'")
         sp.add_argument(
-            "--timeout", type=float, default=3.0, help="seconds to wait for acks (default 3)"
+            "--timeout-s", type=float, default=3.0, help="seconds to wait for acks (default 3)"
         )
+        renamed(sp, {"--timeout": "--timeout-s"})
         add_mesh_args(sp)
         if verb == "kill":
             sp.add_argument("--yes", action="store_true", help="do not ask for confirmation")
@@ -213,13 +222,13 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
         targets = inputs.targets(args.to)
     except InputError as exc:
         p.error(str(exc))
-    if not 0.1 <= args.timeout <= 60:
-        p.error(f"--timeout {args.timeout} must be within 0.1..60 s")
+    if not 0.1 <= args.timeout_s <= 60:
+        p.error(f"--timeout-s {args.timeout_s} must be within 0.1..60 s")
     cfg = CmdConfig(
         mesh=mesh_config(args, p),
         request=req,
         targets=targets,
-        timeout_s=args.timeout,
+        timeout_s=args.timeout_s,
         key_file=args.key_file,
     )
     if args.verb == "kill" and not args.yes:

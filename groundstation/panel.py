@@ -10,7 +10,7 @@ One panel per browser tab (viser's client-scope GUI): each operator has their ow
 their own ack matrix for their own commands, and their own kill guard. A kill is armed for the
 targets the tab showed; only that tab's CONFIRM within the window kills exactly those vehicles,
 and if its Targets changed in between, it disarms and says why. The fleet table, the command
-log and the scene stay shared (groundstation.app).
+log and the scene stay shared (groundstation.station).
 """
 
 from __future__ import annotations

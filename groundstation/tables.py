@@ -175,11 +175,16 @@ def command_log_html(
         chips, tally = [], {}
         for vid in sorted(e.answers):
             name, color = _ANSWER_STYLE.get(e.answers[vid].result, ("failed", "#b06000"))
-            if vid in e.superseded and name == "accepted":
+            reason = e.answers[vid].reason
+            done = e.done.get(vid)
+            if done is not None and name == "accepted":  # the autopilot's part has ended
+                name, color = ("done", "#1e7e34") if done.ok else ("failed", "#b06000")
+                reason = done.detail
+            if vid in e.superseded and name in ("accepted", "done"):
                 name, color = "superseded", "#777"
             tally[name] = tally.get(name, 0) + 1
             if len(chips) < max_chips:
-                reason = html.escape(e.answers[vid].reason)
+                reason = html.escape(reason)
                 chips.append(
                     f'<span data-vehicle="{vid}" data-answer="{name}" title="{name} {reason}" '
                     f'style="display:inline-block;margin:1px;padding:0 3px;border-radius:3px;'

@@ -17,6 +17,7 @@ import numpy as np
 
 from policy import features
 from policy.features import ObsConfig
+from policy.pointmass import integrate
 
 
 @dataclass(frozen=True)
@@ -164,9 +165,11 @@ class SwarmEnv:
         act = self.active.copy()
         gd0 = self.goal - self.pos
         a = features.clip_unit(actions)
-        vel = features.action_to_velocity(a, self.heading) * cfg.speed
-        disp = vel * cfg.dt_s * act[..., None]
-        self.pos = self.pos + disp
+        vel = features.action_to_velocity(a, self.heading) * cfg.speed * act[..., None]
+        disp = vel * cfg.dt_s
+        pos = self.pos.copy()  # the one point-mass model, every arena's vehicles as rows
+        integrate(pos.reshape(-1, 2), np.zeros((pos.size // 2, 2)), vel.reshape(-1, 2), cfg.dt_s)
+        self.pos = pos
         moved = act & (np.hypot(disp[..., 0], disp[..., 1]) > 1e-12)
         self.heading = np.where(moved, np.arctan2(disp[..., 1], disp[..., 0]), self.heading)
         rel = self.pos[:, None, :, :] - self.pos[:, :, None, :]

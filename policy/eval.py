@@ -8,23 +8,25 @@ Suites (policy units): antipodal circle (N up to 50), random forced conflicts
 (N = 2-10), random large swarms (N = 35 and 100); links perfect and degraded
 (3 Hz, 20 % loss, 100 ms latency). Controllers: the policy with and without the
 safety filter, optional paper-config and occupancy-map policies, ORCA and the
-straight line; on request (`--controllers c+filter,...`) the C core as flown onboard
-(firmware/ceval.py: C decision hold + C separation filter). Writes results.json, results.md, trajectory PNGs and the paper's
-Fig. 5 heading-change maps.
+straight line; and controllers that a higher layer adds, which run only when named (`covey eval`
+adds `c+filter`, the C core as flown onboard). Writes results.json, results.md, trajectory PNGs
+and the paper's Fig. 5 heading-change maps.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import math
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from policy import scenarios, sim
-from policy.sim import DEGRADED, PERFECT, SimConfig
+from policy import evalsim, scenarios
+from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
 
 
 def flops(n: int, h: int = 63, x: int = 3, layers=(64, 64), a: int = 2) -> int:
@@ -61,7 +63,7 @@ class EvalConfig:
     seed: int = 0
     """Scenario and link-loss seed."""
     links: tuple = ("perfect", "degraded")
-    """Link models to run."""
+    """Link models to run: perfect, degraded (3 Hz, 20 % loss, 100 ms)."""
     dt_s: float = 0.1
     """Simulation step (links, safety filter, collision checks)."""
     policy_period_s: float = 1.0
@@ -71,9 +73,10 @@ class EvalConfig:
     progress: bool = True
     """Show a tqdm bar."""
     suites: tuple = field(default=("circle", "conflict", "large"))
-    """Suites to run."""
+    """Scenario suites to run: circle, conflict, large."""
     controllers: tuple = ()
-    """Run only these controllers (empty = all available)."""
+    """Run only these controllers, e.g. policy,orca (empty = all available but c+filter, the C
+    core as onboard, which runs only when named)."""
 
 
 def cases(cfg: EvalConfig):
@@ -97,8 +100,15 @@ def cases(cfg: EvalConfig):
     return out
 
 
-def controllers(cfg: EvalConfig) -> dict:
-    """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)."""
+ControllerFactory = Callable[[EvalConfig, Any], Callable]
+"""factory(cfg, safety_cfg) -> controller: an extra controller, built only when named (it may
+need what the built-in ones do not, such as a C compiler). safety_cfg is policy.safety's
+SafetyConfig that policy+filter flies with."""
+
+
+def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None = None) -> dict:
+    """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid).
+    `extra` controllers are built only when cfg.controllers names them."""
     from policy.runtime import GuidancePolicy
     from policy.safety import SafetyConfig, filter_padded
 
@@ -124,23 +134,14 @@ def controllers(cfg: EvalConfig) -> dict:
         )
 
     def orca(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
-        v = sim.straight_line(ids, t_s, pos, vel, heading, goal)
+        v = evalsim.straight_line(ids, t_s, pos, vel, heading, goal)
         return filter_padded(pos, vel, v, nbr_pos, nbr_vel, nbr_valid, safety_cfg)
 
     out["orca"] = orca
-    out["straight"] = sim.straight_line
-    if "c+filter" in cfg.controllers:  # needs a C compiler: only when asked for
-        from firmware.ceval import COnboardFleet
-        from firmware.cpolicy import CPolicy
-
-        cpol = CPolicy.load(
-            cfg.weights,
-            separation_m=safety_cfg.radius_m,  # the filter keeps 3 m, as policy+filter's
-            policy_separation_m=cfg.policy_separation_m,
-            max_neighbours=cfg.max_neighbours,
-            safety_cfg=safety_cfg,
-        )
-        out["c+filter"] = COnboardFleet(cpol, cfg.policy_period_s)
+    out["straight"] = evalsim.straight_line
+    for name, make in (extra or {}).items():
+        if name in cfg.controllers:
+            out[name] = make(cfg, safety_cfg)
     return out
 
 
@@ -251,13 +252,14 @@ def markdown(summary: list) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(cfg: EvalConfig) -> dict:
-    """Runs every (case, link, controller); writes results.json and results.md."""
+def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
+    """Runs every (case, link, controller); writes results.json and results.md.
+    `extra_controllers`: see `controllers`."""
     from tqdm import tqdm
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    ctrls = controllers(cfg)
+    ctrls = controllers(cfg, extra_controllers)
     if cfg.controllers:
         unknown = set(cfg.controllers) - set(ctrls)
         if unknown:
@@ -275,11 +277,11 @@ def main(cfg: EvalConfig) -> dict:
         record = (
             cfg.figures and link == "perfect" and case in ("circle-16", "circle-8", "large-35-s0")
         )
-        sim_cfg = SimConfig(dt_s=cfg.dt_s, record=record)
+        sim_cfg = EvalSimConfig(dt_s=cfg.dt_s, record=record)
         rng = np.random.default_rng([cfg.seed, len(rows)])
         if hasattr(ctrls[name], "reset"):
             ctrls[name].reset()
-        r = sim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
+        r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
         if record:
             tracks[(case, name)] = (r.pop("tracks"), r.pop("goals"))
         rows.append({"suite": suite, "case": case, "link": link, "controller": name, **r})
@@ -317,93 +319,54 @@ def merge(paths, out: str | Path) -> dict:
     return result
 
 
-def cli(argv=None) -> dict:
-    """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`."""
+def parser() -> argparse.ArgumentParser:
+    """One flag per EvalConfig field (help: the docstring under it), plus --merge."""
+    from comms.cli_options import add_config_flags, finite, renamed
+
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
     )
-    ap.add_argument(
-        "--out", default=EvalConfig.out, help="directory for results.json, results.md and PNGs"
+    add_config_flags(
+        ap,
+        EvalConfig,
+        types={
+            "dt_s": finite("seconds"),
+            "policy_period_s": finite("seconds", inclusive=True),
+            "policy_separation_m": finite("metres"),
+        },
     )
-    ap.add_argument(
-        "--weights", default=None, help="policy .npz to evaluate (default: the shipped weights)"
-    )
-    ap.add_argument(
-        "--paper-weights",
-        default=None,
-        help="weights of the paper configuration (.npz), evaluated side by side",
-    )
-    ap.add_argument("--occupancy", default=None, help="occupancy-map trainer checkpoint (.pt)")
-    ap.add_argument(
-        "--max-neighbours",
-        type=int,
-        default=EvalConfig.max_neighbours,
-        help="nearest neighbours fed to the policy",
-    )
-    ap.add_argument(
-        "--policy-separation",
-        type=float,
-        default=EvalConfig.policy_separation_m,
-        help="separation the policy is told to keep, in policy metres (collisions count inside 3 m)",
-    )
-    ap.add_argument("--quick", action="store_true", help="small suites (about a minute)")
-    ap.add_argument(
-        "--seed", type=int, default=0, help="seed of the random cases and the link emulation"
-    )
-    ap.add_argument(
-        "--links",
-        default="perfect,degraded",
-        help="comma list: perfect, degraded (3 Hz, 20 %% loss, 100 ms)",
-    )
-    ap.add_argument(
-        "--suites", default="circle,conflict,large", help="comma list of scenario suites"
-    )
-    ap.add_argument("--dt", type=float, default=EvalConfig.dt_s, help="simulation step in seconds")
-    ap.add_argument(
-        "--policy-period",
-        type=float,
-        default=EvalConfig.policy_period_s,
-        help="seconds between learned-policy decisions (held in between)",
-    )
-    ap.add_argument(
-        "--controllers",
-        default="",
-        help="comma list, e.g. policy,orca (default all but c+filter, the C core as onboard, which runs only when named)",
-    )
-    ap.add_argument("--no-figures", action="store_true", help="skip the track and Fig. 5 PNGs")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")
+    renamed(
+        ap,
+        {
+            "--dt": "--dt-s",
+            "--policy-period": "--policy-period-s",
+            "--policy-separation": "--policy-separation-m",
+        },
+    )
+    return ap
+
+
+def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
+    """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`.
+    `extra_controllers`: see `controllers` (named with --controllers)."""
+    from comms.cli_options import config_from_flags, given
+
+    ap = parser()
     a = ap.parse_args(argv)
+    runs = [f.name for f in dataclasses.fields(EvalConfig) if f.name != "out"]
+    if a.merge and (flags := given(ap, a, *runs)):
+        ap.error(f"{', '.join(flags)}: --merge combines results files and runs nothing")
     if a.merge:
         result = merge([p for p in a.merge.split(",") if p], a.out)
         print(markdown(result["summary"]))
         return result
-    links = tuple(s for s in a.links.split(",") if s)
-    if not set(links) <= {"perfect", "degraded"}:
-        ap.error(f"--links takes perfect and/or degraded, got {a.links!r}")
-    suites = tuple(s for s in a.suites.split(",") if s)
-    if not set(suites) <= {"circle", "conflict", "large"}:
-        ap.error(f"--suites takes circle, conflict, large, got {a.suites!r}")
-    if not (a.dt > 0 and math.isfinite(a.dt)):
-        ap.error("--dt must be > 0")
-    cfg = EvalConfig(
-        out=a.out,
-        weights=a.weights,
-        paper_weights=a.paper_weights,
-        occupancy=a.occupancy,
-        max_neighbours=a.max_neighbours,
-        quick=a.quick,
-        seed=a.seed,
-        links=links,
-        dt_s=a.dt,
-        figures=not a.no_figures,
-        progress=not a.no_progress,
-        suites=suites,
-        policy_period_s=a.policy_period,
-        controllers=tuple(c for c in a.controllers.split(",") if c),
-        policy_separation_m=a.policy_separation,
-    )
-    result = main(cfg)
+    if not set(a.links) <= {"perfect", "degraded"}:
+        ap.error(f"--links takes perfect and/or degraded, got {','.join(a.links)!r}")
+    if not set(a.suites) <= {"circle", "conflict", "large"}:
+        ap.error(f"--suites takes circle, conflict, large, got {','.join(a.suites)!r}")
+    cfg = config_from_flags(EvalConfig, a)
+    result = main(cfg, extra_controllers)
     print(markdown(result["summary"]))
     return result
 

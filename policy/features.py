@@ -1,13 +1,12 @@
 """Numpy reference of the policy observation (docs/POLICY_SPEC.md).
 
-Everything here is in policy units (3 m separation at 1 m/s). The C firmware and
+Everything here is in policy units (3 m separation at 1 m/s). The onboard C core and
 the torch trainer follow this module; `observe` is the single-vehicle reference,
 `observe_batch` the vectorised form used by the environment and `command_batch`.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass
 
@@ -63,9 +62,6 @@ class ObsConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict())
 
 
 def wrap_rad(angle_rad):

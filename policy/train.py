@@ -16,7 +16,7 @@ import math
 import os
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -322,47 +322,33 @@ def plot_curve(log_csv: Path, png: Path) -> None:
     plt.close(fig)
 
 
-def _field_help(cls) -> dict[str, str]:
-    """The docstring under each field of a dataclass (the --help text of its flag)."""
-    import ast
-    import inspect
+def parser() -> argparse.ArgumentParser:
+    """One flag per TrainConfig field (help: the docstring under it), plus --episodes-k."""
+    from comms.cli_options import add_config_flags, finite
 
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {
-        a.target.id: " ".join(b.value.value.split())
-        for a, b in zip(body, body[1:], strict=False)
-        if isinstance(a, ast.AnnAssign)
-        and isinstance(a.target, ast.Name)
-        and isinstance(b, ast.Expr)
-        and isinstance(b.value, ast.Constant)
-        and isinstance(b.value.value, str)
-    }
+    ap = argparse.ArgumentParser(
+        prog="covey train", description="Train the guidance policy with PPO."
+    )
+    add_config_flags(ap, TrainConfig, types={"max_minutes": finite("minutes", inclusive=True)})
+    ap.add_argument(
+        "--episodes-k",
+        type=finite("thousand episodes"),
+        default=None,
+        help="episodes in thousands (overrides --episodes)",
+    )
+    return ap
 
 
 def cli(argv=None) -> dict:
     """`covey train [--field value ...]`: one flag per TrainConfig field."""
-    ap = argparse.ArgumentParser(
-        prog="covey train",
-        description="Train the guidance policy with PPO.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    docs = _field_help(TrainConfig)
-    for f in fields(TrainConfig):
-        name = "--" + f.name.replace("_", "-")
-        text = docs.get(f.name, "").replace("%", "%%")
-        if f.type == "bool":
-            ap.add_argument(
-                name, action=argparse.BooleanOptionalAction, default=f.default, help=text
-            )
-        else:
-            typ = {"int": int, "float": float, "str": str}[f.type]
-            ap.add_argument(name, type=typ, default=f.default, help=text)
-    ap.add_argument("--episodes-k", type=float, default=None, help="episodes in thousands")
-    args = vars(ap.parse_args(argv))
-    k = args.pop("episodes_k")
-    if k is not None:
-        args["episodes"] = int(k * 1000)
-    cfg = TrainConfig(**args)
+    from comms.cli_options import config_from_flags, given
+
+    ap = parser()
+    args = ap.parse_args(argv)
+    if args.episodes_k is not None and given(ap, args, "episodes"):
+        ap.error("--episodes and --episodes-k say the same thing: give one")
+    over = {} if args.episodes_k is None else {"episodes": int(args.episodes_k * 1000)}
+    cfg = config_from_flags(TrainConfig, args, **over)
     if cfg.preset not in ("paper", "improved"):
         ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
     if cfg.encoder not in ("lstm", "occupancy"):

@@ -77,7 +77,7 @@ def agent_args(port: int, vid: int, start, *extra: str) -> list[str]:
         str(vid),
         "--connect",
         f"tcp/127.0.0.1:{port}",
-        f"--start={start[0]:.3f},{start[1]:.3f}",
+        f"--start-ne-m={start[0]:.3f},{start[1]:.3f}",
         "--cruise-speed-m-s",
         "2.0",
         *extra,
@@ -97,7 +97,7 @@ def fleet(procs):
         watch = Watch(mesh)
         presence = mesh.presence()
         gcs = procs.start("tests/gcs_standin.py", str(port))
-        procs.wait_line(gcs, "READY")
+        gcs.wait_for("READY")
         starts = start_positions()
         agents = {
             vid: procs.start(

@@ -25,17 +25,17 @@ ORIGIN = GeoOrigin(48.7489, 9.1049, 450.0)
 """The fleet origin: about 11 m south and 7 m west of the emulator's home."""
 HOME_NED_M = ORIGIN.to_local(HOME.lat_deg, HOME.lon_deg, HOME.alt_m)
 FAST = [
-    "--takeoff-speed",
+    "--takeoff-speed-m-s",
     "5",
-    "--pos-gain",
+    "--pos-gain-1-s",
     "3",
-    "--accel",
+    "--accel-m-s2",
     "15",
-    "--land-speed",
+    "--land-speed-m-s",
     "4",
-    "--cruise-speed",
+    "--cruise-speed-m-s",
     "8",
-    "--disarm-after-land",
+    "--disarm-after-land-s",
     "0.3",
 ]
 

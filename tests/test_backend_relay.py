@@ -24,17 +24,17 @@ HOME = GeoOrigin(48.7490, 9.1050, 450.0)
 ORIGIN = GeoOrigin(48.7489, 9.1049, 450.0)
 HOME_NED_M = ORIGIN.to_local(HOME.lat_deg, HOME.lon_deg, HOME.alt_m)
 FAST = [
-    "--takeoff-speed",
+    "--takeoff-speed-m-s",
     "5",
-    "--pos-gain",
+    "--pos-gain-1-s",
     "3",
-    "--accel",
+    "--accel-m-s2",
     "15",
-    "--land-speed",
+    "--land-speed-m-s",
     "4",
-    "--cruise-speed",
+    "--cruise-speed-m-s",
     "8",
-    "--disarm-after-land",
+    "--disarm-after-land-s",
     "0.3",
 ]
 

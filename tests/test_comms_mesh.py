@@ -29,11 +29,11 @@ def test_two_processes_exchange_states(hub, procs) -> None:
     port, _ = hub
     talker = procs.start("tests/mesh_node.py", str(port), "1", "accept")
     listener = procs.start("tests/mesh_node.py", str(port), "2", "echo-states")
-    procs.wait_line(talker, "READY")
-    procs.wait_line(listener, "READY")
+    talker.wait_for("READY")
+    listener.wait_for("READY")
     seqs = []
     while len(seqs) < 5:
-        line = procs.wait_line(listener, "STATE 1 ", timeout_s=20)
+        line = listener.wait_for("STATE 1 ", timeout_s=20)
         seqs.append(int(line.split()[2]))
     assert seqs == sorted(seqs) and len(set(seqs)) == 5
 
@@ -50,7 +50,7 @@ def test_killed_process_is_reported_gone_within_1s(hub, procs) -> None:
 
     presence = mesh.presence(on_change)
     node = procs.start("tests/mesh_node.py", str(port), "7", "accept")
-    procs.wait_line(node, "READY")
+    node.wait_for("READY")
     assert presence.wait_for(lambda v, g: 7 in v, timeout_s=20)
     killed_at = time.monotonic()
     os.kill(node.pid, signal.SIGKILL)
@@ -69,7 +69,7 @@ def test_one_broadcast_reaches_ten_vehicles(hub, procs) -> None:
     behaviours[9] = "hang"
     nodes = [procs.start("tests/mesh_node.py", str(port), str(v), b) for v, b in behaviours.items()]
     for node in nodes:
-        procs.wait_line(node, "READY", timeout_s=60)
+        node.wait_for("READY", timeout_s=60)
     assert presence.wait_for(lambda v, g: v >= set(behaviours), timeout_s=30)
     cmd = Command(CommandKind.HOLD, new_nonce(), time.time_ns())
     result = mesh.send_command(cmd, expect=presence.vehicles, timeout_s=3.0)
@@ -88,7 +88,7 @@ def test_command_to_a_list_reaches_only_that_list(hub, procs) -> None:
     presence = mesh.presence()
     nodes = [procs.start("tests/mesh_node.py", str(port), str(v), "accept") for v in (1, 2, 3)]
     for node in nodes:
-        procs.wait_line(node, "READY", timeout_s=60)
+        node.wait_for("READY", timeout_s=60)
     assert presence.wait_for(lambda v, g: v >= {1, 2, 3}, timeout_s=30)
     result = mesh.send_command(
         Command(CommandKind.LAND, new_nonce(), 0, targets=(1, 3)), timeout_s=3.0
@@ -104,12 +104,12 @@ def test_command_to_a_list_reaches_only_that_list(hub, procs) -> None:
 def test_malformed_payloads_do_not_kill_a_subscriber(hub, procs) -> None:
     port, mesh = hub
     listener = procs.start("tests/mesh_node.py", str(port), "2", "echo-states")
-    procs.wait_line(listener, "READY")
+    listener.wait_for("READY")
     time.sleep(0.5)
     for junk in (b"", b"\x01", b"\x01\x01" + b"\xff" * 62, b"garbage" * 10):
         mesh.session.put("covey/covey/v/5/state", junk)
     mesh.publish_state(VehicleState(5, 1, 0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0))
-    line = procs.wait_line(listener, "STATE 5 ", timeout_s=10)
+    line = listener.wait_for("STATE 5 ", timeout_s=10)
     assert line.split()[2] == "1"
     reply = mesh.session.get("covey/covey/v/2/cmd", payload=b"\x02\x01nonsense", timeout=3.0)
     answers = [r for r in reply]

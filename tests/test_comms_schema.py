@@ -20,6 +20,7 @@ from comms.schema import (
     DecodeError,
     Event,
     EventKind,
+    GuidanceTrace,
     Mode,
     Severity,
     StateFlag,
@@ -124,8 +125,28 @@ def rosters(draw) -> schema.Roster:
     )
 
 
+@st.composite
+def traces(draw) -> GuidanceTrace:
+    own = draw(vid)
+    ids = draw(st.lists(vid.filter(lambda i: i != own), max_size=30, unique=True))
+    return GuidanceTrace(
+        vehicle_id=own,
+        state_seq=draw(st.integers(0, 2**32 - 1)),
+        stamp_ns=draw(u64),
+        heading_rad=draw(st.floats(-2 * math.pi, 2 * math.pi)),
+        cmd_vel_ned_m_s=tuple(draw(st.floats(-1000, 1000)) for _ in range(3)),
+        neighbours=tuple(
+            (i, draw(st.integers(0, 2**32 - 1)), draw(st.floats(0.0, schema.MAX_TRACE_AGE_S)))
+            for i in ids
+        ),
+        complete=draw(st.booleans()),
+        decided=draw(st.booleans()),
+        sig=draw(st.sampled_from([b""]) | st.binary(min_size=64, max_size=64)),
+    )
+
+
 @settings(max_examples=300, deadline=None)
-@given(st.one_of(states(), commands(), acks, events, rosters()))
+@given(st.one_of(states(), commands(), acks, events, rosters(), traces()))
 def test_every_message_round_trips(msg) -> None:
     data = msg.encode()
     assert data[0] == msg.TYPE and data[1] == getattr(msg, "VERSION", schema.SCHEMA_VERSION)
@@ -133,6 +154,81 @@ def test_every_message_round_trips(msg) -> None:
     assert type(back) is type(msg)
     assert back == msg
     assert back.encode() == data
+
+
+def _trace(**kw) -> GuidanceTrace:
+    fields = dict(
+        vehicle_id=3,
+        state_seq=41,
+        stamp_ns=10**18,
+        heading_rad=0.25,
+        cmd_vel_ned_m_s=(0.5, -0.25, 0.0),
+        neighbours=((1, 7, 0.1), (2, 9, 0.0)),
+    )
+    return GuidanceTrace(**{**fields, **kw})
+
+
+def test_trace_keeps_float64_exactly_and_cuts_long_neighbour_lists() -> None:
+    tr = _trace(heading_rad=0.1 + 0.2, cmd_vel_ned_m_s=(1 / 3, -2 / 3, 1e-17), decided=False)
+    back = GuidanceTrace.decode(tr.encode())
+    assert back == tr and back.heading_rad == 0.1 + 0.2 and not back.decided and back.complete
+    n = schema.MAX_TRACE_NEIGHBOURS + 5
+    ids = np.arange(2, n + 2)
+    built = GuidanceTrace.build(1, 2, 3, np.float64(0.5), np.zeros(3), ids, ids * 10, ids * 1e-3)
+    assert not built.complete and len(built.neighbours) == schema.MAX_TRACE_NEIGHBOURS
+    assert type(built.neighbours[0][0]) is int and type(built.heading_rad) is float
+    data = built.encode()
+    assert len(data) + schema.TAG_BYTES <= 4096  # under the ACL routers' message size limit
+    assert GuidanceTrace.decode(data) == built
+
+
+@pytest.mark.parametrize(
+    ("trace", "why"),
+    [
+        (lambda: _trace(vehicle_id=0), "vehicle_id=0"),
+        (lambda: _trace(heading_rad=math.nan), "heading_rad must be finite"),
+        (lambda: _trace(heading_rad=7.0), "heading_rad=7.0 is outside"),
+        (lambda: _trace(cmd_vel_ned_m_s=(0.0, math.inf, 0.0)), "must be finite"),
+        (lambda: _trace(cmd_vel_ned_m_s=(0.0, 0.0)), "2 axes"),
+        (lambda: _trace(cmd_vel_ned_m_s=(1e4, 0.0, 0.0)), "outside"),
+        (lambda: _trace(neighbours=((3, 1, 0.1),)), "lists itself"),
+        (lambda: _trace(neighbours=((1, 1, 0.1), (1, 2, 0.2))), "listed twice"),
+        (lambda: _trace(neighbours=((1, 1, -0.5),)), "age_s=-0.5 is outside"),
+        (lambda: _trace(neighbours=((1, 1, math.nan),)), "age_s must be finite"),
+        (lambda: _trace(neighbours=((1, 2**32, 0.0),)), "does not fit 32 bits"),
+        (lambda: _trace(state_seq=-1), "does not fit 32 bits"),
+        (lambda: _trace(sig=b"x"), "signature must be empty or 64"),
+        (
+            lambda: _trace(neighbours=tuple((i, 0, 0.0) for i in range(4, 300))),
+            "at most 256",
+        ),
+    ],
+)
+def test_trace_refuses_bad_fields(trace, why) -> None:
+    with pytest.raises(DecodeError, match=why):
+        trace().encode()
+
+
+@pytest.mark.parametrize(
+    ("mutate", "why"),
+    [
+        (lambda b: b[:-1], "must be 79 bytes"),
+        (lambda b: b + bytes(64) + b"x", "must be 79 bytes"),
+        (lambda b: b[:10], "too short"),
+        (lambda b: b[:1] + bytes([2]) + b[2:], "unsupported GUIDANCE_TRACE version 2"),
+        (lambda b: b[:49] + struct.pack("<H", 3) + b[51:], "3 neighbours must be 93 bytes"),
+        (lambda b: b[:49] + struct.pack("<H", 65535) + b[51:], "65535 neighbours, at most 256"),
+        (lambda b: b[:48] + bytes([4]) + b[49:], "unknown bits"),
+        (lambda b: b[:16] + struct.pack("<d", math.nan) + b[24:], "heading_rad must be finite"),
+        (lambda b: b[:57] + struct.pack("<d", math.inf) + b[65:], "age_s must be finite"),
+        (lambda b: b[:51] + struct.pack("<H", 3) + b[53:], "lists itself"),
+    ],
+)
+def test_trace_decoder_says_why(mutate, why) -> None:
+    good = _trace(neighbours=((1, 7, 0.1), (2, 9, 0.0))).encode()
+    assert len(good) == 51 + 2 * 14
+    with pytest.raises(DecodeError, match=why):
+        decode(mutate(good))
 
 
 def test_reason_text_is_cut_on_a_character_boundary() -> None:

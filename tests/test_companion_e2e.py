@@ -63,13 +63,13 @@ def test_agent_flies_px4_emulator_through_mavsdk(procs) -> None:
             f"udpout:127.0.0.1:{udp}",
             "--home",
             origin,
-            "--takeoff-speed",
+            "--takeoff-speed-m-s",
             "4",
-            "--land-speed",
+            "--land-speed-m-s",
             "3",
-            "--accel",
+            "--accel-m-s2",
             "8",
-            stdout=None,
+            output="inherit",
         )
         procs.start(
             "-m",
@@ -85,7 +85,7 @@ def test_agent_flies_px4_emulator_through_mavsdk(procs) -> None:
             origin,
             "--cruise-speed-m-s",
             "3",
-            stdout=None,
+            output="inherit",
         )
         wait(lambda s: True, 60, "telemetry through MAVSDK")
         send(Command.takeoff(4.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,)))

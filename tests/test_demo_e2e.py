@@ -14,8 +14,8 @@ from conftest import wait_until
 from comms.mesh import Mesh
 from comms.schema import Mode
 from comms.session import MeshConfig
-from groundstation.app import GcsConfig, GroundStation
 from groundstation.demo_proc import DemoProcess, descendants, process_alive, processes_in_groups
+from groundstation.station import GcsConfig, GroundStation
 
 pytestmark = pytest.mark.e2e
 
@@ -90,7 +90,7 @@ def test_late_station_status_and_cmd_against_a_running_demo():
         ok = run_covey("cmd", "takeoff", "3", "--to", "1,2", "--connect", ep, *key)
         assert ok.returncode == 0, ok.stdout + ok.stderr
         assert ok.stdout.count("accepted") == 2
-        missing = run_covey("cmd", "land", "--to", "1,9", "--timeout", "1", "--connect", ep, *key)
+        missing = run_covey("cmd", "land", "--to", "1,9", "--timeout-s", "1", "--connect", ep, *key)
         assert missing.returncode == 1
         assert "vehicle     9: timeout" in missing.stdout
         refused = run_covey("cmd", "kill", "--to", "all", "--connect", ep, *key, stdin="nope\n")

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from conftest import holds
 
+from comms.cli_options import stop_on_signals
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import Command, CommandKind, Mode, StateFlag, VehicleState
@@ -70,7 +71,7 @@ def agent_args(vid: int, *mesh: str, extra: tuple[str, ...] = ()) -> list[str]:
         "--id",
         str(vid),
         *mesh,
-        f"--start=0,{4 * vid}",
+        f"--start-ne-m=0,{4 * vid}",
         "--cruise-speed-m-s",
         "2.0",
         *extra,
@@ -143,7 +144,7 @@ def test_ground_station_restart_holds_then_resumes_and_a_fresh_station_rebuilds_
         watch = Watch(hub)
         presence = hub.presence()
         station = procs.start("tests/gcs_standin.py", str(port))
-        procs.wait_line(station, "READY")
+        station.wait_for("READY")
         for vid in ids:
             procs.start(
                 *agent_args(
@@ -169,7 +170,7 @@ def test_ground_station_restart_holds_then_resumes_and_a_fresh_station_rebuilds_
             "they must hold, not land, within gcs_lost_land_s"
         )
         station = procs.start("tests/gcs_standin.py", str(port))
-        procs.wait_line(station, "READY")
+        station.wait_for("READY")
         resumed_s = watch.wait(
             lambda s: all(
                 s[v].mode is Mode.GOTO and not s[v].flags & StateFlag.FAILSAFE_GCS_LOST for v in ids
@@ -198,7 +199,7 @@ def test_partition_triggers_the_documented_failsafes_and_heals(procs) -> None:
     gcs_port, veh_port = free_tcp_port(), free_tcp_port()
     ids = (1, 2)
     veh_router = procs.start(*router_args(f"tcp/127.0.0.1:{veh_port}"))
-    procs.wait_line(veh_router, "READY")
+    veh_router.wait_for("READY")
     with (
         Mesh(embedded_router(gcs_port)) as gcs,
         Mesh(MeshConfig(mode="client", connect=(f"tcp/127.0.0.1:{veh_port}",))) as veh_side,
@@ -211,7 +212,7 @@ def test_partition_triggers_the_documented_failsafes_and_heals(procs) -> None:
                 "tcp/127.0.0.1:0", f"tcp/127.0.0.1:{gcs_port}", f"tcp/127.0.0.1:{veh_port}"
             )
         )
-        procs.wait_line(bridge, "READY")
+        bridge.wait_for("READY")
         for vid in ids:
             procs.start(
                 *agent_args(
@@ -254,7 +255,7 @@ def test_partition_triggers_the_documented_failsafes_and_heals(procs) -> None:
                 "tcp/127.0.0.1:0", f"tcp/127.0.0.1:{gcs_port}", f"tcp/127.0.0.1:{veh_port}"
             )
         )
-        procs.wait_line(bridge, "READY")
+        bridge.wait_for("READY")
         assert gcs_presence.wait_for(lambda v, _g: v >= set(ids), timeout_s=10), (
             "fleet not back after the heal"
         )
@@ -276,7 +277,7 @@ def test_router_restart_on_the_same_port_everything_reconnects(procs) -> None:
     port = free_tcp_port()
     ids = (1, 2)
     router = procs.start(*router_args(f"tcp/127.0.0.1:{port}"))
-    procs.wait_line(router, "READY")
+    router.wait_for("READY")
     client = MeshConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",))
     with Mesh(client) as gcs:
         gcs.declare_gcs(1)
@@ -303,7 +304,7 @@ def test_router_restart_on_the_same_port_everything_reconnects(procs) -> None:
         assert watch.count == count, "states still flow without the router?"
         t0 = time.monotonic()
         router = procs.start(*router_args(f"tcp/127.0.0.1:{port}"))
-        procs.wait_line(router, "READY")
+        router.wait_for("READY")
         watch.forget()
         back_s = watch.wait(lambda s: set(s) >= set(ids), 20, "states after the router restart")
         assert presence.wait_for(lambda v, _g: v >= set(ids), timeout_s=10)
@@ -319,10 +320,8 @@ def test_router_restart_on_the_same_port_everything_reconnects(procs) -> None:
 
 
 def run_router(listen: str, *connect: str) -> None:
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     cfg = MeshConfig(mode="router", listen=(listen,), connect=tuple(connect))
-    with Mesh(cfg):
+    with stop_on_signals() as stop, Mesh(cfg):
         print("READY", flush=True)
         stop.wait()
 

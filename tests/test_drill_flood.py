@@ -47,7 +47,7 @@ def test_agents_keep_their_tick_and_answer_commands_under_a_flood() -> None:
                 time.sleep(1.0)
             time.sleep(max(0.0, FLOOD_S - 4.0))
             stats = summarise(samples)
-            sent = rogue.communicate(timeout=30)[0].strip()
+            sent = rogue.wait_output(timeout_s=30).strip()
             dropped = mesh.stats.decode_errors - errors0
             print(f"flood: {sent}; receiver dropped {dropped} malformed; agents' states: {stats}")
             assert all(a.poll() is None for a in agents), "an agent died under the flood"

@@ -34,7 +34,7 @@ def agent(procs, port: int, vid: int):
         str(vid),
         "--connect",
         f"tcp/127.0.0.1:{port}",
-        f"--start=0,{4 * vid}",
+        f"--start-ne-m=0,{4 * vid}",
         "--no-gcs-failsafe",
     )
 

@@ -199,6 +199,21 @@ def test_exporter_writes_sizes_and_config(tmp_path):
     assert np.array_equal(parsed, w)
 
 
+def test_covey_export_writes_the_c_header_and_policy_alone_refuses_it(tmp_path, capsys):
+    """`covey export --format c` enters through firmware (policy/ does not import it)."""
+    from firmware.export_c import export_cli
+    from policy.export import cli as policy_export_cli
+
+    npz = cases.write_random_npz(tmp_path / "w.npz")
+    assert export_cli([str(npz), str(tmp_path / "w.h"), "--format", "c"]) == 0
+    assert (tmp_path / "w.h").read_text() == header_text(npz)
+    assert export_cli([str(npz), str(tmp_path / "copy.npz")]) == 0
+    assert (tmp_path / "copy.npz").read_bytes() == npz.read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        policy_export_cli([str(npz), str(tmp_path / "x.h"), "--format", "c"])
+    assert exc.value.code == 2 and "invalid choice: 'c'" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "change, message",
     [

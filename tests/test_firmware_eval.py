@@ -7,13 +7,14 @@ import shutil
 import numpy as np
 import pytest
 
-from policy import scenarios, sim
+from policy import evalsim, scenarios
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 
 
 def test_eval_flies_the_c_core_with_its_filter(tmp_path):
-    from policy.eval import EvalConfig, main
+    from firmware.ceval import main
+    from policy.eval import EvalConfig
 
     res = main(
         EvalConfig(
@@ -51,5 +52,7 @@ def test_c_fleet_holds_decisions_between_periods():
     v2 = fleet(np.arange(2), 1.0, moved, v0, heading + 0.3, goal, *none)
     assert not np.allclose(v2, v1)  # decided again with the new heading
     fleet.reset()
-    r = sim.run(starts, goals, fleet, sim.PERFECT, sim.SimConfig(), np.random.default_rng(0))
+    r = evalsim.run(
+        starts, goals, fleet, evalsim.PERFECT, evalsim.EvalSimConfig(), np.random.default_rng(0)
+    )
     assert r["success"] and r["collisions"] == 0

@@ -144,7 +144,7 @@ def test_fleet_sim_answers_broadcasts_and_flies(procs) -> None:
             "--spacing-m",
             "15",
         )
-        procs.wait_line(sim, "READY", timeout_s=60)
+        sim.wait_for("READY", timeout_s=60)
         assert presence.wait_for(lambda v, _g: v >= set(IDS), timeout_s=30), "tokens missing"
         latest.wait(lambda s: set(s) >= set(IDS), 20, "a state from every vehicle")
 

@@ -13,7 +13,6 @@ import json
 import math
 import os
 import random
-import signal
 import struct
 import subprocess
 import sys
@@ -34,6 +33,7 @@ from comms.foxglove_worker import FoxgloveChunks
 from comms.geo import GeoOrigin
 from comms.mcap_chunks import MAX_ID, ChunkBuilder
 from comms.mesh import Mesh
+from comms.procs import ChildGroup
 from comms.record import (
     FoxgloveIncomplete,
     McapSink,
@@ -44,7 +44,7 @@ from comms.record import (
 )
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 from groundstation.foxglove_bridge import BridgeConfig, FoxgloveBridge
-from groundstation.recording_cli import record_cli
+from tools.record_cli import record_cli
 
 VEHICLES = (1, 2)
 STARTS = {1: (0.0, 0.0), 2: (0.0, 8.0)}
@@ -400,8 +400,13 @@ def flight(tmp_path_factory):
     port = free_tcp_port()
     path, raw_only = tmp / "flight.mcap", tmp / "raw.mcap"
     fox = fc.FoxgloveConfig(origin=ORIGIN)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    procs: list[subprocess.Popen] = []
+    agents = ChildGroup(
+        prefix=[sys.executable, "-m", "covey_cli", "agent"],
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        output="discard",
+        stderr="discard",
+        grace_s=10.0,
+    )
     mesh_states: dict[tuple[int, int], tuple] = {}
     with Mesh(embedded_router(port, fleet=fleet)) as mesh:
         mesh.subscribe_states(
@@ -420,26 +425,15 @@ def flight(tmp_path_factory):
                 connect_ep = f"tcp/127.0.0.1:{port}"
                 for vid in VEHICLES:
                     n, e = STARTS[vid]
-                    procs.append(
-                        subprocess.Popen(
-                            [
-                                sys.executable,
-                                "-m",
-                                "covey_cli",
-                                "agent",
-                                "--id",
-                                str(vid),
-                                "--fleet",
-                                fleet,
-                                "--connect",
-                                connect_ep,
-                                f"--start={n},{e}",
-                                "--no-gcs-failsafe",
-                            ],
-                            env=env,
-                            stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL,
-                        )
+                    agents.start(
+                        "--id",
+                        str(vid),
+                        "--fleet",
+                        fleet,
+                        "--connect",
+                        connect_ep,
+                        f"--start-ne-m={n},{e}",
+                        "--no-gcs-failsafe",
                     )
                 assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 30.0)
                 stamp = time.time_ns
@@ -460,13 +454,7 @@ def flight(tmp_path_factory):
             finally:
                 ws.stop.set()
                 ws.join(5)
-                for p in procs:
-                    p.send_signal(signal.SIGTERM)
-                for p in procs:
-                    try:
-                        p.wait(10)
-                    except subprocess.TimeoutExpired:
-                        p.kill()
+                agents.stop()
         yield {
             "path": path,
             "raw": raw_only,

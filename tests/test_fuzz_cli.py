@@ -112,7 +112,7 @@ def stats():
 
 
 def test_covey_agent_parser(stats) -> None:
-    from agent import cli
+    from agent import agent_cli as cli
 
     def parse(argv: list[str]) -> None:
         cli.config_from_args(cli.parser().parse_args(argv))
@@ -131,8 +131,8 @@ def test_covey_agent_parser(stats) -> None:
 
 def test_covey_cmd_parser(stats) -> None:
     ops = pytest.importorskip("groundstation.ops")
+    from comms.cli_options import mesh_config
     from groundstation import inputs
-    from groundstation.meshargs import mesh_config
 
     def parse(argv: list[str]) -> None:
         p = ops.cmd_parser()
@@ -143,7 +143,7 @@ def test_covey_cmd_parser(stats) -> None:
 
     rng = random.Random(SEED + 1)
     verbs = ["takeoff", "land", "hold", "return", "goto", "goto-global", "kill", "fly", ""]
-    opts = ["--to", "--timeout", "--yes", "--fleet", "--connect", "--listen", "--mesh-mode"]
+    opts = ["--to", "--timeout-s", "--yes", "--fleet", "--connect", "--listen", "--mesh-mode"]
     for _ in range(N_PER_PARSER):
         prefix = (
             [rng.choice(verbs)]
@@ -155,7 +155,7 @@ def test_covey_cmd_parser(stats) -> None:
 
 
 def test_covey_sitl_parser(stats) -> None:
-    sitl_cli = pytest.importorskip("firmware.sitl.cli")
+    sitl_cli = pytest.importorskip("firmware.sitl.sitl_cli")
     rng = random.Random(SEED + 2)
     opts = options_of(sitl_cli.parser())
     for _ in range(N_PER_PARSER):
@@ -180,7 +180,7 @@ def test_covey_keygen_parser(stats, tmp_path, monkeypatch) -> None:
 
 @pytest.mark.parametrize("bad", ["nan", "inf", "0", "-1"])
 def test_agent_refuses_a_bad_duration_before_starting(bad, capsys) -> None:
-    from agent import cli
+    from agent import agent_cli as cli
 
     with pytest.raises(SystemExit) as exc:
         cli.cli(["--id", "1", "--duration-s", bad])  # refused before any backend or mesh exists
@@ -280,19 +280,19 @@ def run_one_line(fn, argv: list[str]) -> str:
 
 
 def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_path) -> None:
-    from agent import cli as agent_cli
-    from groundstation import cli as gcs_cli
-    from groundstation import ops, recording_cli
+    from agent import agent_cli
+    from groundstation import gcs_cli, ops
+    from tools import record_cli
 
     mesh_cases, key_cases = bad_setups(tmp_path)
     subcommands = {
         "agent": (agent_cli.cli, ["--id", "1", "--duration-s", "1"], True),
         "gcs": (gcs_cli.cli, ["--port", "0"], True),
-        "cmd": (ops.cmd_cli, ["hold", "--to", "1", "--timeout", "0.5"], True),
+        "cmd": (ops.cmd_cli, ["hold", "--to", "1", "--timeout-s", "0.5"], True),
         "status": (ops.status_cli, ["--listen-s", "0.1"], True),
         "record": (
-            recording_cli.record_cli,
-            ["-o", str(tmp_path / "r.mcap"), "--duration", "0.5"],
+            record_cli.record_cli,
+            ["-o", str(tmp_path / "r.mcap"), "--duration-s", "0.5"],
             False,
         ),
     }

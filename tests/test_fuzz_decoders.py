@@ -25,6 +25,7 @@ from comms.schema import (
     DecodeError,
     Event,
     EventKind,
+    GuidanceTrace,
     Mode,
     Role,
     Roster,
@@ -155,13 +156,17 @@ def check_one(data: bytes, keys: dict, stats: dict[str, int]) -> None:
             assert reason is not None or data in keys["valid"].values(), (
                 "a mutated state/event verified"
             )
+        elif isinstance(msg, GuidanceTrace):
+            reason = vehicle.check_trace(msg)
+            assert reason is None or isinstance(reason, str)
+            assert reason is not None or data == keys.get("valid_trace"), "a mutated trace verified"
         elif isinstance(msg, Roster):
             reason = vehicle.apply_roster(msg)  # never newer AND genuine unless unmutated
             assert reason is not None or data == keys["valid"]["roster"], "a mutated roster applied"
             if reason is None:
                 keys["reset"]()
     # Also through the typed decoders: they must refuse foreign types with DecodeError too.
-    for cls in (VehicleState, Command, CommandAck, Event, Roster):
+    for cls in (VehicleState, Command, CommandAck, Event, Roster, GuidanceTrace):
         try:
             cls.decode(data)
         except DecodeError:
@@ -237,3 +242,28 @@ def test_random_bytes_only_raise_decode_error(auth) -> None:
 def test_decode_accepts_every_bytes_like_type() -> None:
     data = Event(2, 1, "x").encode()
     assert decode(bytearray(data)) == decode(memoryview(data)) == decode(data)
+
+
+def test_mutated_and_random_traces_only_raise_decode_error(auth) -> None:
+    """Guidance traces: mutated (unsigned, signed, a full neighbour list) and random bodies."""
+    rng = random.Random(SEED + 2)
+    many = tuple((i, i * 7, i * 1e-3) for i in range(2, 258))
+    unsigned = [
+        GuidanceTrace(3, 41, 10**18, 0.3, (0.5, -0.25, 0.0), ((1, 7, 0.1), (2, 9, 0.0))),
+        GuidanceTrace(3, 0, 0, -3.0, (0.0, 0.0, 0.0), (), complete=False, decided=False),
+        GuidanceTrace(1, 5, 10**18, 1.0, (1.0, 1.0, 0.0), many, complete=False),
+    ]
+    signed = auth["vehicle"].sign_trace(
+        GuidanceTrace(1, 8, 10**18, 0.1, (0.2, 0.0, 0.0), ((4, 2, 0.25),))
+    )
+    auth["valid_trace"] = signed.encode()
+    seeds = [t.encode() for t in unsigned] + [auth["valid_trace"]]
+    stats = {"decoded": 0, "rejected": 0, "slowest_us": 0}
+    for i in range(20_000):
+        check_one(mutate(seeds[i % len(seeds)], rng), auth, stats)
+    for _ in range(5_000):
+        n = rng.choice([51, 65, 79, 143, rng.randrange(4096)])
+        check_one((bytes([6, 1]) + rng.randbytes(n))[:n], auth, stats)
+    check_one(auth["valid_trace"], auth, stats)  # control: the signed original verifies
+    print(f"fuzz traces: 25001 inputs, {stats}")
+    assert stats["decoded"] > 100 and stats["rejected"] > 1000

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import views_by_id
 
 from comms.schema import Mode, StateFlag, VehicleState
 from groundstation.fleet import NS_PER_S, FleetConfig, FleetModel, close_pairs, link_health
@@ -174,7 +175,7 @@ def test_vehicles_without_a_token_expire_and_the_table_is_bounded():
     # Within the expiry time after the flood, only real vehicles are listed (2 is shown LOST).
     snap = model.snapshot(int(31 * NS_PER_S))
     assert [v.vehicle_id for v in snap.vehicles] == [1, 2, 3]
-    assert not snap.by_id()[2].alive
+    assert not views_by_id(snap)[2].alive
     # A lost vehicle is forgotten lost_expire_s after it was lost.
     assert [v.vehicle_id for v in model.snapshot(int(66 * NS_PER_S)).vehicles] == [1, 3]
     assert model.expired > 0
@@ -187,10 +188,12 @@ def test_refused_states_mark_a_known_vehicle_and_never_create_a_phantom() -> Non
     m.on_state_refused(1, "forged", 1 * NS_PER_S)
     for vid in range(100, 5100):  # 5000 phantom ids whose states the mesh refused
         m.on_state_refused(vid, "unknown signer", 1 * NS_PER_S)
-    snap = m.snapshot(2 * NS_PER_S).by_id()
+    snap = views_by_id(m.snapshot(2 * NS_PER_S))
     assert set(snap) == {1} and m.phantom_refusals == 5000
     assert snap[1].unverified and snap[1].refused_states == 1 and snap[1].refused_cause == "forged"
-    assert not m.snapshot(5 * NS_PER_S).by_id()[1].unverified  # the mark fades after the window
+    assert not views_by_id(m.snapshot(5 * NS_PER_S))[
+        1
+    ].unverified  # the mark fades after the window
 
 
 def test_vehicles_never_present_are_forgotten_but_present_ones_stay() -> None:

@@ -13,7 +13,7 @@ from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import Command, EventKind
 from comms.session import MeshConfig, embedded_router, free_tcp_port
-from groundstation.app import GcsConfig, GroundStation
+from groundstation.station import GcsConfig, GroundStation
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -61,7 +61,7 @@ def test_a_phantom_flood_leaves_only_real_vehicles_and_events_get_through() -> N
                     print(f"vehicle {v} during the flood: {rate_hz:.2f} Hz, {arrived:.1%} arrived")
                     assert rate_hz >= 9.5 and arrived >= 0.95, (v, rate_hz, arrived)
                 assert len(gcs.fleet.ids()) <= gcs.fleet.cfg.max_vehicles
-                rogue.communicate(timeout=60)
+                rogue.wait_output(timeout_s=60)
                 # Within the expiry time after the flood only the real vehicles are listed.
                 expire_s = gcs.fleet.cfg.unconfirmed_expire_s
                 end = time.monotonic() + expire_s + 5.0

@@ -202,7 +202,7 @@ def test_fleet_table_and_ack_matrix_show_what_matters():
         ["goto", "1", "2", "inf", "--to", "1"],
         ["goto-global", "95", "0", "10", "--to", "1"],
         ["fly", "--to", "1"],
-        ["land", "--to", "1", "--timeout", "0"],
+        ["land", "--to", "1", "--timeout-s", "0"],
     ],
 )
 def test_covey_cmd_bad_arguments_are_argparse_errors(argv, capsys):

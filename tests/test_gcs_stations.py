@@ -10,13 +10,13 @@ import threading
 import time
 
 import pytest
-from conftest import wait_until
+from conftest import views_by_id, wait_until
 
 from comms.schema import AckResult, CommandKind, Mode
 from comms.session import MeshConfig
-from groundstation.app import GcsConfig, GroundStation
 from groundstation.demo_proc import DemoProcess
 from groundstation.inputs import CommandRequest
+from groundstation.station import GcsConfig, GroundStation
 
 pytestmark = pytest.mark.e2e
 
@@ -55,7 +55,7 @@ def test_every_station_logs_every_command_and_shows_superseded(demo):
             lambda: a.presence.vehicles >= {1, 2} and b.presence.vehicles >= {1, 2}, 20
         )
         send(a, CommandRequest(CommandKind.TAKEOFF, (4.0, 0.0, 0.0)), (1, 2))
-        assert wait_until(lambda: a.fleet.snapshot(time.time_ns()).by_id()[1].alt_m > 2.0, 30)
+        assert wait_until(lambda: views_by_id(a.fleet.snapshot(time.time_ns()))[1].alt_m > 2.0, 30)
         goto_a = send(a, CommandRequest(CommandKind.GOTO_LOCAL, (6.0, 0.0, -4.0)), (1,))
         # Station B sees A's goto, sent by station 2, with vehicle 1's answer.
         assert wait_until(lambda: (e := entry(b, goto_a.nonce)) is not None and 1 in e.answers, 10)

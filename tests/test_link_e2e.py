@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -14,6 +11,7 @@ import pytest
 
 from comms.link import emulator_from_spec
 from comms.mesh import Mesh
+from comms.procs import Child
 from comms.session import embedded_router, free_tcp_port
 
 pytestmark = pytest.mark.e2e
@@ -43,34 +41,26 @@ def test_xbee_link_thins_delays_and_counts_a_live_stream():
                 delivered.append((state.seq, recv_by_seq[state.seq], t_ns))
 
         mesh.subscribe_states(on_state, link=Tap())
-        agent = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "covey_cli",
-                "agent",
-                "--id",
-                "5",
-                "--fleet",
-                fleet,
-                "--connect",
-                f"tcp/127.0.0.1:{port}",
-                "--no-gcs-failsafe",
-            ],
-            env={**os.environ},
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        try:
+        agent = [
+            sys.executable,
+            "-m",
+            "covey_cli",
+            "agent",
+            "--id",
+            "5",
+            "--fleet",
+            fleet,
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+            "--no-gcs-failsafe",
+        ]
+        with Child(agent, output="discard", stderr="discard", grace_s=10.0):
             deadline = time.monotonic() + 30.0
             while time.monotonic() < deadline:
                 with lock:
                     if len(offered) >= 60:
                         break
                 time.sleep(0.1)
-        finally:
-            agent.send_signal(signal.SIGTERM)
-            agent.wait(10)
         time.sleep(0.3)  # let the last delayed states out
         stats = link.stats()[5]
     with lock:

@@ -76,17 +76,17 @@ def test_two_onboard_emulators_swap_behind_relay_agents(procs) -> None:
                 "--home",
                 f"{lat:.9f},{lon:.9f},{alt:.3f}",
                 "--onboard",
-                "--separation",
+                "--separation-m",
                 str(SEPARATION_M),
-                "--policy-speed",
+                "--policy-speed-m-s",
                 "2",
-                "--takeoff-speed",
+                "--takeoff-speed-m-s",
                 "3",
-                "--pos-gain",
+                "--pos-gain-1-s",
                 "2",
-                "--accel",
+                "--accel-m-s2",
                 "8",
-                stdout=None,
+                output="inherit",
             )
             procs.start(
                 "-m",
@@ -100,7 +100,7 @@ def test_two_onboard_emulators_swap_behind_relay_agents(procs) -> None:
                 f"relay:udpin:127.0.0.1:{udp}",
                 "--origin",
                 f"{ORIGIN.lat_deg},{ORIGIN.lon_deg},{ORIGIN.alt_m}",
-                stdout=None,
+                output="inherit",
             )
         assert presence.wait_for(lambda v, g: v >= set(STARTS), timeout_s=60)
         wait(

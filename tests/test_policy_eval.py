@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from policy import safety, scenarios, sim
+from policy import evalsim, safety, scenarios
 from policy.eval import EvalConfig, flops, main, merge
 
 
@@ -24,7 +24,7 @@ def test_orca_filter_keeps_separation_head_on():
     vel = np.zeros((2, 2))
     min_d = np.inf
     for _ in range(600):
-        pref = sim.straight_line(None, 0.0, pos, vel, None, goal)
+        pref = evalsim.straight_line(None, 0.0, pos, vel, None, goal)
         v = safety.filter_batch(pos, vel, pref, np.array([[1], [0]]), cfg)
         pos, vel = pos + 0.1 * v, v
         min_d = min(min_d, np.hypot(*(pos[0] - pos[1])))
@@ -46,13 +46,27 @@ def test_lp_projects_onto_one_half_plane():
 
 def test_straight_line_collides_on_the_circle():
     s, g = scenarios.antipodal_circle(4)
-    r = sim.run(s, g, sim.straight_line, sim.PERFECT, sim.SimConfig(), np.random.default_rng(0))
+    r = evalsim.run(
+        s,
+        g,
+        evalsim.straight_line,
+        evalsim.PERFECT,
+        evalsim.EvalSimConfig(),
+        np.random.default_rng(0),
+    )
     assert r["collisions"] == 4 and not r["success"]
 
 
 def test_degraded_link_still_delivers():
     s, g = scenarios.antipodal_circle(4)
-    r = sim.run(s, g, sim.straight_line, sim.DEGRADED, sim.SimConfig(), np.random.default_rng(0))
+    r = evalsim.run(
+        s,
+        g,
+        evalsim.straight_line,
+        evalsim.DEGRADED,
+        evalsim.EvalSimConfig(),
+        np.random.default_rng(0),
+    )
     assert r["collisions"] == 4
 
 

@@ -71,9 +71,10 @@ def test_training_smoke_run(tmp_path, encoder):
 
 
 def test_every_train_flag_has_help(capsys):
-    from policy.train import _field_help, cli
+    from comms.cli_options import field_docs
+    from policy.train import cli
 
-    docs = _field_help(TrainConfig)
+    docs = field_docs(TrainConfig)
     assert set(docs) == {f.name for f in dataclasses.fields(TrainConfig)}, (
         "a field without a docstring"
     )

@@ -132,3 +132,35 @@ def test_recording_commands_does_not_disturb_acks(tmp_path):
     # Replies are seen only by the querier; the vehicle's Mesh publishes a copy of each ack.
     acks = [CommandAck.decode(m.data) for m in rec.messages if m.topic == keys.ack(fleet, 7)]
     assert [a.nonce for a in acks] == [c.nonce for c in sent]
+
+
+def test_published_guidance_traces_are_recorded_on_their_own_key(tmp_path):
+    from comms.schema import GuidanceTrace
+
+    fleet = "t" + uuid.uuid4().hex[:8]
+    port = free_tcp_port()
+    path = tmp_path / "traces.mcap"
+    events: list[Event] = []
+    with (
+        Mesh(embedded_router(port, fleet=fleet)) as gcs,
+        Mesh(embedded_peer(port, fleet=fleet)) as veh,
+    ):
+        gcs.subscribe_events(lambda ev, _t: events.append(ev))
+        with Recorder(RecordConfig(str(path), embedded_peer(port, fleet=fleet))) as rec:
+            sent = []
+            deadline = time.monotonic() + 10.0
+            while rec.counts.get("trace", 0) < 3 and time.monotonic() < deadline:
+                tr = GuidanceTrace(
+                    7, len(sent), time.time_ns(), 0.5, (1.0, 0.0, 0.0), ((2, 3, 0.1),)
+                )
+                veh.publish_trace(tr)
+                sent.append(tr)
+                time.sleep(0.05)
+            time.sleep(0.2)
+    recorded = read_recording(path)
+    got = [
+        GuidanceTrace.decode(m.data) for m in recorded.messages if m.topic == keys.trace(fleet, 7)
+    ]
+    assert len(got) >= 3 and all(t in sent for t in got)
+    assert summarise(recorded)["counts"]["traces"] == len(got)
+    assert events == []  # off the event key: stations following events never see traces

@@ -10,7 +10,6 @@ from __future__ import annotations
 import io
 import os
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -21,18 +20,20 @@ import pytest
 from comms import keys
 from comms.commands import new_nonce
 from comms.mesh import Mesh
+from comms.procs import ChildGroup
 from comms.record import read_recording, summarise
 from comms.replay import LiveFleetError, ReplayConfig, replay
 from comms.schema import Command, CommandKind, StateFlag, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
-from groundstation.recording_cli import info_main, record_cli, replay_cli
+from tools.record_cli import info_main, record_cli
+from tools.replay_cli import replay_cli
 
 pytestmark = pytest.mark.e2e
 
 VEHICLES = (1, 2, 3)
 STARTS = {1: (0.0, 0.0), 2: (0.0, 8.0), 3: (8.0, 4.0)}
 GOALS = {1: (8.0, 8.0, -3.0), 2: (8.0, 0.0, -3.0), 3: (0.0, 4.0, -3.0)}
-RECORD = "import sys; from groundstation.recording_cli import record_cli; sys.exit(record_cli(sys.argv[1:]))"
+RECORD = "import sys; from tools.record_cli import record_cli; sys.exit(record_cli(sys.argv[1:]))"
 
 
 def _command_all(mesh: Mesh, make, deadline_s: float = 10.0) -> None:
@@ -63,92 +64,64 @@ def flight(tmp_path_factory):
     fleet = "rec" + uuid.uuid4().hex[:8]
     port = free_tcp_port()
     clean, killed = tmp / "clean.mcap", tmp / "killed.mcap"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    procs: list[subprocess.Popen] = []
-    with Mesh(embedded_router(port, fleet=fleet)) as mesh:
-        try:
-            connect = f"tcp/127.0.0.1:{port}"
-            for out in (clean, killed):
-                procs.append(
-                    subprocess.Popen(
-                        [
-                            sys.executable,
-                            "-c",
-                            RECORD,
-                            "-o",
-                            str(out),
-                            "--fleet",
-                            fleet,
-                            "--connect",
-                            connect,
-                        ],
-                        env=env,
-                        stdout=subprocess.DEVNULL,
-                        stderr=subprocess.DEVNULL,
-                    )
-                )
-            # Both recorders must be on the mesh before the agents start. Probe with commands
-            # to a vehicle that does not exist until both (still open) files hold one.
-            deadline = time.monotonic() + 30.0
-            while time.monotonic() < deadline:
-                probe = Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(PROBE_ID,))
-                mesh.send_command(probe, timeout_s=0.2)
-                time.sleep(0.3)
-                if all(_has_command(p) for p in (clean, killed)):
-                    break
-            assert all(_has_command(p) for p in (clean, killed)), "recorders did not come up"
-            for vid in VEHICLES:
-                n, e = STARTS[vid]
-                procs.append(
-                    subprocess.Popen(
-                        [
-                            sys.executable,
-                            "-m",
-                            "covey_cli",
-                            "agent",
-                            "--id",
-                            str(vid),
-                            "--fleet",
-                            fleet,
-                            "--connect",
-                            connect,
-                            f"--start={n},{e}",
-                            "--no-gcs-failsafe",
-                            "--trace-guidance",
-                        ],
-                        env=env,
-                        stdout=subprocess.DEVNULL,
-                        stderr=subprocess.DEVNULL,
-                    )
-                )
-            assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 20.0)
-            stamp = time.time_ns
-            _command_all(
-                mesh,
-                lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)),
+    children = ChildGroup(
+        prefix=[sys.executable],
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        output="discard",
+        stderr="discard",
+        grace_s=10.0,
+    )
+    with Mesh(embedded_router(port, fleet=fleet)) as mesh, children:
+        connect = f"tcp/127.0.0.1:{port}"
+        recorders = [
+            children.start("-c", RECORD, "-o", str(out), "--fleet", fleet, "--connect", connect)
+            for out in (clean, killed)
+        ]
+        # Both recorders must be on the mesh before the agents start. Probe with commands
+        # to a vehicle that does not exist until both (still open) files hold one.
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            probe = Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(PROBE_ID,))
+            mesh.send_command(probe, timeout_s=0.2)
+            time.sleep(0.3)
+            if all(_has_command(p) for p in (clean, killed)):
+                break
+        assert all(_has_command(p) for p in (clean, killed)), "recorders did not come up"
+        for vid in VEHICLES:
+            n, e = STARTS[vid]
+            children.start(
+                "-m",
+                "covey_cli",
+                "agent",
+                "--id",
+                str(vid),
+                "--fleet",
+                fleet,
+                "--connect",
+                connect,
+                f"--start-ne-m={n},{e}",
+                "--no-gcs-failsafe",
+                "--trace-guidance",
             )
-            time.sleep(3.5)
-            _command_all(
-                mesh,
-                lambda v: Command.goto_local(
-                    *GOALS[v], nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)
-                ),
-            )
-            time.sleep(5.0)
-            procs[1].send_signal(signal.SIGKILL)
-            procs[0].send_signal(signal.SIGTERM)
-            assert procs[0].wait(20) == 0
-            procs[1].wait(5)
-            yield {"fleet": fleet, "port": port, "clean": clean, "killed": killed, "mesh": mesh}
-        finally:
-            for p in procs:
-                if p.poll() is None:
-                    p.send_signal(signal.SIGTERM)
-            for p in procs:
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        assert mesh.presence().wait_for(lambda v, _g: set(VEHICLES) <= v, 20.0)
+        stamp = time.time_ns
+        _command_all(
+            mesh,
+            lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)),
+        )
+        time.sleep(3.5)
+        _command_all(
+            mesh,
+            lambda v: Command.goto_local(
+                *GOALS[v], nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)
+            ),
+        )
+        time.sleep(5.0)
+        recorders[1].send_signal(signal.SIGKILL)
+        recorders[0].send_signal(signal.SIGTERM)
+        assert recorders[0].wait(20) == 0
+        recorders[1].wait(5)
+        yield {"fleet": fleet, "port": port, "clean": clean, "killed": killed, "mesh": mesh}
 
 
 def test_info_summarises_the_flight(flight):
@@ -247,7 +220,7 @@ def test_replay_refuses_a_live_fleet(flight, capsys):
 
 
 def test_closed_loop_on_the_real_flight(flight):
-    from agent.closed_loop import ClosedLoopConfig, run_closed_loop
+    from tools.closed_loop import ClosedLoopConfig, run_closed_loop
 
     rep = run_closed_loop(ClosedLoopConfig(str(flight["clean"]), vehicle_id=1))
     assert rep["ticks"] >= 10

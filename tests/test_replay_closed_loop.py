@@ -7,26 +7,47 @@ import math
 import numpy as np
 import pytest
 
-from agent.closed_loop import (
-    ClosedLoopConfig,
-    format_report,
-    parse_trace,
-    run_closed_loop,
-    trace_text,
-)
 from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourTable
 from comms import keys
 from comms.record import McapSink, read_recording
-from comms.schema import Event, Mode, Severity, StateFlag, VehicleState
+from comms.schema import Event, GuidanceTrace, Mode, Severity, StateFlag, VehicleState
+from tools.closed_loop import ClosedLoopConfig, format_report, parse_trace, run_closed_loop
 
 FLEET = "cl"
 TICK_S = 0.1
 
 
-def _fly(path, n_ticks=120, traces=True, cruise=1.0):
+def trace_text(
+    state_seq: int,
+    heading_rad: float,
+    cmd_vel_ned_m_s,
+    nbr_ids,
+    nbr_seqs,
+    nbr_ages_s,
+    max_bytes: int = 120,
+    decided: bool = True,
+) -> str:
+    """A trace as agents published it in event text before GuidanceTrace existed (what old
+    recordings hold): `trace <seq> <heading> <vn>,<ve>,<vd> D|H <id>:<seq>:<age_us>;...` cut
+    to max_bytes (a final `+` marks a cut neighbour list); D: decided in this tick, H: held."""
+    v = ",".join(f"{float(x):.9g}" for x in cmd_vel_ned_m_s)
+    text = f"trace {state_seq} {float(heading_rad):.9g} {v} {'D' if decided else 'H'} "
+    items = [
+        f"{i}:{s}:{round(a * 1e6)}" for i, s, a in zip(nbr_ids, nbr_seqs, nbr_ages_s, strict=True)
+    ]
+    body = ";".join(items)
+    if len((text + body).encode()) <= max_bytes:
+        return text + body
+    while items and len((text + ";".join(items) + "+").encode()) > max_bytes:
+        items.pop()
+    return text + ";".join(items) + "+"
+
+
+def _fly(path, n_ticks=120, traces=True, cruise=1.0, legacy=False):
     """Three vehicles crossing, each run by agent.guidance as the agent does it, with neighbour
-    states that arrive late (ages vary) and are dead-reckoned; writes states and traces to MCAP."""
+    states that arrive late (ages vary) and are dead-reckoned; writes states and traces to MCAP
+    (GuidanceTrace on the trace key, or with `legacy` as event text, as older agents did)."""
     starts = {1: (0.0, 0.0), 2: (10.0, 10.0), 3: (10.0, -10.0)}
     goals = {1: (20.0, 0.0), 2: (0.0, -8.0), 3: (0.0, 8.0)}
     pos = {v: np.array([*p, -5.0]) for v, p in starts.items()}
@@ -66,11 +87,31 @@ def _fly(path, n_ticks=120, traces=True, cruise=1.0):
                 sink.put(keys.state(FLEET, v), state.encode(), t_ns + v)
                 if traces:
                     seqs = [tables[v].latest()[i].seq for i in snap.ids]
-                    text = trace_text(
-                        k, h_in, out.vel_ned_m_s, snap.ids, seqs, snap.age_s, decided=out.decided
-                    )
-                    ev = Event(v, t_ns, text, Severity.DEBUG)
-                    sink.put(keys.event(FLEET, v), ev.encode(), t_ns + v + 1)
+                    if legacy:
+                        text = trace_text(
+                            k,
+                            h_in,
+                            out.vel_ned_m_s,
+                            snap.ids,
+                            seqs,
+                            snap.age_s,
+                            decided=out.decided,
+                        )
+                        ev = Event(v, t_ns, text, Severity.DEBUG)
+                        sink.put(keys.event(FLEET, v), ev.encode(), t_ns + v + 1)
+                    else:
+                        tr = GuidanceTrace.build(
+                            v,
+                            k,
+                            t_ns,
+                            h_in,
+                            out.vel_ned_m_s,
+                            snap.ids,
+                            seqs,
+                            snap.age_s,
+                            out.decided,
+                        )
+                        sink.put(keys.trace(FLEET, v), tr.encode(), t_ns + v + 1)
                 for dst in pos:
                     if dst != v and rng.random() > 0.2:  # 20 % loss, 0-250 ms late
                         inflight.append(
@@ -110,6 +151,27 @@ def test_same_policy_reports_zero_difference(tmp_path):
     assert "closed-loop replay of vehicle 1" in format_report(rep)
 
 
+def test_event_text_traces_of_older_recordings_replay_exactly(tmp_path):
+    path = tmp_path / "cl.mcap"
+    _fly(path, legacy=True)
+    assert not any(m.topic.endswith("/trace") for m in read_recording(path).messages)
+    rep = run_closed_loop(ClosedLoopConfig(str(path), vehicle_id=1))
+    assert rep["reference"] == "trace" and rep["exact"]
+    assert rep["ticks"] == 120 and rep["skipped_ticks"] == 0
+    assert rep["max_diff_m_s"] < 1e-4
+
+
+def test_traces_have_their_own_key_and_count_in_the_summary(tmp_path):
+    from comms.record import summarise
+
+    path = tmp_path / "cl.mcap"
+    _fly(path, n_ticks=5)
+    rec = read_recording(path)
+    traces = [GuidanceTrace.decode(m.data) for m in rec.messages if m.topic.endswith("/trace")]
+    assert len(traces) == 15 and {t.vehicle_id for t in traces} == {1, 2, 3}
+    assert summarise(rec)["counts"] == {"states": 15, "traces": 15}
+
+
 def test_different_policy_settings_show_a_difference(tmp_path):
     path = tmp_path / "cl.mcap"
     _fly(path)
@@ -139,8 +201,8 @@ def test_unknown_vehicle_is_a_clear_error(tmp_path):
 def test_cli_prints_a_table_and_writes_json(tmp_path, capsys):
     import json
 
-    from groundstation.recording_cli import replay_cli
     from policy.runtime import DEFAULT_WEIGHTS
+    from tools.replay_cli import replay_cli
 
     path, out = tmp_path / "cl.mcap", tmp_path / "report.json"
     _fly(path, n_ticks=30)
@@ -155,7 +217,7 @@ def test_cli_prints_a_table_and_writes_json(tmp_path, capsys):
 
 
 def test_cli_rejects_half_a_closed_loop_request(tmp_path):
-    from groundstation.recording_cli import replay_cli
+    from tools.replay_cli import replay_cli
 
     path = tmp_path / "cl.mcap"
     _fly(path, n_ticks=3)

@@ -1,26 +1,24 @@
 """Closed-loop replay of a real agent flight reports zero difference for the same policy.
 
 The agents are real `covey agent --trace-guidance` processes: after each published state they
-publish the guidance trace (agent/closed_loop.py: `trace_text`) that makes the replay exact.
+publish the guidance trace (tools/closed_loop.py: `trace_text`) that makes the replay exact.
 """
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
 import sys
 import time
 import uuid
 
 import pytest
 
-from agent.closed_loop import ClosedLoopConfig, run_closed_loop
 from comms.commands import new_nonce
 from comms.mesh import Mesh
+from comms.procs import ChildGroup
 from comms.record import RecordConfig, Recorder, read_recording
 from comms.schema import Command
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from tools.closed_loop import ClosedLoopConfig, run_closed_loop
 
 pytestmark = pytest.mark.e2e
 
@@ -42,54 +40,42 @@ def test_same_policy_on_a_real_flight_reports_zero_difference(tmp_path):
     fleet = "cl" + uuid.uuid4().hex[:8]
     port = free_tcp_port()
     path = tmp_path / "flight.mcap"
-    procs = []
     with (
         Mesh(embedded_router(port, fleet=fleet)) as mesh,
         Recorder(RecordConfig(str(path), embedded_peer(port, fleet=fleet))),
+        ChildGroup(
+            prefix=[sys.executable, "-m", "covey_cli", "agent"],
+            output="discard",
+            stderr="discard",
+            grace_s=10.0,
+        ) as agents,
     ):
-        try:
-            for vid, (n, e) in STARTS.items():
-                procs.append(
-                    subprocess.Popen(
-                        [
-                            sys.executable,
-                            "-m",
-                            "covey_cli",
-                            "agent",
-                            "--id",
-                            str(vid),
-                            "--fleet",
-                            fleet,
-                            "--connect",
-                            f"tcp/127.0.0.1:{port}",
-                            f"--start={n},{e}",
-                            "--no-gcs-failsafe",
-                            "--trace-guidance",
-                        ],
-                        env={**os.environ},
-                        stdout=subprocess.DEVNULL,
-                        stderr=subprocess.DEVNULL,
-                    )
-                )
-            assert mesh.presence().wait_for(lambda v, _g: set(STARTS) <= v, 20.0)
-            now = time.time_ns
-            _until_accepted(
-                mesh,
-                lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=now(), targets=(v,)),
+        for vid, (n, e) in STARTS.items():
+            agents.start(
+                "--id",
+                str(vid),
+                "--fleet",
+                fleet,
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+                f"--start-ne-m={n},{e}",
+                "--no-gcs-failsafe",
+                "--trace-guidance",
             )
-            time.sleep(3.5)
-            _until_accepted(
-                mesh,
-                lambda v: Command.goto_local(
-                    *GOALS[v], nonce=new_nonce(), stamp_ns=now(), targets=(v,)
-                ),
-            )
-            time.sleep(5.0)
-        finally:
-            for p in procs:
-                p.send_signal(signal.SIGTERM)
-            for p in procs:
-                p.wait(10)
+        assert mesh.presence().wait_for(lambda v, _g: set(STARTS) <= v, 20.0)
+        now = time.time_ns
+        _until_accepted(
+            mesh,
+            lambda v: Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=now(), targets=(v,)),
+        )
+        time.sleep(3.5)
+        _until_accepted(
+            mesh,
+            lambda v: Command.goto_local(
+                *GOALS[v], nonce=new_nonce(), stamp_ns=now(), targets=(v,)
+            ),
+        )
+        time.sleep(5.0)
     rec = read_recording(path)
     for vid in STARTS:
         rep = run_closed_loop(ClosedLoopConfig(str(path), vehicle_id=vid), recording=rec)

@@ -16,11 +16,11 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from comms.geo import GeoOrigin
+from comms.mavlink_udp import LinkUrl
 from firmware.sitl import px4, streams
-from firmware.sitl.app import Emulator
 from firmware.sitl.commands import Autopilot
 from firmware.sitl.config import SitlConfig
-from firmware.sitl.mavlink_io import LinkUrl
+from firmware.sitl.emulator import Emulator
 from firmware.sitl.px4 import Px4Mode
 from firmware.sitl.traffic import TrafficStore
 from firmware.sitl.vehicle import Vehicle, VehicleParams

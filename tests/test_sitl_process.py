@@ -63,15 +63,15 @@ class RawGcs:
 
 
 FAST_ARGS = [
-    "--takeoff-speed",
+    "--takeoff-speed-m-s",
     "5",
-    "--pos-gain",
+    "--pos-gain-1-s",
     "3",
-    "--accel",
+    "--accel-m-s2",
     "15",
-    "--land-speed",
+    "--land-speed-m-s",
     "4",
-    "--disarm-after-land",
+    "--disarm-after-land-s",
     "0.3",
 ]
 

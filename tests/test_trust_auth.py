@@ -295,6 +295,19 @@ def test_events_are_signed_by_their_vehicle(fleet) -> None:
     assert Event.decode(v1.sign_event(ev).encode()).sig  # the signature survives the wire
 
 
+def test_guidance_traces_are_signed_by_their_vehicle(fleet) -> None:
+    from comms.schema import GuidanceTrace
+
+    v1, v2 = member(fleet, Role.VEHICLE, 1), member(fleet, Role.VEHICLE, 2)
+    station = member(fleet, Role.STATION, 1)
+    tr = GuidanceTrace(1, 5, time.time_ns(), 0.5, (1.0, 0.0, 0.0), ((2, 3, 0.1),))
+    signed = GuidanceTrace.decode(v1.sign_trace(tr).encode())  # the signature survives the wire
+    assert signed.sig and station.check_trace(signed) is None
+    assert "bad signature" in station.check_trace(v2.sign_trace(tr))
+    assert station.check_trace(tr) is not None  # unsigned
+    assert station.check_trace(dataclasses.replace(signed, state_seq=6)) is not None
+
+
 # -- key files and keygen ----------------------------------------------------------------------
 def test_keygen_init_add_revoke_list_and_file_modes(tmp_path, capsys) -> None:
     from groundstation.keygen_cli import keygen_cli
@@ -408,7 +421,7 @@ def test_agents_with_key_files_accept_only_station_signed_fresh_commands(procs, 
                 str(vid),
                 "--connect",
                 f"tcp/127.0.0.1:{port}",
-                f"--start={3 * vid},0",
+                f"--start-ne-m={3 * vid},0",
                 "--no-gcs-failsafe",
             )
         assert presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), "agents did not come up"

@@ -33,10 +33,11 @@ from comms.commands import OutcomeStatus, new_nonce
 from comms.gate import Refusal
 from comms.identity import read_member_key
 from comms.mesh import Mesh
+from comms.procs import ChildGroup, python_env
 from comms.schema import Command, CommandKind, Event, EventKind, Mode, Role, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
-from tests.conftest import REPO, ProcessGroup
+from tests.conftest import REPO, views_by_id
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -46,7 +47,7 @@ V2_AT = (0.0, 16.0)
 
 
 class Station:
-    """Station 1: a keyed Mesh feeding a FleetModel (what groundstation/app.py does)."""
+    """Station 1: a keyed Mesh feeding a FleetModel (what groundstation/station.py does)."""
 
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh
@@ -61,7 +62,7 @@ class Station:
         )
 
     def views(self):
-        return self.fleet.snapshot(time.time_ns(), trails=False).by_id()
+        return views_by_id(self.fleet.snapshot(time.time_ns(), trails=False))
 
     def wait(self, pred, timeout_s: float, what: str) -> None:
         deadline = time.monotonic() + timeout_s
@@ -83,7 +84,7 @@ def keyed(tmp_path_factory):
     d = tmp_path_factory.mktemp("keyed") / "keys"
     authority = throwaway_fleet(d, FLEET, vehicles=[1, 2, 3], stations=[1, 2])
     port = free_tcp_port()
-    group = ProcessGroup()
+    group = ChildGroup(prefix=[sys.executable], cwd=REPO, env=python_env(REPO), grace_s=0.0)
     raw_states: list[
         tuple[float, bytes]
     ] = []  # what an eavesdropper records: signed states of vehicle 1
@@ -110,7 +111,7 @@ def keyed(tmp_path_factory):
                     FLEET,
                     "--connect",
                     f"tcp/127.0.0.1:{port}",
-                    f"--start={n:g},{e:g}",
+                    f"--start-ne-m={n:g},{e:g}",
                     "--no-gcs-failsafe",
                 )
             assert station.presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60), (
@@ -136,7 +137,7 @@ def keyed(tmp_path_factory):
                 "first_roster": authority.roster,
             }
     finally:
-        group.close()
+        group.stop()
 
 
 class Forger:
@@ -421,14 +422,14 @@ def test_a_revoked_station_and_vehicle_are_refused_after_a_roster_push(keyed) ->
             assert "unknown signer" in after.outcomes[vid].reason, after.summary()
         still = station.send(hold(), (1, 2))  # station 1 still commands
         assert still.ok, still.summary()
-        refused0 = station.fleet.snapshot(time.time_ns()).by_id()[3].refused_states
+        refused0 = views_by_id(station.fleet.snapshot(time.time_ns()))[3].refused_states
         for k in range(5):
             vehicle3.publish_state(
                 VehicleState(3, 10 + k, time.time_ns(), (30.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
             )
             time.sleep(0.05)
         time.sleep(0.5)
-        v3_view = station.fleet.snapshot(time.time_ns()).by_id()[3]
+        v3_view = views_by_id(station.fleet.snapshot(time.time_ns()))[3]
         assert v3_view.refused_states - refused0 == 5 and v3_view.refused_cause == "unknown signer"
         assert v3_view.unverified and v3_view.state.seq == 1  # nothing after the revocation got in
     # A member started from an old key file (first roster) catches the new roster from the others.

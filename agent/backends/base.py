@@ -63,6 +63,8 @@ class VehicleBackend(ABC):
     """A vehicle the agent flies. Use as a context manager; `close()` releases the link."""
 
     capabilities: frozenset[Capability] = frozenset()
+    takes_global_targets: bool = False
+    """`goto_global` flies a (lat, lon, alt) target as given (no round trip through NED)."""
 
     def __enter__(self) -> VehicleBackend:
         return self
@@ -99,6 +101,10 @@ class VehicleBackend(ABC):
     def goto_local(self, pos_ned_m: Sequence[float]) -> None:
         """Fly to this local NED position with onboard guidance (onboard mode)."""
         raise NotSupported(f"{type(self).__name__} does not run guidance onboard")
+
+    def goto_global(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+        """Fly to this global position with onboard guidance (see `takes_global_targets`)."""
+        raise NotSupported(f"{type(self).__name__} does not take global targets")
 
     def send_traffic(self, traffic: Sequence[Traffic]) -> None:
         """Tell the autopilot where the neighbours are (onboard mode)."""

@@ -23,8 +23,8 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
 from comms.geo import GeoOrigin
+from comms.mavlink_udp import LinkUrl, UdpLink
 from comms.schema import POSITION_LIMIT_M, SPEED_LIMIT_M_S
-from firmware.sitl.mavlink_io import LinkUrl, UdpLink  # the one tested MAVLink-over-UDP link
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +130,7 @@ class _State:
 class RelayBackend(VehicleBackend):
     """Relay to one PX4 autopilot that runs the policy onboard. Use as a context manager."""
 
+    takes_global_targets = True
     capabilities = frozenset({Capability.ONBOARD_GUIDANCE, Capability.TRAFFIC_INPUT})
 
     def __init__(
@@ -392,13 +393,18 @@ class RelayBackend(VehicleBackend):
         p = [float(x) for x in pos_ned_m]
         if len(p) != 3 or not all(math.isfinite(x) for x in p):
             raise BackendError(f"goto position must be 3 finite numbers (NED m), got {pos_ned_m}")
-        lat, lon, alt = self.origin.to_global(*p)
+        self.goto_global(*self.origin.to_global(*p))
+
+    def goto_global(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+        g = [float(lat_deg), float(lon_deg), float(alt_m)]
+        if not all(math.isfinite(x) for x in g) or abs(g[0]) > 90 or abs(g[1]) > 180:
+            raise BackendError(f"goto target must be a finite lat, lon, alt, got {tuple(g)}")
         # DO_REPOSITION: speed default (-1), switch mode (flag 1), yaw unchanged (NaN).
         self._command(
             "goto",
             mavlink.MAV_CMD_DO_REPOSITION,
             [-1.0, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0.0, math.nan],
-            global_xyz=(round(lat * 1e7), round(lon * 1e7), alt),
+            global_xyz=(round(g[0] * 1e7), round(g[1] * 1e7), g[2]),
         )
 
     def send_traffic(self, traffic: Sequence[Traffic]) -> None:

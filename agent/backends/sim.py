@@ -1,22 +1,25 @@
-"""The built-in simulator: a point-mass multirotor behind the same interface as a real vehicle.
+"""The built-in simulator: point-mass multirotors behind the same interface as a real vehicle.
 
-Velocity tracking with an acceleration limit, vertical take-off and landing at fixed rates, a
-battery that drains with flight time, and kill that cuts the motors so the vehicle falls. The
-simulator integrates only when the agent calls `step(now_s)`, so time is whatever the caller
-says it is.
+`SimFleet` holds N simulated vehicles as arrays (one process can fly hundreds: `covey
+fleet-sim`); `SimBackend` is one of them behind the `VehicleBackend` interface (`covey agent
+--backend sim`). Each vehicle tracks velocity with an acceleration limit, takes off and lands
+vertically at fixed rates, drains a battery in the air, and falls when killed; the physics is
+the one point-mass model (policy/pointmass.py). The simulator integrates only when `step(now_s)`
+is called, so time is whatever the caller says it is. Thread-safe: one lock guards the arrays.
 """
 
 from __future__ import annotations
 
+import enum
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
-
-GRAVITY_M_S2 = 9.81
+from policy.pointmass import integrate
 
 
 @dataclass(frozen=True)
@@ -24,7 +27,7 @@ class SimConfig:
     """Physical parameters of the simulated multirotor."""
 
     start_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Where the vehicle stands at power-on (d = 0 is the ground)."""
+    """Where the vehicle stands at power-on (d = 0 is the ground); `SimFleet` takes one per row."""
     start_heading_rad: float = 0.0
     max_accel_m_s2: float = 4.0
     """Horizontal and vertical acceleration limit of velocity tracking."""
@@ -39,9 +42,17 @@ class SimConfig:
     """Battery used per second in the air (20 min endurance)."""
     setpoint_timeout_s: float = 0.5
     """Like PX4 offboard: with no velocity setpoint for this long, the vehicle holds."""
+    max_step_s: float = 0.5
+    """Longest time one `step` integrates: a stalled process must not teleport the vehicles."""
 
     def __post_init__(self) -> None:
-        for name in ("max_accel_m_s2", "max_speed_m_s", "climb_rate_m_s", "descent_rate_m_s"):
+        for name in (
+            "max_accel_m_s2",
+            "max_speed_m_s",
+            "climb_rate_m_s",
+            "descent_rate_m_s",
+            "max_step_s",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
@@ -49,156 +60,219 @@ class SimConfig:
             raise ValueError(f"start_ned_m must be finite, got {self.start_ned_m}")
 
 
-class SimBackend(VehicleBackend):
-    """A simulated vehicle. Not thread-safe on its own: the agent serialises calls."""
+class SimMode(enum.IntEnum):
+    """What a simulated autopilot is doing (its own modes, not the agent's)."""
 
-    capabilities = frozenset({Capability.VELOCITY_SETPOINT})
+    IDLE = 0
+    TAKEOFF = 1
+    HOLD = 2
+    VELOCITY = 3
+    LAND = 4
+    FALLING = 5
 
-    def __init__(self, cfg: SimConfig = SimConfig(), now_s: float = 0.0) -> None:
+
+class SimFleet:
+    """N simulated vehicles. Commands address one row and raise `BackendError` with the reason
+    a real autopilot would give; `set_velocities` and `step` work on all rows at once."""
+
+    def __init__(
+        self,
+        cfg: SimConfig = SimConfig(),
+        starts_ned_m: np.ndarray | None = None,
+        now_s: float = 0.0,
+    ) -> None:
         self.cfg = cfg
-        self.pos_m = np.array(cfg.start_ned_m, dtype=float)
-        self.pos_m[2] = min(self.pos_m[2], 0.0)
-        self.vel_m_s = np.zeros(3)
-        self.heading_rad = cfg.start_heading_rad
-        self.armed = False
-        self.battery_pct = 100.0
-        self._mode = "idle"  # idle | takeoff | hold | velocity | land | falling
-        self._target_alt_m = 0.0
-        self._hold_m = self.pos_m.copy()
-        self._setpoint_m_s = np.zeros(3)
-        self._setpoint_heading_rad = self.heading_rad
-        self._setpoint_stamp_s = -math.inf
-        self._now_s = now_s
-        self._closed = False
+        starts = np.array([cfg.start_ned_m] if starts_ned_m is None else starts_ned_m, float)
+        if starts.ndim != 2 or starts.shape[1] != 3 or not np.all(np.isfinite(starts)):
+            raise ValueError(f"starts_ned_m must be finite (N, 3), got shape {starts.shape}")
+        n = len(starts)
+        self.n = n
+        self.pos_m = starts.copy()
+        self.pos_m[:, 2] = np.minimum(self.pos_m[:, 2], 0.0)
+        self.vel_m_s = np.zeros((n, 3))
+        self.heading_rad = np.full(n, cfg.start_heading_rad)
+        self.armed = np.zeros(n, bool)
+        self.battery_pct = np.full(n, 100.0)
+        self.mode = np.full(n, SimMode.IDLE, np.int8)
+        self.target_alt_m = np.zeros(n)
+        self.hold_m = self.pos_m.copy()
+        self.sp_vel_m_s = np.zeros((n, 3))
+        self.sp_heading_rad = self.heading_rad.copy()
+        self.sp_stamp_s = np.full(n, -np.inf)
+        self.closed = np.zeros(n, bool)
+        self.now_s = now_s
+        self.lock = threading.RLock()
 
-    # -- VehicleBackend ---------------------------------------------------------------------
-    def close(self) -> None:
-        self._closed = True
+    # -- one row's commands ---------------------------------------------------------------------
+    def _check_open(self, i: int) -> None:
+        if self.closed[i]:
+            raise BackendError("simulator is closed")
 
-    def telemetry(self) -> Telemetry | None:
-        return Telemetry(
-            stamp_s=self._now_s,
-            pos_ned_m=tuple(float(x) for x in self.pos_m),  # type: ignore[arg-type]
-            vel_ned_m_s=tuple(float(x) for x in self.vel_m_s),  # type: ignore[arg-type]
-            heading_rad=self.heading_rad,
-            armed=self.armed,
-            in_air=self.in_air,
-            battery_pct=self.battery_pct,
-            link_ok=not self._closed,
-        )
+    def in_air(self, i: int) -> bool:
+        return bool(self.pos_m[i, 2] < -0.05)
 
-    @property
-    def in_air(self) -> bool:
-        return bool(self.pos_m[2] < -0.05)
+    def telemetry(self, i: int) -> Telemetry:
+        with self.lock:
+            p, v = self.pos_m[i].tolist(), self.vel_m_s[i].tolist()
+            return Telemetry(
+                stamp_s=self.now_s,
+                pos_ned_m=(p[0], p[1], p[2]),
+                vel_ned_m_s=(v[0], v[1], v[2]),
+                heading_rad=float(self.heading_rad[i]),
+                armed=bool(self.armed[i]),
+                in_air=self.in_air(i),
+                battery_pct=float(self.battery_pct[i]),
+                link_ok=not self.closed[i],
+            )
 
-    def takeoff(self, alt_m: float) -> None:
-        self._check_open()
-        if not (math.isfinite(alt_m) and alt_m > 0):
-            raise BackendError(f"takeoff altitude must be positive, got {alt_m}")
-        if self.battery_pct < 5.0:
-            raise BackendError(f"battery too low to take off ({self.battery_pct:.0f} %)")
-        self.armed = True
-        self._target_alt_m = alt_m
-        self._hold_m = self.pos_m.copy()
-        self._mode = "takeoff"
+    def takeoff(self, i: int, alt_m: float) -> None:
+        with self.lock:
+            self._check_open(i)
+            if not (math.isfinite(alt_m) and alt_m > 0):
+                raise BackendError(f"takeoff altitude must be positive, got {alt_m}")
+            if self.battery_pct[i] < 5.0:
+                raise BackendError(f"battery too low to take off ({self.battery_pct[i]:.0f} %)")
+            self.armed[i] = True
+            self.target_alt_m[i] = alt_m
+            self.hold_m[i] = self.pos_m[i]
+            self.mode[i] = SimMode.TAKEOFF
 
-    def land(self) -> None:
-        self._check_open()
-        if not self.armed:
-            return
-        self._hold_m = self.pos_m.copy()
-        self._mode = "land"
+    def land(self, i: int) -> None:
+        with self.lock:
+            self._check_open(i)
+            if not self.armed[i]:
+                return
+            self.hold_m[i] = self.pos_m[i]
+            self.mode[i] = SimMode.LAND
 
-    def hold(self) -> None:
-        self._check_open()
-        if not self.armed:
-            raise BackendError("cannot hold: vehicle is disarmed")
-        self._hold_m = self.pos_m.copy()
-        self._mode = "hold"
+    def hold(self, i: int) -> None:
+        with self.lock:
+            self._check_open(i)
+            if not self.armed[i]:
+                raise BackendError("cannot hold: vehicle is disarmed")
+            self.hold_m[i] = self.pos_m[i]
+            self.mode[i] = SimMode.HOLD
 
-    def kill(self) -> None:
-        self._check_open()
-        self.armed = False
-        self._mode = "falling" if self.in_air else "idle"
+    def kill(self, i: int) -> None:
+        with self.lock:
+            self._check_open(i)
+            self.armed[i] = False
+            self.mode[i] = SimMode.FALLING if self.in_air(i) else SimMode.IDLE
 
-    def set_velocity_ned(self, vel_ned_m_s: Sequence[float], heading_rad: float) -> None:
-        self._check_open()
+    def set_velocity(self, i: int, vel_ned_m_s: Sequence[float], heading_rad: float) -> None:
         v = np.asarray(vel_ned_m_s, dtype=float)
         if v.shape != (3,) or not np.all(np.isfinite(v)) or not math.isfinite(heading_rad):
             raise BackendError(f"velocity setpoint must be 3 finite numbers, got {vel_ned_m_s}")
-        if not self.armed:
-            raise BackendError("cannot fly a velocity setpoint: vehicle is disarmed")
-        speed = float(np.linalg.norm(v))
-        if speed > self.cfg.max_speed_m_s:
-            v *= self.cfg.max_speed_m_s / speed
-        self._setpoint_m_s = v
-        self._setpoint_heading_rad = heading_rad
-        self._setpoint_stamp_s = self._now_s
-        self._mode = "velocity"
+        with self.lock:
+            self._check_open(i)
+            if not self.armed[i]:
+                raise BackendError("cannot fly a velocity setpoint: vehicle is disarmed")
+            self.set_velocities(np.array([i]), v[None], np.array([heading_rad]))
 
+    def set_velocities(self, rows: np.ndarray, vel_ned_m_s: np.ndarray, heading_rad: np.ndarray):
+        """Velocity setpoints for `rows` (armed, open, finite: the caller checked)."""
+        with self.lock:
+            v = np.array(vel_ned_m_s, dtype=float)
+            speed = np.linalg.norm(v, axis=1)
+            fast = speed > self.cfg.max_speed_m_s
+            v[fast] *= (self.cfg.max_speed_m_s / speed[fast])[:, None]
+            self.sp_vel_m_s[rows] = v
+            self.sp_heading_rad[rows] = heading_rad
+            self.sp_stamp_s[rows] = self.now_s
+            self.mode[rows] = SimMode.VELOCITY
+
+    def close(self, i: int) -> None:
+        with self.lock:
+            self.closed[i] = True
+
+    # -- physics --------------------------------------------------------------------------------
     def step(self, now_s: float) -> None:
-        dt_s = now_s - self._now_s
-        self._now_s = now_s
-        if dt_s <= 0:
-            return
-        dt_s = min(dt_s, 0.5)  # a stalled process must not teleport the vehicle
-        self._integrate(dt_s)
+        """Integrate every vehicle up to `now_s` (at most `max_step_s` at once)."""
+        with self.lock:
+            dt_s = now_s - self.now_s
+            self.now_s = now_s
+            if dt_s > 0:
+                self._integrate(min(dt_s, self.cfg.max_step_s))
 
-    # -- physics ------------------------------------------------------------------------------
-    def _check_open(self) -> None:
-        if self._closed:
-            raise BackendError("simulator is closed")
-
-    def _desired_velocity(self) -> np.ndarray:
-        cfg = self.cfg
-        if (
-            self._mode == "velocity"
-            and self._now_s - self._setpoint_stamp_s > cfg.setpoint_timeout_s
-        ):
-            self._hold_m = self.pos_m.copy()  # setpoints stopped: hold, as PX4 does
-            self._mode = "hold"
-        if self._mode == "velocity":
-            return self._setpoint_m_s.copy()
-        if self._mode in ("hold", "takeoff", "land"):
-            err = self._hold_m - self.pos_m
-            v = cfg.hold_gain_1_s * err
-            if self._mode == "takeoff":
-                v[2] = -cfg.climb_rate_m_s if -self.pos_m[2] < self._target_alt_m - 0.05 else 0.0
-                if -self.pos_m[2] >= self._target_alt_m - 0.05:
-                    self._hold_m = self.pos_m.copy()
-                    self._hold_m[2] = -self._target_alt_m
-                    self._mode = "hold"
-            elif self._mode == "land":
-                v[2] = cfg.descent_rate_m_s if -self.pos_m[2] > 2.0 else 0.5 * cfg.descent_rate_m_s
-            return v
-        return np.zeros(3)
+    def _wanted_velocity(self) -> np.ndarray:
+        cfg, mode, pos = self.cfg, self.mode, self.pos_m
+        lapsed = (mode == SimMode.VELOCITY) & (
+            self.now_s - self.sp_stamp_s > cfg.setpoint_timeout_s
+        )
+        self.hold_m[lapsed] = pos[lapsed]  # setpoints stopped: hold, as PX4 does
+        mode[lapsed] = SimMode.HOLD
+        want = np.zeros_like(self.vel_m_s)
+        vel = mode == SimMode.VELOCITY
+        want[vel] = self.sp_vel_m_s[vel]
+        positional = np.isin(mode, (SimMode.HOLD, SimMode.TAKEOFF, SimMode.LAND))
+        want[positional] = cfg.hold_gain_1_s * (self.hold_m[positional] - pos[positional])
+        up = mode == SimMode.TAKEOFF
+        below = -pos[:, 2] < self.target_alt_m - 0.05
+        want[up, 2] = np.where(below[up], -cfg.climb_rate_m_s, 0.0)
+        done = up & ~below  # at the take-off altitude: hold there
+        self.hold_m[done] = pos[done]
+        self.hold_m[done, 2] = -self.target_alt_m[done]
+        mode[done] = SimMode.HOLD
+        down = mode == SimMode.LAND
+        want[down, 2] = np.where(-pos[down, 2] > 2.0, 1.0, 0.5) * cfg.descent_rate_m_s
+        return want
 
     def _integrate(self, dt_s: float) -> None:
         cfg = self.cfg
-        if self._mode == "falling":
-            self.vel_m_s[:2] *= max(0.0, 1.0 - 0.5 * dt_s)  # drag
-            self.vel_m_s[2] += GRAVITY_M_S2 * dt_s
-        elif self._mode != "idle":
-            dv = self._desired_velocity() - self.vel_m_s
-            dv_norm = float(np.linalg.norm(dv))
-            max_dv = cfg.max_accel_m_s2 * dt_s
-            if dv_norm > max_dv:
-                dv *= max_dv / dv_norm
-            self.vel_m_s += dv
-        else:
-            self.vel_m_s[:] = 0.0
-        self.pos_m += self.vel_m_s * dt_s
-        if self.pos_m[2] >= 0.0:  # ground contact
-            self.pos_m[2] = 0.0
-            if self.vel_m_s[2] > 0:
-                self.vel_m_s[:] = 0.0
-                if self._mode in ("land", "falling"):
-                    self.armed = False
-                    self._mode = "idle"
-        horizontal_m_s = math.hypot(self.vel_m_s[0], self.vel_m_s[1])
-        if self._mode == "velocity":
-            self.heading_rad = self._setpoint_heading_rad
-        elif horizontal_m_s > 0.2 and self.armed:
-            self.heading_rad = math.atan2(self.vel_m_s[1], self.vel_m_s[0])
-        if self.in_air and self.armed:
-            self.battery_pct = max(0.0, self.battery_pct - cfg.battery_drain_pct_s * dt_s)
+        powered = (self.mode != SimMode.IDLE) & (self.mode != SimMode.FALLING)
+        hit = integrate(
+            self.pos_m, self.vel_m_s, self._wanted_velocity(), dt_s, cfg.max_accel_m_s2, powered
+        )
+        down = hit & np.isin(self.mode, (SimMode.LAND, SimMode.FALLING))
+        self.armed[down] = False
+        self.mode[down] = SimMode.IDLE
+        vel = self.mode == SimMode.VELOCITY
+        self.heading_rad[vel] = self.sp_heading_rad[vel]
+        moving = ~vel & self.armed & (np.hypot(self.vel_m_s[:, 0], self.vel_m_s[:, 1]) > 0.2)
+        self.heading_rad[moving] = np.arctan2(self.vel_m_s[moving, 1], self.vel_m_s[moving, 0])
+        flying = (self.pos_m[:, 2] < -0.05) & self.armed
+        self.battery_pct[flying] = np.maximum(
+            0.0, self.battery_pct[flying] - cfg.battery_drain_pct_s * dt_s
+        )
+
+
+class SimBackend(VehicleBackend):
+    """One simulated vehicle: row `index` of a `SimFleet` (its own fleet of one by default)."""
+
+    capabilities = frozenset({Capability.VELOCITY_SETPOINT})
+
+    def __init__(
+        self,
+        cfg: SimConfig = SimConfig(),
+        now_s: float = 0.0,
+        *,
+        fleet: SimFleet | None = None,
+        index: int = 0,
+    ) -> None:
+        self.fleet = fleet if fleet is not None else SimFleet(cfg, now_s=now_s)
+        self.cfg = self.fleet.cfg
+        self.index = index
+
+    def close(self) -> None:
+        self.fleet.close(self.index)
+
+    def telemetry(self) -> Telemetry | None:
+        return self.fleet.telemetry(self.index)
+
+    def takeoff(self, alt_m: float) -> None:
+        self.fleet.takeoff(self.index, alt_m)
+
+    def land(self) -> None:
+        self.fleet.land(self.index)
+
+    def hold(self) -> None:
+        self.fleet.hold(self.index)
+
+    def kill(self) -> None:
+        self.fleet.kill(self.index)
+
+    def set_velocity_ned(self, vel_ned_m_s: Sequence[float], heading_rad: float) -> None:
+        self.fleet.set_velocity(self.index, vel_ned_m_s, heading_rad)
+
+    def step(self, now_s: float) -> None:
+        self.fleet.step(now_s)

@@ -1,5 +1,5 @@
 """`python -m firmware.sitl --id N ...`: the same as `covey sitl`."""
 
-from firmware.sitl.cli import cli
+from firmware.sitl.sitl_cli import cli
 
 raise SystemExit(cli())

@@ -16,7 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from comms.geo import GeoOrigin
 from firmware.sitl import px4, streams
-from firmware.sitl.px4 import OK, Outcome, Px4Mode
+from firmware.sitl.px4 import OK, Px4Mode, Px4Result
 from firmware.sitl.traffic import TrafficStore, entry_from_adsb
 from firmware.sitl.vehicle import Vehicle
 
@@ -101,7 +101,7 @@ class Autopilot:
         try:
             outcome = self._dispatch(command, p, frame, now_s, extra)
         except (ValueError, OverflowError) as exc:  # e.g. int(nan): a malformed parameter
-            outcome = Outcome(px4.DENIED, f"Command {command} denied: {exc}")
+            outcome = Px4Result(px4.DENIED, f"Command {command} denied: {exc}")
             self.vehicle.events.append(outcome.reason)
         log.debug("command %d %s -> result %d %s", command, p, outcome.result, outcome.reason)
         ack = mavlink.MAVLink_command_ack_message(
@@ -111,7 +111,7 @@ class Autopilot:
 
     def _dispatch(
         self, command: int, p: list[float], frame: int | None, now_s: float, extra: list[Any]
-    ) -> Outcome:
+    ) -> Px4Result:
         v = self.vehicle
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] == 1.0:
@@ -120,7 +120,7 @@ class Autopilot:
                 return v.disarm(now_s, force=p[1] == px4.KILL_MAGIC)
             raise ValueError(f"param1 must be 0 or 1, got {p[0]}")
         if command == mavlink.MAV_CMD_DO_FLIGHTTERMINATION:
-            return v.kill(now_s) if p[0] > 0.5 else Outcome(px4.ACCEPTED)
+            return v.kill(now_s) if p[0] > 0.5 else Px4Result(px4.ACCEPTED)
         if command == mavlink.MAV_CMD_DO_SET_MODE:
             if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
                 raise ValueError("only custom (PX4) modes are supported")
@@ -148,18 +148,18 @@ class Autopilot:
             }.get(command, int(p[0]))
             reply = self._requested(msg_id, now_s)
             if reply is None:
-                return Outcome(px4.UNSUPPORTED, f"message {msg_id} not available")
+                return Px4Result(px4.UNSUPPORTED, f"message {msg_id} not available")
             extra.append(reply)
             return OK
         if command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
             return self._change_speed(p[1])
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return Outcome(
+            return Px4Result(
                 px4.ACCEPTED
             )  # streams run at fixed rates; accepted like PX4 so MAVSDK is happy
-        return Outcome(px4.UNSUPPORTED)
+        return Px4Result(px4.UNSUPPORTED)
 
-    def _reposition(self, p: list[float], frame: int | None, now_s: float) -> Outcome:
+    def _reposition(self, p: list[float], frame: int | None, now_s: float) -> Px4Result:
         lat, lon, alt = p[4], p[5], p[6]
         v = self.vehicle
         if frame is not None:  # COMMAND_INT: degE7 integers; INT32_MAX is "unset"
@@ -183,7 +183,7 @@ class Autopilot:
         n, e, d = self.home.to_local(lat, lon, alt if math.isfinite(alt) else self.home.alt_m)
         return v.reposition(np.array([n, e, d if math.isfinite(alt) else math.nan]), now_s)
 
-    def _change_speed(self, speed_m_s: float) -> Outcome:
+    def _change_speed(self, speed_m_s: float) -> Px4Result:
         """DO_CHANGE_SPEED param2: the cruise speed of goto flight; -1 keeps it (PX4)."""
         if speed_m_s == -1.0:
             return OK
@@ -195,9 +195,9 @@ class Autopilot:
         self.vehicle.params = dataclasses.replace(self.vehicle.params, cruise_speed_m_s=speed_m_s)
         return OK
 
-    def _refused(self, result: int, reason: str) -> Outcome:
+    def _refused(self, result: int, reason: str) -> Px4Result:
         self.vehicle.events.append(reason)
-        return Outcome(result, reason)
+        return Px4Result(result, reason)
 
     def _requested(self, msg_id: int, now_s: float) -> Any | None:
         if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:

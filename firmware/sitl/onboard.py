@@ -21,7 +21,7 @@ from firmware.sitl.traffic import TrafficStore
 log = logging.getLogger(__name__)
 
 
-class Guidance(Protocol):
+class OnboardGuidance(Protocol):
     """Onboard guidance: the horizontal velocity to fly toward `goal_ned_m` (onboard mode)."""
 
     def velocity_ne_m_s(
@@ -61,7 +61,7 @@ def load_c_policy(weights: str | None, separation_m: float, cruise_speed_m_s: fl
 
 
 class PolicyGuidance:
-    """Implements `vehicle.Guidance` with a policy and the traffic store.
+    """Implements `OnboardGuidance` with a policy and the traffic store.
 
     A policy with `onboard()` (firmware.cpolicy.CPolicy) flies the C guidance tick: decision
     hold + filter, as the PX4 module does. Any other policy is called at every tick."""

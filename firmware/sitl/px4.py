@@ -19,7 +19,7 @@ KILL_MAGIC = 21196.0
 
 
 @dataclass(frozen=True)
-class Outcome:
+class Px4Result:
     """How a command went: a MAV_RESULT value and, if refused, PX4-style words why."""
 
     result: int
@@ -30,7 +30,7 @@ class Outcome:
         return self.result == ACCEPTED
 
 
-OK = Outcome(ACCEPTED)
+OK = Px4Result(ACCEPTED)
 """The outcome of every command that went through."""
 
 

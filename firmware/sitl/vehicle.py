@@ -2,7 +2,7 @@
 
 Positions are NED metres relative to the home position (the ground is d = 0). Nothing here reads
 the clock: every call takes `now_s`, and `step(now_s)` integrates up to it, so tests drive hours of
-flight in milliseconds. Commands return an `Outcome` whose `result` is a MAV_RESULT value, and
+flight in milliseconds. Commands return a `Px4Result` whose `result` is a MAV_RESULT value, and
 whose `reason` is the STATUSTEXT PX4 would print.
 """
 
@@ -16,12 +16,12 @@ import numpy as np
 
 from firmware.sitl import px4
 from firmware.sitl.params import VehicleParams
-from firmware.sitl.px4 import OK, Outcome, Px4Mode
+from firmware.sitl.px4 import OK, Px4Mode, Px4Result
+from policy.pointmass import integrate
 
 if TYPE_CHECKING:
-    from firmware.sitl.onboard import Guidance
+    from firmware.sitl.onboard import OnboardGuidance
 
-GRAVITY_M_S2 = 9.80665
 MAX_SUBSTEP_S = 0.02
 """Integration step; `step()` splits longer gaps so the controllers stay stable."""
 TAKEOFF_ACCEPT_M = 0.25
@@ -44,7 +44,7 @@ class Vehicle:
     params: VehicleParams = field(default_factory=VehicleParams)
     healthy: bool = True
     """Pre-arm checks pass (False emulates a failed sensor: arming is refused)."""
-    guidance: Guidance | None = None
+    guidance: OnboardGuidance | None = None
     """When set, goto targets are flown by this (onboard mode); otherwise straight at cruise speed."""
     now_s: float = 0.0
     pos_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -84,11 +84,12 @@ class Vehicle:
     def _say(self, text: str) -> None:
         self.events.append(text)
 
-    def _refuse(self, result: int, reason: str) -> Outcome:
+    def _refuse(self, result: int, reason: str) -> Px4Result:
         self._say(reason)
-        return Outcome(result, reason)
+        return Px4Result(result, reason)
 
-    def _enter(self, mode: Px4Mode, now_s: float) -> None:
+    def _switch_px4_mode(self, mode: Px4Mode, now_s: float) -> None:
+        """PX4's own flight modes (the emulated autopilot's), not covey's mode machine."""
         self.mode = mode
         self.goto_active = False
         if mode in (
@@ -105,7 +106,7 @@ class Vehicle:
 
     # ---- commands ------------------------------------------------------------------------------
 
-    def arm(self, now_s: float) -> Outcome:
+    def arm(self, now_s: float) -> Px4Result:
         if self.armed:
             return OK
         if not self.healthy:
@@ -124,11 +125,11 @@ class Vehicle:
             return self._refuse(px4.TEMPORARILY_REJECTED, f"Arming denied: not in {self.mode.name}")
         self.armed, self.armed_at_s, self.took_off = True, now_s, False
         if self.mode is not Px4Mode.OFFBOARD:
-            self._enter(Px4Mode.HOLD, now_s)  # hold on the ground until told to climb
+            self._switch_px4_mode(Px4Mode.HOLD, now_s)  # hold on the ground until told to climb
         self._say("Armed by external command")
         return OK
 
-    def disarm(self, now_s: float, force: bool = False) -> Outcome:
+    def disarm(self, now_s: float, force: bool = False) -> Px4Result:
         if not self.armed:
             return OK
         if not force and not self.landed:
@@ -147,10 +148,10 @@ class Vehicle:
         if self.mode is not Px4Mode.OFFBOARD:
             self.mode = Px4Mode.HOLD
 
-    def kill(self, now_s: float) -> Outcome:
+    def kill(self, now_s: float) -> Px4Result:
         return self.disarm(now_s, force=True)
 
-    def set_mode(self, mode: Px4Mode, now_s: float) -> Outcome:
+    def set_mode(self, mode: Px4Mode, now_s: float) -> Px4Result:
         if mode is self.mode:
             return OK
         if mode is Px4Mode.OFFBOARD and now_s - self.sp_stamp_s > self.params.offboard_loss_s:
@@ -166,13 +167,13 @@ class Vehicle:
             return self.takeoff(math.nan, now_s)
         if mode is Px4Mode.RTL and self.landed:
             return self._refuse(px4.TEMPORARILY_REJECTED, "RTL denied: landed")
-        self._enter(mode, now_s)
+        self._switch_px4_mode(mode, now_s)
         if mode is Px4Mode.RTL:
             alt_m = max(self.alt_m, self.params.rtl_alt_m)
             self.target_ned_m = np.array([self.pos_ned_m[0], self.pos_ned_m[1], -alt_m])
         return OK
 
-    def takeoff(self, alt_m: float, now_s: float) -> Outcome:
+    def takeoff(self, alt_m: float, now_s: float) -> Px4Result:
         if math.isnan(alt_m):
             alt_m = self.params.takeoff_alt_m
         if not math.isfinite(alt_m) or not 0.5 <= alt_m <= self.params.max_alt_m:
@@ -184,17 +185,17 @@ class Vehicle:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Takeoff denied: disarmed")
         if not self.landed:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Takeoff denied: already flying")
-        self._enter(Px4Mode.TAKEOFF, now_s)
+        self._switch_px4_mode(Px4Mode.TAKEOFF, now_s)
         self.target_ned_m = np.array([self.pos_ned_m[0], self.pos_ned_m[1], -alt_m])
         self.took_off = True
         return OK
 
-    def land(self, now_s: float) -> Outcome:
+    def land(self, now_s: float) -> Px4Result:
         # PX4 takes LAND as a mode switch, disarmed or not; on the ground it just stays there.
-        self._enter(Px4Mode.LAND, now_s)
+        self._switch_px4_mode(Px4Mode.LAND, now_s)
         return OK
 
-    def reposition(self, target_ned_m: np.ndarray, now_s: float) -> Outcome:
+    def reposition(self, target_ned_m: np.ndarray, now_s: float) -> Px4Result:
         """DO_REPOSITION: fly to the target and hold there. NaN down keeps the altitude."""
         target = np.asarray(target_ned_m, dtype=float).copy()
         if not np.all(np.isfinite(target[:2])):
@@ -208,7 +209,7 @@ class Vehicle:
             )
         if not self.armed or self.landed:
             return self._refuse(px4.TEMPORARILY_REJECTED, "Reposition denied: not flying")
-        self._enter(Px4Mode.HOLD, now_s)
+        self._switch_px4_mode(Px4Mode.HOLD, now_s)
         self.target_ned_m, self.goto_active = target, True
         return OK
 
@@ -260,12 +261,10 @@ class Vehicle:
             self._ground_checks(now)
             return
         self.landed_at_s, self.took_off = math.inf, True
-        dv = _clip_norm(vel_cmd - self.vel_ned_m_s, p.accel_m_s2 * dt)
-        self.vel_ned_m_s += dv
-        self.pos_ned_m += self.vel_ned_m_s * dt
-        if self.pos_ned_m[2] > 0.0:
-            self.pos_ned_m[2] = 0.0
-            self.vel_ned_m_s[:] = 0.0
+        hit = integrate(
+            self.pos_ned_m[None], self.vel_ned_m_s[None], vel_cmd[None], dt, p.accel_m_s2
+        )
+        if hit[0]:
             self.landed_at_s = now
             self._say("Landing detected")
         if yaw_cmd is not None:
@@ -274,10 +273,10 @@ class Vehicle:
             self.heading_rad = _wrap_pi(self.heading_rad + step)
 
     def _fall(self, dt: float) -> None:
-        if self.pos_ned_m[2] < 0.0:
-            self.vel_ned_m_s[:2] *= max(0.0, 1.0 - 0.5 * dt)  # drag bleeds the horizontal speed
-            self.vel_ned_m_s[2] += GRAVITY_M_S2 * dt
-            self.pos_ned_m += self.vel_ned_m_s * dt
+        unpowered = np.zeros(1, bool)  # motors off: gravity and drag only
+        integrate(
+            self.pos_ned_m[None], self.vel_ned_m_s[None], np.zeros((1, 3)), dt, powered=unpowered
+        )
         if self.pos_ned_m[2] >= 0.0:
             self.pos_ned_m[2] = 0.0
             self.vel_ned_m_s[:] = 0.0
@@ -299,7 +298,7 @@ class Vehicle:
     def _failsafes(self, now: float) -> None:
         if self.mode is Px4Mode.OFFBOARD and now - self.sp_stamp_s > self.params.offboard_loss_s:
             self._say("Failsafe: no offboard setpoints, holding")
-            self._enter(Px4Mode.HOLD, now)
+            self._switch_px4_mode(Px4Mode.HOLD, now)
         if (
             self.mode is Px4Mode.TAKEOFF
             and self.target_ned_m is not None
@@ -308,7 +307,7 @@ class Vehicle:
             # PX4 switches to HOLD at the takeoff altitude.
             alt_d_m = self.target_ned_m[2]
             self._say("Takeoff complete")
-            self._enter(Px4Mode.HOLD, now)
+            self._switch_px4_mode(Px4Mode.HOLD, now)
             assert self.target_ned_m is not None
             self.target_ned_m[2] = alt_d_m
         if (
@@ -316,7 +315,7 @@ class Vehicle:
             and self.target_ned_m is not None
             and float(np.linalg.norm(self.pos_ned_m[:2])) < self.params.arrive_radius_m
         ):
-            self._enter(Px4Mode.LAND, now)
+            self._switch_px4_mode(Px4Mode.LAND, now)
 
     def _control(self, now: float) -> tuple[np.ndarray, float | None]:
         """Velocity command (NED) and yaw command for the current mode."""
@@ -362,7 +361,7 @@ class Vehicle:
         )
         if v_ne.shape != (2,) or not np.all(np.isfinite(v_ne)):
             self._say("Guidance fault: holding")
-            self._enter(Px4Mode.HOLD, now)
+            self._switch_px4_mode(Px4Mode.HOLD, now)
             return np.zeros(3), None
         v_ne = _clip_norm(v_ne, p.max_speed_m_s)
         v_d = max(

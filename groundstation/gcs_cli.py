@@ -3,31 +3,25 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
 import secrets
-import signal
 import sys
 
-from comms.auth import ENV_KEY_FILE
+from comms.cli_options import add_mesh_args, die, key_file_path, mesh_config, port, stop_on_signals
 from comms.identity import read_member_key
 from comms.schema import Role
-from groundstation.app import GcsConfig, GroundStation, web_host_problem
-from groundstation.meshargs import add_mesh_args, die, mesh_config
+from groundstation.station import GcsConfig, GroundStation, web_host_problem
 
 
 def main(cfg: GcsConfig) -> int:
-    with GroundStation(cfg) as gcs:
+    with stop_on_signals() as stop, GroundStation(cfg) as gcs:
         if cfg.port and gcs.server.get_port() != cfg.port:
             print(f"covey gcs: port {cfg.port} is busy; using {gcs.server.get_port()}", flush=True)
         print(
             f"covey gcs: open {gcs.url}  (fleet {cfg.mesh.fleet}, station id {cfg.gcs_id}, Ctrl-C to stop)",
             flush=True,
         )
-        stop = lambda *_: gcs.close()  # noqa: E731
-        signal.signal(signal.SIGTERM, stop)
-        with contextlib.suppress(KeyboardInterrupt):
-            gcs.wait()
+        while not stop.wait(0.5):
+            pass
     return 0
 
 
@@ -38,7 +32,7 @@ def parser() -> argparse.ArgumentParser:
         "--host", default="127.0.0.1", help="web address to listen on (default: 127.0.0.1)"
     )
     p.add_argument(
-        "--port", type=int, default=8080, help="web port (default: 8080; next free if busy)"
+        "--port", type=port, default=8080, help="web port (default: 8080; next free if busy)"
     )
     p.add_argument(
         "--gcs-id",
@@ -61,17 +55,13 @@ def parser() -> argparse.ArgumentParser:
 def cli(argv: list[str] | None = None) -> int:
     p = parser()
     args = p.parse_args(argv)
-    if not 0 <= args.port <= 65535:
-        p.error(f"--port {args.port} must be within 0..65535")
     problem = web_host_problem(args.host)
     if problem:  # one line, before anything joins the mesh
         die(p, problem)
     key = None
     try:
-        if args.key_file is not None or os.environ.get(ENV_KEY_FILE):
-            key = read_member_key(
-                args.key_file if args.key_file is not None else os.environ[ENV_KEY_FILE]
-            )
+        if (path := key_file_path(args)) is not None:
+            key = read_member_key(path)
     except ValueError as exc:
         die(p, str(exc))
     if key is not None:

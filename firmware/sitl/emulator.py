@@ -14,10 +14,10 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from typing import Any
 
+from comms.mavlink_udp import UdpLink
 from firmware.sitl import streams
 from firmware.sitl.commands import Autopilot
 from firmware.sitl.config import SitlConfig
-from firmware.sitl.mavlink_io import UdpLink
 from firmware.sitl.onboard import PolicyGuidance, load_c_policy
 from firmware.sitl.traffic import TrafficStore
 from firmware.sitl.vehicle import Vehicle

@@ -24,7 +24,16 @@ from comms.auth import load_auth
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.presence import Presence
-from comms.schema import Command, CommandAck, CommandKind, Event, EventKind, Severity
+from comms.schema import (
+    ActionOutcome,
+    Command,
+    CommandAck,
+    CommandKind,
+    DecodeError,
+    Event,
+    EventKind,
+    Severity,
+)
 from comms.session import MeshConfig
 from groundstation import dispatch, scenarios
 from groundstation.browser_form import BrowserForms
@@ -158,7 +167,7 @@ class GroundStation:
             self.fleet.on_state, link=self._link, on_refused=self.fleet.on_state_refused
         )
         self.mesh.on_security = self._on_security
-        self.mesh.subscribe_events(self.events.add)
+        self.mesh.subscribe_events(self._on_event)
         self.mesh.observe_commands(self.commands.on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
         self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="covey", verbose=False)
@@ -282,6 +291,14 @@ class GroundStation:
                 severity=Severity.WARNING,
             )
         )
+
+    def _on_event(self, event: Event, recv_ns: int) -> None:
+        if event.kind is EventKind.ACTION:
+            try:
+                self.commands.on_outcome(ActionOutcome.from_event(event))
+            except DecodeError as exc:
+                log.warning("vehicle %d sent a malformed action outcome: %s", event.vehicle_id, exc)
+        self.events.add(event, recv_ns)
 
     def _on_ack(self, ack: CommandAck, recv_ns: int) -> None:
         auth = self.mesh.auth if self.mesh is not None else None

@@ -4,6 +4,9 @@
 replies on the same socket; `udpin:HOST:PORT` binds and answers whoever sent the last valid
 MAVLink packet. A UDP datagram carries whole MAVLink packets, so every datagram is parsed on its
 own: garbage in one cannot swallow the packets of the next.
+
+Both ends of covey's MAVLink use it: the agent's relay backend (agent/backends/relay.py) and the
+PX4 emulator (firmware/sitl), so the link the relay flies with is the one the emulator tests.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ class UdpLink:
         self.url = LinkUrl.parse(url)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
-        # The loop drains the socket at physics_hz; a roomy buffer rides out bursts between ticks.
+        # Callers drain the socket once per loop tick; a roomy buffer rides out bursts between ticks.
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
         self.peer: tuple[str, int] | None = None
         if self.url.listen:

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from comms.link import PROFILES, LinkProfile
+from policy.pointmass import integrate
+
 
 @dataclass(frozen=True)
 class LinkConfig:
@@ -31,14 +34,24 @@ class LinkConfig:
     def perfect(self) -> bool:
         return self.rate_hz <= 0
 
+    @classmethod
+    def of(cls, profile: LinkProfile) -> LinkConfig:
+        """The evaluation link for one of the mesh's link profiles (comms/link.py, the one
+        table): its rate, Bernoulli loss and latency; jitter and range are not modelled here."""
+        if profile.ge is not None or profile.range_m:
+            raise ValueError(
+                f"link profile {profile.name!r}: the evaluation link takes rate, loss and latency only"
+            )
+        return cls(rate_hz=profile.rate_hz or 0.0, loss=profile.loss, latency_s=profile.latency_s)
 
-PERFECT = LinkConfig()
-DEGRADED = LinkConfig(rate_hz=3.0, loss=0.2, latency_s=0.1)
+
+PERFECT = LinkConfig.of(PROFILES["perfect"])
+DEGRADED = LinkConfig.of(PROFILES["xbee"])
 """The paper's XBee link (3 Hz) with 20 % loss and 100 ms latency."""
 
 
 @dataclass(frozen=True)
-class SimConfig:
+class EvalSimConfig:
     """Closed-loop evaluation settings (policy units: 3 m separation, 1 m/s)."""
 
     dt_s: float = 0.1
@@ -72,7 +85,7 @@ def run(
     goals,
     controller: Controller,
     link: LinkConfig,
-    cfg: SimConfig,
+    cfg: EvalSimConfig,
     rng: np.random.Generator,
 ) -> dict:
     """Flies one scenario to the end; returns its metrics (and tracks if cfg.record)."""
@@ -144,10 +157,9 @@ def run(
         acc = np.hypot(*(v[idx] - vel[idx]).T) / cfg.dt_s
         acc_sum += float(acc.sum())
         acc_n += idx.size
-        disp = v * cfg.dt_s
+        integrate(pos, vel, v, cfg.dt_s)  # the point mass flies the command exactly
+        disp = vel * cfg.dt_s
         step_len = np.hypot(disp[:, 0], disp[:, 1])
-        pos = pos + disp
-        vel = v
         heading = np.where(step_len > 1e-9, np.arctan2(disp[:, 1], disp[:, 0]), heading)
         path += step_len
         t += cfg.dt_s

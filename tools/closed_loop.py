@@ -6,9 +6,11 @@ table — run `agent.guidance.Guidance` with the given policy, and compare the h
 commanded velocity with the recorded reference.
 
 Reference and inputs, best first:
-- a guidance trace event (`trace_text` below; the agent publishes one per tick that publishes a
-  state): the exact command, the heading the policy saw and which neighbour samples (id, seq,
-  age) it used. Replaying the same policy then gives a difference at float32 rounding level.
+- a guidance trace (comms.schema.GuidanceTrace on `v/<id>/trace`; an agent with
+  `--trace-guidance` publishes one per tick that publishes a state): the exact command, the
+  heading the policy saw and which neighbour samples (id, seq, age) it used. Replaying the same
+  policy then gives a difference at float32 rounding level (the published state's). Recordings
+  made before the trace had its own message carry it as event text (`parse_trace`).
 - without traces: the recorded velocity of V (the vehicle's response, not the command) and the
   neighbour table rebuilt from the recorder's receive times. Approximate; the report says so.
 """
@@ -25,61 +27,21 @@ from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourConfig, NeighbourSnapshot
 from comms import keys
 from comms.record import Recording, read_recording
-from comms.schema import DecodeError, Event, Mode, StateFlag, VehicleState
+from comms.schema import DecodeError, Event, GuidanceTrace, Mode, StateFlag, VehicleState
 
-TRACE_PREFIX = "trace "
 GUIDED_MODES = (Mode.GOTO, Mode.RETURNING, Mode.HOLDING)
+LEGACY_TRACE_PREFIX = "trace "
 
 
-# -- the trace contract ----------------------------------------------------------------------
-@dataclass(frozen=True)
-class Trace:
-    """What the agent fed guidance in one tick, and what it commanded."""
-
-    state_seq: int
-    """seq of the VehicleState published in the same tick (same pos, vel and goal)."""
-    heading_rad: float
-    """Heading passed to guidance (the published heading is the one after guidance)."""
-    cmd_vel_ned_m_s: tuple[float, float, float]
-    neighbours: tuple[tuple[int, int, float], ...]
-    """(vehicle id, seq of its state, age in s) of every neighbour in the snapshot."""
-    complete: bool = True
-    """False when the neighbour list did not fit the event and was cut."""
-    decided: bool = True
-    """The policy decided in this tick (False: guidance held its last decision). Traces from
-    before decisions were held carry no flag: every tick decided."""
-
-
-def trace_text(
-    state_seq: int,
-    heading_rad: float,
-    cmd_vel_ned_m_s,
-    nbr_ids,
-    nbr_seqs,
-    nbr_ages_s,
-    max_bytes: int = 120,
-    decided: bool = True,
-) -> str:
-    """`trace <seq> <heading> <vn>,<ve>,<vd> D|H <id>:<seq>:<age_us>;...` cut to max_bytes (a
-    final `+` marks a cut neighbour list); D: the policy decided in this tick, H: held."""
-    v = ",".join(f"{float(x):.9g}" for x in cmd_vel_ned_m_s)
-    text = f"{TRACE_PREFIX}{state_seq} {float(heading_rad):.9g} {v} {'D' if decided else 'H'} "
-    items = [
-        f"{i}:{s}:{round(a * 1e6)}" for i, s, a in zip(nbr_ids, nbr_seqs, nbr_ages_s, strict=True)
-    ]
-    body = ";".join(items)
-    if len((text + body).encode()) <= max_bytes:
-        return text + body
-    while items and len((text + ";".join(items) + "+").encode()) > max_bytes:
-        items.pop()
-    return text + ";".join(items) + "+"
-
-
-def parse_trace(text: str) -> Trace | None:
-    """The Trace in an event's text, or None if it is not a (valid) trace."""
-    if not text.startswith(TRACE_PREFIX):
+def parse_trace(text: str, vehicle_id: int = 0, stamp_ns: int = 0) -> GuidanceTrace | None:
+    """The trace in an event's text, as agents published it before GuidanceTrace existed, or
+    None if the text is not a (valid) one. The format: `trace <seq> <heading> <vn>,<ve>,<vd>
+    D|H <id>:<seq>:<age_us>;...`, cut to the event's 120 bytes (a final `+` marks a cut
+    neighbour list); D: the policy decided in this tick, H: held (no flag: decided).
+    `vehicle_id` and `stamp_ns` are the event's."""
+    if not text.startswith(LEGACY_TRACE_PREFIX):
         return None
-    parts = text[len(TRACE_PREFIX) :].split(" ")
+    parts = text[len(LEGACY_TRACE_PREFIX) :].split(" ")
     try:
         seq, heading, vel = (
             int(parts[0]),
@@ -100,7 +62,7 @@ def parse_trace(text: str) -> Trace | None:
         return None
     if len(vel) != 3 or not all(map(math.isfinite, (heading, *vel))):
         return None
-    return Trace(seq, heading, vel, nbrs, complete, decided)  # type: ignore[arg-type]
+    return GuidanceTrace(vehicle_id, seq, stamp_ns, heading, vel, nbrs, complete, decided)  # type: ignore[arg-type]
 
 
 # -- replay ----------------------------------------------------------------------------------
@@ -137,7 +99,7 @@ class _Sample:
 def _index(rec: Recording, vid: int):
     own: list[_Sample] = []
     others: dict[int, list[_Sample]] = {}
-    traces: dict[int, Trace] = {}
+    traces: dict[int, GuidanceTrace] = {}
     for m in rec.messages:
         parsed = keys.parse_vehicle_key(m.topic)
         if parsed is None:
@@ -148,8 +110,13 @@ def _index(rec: Recording, vid: int):
                 (own if s.vehicle_id == vid else others.setdefault(s.vehicle_id, [])).append(
                     _Sample(m.log_time_ns, s)
                 )
+            elif parsed[2] == "trace" and parsed[1] == vid:
+                tr = GuidanceTrace.decode(m.data)
+                if tr.vehicle_id == vid:
+                    traces[tr.state_seq] = tr
             elif parsed[2] == "event" and parsed[1] == vid:
-                tr = parse_trace(Event.decode(m.data).text)
+                ev = Event.decode(m.data)
+                tr = parse_trace(ev.text, ev.vehicle_id, ev.stamp_ns)
                 if tr is not None:
                     traces[tr.state_seq] = tr
         except DecodeError:
@@ -171,7 +138,7 @@ def _snapshot(rows: list[tuple[VehicleState, float]], stale_s: float) -> Neighbo
     )
 
 
-def _traced_rows(tr: Trace, by_seq: dict[tuple[int, int], list[_Sample]], t_ns: int):
+def _traced_rows(tr: GuidanceTrace, by_seq: dict[tuple[int, int], list[_Sample]], t_ns: int):
     rows = []
     for vid, seq, age_s in tr.neighbours:
         # seq wraps only after 13 years at 10 Hz, but an agent restart reuses seqs: take the

@@ -1,6 +1,6 @@
 """`covey agent`: run the agent of one vehicle.
 
-covey agent --id 3                                   # built-in simulator, embedded mesh
+covey agent --id 3 --start-ne-m 0,6                  # built-in simulator
 covey agent --id 3 --vehicle mavsdk:udpin://0.0.0.0:14543   # PX4 via MAVSDK (companion mode)
 covey agent --id 3 --vehicle relay:udpin:0.0.0.0:14553      # PX4 runs the policy (onboard mode)
 """
@@ -12,8 +12,6 @@ import contextlib
 import dataclasses
 import logging
 import math
-import signal
-import sys
 import threading
 import time
 
@@ -22,10 +20,19 @@ from agent.backends.base import VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
 from comms.auth import FleetAuth, load_auth
+from comms.cli_options import (
+    add_mesh_args,
+    die,
+    floats,
+    geo_origin,
+    given,
+    mesh_config,
+    renamed,
+    stop_on_signals,
+)
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import POSITION_LIMIT_M
-from comms.session import DEFAULT_PORT, MeshConfig
 
 log = logging.getLogger("covey.agent")
 
@@ -50,59 +57,19 @@ def make_backend(
     raise ValueError(f"unknown vehicle {spec!r}: use sim, mavsdk:<url> or relay:<url>")
 
 
-def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"{what} must be {n} comma-separated numbers, got {text!r}"
-        ) from None
-    if len(values) != n or not all(v == v and abs(v) != float("inf") for v in values):
-        raise argparse.ArgumentTypeError(
-            f"{what} must be {n} finite comma-separated numbers, got {text!r}"
-        )
-    return values
-
-
 def _start_ne(text: str) -> tuple[float, ...]:
-    """--start: two finite numbers that a VehicleState can carry (else no state is ever sent)."""
-    ne = _floats(text, 2, "--start")
+    """--start-ne-m: two finite numbers that a VehicleState can carry (else no state is ever
+    sent)."""
+    ne = floats(text, 2, "--start-ne-m")
     if any(abs(v) > POSITION_LIMIT_M for v in ne):
         raise argparse.ArgumentTypeError(
-            f"--start {text!r}: each coordinate must be within ±{POSITION_LIMIT_M:g} m"
+            f"--start-ne-m {text!r}: each coordinate must be within ±{POSITION_LIMIT_M:g} m"
         )
     return ne
 
 
-def add_mesh_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("mesh")
-    g.add_argument("--fleet", default="covey", help="fleet name (default covey)")
-    g.add_argument(
-        "--connect",
-        action="append",
-        default=None,
-        help=f"Zenoh endpoint to join (repeatable; default tcp/127.0.0.1:{DEFAULT_PORT})",
-    )
-    g.add_argument(
-        "--listen",
-        action="append",
-        default=None,
-        help="endpoint to listen on (default tcp/127.0.0.1:0)",
-    )
-    g.add_argument("--mesh-mode", choices=["peer", "client", "router"], default="peer")
-    # A bad endpoint (port 99999) or --zenoh-config is refused in one line by MeshConfig/Mesh.
-    g.add_argument(
-        "--zenoh-config", default=None, help="full Zenoh JSON5 config file (TLS, auth, ACL)"
-    )
-
-
-def mesh_config(args: argparse.Namespace) -> MeshConfig:
-    kw = {}
-    if args.connect:
-        kw["connect"] = tuple(args.connect)
-    if args.listen:
-        kw["listen"] = tuple(args.listen)
-    return MeshConfig(fleet=args.fleet, mode=args.mesh_mode, config_file=args.zenoh_config, **kw)
+GUIDANCE_FLAGS = ("policy", "no_safety_filter", "decision_period_s", "trace_guidance")
+"""Flags for the agent's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -114,16 +81,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--id", type=int, required=True, help="vehicle id, 1..65000")
     p.add_argument("--vehicle", default="sim", help="sim (default) | mavsdk:<url> | relay:<url>")
     p.add_argument(
-        "--start",
+        "--start-ne-m",
         type=_start_ne,
         default=(0.0, 0.0),
-        help=f"sim start position N,E in metres (each within ±{POSITION_LIMIT_M:g})",
+        metavar="N,E",
+        help=f"sim start position north,east in metres (each within ±{POSITION_LIMIT_M:g}; "
+        "sim only: a real vehicle is where it is)",
     )
+    renamed(p, {"--start": "--start-ne-m"})
     p.add_argument(
         "--origin",
-        type=lambda s: _floats(s, 3, "--origin"),
+        type=geo_origin,
         default=None,
-        help="fleet origin lat,lon,alt",
+        metavar="LAT,LON,ALT",
+        help="fleet origin in degrees, degrees, metres (default: covey's)",
     )
     p.add_argument(
         "--link",
@@ -139,7 +110,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--cruise-speed-m-s", type=float, default=1.0, help="speed the policy flies at (default 1)"
     )
-    p.add_argument("--no-safety-filter", action="store_true", help="fly the pure learned policy")
+    p.add_argument(
+        "--no-safety-filter",
+        action="store_true",
+        help="fly the pure learned policy (sim and mavsdk: a relay vehicle runs its own)",
+    )
     p.add_argument(
         "--decision-period-s",
         type=float,
@@ -175,23 +150,20 @@ def parser() -> argparse.ArgumentParser:
         help="publish guidance traces so `covey replay --policy` can replay the flight exactly",
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
-    p.add_argument(
-        "--key-file",
-        default=None,
-        help="this vehicle's key file (covey keygen add vehicle N); or $COVEY_FLEET_KEY_FILE. "
-        "Without one the agent runs in OPEN MODE (nothing authenticated; tests only)",
-    )
-    add_mesh_args(p)
+    add_mesh_args(p)  # --key-file: this vehicle's (covey keygen add vehicle N)
     return p
 
 
-def config_from_args(args: argparse.Namespace) -> AgentConfig:
+def config_from_args(
+    args: argparse.Namespace, p: argparse.ArgumentParser | None = None
+) -> AgentConfig:
+    """The agent's config; a bad value raises ValueError (or, given the parser, exits 2)."""
     return AgentConfig(
         vehicle_id=args.id,
-        mesh=mesh_config(args),
+        mesh=mesh_config(args, p),
         tick_hz=args.tick_hz,
         state_hz=args.state_hz,
-        origin=GeoOrigin(*args.origin) if args.origin else GeoOrigin(),
+        origin=args.origin or GeoOrigin(),
         guidance=GuidanceConfig(
             separation_m=args.separation_m,
             cruise_speed_m_s=args.cruise_speed_m_s,
@@ -240,7 +212,7 @@ def main(
         link = make_link(cfg.link, cfg.vehicle_id, receiver_pos=lambda: own_pos[0])
         if link is not None:
             link = stack.enter_context(link)
-        agent = Agent(cfg, backend, mesh, clock_s=clock_s, link=link)
+        agent = stack.enter_context(Agent(cfg, backend, mesh, clock_s=clock_s, link=link))
         own_pos[0] = None
         agent.on_position = lambda p: own_pos.__setitem__(0, p)
         log.info(
@@ -271,35 +243,34 @@ def cli(argv: list[str]) -> int:
     )
     if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
         p.error(f"--duration-s must be a positive number of seconds, got {args.duration_s}")
+    kind = args.vehicle.partition(":")[0]
+    if kind != "sim" and given(p, args, "start_ne_m"):
+        p.error(f"--start-ne-m places a simulated vehicle; a {kind} vehicle is where it is")
+    if kind == "relay" and (flags := given(p, args, *GUIDANCE_FLAGS)):
+        p.error(
+            f"{', '.join(flags)}: a relay vehicle runs the policy onboard (covey sitl "
+            "--onboard --weights), not in the agent"
+        )
     try:
-        cfg = config_from_args(args)
+        cfg = config_from_args(args, p)
     except ValueError as exc:
-        _die(str(exc))
+        die(p, str(exc))
     try:
         auth = load_auth(args.key_file, fleet=cfg.mesh.fleet)
     except ValueError as exc:  # FleetKeyError: empty path, unreadable, malformed, wrong fleet
-        _die(str(exc))
+        die(p, str(exc))
     if auth is not None and not (auth.role.name == "VEHICLE" and auth.member_id == cfg.vehicle_id):
-        _die(f"--key-file is {auth.key.name}'s key, not vehicle {cfg.vehicle_id}'s")
+        die(p, f"--key-file is {auth.key.name}'s key, not vehicle {cfg.vehicle_id}'s")
     cfg = dataclasses.replace(cfg, open_mode=auth is None)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        return main(
-            cfg,
-            vehicle=args.vehicle,
-            start_ne_m=args.start,
-            stop=stop,
-            duration_s=args.duration_s,
-            auth=auth,
-        )
-    except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad --zenoh-config, busy port
-        _die(str(exc))
-    return 2
-
-
-def _die(message: str) -> int:
-    """A set-up error: one line on stderr, exit status 2, no traceback."""
-    print(f"covey agent: error: {' '.join(message.split())}", file=sys.stderr)
-    raise SystemExit(2)
+    with stop_on_signals() as stop:
+        try:
+            return main(
+                cfg,
+                vehicle=args.vehicle,
+                start_ne_m=args.start_ne_m,
+                stop=stop,
+                duration_s=args.duration_s,
+                auth=auth,
+            )
+        except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad config, busy port
+            die(p, str(exc))

@@ -1,0 +1,464 @@
+"""The flight core: what every vehicle does, for N vehicles as arrays. Pure; no I/O, no clock.
+
+One core serves every shell: `covey agent` is a core of one vehicle around one backend,
+`covey fleet-sim` a core of hundreds around the vectorised simulator. The same command on the
+same state gives the same result in both (tests/test_flight_core.py).
+
+The core owns, per vehicle:
+- the mode machine (agent/modes.py) and the one mode-entry table (`_enter`): what entering a
+  mode sets (goal, hold point, home, take-off altitude) and which autopilot action it needs;
+- command checks (geofence, altitude limits, take-off altitude) and the goto-global conversion;
+- vehicle events found from telemetry (reached altitude, arrived, touched down, disarmed);
+- failsafes (agent/failsafe.py: ground station lost, battery, geofence);
+- guidance (agent/guidance.py: the policy decides, its decision is held, the filter runs).
+
+A command is answered as soon as the mode machine accepts it. What the autopilot must do for it
+comes back as `Action`s, which the shell runs off the tick (agent/actions.py) and reports with
+`action_done` / `action_failed`; a failed action rolls the vehicle's mode back. What the
+operator should hear comes back as `Note`s, which the shell publishes as events.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from agent.failsafe import FailsafeConfig, Failsafes
+from agent.guidance import BatchGuidance, GuidanceConfig, GuidanceStep, NeighbourViews
+from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
+from comms.geo import GeoOrigin
+from comms.schema import AckResult, Command, CommandKind, EventKind, Mode, Severity, StateFlag
+
+FLYING = (Mode.GOTO, Mode.RETURNING)
+AIRBORNE_MODES = [int(m) for m in AIRBORNE]
+"""The airborne modes as integers, for `np.isin` on `FlightCore.mode`."""
+TAKEOFF_DONE_M = 0.3
+"""Take-off is complete within this distance below the take-off altitude."""
+SPEED_FOR_HEADING = 0.2
+"""Share of the cruise speed above which the heading follows the velocity."""
+
+
+@dataclass(frozen=True)
+class CoreConfig:
+    """What every vehicle of a core shares."""
+
+    takeoff_alt_m: float = 10.0
+    """Default take-off altitude when a takeoff command gives none."""
+    origin: GeoOrigin = GeoOrigin()
+    """Fleet origin: goto-global targets are converted to local NED around it."""
+    guidance: GuidanceConfig = GuidanceConfig()
+    failsafe: FailsafeConfig = FailsafeConfig()
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.takeoff_alt_m) and self.takeoff_alt_m > 0):
+            raise ValueError(f"takeoff_alt_m must be positive, got {self.takeoff_alt_m}")
+
+
+class ActionKind(enum.Enum):
+    """What an autopilot is asked to do (velocity setpoints are not actions: the tick sends them)."""
+
+    TAKEOFF = "takeoff"
+    LAND = "land"
+    HOLD = "hold"
+    KILL = "kill"
+    GOTO = "goto"
+
+
+@dataclass(frozen=True)
+class _Undo:
+    mode: Mode
+    goal_m: np.ndarray
+    hold_m: np.ndarray
+    resume_goal_m: np.ndarray
+
+
+@dataclass(frozen=True)
+class Action:
+    """One autopilot call for vehicle row `index`, and what to do if it fails."""
+
+    index: int
+    kind: ActionKind
+    alt_m: float = math.nan
+    """TAKEOFF: the altitude."""
+    target_ned_m: tuple[float, float, float] | None = None
+    """GOTO: the local target."""
+    target_global: tuple[float, float, float] | None = None
+    """GOTO from a goto-global command: (lat_deg, lon_deg, alt_m) as commanded, for autopilots
+    that take global targets (no round trip through local coordinates)."""
+    nonce: int | None = None
+    """The command that asked for it; None for the core's own (vehicle events, failsafes)."""
+    epoch: int = 0
+    """The vehicle's mode epoch after entering the mode; a rollback applies only if unchanged."""
+    undo: _Undo | None = field(default=None, repr=False, compare=False)
+
+    def describe(self) -> str:
+        if self.kind is ActionKind.TAKEOFF:
+            return f"takeoff to {self.alt_m:g} m"
+        if self.kind is ActionKind.GOTO and self.target_ned_m is not None:
+            n, e, d = self.target_ned_m
+            return f"goto ({n:.1f}, {e:.1f}, {d:.1f})"
+        return self.kind.value
+
+
+@dataclass(frozen=True)
+class Note:
+    """Something the operator should hear about vehicle row `index` (the shell publishes it)."""
+
+    index: int
+    text: str
+    kind: EventKind = EventKind.STATUS
+    severity: Severity = Severity.INFO
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The answer to a command: the ack's result, reason and mode, and the autopilot's part."""
+
+    result: AckResult
+    reason: str
+    mode: Mode
+    actions: tuple[Action, ...] = ()
+
+
+@dataclass(frozen=True)
+class Observed:
+    """Telemetry of the core's vehicles, one row each (the shell fills it from its backends)."""
+
+    pos_m: np.ndarray
+    """(N, 3) NED"""
+    vel_m_s: np.ndarray
+    """(N, 3) NED"""
+    armed: np.ndarray
+    in_air: np.ndarray
+    battery_pct: np.ndarray
+    link_ok: np.ndarray
+    """(N,) bool each (battery (N,) float)."""
+
+
+def _nan3(n: int) -> np.ndarray:
+    return np.full((n, 3), np.nan)
+
+
+def _opt(a: np.ndarray) -> np.ndarray | None:
+    return None if np.isnan(a[0]) else a.copy()
+
+
+class FlightCore:
+    """N vehicles' flight logic. Not thread-safe: the shell serialises calls (one lock)."""
+
+    def __init__(
+        self,
+        cfg: CoreConfig,
+        n: int,
+        *,
+        now_s: float,
+        velocity_mode: bool = True,
+        guidance: BatchGuidance | None = None,
+    ) -> None:
+        if n < 1:
+            raise ValueError(f"a core needs at least one vehicle, got {n}")
+        self.cfg = cfg
+        self.n = n
+        self.velocity_mode = velocity_mode
+        """The shell flies velocity setpoints (companion); False: the autopilot guides itself."""
+        self.guidance = (guidance or BatchGuidance(cfg.guidance, n)) if velocity_mode else guidance
+        self.mode = np.full(n, int(Mode.LANDED), np.int8)
+        self.epoch = np.zeros(n, np.int64)
+        self.goal_m = _nan3(n)
+        self.hold_m = _nan3(n)
+        self.home_m = _nan3(n)
+        self.resume_goal_m = _nan3(n)
+        self.takeoff_alt_m = np.full(n, cfg.takeoff_alt_m)
+        self.heading_rad = np.zeros(n)
+        self.failsafes = [Failsafes(cfg.failsafe, now_s) for _ in range(n)]
+        self.notes: list[Note] = []
+        """Events for the shell to publish (it drains the list)."""
+
+    # -- reading -------------------------------------------------------------------------------
+    def mode_of(self, i: int) -> Mode:
+        return Mode(int(self.mode[i]))
+
+    @property
+    def modes(self) -> list[Mode]:
+        return [Mode(int(m)) for m in self.mode]
+
+    def target_of(self, i: int) -> np.ndarray | None:
+        """Where vehicle i is going (goto, return) or holding; None otherwise."""
+        mode = self.mode_of(i)
+        if mode in FLYING:
+            return _opt(self.goal_m[i])
+        if mode is Mode.HOLDING:
+            return _opt(self.hold_m[i])
+        return None
+
+    def targets(self) -> np.ndarray:
+        """(N, 3) `target_of` for every vehicle, NaN rows for none."""
+        flying = np.isin(self.mode, [int(m) for m in FLYING])
+        holding = self.mode == int(Mode.HOLDING)
+        out = _nan3(self.n)
+        out[flying] = self.goal_m[flying]
+        out[holding] = self.hold_m[holding]
+        return out
+
+    def flags_of(self, i: int) -> StateFlag:
+        return self.failsafes[i].flags
+
+    def drain_notes(self) -> list[Note]:
+        notes, self.notes = self.notes, []
+        return notes
+
+    # -- commands ------------------------------------------------------------------------------
+    def command(self, i: int, cmd: Command, pos_m: np.ndarray | None, link_ok: bool = True):
+        """Check `cmd` for vehicle i at `pos_m` (None: no telemetry yet) and enter its mode."""
+        mode = self.mode_of(i)
+        if pos_m is None:
+            return Decision(AckResult.REJECTED, "no telemetry from the vehicle yet", mode)
+        if not link_ok and cmd.kind is not CommandKind.KILL:
+            return Decision(AckResult.REJECTED, "autopilot link lost", mode)
+        trigger = COMMAND_TRIGGERS[cmd.kind]
+        fs = self.cfg.failsafe
+        target = target_global = None
+        if trigger is Trigger.GOTO:
+            if cmd.kind is CommandKind.GOTO_GLOBAL:
+                target_global = tuple(float(x) for x in cmd.params[:3])
+                target = np.array(self.cfg.origin.to_local(*target_global))
+            else:
+                target = np.array(cmd.params[:3], dtype=float)
+            problem = fs.check_target(target)
+            if problem:
+                return Decision(AckResult.REJECTED, problem, mode)
+        alt_m = None
+        if cmd.kind is CommandKind.TAKEOFF:
+            alt_m = float(cmd.params[0])
+            if not (math.isfinite(alt_m) and alt_m > 0):
+                return Decision(
+                    AckResult.REJECTED, f"takeoff altitude must be positive, got {alt_m}", mode
+                )
+            if alt_m > fs.max_alt_m:
+                return Decision(
+                    AckResult.REJECTED,
+                    f"takeoff altitude {alt_m:g} m is above the {fs.max_alt_m:g} m limit",
+                    mode,
+                )
+        res = step(mode, trigger)
+        if not res.accepted:
+            return Decision(AckResult.REJECTED, res.reason, mode)
+        actions = self._enter(i, res.mode, trigger, np.asarray(pos_m, float), target, alt_m)
+        actions = tuple(
+            replace(
+                a,
+                nonce=cmd.nonce,
+                target_global=target_global if a.kind is ActionKind.GOTO else None,
+            )
+            for a in actions
+        )
+        return Decision(AckResult.ACCEPTED, "", self.mode_of(i), actions)
+
+    def _enter(
+        self,
+        i: int,
+        mode: Mode,
+        trigger: Trigger,
+        pos_m: np.ndarray,
+        target: np.ndarray | None = None,
+        alt_m: float | None = None,
+    ) -> list[Action]:
+        """The mode-entry table: set what `mode` means for vehicle i; return the autopilot's
+        actions for it."""
+        previous = self.mode_of(i)
+        undo = _Undo(
+            previous, self.goal_m[i].copy(), self.hold_m[i].copy(), self.resume_goal_m[i].copy()
+        )
+        kind: ActionKind | None = None
+        action_kw: dict = {}
+        if mode is Mode.KILLED:
+            kind = ActionKind.KILL
+        elif mode is Mode.TAKING_OFF:
+            if previous is Mode.LANDED:
+                self.home_m[i] = pos_m
+            if alt_m is not None:
+                self.takeoff_alt_m[i] = alt_m
+            kind, action_kw = ActionKind.TAKEOFF, {"alt_m": float(self.takeoff_alt_m[i])}
+            self.hold_m[i] = pos_m
+        elif mode is Mode.HOLDING:
+            arrived = trigger is Trigger.ARRIVED and not np.isnan(self.goal_m[i, 0])
+            self.hold_m[i] = self.goal_m[i] if arrived else pos_m
+            if trigger is Trigger.REACHED_ALTITUDE:
+                self.hold_m[i, 2] = -self.takeoff_alt_m[i]
+            if trigger is Trigger.FAILSAFE_HOLD and previous is Mode.GOTO:
+                self.resume_goal_m[i] = self.goal_m[i]
+            if not self.velocity_mode:
+                kind = ActionKind.HOLD
+        elif mode is Mode.GOTO:
+            assert target is not None
+            if previous is not Mode.GOTO:
+                self.heading_rad[i] = heading_towards(pos_m, target, self.heading_rad[i])
+            self.goal_m[i] = target
+            self.resume_goal_m[i] = np.nan
+            if not self.velocity_mode:
+                kind, action_kw = ActionKind.GOTO, {"target_ned_m": tuple(map(float, target))}
+        elif mode is Mode.RETURNING:
+            home = self.home_m[i] if not np.isnan(self.home_m[i, 0]) else np.zeros(3)
+            self.goal_m[i] = (home[0], home[1], min(pos_m[2], -self.cfg.failsafe.min_alt_m))
+            self.heading_rad[i] = heading_towards(pos_m, self.goal_m[i], self.heading_rad[i])
+            if not self.velocity_mode:
+                kind, action_kw = (
+                    ActionKind.GOTO,
+                    {"target_ned_m": tuple(map(float, self.goal_m[i]))},
+                )
+        elif mode is Mode.LANDING:
+            kind = ActionKind.LAND
+            self.hold_m[i] = pos_m
+        if mode is not previous:
+            self.notes.append(
+                Note(
+                    i,
+                    f"{previous.name.lower()} -> {mode.name.lower()} ({trigger.value})",
+                    EventKind.MODE_CHANGE,
+                )
+            )
+        self.mode[i] = int(mode)
+        self.epoch[i] += 1
+        if mode not in FLYING and mode is not Mode.HOLDING:
+            self.goal_m[i] = np.nan
+        if self.guidance is not None and mode not in FLYING:
+            self.guidance.forget(np.array([i]))
+        if kind is None:
+            return []
+        return [Action(i, kind, epoch=int(self.epoch[i]), undo=undo, **action_kw)]
+
+    def _internal(self, i: int, trigger: Trigger, pos_m: np.ndarray, why: str = "") -> list[Action]:
+        res = step(self.mode_of(i), trigger)
+        if not res.accepted:
+            return []
+        actions = self._enter(i, res.mode, trigger, pos_m, _opt(self.goal_m[i]))
+        if why:
+            self.notes.append(Note(i, why, EventKind.FAILSAFE, Severity.WARNING))
+        return actions
+
+    # -- the autopilot's answers ---------------------------------------------------------------
+    def action_failed(self, action: Action, reason: str) -> bool:
+        """Roll vehicle `action.index` back to the mode before the action, unless something has
+        changed its mode since; True if it was rolled back."""
+        i, undo = action.index, action.undo
+        text = f"{action.describe()} failed: {reason}"
+        if action.nonce is None:
+            self.notes.append(Note(i, text, EventKind.FAILSAFE, Severity.ERROR))
+        if undo is None or self.epoch[i] != action.epoch:
+            return False
+        now = self.mode_of(i)
+        self.mode[i] = int(undo.mode)
+        self.goal_m[i], self.hold_m[i], self.resume_goal_m[i] = (
+            undo.goal_m,
+            undo.hold_m,
+            undo.resume_goal_m,
+        )
+        self.epoch[i] += 1
+        if now is not undo.mode:
+            self.notes.append(
+                Note(
+                    i,
+                    f"{now.name.lower()} -> {undo.mode.name.lower()} ({action.kind.value} failed)",
+                    EventKind.MODE_CHANGE,
+                    Severity.WARNING,
+                )
+            )
+        return True
+
+    # -- each tick -----------------------------------------------------------------------------
+    def observe(self, now_s: float, obs: Observed, gcs_alive: bool) -> list[Action]:
+        """Vehicle events and failsafes from this tick's telemetry; returns the actions they need."""
+        actions: list[Action] = []
+        pos, vel = obs.pos_m, obs.vel_m_s
+        cruise = self.cfg.guidance.cruise_speed_m_s
+        speed = np.hypot(vel[:, 0], vel[:, 1])
+        moving = speed > SPEED_FOR_HEADING * cruise
+        self.heading_rad[moving] = np.arctan2(vel[moving, 1], vel[moving, 0])
+        g = self.cfg.guidance
+        miss = self.goal_m - pos
+        arrived = (np.hypot(miss[:, 0], miss[:, 1]) <= g.arrive_radius_m) & (
+            np.abs(miss[:, 2]) <= g.arrive_alt_tol_m
+        )
+        mode = self.mode
+        on_ground = ~obs.in_air & ~obs.armed
+        events = (
+            (mode == Mode.TAKING_OFF) & (-pos[:, 2] >= self.takeoff_alt_m - TAKEOFF_DONE_M),
+            np.isin(mode, [int(m) for m in FLYING]) & arrived,
+            np.isin(mode, (int(Mode.LANDING), int(Mode.KILLED))) & on_ground,
+            np.isin(mode, [int(m) for m in AIRBORNE - {Mode.TAKING_OFF, Mode.LANDING}]) & on_ground,
+        )
+        triggers = (Trigger.REACHED_ALTITUDE, Trigger.ARRIVED, Trigger.TOUCHED_DOWN, None)
+        done = np.zeros(self.n, bool)
+        for trigger, mask in zip(triggers, events, strict=True):
+            for i in np.flatnonzero(mask & ~done).tolist():
+                done[i] = True
+                if trigger is None:
+                    self.mode[i] = int(Mode.LANDED)
+                    self.epoch[i] += 1
+                    if self.guidance is not None:
+                        self.guidance.forget(np.array([i]))
+                    self.notes.append(
+                        Note(
+                            i,
+                            "vehicle is on the ground and disarmed",
+                            EventKind.MODE_CHANGE,
+                            Severity.WARNING,
+                        )
+                    )
+                else:
+                    actions += self._internal(i, trigger, pos[i])
+        for i, fs in enumerate(self.failsafes):
+            if gcs_alive and fs.gcs_failsafe_active:
+                fs.gcs_back(now_s)
+                self.notes.append(Note(i, "ground station back", EventKind.FAILSAFE))
+                resume = _opt(self.resume_goal_m[i])
+                if self.mode_of(i) is Mode.HOLDING and resume is not None:
+                    self.resume_goal_m[i] = np.nan
+                    actions += self._enter(i, Mode.GOTO, Trigger.GOTO, pos[i], resume)
+            act = fs.evaluate(now_s, self.mode_of(i), gcs_alive, float(obs.battery_pct[i]), pos[i])
+            if act is not None:
+                actions += self._internal(i, act.trigger, pos[i], act.reason)
+        return actions
+
+    def guided_rows(self, armed: np.ndarray, link_ok: np.ndarray) -> np.ndarray:
+        """Rows the shell should fly with velocity setpoints this tick."""
+        if not self.velocity_mode:
+            return np.zeros(0, int)
+        modes = (int(Mode.GOTO), int(Mode.RETURNING), int(Mode.HOLDING))
+        ok = np.isin(self.mode, modes) & armed & link_ok & ~np.isnan(self.targets()[:, 0])
+        return np.flatnonzero(ok)
+
+    def guide(
+        self,
+        now_s: float,
+        rows: np.ndarray,
+        pos_m: np.ndarray,
+        vel_m_s: np.ndarray,
+        views: NeighbourViews,
+        decide: np.ndarray | None = None,
+    ) -> GuidanceStep:
+        """Velocity setpoints for `rows` (from `guided_rows`); pos/vel/views are those rows'."""
+        holding = self.mode[rows] == int(Mode.HOLDING)
+        out = self.guidance.step(
+            now_s,
+            rows,
+            pos_m,
+            vel_m_s,
+            self.heading_rad[rows],
+            self.targets()[rows],
+            holding,
+            views,
+            decide,
+        )
+        self.heading_rad[rows] = out.heading_rad
+        return out
+
+
+def heading_towards(pos_m: np.ndarray, goal_m: np.ndarray, fallback_rad: float) -> float:
+    d = goal_m[:2] - pos_m[:2]
+    if float(np.hypot(*d)) < 1e-6:
+        return float(fallback_rad)
+    return math.atan2(float(d[1]), float(d[0]))

@@ -1,0 +1,398 @@
+"""Command-line options that every covey CLI shares.
+
+- joining the mesh (`--fleet --connect --listen --mesh-mode --zenoh-config`) and the member key
+  file (`--key-file`, or $COVEY_FLEET_KEY_FILE);
+- value types that refuse a bad value with a message naming its unit;
+- flags built from a config dataclass: one per field, help from the docstring under the field;
+- flags that are renamed or refused: accepted by the parser only to say why not, in one line;
+- `die`: a set-up error as one line on stderr and exit status 2;
+- `stop_on_signals`: SIGINT and SIGTERM set a threading.Event instead of raising.
+
+It lives in comms/ because imports run downward (comms <- policy <- agent <- groundstation and
+tools): every layer's CLI can use it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import math
+import os
+import signal
+import sys
+import threading
+import typing
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from typing import Any, NoReturn
+
+from comms.auth import ENV_KEY_FILE
+from comms.geo import GeoOrigin
+from comms.session import DEFAULT_PORT, MeshConfig
+
+UNIT_SUFFIXES: dict[str, str] = {
+    "_m_s2": "m/s^2",
+    "_m_s": "m/s",
+    "_rad_s": "rad/s",
+    "_1_s": "1/s",
+    "_pct_s": "%/s",
+    "_ms": "milliseconds",
+    "_ns": "nanoseconds",
+    "_s": "seconds",
+    "_minutes": "minutes",
+    "_m": "metres",
+    "_hz": "Hz",
+    "_pct": "%",
+    "_rad": "radians",
+    "_deg": "degrees",
+}
+"""Name endings that carry a unit (longest first), and the unit's name in messages."""
+
+
+def unit_of(name: str) -> str | None:
+    """The unit a field or flag name ends in ("cruise_speed_m_s" -> "m/s"), or None."""
+    key = name.lstrip("-").replace("-", "_")
+    return next((unit for end, unit in UNIT_SUFFIXES.items() if key.endswith(end)), None)
+
+
+# -- set-up errors -------------------------------------------------------------------------------
+def die(parser: argparse.ArgumentParser, message: str) -> NoReturn:
+    """A set-up error (key file, roster, Zenoh config, endpoint): one line, exit status 2."""
+    print(f"{parser.prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+# -- value types ---------------------------------------------------------------------------------
+def port(text: str) -> int:
+    """A TCP port, 0..65535 (0 = any free port)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"{v} is outside 0..65535")
+    return v
+
+
+def finite(
+    unit: str,
+    *,
+    minimum: float | None = 0.0,
+    inclusive: bool = False,
+    allow_inf: bool = False,
+) -> Callable[[str], float]:
+    """A finite number of `unit` above `minimum` (or at least it, with `inclusive`; any finite
+    number with minimum=None); with `allow_inf`, also "inf" (for "as fast as possible")."""
+    if minimum is None:
+        bound = ""
+    else:
+        bound = f" {'>=' if inclusive else '>'} {minimum:g}"
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number of {unit}") from None
+        ok = math.isfinite(v) or (allow_inf and v == math.inf)
+        if ok and minimum is not None:
+            ok = v >= minimum if inclusive else v > minimum
+        if not ok:
+            raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of {unit}{bound}")
+        return v
+
+    parse.__name__ = f"number of {unit}"  # argparse names the type in some of its messages
+    return parse
+
+
+def floats(text: str, n: int, what: str) -> tuple[float, ...]:
+    """`n` finite comma-separated numbers ("3,4"); `what` names the flag in the message."""
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{what} must be {n} comma-separated numbers, got {text!r}"
+        ) from None
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(
+            f"{what} must be {n} finite comma-separated numbers, got {text!r}"
+        )
+    return values
+
+
+def geo_origin(text: str) -> GeoOrigin:
+    """'LAT,LON,ALT' in degrees, degrees, metres -> GeoOrigin."""
+    lat, lon, alt = floats(text, 3, "LAT,LON,ALT (degrees, degrees, metres)")
+    try:
+        return GeoOrigin(lat, lon, alt)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
+
+
+def comma_list(text: str) -> tuple[str, ...]:
+    """'a,b,,c' -> ('a', 'b', 'c')."""
+    return tuple(s for s in text.split(",") if s)
+
+
+# -- renamed and refused flags --------------------------------------------------------------------
+class Refused(argparse.Action):
+    """A flag the parser knows only to refuse, with the reason, in one line (exit status 2)."""
+
+    def __init__(self, option_strings, dest, message: str = "", **kw) -> None:
+        kw.update(nargs="?", default=argparse.SUPPRESS, help=kw.get("help", argparse.SUPPRESS))
+        super().__init__(option_strings, dest, **kw)
+        self.message = message
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        parser.error(self.message)
+
+
+def refuse(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    flag: str,
+    reason: str,
+    show: bool = False,
+) -> None:
+    """`flag` is refused with `reason` (and listed in --help with it when `show`)."""
+    parser.add_argument(
+        flag,
+        action=Refused,
+        message=f"{flag} is refused: {reason}",
+        dest=f"_refused_{flag.lstrip('-').replace('-', '_')}",
+        metavar="VALUE",
+        help=f"refused: {reason}" if show else argparse.SUPPRESS,
+    )
+
+
+def renamed(parser: argparse.ArgumentParser, old_to_new: Mapping[str, str]) -> None:
+    """Old flag names, hidden, that refuse with "--old was renamed --new": no silent alias, so
+    that a script learns the name that carries the unit."""
+    for old, new in old_to_new.items():
+        parser.add_argument(
+            old,
+            action=Refused,
+            message=f"{old} was renamed {new}",
+            dest=f"_renamed_{old.lstrip('-').replace('-', '_')}",
+        )
+
+
+def given(parser: argparse.ArgumentParser, args: argparse.Namespace, *dests: str) -> list[str]:
+    """The flags among `dests` whose value differs from their default (were given)."""
+    out = []
+    for action in parser._actions:
+        if action.dest in dests and getattr(args, action.dest, action.default) != action.default:
+            out.append(action.option_strings[-1] if action.option_strings else action.dest)
+    return out
+
+
+# -- mesh and key file ----------------------------------------------------------------------------
+def add_mesh_args(
+    parser: argparse.ArgumentParser,
+    key_file: bool = True,
+    fleet_default: str | None = "covey",
+    fleet_help: str = "fleet name (default: covey)",
+) -> None:
+    """--fleet --connect --listen --mesh-mode --zenoh-config, and --key-file unless key_file is
+    False (a CLI that signs nothing then refuses it itself, with its reason)."""
+    g = parser.add_argument_group("mesh")
+    g.add_argument("--fleet", default=fleet_default, help=fleet_help)
+    g.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help=f"endpoint to connect to; repeatable or comma-separated (default: "
+        f"tcp/127.0.0.1:{DEFAULT_PORT}; `covey demo` prints its own)",
+    )
+    g.add_argument(
+        "--mesh-mode",
+        choices=("peer", "client", "router"),
+        default="peer",
+        help="Zenoh role of this process (default: peer)",
+    )
+    g.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="endpoint to listen on; repeatable or comma-separated (default: tcp/127.0.0.1:0 "
+        f"for a peer, tcp/127.0.0.1:{DEFAULT_PORT} for a router)",
+    )
+    g.add_argument(
+        "--zenoh-config",
+        default=None,
+        metavar="FILE",
+        help="full Zenoh JSON5 config: TLS, user/password, access control (comms/zenoh_configs/)",
+    )
+    if key_file:
+        g.add_argument(
+            "--key-file",
+            default=None,
+            metavar="FILE",
+            help=f"this member's key file (covey keygen add); or ${ENV_KEY_FILE}. "
+            "Without one: OPEN MODE (nothing authenticated; tests only)",
+        )
+
+
+def _endpoints(items: Iterable[str] | None) -> tuple[str, ...]:
+    return tuple(e.strip() for item in (items or ()) for e in item.split(",") if e.strip())
+
+
+def mesh_config(
+    args: argparse.Namespace, parser: argparse.ArgumentParser | None = None
+) -> MeshConfig:
+    """The MeshConfig the options describe. A bad combination is a one-line exit-2 error, or
+    without `parser` a ValueError (MeshConfigError) that says why."""
+    kw: dict[str, Any] = {"fleet": args.fleet, "mode": args.mesh_mode}
+    kw["config_file"] = args.zenoh_config
+    if args.connect is not None:
+        kw["connect"] = _endpoints(args.connect)
+    elif args.mesh_mode == "router":
+        kw["connect"] = ()
+    if args.listen is not None:
+        kw["listen"] = _endpoints(args.listen)
+    elif args.mesh_mode == "router":
+        kw["listen"] = (f"tcp/127.0.0.1:{DEFAULT_PORT}",)
+    try:
+        return MeshConfig(**kw)
+    except ValueError as exc:
+        if parser is None:
+            raise
+        die(parser, str(exc))
+
+
+def key_file_path(args: argparse.Namespace, env: Mapping[str, str] = os.environ) -> str | None:
+    """The key file the options name: --key-file, else $COVEY_FLEET_KEY_FILE, else None."""
+    path = getattr(args, "key_file", None)
+    return path if path is not None else env.get(ENV_KEY_FILE)
+
+
+def key_env_note(
+    parser: argparse.ArgumentParser, reason: str, env: Mapping[str, str] = os.environ
+) -> None:
+    """For a CLI that signs nothing: say so in one line when $COVEY_FLEET_KEY_FILE is set (the
+    variable belongs to the shell, not to this command, so it is noted rather than refused)."""
+    if env.get(ENV_KEY_FILE):
+        print(f"{parser.prog}: note: ${ENV_KEY_FILE} is not used: {reason}", file=sys.stderr)
+
+
+# -- stopping ---------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def stop_on_signals(
+    signals: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM),
+) -> Iterator[threading.Event]:
+    """An Event that SIGINT and SIGTERM set (no KeyboardInterrupt mid-shutdown); the previous
+    handlers come back on exit. Off the main thread (a test calling a CLI) signals cannot be
+    caught: the Event is then only set by whoever holds it."""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in signals}
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+
+
+# -- flags from a config dataclass ------------------------------------------------------------------
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (the --help text of its flag)."""
+    import ast
+    import inspect
+    import textwrap
+
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = next(n for n in tree.body if isinstance(n, ast.ClassDef)).body
+    return {
+        a.target.id: " ".join(b.value.value.split())
+        for a, b in zip(body, body[1:], strict=False)
+        if isinstance(a, ast.AnnAssign)
+        and isinstance(a.target, ast.Name)
+        and isinstance(b, ast.Expr)
+        and isinstance(b.value, ast.Constant)
+        and isinstance(b.value.value, str)
+    }
+
+
+def flag_name(field_name: str) -> str:
+    return "--" + field_name.replace("_", "-")
+
+
+def _selected(cls: type, only: Iterable[str] | None, skip: Iterable[str]) -> list:
+    only, skip = (None if only is None else set(only)), set(skip)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = ((only or set()) | skip) - names
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no fields {sorted(unknown)}")
+    return [
+        f
+        for f in dataclasses.fields(cls)
+        if f.init and (only is None or f.name in only) and f.name not in skip
+    ]
+
+
+def _default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None
+
+
+def add_config_flags(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    cls: type,
+    *,
+    only: Iterable[str] | None = None,
+    skip: Iterable[str] = (),
+    types: Mapping[str, Callable[[str], Any]] | None = None,
+) -> None:
+    """One flag per field of the config dataclass `cls` (those in `only`, less `skip`):
+    `--field-name`, its default the field's, its help the docstring under the field.
+
+    bool -> --name / --no-name; int, str; float -> a finite number named by the field's unit
+    suffix; tuple -> a comma-separated list; `X | None` -> X, default None. `types` overrides
+    the value type of a field (a range check, a unit)."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    for f in _selected(cls, only, skip):
+        hint = hints[f.name]
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if args and type(None) in typing.get_args(hint):
+            hint = args[0]  # X | None
+        base = typing.get_origin(hint) or hint
+        default = _default(f)
+        text = docs.get(f.name, "").replace("%", "%%")
+        kw: dict[str, Any] = {"dest": f.name, "default": default}
+        if base is bool:
+            kw["action"] = argparse.BooleanOptionalAction
+        elif base is tuple:
+            kw["type"] = comma_list
+            kw["metavar"] = "A,B,..."
+            text += f" (comma-separated; default: {','.join(map(str, default)) or 'none'})"
+        elif base in (int, str, float):
+            unit = unit_of(f.name)
+            kw["type"] = {int: int, str: str, float: finite(unit or "units", minimum=None)}[base]
+            if base is float and unit:
+                kw["metavar"] = unit.upper()
+        else:
+            raise TypeError(f"{cls.__name__}.{f.name}: no flag for type {hint!r}")
+        if types and f.name in types:
+            kw["type"] = types[f.name]
+        if base is not tuple:
+            text += " (default: %(default)s)"
+        parser.add_argument(flag_name(f.name), help=text.strip(), **kw)
+
+
+def config_from_flags(
+    cls: type,
+    args: argparse.Namespace,
+    *,
+    only: Iterable[str] | None = None,
+    skip: Iterable[str] = (),
+    **overrides: Any,
+) -> Any:
+    """`cls` built from the flags add_config_flags added (same `only`/`skip`) and `overrides`."""
+    kw = {f.name: getattr(args, f.name) for f in _selected(cls, only, skip)}
+    return cls(**{**kw, **overrides})
