@@ -35,7 +35,7 @@ import time
 import uuid
 from pathlib import Path
 
-from bench.common import Children
+from bench.common import children
 from comms import keys
 from comms.foxglove_channels import FoxgloveConfig
 from comms.mesh import Mesh
@@ -106,7 +106,7 @@ def bench_record(
     worker = MODES[mode]
     fox = FoxgloveConfig() if worker is not None else None
     kids0 = _children_cpu_s()
-    with open(path, "wb") as f, Children() as kids:
+    with open(path, "wb") as f, children() as kids:
         sink = McapSink(f, fleet, 16 * 1024, 0.2, foxglove=fox, foxglove_worker=bool(worker))
         cfg = RecordConfig(str(path), embedded_peer(port, fleet=fleet), foxglove=fox)
         rec = Recorder(cfg, sink=sink)
@@ -121,11 +121,10 @@ def bench_record(
         with rec:
             args = ("--publish", str(port), fleet, str(n), str(rate_hz or 0))
             pub = kids.start("-m", "bench.record_throughput", *args)
-            kids.wait_line(pub, "publishing")
-            kids.wait_line(pub, "done", timeout_s=600.0)
+            pub.wait_for("publishing")
+            pub.wait_for("done", timeout_s=600.0)
             # reap it here, for its own CPU time (the worker's is the rest of our children's)
-            _pid, status, usage = os.wait4(pub.pid, 0)
-            pub.returncode = os.waitstatus_to_exitcode(status)
+            _pid, _status, usage = os.wait4(pub.pid, 0)
             pub_cpu_s = usage.ru_utime + usage.ru_stime
             deadline = time.monotonic() + 10.0
             while len(stamps) < n and time.monotonic() < deadline:
