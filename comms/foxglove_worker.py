@@ -48,6 +48,14 @@ WORKER_NICE = 19
 cannot be had again) goes first, and the conversion catches up when they are free (close()
 waits for it). Measured in a saturating burst on 2 busy cores (bench/record_throughput.py):
 nice 0 and 5 cost the recording states, 19 did not, beyond the noise."""
+DEFER_ABOVE_HZ = 4000.0
+"""While the recorder takes in more covey messages per second than this, the worker is handed
+nothing: on this project's 2-core VM, converting beside a recorder at 6,500 states/s sustained
+cost ~2 % of the states, and in a saturating burst ~6 %, even at nice 19 (tiny Zenoh queues
+overflow while the worker holds a core), while at 4,000/s no loss beyond the noise showed
+(bench/record_throughput.py). It catches up when the rate falls, or at close."""
+MAX_DEFERRED_BYTES = 64 * 1024 * 1024
+"""...but no more than this of raw records is held back (about 100 s at 6,500 states/s)."""
 MAX_CHUNK_BYTES = 1024 * 1024
 """A chunk of standard channels is cut at the end of each flush's conversion, or here: few
 chunks keep the per-chunk costs (pipe frames, indexes) off the recorder."""

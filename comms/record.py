@@ -46,7 +46,14 @@ from mcap.stream_reader import StreamReader
 
 from comms import keys, schema
 from comms.foxglove_channels import FoxgloveConfig
-from comms.foxglove_worker import FIRST_ID, FoxgloveChunks, FoxgloveWorker, WorkerDone
+from comms.foxglove_worker import (
+    DEFER_ABOVE_HZ,
+    FIRST_ID,
+    MAX_DEFERRED_BYTES,
+    FoxgloveChunks,
+    FoxgloveWorker,
+    WorkerDone,
+)
 from comms.mcap_chunks import BuiltChunk, ChunkBuilder, McapFile
 from comms.session import MeshConfig, open_session
 
@@ -132,6 +139,7 @@ class McapSink:
         clock_s: Callable[[], float] = time.monotonic,
         foxglove: FoxgloveConfig | None = None,
         foxglove_worker: bool = True,
+        foxglove_defer_hz: float = DEFER_ABOVE_HZ,
     ) -> None:
         self._out = out
         self._file = McapFile(out, profile="covey", library="covey-record")
@@ -156,6 +164,10 @@ class McapSink:
         elif foxglove is not None:
             self._inline = FoxgloveChunks(foxglove)
         self._plains: list[bytes] | None = None if foxglove is None else []
+        self._plain_bytes = 0
+        self._defer_hz = foxglove_defer_hz
+        self._since_flush = 0  # messages written since the last flush
+        self._flushed_s = clock_s()
         self._thread = threading.Thread(target=self._run, name="covey-record", daemon=True)
         self._thread.start()
 
@@ -181,6 +193,7 @@ class McapSink:
         topic, data, recv_ns = item
         cid, leaf = self._channels.get(topic) or self._channel(topic)
         self._raw.add(cid, recv_ns, data, recv_ns)
+        self._since_flush += 1
         self.counts[leaf] = self.counts.get(leaf, 0) + 1
         if self._raw.size > self._chunk_bytes:
             self._write_raw_chunk()
@@ -192,26 +205,35 @@ class McapSink:
             self._file.write_chunk(built)
             if self._plains is not None:
                 self._plains.append(built.plain)
+                self._plain_bytes += len(built.plain)
 
     def _write_foxglove(self, built: BuiltChunk) -> None:
         self._file.write_chunk(built)
         self.counts["foxglove"] = self.counts.get("foxglove", 0) + built.messages
 
-    def _flush(self) -> None:
+    def _flush(self, last: bool = False) -> None:
         """Write the raw chunk, pass what was written since the last flush on for the standard
-        channels, flush the file."""
+        channels, flush the file.
+
+        While messages arrive faster than foxglove_defer_hz, the worker is given nothing (up
+        to MAX_DEFERRED_BYTES): converting beside a saturated recorder cost states even at the
+        lowest priority (see DEFER_ABOVE_HZ); it catches up once the rate falls, or at close."""
+        now = self._clock_s()
+        rate_hz = self._since_flush / max(now - self._flushed_s, 1e-6)
+        self._since_flush, self._flushed_s = 0, now
         self._write_raw_chunk()
-        if self._plains:
-            plains, self._plains = self._plains, []
-            if self._worker is not None:
-                self._worker.send(plains)
-            elif self._inline is not None:
-                for chunk in self._inline.add(plains):
-                    self._write_foxglove(chunk)
+        if self._plains and self._inline is not None:
+            plains, self._plains, self._plain_bytes = self._plains, [], 0
+            for chunk in self._inline.add(plains):
+                self._write_foxglove(chunk)
+        elif self._plains and (
+            last or rate_hz <= self._defer_hz or self._plain_bytes >= MAX_DEFERRED_BYTES
+        ):
+            plains, self._plains, self._plain_bytes = self._plains, [], 0
+            self._worker.send(plains)
         self._file.flush()
 
     def _run(self) -> None:
-        last_flush_s = self._clock_s()
         get = self._queue.get
         stopping = False
         while True:
@@ -224,7 +246,7 @@ class McapSink:
             elif item.__class__ is BuiltChunk:
                 self._write_foxglove(item)
             elif item is _STOP:
-                self._flush()
+                self._flush(last=True)
                 if self._inline is not None:
                     self._say_refused(self._inline.refused)
                 if self._worker is None or self.foxglove_error:
@@ -243,9 +265,8 @@ class McapSink:
                 self.foxglove_error = item.error or "the Foxglove worker ended early"
                 self._plains = None
                 log.error("%s; recording covey's channels only from here", self.foxglove_error)
-            if self._clock_s() - last_flush_s >= self._flush_interval_s:
+            if self._clock_s() - self._flushed_s >= self._flush_interval_s:
                 self._flush()
-                last_flush_s = self._clock_s()
 
     def _say_refused(self, n: int) -> None:
         if n:

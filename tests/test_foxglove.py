@@ -247,6 +247,36 @@ def test_the_worker_process_writes_what_the_writer_thread_would(tmp_path):
     assert std["/scene"][-1].deletions[0].id == "vehicle/3"
 
 
+def _until(done, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert done()
+
+
+def test_the_worker_waits_while_the_recorder_is_busy(tmp_path):
+    """Faster than foxglove_defer_hz, the raw chunks are held back from the worker; the first
+    quiet flush hands them all over, and nothing is missing at the end."""
+    now = [0.0]
+    traffic = _fleet_traffic(40)
+    fox = fc.FoxgloveConfig(origin=ORIGIN)
+    with open(tmp_path / "busy.mcap", "wb") as f:
+        sink = McapSink(
+            f, "w", 2048, 0.05, clock_s=lambda: now[0], foxglove=fox, foxglove_defer_hz=100.0
+        )
+        for item in traffic:
+            sink.put(*item)
+        _until(lambda: sum(sink.counts.values()) == len(traffic))
+        now[0] = 0.05  # the next flush sees len(traffic) / 0.05 s: thousands per second
+        _until(lambda: sink._flushed_s == 0.05)
+        assert sink._worker.sent == 0 and sink._plains
+        now[0] = 0.10  # a quiet flush: all of it goes
+        _until(lambda: sink._worker.sent == 1)
+        sink.close()
+    _record_sink(tmp_path / "ref.mcap", traffic, foxglove=fox, foxglove_worker=False)
+    assert _by_topic(tmp_path / "busy.mcap") == _by_topic(tmp_path / "ref.mcap")
+
+
 def test_a_dead_worker_is_said_and_covey_channels_stay_whole(tmp_path):
     traffic = _fleet_traffic(20)
     path = tmp_path / "dead.mcap"
