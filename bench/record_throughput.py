@@ -5,14 +5,16 @@ recorder in this process, the publisher in a child process of its own, as vehicl
 - sink: McapSink alone (queue, MCAP chunks, flushes) - the recorder's ceiling;
 - record: the publisher sends N states as fast as it can, the Recorder records them over Zenoh;
   rate = recorded / (last - first receive), plus the share recorded, and end to end = recorded /
-  (first receive -> file closed, the standard channels written). Three ways in the same run:
-  covey_only (--no-foxglove), foxglove (the standard channels made by the Foxglove worker process,
-  what `covey record` does) and foxglove_inline (made in the writer thread, the reference path and
-  how recording worked before the worker). worker_us_per_msg: the Foxglove worker's CPU per
-  state, its start (~0.15 s) included. The recorder's own CPU per state, without Zenoh's, is in
-  bench/foxglove.py;
-- paced: the same three ways at offered rates below the burst's (--paced-hz, 1,000 states/s is
-  100 vehicles at 10 Hz): the share recorded, which should be all of it;
+  (first receive -> file closed, the standard channels written). Four ways in the same run:
+  covey_only (--no-foxglove); foxglove (the standard channels made by the Foxglove worker
+  process, what `covey record` does: held back while more than 4,000 messages/s arrive);
+  foxglove_live (the worker handed every flush at once, to show why it is held back);
+  foxglove_inline (made in the writer thread: the reference path, and how recording worked
+  before the worker). worker_us_per_msg: the worker's CPU per state, its start (~0.15 s)
+  included. The recorder's own CPU per state, without Zenoh's, is in bench/foxglove.py;
+- paced: the same four ways at offered rates below the burst's (--paced-hz; 1,000 states/s is
+  100 vehicles at 10 Hz, 6,500/s about half the burst's rate): the share recorded, which should
+  be as much as covey_only's;
 - read: read_recording of the file;
 - replay: play() at unlimited speed into the mesh; rate = published / elapsed, plus the share a
   subscriber received.
@@ -62,8 +64,13 @@ def bench_sink(path: Path, n: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
-MODES = {"covey_only": None, "foxglove": True, "foxglove_inline": False}
-"""Recording modes: name -> McapSink's foxglove_worker (None = no standard channels)."""
+MODES: dict[str, dict | None] = {
+    "covey_only": None,
+    "foxglove": {},
+    "foxglove_live": {"foxglove_defer_hz": math.inf},
+    "foxglove_inline": {"foxglove_worker": False},
+}
+"""Recording modes: name -> McapSink's Foxglove options (None = no standard channels)."""
 
 
 def _children_cpu_s() -> float:
@@ -103,11 +110,11 @@ def bench_record(
     """Receive rate, share received, end-to-end rate (first receive -> file closed, i.e. with
     the conversion and compression drained) and the Foxglove worker's CPU per state."""
     stamps: list[int] = []
-    worker = MODES[mode]
-    fox = FoxgloveConfig() if worker is not None else None
+    opts = MODES[mode]
+    fox = FoxgloveConfig() if opts is not None else None
     kids0 = _children_cpu_s()
     with open(path, "wb") as f, children() as kids:
-        sink = McapSink(f, fleet, 16 * 1024, 0.2, foxglove=fox, foxglove_worker=bool(worker))
+        sink = McapSink(f, fleet, 16 * 1024, 0.2, foxglove=fox, **(opts or {}))
         cfg = RecordConfig(str(path), embedded_peer(port, fleet=fleet), foxglove=fox)
         rec = Recorder(cfg, sink=sink)
         orig = rec._on_sample
@@ -186,7 +193,7 @@ def main(
                 out = path if mode == "foxglove" else Path(tmp) / f"run{r}{mode}.mcap"
                 res = bench_record(out, messages, port, f"{fleet}{k}", mode)
                 for key, value in res.items():
-                    if key != "worker_us_per_msg" or mode == "foxglove":
+                    if key != "worker_us_per_msg" or mode in ("foxglove", "foxglove_live"):
                         rows.setdefault(f"record_{mode}_{key}", []).append(value)
                 if mode == "foxglove":  # what a recording is by default (read/replay use it)
                     rows.setdefault("record_msgs_s", []).append(res["msgs_s"])
@@ -207,7 +214,7 @@ def main(
             rows.setdefault("replay_msgs_s", []).append(rate)
             rows.setdefault("replay_received_share", []).append(share)
     med = {k: statistics.median(v) for k, v in rows.items()}
-    for mode in ("foxglove", "foxglove_inline"):  # cost = covey-only rate / rate, same run
+    for mode in ("foxglove", "foxglove_live", "foxglove_inline"):  # covey-only rate / rate
         for key in ("msgs_s", "end_to_end_msgs_s"):
             med[f"record_{mode}_{key}_cost_ratio"] = (
                 med[f"record_covey_only_{key}"] / med[f"record_{mode}_{key}"]
@@ -237,7 +244,7 @@ if __name__ == "__main__":
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument(
         "--paced-hz",
-        default="1000,4000",
+        default="1000,4000,6500",
         help="also publish at these rates (states/s, comma-separated; empty = none) ...",
     )
     ap.add_argument("--paced-s", type=float, default=3.0, help="... for this long each")
