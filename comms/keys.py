@@ -1,6 +1,6 @@
 """Every Zenoh key expression covey uses, and nothing else builds them.
 
-    covey/<fleet>/v/<id>/state/<cn>/<ce>
+    covey/<fleet>/v/<id>/c/<cn>/<ce>/state
                                   pub/sub, latest-wins VehicleState, in the grid cell (cn, ce) of
                                   its position (see below)
     covey/<fleet>/v/<id>/cmd      queryable: Command -> CommandAck
@@ -13,9 +13,10 @@
 A state's key carries the coarse grid cell of the position it reports, so that a vehicle can
 subscribe to the cells within its reach (comms/scope.py, docs/scaling.md) instead of the whole
 fleet: `cell_states` is one cell of every vehicle, `all_states` every state of the fleet (the
-station, recorders; `**` also matches the cell-less `covey/<fleet>/v/<id>/state` of tools that
-put a state without placing it). The cell comes after the vehicle id so that all of one
-vehicle's keys stay under `covey/<fleet>/v/<id>/` (recorder topics, per-vehicle access control).
+station, recorders; its `**` also matches the unplaced `covey/<fleet>/v/<id>/state` that tools
+may put, which scoped subscribers hear too). The cell comes after the vehicle id so that all of
+one vehicle's keys stay under `covey/<fleet>/v/<id>/` (per-vehicle access control), and the key
+still ends in its leaf (`.../state`).
 The cell must be the one of the state's own position (`cell_of`): the mesh refuses a state on
 any other cell, so a vehicle cannot hide from its neighbours by publishing in a far cell.
 
@@ -41,8 +42,8 @@ MAX_CELL = math.ceil(POSITION_LIMIT_M / CELL_M)
 Cell = tuple[int, int]
 """(north index, east index) of a grid cell: floor(n / CELL_M), floor(e / CELL_M)."""
 _VEHICLE_KEY_RE = re.compile(
-    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event)"
-    r"(?:/(-?[0-9]{1,6})/(-?[0-9]{1,6}))?$"
+    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(?:c/(-?[0-9]{1,6})/(-?[0-9]{1,6})/)?"
+    r"(state|cmd|ack|alive|event)$"
 )
 _F32 = struct.Struct("<2f")
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
@@ -90,27 +91,31 @@ def check_cell(cell: Cell) -> Cell:
 def state(fleet: str, vehicle_id: int, cell: Cell | None = None) -> str:
     """The key of a state of `vehicle_id` in `cell`; without a cell, the unplaced key that only
     whole-fleet subscribers hear (tools, tests)."""
-    key = _vehicle(fleet, vehicle_id, "state")
     if cell is None:
-        return key
+        return _vehicle(fleet, vehicle_id, "state")
     cn, ce = check_cell(cell)
-    return f"{key}/{cn}/{ce}"
+    return _vehicle(fleet, vehicle_id, f"c/{cn}/{ce}/state")
 
 
 def all_states(fleet: str) -> str:
     """Every state of the fleet, placed or not."""
-    return _vehicle(fleet, "*", "state") + "/**"
+    return _vehicle(fleet, "*", "**/state")
+
+
+def unplaced_states(fleet: str) -> str:
+    """States put without a cell (tools, tests): every scoped subscriber hears these too."""
+    return _vehicle(fleet, "*", "state")
 
 
 def vehicle_states(fleet: str, vehicle_id: int) -> str:
     """Every state of one vehicle, in whichever cell."""
-    return _vehicle(fleet, vehicle_id, "state") + "/**"
+    return _vehicle(fleet, vehicle_id, "**/state")
 
 
 def cell_states(fleet: str, cell: Cell) -> str:
     """The states of every vehicle in one grid cell."""
     cn, ce = check_cell(cell)
-    return f"{_vehicle(fleet, '*', 'state')}/{cn}/{ce}"
+    return _vehicle(fleet, "*", f"c/{cn}/{ce}/state")
 
 
 def cmd(fleet: str, vehicle_id: int) -> str:
@@ -185,11 +190,11 @@ def _parse(key: str) -> tuple[str, int, str, Cell | None] | None:
     if not 1 <= vid <= MAX_VEHICLE_ID:
         return None
     cell = None
-    if m.group(4) is not None:
-        cell = (int(m.group(4)), int(m.group(5)))
-        if m.group(3) != "state" or max(abs(cell[0]), abs(cell[1])) > MAX_CELL:
+    if m.group(3) is not None:
+        cell = (int(m.group(3)), int(m.group(4)))
+        if m.group(5) != "state" or max(abs(cell[0]), abs(cell[1])) > MAX_CELL:
             return None
-    return m.group(1), vid, m.group(3), cell
+    return m.group(1), vid, m.group(5), cell
 
 
 def parse_gcs_key(key: str) -> tuple[str, int] | None:

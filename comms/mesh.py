@@ -563,7 +563,7 @@ class Mesh:
 
 class CellSubscription:
     """The state subscribers of a set of grid cells, one Zenoh subscriber per cell, that share
-    one handler. Thread-safe; undeclared with the mesh."""
+    one handler, plus one for unplaced states. Thread-safe; undeclared with the mesh."""
 
     def __init__(
         self, mesh: Mesh, on_sample: Callable[[zenoh.Sample], None], remote_only: bool
@@ -575,6 +575,11 @@ class CellSubscription:
         self._subs: dict[keys.Cell, Any] = {}
         self.changes = 0
         """Cell subscribers declared plus undeclared since start (read only)."""
+        # States put without a cell (tools, an older member) are heard everywhere, as before
+        # scoping, so that nothing can hide by leaving its cell out; covey publishers place theirs.
+        self._unplaced = mesh.session.declare_subscriber(
+            keys.unplaced_states(mesh.fleet), on_sample, allowed_origin=self._origin
+        )
 
     @property
     def cells(self) -> frozenset[keys.Cell]:
@@ -600,7 +605,7 @@ class CellSubscription:
 
     def undeclare(self) -> None:
         with self._lock:
-            subs, self._subs = list(self._subs.values()), {}
+            subs, self._subs = [self._unplaced, *self._subs.values()], {}
         for sub in subs:
             with contextlib.suppress(Exception):
                 sub.undeclare()

@@ -58,13 +58,13 @@ def test_state_keys_carry_the_cell_of_the_position() -> None:
     assert keys.cell_of((29.9, -0.1, 0.0)) == (0, -1)
     assert keys.cell_of((-30.0, 60.0, 0.0)) == (-1, 2)
     key = keys.state(FLEET, 7, (3, -2))
-    assert key == "covey/scope/v/7/state/3/-2"
+    assert key == "covey/scope/v/7/c/3/-2/state"
     assert keys.parse_state_key(key) == (FLEET, 7, (3, -2))
     assert keys.parse_vehicle_key(key) == (FLEET, 7, "state")  # recorders, replay, foxglove
     assert keys.parse_state_key(keys.state(FLEET, 7)) == (FLEET, 7, None)
-    assert keys.parse_vehicle_key("covey/scope/v/7/ack/3/-2") is None  # only states have cells
-    assert keys.parse_vehicle_key("covey/scope/v/7/state/3") is None
-    assert keys.parse_vehicle_key(f"covey/scope/v/7/state/{keys.MAX_CELL + 1}/0") is None
+    assert keys.parse_vehicle_key("covey/scope/v/7/c/3/-2/ack") is None  # only states have cells
+    assert keys.parse_vehicle_key("covey/scope/v/7/c/3/state") is None
+    assert keys.parse_vehicle_key(f"covey/scope/v/7/c/{keys.MAX_CELL + 1}/0/state") is None
     with pytest.raises(ValueError):
         keys.cell_states(FLEET, (1.5, 0))  # type: ignore[arg-type]
 
