@@ -1,7 +1,14 @@
 """Foxglove channels: what they cost. `python -m bench.foxglove [--quick] [--runs R] [--live-s S]`
 
-- record: McapSink (the recorder's writer thread: queue, MCAP writer, zstd, flushes) with the
-  standard Foxglove channels on vs off, msg/s of covey messages in, median of R runs (same run);
+- record: McapSink (the recorder's writer thread: queue, MCAP chunks, zstd, flushes) fed the same
+  traffic three ways, median of R runs, all in the same run:
+    off     covey's channels only;
+    worker  + the standard channels, made in the Foxglove worker process (what `covey record` does);
+    inline  + the standard channels, made in the writer thread (the reference path; how recording
+            worked before the worker).
+  hot: covey messages per CPU second of the recorder's process (every thread of it: writer, the
+  worker's pipe threads, and the put loop, the same in every mode); worker: the child's CPU per
+  message, less its start (an idle worker's CPU, measured apart); wall: first put -> file closed;
 - size: file bytes per vehicle-hour both ways, 10 vehicles at 10 Hz for 120 s of log time;
 - live: `covey foxglove` as a child process serving 100 vehicles publishing at 10 Hz; its CPU share
   (of one core) and the latency from a state's stamp to a WebSocket client decoding its pose.
@@ -14,6 +21,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import resource
 import statistics
 import threading
 import time
@@ -24,7 +32,7 @@ from mcap.reader import make_reader
 
 from bench.common import DOCS, children, cpu_seconds, pct, pyplot, say, write_json
 from comms import keys
-from comms.foxglove_channels import POSE_IN_FRAME, Converter
+from comms.foxglove_channels import POSE_IN_FRAME, FoxgloveConfig
 from comms.mesh import Mesh
 from comms.record import McapSink
 from comms.schema import Event, Mode, VehicleState
@@ -66,15 +74,32 @@ def _traffic(n_vehicles: int, rate_hz: float, duration_s: float) -> list[tuple[s
     return out
 
 
-def bench_sink(traffic, foxglove: bool) -> tuple[float, int]:
-    """(covey msg/s through the sink, file bytes)."""
+def _children_cpu_s() -> float:
+    """CPU seconds of this process's children that have ended (the Foxglove workers)."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+MODES = ("off", "worker", "inline")
+
+
+def bench_sink(traffic, mode: str) -> dict:
+    """One pass of `traffic` through McapSink in `mode` (see the module docstring)."""
     buf = io.BytesIO()
-    t0 = time.perf_counter()
-    sink = McapSink(buf, "bench", 16 * 1024, 0.2, converter=Converter() if foxglove else None)
+    fox = None if mode == "off" else FoxgloveConfig()
+    kids0, cpu0, t0 = _children_cpu_s(), time.process_time(), time.perf_counter()
+    sink = McapSink(buf, "bench", 16 * 1024, 0.2, foxglove=fox, foxglove_worker=mode == "worker")
     for topic, data, recv_ns in traffic:
         sink.put(topic, data, recv_ns)
     sink.close()
-    return len(traffic) / (time.perf_counter() - t0), len(buf.getvalue())
+    wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - cpu0
+    return {
+        "hot_msgs_per_cpu_s": len(traffic) / cpu_s,
+        "wall_msgs_s": len(traffic) / wall_s,
+        "worker_cpu_s": _children_cpu_s() - kids0,
+        "bytes": len(buf.getvalue()),
+        "foxglove_messages": sink.counts.get("foxglove", 0),
+    }
 
 
 def bench_live(duration_s: float, n_vehicles: int = 100, rate_hz: float = 10.0) -> dict:
@@ -251,20 +276,37 @@ def main(quick: bool = False, runs: int = 3, live_s: float = 10.0) -> dict:
     if quick:
         runs, live_s = 1, 4.0
     traffic = _traffic(VEHICLES, RATE_HZ, LOG_S)
-    rows: dict[str, list[float]] = {"off_msgs_s": [], "on_msgs_s": []}
-    sizes = {}
+    rows: dict[str, list[float]] = {}
+    sizes, made = {}, {}
+    start_cpu_s = []
     for r in range(runs):
         say(f"record run {r + 1}/{runs} ({len(traffic)} messages)")
-        for name, on in (("off", False), ("on", True)):
-            rate, size = bench_sink(traffic, on)
-            rows[f"{name}_msgs_s"].append(rate)
-            sizes[name] = size
+        start_cpu_s.append(bench_sink([], "worker")["worker_cpu_s"])
+        for mode in MODES:  # interleaved, so that the machine's load falls on each alike
+            res = bench_sink(traffic, mode)
+            rows.setdefault(f"{mode}_hot_msgs_per_cpu_s", []).append(res["hot_msgs_per_cpu_s"])
+            rows.setdefault(f"{mode}_wall_msgs_s", []).append(res["wall_msgs_s"])
+            sizes[mode], made[mode] = res["bytes"], res["foxglove_messages"]
+            if mode == "worker":
+                rows.setdefault("worker_child_us_per_msg", []).append(
+                    1e6 * (res["worker_cpu_s"] - start_cpu_s[-1]) / len(traffic)
+                )
+    med = {k: statistics.median(v) for k, v in rows.items()}
+    med["worker_start_cpu_s"] = statistics.median(start_cpu_s)
+    for mode in ("worker", "inline"):  # the cost asked about: with / without, same run
+        med[f"{mode}_hot_cost_ratio"] = (
+            med["off_hot_msgs_per_cpu_s"] / med[f"{mode}_hot_msgs_per_cpu_s"]
+        )
     vehicle_h = VEHICLES * LOG_S / 3600
-    say(f"live bridge: 100 vehicles at 10 Hz for {live_s:g} s")
-    live = bench_live(live_s)
+    live = None
+    if live_s > 0:
+        say(f"live bridge: 100 vehicles at 10 Hz for {live_s:g} s")
+        live = bench_live(live_s)
     result = {
-        "record": {k: statistics.median(v) for k, v in rows.items()},
+        "record": med,
         "record_all": rows,
+        "covey_messages": len(traffic),
+        "foxglove_messages": made,
         "bytes_per_vehicle_hour": {k: v / vehicle_h for k, v in sizes.items()},
         "live": live,
     }
@@ -275,7 +317,7 @@ def main(quick: bool = False, runs: int = 3, live_s: float = 10.0) -> dict:
 def cli(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--live-s", type=float, default=10.0)
+    ap.add_argument("--live-s", type=float, default=10.0, help="0 = no live-bridge run")
     ap.add_argument("--quick", action="store_true", help="one run, a 4 s live window")
     ap.add_argument(
         "--figure",
@@ -289,15 +331,27 @@ def cli(argv: list[str] | None = None) -> int:
         return 0
     res = main(a.quick, a.runs, a.live_s)
     rec, size, live = res["record"], res["bytes_per_vehicle_hour"], res["live"]
+    print(f"record, medians of {a.runs}, {res['covey_messages']} covey messages:")
     print(
-        f"record msg/s (median of {a.runs})  foxglove off {rec['off_msgs_s']:10.0f}   on {rec['on_msgs_s']:10.0f}"
+        f"{'':8s} {'msg/CPU-s (recorder)':>21s} {'cost x':>7s} {'msg/s wall':>11s} {'MB/veh-h':>9s}"
     )
+    for mode in MODES:
+        ratio = rec.get(f"{mode}_hot_cost_ratio", 1.0)
+        print(
+            f"{mode:8s} {rec[f'{mode}_hot_msgs_per_cpu_s']:21.0f} {ratio:7.2f} "
+            f"{rec[f'{mode}_wall_msgs_s']:11.0f} {size[mode] / 1e6:9.2f}"
+        )
     print(
-        f"MB per vehicle-hour            foxglove off {size['off'] / 1e6:10.2f}   on {size['on'] / 1e6:10.2f}"
+        f"worker process: {rec['worker_child_us_per_msg']:.1f} us CPU per covey message, "
+        f"{rec['worker_start_cpu_s']:.2f} s CPU to start"
     )
+    if live is None:
+        return 0
+    cpu = 100 * live["bridge_cpu_share_of_one_core"]
     print(
-        f"live bridge, {live['vehicles']} vehicles at {live['rate_hz']:g} Hz: CPU {100 * live['bridge_cpu_share_of_one_core']:.0f} % "
-        f"of one core, latency p50 {live['latency_ms_p50']:.1f} ms p95 {live['latency_ms_p95']:.1f} ms, "
+        f"live bridge, {live['vehicles']} vehicles at {live['rate_hz']:g} Hz: CPU {cpu:.0f} % "
+        f"of one core, latency p50 {live['latency_ms_p50']:.1f} ms "
+        f"p95 {live['latency_ms_p95']:.1f} ms, "
         f"{100 * live['poses_received_share']:.0f} % of poses received"
     )
     return 0

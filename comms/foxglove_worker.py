@@ -2,9 +2,8 @@
 
 The recorder's writer thread writes covey's raw bytes in chunks, and at each flush hands the
 uncompressed records of the chunks it wrote since the last one (it has built them anyway) to
-`FoxgloveWorker`. The child (`python -m comms.foxglove_worker`, at the lowest priority) reads
-covey's messages back out of them, converts them (comms/foxglove_channels.py, the states as
-arrays), packs the standard messages into finished, compressed MCAP chunks
+`FoxgloveWorker`. The child (`main()` below, at the lowest priority) reads covey's messages
+back out of them, converts them (comms/foxglove_channels.py, the states as arrays), packs the standard messages into finished, compressed MCAP chunks
 (comms/mcap_chunks.py), and sends those back; the writer thread writes each into the same file
 as one blob. The recorder's process so pays nothing per message for the standard channels, only
 a few pipe frames and blob writes per flush, and its GIL stays with Zenoh's callbacks: with the
@@ -17,12 +16,11 @@ reference the child is tested against.
 Pipe protocol, both ways: frames of u32 length + pickle (the child is ours, started by us, and
 talks only to us). Parent -> child: a setup dict, then per flush a list of raw chunks' records
 (bytes), then None = end of input. Child -> parent: per flush the list of BuiltChunks made from
-it, then ("done", counts).
+it, then ("done", refused).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import pickle
@@ -140,7 +138,8 @@ class WorkerDone:
     """The worker has sent its last chunk (error empty), or died (error says how)."""
 
     error: str = ""
-    counts: dict | None = None
+    refused: int = 0
+    """Standard messages the worker did not write (FoxgloveChunks.refused)."""
 
 
 class FoxgloveWorker:
@@ -156,15 +155,22 @@ class FoxgloveWorker:
             **os.environ,
             "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])),
         }
+        # Nice before the imports (numpy, foxglove, mcap: ~0.3 s of CPU), not after them.
+        start = (
+            "import contextlib, os\n"
+            f"with contextlib.suppress(OSError): os.nice({WORKER_NICE})\n"
+            "from comms.foxglove_worker import main\n"
+            "raise SystemExit(main())\n"
+        )
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "comms.foxglove_worker"],
+            [sys.executable, "-c", start],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
         )
         self._deliver = deliver
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
-        self._outbox.put({"cfg": cfg, "nice": WORKER_NICE})
+        self._outbox.put({"cfg": cfg})
         self._ended = False
         self.sent = 0
         """Flushes sent to the child."""
@@ -219,7 +225,7 @@ class FoxgloveWorker:
                     self._deliver(chunk)
                 self.converted += 1
             else:
-                self._deliver(WorkerDone(counts=item[1]))
+                self._deliver(WorkerDone(refused=item[1]))
                 return
 
     def close(self, timeout_s: float = 10.0) -> None:
@@ -242,16 +248,10 @@ def main() -> int:
     sys.stdout = sys.stderr  # a stray print must not corrupt the frames
     try:
         setup = _recv(inp)
-        with contextlib.suppress(OSError):
-            os.nice(setup["nice"])
         chunks = FoxgloveChunks(setup["cfg"])
         while (plains := _recv(inp)) is not None:
             _send(out, chunks.add(plains))
-        _send(out, ("done", {"foxglove": chunks.messages, "foxglove_refused": chunks.refused}))
+        _send(out, ("done", chunks.refused))
     except (EOFError, BrokenPipeError):
         return 0  # the recorder went away (killed?): nothing left to write to
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -225,6 +225,8 @@ class McapSink:
                 self._write_foxglove(item)
             elif item is _STOP:
                 self._flush()
+                if self._inline is not None:
+                    self._say_refused(self._inline.refused)
                 if self._worker is None or self.foxglove_error:
                     return
                 self._worker.end()  # then write its chunks until it is done
@@ -235,6 +237,7 @@ class McapSink:
             elif isinstance(item, WorkerDone):
                 if stopping:
                     self.foxglove_error = item.error
+                    self._say_refused(item.refused)
                     return
                 # Died while recording: keep recording covey's channels, and say so now.
                 self.foxglove_error = item.error or "the Foxglove worker ended early"
@@ -243,6 +246,13 @@ class McapSink:
             if self._clock_s() - last_flush_s >= self._flush_interval_s:
                 self._flush()
                 last_flush_s = self._clock_s()
+
+    def _say_refused(self, n: int) -> None:
+        if n:
+            self.counts["foxglove_refused"] = n
+            log.warning(
+                "%d standard messages not written: more topics than Foxglove channel ids", n
+            )
 
     def close(self) -> None:
         """Write what is queued (and the Foxglove worker's last chunks), the summary and the
