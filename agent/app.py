@@ -42,6 +42,7 @@ from comms.schema import (
     StateFlag,
     VehicleState,
 )
+from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,9 @@ class AgentConfig:
     origin: GeoOrigin = GeoOrigin()
     guidance: GuidanceConfig = GuidanceConfig()
     neighbours: NeighbourConfig = NeighbourConfig()
+    scope: ScopeConfig = ScopeConfig()
+    """Which neighbours' states to hear: the grid cells within reach (widened to what `guidance`
+    needs), or the whole fleet with `enabled=False` (comms/scope.py, docs/scaling.md)."""
     failsafe: FailsafeConfig = FailsafeConfig()
     link: str = "perfect"
     """Radio link emulated between this agent and the others (comms.link spec)."""
@@ -138,15 +142,33 @@ class Agent:
             mesh.on_security = lambda line: self._event(
                 line, EventKind.SECURITY, Severity.WARNING, quiet=True
             )
-        mesh.subscribe_states(
-            lambda s, _t: self.table.update(s, self.clock_s()),
-            link=link,
-            ignore_id=self.vid,
-            gate=GateConfig(min_interval_s=cfg.neighbours.verify_min_interval_s),
-        )
+        gate = GateConfig(min_interval_s=cfg.neighbours.verify_min_interval_s)
+        self.scope: Scope | None = None
+        if cfg.scope.enabled:
+            # Hear the cells within reach of this vehicle, moved as it flies (from the first
+            # telemetry on: a vehicle that does not know where it is hears nothing yet).
+            self.scope = Scope(cfg.guidance.scope(cfg.scope))
+            self.states = mesh.subscribe_cells(
+                self._on_state, (), link, gate=gate, ignore_id=self.vid
+            )
+            tel = backend.telemetry()
+            if tel is not None:
+                self._rescope(tel.pos_ned_m)
+        else:
+            self.states = mesh.subscribe_states(
+                self._on_state, link=link, ignore_id=self.vid, gate=gate
+            )
         # Answer commands before announcing presence: whoever sees us alive can command us.
         mesh.serve_commands(self.vid, self.handle_command)
         mesh.declare_vehicle(self.vid)
+
+    def _on_state(self, state: VehicleState, _recv_ns: int) -> None:
+        self.table.update(state, self.clock_s())
+
+    def _rescope(self, pos_ned_m) -> None:
+        cells = self.scope.update(pos_ned_m)
+        if cells is not None:
+            self.states.set_cells(cells)
 
     def close(self) -> None:
         """Stop the action queue (what still waits is reported as not run)."""
@@ -254,6 +276,8 @@ class Agent:
         vel = np.array(tel.vel_ned_m_s)
         if self.on_position is not None:
             self.on_position(tel.pos_ned_m)
+        if self.scope is not None:
+            self._rescope(pos)  # a few comparisons unless the vehicle left its anchor cell
         if self.link is not None and now_s - self._last_link_stats_s >= LINK_STATS_PERIOD_S:
             self._last_link_stats_s = now_s
             self._event(self.link.stats_text(), EventKind.LINK_STATS, Severity.DEBUG)

@@ -43,6 +43,7 @@ from agent.neighbours import NeighbourConfig
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import Command, CommandAck, Mode, StateFlag, VehicleState
+from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from policy.runtime import GuidancePolicy
 
@@ -69,6 +70,9 @@ class FleetSimConfig:
     """Nearest neighbours fed to each vehicle's policy (None: all within its sense range)."""
     see_others: bool = True
     """Subscribe to other processes' vehicle states and avoid them too."""
+    scope: ScopeConfig = ScopeConfig()
+    """Which of them to hear: the union of the grid cells within reach of this process's
+    vehicles, or every state of the fleet with `enabled=False` (comms/scope.py)."""
     guidance: GuidanceConfig = GuidanceConfig()
     """Separation, speed, arrival and vertical tuning (as the agent's)."""
     sim: SimConfig = SimConfig()
@@ -159,8 +163,15 @@ class Fleet:
         self._lock = threading.RLock()
         self._others: dict[int, tuple[VehicleState, float]] = {}
         self.presence = mesh.presence() if cfg.failsafe.require_gcs else None
-        if cfg.see_others:
-            mesh.subscribe_states(self._on_state)
+        self.scope: Scope | None = None
+        self.states = None
+        if cfg.see_others and cfg.scope.enabled:
+            self.scope = Scope(g.scope(cfg.scope), n)
+            cells = self.scope.update(self.sim.pos_m)
+            # Our own vehicles are in our cells too: Zenoh keeps this session's states local.
+            self.states = mesh.subscribe_cells(self._on_state, cells or (), remote_only=True)
+        elif cfg.see_others:
+            self.states = mesh.subscribe_states(self._on_state)
         for i, vid in enumerate(self.ids.tolist()):
             mesh.serve_commands(vid, lambda c, i=i: self.handle_command(i, c))
         for vid in self.ids.tolist():  # answer commands before announcing presence
@@ -251,6 +262,9 @@ class Fleet:
                 self.filtered[rows] = out.filtered
             notes = core.drain_notes()
             states = self._states()
+            cells = self.scope.update(sim.pos_m) if self.scope is not None else None
+        if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
+            self.states.set_cells(cells)
         self._publish_notes(notes)
         for s in states:
             try:

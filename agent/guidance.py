@@ -18,11 +18,12 @@ tests/test_flight_core.py).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from agent.neighbours import NeighbourSnapshot
+from comms.scope import ScopeConfig
 from policy import safety
 from policy.runtime import GuidancePolicy
 
@@ -69,6 +70,21 @@ class GuidanceConfig:
             raise ValueError(f"decision_period_s must be within 0..10 s (or None), got {p}")
         if self.max_neighbours is not None and self.max_neighbours < 0:
             raise ValueError(f"max_neighbours must be >= 0 or None, got {self.max_neighbours}")
+
+    def scope(self, base: ScopeConfig) -> ScopeConfig:
+        """`base` widened to what this guidance needs to hear (comms/scope.py): its separation;
+        the safety filter's reach, r (1 + margin) + 2 v tau, and the stale-caution radius
+        within the sense range; its own cruise speed within the fleet's top speed."""
+        f = safety.SafetyConfig()
+        filter_reach_m = (
+            self.separation_m * (1.0 + f.margin) + 2.0 * self.cruise_speed_m_s * f.time_horizon_s
+        )
+        return replace(
+            base,
+            separation_m=max(base.separation_m, self.separation_m),
+            sense_range_m=max(base.sense_range_m, filter_reach_m, self.stale_caution_radius_m),
+            max_speed_m_s=max(base.max_speed_m_s, self.cruise_speed_m_s),
+        )
 
     def load_policy(self) -> GuidancePolicy:
         """The policy this configuration flies (unfiltered: guidance filters, to see when)."""

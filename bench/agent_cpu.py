@@ -68,7 +68,7 @@ def role_neighbours(port: int, keys_dir: str | None = None) -> None:
                 )
                 if signers:
                     mesh.session.put(
-                        keys.state(FLEET, st.vehicle_id),
+                        keys.state(FLEET, st.vehicle_id, keys.cell_of(pos)),
                         signers[st.vehicle_id].sign_state(st).encode(),
                     )
                 else:

@@ -1,6 +1,8 @@
 """Every Zenoh key expression covey uses, and nothing else builds them.
 
-    covey/<fleet>/v/<id>/state    pub/sub, latest-wins VehicleState
+    covey/<fleet>/v/<id>/c/<cn>/<ce>/state
+                                  pub/sub, latest-wins VehicleState, in the grid cell (cn, ce) of
+                                  its position (see below)
     covey/<fleet>/v/<id>/cmd      queryable: Command -> CommandAck
     covey/<fleet>/v/<id>/ack      pub/sub: a copy of every CommandAck the vehicle sent (recorders)
     covey/<fleet>/v/<id>/alive    liveliness token of a vehicle's agent
@@ -9,21 +11,42 @@
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
     covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
 
+A state's key carries the coarse grid cell of the position it reports, so that a vehicle can
+subscribe to the cells within its reach (comms/scope.py, docs/scaling.md) instead of the whole
+fleet: `cell_states` is one cell of every vehicle, `all_states` every state of the fleet (the
+station, recorders; its `**` also matches the unplaced `covey/<fleet>/v/<id>/state` that tools
+may put, which scoped subscribers hear too). The cell comes after the vehicle id so that all of
+one vehicle's keys stay under `covey/<fleet>/v/<id>/` (per-vehicle access control), and the key
+still ends in its leaf (`.../state`).
+The cell must be the one of the state's own position (`cell_of`): the mesh refuses a state on
+any other cell, so a vehicle cannot hide from its neighbours by publishing in a far cell.
+
 Ground-station tokens carry the station id so that two stations can come and go independently
 (a shared key would make one station's leave look like all of them leaving).
 """
 
 from __future__ import annotations
 
+import math
 import re
+import struct
 
-from comms.schema import MAX_VEHICLE_ID
+from comms.schema import MAX_VEHICLE_ID, POSITION_LIMIT_M
 
 ROOT = "covey"
 _FLEET_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+CELL_M = 30.0
+"""Pitch of the state grid in metres, north and east. A fleet-wide wire constant: a publisher
+and its receivers must agree on it (a state on another cell than its position's is refused)."""
+MAX_CELL = math.ceil(POSITION_LIMIT_M / CELL_M)
+"""Largest |cell index| a valid position can have."""
+Cell = tuple[int, int]
+"""(north index, east index) of a grid cell: floor(n / CELL_M), floor(e / CELL_M)."""
 _VEHICLE_KEY_RE = re.compile(
-    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event|trace)$"
+    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(?:c/(-?[0-9]{1,6})/(-?[0-9]{1,6})/)?"
+    r"(state|cmd|ack|alive|event|trace)$"
 )
+_F32 = struct.Struct("<2f")
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
 
 
@@ -49,12 +72,51 @@ def _vehicle(fleet: str, vehicle_id: int | str, leaf: str) -> str:
     return f"{ROOT}/{check_fleet(fleet)}/v/{vid}/{leaf}"
 
 
-def state(fleet: str, vehicle_id: int) -> str:
-    return _vehicle(fleet, vehicle_id, "state")
+def cell_of(pos_ned_m: tuple[float, ...]) -> Cell:
+    """The grid cell of a position, computed on the float32 values the wire carries, so that
+    the sender and every receiver get the same cell even on a cell border."""
+    n, e = _F32.unpack(_F32.pack(pos_ned_m[0], pos_ned_m[1]))
+    return math.floor(n / CELL_M), math.floor(e / CELL_M)
+
+
+def check_cell(cell: Cell) -> Cell:
+    if (
+        not isinstance(cell, tuple)
+        or len(cell) != 2
+        or not all(isinstance(c, int) and -MAX_CELL <= c <= MAX_CELL for c in cell)
+    ):
+        raise ValueError(f"cell {cell!r} must be two integers within +-{MAX_CELL}")
+    return cell
+
+
+def state(fleet: str, vehicle_id: int, cell: Cell | None = None) -> str:
+    """The key of a state of `vehicle_id` in `cell`; without a cell, the unplaced key that only
+    whole-fleet subscribers hear (tools, tests)."""
+    if cell is None:
+        return _vehicle(fleet, vehicle_id, "state")
+    cn, ce = check_cell(cell)
+    return _vehicle(fleet, vehicle_id, f"c/{cn}/{ce}/state")
 
 
 def all_states(fleet: str) -> str:
+    """Every state of the fleet, placed or not."""
+    return _vehicle(fleet, "*", "**/state")
+
+
+def unplaced_states(fleet: str) -> str:
+    """States put without a cell (tools, tests): every scoped subscriber hears these too."""
     return _vehicle(fleet, "*", "state")
+
+
+def vehicle_states(fleet: str, vehicle_id: int) -> str:
+    """Every state of one vehicle, in whichever cell."""
+    return _vehicle(fleet, vehicle_id, "**/state")
+
+
+def cell_states(fleet: str, cell: Cell) -> str:
+    """The states of every vehicle in one grid cell."""
+    cn, ce = check_cell(cell)
+    return _vehicle(fleet, "*", f"c/{cn}/{ce}/state")
 
 
 def cmd(fleet: str, vehicle_id: int) -> str:
@@ -115,13 +177,31 @@ def everything(fleet: str) -> str:
 
 def parse_vehicle_key(key: str) -> tuple[str, int, str] | None:
     """(fleet, vehicle_id, leaf) of a vehicle key, or None if `key` is not one."""
+    parsed = _parse(key)
+    return None if parsed is None else parsed[:3]
+
+
+def parse_state_key(key: str) -> tuple[str, int, Cell | None] | None:
+    """(fleet, vehicle_id, cell or None if unplaced) of a state key, or None if not one."""
+    parsed = _parse(key)
+    if parsed is None or parsed[2] != "state":
+        return None
+    return parsed[0], parsed[1], parsed[3]
+
+
+def _parse(key: str) -> tuple[str, int, str, Cell | None] | None:
     m = _VEHICLE_KEY_RE.match(str(key))
     if not m:
         return None
     vid = int(m.group(2))
     if not 1 <= vid <= MAX_VEHICLE_ID:
         return None
-    return m.group(1), vid, m.group(3)
+    cell = None
+    if m.group(3) is not None:
+        cell = (int(m.group(3)), int(m.group(4)))
+        if m.group(5) != "state" or max(abs(cell[0]), abs(cell[1])) > MAX_CELL:
+            return None
+    return m.group(1), vid, m.group(5), cell
 
 
 def parse_gcs_key(key: str) -> tuple[str, int] | None:

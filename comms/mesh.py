@@ -65,6 +65,8 @@ class MeshStats:
     states_refused: int = 0
     """States dropped by the keyed-mode gate (unsigned, forged, stale, replayed, unknown)."""
     events_refused: int = 0
+    states_misplaced: int = 0
+    """States refused because their key's grid cell is not their position's (also decode_errors)."""
     rosters_applied: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -101,7 +103,8 @@ class Mesh:
         """Gets one-line summaries of refused states/events (rate-limited per cause); the agent
         publishes them as SECURITY events. Default: a log warning."""
         self._session: zenoh.Session | None = open_session(cfg)
-        self._publishers: dict[int, zenoh.Publisher] = {}
+        self._publishers: dict[int, tuple[keys.Cell, zenoh.Publisher]] = {}
+        """Each vehicle's state publisher, on the key of the cell it was last in."""
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._error_log_ns = 0
@@ -129,9 +132,11 @@ class Mesh:
         with self._lock:
             session, self._session = self._session, None
             entities, self._entities = self._entities, []
+            publishers = [pub for _, pub in self._publishers.values()]
             self._publishers.clear()
         if session is None:
             return
+        entities = publishers + entities
         for ent in reversed(entities):
             # Best effort: closing the session below frees whatever failed to undeclare.
             with contextlib.suppress(Exception):
@@ -204,17 +209,26 @@ class Mesh:
 
     # -- states ----------------------------------------------------------------------------
     def publish_state(self, state: VehicleState) -> None:
+        """Publish on the key of the state's own grid cell (comms/keys.py); a vehicle that
+        crosses into another cell gets a publisher there, and its old one goes."""
         if self.auth is not None:
             state = self.auth.sign_state(state)
         payload = state.encode()
-        pub = self._publishers.get(state.vehicle_id)
-        if pub is None:
+        cell = keys.cell_of(state.pos_ned_m)
+        held = self._publishers.get(state.vehicle_id)
+        if held is None or held[0] != cell:
             pub = self.session.declare_publisher(
-                keys.state(self.fleet, state.vehicle_id),
+                keys.state(self.fleet, state.vehicle_id, cell),
                 congestion_control=zenoh.CongestionControl.DROP,
                 express=True,
             )
-            self._publishers[state.vehicle_id] = self._keep(pub)
+            with self._lock:
+                self._publishers[state.vehicle_id] = (cell, pub)
+            if held is not None:
+                with contextlib.suppress(Exception):
+                    held[1].undeclare()
+        else:
+            pub = held[1]
         pub.put(payload)
         self.stats.bump("states_sent")
 
@@ -228,9 +242,10 @@ class Mesh:
         gate: GateConfig = GateConfig(),
         ignore_id: int | None = None,
     ) -> Any:
-        """Call `callback(state, recv_ns)` for every valid state. `link` (comms.link) stands
-        between the wire and the callback and emulates a radio per sender: it may drop, delay or
-        thin states, and calls `link.offer(state, recv_ns, deliver)` instead of the callback.
+        """Call `callback(state, recv_ns)` for every valid state of the fleet (or of
+        `vehicle_id`), in every cell. `link` (comms.link) stands between the wire and the
+        callback and emulates a radio per sender: it may drop, delay or thin states, and calls
+        `link.offer(state, recv_ns, deliver)` instead of the callback.
 
         Keyed mode: only states that pass a Gate(`gate`) reach the callback; `on_refused(vid,
         cause, recv_ns)` hears of the others. If not given and `callback` is a bound method of an
@@ -239,8 +254,39 @@ class Mesh:
         key = (
             keys.all_states(self.fleet)
             if vehicle_id is None
-            else keys.state(self.fleet, vehicle_id)
+            else keys.vehicle_states(self.fleet, vehicle_id)
         )
+        on_sample = self._state_handler(callback, link, on_refused, gate, ignore_id)
+        return self._keep(self.session.declare_subscriber(key, on_sample))
+
+    def subscribe_cells(
+        self,
+        callback: StateCallback,
+        cells: Iterable[keys.Cell] = (),
+        link: Any = None,
+        *,
+        on_refused: RefusedCallback | None = None,
+        gate: GateConfig = GateConfig(),
+        ignore_id: int | None = None,
+        remote_only: bool = False,
+    ) -> CellSubscription:
+        """As `subscribe_states`, but only the states of the grid cells `cells`; move the
+        subscription with `.set_cells(cells)` (comms/scope.py says which cells). One gate and one
+        handler serve every cell, so a state replayed into another cell is still a replay.
+        `remote_only`: never deliver this session's own states (a process of many vehicles)."""
+        on_sample = self._state_handler(callback, link, on_refused, gate, ignore_id)
+        sub = CellSubscription(self, on_sample, remote_only)
+        sub.set_cells(cells)
+        return self._keep(sub)
+
+    def _state_handler(
+        self,
+        callback: StateCallback,
+        link: Any,
+        on_refused: RefusedCallback | None,
+        gate: GateConfig,
+        ignore_id: int | None,
+    ) -> Callable[[zenoh.Sample], None]:
         if on_refused is None:
             on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
         checker = self.new_gate(gate) if self.auth is not None else None
@@ -249,10 +295,19 @@ class Mesh:
             recv_ns = self.clock_ns()
             try:
                 state = VehicleState.decode(sample.payload.to_bytes())
-                parsed = keys.parse_vehicle_key(str(sample.key_expr))
+                parsed = keys.parse_state_key(str(sample.key_expr))
                 if parsed is None or parsed[1] != state.vehicle_id:
                     raise DecodeError(
                         f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}"
+                    )
+                if parsed[2] is not None and parsed[2] != keys.cell_of(state.pos_ned_m):
+                    # A state outside its position's cell would be hidden from the neighbours
+                    # that must hear it: refused, whatever its signature says.
+                    self.stats.bump("states_misplaced")
+                    raise DecodeError(
+                        f"state of vehicle {state.vehicle_id} at N {state.pos_ned_m[0]:.1f} "
+                        f"E {state.pos_ned_m[1]:.1f} m is in cell "
+                        f"{keys.cell_of(state.pos_ned_m)}, not in cell {parsed[2]} of its key"
                     )
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
@@ -274,7 +329,7 @@ class Mesh:
             else:
                 link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t))
 
-        return self._keep(self.session.declare_subscriber(key, on_sample))
+        return on_sample
 
     # -- events ----------------------------------------------------------------------------
     def publish_event(self, event: Event) -> None:
@@ -518,6 +573,56 @@ class Mesh:
         for vid in sorted(expected - outcomes.keys()):
             outcomes[vid] = Outcome(vid, OutcomeStatus.TIMEOUT, why, None, elapsed_s)
         return CommandResult(command=command, outcomes=outcomes, errors=tuple(errors))
+
+
+class CellSubscription:
+    """The state subscribers of a set of grid cells, one Zenoh subscriber per cell, that share
+    one handler, plus one for unplaced states. Thread-safe; undeclared with the mesh."""
+
+    def __init__(
+        self, mesh: Mesh, on_sample: Callable[[zenoh.Sample], None], remote_only: bool
+    ) -> None:
+        self._mesh = mesh
+        self._on_sample = on_sample
+        self._origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
+        self._lock = threading.Lock()
+        self._subs: dict[keys.Cell, Any] = {}
+        self.changes = 0
+        """Cell subscribers declared plus undeclared since start (read only)."""
+        # States put without a cell (tools, an older member) are heard everywhere, as before
+        # scoping, so that nothing can hide by leaving its cell out; covey publishers place theirs.
+        self._unplaced = mesh.session.declare_subscriber(
+            keys.unplaced_states(mesh.fleet), on_sample, allowed_origin=self._origin
+        )
+
+    @property
+    def cells(self) -> frozenset[keys.Cell]:
+        with self._lock:
+            return frozenset(self._subs)
+
+    def set_cells(self, cells: Iterable[keys.Cell]) -> None:
+        """Hear exactly `cells`: new cells are declared before old ones go (make before break)."""
+        want = {keys.check_cell(tuple(c)) for c in cells}
+        with self._lock:
+            session = self._mesh.session
+            for cell in sorted(want - self._subs.keys()):
+                self._subs[cell] = session.declare_subscriber(
+                    keys.cell_states(self._mesh.fleet, cell),
+                    self._on_sample,
+                    allowed_origin=self._origin,
+                )
+                self.changes += 1
+            for cell in [c for c in self._subs if c not in want]:
+                with contextlib.suppress(Exception):
+                    self._subs.pop(cell).undeclare()
+                self.changes += 1
+
+    def undeclare(self) -> None:
+        with self._lock:
+            subs, self._subs = [self._unplaced, *self._subs.values()], {}
+        for sub in subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
 
 
 def _err_text(reply: zenoh.Reply) -> str:

@@ -95,7 +95,7 @@ def keyed(tmp_path_factory):
         ) as mesh:
             station = Station(mesh)
             mesh.session.declare_subscriber(
-                keys.state(FLEET, 1),
+                keys.vehicle_states(FLEET, 1),
                 lambda s: raw_states.append((time.monotonic(), s.payload.to_bytes())),
             )
             for vid, (n, e) in ((1, (0.0, 0.0)), (2, V2_AT)):
