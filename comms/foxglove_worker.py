@@ -41,8 +41,9 @@ from comms.mcap_chunks import MAX_ID, BuiltChunk, ChunkBuilder, PlainReader
 
 log = logging.getLogger(__name__)
 
-FIRST_ID = 0xC000
-"""Schema and channel ids of the standard channels start here; covey's own stay below."""
+FIRST_ID = 0xE000
+"""Schema and channel ids of the standard channels start here (three or so per vehicle: room
+for ~2,700 vehicles); covey's own stay below (a topic per vehicle, kind and grid cell)."""
 WORKER_NICE = 19
 """The child runs at the lowest priority: where the cores are short, receiving the mesh (what
 cannot be had again) goes first, and the conversion catches up when they are free (close()
@@ -65,7 +66,7 @@ _LEN = struct.Struct("<I")
 class FoxgloveChunks:
     """covey messages in, finished MCAP chunks of the standard Foxglove channels out.
 
-    Channel and schema ids run from FIRST_ID to MAX_ID; a topic beyond them (more than ~5,000
+    Channel and schema ids run from FIRST_ID to MAX_ID; a topic beyond them (more than ~2,700
     vehicles) is not drawn and is counted in `refused`."""
 
     def __init__(self, cfg: FoxgloveConfig, max_chunk_bytes: int = MAX_CHUNK_BYTES) -> None:

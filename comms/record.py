@@ -174,16 +174,22 @@ class McapSink:
     def put(self, topic: str, data: bytes, recv_ns: int) -> None:
         self._queue.put((topic, data, recv_ns))
 
-    def _channel(self, topic: str) -> tuple[int, str]:
+    def _channel(self, topic: str) -> tuple[int, str] | None:
+        """A new topic's (channel id, leaf), or None when MCAP's u16 ids below FIRST_ID (the
+        standard channels have the rest) are spent: then its messages are refused, counted in
+        "refused", and said once, rather than the recording failing."""
+        cid = len(self._channels) + 1
+        if cid >= FIRST_ID:
+            if "refused" not in self.counts:
+                log.error("more than %d covey topics: refusing messages on new ones", cid - 1)
+            self.counts["refused"] = self.counts.get("refused", 0) + 1
+            return None
         leaf = _leaf(topic)
         name, layout = _LAYOUTS.get(leaf, _LAYOUTS["other"])
         sid = self._schemas.get(name)
         if sid is None:
             sid = self._schemas[name] = len(self._schemas) + 1
             self._raw.add_schema(Schema(sid, layout.encode(), SCHEMA_ENCODING, name))
-        cid = len(self._channels) + 1
-        if cid >= FIRST_ID:
-            raise ValueError(f"more than {FIRST_ID - 1} covey topics in one recording")
         enc = PRESENCE_ENCODING if leaf == "alive" else MESSAGE_ENCODING
         self._raw.add_channel(Channel(cid, topic, enc, {}, sid))
         self._channels[topic] = (cid, leaf)
@@ -191,7 +197,10 @@ class McapSink:
 
     def _write(self, item: tuple[str, bytes, int]) -> None:
         topic, data, recv_ns = item
-        cid, leaf = self._channels.get(topic) or self._channel(topic)
+        known = self._channels.get(topic) or self._channel(topic)
+        if known is None:
+            return
+        cid, leaf = known
         self._raw.add(cid, recv_ns, data, recv_ns)
         self._since_flush += 1
         self.counts[leaf] = self.counts.get(leaf, 0) + 1

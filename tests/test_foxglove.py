@@ -334,6 +334,15 @@ def test_channel_ids_run_out_without_breaking_the_recording():
     assert ids and max(ids) <= MAX_ID and chunks.refused > 0 and chunks.messages > 0
 
 
+def test_covey_topics_beyond_the_ids_are_refused_not_fatal(tmp_path, monkeypatch):
+    monkeypatch.setattr("comms.record.FIRST_ID", 4)  # room for 3 covey topics
+    traffic = _fleet_traffic(5)  # states of 3 vehicles, an event, a command, a departure
+    counts = _record_sink(tmp_path / "full.mcap", traffic)
+    rec = read_recording(tmp_path / "full.mcap")
+    assert counts["refused"] == len(traffic) - len(rec.messages) > 0 and not rec.truncated
+    assert {m.topic for m in rec.messages} == {keys.state("w", v) for v in (1, 2, 3)}
+
+
 def _plain(traffic) -> bytes:
     """Raw records as the recorder's writer thread hands them to the worker."""
     b = ChunkBuilder()
