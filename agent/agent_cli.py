@@ -28,6 +28,7 @@ from comms.cli_options import (
     given,
     mesh_config,
     renamed,
+    stop_after,
     stop_on_signals,
 )
 from comms.geo import GeoOrigin
@@ -222,15 +223,8 @@ def main(
             vehicle,
             cfg.link,
         )
-        timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
-        if timer is not None:
-            timer.daemon = True
-            timer.start()
-        try:
+        with stop_after(duration_s, stop):
             agent.run(stop)
-        finally:
-            if timer is not None:
-                timer.cancel()
     return 0
 
 

@@ -40,6 +40,7 @@ from agent.flight_core import (
 )
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig
+from comms.cli_options import stop_after
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import Command, CommandAck, Mode, StateFlag, VehicleState
@@ -358,15 +359,8 @@ def main(
         fleet = Fleet(cfg, mesh)
         if ready is not None:
             ready(fleet)
-        timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
-        if timer is not None:
-            timer.daemon = True
-            timer.start()
-        try:
+        with stop_after(duration_s, stop):
             fleet.run(stop)
-        finally:
-            if timer is not None:
-                timer.cancel()
         return fleet.stats.summary()
 
 

@@ -295,6 +295,20 @@ def stop_on_signals(
             signal.signal(sig, signal.SIG_DFL if handler is None else handler)
 
 
+@contextlib.contextmanager
+def stop_after(duration_s: float | None, stop: threading.Event) -> Iterator[threading.Event]:
+    """Set `stop` after `duration_s` seconds (None: never); the timer goes with the block."""
+    timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
+    if timer is not None:
+        timer.daemon = True
+        timer.start()
+    try:
+        yield stop
+    finally:
+        if timer is not None:
+            timer.cancel()
+
+
 # -- flags from a config dataclass ------------------------------------------------------------------
 def field_docs(cls: type) -> dict[str, str]:
     """The docstring under each field of a dataclass (the --help text of its flag)."""

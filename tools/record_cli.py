@@ -24,6 +24,7 @@ from comms.cli_options import (
     stop_on_signals,
 )
 from comms.record import (
+    FoxgloveIncomplete,
     RecordConfig,
     add_foxglove_channels,
     format_info,
@@ -137,6 +138,9 @@ def record_cli(argv: list[str]) -> int:
     try:
         with stop_on_signals() as stop:
             counts = record(cfg, stop)
+    except FoxgloveIncomplete as exc:  # covey's channels are whole; Foxglove's can be added later
+        print(f"covey record: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 1
     except OSError as exc:
         print(f"covey record: cannot write {cfg.path}: {exc}", file=sys.stderr)
         return 2
