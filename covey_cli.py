@@ -22,7 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "agent": (
         "agent.agent_cli",
         "cli",
-        "run the agent of one vehicle (sim, MAVSDK or MAVLink relay)",
+        "run the agent of one vehicle (sim, MAVSDK or MAVLink relay), or of many (--ids)",
     ),
     "gcs": ("groundstation.gcs_cli", "cli", "browser ground station (viser)"),
     "status": (
@@ -63,7 +63,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "keygen_cli",
         "fleet authority: init, add/revoke members, push the roster",
     ),
-    "fleet-sim": ("agent.fleet_sim", "cli", "simulate hundreds of vehicles in one process"),
+    "fleet-sim": (
+        "agent.host_cli",
+        "fleet_sim_cli",
+        "simulate hundreds of vehicles in one process (open mode; covey agent --ids keyed)",
+    ),
     "bench": ("bench.__main__", "cli", "run the benchmark suite"),
 }
 

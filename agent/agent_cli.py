@@ -1,8 +1,14 @@
-"""`covey agent`: run the agent of one vehicle.
+"""`covey agent`: run the agent of one vehicle, or of many simulated vehicles in one process.
 
 covey agent --id 3 --start-ne-m 0,6                  # built-in simulator
 covey agent --id 3 --vehicle mavsdk:udpin://0.0.0.0:14543   # PX4 via MAVSDK (companion mode)
 covey agent --id 3 --vehicle relay:udpin:0.0.0.0:14553      # PX4 runs the policy (onboard mode)
+covey agent --ids 1-100 --key-dir keys/              # a host of 100 simulated vehicles
+
+With --ids, one process hosts those vehicles (simulated; a real autopilot is one per process):
+each runs the same flight core as a single agent, with its own identity (its own key from
+--key-dir DIR/vehicle-<id>.key), state, presence, events and command queryable, so one fleet
+can mix single agents and hosts (agent/fleet_sim.py, docs/scaling.md).
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import os
 import threading
 import time
 
@@ -19,7 +26,7 @@ from agent.app import Agent, AgentConfig
 from agent.backends.base import VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
-from comms.auth import FleetAuth, load_auth
+from comms.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
 from comms.cli_options import (
     add_mesh_args,
     die,
@@ -30,6 +37,7 @@ from comms.cli_options import (
     renamed,
     stop_after,
     stop_on_signals,
+    vehicle_ids,
 )
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
@@ -71,23 +79,31 @@ def _start_ne(text: str) -> tuple[float, ...]:
 
 GUIDANCE_FLAGS = ("policy", "no_safety_filter", "decision_period_s", "trace_guidance")
 """Flags for the agent's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
+HOST_FLAGS = ("spacing_m", "max_neighbours", "no_see_others")
+"""Flags of the multi-vehicle host (--ids) only."""
+SINGLE_FLAGS = {
+    "link": "per-vehicle radio links are emulated by a single agent (--id) only",
+    "state_hz": "a host publishes every vehicle's state each tick: set --tick-hz",
+    "trace_guidance": "guidance traces come from a single agent (--id) only",
+    "key_file": "a key file signs for one vehicle; give --key-dir DIR with vehicle-<id>.key "
+    "for each",
+}
+"""Flags of a single agent (--id) only, and why a host (--ids) refuses them."""
 
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="covey agent",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("--id", type=int, required=True, help="vehicle id, 1..65000")
-    p.add_argument("--vehicle", default="sim", help="sim (default) | mavsdk:<url> | relay:<url>")
+def add_flight_args(
+    p: argparse.ArgumentParser, *, geofence_radius_m: float = 500.0, gcs_failsafe: bool = True
+) -> None:
+    """The flags every shell of the flight core shares (`covey agent`, one vehicle or many, and
+    `covey fleet-sim`): start position, fleet origin, guidance, geofence, the ground-station
+    failsafe (unless `gcs_failsafe` is False: fleet-sim flies without one), run time, logging."""
     p.add_argument(
         "--start-ne-m",
         type=_start_ne,
         default=(0.0, 0.0),
         metavar="N,E",
         help=f"sim start position north,east in metres (each within ±{POSITION_LIMIT_M:g}; "
-        "sim only: a real vehicle is where it is)",
+        "sim only: a real vehicle is where it is); with --ids the start grid's corner",
     )
     renamed(p, {"--start": "--start-ne-m"})
     p.add_argument(
@@ -96,11 +112,6 @@ def parser() -> argparse.ArgumentParser:
         default=None,
         metavar="LAT,LON,ALT",
         help="fleet origin in degrees, degrees, metres (default: covey's)",
-    )
-    p.add_argument(
-        "--link",
-        default="perfect",
-        help="emulated radio link: perfect | xbee | wifi | rate=3,loss=0.2,...",
     )
     p.add_argument(
         "--separation-m",
@@ -124,34 +135,104 @@ def parser() -> argparse.ArgumentParser:
         "trained period, 1 s x separation/3 / cruise speed; 0: every tick)",
     )
     p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
-    p.add_argument("--geofence-radius-m", type=float, default=500.0, help="0 = no fence")
     p.add_argument(
-        "--gcs-lost-hold-s",
+        "--geofence-radius-m",
         type=float,
-        default=5.0,
-        help="no ground station this long: hold (default 5)",
+        default=geofence_radius_m,
+        help=f"0 = no fence (default {geofence_radius_m:g})",
+    )
+    if gcs_failsafe:
+        p.add_argument(
+            "--gcs-lost-hold-s",
+            type=float,
+            default=5.0,
+            help="no ground station this long: hold (default 5)",
+        )
+        p.add_argument(
+            "--gcs-lost-land-s",
+            type=float,
+            default=30.0,
+            help="no ground station this long: land (default 30)",
+        )
+        p.add_argument(
+            "--no-gcs-failsafe", action="store_true", help="keep flying without a ground station"
+        )
+    p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+
+
+def add_host_args(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The flags of a host of many simulated vehicles (`covey agent --ids`, `covey fleet-sim`)."""
+    p.add_argument(
+        "--spacing-m", type=float, default=8.0, help="start grid spacing in metres (default 8)"
     )
     p.add_argument(
-        "--gcs-lost-land-s",
-        type=float,
-        default=30.0,
-        help="no ground station this long: land (default 30)",
+        "--max-neighbours",
+        type=int,
+        default=10,
+        help="nearest neighbours per policy call (default 10)",
     )
     p.add_argument(
-        "--no-gcs-failsafe", action="store_true", help="keep flying without a ground station"
+        "--no-see-others", action="store_true", help="ignore vehicles of other processes"
+    )
+
+
+def guidance_from_args(args: argparse.Namespace) -> GuidanceConfig:
+    return GuidanceConfig(
+        separation_m=args.separation_m,
+        cruise_speed_m_s=args.cruise_speed_m_s,
+        safety_filter=not args.no_safety_filter,
+        policy_path=args.policy,
+        decision_period_s=args.decision_period_s,
+    )
+
+
+def failsafe_from_args(args: argparse.Namespace) -> FailsafeConfig:
+    """The failsafes the flags ask for; without the ground-station flags (fleet-sim), none."""
+    if not hasattr(args, "no_gcs_failsafe"):
+        return FailsafeConfig(require_gcs=False, geofence_radius_m=args.geofence_radius_m)
+    return FailsafeConfig(
+        require_gcs=not args.no_gcs_failsafe,
+        gcs_lost_hold_s=args.gcs_lost_hold_s,
+        gcs_lost_land_s=args.gcs_lost_land_s,
+        geofence_radius_m=args.geofence_radius_m,
+    )
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey agent",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    who = p.add_mutually_exclusive_group(required=True)
+    who.add_argument("--id", type=int, help="vehicle id, 1..65000")
+    who.add_argument(
+        "--ids",
+        type=vehicle_ids,
+        metavar="IDS",
+        help="host these simulated vehicles in one process: ids and ranges, e.g. 1-100 or "
+        "1-50,60,70-79",
+    )
+    p.add_argument("--vehicle", default="sim", help="sim (default) | mavsdk:<url> | relay:<url>")
+    add_flight_args(p)
+    p.add_argument(
+        "--link",
+        default="perfect",
+        help="emulated radio link: perfect | xbee | wifi | rate=3,loss=0.2,...",
     )
     p.add_argument("--tick-hz", type=float, default=10.0, help="guidance loop rate (default 10)")
     p.add_argument(
         "--state-hz", type=float, default=10.0, help="state broadcast rate on the mesh (default 10)"
     )
-    p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
     p.add_argument(
         "--trace-guidance",
         action="store_true",
         help="publish guidance traces so `covey replay --policy` can replay the flight exactly",
     )
-    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
-    add_mesh_args(p)  # --key-file: this vehicle's (covey keygen add vehicle N)
+    add_host_args(p.add_argument_group("multi-vehicle host (--ids only)"))
+    # --key-file: this vehicle's (covey keygen add vehicle N); --key-dir: vehicle-<id>.key each
+    add_mesh_args(p, key_dir=True)
     return p
 
 
@@ -165,19 +246,8 @@ def config_from_args(
         tick_hz=args.tick_hz,
         state_hz=args.state_hz,
         origin=args.origin or GeoOrigin(),
-        guidance=GuidanceConfig(
-            separation_m=args.separation_m,
-            cruise_speed_m_s=args.cruise_speed_m_s,
-            safety_filter=not args.no_safety_filter,
-            policy_path=args.policy,
-            decision_period_s=args.decision_period_s,
-        ),
-        failsafe=FailsafeConfig(
-            require_gcs=not args.no_gcs_failsafe,
-            gcs_lost_hold_s=args.gcs_lost_hold_s,
-            gcs_lost_land_s=args.gcs_lost_land_s,
-            geofence_radius_m=args.geofence_radius_m,
-        ),
+        guidance=guidance_from_args(args),
+        failsafe=failsafe_from_args(args),
         link=args.link,
         trace_guidance=args.trace_guidance,
     )
@@ -228,6 +298,11 @@ def main(
     return 0
 
 
+def check_duration(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
+        p.error(f"--duration-s must be a positive number of seconds, got {args.duration_s}")
+
+
 def cli(argv: list[str]) -> int:
     p = parser()
     args = p.parse_args(argv)
@@ -235,8 +310,13 @@ def cli(argv: list[str]) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
-    if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
-        p.error(f"--duration-s must be a positive number of seconds, got {args.duration_s}")
+    check_duration(p, args)
+    if args.ids is not None:
+        from agent.host_cli import run_agent_host
+
+        return run_agent_host(p, args)
+    if flags := given(p, args, *HOST_FLAGS):
+        p.error(f"{', '.join(flags)}: a multi-vehicle host's (--ids), not a single agent's")
     kind = args.vehicle.partition(":")[0]
     if kind != "sim" and given(p, args, "start_ne_m"):
         p.error(f"--start-ne-m places a simulated vehicle; a {kind} vehicle is where it is")
@@ -249,12 +329,8 @@ def cli(argv: list[str]) -> int:
         cfg = config_from_args(args, p)
     except ValueError as exc:
         die(p, str(exc))
-    try:
-        auth = load_auth(args.key_file, fleet=cfg.mesh.fleet)
-    except ValueError as exc:  # FleetKeyError: empty path, unreadable, malformed, wrong fleet
-        die(p, str(exc))
-    if auth is not None and not (auth.role.name == "VEHICLE" and auth.member_id == cfg.vehicle_id):
-        die(p, f"--key-file is {auth.key.name}'s key, not vehicle {cfg.vehicle_id}'s")
+    auth = load_keys(p, args, (cfg.vehicle_id,), cfg.mesh.fleet)
+    auth = auth[cfg.vehicle_id] if auth is not None else None
     cfg = dataclasses.replace(cfg, open_mode=auth is None)
     with stop_on_signals() as stop:
         try:
@@ -268,3 +344,33 @@ def cli(argv: list[str]) -> int:
             )
         except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad config, busy port
             die(p, str(exc))
+
+
+def load_keys(
+    p: argparse.ArgumentParser, args: argparse.Namespace, ids: tuple[int, ...], fleet: str
+) -> dict[int, FleetAuth] | None:
+    """Each vehicle's FleetAuth from --key-dir (or, for one vehicle, --key-file or
+    $COVEY_FLEET_KEY_FILE), or None for open mode (said loudly). A key that is configured but
+    unusable, or that is another member's, exits 2 with the reason: never open mode by mistake."""
+    try:
+        if args.key_dir is not None:
+            if args.key_file is not None:
+                die(p, "--key-file and --key-dir: give one (a directory: vehicle-<id>.key each)")
+            return load_vehicle_auths(args.key_dir, ids, fleet=fleet)
+        if len(ids) > 1 or args.ids is not None:
+            if args.key_file is not None:
+                die(p, f"--key-file is refused with --ids: {SINGLE_FLAGS['key_file']}")
+            if os.environ.get(ENV_KEY_FILE):
+                die(
+                    p,
+                    f"${ENV_KEY_FILE} names one vehicle's key, and --ids hosts several: give "
+                    "--key-dir DIR with vehicle-<id>.key for each (or unset it for open mode)",
+                )
+        auth = load_auth(args.key_file, fleet=fleet)
+    except ValueError as exc:  # FleetKeyError: empty path, unreadable, malformed, wrong fleet
+        die(p, str(exc))
+    if auth is None:
+        return None
+    if not (auth.role.name == "VEHICLE" and auth.member_id == ids[0]):
+        die(p, f"--key-file is {auth.key.name}'s key, not vehicle {ids[0]}'s")
+    return {ids[0]: auth}

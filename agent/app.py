@@ -28,7 +28,7 @@ from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
-from comms.gate import GateConfig, Summaries
+from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import (
@@ -132,12 +132,13 @@ class Agent:
             lambda a: perform(a, backend), self._on_outcome, name=f"actions-{self.vid}"
         )
         self.presence = mesh.presence()
-        # Refused commands: one SECURITY event per cause a second (a flood must not become one).
-        self._refusals = Summaries(
-            lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING)
-        )
         if getattr(mesh, "auth", None) is not None:
-            mesh.auth.on_reject = self._on_auth_refusal  # refused before handle_command runs
+            # Commands refused before handle_command runs: one SECURITY event per cause a second
+            # (a flood must not become one).
+            mesh.auth.on_reject = command_refusals(
+                lambda line: self._event(line, EventKind.SECURITY, Severity.WARNING),
+                mesh.clock_ns,
+            )
             # Refused neighbour states (forged, replayed...): one SECURITY event per cause a second.
             mesh.on_security = lambda line: self._event(
                 line, EventKind.SECURITY, Severity.WARNING, quiet=True
@@ -202,18 +203,6 @@ class Agent:
     def _notes(self, notes: list[Note]) -> None:
         for note in notes:
             self._event(note.text, note.kind, note.severity)
-
-    def _on_auth_refusal(self, cmd: Command, _vehicle_id: int, reason: str) -> None:
-        cause = reason.split(":", 1)[0]
-        self._refusals.note(
-            cause,
-            self.mesh.clock_ns(),
-            lambda n: (
-                f"refused {cmd.kind.name.lower()} from station {cmd.source_id}: {reason}"
-                if n == 1
-                else f"refused {n} commands ({cause}); latest {cmd.kind.name.lower()} from station {cmd.source_id}"
-            ),
-        )
 
     # -- commands (Zenoh thread) ---------------------------------------------------------------
     def handle_command(self, cmd: Command) -> CommandAck:

@@ -1,28 +1,27 @@
-"""`covey fleet-sim`: hundreds of simulated vehicles in one process, for scale tests.
-
-    covey fleet-sim --vehicles 500 --connect tcp/127.0.0.1:7447 --rate-hz 10
+"""The multi-vehicle host: many simulated vehicles in one process (`covey agent --ids 1-100`,
+and `covey fleet-sim`, its open-mode alias for scale tests).
 
 Each vehicle is still its own citizen of the mesh: it publishes its own state on its own key,
 answers its own commands on its own queryable, holds its own liveliness token and publishes its
-own events. It runs the same flight core as `covey agent` (agent/flight_core.py: modes, checks,
-vehicle events, failsafes, decide-and-hold guidance with the safety filter), with N rows instead
-of one, around the simulator's N-row point masses (agent/backends/sim.py). What is shared is
-the work: one batched policy call (nearest `max_neighbours`) and one batched filter per tick.
+own events, and in keyed mode signs its states, events and acks with its own key (one FleetAuth
+per vehicle, sharing one roster: comms/auth.py). It runs the same flight core as `covey agent`
+(agent/flight_core.py: modes, checks, vehicle events, failsafes, the ground-station failsafe
+included, decide-and-hold guidance with the safety filter), with N rows instead of one, around
+the simulator's N-row point masses (agent/backends/sim.py). What is shared is the work: one
+batched policy call (nearest `max_neighbours`) and one batched filter per tick, one Zenoh session.
 
-Vehicles of other processes (real agents, other fleet-sims) are neighbours too when
-`see_others` is on. Not modelled here (the single agent has them): per-vehicle radio links.
+Vehicles of other processes (real agents, other hosts) are neighbours too when `see_others` is
+on. Not modelled here (the single agent has them): per-vehicle radio links, guidance traces, and
+real autopilots (one per `covey agent` process).
 """
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import json
 import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -39,11 +38,23 @@ from agent.flight_core import (
     Observed,
 )
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
-from agent.neighbours import NeighbourConfig
+from agent.neighbours import NeighbourConfig, NeighbourTable
+from comms.auth import FleetAuth, host_signers
 from comms.cli_options import stop_after
+from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
-from comms.schema import Command, CommandAck, Mode, StateFlag, VehicleState
+from comms.schema import (
+    POSITION_LIMIT_M,
+    AckResult,
+    Command,
+    CommandAck,
+    EventKind,
+    Mode,
+    Severity,
+    StateFlag,
+    VehicleState,
+)
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from policy.runtime import GuidancePolicy
@@ -56,9 +67,12 @@ class FleetSimConfig:
     """One process simulating many vehicles."""
 
     vehicles: int = 500
-    """How many vehicles this process simulates."""
+    """How many vehicles this process simulates (set from `ids` when they are given)."""
     first_id: int = 1
-    """Vehicle ids are first_id .. first_id + vehicles - 1."""
+    """Vehicle ids are first_id .. first_id + vehicles - 1 (set from `ids` when given)."""
+    ids: tuple[int, ...] = ()
+    """The vehicle ids, in start-grid order (`covey agent --ids 1-50,60`); empty: the range
+    above."""
     mesh: MeshConfig = MeshConfig()
     """How the process joins the mesh (one Zenoh session for all its vehicles)."""
     rate_hz: float = 10.0
@@ -86,16 +100,40 @@ class FleetSimConfig:
     """Other processes' vehicles older than this are forgotten."""
 
     def __post_init__(self) -> None:
+        from comms.cli_options import MAX_HOSTED_VEHICLES
         from comms.keys import check_vehicle_id
 
-        if not 1 <= self.vehicles <= 10_000:
-            raise ValueError(f"vehicles must be within 1..10000, got {self.vehicles}")
-        check_vehicle_id(self.first_id)
-        check_vehicle_id(self.first_id + self.vehicles - 1)
+        if self.ids:
+            ids = tuple(self.ids)
+            for vid in ids:
+                check_vehicle_id(vid)
+            if len(set(ids)) != len(ids):
+                raise ValueError("ids must not repeat a vehicle id")
+            # frozen: the derived fields are set once, here
+            object.__setattr__(self, "ids", ids)
+            object.__setattr__(self, "vehicles", len(ids))
+            object.__setattr__(self, "first_id", min(ids))
+        if not 1 <= self.vehicles <= MAX_HOSTED_VEHICLES:
+            raise ValueError(
+                f"vehicles must be within 1..{MAX_HOSTED_VEHICLES}, got {self.vehicles}"
+            )
+        if not self.ids:
+            check_vehicle_id(self.first_id)
+            check_vehicle_id(self.first_id + self.vehicles - 1)
+            object.__setattr__(
+                self, "ids", tuple(range(self.first_id, self.first_id + self.vehicles))
+            )
         if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 100):
             raise ValueError(f"rate_hz must be within (0, 100], got {self.rate_hz}")
         if not (math.isfinite(self.spacing_m) and self.spacing_m > 0):
             raise ValueError(f"spacing_m must be positive, got {self.spacing_m}")
+        far_ne_m = start_grid(self.vehicles, self.spacing_m, self.start_ne_m)[-1, :2]
+        if not all(abs(v) <= POSITION_LIMIT_M for v in (*self.start_ne_m, *far_ne_m)):
+            raise ValueError(
+                f"the start grid from N {self.start_ne_m[0]:g} E {self.start_ne_m[1]:g} m "
+                f"(spacing {self.spacing_m:g} m) leaves the ±{POSITION_LIMIT_M:g} m a state "
+                "can carry"
+            )
         if self.max_neighbours is not None and self.max_neighbours < 0:
             raise ValueError(f"max_neighbours must be >= 0, got {self.max_neighbours}")
 
@@ -134,19 +172,24 @@ def start_grid(n: int, spacing_m: float, corner_ne_m: tuple[float, float]) -> np
 
 class Fleet:
     """The vehicles of one process: the flight core with N rows, N simulated point masses, one
-    mesh session."""
+    mesh session. `auths`: each vehicle's own FleetAuth (keyed mode, comms.auth
+    .load_vehicle_auths; the mesh's must share their roster); None: open mode."""
 
     def __init__(
         self,
         cfg: FleetSimConfig,
         mesh: Mesh,
         *,
+        auths: Mapping[int, FleetAuth] | None = None,
         policy: GuidancePolicy | None = None,
         clock_s: Callable[[], float] = time.monotonic,
     ) -> None:
         n = cfg.vehicles
         self.cfg, self.mesh, self.clock_s = cfg, mesh, clock_s
-        self.ids = np.arange(cfg.first_id, cfg.first_id + n)
+        self.ids = np.array(cfg.ids)
+        self._own = frozenset(cfg.ids)
+        self.auths = host_signers(cfg.ids, mesh.auth, auths)
+        """Row i's FleetAuth, or None in open mode (then the mesh signs nothing either)."""
         g = replace(cfg.guidance, max_neighbours=cfg.max_neighbours)
         self.policy = policy or g.load_policy()
         now = clock_s()
@@ -158,24 +201,37 @@ class Fleet:
         self.actions = ActionQueue(
             lambda a: perform(a, self.backends[a.index]), self._on_outcome, threaded=False
         )
+        self.flags = StateFlag.NONE if auths is not None else StateFlag.OPEN_MODE
         self.filtered = np.zeros(n, bool)
+        self.slowed = np.zeros(n, bool)
         self.seq = 0
         self.stats = TickStats()
         self._lock = threading.RLock()
-        self._others: dict[int, tuple[VehicleState, float]] = {}
+        self.others = NeighbourTable(None, replace(NeighbourConfig(), drop_s=cfg.drop_s))
+        """Other processes' vehicles (ours are kept out by `_on_state`)."""
         self.presence = mesh.presence() if cfg.failsafe.require_gcs else None
+        if auths is not None:
+            # As the agent: refused commands and neighbour states become SECURITY events (one
+            # per cause a second), a vehicle's own refusals from that vehicle, signed by it.
+            for i, auth in enumerate(self.auths):
+                emit = lambda line, i=i: self._event(i, line, EventKind.SECURITY)  # noqa: E731
+                auth.on_reject = command_refusals(emit, mesh.clock_ns)
+            mesh.on_security = lambda line: self._event(0, line, EventKind.SECURITY)
+        gate = GateConfig(min_interval_s=NeighbourConfig().verify_min_interval_s)
         self.scope: Scope | None = None
         self.states = None
         if cfg.see_others and cfg.scope.enabled:
             self.scope = Scope(g.scope(cfg.scope), n)
             cells = self.scope.update(self.sim.pos_m)
             # Our own vehicles are in our cells too: Zenoh keeps this session's states local.
-            self.states = mesh.subscribe_cells(self._on_state, cells or (), remote_only=True)
+            self.states = mesh.subscribe_cells(
+                self._on_state, cells or (), gate=gate, remote_only=True
+            )
         elif cfg.see_others:
-            self.states = mesh.subscribe_states(self._on_state)
-        for i, vid in enumerate(self.ids.tolist()):
-            mesh.serve_commands(vid, lambda c, i=i: self.handle_command(i, c))
-        for vid in self.ids.tolist():  # answer commands before announcing presence
+            self.states = mesh.subscribe_states(self._on_state, gate=gate)
+        for i, vid in enumerate(cfg.ids):
+            mesh.serve_commands(vid, lambda c, i=i: self.handle_command(i, c), auth=self.auths[i])
+        for vid in cfg.ids:  # answer commands before announcing presence
             mesh.declare_vehicle(vid)
 
     # -- what tests and benches read -----------------------------------------------------------
@@ -201,12 +257,11 @@ class Fleet:
 
     # -- mesh (Zenoh threads) ------------------------------------------------------------------
     def _on_state(self, state: VehicleState, _recv_ns: int) -> None:
-        if self.cfg.first_id <= state.vehicle_id < self.cfg.first_id + self.cfg.vehicles:
-            return
-        with self._lock:
-            self._others[state.vehicle_id] = (state, self.clock_s())
+        if state.vehicle_id not in self._own:
+            self.others.update(state, self.clock_s())
 
     def handle_command(self, i: int, cmd: Command) -> CommandAck:
+        """Vehicle i's answer at once (the mode machine's verdict), as the agent's."""
         with self._lock:
             tel = self.sim.telemetry(i)
             d = self.core.command(i, cmd, np.array(tel.pos_ned_m), tel.link_ok)
@@ -215,6 +270,9 @@ class Fleet:
             notes = self.core.drain_notes()
             mode = self.core.mode_of(i)
         self._publish_notes(notes)
+        if d.result is not AckResult.ACCEPTED:
+            why = f"refused {cmd.kind.name.lower()}: {d.reason}"
+            self._event(i, why, EventKind.COMMAND, Severity.WARNING)
         return CommandAck(
             int(self.ids[i]), cmd.nonce, self.mesh.clock_ns(), d.result, d.reason, mode
         )
@@ -225,13 +283,21 @@ class Fleet:
             self.core.action_failed(action, error)
         if action.nonce is None:
             return
-        outcome = outcome_of(action, int(self.ids[action.index]), error)
-        self._send(self.mesh.publish_event, outcome.to_event(self.mesh.clock_ns()))
+        i = action.index
+        outcome = outcome_of(action, int(self.ids[i]), error)
+        auth = self.auths[i]
+        self._send(self.mesh.publish_event, outcome.to_event(self.mesh.clock_ns()), auth=auth)
 
     def _publish_notes(self, notes: list[Note]) -> None:
         for n in notes:
-            vid = int(self.ids[n.index])
-            self._send(self.mesh.event, vid, n.text, kind=n.kind, severity=n.severity)
+            self._event(n.index, n.text, n.kind, n.severity)
+
+    def _event(
+        self, i: int, text: str, kind: EventKind, severity: Severity = Severity.WARNING
+    ) -> None:
+        """An event of vehicle i (row), signed with its own key in keyed mode."""
+        vid = int(self.ids[i])
+        self._send(self.mesh.event, vid, text, kind=kind, severity=severity, auth=self.auths[i])
 
     @staticmethod
     def _send(publish: Callable[..., None], *args, **kw) -> None:
@@ -256,20 +322,24 @@ class Fleet:
                 self.actions.submit(action)
             rows = core.guided_rows(sim.armed, link_ok)
             self.filtered[:] = False
+            self.slowed[:] = False
             if rows.size:
                 views = self._views(now_s, rows)
                 out = core.guide(now_s, rows, sim.pos_m[rows], sim.vel_m_s[rows], views)
                 sim.set_velocities(rows, out.vel_ned_m_s, out.heading_rad)
                 self.filtered[rows] = out.filtered
+                self.slowed[rows] = out.slowed_for_stale
+            else:
+                self.others.expire(now_s)  # unheard vehicles go, flying or not
             notes = core.drain_notes()
             states = self._states()
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
         if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
             self.states.set_cells(cells)
         self._publish_notes(notes)
-        for s in states:
+        for s, auth in zip(states, self.auths, strict=True):
             try:
-                self.mesh.publish_state(s)
+                self.mesh.publish_state(s, auth=auth)
             except Exception as exc:  # noqa: BLE001 - a full network buffer must not stop the fleet
                 log.warning("state publish failed: %s", exc)
         self.stats.ticks += 1
@@ -278,26 +348,17 @@ class Fleet:
     def _views(self, now_s: float, rows: np.ndarray) -> NeighbourViews:
         """What each guided row sees: the nearest airborne vehicles, ours and other processes'
         (dead-reckoned from their last state; stale past NeighbourConfig.stale_s)."""
-        sim, stale_s = self.sim, NeighbourConfig().stale_s
-        for vid in [v for v, (_, t) in self._others.items() if now_s - t > self.cfg.drop_s]:
-            del self._others[vid]
-        ext = [
-            (s, now_s - t)
-            for s, t in self._others.values()
-            if s.armed or s.mode not in (Mode.LANDED, Mode.KILLED)
-        ]
-        ext_pos = np.array([np.add(s.pos_ned_m, np.multiply(s.vel_ned_m_s, a)) for s, a in ext])
-        ext_vel = np.array([s.vel_ned_m_s for s, _ in ext]).reshape(-1, 3)
+        sim, ext = self.sim, self.others.snapshot(now_s)
         airborne = np.isin(self.core.mode, AIRBORNE_MODES) & sim.armed
         return NeighbourViews.nearest(
             sim.pos_m[rows],
             rows,
-            np.concatenate([sim.pos_m, ext_pos.reshape(-1, 3)]),
-            np.concatenate([sim.vel_m_s, ext_vel]),
-            np.concatenate([self.core.heading_rad, [s.heading_rad for s, _ in ext]]),
+            np.concatenate([sim.pos_m, ext.pos_ned_m]),
+            np.concatenate([sim.vel_m_s, ext.vel_ned_m_s]),
+            np.concatenate([self.core.heading_rad, ext.heading_rad]),
             np.concatenate([airborne, np.ones(len(ext), bool)]),
             np.concatenate(
-                [np.zeros(self.cfg.vehicles, bool), np.array([a > stale_s for _, a in ext], bool)]
+                [np.zeros(self.cfg.vehicles, bool), ext.age_s > self.others.cfg.stale_s]
             ),
             self.cfg.max_neighbours,
         )
@@ -313,11 +374,18 @@ class Fleet:
         goal = np.where(has[:, None], targets, 0.0).tolist()
         hdg = (np.remainder(core.heading_rad + math.pi, 2 * math.pi) - math.pi).tolist()
         flags = [
-            StateFlag.OPEN_MODE
+            self.flags
             | fs.flags
             | (StateFlag.HAS_GOAL if h else StateFlag.NONE)
             | (StateFlag.FILTER_ACTIVE if f else StateFlag.NONE)
-            for fs, h, f in zip(core.failsafes, has.tolist(), self.filtered.tolist(), strict=True)
+            | (StateFlag.NEIGHBOURS_STALE if w else StateFlag.NONE)
+            for fs, h, f, w in zip(
+                core.failsafes,
+                has.tolist(),
+                self.filtered.tolist(),
+                self.slowed.tolist(),
+                strict=True,
+            )
         ]
         modes = core.modes
         ids, armed, battery = self.ids.tolist(), sim.armed.tolist(), sim.battery_pct.tolist()
@@ -352,103 +420,15 @@ def main(
     stop: threading.Event | None = None,
     duration_s: float | None = None,
     ready: Callable[[Fleet], None] | None = None,
+    auths: Mapping[int, FleetAuth] | None = None,
 ) -> dict:
-    """Run the fleet until `stop` (or `duration_s`); returns the tick statistics."""
+    """Run the host until `stop` (or `duration_s`); returns the tick statistics. `auths`: one
+    FleetAuth per vehicle (keyed mode), the first of which keys the mesh."""
     stop = stop or threading.Event()
-    with Mesh(cfg.mesh) as mesh:
-        fleet = Fleet(cfg, mesh)
+    with Mesh(cfg.mesh, auth=auths[cfg.ids[0]] if auths else None) as mesh:
+        fleet = Fleet(cfg, mesh, auths=auths)
         if ready is not None:
             ready(fleet)
         with stop_after(duration_s, stop):
             fleet.run(stop)
         return fleet.stats.summary()
-
-
-def parser() -> argparse.ArgumentParser:
-    from comms.cli_options import add_mesh_args, floats, refuse, renamed
-
-    p = argparse.ArgumentParser(
-        prog="covey fleet-sim",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument(
-        "--vehicles", type=int, default=500, help="vehicles in this process (default 500)"
-    )
-    p.add_argument("--first-id", type=int, default=1, help="id of the first vehicle (default 1)")
-    p.add_argument("--rate-hz", type=float, default=10.0, help="tick and state rate (default 10)")
-    p.add_argument("--spacing-m", type=float, default=8.0, help="start grid spacing (default 8)")
-    p.add_argument(
-        "--start-ne-m",
-        type=lambda s: floats(s, 2, "--start-ne-m"),
-        default=(0.0, 0.0),
-        metavar="N,E",
-        help="grid corner north,east in metres",
-    )
-    renamed(p, {"--start": "--start-ne-m"})
-    p.add_argument(
-        "--max-neighbours",
-        type=int,
-        default=10,
-        help="nearest neighbours per policy call (default 10)",
-    )
-    p.add_argument("--separation-m", type=float, default=3.0)
-    p.add_argument("--cruise-speed-m-s", type=float, default=1.0)
-    p.add_argument("--no-safety-filter", action="store_true", help="fly the pure learned policy")
-    p.add_argument(
-        "--no-see-others", action="store_true", help="ignore vehicles of other processes"
-    )
-    p.add_argument("--geofence-radius-m", type=float, default=2000.0, help="0 = no fence")
-    p.add_argument("--duration-s", type=float, default=None, help="exit after this long")
-    p.add_argument("-v", "--verbose", action="store_true")
-    add_mesh_args(p, key_file=False)
-    refuse(p, "--key-file", NO_KEY_REASON, show=True)
-    return p
-
-
-NO_KEY_REASON = (
-    "fleet-sim signs nothing (a key signs for one vehicle, this process flies hundreds): "
-    "it joins open-mode fleets only"
-)
-
-
-def cli(argv: list[str]) -> int:
-    from comms.cli_options import key_env_note, mesh_config, stop_on_signals
-
-    p = parser()
-    args = p.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-    )
-    key_env_note(p, NO_KEY_REASON)
-    try:
-        cfg = FleetSimConfig(
-            vehicles=args.vehicles,
-            first_id=args.first_id,
-            mesh=mesh_config(args, p),
-            rate_hz=args.rate_hz,
-            spacing_m=args.spacing_m,
-            start_ne_m=args.start_ne_m,
-            max_neighbours=args.max_neighbours,
-            see_others=not args.no_see_others,
-            guidance=GuidanceConfig(
-                separation_m=args.separation_m,
-                cruise_speed_m_s=args.cruise_speed_m_s,
-                safety_filter=not args.no_safety_filter,
-            ),
-            failsafe=FailsafeConfig(require_gcs=False, geofence_radius_m=args.geofence_radius_m),
-        )
-    except ValueError as exc:
-        p.error(str(exc))
-
-    def ready(fleet: Fleet) -> None:
-        print(
-            f"READY {cfg.vehicles} vehicles {cfg.first_id}..{cfg.first_id + cfg.vehicles - 1}",
-            flush=True,
-        )
-
-    with stop_on_signals() as stop, contextlib.suppress(KeyboardInterrupt):
-        stats = main(cfg, stop=stop, duration_s=args.duration_s, ready=ready)
-        print("STATS " + json.dumps(stats), flush=True)
-    return 0

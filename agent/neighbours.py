@@ -53,7 +53,9 @@ class NeighbourSnapshot:
 class NeighbourTable:
     """Thread-safe: the mesh callback writes, the guidance loop reads."""
 
-    def __init__(self, own_id: int, cfg: NeighbourConfig = NeighbourConfig()) -> None:
+    def __init__(self, own_id: int | None, cfg: NeighbourConfig = NeighbourConfig()) -> None:
+        """`own_id`: the vehicle whose table this is (its own states are ignored); None for a
+        host of several vehicles, which keeps its own vehicles out itself."""
         self.own_id = own_id
         self.cfg = cfg
         self._lock = threading.Lock()
@@ -77,11 +79,17 @@ class NeighbourTable:
         with self._lock:
             self._latest.pop(vehicle_id, None)
 
-    def snapshot(self, now_s: float, own_pos_ned_m: np.ndarray | None = None) -> NeighbourSnapshot:
-        """Neighbours that are flying, fresh enough and in our vertical band, dead-reckoned to now."""
+    def expire(self, now_s: float) -> None:
+        """Forget the neighbours unheard for `drop_s` (`snapshot` does it too)."""
         with self._lock:
             for vid in [v for v, (_, t) in self._latest.items() if now_s - t > self.cfg.drop_s]:
                 del self._latest[vid]
+
+    def snapshot(self, now_s: float, own_pos_ned_m: np.ndarray | None = None) -> NeighbourSnapshot:
+        """Neighbours that are flying, fresh enough and in our vertical band (with
+        `own_pos_ned_m`), dead-reckoned to now."""
+        self.expire(now_s)
+        with self._lock:
             items = list(self._latest.values())
         pos, vel, hdg, ids, ages, stale, seqs = [], [], [], [], [], [], []
         for state, recv_s in items:

@@ -16,6 +16,9 @@ signed by the operator's fleet authority, says whose public key is which vehicle
 - States and events are signed by their vehicle; comms/gate.py checks them on receipt.
 - A newer roster (higher version, the authority's signature, this fleet) replaces the current
   one at once: a member left out is revoked from then on, without restarting anything.
+- A process that hosts several vehicles (`covey agent --ids`) holds one FleetAuth per vehicle,
+  each signing with its own vehicle's key, all sharing one roster (`FleetAuth.sibling`,
+  `load_vehicle_auths`): a pushed roster is checked once and holds for all of them at once.
 
 Only correctly signed commands reach the nonce cache, so an outsider cannot fill it. The cache
 is bounded: when full, the oldest entry goes and its stamp becomes a floor below which every
@@ -32,7 +35,8 @@ import os
 import secrets
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
@@ -40,6 +44,7 @@ from comms.identity import (
     FleetKeyError,
     MemberKey,
     check_roster,
+    member_file_name,
     public_bytes,
     read_member_key,
     signed_message,
@@ -63,7 +68,14 @@ ENV_KEY = "COVEY_FLEET_KEY"
 """No longer supported (a shared secret); refused with a pointer to `covey keygen`."""
 _NO_TAG = bytes(TAG_BYTES)
 
-__all__ = ["FleetAuth", "FleetKeyError", "command_digest", "load_auth"]
+__all__ = [
+    "FleetAuth",
+    "FleetKeyError",
+    "command_digest",
+    "host_signers",
+    "load_auth",
+    "load_vehicle_auths",
+]
 
 
 def command_digest(payload: bytes) -> bytes:
@@ -86,7 +98,9 @@ class FleetAuth:
         max_skew_s: float = 5.0,
         replay_window: int = 65536,
         rng: Callable[[int], int] = secrets.randbits,
+        book: _RosterBook | None = None,
     ) -> None:
+        """`book`: the roster shared with other FleetAuths of this process (use `sibling`)."""
         if not 0.0 < max_skew_s <= 3600.0:
             raise ValueError(f"max_skew_s={max_skew_s} must be within (0, 3600]")
         if not 1 <= replay_window <= 10_000_000:
@@ -103,8 +117,7 @@ class FleetAuth:
         self._seen: set[tuple[int, int]] = set()
         self._by_stamp: list[tuple[int, int, int]] = []  # heap of (stamp_ns, vehicle, nonce)
         self._floor_ns = -1
-        self._roster = key.roster
-        self._keys = _public_keys(key.roster)
+        self._book = book if book is not None else _RosterBook(key)
         self.rejected = 0
         """How many commands this instance refused (read only)."""
         self.on_reject: Callable[[Command, int, str], None] | None = None
@@ -121,29 +134,42 @@ class FleetAuth:
 
     @property
     def roster(self) -> Roster:
-        return self._roster
+        return self._book.roster
 
     def is_member(self, role: Role, member_id: int) -> bool:
-        return (role, member_id) in self._keys
+        return (role, member_id) in self._book.keys
+
+    def sibling(self, key: MemberKey) -> FleetAuth:
+        """A FleetAuth for another member key held by this process (a host of several vehicles)
+        with this one's clock and limits, sharing its roster: a roster applied through either is
+        checked and applied once, for both. The newer of the two rosters is kept. Raises
+        FleetKeyError if `key` belongs to another fleet or authority, or is not in the kept
+        roster with its public key (revoked or replaced)."""
+        self._book.join(key)
+        return FleetAuth(
+            key,
+            clock_ns=self.clock_ns,
+            max_skew_s=self.max_skew_ns / 1e9,
+            replay_window=self.replay_window,
+            rng=self._rng,
+            book=self._book,
+        )
+
+    def shares_roster(self, other: FleetAuth) -> bool:
+        """Whether `other` follows the same roster object as this one (made by `sibling`)."""
+        return other._book is self._book
 
     def apply_roster(self, roster: Roster) -> str | None:
         """Replace the roster by a newer one from the authority; None if applied, else why not."""
-        if roster.version <= self._roster.version:
-            return f"roster v{roster.version} is not newer than v{self._roster.version}"
-        problem = check_roster(roster, self.key.authority_public_key, self.fleet)
+        problem = self._book.apply(roster)
         if problem:
             return problem
-        keys = _public_keys(roster)
-        with self._lock:
-            if roster.version <= self._roster.version:  # a concurrent newer one won
-                return f"roster v{roster.version} is not newer than v{self._roster.version}"
-            self._roster, self._keys = roster, keys
-        me = roster.member(self.role, self.member_id)
-        if me is None or me.public_key != public_bytes(self.key.private_key):
+        revoked = self._book.revoked(roster)
+        if revoked:
             log.critical(
-                "roster v%d REVOKES this %s: the fleet refuses what it signs from now on",
+                "roster v%d REVOKES this process's %s: the fleet refuses what it signs from now on",
                 roster.version,
-                self.key.name,
+                ", ".join(revoked),
             )
         else:
             log.warning(
@@ -163,11 +189,12 @@ class FleetAuth:
         self, role: Role, member_id: int, label: str, data: bytes, sig: bytes
     ) -> str | None:
         """None if `sig` is `role member_id`'s signature under the current roster, else why not."""
-        pub = self._keys.get((role, member_id))
+        book = self._book
+        pub = book.keys.get((role, member_id))
         if pub is None:
             return (
                 f"unknown signer: {role.name.lower()} {member_id} is not in fleet roster "
-                f"v{self._roster.version} (revoked, never enrolled, or another fleet)"
+                f"v{book.roster.version} (revoked, never enrolled, or another fleet)"
             )
         if not verify(pub, sig, label, self.fleet, data):
             return f"bad signature: not made by {role.name.lower()} {member_id}'s key for fleet {self.fleet}"
@@ -293,6 +320,66 @@ class FleetAuth:
         )
 
 
+class _RosterBook:
+    """The current roster and its public keys, shared by the FleetAuths of one process (one per
+    member key it holds), so that a roster pushed to the fleet is checked and applied once, at
+    once, for all of them. Readers take `roster` and `keys` without a lock (each is replaced
+    whole)."""
+
+    def __init__(self, key: MemberKey) -> None:
+        self.fleet = key.fleet
+        self.authority_public_key = key.authority_public_key
+        self.roster = key.roster
+        self.keys = _public_keys(key.roster)
+        self.held: list[MemberKey] = [key]
+        self._lock = threading.Lock()
+
+    def join(self, key: MemberKey) -> None:
+        """Hold one more member key of this fleet and authority (the newer roster wins)."""
+        if key.fleet != self.fleet:
+            raise FleetKeyError(f"{key.name}'s key is for fleet {key.fleet!r}, not {self.fleet!r}")
+        if key.authority_public_key != self.authority_public_key:
+            raise FleetKeyError(
+                f"{key.name}'s key was issued by another fleet authority than {self.held[0].name}'s"
+            )
+        if key.roster.version > self.roster.version:
+            problem = self.apply(key.roster)
+            if problem:
+                raise FleetKeyError(f"{key.name}'s roster: {problem}")
+        with self._lock:
+            self.held.append(key)
+        revoked = self.revoked(self.roster)
+        if revoked:
+            raise FleetKeyError(
+                f"{', '.join(revoked)} not in fleet roster v{self.roster.version} with "
+                "this key: revoked or replaced; ask the operator for a new key file"
+            )
+
+    def apply(self, roster: Roster) -> str | None:
+        if roster.version <= self.roster.version:
+            return f"roster v{roster.version} is not newer than v{self.roster.version}"
+        problem = check_roster(roster, self.authority_public_key, self.fleet)
+        if problem:
+            return problem
+        keys = _public_keys(roster)
+        with self._lock:
+            if roster.version <= self.roster.version:  # a concurrent newer one won
+                return f"roster v{roster.version} is not newer than v{self.roster.version}"
+            self.roster, self.keys = roster, keys
+        return None
+
+    def revoked(self, roster: Roster) -> list[str]:
+        """The held members that `roster` leaves out or lists with another key."""
+        with self._lock:
+            held = list(self.held)
+        out = []
+        for key in held:
+            entry = roster.member(key.role, key.member_id)
+            if entry is None or entry.public_key != public_bytes(key.private_key):
+                out.append(key.name)
+        return out
+
+
 def _public_keys(roster: Roster) -> dict[tuple[Role, int], Ed25519PublicKey]:
     return {
         (m.role, m.member_id): Ed25519PublicKey.from_public_bytes(m.public_key)
@@ -339,3 +426,81 @@ def load_auth(
         key.roster.version,
     )
     return auth
+
+
+def host_signers(
+    ids: Iterable[int], mesh_auth: FleetAuth | None, auths: Mapping[int, FleetAuth] | None
+) -> list[FleetAuth | None]:
+    """The signer of each of a host's vehicles, in `ids` order: its own FleetAuth, or None for
+    all in open mode. Raises ValueError unless every vehicle has its own key and the mesh's
+    (which verifies what arrives and follows the roster) shares their roster, or, in open
+    mode, the mesh has no key either (it would sign every vehicle's states as one member)."""
+    ids = list(ids)
+    if auths is None:
+        if mesh_auth is not None:
+            raise ValueError(
+                "the mesh is keyed but the host got no vehicle keys: it would sign every "
+                "vehicle's states with one member's key"
+            )
+        return [None] * len(ids)
+    if set(auths) != set(ids):
+        missing, extra = sorted(set(ids) - set(auths)), sorted(set(auths) - set(ids))
+        raise ValueError(f"vehicle keys do not match the ids: missing {missing}, extra {extra}")
+    for vid in ids:
+        auth = auths[vid]
+        if auth.role is not Role.VEHICLE or auth.member_id != vid:
+            raise ValueError(f"the key given for vehicle {vid} is {auth.key.name}'s")
+    if mesh_auth is None or not all(mesh_auth.shares_roster(a) for a in auths.values()):
+        raise ValueError(
+            "a keyed host needs a mesh keyed with one of its vehicles' keys (their shared "
+            "roster is the one it checks and follows)"
+        )
+    return [auths[vid] for vid in ids]
+
+
+def load_vehicle_auths(
+    key_dir: str | os.PathLike[str],
+    vehicle_ids: Iterable[int],
+    fleet: str | None = None,
+    **kw: object,
+) -> dict[int, FleetAuth]:
+    """One FleetAuth per vehicle of a multi-vehicle host, from `key_dir/vehicle-<id>.key` (the
+    names `covey keygen` writes), sharing one roster (the newest of their files'): vehicle id ->
+    its FleetAuth, in the order given. Raises FleetKeyError naming the first file that is
+    missing, unreadable, malformed, another member's, for another fleet or authority, or
+    revoked: a host starts with every key it was asked for, or not at all."""
+    if str(key_dir).strip() == "":
+        raise FleetKeyError("the key directory path is empty (an unset variable?)")
+    d = Path(key_dir).expanduser()
+    if not d.is_dir():
+        raise FleetKeyError(f"key directory {d} is not a directory (covey keygen writes one)")
+    auths: dict[int, FleetAuth] = {}
+    first: FleetAuth | None = None
+    for vid in vehicle_ids:
+        path = d / member_file_name(Role.VEHICLE, vid)
+        key = read_member_key(path)
+        if key.role is not Role.VEHICLE or key.member_id != vid:
+            raise FleetKeyError(f"key file {path} is {key.name}'s key, not vehicle {vid}'s")
+        if fleet is not None and key.fleet != fleet:
+            raise FleetKeyError(
+                f"key file {path} is for fleet {key.fleet!r}, but this process joins fleet "
+                f"{fleet!r}"
+            )
+        if first is None:
+            first = FleetAuth(key, **kw)  # type: ignore[arg-type]
+            auth = first
+        else:
+            try:
+                auth = first.sibling(key)
+            except FleetKeyError as exc:
+                raise FleetKeyError(f"key file {path}: {exc}") from None
+        auths[vid] = auth
+    if first is not None:
+        log.info(
+            "keyed mode: %d vehicles of fleet %s, one key each from %s (roster v%d)",
+            len(auths),
+            first.fleet,
+            d,
+            first.roster.version,
+        )
+    return auths

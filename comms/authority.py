@@ -19,6 +19,7 @@ from comms.identity import (
     authority_doc,
     check_roster,
     member_doc,
+    member_file_name,
     public_bytes,
     read_authority,
     read_member_key,
@@ -62,7 +63,7 @@ class Authority:
         return Authority(d)
 
     def member_path(self, role: Role, member_id: int) -> Path:
-        return self.dir / f"{role.name.lower()}-{member_id}.key"
+        return self.dir / member_file_name(role, member_id)
 
     def add(self, role: Role, member_id: int, clock_ns=time.time_ns) -> Path:
         return self.add_many([(role, member_id)], clock_ns)[0]

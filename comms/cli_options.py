@@ -128,6 +128,70 @@ def geo_origin(text: str) -> GeoOrigin:
         raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
 
 
+MAX_HOSTED_VEHICLES = 10_000
+"""The most vehicles one `covey agent --ids` process may host."""
+
+
+def vehicle_ids(text: str) -> tuple[int, ...]:
+    """Vehicle ids as ranges and single ids, comma-separated: "1-100", "1-50,60,70-79". Each id
+    within the schema's range, ranges ascending, no id twice, at most MAX_HOSTED_VEHICLES."""
+    from comms.schema import MAX_VEHICLE_ID
+
+    def one(part: str) -> int:
+        try:
+            v = int(part)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: {part!r} is not a vehicle id (ids and ranges: 1-50,60,70-79)"
+            ) from None
+        if not 1 <= v <= MAX_VEHICLE_ID:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: vehicle id {v} is outside 1..{MAX_VEHICLE_ID}"
+            )
+        return v
+
+    ids: list[int] = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            raise argparse.ArgumentTypeError(f"{text!r}: an empty item (ids and ranges: 1-50,60)")
+        lo, dash, hi = part.partition("-")
+        if dash:
+            a, b = one(lo.strip()), one(hi.strip())
+            if a > b:
+                raise argparse.ArgumentTypeError(f"{text!r}: range {part} runs backwards")
+        else:
+            a = b = one(part)
+        if len(ids) + b - a + 1 > MAX_HOSTED_VEHICLES:  # said before building a huge list
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: more than {MAX_HOSTED_VEHICLES} vehicles in one process"
+            )
+        ids.extend(range(a, b + 1))
+    seen: set[int] = set()
+    twice = sorted({v for v in ids if v in seen or seen.add(v)})
+    if twice:
+        more = ", ..." if len(twice) > 5 else ""
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: vehicle id {', '.join(map(str, twice[:5]))}{more} given twice"
+        )
+    return tuple(ids)
+
+
+def id_ranges(ids: Iterable[int]) -> str:
+    """The shortest `vehicle_ids` text for `ids` (sorted): (1, 2, 3, 7) -> "1-3,7"."""
+    out: list[str] = []
+    run: list[int] = []
+    for v in sorted(ids):
+        if run and v == run[-1] + 1:
+            run.append(v)
+            continue
+        if run:
+            out.append(f"{run[0]}-{run[-1]}" if len(run) > 1 else str(run[0]))
+        run = [v]
+    if run:
+        out.append(f"{run[0]}-{run[-1]}" if len(run) > 1 else str(run[0]))
+    return ",".join(out)
+
+
 def comma_list(text: str) -> tuple[str, ...]:
     """'a,b,,c' -> ('a', 'b', 'c')."""
     return tuple(s for s in text.split(",") if s)
@@ -190,9 +254,12 @@ def add_mesh_args(
     key_file: bool = True,
     fleet_default: str | None = "covey",
     fleet_help: str = "fleet name (default: covey)",
+    key_dir: bool = False,
 ) -> None:
     """--fleet --connect --listen --mesh-mode --zenoh-config, and --key-file unless key_file is
-    False (a CLI that signs nothing then refuses it itself, with its reason)."""
+    False (a CLI that signs nothing then refuses it itself, with its reason); with `key_dir`,
+    --key-dir too (a process of several vehicles: one key file each, comms.auth
+    .load_vehicle_auths)."""
     g = parser.add_argument_group("mesh")
     g.add_argument("--fleet", default=fleet_default, help=fleet_help)
     g.add_argument(
@@ -230,6 +297,15 @@ def add_mesh_args(
             metavar="FILE",
             help=f"this member's key file (covey keygen add); or ${ENV_KEY_FILE}. "
             "Without one: OPEN MODE (nothing authenticated; tests only)",
+        )
+    if key_dir:
+        g.add_argument(
+            "--key-dir",
+            default=None,
+            metavar="DIR",
+            help="a directory of member key files named vehicle-<id>.key (as covey keygen "
+            "writes them), one per vehicle, each signing for its own vehicle; instead of "
+            "--key-file, and the way to key several vehicles in one process",
         )
 
 

@@ -25,7 +25,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from comms.schema import Event, Role, VehicleState
+from comms.schema import Command, Event, Role, VehicleState
 
 
 class Refusal(enum.Enum):
@@ -87,6 +87,31 @@ class Summaries:
                 self.emit(describe(count)[:119])
             except Exception:  # noqa: BLE001 - reporting must not break receiving
                 pass
+
+
+def command_refusals(
+    emit: Callable[[str], None], clock_ns: Callable[[], int], period_s: float = 1.0
+) -> Callable[[Command, int, str], None]:
+    """A `FleetAuth.on_reject(command, vehicle_id, reason)` listener that emits at most one line
+    per refusal cause (the reason up to its colon) per `period_s`: the first refusal whole, then
+    a count. The agent and the multi-vehicle host publish the lines as SECURITY events, so that
+    a flood of forged commands becomes a few events, not a flood of them."""
+    summaries = Summaries(emit, period_s)
+
+    def on_reject(cmd: Command, _vehicle_id: int, reason: str) -> None:
+        cause = reason.split(":", 1)[0]
+        kind = getattr(cmd.kind, "name", str(cmd.kind)).lower()
+        summaries.note(
+            cause,
+            clock_ns(),
+            lambda n: (
+                f"refused {kind} from station {cmd.source_id}: {reason}"
+                if n == 1
+                else f"refused {n} commands ({cause}); latest {kind} from station {cmd.source_id}"
+            ),
+        )
+
+    return on_reject
 
 
 class Gate:

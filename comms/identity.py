@@ -102,6 +102,12 @@ class MemberKey:
 
 
 # -- files ---------------------------------------------------------------------------------------
+def member_file_name(role: Role, member_id: int) -> str:
+    """The one name of a member's key file: `vehicle-3.key`, `station-1.key` (what `covey keygen`
+    and `covey demo` write, and what `covey agent --key-dir` reads)."""
+    return f"{role.name.lower()}-{member_id}.key"
+
+
 def _read_private_file(path: str | os.PathLike[str], what: str) -> dict:
     if str(path).strip() == "":
         raise FleetKeyError(f"{what} path is empty (an unset variable?); give a file or no option")

@@ -208,11 +208,13 @@ class Mesh:
         self.session.put(keys.roster(self.fleet), roster.encode())
 
     # -- states ----------------------------------------------------------------------------
-    def publish_state(self, state: VehicleState) -> None:
+    def publish_state(self, state: VehicleState, *, auth: Any = None) -> None:
         """Publish on the key of the state's own grid cell (comms/keys.py); a vehicle that
-        crosses into another cell gets a publisher there, and its old one goes."""
-        if self.auth is not None:
-            state = self.auth.sign_state(state)
+        crosses into another cell gets a publisher there, and its old one goes. `auth`: the
+        vehicle's own FleetAuth when one process hosts several vehicles; default the mesh's."""
+        auth = auth if auth is not None else self.auth
+        if auth is not None:
+            state = auth.sign_state(state)
         payload = state.encode()
         cell = keys.cell_of(state.pos_ned_m)
         held = self._publishers.get(state.vehicle_id)
@@ -332,13 +334,17 @@ class Mesh:
         return on_sample
 
     # -- events ----------------------------------------------------------------------------
-    def publish_event(self, event: Event) -> None:
-        if self.auth is not None:
-            event = self.auth.sign_event(event)
+    def publish_event(self, event: Event, *, auth: Any = None) -> None:
+        """Publish `event`, signed with `auth` (its vehicle's own FleetAuth when one process
+        hosts several vehicles; default the mesh's)."""
+        auth = auth if auth is not None else self.auth
+        if auth is not None:
+            event = auth.sign_event(event)
         self.session.put(keys.event(self.fleet, event.vehicle_id or 1), event.encode())
 
-    def event(self, vehicle_id: int, text: str, **kw: Any) -> None:
-        self.publish_event(Event(vehicle_id=vehicle_id, stamp_ns=self.clock_ns(), text=text, **kw))
+    def event(self, vehicle_id: int, text: str, *, auth: Any = None, **kw: Any) -> None:
+        event = Event(vehicle_id=vehicle_id, stamp_ns=self.clock_ns(), text=text, **kw)
+        self.publish_event(event, auth=auth)
 
     def subscribe_events(self, callback: EventCallback) -> Any:
         checker = self.new_gate(what="event") if self.auth is not None else None
@@ -401,7 +407,7 @@ class Mesh:
     def serve_commands(self, vehicle_id: int, handler: CommandHandler, *, auth: Any = None) -> Any:
         """Answer commands for `vehicle_id`; `handler` returns the ack (never raise from it:
         an exception becomes a FAILED ack with the exception text). `auth`: that vehicle's own
-        FleetAuth when one process serves several vehicles (benches); default the mesh's."""
+        FleetAuth when one process serves several vehicles (`covey agent --ids`); default the mesh's."""
         reply_key = keys.cmd(self.fleet, vehicle_id)
         auth = auth if auth is not None else self.auth
         ack_key = keys.ack(self.fleet, vehicle_id)

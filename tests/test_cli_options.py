@@ -42,6 +42,7 @@ NO_UNIT_SUFFIX: dict[str, set[tuple[str, str]]] = {
     "a ratio of real time (2 = twice as fast), no unit": {("replay", "--speed")},
     "LAT,LON,ALT: three numbers in degrees, degrees, metres, named by the metavar": {
         ("agent", "--origin"),
+        ("fleet-sim", "--origin"),
         ("sitl", "--home"),
         ("record", "--origin"),
         ("foxglove", "--origin"),

@@ -79,7 +79,7 @@ def test_a_key_in_the_environment_is_noted_not_silently_dropped(
     ("name", "argv", "says"),
     [
         ("foxglove", ["--key-file", "k"], "neither signs nor checks"),
-        ("fleet-sim", ["--key-file", "k"], "fleet-sim signs nothing"),
+        ("fleet-sim", ["--key-file", "k"], "fleet-sim is the open-mode host"),
         ("keygen", ["push", "--key-file", "k"], "signed by the authority key"),
         ("record", ["--json"], "--json prints the summary of --info"),
         ("record", ["--info", "f.mcap", "--fleet", "x"], "--fleet: not used with --info"),
