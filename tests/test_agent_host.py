@@ -150,6 +150,13 @@ def test_another_vehicles_key_refuses_to_start(authority, capsys) -> None:
     assert line.endswith(f"key file {path5} is vehicle 6's key, not vehicle 5's"), line
 
 
+def test_a_single_agent_takes_its_key_from_a_key_dir_too(authority, capsys) -> None:
+    argv = ["--id", "9", "--key-dir", str(authority.dir), "--fleet", FLEET]
+    assert "vehicle-9.key does not exist" in _cli_error(argv, capsys)
+    both = [*argv[:2], "--key-dir", str(authority.dir), "--key-file", "k"]
+    assert "--key-file and --key-dir: give one" in _cli_error(both, capsys)
+
+
 def test_a_key_for_another_fleet_refuses_to_start(authority, capsys) -> None:
     line = _key_dir_cli(authority, "1-2", capsys, "--fleet", "other")
     assert f"is for fleet {FLEET!r}, but this process joins fleet 'other'" in line, line
