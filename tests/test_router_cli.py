@@ -116,3 +116,39 @@ def test_the_cli_refuses_a_busy_port_in_one_line(capsys) -> None:
             cli(["--listen", f"tcp/127.0.0.1:{busy.getsockname()[1]}"])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and "covey router: error:" in err, err
+
+
+def test_a_client_given_two_routers_fails_over_to_the_other() -> None:
+    """A vehicle at a site with two routers (`--connect b,a`) uses the first; when it goes, the
+    vehicle's states reach the station through the other."""
+    a_ep, b_ep = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
+    a_lines, b_lines = Lines(), Lines()
+    stop_a, stop_b = threading.Event(), threading.Event()
+    threads = [run(router(a_ep), a_lines, stop_a), run(router(b_ep, a_ep), b_lines, stop_b)]
+    heard: list[int] = []
+    try:
+        assert wait_until(lambda: b_lines.has("linked; 1 router link(s)"), 20), b_lines.lines
+        with (
+            Mesh(MeshConfig(fleet=FLEET, mode="client", connect=(a_ep,))) as station,
+            Mesh(MeshConfig(fleet=FLEET, mode="client", connect=(b_ep, a_ep))) as vehicle,
+        ):
+            station.subscribe_states(lambda s, _t: heard.append(s.seq))
+            assert wait_until(lambda: b_lines.has("0 peer(s), 1 client(s)"), 10), b_lines.lines
+
+            def crosses(first_seq: int) -> bool:
+                for seq in range(first_seq, first_seq + 100):
+                    vehicle.publish_state(VehicleState(7, seq, 0, (1.0, 2.0, -3.0), (0, 0, 0), 0))
+                    if wait_until(lambda s=seq: s in heard, 0.1):
+                        return True
+                return False
+
+            assert crosses(1), "no state through router b"
+            stop_b.set()
+            threads[1].join(10)
+            assert crosses(1000), "no state after router b stopped"
+            assert wait_until(lambda: a_lines.has("0 router(s), 0 peer(s), 2 client(s)"), 10)
+    finally:
+        stop_a.set()
+        stop_b.set()
+        for t in threads:
+            t.join(10)
