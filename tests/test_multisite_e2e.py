@@ -180,6 +180,7 @@ def test_a_fleet_across_three_routers(procs, tmp_path) -> None:
 
         st.send(Command.takeoff(ALT_M, nonce=new_nonce(), stamp_ns=0), expect=IDS)
         st.wait(lambda s: all(s.views()[v].mode is Mode.HOLDING for v in IDS), 30, "all holding")
+        st.mark()  # from here on no vehicle may miss the station (its token crosses the routers)
 
         # Neighbours on different routers hear each other, fresh; the far vehicle is heard by
         # the station only. Both traces listed the other at a sub-second age at least once.
@@ -204,6 +205,10 @@ def test_a_fleet_across_three_routers(procs, tmp_path) -> None:
         st.wait(
             lambda s: all(s.views()[v].state.pos_ned_m[0] > 2.0 for v in (2, 3)), 20, "the gotos"
         )
+
+        with st.lock:
+            missed = [v for v, f in st.flags_since.items() if f & StateFlag.FAILSAFE_GCS_LOST]
+        assert not missed, f"vehicles {missed} lost the station"
 
         # Vehicle 3 dies: the station sees it go, and vehicle 2 flags its neighbour stale.
         st.mark()
