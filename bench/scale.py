@@ -187,20 +187,8 @@ def role_station(connect: str, ids: str) -> None:
 
 
 # -- the bench ------------------------------------------------------------------------------
-def role_router(port: int, peers: list[str]) -> None:
-    """TEMPORARY until `covey router` lands."""
-    from comms.session import MeshConfig, open_session
-
-    cfg = MeshConfig(
-        fleet=FLEET, mode="router", connect=tuple(peers), listen=(f"tcp/127.0.0.1:{port}",)
-    )
-    with open_session(cfg):
-        print("READY", flush=True)
-        threading.Event().wait()
-
-
 def _router_argv(port: int, peers: list[int]) -> list[str]:
-    argv = ["-m", "bench.scale", "--role", "router", "--port", str(port)]
+    argv = ["-m", "covey_cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
     if peers:
         argv += ["--connect", ",".join(f"tcp/127.0.0.1:{p}" for p in peers)]
     return argv
@@ -366,9 +354,8 @@ if __name__ == "__main__":
     )
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--sizes", default=None, help="fleet sizes, e.g. 100,300,1000")
-    ap.add_argument("--role", default="bench", choices=["bench", "host", "station", "router"])
+    ap.add_argument("--role", default="bench", choices=["bench", "host", "station"])
     ap.add_argument("--connect")
-    ap.add_argument("--port", type=int)
     ap.add_argument("--first-id", type=int, default=1)
     ap.add_argument("--vehicles", type=int, default=100)
     ap.add_argument("--ids", default="1-1")
@@ -379,8 +366,6 @@ if __name__ == "__main__":
     if ARGS.role == "host":
         n_m, e_m = (float(x) for x in ARGS.start.split(","))
         role_host(ARGS.connect, ARGS.first_id, ARGS.vehicles, (n_m, e_m), bool(ARGS.scoped))
-    elif ARGS.role == "router":
-        role_router(ARGS.port, ARGS.connect.split(",") if ARGS.connect else [])
     elif ARGS.role == "station":
         role_station(ARGS.connect, ARGS.ids)
     else:
