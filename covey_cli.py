@@ -25,6 +25,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "run the agent of one vehicle (sim, MAVSDK or MAVLink relay), or of many (--ids)",
     ),
     "gcs": ("groundstation.gcs_cli", "cli", "browser ground station (viser)"),
+    "router": (
+        "comms.router_cli",
+        "cli",
+        "the Zenoh router of one site of a multi-site fleet",
+    ),
     "status": (
         "groundstation.ops",
         "status_cli",

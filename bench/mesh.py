@@ -30,7 +30,7 @@ import numpy as np
 from bench import common
 from comms import keys
 from comms.procs import ChildGroup
-from comms.session import embedded_peer, embedded_router, free_tcp_port
+from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 
 FLEET = "bench"
 RATE_HZ = 10.0
@@ -44,7 +44,15 @@ def _ids(first: int, count: int) -> list[int]:
     return list(range(first, first + count))
 
 
-def role_pub(kind: str, port: int, first: int, count: int) -> None:
+def member(port: int, connect: str | None = None, hub: bool = False) -> MeshConfig:
+    """A role's mesh: the hub hosts the embedded router on `port`, a publisher or responder is
+    a peer of it; given `connect`, every role is a client of that router (bench/routers.py)."""
+    if connect is not None:
+        return MeshConfig(fleet=FLEET, mode="client", connect=(connect,))
+    return embedded_router(port, fleet=FLEET) if hub else embedded_peer(port, fleet=FLEET)
+
+
+def role_pub(kind: str, cfg: MeshConfig, first: int, count: int) -> None:
     """Publish `count` vehicles' states at RATE_HZ until killed."""
     import zenoh
 
@@ -52,7 +60,6 @@ def role_pub(kind: str, port: int, first: int, count: int) -> None:
     from comms.schema import Mode, VehicleState
 
     ids = _ids(first, count)
-    cfg = embedded_peer(port, fleet=FLEET)
     stop = threading.Event()
     with Mesh(cfg) as mesh:
         if kind != "covey":  # raw: covey's publisher options; raw-batched: Zenoh may batch
@@ -96,12 +103,12 @@ def role_pub(kind: str, port: int, first: int, count: int) -> None:
             stop.wait(max(0.0, next_s - time.monotonic()))
 
 
-def role_resp(kind: str, port: int, first: int, count: int) -> None:
+def role_resp(kind: str, cfg: MeshConfig, first: int, count: int) -> None:
     """Answer commands for `count` vehicles until killed."""
     from comms.mesh import Mesh
     from comms.schema import AckResult, CommandAck, Mode
 
-    with Mesh(embedded_peer(port, fleet=FLEET)) as mesh:
+    with Mesh(cfg) as mesh:
         for v in _ids(first, count):
             if kind == "raw":
                 ack = bytes(ACK_BYTES)
@@ -120,35 +127,37 @@ def role_resp(kind: str, port: int, first: int, count: int) -> None:
         threading.Event().wait()
 
 
-def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
+def role_hub_states(kind: str, cfg: MeshConfig, n: int, window_s: float) -> dict:
     from comms.mesh import Mesh
 
     lock = threading.Lock()
     seen: set[int] = set()
-    rows: list[tuple[int, int]] = []  # (recv_ns, stamp_ns)
+    rows: list[tuple[int, int, int, int]] = []  # (recv_ns, stamp_ns, vehicle id, seq)
     all_seen = threading.Event()
 
-    def record(vid: int, stamp_ns: int) -> None:
+    def record(vid: int, seq: int, stamp_ns: int) -> None:
         now = time.time_ns()
         with lock:
-            rows.append((now, stamp_ns))
+            rows.append((now, stamp_ns, vid, seq))
             if not all_seen.is_set():
                 seen.add(vid)
                 if len(seen) >= n:
                     all_seen.set()
 
-    with Mesh(embedded_router(port, fleet=FLEET)) as mesh:
+    with Mesh(cfg) as mesh:
         if kind != "covey":
             mesh.session.declare_subscriber(
                 keys.all_states(FLEET),
                 lambda s: (
                     lambda b: record(
-                        int.from_bytes(b[2:4], "little"), int.from_bytes(b[8:16], "little")
+                        int.from_bytes(b[2:4], "little"),
+                        int.from_bytes(b[4:8], "little"),
+                        int.from_bytes(b[8:16], "little"),
                     )
                 )(s.payload.to_bytes()),
             )
         else:
-            mesh.subscribe_states(lambda s, _t: record(s.vehicle_id, s.stamp_ns))
+            mesh.subscribe_states(lambda s, _t: record(s.vehicle_id, s.seq, s.stamp_ns))
         print("READY", flush=True)
         if not all_seen.wait(90.0):
             return {"error": f"saw {len(seen)} of {n} vehicles"}
@@ -157,13 +166,20 @@ def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
         time.sleep(window_s)
         t1, cpu1 = time.time_ns(), time.process_time()
         with lock:
-            got = np.array([r for r in rows if t0 <= r[0] < t1], dtype=np.int64).reshape(-1, 2)
+            got = np.array([r for r in rows if t0 <= r[0] < t1], dtype=np.int64).reshape(-1, 4)
     lat_ms = (got[:, 0] - got[:, 1]) / 1e6
+    # Loss from the sequence numbers, apart from a publisher that fell behind its 10 Hz:
+    # per vehicle, the seqs between its first and last in the window that never came.
+    sent = sum(
+        int(seqs.max() - seqs.min() + 1)
+        for seqs in (got[got[:, 2] == v, 3] for v in np.unique(got[:, 2]))
+    )
     return {
         "vehicles": n,
         "window_s": window_s,
         "received": int(len(got)),
         "delivered_share": len(got) / (n * RATE_HZ * window_s),
+        "lost_share": 1.0 - len(np.unique(got[:, 2:4], axis=0)) / max(sent, 1),
         "latency_ms_p50": common.pct(lat_ms, 50),
         "latency_ms_p99": common.pct(lat_ms, 99),
         "latency_ms_max": float(lat_ms.max()) if len(lat_ms) else float("nan"),
@@ -171,14 +187,14 @@ def role_hub_states(kind: str, port: int, n: int, window_s: float) -> dict:
     }
 
 
-def role_hub_cmds(kind: str, port: int, n: int, repeats: int) -> dict:
+def role_hub_cmds(kind: str, cfg: MeshConfig, n: int, repeats: int) -> dict:
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, CommandKind
 
     ids = set(range(1, n + 1))
     all_ms, errors = [], 0
-    with Mesh(embedded_router(port, fleet=FLEET)) as mesh:
+    with Mesh(cfg) as mesh:
         pres = mesh.presence()
         print("READY", flush=True)
 
@@ -407,6 +423,7 @@ def cli(argv=None) -> None:
     )
     ap.add_argument("--kind", default="covey", choices=["covey", "raw", "raw-batched", "fleet-sim"])
     ap.add_argument("--port", type=int, default=0)
+    ap.add_argument("--connect", default=None, help="every role: a client of this router instead")
     ap.add_argument("--first", type=int, default=1)
     ap.add_argument("--count", type=int, default=10)
     ap.add_argument("--window-s", type=float, default=8.0)
@@ -416,12 +433,13 @@ def cli(argv=None) -> None:
     if a.role == "bench":
         main(a.quick)
     elif a.role == "pub":
-        role_pub(kind, a.port, a.first, a.count)
+        role_pub(kind, member(a.port, a.connect), a.first, a.count)
     elif a.role == "resp":
-        role_resp(kind, a.port, a.first, a.count)
+        role_resp(kind, member(a.port, a.connect), a.first, a.count)
     else:
         hub = role_hub_states if a.role == "hub-states" else role_hub_cmds
-        res = hub(kind, a.port, a.count, a.window_s if a.role == "hub-states" else a.repeats)
+        cfg = member(a.port, a.connect, hub=True)
+        res = hub(kind, cfg, a.count, a.window_s if a.role == "hub-states" else a.repeats)
         print("RESULT " + json.dumps(res), flush=True)
     sys.stdout.flush()
 

@@ -1,14 +1,27 @@
-"""Per-vehicle load against fleet size at constant density, scoped states against unscoped.
+"""Per-vehicle load against fleet size at constant density, over several Zenoh routers.
 
-    python -m bench.scale [--quick]      # writes scale.json and scale.png
+    python -m bench.scale [--quick] [--sizes 100,300,1000]   # writes scale.json and scale.png
 
-Several `fleet-sim` children (FLEET_BLOCK vehicles each, landed, on a SPACING_M grid, their
-blocks tiled side by side so that the density is the same at every fleet size) join a mesh
-hosted by this process, once with scoped state subscriptions (comms/scope.py) and once with
-whole-fleet ones. Per child, over a fixed window after a warm-up: states received per second per
-vehicle (what its Zenoh subscriptions delivered, divided by its vehicles) and CPU microseconds
-per tick per vehicle (the process's user + system time over its ticks). Not yet here (issue 15):
-several routers, 1,000 vehicles, neighbour latency, the station's rate, take-off acks.
+For each fleet size n: three router processes (`covey router`, a full mesh on loopback), P
+multi-vehicle host processes (the agent's multi-vehicle shell, agent/fleet_sim.py `Fleet`,
+n / P vehicles each; P = max(10, n / 100), so at least 10), each a Zenoh client of router
+k mod 3, their vehicle blocks tiled side by side at one vehicle per SPACING_M² (the density is
+the same at every size), and a ground station (the real `GroundStation`, headless: no browser)
+that is a client of router 1.
+
+1. The station sends one TAKEOFF to all and collects every vehicle's ack: ack latency p50/p99.
+2. Once the fleet hovers, over a fixed window, per host: states received per second per vehicle
+   (what its scoped Zenoh subscriptions delivered, divided by its vehicles), CPU µs per tick per
+   vehicle (process user + system time over its ticks), ticks per second, and neighbour state
+   latency (the publisher's stamp to the receiver's callback; one clock, one machine). The
+   station: updates per second (its render loop), how many vehicles it shows and how fresh,
+   and its CPU; the routers' CPU.
+A comparison point with unscoped (whole-fleet) subscriptions runs at the smallest size only:
+unscoped, every host decodes every state of the fleet (issue 15's "before").
+
+Open mode (nothing signed): the cost of signatures is measured in bench/trust.py. One 2-core
+machine runs every process, routers and station included, so the absolute numbers are this
+machine's; the ratios between fleet sizes are the point.
 """
 
 from __future__ import annotations
@@ -16,169 +29,346 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import threading
 import time
 
 import numpy as np
 
 from bench import common
-from comms.session import embedded_peer, embedded_router, free_tcp_port
 
 FLEET = "benchscale"
-FLEET_BLOCK = 25
-"""Vehicles per fleet-sim child (a 5 x 5 block)."""
 SPACING_M = 20.0
 """Grid spacing: one vehicle per 400 m^2 at every fleet size."""
+ROUTERS = 3
+MIN_HOSTS = 10
+MAX_BLOCK = 100
+"""At most this many vehicles per host process."""
+TAKEOFF_ALT_M = 10.0
+LATENCY_SAMPLES = 20_000
 
 
-def role_fleet(
-    port: int,
-    first_id: int,
-    start_ne_m: tuple[float, float],
-    scoped: bool,
-    warm_s: float,
-    window_s: float,
+# -- child roles --------------------------------------------------------------------------------
+def _signal_event(signum: int) -> threading.Event:
+    event = threading.Event()
+    signal.signal(signum, lambda *_: event.set())
+    return event
+
+
+def role_host(
+    connect: str, first_id: int, vehicles: int, start_ne_m: tuple[float, float], scoped: bool
 ) -> None:
-    """One fleet-sim process; prints RESULT {json} after the window."""
+    """One multi-vehicle host, a client of the router at `connect`. SIGUSR1 starts the
+    measurement window (`--window-s`); prints RESULT {json} after it."""
     from agent.fleet_sim import Fleet, FleetSimConfig
     from comms.mesh import Mesh
+    from comms.schema import VehicleState
     from comms.scope import ScopeConfig
+    from comms.session import MeshConfig
+
+    measure = _signal_event(signal.SIGUSR1)
+    latencies_ms: list[float] = []
+
+    class MeasuredFleet(Fleet):
+        """The host shell, plus the age of every neighbour state on arrival."""
+
+        def _on_state(self, state: VehicleState, recv_ns: int) -> None:
+            if measure.is_set() and len(latencies_ms) < LATENCY_SAMPLES:
+                latencies_ms.append((recv_ns - state.stamp_ns) / 1e6)
+            super()._on_state(state, recv_ns)
 
     cfg = FleetSimConfig(
-        vehicles=FLEET_BLOCK,
+        vehicles=vehicles,
         first_id=first_id,
-        mesh=embedded_peer(port, fleet=FLEET),
+        mesh=MeshConfig(fleet=FLEET, mode="client", connect=(connect,)),
         spacing_m=SPACING_M,
         start_ne_m=start_ne_m,
         scope=ScopeConfig(enabled=scoped),
     )
     stop = threading.Event()
     with Mesh(cfg.mesh) as mesh:
-        fleet = Fleet(cfg, mesh)
+        fleet = MeasuredFleet(cfg, mesh)
         runner = threading.Thread(target=fleet.run, args=(stop,), daemon=True)
         runner.start()
         print("READY", flush=True)
-        time.sleep(warm_s)
+        measure.wait()
         rx0, cpu0, ticks0 = mesh.stats.states_received, time.process_time(), fleet.stats.ticks
-        time.sleep(window_s)
+        over0 = fleet.stats.overruns
+        t0 = time.monotonic()
+        time.sleep(ARGS.window_s)
+        window_s = time.monotonic() - t0
         rx1, cpu1, ticks1 = mesh.stats.states_received, time.process_time(), fleet.stats.ticks
+        airborne = int(np.sum(fleet.pos_m[:, 2] < -0.5 * TAKEOFF_ALT_M))
         stop.set()
         runner.join(timeout=5)
         cells = len(fleet.states.cells) if scoped else None
     ticks = max(1, ticks1 - ticks0)
-    print(
-        "RESULT "
-        + json.dumps(
-            {
-                "rx_per_vehicle_s": (rx1 - rx0) / window_s / FLEET_BLOCK,
-                "cpu_us_per_tick_vehicle": (cpu1 - cpu0) / ticks * 1e6 / FLEET_BLOCK,
-                "ticks_per_s": (ticks1 - ticks0) / window_s,
-                "cells": cells,
-            }
-        ),
-        flush=True,
+    lat = np.array(latencies_ms) if latencies_ms else np.full(1, np.nan)
+    result = {
+        "rx_per_vehicle_s": (rx1 - rx0) / window_s / vehicles,
+        "cpu_us_per_tick_vehicle": (cpu1 - cpu0) / ticks * 1e6 / vehicles,
+        "ticks_per_s": (ticks1 - ticks0) / window_s,
+        "overruns": fleet.stats.overruns - over0,
+        "airborne": airborne,
+        "cells": cells,
+        "latency_ms": lat.tolist()[:2000],
+        "latency_samples": len(latencies_ms),
+    }
+    print("RESULT " + json.dumps(result), flush=True)
+
+
+def role_station(connect: str, ids: str) -> None:
+    """The ground station, headless, a client of router 1. SIGUSR1: takeoff to all (prints
+    ACKS); SIGUSR2: measure the window (prints RESULT)."""
+    from comms.commands import OutcomeStatus, new_nonce
+    from comms.schema import Command
+    from comms.session import MeshConfig, free_tcp_port
+    from groundstation.station import GcsConfig, GroundStation
+
+    takeoff = _signal_event(signal.SIGUSR1)
+    measure = _signal_event(signal.SIGUSR2)
+    first, last = (int(x) for x in ids.split("-"))
+    expect = list(range(first, last + 1))
+    cfg = GcsConfig(
+        mesh=MeshConfig(fleet=FLEET, mode="client", connect=(connect,)),
+        port=free_tcp_port(),
+        geofence_radius_m=2000.0,
     )
+    with GroundStation(cfg) as station:
+        renders = [0]
+        render_once = station.render_once
+
+        def counted(*a, **kw):
+            renders[0] += 1
+            return render_once(*a, **kw)
+
+        station.render_once = counted
+        print("READY", flush=True)
+        takeoff.wait()
+        present = station.presence.wait_for(lambda v, _g: set(expect) <= v, 120.0)
+        cmd = Command.takeoff(
+            TAKEOFF_ALT_M, nonce=new_nonce(), stamp_ns=time.time_ns(), source_id=1
+        )
+        res = station.mesh.send_command(cmd, expect=expect, timeout_s=30.0)
+        lat_s = [o.latency_s for o in res.outcomes.values() if o.status is OutcomeStatus.ACCEPTED]
+        print(
+            "ACKS "
+            + json.dumps(
+                {
+                    "expected": len(expect),
+                    "all_present": present,
+                    "present": len(station.presence.vehicles & set(expect)),
+                    "accepted": len(lat_s),
+                    "latency_ms": [x * 1e3 for x in lat_s],
+                }
+            ),
+            flush=True,
+        )
+        measure.wait()
+        n0, cpu0, t0 = renders[0], time.process_time(), time.monotonic()
+        time.sleep(ARGS.window_s)
+        window_s = time.monotonic() - t0
+        n1, cpu1 = renders[0], time.process_time()
+        snap = station.fleet.snapshot(time.time_ns(), trails=False)
+        ages = [v.age_s for v in snap.vehicles if math.isfinite(v.age_s)]
+        print(
+            "RESULT "
+            + json.dumps(
+                {
+                    "updates_per_s": (n1 - n0) / window_s,
+                    "cpu_share_of_core": (cpu1 - cpu0) / window_s,
+                    "vehicles_shown": len(ages),
+                    "age_ms_p50": float(np.median(ages)) * 1e3 if ages else None,
+                    "age_ms_p99": float(np.percentile(ages, 99)) * 1e3 if ages else None,
+                }
+            ),
+            flush=True,
+        )
 
 
-def run_fleet(n: int, scoped: bool, warm_s: float, window_s: float) -> dict:
-    """n vehicles in n / FLEET_BLOCK children, blocks tiled on a square."""
-    from comms.mesh import Mesh
+# -- the bench ------------------------------------------------------------------------------
+def _router_argv(port: int, peers: list[int]) -> list[str]:
+    argv = ["-m", "covey_cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
+    if peers:
+        argv += ["--connect", ",".join(f"tcp/127.0.0.1:{p}" for p in peers)]
+    return argv
 
-    procs = n // FLEET_BLOCK
-    side = math.ceil(math.sqrt(procs))
-    block_m = SPACING_M * math.ceil(math.sqrt(FLEET_BLOCK))
-    port = free_tcp_port()
-    with Mesh(embedded_router(port, fleet=FLEET)), common.Children() as kids:
-        ps = []
-        for k in range(procs):
+
+def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float) -> dict:
+    """n vehicles in max(10, n / 100) hosts over three routers, and a station."""
+    from comms.session import free_tcp_port
+
+    hosts = max(MIN_HOSTS, math.ceil(n / MAX_BLOCK))
+    sizes = [n // hosts + (1 if k < n % hosts else 0) for k in range(hosts)]
+    block_side = math.ceil(math.sqrt(max(sizes)))
+    side = math.ceil(math.sqrt(hosts))
+    block_m = SPACING_M * block_side
+    ports = [free_tcp_port() for _ in range(ROUTERS)]
+    with common.children() as kids:
+        routers = [kids.start(*_router_argv(p, ports[:k])) for k, p in enumerate(ports)]
+        for r in routers:
+            r.wait_for("READY", 60)
+        procs, first = [], 1
+        for k, size in enumerate(sizes):
             start = (block_m * (k // side), block_m * (k % side))
-            ps.append(
+            procs.append(
                 kids.start(
                     "-m",
                     "bench.scale",
                     "--role",
-                    "fleet",
-                    "--port",
-                    str(port),
+                    "host",
+                    "--connect",
+                    f"tcp/127.0.0.1:{ports[k % ROUTERS]}",
                     "--first-id",
-                    str(1 + k * FLEET_BLOCK),
+                    str(first),
+                    "--vehicles",
+                    str(size),
                     "--start",
                     f"{start[0]},{start[1]}",
                     "--scoped",
                     "1" if scoped else "0",
-                    "--warm-s",
-                    str(warm_s),
                     "--window-s",
                     str(window_s),
                 )
             )
-        for p in ps:
-            kids.wait_line(p, "READY", 120)
-        rows = [json.loads(kids.wait_line(p, "RESULT", warm_s + window_s + 120)) for p in ps]
-    rx = [r["rx_per_vehicle_s"] for r in rows]
-    cpu = [r["cpu_us_per_tick_vehicle"] for r in rows]
+            first += size
+        station = kids.start(
+            "-m",
+            "bench.scale",
+            "--role",
+            "station",
+            "--connect",
+            f"tcp/127.0.0.1:{ports[0]}",
+            "--ids",
+            f"1-{n}",
+            "--window-s",
+            str(window_s),
+        )
+        for p in (*procs, station):
+            p.wait_for("READY", 180)
+        time.sleep(3.0)  # presence and subscriptions settle through the routers
+        station.send_signal(signal.SIGUSR1)
+        acks = json.loads(station.wait_for("ACKS", 120).split(" ", 1)[1])
+        common.say(
+            f"{n} vehicles: {acks['present']} present, "
+            f"{acks['accepted']}/{acks['expected']} takeoff acks"
+        )
+        time.sleep(hover_wait_s)
+        cpu0 = [common.cpu_seconds(r.pid) for r in routers]
+        t0 = time.monotonic()
+        for p in (*procs, station):
+            p.send_signal(signal.SIGUSR2 if p is station else signal.SIGUSR1)
+        rows = [json.loads(p.wait_for("RESULT", window_s + 120).split(" ", 1)[1]) for p in procs]
+        st = json.loads(station.wait_for("RESULT", window_s + 120).split(" ", 1)[1])
+        router_cpu = [
+            (common.cpu_seconds(r.pid) - c) / (time.monotonic() - t0)
+            for r, c in zip(routers, cpu0, strict=True)
+        ]
+    lat = np.concatenate([np.array(r["latency_ms"]) for r in rows]) if rows else np.zeros(1)
+    lat = lat[np.isfinite(lat)]
+    ack_ms = np.array(acks["latency_ms"]) if acks["latency_ms"] else np.full(1, np.nan)
     out = {
         "vehicles": n,
-        "processes": procs,
+        "hosts": hosts,
+        "routers": ROUTERS,
         "scoped": scoped,
-        "rx_per_vehicle_s_mean": float(np.mean(rx)),
-        "rx_per_vehicle_s_max": float(np.max(rx)),
-        "cpu_us_per_tick_vehicle_mean": float(np.mean(cpu)),
+        "rx_per_vehicle_s_mean": float(np.mean([r["rx_per_vehicle_s"] for r in rows])),
+        "rx_per_vehicle_s_max": float(np.max([r["rx_per_vehicle_s"] for r in rows])),
+        "cpu_us_per_tick_vehicle_mean": float(
+            np.mean([r["cpu_us_per_tick_vehicle"] for r in rows])
+        ),
         "ticks_per_s_min": float(min(r["ticks_per_s"] for r in rows)),
+        "overruns": int(sum(r["overruns"] for r in rows)),
+        "airborne": int(sum(r["airborne"] for r in rows)),
         "cells_mean": float(np.mean([r["cells"] for r in rows])) if scoped else None,
+        "latency_ms_p50": float(np.percentile(lat, 50)) if lat.size else None,
+        "latency_ms_p99": float(np.percentile(lat, 99)) if lat.size else None,
+        "latency_samples": int(sum(r["latency_samples"] for r in rows)),
+        "takeoff_acks": acks["accepted"],
+        "takeoff_ack_ms_p50": float(np.nanpercentile(ack_ms, 50)),
+        "takeoff_ack_ms_p99": float(np.nanpercentile(ack_ms, 99)),
+        "station": st,
+        "router_cpu_share_of_core": router_cpu,
     }
     common.say(
-        f"{n} vehicles {'scoped' if scoped else 'unscoped'}: {out['rx_per_vehicle_s_mean']:.0f} "
-        f"states/s per vehicle, {out['cpu_us_per_tick_vehicle_mean']:.0f} us CPU per tick per "
-        f"vehicle"
+        f"{n} vehicles {'scoped' if scoped else 'unscoped'} ({hosts} hosts, {ROUTERS} routers): "
+        f"{out['rx_per_vehicle_s_mean']:.1f} states/s per vehicle, "
+        f"{out['cpu_us_per_tick_vehicle_mean']:.0f} us CPU per tick per vehicle, neighbour "
+        f"latency p50 {out['latency_ms_p50']} p99 {out['latency_ms_p99']} ms, station "
+        f"{st['updates_per_s']:.1f} updates/s ({st['vehicles_shown']} shown), takeoff acks "
+        f"{acks['accepted']}/{n} p50 {out['takeoff_ack_ms_p50']:.0f} p99 "
+        f"{out['takeoff_ack_ms_p99']:.0f} ms"
     )
     return out
 
 
 def figure(runs: list[dict]) -> None:
     plt = common.pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     for scoped, style in ((True, "o-"), (False, "s--")):
         rs = [r for r in runs if r["scoped"] is scoped]
+        if not rs:
+            continue
         label = "scoped (cells within reach)" if scoped else "unscoped (whole fleet)"
         n = [r["vehicles"] for r in rs]
         axes[0].plot(n, [r["rx_per_vehicle_s_mean"] for r in rs], style, label=label)
         axes[1].plot(n, [r["cpu_us_per_tick_vehicle_mean"] for r in rs], style, label=label)
-    axes[0].set(xlabel="vehicles", ylabel="received states/s per vehicle")
-    axes[1].set(xlabel="vehicles", ylabel="CPU us per tick per vehicle")
-    axes[0].legend()
-    fig.suptitle(f"fleet-sim, {FLEET_BLOCK} vehicles a process, one per {SPACING_M**2:.0f} m^2")
+        axes[2].plot(n, [r["latency_ms_p99"] for r in rs], style, label=f"{label}, p99")
+    axes[0].set(xlabel="vehicles", ylabel="received states/s per vehicle", ylim=(0, None))
+    axes[1].set(xlabel="vehicles", ylabel="CPU µs per tick per vehicle", ylim=(0, None))
+    axes[2].set(xlabel="vehicles", ylabel="neighbour state latency, ms", ylim=(0, None))
+    axes[0].legend(fontsize=8)
+    fig.suptitle(
+        f"hovering fleet, {ROUTERS} routers, >= {MIN_HOSTS} host processes, one vehicle per "
+        f"{SPACING_M**2:.0f} m², one 2-core machine"
+    )
     fig.tight_layout()
     common.save_figure(fig, "scale")
 
 
-def main(quick: bool = False) -> dict:
-    sizes = (50, 100) if quick else (100, 300)
-    warm_s, window_s = (3.0, 3.0) if quick else (5.0, 10.0)
-    runs = [run_fleet(n, scoped, warm_s, window_s) for n in sizes for scoped in (True, False)]
+def main(quick: bool = False, sizes: tuple[int, ...] | None = None) -> dict:
+    sizes = sizes or ((50, 100) if quick else (100, 300, 1000))
+    window_s, hover_wait_s = (3.0, 8.0) if quick else (10.0, 10.0)
+    runs = [run_fleet(n, True, window_s, hover_wait_s) for n in sizes]
+    runs.append(run_fleet(sizes[0], False, window_s, hover_wait_s))
     figure(runs)
+    big, small = runs[len(sizes) - 1], runs[0]
     return {
-        "block": FLEET_BLOCK,
         "spacing_m": SPACING_M,
         "window_s": window_s,
         "runs": runs,
+        "ratio_largest_to_smallest": {
+            "rx_per_vehicle_s": big["rx_per_vehicle_s_mean"]
+            / max(1e-9, small["rx_per_vehicle_s_mean"]),
+            "cpu_us_per_tick_vehicle": big["cpu_us_per_tick_vehicle_mean"]
+            / max(1e-9, small["cpu_us_per_tick_vehicle_mean"]),
+        },
     }
 
 
+ARGS = argparse.Namespace(window_s=10.0)
+
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--role", default="bench", choices=["bench", "fleet"])
-    ap.add_argument("--port", type=int)
+    ap.add_argument("--sizes", default=None, help="fleet sizes, e.g. 100,300,1000")
+    ap.add_argument("--role", default="bench", choices=["bench", "host", "station"])
+    ap.add_argument("--connect")
     ap.add_argument("--first-id", type=int, default=1)
+    ap.add_argument("--vehicles", type=int, default=100)
+    ap.add_argument("--ids", default="1-1")
     ap.add_argument("--start", default="0,0")
     ap.add_argument("--scoped", type=int, default=1)
-    ap.add_argument("--warm-s", type=float, default=5.0)
     ap.add_argument("--window-s", type=float, default=10.0)
-    a = ap.parse_args()
-    if a.role == "fleet":
-        n_m, e_m = (float(x) for x in a.start.split(","))
-        role_fleet(a.port, a.first_id, (n_m, e_m), bool(a.scoped), a.warm_s, a.window_s)
+    ARGS = ap.parse_args()
+    if ARGS.role == "host":
+        n_m, e_m = (float(x) for x in ARGS.start.split(","))
+        role_host(ARGS.connect, ARGS.first_id, ARGS.vehicles, (n_m, e_m), bool(ARGS.scoped))
+    elif ARGS.role == "station":
+        role_station(ARGS.connect, ARGS.ids)
     else:
-        result = main(a.quick)
+        chosen = tuple(int(x) for x in ARGS.sizes.split(",")) if ARGS.sizes else None
+        result = main(ARGS.quick, chosen)
         print(common.write_json("scale", result))

@@ -28,7 +28,7 @@ from typing import Any, NoReturn
 
 from comms.auth import ENV_KEY_FILE
 from comms.geo import GeoOrigin
-from comms.session import DEFAULT_PORT, MeshConfig
+from comms.session import DEFAULT_PORT, MeshConfig, MeshConfigError
 
 UNIT_SUFFIXES: dict[str, str] = {
     "_m_s2": "m/s^2",
@@ -255,34 +255,55 @@ def add_mesh_args(
     fleet_default: str | None = "covey",
     fleet_help: str = "fleet name (default: covey)",
     key_dir: bool = False,
+    router: bool = False,
 ) -> None:
     """--fleet --connect --listen --mesh-mode --zenoh-config, and --key-file unless key_file is
     False (a CLI that signs nothing then refuses it itself, with its reason); with `key_dir`,
     --key-dir too (a process of several vehicles: one key file each, comms.auth
-    .load_vehicle_auths)."""
+    .load_vehicle_auths). `router`: the process is a Zenoh router and nothing else (covey
+    router): no --mesh-mode and no --fleet, which it refuses with the reason (a router carries
+    every fleet's keys)."""
     g = parser.add_argument_group("mesh")
-    g.add_argument("--fleet", default=fleet_default, help=fleet_help)
+    if router:
+        parser.set_defaults(fleet="covey", mesh_mode="router")
+        refuse(g, "--fleet", "a router routes every fleet's keys; members choose the fleet")
+        refuse(g, "--mesh-mode", "covey router is always a Zenoh router")
+    else:
+        g.add_argument("--fleet", default=fleet_default, help=fleet_help)
     g.add_argument(
         "--connect",
         action="append",
         default=None,
         metavar="ENDPOINT",
-        help=f"endpoint to connect to; repeatable or comma-separated (default: "
-        f"tcp/127.0.0.1:{DEFAULT_PORT}; `covey demo` prints its own)",
+        help="endpoint to connect to; repeatable or comma-separated ("
+        + (
+            "the other sites' routers; default: none"
+            if router
+            else f"default: tcp/127.0.0.1:{DEFAULT_PORT}; `covey demo` prints its own"
+        )
+        + ")",
     )
-    g.add_argument(
-        "--mesh-mode",
-        choices=("peer", "client", "router"),
-        default="peer",
-        help="Zenoh role of this process (default: peer)",
-    )
+    if not router:
+        g.add_argument(
+            "--mesh-mode",
+            choices=("peer", "client", "router"),
+            default="peer",
+            help="Zenoh role of this process (default: peer; client: of a site router, "
+            "README's multi-site layout)",
+        )
     g.add_argument(
         "--listen",
         action="append",
         default=None,
         metavar="ENDPOINT",
-        help="endpoint to listen on; repeatable or comma-separated (default: tcp/127.0.0.1:0 "
-        f"for a peer, tcp/127.0.0.1:{DEFAULT_PORT} for a router)",
+        help="endpoint to listen on; repeatable or comma-separated (default: "
+        + (
+            f"tcp/127.0.0.1:{DEFAULT_PORT}; port 0: a free port, printed"
+            if router
+            else f"tcp/127.0.0.1:0 for a peer, tcp/127.0.0.1:{DEFAULT_PORT} for a router; "
+            "a client does not listen"
+        )
+        + ")",
     )
     g.add_argument(
         "--zenoh-config",
@@ -325,6 +346,14 @@ def mesh_config(
     elif args.mesh_mode == "router":
         kw["connect"] = ()
     if args.listen is not None:
+        if args.mesh_mode == "client":
+            problem = (
+                "--listen is refused for --mesh-mode client: a client accepts no links "
+                "(it reaches the mesh through its router)"
+            )
+            if parser is None:
+                raise MeshConfigError(problem)
+            die(parser, problem)
         kw["listen"] = _endpoints(args.listen)
     elif args.mesh_mode == "router":
         kw["listen"] = (f"tcp/127.0.0.1:{DEFAULT_PORT}",)

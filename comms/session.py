@@ -5,8 +5,9 @@
   builds a full mesh and traffic between agents does not need the router once they have met.
 - peer mesh (radio-mesh analogue): every process is a peer that listens and connects to one or
   more known endpoints.
-- client of a router (multi-site fleets): every process is a client of a `zenohd` router
-  (`--mesh-mode client --connect tcp/<router>:7447`).
+- clients of site routers (multi-site fleets): each site runs a router (`covey router`, or
+  `zenohd`), the routers connect to each other, and every agent and station is a client of its
+  site's router (`--mesh-mode client --connect tcp/<router>:7447`); README "Multi-site layout".
 
 Multicast scouting is off unless asked for: it floods the LAN and makes tests flaky.
 """
@@ -129,8 +130,10 @@ class MeshConfig:
         listen = [] if self.mode == "client" else list(self.listen)
         conf.insert_json5("listen/endpoints", json.dumps(listen))
         conf.insert_json5("transport/link/tx/lease", str(self.lease_ms))
-        # Keep retrying to connect: agents may start before the router does.
-        conf.insert_json5("connect/timeout_ms", "-1" if self.mode != "router" else "0")
+        # Keep retrying to connect: agents may start before their router does, and a router
+        # before the routers it links to (with 0, Zenoh tries each endpoint once, never again).
+        # Without exit_on_failure, peers and routers retry in the background; a client waits.
+        conf.insert_json5("connect/timeout_ms", "-1")
         conf.insert_json5("connect/exit_on_failure", "false")
         for path, value in self.extra:
             conf.insert_json5(path, value)
@@ -150,10 +153,39 @@ def embedded_peer(port: int, fleet: str = "covey", host: str = "127.0.0.1") -> M
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago (bind to 0 and read it back)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+    """A TCP port that was free a moment ago (bind to 0 and read it back); `host` may be an
+    IPv6 address, with or without brackets."""
+    host = host.strip("[]")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return s.getsockname()[1]
+
+
+TCP_PROTOCOLS = ("tcp", "tls", "ws")
+"""Zenoh link protocols that listen on a TCP port."""
+
+
+def with_free_port(endpoint: str) -> str:
+    """`endpoint` with port 0 replaced by a TCP port that was free a moment ago, so that the
+    endpoint can be printed and handed to others (a Zenoh session does not say which port it
+    got); any other endpoint unchanged. Raises MeshConfigError (one line) for port 0 on a
+    protocol that is not TCP-based, or a host this machine cannot listen on."""
+    m = _ENDPOINT_RE.match(check_endpoint(endpoint))
+    if not m or int(m.group(3)) != 0:
+        return endpoint
+    proto, host, tail = m.group(1), m.group(2), m.group(4) or ""
+    if proto not in TCP_PROTOCOLS:
+        raise MeshConfigError(
+            f"endpoint {endpoint}: give a port (port 0 is picked only for {', '.join(TCP_PROTOCOLS)})"
+        )
+    try:
+        port = free_tcp_port(host)
+    except (OSError, UnicodeError) as exc:
+        raise MeshConfigError(
+            f"endpoint {endpoint}: cannot listen on {host} ({getattr(exc, 'strerror', None) or exc})"
+        ) from None
+    return f"{proto}/{host}:{port}{tail}"
 
 
 def open_session(cfg: MeshConfig) -> zenoh.Session:

@@ -141,7 +141,9 @@ def test_an_old_flag_name_is_refused_in_one_line(name, argv, message, capsys) ->
 
 
 # -- joining the mesh ----------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["agent", "gcs", "status", "foxglove", "fleet-sim", "record"])
+@pytest.mark.parametrize(
+    "name", ["agent", "gcs", "status", "foxglove", "fleet-sim", "record", "router"]
+)
 def test_connect_and_listen_split_on_commas_in_every_cli(name) -> None:
     p = covey_cli.parser_of(name)
     base = ["--id", "3"] if name == "agent" else []
@@ -174,6 +176,20 @@ def test_a_bad_endpoint_is_a_value_error_without_a_parser_and_exit_2_with_one(ca
         cli_options.mesh_config(args, p)
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.count("\n") == 1 and "covey status: error:" in err
+
+
+def test_a_client_refuses_to_listen_and_a_router_defaults_to_the_covey_port(capsys) -> None:
+    p = covey_cli.parser_of("agent")
+    args = p.parse_args(["--id", "3", "--mesh-mode", "client", "--listen", "tcp/127.0.0.1:0"])
+    with pytest.raises(ValueError, match="a client accepts no links"):
+        cli_options.mesh_config(args)
+    client = p.parse_args(["--id", "3", "--mesh-mode", "client", "--connect", "tcp/h:7447"])
+    assert cli_options.mesh_config(client, p).connect == ("tcp/h:7447",)
+    r = covey_cli.parser_of("router")
+    cfg = cli_options.mesh_config(r.parse_args([]), r)
+    assert (cfg.mode, cfg.listen, cfg.connect) == ("router", ("tcp/127.0.0.1:7447",), ())
+    cfg = cli_options.mesh_config(r.parse_args(["--connect", "tcp/a:1,tcp/b:2"]), r)
+    assert cfg.connect == ("tcp/a:1", "tcp/b:2")
 
 
 def test_key_file_comes_from_the_flag_then_the_environment() -> None:

@@ -48,7 +48,7 @@ def test_replay_refuses_a_key_file_a_replay_cannot_sign_with(tmp_path, capsys) -
     assert "open-mode fleet" in line
 
 
-@pytest.mark.parametrize("name", ["record", "replay", "foxglove", "fleet-sim"])
+@pytest.mark.parametrize("name", ["record", "replay", "foxglove", "fleet-sim", "router"])
 def test_the_refusal_is_in_the_help(name, capsys) -> None:
     import covey_cli
 
@@ -92,6 +92,14 @@ def test_a_key_in_the_environment_is_noted_not_silently_dropped(
         ("agent", ["--id", "1", "--vehicle", "relay:", "--trace-guidance"], "onboard"),
         ("eval", ["--merge", "a.json", "--quick"], "--merge combines results files"),
         ("train", ["--episodes", "500", "--episodes-k", "1"], "say the same thing"),
+        ("router", ["--key-file", "k"], "a router holds no member key"),
+        ("router", ["--fleet", "x"], "routes every fleet's keys"),
+        ("router", ["--mesh-mode", "peer"], "always a Zenoh router"),
+        (
+            "agent",
+            ["--id", "1", "--mesh-mode", "client", "--listen", "tcp/127.0.0.1:0"],
+            "accepts no links",
+        ),
     ],
 )
 def test_a_flag_that_would_be_ignored_is_refused(name, argv, says, capsys) -> None:

@@ -1,23 +1,18 @@
 """Fault drills on real processes: kill -9 an agent, restart the ground station, partition the
 mesh, restart the router. Each drill checks what DESIGN.md and agent/failsafe.py promise.
-
-Run as a script, this file is a bare Zenoh router process for the drills:
-`python tests/test_drill_faults.py router LISTEN [CONNECT ...]` (prints READY).
+The routers that are not this test's own are `covey router` processes.
 """
 
 from __future__ import annotations
 
 import os
 import signal
-import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
 from conftest import holds
 
-from comms.cli_options import stop_on_signals
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import Command, CommandKind, Mode, StateFlag, VehicleState
@@ -25,7 +20,6 @@ from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_p
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-THIS = str(Path(__file__).resolve())
 ALT_M = 3.0
 
 
@@ -79,7 +73,7 @@ def agent_args(vid: int, *mesh: str, extra: tuple[str, ...] = ()) -> list[str]:
 
 
 def router_args(listen: str, *connect: str) -> list[str]:
-    return [THIS, "router", listen, *connect]
+    return ["-m", "covey_cli", "router", "--listen", listen, *(f"--connect={c}" for c in connect)]
 
 
 def ok(mesh: Mesh, cmd: Command, expect, timeout_s: float = 5.0):
@@ -317,15 +311,3 @@ def test_router_restart_on_the_same_port_everything_reconnects(procs) -> None:
         print(
             f"router restarted: states back after {back_s:.2f} s ({time.monotonic() - t0:.2f} s incl. start), commands acked"
         )
-
-
-def run_router(listen: str, *connect: str) -> None:
-    cfg = MeshConfig(mode="router", listen=(listen,), connect=tuple(connect))
-    with stop_on_signals() as stop, Mesh(cfg):
-        print("READY", flush=True)
-        stop.wait()
-
-
-if __name__ == "__main__":
-    if len(sys.argv) >= 3 and sys.argv[1] == "router":
-        run_router(*sys.argv[2:])

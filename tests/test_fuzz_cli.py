@@ -281,6 +281,7 @@ def run_one_line(fn, argv: list[str]) -> str:
 
 def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_path) -> None:
     from agent import agent_cli
+    from comms import router_cli
     from groundstation import gcs_cli, ops
     from tools import record_cli
 
@@ -290,6 +291,7 @@ def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_pat
         "gcs": (gcs_cli.cli, ["--port", "0"], True),
         "cmd": (ops.cmd_cli, ["hold", "--to", "1", "--timeout-s", "0.5"], True),
         "status": (ops.status_cli, ["--listen-s", "0.1"], True),
+        "router": (router_cli.cli, [], False),
         "record": (
             record_cli.record_cli,
             ["-o", str(tmp_path / "r.mcap"), "--duration-s", "0.5"],
@@ -303,4 +305,4 @@ def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_pat
             line = run_one_line(fn, [*base, *extra])
             seen += 1
             print(f"covey {name} [{case}]: {line}")
-    assert seen == 5 * len(mesh_cases) + 4 * len(key_cases)
+    assert seen == 6 * len(mesh_cases) + 4 * len(key_cases)

@@ -1,0 +1,168 @@
+"""`covey router`: the Zenoh router of one site of a multi-site fleet.
+
+    covey router --listen tcp/0.0.0.0:7447 --connect tcp/site-b:7447,tcp/site-c:7447
+    covey agent --id 3 --mesh-mode client --connect tcp/site-a:7447
+    covey gcs --mesh-mode client --connect tcp/site-a:7447
+
+Each site runs one router; the routers connect to each other and route between sites with
+Zenoh's link-state routing, so states, commands and their acks, and presence cross any number
+of routers. Every agent and station is a client of its own site's router. A link needs one side
+to connect: a router keeps trying an endpoint that is not up yet, and re-makes a link that drops.
+(`zenohd -l tcp/0.0.0.0:7447 -e tcp/site-b:7447 --no-multicast-scouting` does the same job.)
+
+It prints `READY <endpoints>` once it listens (port 0: a free port, picked and printed), then a
+line for each router that links or unlinks, and the number of clients and peers when it
+changed. SIGINT or SIGTERM stop it (exit status 0); a bad endpoint, Zenoh config or busy port
+is one line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import zenoh
+
+from comms.cli_options import (
+    add_mesh_args,
+    die,
+    finite,
+    key_env_note,
+    mesh_config,
+    refuse,
+    stop_on_signals,
+)
+from comms.session import MeshConfig, MeshConfigError, open_session, with_free_port
+
+ROLES = ("router", "peer", "client")
+
+
+@dataclass(frozen=True)
+class RouterConfig:
+    """What `covey router` runs."""
+
+    mesh: MeshConfig
+    """Its Zenoh session: mode router, the endpoints it listens on and the routers it links to."""
+    count_period_s: float = 2.0
+    """How often the number of clients and peers is looked at (printed when it changed)."""
+
+    def __post_init__(self) -> None:
+        if self.mesh.mode != "router":
+            raise ValueError(f"covey router needs a router session, got mode {self.mesh.mode!r}")
+        if not self.mesh.listen:
+            raise ValueError("covey router needs at least one --listen endpoint")
+        if not 0.0 < self.count_period_s <= 3600.0:
+            raise ValueError(f"count_period_s={self.count_period_s} must be within (0, 3600]")
+
+
+class Links:
+    """The sessions linked to this router, by Zenoh id and role, from Zenoh's transport events.
+    A router's arrival or departure is said at once (there are few, and they make the site
+    topology); clients and peers are counted (a site may have hundreds)."""
+
+    def __init__(self, say: Callable[[str], None]) -> None:
+        self._say = say
+        self._lock = threading.Lock()
+        self._roles: dict[str, str] = {}
+
+    def on_event(self, event: zenoh.TransportEvent) -> None:
+        """Zenoh's thread: never raises."""
+        try:
+            zid, role = str(event.transport.zid), str(event.transport.whatami).lower()
+            up = event.kind == zenoh.SampleKind.PUT
+            with self._lock:
+                was = zid in self._roles
+                if up:
+                    self._roles[zid] = role
+                else:
+                    self._roles.pop(zid, None)
+                routers = sum(r == "router" for r in self._roles.values())
+            if role == "router" and up != was:
+                self._say(
+                    f"router {zid} {'linked' if up else 'unlinked'}; {routers} router link(s)"
+                )
+        except Exception as exc:  # noqa: BLE001 - a report must not kill Zenoh's thread
+            self._say(f"could not read a transport event: {exc}")
+
+    def counts(self) -> dict[str, int]:
+        """Linked sessions by role: {"router": n, "peer": n, "client": n}."""
+        with self._lock:
+            roles = list(self._roles.values())
+        return {role: roles.count(role) for role in ROLES}
+
+
+def main(
+    cfg: RouterConfig,
+    stop: threading.Event,
+    out: Callable[[str], None] = print,
+) -> int:
+    """Route until `stop` is set. Raises MeshConfigError (one line) if the session cannot open."""
+    lock = threading.Lock()  # Zenoh's thread says links: whole lines, READY first
+
+    def emit(line: str) -> None:
+        with lock:
+            out(line)
+
+    def say(line: str) -> None:
+        emit(f"covey router: {line}")
+
+    mesh = replace(cfg.mesh, listen=tuple(with_free_port(ep) for ep in cfg.mesh.listen))
+    links = Links(say)
+    with open_session(mesh) as session:
+        emit(f"READY {','.join(mesh.listen)}")
+        to = ", ".join(mesh.connect) or "no other router"
+        say(f"listening on {', '.join(mesh.listen)}; linking to {to} (Ctrl-C to stop)")
+        listener = session.info.declare_transport_events_listener(links.on_event, history=True)
+        try:
+            said: dict[str, int] = {}
+            while not stop.wait(cfg.count_period_s):
+                counts = links.counts()
+                if counts != said:
+                    said = counts
+                    say(", ".join(f"{n} {role}(s)" for role, n in counts.items()))
+        finally:
+            listener.undeclare()
+    say("stopped")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey router",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_mesh_args(p, key_file=False, router=True)
+    refuse(
+        p, "--key-file", "a router holds no member key: it forwards signed messages unread", True
+    )
+    p.add_argument(
+        "--count-period-s",
+        type=finite("seconds"),
+        default=2.0,
+        metavar="SECONDS",
+        help="how often the number of clients and peers is looked at (default: 2)",
+    )
+    return p
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = parser()
+    args = p.parse_args(argv)
+    key_env_note(p, "a router holds no member key")
+    try:
+        cfg = RouterConfig(mesh_config(args, p), count_period_s=args.count_period_s)
+    except ValueError as exc:
+        die(p, str(exc))
+    with stop_on_signals() as stop:
+        try:
+            return main(cfg, stop, lambda line: print(line, flush=True))
+        except MeshConfigError as exc:
+            die(p, str(exc))
+
+
+if __name__ == "__main__":
+    sys.exit(cli())
