@@ -365,7 +365,10 @@ class Recorder:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
-            self.sink.put(str(sample.key_expr), sample.payload.to_bytes(), self._clock_ns())
+            key = str(sample.key_expr)
+            if key.endswith("/feed") and keys.parse_feed_key(key) is not None:
+                return  # the stations' feed: copies of states recorded on their own keys
+            self.sink.put(key, sample.payload.to_bytes(), self._clock_ns())
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         alive = b"\x01" if sample.kind == zenoh.SampleKind.PUT else b"\x00"
