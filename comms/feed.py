@@ -62,21 +62,29 @@ class FeedBuffer:
     def _take(self) -> list[bytes]:
         """Encode the pending entries into batches of at most MAX_FEED_BYTES (lock held)."""
         pending, self._pending = self._pending, {}
-        out: list[bytes] = []
-        entries: list[FeedEntry] = []
-        size = FeedBatch.size(())
+        entries = []
         for vid, state in pending.items():
             n = self._entries[vid] = (self._entries.get(vid, 0) + 1) & 0xFFFFFFFF
-            grown = size + FeedBatch.size((len(state),)) - FeedBatch.size(())
-            if entries and (len(entries) == FeedBatch.MAX_ENTRIES or grown > MAX_FEED_BYTES):
-                out.append(self._batch(entries))
-                entries, grown = [], FeedBatch.size((len(state),))
             entries.append(FeedEntry(n, state))
-            size = grown
-        if entries:
-            out.append(self._batch(entries))
-        return out
+        return [self._batch(run) for run in split(entries)]
 
-    def _batch(self, entries: list[FeedEntry]) -> bytes:
+    def _batch(self, entries: tuple[FeedEntry, ...]) -> bytes:
         self._seq = (self._seq + 1) & 0xFFFFFFFF
-        return FeedBatch(self._seq, tuple(entries)).encode()
+        return FeedBatch(self._seq, entries).encode()
+
+
+def split(entries: list[FeedEntry]) -> list[tuple[FeedEntry, ...]]:
+    """`entries`, in order, cut into runs that each fit one FeedBatch (filled greedily)."""
+    runs: list[tuple[FeedEntry, ...]] = []
+    run: list[FeedEntry] = []
+    size = FeedBatch.size(())
+    for entry in entries:
+        grown = size + FeedBatch.size((len(entry.state),)) - FeedBatch.size(())
+        if run and (len(run) == FeedBatch.MAX_ENTRIES or grown > MAX_FEED_BYTES):
+            runs.append(tuple(run))
+            run, grown = [], FeedBatch.size((len(entry.state),))
+        run.append(entry)
+        size = grown
+    if run:
+        runs.append(tuple(run))
+    return runs
