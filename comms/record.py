@@ -17,7 +17,8 @@ Readers here skip those: `read_recording` returns only covey's own channels, so 
 unchanged by them.
 
 Acks are Zenoh replies that only the querier sees; the recorder cannot see them. Anything
-published under covey/<fleet>/** is recorded, so an ack that its vehicle also publishes on
+published under covey/<fleet>/** is recorded but the stations' feed (covey/<fleet>/v/<id>/feed,
+comms/feed.py: copies of states recorded on their own keys), so an ack that its vehicle also publishes on
 covey/<fleet>/v/<id>/ack lands in the channel of that key (schema covey.CommandAck).
 
 The file survives a SIGKILL of the recorder: chunks are small and flushed every
