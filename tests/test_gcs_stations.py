@@ -100,3 +100,22 @@ def test_a_station_that_cannot_serve_exits_2_in_one_line_and_never_joins(demo):
         time.sleep(1.0)
         assert 9 not in watcher.presence.ground_stations
         assert set(watcher.presence.ground_stations) == before
+
+
+def test_a_station_hears_the_feed_and_every_state_only_when_asked(demo):
+    peer = MeshConfig(mode="peer", connect=(demo.mesh_endpoint,))
+    with (
+        GroundStation(GcsConfig(mesh=peer, port=0, gcs_id=4)) as fed,
+        GroundStation(GcsConfig(mesh=peer, port=0, gcs_id=5, every_state=True)) as every,
+    ):
+        for gcs in (fed, every):
+            assert wait_until(lambda g=gcs: set(g.fleet.positions()) >= {1, 2}, 20)
+        t0, n0 = time.monotonic(), fed.mesh.stats.feed_batches_received
+        time.sleep(2.0)
+        batches_s = (fed.mesh.stats.feed_batches_received - n0) / (time.monotonic() - t0)
+        # Two one-vehicle agents, each at most feed_hz / 0.9 batches a second (comms/feed.py).
+        assert 0 < batches_s <= 2 * peer.feed_hz / 0.9 + 1.0, batches_s
+        assert every.mesh.stats.feed_batches_received == 0 and every.mesh.stats.states_received
+        for gcs in (fed, every):
+            views = views_by_id(gcs.fleet.snapshot(time.time_ns(), trails=False))
+            assert not views[1].stale and not views[2].stale and views[1].loss_pct == 0.0
