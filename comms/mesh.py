@@ -1,10 +1,10 @@
 """The `Mesh` facade: what agents, the ground station and tools use to talk over Zenoh.
 
 Telemetry is latest-wins pub/sub, and every process also sends its vehicles' latest states as a
-bounded-rate feed for ground stations (comms/feed.py); commands are request/reply with a timeout and an explicit
-ack per vehicle; presence is Zenoh liveliness. Every incoming payload is decoded at this boundary:
-a malformed one is counted and reported, never raised into Zenoh's callback thread, so one bad
-message cannot kill a process.
+bounded-rate feed for ground stations (comms/feed.py); commands are request/reply with a timeout
+and an explicit ack per vehicle; presence is Zenoh liveliness. Every incoming payload is decoded
+at this boundary: a malformed one is counted and reported, never raised into Zenoh's callback
+thread, so one bad message cannot kill a process.
 
 Keyed mode (`auth`, comms/auth.py): every state, event, command and ack this process sends is
 signed with its own key; every state and event it receives passes a comms/gate.py Gate first
