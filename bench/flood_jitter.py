@@ -13,7 +13,8 @@ interval between consecutive stamps of one agent is its tick period as the agent
 
 The rogue mixes: malformed bytes on vehicle state keys, well-formed states whose id does not
 match their key, and well-formed states of 1000 phantom vehicles 5 km away (they enter every
-agent's neighbour table, which is the expensive part).
+agent's neighbour table, which is the expensive part). `--mix feed` sends the phantoms to the
+ground stations instead: feed batches (comms/feed.py) of FEED_FLOOD_ENTRIES phantom states each.
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ from comms.procs import Child, python_env
 REPO = Path(__file__).resolve().parent.parent
 PERIOD_NS = 100_000_000
 PHANTOM_IDS = range(1000, 2000)
+FEED_FLOOD_ENTRIES = 50
+"""Phantom states in each feed batch of `--mix feed` (one message)."""
 
 
 @dataclass(frozen=True)
@@ -49,14 +52,22 @@ class FloodConfig:
     fleet: str = "covey"
     seed: int = 1
     mix: str = "all"
-    """all | malformed (bad bytes and spoofed ids only) | phantom (well-formed phantom vehicles only)."""
+    """all | malformed (bad bytes and spoofed ids only) | phantom (well-formed phantom vehicles
+    only) | feed (phantoms in feed batches: what a ground station hears)."""
 
 
 def bogus_messages(fleet: str, rng: random.Random, mix: str = "all"):
     """Endless (key, payload) pairs: malformed, mismatched and phantom states, mixed."""
     from comms import keys
-    from comms.schema import VehicleState
+    from comms.feed import split
+    from comms.schema import FeedBatch, FeedEntry, VehicleState
 
+    if mix == "feed":
+        phantoms = bogus_messages(fleet, rng, "phantom")
+        for feed_seq in range(1, 2**32):
+            entries = [FeedEntry(feed_seq, next(phantoms)[1]) for _ in range(FEED_FLOOD_ENTRIES)]
+            (run,) = split(entries)
+            yield keys.feed(fleet, rng.choice(PHANTOM_IDS)), FeedBatch(feed_seq, run).encode()
     seq = 0
     while True:
         seq += 1
@@ -289,7 +300,10 @@ def main(argv: list[str] | None = None) -> int:
     renamed(p, {"--seconds": "--duration-s", "--rate": "--rate-hz"})
     p.add_argument("--port", type=int, default=None, help="flood mode: the mesh's router port")
     p.add_argument(
-        "--mix", choices=("all", "malformed", "phantom"), default="all", help="what the rogue sends"
+        "--mix",
+        choices=("all", "malformed", "phantom", "feed"),
+        default="all",
+        help="what the rogue sends",
     )
     p.add_argument("--json", default=None, help="also write the results here")
     args = p.parse_args(argv)

@@ -8,6 +8,9 @@
     covey/<fleet>/v/<id>/alive    liveliness token of a vehicle's agent
     covey/<fleet>/v/<id>/event    pub/sub Event
     covey/<fleet>/v/<id>/trace    pub/sub GuidanceTrace (agents with --trace-guidance; recorders)
+    covey/<fleet>/v/<id>/feed     pub/sub FeedBatch: the latest states of the vehicles of one
+                                  process, batched at a bounded rate (ground stations); <id> is
+                                  the first vehicle that process published (comms/feed.py)
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
     covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
 
@@ -20,6 +23,10 @@ one vehicle's keys stay under `covey/<fleet>/v/<id>/` (per-vehicle access contro
 still ends in its leaf (`.../state`).
 The cell must be the one of the state's own position (`cell_of`): the mesh refuses a state on
 any other cell, so a vehicle cannot hide from its neighbours by publishing in a far cell.
+
+A feed lives under its process's first vehicle so that a one-vehicle process (every keyed
+agent) publishes only under `covey/<fleet>/v/<id>/`, as the routers' access-control rules allow;
+its entries may name any vehicle, and each is checked as a state is (signature, order).
 
 Ground-station tokens carry the station id so that two stations can come and go independently
 (a shared key would make one station's leave look like all of them leaving).
@@ -46,6 +53,7 @@ _VEHICLE_KEY_RE = re.compile(
     r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(?:c/(-?[0-9]{1,6})/(-?[0-9]{1,6})/)?"
     r"(state|cmd|ack|alive|event|trace)$"
 )
+_FEED_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/feed$")
 _F32 = struct.Struct("<2f")
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
 
@@ -155,6 +163,24 @@ def trace(fleet: str, vehicle_id: int) -> str:
     """Where a vehicle's guidance traces go: off the event key, so that stations and agents
     that follow events do not receive (and, keyed, verify) ten traces a second per vehicle."""
     return _vehicle(fleet, vehicle_id, "trace")
+
+
+def feed(fleet: str, vehicle_id: int) -> str:
+    """The feed of the process whose first published vehicle is `vehicle_id`."""
+    return _vehicle(fleet, vehicle_id, "feed")
+
+
+def all_feeds(fleet: str) -> str:
+    """Every process's feed: the whole fleet at a bounded rate (ground stations)."""
+    return _vehicle(fleet, "*", "feed")
+
+
+def parse_feed_key(key: str) -> tuple[str, int] | None:
+    """(fleet, vehicle id it lives under) of a feed key, or None if `key` is not one."""
+    m = _FEED_KEY_RE.match(str(key))
+    if not m or not 1 <= int(m.group(2)) <= MAX_VEHICLE_ID:
+        return None
+    return m.group(1), int(m.group(2))
 
 
 def gcs_alive(fleet: str, gcs_id: int) -> str:

@@ -1,9 +1,10 @@
 """The `Mesh` facade: what agents, the ground station and tools use to talk over Zenoh.
 
-Telemetry is latest-wins pub/sub; commands are request/reply with a timeout and an explicit
-ack per vehicle; presence is Zenoh liveliness. Every incoming payload is decoded at this boundary:
-a malformed one is counted and reported, never raised into Zenoh's callback thread, so one bad
-message cannot kill a process.
+Telemetry is latest-wins pub/sub, and every process also sends its vehicles' latest states as a
+bounded-rate feed for ground stations (comms/feed.py); commands are request/reply with a timeout
+and an explicit ack per vehicle; presence is Zenoh liveliness. Every incoming payload is decoded
+at this boundary: a malformed one is counted and reported, never raised into Zenoh's callback
+thread, so one bad message cannot kill a process.
 
 Keyed mode (`auth`, comms/auth.py): every state, event, command and ack this process sends is
 signed with its own key; every state and event it receives passes a comms/gate.py Gate first
@@ -27,6 +28,7 @@ import zenoh
 from comms import keys
 from comms.auth import FleetKeyError, command_digest
 from comms.commands import CommandResult, Outcome, OutcomeStatus
+from comms.feed import FeedBuffer
 from comms.gate import SKIPPED, Gate, GateConfig
 from comms.presence import Presence
 from comms.schema import (
@@ -35,6 +37,7 @@ from comms.schema import (
     CommandAck,
     DecodeError,
     Event,
+    FeedBatch,
     GuidanceTrace,
     Mode,
     Roster,
@@ -46,6 +49,8 @@ log = logging.getLogger(__name__)
 
 StateCallback = Callable[[VehicleState, int], None]
 """Called with (state, receive stamp in ns) on a Zenoh thread."""
+FeedCallback = Callable[[VehicleState, int, int], None]
+"""Called with (state, receive stamp in ns, its entry number in its feed) on a Zenoh thread."""
 EventCallback = Callable[[Event, int], None]
 CommandHandler = Callable[[Command], CommandAck]
 RefusedCallback = Callable[[int, str, int], None]
@@ -58,6 +63,10 @@ class MeshStats:
 
     states_sent: int = 0
     states_received: int = 0
+    """States that passed every check, from state keys and feed entries alike."""
+    feed_batches_sent: int = 0
+    feed_batches_received: int = 0
+    """Feed batches that decoded (their entries are then checked one by one)."""
     events_received: int = 0
     commands_served: int = 0
     decode_errors: int = 0
@@ -105,6 +114,8 @@ class Mesh:
         self._session: zenoh.Session | None = open_session(cfg)
         self._publishers: dict[int, tuple[keys.Cell, zenoh.Publisher]] = {}
         """Each vehicle's state publisher, on the key of the cell it was last in."""
+        self._feed = FeedBuffer(cfg.feed_hz)
+        self._feed_pub: zenoh.Publisher | None = None
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._error_log_ns = 0
@@ -129,11 +140,18 @@ class Mesh:
         self.close()
 
     def close(self) -> None:
+        if self._feed_pub is not None:  # best effort: the last states of a closing process
+            with contextlib.suppress(Exception):
+                for batch in self._feed.flush():
+                    self._feed_pub.put(batch)
         with self._lock:
             session, self._session = self._session, None
             entities, self._entities = self._entities, []
             publishers = [pub for _, pub in self._publishers.values()]
             self._publishers.clear()
+            if self._feed_pub is not None:
+                publishers.append(self._feed_pub)
+                self._feed_pub = None
         if session is None:
             return
         entities = publishers + entities
@@ -233,6 +251,25 @@ class Mesh:
             pub = held[1]
         pub.put(payload)
         self.stats.bump("states_sent")
+        self._send_feed(
+            state.vehicle_id, self._feed.offer(state.vehicle_id, payload, self.clock_ns())
+        )
+
+    def _send_feed(self, vehicle_id: int, batches: list[bytes]) -> None:
+        """Put due feed batches on this process's feed key (that of its first vehicle)."""
+        if not batches:
+            return
+        with self._lock:
+            if self._feed_pub is None:
+                self._feed_pub = self.session.declare_publisher(
+                    keys.feed(self.fleet, vehicle_id),
+                    congestion_control=zenoh.CongestionControl.DROP,
+                    express=True,
+                )
+            pub = self._feed_pub
+        for batch in batches:
+            pub.put(batch)
+        self.stats.bump("feed_batches_sent", len(batches))
 
     def subscribe_states(
         self,
@@ -281,6 +318,43 @@ class Mesh:
         sub.set_cells(cells)
         return self._keep(sub)
 
+    def subscribe_feed(
+        self,
+        callback: FeedCallback,
+        link: Any = None,
+        *,
+        on_refused: RefusedCallback | None = None,
+        gate: GateConfig = GateConfig(),
+    ) -> Any:
+        """Call `callback(state, recv_ns, entry_seq)` for every valid state in the fleet's feeds:
+        the latest state of every vehicle, batched per process at its MeshConfig.feed_hz
+        (comms/feed.py), which is the whole fleet at a load a ground station can carry. Each
+        entry passes exactly the checks a state on its own key passes (`subscribe_states`: the
+        keyed-mode gate, `on_refused`, `link`), but for the cell: an entry may be in any cell.
+        A malformed batch is refused whole with the reason; a bad entry costs only itself."""
+        admit = self._admitter(callback, link, on_refused, gate, None)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            recv_ns = self.clock_ns()
+            where = str(sample.key_expr)
+            try:
+                if keys.parse_feed_key(where) is None:
+                    raise DecodeError(f"a feed batch arrived on {where}, which is no feed key")
+                batch = FeedBatch.decode(sample.payload.to_bytes())
+            except DecodeError as exc:
+                self._bad(where, exc)
+                return
+            self.stats.bump("feed_batches_received")
+            for i, entry in enumerate(batch.entries):
+                try:
+                    state = VehicleState.decode(entry.state)
+                except DecodeError as exc:
+                    self._bad(f"{where} entry {i}", exc)
+                    continue
+                admit(state, recv_ns, (entry.entry_seq,))
+
+        return self._keep(self.session.declare_subscriber(keys.all_feeds(self.fleet), on_sample))
+
     def _state_handler(
         self,
         callback: StateCallback,
@@ -289,9 +363,8 @@ class Mesh:
         gate: GateConfig,
         ignore_id: int | None,
     ) -> Callable[[zenoh.Sample], None]:
-        if on_refused is None:
-            on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
-        checker = self.new_gate(gate) if self.auth is not None else None
+        """A state key's sample: decoded, on its own vehicle's key and cell, then admitted."""
+        admit = self._admitter(callback, link, on_refused, gate, ignore_id)
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
@@ -314,6 +387,26 @@ class Mesh:
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
                 return
+            admit(state, recv_ns, ())
+
+        return on_sample
+
+    def _admitter(
+        self,
+        callback: Callable[..., None],
+        link: Any,
+        on_refused: RefusedCallback | None,
+        gate: GateConfig,
+        ignore_id: int | None,
+    ) -> Callable[[VehicleState, int, tuple], None]:
+        """What every decoded state passes, whichever way it came (its own key or a feed entry):
+        the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
+        the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""
+        if on_refused is None:
+            on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
+        checker = self.new_gate(gate) if self.auth is not None else None
+
+        def admit(state: VehicleState, recv_ns: int, extra: tuple) -> None:
             if state.vehicle_id == ignore_id:
                 return
             if checker is not None:
@@ -327,11 +420,11 @@ class Mesh:
                     return
             self.stats.bump("states_received")
             if link is None:
-                _guarded(callback, state, recv_ns)
+                _guarded(callback, state, recv_ns, *extra)
             else:
-                link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t))
+                link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t, *extra))
 
-        return on_sample
+        return admit
 
     # -- events ----------------------------------------------------------------------------
     def publish_event(self, event: Event, *, auth: Any = None) -> None:

@@ -17,7 +17,8 @@ Readers here skip those: `read_recording` returns only covey's own channels, so 
 unchanged by them.
 
 Acks are Zenoh replies that only the querier sees; the recorder cannot see them. Anything
-published under covey/<fleet>/** is recorded, so an ack that its vehicle also publishes on
+published under covey/<fleet>/** is recorded but the stations' feed (covey/<fleet>/v/<id>/feed,
+comms/feed.py: copies of states recorded on their own keys), so an ack that its vehicle also publishes on
 covey/<fleet>/v/<id>/ack lands in the channel of that key (schema covey.CommandAck).
 
 The file survives a SIGKILL of the recorder: chunks are small and flushed every
@@ -365,7 +366,10 @@ class Recorder:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
-            self.sink.put(str(sample.key_expr), sample.payload.to_bytes(), self._clock_ns())
+            key = str(sample.key_expr)
+            if key.endswith("/feed") and keys.parse_feed_key(key) is not None:
+                return  # the stations' feed: copies of states recorded on their own keys
+            self.sink.put(key, sample.payload.to_bytes(), self._clock_ns())
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         alive = b"\x01" if sample.kind == zenoh.SampleKind.PUT else b"\x00"

@@ -26,6 +26,10 @@ Layouts (all little-endian, packed; `<` struct codes):
         type, version, vehicle_id, state_seq, stamp_ns, heading_rad (float64),
         cmd_vel_ned_m_s[3] (float64), flags (TraceFlag), n_neighbours,
         neighbours[n] (vehicle id, seq of its state, age_s as float64), [sig]
+    FeedBatch     type 7 v1  <BBIH + n*(<IB + 64|128 bytes)  8 bytes + 69 per entry (133 signed),
+                                                             at most MAX_FEED_BYTES
+        type, version, feed_seq, n_entries, entries[n] (entry_seq, state length, the state's
+        bytes exactly as its vehicle published them: a VehicleState, signed or not)
 
 Signatures are made and checked in comms/auth.py; this module only carries their bytes.
 """
@@ -59,6 +63,9 @@ The longest signed trace is then 3699 bytes: under the routers' 4 KiB message li
 (comms/zenoh_configs/)."""
 MAX_TRACE_AGE_S = 3600.0
 """A neighbour sample older than this is no neighbour: a trace that says so is malformed."""
+MAX_FEED_BYTES = 4096
+"""The largest FeedBatch: the routers' message size limit (comms/zenoh_configs/). A process
+whose feed is longer sends it as several batches (comms/feed.py)."""
 
 TAKEOFF_ALT_RANGE_M = (0.5, 500.0)
 LOCAL_HORIZONTAL_LIMIT_M = 100_000.0
@@ -79,6 +86,7 @@ class MsgType(enum.IntEnum):
     EVENT = 4
     ROSTER = 5
     GUIDANCE_TRACE = 6
+    FEED_BATCH = 7
 
 
 class Role(enum.IntEnum):
@@ -742,6 +750,96 @@ class GuidanceTrace:
 
 
 @dataclass(frozen=True)
+class FeedEntry:
+    """One vehicle's latest state in a FeedBatch."""
+
+    entry_seq: int
+    """How many entries of this vehicle its feed has carried, this one included (from 1): a
+    receiver counts the entries it missed from the gaps (the station's link loss)."""
+    state: bytes
+    """A VehicleState's bytes exactly as its vehicle published them (signed or not). Decoded and
+    checked by the receiver one entry at a time, so that one bad entry costs only itself."""
+
+
+_STATE_SIZES = (VehicleState._FMT.size, VehicleState._FMT.size + TAG_BYTES)
+
+
+@dataclass(frozen=True)
+class FeedBatch:
+    """The latest state of each vehicle of one process that published since its last batch: what
+    a ground station hears instead of every state (comms/feed.py, docs/scaling.md)."""
+
+    feed_seq: int
+    """This batch's number in its process's feed (from 1, wrapping at 2**32)."""
+    entries: tuple[FeedEntry, ...]
+    """At least one; at most as many as fit MAX_FEED_BYTES."""
+
+    TYPE: ClassVar[MsgType] = MsgType.FEED_BATCH
+    _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBIH")
+    _ENTRY: ClassVar[struct.Struct] = struct.Struct("<IB")
+    MAX_ENTRIES: ClassVar[int] = (MAX_FEED_BYTES - _HEAD.size) // (_ENTRY.size + _STATE_SIZES[0])
+    """The most entries a batch can hold (unsigned states; fewer fit when they are signed)."""
+
+    @classmethod
+    def size(cls, state_sizes: list[int] | tuple[int, ...]) -> int:
+        """Bytes of a batch of entries whose states have these sizes."""
+        return cls._HEAD.size + cls._ENTRY.size * len(state_sizes) + sum(state_sizes)
+
+    def validate(self) -> None:
+        if not 0 <= self.feed_seq < 2**32:
+            raise DecodeError(f"feed_seq={self.feed_seq} does not fit 32 bits")
+        if not 1 <= len(self.entries) <= self.MAX_ENTRIES:
+            raise DecodeError(f"{len(self.entries)} feed entries, must be 1..{self.MAX_ENTRIES}")
+        for i, e in enumerate(self.entries):
+            if not 0 <= e.entry_seq < 2**32:
+                raise DecodeError(f"entry {i}: entry_seq={e.entry_seq} does not fit 32 bits")
+            if len(e.state) not in _STATE_SIZES:
+                raise DecodeError(
+                    f"entry {i}: a state is {_STATE_SIZES[0]} or {_STATE_SIZES[1]} bytes, "
+                    f"not {len(e.state)}"
+                )
+        size = self.size([len(e.state) for e in self.entries])
+        if size > MAX_FEED_BYTES:
+            raise DecodeError(f"FeedBatch of {size} bytes, at most {MAX_FEED_BYTES}")
+
+    def encode(self) -> bytes:
+        self.validate()
+        head = self._HEAD.pack(self.TYPE, SCHEMA_VERSION, self.feed_seq, len(self.entries))
+        return head + b"".join(
+            self._ENTRY.pack(e.entry_seq, len(e.state)) + e.state for e in self.entries
+        )
+
+    @classmethod
+    def decode(cls, data: bytes) -> FeedBatch:
+        _header(data, cls.TYPE)
+        if not cls._HEAD.size <= len(data) <= MAX_FEED_BYTES:
+            raise DecodeError(
+                f"FeedBatch must be {cls._HEAD.size}..{MAX_FEED_BYTES} bytes, got {len(data)}"
+            )
+        _, _, feed_seq, n = cls._HEAD.unpack_from(data)
+        if not 1 <= n <= cls.MAX_ENTRIES:
+            raise DecodeError(f"{n} feed entries, must be 1..{cls.MAX_ENTRIES}")
+        entries, at = [], cls._HEAD.size
+        for i in range(n):
+            if at + cls._ENTRY.size > len(data):
+                raise DecodeError(f"FeedBatch of {len(data)} bytes ends inside entry {i} of {n}")
+            entry_seq, length = cls._ENTRY.unpack_from(data, at)
+            at += cls._ENTRY.size
+            if length not in _STATE_SIZES:
+                raise DecodeError(
+                    f"entry {i}: a state is {_STATE_SIZES[0]} or {_STATE_SIZES[1]} bytes, "
+                    f"not {length}"
+                )
+            if at + length > len(data):
+                raise DecodeError(f"FeedBatch of {len(data)} bytes ends inside entry {i} of {n}")
+            entries.append(FeedEntry(entry_seq, data[at : at + length]))
+            at += length
+        if at != len(data):
+            raise DecodeError(f"FeedBatch has {len(data) - at} bytes after its {n} entries")
+        return cls(feed_seq, tuple(entries))
+
+
+@dataclass(frozen=True)
 class Member:
     """One key of a fleet roster: who holds it and what it may sign."""
 
@@ -843,7 +941,7 @@ class Roster:
         return msg
 
 
-Message = VehicleState | Command | CommandAck | Event | Roster | GuidanceTrace
+Message = VehicleState | Command | CommandAck | Event | Roster | GuidanceTrace | FeedBatch
 _DECODERS: dict[int, type] = {
     MsgType.VEHICLE_STATE: VehicleState,
     MsgType.COMMAND: Command,
@@ -851,6 +949,7 @@ _DECODERS: dict[int, type] = {
     MsgType.EVENT: Event,
     MsgType.ROSTER: Roster,
     MsgType.GUIDANCE_TRACE: GuidanceTrace,
+    MsgType.FEED_BATCH: FeedBatch,
 }
 
 
@@ -878,6 +977,8 @@ __all__ = [
     "DecodeError",
     "Event",
     "EventKind",
+    "FeedBatch",
+    "FeedEntry",
     "GuidanceTrace",
     "Member",
     "Message",

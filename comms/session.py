@@ -96,6 +96,10 @@ class MeshConfig:
     """A full Zenoh JSON5 config (TLS, user/password, access control). Fields above override it."""
     extra: tuple[tuple[str, str], ...] = field(default_factory=tuple)
     """Additional (path, json5 value) pairs inserted into the Zenoh config."""
+    feed_hz: float = 5.0
+    """How often this process sends its vehicles' latest states to the ground stations, batched
+    (comms/feed.py). Within 2..50: the station calls a vehicle stale after 1 s without news
+    (FleetConfig.stale_after_s), so a feed period must be well under it."""
 
     def __post_init__(self) -> None:
         from comms.keys import check_fleet
@@ -109,6 +113,8 @@ class MeshConfig:
             raise ValueError("a client needs at least one --connect endpoint (its router)")
         if not 100 <= self.lease_ms <= 600_000:
             raise ValueError(f"lease_ms={self.lease_ms} must be within 100..600000")
+        if not (isinstance(self.feed_hz, int | float) and 2.0 <= self.feed_hz <= 50.0):
+            raise ValueError(f"feed_hz={self.feed_hz} must be within 2..50")
 
     def zenoh_config(self) -> zenoh.Config:
         """The Zenoh config; raises MeshConfigError (one line) for a bad config file."""

@@ -18,7 +18,10 @@ counter: they never create a vehicle. Made-up ids in open mode expire as above.
 
 Link health per vehicle, over a sliding window of `rate_window_s`:
     rate_hz  = (received - 1) / (t_last - t_first)
-    loss     = 1 - received / (seq_last - seq_first + 1)      (from VehicleState.seq gaps)
+    loss     = 1 - received / (n_last - n_first + 1)
+where n is the state's entry number in its feed (Mesh.subscribe_feed, the station's default: the
+rate is then the updates reaching the station, at most the publisher's feed rate, and the loss
+counts feed entries lost on the way), or VehicleState.seq for a station that hears every state.
 """
 
 from __future__ import annotations
@@ -203,8 +206,9 @@ class FleetModel:
         self.expired += len(gone)
 
     # -- inputs ------------------------------------------------------------------------------
-    def on_state(self, state: VehicleState, recv_ns: int) -> None:
-        """Record one received state (a Mesh.subscribe_states callback)."""
+    def on_state(self, state: VehicleState, recv_ns: int, entry_seq: int | None = None) -> None:
+        """Record one received state (a Mesh.subscribe_feed or subscribe_states callback).
+        `entry_seq`: its entry number in its feed, on which loss is counted; None: its seq."""
         cfg = self.cfg
         with self._lock:
             track = self._track(state.vehicle_id, recv_ns, present=False)
@@ -221,9 +225,12 @@ class FleetModel:
                     if prev.seq - state.seq < 100:
                         return
                     track.window.clear()
+            n = state.seq if entry_seq is None else entry_seq
+            if track.window and n <= track.window[-1][1]:
+                track.window.clear()  # a restarted publisher, or another feed: count from here
             track.state = state
             track.last_recv_ns = recv_ns
-            track.window.append((recv_ns, state.seq))
+            track.window.append((recv_ns, n))
             horizon_ns = recv_ns - int(cfg.rate_window_s * NS_PER_S)
             while track.window and track.window[0][0] < horizon_ns:
                 track.window.popleft()

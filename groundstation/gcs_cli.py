@@ -49,6 +49,12 @@ def parser() -> argparse.ArgumentParser:
         default="perfect",
         help="emulated radio link to the vehicles: perfect | xbee | wifi | spec",
     )
+    p.add_argument(
+        "--every-state",
+        action="store_true",
+        help="hear every state at its full rate instead of the bounded-rate fleet feed "
+        "(small fleets, debugging)",
+    )
     return p
 
 
@@ -91,6 +97,7 @@ def cli(argv: list[str] | None = None) -> int:
         geofence_radius_m=args.geofence_radius_m,
         link=args.link,
         key_file=args.key_file,
+        every_state=args.every_state,
     )
     try:
         return main(cfg)

@@ -64,7 +64,7 @@ def format_status(snap: FleetSnapshot) -> str:
 def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
     fleet = FleetModel()
     with Mesh(cfg.mesh, auth=load_auth(cfg.key_file, fleet=cfg.mesh.fleet)) as mesh:
-        mesh.subscribe_states(fleet.on_state)
+        mesh.subscribe_feed(fleet.on_state)  # the whole fleet at a bounded rate, as the station
         pres = mesh.presence(
             lambda kind, vid, alive: (
                 kind == "vehicle" and fleet.on_presence(vid, alive, time.time_ns())

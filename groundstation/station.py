@@ -87,6 +87,10 @@ class GcsConfig:
     key_file: str | None = None
     """Fleet key that signs commands (comms/auth.py); None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY,
     else open mode (ignored when a Mesh is passed to GroundStation)."""
+    every_state: bool = False
+    """Hear every state of every vehicle at its full rate, instead of the fleet feed (each
+    process's latest states at its MeshConfig.feed_hz, docs/scaling.md). For small fleets and
+    debugging: it costs the station a message, a decode and (keyed) a verification per state."""
 
 
 def web_host_problem(host: str) -> str | None:
@@ -163,9 +167,8 @@ class GroundStation:
                 cfg.link, seed=cfg.seed, receiver_pos=lambda: (0.0, 0.0, 0.0)
             )
             self._link.__enter__()
-        self.mesh.subscribe_states(
-            self.fleet.on_state, link=self._link, on_refused=self.fleet.on_state_refused
-        )
+        subscribe = self.mesh.subscribe_states if cfg.every_state else self.mesh.subscribe_feed
+        subscribe(self.fleet.on_state, link=self._link, on_refused=self.fleet.on_state_refused)
         self.mesh.on_security = self._on_security
         self.mesh.subscribe_events(self._on_event)
         self.mesh.observe_commands(self.commands.on_command, self._on_ack)

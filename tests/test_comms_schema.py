@@ -20,6 +20,8 @@ from comms.schema import (
     DecodeError,
     Event,
     EventKind,
+    FeedBatch,
+    FeedEntry,
     GuidanceTrace,
     Mode,
     Severity,
@@ -145,8 +147,19 @@ def traces(draw) -> GuidanceTrace:
     )
 
 
+@st.composite
+def feed_batches(draw) -> FeedBatch:
+    return FeedBatch(
+        feed_seq=draw(st.integers(0, 2**32 - 1)),
+        entries=tuple(
+            FeedEntry(draw(st.integers(0, 2**32 - 1)), s.encode())
+            for s in draw(st.lists(states(), min_size=1, max_size=30))  # 30 x 133 + 8 <= 4096
+        ),
+    )
+
+
 @settings(max_examples=300, deadline=None)
-@given(st.one_of(states(), commands(), acks, events, rosters(), traces()))
+@given(st.one_of(states(), commands(), acks, events, rosters(), traces(), feed_batches()))
 def test_every_message_round_trips(msg) -> None:
     data = msg.encode()
     assert data[0] == msg.TYPE and data[1] == getattr(msg, "VERSION", schema.SCHEMA_VERSION)
@@ -229,6 +242,40 @@ def test_trace_decoder_says_why(mutate, why) -> None:
     assert len(good) == 51 + 2 * 14
     with pytest.raises(DecodeError, match=why):
         decode(mutate(good))
+
+
+def _feed(n: int, signed: bool = False, size: int | None = None) -> FeedBatch:
+    one = VehicleState(3, 1, 5, (1, 2, 3), (0, 0, 0), 0.5, sig=bytes(64) if signed else b"")
+    data = one.encode() if size is None else bytes(size)
+    return FeedBatch(7, tuple(FeedEntry(k + 1, data) for k in range(n)))
+
+
+@pytest.mark.parametrize(
+    ("batch", "why"),
+    [
+        (_feed(0), "0 feed entries, must be 1..59"),
+        (_feed(60), "60 feed entries, must be 1..59"),
+        (_feed(31, signed=True), "FeedBatch of 4131 bytes, at most 4096"),
+        (_feed(2, size=63), "entry 0: a state is 64 or 128 bytes, not 63"),
+        (FeedBatch(2**32, _feed(1).entries), "feed_seq=4294967296 does not fit"),
+        (FeedBatch(1, (FeedEntry(-1, _feed(1).entries[0].state),)), "entry_seq=-1 does not fit"),
+    ],
+)
+def test_feed_batch_refuses_what_it_cannot_carry(batch, why) -> None:
+    with pytest.raises(DecodeError, match=why):
+        batch.encode()
+
+
+def test_feed_batch_holds_59_unsigned_or_30_signed_states() -> None:
+    assert FeedBatch.MAX_ENTRIES == 59
+    for batch in (_feed(59), _feed(30, signed=True)):
+        data = batch.encode()
+        assert len(data) <= schema.MAX_FEED_BYTES and decode(data) == batch
+    # The entries are carried as bytes, not checked: the receiver decodes each on its own.
+    junk = FeedBatch(1, (FeedEntry(1, bytes(64)),))
+    assert decode(junk.encode()) == junk
+    with pytest.raises(DecodeError):
+        VehicleState.decode(junk.entries[0].state)
 
 
 def test_reason_text_is_cut_on_a_character_boundary() -> None:

@@ -25,6 +25,8 @@ from comms.schema import (
     DecodeError,
     Event,
     EventKind,
+    FeedBatch,
+    FeedEntry,
     GuidanceTrace,
     Mode,
     Role,
@@ -160,13 +162,25 @@ def check_one(data: bytes, keys: dict, stats: dict[str, int]) -> None:
             reason = vehicle.check_trace(msg)
             assert reason is None or isinstance(reason, str)
             assert reason is not None or data == keys.get("valid_trace"), "a mutated trace verified"
+        elif isinstance(msg, FeedBatch):
+            for entry in msg.entries:  # as the station does: each entry on its own
+                try:
+                    state = VehicleState.decode(entry.state)
+                except DecodeError as exc:
+                    assert str(exc)
+                    continue
+                reason = vehicle.check_state(state)
+                assert reason is None or isinstance(reason, str)
+                assert reason is not None or entry.state == keys["valid"]["state"], (
+                    "a mutated feed entry verified"
+                )
         elif isinstance(msg, Roster):
             reason = vehicle.apply_roster(msg)  # never newer AND genuine unless unmutated
             assert reason is not None or data == keys["valid"]["roster"], "a mutated roster applied"
             if reason is None:
                 keys["reset"]()
     # Also through the typed decoders: they must refuse foreign types with DecodeError too.
-    for cls in (VehicleState, Command, CommandAck, Event, Roster, GuidanceTrace):
+    for cls in (VehicleState, Command, CommandAck, Event, Roster, GuidanceTrace, FeedBatch):
         try:
             cls.decode(data)
         except DecodeError:
@@ -266,4 +280,28 @@ def test_mutated_and_random_traces_only_raise_decode_error(auth) -> None:
         check_one((bytes([6, 1]) + rng.randbytes(n))[:n], auth, stats)
     check_one(auth["valid_trace"], auth, stats)  # control: the signed original verifies
     print(f"fuzz traces: 25001 inputs, {stats}")
+    assert stats["decoded"] > 100 and stats["rejected"] > 1000
+
+
+def test_mutated_and_random_feed_batches_only_raise_decode_error(auth) -> None:
+    """Feed batches: mutated (unsigned, signed, mixed, full) and random bodies; the entries of
+    those that decode are decoded and verified one by one, as the station does."""
+    rng = random.Random(SEED + 3)
+    unsigned = VehicleState(3, 42, 10**18, (1.0, -2.0, -10.0), (0.5, 0.0, 0.0), 0.3).encode()
+    signed = auth["valid"]["state"]
+    seeds = [
+        FeedBatch(1, (FeedEntry(1, unsigned),)).encode(),
+        FeedBatch(2, (FeedEntry(5, signed), FeedEntry(6, unsigned))).encode(),
+        FeedBatch(3, tuple(FeedEntry(k, unsigned) for k in range(59))).encode(),
+        FeedBatch(4, tuple(FeedEntry(k, signed) for k in range(30))).encode(),
+    ]
+    stats = {"decoded": 0, "rejected": 0, "slowest_us": 0}
+    for i in range(20_000):
+        check_one(mutate(seeds[i % len(seeds)], rng), auth, stats)
+    for _ in range(5_000):
+        n = rng.choice([8, 13, 77, 141, rng.randrange(5000)])
+        check_one((bytes([7, 1]) + rng.randbytes(n))[:n], auth, stats)
+    for data in seeds:
+        check_one(data, auth, stats)
+    print(f"fuzz feed batches: 25004 inputs, {stats}")
     assert stats["decoded"] > 100 and stats["rejected"] > 1000

@@ -60,6 +60,26 @@ def test_loss_estimated_from_sequence_gaps():
     assert v.rate_hz == pytest.approx(8.0, abs=0.3)
 
 
+def test_through_the_feed_loss_counts_lost_entries_not_thinned_states():
+    """A 10 Hz vehicle seen through a 5 Hz feed: every other state never leaves its process
+    (seq steps by 2), which is no loss; a lost feed entry (a gap in its entry numbers) is."""
+    model = FleetModel(FleetConfig(rate_window_s=10.0, stale_after_s=1.0))
+    model.on_presence(1, True, 0)
+    got = [n for n in range(1, 51) if n % 5 != 3]  # one entry in five lost on the way
+    for n in got:
+        model.on_state(state(1, 2 * n), int(n * 0.2 * NS_PER_S), n)
+    v = model.snapshot(int(got[-1] * 0.2 * NS_PER_S)).vehicles[0]
+    assert v.loss_pct == pytest.approx(20.0, abs=2.5)
+    assert v.rate_hz == pytest.approx(4.0, abs=0.3)  # updates reaching the station
+    assert not v.stale  # a 0.2 s feed period is well inside the 1 s stale threshold
+    # A restarted publisher numbers its entries from 1 again: counted afresh, no false loss.
+    t_s = got[-1] * 0.2
+    for k in range(1, 11):
+        model.on_state(state(1, 1000 + 2 * k), int((t_s + k * 0.2) * NS_PER_S), k)
+    v = model.snapshot(int((t_s + 2.0) * NS_PER_S)).vehicles[0]
+    assert v.loss_pct == 0.0 and v.rate_hz == pytest.approx(5.0)
+
+
 def test_age_grows_and_stale_flag_when_states_stop():
     model = FleetModel(FleetConfig(stale_after_s=1.0))
     t = feed(model, 1, 10, 10.0)

@@ -1,6 +1,8 @@
-"""A ground station under a phantom flood (real agents, a real rogue process, real Zenoh): its
+"""A ground station under a phantom flood (real agents, real rogue processes, real Zenoh): its
 fleet table stays bounded and empties of phantoms within the documented expiry, a real mode
-change during the flood reaches the events panel, and the real agents keep their 10 Hz."""
+change during the flood reaches the events panel, and the real agents keep their 10 Hz. The
+phantoms come both on state keys (the agents' and the hub's path) and in feed batches (the
+station's path, comms/feed.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import time
 
 import pytest
 
-from bench.flood_jitter import Samples, start_agents, start_flooder
+from bench.flood_jitter import FEED_FLOOD_ENTRIES, Samples, start_agents, start_flooder
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import Command, EventKind
@@ -35,6 +37,7 @@ def test_a_phantom_flood_leaves_only_real_vehicles_and_events_get_through() -> N
             )
             with GroundStation(cfg) as gcs:
                 rogue = start_flooder(port, 3000, FLOOD_S, mix="phantom")
+                feeder = start_flooder(port, 3000 / FEED_FLOOD_ENTRIES, FLOOD_S, mix="feed")
                 deadline = time.monotonic() + 30
                 while len(gcs.fleet.ids()) < 100 and time.monotonic() < deadline:
                     time.sleep(0.1)
@@ -62,6 +65,7 @@ def test_a_phantom_flood_leaves_only_real_vehicles_and_events_get_through() -> N
                     assert rate_hz >= 9.5 and arrived >= 0.95, (v, rate_hz, arrived)
                 assert len(gcs.fleet.ids()) <= gcs.fleet.cfg.max_vehicles
                 rogue.wait_output(timeout_s=60)
+                feeder.wait_output(timeout_s=60)
                 # Within the expiry time after the flood only the real vehicles are listed.
                 expire_s = gcs.fleet.cfg.unconfirmed_expire_s
                 end = time.monotonic() + expire_s + 5.0

@@ -100,3 +100,28 @@ def test_a_station_that_cannot_serve_exits_2_in_one_line_and_never_joins(demo):
         time.sleep(1.0)
         assert 9 not in watcher.presence.ground_stations
         assert set(watcher.presence.ground_stations) == before
+
+
+def test_a_station_hears_the_feed_and_every_state_only_when_asked(demo):
+    peer = MeshConfig(mode="peer", connect=(demo.mesh_endpoint,))
+    with (
+        GroundStation(GcsConfig(mesh=peer, port=0, gcs_id=4)) as fed,
+        GroundStation(GcsConfig(mesh=peer, port=0, gcs_id=5, every_state=True)) as every,
+    ):
+        for gcs in (fed, every):
+            assert wait_until(lambda g=gcs: set(g.fleet.positions()) >= {1, 2}, 20)
+        window_s, n0 = 3.0, fed.mesh.stats.feed_batches_received
+        time.sleep(window_s)
+        batches_s = (fed.mesh.stats.feed_batches_received - n0) / window_s
+        # Two one-vehicle agents, each at most feed_hz / 0.9 batches a second (comms/feed.py),
+        # counted where they arrive (a batch up to 1 s late on a loaded machine may add).
+        assert 0 < batches_s <= 2 * peer.feed_hz / 0.9 * (window_s + 1.0) / window_s, batches_s
+        assert every.mesh.stats.feed_batches_received == 0 and every.mesh.stats.states_received
+        for gcs in (fed, every):
+
+            def fresh(g=gcs) -> bool:
+                views = views_by_id(g.fleet.snapshot(time.time_ns(), trails=False))
+                return not views[1].stale and not views[2].stale
+
+            assert wait_until(fresh, 10)
+            assert views_by_id(gcs.fleet.snapshot(time.time_ns()))[1].loss_pct == 0.0

@@ -6,7 +6,8 @@ exactly as the browser station wires it). The attacker is an open-mode process t
 key, and, where said, an insider holding vehicle 3's key.
 
 - ghost attack: forged states put both real vehicles LANDED elsewhere while vehicle 1 is sent
-  onto vehicle 2; with 5000 phantom ids flooding at the same time;
+  onto vehicle 2; with 5000 phantom ids flooding at the same time; the forger puts them both on
+  state keys (what agents hear) and in feed batches (what the station hears, comms/feed.py);
 - recorded states re-sent later (and at once);
 - revocation of a station and a vehicle by a roster pushed with `covey keygen push`.
 The tests run in file order and share the fleet; the revocation test comes last.
@@ -30,12 +31,23 @@ from comms import keys
 from comms.auth import FleetAuth, load_auth
 from comms.authority import Authority, throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
+from comms.feed import split
 from comms.gate import Refusal
 from comms.identity import read_member_key
 from comms.mesh import Mesh
 from comms.procs import ChildGroup, python_env
-from comms.schema import Command, CommandKind, Event, EventKind, Mode, Role, VehicleState
-from comms.session import embedded_peer, embedded_router, free_tcp_port
+from comms.schema import (
+    Command,
+    CommandKind,
+    Event,
+    EventKind,
+    FeedBatch,
+    FeedEntry,
+    Mode,
+    Role,
+    VehicleState,
+)
+from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
 from tests.conftest import REPO, views_by_id
 
@@ -53,7 +65,7 @@ class Station:
         self.mesh = mesh
         self.fleet = FleetModel()
         self.events: list[Event] = []
-        mesh.subscribe_states(self.fleet.on_state)  # finds fleet.on_state_refused by itself
+        mesh.subscribe_feed(self.fleet.on_state)  # finds fleet.on_state_refused by itself
         mesh.subscribe_events(lambda e, _t: self.events.append(e))
         self.presence = mesh.presence(
             lambda kind, vid, alive: (
@@ -140,12 +152,23 @@ def keyed(tmp_path_factory):
         group.stop()
 
 
+def put_in_feed(session: zenoh.Session, states: list[bytes], feed_seq: int = 1) -> int:
+    """Put state payloads into feed batches, as a process's feed would carry them (the station's
+    path); returns the batches put."""
+    runs = split([FeedEntry(feed_seq, s) for s in states])
+    for k, run in enumerate(runs):
+        session.put(keys.feed(FLEET, 3), FeedBatch(feed_seq + k, run).encode())
+    return len(runs)
+
+
 class Forger:
-    """An open-mode process that publishes whatever it is told to, at a fixed rate, on a thread."""
+    """An open-mode process that publishes whatever it is told to, at a fixed rate, on a thread:
+    on the keys it is given (agents hear them), and the same states in feed batches (the station
+    hears those)."""
 
     def __init__(self, port: int, make, rate_hz: float = 20.0) -> None:
         self.mesh = Mesh(embedded_peer(port, fleet=FLEET))
-        self.make, self.period_s, self.sent = make, 1.0 / rate_hz, 0
+        self.make, self.period_s, self.sent, self.fed = make, 1.0 / rate_hz, 0, 0
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.run, daemon=True)
 
@@ -153,9 +176,12 @@ class Forger:
         seq = 10_000
         while not self.stop.is_set():
             seq += 1
-            for key, payload in self.make(seq, time.time_ns()):
+            items = list(self.make(seq, time.time_ns()))
+            for key, payload in items:
                 self.mesh.session.put(key, payload)
                 self.sent += 1
+            put_in_feed(self.mesh.session, [payload for _, payload in items], seq)
+            self.fed += len(items)
             self.stop.wait(self.period_s)
 
     def __enter__(self) -> Forger:
@@ -222,7 +248,7 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
             assert set(v) == {1, 2}, sorted(v)[:10]  # no phantom
             rates.append((v[1].rate_hz, v[2].rate_hz))
             time.sleep(0.05)
-        sent = forger.sent
+        sent, fed = forger.sent, forger.fed
     views = station.views()
     refused = station.mesh.stats.states_refused - refused0
     print(
@@ -235,17 +261,18 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
         "vehicle 1 never flew towards vehicle 2: the attack was not tested"
     )
     assert min_sep_m >= 3.0, f"closest approach {min_sep_m:.2f} m"
-    assert sent > 20_000 and refused > 0.5 * sent, (
+    assert sent > 20_000 and fed == sent and refused > 0.5 * fed, (
         sent,
+        fed,
         refused,
     )  # the forgery did reach the station
     assert station.fleet.phantom_refusals > 10_000
     assert (
         views[1].unverified and views[2].unverified and views[1].refused_cause
     )  # marked, with a cause
-    assert (
-        np.median([r[0] for r in rates[20:]]) > 8.0 and np.median([r[1] for r in rates[20:]]) > 8.0
-    )
+    feed_hz = MeshConfig().feed_hz  # the real vehicles' updates reach the station at this rate
+    assert np.median([r[0] for r in rates[20:]]) > 0.8 * feed_hz
+    assert np.median([r[1] for r in rates[20:]]) > 0.8 * feed_hz
     security = [
         e for e in station.events if e.kind is EventKind.SECURITY and e.vehicle_id in (1, 2)
     ]
@@ -332,11 +359,11 @@ def test_recorded_states_resent_later_are_refused(keyed) -> None:
     before = station.views()[1].state.pos_ned_m
     with zenoh.open(embedded_peer(keyed["port"], fleet=FLEET).zenoh_config()) as replayer:
         time.sleep(1.0)
-        for payload in old + old:  # states recorded more than the freshness window ago
-            replayer.put(keys.state(FLEET, 1), payload)
+        for k, payload in enumerate(old + old):  # states recorded more than the window ago,
+            put_in_feed(replayer, [payload], 1 + k)  # into the station's feed
         fresh = keyed["raw_states"][-1][1]  # and the latest one again, within the window
-        for _ in range(20):
-            replayer.put(keys.state(FLEET, 1), fresh)
+        for k in range(20):
+            put_in_feed(replayer, [fresh], 101 + k)
         time.sleep(1.0)
     after = station.views()[1].state
     print(
@@ -427,7 +454,7 @@ def test_a_revoked_station_and_vehicle_are_refused_after_a_roster_push(keyed) ->
             vehicle3.publish_state(
                 VehicleState(3, 10 + k, time.time_ns(), (30.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
             )
-            time.sleep(0.05)
+            time.sleep(0.25)  # a feed period apart: each state is its own feed entry
         time.sleep(0.5)
         v3_view = views_by_id(station.fleet.snapshot(time.time_ns()))[3]
         assert v3_view.refused_states - refused0 == 5 and v3_view.refused_cause == "unknown signer"
