@@ -160,6 +160,10 @@ class EventKind(enum.IntEnum):
     """The autopilot's outcome of an accepted command (`ActionOutcome` in the text)."""
 
 
+_MODE_VALUES = frozenset(m.value for m in Mode)
+_TWO_PI = 2 * math.pi
+
+
 class TraceFlag(enum.IntFlag):
     NONE = 0
     DECIDED = 1
@@ -250,6 +254,41 @@ class VehicleState:
     _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ3f3ff3fBBHf")
 
     def validate(self) -> None:
+        """Raise DecodeError with the reason unless every field is within its limits. The first
+        test is the fast path a valid state takes (a fleet host validates hundreds per tick);
+        NaN fails every comparison in it, so anything doubtful gets the reasoned checks below."""
+        p, v, g, lim, top = (
+            self.pos_ned_m,
+            self.vel_ned_m_s,
+            self.goal_ned_m,
+            POSITION_LIMIT_M,
+            SPEED_LIMIT_M_S,
+        )
+        if (
+            len(p) == len(v) == len(g) == 3
+            and 1 <= self.vehicle_id <= MAX_VEHICLE_ID
+            and 0 <= self.seq < 2**32
+            and 0 <= self.stamp_ns < 2**64
+            and -lim <= p[0] <= lim
+            and -lim <= p[1] <= lim
+            and -lim <= p[2] <= lim
+            and -lim <= g[0] <= lim
+            and -lim <= g[1] <= lim
+            and -lim <= g[2] <= lim
+            and -top <= v[0] <= top
+            and -top <= v[1] <= top
+            and -top <= v[2] <= top
+            and -_TWO_PI <= self.heading_rad <= _TWO_PI
+            and 0.0 <= self.battery_pct <= 100.0
+            and self.mode in _MODE_VALUES
+            and not int(self.flags) & ~0xFF
+            and len(self.sig) in (0, TAG_BYTES)
+        ):
+            return
+        self._validate_reasoned()
+
+    def _validate_reasoned(self) -> None:
+        """The reference checks, one reason each (what validate() falls back to)."""
         _check_vehicle_id("vehicle_id", self.vehicle_id)
         if not 0 <= self.seq < 2**32:
             raise DecodeError(f"seq={self.seq} does not fit 32 bits")

@@ -370,3 +370,64 @@ def test_nul_in_text_is_sent_as_replacement_character():
     raw[-1] = 0x41  # a byte after the padding: not a text this codec writes
     with pytest.raises(DecodeError, match="after its NUL padding"):
         Event.decode(bytes(raw))
+
+
+_EDGES = (
+    0.0,
+    -0.0,
+    1.5,
+    math.nan,
+    math.inf,
+    -math.inf,
+    schema.POSITION_LIMIT_M,
+    -schema.POSITION_LIMIT_M,
+    math.nextafter(schema.POSITION_LIMIT_M, math.inf),
+    schema.SPEED_LIMIT_M_S,
+    math.nextafter(schema.SPEED_LIMIT_M_S, math.inf),
+    -math.nextafter(schema.SPEED_LIMIT_M_S, math.inf),
+    2 * math.pi,
+    math.nextafter(2 * math.pi, math.inf),
+    100.0,
+    100.5,
+    -1e-9,
+)
+
+
+@settings(max_examples=3000, deadline=None)
+@given(
+    vid=st.sampled_from((0, 1, 7, schema.MAX_VEHICLE_ID, schema.MAX_VEHICLE_ID + 1)),
+    seq=st.sampled_from((0, 5, 2**32 - 1, 2**32, -1)),
+    stamp=st.sampled_from((0, 10**18, 2**64 - 1, 2**64, -1)),
+    floats=st.lists(st.sampled_from(_EDGES), min_size=11, max_size=11),
+    mode=st.sampled_from((*Mode, 0, 99)),
+    flags=st.sampled_from((0, 1, 0xFF, 0x100)),
+    sig=st.sampled_from((b"", bytes(schema.TAG_BYTES), b"x")),
+)
+def test_state_validate_fast_path_accepts_exactly_what_the_reference_accepts(
+    vid, seq, stamp, floats, mode, flags, sig
+) -> None:
+    """VehicleState.validate's one-comparison fast path against its reasoned checks."""
+    s = VehicleState(
+        vid,
+        seq,
+        stamp,
+        tuple(floats[0:3]),
+        tuple(floats[3:6]),
+        floats[6],
+        mode,
+        False,
+        floats[7],
+        flags,
+        tuple(floats[8:11]),
+        sig,
+    )
+
+    def verdict(check) -> str | None:
+        try:
+            check()
+        except DecodeError as exc:
+            return str(exc)
+        return None
+
+    fast, reference = verdict(s.validate), verdict(s._validate_reasoned)
+    assert fast == reference  # same refusal, with the reference's reason
