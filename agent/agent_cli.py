@@ -21,6 +21,7 @@ from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
 from comms.auth import FleetAuth, load_auth
 from comms.cli_options import (
+    add_config_flags,
     add_mesh_args,
     die,
     floats,
@@ -69,7 +70,13 @@ def _start_ne(text: str) -> tuple[float, ...]:
     return ne
 
 
-GUIDANCE_FLAGS = ("policy", "no_safety_filter", "decision_period_s", "trace_guidance")
+GUIDANCE_FLAGS = (
+    "policy",
+    "no_safety_filter",
+    "decision_period_s",
+    "trace_guidance",
+    "policy_separation_m",
+)
 """Flags for the agent's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
 
 
@@ -124,6 +131,7 @@ def parser() -> argparse.ArgumentParser:
         "trained period, 1 s x separation/3 / cruise speed; 0: every tick)",
     )
     p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
+    add_config_flags(p, GuidanceConfig, only=("policy_separation_m",))
     p.add_argument("--geofence-radius-m", type=float, default=500.0, help="0 = no fence")
     p.add_argument(
         "--gcs-lost-hold-s",
@@ -171,6 +179,7 @@ def config_from_args(
             safety_filter=not args.no_safety_filter,
             policy_path=args.policy,
             decision_period_s=args.decision_period_s,
+            policy_separation_m=args.policy_separation_m,
         ),
         failsafe=FailsafeConfig(
             require_gcs=not args.no_gcs_failsafe,

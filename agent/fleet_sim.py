@@ -40,7 +40,7 @@ from agent.flight_core import (
 )
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig
-from comms.cli_options import stop_after
+from comms.cli_options import add_config_flags, stop_after
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import Command, CommandAck, Mode, StateFlag, VehicleState
@@ -395,6 +395,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--separation-m", type=float, default=3.0)
     p.add_argument("--cruise-speed-m-s", type=float, default=1.0)
     p.add_argument("--no-safety-filter", action="store_true", help="fly the pure learned policy")
+    add_config_flags(p, GuidanceConfig, only=("policy_separation_m",))
     p.add_argument(
         "--no-see-others", action="store_true", help="ignore vehicles of other processes"
     )
@@ -436,6 +437,7 @@ def cli(argv: list[str]) -> int:
                 separation_m=args.separation_m,
                 cruise_speed_m_s=args.cruise_speed_m_s,
                 safety_filter=not args.no_safety_filter,
+                policy_separation_m=args.policy_separation_m,
             ),
             failsafe=FailsafeConfig(require_gcs=False, geofence_radius_m=args.geofence_radius_m),
         )
