@@ -61,7 +61,7 @@ class GuidanceConfig:
     """Nearest neighbours each decision sees; None: every neighbour within the sense range."""
     policy_separation_m: float | None = None
     """Separation the policy is told to keep, its distance scale; the filter still keeps the
-    whole separation. None: a third of the separation with the filter on (a narrower berth,
+    whole separation. None: 1.25 m per 3 m of separation with the filter on (a narrower berth,
     measured in docs/policy.md), the whole separation with it off (policy.runtime.told_separation_m)."""
 
     def __post_init__(self) -> None:

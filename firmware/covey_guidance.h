@@ -56,7 +56,7 @@ typedef struct {
 /* With the filter on and no berth asked for, the policy is told this share of
  * the separation: it keeps a narrower berth than the paper's and the filter
  * keeps the separation (policy/runtime.py FILTERED_BERTH_SHARE, docs/policy.md). */
-#define COVEY_FILTERED_BERTH_SHARE (1.0f / 3.0f)
+#define COVEY_FILTERED_BERTH_SHARE (1.25f / 3.0f)
 
 /* The separation to tell the policy (covey_config_t.separation_m) while the
  * filter keeps separation_m: asked_m unless it is 0; for 0, separation_m x

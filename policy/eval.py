@@ -57,7 +57,7 @@ class EvalConfig:
     """Nearest neighbours fed to the learned policies."""
     policy_separation_m: float | None = None
     """Separation the learned policies are told to keep (collisions are still counted below
-    3 m). None: as flight tells them (policy.runtime.told_separation_m): 1 m with a filter
+    3 m). None: as flight tells them (policy.runtime.told_separation_m): 1.25 m with a filter
     (policy+filter, c+filter), 3 m without."""
     quick: bool = False
     """Small smoke suite."""

@@ -10,7 +10,7 @@ import pytest
 from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourSnapshot
 from comms.scope import ScopeConfig
-from policy.runtime import GuidancePolicy
+from policy.runtime import FILTERED_BERTH_SHARE, GuidancePolicy
 
 GOAL = np.array([20.0, 0.0, -5.0])
 
@@ -101,17 +101,17 @@ def test_bad_period_is_refused():
 
 def test_the_policy_is_told_a_narrower_berth_and_the_filter_keeps_the_separation():
     """policy_separation_m: the network's distance scale, not the filter's radius (nor the
-    decision period). Default with the filter: a third of the separation; without: all of it."""
+    decision period). Default with the filter: a share of the separation; without: all of it."""
     told = {
-        GuidanceConfig(): 1.0,
-        GuidanceConfig(separation_m=6.0): 2.0,
+        GuidanceConfig(): 3.0 * FILTERED_BERTH_SHARE,
+        GuidanceConfig(separation_m=6.0): 6.0 * FILTERED_BERTH_SHARE,
         GuidanceConfig(safety_filter=False): 3.0,
         GuidanceConfig(policy_separation_m=2.0): 2.0,
         GuidanceConfig(policy_separation_m=2.0, safety_filter=False): 2.0,
     }
     for cfg, told_m in told.items():
         g = Guidance(cfg)
-        assert cfg.told_separation_m == told_m
+        assert cfg.told_separation_m == pytest.approx(told_m)
         assert g.policy.dist_scale_m == pytest.approx(told_m / 3.0)
         assert g.safety_cfg.radius_m == cfg.separation_m
         assert g.decision_period_s == pytest.approx(cfg.separation_m / 3.0)

@@ -39,13 +39,15 @@ def test_agent_tells_the_policy_the_berth_it_was_given(capsys) -> None:
     """--policy-separation-m reaches the agent's guidance (the filter keeps --separation-m); a
     berth that is not a positive number is refused in one line."""
     from agent import agent_cli as cli
+    from policy.runtime import FILTERED_BERTH_SHARE
 
     args = cli.parser().parse_args(["--id", "3", "--policy-separation-m", "1.5"])
     guidance = cli.config_from_args(args).guidance
     assert guidance.policy_separation_m == 1.5 and guidance.separation_m == 3.0
     assert guidance.load_policy().dist_scale_m == pytest.approx(0.5)
     default = cli.config_from_args(cli.parser().parse_args(["--id", "3"])).guidance
-    assert default.policy_separation_m is None and default.told_separation_m == 1.0
+    assert default.policy_separation_m is None
+    assert default.told_separation_m == pytest.approx(3.0 * FILTERED_BERTH_SHARE)
     line = _refused(cli.cli, ["--id", "1", "--policy-separation-m", "0"], capsys)
     assert "policy_separation_m must be a positive number" in line, line
 

@@ -217,7 +217,7 @@ def test_policy_separation_scales_the_network_not_the_filter():
 def test_told_separation_in_c_is_the_runtimes(cpol):
     """covey_told_separation_m (the PX4 module's CVY_POL_SEP_M, 0 = default) is
     policy.runtime.told_separation_m (None = default): one rule for the berth, in C and Python."""
-    from policy.runtime import told_separation_m
+    from policy.runtime import FILTERED_BERTH_SHARE, told_separation_m
 
     told = cpol._lib.covey_told_separation_m
     for sep in (0.5, 3.0, 7.5):
@@ -225,5 +225,7 @@ def test_told_separation_in_c_is_the_runtimes(cpol):
             for asked in (None, 0.8, 4.0):
                 c = told(sep, filt, 0.0 if asked is None else asked)
                 assert c == pytest.approx(told_separation_m(sep, bool(filt), asked), rel=1e-6)
-    assert told(3.0, 1, 0.0) == pytest.approx(1.0) and told(3.0, 0, 0.0) == 3.0
+    assert (
+        told(3.0, 1, 0.0) == pytest.approx(3.0 * FILTERED_BERTH_SHARE) and told(3.0, 0, 0.0) == 3.0
+    )
     assert np.isnan(told(3.0, 1, float("nan")))  # passed on for covey_config_check to refuse

@@ -15,6 +15,7 @@ from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
+from policy.runtime import FILTERED_BERTH_SHARE
 
 N = 20
 IDS = tuple(range(101, 101 + N))
@@ -209,7 +210,7 @@ def test_fleet_tells_the_policy_its_berth_and_filters_at_the_separation() -> Non
     """--policy-separation-m reaches the fleet's network; the filter keeps --separation-m."""
     args = parser().parse_args(["--policy-separation-m", "2.5"])
     assert args.policy_separation_m == 2.5 and parser().parse_args([]).policy_separation_m is None
-    for ps, told_m in ((None, 1.0), (2.5, 2.5)):
+    for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (2.5, 2.5)):
         cfg = FleetSimConfig(
             vehicles=2,
             first_id=7,

@@ -273,17 +273,18 @@ def test_c_onboard_tick_decides_at_the_trained_period_and_filters_every_tick() -
 
 
 def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation() -> None:
-    """The emulator's onboard mode tells the C network policy_separation_m (default: a third of
+    """The emulator's onboard mode tells the C network policy_separation_m (default: a share of
     the separation, as the agents fly); the C filter and the decision period keep separation_m."""
     c_policy_or_skip()
     from firmware.cpolicy import CPolicy
     from firmware.sitl.config import SitlConfig
     from firmware.sitl.emulator import Emulator
     from firmware.sitl.sitl_cli import config_from_args
+    from policy.runtime import FILTERED_BERTH_SHARE
 
     assert config_from_args(["--onboard", "--policy-separation-m", "2"]).policy_separation_m == 2.0
     scene = ([0.0, 0.0], [1.0, 0.0], 0.0, [30.0, 0.0], [[8.0, 0.5]], [[-1.0, 0.0]], [math.pi])
-    for ps, told_m in ((None, 1.0), (2.0, 2.0)):
+    for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (2.0, 2.0)):
         link = f"udpin:127.0.0.1:{free_udp_port()}"
         with Emulator(SitlConfig(onboard=True, policy_separation_m=ps, links=(link,))) as emu:
             guidance = emu.vehicle.guidance

@@ -29,7 +29,7 @@ class SitlConfig:
     """Separation the onboard guidance keeps (its C filter); the decision period scales with it."""
     policy_separation_m: float | None = None
     """Separation the onboard policy is told to keep (it was trained for 3 m; distances scale by
-    this / 3). None: a third of separation_m, the filter keeps the rest, as the agents fly
+    this / 3). None: 1.25 m per 3 m of separation_m, the filter keeps the rest, as the agents fly
     (policy.runtime.told_separation_m)."""
     policy_speed_m_s: float = 1.0
     """Onboard policy cruise speed (the policy's unit speed)."""
