@@ -27,7 +27,7 @@ FILTERED_BERTH_SHARE = 1.25 / 3.0
 """With the separation filter on, flight tells the policy this share of the separation (3 m ->
 1.25 m), unless told otherwise: the network then keeps a narrower berth than the paper's and
 leaves the separation itself to the filter. Chosen on seeds the repository had not used
-(docs/policy.md, "The policy's berth"): conflicts 1.25 -> 1.09-1.10 extra time, large swarms
+(docs/policy.md, "The policy's berth"): conflicts 1.25 -> 1.09-1.11 extra time, large swarms
 1.13 -> 1.05, 0 collisions and 100 % success on both links; told 1 m, a circle of 16 deadlocked
 once on the degraded link."""
 
