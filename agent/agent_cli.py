@@ -28,6 +28,7 @@ from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
 from comms.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
 from comms.cli_options import (
+    add_config_flags,
     add_mesh_args,
     die,
     floats,
@@ -77,7 +78,13 @@ def _start_ne(text: str) -> tuple[float, ...]:
     return ne
 
 
-GUIDANCE_FLAGS = ("policy", "no_safety_filter", "decision_period_s", "trace_guidance")
+GUIDANCE_FLAGS = (
+    "policy",
+    "no_safety_filter",
+    "decision_period_s",
+    "trace_guidance",
+    "policy_separation_m",
+)
 """Flags for the agent's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
 HOST_FLAGS = ("spacing_m", "max_neighbours", "no_see_others")
 """Flags of the multi-vehicle host (--ids) only."""
@@ -135,6 +142,7 @@ def add_flight_args(
         "trained period, 1 s x separation/3 / cruise speed; 0: every tick)",
     )
     p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
+    add_config_flags(p, GuidanceConfig, only=("policy_separation_m",))
     p.add_argument(
         "--geofence-radius-m",
         type=float,
@@ -184,6 +192,7 @@ def guidance_from_args(args: argparse.Namespace) -> GuidanceConfig:
         safety_filter=not args.no_safety_filter,
         policy_path=args.policy,
         decision_period_s=args.decision_period_s,
+        policy_separation_m=args.policy_separation_m,
     )
 
 

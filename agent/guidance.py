@@ -25,7 +25,7 @@ import numpy as np
 from agent.neighbours import NeighbourSnapshot
 from comms.scope import ScopeConfig
 from policy import safety
-from policy.runtime import GuidancePolicy
+from policy.runtime import GuidancePolicy, told_separation_m
 
 DECISION_DUE_SHARE = 0.95
 """A decision is due once this share of the decision period has passed (tick jitter must not
@@ -59,6 +59,10 @@ class GuidanceConfig:
     own period, as trained; 0: decide every tick (jerkier tracks, see docs/policy.md)."""
     max_neighbours: int | None = None
     """Nearest neighbours each decision sees; None: every neighbour within the sense range."""
+    policy_separation_m: float | None = None
+    """Separation the policy is told to keep, its distance scale; the filter still keeps the
+    whole separation. None: 1.25 m per 3 m of separation with the filter on (a narrower berth,
+    measured in docs/policy.md), the whole separation with it off (policy.runtime.told_separation_m)."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "cruise_speed_m_s", "arrive_radius_m"):
@@ -70,11 +74,20 @@ class GuidanceConfig:
             raise ValueError(f"decision_period_s must be within 0..10 s (or None), got {p}")
         if self.max_neighbours is not None and self.max_neighbours < 0:
             raise ValueError(f"max_neighbours must be >= 0 or None, got {self.max_neighbours}")
+        ps = self.policy_separation_m
+        if ps is not None and not (math.isfinite(ps) and ps > 0):
+            raise ValueError(f"policy_separation_m must be a positive number (or None), got {ps}")
+
+    @property
+    def told_separation_m(self) -> float:
+        """The separation the policy is told (policy.runtime.told_separation_m)."""
+        return told_separation_m(self.separation_m, self.safety_filter, self.policy_separation_m)
 
     def scope(self, base: ScopeConfig) -> ScopeConfig:
         """`base` widened to what this guidance needs to hear (comms/scope.py): its separation;
         the safety filter's reach, r (1 + margin) + 2 v tau, and the stale-caution radius
-        within the sense range; its own cruise speed within the fleet's top speed."""
+        within the sense range; its own cruise speed within the fleet's top speed. The policy's
+        berth (policy_separation_m) does not narrow it: the filter keeps separation_m."""
         f = safety.SafetyConfig()
         filter_reach_m = (
             self.separation_m * (1.0 + f.margin) + 2.0 * self.cruise_speed_m_s * f.time_horizon_s
@@ -87,10 +100,12 @@ class GuidanceConfig:
         )
 
     def load_policy(self) -> GuidancePolicy:
-        """The policy this configuration flies (unfiltered: guidance filters, to see when)."""
+        """The policy this configuration flies (unfiltered: guidance filters, to see when), told
+        `told_separation_m`; its filter settings keep separation_m."""
         return GuidancePolicy.load(
             self.policy_path,
             separation_m=self.separation_m,
+            policy_separation_m=self.told_separation_m,
             cruise_speed_m_s=self.cruise_speed_m_s,
             safety_filter=False,
             max_neighbours=self.max_neighbours,

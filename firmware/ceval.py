@@ -67,11 +67,12 @@ def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
     """The `c+filter` controller: the C policy with the C filter at policy+filter's settings
     (`safety_cfg`, policy.safety.SafetyConfig: it keeps 3 m, as policy+filter does)."""
     from firmware.cpolicy import CPolicy
+    from policy.runtime import told_separation_m
 
     cpol = CPolicy.load(
         cfg.weights,
         separation_m=safety_cfg.radius_m,
-        policy_separation_m=cfg.policy_separation_m,
+        policy_separation_m=told_separation_m(safety_cfg.radius_m, True, cfg.policy_separation_m),
         max_neighbours=cfg.max_neighbours,
         safety_cfg=safety_cfg,
     )

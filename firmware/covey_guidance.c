@@ -19,6 +19,14 @@ float covey_trained_period_s(const covey_config_t *cfg)
     return COVEY_W_DT * (cfg->separation_m / 3.0f) / cfg->cruise_speed_m_s;
 }
 
+float covey_told_separation_m(float separation_m, int32_t safety_filter, float asked_m)
+{
+    if (asked_m != 0.0f) {
+        return asked_m;
+    }
+    return safety_filter ? separation_m * COVEY_FILTERED_BERTH_SHARE : separation_m;
+}
+
 covey_guidance_config_t covey_guidance_defaults(const covey_config_t *policy)
 {
     covey_guidance_config_t g;

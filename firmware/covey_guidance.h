@@ -53,6 +53,19 @@ typedef struct {
     covey_safety_out_t filter;  /* the filter's result (n_lines = 0 when off) */
 } covey_guidance_out_t;
 
+/* With the filter on and no berth asked for, the policy is told this share of
+ * the separation: it keeps a narrower berth than the paper's and the filter
+ * keeps the separation (policy/runtime.py FILTERED_BERTH_SHARE, docs/policy.md). */
+#define COVEY_FILTERED_BERTH_SHARE (1.25f / 3.0f)
+
+/* The separation to tell the policy (covey_config_t.separation_m) while the
+ * filter keeps separation_m: asked_m unless it is 0; for 0, separation_m x
+ * COVEY_FILTERED_BERTH_SHARE with the filter on and separation_m with it off
+ * (alone, the policy keeps the separation itself). Anything else asked (NaN,
+ * negative) is passed on for covey_config_check to refuse. The twin of
+ * policy/runtime.py told_separation_m (None there = 0 here). */
+float covey_told_separation_m(float separation_m, int32_t safety_filter, float asked_m);
+
 /* The trained decision period in seconds: dt (1 policy unit of time, from the
  * weights header) times (separation / 3) / cruise speed. */
 float covey_trained_period_s(const covey_config_t *cfg);

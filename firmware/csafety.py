@@ -155,6 +155,8 @@ def bind(lib: ctypes.CDLL) -> None:
     lib.covey_safety_scratch_bytes.argtypes = []
     lib.covey_guidance_scratch_bytes.restype = ctypes.c_uint32
     lib.covey_guidance_scratch_bytes.argtypes = []
+    lib.covey_told_separation_m.restype = ctypes.c_float
+    lib.covey_told_separation_m.argtypes = [ctypes.c_float, ctypes.c_int32, ctypes.c_float]
     lib.covey_trained_period_s.restype = ctypes.c_float
     lib.covey_trained_period_s.argtypes = [ctypes.POINTER(ConfigC)]
     lib.covey_guidance_step.restype = ctypes.c_int

@@ -55,9 +55,10 @@ class EvalConfig:
     """Optional trainer checkpoint (.pt) of the occupancy-map baseline (needs torch)."""
     max_neighbours: int = 10
     """Nearest neighbours fed to the learned policies."""
-    policy_separation_m: float = 3.0
-    """Separation the learned policies are told to keep (> 3 adds a margin; collisions
-    are still counted below 3 m)."""
+    policy_separation_m: float | None = None
+    """Separation the learned policies are told to keep (collisions are still counted below
+    3 m). None: as flight tells them (policy.runtime.told_separation_m): 1.25 m with a filter
+    (policy+filter, c+filter), 3 m without."""
     quick: bool = False
     """Small smoke suite."""
     seed: int = 0
@@ -68,6 +69,9 @@ class EvalConfig:
     """Simulation step (links, safety filter, collision checks)."""
     policy_period_s: float = 1.0
     """Learned policies decide every period (their training step) and hold in between."""
+    dead_reckon: bool = True
+    """Receivers dead-reckon neighbours' last states to now, as the agents do (degraded link;
+    --no-dead-reckon: use them as they came, the evaluation before issue 16's step 3)."""
     figures: bool = True
     """Write trajectory PNGs and the Fig. 5 maps."""
     progress: bool = True
@@ -109,7 +113,7 @@ SafetyConfig that policy+filter flies with."""
 def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None = None) -> dict:
     """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid).
     `extra` controllers are built only when cfg.controllers names them."""
-    from policy.runtime import GuidancePolicy
+    from policy.runtime import GuidancePolicy, told_separation_m
     from policy.safety import SafetyConfig, filter_padded
 
     safety_cfg = SafetyConfig(dt_s=cfg.dt_s)
@@ -123,7 +127,10 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             continue
         pol = GuidancePolicy.load(
             path,
-            separation_m=cfg.policy_separation_m,
+            separation_m=safety_cfg.radius_m,
+            policy_separation_m=told_separation_m(
+                safety_cfg.radius_m, filt, cfg.policy_separation_m
+            ),
             safety_filter=False,
             max_neighbours=cfg.max_neighbours,
         )
@@ -277,7 +284,7 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
         record = (
             cfg.figures and link == "perfect" and case in ("circle-16", "circle-8", "large-35-s0")
         )
-        sim_cfg = EvalSimConfig(dt_s=cfg.dt_s, record=record)
+        sim_cfg = EvalSimConfig(dt_s=cfg.dt_s, record=record, dead_reckon=cfg.dead_reckon)
         rng = np.random.default_rng([cfg.seed, len(rows)])
         if hasattr(ctrls[name], "reset"):
             ctrls[name].reset()

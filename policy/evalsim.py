@@ -4,7 +4,8 @@ Point masses fly the commanded velocity (Euler, dt_s); heading is the direction 
 the last displacement, at the start the goal. Each vehicle knows itself exactly
 and the others only through what the link delivered: broadcasts at `rate_hz`
 (random phase), each copy lost with probability `loss`, delivered `latency_s`
-later. Vehicles leave on arrival and on collision (as in training); a departed
+later. Like the agents' neighbour tables (agent/neighbours.py), a receiver dead-reckons the last
+state it got to now at that state's velocity, from when it got it (`dead_reckon`). Vehicles leave on arrival and on collision (as in training); a departed
 vehicle is known to have left (presence tokens), so it is no longer avoided.
 """
 
@@ -66,6 +67,9 @@ class EvalSimConfig:
     """A vehicle times out after time_factor x its straight-line time."""
     record: bool = False
     """Keep the trajectories (for plots)."""
+    dead_reckon: bool = True
+    """Receivers extrapolate each neighbour's last delivered state to now, p + v (t - t_rx), as
+    the agents do (agent/neighbours.py); False: they use it as it came (staler on a slow link)."""
 
 
 # controller(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid) -> vel (N, 2)
@@ -110,6 +114,7 @@ def run(
         np.zeros((n, n, 2)),
         np.broadcast_to(heading, (n, n)).copy(),
     )
+    k_rx = np.zeros((n, n))  # when receiver i got sender j's state
     phase = rng.uniform(0, 1.0 / link.rate_hz, n) if not link.perfect else np.zeros(n)
     next_tx = phase.copy()
     pending: list = []  # (deliver_at, sender, receivers mask, pos, vel, heading)
@@ -135,10 +140,13 @@ def run(
                 if msg[0] <= t + 1e-9:
                     _, j, recv, p, v, h = msg
                     k_pos[recv, j], k_vel[recv, j], k_head[recv, j] = p, v, h
+                    k_rx[recv, j] = t
                 else:
                     keep.append(msg)
             pending = keep
             nbr_pos, nbr_vel, nbr_head = k_pos, k_vel, k_head
+            if cfg.dead_reckon:
+                nbr_pos = k_pos + k_vel * (t - k_rx)[..., None]
         valid = active[None, :] & active[:, None] & ~eye
         idx = np.flatnonzero(active)
         v = np.zeros((n, 2))

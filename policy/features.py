@@ -142,21 +142,24 @@ def observe_fast(
         return observe(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg, max_neighbours)
     z = (nbr_pos - pos).view(np.complex128)[:, 0]
     d = np.abs(z)
-    if d.shape[0] and not d.min() > 0.0:
-        return observe(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg, max_neighbours)
-    if cfg.order == "closest_last" and (max_neighbours is None or d.shape[0] <= max_neighbours):
+    k = d.shape[0]
+    if cfg.order == "closest_last" and (max_neighbours is None or k <= max_neighbours):
         # one stable sort by decreasing distance; the sense range cut keeps that order
         idx = np.argsort(-d, kind="stable")
+        if k and not d[idx[-1]] > 0.0:  # the nearest (a NaN sorts last too)
+            return observe(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg, max_neighbours)
         if cfg.sense_range > 0:
             idx = idx[d[idx] <= cfg.sense_range]
     else:
+        if k and not d.min() > 0.0:
+            return observe(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg, max_neighbours)
         idx = select_order(d, cfg, max_neighbours)
     d, z = d[idx], z[idx]
     u = z / d
     seq = np.empty((idx.shape[0], 5))
     seq[:, 0] = d / cfg.dist_scale
     h = float(heading_rad)
-    e_ij = u * complex(np.cos(h), -np.sin(h))
+    e_ij = u * complex(math.cos(h), -math.sin(h))
     e_ji = np.exp(1j * np.asarray(nbr_heading_rad, dtype=np.float64)[idx]) * u.conj()
     # columns 2, 1 <- (real, imag) = (cos, sin); 4, 3 likewise, e_ji negated
     seq[:, 2:0:-1] = e_ij.view(np.float64).reshape(-1, 2)

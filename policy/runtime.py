@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -20,6 +21,28 @@ from policy import features, safety
 from policy.features import ObsConfig
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
+
+
+FILTERED_BERTH_SHARE = 1.25 / 3.0
+"""With the separation filter on, flight tells the policy this share of the separation (3 m ->
+1.25 m), unless told otherwise: the network then keeps a narrower berth than the paper's and
+leaves the separation itself to the filter. Chosen on seeds the repository had not used
+(docs/policy.md, "The policy's berth"): conflicts 1.25 -> 1.09-1.11 extra time, large swarms
+1.13 -> 1.05, 0 collisions and 100 % success on both links; told 1 m, a circle of 16 deadlocked
+once on the degraded link."""
+
+
+def told_separation_m(
+    separation_m: float, safety_filter: bool, policy_separation_m: float | None = None
+) -> float:
+    """The separation flight tells the policy (its distance scale): `policy_separation_m` when
+    given; else FILTERED_BERTH_SHARE x separation_m with the filter on, and separation_m without
+    it (alone, the policy keeps the separation itself). The filter always keeps separation_m.
+    One rule for the agents, fleet-sim, `covey eval` and the emulator's onboard C mode;
+    firmware/covey_guidance.c covey_told_separation_m is its C twin (parity tested)."""
+    if policy_separation_m is not None:
+        return float(policy_separation_m)
+    return float(separation_m) * (FILTERED_BERTH_SHARE if safety_filter else 1.0)
 
 
 @dataclass(frozen=True)
@@ -72,54 +95,106 @@ class Network:
     def __post_init__(self) -> None:
         hs = self.hidden
         # fast path (lstm_last): gate columns reordered to (o, i, f, g), float32, the recurrent
-        # rows halved because the loop carries h2 = 2h; see lstm_last
+        # rows halved because the loop carries h2 = 2h; the bias is the input projection's
+        # last row (inputs get a constant 1); see lstm_last
         perm = np.r_[2 * hs : 3 * hs, 0 : 2 * hs, 3 * hs : 4 * hs]
-        object.__setattr__(self, "_w_ih_t32", self.w_ih.T[:, perm].astype(np.float32).copy())
-        object.__setattr__(self, "_b32", self.bias[perm].astype(np.float32))
+        w_ib = np.vstack([self.w_ih.T[:, perm], self.bias[perm]]).astype(np.float32)
+        object.__setattr__(self, "_w_ib32", w_ib)
         object.__setattr__(self, "_w_hh_half32", (0.5 * self.w_hh_t[:, perm]).astype(np.float32))
+        # fast path (forward_one): each head layer as [W | b], its input ending in a constant 1
+        object.__setattr__(
+            self, "_head_wb", tuple(np.hstack([w, b[:, None]]) for w, b in self.head)
+        )
+        object.__setattr__(self, "_scratch", threading.local())
+
+    def _lstm_scratch(self, n: int) -> tuple:
+        """This thread's buffers for sequences up to n long (grown on demand): W = [W_hh / 2;
+        XP rows], the input rows with their constant 1, and the step buffers."""
+        s = self._scratch
+        have = getattr(s, "rows", None)
+        if have is None or have < n:
+            hs, x_n = self.hidden, self._w_ib32.shape[0]
+            rows = max(n, 2 * (have or 0), 32)
+            s.rows = rows
+            s.w = np.zeros((hs + rows, 4 * hs), np.float32)
+            s.w[:hs] = self._w_hh_half32
+            s.x = np.ones((rows, x_n), np.float32)
+            s.haug = np.zeros(hs + rows, np.float32)
+            s.buf = np.zeros(5 * hs, np.float32)
+            s.prod = np.zeros(2 * hs, np.float32)
+            s.th = np.zeros(hs, np.float32)
+            s.ones = np.ones(3 * hs, np.float32)
+            s.halves = np.full(2, 0.5, np.float32)
+            # head inputs (each ending in 1, for the bias) and its output
+            s.z = [np.ones(wb.shape[1]) for wb in self._head_wb] + [np.zeros(self.head[-1][1].size)]
+        return s.w, s.x, s.haug, s.buf, s.prod, s.th, s.ones, s.halves
 
     def lstm_last(self, seq: np.ndarray) -> np.ndarray:
-        """Final hidden state of one sequence (L, X) -> (H,); zeros when L = 0.
+        """Final hidden state of one sequence (L, X) -> (H,); zeros when L = 0 (`_lstm_h2`)."""
+        h2 = self._lstm_h2(seq)
+        return np.zeros(self.hidden) if h2 is None else 0.5 * h2.astype(np.float64)
+
+    def forward_one(self, seq: np.ndarray, goal_feat: np.ndarray) -> tuple[float, float]:
+        """Unclipped head output of one sequence (L, X) and its goal features (G,): the fast
+        path of head_forward(lstm_last(seq), goal_feat), equal within 1e-5. The head runs in
+        float64 on this thread's buffers, two numpy calls a layer: z' = tanh([W | b] [z; 1])."""
+        h2 = self._lstm_h2(seq)
+        z = self._scratch.z  # set up by _lstm_h2 (any length)
+        hs = self.hidden
+        z0 = z[0]
+        if h2 is None:
+            z0[:hs] = 0.0
+        else:
+            np.multiply(h2, 0.5, z0[:hs])
+            np.tanh(z0[:hs], z0[:hs])
+        z0[hs:-1] = goal_feat
+        last = len(self._head_wb) - 1
+        for k, wb in enumerate(self._head_wb):
+            out = z[k + 1] if k == last else z[k + 1][:-1]
+            np.dot(wb, z[k], out)
+            np.tanh(out, out)
+        a = z[-1]
+        return float(a[0]), float(a[1])
+
+    def _lstm_h2(self, seq: np.ndarray) -> np.ndarray | None:
+        """2 x the final hidden state of one sequence (L, X), float32, in this thread's scratch
+        (valid until its next call); None when L = 0.
 
         The fast path of `lstm_last_reference` (equal within 1e-5, tests/test_policy_speed.py),
-        float32 like torch. Per step it makes 8 numpy calls on one buffer B = [o, i, f, g, c]:
-          B[:4H] = [h2, e_t] @ [W_hh / 2; XP]   (XP = X W_ih^T + b for all steps at once,
+        float32 like torch. Per step it makes 7 numpy calls on one buffer B = [o, i, f, g, c]:
+          B[:4H] = [h2, e_t] @ [W_hh / 2; XP]   (XP = [X, 1] [W_ih^T; b] for all steps at once,
                                                 e_t one-hot: the input projection is a row)
           B[:4H] = tanh(B[:4H]);  B[:3H] += 1   (2 sigma(x) = 1 + tanh(x / 2))
           P = B[H:3H] * B[3H:5H]                ([2 s_i g, 2 s_f c])
-          c = (P[:H] + P[H:]) / 2;  h2 = (1 + tanh o) tanh(c) = 2 h
+          c = [1/2, 1/2] @ [P[:H]; P[H:]];  h2 = (1 + tanh o) tanh(c) = 2 h
+        Scalars come as arrays (a Python float operand costs a conversion per call).
         """
         hs = self.hidden
         n = seq.shape[0]
-        if n == 0:
-            return np.zeros(hs)
-        # the input projection of every neighbour in one matmul: (L, X) @ (X, 4H)
-        xp = np.asarray(seq, dtype=np.float32) @ self._w_ih_t32
-        xp += self._b32
-        w = np.concatenate([self._w_hh_half32, xp])  # (H + L, 4H)
-        haug = np.zeros(hs + n, np.float32)  # [h2, e_t]
+        w_all, x, haug_all, buf, prod, th, ones, halves = self._lstm_scratch(n)
+        # the input projection of every neighbour in one matmul: (L, X + 1) @ (X + 1, 4H)
+        x[:n, :-1] = seq
+        w = w_all[: hs + n]
+        np.dot(x[:n], self._w_ib32, w[hs:])
+        haug = haug_all[: hs + n]  # [h2, e_t]
+        haug[:] = 0.0
         h2 = haug[:hs]
-        buf = np.zeros(5 * hs, np.float32)
+        buf[4 * hs :] = 0.0  # c
         gates, sig, pair, c = buf[: 4 * hs], buf[: 3 * hs], buf[hs : 3 * hs], buf[4 * hs :]
-        tail = buf[3 * hs :]
-        prod = np.empty(2 * hs, np.float32)
-        lo, hi = prod[:hs], prod[hs:]
-        th = np.empty(hs, np.float32)
-        o_gate = buf[:hs]
+        tail, o_gate, prod2 = buf[3 * hs :], buf[:hs], prod.reshape(2, hs)
         dot, tanh, mul, add = np.dot, np.tanh, np.multiply, np.add
-        for t in range(n):
-            haug[hs + t] = 1.0
-            if t:
-                haug[hs + t - 1] = 0.0
-            dot(haug, w, out=gates)
-            tanh(gates, out=gates)
-            sig += 1.0
-            mul(pair, tail, out=prod)
-            add(lo, hi, out=c)
-            c *= 0.5
-            tanh(c, out=th)
-            mul(th, o_gate, out=h2)
-        return 0.5 * h2.astype(np.float64)
+        for t in range(hs, hs + n):
+            haug[t] = 1.0
+            if t > hs:
+                haug[t - 1] = 0.0
+            dot(haug, w, gates)
+            tanh(gates, gates)
+            add(sig, ones, sig)
+            mul(pair, tail, prod)
+            dot(halves, prod2, c)
+            tanh(c, th)
+            mul(th, o_gate, h2)
+        return h2 if n else None
 
     def lstm_last_reference(self, seq: np.ndarray) -> np.ndarray:
         """Final hidden state of one sequence (L, X) -> (H,), float64, one step at a time."""
@@ -185,19 +260,25 @@ def _finite(**arrays) -> None:
                 raise ValueError(f"{name} must be finite, got {a!r}")
 
 
+_F64 = np.dtype(np.float64)
+
+
 def _check(name: str, x, shape: tuple, finite: bool = True) -> np.ndarray:
     """Array of the given shape (-1 = any length), finite (unless `finite` is False: the
     caller checks with `_finite`), or a ValueError saying which."""
-    if type(x) is np.ndarray and x.dtype == np.float64:
+    if type(x) is np.ndarray and x.dtype is _F64:
         a = x  # the common case, without asarray's dispatch
     else:
         try:
             a = np.asarray(x, dtype=np.float64)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{name} must be numeric, got {type(x).__name__}") from e
-    if a.ndim != len(shape) or any(s != -1 and s != d for s, d in zip(shape, a.shape, strict=True)):
+    got = a.shape
+    if got != shape and (
+        len(got) != len(shape) or any(s != -1 and s != d for s, d in zip(shape, got, strict=True))
+    ):
         want = "(" + ", ".join("K" if s == -1 else str(s) for s in shape) + ")"
-        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+        raise ValueError(f"{name} must have shape {want}, got {got}")
     if finite and not np.isfinite(a).all():
         raise ValueError(f"{name} must be finite, got {a!r}")
     return a
@@ -313,16 +394,12 @@ class GuidancePolicy:
     def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
         """Raw network action (a_fwd, a_right), clipped to |a| <= 1; inputs in policy units.
 
-        The fast path (features.observe_fast, Network.lstm_last in float32) of
+        The fast path (features.observe_fast, Network.forward_one: the LSTM in float32) of
         `action_reference`, equal within 1e-5 (tests/test_policy_speed.py)."""
         seq, goal_feat, _ = features.observe_fast(
             pos, heading_rad, goal, nbr_pos, nbr_heading_rad, self.obs_cfg, self.max_neighbours
         )
-        z = np.tanh(self.net.lstm_last(seq))
-        z = np.concatenate([z, goal_feat])
-        for w, b in self.net.head:
-            z = np.tanh(w @ z + b)
-        a0, a1 = float(z[0]), float(z[1])
+        a0, a1 = self.net.forward_one(seq, goal_feat)
         n = math.hypot(a0, a1)
         return np.array([a0 / n, a1 / n]) if n > 1.0 else np.array([a0, a1])
 
@@ -354,7 +431,12 @@ class GuidancePolicy:
         """Velocity command (2,) in m/s (north, east) for one vehicle."""
         pos_m = _check("pos_m", pos_m, (2,), finite=False)
         vel_m_s = _check("vel_m_s", vel_m_s, (2,), finite=False)
-        heading_a = _check("heading_rad", heading_rad, (), finite=False)
+        if type(heading_rad) is float:  # the common case, without an array
+            heading = heading_rad
+        else:
+            heading = float(_check("heading_rad", heading_rad, (), finite=False))
+        if not math.isfinite(heading):
+            raise ValueError(f"heading_rad must be finite, got {heading!r}")
         goal_m = _check("goal_m", goal_m, (2,), finite=False)
         nbr_pos_m = _check("nbr_pos_m", nbr_pos_m, (-1, 2), finite=False)
         k = nbr_pos_m.shape[0]
@@ -363,13 +445,11 @@ class GuidancePolicy:
         _finite(
             pos_m=pos_m,
             vel_m_s=vel_m_s,
-            heading_rad=heading_a,
             goal_m=goal_m,
             nbr_pos_m=nbr_pos_m,
             nbr_vel_m_s=nbr_vel_m_s,
             nbr_heading_rad=nbr_heading,
         )
-        heading = float(heading_a)
         s = self.dist_scale_m
         a = self.action(pos_m / s, heading, goal_m / s, nbr_pos_m / s, nbr_heading)
         # body (fwd, right) -> (north, east), times the cruise speed

@@ -9,16 +9,18 @@ import pytest
 
 from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourSnapshot
+from comms.scope import ScopeConfig
+from policy.runtime import FILTERED_BERTH_SHARE, GuidancePolicy
 
 GOAL = np.array([20.0, 0.0, -5.0])
 
 
-def snapshot(pos_ne_m=(), vel_ne_m_s=()) -> NeighbourSnapshot:
+def snapshot(pos_ne_m=(), vel_ne_m_s=(), heading_rad=None) -> NeighbourSnapshot:
     k = len(pos_ne_m)
     return NeighbourSnapshot(
         pos_ned_m=np.array([[*p, -5.0] for p in pos_ne_m]).reshape(k, 3),
         vel_ned_m_s=np.array([[*v, 0.0] for v in vel_ne_m_s]).reshape(k, 3),
-        heading_rad=np.zeros(k),
+        heading_rad=np.zeros(k) if heading_rad is None else np.asarray(heading_rad, float),
         ids=tuple(range(2, 2 + k)),
         age_s=np.zeros(k),
         stale_ids=(),
@@ -95,3 +97,45 @@ def test_bad_period_is_refused():
     for bad in (-1.0, math.nan, 11.0):
         with pytest.raises(ValueError, match="decision_period_s"):
             GuidanceConfig(decision_period_s=bad)
+
+
+def test_the_policy_is_told_a_narrower_berth_and_the_filter_keeps_the_separation():
+    """policy_separation_m: the network's distance scale, not the filter's radius (nor the
+    decision period). Default with the filter: a share of the separation; without: all of it."""
+    told = {
+        GuidanceConfig(): 3.0 * FILTERED_BERTH_SHARE,
+        GuidanceConfig(separation_m=6.0): 6.0 * FILTERED_BERTH_SHARE,
+        GuidanceConfig(safety_filter=False): 3.0,
+        GuidanceConfig(policy_separation_m=2.0): 2.0,
+        GuidanceConfig(policy_separation_m=2.0, safety_filter=False): 2.0,
+    }
+    for cfg, told_m in told.items():
+        g = Guidance(cfg)
+        assert cfg.told_separation_m == pytest.approx(told_m)
+        assert g.policy.dist_scale_m == pytest.approx(told_m / 3.0)
+        assert g.safety_cfg.radius_m == cfg.separation_m
+        assert g.decision_period_s == pytest.approx(cfg.separation_m / 3.0)
+    # what the network decides is what a policy told 1 m decides, not one told 3 m
+    pos, vel = np.array([0.0, 0.0, -5.0]), np.array([1.0, 0.0, 0.0])
+    nbrs = snapshot([(8.0, 0.5)], [(-1.0, 0.0)], [math.pi])  # head-on, 8 m ahead
+    out = Guidance(GuidanceConfig(safety_filter=False)).goto(pos, vel, 0.0, GOAL, nbrs, now_s=0.0)
+    narrow = Guidance(GuidanceConfig(policy_separation_m=1.0, safety_filter=False))
+    held = narrow.goto(pos, vel, 0.0, GOAL, nbrs, now_s=0.0).vel_ned_m_s[:2]
+    args = (pos[:2], vel[:2], 0.0, GOAL[:2], [[8.0, 0.5]], [[-1.0, 0.0]], [math.pi])
+    told_1m = GuidancePolicy.load(separation_m=3.0, policy_separation_m=1.0, safety_filter=False)
+    np.testing.assert_allclose(held, told_1m.command(*args), atol=1e-12)
+    # told 3 m it turns away early (east velocity -0.50 m/s); told 1 m it keeps on (-0.18)
+    assert held[1] > out.vel_ned_m_s[1] + 0.2
+
+
+def test_the_policys_berth_does_not_narrow_what_guidance_hears():
+    base = ScopeConfig()
+    wide = GuidanceConfig(safety_filter=True, policy_separation_m=3.0).scope(base)
+    for ps in (None, 0.5, 1.0):
+        assert GuidanceConfig(policy_separation_m=ps).scope(base) == wide
+
+
+def test_bad_policy_separation_is_refused():
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="policy_separation_m"):
+            GuidanceConfig(policy_separation_m=bad)

@@ -25,12 +25,31 @@ def test_cmd_says_a_non_finite_coordinate_is_the_problem(bad, capsys) -> None:
 
 
 # -- a flag that is accepted is used, or refused with the reason -------------------------------
+
+
 def _refused(fn, argv, capsys) -> str:
     with pytest.raises(SystemExit) as exc:
         fn(argv)
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "Traceback" not in err, err
     return err.strip().splitlines()[-1]
+
+
+def test_agent_tells_the_policy_the_berth_it_was_given(capsys) -> None:
+    """--policy-separation-m reaches the agent's guidance (the filter keeps --separation-m); a
+    berth that is not a positive number is refused in one line."""
+    from agent import agent_cli as cli
+    from policy.runtime import FILTERED_BERTH_SHARE
+
+    args = cli.parser().parse_args(["--id", "3", "--policy-separation-m", "1.5"])
+    guidance = cli.config_from_args(args).guidance
+    assert guidance.policy_separation_m == 1.5 and guidance.separation_m == 3.0
+    assert guidance.load_policy().dist_scale_m == pytest.approx(0.5)
+    default = cli.config_from_args(cli.parser().parse_args(["--id", "3"])).guidance
+    assert default.policy_separation_m is None
+    assert default.told_separation_m == pytest.approx(3.0 * FILTERED_BERTH_SHARE)
+    line = _refused(cli.cli, ["--id", "1", "--policy-separation-m", "0"], capsys)
+    assert "policy_separation_m must be a positive number" in line, line
 
 
 def test_record_refuses_a_key_file_it_would_not_use(tmp_path, capsys) -> None:
@@ -87,9 +106,11 @@ def test_a_key_in_the_environment_is_noted_not_silently_dropped(
         ("record", ["--no-foxglove", "--separation-m", "2"], "which --no-foxglove leaves out"),
         ("sitl", ["--separation-m", "4"], "onboard policy, which needs --onboard"),
         ("sitl", ["--weights", "w.npz"], "needs --onboard"),
+        ("sitl", ["--policy-separation-m", "1"], "needs --onboard"),
         ("agent", ["--id", "1", "--vehicle", "mavsdk:", "--start-ne-m", "1,2"], "is where it is"),
         ("agent", ["--id", "1", "--vehicle", "relay:", "--policy", "p.npz"], "runs the policy"),
         ("agent", ["--id", "1", "--vehicle", "relay:", "--trace-guidance"], "onboard"),
+        ("agent", ["--id", "1", "--vehicle", "relay:", "--policy-separation-m", "1"], "onboard"),
         ("eval", ["--merge", "a.json", "--quick"], "--merge combines results files"),
         ("train", ["--episodes", "500", "--episodes-k", "1"], "say the same thing"),
         ("router", ["--key-file", "k"], "a router holds no member key"),

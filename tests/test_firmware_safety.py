@@ -212,3 +212,20 @@ def test_policy_separation_scales_the_network_not_the_filter():
     np.testing.assert_array_equal(wide.command(*args), scaled.command(*args))
     filt = CPolicy.load(separation_m=3.0, policy_separation_m=2.0)
     assert filt.safety_cfg.radius_m == 3.0
+
+
+def test_told_separation_in_c_is_the_runtimes(cpol):
+    """covey_told_separation_m (the PX4 module's CVY_POL_SEP_M, 0 = default) is
+    policy.runtime.told_separation_m (None = default): one rule for the berth, in C and Python."""
+    from policy.runtime import FILTERED_BERTH_SHARE, told_separation_m
+
+    told = cpol._lib.covey_told_separation_m
+    for sep in (0.5, 3.0, 7.5):
+        for filt in (0, 1):
+            for asked in (None, 0.8, 4.0):
+                c = told(sep, filt, 0.0 if asked is None else asked)
+                assert c == pytest.approx(told_separation_m(sep, bool(filt), asked), rel=1e-6)
+    assert (
+        told(3.0, 1, 0.0) == pytest.approx(3.0 * FILTERED_BERTH_SHARE) and told(3.0, 0, 0.0) == 3.0
+    )
+    assert np.isnan(told(3.0, 1, float("nan")))  # passed on for covey_config_check to refuse

@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 from conftest import holds
 
-from agent.fleet_sim import Fleet, FleetSimConfig, start_grid
+from agent.fleet_sim import Fleet, FleetSimConfig, parser, start_grid
+from agent.guidance import GuidanceConfig
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
+from policy.runtime import FILTERED_BERTH_SHARE
 
 N = 20
 IDS = tuple(range(101, 101 + N))
@@ -202,3 +204,20 @@ def test_fleet_sim_answers_broadcasts_and_flies(procs) -> None:
             90,
             "all landed",
         )
+
+
+def test_fleet_tells_the_policy_its_berth_and_filters_at_the_separation() -> None:
+    """--policy-separation-m reaches the fleet's network; the filter keeps --separation-m."""
+    args = parser().parse_args(["--policy-separation-m", "2.5"])
+    assert args.policy_separation_m == 2.5 and parser().parse_args([]).policy_separation_m is None
+    for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (2.5, 2.5)):
+        cfg = FleetSimConfig(
+            vehicles=2,
+            first_id=7,
+            mesh=embedded_router(free_tcp_port(), fleet="unit"),
+            guidance=GuidanceConfig(policy_separation_m=ps),
+        )
+        with Mesh(cfg.mesh) as mesh:
+            fleet = Fleet(cfg, mesh, clock_s=lambda: 0.0)
+            assert fleet.policy.dist_scale_m == pytest.approx(told_m / 3.0)
+            assert fleet.core.guidance.safety_cfg.radius_m == 3.0

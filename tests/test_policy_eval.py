@@ -85,3 +85,24 @@ def test_eval_smoke(tmp_path):
     assert straight["collisions"] > 0
     merged = merge([tmp_path / "results.json", tmp_path / "results.json"], tmp_path / "merged")
     assert len(merged["runs"]) == 2 * len(res["runs"])
+
+
+def test_degraded_link_receivers_dead_reckon_like_the_agents():
+    """On a 3 Hz, lossy, 100 ms link a receiver extrapolates the last state it got, as
+    agent/neighbours.py does: its view lags by the latency (0.1 m at 1 m/s), not by the age
+    of the state (up to 0.43 m and more after losses)."""
+    starts = np.array([[0.0, 0.0], [0.0, 50.0]])
+    goals = starts + [40.0, 0.0]  # side by side, far apart: both fly straight at 1 m/s
+    worst = {}
+    for dead_reckon in (True, False):
+        errors = []
+
+        def ctrl(ids, t_s, pos, vel, heading, goal, nbr_pos, *_, errors=errors):
+            if len(ids) == 2 and t_s > 2.0:  # vehicle 0's view of vehicle 1, once at speed
+                errors.append(float(np.linalg.norm(nbr_pos[0, 1] - pos[1])))
+            return evalsim.straight_line(ids, t_s, pos, vel, heading, goal)
+
+        cfg = evalsim.EvalSimConfig(dead_reckon=dead_reckon)
+        evalsim.run(starts, goals, ctrl, evalsim.DEGRADED, cfg, np.random.default_rng(0))
+        worst[dead_reckon] = max(errors)
+    assert worst[True] <= 0.1 + 1e-9 and worst[False] >= 0.8, worst  # measured 0.1, 1.1

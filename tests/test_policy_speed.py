@@ -1,7 +1,8 @@
 """The runtime's fast paths equal their plain references.
 
-- Network.lstm_last (float32, 8 numpy calls a step, all inputs projected at once) =
-  lstm_last_reference (float64, one step at a time) within 1e-5;
+- Network.lstm_last (float32, 7 numpy calls a step, all inputs projected at once) =
+  lstm_last_reference (float64, one step at a time) within 1e-5, and Network.forward_one (the
+  LSTM and the head on per-thread buffers) = head_forward of the reference within 1e-5;
 - features.observe_fast = features.observe within 1e-12 (and the same neighbours);
 - safety.filter_one = safety.filter_velocity within 1e-12;
 - GuidancePolicy.command = the reference pipeline within 1e-5; its checks still name the input.
@@ -38,6 +39,46 @@ def test_lstm_fast_equals_reference(pol):
             assert a.shape == b.shape == (pol.net.hidden,)
             worst = max(worst, float(np.abs(a - b).max()))
     assert worst <= TOL, worst
+
+
+def test_forward_one_equals_the_reference_network(pol):
+    rng = np.random.default_rng(5)
+    worst = 0.0
+    for n in (0, 1, 2, 7, 19, 40, 70):  # 70: the buffers grow past their first size
+        for _ in range(10):
+            seq = rng.normal(0, 1.0, (n, pol.obs_cfg.input_size))
+            goal = rng.normal(0, 1.0, 2)
+            ref = pol.net.head_forward(pol.net.lstm_last_reference(seq), goal)
+            worst = max(worst, float(np.abs(np.array(pol.net.forward_one(seq, goal)) - ref).max()))
+    assert worst <= TOL, worst
+
+
+def test_command_from_many_threads_equals_one_thread(pol):
+    """The fast path's buffers are per thread: vehicles of one process may share a policy."""
+    import threading
+
+    rng = np.random.default_rng(6)
+    scenes = []
+    for k in (0, 3, 19, 45):
+        nbr, hdg = _scene(rng, k, 15.0)
+        scenes.append(
+            (rng.uniform(-3, 3, 2), np.zeros(2), 0.2, [30.0, 5.0], nbr, np.zeros((k, 2)), hdg)
+        )
+    want = [pol.command(*s) for s in scenes]
+    bad = []
+
+    def worker(i):
+        for _ in range(200):
+            got = pol.command(*scenes[i])
+            if not np.array_equal(got, want[i]):
+                bad.append((i, got))
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(len(scenes))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not bad, bad[:3]
 
 
 @pytest.mark.parametrize(

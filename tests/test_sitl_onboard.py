@@ -270,3 +270,31 @@ def test_c_onboard_tick_decides_at_the_trained_period_and_filters_every_tick() -
     assert ticks / decisions == pytest.approx(5.0, rel=0.15)
     assert g.filtered > 0  # the standing neighbour on the path made the filter act
     assert closest >= 3.0  # with the filter even the "facing-away" case keeps 3 m
+
+
+def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation() -> None:
+    """The emulator's onboard mode tells the C network policy_separation_m (default: a share of
+    the separation, as the agents fly); the C filter and the decision period keep separation_m."""
+    c_policy_or_skip()
+    from firmware.cpolicy import CPolicy
+    from firmware.sitl.config import SitlConfig
+    from firmware.sitl.emulator import Emulator
+    from firmware.sitl.sitl_cli import config_from_args
+    from policy.runtime import FILTERED_BERTH_SHARE
+
+    assert config_from_args(["--onboard", "--policy-separation-m", "2"]).policy_separation_m == 2.0
+    scene = ([0.0, 0.0], [1.0, 0.0], 0.0, [30.0, 0.0], [[8.0, 0.5]], [[-1.0, 0.0]], [math.pi])
+    for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (2.0, 2.0)):
+        link = f"udpin:127.0.0.1:{free_udp_port()}"
+        with Emulator(SitlConfig(onboard=True, policy_separation_m=ps, links=(link,))) as emu:
+            guidance = emu.vehicle.guidance
+            tick = guidance._tick
+            assert tick._cfg.policy.separation_m == pytest.approx(told_m)
+            assert tick._cfg.safety.radius_m == 3.0 and tick._cfg.safety_filter == 1
+            assert tick._cfg.decision_period_s == pytest.approx(1.0)
+            r = tick.step(*scene, now_s=0.0)
+        assert r.status == "ok" and r.decided
+        told = CPolicy.load(separation_m=3.0, policy_separation_m=told_m).command(*scene)
+        wide = CPolicy.load(separation_m=3.0).command(*scene)
+        np.testing.assert_allclose(r.vel_m_s, told, atol=1e-6)
+        assert np.abs(r.vel_m_s - wide).max() > 0.05  # the berth changed what was flown

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from comms.geo import GeoOrigin
@@ -25,7 +26,11 @@ class SitlConfig:
     policy_weights: str | None = None
     """Weights file for the C policy (None: the shipped weights)."""
     separation_m: float = 3.0
-    """Separation the onboard policy keeps (it was trained for 3 m; distances scale by this / 3)."""
+    """Separation the onboard guidance keeps (its C filter); the decision period scales with it."""
+    policy_separation_m: float | None = None
+    """Separation the onboard policy is told to keep (it was trained for 3 m; distances scale by
+    this / 3). None: 1.25 m per 3 m of separation_m, the filter keeps the rest, as the agents fly
+    (policy.runtime.told_separation_m)."""
     policy_speed_m_s: float = 1.0
     """Onboard policy cruise speed (the policy's unit speed)."""
     healthy: bool = True
@@ -60,3 +65,6 @@ class SitlConfig:
         ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        ps = self.policy_separation_m
+        if ps is not None and not (math.isfinite(ps) and ps > 0):
+            raise ValueError(f"policy_separation_m must be a positive number (or None), got {ps}")

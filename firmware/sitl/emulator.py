@@ -37,7 +37,12 @@ class Emulator:
         guidance = None
         if cfg.onboard:
             guidance = PolicyGuidance(
-                load_c_policy(cfg.policy_weights, cfg.separation_m, cfg.policy_speed_m_s),
+                load_c_policy(
+                    cfg.policy_weights,
+                    cfg.separation_m,
+                    cfg.policy_speed_m_s,
+                    cfg.policy_separation_m,
+                ),
                 self.traffic,
                 cfg.home,
                 cfg.policy_hz,

@@ -49,15 +49,29 @@ class Policy(Protocol):
     ) -> Any: ...
 
 
-def load_c_policy(weights: str | None, separation_m: float, cruise_speed_m_s: float) -> Policy:
-    """Import the C policy lazily: the emulator runs without it unless onboard mode is asked for."""
+def load_c_policy(
+    weights: str | None,
+    separation_m: float,
+    cruise_speed_m_s: float,
+    policy_separation_m: float | None = None,
+) -> Policy:
+    """The C policy with its filter, which keeps `separation_m`; the network is told
+    `policy_separation_m` (None: policy.runtime.told_separation_m, as the agents fly). Imported
+    lazily: the emulator runs without it unless onboard mode is asked for."""
     try:
         from firmware.cpolicy import CPolicy
     except ImportError as exc:
         raise RuntimeError(
             f"onboard mode needs firmware.cpolicy (the C policy wrapper): {exc}"
         ) from exc
-    return CPolicy.load(weights, separation_m=separation_m, cruise_speed_m_s=cruise_speed_m_s)
+    from policy.runtime import told_separation_m
+
+    return CPolicy.load(
+        weights,
+        separation_m=separation_m,
+        cruise_speed_m_s=cruise_speed_m_s,
+        policy_separation_m=told_separation_m(separation_m, True, policy_separation_m),
+    )
 
 
 class PolicyGuidance:

@@ -31,8 +31,14 @@ PARAM_FLAGS = (
     "disarm_after_land_s",
 )
 """The airframe settings a command line may change (flag = field name, unit included)."""
-CONFIG_FLAGS = ("onboard", "separation_m", "policy_speed_m_s", "duration_s")
-ONBOARD_ONLY = ("weights", "separation_m", "policy_speed_m_s")
+CONFIG_FLAGS = (
+    "onboard",
+    "separation_m",
+    "policy_separation_m",
+    "policy_speed_m_s",
+    "duration_s",
+)
+ONBOARD_ONLY = ("weights", "separation_m", "policy_separation_m", "policy_speed_m_s")
 """Settings of the onboard C policy: refused without --onboard, where nothing would read them."""
 RENAMED = {
     "--separation": "--separation-m",

@@ -87,6 +87,7 @@ private:
 	DEFINE_PARAMETERS(
 		(ParamBool<px4::params::CVY_EN>) _param_enable,
 		(ParamFloat<px4::params::CVY_SEP_M>) _param_separation_m,
+		(ParamFloat<px4::params::CVY_POL_SEP_M>) _param_policy_separation_m,
 		(ParamFloat<px4::params::CVY_CRUISE>) _param_cruise_speed_m_s,
 		(ParamFloat<px4::params::CVY_RATE_HZ>) _param_rate_hz,
 		(ParamBool<px4::params::CVY_FILTER>) _param_filter,
