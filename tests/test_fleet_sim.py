@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from conftest import holds
 
-from agent.fleet_sim import Fleet, FleetSimConfig, parser, start_grid
+from agent.fleet_sim import Fleet, FleetSimConfig, start_grid
 from agent.guidance import GuidanceConfig
+from agent.host_cli import fleet_sim_parser as parser
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode, VehicleState
