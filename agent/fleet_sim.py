@@ -46,6 +46,7 @@ from comms.mesh import Mesh
 from comms.schema import Command, CommandAck, Mode, StateFlag, VehicleState
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
+from comms.state_rate import IDLE_STATE_HZ, StatePacer, check_rates, idle_rows
 from policy.runtime import GuidancePolicy
 
 log = logging.getLogger("covey.fleet_sim")
@@ -63,6 +64,8 @@ class FleetSimConfig:
     """How the process joins the mesh (one Zenoh session for all its vehicles)."""
     rate_hz: float = 10.0
     """Physics, guidance and state-publishing rate."""
+    idle_state_hz: float = IDLE_STATE_HZ
+    """State rate of an idle vehicle (landed, disarmed: comms/state_rate.py, as the agent's)."""
     spacing_m: float = 8.0
     """Start positions form a square grid with this spacing."""
     start_ne_m: tuple[float, float] = (0.0, 0.0)
@@ -94,6 +97,7 @@ class FleetSimConfig:
         check_vehicle_id(self.first_id + self.vehicles - 1)
         if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 100):
             raise ValueError(f"rate_hz must be within (0, 100], got {self.rate_hz}")
+        check_rates(self.rate_hz, self.idle_state_hz)
         if not (math.isfinite(self.spacing_m) and self.spacing_m > 0):
             raise ValueError(f"spacing_m must be positive, got {self.spacing_m}")
         if self.max_neighbours is not None and self.max_neighbours < 0:
@@ -159,7 +163,9 @@ class Fleet:
             lambda a: perform(a, self.backends[a.index]), self._on_outcome, threaded=False
         )
         self.filtered = np.zeros(n, bool)
-        self.seq = 0
+        self.seq = np.zeros(n, np.int64)
+        """Each vehicle's last published seq (one per state it published: idle is not loss)."""
+        self.pacer = StatePacer(cfg.rate_hz, cfg.idle_state_hz, cfg.rate_hz, n)
         self.stats = TickStats()
         self._lock = threading.RLock()
         self._others: dict[int, tuple[VehicleState, float]] = {}
@@ -262,7 +268,8 @@ class Fleet:
                 sim.set_velocities(rows, out.vel_ned_m_s, out.heading_rad)
                 self.filtered[rows] = out.filtered
             notes = core.drain_notes()
-            states = self._states()
+            idle = idle_rows(core.mode, sim.armed, sim.pos_m[:, 2] < -0.05)
+            states = self._states(np.flatnonzero(self.pacer.due(now_s, idle)))
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
         if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
             self.states.set_cells(cells)
@@ -302,29 +309,33 @@ class Fleet:
             self.cfg.max_neighbours,
         )
 
-    def _states(self) -> list[VehicleState]:
-        self.seq = (self.seq + 1) & 0xFFFFFFFF
+    def _states(self, rows: np.ndarray) -> list[VehicleState]:
+        """The states of `rows` (those due: comms/state_rate.py), each with its next seq."""
+        self.seq[rows] = (self.seq[rows] + 1) & 0xFFFFFFFF
         stamp_ns = self.mesh.clock_ns()
         core, sim = self.core, self.sim
         # whole arrays to Python floats once: per-row numpy access costs more than the rest
-        pos, vel = sim.pos_m.tolist(), sim.vel_m_s.tolist()
-        targets = core.targets()
+        pos, vel = sim.pos_m[rows].tolist(), sim.vel_m_s[rows].tolist()
+        targets = core.targets()[rows]
         has = ~np.isnan(targets[:, 0])
         goal = np.where(has[:, None], targets, 0.0).tolist()
-        hdg = (np.remainder(core.heading_rad + math.pi, 2 * math.pi) - math.pi).tolist()
+        hdg = (np.remainder(core.heading_rad[rows] + math.pi, 2 * math.pi) - math.pi).tolist()
         flags = [
             StateFlag.OPEN_MODE
-            | fs.flags
+            | core.failsafes[r].flags
             | (StateFlag.HAS_GOAL if h else StateFlag.NONE)
             | (StateFlag.FILTER_ACTIVE if f else StateFlag.NONE)
-            for fs, h, f in zip(core.failsafes, has.tolist(), self.filtered.tolist(), strict=True)
+            for r, h, f in zip(
+                rows.tolist(), has.tolist(), self.filtered[rows].tolist(), strict=True
+            )
         ]
-        modes = core.modes
-        ids, armed, battery = self.ids.tolist(), sim.armed.tolist(), sim.battery_pct.tolist()
+        modes = [Mode(m) for m in core.mode[rows].tolist()]
+        ids, seqs = self.ids[rows].tolist(), self.seq[rows].tolist()
+        armed, battery = sim.armed[rows].tolist(), sim.battery_pct[rows].tolist()
         return [
             VehicleState(
                 vehicle_id=ids[i],
-                seq=self.seq,
+                seq=seqs[i],
                 stamp_ns=stamp_ns,
                 pos_ned_m=tuple(pos[i]),
                 vel_ned_m_s=tuple(vel[i]),
