@@ -1,7 +1,7 @@
 """CPU of landed, idle `covey agent` processes: one, and 40 of them as `covey demo` starts them.
 
     python -m bench.idle_agents [--quick]                  # writes idle_agents.json
-    python -m bench.idle_agents --compare-tree ../main --repeats 3
+    python -m bench.idle_agents --compare-tree ../main --repeats 3   # before / after
 
 Issue 15's target: 40 separate agent processes, landed and idle, use at most 25 % of a 2-core
 machine. `covey demo --vehicles N` (keyed: every state signed, and verified by its receivers; a
@@ -12,9 +12,9 @@ share of 2 cores; the demo process itself (router and station) and the whole mac
 reported beside it, so a busy machine shows. This process joins the mesh to see who is present
 and to count the states it receives.
 
-With `--compare-tree PATH` (another checkout, such as main before a change), each repeat
-measures that tree and then this one, N = 1 then N = 40 (alternating, so that other load on the
-machine falls on both), and the JSON keeps every run and the medians.
+With `--compare-tree PATH` (another checkout, such as main before a change; repeatable), each
+repeat measures those trees and then this one, N = 1 then N = 40 (alternating, so that other load
+on the machine falls on all of them), and the JSON keeps every run and the medians.
 """
 
 from __future__ import annotations
@@ -58,6 +58,47 @@ def machine_busy_s() -> float:
     fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
     idle = fields[3] + fields[4]  # idle + iowait
     return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_s(pid: int) -> float:
+    """CPU seconds so far of process `pid`, all its threads, to the nanosecond (the scheduler's
+    run time in /proc/<pid>/task/*/schedstat; /proc/<pid>/stat counts 10 ms ticks, too coarse
+    for one idle agent over 10 s)."""
+    total_ns = 0
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            total_ns += int(Path(f"/proc/{pid}/task/{task}/schedstat").read_text().split()[0])
+        except (OSError, IndexError, ValueError):
+            pass  # a thread that ended meanwhile
+    return total_ns / 1e9
+
+
+def all_cpu_s() -> dict[int, float]:
+    """CPU seconds so far of every process on the machine."""
+    out = {}
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                out[int(name)] = common.cpu_seconds(int(name))
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
+def busiest(before: dict[int, float], after: dict[int, float], skip: set[int], wall_s: float):
+    """The five other processes that used the most CPU in between: (share of 2 cores, command)."""
+    used = sorted(
+        ((after[p] - before[p], p) for p in after.keys() & before.keys() if p not in skip),
+        reverse=True,
+    )[:5]
+    rows = []
+    for cpu_s, pid in used:
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            cmd = "?"
+        rows.append([round(cpu_s / wall_s / 2, 3), cmd.strip()[:100]])
+    return rows
 
 
 def _imports_from(pid: int) -> str:
@@ -114,11 +155,11 @@ def measure(cfg: IdleBenchConfig) -> dict:
             everyone = [demo.pid, *pids]
             with lock:
                 counts.clear()
-            c0 = {p: common.cpu_seconds(p) for p in everyone}
-            m0, w0 = machine_busy_s(), time.perf_counter()
+            c0 = {p: cpu_s(p) for p in everyone}
+            m0, w0, all0 = machine_busy_s(), time.perf_counter(), all_cpu_s()
             time.sleep(cfg.window_s)
-            c1 = {p: common.cpu_seconds(p) for p in everyone}
-            m1, wall_s = machine_busy_s(), time.perf_counter() - w0
+            c1 = {p: cpu_s(p) for p in everyone}
+            m1, wall_s, all1 = machine_busy_s(), time.perf_counter() - w0, all_cpu_s()
             with lock:
                 received = dict(counts)
         tree_seen = sorted({_imports_from(p) for p in pids})
@@ -137,6 +178,7 @@ def measure(cfg: IdleBenchConfig) -> dict:
         "machine_busy_share_of_all_cores": (m1 - m0) / wall_s / (os.cpu_count() or 1),
         "others_share_of_2_cores": max(0.0, (m1 - m0) - agents_s - demo_s) / wall_s / 2,
         "states_hz_per_vehicle_p50": float(np.median(rates)),
+        "others_busiest": busiest(all0, all1, {*everyone, os.getpid()}, wall_s),
     }
 
 
@@ -191,12 +233,12 @@ def run(
 
 def main(
     quick: bool = False,
-    compare_tree: Path | None = None,
+    compare_trees: tuple[Path, ...] = (),
     repeats: int = 1,
     vehicles: tuple[int, ...] | None = None,
 ) -> dict:
     vehicles = vehicles or ((1, 10) if quick else (1, 40))
-    trees = (common.REPO,) if compare_tree is None else (compare_tree.resolve(), common.REPO)
+    trees = (*(t.resolve() for t in compare_trees), common.REPO)
     result = run(vehicles, trees, repeats, 3.0 if quick else 10.0, 4.0 if quick else 10.0)
     mine = [m for m in result["medians"] if m["tree"] == str(common.REPO)]
     most = max(mine, key=lambda m: m["vehicles"])
@@ -219,8 +261,9 @@ if __name__ == "__main__":
     ap.add_argument(
         "--compare-tree",
         type=Path,
-        default=None,
-        help="another checkout to measure too, alternating with this one (e.g. main)",
+        action="append",
+        default=[],
+        help="another checkout to measure too, alternating with this one (e.g. main); repeatable",
     )
     ap.add_argument("--repeats", type=int, default=1, help="measurements of each (default 1)")
     ap.add_argument(
@@ -231,8 +274,9 @@ if __name__ == "__main__":
     a = ap.parse_args()
     if a.repeats < 1:
         ap.error(f"--repeats must be at least 1, got {a.repeats}")
-    if a.compare_tree is not None and not (a.compare_tree / "covey_cli.py").is_file():
-        ap.error(f"--compare-tree {a.compare_tree}: no covey checkout there (no covey_cli.py)")
+    for tree in a.compare_tree:
+        if not (tree / "covey_cli.py").is_file():
+            ap.error(f"--compare-tree {tree}: no covey checkout there (no covey_cli.py)")
     counts = None
     if a.vehicles:
         try:
@@ -241,4 +285,4 @@ if __name__ == "__main__":
             ap.error(f"--vehicles {a.vehicles!r}: comma-separated whole numbers, e.g. 1,40")
         if not all(1 <= v <= 200 for v in counts):
             ap.error(f"--vehicles {a.vehicles!r}: each within 1..200 (covey demo's limit)")
-    main(a.quick, a.compare_tree, a.repeats, counts)
+    main(a.quick, tuple(a.compare_tree), a.repeats, counts)
