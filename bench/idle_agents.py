@@ -155,11 +155,16 @@ def measure(cfg: IdleBenchConfig) -> dict:
             everyone = [demo.pid, *pids]
             with lock:
                 counts.clear()
+            # wall time from the middle of one sweep of reads to the middle of the next: 41
+            # processes' reads take a while on a saturated machine
+            all0, m0, t0 = all_cpu_s(), machine_busy_s(), time.perf_counter()
             c0 = {p: cpu_s(p) for p in everyone}
-            m0, w0, all0 = machine_busy_s(), time.perf_counter(), all_cpu_s()
+            w0 = (t0 + time.perf_counter()) / 2
             time.sleep(cfg.window_s)
+            t1 = time.perf_counter()
             c1 = {p: cpu_s(p) for p in everyone}
-            m1, wall_s, all1 = machine_busy_s(), time.perf_counter() - w0, all_cpu_s()
+            wall_s = (t1 + time.perf_counter()) / 2 - w0
+            m1, all1 = machine_busy_s(), all_cpu_s()
             with lock:
                 received = dict(counts)
         tree_seen = sorted({_imports_from(p) for p in pids})
