@@ -59,6 +59,12 @@ class ActionQueue:
         with self._cv:
             return len(self._pending)
 
+    @property
+    def busy(self) -> bool:
+        """An action waits or runs."""
+        with self._cv:
+            return bool(self._pending) or self._busy
+
     def submit(self, action: Action) -> None:
         if not self._threaded:
             self._execute(action)

@@ -43,6 +43,7 @@ from comms.cli_options import (
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import POSITION_LIMIT_M
+from comms.state_rate import IDLE_STATE_HZ, MAX_IDLE_PERIOD_S
 
 log = logging.getLogger("covey.agent")
 
@@ -165,6 +166,13 @@ def add_flight_args(
         p.add_argument(
             "--no-gcs-failsafe", action="store_true", help="keep flying without a ground station"
         )
+    p.add_argument(
+        "--idle-state-hz",
+        type=float,
+        default=IDLE_STATE_HZ,
+        help=f"state rate while landed, disarmed and idle (default {IDLE_STATE_HZ:g}, at least "
+        f"{1 / MAX_IDLE_PERIOD_S:g}; full rate again from the tick after a command)",
+    )
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
 
@@ -254,6 +262,7 @@ def config_from_args(
         mesh=mesh_config(args, p),
         tick_hz=args.tick_hz,
         state_hz=args.state_hz,
+        idle_state_hz=args.idle_state_hz,
         origin=args.origin or GeoOrigin(),
         guidance=guidance_from_args(args),
         failsafe=failsafe_from_args(args),

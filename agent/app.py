@@ -44,6 +44,7 @@ from comms.schema import (
 )
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
+from comms.state_rate import IDLE_STATE_HZ, StatePacer, check_rates, idle_rows
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
@@ -60,6 +61,10 @@ class AgentConfig:
     """Guidance rate."""
     state_hz: float = 10.0
     """State publishing rate (a radio link may pass fewer; see comms.link)."""
+    idle_state_hz: float = IDLE_STATE_HZ
+    """State publishing rate while the vehicle is idle: landed (or killed), disarmed, on the
+    ground, no autopilot action under way. At least 1 Hz (comms/state_rate.py); back to
+    `state_hz` from the tick after a command or arming ends it."""
     takeoff_alt_m: float = 10.0
     """Default take-off altitude when a takeoff command gives none."""
     origin: GeoOrigin = GeoOrigin()
@@ -81,10 +86,9 @@ class AgentConfig:
         from comms.keys import check_vehicle_id
 
         check_vehicle_id(self.vehicle_id)
-        for name in ("tick_hz", "state_hz"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and 0 < value <= 100):
-                raise ValueError(f"{name} must be within (0, 100], got {value}")
+        if not (math.isfinite(self.tick_hz) and 0 < self.tick_hz <= 100):
+            raise ValueError(f"tick_hz must be within (0, 100], got {self.tick_hz}")
+        check_rates(self.state_hz, self.idle_state_hz)
 
 
 class Agent:
@@ -122,7 +126,8 @@ class Agent:
         self.flags = StateFlag.OPEN_MODE if cfg.open_mode else StateFlag.NONE
         self.seq = 0
         self._lock = threading.Lock()  # guards the core: the tick and Zenoh's threads share it
-        self._last_state_s = -math.inf
+        self.pacer = StatePacer(cfg.state_hz, cfg.idle_state_hz, cfg.tick_hz)
+        """Which ticks publish a state (comms/state_rate.py: the idle rate while idle)."""
         self._last_traffic_s = -math.inf
         self._link_was_ok = True
         self.link = link
@@ -145,16 +150,15 @@ class Agent:
             )
         gate = GateConfig(min_interval_s=cfg.neighbours.verify_min_interval_s)
         self.scope: Scope | None = None
+        self._cells: frozenset = frozenset()
         if cfg.scope.enabled:
-            # Hear the cells within reach of this vehicle, moved as it flies (from the first
-            # telemetry on: a vehicle that does not know where it is hears nothing yet).
+            # Hear the cells within reach of this vehicle, moved as it flies, from its first tick
+            # that is not idle on: a vehicle that does not know where it is, or that sits on the
+            # ground with nothing to do, hears nothing (`_hear`).
             self.scope = Scope(cfg.guidance.scope(cfg.scope))
             self.states = mesh.subscribe_cells(
                 self._on_state, (), link, gate=gate, ignore_id=self.vid
             )
-            tel = backend.telemetry()
-            if tel is not None:
-                self._rescope(tel.pos_ned_m)
         else:
             self.states = mesh.subscribe_states(
                 self._on_state, link=link, ignore_id=self.vid, gate=gate
@@ -166,10 +170,19 @@ class Agent:
     def _on_state(self, state: VehicleState, _recv_ns: int) -> None:
         self.table.update(state, self.clock_s())
 
-    def _rescope(self, pos_ned_m) -> None:
-        cells = self.scope.update(pos_ned_m)
-        if cells is not None:
-            self.states.set_cells(cells)
+    def _hear(self, pos_ned_m: np.ndarray, idle: bool) -> None:
+        """Subscribe to the cells within reach, or to none while idle: guidance does not run on
+        the ground, and the tick that ends idleness (a command, arming) subscribes again before
+        the vehicle climbs (docs/scaling.md, "Idle vehicles"). A few comparisons per tick unless
+        the set changes."""
+        if idle:
+            want: frozenset = frozenset()
+        else:
+            self.scope.update(pos_ned_m)
+            want = self.scope.cells
+        if want != self._cells:
+            self.states.set_cells(want)
+            self._cells = want
 
     def close(self) -> None:
         """Stop the action queue (what still waits is reported as not run)."""
@@ -265,8 +278,6 @@ class Agent:
         vel = np.array(tel.vel_ned_m_s)
         if self.on_position is not None:
             self.on_position(tel.pos_ned_m)
-        if self.scope is not None:
-            self._rescope(pos)  # a few comparisons unless the vehicle left its anchor cell
         if self.link is not None and now_s - self._last_link_stats_s >= LINK_STATS_PERIOD_S:
             self._last_link_stats_s = now_s
             self._event(self.link.stats_text(), EventKind.LINK_STATS, Severity.DEBUG)
@@ -280,13 +291,14 @@ class Agent:
         )
         gcs_alive = bool(self.presence.ground_stations)
         nbrs = self.table.snapshot(now_s, pos)
-        # Half a tick of tolerance: with equal tick and state rates, jitter must not skip states.
-        publish = now_s - self._last_state_s >= 1.0 / self.cfg.state_hz - 0.5 / self.cfg.tick_hz
+        busy = self.actions.busy
         flags = self.flags
         out = None
         with self._lock:
             core = self.core
             actions = core.observe(now_s, obs, gcs_alive)
+            idle = bool(idle_rows(core.mode, tel.armed, tel.in_air, busy or bool(actions))[0])
+            publish = bool(self.pacer.due(now_s, [idle])[0])
             heading_in_rad = float(core.heading_rad[0])
             rows = core.guided_rows(obs.armed, obs.link_ok)
             if rows.size:
@@ -301,6 +313,8 @@ class Agent:
         self._notes(notes)
         for action in actions:
             self.actions.submit(action)
+        if self.scope is not None:
+            self._hear(pos, idle)
         if not tel.link_ok:
             flags |= StateFlag.FAILSAFE_LINK_LOST
         if out is not None:
@@ -336,7 +350,6 @@ class Agent:
         if nbrs.stale_ids:
             flags |= StateFlag.NEIGHBOURS_STALE
         if publish:
-            self._last_state_s = now_s
             self._publish(tel, pos, vel, heading, mode, target, flags)
             if self.cfg.trace_guidance and out is not None:
                 self._trace(heading_in_rad, out, nbrs)

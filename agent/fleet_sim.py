@@ -17,6 +17,7 @@ real autopilots (one per `covey agent` process).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -57,9 +58,16 @@ from comms.schema import (
 )
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
+from comms.state_rate import IDLE_STATE_HZ, StatePacer, check_rates, idle_rows
 from policy.runtime import GuidancePolicy
 
 log = logging.getLogger("covey.fleet_sim")
+_MODES = {m.value: m for m in Mode}
+
+
+@functools.cache
+def _state_flag(bits: int) -> StateFlag:
+    return StateFlag(bits)
 
 
 @dataclass(frozen=True)
@@ -77,6 +85,8 @@ class FleetSimConfig:
     """How the process joins the mesh (one Zenoh session for all its vehicles)."""
     rate_hz: float = 10.0
     """Physics, guidance and state-publishing rate."""
+    idle_state_hz: float = IDLE_STATE_HZ
+    """State rate of an idle vehicle (landed, disarmed: comms/state_rate.py, as the agent's)."""
     spacing_m: float = 8.0
     """Start positions form a square grid with this spacing."""
     start_ne_m: tuple[float, float] = (0.0, 0.0)
@@ -125,6 +135,7 @@ class FleetSimConfig:
             )
         if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 100):
             raise ValueError(f"rate_hz must be within (0, 100], got {self.rate_hz}")
+        check_rates(self.rate_hz, self.idle_state_hz)
         if not (math.isfinite(self.spacing_m) and self.spacing_m > 0):
             raise ValueError(f"spacing_m must be positive, got {self.spacing_m}")
         far_ne_m = start_grid(self.vehicles, self.spacing_m, self.start_ne_m)[-1, :2]
@@ -204,7 +215,9 @@ class Fleet:
         self.flags = StateFlag.NONE if auths is not None else StateFlag.OPEN_MODE
         self.filtered = np.zeros(n, bool)
         self.slowed = np.zeros(n, bool)
-        self.seq = 0
+        self.seq = np.zeros(n, np.int64)
+        """Each vehicle's last published seq (one per state it published: idle is not loss)."""
+        self.pacer = StatePacer(cfg.rate_hz, cfg.idle_state_hz, cfg.rate_hz, n)
         self.stats = TickStats()
         self._lock = threading.RLock()
         self.others = NeighbourTable(None, replace(NeighbourConfig(), drop_s=cfg.drop_s))
@@ -332,7 +345,8 @@ class Fleet:
             else:
                 self.others.expire(now_s)  # unheard vehicles go, flying or not
             notes = core.drain_notes()
-            states = self._states()
+            idle = idle_rows(core.mode, sim.armed, sim.pos_m[:, 2] < -0.05)
+            states = self._states(np.flatnonzero(self.pacer.due(now_s, idle)))
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
         if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
             self.states.set_cells(cells)
@@ -363,36 +377,34 @@ class Fleet:
             self.cfg.max_neighbours,
         )
 
-    def _states(self) -> list[VehicleState]:
-        self.seq = (self.seq + 1) & 0xFFFFFFFF
+    def _states(self, rows: np.ndarray) -> list[VehicleState]:
+        """The states of `rows` (those due: comms/state_rate.py), each with its next seq."""
+        self.seq[rows] = (self.seq[rows] + 1) & 0xFFFFFFFF
         stamp_ns = self.mesh.clock_ns()
         core, sim = self.core, self.sim
         # whole arrays to Python floats once: per-row numpy access costs more than the rest
-        pos, vel = sim.pos_m.tolist(), sim.vel_m_s.tolist()
-        targets = core.targets()
+        pos, vel = sim.pos_m[rows].tolist(), sim.vel_m_s[rows].tolist()
+        targets = core.targets()[rows]
         has = ~np.isnan(targets[:, 0])
         goal = np.where(has[:, None], targets, 0.0).tolist()
-        hdg = (np.remainder(core.heading_rad + math.pi, 2 * math.pi) - math.pi).tolist()
-        flags = [
-            self.flags
-            | fs.flags
-            | (StateFlag.HAS_GOAL if h else StateFlag.NONE)
-            | (StateFlag.FILTER_ACTIVE if f else StateFlag.NONE)
-            | (StateFlag.NEIGHBOURS_STALE if w else StateFlag.NONE)
-            for fs, h, f, w in zip(
-                core.failsafes,
-                has.tolist(),
-                self.filtered.tolist(),
-                self.slowed.tolist(),
-                strict=True,
-            )
-        ]
-        modes = core.modes
-        ids, armed, battery = self.ids.tolist(), sim.armed.tolist(), sim.battery_pct.tolist()
+        hdg = (np.remainder(core.heading_rad[rows] + math.pi, 2 * math.pi) - math.pi).tolist()
+        # flags as ints, one enum per distinct value (enum arithmetic per row cost more than the
+        # rest of the state)
+        bits = (
+            int(self.flags)
+            | np.array([int(core.failsafes[r].flags) for r in rows.tolist()], np.int64)
+            | np.where(has, int(StateFlag.HAS_GOAL), 0)
+            | np.where(self.filtered[rows], int(StateFlag.FILTER_ACTIVE), 0)
+            | np.where(self.slowed[rows], int(StateFlag.NEIGHBOURS_STALE), 0)
+        )
+        flags = [_state_flag(b) for b in bits.tolist()]
+        modes = [_MODES[m] for m in core.mode[rows].tolist()]
+        ids, seqs = self.ids[rows].tolist(), self.seq[rows].tolist()
+        armed, battery = sim.armed[rows].tolist(), sim.battery_pct[rows].tolist()
         return [
             VehicleState(
                 vehicle_id=ids[i],
-                seq=self.seq,
+                seq=seqs[i],
                 stamp_ns=stamp_ns,
                 pos_ned_m=tuple(pos[i]),
                 vel_ned_m_s=tuple(vel[i]),

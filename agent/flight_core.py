@@ -35,6 +35,22 @@ from comms.schema import AckResult, Command, CommandKind, EventKind, Mode, Sever
 FLYING = (Mode.GOTO, Mode.RETURNING)
 AIRBORNE_MODES = [int(m) for m in AIRBORNE]
 """The airborne modes as integers, for `np.isin` on `FlightCore.mode`."""
+
+
+def mode_mask(modes) -> np.ndarray:
+    """A lookup table over mode values: `mode_mask(ms)[core.mode]` equals
+    `np.isin(core.mode, ms)`, for the price of one gather (no sort per call; it matters at N = 1,
+    the agent's every tick)."""
+    table = np.zeros(256, bool)
+    table[[int(m) for m in modes]] = True
+    return table
+
+
+_FLYING = mode_mask(FLYING)
+_GUIDED = mode_mask((Mode.GOTO, Mode.RETURNING, Mode.HOLDING))
+_TOUCHING_DOWN = mode_mask((Mode.LANDING, Mode.KILLED))
+_DOWN_UNASKED = mode_mask(AIRBORNE - {Mode.TAKING_OFF, Mode.LANDING})
+_TAKING_OFF = int(Mode.TAKING_OFF)
 TAKEOFF_DONE_M = 0.3
 """Take-off is complete within this distance below the take-off altitude."""
 SPEED_FOR_HEADING = 0.2
@@ -196,7 +212,7 @@ class FlightCore:
 
     def targets(self) -> np.ndarray:
         """(N, 3) `target_of` for every vehicle, NaN rows for none."""
-        flying = np.isin(self.mode, [int(m) for m in FLYING])
+        flying = _FLYING[self.mode]
         holding = self.mode == int(Mode.HOLDING)
         out = _nan3(self.n)
         out[flying] = self.goal_m[flying]
@@ -385,14 +401,16 @@ class FlightCore:
         mode = self.mode
         on_ground = ~obs.in_air & ~obs.armed
         events = (
-            (mode == Mode.TAKING_OFF) & (-pos[:, 2] >= self.takeoff_alt_m - TAKEOFF_DONE_M),
-            np.isin(mode, [int(m) for m in FLYING]) & arrived,
-            np.isin(mode, (int(Mode.LANDING), int(Mode.KILLED))) & on_ground,
-            np.isin(mode, [int(m) for m in AIRBORNE - {Mode.TAKING_OFF, Mode.LANDING}]) & on_ground,
+            (mode == _TAKING_OFF) & (-pos[:, 2] >= self.takeoff_alt_m - TAKEOFF_DONE_M),
+            _FLYING[mode] & arrived,
+            _TOUCHING_DOWN[mode] & on_ground,
+            _DOWN_UNASKED[mode] & on_ground,
         )
         triggers = (Trigger.REACHED_ALTITUDE, Trigger.ARRIVED, Trigger.TOUCHED_DOWN, None)
         done = np.zeros(self.n, bool)
-        for trigger, mask in zip(triggers, events, strict=True):
+        # most ticks have no event at all: one test, not four scans
+        some = events[0] | events[1] | events[2] | events[3]
+        for trigger, mask in zip(triggers, events if some.any() else (), strict=False):
             for i in np.flatnonzero(mask & ~done).tolist():
                 done[i] = True
                 if trigger is None:
@@ -427,8 +445,9 @@ class FlightCore:
         """Rows the shell should fly with velocity setpoints this tick."""
         if not self.velocity_mode:
             return np.zeros(0, int)
-        modes = (int(Mode.GOTO), int(Mode.RETURNING), int(Mode.HOLDING))
-        ok = np.isin(self.mode, modes) & armed & link_ok & ~np.isnan(self.targets()[:, 0])
+        ok = _GUIDED[self.mode] & armed & link_ok
+        if ok.any():  # targets() only when something may fly (not on a landed vehicle's tick)
+            ok &= ~np.isnan(self.targets()[:, 0])
         return np.flatnonzero(ok)
 
     def guide(

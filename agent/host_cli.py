@@ -43,6 +43,7 @@ def host_config(
             ids=ids,
             mesh=mesh_config(args, p),
             rate_hz=rate_hz,
+            idle_state_hz=args.idle_state_hz,
             spacing_m=args.spacing_m,
             start_ne_m=args.start_ne_m,
             max_neighbours=args.max_neighbours,

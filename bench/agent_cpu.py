@@ -217,6 +217,10 @@ def agent_flight(
             str(TICK_HZ),
             "--state-hz",
             str(TICK_HZ),
+            # landed too: the landed phase measures the mesh and 10 Hz states (bench/idle_agents.py
+            # measures idle vehicles at their idle rate), and jitter needs a state per tick
+            "--idle-state-hz",
+            str(TICK_HZ),
             *extra,
         )
         log.wait(lambda s: True, 60, "its first state")

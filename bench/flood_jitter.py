@@ -193,6 +193,9 @@ def start_agents(port: int, ids=(1, 2)) -> list[Child]:
                 f"tcp/127.0.0.1:{port}",
                 f"--start-ne-m=0,{4 * v}",
                 "--no-gcs-failsafe",
+                # a state every tick, landed too: the stream whose gaps and jitter are measured
+                "--idle-state-hz",
+                "10",
             ],
             cwd=REPO,
             env=env,

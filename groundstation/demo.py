@@ -50,11 +50,22 @@ class DemoConfig:
     """How to start one agent (arguments are appended)."""
     agent_extra: tuple[str, ...] = field(default_factory=tuple)
     """Extra arguments for every agent."""
+    agent_mesh_mode: str = "client"
+    """Zenoh role of every agent: a client of the demo's router (one link each). As peers they
+    would also connect to each other (gossip: N (N - 1) / 2 links, each kept alive four times a
+    lease), which on one machine buys nothing and costs 40 idle agents more than all their own
+    work (docs/scaling.md, "Idle vehicles")."""
     stop_timeout_s: float = 5.0
     """How long children get to exit after SIGTERM before SIGKILL."""
     keyed: bool = True
     """Run keyed: a throwaway fleet authority and one key per vehicle and for the station, in a
     temporary directory deleted on exit. False (--open-mode): nothing is authenticated."""
+
+    def __post_init__(self) -> None:
+        if self.agent_mesh_mode not in AGENT_MESH_MODES:
+            raise ValueError(
+                f"agent_mesh_mode must be peer or client, got {self.agent_mesh_mode!r}"
+            )
 
 
 def grid_starts(n: int, spacing_m: float) -> list[tuple[float, float]]:
@@ -133,6 +144,8 @@ def _run(
                     cfg.fleet,
                     "--connect",
                     endpoint,
+                    "--mesh-mode",
+                    cfg.agent_mesh_mode,
                     "--vehicle",
                     "sim",
                     "--link",
@@ -166,7 +179,22 @@ def _run(
     return 0
 
 
-DEMO_FLAGS = ("vehicles", "port", "fleet", "mesh_port", "spacing_m", "geofence_radius_m")
+DEMO_FLAGS = (
+    "vehicles",
+    "port",
+    "fleet",
+    "mesh_port",
+    "spacing_m",
+    "geofence_radius_m",
+    "agent_mesh_mode",
+)
+AGENT_MESH_MODES = ("client", "peer")
+
+
+def _agent_mesh_mode(text: str) -> str:
+    if text not in AGENT_MESH_MODES:
+        raise argparse.ArgumentTypeError(f"{text!r}: use {' or '.join(AGENT_MESH_MODES)}")
+    return text
 
 
 def parser() -> argparse.ArgumentParser:
@@ -180,6 +208,7 @@ def parser() -> argparse.ArgumentParser:
             "mesh_port": tcp_port,
             "spacing_m": finite("metres", minimum=1.0, inclusive=True),
             "geofence_radius_m": finite("metres"),
+            "agent_mesh_mode": _agent_mesh_mode,
         },
     )
     p.add_argument(

@@ -22,6 +22,10 @@ Link health per vehicle, over a sliding window of `rate_window_s`:
 where n is the state's entry number in its feed (Mesh.subscribe_feed, the station's default: the
 rate is then the updates reaching the station, at most the publisher's feed rate, and the loss
 counts feed entries lost on the way), or VehicleState.seq for a station that hears every state.
+A vehicle's seq grows by one per state it publishes, so an idle vehicle's lower rate (1 Hz,
+comms/state_rate.py) is a lower rate, not loss. Staleness follows what the latest state announces:
+an idle vehicle (landed or killed, disarmed) is stale after `idle_stale_after_s`, any other after
+`stale_after_s`.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from comms.schema import Mode, StateFlag, VehicleState
+from comms.state_rate import MAX_IDLE_PERIOD_S, announces_idle
 
 NS_PER_S = 1_000_000_000
 
@@ -53,6 +58,10 @@ class FleetConfig:
     """Two vehicles closer than this (3D distance) raise a separation alert."""
     stale_after_s: float = 1.0
     """A vehicle whose last state is older than this is shown as stale."""
+    idle_stale_after_s: float = 3.5 * MAX_IDLE_PERIOD_S
+    """... unless that state announces an idle vehicle (landed or killed, disarmed), which
+    publishes only every MAX_IDLE_PERIOD_S (comms/state_rate.py): stale after three missed idle
+    states, and half a period for the jitter."""
     unconfirmed_expire_s: float = 10.0
     """A vehicle that never held a liveliness token is forgotten this long after its first state."""
     lost_expire_s: float = 60.0
@@ -71,6 +80,7 @@ class FleetConfig:
             "rate_window_s",
             "separation_m",
             "stale_after_s",
+            "idle_stale_after_s",
             "unconfirmed_expire_s",
             "lost_expire_s",
             "unverified_window_s",
@@ -78,6 +88,12 @@ class FleetConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}={value} must be a positive finite number")
+
+    def stale_after(self, state: VehicleState | None) -> float:
+        """How long the station waits after `state` before it calls the vehicle stale: what the
+        state announces says how soon the next one is due."""
+        idle = state is not None and announces_idle(state.mode, state.armed)
+        return self.idle_stale_after_s if idle else self.stale_after_s
 
 
 @dataclass
@@ -118,7 +134,8 @@ class VehicleView:
     too_close: bool
     """Closer than the separation distance to another vehicle."""
     stale: bool
-    """No state for longer than FleetConfig.stale_after_s."""
+    """No state for longer than FleetConfig.stale_after_s (idle_stale_after_s if the latest
+    announced an idle vehicle)."""
     unverified: bool = False
     """A state claiming to be this vehicle was refused (forged, replayed, unsigned, or signed by a
     revoked key) within FleetConfig.unverified_window_s. With `stale` as well, the vehicle's own
@@ -318,7 +335,7 @@ class FleetModel:
                     loss_pct=loss_pct,
                     trail_ned_m=np.array([p for _, p in trail], dtype=np.float32).reshape(-1, 3),
                     too_close=vid in close_ids,
-                    stale=age_s > cfg.stale_after_s,
+                    stale=age_s > cfg.stale_after(state),
                     unverified=refused_ns is not None and now_ns - refused_ns <= unverified_ns,
                     refused_states=refused,
                     refused_cause=cause,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from agent.backends.base import BackendError, Capability
-from agent.backends.sim import SimBackend, SimConfig
+from agent.backends.sim import SimBackend, SimConfig, SimFleet
 
 
 def run(sim: SimBackend, t0: float, seconds: float, dt: float = 0.05) -> float:
@@ -94,3 +94,43 @@ def test_bad_setpoints_are_refused() -> None:
     with pytest.raises(BackendError):
         sim.takeoff(-1.0)
     assert Capability.VELOCITY_SETPOINT in sim.capabilities
+
+
+def _arrays(fleet: SimFleet) -> dict[str, np.ndarray]:
+    return {k: v.copy() for k, v in vars(fleet).items() if isinstance(v, np.ndarray)}
+
+
+def test_a_fleet_at_rest_is_a_fixed_point_so_a_step_may_skip_it() -> None:
+    """The fast path (`step` skips `_integrate` while `at_rest`) equals the reference path."""
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        n = int(rng.integers(1, 6))
+        starts = np.column_stack([rng.uniform(-50, 50, (n, 2)), np.zeros(n)])
+        fleet = SimFleet(SimConfig(), starts, now_s=0.0)
+        fleet.heading_rad[:] = rng.uniform(-3, 3, n)
+        fleet.battery_pct[:] = rng.uniform(10, 100, n)
+        fleet.hold_m[:] = rng.uniform(-5, 5, (n, 3))
+        fleet.sp_vel_m_s[:] = rng.uniform(-1, 1, (n, 3))
+        assert fleet.at_rest()
+        before = _arrays(fleet)
+        fleet._integrate(float(rng.uniform(0.01, 0.5)))  # the reference path
+        after = _arrays(fleet)
+        for name, value in before.items():
+            np.testing.assert_array_equal(after[name], value, err_msg=name)
+
+
+def test_anything_that_moves_or_may_move_is_not_at_rest() -> None:
+    fleet = SimFleet(SimConfig(), np.zeros((3, 3)), now_s=0.0)
+    assert fleet.at_rest()
+    fleet.takeoff(1, 5.0)
+    assert not fleet.at_rest()
+    fleet.step(0.1)
+    assert fleet.pos_m[1, 2] < 0.0  # the step integrated: it climbs
+    for poke in (
+        lambda f: f.armed.__setitem__(0, True),
+        lambda f: f.vel_m_s.__setitem__((2, 0), 0.1),
+        lambda f: f.pos_m.__setitem__((0, 2), -3.0),  # up in the air, motors off: falls
+    ):
+        rest = SimFleet(SimConfig(), np.zeros((3, 3)), now_s=0.0)
+        poke(rest)
+        assert not rest.at_rest()

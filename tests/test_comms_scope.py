@@ -200,7 +200,7 @@ def test_a_state_on_a_wrong_cell_is_refused_with_the_reason(mesh_trio) -> None:
 def heard(ag: Agent, other: Agent, now_s: float) -> bool:
     """Whether `ag` hears `other`'s states, re-sent at `now_s` until they arrive (or 10 s)."""
     for _ in range(100):
-        other._last_state_s = -math.inf  # publish again at the same instant
+        other.pacer.again()  # publish again at the same instant
         other.tick(now_s)
         seq = other.seq
         if wait_until(

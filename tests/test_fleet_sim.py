@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import holds
+from conftest import holds, wait_until
 
 from agent.fleet_sim import Fleet, FleetSimConfig, start_grid
 from agent.guidance import GuidanceConfig
@@ -15,7 +15,7 @@ from agent.host_cli import fleet_sim_parser as parser
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode, VehicleState
-from comms.session import embedded_router, free_tcp_port
+from comms.session import embedded_peer, embedded_router, free_tcp_port
 from policy.runtime import FILTERED_BERTH_SHARE
 
 N = 20
@@ -119,6 +119,40 @@ def test_fleet_in_process_follows_the_agents_mode_machine() -> None:
         assert fleet.modes[1:] == [Mode.LANDED, Mode.LANDED] and not fleet.armed[1:].any()
         assert np.allclose(fleet.pos_m[1:, :2], fleet.home_m[1:, :2], atol=1.0)
         assert fleet.stats.ticks == 720
+
+
+def test_idle_rows_publish_at_the_idle_rate_with_their_own_seqs() -> None:
+    """The agent's rule (comms/state_rate.py) row by row: landed rows at 1 Hz, a row that takes
+    off at full rate from the next tick on; each vehicle's seq grows by one per state it sends."""
+    clock = [0.0]
+    port = free_tcp_port()
+    cfg = FleetSimConfig(vehicles=3, first_id=1, mesh=embedded_router(port, fleet="unitidle"))
+    seqs: dict[int, list[int]] = {}
+    lock = threading.Lock()
+
+    def on_state(s: VehicleState, _t: int) -> None:
+        with lock:
+            seqs.setdefault(s.vehicle_id, []).append(s.seq)
+
+    with (
+        Mesh(cfg.mesh) as mesh,
+        Mesh(embedded_peer(port, fleet="unitidle")) as station,
+    ):
+        station.subscribe_states(on_state)
+        fleet = Fleet(cfg, mesh, clock_s=lambda: clock[0])
+        _fly(fleet, clock, 3.0)  # landed: states at 0.1, 1.1 and 2.1 s
+        assert fleet.handle_command(0, _cmd(CommandKind.TAKEOFF, 5.0)).result is AckResult.ACCEPTED
+        _fly(fleet, clock, 0.5)  # row 0: 3.1 .. 3.5 s; the others once, at 3.1 s
+        want = {1: list(range(1, 9)), 2: [1, 2, 3, 4], 3: [1, 2, 3, 4]}
+
+        def complete() -> bool:
+            with lock:
+                return all(len(seqs.get(v, [])) >= len(w) for v, w in want.items())
+
+        assert wait_until(complete, 10), seqs
+        time.sleep(0.3)  # nothing more may come
+        with lock:
+            assert seqs == want
 
 
 @pytest.mark.e2e

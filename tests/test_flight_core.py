@@ -17,8 +17,9 @@ from agent.app import Agent, AgentConfig
 from agent.backends.sim import SimBackend, SimConfig
 from agent.failsafe import FailsafeConfig
 from agent.fleet_sim import Fleet, FleetSimConfig
-from agent.flight_core import ActionKind, CoreConfig, FlightCore, Observed
+from agent.flight_core import FLYING, ActionKind, CoreConfig, FlightCore, Observed, mode_mask
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
+from agent.modes import AIRBORNE
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode
 from comms.session import MeshConfig
@@ -204,3 +205,12 @@ def test_vehicle_events_come_from_telemetry_for_every_row() -> None:
     core.observe(1.0, _observed(pos, True, True), True)
     assert core.modes == [Mode.HOLDING, Mode.TAKING_OFF, Mode.TAKING_OFF]
     assert core.hold_m[0, 2] == -4.0  # holds at the take-off altitude, not where it was
+
+
+def test_mode_masks_equal_isin() -> None:
+    """The lookup tables the core tests modes with (fast at N = 1) equal `np.isin`."""
+    modes = np.array([int(m) for m in Mode] * 3, np.int8)
+    for subset in (FLYING, AIRBORNE, (Mode.LANDING, Mode.KILLED), ()):
+        np.testing.assert_array_equal(
+            mode_mask(subset)[modes], np.isin(modes, [int(m) for m in subset])
+        )

@@ -53,6 +53,8 @@ def test_xbee_link_thins_delays_and_counts_a_live_stream():
             "--connect",
             f"tcp/127.0.0.1:{port}",
             "--no-gcs-failsafe",
+            "--idle-state-hz",  # a live 10 Hz stream for the link, landed as it is
+            "10",
         ]
         with Child(agent, output="discard", stderr="discard", grace_s=10.0):
             deadline = time.monotonic() + 30.0
