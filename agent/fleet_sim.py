@@ -346,14 +346,15 @@ class Fleet:
                 self.others.expire(now_s)  # unheard vehicles go, flying or not
             notes = core.drain_notes()
             idle = idle_rows(core.mode, sim.armed, sim.pos_m[:, 2] < -0.05)
-            states = self._states(np.flatnonzero(self.pacer.due(now_s, idle)))
+            due = np.flatnonzero(self.pacer.due(now_s, idle))
+            states = self._states(due)
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
         if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
             self.states.set_cells(cells)
         self._publish_notes(notes)
-        for s, auth in zip(states, self.auths, strict=True):
+        for s, row in zip(states, due.tolist(), strict=True):
             try:
-                self.mesh.publish_state(s, auth=auth)
+                self.mesh.publish_state(s, auth=self.auths[row])
             except Exception as exc:  # noqa: BLE001 - a full network buffer must not stop the fleet
                 log.warning("state publish failed: %s", exc)
         self.stats.ticks += 1
