@@ -36,6 +36,7 @@ from comms.cli_options import (
     given,
     mesh_config,
     renamed,
+    setup_logging,
     stop_after,
     stop_on_signals,
     vehicle_ids,
@@ -324,10 +325,7 @@ def check_duration(p: argparse.ArgumentParser, args: argparse.Namespace) -> None
 def cli(argv: list[str]) -> int:
     p = parser()
     args = p.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-    )
+    setup_logging(args.verbose)
     check_duration(p, args)
     if args.ids is not None:
         from agent.host_cli import run_agent_host

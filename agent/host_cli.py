@@ -29,6 +29,7 @@ from comms.cli_options import (
     key_env_note,
     mesh_config,
     refuse,
+    setup_logging,
     stop_on_signals,
 )
 from comms.geo import GeoOrigin
@@ -123,14 +124,9 @@ def fleet_sim_parser() -> argparse.ArgumentParser:
 
 
 def fleet_sim_cli(argv: list[str]) -> int:
-    import logging
-
     p = fleet_sim_parser()
     args = p.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-    )
+    setup_logging(args.verbose)
     agent_cli.check_duration(p, args)
     key_env_note(p, NO_KEY_REASON)
     try:

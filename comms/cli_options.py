@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import logging
 import math
 import os
 import signal
@@ -47,6 +48,18 @@ UNIT_SUFFIXES: dict[str, str] = {
     "_deg": "degrees",
 }
 """Name endings that carry a unit (longest first), and the unit's name in messages."""
+
+
+def setup_logging(
+    verbose: bool, *, quiet_level: int = logging.WARNING, name: str = "%(name)s"
+) -> None:
+    """One log format for every covey process: INFO with -v (DEBUG where the quiet level is
+    already INFO), else `quiet_level`."""
+    loud = logging.DEBUG if quiet_level <= logging.INFO else logging.INFO
+    logging.basicConfig(
+        level=loud if verbose else quiet_level,
+        format=f"%(asctime)s {name} %(levelname)s %(message)s",
+    )
 
 
 def unit_of(name: str) -> str | None:

@@ -48,3 +48,20 @@ def procs() -> Iterator[ChildGroup]:
     nothing they hold needs a clean shutdown, and a kill is fastest)."""
     with ChildGroup(prefix=[sys.executable], cwd=REPO, env=python_env(REPO), grace_s=0.0) as g:
         yield g
+
+
+@pytest.fixture
+def mesh_trio(request: pytest.FixtureRequest):
+    """A router (the station's side) and two peers on a free loopback port (multicast scouting
+    off), in the test module's FLEET."""
+    from comms.mesh import Mesh
+    from comms.session import embedded_peer, embedded_router, free_tcp_port
+
+    fleet = getattr(request.module, "FLEET", "covey")
+    port = free_tcp_port()
+    with (
+        Mesh(embedded_router(port, fleet=fleet)) as hub,
+        Mesh(embedded_peer(port, fleet=fleet)) as a,
+        Mesh(embedded_peer(port, fleet=fleet)) as b,
+    ):
+        yield hub, a, b

@@ -18,24 +18,12 @@ from agent.failsafe import FailsafeConfig
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, Mode, VehicleState
-from comms.session import embedded_peer, embedded_router, free_tcp_port
+from comms.session import embedded_router, free_tcp_port
 from comms.state_rate import MAX_IDLE_PERIOD_S
 from groundstation.fleet import FleetConfig, FleetModel
 
 FLEET = "idle"
 NO_GCS = FailsafeConfig(require_gcs=False)
-
-
-@pytest.fixture
-def mesh_trio():
-    """A router (the station's side) and two peers on a free loopback port (no multicast)."""
-    port = free_tcp_port()
-    with (
-        Mesh(embedded_router(port, fleet=FLEET)) as hub,
-        Mesh(embedded_peer(port, fleet=FLEET)) as a,
-        Mesh(embedded_peer(port, fleet=FLEET)) as b,
-    ):
-        yield hub, a, b
 
 
 class Seqs:
@@ -58,21 +46,28 @@ def test_idle_rate_then_full_rate_from_the_tick_after_a_takeoff(mesh_trio) -> No
     hub, a, _b = mesh_trio
     heard, station = Seqs(), FleetModel()
     hub.subscribe_states(heard.on_state)
-    hub.subscribe_states(station.on_state)
+    # the route from `a` to the hub's subscription must exist before the first counted state
+    probe = VehicleState(99, 1, 1, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+    for _ in range(100):
+        a.publish_state(probe)
+        if wait_until(lambda: heard.of(99), 0.1):
+            break
+    hub.subscribe_states(station.on_state, vehicle_id=1)
+    sent0 = a.stats.states_sent
     t = [0.0]
     cfg = AgentConfig(vehicle_id=1, failsafe=NO_GCS)
     with Agent(cfg, SimBackend(SimConfig(), now_s=0.0), a, clock_s=lambda: t[0]) as agent:
         for _ in range(30):  # 3 s landed: states at 0.1, 1.1 and 2.1 s
             t[0] += 0.1
             agent.tick(t[0])
-        assert a.stats.states_sent == 3
+        assert a.stats.states_sent - sent0 == 3
         ack = agent.handle_command(Command.takeoff(10.0, nonce=new_nonce(), stamp_ns=0))
         assert ack.result is AckResult.ACCEPTED
         sent = []
         for _ in range(10):
             t[0] += 0.1
             agent.tick(t[0])
-            sent.append(a.stats.states_sent)
+            sent.append(a.stats.states_sent - sent0)
         assert sent == list(range(4, 14)), "not a state on every tick after the takeoff"
         assert wait_until(lambda: len(heard.of(1)) == 13, 10), heard.of(1)
         got = heard.of(1)

@@ -17,10 +17,8 @@ from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
 from comms import keys
 from comms.keys import CELL_M
-from comms.mesh import Mesh
 from comms.schema import Command, Mode, VehicleState
 from comms.scope import Scope, ScopeConfig
-from comms.session import embedded_peer, embedded_router, free_tcp_port
 from tests.conftest import wait_until
 
 FLEET = "scope"
@@ -110,18 +108,6 @@ def test_scope_of_many_is_the_union_and_ignores_unplaced_rows() -> None:
 
 
 # -- on a real mesh ----------------------------------------------------------------------------
-@pytest.fixture
-def mesh_trio():
-    """A router with two peers on a free loopback port (multicast scouting off)."""
-    port = free_tcp_port()
-    with (
-        Mesh(embedded_router(port, fleet=FLEET)) as hub,
-        Mesh(embedded_peer(port, fleet=FLEET)) as a,
-        Mesh(embedded_peer(port, fleet=FLEET)) as b,
-    ):
-        yield hub, a, b
-
-
 class Heard:
     def __init__(self) -> None:
         self.lock = threading.Lock()

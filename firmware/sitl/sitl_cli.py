@@ -13,6 +13,7 @@ from comms.cli_options import (
     geo_origin,
     given,
     renamed,
+    setup_logging,
     stop_on_signals,
     unit_of,
 )
@@ -140,10 +141,7 @@ def cli(argv: Sequence[str] | None = None) -> int:
         cfg = _config(args)
     except ValueError as exc:
         p.error(str(exc))
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(asctime)s sitl %(levelname)s %(message)s",
-    )
+    setup_logging(args.verbose, quiet_level=logging.INFO, name="sitl")
     from firmware.sitl.emulator import main  # after parsing: --help stays fast
 
     with stop_on_signals() as stop:
