@@ -316,7 +316,7 @@ def figure(runs: list[dict]) -> None:
         axes[2].plot(n, [r["latency_ms_p99"] for r in rs], style, label=f"{label}, p99")
     axes[0].set(xlabel="vehicles", ylabel="received states/s per vehicle", ylim=(0, None))
     axes[1].set(xlabel="vehicles", ylabel="CPU µs per tick per vehicle", ylim=(0, None))
-    axes[2].set(xlabel="vehicles", ylabel="neighbour state latency, ms", ylim=(0, None))
+    axes[2].set(xlabel="vehicles", ylabel="neighbour state latency p99, ms", yscale="log")
     axes[0].legend(fontsize=8)
     fig.suptitle(
         f"hovering fleet, {ROUTERS} routers, >= {MIN_HOSTS} host processes, one vehicle per "

@@ -240,7 +240,7 @@ class Mesh:
             pub = self.session.declare_publisher(
                 keys.state(self.fleet, state.vehicle_id, cell),
                 congestion_control=zenoh.CongestionControl.DROP,
-                express=True,
+                express=False,
             )
             with self._lock:
                 self._publishers[state.vehicle_id] = (cell, pub)
