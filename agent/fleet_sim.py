@@ -345,7 +345,7 @@ class Fleet:
             else:
                 self.others.expire(now_s)  # unheard vehicles go, flying or not
             notes = core.drain_notes()
-            idle = idle_rows(core.mode, sim.armed, sim.pos_m[:, 2] < -0.05)
+            idle = idle_rows(core.mode, sim.armed, obs.in_air)
             due = np.flatnonzero(self.pacer.due(now_s, idle))
             states = self._states(due)
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
