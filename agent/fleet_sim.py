@@ -268,7 +268,7 @@ class Fleet:
                 sim.set_velocities(rows, out.vel_ned_m_s, out.heading_rad)
                 self.filtered[rows] = out.filtered
             notes = core.drain_notes()
-            idle = idle_rows(core.mode, sim.armed, sim.pos_m[:, 2] < -0.05)
+            idle = idle_rows(core.mode, sim.armed, obs.in_air)
             states = self._states(np.flatnonzero(self.pacer.due(now_s, idle)))
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
         if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
