@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policy import features
+from policy import features, safety
 from policy.features import ObsConfig
 from policy.pointmass import integrate
 
@@ -70,6 +70,10 @@ class EnvConfig:
     """Weight of a progress term (metres gained towards the goal this step); 0 in the
     paper. It is potential-based shaping (Phi = -distance), so it does not change
     the optimal policy, but it makes the first arrivals far easier to discover."""
+    safety_filter: bool = False
+    """Fly every commanded velocity through the separation filter (policy.safety, ORCA), as
+    flight does, with each vehicle seeing the others of its arena exactly: the policy then
+    learns with the guarantee it will fly with (issue 16). Off in the paper."""
 
 
 def cav_reward(d, cfg: EnvConfig):
@@ -79,6 +83,12 @@ def cav_reward(d, cfg: EnvConfig):
     quad = -2.0 - (cfg.r_col - 2.0) * ((cfg.knee_cav_m - d) / (cfg.knee_cav_m - cfg.eps_cav_m)) ** 2
     out = np.where(d >= cfg.delta_cav_m, 0.0, np.where(d >= cfg.knee_cav_m, lin, quad))
     return np.where(d <= cfg.eps_cav_m, -cfg.r_col, out)
+
+
+def safety_config(cfg: EnvConfig) -> safety.SafetyConfig:
+    """The filter of `safety_filter` in policy units: it keeps the collision distance at the
+    vehicles' speed (its other settings are flight's)."""
+    return safety.SafetyConfig(radius_m=cfg.eps_cav_m, dt_s=cfg.dt_s, max_speed_m_s=cfg.speed)
 
 
 def sample_vehicle_count(rng: np.random.Generator, cfg: EnvConfig) -> int:
@@ -114,6 +124,8 @@ class SwarmEnv:
         self.pos = np.zeros((e, m, 2))
         self.goal = np.zeros((e, m, 2))
         self.heading = np.zeros((e, m))
+        self.vel = np.zeros((e, m, 2))
+        """Velocity flown in the last step (what the filter sees of each vehicle)."""
         self.active = np.zeros((e, m), dtype=bool)
         self.trip_m = np.ones((e, m))
         self.t = np.zeros(e, dtype=np.int64)
@@ -134,6 +146,7 @@ class SwarmEnv:
             n = sample_vehicle_count(self.rng, self.cfg)
             s, g = sample_scenario(self.rng, n, self.cfg)
             self.pos[e] = 0.0
+            self.vel[e] = 0.0
             self.goal[e] = 0.0
             self.pos[e, :n] = s
             self.goal[e, :n] = g
@@ -166,6 +179,9 @@ class SwarmEnv:
         gd0 = self.goal - self.pos
         a = features.clip_unit(actions)
         vel = features.action_to_velocity(a, self.heading) * cfg.speed * act[..., None]
+        if cfg.safety_filter:
+            vel = self._filtered(vel, act)
+        self.vel = vel
         disp = vel * cfg.dt_s
         pos = self.pos.copy()  # the one point-mass model, every arena's vehicles as rows
         integrate(pos.reshape(-1, 2), np.zeros((pos.size // 2, 2)), vel.reshape(-1, 2), cfg.dt_s)
@@ -211,6 +227,26 @@ class SwarmEnv:
         }
         return reward, done, info
 
+    def _filtered(self, vel, act):
+        """vel (E, M, 2) through the separation filter; each active vehicle sees the other
+        active vehicles of its arena (their positions and last velocities)."""
+        m = self.cfg.max_vehicles
+        e_i, m_i = np.nonzero(act)
+        if e_i.size == 0:
+            return vel
+        valid = act[e_i] & (np.arange(m)[None, :] != m_i[:, None])
+        out = vel.copy()
+        out[e_i, m_i] = safety.filter_padded(
+            self.pos[e_i, m_i],
+            self.vel[e_i, m_i],
+            vel[e_i, m_i],
+            self.pos[e_i],
+            self.vel[e_i],
+            valid,
+            safety_config(self.cfg),
+        )
+        return out
+
     def episode_stats(self, mask):
         """Per finished arena: (mean vehicle return, all arrived, any collision)."""
         out = []
@@ -236,11 +272,16 @@ def _closest_approach(rel0, rel1):
     return np.hypot(p[..., 0], p[..., 1])
 
 
-def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfig):
-    """Plain per-agent loop of SwarmEnv.step on copies; returns the same quantities."""
+def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfig, vel=None):
+    """Plain per-agent loop of SwarmEnv.step on copies; returns the same quantities.
+    `vel` (E, M, 2): the velocities flown in the last step (needed with cfg.safety_filter)."""
     e_n, m = active.shape
     pos0 = pos
     pos, heading, active = pos.copy(), heading.copy(), active.copy()
+    if cfg.safety_filter:
+        if vel is None:
+            raise ValueError("reference_step with safety_filter needs vel")
+        new_vel = _reference_filtered(pos0, vel, heading, active, actions, cfg)
     reward = np.zeros((e_n, m))
     done = np.zeros((e_n, m), dtype=bool)
     for e in range(e_n):
@@ -256,6 +297,8 @@ def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfi
             d0 = math.hypot(*(goal[e, i] - pos[e, i]))
             vn = (ax * math.cos(h) - ay * math.sin(h)) * cfg.speed * cfg.dt_s
             ve = (ax * math.sin(h) + ay * math.cos(h)) * cfg.speed * cfg.dt_s
+            if cfg.safety_filter:
+                vn, ve = new_vel[e, i] * cfg.dt_s
             pos[e, i] += (vn, ve)
             if math.hypot(vn, ve) > 1e-12:
                 heading[e, i] = math.atan2(ve, vn)
@@ -287,3 +330,25 @@ def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfi
             done[e, i] = arrived or hit or t[e] + 1 >= cfg.max_steps
         active[e] = was & ~done[e]
     return pos, heading, active, reward, done
+
+
+def _reference_filtered(pos, vel, heading, active, actions, cfg: EnvConfig):
+    """The commanded velocities through safety.filter_one, one vehicle at a time."""
+    e_n, m = active.shape
+    out = np.zeros((e_n, m, 2))
+    scfg = safety_config(cfg)
+    for e in range(e_n):
+        for i in range(m):
+            if not active[e, i]:
+                continue
+            a = np.asarray(actions[e, i], dtype=np.float64)
+            a = a / max(1.0, math.hypot(*a))
+            h = heading[e, i]
+            pref = np.array(
+                [a[0] * math.cos(h) - a[1] * math.sin(h), a[0] * math.sin(h) + a[1] * math.cos(h)]
+            )
+            others = [j for j in range(m) if j != i and active[e, j]]
+            out[e, i] = safety.filter_one(
+                pos[e, i], vel[e, i], pref * cfg.speed, pos[e, others], vel[e, others], scfg
+            )
+    return out

@@ -72,8 +72,22 @@ class TrainConfig:
     """Weight of the progress shaping term (0 = the paper's reward)."""
     ccd: bool = True
     """Check collisions along each 1 s step, not only at its end (see EnvConfig.ccd)."""
+    safety_filter: bool = False
+    """Fly the actions through the separation filter, as flight does (EnvConfig.safety_filter)."""
+    delta_cav_m: float = 10.0
+    """The proximity penalty R_CAV starts this close (the paper: 10 m; see EnvConfig)."""
+    knee_cav_m: float = 6.0
+    """R_CAV turns quadratic this close (the paper: 6 m)."""
+    lone_anchor: float = 0.0
+    """Weight of a loss pulling the action of a vehicle with no neighbour in sense range to
+    full speed straight at its goal (the closed-form optimum there); 0 = off. The target is
+    LONE_TARGET_NORM long and compared with the unit-clipped action, so that the tanh output
+    saturates at full speed instead of creeping towards it."""
     init: str = ""
-    """Start from this trainer checkpoint (.pt) instead of fresh weights (fine-tuning)."""
+    """Start from this trainer checkpoint (.pt) or weights file (.npz, actor only; the critic
+    starts fresh and learns alone for `critic_warmup_updates`) instead of fresh weights."""
+    critic_warmup_updates: int = 0
+    """Updates at the start that train only the value head (for an --init from weights)."""
     fwd_bias: float = 0.5
     """Initial bias of the forward output, so that vehicles start by flying forward."""
     threads: int = 2
@@ -94,7 +108,7 @@ def main(cfg: TrainConfig) -> dict:
 
     from policy.env import EnvConfig, SwarmEnv
     from policy.export import export_model
-    from policy.model import PRESETS, ActorCritic
+    from policy.model import PRESETS, ActorCritic, clip_unit
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -108,12 +122,17 @@ def main(cfg: TrainConfig) -> dict:
         w_tme=cfg.w_tme,
         w_prog=cfg.w_prog,
         ccd=cfg.ccd,
+        safety_filter=cfg.safety_filter,
+        delta_cav_m=cfg.delta_cav_m,
+        knee_cav_m=cfg.knee_cav_m,
     )
     env = SwarmEnv(env_cfg, model_cfg.obs)
     model = ActorCritic(model_cfg, cfg.init_log_std)
     with torch.no_grad():
         model.head[-1].bias[0] = cfg.fwd_bias
-    if cfg.init:
+    if cfg.init.endswith(".npz"):
+        load_actor(model, cfg.init)
+    elif cfg.init:
         ck = torch.load(cfg.init, map_location="cpu", weights_only=False)
         if ck["model_cfg"] != model_cfg.to_dict():
             raise ValueError(
@@ -133,6 +152,7 @@ def main(cfg: TrainConfig) -> dict:
     rew_buf = np.zeros((t_n, e_n, m_n), np.float32)
     done_buf = np.zeros((t_n, e_n, m_n), np.float32)
     mask_buf = np.zeros((t_n, e_n, m_n), bool)
+    straight_buf = np.zeros((t_n, e_n, m_n, 2), np.float32)
 
     def policy_step(seq, lengths, goal):
         with torch.no_grad():
@@ -162,6 +182,7 @@ def main(cfg: TrainConfig) -> dict:
             seq, lengths, goal = obs
             mask = env.active.copy()
             seq_buf[t], len_buf[t], goal_buf[t], mask_buf[t] = seq, lengths, goal, mask
+            straight_buf[t] = straight_action(env.pos, env.heading, env.goal, LONE_TARGET_NORM)
             a, logp, value = policy_step(
                 seq[mask].astype(np.float32), lengths[mask], goal[mask].astype(np.float32)
             )
@@ -208,6 +229,9 @@ def main(cfg: TrainConfig) -> dict:
         b_adv = torch.from_numpy(adv[b])
         b_ret = torch.from_numpy(ret[b])
         b_val = torch.from_numpy(val_buf[b])
+        b_straight = torch.from_numpy(straight_buf[b])
+        b_lone = b_len == 0
+        actor_on = update >= cfg.critic_warmup_updates
         n = b_seq.shape[0]
         stats = []
         # advantages normalised over the whole batch: a per-minibatch std is NaN for a
@@ -232,7 +256,13 @@ def main(cfg: TrainConfig) -> dict:
                 )
                 v_loss = 0.5 * torch.max((value - b_ret[mb]) ** 2, (v_clip - b_ret[mb]) ** 2).mean()
                 ent = dist.entropy().sum(-1).mean()
-                loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * ent
+                loss = cfg.vf_coef * v_loss
+                if actor_on:
+                    loss = loss + pg_loss - cfg.ent_coef * ent
+                    lone = b_lone[mb]
+                    if cfg.lone_anchor > 0 and bool(lone.any()):
+                        miss = ((clip_unit(mean[lone]) - b_straight[mb][lone]) ** 2).sum(-1).mean()
+                        loss = loss + cfg.lone_anchor * miss
                 if not torch.isfinite(loss):
                     raise FloatingPointError(
                         f"non-finite loss at update {update}; last checkpoint is intact"
@@ -279,6 +309,43 @@ def main(cfg: TrainConfig) -> dict:
         export_model(model, out / "final.npz", {"trained_episodes": episodes})
     plot_curve(log_path, out / "curve.png")
     return row
+
+
+LONE_TARGET_NORM = 1.1
+"""Length of the lone-vehicle target action (TrainConfig.lone_anchor); the clipped action can
+only reach length 1, so the loss keeps pushing a tanh output that has not saturated."""
+
+
+def straight_action(pos, heading_rad, goal, norm: float = 1.0):
+    """Body-frame action (fwd, right) straight at the goal, `norm` long, (..., 2) float32:
+    what a vehicle with no one to avoid should fly (full speed, no turn after the first)."""
+    gd = goal - pos
+    b = np.arctan2(gd[..., 1], gd[..., 0]) - heading_rad
+    return (norm * np.stack([np.cos(b), np.sin(b)], -1)).astype(np.float32)
+
+
+def load_actor(model, path: str) -> None:
+    """Actor weights (LSTM and head) from a runtime weights file into `model`; its config must
+    match. The critic and the action noise keep their fresh values."""
+    import json
+
+    import torch
+
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    have = {k: v for k, v in json.loads(str(arrays["config"])).items() if k != "trained_episodes"}
+    want = model.cfg.to_dict()
+    if {k: have.get(k) for k in want} != want:
+        raise ValueError(f"--init {path} has model config {have}, not {want}")
+    lstm = model.encoder.lstm
+    with torch.no_grad():
+        lstm.weight_ih_l0.copy_(torch.from_numpy(arrays["lstm.weight_ih"]))
+        lstm.weight_hh_l0.copy_(torch.from_numpy(arrays["lstm.weight_hh"]))
+        lstm.bias_ih_l0.copy_(torch.from_numpy(arrays["lstm.bias"]))
+        lstm.bias_hh_l0.zero_()
+        for k, lin in enumerate(model.head):
+            lin.weight.copy_(torch.from_numpy(arrays[f"head.{k}.weight"]))
+            lin.bias.copy_(torch.from_numpy(arrays[f"head.{k}.bias"]))
 
 
 def _save(model, optim, cfg: TrainConfig, episodes: int, path: Path) -> None:

@@ -7,9 +7,19 @@ from policy.env import EnvConfig, SwarmEnv, cav_reward, reference_step, sample_s
 from policy.features import ObsConfig
 
 
-@pytest.mark.parametrize(("w_prog", "ccd"), [(0.0, False), (10.0, True)])
-def test_step_matches_reference_loop(w_prog, ccd):
-    cfg = EnvConfig(num_envs=16, max_vehicles=5, w_prog=w_prog, max_steps=30, ccd=ccd)
+@pytest.mark.parametrize(
+    ("w_prog", "ccd", "safety_filter"),
+    [(0.0, False, False), (10.0, True, False), (10.0, True, True)],
+)
+def test_step_matches_reference_loop(w_prog, ccd, safety_filter):
+    cfg = EnvConfig(
+        num_envs=16,
+        max_vehicles=5,
+        w_prog=w_prog,
+        max_steps=30,
+        ccd=ccd,
+        safety_filter=safety_filter,
+    )
     env = SwarmEnv(cfg, ObsConfig("sincos", "closest_last", 10.0, 20.0))
     env.reset(seed=3)
     rng = np.random.default_rng(4)
@@ -24,7 +34,9 @@ def test_step_matches_reference_loop(w_prog, ccd):
             env.trip_m.copy(),
             env.t.copy(),
         )
-        pos, heading, active, reward, done = reference_step(*before, actions, cfg)
+        pos, heading, active, reward, done = reference_step(
+            *before, actions, cfg, vel=env.vel.copy()
+        )
         r, d, info = env.step(actions)
         np.testing.assert_allclose(env.pos, pos, atol=1e-12)
         np.testing.assert_allclose(env.heading, heading, atol=1e-12)
@@ -95,6 +107,37 @@ def test_ccd_catches_a_pass_between_steps(ccd):
     _, _, info = env.step(np.array([[[1.0, 0.0], [1.0, 0.0]]]))
     assert np.hypot(*(env.pos[0, 0] - env.pos[0, 1])) > 3.0
     assert info["collided"][0].all() == ccd
+
+
+@pytest.mark.parametrize("safety_filter", [False, True])
+def test_filter_in_the_loop_keeps_a_head_on_pair_apart(safety_filter):
+    """Two vehicles flying straight at each other: they collide unless the environment flies
+    their commands through the separation filter, which keeps them 3 m apart and still lets
+    both arrive."""
+    cfg = EnvConfig(num_envs=1, max_vehicles=2, ccd=True, safety_filter=safety_filter)
+    env = SwarmEnv(cfg, ObsConfig())
+    env.reset(seed=0)
+    env.pos[0] = [[0.0, 0.0], [20.0, 0.2]]
+    env.goal[0] = [[20.0, 0.0], [0.0, 0.2]]
+    env.heading[0] = [0.0, np.pi]
+    env.active[0] = True
+    env.trip_m[0] = 20.0
+    closest, collided, arrived = np.inf, False, np.zeros(2, bool)
+    for _ in range(60):
+        if not env.active[0].any():
+            break
+        gd = env.goal[0] - env.pos[0]
+        bearing = np.arctan2(gd[:, 1], gd[:, 0]) - env.heading[0]
+        both = env.active[0].all()
+        _, _, info = env.step(np.stack([np.cos(bearing), np.sin(bearing)], -1)[None])
+        if both:
+            closest = min(closest, float(np.hypot(*(env.pos[0, 0] - env.pos[0, 1]))))
+        collided |= bool(info["collided"][0].any())
+        arrived |= info["arrived"][0]
+    assert collided != safety_filter
+    if safety_filter:
+        assert closest >= 3.0
+        assert arrived.all()
 
 
 def test_sample_scenario_counts():

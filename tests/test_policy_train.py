@@ -81,3 +81,80 @@ def test_every_train_flag_has_help(capsys):
     with pytest.raises(SystemExit):
         cli(["--help"])
     assert "Adam learning rate" in capsys.readouterr().out
+
+
+def test_init_from_weights_file_reproduces_the_actor(tmp_path):
+    """--init policy.npz: the actor acts as the runtime does with that file; a file of another
+    network shape is refused with the reason."""
+    from policy.train import load_actor
+
+    model = ActorCritic(IMPROVED)
+    load_actor(model, "policy/weights/policy.npz")
+    pol = GuidancePolicy.load(safety_filter=False)
+    rng = np.random.default_rng(0)
+    for k in (0, 1, 4):
+        nbr = rng.uniform(-15, 15, (k, 2))
+        nbr_h = rng.uniform(-np.pi, np.pi, k)
+        a = pol.action(np.zeros(2), 0.3, np.array([20.0, 5.0]), nbr, nbr_h)
+        from policy import features
+
+        seq, goal_feat, _ = features.observe(
+            np.zeros(2), 0.3, np.array([20.0, 5.0]), nbr, nbr_h, pol.obs_cfg
+        )
+        with torch.no_grad():
+            mean = model.actor_mean(
+                torch.tensor(seq[None], dtype=torch.float32),
+                torch.tensor([k]),
+                torch.tensor(goal_feat[None], dtype=torch.float32),
+            )[0].numpy()
+        np.testing.assert_allclose(a, mean / max(1.0, np.hypot(*mean)), atol=1e-5)
+    with pytest.raises(ValueError, match="model config"):
+        load_actor(ActorCritic(PAPER), "policy/weights/policy.npz")
+
+
+def test_straight_action_points_at_the_goal():
+    from policy.features import action_to_velocity
+    from policy.train import straight_action
+
+    pos, goal = np.array([[1.0, 2.0], [0.0, 0.0]]), np.array([[4.0, 6.0], [-3.0, 0.0]])
+    heading = np.array([0.7, -2.0])
+    a = straight_action(pos, heading, goal)
+    v = action_to_velocity(a.astype(np.float64), heading)
+    want = (goal - pos) / np.hypot(*(goal - pos).T)[:, None]
+    np.testing.assert_allclose(v, want, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_fine_tune_with_the_filter_in_the_loop(tmp_path):
+    """A tiny fine-tune from the shipped weights with the filter in the loop and the lone-vehicle
+    anchor runs and exports weights the runtime loads; the critic warm-up leaves the actor as
+    it was."""
+    from policy.train import load_actor
+
+    base = dict(
+        preset="improved",
+        episodes=40,
+        num_envs=16,
+        num_steps=16,
+        minibatch_size=256,
+        update_epochs=1,
+        progress=False,
+        init="policy/weights/policy.npz",
+        safety_filter=True,
+        lone_anchor=1.0,
+        delta_cav_m=6.0,
+        knee_cav_m=4.0,
+    )
+    row = main(TrainConfig(**base, out=str(tmp_path / "warm"), critic_warmup_updates=1000))
+    assert row["episodes"] >= 40
+    assert row["collision"] == 0.0  # the filter flies every command
+    shipped, warm = ActorCritic(IMPROVED), ActorCritic(IMPROVED)
+    load_actor(shipped, "policy/weights/policy.npz")
+    load_actor(warm, str(tmp_path / "warm" / "final.npz"))
+    for a, b in zip(shipped.head.parameters(), warm.head.parameters(), strict=True):
+        assert torch.equal(a, b)
+    main(TrainConfig(**base, out=str(tmp_path / "tuned")))
+    tuned = ActorCritic(IMPROVED)
+    load_actor(tuned, str(tmp_path / "tuned" / "final.npz"))
+    assert not torch.equal(tuned.head[0].weight, shipped.head[0].weight)
+    GuidancePolicy.load(tmp_path / "tuned" / "final.npz")
