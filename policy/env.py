@@ -70,6 +70,11 @@ class EnvConfig:
     """Weight of a progress term (metres gained towards the goal this step); 0 in the
     paper. It is potential-based shaping (Phi = -distance), so it does not change
     the optimal policy, but it makes the first arrivals far easier to discover."""
+    conflict_share: float = 0.0
+    """Share of arenas drawn as forced conflicts (`sample_conflict`: starts on a circle, goals
+    near the opposite side, every path through the middle) instead of uniformly in the
+    arena; 0 in the paper. Uniform arenas rarely hold the dense, symmetric encounters in
+    which a policy that leans on the filter deadlocks."""
     safety_filter: bool = False
     """Fly every commanded velocity through the separation filter (policy.safety, ORCA), as
     flight does, with each vehicle seeing the others of its arena exactly: the policy then
@@ -114,6 +119,30 @@ def sample_scenario(rng: np.random.Generator, n: int, cfg: EnvConfig):
     return np.array(starts).reshape(n, 2), np.array(goals).reshape(n, 2)
 
 
+def sample_conflict(rng: np.random.Generator, n: int, cfg: EnvConfig):
+    """Starts (n, 2) on a circle about the arena's centre (radius 12-28 m, 6 m apart at least)
+    and goals at the opposite points moved by up to 0-4 m (kept 6 m apart): every straight
+    path crosses near the centre, from exactly antipodal to loosely so."""
+    centre = np.full(2, cfg.arena_m / 2)
+    radius_m = rng.uniform(12.0, 28.0)
+    jitter_m = rng.uniform(0.0, 4.0)
+    starts = []
+    for _ in range(n):
+        for _ in range(10000):
+            a = rng.uniform(0.0, 2 * np.pi)
+            p = radius_m * np.array([np.cos(a), np.sin(a)])
+            if all(np.hypot(*(p - o)) >= 6.0 for o in starts):
+                break
+        starts.append(p)
+    starts = np.array(starts).reshape(n, 2)
+    goals = -starts  # as far apart as the starts; each moves only where it stays 6 m clear
+    for i in range(n):
+        g = goals[i] + rng.uniform(-jitter_m, jitter_m, 2)
+        if all(np.hypot(*(g - goals[j])) >= 6.0 for j in range(n) if j != i):
+            goals[i] = g
+    return starts + centre, goals + centre
+
+
 class SwarmEnv:
     """E arenas of up to M vehicles; arrays are (E, M, ...) with an `active` mask."""
 
@@ -143,8 +172,12 @@ class SwarmEnv:
     def reset_envs(self, mask) -> None:
         """Draws new scenarios for the arenas in mask."""
         for e in np.flatnonzero(mask):
-            n = sample_vehicle_count(self.rng, self.cfg)
-            s, g = sample_scenario(self.rng, n, self.cfg)
+            if self.cfg.conflict_share > 0 and self.rng.random() < self.cfg.conflict_share:
+                n = int(self.rng.integers(2, self.cfg.max_vehicles + 1))
+                s, g = sample_conflict(self.rng, n, self.cfg)
+            else:
+                n = sample_vehicle_count(self.rng, self.cfg)
+                s, g = sample_scenario(self.rng, n, self.cfg)
             self.pos[e] = 0.0
             self.vel[e] = 0.0
             self.goal[e] = 0.0

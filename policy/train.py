@@ -72,6 +72,8 @@ class TrainConfig:
     """Weight of the progress shaping term (0 = the paper's reward)."""
     ccd: bool = True
     """Check collisions along each 1 s step, not only at its end (see EnvConfig.ccd)."""
+    conflict_share: float = 0.0
+    """Share of arenas drawn as forced conflicts (EnvConfig.conflict_share)."""
     safety_filter: bool = False
     """Fly the actions through the separation filter, as flight does (EnvConfig.safety_filter)."""
     delta_cav_m: float = 10.0
@@ -123,6 +125,7 @@ def main(cfg: TrainConfig) -> dict:
         w_prog=cfg.w_prog,
         ccd=cfg.ccd,
         safety_filter=cfg.safety_filter,
+        conflict_share=cfg.conflict_share,
         delta_cav_m=cfg.delta_cav_m,
         knee_cav_m=cfg.knee_cav_m,
     )

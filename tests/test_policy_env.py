@@ -143,3 +143,34 @@ def test_filter_in_the_loop_keeps_a_head_on_pair_apart(safety_filter):
 def test_sample_scenario_counts():
     s, g = sample_scenario(np.random.default_rng(0), 5, EnvConfig())
     assert s.shape == g.shape == (5, 2)
+
+
+def test_conflict_arenas_cross_near_the_centre():
+    """sample_conflict: starts on one circle 6 m apart, goals 6 m apart near the opposite
+    points, so every straight path passes within 4 m of the arena's centre; the environment
+    draws that share of its arenas this way."""
+    from policy.env import sample_conflict
+
+    cfg = EnvConfig()
+    rng = np.random.default_rng(5)
+    centre = np.full(2, cfg.arena_m / 2)
+    for n in (2, 5, 8):
+        s, g = sample_conflict(rng, n, cfg)
+        assert s.shape == g.shape == (n, 2)
+        r = np.hypot(*(s - centre).T)
+        np.testing.assert_allclose(r, r[0], atol=1e-9)
+        assert 12.0 <= r[0] <= 28.0
+        for pts in (s, g):
+            d = np.hypot(*(pts[:, None] - pts[None]).transpose(2, 0, 1)) + np.eye(n) * 99
+            assert d.min() >= 6.0 - 1e-9
+        seg = g - s
+        t = np.clip(((centre - s) * seg).sum(-1) / (seg * seg).sum(-1), 0, 1)
+        closest = np.hypot(*(s + t[:, None] * seg - centre).T)
+        assert closest.max() <= 4.0
+    env = SwarmEnv(EnvConfig(num_envs=200, conflict_share=1.0), ObsConfig())
+    env.reset(seed=1)
+    counts = env.active.sum(1)
+    assert counts.min() >= 2
+    plain = SwarmEnv(EnvConfig(num_envs=200), ObsConfig())
+    plain.reset(seed=1)
+    assert (plain.active.sum(1) == 1).any()  # geometric counts: lone vehicles happen
