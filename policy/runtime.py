@@ -21,6 +21,7 @@ from policy import features, safety
 from policy.features import ObsConfig
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
+_F32 = np.dtype(np.float32)
 
 
 FILTERED_BERTH_SHARE = 1.25 / 3.0
@@ -188,7 +189,7 @@ class Network:
         n = rows.shape[0]
         s = self._lstm_scratch(n)
         hs = self.hidden
-        np.dot(rows.view(np.float32), proj, s.w[hs : hs + n])
+        np.dot(rows.view(_F32), proj, s.w[hs : hs + n])
         return self._head_out(self._lstm_run(s, n), goal_feat)
 
     def _head_out(self, h2, goal_feat) -> tuple[float, float]:
@@ -595,7 +596,7 @@ class GuidancePolicy:
         (p0, p1), (v0, v1), (g0, g1), h = pos, vel, goal, float(heading_rad)
         if (p0 - p0) + (p1 - p1) + (v0 - v0) + (v1 - v1) + (g0 - g0) + (g1 - g1) + (h - h) != 0.0:
             return None
-        vdot = np.vdot
+        vdot = np.vdot  # unlike ndarray.dot, it does not warn when x.x overflows
         if k and not vdot(nbr_vel_m_s, nbr_vel_m_s) + vdot(nbr_heading_rad, nbr_heading_rad) < _INF:
             return None
         a = self._action_rows(
@@ -619,7 +620,7 @@ class GuidancePolicy:
         the filter (when on and there are neighbours)."""
         c, sn, u = math.cos(heading), math.sin(heading), self.cruise_speed_m_s
         a0, a1 = a
-        v = np.array([(a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u])
+        v = np.array(((a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u))
         if self.safety_filter and nbr_pos_m.shape[0]:
             v = safety.filter_one(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
         return v
