@@ -170,12 +170,13 @@ def observe_fast(
 
 
 class RowsTable:
-    """Scratch of `closest_last_rows` for up to `rows` neighbours: a (rows, 3) complex64 table
-    whose column 0 has imaginary part 1 (it stays so), with views of its columns."""
+    """Scratch of `closest_last_rows` for up to `rows` neighbours: a (rows, 3) complex128 table
+    (float64 writes cost half of a cast into complex64) whose column 0 has imaginary part 1
+    (it stays so), with views of its columns."""
 
     def __init__(self, rows: int):
         self.rows = rows
-        self.table = np.zeros((rows, 3), np.complex64)
+        self.table = np.zeros((rows, 3), np.complex128)
         self.table[:, 0].imag = 1.0
         self.d = self.table[:, 0].real
         self.e_ij = self.table[:, 1]
@@ -198,7 +199,8 @@ def closest_last_rows(rel, heading_rad: float, nbr_heading_rad, sense_range: flo
     sin psi_ji] (the 1: room for a bias); or None when a neighbour sits exactly on top or a
     distance is not finite (the caller then takes `observe`). With u = z / |z| (z = rel as
     r_n + i r_e): e^{i psi_ij} = u e^{-i h_i} and -conj(e^{i psi_ji}) = u / e^{i h_j}, as in
-    `observe_fast`. Numpy calls are few: methods (not np.* wrappers), one gather (take).
+    `observe_fast`. Numpy calls are few: methods (not np.* wrappers), one gather (take), the
+    cast to complex64 (float32, the network's precision) last.
     """
     z = rel.view(_C128).ravel()
     d = np.abs(z)
@@ -221,7 +223,7 @@ def closest_last_rows(rel, heading_rad: float, nbr_heading_rad, sense_range: flo
         e_j.imag = nbr_heading_rad
         np.exp(e_j, e_j)
         np.divide(u, e_j, scratch.e_ji[:k])
-    return scratch.table.take(order, 0), order
+    return scratch.table.take(order, 0).astype(np.complex64), order
 
 
 def rows_as_seq(rows, dist_scale: float) -> np.ndarray:
