@@ -113,9 +113,10 @@ class Network:
 
     def rows_projection(self, dist_scale: float) -> np.ndarray:
         """The input projection (6, 4H), float32, of features.closest_last_rows' rows
-        [d, 1, cos psi_ij, sin psi_ij, -cos psi_ji, sin psi_ji] (sincos encoding, distances
-        d / dist_scale): the same XP rows as the sequence [d / dist_scale, sin psi_ij,
-        cos psi_ij, sin psi_ji, cos psi_ji] with its constant 1 (lstm_last's layout)."""
+        [d, 1, cos psi_ij, sin psi_ij, -cos psi_ji, sin psi_ji] (sincos encoding; the network
+        sees d / dist_scale, so dist_scale carries the unit of d): the same XP rows as the
+        sequence [d / dist_scale, sin psi_ij, cos psi_ij, sin psi_ji, cos psi_ji] with its
+        constant 1 gives (lstm_last's layout)."""
         if self._w_ib64.shape[0] != 6:
             raise ValueError("rows_projection needs the sincos encoding (5 inputs)")
         w = self._w_ib64
@@ -124,7 +125,8 @@ class Network:
 
     def _lstm_scratch(self, n: int):
         """This thread's buffers for sequences up to n long (grown on demand): W = [W_hh / 2;
-        XP rows], the input rows with their constant 1, the step buffers and the head's."""
+        XP rows], the input rows with their constant 1, the step buffers, the head's, and the
+        table of features.closest_last_rows."""
         s = self._scratch
         have = getattr(s, "rows", None)
         if have is None or have < n:
@@ -193,6 +195,7 @@ class Network:
         return self._head_out(self._lstm_run(s, n), goal_feat)
 
     def _head_out(self, h2, goal_feat) -> tuple[float, float]:
+        """The head on 2 x the final hidden state (None: zeros) and the goal features."""
         zh, zg, layers, out, half = self._scratch.head  # set up by the LSTM (any length)
         if h2 is None:
             zh[:] = 0.0
