@@ -169,6 +169,72 @@ def observe_fast(
     return seq, np.array([math.sin(psi_d), math.cos(psi_d)]), idx
 
 
+class RowsTable:
+    """Scratch of `closest_last_rows` for up to `rows` neighbours: a (rows, 3) complex128 table
+    (float64 writes cost half of a cast into complex64) whose column 0 has imaginary part 1
+    (it stays so), with views of its columns."""
+
+    def __init__(self, rows: int):
+        self.rows = rows
+        self.table = np.zeros((rows, 3), np.complex128)
+        self.table[:, 0].imag = 1.0
+        self.d = self.table[:, 0].real
+        self.e_ij = self.table[:, 1]
+        self.e_ji = self.table[:, 2]
+
+
+_C128 = np.dtype(np.complex128)
+
+
+def closest_last_rows(rel, heading_rad: float, nbr_heading_rad, sense_range: float, scratch):
+    """The sincos / closest_last neighbour inputs as complex rows, for a projection that takes
+    them as they come (the one-vehicle runtime's hot path; `rows_as_seq` turns them into
+    `observe`'s sequence, equal within float32 rounding, tests/test_policy_speed.py).
+
+    rel (K, 2): neighbour minus own position, C-contiguous float64, in any length unit;
+    sense_range in that unit (0 = unlimited, as ObsConfig.sense_range); scratch: a RowsTable
+    of >= K rows. Returns (rows (L, 3) complex64, chosen indices (L,)) in feeding order
+    (decreasing distance, ties in given order), each row [d + 1j, e^{i psi_ij},
+    -conj(e^{i psi_ji})], i.e. as six floats [d, 1, cos psi_ij, sin psi_ij, -cos psi_ji,
+    sin psi_ji] (the 1: room for a bias); or None when a neighbour sits exactly on top or a
+    distance is not finite (the caller then takes `observe`). With u = z / |z| (z = rel as
+    r_n + i r_e): e^{i psi_ij} = u e^{-i h_i} and -conj(e^{i psi_ji}) = u / e^{i h_j}, as in
+    `observe_fast`. Numpy calls are few: methods (not np.* wrappers), one gather (take), the
+    cast to complex64 (float32, the network's precision) last.
+    """
+    z = rel.view(_C128).ravel()
+    d = np.abs(z)
+    order = (-d).argsort(kind="stable")
+    k = d.shape[0]
+    if k:
+        d_l, o_l = d.tolist(), order.tolist()
+        far = d_l[o_l[0]]
+        if not (d_l[o_l[-1]] > 0.0 and far < math.inf):  # NaN sorts last
+            return None
+        if 0.0 < sense_range < far:  # the farthest come first: cut them
+            cut = 1
+            while cut < k and d_l[o_l[cut]] > sense_range:
+                cut += 1
+            order = order[cut:]
+        scratch.d[:k] = d
+        u = z / d
+        np.multiply(u, complex(math.cos(heading_rad), -math.sin(heading_rad)), scratch.e_ij[:k])
+        e_j = np.zeros(k, _C128)
+        e_j.imag = nbr_heading_rad
+        np.exp(e_j, e_j)
+        np.divide(u, e_j, scratch.e_ji[:k])
+    return scratch.table.take(order, 0).astype(np.complex64), order
+
+
+def rows_as_seq(rows, dist_scale: float) -> np.ndarray:
+    """`closest_last_rows`' rows as `observe`'s sincos sequence (L, 5), float64."""
+    x = np.asarray(rows).astype(np.complex128)
+    return np.stack(
+        [x[:, 0].real / dist_scale, x[:, 1].imag, x[:, 1].real, x[:, 2].imag, -x[:, 2].real],
+        axis=-1,
+    )
+
+
 def observe_batch(pos, heading_rad, goal, active, cfg: ObsConfig, max_neighbours=None):
     """Every active vehicle observes every other active vehicle of its world.
 

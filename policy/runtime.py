@@ -21,6 +21,7 @@ from policy import features, safety
 from policy.features import ObsConfig
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
+_F32 = np.dtype(np.float32)
 
 
 FILTERED_BERTH_SHARE = 1.25 / 3.0
@@ -98,18 +99,34 @@ class Network:
         # rows halved because the loop carries h2 = 2h; the bias is the input projection's
         # last row (inputs get a constant 1); see lstm_last
         perm = np.r_[2 * hs : 3 * hs, 0 : 2 * hs, 3 * hs : 4 * hs]
-        w_ib = np.vstack([self.w_ih.T[:, perm], self.bias[perm]]).astype(np.float32)
-        object.__setattr__(self, "_w_ib32", w_ib)
+        w_ib = np.vstack([self.w_ih.T[:, perm], self.bias[perm]])
+        object.__setattr__(self, "_w_ib64", w_ib)
+        object.__setattr__(self, "_w_ib32", w_ib.astype(np.float32))
         object.__setattr__(self, "_w_hh_half32", (0.5 * self.w_hh_t[:, perm]).astype(np.float32))
-        # fast path (forward_one): each head layer as [W | b], its input ending in a constant 1
+        # fast path (forward_one): each head layer as [W | b], float32, its input ending in 1
         object.__setattr__(
-            self, "_head_wb", tuple(np.hstack([w, b[:, None]]) for w, b in self.head)
+            self,
+            "_head_wb32",
+            tuple(np.hstack([w, b[:, None]]).astype(np.float32) for w, b in self.head),
         )
         object.__setattr__(self, "_scratch", threading.local())
 
-    def _lstm_scratch(self, n: int) -> tuple:
+    def rows_projection(self, dist_scale: float) -> np.ndarray:
+        """The input projection (6, 4H), float32, of features.closest_last_rows' rows
+        [d, 1, cos psi_ij, sin psi_ij, -cos psi_ji, sin psi_ji] (sincos encoding; the network
+        sees d / dist_scale, so dist_scale carries the unit of d): the same XP rows as the
+        sequence [d / dist_scale, sin psi_ij, cos psi_ij, sin psi_ji, cos psi_ji] with its
+        constant 1 gives (lstm_last's layout)."""
+        if self._w_ib64.shape[0] != 6:
+            raise ValueError("rows_projection needs the sincos encoding (5 inputs)")
+        w = self._w_ib64
+        rows = [w[0] / dist_scale, w[5], w[2], w[1], -w[4], w[3]]
+        return np.vstack(rows).astype(np.float32)
+
+    def _lstm_scratch(self, n: int):
         """This thread's buffers for sequences up to n long (grown on demand): W = [W_hh / 2;
-        XP rows], the input rows with their constant 1, and the step buffers."""
+        XP rows], the input rows with their constant 1, the step buffers, the head's, and the
+        table of features.closest_last_rows."""
         s = self._scratch
         have = getattr(s, "rows", None)
         if have is None or have < n:
@@ -119,82 +136,127 @@ class Network:
             s.w = np.zeros((hs + rows, 4 * hs), np.float32)
             s.w[:hs] = self._w_hh_half32
             s.x = np.ones((rows, x_n), np.float32)
-            s.haug = np.zeros(hs + rows, np.float32)
-            s.buf = np.zeros(5 * hs, np.float32)
-            s.prod = np.zeros(2 * hs, np.float32)
-            s.th = np.zeros(hs, np.float32)
-            s.ones = np.ones(3 * hs, np.float32)
-            s.halves = np.full(2, 0.5, np.float32)
+            s.haug = np.zeros(hs + rows, np.float32)  # [h2, e_t]: e_t stays 0 between steps
+            s.table = features.RowsTable(rows)
+            buf = np.zeros(5 * hs, np.float32)  # [o, i, f, g, c]
+            prod = np.zeros(2 * hs, np.float32)
+            s.step = (
+                buf[: 4 * hs],  # gates
+                buf[: 3 * hs],  # the sigmoid gates
+                buf[hs : 3 * hs],  # [i, f]
+                buf[3 * hs :],  # [g, c]
+                buf[:hs],  # o
+                buf[4 * hs :],  # c
+                prod,
+                prod.reshape(2, hs),
+                np.zeros(hs, np.float32),  # tanh(c)
+                np.ones(3 * hs, np.float32),
+                np.full(2, 0.5, np.float32),
+            )
             # head inputs (each ending in 1, for the bias) and its output
-            s.z = [np.ones(wb.shape[1]) for wb in self._head_wb] + [np.zeros(self.head[-1][1].size)]
-        return s.w, s.x, s.haug, s.buf, s.prod, s.th, s.ones, s.halves
+            wbs = self._head_wb32
+            z = [np.ones(wb.shape[1], np.float32) for wb in wbs]
+            z.append(np.zeros(wbs[-1].shape[0], np.float32))
+            last = len(wbs) - 1
+            s.head = (
+                z[0][:hs],
+                z[0][hs:-1],
+                tuple(
+                    (wb, z[k], z[k + 1] if k == last else z[k + 1][:-1]) for k, wb in enumerate(wbs)
+                ),
+                z[-1],
+                np.full(hs, 0.5, np.float32),
+            )
+        return s
+
+    def rows_table(self, n: int) -> features.RowsTable:
+        """This thread's scratch for features.closest_last_rows of n neighbours."""
+        return self._lstm_scratch(n).table
 
     def lstm_last(self, seq: np.ndarray) -> np.ndarray:
         """Final hidden state of one sequence (L, X) -> (H,); zeros when L = 0 (`_lstm_h2`)."""
         h2 = self._lstm_h2(seq)
         return np.zeros(self.hidden) if h2 is None else 0.5 * h2.astype(np.float64)
 
-    def forward_one(self, seq: np.ndarray, goal_feat: np.ndarray) -> tuple[float, float]:
+    def forward_one(self, seq: np.ndarray, goal_feat) -> tuple[float, float]:
         """Unclipped head output of one sequence (L, X) and its goal features (G,): the fast
         path of head_forward(lstm_last(seq), goal_feat), equal within 1e-5. The head runs in
-        float64 on this thread's buffers, two numpy calls a layer: z' = tanh([W | b] [z; 1])."""
-        h2 = self._lstm_h2(seq)
-        z = self._scratch.z  # set up by _lstm_h2 (any length)
+        float32 (like torch) on this thread's buffers, two numpy calls a layer:
+        z' = tanh([W | b] [z; 1])."""
+        return self._head_out(self._lstm_h2(seq), goal_feat)
+
+    def forward_rows(self, rows: np.ndarray, proj: np.ndarray, goal_feat) -> tuple[float, float]:
+        """`forward_one` of features.closest_last_rows' rows (L, 3) through their projection
+        (`rows_projection`), goal features (G,) as a sequence of floats."""
+        n = rows.shape[0]
+        s = self._lstm_scratch(n)
         hs = self.hidden
-        z0 = z[0]
+        np.dot(rows.view(_F32), proj, s.w[hs : hs + n])
+        return self._head_out(self._lstm_run(s, n), goal_feat)
+
+    def _head_out(self, h2, goal_feat) -> tuple[float, float]:
+        """The head on 2 x the final hidden state (None: zeros) and the goal features."""
+        zh, zg, layers, out, half = self._scratch.head  # set up by the LSTM (any length)
         if h2 is None:
-            z0[:hs] = 0.0
+            zh[:] = 0.0
         else:
-            np.multiply(h2, 0.5, z0[:hs])
-            np.tanh(z0[:hs], z0[:hs])
-        z0[hs:-1] = goal_feat
-        last = len(self._head_wb) - 1
-        for k, wb in enumerate(self._head_wb):
-            out = z[k + 1] if k == last else z[k + 1][:-1]
-            np.dot(wb, z[k], out)
-            np.tanh(out, out)
-        a = z[-1]
-        return float(a[0]), float(a[1])
+            np.multiply(h2, half, zh)
+            np.tanh(zh, zh)
+        zg[:] = goal_feat
+        dot, tanh = np.dot, np.tanh
+        for wb, z_in, z_out in layers:
+            dot(wb, z_in, z_out)
+            tanh(z_out, z_out)
+        a0, a1 = out.tolist()
+        return a0, a1
 
     def _lstm_h2(self, seq: np.ndarray) -> np.ndarray | None:
         """2 x the final hidden state of one sequence (L, X), float32, in this thread's scratch
-        (valid until its next call); None when L = 0.
+        (valid until its next call); None when L = 0. The input projection of every neighbour
+        in one matmul, (L, X + 1) @ (X + 1, 4H), then `_lstm_run`."""
+        n = seq.shape[0]
+        s = self._lstm_scratch(n)
+        x = s.x[:n]
+        x[:, :-1] = seq
+        hs = self.hidden
+        np.dot(x, self._w_ib32, s.w[hs : hs + n])
+        return self._lstm_run(s, n)
+
+    def _lstm_run(self, s, n: int) -> np.ndarray | None:
+        """The recurrence over the n XP rows in s.w[H:H + n]: 2 x the final hidden state (in
+        s.haug[:H]), or None when n = 0.
 
         The fast path of `lstm_last_reference` (equal within 1e-5, tests/test_policy_speed.py),
         float32 like torch. Per step it makes 7 numpy calls on one buffer B = [o, i, f, g, c]:
-          B[:4H] = [h2, e_t] @ [W_hh / 2; XP]   (XP = [X, 1] [W_ih^T; b] for all steps at once,
-                                                e_t one-hot: the input projection is a row)
+          B[:4H] = [h2, e_t] @ [W_hh / 2; XP]   (e_t one-hot: the input projection is a row;
+                                                the first step, h = 0, is tanh(XP[0]) alone)
           B[:4H] = tanh(B[:4H]);  B[:3H] += 1   (2 sigma(x) = 1 + tanh(x / 2))
           P = B[H:3H] * B[3H:5H]                ([2 s_i g, 2 s_f c])
           c = [1/2, 1/2] @ [P[:H]; P[H:]];  h2 = (1 + tanh o) tanh(c) = 2 h
         Scalars come as arrays (a Python float operand costs a conversion per call).
         """
+        if n == 0:
+            return None
         hs = self.hidden
-        n = seq.shape[0]
-        w_all, x, haug_all, buf, prod, th, ones, halves = self._lstm_scratch(n)
-        # the input projection of every neighbour in one matmul: (L, X + 1) @ (X + 1, 4H)
-        x[:n, :-1] = seq
-        w = w_all[: hs + n]
-        np.dot(x[:n], self._w_ib32, w[hs:])
-        haug = haug_all[: hs + n]  # [h2, e_t]
-        haug[:] = 0.0
+        gates, sig, pair, tail, o_gate, c, prod, prod2, th, ones, halves = s.step
+        w = s.w[: hs + n]
+        haug = s.haug[: hs + n]
         h2 = haug[:hs]
-        buf[4 * hs :] = 0.0  # c
-        gates, sig, pair, c = buf[: 4 * hs], buf[: 3 * hs], buf[hs : 3 * hs], buf[4 * hs :]
-        tail, o_gate, prod2 = buf[3 * hs :], buf[:hs], prod.reshape(2, hs)
         dot, tanh, mul, add = np.dot, np.tanh, np.multiply, np.add
+        c[:] = 0.0
+        tanh(w[hs], gates)
         for t in range(hs, hs + n):
-            haug[t] = 1.0
             if t > hs:
-                haug[t - 1] = 0.0
-            dot(haug, w, gates)
-            tanh(gates, gates)
+                haug[t] = 1.0
+                dot(haug, w, gates)
+                haug[t] = 0.0
+                tanh(gates, gates)
             add(sig, ones, sig)
             mul(pair, tail, prod)
             dot(halves, prod2, c)
             tanh(c, th)
             mul(th, o_gate, h2)
-        return h2 if n else None
+        return h2
 
     def lstm_last_reference(self, seq: np.ndarray) -> np.ndarray:
         """Final hidden state of one sequence (L, X) -> (H,), float64, one step at a time."""
@@ -261,6 +323,13 @@ def _finite(**arrays) -> None:
 
 
 _F64 = np.dtype(np.float64)
+_INF = math.inf
+
+
+def _clip_pair(a0: float, a1: float) -> tuple[float, float]:
+    """(a0, a1) / |a| where |a| > 1 (features.clip_unit for one action)."""
+    n = math.hypot(a0, a1)
+    return (a0 / n, a1 / n) if n > 1.0 else (a0, a1)
 
 
 def _check(name: str, x, shape: tuple, finite: bool = True) -> np.ndarray:
@@ -282,6 +351,21 @@ def _check(name: str, x, shape: tuple, finite: bool = True) -> np.ndarray:
     if finite and not np.isfinite(a).all():
         raise ValueError(f"{name} must be finite, got {a!r}")
     return a
+
+
+def _pair(x) -> list | tuple | None:
+    """A finite-or-not (2,) float64 array, or a list / tuple of two Python floats, as two
+    floats; None for anything else (the checked path then says what is wrong)."""
+    if type(x) is np.ndarray:
+        return x.tolist() if x.dtype is _F64 and x.shape == (2,) else None
+    if type(x) in (list, tuple) and len(x) == 2 and type(x[0]) is float and type(x[1]) is float:
+        return x
+    return None
+
+
+def _rows_f64(x, shape: tuple) -> bool:
+    """x is a float64 array of exactly this shape."""
+    return type(x) is np.ndarray and x.dtype is _F64 and x.shape == shape
 
 
 class GuidancePolicy:
@@ -327,6 +411,13 @@ class GuidancePolicy:
         self.safety_filter = safety_filter
         base = safety_cfg or safety.SafetyConfig()
         self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
+        # the fast path of `command` / `action` (features.closest_last_rows): the projection of
+        # rows in metres and in policy units, and the sense range in each; None = not this config
+        self._rows_proj_m = self._rows_proj = None
+        if (obs_cfg.encoding, obs_cfg.order) == ("sincos", "closest_last"):
+            self._rows_proj = net.rows_projection(obs_cfg.dist_scale)
+            self._rows_proj_m = net.rows_projection(obs_cfg.dist_scale * self.dist_scale_m)
+        self._sense_range_m = obs_cfg.sense_range * self.dist_scale_m
 
     @classmethod
     def load(
@@ -394,14 +485,53 @@ class GuidancePolicy:
     def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
         """Raw network action (a_fwd, a_right), clipped to |a| <= 1; inputs in policy units.
 
-        The fast path (features.observe_fast, Network.forward_one: the LSTM in float32) of
-        `action_reference`, equal within 1e-5 (tests/test_policy_speed.py)."""
-        seq, goal_feat, _ = features.observe_fast(
-            pos, heading_rad, goal, nbr_pos, nbr_heading_rad, self.obs_cfg, self.max_neighbours
+        The fast path of `action_reference`, equal within 1e-5 (tests/test_policy_speed.py):
+        `_action_rows` where it applies, else features.observe_fast and Network.forward_one
+        (the LSTM in float32 either way)."""
+        a = None
+        if self._rows_proj is not None:
+            pos = np.asarray(pos, dtype=np.float64)
+            goal = np.asarray(goal, dtype=np.float64)
+            h = float(heading_rad)
+            p0, p1, g0, g1 = float(pos[0]), float(pos[1]), float(goal[0]), float(goal[1])
+            a = self._action_rows(
+                pos,
+                p0,
+                p1,
+                h,
+                g0,
+                g1,
+                np.asarray(nbr_pos, dtype=np.float64).reshape(-1, 2),
+                np.asarray(nbr_heading_rad, dtype=np.float64),
+                self._rows_proj,
+                self.obs_cfg.sense_range,
+            )
+        if a is None:
+            seq, goal_feat, _ = features.observe_fast(
+                pos, heading_rad, goal, nbr_pos, nbr_heading_rad, self.obs_cfg, self.max_neighbours
+            )
+            a = _clip_pair(*self.net.forward_one(seq, goal_feat))
+        return np.array(a)
+
+    def _action_rows(
+        self, pos, p0, p1, heading, g0, g1, nbr_pos, nbr_heading, proj, sense_range
+    ) -> tuple[float, float] | None:
+        """The clipped action through features.closest_last_rows and Network.forward_rows
+        (sincos / closest_last, every neighbour kept), in any length unit: proj and
+        sense_range in that unit; pos (2,) also as floats p0, p1, the goal as g0, g1. None
+        where that does not apply (more than max_neighbours, a neighbour on top, a
+        non-finite distance): the caller takes the general path."""
+        k = nbr_pos.shape[0]
+        if self.max_neighbours is not None and k > self.max_neighbours:
+            return None
+        net = self.net
+        got = features.closest_last_rows(
+            nbr_pos - pos, heading, nbr_heading, sense_range, net.rows_table(k)
         )
-        a0, a1 = self.net.forward_one(seq, goal_feat)
-        n = math.hypot(a0, a1)
-        return np.array([a0 / n, a1 / n]) if n > 1.0 else np.array([a0, a1])
+        if got is None:
+            return None
+        psi_d = math.atan2(g1 - p1, g0 - p0) - heading
+        return _clip_pair(*net.forward_rows(got[0], proj, (math.sin(psi_d), math.cos(psi_d))))
 
     def action_reference(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
         """`action` the plain way: features.observe, float64 LSTM one step at a time."""
@@ -428,7 +558,81 @@ class GuidancePolicy:
     # --- world units ----------------------------------------------------------------
 
     def command(self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad):
-        """Velocity command (2,) in m/s (north, east) for one vehicle."""
+        """Velocity command (2,) in m/s (north, east) for one vehicle.
+
+        Inputs that are already float64 arrays of the right shapes (a 2-vector may also be a
+        list of two floats, the heading a float), with the shipped observation, take
+        `_command_fast`; anything else, and every bad input, `_command_checked`, which
+        names what is wrong. Both give the same velocity within 1e-5."""
+        v = self._command_fast(
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+        )
+        if v is None:
+            v = self._command_checked(
+                pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+            )
+        return v
+
+    def _command_fast(
+        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+    ) -> np.ndarray | None:
+        """`command` in metres without scaling the inputs (the projection takes metres), or
+        None when the inputs are not the common case or not all finite.
+
+        Finite: (x - x) is 0 for a finite float and NaN otherwise; x.x over a neighbour array
+        is finite exactly when its entries are (or it overflows: then the checked path);
+        positions through the distances (features.closest_last_rows)."""
+        if self._rows_proj_m is None or type(nbr_pos_m) is not np.ndarray or nbr_pos_m.ndim != 2:
+            return None
+        k = nbr_pos_m.shape[0]
+        pos, vel, goal = _pair(pos_m), _pair(vel_m_s), _pair(goal_m)
+        if (
+            pos is None
+            or vel is None
+            or goal is None
+            or not isinstance(heading_rad, float)
+            or not _rows_f64(nbr_pos_m, (k, 2))
+            or not _rows_f64(nbr_vel_m_s, (k, 2))
+            or not _rows_f64(nbr_heading_rad, (k,))
+        ):
+            return None
+        (p0, p1), (v0, v1), (g0, g1), h = pos, vel, goal, float(heading_rad)
+        if (p0 - p0) + (p1 - p1) + (v0 - v0) + (v1 - v1) + (g0 - g0) + (g1 - g1) + (h - h) != 0.0:
+            return None
+        vdot = np.vdot  # unlike ndarray.dot, it does not warn when x.x overflows
+        if k and not vdot(nbr_vel_m_s, nbr_vel_m_s) + vdot(nbr_heading_rad, nbr_heading_rad) < _INF:
+            return None
+        a = self._action_rows(
+            np.asarray(pos_m),
+            p0,
+            p1,
+            h,
+            g0,
+            g1,
+            nbr_pos_m,
+            nbr_heading_rad,
+            self._rows_proj_m,
+            self._sense_range_m,
+        )
+        if a is None:
+            return None
+        return self._velocity(a, h, pos_m, vel_m_s, nbr_pos_m, nbr_vel_m_s)
+
+    def _velocity(self, a, heading, pos_m, vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
+        """Body (fwd, right) action a -> (north, east) velocity times the cruise speed, then
+        the filter (when on and there are neighbours)."""
+        c, sn, u = math.cos(heading), math.sin(heading), self.cruise_speed_m_s
+        a0, a1 = a
+        v = np.array(((a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u))
+        if self.safety_filter and nbr_pos_m.shape[0]:
+            v = safety.filter_one(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
+        return v
+
+    def _command_checked(
+        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+    ) -> np.ndarray:
+        """`command` for any input: checked (a ValueError naming the input), then scaled to
+        policy units and through `action`."""
         pos_m = _check("pos_m", pos_m, (2,), finite=False)
         vel_m_s = _check("vel_m_s", vel_m_s, (2,), finite=False)
         if type(heading_rad) is float:  # the common case, without an array
@@ -452,13 +656,9 @@ class GuidancePolicy:
         )
         s = self.dist_scale_m
         a = self.action(pos_m / s, heading, goal_m / s, nbr_pos_m / s, nbr_heading)
-        # body (fwd, right) -> (north, east), times the cruise speed
-        c, sn, u = math.cos(heading), math.sin(heading), self.cruise_speed_m_s
-        a0, a1 = float(a[0]), float(a[1])
-        v = np.array([(a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u])
-        if self.safety_filter and k:
-            v = safety.filter_one(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
-        return v
+        return self._velocity(
+            (float(a[0]), float(a[1])), heading, pos_m, vel_m_s, nbr_pos_m, nbr_vel_m_s
+        )
 
     def command_batch(self, pos_m, vel_m_s, heading_rad, goal_m, active=None):
         """Velocity commands (N, 2) in m/s; each active vehicle sees all other active ones.

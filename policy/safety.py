@@ -86,6 +86,7 @@ def _det(ax, ay, bx, by):
 
 
 def _lp1(lines, n, radius, opt, direction_opt):
+    # _det inlined and min / max as comparisons (the same values, NaN included): the hot path
     (px, py), (dx, dy) = lines[n]
     dot = px * dx + py * dy
     disc = dot * dot + radius * radius - (px * px + py * py)
@@ -95,23 +96,26 @@ def _lp1(lines, n, radius, opt, direction_opt):
     t_left, t_right = -dot - sq, -dot + sq
     for i in range(n):
         (qx, qy), (ex, ey) = lines[i]
-        denom = _det(dx, dy, ex, ey)
-        numer = _det(ex, ey, px - qx, py - qy)
+        denom = dx * ey - dy * ex  # _det(dx, dy, ex, ey)
+        numer = ex * (py - qy) - ey * (px - qx)  # _det(ex, ey, px - qx, py - qy)
         if abs(denom) <= EPS:
             if numer < 0.0:
                 return None
             continue
         t = numer / denom
         if denom >= 0.0:
-            t_right = min(t_right, t)
-        else:
-            t_left = max(t_left, t)
+            if t < t_right:  # min(t_right, t)
+                t_right = t
+        elif t > t_left:  # max(t_left, t)
+            t_left = t
         if t_left > t_right:
             return None
     if direction_opt:
         t = t_right if opt[0] * dx + opt[1] * dy > 0.0 else t_left
     else:
-        t = min(max(dx * (opt[0] - px) + dy * (opt[1] - py), t_left), t_right)
+        t = dx * (opt[0] - px) + dy * (opt[1] - py)
+        t = t_left if t_left > t else t  # max(t, t_left)
+        t = t_right if t_right < t else t  # min(t, t_right)
     return (px + t * dx, py + t * dy)
 
 
@@ -121,13 +125,14 @@ def _lp2(lines, radius, opt, direction_opt):
     else:
         n = (opt[0] ** 2 + opt[1] ** 2) ** 0.5
         result = opt if n <= radius else (opt[0] / n * radius, opt[1] / n * radius)
+    rx, ry = result
     for i, ((px, py), (dx, dy)) in enumerate(lines):
-        if _det(dx, dy, px - result[0], py - result[1]) > 0.0:
+        if dx * (py - ry) - dy * (px - rx) > 0.0:  # _det(dx, dy, px - rx, py - ry)
             new = _lp1(lines, i, radius, opt, direction_opt)
             if new is None:
-                return i, result
-            result = new
-    return len(lines), result
+                return i, (rx, ry)
+            rx, ry = new
+    return len(lines), (rx, ry)
 
 
 def _lp3(lines, begin, radius, result):
@@ -190,33 +195,45 @@ def filter_velocity(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: S
 
 def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
     """`orca_lines` for one neighbour in Python floats (the branch it takes, not all three)."""
+    return _orca_line_k(px, py, vx, vy, own_vx, own_vy, _line_constants(r, cfg))
+
+
+def _line_constants(r: float, cfg: SafetyConfig) -> tuple:
+    """What `_orca_line_k` needs of the config, computed once per vehicle."""
     tau = cfg.time_horizon_s
+    inv_dt = 1.0 / cfg.dt_s
+    return r, r * r, tau, r / tau, inv_dt, r * inv_dt, cfg.responsibility
+
+
+def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
+    """`_orca_line` with the config's constants precomputed (`_line_constants`); max(x, EPS)
+    as a comparison (the same value, NaN included)."""
+    r, r_sq, tau, r_tau, inv_dt, r_inv_dt, k = consts
     dist_sq = px * px + py * py
-    if dist_sq <= r * r:
-        inv_dt = 1.0 / cfg.dt_s
+    if dist_sq <= r_sq:
         cx, cy = vx - inv_dt * px, vy - inv_dt * py
-        c_len = math.sqrt(max(cx * cx + cy * cy, EPS))
+        c_sq = cx * cx + cy * cy
+        c_len = math.sqrt(EPS if c_sq < EPS else c_sq)
         ux, uy = cx / c_len, cy / c_len
-        d, u = (uy, -ux), ((r * inv_dt - c_len) * ux, (r * inv_dt - c_len) * uy)
+        s = r_inv_dt - c_len
+        return (own_vx + k * (s * ux), own_vy + k * (s * uy)), (uy, -ux)
+    wx, wy = vx - px / tau, vy - py / tau
+    w_len_sq = wx * wx + wy * wy
+    dot1 = wx * px + wy * py
+    if dot1 < 0 and dot1 * dot1 > r_sq * w_len_sq:
+        w_len = math.sqrt(EPS if w_len_sq < EPS else w_len_sq)
+        ux, uy = wx / w_len, wy / w_len
+        s = r_tau - w_len
+        return (own_vx + k * (s * ux), own_vy + k * (s * uy)), (uy, -ux)
+    leg_sq = dist_sq - r_sq
+    leg = math.sqrt(0.0 if leg_sq < 0.0 else leg_sq)
+    inv = 1.0 / (EPS if dist_sq < EPS else dist_sq)
+    if px * wy - py * wx > 0:
+        lx, ly = (px * leg - py * r) * inv, (px * r + py * leg) * inv
     else:
-        wx, wy = vx - px / tau, vy - py / tau
-        w_len_sq = wx * wx + wy * wy
-        dot1 = wx * px + wy * py
-        if dot1 < 0 and dot1 * dot1 > r * r * w_len_sq:
-            w_len = math.sqrt(max(w_len_sq, EPS))
-            ux, uy = wx / w_len, wy / w_len
-            d, u = (uy, -ux), ((r / tau - w_len) * ux, (r / tau - w_len) * uy)
-        else:
-            leg = math.sqrt(max(dist_sq - r * r, 0.0))
-            inv = 1.0 / max(dist_sq, EPS)
-            if px * wy - py * wx > 0:
-                lx, ly = (px * leg - py * r) * inv, (px * r + py * leg) * inv
-            else:
-                lx, ly = -(px * leg + py * r) * inv, -(-px * r + py * leg) * inv
-            dot2 = vx * lx + vy * ly
-            d, u = (lx, ly), (dot2 * lx - vx, dot2 * ly - vy)
-    k = cfg.responsibility
-    return (own_vx + k * u[0], own_vy + k * u[1]), d
+        lx, ly = -(px * leg + py * r) * inv, -(-px * r + py * leg) * inv
+    dot2 = vx * lx + vy * ly
+    return (own_vx + k * (dot2 * lx - vx), own_vy + k * (dot2 * ly - vy)), (lx, ly)
 
 
 def filter_one(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: SafetyConfig):
@@ -224,15 +241,19 @@ def filter_one(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: Safety
     the few neighbours within reach (equal within 1e-12, tests/test_policy_speed.py)."""
     r = cfg.radius_m * (1 + cfg.margin)
     reach = r + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
+    reach_sq = reach * reach
     x, y = float(pos_m[0]), float(pos_m[1])
     own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
     lines = []
+    consts = None
     for (nx, ny), (nvx, nvy) in zip(
         np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True
     ):
         px, py = nx - x, ny - y
-        if px * px + py * py < reach * reach:
-            lines.append(_orca_line(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, r, cfg))
+        if px * px + py * py < reach_sq:
+            if consts is None:
+                consts = _line_constants(r, cfg)
+            lines.append(_orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts))
     pref = (float(pref_vel_m_s[0]), float(pref_vel_m_s[1]))
     if not lines:
         return _clip_speed(np.array(pref), cfg.max_speed_m_s)

@@ -5,7 +5,10 @@
   LSTM and the head on per-thread buffers) = head_forward of the reference within 1e-5;
 - features.observe_fast = features.observe within 1e-12 (and the same neighbours);
 - safety.filter_one = safety.filter_velocity within 1e-12;
-- GuidancePolicy.command = the reference pipeline within 1e-5; its checks still name the input.
+- features.closest_last_rows (complex rows for their own projection) = features.observe within
+  float32 rounding (and the same neighbours); GuidancePolicy.action = action_reference within 1e-5;
+- GuidancePolicy.command (its fast path in metres and its checked path) = the reference pipeline
+  within 1e-5; its checks still name the input, a bad value anywhere included.
 """
 
 from __future__ import annotations
@@ -166,3 +169,119 @@ def test_command_checks_still_name_the_bad_input(pol):
             pol.command(**bad)
     with pytest.raises(ValueError, match="nbr_vel_m_s must have shape"):
         pol.command(**{**ok, "nbr_vel_m_s": np.zeros((3, 2))})
+
+
+def _rows_scene(rng, k, spread=25.0):
+    nbr, hdg = _scene(rng, k, spread)
+    if k > 2:
+        nbr[1] = nbr[2]  # equal distances: the stable order must match
+    return rng.uniform(-5, 5, 2), float(rng.uniform(-10, 10)), nbr, hdg
+
+
+@pytest.mark.parametrize("sense", [20.0, 8.0, 0.0])
+def test_closest_last_rows_equal_observe(sense):
+    cfg = features.ObsConfig("sincos", "closest_last", 10.0, sense)
+    rng = np.random.default_rng(11)
+    scratch = features.RowsTable(64)
+    for k in (0, 1, 3, 19, 45, 60):
+        for _ in range(10):
+            own, h, nbr, hdg = _rows_scene(rng, k)
+            ref_seq, _, ref_idx = features.observe(own, h, [40.0, -7.0], nbr, hdg, cfg)
+            rows, idx = features.closest_last_rows(nbr - own, h, hdg, sense, scratch)
+            np.testing.assert_array_equal(idx, ref_idx)
+            assert rows.dtype == np.complex64 and rows.shape == (len(ref_idx), 3)
+            seq = features.rows_as_seq(rows, cfg.dist_scale)
+            np.testing.assert_allclose(seq, ref_seq, atol=2e-6, rtol=1e-6)
+            np.testing.assert_array_equal(rows[:, 0].imag, 1.0)
+
+
+def test_closest_last_rows_refuse_what_observe_must_do():
+    scratch = features.RowsTable(8)
+    nbr, hdg = np.array([[1.0, 2.0], [5.0, 5.0]]), np.zeros(2)
+    for bad in ([1.0, 2.0], [np.nan, 0.0], [np.inf, 0.0]):
+        rel = nbr.copy()
+        rel[0] = bad
+        assert features.closest_last_rows(rel - [1.0, 2.0], 0.3, hdg, 20.0, scratch) is None
+
+
+@pytest.mark.parametrize("max_n", [None, 10, 25])
+def test_action_equals_action_reference(max_n):
+    """`action`'s fast path (closest_last_rows + forward_rows) and, beyond max_neighbours, its
+    general path, against the float64 reference."""
+    pol = GuidancePolicy.load(max_neighbours=max_n)
+    rng = np.random.default_rng(12)
+    worst = 0.0
+    for k in (0, 1, 2, 19, 60):
+        for _ in range(8):
+            own, h, nbr, hdg = _rows_scene(rng, k, 15.0)
+            goal = rng.uniform(-40, 40, 2)
+            a = pol.action(own, h, goal, nbr, hdg)
+            ref = pol.action_reference(own, h, goal, nbr, hdg)
+            assert a.shape == (2,)
+            worst = max(worst, float(np.abs(a - ref).max()))
+    # a neighbour exactly on top: the general path, as the reference
+    nbr = np.array([[1.0, 2.0], [5.0, 5.0]])
+    a = pol.action(np.array([1.0, 2.0]), 0.3, [9.0, 9.0], nbr, np.array([0.1, 0.2]))
+    ref = pol.action_reference(np.array([1.0, 2.0]), 0.3, [9.0, 9.0], nbr, np.array([0.1, 0.2]))
+    worst = max(worst, float(np.abs(a - ref).max()))
+    assert worst <= TOL, worst
+
+
+@pytest.mark.parametrize("filt", [False, True])
+@pytest.mark.parametrize("policy_sep", [None, 1.25])
+def test_command_fast_path_equals_checked_path_and_reference(filt, policy_sep):
+    """The fast path (metres, no scaling), the checked path (scaled to policy units) and the
+    plain reference agree, for 0-60 neighbours, views of wider arrays (as the agents pass),
+    a list goal and a numpy heading."""
+    pol = GuidancePolicy.load(safety_filter=filt, policy_separation_m=policy_sep)
+    s = pol.dist_scale_m
+    rng = np.random.default_rng(13)
+    worst = 0.0
+    for k in (0, 1, 5, 19, 60):
+        for trial in range(6):
+            wide = rng.uniform(-14, 14, (k, 3))
+            nbr = wide[:, :2]  # not contiguous
+            nv, hdg = rng.normal(0, 0.7, (k, 2)), rng.uniform(-4, 4, k)
+            own, vel = rng.uniform(-3, 3, 2), rng.normal(0, 0.5, 2)
+            h = np.float64(rng.uniform(-4, 4)) if trial % 2 else float(rng.uniform(-4, 4))
+            goal = rng.uniform(-30, 30, 2)
+            goal_in = [float(goal[0]), float(goal[1])] if trial % 3 == 0 else goal
+            assert pol._command_fast(own, vel, h, goal_in, nbr, nv, hdg) is not None
+            v = pol.command(own, vel, h, goal_in, nbr, nv, hdg)
+            v_checked = pol._command_checked(own, vel, h, goal_in, nbr, nv, hdg)
+            a = pol.action_reference(own / s, h, goal / s, nbr / s, hdg)
+            ref = features.action_to_velocity(a, h) * pol.cruise_speed_m_s
+            if filt and k:
+                ref = safety.filter_velocity(own, vel, ref, nbr, nv, pol.safety_cfg)
+            assert v.shape == (2,) and v.dtype == np.float64
+            worst = max(worst, float(np.abs(v - ref).max()), float(np.abs(v_checked - ref).max()))
+    assert worst <= TOL, worst
+
+
+def test_command_finds_one_bad_value_anywhere(pol):
+    """A single non-finite entry among finite ones, in arrays the fast path takes, still gets
+    the checked path's named error; a finite input whose x.x overflows is still served."""
+    k = 3
+    ok = dict(
+        pos_m=np.zeros(2),
+        vel_m_s=np.zeros(2),
+        heading_rad=0.1,
+        goal_m=np.array([10.0, 0.0]),
+        nbr_pos_m=np.array([[4.0, 1.0], [-3.0, 2.0], [0.5, -6.0]]),
+        nbr_vel_m_s=np.zeros((k, 2)),
+        nbr_heading_rad=np.zeros(k),
+    )
+    assert pol._command_fast(**ok) is not None
+    for name, value in ok.items():
+        for bad in (np.nan, np.inf, -np.inf):
+            args = dict(ok)
+            if isinstance(value, float):
+                args[name] = bad
+            else:
+                arr = value.copy()
+                arr.reshape(-1)[-1] = bad
+                args[name] = arr
+            with pytest.raises(ValueError, match=f"{name} must be finite"):
+                pol.command(**args)
+    huge = dict(ok, nbr_vel_m_s=np.full((k, 2), 1e200))
+    assert np.isfinite(pol.command(**huge)).all()
