@@ -149,22 +149,14 @@ def _torch(seq, lengths, goal_feat, reps: int, f_net: float, peak: float) -> dic
         import torch
     except ImportError:
         return {"torch": "not installed"}
-    from policy.model import ActorCritic, ModelConfig
+    from policy.model import ActorCritic, ModelConfig, load_actor_arrays
     from policy.runtime import DEFAULT_WEIGHTS
 
     torch.set_num_threads(1)
     with np.load(DEFAULT_WEIGHTS) as z:
         arrays = {k: z[k] for k in z.files}
     model = ActorCritic(ModelConfig.from_dict(json.loads(str(arrays["config"]))))
-    lstm = model.encoder.lstm
-    with torch.no_grad():
-        lstm.weight_ih_l0.copy_(torch.from_numpy(arrays["lstm.weight_ih"]))
-        lstm.weight_hh_l0.copy_(torch.from_numpy(arrays["lstm.weight_hh"]))
-        lstm.bias_ih_l0.copy_(torch.from_numpy(arrays["lstm.bias"]))
-        lstm.bias_hh_l0.zero_()
-        for k, lin in enumerate(model.head):
-            lin.weight.copy_(torch.from_numpy(arrays[f"head.{k}.weight"]))
-            lin.bias.copy_(torch.from_numpy(arrays[f"head.{k}.bias"]))
+    load_actor_arrays(model, arrays)
     s = torch.from_numpy(seq.astype(np.float32))
     ln = torch.from_numpy(lengths.astype(np.int64))
     g = torch.from_numpy(goal_feat.astype(np.float32))

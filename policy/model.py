@@ -177,3 +177,17 @@ def state_arrays(model: ActorCritic) -> dict:
         out[f"head.{k}.weight"] = lin.weight.detach().cpu().numpy()
         out[f"head.{k}.bias"] = lin.bias.detach().cpu().numpy()
     return {k: np.asarray(v, dtype=np.float32) for k, v in out.items()}
+
+
+def load_actor_arrays(model: ActorCritic, arrays: dict) -> None:
+    """The weights-file arrays (docs/POLICY_SPEC.md, lstm) into `model`'s LSTM and head; the
+    inverse of `state_arrays` (the one combined bias goes to bias_ih, bias_hh is zero)."""
+    lstm = model.encoder.lstm
+    with torch.no_grad():
+        lstm.weight_ih_l0.copy_(torch.from_numpy(arrays["lstm.weight_ih"]))
+        lstm.weight_hh_l0.copy_(torch.from_numpy(arrays["lstm.weight_hh"]))
+        lstm.bias_ih_l0.copy_(torch.from_numpy(arrays["lstm.bias"]))
+        lstm.bias_hh_l0.zero_()
+        for k, lin in enumerate(model.head):
+            lin.weight.copy_(torch.from_numpy(arrays[f"head.{k}.weight"]))
+            lin.bias.copy_(torch.from_numpy(arrays[f"head.{k}.bias"]))

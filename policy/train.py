@@ -332,7 +332,7 @@ def load_actor(model, path: str) -> None:
     match. The critic and the action noise keep their fresh values."""
     import json
 
-    import torch
+    from policy.model import load_actor_arrays
 
     with np.load(path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
@@ -340,15 +340,7 @@ def load_actor(model, path: str) -> None:
     want = model.cfg.to_dict()
     if {k: have.get(k) for k in want} != want:
         raise ValueError(f"--init {path} has model config {have}, not {want}")
-    lstm = model.encoder.lstm
-    with torch.no_grad():
-        lstm.weight_ih_l0.copy_(torch.from_numpy(arrays["lstm.weight_ih"]))
-        lstm.weight_hh_l0.copy_(torch.from_numpy(arrays["lstm.weight_hh"]))
-        lstm.bias_ih_l0.copy_(torch.from_numpy(arrays["lstm.bias"]))
-        lstm.bias_hh_l0.zero_()
-        for k, lin in enumerate(model.head):
-            lin.weight.copy_(torch.from_numpy(arrays[f"head.{k}.weight"]))
-            lin.bias.copy_(torch.from_numpy(arrays[f"head.{k}.bias"]))
+    load_actor_arrays(model, arrays)
 
 
 def _save(model, optim, cfg: TrainConfig, episodes: int, path: Path) -> None:
