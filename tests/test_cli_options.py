@@ -36,8 +36,10 @@ NO_UNIT_SUFFIX: dict[str, set[tuple[str, str]]] = {
             "w-tme",
             "w-prog",
             "fwd-bias",
+            "lone-anchor",
         )
     },
+    "a share of arenas, 0 to 1 (a probability, not a percentage)": {("train", "--conflict-share")},
     "a count, in thousands (the -k is its scale)": {("train", "--episodes-k")},
     "a ratio of real time (2 = twice as fast), no unit": {("replay", "--speed")},
     "LAT,LON,ALT: three numbers in degrees, degrees, metres, named by the metavar": {
