@@ -65,3 +65,19 @@ def mesh_trio(request: pytest.FixtureRequest):
         Mesh(embedded_peer(port, fleet=fleet)) as b,
     ):
         yield hub, a, b
+
+
+def keyed_agent_argv(authority, vehicle_id: int) -> list[str]:
+    """The start of a child `covey agent` command line for one keyed vehicle: its id and the
+    key file `authority` issued for it (append the test's own flags)."""
+    from comms.schema import Role
+
+    return [
+        "-m",
+        "covey_cli",
+        "agent",
+        "--id",
+        str(vehicle_id),
+        "--key-file",
+        str(authority.member_path(Role.VEHICLE, vehicle_id)),
+    ]

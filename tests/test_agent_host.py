@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import REPO, views_by_id
+from conftest import REPO, keyed_agent_argv, views_by_id
 
 from agent import agent_cli
 from agent.fleet_sim import Fleet, FleetSimConfig
@@ -337,13 +337,7 @@ def test_single_agents_and_a_host_fly_as_one_keyed_fleet(tmp_path) -> None:
         )
         for vid, (n, e) in AGENT_AT.items():
             kids.start(
-                "-m",
-                "covey_cli",
-                "agent",
-                "--id",
-                str(vid),
-                "--key-file",
-                str(authority.member_path(Role.VEHICLE, vid)),
+                *keyed_agent_argv(authority, vid),
                 f"--start-ne-m={n:g},{e:g}",
                 *AGENT_ARGS[vid],
                 *connect,

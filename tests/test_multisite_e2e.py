@@ -43,7 +43,7 @@ from comms.schema import (
 )
 from comms.session import MeshConfig, free_tcp_port
 from groundstation.fleet import FleetModel
-from tests.conftest import views_by_id
+from tests.conftest import keyed_agent_argv, views_by_id
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -152,13 +152,7 @@ def test_a_fleet_across_three_routers(procs, tmp_path) -> None:
         t0 = time.monotonic()
         agents = {
             vid: procs.start(
-                "-m",
-                "covey_cli",
-                "agent",
-                "--id",
-                str(vid),
-                "--key-file",
-                str(authority.member_path(Role.VEHICLE, vid)),
+                *keyed_agent_argv(authority, vid),
                 "--fleet",
                 FLEET,
                 "--mesh-mode",

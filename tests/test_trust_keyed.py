@@ -49,7 +49,7 @@ from comms.schema import (
 )
 from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
-from tests.conftest import REPO, views_by_id
+from tests.conftest import REPO, keyed_agent_argv, views_by_id
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -112,13 +112,7 @@ def keyed(tmp_path_factory):
             )
             for vid, (n, e) in ((1, (0.0, 0.0)), (2, V2_AT)):
                 group.start(
-                    "-m",
-                    "covey_cli",
-                    "agent",
-                    "--id",
-                    str(vid),
-                    "--key-file",
-                    str(authority.member_path(Role.VEHICLE, vid)),
+                    *keyed_agent_argv(authority, vid),
                     "--fleet",
                     FLEET,
                     "--connect",
