@@ -44,7 +44,7 @@ from comms.cli_options import (
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import POSITION_LIMIT_M
-from comms.state_rate import IDLE_STATE_HZ, MAX_IDLE_PERIOD_S
+from comms.state_rate import IDLE_STATE_HZ, MAX_IDLE_PERIOD_S, MIN_STEADY_STATE_HZ, SteadyConfig
 
 log = logging.getLogger("covey.agent")
 
@@ -174,6 +174,14 @@ def add_flight_args(
         help=f"state rate while landed, disarmed and idle (default {IDLE_STATE_HZ:g}, at least "
         f"{1 / MAX_IDLE_PERIOD_S:g}; full rate again from the tick after a command)",
     )
+    p.add_argument(
+        "--steady-state-hz",
+        type=float,
+        default=None,
+        help=f"state rate in the air while the last state still predicts this vehicle (within "
+        f"0.1 m, 0.1 m/s, 0.05 rad; hovering, flying straight), at least "
+        f"{MIN_STEADY_STATE_HZ:g}; default: off, always the full rate (comms/state_rate.py)",
+    )
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
 
@@ -203,6 +211,12 @@ def guidance_from_args(args: argparse.Namespace) -> GuidanceConfig:
         decision_period_s=args.decision_period_s,
         policy_separation_m=args.policy_separation_m,
     )
+
+
+def steady_from_args(args: argparse.Namespace) -> SteadyConfig | None:
+    """The steady-rate rule from --steady-state-hz (None: off); a bad rate raises ValueError."""
+    hz = args.steady_state_hz
+    return None if hz is None else SteadyConfig(state_hz=hz)
 
 
 def failsafe_from_args(args: argparse.Namespace) -> FailsafeConfig:
@@ -264,6 +278,7 @@ def config_from_args(
         tick_hz=args.tick_hz,
         state_hz=args.state_hz,
         idle_state_hz=args.idle_state_hz,
+        steady=steady_from_args(args),
         origin=args.origin or GeoOrigin(),
         guidance=guidance_from_args(args),
         failsafe=failsafe_from_args(args),

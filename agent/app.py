@@ -44,7 +44,7 @@ from comms.schema import (
 )
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
-from comms.state_rate import IDLE_STATE_HZ, StatePacer, check_rates, idle_rows
+from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
@@ -65,6 +65,9 @@ class AgentConfig:
     """State publishing rate while the vehicle is idle: landed (or killed), disarmed, on the
     ground, no autopilot action under way. At least 1 Hz (comms/state_rate.py); back to
     `state_hz` from the tick after a command or arming ends it."""
+    steady: SteadyConfig | None = None
+    """Publish at the steady rate while receivers can predict the state (hovering, flying
+    straight): comms/state_rate.py; None: always at `state_hz` in the air."""
     takeoff_alt_m: float = 10.0
     """Default take-off altitude when a takeoff command gives none."""
     origin: GeoOrigin = GeoOrigin()
@@ -126,7 +129,7 @@ class Agent:
         self.flags = StateFlag.OPEN_MODE if cfg.open_mode else StateFlag.NONE
         self.seq = 0
         self._lock = threading.Lock()  # guards the core: the tick and Zenoh's threads share it
-        self.pacer = StatePacer(cfg.state_hz, cfg.idle_state_hz, cfg.tick_hz)
+        self.pacer = StatePacer(cfg.state_hz, cfg.idle_state_hz, cfg.tick_hz, steady=cfg.steady)
         """Which ticks publish a state (comms/state_rate.py: the idle rate while idle)."""
         self._last_traffic_s = -math.inf
         self._link_was_ok = True
@@ -298,7 +301,16 @@ class Agent:
             core = self.core
             actions = core.observe(now_s, obs, gcs_alive)
             idle = bool(idle_rows(core.mode, tel.armed, tel.in_air, busy or bool(actions))[0])
-            publish = bool(self.pacer.due(now_s, [idle])[0])
+            publish = bool(
+                self.pacer.due(
+                    now_s,
+                    [idle],
+                    obs.pos_m,
+                    obs.vel_m_s,
+                    core.heading_rad,
+                    core.mode.astype(np.int64) * 2 + obs.armed,
+                )[0]
+            )
             heading_in_rad = float(core.heading_rad[0])
             rows = core.guided_rows(obs.armed, obs.link_ok)
             if rows.size:

@@ -58,7 +58,7 @@ from comms.schema import (
 )
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
-from comms.state_rate import IDLE_STATE_HZ, StatePacer, check_rates, idle_rows
+from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
 from policy.runtime import GuidancePolicy
 
 log = logging.getLogger("covey.fleet_sim")
@@ -87,6 +87,8 @@ class FleetSimConfig:
     """Physics, guidance and state-publishing rate."""
     idle_state_hz: float = IDLE_STATE_HZ
     """State rate of an idle vehicle (landed, disarmed: comms/state_rate.py, as the agent's)."""
+    steady: SteadyConfig | None = None
+    """Steady vehicles publish at its lower rate (comms/state_rate.py, as the agent's)."""
     spacing_m: float = 8.0
     """Start positions form a square grid with this spacing."""
     start_ne_m: tuple[float, float] = (0.0, 0.0)
@@ -217,7 +219,7 @@ class Fleet:
         self.slowed = np.zeros(n, bool)
         self.seq = np.zeros(n, np.int64)
         """Each vehicle's last published seq (one per state it published: idle is not loss)."""
-        self.pacer = StatePacer(cfg.rate_hz, cfg.idle_state_hz, cfg.rate_hz, n)
+        self.pacer = StatePacer(cfg.rate_hz, cfg.idle_state_hz, cfg.rate_hz, n, cfg.steady)
         self.stats = TickStats()
         self._lock = threading.RLock()
         self.others = NeighbourTable(None, replace(NeighbourConfig(), drop_s=cfg.drop_s))
@@ -346,7 +348,10 @@ class Fleet:
                 self.others.expire(now_s)  # unheard vehicles go, flying or not
             notes = core.drain_notes()
             idle = idle_rows(core.mode, sim.armed, obs.in_air)
-            due = np.flatnonzero(self.pacer.due(now_s, idle))
+            sig = core.mode.astype(np.int64) * 2 + sim.armed
+            due = np.flatnonzero(
+                self.pacer.due(now_s, idle, sim.pos_m, sim.vel_m_s, core.heading_rad, sig)
+            )
             states = self._states(due)
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
         if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states

@@ -45,6 +45,7 @@ def host_config(
             mesh=mesh_config(args, p),
             rate_hz=rate_hz,
             idle_state_hz=args.idle_state_hz,
+            steady=agent_cli.steady_from_args(args),
             spacing_m=args.spacing_m,
             start_ne_m=args.start_ne_m,
             max_neighbours=args.max_neighbours,

@@ -19,6 +19,11 @@ that is a client of router 1.
 A comparison point with unscoped (whole-fleet) subscriptions runs at the smallest size only:
 unscoped, every host decodes every state of the fleet (issue 15's "before").
 
+The scoped runs publish with the steady-state rule (comms/state_rate.py, `--steady-state-hz`,
+default STEADY_STATE_HZ): a hovering vehicle, whose state its receivers predict, sends 3 states a
+second instead of 10. One more run at the largest size sends at the full rate (`steady_hz` 0), as
+every vehicle did before the rule, and so does the unscoped comparison.
+
 Open mode (nothing signed): the cost of signatures is measured in bench/trust.py. One 2-core
 machine runs every process, routers and station included, so the absolute numbers are this
 machine's; the ratios between fleet sizes are the point.
@@ -44,6 +49,8 @@ ROUTERS = 3
 MIN_HOSTS = 10
 MAX_BLOCK = 100
 """At most this many vehicles per host process."""
+STEADY_STATE_HZ = 3.0
+"""The scoped runs' steady rate (comms/state_rate.py SteadyConfig); 0 = off."""
 TAKEOFF_ALT_M = 10.0
 LATENCY_SAMPLES = 20_000
 
@@ -56,7 +63,12 @@ def _signal_event(signum: int) -> threading.Event:
 
 
 def role_host(
-    connect: str, first_id: int, vehicles: int, start_ne_m: tuple[float, float], scoped: bool
+    connect: str,
+    first_id: int,
+    vehicles: int,
+    start_ne_m: tuple[float, float],
+    scoped: bool,
+    steady_hz: float,
 ) -> None:
     """One multi-vehicle host, a client of the router at `connect`. SIGUSR1 starts the
     measurement window (`--window-s`); prints RESULT {json} after it."""
@@ -65,6 +77,7 @@ def role_host(
     from comms.schema import VehicleState
     from comms.scope import ScopeConfig
     from comms.session import MeshConfig
+    from comms.state_rate import SteadyConfig
 
     measure = _signal_event(signal.SIGUSR1)
     latencies_ms: list[float] = []
@@ -84,6 +97,7 @@ def role_host(
         spacing_m=SPACING_M,
         start_ne_m=start_ne_m,
         scope=ScopeConfig(enabled=scoped),
+        steady=SteadyConfig(state_hz=steady_hz) if steady_hz > 0 else None,
     )
     stop = threading.Event()
     with Mesh(cfg.mesh) as mesh:
@@ -194,8 +208,9 @@ def _router_argv(port: int, peers: list[int]) -> list[str]:
     return argv
 
 
-def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float) -> dict:
-    """n vehicles in max(10, n / 100) hosts over three routers, and a station."""
+def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady_hz: float) -> dict:
+    """n vehicles in max(10, n / 100) hosts over three routers, and a station; the hosts' steady
+    rate `steady_hz` (0: every state at the full rate)."""
     from comms.session import free_tcp_port
 
     hosts = max(MIN_HOSTS, math.ceil(n / MAX_BLOCK))
@@ -229,6 +244,8 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float) -> dic
                     "1" if scoped else "0",
                     "--window-s",
                     str(window_s),
+                    "--steady-state-hz",
+                    str(steady_hz),
                 )
             )
             first += size
@@ -272,6 +289,7 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float) -> dic
         "hosts": hosts,
         "routers": ROUTERS,
         "scoped": scoped,
+        "steady_state_hz": steady_hz,
         "rx_per_vehicle_s_mean": float(np.mean([r["rx_per_vehicle_s"] for r in rows])),
         "rx_per_vehicle_s_max": float(np.max([r["rx_per_vehicle_s"] for r in rows])),
         "cpu_us_per_tick_vehicle_mean": float(
@@ -291,7 +309,9 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float) -> dic
         "router_cpu_share_of_core": router_cpu,
     }
     common.say(
-        f"{n} vehicles {'scoped' if scoped else 'unscoped'} ({hosts} hosts, {ROUTERS} routers): "
+        f"{n} vehicles {'scoped' if scoped else 'unscoped'}, "
+        f"{f'steady {steady_hz:g} Hz' if steady_hz else 'full rate'} "
+        f"({hosts} hosts, {ROUTERS} routers): "
         f"{out['rx_per_vehicle_s_mean']:.1f} states/s per vehicle, "
         f"{out['cpu_us_per_tick_vehicle_mean']:.0f} us CPU per tick per vehicle, neighbour "
         f"latency p50 {out['latency_ms_p50']} p99 {out['latency_ms_p99']} ms, station "
@@ -305,11 +325,15 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float) -> dic
 def figure(runs: list[dict]) -> None:
     plt = common.pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    for scoped, style in ((True, "o-"), (False, "s--")):
-        rs = [r for r in runs if r["scoped"] is scoped]
+    kinds = (
+        (True, True, "o-", "scoped, steady rate"),
+        (True, False, "^:", "scoped, full rate"),
+        (False, False, "s--", "unscoped (whole fleet), full rate"),
+    )
+    for scoped, steady, style, label in kinds:
+        rs = [r for r in runs if r["scoped"] is scoped and bool(r["steady_state_hz"]) is steady]
         if not rs:
             continue
-        label = "scoped (cells within reach)" if scoped else "unscoped (whole fleet)"
         n = [r["vehicles"] for r in rs]
         axes[0].plot(n, [r["rx_per_vehicle_s_mean"] for r in rs], style, label=label)
         axes[1].plot(n, [r["cpu_us_per_tick_vehicle_mean"] for r in rs], style, label=label)
@@ -326,11 +350,15 @@ def figure(runs: list[dict]) -> None:
     common.save_figure(fig, "scale")
 
 
-def main(quick: bool = False, sizes: tuple[int, ...] | None = None) -> dict:
+def main(
+    quick: bool = False, sizes: tuple[int, ...] | None = None, steady_hz: float = STEADY_STATE_HZ
+) -> dict:
     sizes = sizes or ((50, 100) if quick else (100, 300, 1000))
     window_s, hover_wait_s = (3.0, 8.0) if quick else (10.0, 10.0)
-    runs = [run_fleet(n, True, window_s, hover_wait_s) for n in sizes]
-    runs.append(run_fleet(sizes[0], False, window_s, hover_wait_s))
+    runs = [run_fleet(n, True, window_s, hover_wait_s, steady_hz) for n in sizes]
+    if steady_hz and not quick:
+        runs.append(run_fleet(sizes[-1], True, window_s, hover_wait_s, 0.0))
+    runs.append(run_fleet(sizes[0], False, window_s, hover_wait_s, 0.0))
     figure(runs)
     big, small = runs[len(sizes) - 1], runs[0]
     return {
@@ -362,13 +390,26 @@ if __name__ == "__main__":
     ap.add_argument("--start", default="0,0")
     ap.add_argument("--scoped", type=int, default=1)
     ap.add_argument("--window-s", type=float, default=10.0)
+    ap.add_argument(
+        "--steady-state-hz",
+        type=float,
+        default=STEADY_STATE_HZ,
+        help="the scoped runs' steady rate (comms/state_rate.py); 0: full rate only",
+    )
     ARGS = ap.parse_args()
     if ARGS.role == "host":
         n_m, e_m = (float(x) for x in ARGS.start.split(","))
-        role_host(ARGS.connect, ARGS.first_id, ARGS.vehicles, (n_m, e_m), bool(ARGS.scoped))
+        role_host(
+            ARGS.connect,
+            ARGS.first_id,
+            ARGS.vehicles,
+            (n_m, e_m),
+            bool(ARGS.scoped),
+            ARGS.steady_state_hz,
+        )
     elif ARGS.role == "station":
         role_station(ARGS.connect, ARGS.ids)
     else:
         chosen = tuple(int(x) for x in ARGS.sizes.split(",")) if ARGS.sizes else None
-        result = main(ARGS.quick, chosen)
+        result = main(ARGS.quick, chosen, ARGS.steady_state_hz)
         print(common.write_json("scale", result))

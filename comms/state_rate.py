@@ -17,11 +17,29 @@ The contract on the wire: an idle vehicle publishes at least every `MAX_IDLE_PER
 still grows by one per published state, so a lower rate is not loss (groundstation/fleet.py). A
 receiver tells an idle vehicle from its state alone (`announces_idle`: landed or killed, disarmed)
 and waits `idle_stale_after_s` for it before calling it stale.
+
+A vehicle in the air whose state a receiver can predict (`SteadyConfig`, off unless configured:
+`covey agent --steady-state-hz`) publishes at `steady_state_hz` instead of `state_hz`: the
+dead-reckoning threshold of distributed simulation (IEEE 1278 DIS). Receivers already extrapolate
+every neighbour's last state at its velocity (agent/neighbours.py); a row is steady while its
+position is within `tol_m` of that extrapolation of its last published state, its velocity within
+`tol_m_s` and its heading within `tol_rad` of what it published, and its mode and arming as they
+were. Anything else (a turn, a speed change, a new mode) publishes on the next tick:
+
+    steady   = |p - (p_last + v_last (now_s - last_s))| <= tol_m and |v - v_last| <= tol_m_s
+               and |heading - heading_last| <= tol_rad and (mode, armed) unchanged
+    period_s = 1 / idle_state_hz if idle, 1 / steady_state_hz if steady, else 1 / state_hz
+
+so what a receiver extrapolates is never further than tol_m from the truth at a publication, and
+a steady vehicle is heard at least every 1 / steady_state_hz (>= 3 Hz: the slowest link covey
+flies on and the state period in the scoping reach, docs/scaling.md). A hovering or straight-
+flying fleet thus sends a third of the states.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,6 +52,37 @@ MAX_IDLE_PERIOD_S = 1.0
 count on when they judge an idle vehicle's silence."""
 IDLE_MODES = frozenset({Mode.LANDED, Mode.KILLED})
 """Modes of a vehicle that can be idle (with its motors disarmed and on the ground)."""
+
+MIN_STEADY_STATE_HZ = 3.0
+"""A steady vehicle publishes at least this often: the slowest link covey flies on, which the
+scoping reach (comms/scope.py `state_period_s`) and the neighbours' stale limit count on."""
+
+
+@dataclass(frozen=True)
+class SteadyConfig:
+    """When a vehicle in the air may publish at the lower steady rate (module docstring)."""
+
+    state_hz: float = MIN_STEADY_STATE_HZ
+    """State rate while steady; at least MIN_STEADY_STATE_HZ (capped to the full rate)."""
+    tol_m: float = 0.1
+    """Largest gap between the position and the extrapolated last published one."""
+    tol_m_s: float = 0.1
+    """Largest change of velocity (norm of the difference) since the last published state."""
+    tol_rad: float = 0.05
+    """Largest change of heading since the last published state."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.state_hz) and MIN_STEADY_STATE_HZ <= self.state_hz <= 100):
+            raise ValueError(
+                f"steady state_hz must be within [{MIN_STEADY_STATE_HZ:g}, 100] (receivers and "
+                f"the scoping reach count on a state at least every "
+                f"{1 / MIN_STEADY_STATE_HZ:.2f} s), got {self.state_hz}"
+            )
+        for name, hi in (("tol_m", 1.0), ("tol_m_s", 1.0), ("tol_rad", 0.5)):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 < v <= hi):
+                raise ValueError(f"steady {name} must be within (0, {hi:g}], got {v}")
+
 
 _IDLE_MODE = np.zeros(256, bool)
 _IDLE_MODE[[int(m) for m in IDLE_MODES]] = True
@@ -72,7 +121,14 @@ class StatePacer:
     """Which of N vehicles publish their state this tick (the rule in the module docstring).
     An idle rate above `state_hz` is capped to it: an idle vehicle never says more."""
 
-    def __init__(self, state_hz: float, idle_state_hz: float, tick_hz: float, n: int = 1) -> None:
+    def __init__(
+        self,
+        state_hz: float,
+        idle_state_hz: float,
+        tick_hz: float,
+        n: int = 1,
+        steady: SteadyConfig | None = None,
+    ) -> None:
         check_rates(state_hz, idle_state_hz)
         if not (math.isfinite(tick_hz) and tick_hz > 0):
             raise ValueError(f"tick_hz must be positive, got {tick_hz}")
@@ -83,16 +139,62 @@ class StatePacer:
         """When each row last published."""
         self.last_idle = np.zeros(n, bool)
         """Whether each row was idle when it last published."""
+        self.steady = steady
+        self.steady_period_s = 1.0 / min(steady.state_hz, state_hz) if steady else self.period_s
+        self.last_pos = np.zeros((n, 3))
+        self.last_vel = np.zeros((n, 3))
+        self.last_hdg = np.zeros(n)
+        self.last_sig = np.full(n, -1, np.int64)
+        """What each row last published (position, velocity, heading, mode and arming)."""
 
-    def due(self, now_s: float, idle: np.ndarray) -> np.ndarray:
+    def due(
+        self,
+        now_s: float,
+        idle: np.ndarray,
+        pos_m: np.ndarray | None = None,
+        vel_m_s: np.ndarray | None = None,
+        heading_rad: np.ndarray | None = None,
+        sig: np.ndarray | None = None,
+    ) -> np.ndarray:
         """(N,) bool: the rows to publish at `now_s`, given which are `idle` now; they count as
-        published."""
+        published. With a SteadyConfig, also each row's (N, 3) position and velocity, (N,)
+        heading and `sig` (an int per row that changes with what must go out at once: mode and
+        arming); without them no row is steady."""
         idle = np.asarray(idle, bool)
         period_s = np.where(idle, self.idle_period_s, self.period_s)
+        track = self.steady is not None and pos_m is not None
+        if track:
+            pos_m = np.asarray(pos_m, float).reshape(-1, 3)
+            vel_m_s = np.asarray(vel_m_s, float).reshape(-1, 3)
+            heading_rad = np.asarray(heading_rad, float).reshape(-1)
+            sig = np.asarray(sig, np.int64).reshape(-1)
+            period_s = np.where(
+                ~idle & self._steady(now_s, pos_m, vel_m_s, heading_rad, sig),
+                self.steady_period_s,
+                period_s,
+            )
         due = (now_s - self.last_s >= period_s - self.slack_s) | (idle != self.last_idle)
         self.last_s[due] = now_s
         self.last_idle[due] = idle[due]
+        if track:
+            self.last_pos[due], self.last_vel[due] = pos_m[due], vel_m_s[due]
+            self.last_hdg[due], self.last_sig[due] = heading_rad[due], sig[due]
         return due
+
+    def _steady(self, now_s, pos_m, vel_m_s, heading_rad, sig) -> np.ndarray:
+        """(N,) bool: rows whose last published state still predicts them (module docstring)."""
+        cfg = self.steady
+        age_s = now_s - self.last_s
+        known = np.isfinite(age_s) & (sig == self.last_sig)
+        age_s = np.where(known, age_s, 0.0)
+        drift = pos_m - (self.last_pos + self.last_vel * age_s[:, None])
+        turn = np.abs(np.remainder(heading_rad - self.last_hdg + math.pi, 2 * math.pi) - math.pi)
+        return (
+            known
+            & (np.einsum("ij,ij->i", drift, drift) <= cfg.tol_m**2)
+            & (np.sum((vel_m_s - self.last_vel) ** 2, axis=1) <= cfg.tol_m_s**2)
+            & (turn <= cfg.tol_rad)
+        )
 
     def again(self) -> None:
         """Make every row due on the next call (a test re-sending at the same instant)."""
