@@ -308,7 +308,8 @@ class Agent:
                     obs.pos_m,
                     obs.vel_m_s,
                     core.heading_rad,
-                    core.mode.astype(np.int64) * 2 + obs.armed,
+                    core.mode,
+                    obs.armed,
                 )[0]
             )
             heading_in_rad = float(core.heading_rad[0])

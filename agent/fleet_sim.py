@@ -348,9 +348,10 @@ class Fleet:
                 self.others.expire(now_s)  # unheard vehicles go, flying or not
             notes = core.drain_notes()
             idle = idle_rows(core.mode, sim.armed, obs.in_air)
-            sig = core.mode.astype(np.int64) * 2 + sim.armed
             due = np.flatnonzero(
-                self.pacer.due(now_s, idle, sim.pos_m, sim.vel_m_s, core.heading_rad, sig)
+                self.pacer.due(
+                    now_s, idle, sim.pos_m, sim.vel_m_s, core.heading_rad, core.mode, sim.armed
+                )
             )
             states = self._states(due)
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None

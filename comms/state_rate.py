@@ -154,12 +154,12 @@ class StatePacer:
         pos_m: np.ndarray | None = None,
         vel_m_s: np.ndarray | None = None,
         heading_rad: np.ndarray | None = None,
-        sig: np.ndarray | None = None,
+        mode: np.ndarray | None = None,
+        armed: np.ndarray | None = None,
     ) -> np.ndarray:
         """(N,) bool: the rows to publish at `now_s`, given which are `idle` now; they count as
         published. With a SteadyConfig, also each row's (N, 3) position and velocity, (N,)
-        heading and `sig` (an int per row that changes with what must go out at once: mode and
-        arming); without them no row is steady."""
+        heading, mode (ints) and arming; without them no row is steady."""
         idle = np.asarray(idle, bool)
         period_s = np.where(idle, self.idle_period_s, self.period_s)
         track = self.steady is not None and pos_m is not None
@@ -167,7 +167,8 @@ class StatePacer:
             pos_m = np.asarray(pos_m, float).reshape(-1, 3)
             vel_m_s = np.asarray(vel_m_s, float).reshape(-1, 3)
             heading_rad = np.asarray(heading_rad, float).reshape(-1)
-            sig = np.asarray(sig, np.int64).reshape(-1)
+            # what must go out at once, as one int per row: mode and arming
+            sig = np.asarray(mode, np.int64).reshape(-1) * 2 + np.asarray(armed, bool).reshape(-1)
             period_s = np.where(
                 ~idle & self._steady(now_s, pos_m, vel_m_s, heading_rad, sig),
                 self.steady_period_s,

@@ -32,7 +32,7 @@ def _fly(pacer: StatePacer, pos, vel, hdg=None, sig=None, t0_s: float = 0.0) -> 
     sig = np.zeros(n, np.int64) if sig is None else sig
     return np.array(
         [
-            pacer.due(t0_s + k * TICK_S, [False], pos[k], vel[k], [hdg[k]], [sig[k]])[0]
+            pacer.due(t0_s + k * TICK_S, [False], pos[k], vel[k], [hdg[k]], [sig[k]], [False])[0]
             for k in range(n)
         ]
     )
@@ -90,7 +90,7 @@ def test_what_receivers_extrapolate_stays_within_tol_m_on_random_tracks() -> Non
                 v = v + rng.normal(0, 0.02, 3)
             p = p + v * TICK_S
             t = k * TICK_S
-            if pacer.due(t, [False], p, v, [0.0], [0])[0]:
+            if pacer.due(t, [False], p, v, [0.0], [0], [False])[0]:
                 last = (t, p.copy(), v.copy())
                 published += 1
             pred = last[1] + last[2] * (t - last[0])
