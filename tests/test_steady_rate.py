@@ -106,7 +106,7 @@ def test_an_idle_row_keeps_the_idle_rate_and_the_steady_rate_is_capped_to_the_fu
     sent = np.zeros(2, int)
     for k in range(30):
         sent += pacer.due(
-            k * TICK_S, [True, False], np.zeros((2, 3)), np.zeros((2, 3)), [0, 0], [0, 0]
+            k * TICK_S, [True, False], np.zeros((2, 3)), np.zeros((2, 3)), [0, 0], [0, 0], [0, 0]
         )
     assert sent.tolist() == [3, 10]
     slow = StatePacer(2.0, 1.0, 10.0, steady=SteadyConfig(state_hz=5.0))
