@@ -297,33 +297,43 @@ class FleetModel:
 
     def snapshot(self, now_ns: int, trails: bool | Collection[int] = True) -> FleetSnapshot:
         """The fleet at `now_ns`. Trails are the costly part: `trails` is True (all), False
-        (none: every trail empty), or the ids whose trails to include."""
+        (none: every trail empty), or the ids whose trails to include.
+
+        O(1) per vehicle besides its trail: the rate window is read at its ends (the entries
+        older than the window are at its front, and `on_state` keeps few of them), not copied.
+        """
         want = (lambda _vid: trails) if isinstance(trails, bool) else trails.__contains__
         cfg = self.cfg
+        horizon_ns = now_ns - int(cfg.rate_window_s * NS_PER_S)
         with self._lock:
             self._expire(now_ns)
-            items = sorted(self._tracks.items())
-            raw = [
-                (
-                    vid,
-                    t.state,
-                    t.alive,
-                    t.last_recv_ns,
-                    tuple(t.window),
-                    list(t.trail) if want(vid) else [],
-                    (t.refused, t.refused_ns, t.refused_cause),
+            raw = []
+            for vid in sorted(self._tracks):
+                t = self._tracks[vid]
+                window = t.window
+                old = 0
+                while old < len(window) and window[old][0] < horizon_ns:
+                    old += 1
+                recent = len(window) - old
+                health = _health(recent, window[old], window[-1]) if recent >= 2 else (0.0, 0.0)
+                raw.append(
+                    (
+                        vid,
+                        t.state,
+                        t.alive,
+                        t.last_recv_ns,
+                        health,
+                        [p for _, p in t.trail] if t.trail and want(vid) else None,
+                        (t.refused, t.refused_ns, t.refused_cause),
+                    )
                 )
-                for vid, t in items
-            ]
-        horizon_ns = now_ns - int(cfg.rate_window_s * NS_PER_S)
         with_pos = [(vid, s.pos_ned_m) for vid, s, *_ in raw if s is not None]
         pairs = close_pairs(with_pos, cfg.separation_m)
         close_ids = {a for a, _, _ in pairs} | {b for _, b, _ in pairs}
         views = []
         unverified_ns = int(cfg.unverified_window_s * NS_PER_S)
-        for vid, state, alive, last_ns, window, trail, (refused, refused_ns, cause) in raw:
-            recent = [(t, s) for t, s in window if t >= horizon_ns]
-            rate_hz, loss_pct = link_health(recent)
+        for vid, state, alive, last_ns, (rate_hz, loss_pct), trail, refusal in raw:
+            refused, refused_ns, cause = refusal
             age_s = (now_ns - last_ns) / NS_PER_S if state is not None else math.inf
             views.append(
                 VehicleView(
@@ -333,7 +343,7 @@ class FleetModel:
                     age_s=age_s,
                     rate_hz=rate_hz,
                     loss_pct=loss_pct,
-                    trail_ned_m=np.array([p for _, p in trail], dtype=np.float32).reshape(-1, 3),
+                    trail_ned_m=_NO_TRAIL if trail is None else np.array(trail, dtype=np.float32),
                     too_close=vid in close_ids,
                     stale=age_s > cfg.stale_after(state),
                     unverified=refused_ns is not None and now_ns - refused_ns <= unverified_ns,
@@ -344,41 +354,72 @@ class FleetModel:
         return FleetSnapshot(now_ns=now_ns, vehicles=tuple(views), close_pairs=tuple(pairs))
 
 
+_NO_TRAIL = np.zeros((0, 3), dtype=np.float32)
+_NO_TRAIL.setflags(write=False)
+"""The trail of a vehicle whose trail was not asked for (or has none): one shared, read-only."""
+
+
+def _health(count: int, first: tuple[int, int], last: tuple[int, int]) -> tuple[float, float]:
+    """(rate_hz, loss_pct) of `count` >= 2 samples from `first` to `last` (recv_ns, seq)."""
+    span_s = (last[0] - first[0]) / NS_PER_S
+    rate_hz = (count - 1) / span_s if span_s > 0 else 0.0
+    expected = last[1] - first[1] + 1
+    loss_pct = 100.0 * max(0.0, 1.0 - count / expected) if expected > 0 else 0.0
+    return rate_hz, loss_pct
+
+
 def link_health(window: list[tuple[int, int]] | tuple[tuple[int, int], ...]) -> tuple[float, float]:
     """(rate_hz, loss_pct) from (recv_ns, seq) samples in arrival order, seq increasing."""
     if len(window) < 2:
         return 0.0, 0.0
-    span_s = (window[-1][0] - window[0][0]) / NS_PER_S
-    rate_hz = (len(window) - 1) / span_s if span_s > 0 else 0.0
-    expected = window[-1][1] - window[0][1] + 1
-    loss_pct = 100.0 * max(0.0, 1.0 - len(window) / expected) if expected > 0 else 0.0
-    return rate_hz, loss_pct
+    return _health(len(window), window[0], window[-1])
 
 
 def close_pairs(
     positions: list[tuple[int, tuple[float, float, float]]], separation_m: float
 ) -> list[tuple[int, int, float]]:
-    """Every pair of vehicles closer than `separation_m` (3D), as (id_a, id_b, distance_m), id_a < id_b.
+    """Every pair of vehicles closer than `separation_m` (3D), as (id_a, id_b, distance_m), id_a < id_b,
+    sorted; `positions` holds each id once.
 
-    Spatial hash on (north, east) cells of the separation size: a close pair lies in the same or
-    a neighbouring cell, so each vehicle is compared with a handful of others, not all n.
+    A grid of separation-sized (north, east) cells, vectorised: a close pair lies in the same or
+    a neighbouring cell, so each vehicle is compared with the vehicles of its own cell and of four
+    neighbouring ones (the other four see it from their side), found by binary search in the
+    cell-sorted list, never with all n. tests/test_gcs_fleet.py checks it against the plain loop.
     """
-    cells: dict[tuple[int, int], list[tuple[int, tuple[float, float, float]]]] = {}
-    for vid, p in positions:
-        cells.setdefault(
-            (math.floor(p[0] / separation_m), math.floor(p[1] / separation_m)), []
-        ).append((vid, p))
-    sep2 = separation_m * separation_m
-    pairs = []
-    for (cn, ce), members in cells.items():
-        near = [
-            m for dn in (-1, 0, 1) for de in (-1, 0, 1) for m in cells.get((cn + dn, ce + de), ())
-        ]
-        for va, pa in members:
-            for vb, pb in near:
-                if vb <= va:
-                    continue  # each pair once, from its lower id
-                d2 = (pa[0] - pb[0]) ** 2 + (pa[1] - pb[1]) ** 2 + (pa[2] - pb[2]) ** 2
-                if d2 < sep2:
-                    pairs.append((va, vb, math.sqrt(d2)))
-    return sorted(pairs)
+    n = len(positions)
+    if n < 2:
+        return []
+    ids = np.fromiter((vid for vid, _ in positions), dtype=np.int64, count=n)
+    p = np.array([pos for _, pos in positions], dtype=np.float64).reshape(n, 3)
+    cells = np.floor(p[:, :2] / separation_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = int(cells[:, 1].max()) + 3  # an east offset of +-1 never wraps into another row
+    key = cells[:, 0] * span + cells[:, 1] + 1
+    order = np.argsort(key, kind="stable")
+    key, p, ids = key[order], p[order], ids[order]
+    rows = np.arange(n)
+    found_a, found_b = [], []
+    for dn, de in ((0, 0), (0, 1), (1, -1), (1, 0), (1, 1)):
+        target = key + dn * span + de
+        lo = np.searchsorted(key, target, side="left")
+        hi = np.searchsorted(key, target, side="right")
+        if dn == 0 and de == 0:
+            lo = np.maximum(lo, rows + 1)  # own cell: each pair once
+        counts = np.maximum(hi - lo, 0)
+        total = int(counts.sum())
+        if not total:
+            continue
+        a = np.repeat(rows, counts)
+        starts = np.cumsum(counts) - counts
+        b = np.repeat(lo, counts) + (np.arange(total) - np.repeat(starts, counts))
+        found_a.append(a)
+        found_b.append(b)
+    if not found_a:
+        return []
+    a, b = np.concatenate(found_a), np.concatenate(found_b)
+    d = p[a] - p[b]
+    d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
+    close = d2 < separation_m * separation_m
+    ia, ib, dist = ids[a[close]], ids[b[close]], np.sqrt(d2[close])
+    lo_id, hi_id = np.minimum(ia, ib), np.maximum(ia, ib)
+    return sorted(zip(lo_id.tolist(), hi_id.tolist(), dist.tolist(), strict=True))

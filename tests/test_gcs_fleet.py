@@ -150,6 +150,74 @@ def test_close_pairs_matches_a_plain_loop():
     assert sorted((a, b) for a, b, _ in close_pairs(positions, 3.0)) == expected
 
 
+def _plain_close_pairs(positions, separation_m):
+    """The reference: every pair, compared one by one."""
+    return sorted(
+        (min(a, b), max(a, b), math.dist(pa, pb))
+        for i, (a, pa) in enumerate(positions)
+        for b, pb in positions[i + 1 :]
+        if math.dist(pa, pb) < separation_m
+    )
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_close_pairs_grid_equals_the_plain_loop_on_hard_layouts(seed):
+    """The vectorised grid against the plain loop: spread out, all in one cell, exactly on cell
+    borders, negative coordinates, ids in any order, 0-300 vehicles."""
+    rng = np.random.default_rng(seed)
+    sep = float(rng.choice([0.5, 3.0, 7.5]))
+    layouts = [
+        rng.uniform(-40, 40, (300, 3)),  # spread: a few close pairs
+        rng.uniform(-0.4, 0.4, (60, 3)) * sep,  # one cell: every pair
+        np.round(rng.uniform(-5, 5, (200, 3))) * sep,  # on the borders, many at exactly sep
+        rng.normal(0, 2 * sep, (150, 3)) + [[-1e5, 2e4, 0.0]],  # far from the origin
+        rng.uniform(-10, 10, (2, 3)),
+        rng.uniform(-10, 10, (1, 3)),
+        np.zeros((0, 3)),
+    ]
+    for pos in layouts:
+        vids = rng.permutation(np.arange(1, len(pos) + 1) * 3).tolist()
+        positions = [(vid, tuple(float(x) for x in p)) for vid, p in zip(vids, pos, strict=True)]
+        got = close_pairs(positions, sep)
+        want = _plain_close_pairs(positions, sep)
+        assert [(a, b) for a, b, _ in got] == [(a, b) for a, b, _ in want]
+        assert np.allclose([d for *_, d in got], [d for *_, d in want], rtol=0, atol=1e-9)
+
+
+def test_snapshot_link_health_equals_the_window_it_summarises():
+    """The snapshot reads the rate window at its ends; the reference filters the whole window:
+    irregular arrivals, gaps longer than the window, losses, and snapshots at earlier and later
+    instants than the last arrival."""
+    cfg = FleetConfig(rate_window_s=3.0)
+    rng = np.random.default_rng(5)
+    model = FleetModel(cfg)
+    model.on_presence(1, True, 0)  # present: never forgotten
+    window_ns = int(cfg.rate_window_s * NS_PER_S)
+    history: list[tuple[int, int]] = []
+    t_ns, seq = NS_PER_S, 0
+    for _ in range(400):
+        t_ns += int(
+            rng.choice([0.05, 0.1, 0.1, 0.3, 4.0], p=[0.2, 0.5, 0.2, 0.09, 0.01]) * NS_PER_S
+        )
+        seq += int(rng.choice([1, 1, 1, 2, 5]))
+        model.on_state(state(1, seq), t_ns)
+        history.append((t_ns, seq))
+        for now_ns in (t_ns, t_ns - NS_PER_S // 2, t_ns + int(rng.uniform(0, 5) * NS_PER_S)):
+            kept = [(t, s) for t, s in history if t >= t_ns - window_ns]
+            recent = [(t, s) for t, s in kept if t >= now_ns - window_ns]
+            view = model.snapshot(now_ns, trails=False).vehicles[0]
+            assert (view.rate_hz, view.loss_pct) == pytest.approx(link_health(recent))
+
+
+def test_snapshot_without_trails_shares_one_read_only_empty_trail():
+    model = FleetModel()
+    for vid in (1, 2):
+        model.on_state(state(vid, 1, pos=(vid * 10.0, 0.0, -5.0)), NS_PER_S)
+    views = model.snapshot(NS_PER_S, trails={2}).vehicles
+    assert views[0].trail_ned_m.shape == (0, 3) and not views[0].trail_ned_m.flags.writeable
+    assert views[1].trail_ned_m.tolist() == [[20.0, 0.0, -5.0]]
+
+
 def test_presence_loss_and_return():
     model = FleetModel()
     model.on_presence(7, True, 0)
