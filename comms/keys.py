@@ -1,6 +1,6 @@
 """Every Zenoh key expression covey uses, and nothing else builds them.
 
-    covey/<fleet>/v/<id>/c/<cn>/<ce>/state
+    covey/<fleet>/c/<cn>/<ce>/v/<id>/state
                                   pub/sub, latest-wins VehicleState, in the grid cell (cn, ce) of
                                   its position (see below)
     covey/<fleet>/v/<id>/cmd      queryable: Command -> CommandAck
@@ -18,9 +18,15 @@ A state's key carries the coarse grid cell of the position it reports, so that a
 subscribe to the cells within its reach (comms/scope.py, docs/scaling.md) instead of the whole
 fleet: `cell_states` is one cell of every vehicle, `all_states` every state of the fleet (the
 station, recorders; its `**` also matches the unplaced `covey/<fleet>/v/<id>/state` that tools
-may put, which scoped subscribers hear too). The cell comes after the vehicle id so that all of
-one vehicle's keys stay under `covey/<fleet>/v/<id>/` (per-vehicle access control), and the key
-still ends in its leaf (`.../state`).
+may put, which scoped subscribers hear too). The key still ends in its leaf (`.../state`).
+The cell comes *before* the vehicle id: a Zenoh router that gets a state from another router
+matches its key against its whole resource tree for every message (the route is not cached for
+keys it learnt nothing about), and that walk visits every sibling of each chunk. Under
+`covey/<fleet>/v/` every vehicle of the fleet is a sibling; under `covey/<fleet>/c/<cn>/<ce>/v/`
+only the few vehicles of one cell are, so routing one state costs a router about the same at any
+fleet size (docs/scaling.md, "Routers"). Access control gives vehicle N
+`covey/<fleet>/c/*/*/v/N/state` besides `covey/<fleet>/v/N/**` (comms/zenoh_configs).
+Recordings made before this layout (`covey/<fleet>/v/<id>/c/<cn>/<ce>/state`) still parse.
 The cell must be the one of the state's own position (`cell_of`): the mesh refuses a state on
 any other cell, so a vehicle cannot hide from its neighbours by publishing in a far cell.
 
@@ -50,9 +56,17 @@ MAX_CELL = math.ceil(POSITION_LIMIT_M / CELL_M)
 Cell = tuple[int, int]
 """(north index, east index) of a grid cell: floor(n / CELL_M), floor(e / CELL_M)."""
 _VEHICLE_KEY_RE = re.compile(
-    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(?:c/(-?[0-9]{1,6})/(-?[0-9]{1,6})/)?"
-    r"(state|cmd|ack|alive|event|trace)$"
+    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event|trace)$"
 )
+_CELL_STATE_KEY_RE = re.compile(
+    r"^covey/(?P<fleet>[A-Za-z0-9_-]{1,32})/c/(?P<cn>-?[0-9]{1,6})/(?P<ce>-?[0-9]{1,6})"
+    r"/v/(?P<vid>[0-9]{1,5})/state$"
+)
+_LEGACY_CELL_STATE_KEY_RE = re.compile(
+    r"^covey/(?P<fleet>[A-Za-z0-9_-]{1,32})/v/(?P<vid>[0-9]{1,5})"
+    r"/c/(?P<cn>-?[0-9]{1,6})/(?P<ce>-?[0-9]{1,6})/state$"
+)
+"""The layout of recordings made before the cell came first: parsed, never published."""
 _FEED_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/feed$")
 _F32 = struct.Struct("<2f")
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
@@ -103,12 +117,12 @@ def state(fleet: str, vehicle_id: int, cell: Cell | None = None) -> str:
     if cell is None:
         return _vehicle(fleet, vehicle_id, "state")
     cn, ce = check_cell(cell)
-    return _vehicle(fleet, vehicle_id, f"c/{cn}/{ce}/state")
+    return f"{ROOT}/{check_fleet(fleet)}/c/{cn}/{ce}/v/{check_vehicle_id(vehicle_id)}/state"
 
 
 def all_states(fleet: str) -> str:
     """Every state of the fleet, placed or not."""
-    return _vehicle(fleet, "*", "**/state")
+    return f"{ROOT}/{check_fleet(fleet)}/**/v/*/state"
 
 
 def unplaced_states(fleet: str) -> str:
@@ -118,13 +132,13 @@ def unplaced_states(fleet: str) -> str:
 
 def vehicle_states(fleet: str, vehicle_id: int) -> str:
     """Every state of one vehicle, in whichever cell."""
-    return _vehicle(fleet, vehicle_id, "**/state")
+    return f"{ROOT}/{check_fleet(fleet)}/**/v/{check_vehicle_id(vehicle_id)}/state"
 
 
 def cell_states(fleet: str, cell: Cell) -> str:
     """The states of every vehicle in one grid cell."""
     cn, ce = check_cell(cell)
-    return _vehicle(fleet, "*", f"c/{cn}/{ce}/state")
+    return f"{ROOT}/{check_fleet(fleet)}/c/{cn}/{ce}/v/*/state"
 
 
 def cmd(fleet: str, vehicle_id: int) -> str:
@@ -216,18 +230,21 @@ def parse_state_key(key: str) -> tuple[str, int, Cell | None] | None:
 
 
 def _parse(key: str) -> tuple[str, int, str, Cell | None] | None:
-    m = _VEHICLE_KEY_RE.match(str(key))
-    if not m:
-        return None
-    vid = int(m.group(2))
+    key = str(key)
+    m = _CELL_STATE_KEY_RE.match(key) or _LEGACY_CELL_STATE_KEY_RE.match(key)
+    if m:
+        fleet, vid, leaf = m["fleet"], int(m["vid"]), "state"
+        cell: Cell | None = (int(m["cn"]), int(m["ce"]))
+        if max(abs(cell[0]), abs(cell[1])) > MAX_CELL:
+            return None
+    else:
+        m = _VEHICLE_KEY_RE.match(key)
+        if not m:
+            return None
+        fleet, vid, leaf, cell = m.group(1), int(m.group(2)), m.group(3), None
     if not 1 <= vid <= MAX_VEHICLE_ID:
         return None
-    cell = None
-    if m.group(3) is not None:
-        cell = (int(m.group(3)), int(m.group(4)))
-        if m.group(5) != "state" or max(abs(cell[0]), abs(cell[1])) > MAX_CELL:
-            return None
-    return m.group(1), vid, m.group(5), cell
+    return fleet, vid, leaf, cell
 
 
 def parse_gcs_key(key: str) -> tuple[str, int] | None:

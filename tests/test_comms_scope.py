@@ -10,6 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import zenoh
 
 from agent.app import Agent, AgentConfig
 from agent.backends.sim import SimBackend, SimConfig
@@ -56,13 +57,27 @@ def test_state_keys_carry_the_cell_of_the_position() -> None:
     assert keys.cell_of((29.9, -0.1, 0.0)) == (0, -1)
     assert keys.cell_of((-30.0, 60.0, 0.0)) == (-1, 2)
     key = keys.state(FLEET, 7, (3, -2))
-    assert key == "covey/scope/v/7/c/3/-2/state"
+    assert key == "covey/scope/c/3/-2/v/7/state"  # the cell first: docs/scaling.md, "Routers"
     assert keys.parse_state_key(key) == (FLEET, 7, (3, -2))
     assert keys.parse_vehicle_key(key) == (FLEET, 7, "state")  # recorders, replay, foxglove
     assert keys.parse_state_key(keys.state(FLEET, 7)) == (FLEET, 7, None)
-    assert keys.parse_vehicle_key("covey/scope/v/7/c/3/-2/ack") is None  # only states have cells
-    assert keys.parse_vehicle_key("covey/scope/v/7/c/3/state") is None
-    assert keys.parse_vehicle_key(f"covey/scope/v/7/c/{keys.MAX_CELL + 1}/0/state") is None
+    # recordings made with the cell after the id still parse
+    assert keys.parse_state_key("covey/scope/v/7/c/3/-2/state") == (FLEET, 7, (3, -2))
+    assert keys.parse_vehicle_key("covey/scope/c/3/-2/v/7/ack") is None  # only states have cells
+    assert keys.parse_vehicle_key("covey/scope/v/7/c/3/-2/ack") is None
+    assert keys.parse_vehicle_key("covey/scope/c/3/v/7/state") is None
+    assert keys.parse_vehicle_key(f"covey/scope/c/{keys.MAX_CELL + 1}/0/v/7/state") is None
+    assert keys.parse_vehicle_key("covey/scope/c/3/-2/v/0/state") is None
+    # who hears what, by Zenoh's own key-expression rules
+    placed, unplaced = zenoh.KeyExpr(key), zenoh.KeyExpr(keys.state(FLEET, 7))
+    other = zenoh.KeyExpr(keys.state(FLEET, 8, (3, -2)))
+    for k in (placed, unplaced):
+        assert zenoh.KeyExpr(keys.all_states(FLEET)).intersects(k)
+        assert zenoh.KeyExpr(keys.vehicle_states(FLEET, 7)).intersects(k)
+    assert not zenoh.KeyExpr(keys.vehicle_states(FLEET, 7)).intersects(other)
+    assert zenoh.KeyExpr(keys.cell_states(FLEET, (3, -2))).intersects(placed)
+    assert not zenoh.KeyExpr(keys.cell_states(FLEET, (3, -1))).intersects(placed)
+    assert not zenoh.KeyExpr(keys.all_states(FLEET)).intersects(zenoh.KeyExpr(keys.feed(FLEET, 7)))
     with pytest.raises(ValueError):
         keys.cell_states(FLEET, (1.5, 0))  # type: ignore[arg-type]
 
