@@ -64,6 +64,21 @@ class FailsafeConfig:
             or float(np.hypot(pos_ned_m[0], pos_ned_m[1])) <= self.geofence_radius_m
         )
 
+    def calm_rows(
+        self, gcs_alive: bool, battery_pct: np.ndarray, pos_ned_m: np.ndarray
+    ) -> np.ndarray:
+        """(N,) True where no failsafe can act this tick whatever the mode, for every vehicle at
+        once: a station is there, the battery is above both thresholds, the vehicle is inside
+        the fence. For such a vehicle whose `Failsafes.settled`, `Failsafes.evaluate` would only
+        note the station (`Failsafes.saw_gcs`). tests/test_agent_failsafe.py checks the shortcut
+        against evaluate."""
+        if not gcs_alive:
+            return np.zeros(len(battery_pct), bool)
+        calm = battery_pct > max(self.low_battery_return_pct, self.critical_battery_land_pct)
+        if self.geofence_radius_m:
+            calm &= np.hypot(pos_ned_m[:, 0], pos_ned_m[:, 1]) <= self.geofence_radius_m
+        return calm
+
 
 @dataclass(frozen=True)
 class FailsafeAction:
@@ -80,6 +95,15 @@ class Failsafes:
         self._battery_stage = 0  # 0 fine, 1 returning, 2 landing
         self._fence_tripped = False
         self.flags = StateFlag.NONE
+
+    @property
+    def settled(self) -> bool:
+        """No failsafe of this vehicle is active or tripped (see `FailsafeConfig.calm_rows`)."""
+        return not self._gcs_failsafe and not self._fence_tripped and not self.flags
+
+    def saw_gcs(self, now_s: float) -> None:
+        """What `evaluate` does for a settled vehicle in a calm row: note the station."""
+        self._gcs_seen_s = now_s
 
     def gcs_back(self, now_s: float) -> bool:
         """Record a station's presence; True if this ends a ground-station failsafe hold."""

@@ -428,7 +428,13 @@ class FlightCore:
                     )
                 else:
                     actions += self._internal(i, trigger, pos[i])
+        calm = self.cfg.failsafe.calm_rows(gcs_alive, obs.battery_pct, pos).tolist()
         for i, fs in enumerate(self.failsafes):
+            if (
+                calm[i] and fs.settled
+            ):  # most ticks, most vehicles: evaluate would only note the station
+                fs.saw_gcs(now_s)
+                continue
             if gcs_alive and fs.gcs_failsafe_active:
                 fs.gcs_back(now_s)
                 self.notes.append(Note(i, "ground station back", EventKind.FAILSAFE))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -63,3 +65,37 @@ def test_targets_outside_limits_are_refused(target, why) -> None:
         np.array(target, dtype=float)
     )
     assert FailsafeConfig().check_target(np.array([10.0, 10.0, -10.0])) is None
+
+
+def _inner(fs: Failsafes) -> tuple:
+    return (fs._gcs_seen_s, fs._gcs_failsafe, fs._battery_stage, fs._fence_tripped, fs.flags)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_calm_shortcut_is_what_evaluate_does(seed) -> None:
+    """The flight core skips `evaluate` for calm rows of settled vehicles and only notes the
+    station: on random histories (station losses, low batteries, fence exits, every mode) that
+    is exactly what evaluate returns and leaves behind, and calm never covers a row where
+    evaluate would act."""
+    rng = np.random.default_rng(seed)
+    cfg = FailsafeConfig(geofence_radius_m=float(rng.choice([0.0, 40.0])))
+    n = 40
+    fleet = [Failsafes(cfg, 0.0) for _ in range(n)]
+    shortcut_taken = 0
+    for tick in range(300):
+        now_s = tick * 0.5
+        gcs_alive = bool(rng.random() > 0.1)
+        battery = rng.choice([100.0, 60.0, 26.0, 25.0, 12.0, 9.0, np.nan], n)
+        pos = rng.normal(0.0, 30.0, (n, 3))
+        calm = cfg.calm_rows(gcs_alive, battery, pos)
+        for i, fs in enumerate(fleet):
+            mode = Mode(int(rng.choice([m.value for m in Mode])))
+            if calm[i] and fs.settled:
+                reference = copy.deepcopy(fs)
+                assert reference.evaluate(now_s, mode, gcs_alive, float(battery[i]), pos[i]) is None
+                fs.saw_gcs(now_s)
+                assert _inner(fs) == _inner(reference)
+                shortcut_taken += 1
+            else:
+                fs.evaluate(now_s, mode, gcs_alive, float(battery[i]), pos[i])
+    assert shortcut_taken > 1000  # the shortcut was exercised, not just the slow path
