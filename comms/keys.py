@@ -4,11 +4,11 @@
                                   pub/sub, latest-wins VehicleState, in the grid cell (cn, ce) of
                                   its position (see below)
     covey/<fleet>/v/<id>/cmd      queryable: Command -> CommandAck
-    covey/<fleet>/v/<id>/ack      pub/sub: a copy of every CommandAck the vehicle sent (recorders)
     covey/<fleet>/v/<id>/alive    liveliness token of a vehicle's agent
-    covey/<fleet>/v/<id>/event    pub/sub Event
-    covey/<fleet>/v/<id>/trace    pub/sub GuidanceTrace (agents with --trace-guidance; recorders)
-    covey/<fleet>/v/<id>/feed     pub/sub FeedBatch: the latest states of the vehicles of one
+    covey/<fleet>/msg/<id>/ack    pub/sub: a copy of every CommandAck the vehicle sent (recorders)
+    covey/<fleet>/msg/<id>/event  pub/sub Event
+    covey/<fleet>/msg/<id>/trace  pub/sub GuidanceTrace (agents with --trace-guidance; recorders)
+    covey/<fleet>/msg/<id>/feed   pub/sub FeedBatch: the latest states of the vehicles of one
                                   process, batched at a bounded rate (ground stations); <id> is
                                   the first vehicle that process published (comms/feed.py)
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
@@ -24,14 +24,19 @@ matches its key against its whole resource tree for every message (the route is 
 keys it learnt nothing about), and that walk visits every sibling of each chunk. Under
 `covey/<fleet>/v/` every vehicle of the fleet is a sibling; under `covey/<fleet>/c/<cn>/<ce>/v/`
 only the few vehicles of one cell are, so routing one state costs a router about the same at any
-fleet size (docs/scaling.md, "Routers"). Access control gives vehicle N
-`covey/<fleet>/c/*/*/v/N/state` besides `covey/<fleet>/v/N/**` (comms/zenoh_configs).
-Recordings made before this layout (`covey/<fleet>/v/<id>/c/<cn>/<ce>/state`) still parse.
+fleet size (docs/scaling.md, "Routers"). For the same reason what a vehicle *sends* (acks,
+events, traces, feeds) lives under `msg/<id>/`, and `v/<id>/` keeps what it *declares* once
+(its command queryable and presence token, which every router knows, one per vehicle): a
+message under `v/` would make each router that forwards it try every vehicle of the fleet.
+Access control gives vehicle N `covey/<fleet>/v/N/**`, `covey/<fleet>/msg/N/**` and
+`covey/<fleet>/c/*/*/v/N/state` (comms/zenoh_configs). Recordings made before these layouts
+(`covey/<fleet>/v/<id>/c/<cn>/<ce>/state`, `covey/<fleet>/v/<id>/{ack,event,trace,feed}`)
+still parse.
 The cell must be the one of the state's own position (`cell_of`): the mesh refuses a state on
 any other cell, so a vehicle cannot hide from its neighbours by publishing in a far cell.
 
 A feed lives under its process's first vehicle so that a one-vehicle process (every keyed
-agent) publishes only under `covey/<fleet>/v/<id>/`, as the routers' access-control rules allow;
+agent) publishes only under its own keys, as the routers' access-control rules allow;
 its entries may name any vehicle, and each is checked as a state is (signature, order).
 
 Ground-station tokens carry the station id so that two stations can come and go independently
@@ -56,8 +61,15 @@ MAX_CELL = math.ceil(POSITION_LIMIT_M / CELL_M)
 Cell = tuple[int, int]
 """(north index, east index) of a grid cell: floor(n / CELL_M), floor(e / CELL_M)."""
 _VEHICLE_KEY_RE = re.compile(
-    r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/(state|cmd|ack|alive|event|trace)$"
+    r"^covey/(?P<fleet>[A-Za-z0-9_-]{1,32})/(?P<ns>v|msg)/(?P<vid>[0-9]{1,5})"
+    r"/(?P<leaf>state|cmd|ack|alive|event|trace)$"
 )
+_LEAVES = {
+    "v": ("state", "cmd", "alive", *("ack", "event", "trace")),
+    "msg": ("ack", "event", "trace"),
+}
+"""Which leaves live where: under v/<id>/ the unplaced state, the command queryable and the
+presence token (and, in recordings made before `msg/`, acks, events and traces)."""
 _CELL_STATE_KEY_RE = re.compile(
     r"^covey/(?P<fleet>[A-Za-z0-9_-]{1,32})/c/(?P<cn>-?[0-9]{1,6})/(?P<ce>-?[0-9]{1,6})"
     r"/v/(?P<vid>[0-9]{1,5})/state$"
@@ -67,7 +79,7 @@ _LEGACY_CELL_STATE_KEY_RE = re.compile(
     r"/c/(?P<cn>-?[0-9]{1,6})/(?P<ce>-?[0-9]{1,6})/state$"
 )
 """The layout of recordings made before the cell came first: parsed, never published."""
-_FEED_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/v/([0-9]{1,5})/feed$")
+_FEED_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/(?:msg|v)/([0-9]{1,5})/feed$")
 _F32 = struct.Struct("<2f")
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
 
@@ -149,12 +161,19 @@ def all_cmds(fleet: str) -> str:
     return _vehicle(fleet, "*", "cmd")
 
 
+def _msg(fleet: str, vehicle_id: int | str, leaf: str) -> str:
+    """A key of a vehicle's messages (acks, events, traces, feeds): under `msg/`, not `v/`, whose
+    every vehicle's queryable and token make a router's walk of it as long as the fleet."""
+    vid = "*" if vehicle_id == "*" else str(check_vehicle_id(vehicle_id))  # type: ignore[arg-type]
+    return f"{ROOT}/{check_fleet(fleet)}/msg/{vid}/{leaf}"
+
+
 def ack(fleet: str, vehicle_id: int) -> str:
-    return _vehicle(fleet, vehicle_id, "ack")
+    return _msg(fleet, vehicle_id, "ack")
 
 
 def all_acks(fleet: str) -> str:
-    return _vehicle(fleet, "*", "ack")
+    return _msg(fleet, "*", "ack")
 
 
 def alive(fleet: str, vehicle_id: int) -> str:
@@ -166,27 +185,27 @@ def all_alive(fleet: str) -> str:
 
 
 def event(fleet: str, vehicle_id: int) -> str:
-    return _vehicle(fleet, vehicle_id, "event")
+    return _msg(fleet, vehicle_id, "event")
 
 
 def all_events(fleet: str) -> str:
-    return _vehicle(fleet, "*", "event")
+    return _msg(fleet, "*", "event")
 
 
 def trace(fleet: str, vehicle_id: int) -> str:
     """Where a vehicle's guidance traces go: off the event key, so that stations and agents
     that follow events do not receive (and, keyed, verify) ten traces a second per vehicle."""
-    return _vehicle(fleet, vehicle_id, "trace")
+    return _msg(fleet, vehicle_id, "trace")
 
 
 def feed(fleet: str, vehicle_id: int) -> str:
     """The feed of the process whose first published vehicle is `vehicle_id`."""
-    return _vehicle(fleet, vehicle_id, "feed")
+    return _msg(fleet, vehicle_id, "feed")
 
 
 def all_feeds(fleet: str) -> str:
     """Every process's feed: the whole fleet at a bounded rate (ground stations)."""
-    return _vehicle(fleet, "*", "feed")
+    return _msg(fleet, "*", "feed")
 
 
 def parse_feed_key(key: str) -> tuple[str, int] | None:
@@ -239,9 +258,9 @@ def _parse(key: str) -> tuple[str, int, str, Cell | None] | None:
             return None
     else:
         m = _VEHICLE_KEY_RE.match(key)
-        if not m:
+        if not m or m["leaf"] not in _LEAVES[m["ns"]]:
             return None
-        fleet, vid, leaf, cell = m.group(1), int(m.group(2)), m.group(3), None
+        fleet, vid, leaf, cell = m["fleet"], int(m["vid"]), m["leaf"], None
     if not 1 <= vid <= MAX_VEHICLE_ID:
         return None
     return fleet, vid, leaf, cell

@@ -569,7 +569,7 @@ class Mesh:
     ) -> None:
         """See every command sent to the fleet, from any station, with its receive stamp and the
         digest its acks are bound to (`auth.command_digest`), and every vehicle's ack copy
-        (`v/<id>/ack`). A silent queryable (complete=False) sees each command query and never
+        (`msg/<id>/ack`). A silent queryable (complete=False) sees each command query and never
         replies, so the vehicles' answers to the sender are untouched."""
 
         def on_query(query: zenoh.Query) -> None:

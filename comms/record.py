@@ -3,9 +3,9 @@
 One MCAP channel per Zenoh key, carrying the raw covey bytes (message encoding "covey-v1"; the
 schema record holds the binary layout from comms.schema), log_time = receive time in ns:
 
-    covey/<fleet>/v/<id>/state  VehicleState        (subscriber on covey/<fleet>/**)
-    covey/<fleet>/v/<id>/event  Event               (same subscriber)
-    covey/<fleet>/v/<id>/trace  GuidanceTrace       (same subscriber; agents with --trace-guidance)
+    covey/<fleet>/c/<cn>/<ce>/v/<id>/state  VehicleState  (subscriber on covey/<fleet>/**)
+    covey/<fleet>/msg/<id>/event  Event             (same subscriber)
+    covey/<fleet>/msg/<id>/trace  GuidanceTrace     (same subscriber; agents with --trace-guidance)
     covey/<fleet>/v/*/cmd       Command             (a queryable that records and never replies)
     covey/<fleet>/v/<id>/alive  one byte, 1 = token appeared, 0 = gone (liveliness, with history)
 
@@ -17,9 +17,9 @@ Readers here skip those: `read_recording` returns only covey's own channels, so 
 unchanged by them.
 
 Acks are Zenoh replies that only the querier sees; the recorder cannot see them. Anything
-published under covey/<fleet>/** is recorded but the stations' feed (covey/<fleet>/v/<id>/feed,
+published under covey/<fleet>/** is recorded but the stations' feed (covey/<fleet>/msg/<id>/feed,
 comms/feed.py: copies of states recorded on their own keys), so an ack that its vehicle also publishes on
-covey/<fleet>/v/<id>/ack lands in the channel of that key (schema covey.CommandAck).
+covey/<fleet>/msg/<id>/ack lands in the channel of that key (schema covey.CommandAck).
 
 The file survives a SIGKILL of the recorder: chunks are small and flushed every
 `flush_interval_s`, and `read_recording` streams records and stops cleanly at a torn tail

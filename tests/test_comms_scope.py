@@ -78,6 +78,32 @@ def test_state_keys_carry_the_cell_of_the_position() -> None:
     assert zenoh.KeyExpr(keys.cell_states(FLEET, (3, -2))).intersects(placed)
     assert not zenoh.KeyExpr(keys.cell_states(FLEET, (3, -1))).intersects(placed)
     assert not zenoh.KeyExpr(keys.all_states(FLEET)).intersects(zenoh.KeyExpr(keys.feed(FLEET, 7)))
+
+
+def test_what_a_vehicle_sends_lives_under_msg_and_what_it_declares_under_v() -> None:
+    """Acks, events, traces and feeds under msg/<id>/ (a router that forwards them walks no
+    sibling per vehicle of the fleet); the command queryable and presence under v/<id>/; keys of
+    recordings made before still parse; a leaf in the wrong place does not."""
+    assert keys.ack(FLEET, 7) == "covey/scope/msg/7/ack"
+    assert keys.event(FLEET, 7) == "covey/scope/msg/7/event"
+    assert keys.trace(FLEET, 7) == "covey/scope/msg/7/trace"
+    assert keys.feed(FLEET, 7) == "covey/scope/msg/7/feed"
+    assert keys.cmd(FLEET, 7) == "covey/scope/v/7/cmd"
+    assert keys.alive(FLEET, 7) == "covey/scope/v/7/alive"
+    for leaf in ("ack", "event", "trace"):
+        assert keys.parse_vehicle_key(f"covey/scope/msg/7/{leaf}") == (FLEET, 7, leaf)
+        assert keys.parse_vehicle_key(f"covey/scope/v/7/{leaf}") == (FLEET, 7, leaf)  # old
+    for leaf in ("cmd", "alive", "state"):
+        assert keys.parse_vehicle_key(f"covey/scope/msg/7/{leaf}") is None
+    assert keys.parse_feed_key("covey/scope/msg/7/feed") == (FLEET, 7)
+    assert keys.parse_feed_key("covey/scope/v/7/feed") == (FLEET, 7)  # old recordings
+    for whole, one in (
+        (keys.all_acks, keys.ack),
+        (keys.all_events, keys.event),
+        (keys.all_feeds, keys.feed),
+    ):
+        assert zenoh.KeyExpr(whole(FLEET)).intersects(zenoh.KeyExpr(one(FLEET, 7)))
+    assert zenoh.KeyExpr(keys.everything(FLEET)).intersects(zenoh.KeyExpr(keys.ack(FLEET, 7)))
     with pytest.raises(ValueError):
         keys.cell_states(FLEET, (1.5, 0))  # type: ignore[arg-type]
 

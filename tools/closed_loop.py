@@ -6,7 +6,7 @@ table — run `agent.guidance.Guidance` with the given policy, and compare the h
 commanded velocity with the recorded reference.
 
 Reference and inputs, best first:
-- a guidance trace (comms.schema.GuidanceTrace on `v/<id>/trace`; an agent with
+- a guidance trace (comms.schema.GuidanceTrace on `msg/<id>/trace`; an agent with
   `--trace-guidance` publishes one per tick that publishes a state): the exact command, the
   heading the policy saw and which neighbour samples (id, seq, age) it used. Replaying the same
   policy then gives a difference at float32 rounding level (the published state's). Recordings
