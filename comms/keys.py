@@ -65,7 +65,7 @@ _VEHICLE_KEY_RE = re.compile(
     r"/(?P<leaf>state|cmd|ack|alive|event|trace)$"
 )
 _LEAVES = {
-    "v": ("state", "cmd", "alive", *("ack", "event", "trace")),
+    "v": ("state", "cmd", "alive", "ack", "event", "trace"),
     "msg": ("ack", "event", "trace"),
 }
 """Which leaves live where: under v/<id>/ the unplaced state, the command queryable and the
