@@ -101,9 +101,11 @@ def check_vehicle_id(vehicle_id: int) -> int:
     return vehicle_id
 
 
-def _vehicle(fleet: str, vehicle_id: int | str, leaf: str) -> str:
+def _vehicle(fleet: str, vehicle_id: int | str, leaf: str, ns: str = "v") -> str:
+    """`covey/<fleet>/<ns>/<id or *>/<leaf>`: ns "v" for what a vehicle declares, "msg" for what
+    it sends (module docstring)."""
     vid = "*" if vehicle_id == "*" else str(check_vehicle_id(vehicle_id))  # type: ignore[arg-type]
-    return f"{ROOT}/{check_fleet(fleet)}/v/{vid}/{leaf}"
+    return f"{ROOT}/{check_fleet(fleet)}/{ns}/{vid}/{leaf}"
 
 
 def cell_of(pos_ned_m: tuple[float, ...]) -> Cell:
@@ -164,8 +166,7 @@ def all_cmds(fleet: str) -> str:
 def _msg(fleet: str, vehicle_id: int | str, leaf: str) -> str:
     """A key of a vehicle's messages (acks, events, traces, feeds): under `msg/`, not `v/`, whose
     every vehicle's queryable and token make a router's walk of it as long as the fleet."""
-    vid = "*" if vehicle_id == "*" else str(check_vehicle_id(vehicle_id))  # type: ignore[arg-type]
-    return f"{ROOT}/{check_fleet(fleet)}/msg/{vid}/{leaf}"
+    return _vehicle(fleet, vehicle_id, leaf, ns="msg")
 
 
 def ack(fleet: str, vehicle_id: int) -> str:
