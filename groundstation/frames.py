@@ -26,14 +26,18 @@ def scene_to_ned(scene_m: np.ndarray | tuple[float, float, float]) -> np.ndarray
     return np.stack([xyz[..., 1], xyz[..., 0], -xyz[..., 2]], axis=-1)
 
 
-def heading_to_wxyz(heading_rad: float) -> tuple[float, float, float, float]:
-    """Quaternion (w, x, y, z) of a body with NED heading (0 = north, clockwise) in the scene.
+def heading_to_wxyz(heading_rad: np.ndarray | float) -> np.ndarray:
+    """Quaternions (..., 4) (w, x, y, z) of bodies with NED headings (...) (0 = north,
+    clockwise) in the scene; float32.
 
     North is scene +y and clockwise-from-above is a negative rotation about +z, so a body whose
     nose points along its +y axis turns by yaw = -heading about z.
     """
-    half = -0.5 * heading_rad
-    return (math.cos(half), 0.0, 0.0, math.sin(half))
+    half = -0.5 * np.asarray(heading_rad, dtype=np.float64)
+    wxyz = np.zeros((*half.shape, 4), np.float32)
+    wxyz[..., 0] = np.cos(half)
+    wxyz[..., 3] = np.sin(half)
+    return wxyz
 
 
 def ground_hit_ned(

@@ -94,12 +94,12 @@ def _xyz(rows: list) -> np.ndarray:
 
 def _fleet(vehicles: list[VehicleView], velocity_scale_s: float) -> _Fleet:
     states = [v.state for v in vehicles]
-    heading = [round(s.heading_rad / HEADING_STEP_RAD) * HEADING_STEP_RAD for s in states]
+    heading = np.fromiter((s.heading_rad for s in states), np.float64, count=len(states))
     with_goal = [v.has_goal and v.alive for v in vehicles]
     return _Fleet(
         ids=tuple(v.vehicle_id for v in vehicles),
         pos_m=_xyz([s.pos_ned_m for s in states]).round(2),
-        wxyz=np.array([heading_to_wxyz(h) for h in heading], np.float32).reshape(-1, 4),
+        wxyz=heading_to_wxyz(np.round(heading / HEADING_STEP_RAD) * HEADING_STEP_RAD),
         rgb=np.array(
             [
                 mode_rgb(s.mode) if v.alive else LOST_RGB

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.guidance import Guidance, GuidanceConfig
+from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourSnapshot
 from comms.scope import ScopeConfig
 from policy.runtime import FILTERED_BERTH_SHARE, GuidancePolicy
@@ -139,3 +139,35 @@ def test_bad_policy_separation_is_refused():
     for bad in (0.0, -1.0, math.nan, math.inf):
         with pytest.raises(ValueError, match="policy_separation_m"):
             GuidanceConfig(policy_separation_m=bad)
+
+
+@pytest.mark.parametrize("max_neighbours", [None, 0, 3, 10, 50])
+def test_nearest_matches_a_plain_search(max_neighbours: int | None) -> None:
+    """NeighbourViews.nearest (vectorised) against a per-row sort: the same neighbours, never
+    the row itself, never an inactive entry, the stale flags carried."""
+    rng = np.random.default_rng(7)
+    m, k = 40, 12
+    world = rng.uniform(-100.0, 100.0, (m, 3))
+    vel = rng.normal(size=(m, 3))
+    heading = rng.uniform(-math.pi, math.pi, m)
+    active = rng.random(m) > 0.2
+    stale = rng.random(m) > 0.7
+    self_index = np.concatenate([np.arange(k - 2), [-1, -1]])  # two rows not in the world
+    rows_pos = np.concatenate([world[: k - 2], rng.uniform(-100.0, 100.0, (2, 3))])
+    views = NeighbourViews.nearest(
+        rows_pos, self_index, world, vel, heading, active, stale, max_neighbours
+    )
+    for r in range(k):
+        d2 = [
+            (float(np.sum((rows_pos[r, :2] - world[j, :2]) ** 2)), j)
+            for j in range(m)
+            if active[j] and j != self_index[r]
+        ]
+        want = sorted(d2)[: m if max_neighbours is None else max_neighbours]
+        pos, v, h, st = views.row(r)
+        got = sorted(int(np.flatnonzero((world == p).all(axis=1))[0]) for p in pos)
+        assert got == sorted(j for _, j in want)
+        order = np.argsort([np.flatnonzero((world == p).all(axis=1))[0] for p in pos]).astype(int)
+        idx = np.array(got, dtype=int)
+        assert np.array_equal(v[order], vel[idx]) and np.array_equal(h[order], heading[idx])
+        assert np.array_equal(st[order], stale[idx])
