@@ -8,6 +8,13 @@ vehicles). It publishes its state at `idle_state_hz` (1 Hz by default) instead o
     period_s = 1 / idle_state_hz   if idle, else 1 / state_hz
     due      = now_s - last_s >= period_s - tick_period_s / 2   (jitter must not skip a state)
                or idle != idle at the last published state       (a change of idleness: at once)
+               or it is the row's turn (below)
+
+A period of k >= 2 ticks gives each row a turn: row r on the ticks t where (t + r) % k == 0. A row
+publishes on its turn (up to k - 1 ticks before the rule above would have it), so rows that
+started together, a fleet that took off or landed at once, spread over the k ticks instead of
+publishing all on one (measured: a 100-vehicle host sent 100 states every third tick, then 33 or
+34 on each). Turns only ever make a state earlier.
 
 so the state after a take-off command (or after arming by other means) goes out on the tick after
 it, never an idle period later, and so does the first landed state after a touchdown. The one
@@ -134,7 +141,11 @@ class StatePacer:
             raise ValueError(f"tick_hz must be positive, got {tick_hz}")
         self.period_s = 1.0 / state_hz
         self.idle_period_s = 1.0 / min(idle_state_hz, state_hz)
+        self.tick_hz = tick_hz
         self.slack_s = 0.5 / tick_hz
+        self.calls = 0
+        """How many times `due` was asked (once per tick): whose turn it is."""
+        self._rows = np.arange(n)
         self.last_s = np.full(n, -np.inf)
         """When each row last published."""
         self.last_idle = np.zeros(n, bool)
@@ -174,7 +185,17 @@ class StatePacer:
                 self.steady_period_s,
                 period_s,
             )
-        due = (now_s - self.last_s >= period_s - self.slack_s) | (idle != self.last_idle)
+        gap_s = now_s - self.last_s
+        due = (gap_s >= period_s - self.slack_s) | (idle != self.last_idle)
+        # Turns: a row whose period spans k >= 2 ticks goes out on every k-th tick, row r on
+        # the ticks where (tick + r) % k == 0, up to k - 1 ticks early once to take its turn.
+        # Rows that started together (a fleet that took off or landed at once) would otherwise
+        # all publish on the same tick: a host's 100 states in one burst every third tick, and
+        # its neighbours' receipt waiting behind the burst. Never later than the rule above.
+        ticks = np.maximum(np.floor(period_s * self.tick_hz + 1e-6), 1.0).astype(np.int64)
+        turn = (ticks >= 2) & ((self.calls + self._rows) % ticks == 0)
+        due |= turn & (gap_s >= period_s - self.slack_s - (ticks - 1) / self.tick_hz)
+        self.calls += 1
         self.last_s[due] = now_s
         self.last_idle[due] = idle[due]
         if track:

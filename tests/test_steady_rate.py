@@ -108,7 +108,8 @@ def test_an_idle_row_keeps_the_idle_rate_and_the_steady_rate_is_capped_to_the_fu
         sent += pacer.due(
             k * TICK_S, [True, False], np.zeros((2, 3)), np.zeros((2, 3)), [0, 0], [0, 0], [0, 0]
         )
-    assert sent.tolist() == [3, 10]
+    # row 1: its first state, one a tick early to take its turn, then every third tick
+    assert sent.tolist() == [3, 11]
     slow = StatePacer(2.0, 1.0, 10.0, steady=SteadyConfig(state_hz=5.0))
     pos, vel = _straight(40, (0.0, 0.0, 0.0))
     assert set(np.diff(np.flatnonzero(_fly(slow, pos, vel))).tolist()) == {5}
@@ -165,3 +166,32 @@ def test_a_hovering_agent_publishes_at_3_hz_and_a_goto_at_once(mesh_trio) -> Non
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # one seq per state: no gaps
         view = views_by_id(station.snapshot(time.time_ns()))[1]
         assert view.loss_pct == 0.0
+
+
+@pytest.mark.parametrize(("steady", "period_ticks"), [(True, 3), (False, 10)])
+def test_rows_that_started_together_spread_over_the_ticks_of_their_period(
+    steady: bool, period_ticks: int
+) -> None:
+    """90 hovering (steady) or 90 landed (idle) rows, all published on the same tick: after one
+    period each tick carries a k-th of them, each row every k ticks, and no gap is longer than
+    the period allows (turns only make a state earlier)."""
+    n = 90
+    pacer = StatePacer(10.0, 1.0, 10.0, n=n, steady=SteadyConfig() if steady else None)
+    zeros = np.zeros((n, 3))
+    idle = np.full(n, not steady)
+    ticks = 60
+    sent = np.array(
+        [
+            pacer.due(k * TICK_S, idle, zeros, zeros, np.zeros(n), np.zeros(n), np.ones(n))
+            for k in range(ticks)
+        ]
+    )
+    assert sent[0].all(), "every row's first state goes out at once"
+    per_tick = sent[period_ticks:].sum(axis=1)
+    assert per_tick.tolist() == [n // period_ticks] * (ticks - period_ticks)
+    period_s = 1 / 3.0 if steady else 1.0
+    for row in range(n):
+        at = np.flatnonzero(sent[:, row])
+        gaps = np.diff(at)
+        assert gaps.max() * TICK_S <= period_s + 1e-9, (row, gaps)
+        assert set(gaps[1:].tolist()) == {period_ticks}, (row, gaps)
