@@ -109,6 +109,16 @@ def web_host_problem(host: str) -> str | None:
     return None
 
 
+def next_frame_s(last_due_s: float, now_s: float, period_s: float) -> float:
+    """When the render loop's next frame is due, after the frame due at `last_due_s` ended at
+    `now_s`: one period later, so that a frame that starts or ends late (a wait that woke late,
+    a busy machine) costs no frame and the loop keeps `scene_rate_hz`; a frame more than a whole
+    period behind is dropped (the next one is due now), so that renders never bunch up to catch
+    up."""
+    due_s = last_due_s + period_s
+    return due_s if due_s >= now_s - period_s else now_s
+
+
 class GroundStation:
     """Context manager: the running ground station."""
 
@@ -419,8 +429,6 @@ class GroundStation:
             except Exception:  # noqa: BLE001 - the display must keep going
                 log.exception("render update failed")
             tick += 1
-            next_s += period_s
-            delay_s = next_s - time.monotonic()
-            if delay_s < 0:
-                next_s = time.monotonic()  # fell behind: do not try to catch up
-            self._stop.wait(max(0.0, delay_s))
+            now_s = time.monotonic()
+            next_s = next_frame_s(next_s, now_s, period_s)
+            self._stop.wait(max(0.0, next_s - now_s))
