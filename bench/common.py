@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.procs import ChildGroup, python_env
+from comms.procs import Child, ChildExited, ChildGroup, python_env
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -114,6 +114,36 @@ def children() -> ChildGroup:
     return ChildGroup(
         prefix=[sys.executable], cwd=REPO, env=python_env(REPO), stderr="discard", grace_s=3.0
     )
+
+
+def start_routers(
+    kids: ChildGroup, count: int, *, chain: bool = False, tries: int = 3
+) -> list[tuple[Child, int]]:
+    """Start `count` `covey router`s on loopback, one after the other, each connected to every
+    one before it (a full mesh) or, with `chain`, to the one before it; returns (child, port)
+    of each, R1 first, each READY. A port is picked just before its router starts, and a router
+    that exits before READY (its port taken meanwhile, by another process's outgoing
+    connection) is started again on a new one, up to `tries` times."""
+    from comms.session import free_tcp_port
+
+    started: list[tuple[Child, int]] = []
+    for _ in range(count):
+        peers = [p for _, p in started][-1:] if chain else [p for _, p in started]
+        for attempt in range(1, tries + 1):
+            port = free_tcp_port()
+            argv = ["-m", "covey_cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
+            if peers:
+                argv += ["--connect", ",".join(f"tcp/127.0.0.1:{p}" for p in peers)]
+            child = kids.start(*argv)
+            try:
+                child.wait_for("READY", 60)
+            except ChildExited:
+                if attempt == tries:
+                    raise
+                continue
+            started.append((child, port))
+            break
+    return started
 
 
 def cpu_seconds(pid: int) -> float:

@@ -26,16 +26,10 @@ LAYOUTS = ("direct", "1 router", "3 routers")
 
 def _routers(kids, count: int) -> list[str]:
     """Start `count` `covey router`s in a chain; their endpoints, R1 first."""
-    eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(count)]
-    routers = []
-    for i, ep in enumerate(eps):
-        link = ["--connect", eps[i - 1]] if i else []
-        routers.append(kids.start("-m", "covey_cli", "router", "--listen", ep, *link))
-    for r in routers:
-        r.wait_for("READY", timeout_s=60)
+    started = common.start_routers(kids, count, chain=True)
     if count > 2:
-        routers[1].wait_for("covey router: 2 router(s)", timeout_s=60)
-    return eps
+        started[1][0].wait_for("covey router: 2 router(s)", timeout_s=60)
+    return [f"tcp/127.0.0.1:{port}" for _, port in started]
 
 
 def run_one(layout: str, what: str, n: int, window_s: float, repeats: int) -> dict:

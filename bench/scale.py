@@ -201,28 +201,16 @@ def role_station(connect: str, ids: str) -> None:
 
 
 # -- the bench ------------------------------------------------------------------------------
-def _router_argv(port: int, peers: list[int]) -> list[str]:
-    argv = ["-m", "covey_cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
-    if peers:
-        argv += ["--connect", ",".join(f"tcp/127.0.0.1:{p}" for p in peers)]
-    return argv
-
-
 def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady_hz: float) -> dict:
     """n vehicles in max(10, n / 100) hosts over three routers, and a station; the hosts' steady
     rate `steady_hz` (0: every state at the full rate)."""
-    from comms.session import free_tcp_port
-
     hosts = max(MIN_HOSTS, math.ceil(n / MAX_BLOCK))
     sizes = [n // hosts + (1 if k < n % hosts else 0) for k in range(hosts)]
     block_side = math.ceil(math.sqrt(max(sizes)))
     side = math.ceil(math.sqrt(hosts))
     block_m = SPACING_M * block_side
-    ports = [free_tcp_port() for _ in range(ROUTERS)]
     with common.children() as kids:
-        routers = [kids.start(*_router_argv(p, ports[:k])) for k, p in enumerate(ports)]
-        for r in routers:
-            r.wait_for("READY", 60)
+        routers, ports = zip(*common.start_routers(kids, ROUTERS), strict=True)
         procs, first = [], 1
         for k, size in enumerate(sizes):
             start = (block_m * (k // side), block_m * (k % side))

@@ -70,3 +70,25 @@ def test_quick_inference_section_writes_json_and_summary(tmp_path: Path) -> None
     assert "## Policy inference" in summary and "paper FLOPs" in summary
     run = json.loads((out / "run.json").read_text())
     assert run["sections"][0]["status"] == "ok" and not math.isnan(run["wall_s"])
+
+
+def test_start_routers_moves_a_router_whose_port_was_taken(monkeypatch) -> None:
+    """bench.common.start_routers: real `covey router` processes in a full mesh; the first
+    port offered is already taken (as by another process's outgoing connection), so that
+    router exits before READY and starts again on a new port."""
+    import socket
+
+    from bench import common
+    from comms import session
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    offers = [taken.getsockname()[1]]
+    real = session.free_tcp_port
+    monkeypatch.setattr(session, "free_tcp_port", lambda *a: offers.pop() if offers else real())
+    with taken, common.children() as kids:
+        started = common.start_routers(kids, 2)
+        ports = [port for _, port in started]
+        assert len(ports) == 2 and taken.getsockname()[1] not in ports
+        started[1][0].wait_for("covey router: 1 router(s)", timeout_s=60)
