@@ -353,7 +353,7 @@ class FleetModel:
                     loss_pct=loss_pct,
                     trail_ned_m=_NO_TRAIL if trail is None else trail,
                     too_close=vid in close_ids,
-                    stale=age_s > (stale_after_s if state is not None else cfg.stale_after(None)),
+                    stale=age_s > stale_after_s,  # no state yet: age inf, stale
                     unverified=refused_ns is not None and now_ns - refused_ns <= unverified_ns,
                     refused_states=refused,
                     refused_cause=cause,
