@@ -430,9 +430,8 @@ class FlightCore:
                     actions += self._internal(i, trigger, pos[i])
         calm = self.cfg.failsafe.calm_rows(gcs_alive, obs.battery_pct, pos).tolist()
         for i, fs in enumerate(self.failsafes):
-            if (
-                calm[i] and fs.settled
-            ):  # most ticks, most vehicles: evaluate would only note the station
+            # most ticks, most vehicles: evaluate would only note the station
+            if calm[i] and fs.settled:
                 fs.saw_gcs(now_s)
                 continue
             if gcs_alive and fs.gcs_failsafe_active:
