@@ -353,16 +353,16 @@ class Fleet:
                     now_s, idle, sim.pos_m, sim.vel_m_s, core.heading_rad, core.mode, sim.armed
                 )
             )
-            states = self._states(due)
             cells = self.scope.update(sim.pos_m) if self.scope is not None else None
-        if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
-            self.states.set_cells(cells)
-        self._publish_notes(notes)
+            states = self._states(due)  # stamped now: nothing but their puts from here on
         for s, row in zip(states, due.tolist(), strict=True):
             try:
                 self.mesh.publish_state(s, auth=self.auths[row])
             except Exception as exc:  # noqa: BLE001 - a full network buffer must not stop the fleet
                 log.warning("state publish failed: %s", exc)
+        if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
+            self.states.set_cells(cells)
+        self._publish_notes(notes)
         self.stats.ticks += 1
         self.stats.tick_ms.append((time.perf_counter() - t0) * 1e3)
 

@@ -4,10 +4,14 @@
 
 For each fleet size n: three router processes (`covey router`, a full mesh on loopback), P
 multi-vehicle host processes (the agent's multi-vehicle shell, agent/fleet_sim.py `Fleet`,
-n / P vehicles each; P = max(10, n / 100), so at least 10), each a Zenoh client of router
-k mod 3, their vehicle blocks tiled side by side at one vehicle per SPACING_M² (the density is
-the same at every size), and a ground station (the real `GroundStation`, headless: no browser)
-that is a client of router 1.
+n / P vehicles each; P = max(10, n / 100), so at least 10), their vehicle blocks tiled side by
+side at one vehicle per SPACING_M² (the density is the same at every size), and a ground
+station (the real `GroundStation`, headless: no browser) that is a client of router 1.
+
+Sites, as in the README's multi-site layout: the blocks are split into 3 areas of adjacent blocks
+(`layout`), and each host is a Zenoh client of its area's router. Neighbours in the same area
+share a router; those across an area's edge are on different routers, and their states cross
+two. The neighbour latency is given for all, and for the same-site and cross-site pairs apart.
 
 1. The station sends one TAKEOFF to all and collects every vehicle's ack: ack latency p50/p99.
 2. Once the fleet hovers, over a fixed window, per host: states received per second per vehicle
@@ -37,6 +41,7 @@ import math
 import signal
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -81,6 +86,7 @@ def role_host(
 
     measure = _signal_event(signal.SIGUSR1)
     latencies_ms: list[float] = []
+    senders: list[int] = []
 
     class MeasuredFleet(Fleet):
         """The host shell, plus the age of every neighbour state on arrival."""
@@ -88,6 +94,7 @@ def role_host(
         def _on_state(self, state: VehicleState, recv_ns: int) -> None:
             if measure.is_set() and len(latencies_ms) < LATENCY_SAMPLES:
                 latencies_ms.append((recv_ns - state.stamp_ns) / 1e6)
+                senders.append(state.vehicle_id)
             super()._on_state(state, recv_ns)
 
     cfg = FleetSimConfig(
@@ -126,6 +133,7 @@ def role_host(
         "airborne": airborne,
         "cells": cells,
         "latency_ms": lat.tolist()[:2000],
+        "latency_senders": senders[:2000],
         "latency_samples": len(latencies_ms),
     }
     print("RESULT " + json.dumps(result), flush=True)
@@ -201,19 +209,57 @@ def role_station(connect: str, ids: str) -> None:
 
 
 # -- the bench ------------------------------------------------------------------------------
-def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady_hz: float) -> dict:
-    """n vehicles in max(10, n / 100) hosts over three routers, and a station; the hosts' steady
-    rate `steady_hz` (0: every state at the full rate)."""
+@dataclass(frozen=True)
+class Block:
+    """One host's vehicles: ids first_id.., the block's corner, and the site (router) it is at."""
+
+    first_id: int
+    vehicles: int
+    start_ne_m: tuple[float, float]
+    site: int
+
+
+def layout(n: int, sites: int = ROUTERS) -> list[Block]:
+    """n vehicles in max(MIN_HOSTS, n / MAX_BLOCK) blocks of equal size (+-1), one per host,
+    tiled in rows in snake order (block k + 1 is beside block k), and cut into `sites` runs of
+    consecutive blocks (block k is at site k * sites // blocks): each site is an area of
+    adjacent blocks."""
     hosts = max(MIN_HOSTS, math.ceil(n / MAX_BLOCK))
     sizes = [n // hosts + (1 if k < n % hosts else 0) for k in range(hosts)]
-    block_side = math.ceil(math.sqrt(max(sizes)))
+    block_m = SPACING_M * math.ceil(math.sqrt(max(sizes)))
     side = math.ceil(math.sqrt(hosts))
-    block_m = SPACING_M * block_side
+    blocks, first = [], 1
+    for k, size in enumerate(sizes):
+        row, col = divmod(k, side)
+        if row % 2:
+            col = side - 1 - col
+        blocks.append(Block(first, size, (block_m * row, block_m * col), k * sites // hosts))
+        first += size
+    return blocks
+
+
+def site_latencies_ms(blocks: list[Block], rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """The neighbour latencies of `rows` (one per block), split into those from a sender at
+    the receiver's own site and those from another site."""
+    site = {vid: b.site for b in blocks for vid in range(b.first_id, b.first_id + b.vehicles)}
+    same, cross = [], []
+    for b, r in zip(blocks, rows, strict=True):
+        for ms, sender in zip(r["latency_ms"], r["latency_senders"], strict=True):
+            if math.isfinite(ms):
+                (same if site[sender] == b.site else cross).append(ms)
+    return np.array(same), np.array(cross)
+
+
+def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady_hz: float) -> dict:
+    """n vehicles in max(10, n / 100) hosts at three sites (`layout`), one router each, and a
+    station; the hosts' steady rate `steady_hz` (0: every state at the full rate)."""
+    blocks = layout(n)
+    hosts = len(blocks)
     with common.children() as kids:
         routers, ports = zip(*common.start_routers(kids, ROUTERS), strict=True)
-        procs, first = [], 1
-        for k, size in enumerate(sizes):
-            start = (block_m * (k // side), block_m * (k % side))
+        procs = []
+        for b in blocks:
+            start = b.start_ne_m
             procs.append(
                 kids.start(
                     "-m",
@@ -221,11 +267,11 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady
                     "--role",
                     "host",
                     "--connect",
-                    f"tcp/127.0.0.1:{ports[k % ROUTERS]}",
+                    f"tcp/127.0.0.1:{ports[b.site]}",
                     "--first-id",
-                    str(first),
+                    str(b.first_id),
                     "--vehicles",
-                    str(size),
+                    str(b.vehicles),
                     "--start",
                     f"{start[0]},{start[1]}",
                     "--scoped",
@@ -236,7 +282,6 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady
                     str(steady_hz),
                 )
             )
-            first += size
         station = kids.start(
             "-m",
             "bench.scale",
@@ -272,6 +317,7 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady
     lat = np.concatenate([np.array(r["latency_ms"]) for r in rows]) if rows else np.zeros(1)
     lat = lat[np.isfinite(lat)]
     ack_ms = np.array(acks["latency_ms"]) if acks["latency_ms"] else np.full(1, np.nan)
+    same, cross = site_latencies_ms(blocks, rows)
     out = {
         "vehicles": n,
         "hosts": hosts,
@@ -290,6 +336,9 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady
         "latency_ms_p50": float(np.percentile(lat, 50)) if lat.size else None,
         "latency_ms_p99": float(np.percentile(lat, 99)) if lat.size else None,
         "latency_samples": int(sum(r["latency_samples"] for r in rows)),
+        "latency_ms_p99_same_site": float(np.percentile(same, 99)) if same.size else None,
+        "latency_ms_p99_cross_site": float(np.percentile(cross, 99)) if cross.size else None,
+        "latency_cross_site_share": cross.size / max(1, same.size + cross.size),
         "takeoff_acks": acks["accepted"],
         "takeoff_ack_ms_p50": float(np.nanpercentile(ack_ms, 50)),
         "takeoff_ack_ms_p99": float(np.nanpercentile(ack_ms, 99)),

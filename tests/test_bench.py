@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import subprocess
@@ -92,3 +93,35 @@ def test_start_routers_moves_a_router_whose_port_was_taken(monkeypatch) -> None:
         ports = [port for _, port in started]
         assert len(ports) == 2 and taken.getsockname()[1] not in ports
         started[1][0].wait_for("covey router: 1 router(s)", timeout_s=60)
+
+
+@pytest.mark.parametrize("n", [100, 300, 1000, 1234])
+def test_scale_layout_sites_are_areas_of_adjacent_blocks(n: int) -> None:
+    """bench.scale.layout: every vehicle once, blocks of equal size (+-1) that do not overlap,
+    each block beside the next (snake order), and 3 sites of consecutive blocks (so each site
+    is an area of adjacent blocks)."""
+    from bench.scale import MIN_HOSTS, ROUTERS, layout
+
+    blocks = layout(n)
+    assert len(blocks) >= MIN_HOSTS
+    ids = [i for b in blocks for i in range(b.first_id, b.first_id + b.vehicles)]
+    assert ids == list(range(1, n + 1))
+    assert max(b.vehicles for b in blocks) - min(b.vehicles for b in blocks) <= 1
+    corners = [b.start_ne_m for b in blocks]
+    assert len(set(corners)) == len(corners)
+    steps = [math.dist(c, d) for c, d in itertools.pairwise(corners)]
+    assert max(steps) == pytest.approx(min(steps))  # the next block is beside this one
+    sites = [b.site for b in blocks]
+    assert sites == sorted(sites) and set(sites) == set(range(ROUTERS))
+
+
+def test_scale_site_latencies_split_by_the_senders_site() -> None:
+    from bench.scale import Block, site_latencies_ms
+
+    blocks = [Block(1, 2, (0.0, 0.0), 0), Block(3, 2, (40.0, 0.0), 1)]
+    rows = [
+        {"latency_ms": [1.0, 2.0, float("nan")], "latency_senders": [2, 3, 4]},
+        {"latency_ms": [4.0, 8.0], "latency_senders": [1, 4]},
+    ]
+    same, cross = site_latencies_ms(blocks, rows)
+    assert sorted(same) == [1.0, 8.0] and sorted(cross) == [2.0, 4.0]
