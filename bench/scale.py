@@ -380,7 +380,7 @@ def figure(runs: list[dict]) -> None:
     axes[2].set(xlabel="vehicles", ylabel="neighbour state latency p99, ms", yscale="log")
     axes[0].legend(fontsize=8)
     fig.suptitle(
-        f"hovering fleet, {ROUTERS} routers, >= {MIN_HOSTS} host processes, one vehicle per "
+        f"hovering fleet, {ROUTERS} sites (a router each), >= {MIN_HOSTS} host processes, one vehicle per "
         f"{SPACING_M**2:.0f} m², one 2-core machine"
     )
     fig.tight_layout()
