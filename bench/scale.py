@@ -124,7 +124,6 @@ def role_host(
         runner.join(timeout=5)
         cells = len(fleet.states.cells) if scoped else None
     ticks = max(1, ticks1 - ticks0)
-    lat = np.array(latencies_ms) if latencies_ms else np.full(1, np.nan)
     result = {
         "rx_per_vehicle_s": (rx1 - rx0) / window_s / vehicles,
         "cpu_us_per_tick_vehicle": (cpu1 - cpu0) / ticks * 1e6 / vehicles,
@@ -132,7 +131,7 @@ def role_host(
         "overruns": fleet.stats.overruns - over0,
         "airborne": airborne,
         "cells": cells,
-        "latency_ms": lat.tolist()[:2000],
+        "latency_ms": latencies_ms[:2000],
         "latency_senders": senders[:2000],
         "latency_samples": len(latencies_ms),
     }
@@ -259,7 +258,6 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady
         routers, ports = zip(*common.start_routers(kids, ROUTERS), strict=True)
         procs = []
         for b in blocks:
-            start = b.start_ne_m
             procs.append(
                 kids.start(
                     "-m",
@@ -273,7 +271,7 @@ def run_fleet(n: int, scoped: bool, window_s: float, hover_wait_s: float, steady
                     "--vehicles",
                     str(b.vehicles),
                     "--start",
-                    f"{start[0]},{start[1]}",
+                    f"{b.start_ne_m[0]},{b.start_ne_m[1]}",
                     "--scoped",
                     "1" if scoped else "0",
                     "--window-s",
