@@ -269,13 +269,15 @@ def add_mesh_args(
     fleet_help: str = "fleet name (default: covey)",
     key_dir: bool = False,
     router: bool = False,
+    mode_default: str = "peer",
+    mode_help: str = "default: peer; client: of a site router, README's multi-site layout",
 ) -> None:
     """--fleet --connect --listen --mesh-mode --zenoh-config, and --key-file unless key_file is
     False (a CLI that signs nothing then refuses it itself, with its reason); with `key_dir`,
     --key-dir too (a process of several vehicles: one key file each, comms.auth
     .load_vehicle_auths). `router`: the process is a Zenoh router and nothing else (covey
     router): no --mesh-mode and no --fleet, which it refuses with the reason (a router carries
-    every fleet's keys)."""
+    every fleet's keys). `mode_default` / `mode_help`: --mesh-mode's default and why."""
     g = parser.add_argument_group("mesh")
     if router:
         parser.set_defaults(fleet="covey", mesh_mode="router")
@@ -300,9 +302,8 @@ def add_mesh_args(
         g.add_argument(
             "--mesh-mode",
             choices=("peer", "client", "router"),
-            default="peer",
-            help="Zenoh role of this process (default: peer; client: of a site router, "
-            "README's multi-site layout)",
+            default=mode_default,
+            help=f"Zenoh role of this process ({mode_help})",
         )
     g.add_argument(
         "--listen",

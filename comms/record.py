@@ -82,7 +82,10 @@ class RecordConfig:
     path: str = "flight.mcap"
     """Output MCAP file (overwritten)."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
-    """How to join the mesh; mesh.fleet is the fleet recorded."""
+    """How to join the mesh; mesh.fleet is the fleet recorded. To lose nothing, join as a client
+    of a router (`covey record` does by default): a router hands its clients a new vehicle's
+    states from the first one, while a peer hears it only once their gossip link is up (Zenoh
+    peers do not route for each other), which can be after its first states."""
     duration_s: float | None = None
     """Stop after this long; None = until stopped (Ctrl-C, SIGTERM or the `stop` event)."""
     flush_interval_s: float = 0.2

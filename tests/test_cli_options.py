@@ -149,6 +149,7 @@ def test_an_old_flag_name_is_refused_in_one_line(name, argv, message, capsys) ->
 def test_connect_and_listen_split_on_commas_in_every_cli(name) -> None:
     p = covey_cli.parser_of(name)
     base = ["--id", "3"] if name == "agent" else []
+    base += ["--mesh-mode", "peer"] if name == "record" else []  # a recorder is a client
     args = p.parse_args(
         [*base, "--connect", "tcp/10.0.0.1:7447,tcp/10.0.0.2:7447", "--connect", "tcp/h:1"]
         + ["--listen", "tcp/127.0.0.1:0,tcp/127.0.0.1:7448"]

@@ -142,3 +142,16 @@ def test_replay_refuses_flags_of_the_other_mode(tmp_path, capsys) -> None:
     assert "--loop: closed-loop replay (--policy) publishes nothing" in line
     line = _refused(replay_cli, [str(rec), "--json-out", "x.json"], capsys)
     assert "--json-out: closed-loop replay only" in line
+
+
+def test_the_recorder_joins_as_a_client_unless_told_otherwise() -> None:
+    """A router hands its clients a new vehicle's states from the first one; a peer recorder
+    hears it only once their gossip link is up (tests/test_drill_record.py)."""
+    from comms.cli_options import mesh_config
+    from tools.record_cli import record_parser
+
+    p = record_parser()
+    assert mesh_config(p.parse_args(["-o", "f.mcap"]), p).mode == "client"
+    assert "client, of the router" in " ".join(p.format_help().split())
+    peer = mesh_config(p.parse_args(["-o", "f.mcap", "--mesh-mode", "peer"]), p)
+    assert peer.mode == "peer" and peer.listen == ("tcp/127.0.0.1:0",)

@@ -20,7 +20,7 @@ from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.record import RecordConfig, Recorder, read_recording
 from comms.schema import Command, CommandKind, VehicleState, decode
-from comms.session import embedded_peer, embedded_router, free_tcp_port
+from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -53,7 +53,10 @@ def test_a_drill_recording_holds_every_message_that_reached_the_recorder(procs, 
         presence = hub.presence()
         agents = {vid: agent(procs, port, vid) for vid in (1, 2)}
         assert presence.wait_for(lambda v, _g: v >= {1, 2}, timeout_s=60)
-        with Recorder(RecordConfig(path=str(path), mesh=embedded_peer(port), flush_interval_s=0.1)):
+        # As `covey record` joins by default: a client of the router (a peer would hear the
+        # restarted agent only once their gossip link is up, and could miss its first state).
+        client = MeshConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",))
+        with Recorder(RecordConfig(path=str(path), mesh=client, flush_interval_s=0.1)):
             time.sleep(1.0)  # let the recorder's subscriptions reach every publisher
             observer.subscribe_states(on_state)
             time.sleep(1.0)

@@ -73,7 +73,14 @@ def record_parser() -> argparse.ArgumentParser:
         help="record covey's channels only, without Foxglove's standard ones",
     )
     add_foxglove_args(p)
-    add_mesh_args(p, key_file=False)
+    add_mesh_args(
+        p,
+        key_file=False,
+        mode_default="client",
+        mode_help="default: client, of the router at --connect, which hands it every message "
+        "from a vehicle's first one on; as a peer it hears a vehicle that just started only "
+        "once their gossip link is up, and can miss its first states",
+    )
     refuse(p, "--key-file", RECORD_NO_KEY, show=True)
     return p
 
