@@ -244,8 +244,14 @@ class Fleet:
             )
         elif cfg.see_others:
             self.states = mesh.subscribe_states(self._on_state, gate=gate)
-        for i, vid in enumerate(cfg.ids):
-            mesh.serve_commands(vid, lambda c, i=i: self.handle_command(i, c), auth=self.auths[i])
+        # Answered from the tick (`tick`), not from one Zenoh thread per vehicle: a command to
+        # all would wake every one of them at once (docs/scaling.md, "Commands to a host").
+        self.commands = [
+            mesh.serve_commands(
+                vid, lambda c, i=i: self.handle_command(i, c), auth=self.auths[i], polled=True
+            )
+            for i, vid in enumerate(cfg.ids)
+        ]
         for vid in cfg.ids:  # answer commands before announcing presence
             mesh.declare_vehicle(vid)
 
@@ -323,8 +329,11 @@ class Fleet:
 
     # -- the loop ------------------------------------------------------------------------------
     def tick(self, now_s: float) -> None:
-        """Physics, the core's events and failsafes, batched guidance, then every state."""
+        """The commands that came since the last tick, physics, the core's events and
+        failsafes, batched guidance, then every state."""
         t0 = time.perf_counter()
+        for commands in self.commands:
+            commands.poll()
         with self._lock:
             sim, core = self.sim, self.core
             sim.step(now_s)

@@ -497,10 +497,19 @@ class Mesh:
         return pres
 
     # -- commands --------------------------------------------------------------------------
-    def serve_commands(self, vehicle_id: int, handler: CommandHandler, *, auth: Any = None) -> Any:
+    def serve_commands(
+        self, vehicle_id: int, handler: CommandHandler, *, auth: Any = None, polled: bool = False
+    ) -> Any:
         """Answer commands for `vehicle_id`; `handler` returns the ack (never raise from it:
         an exception becomes a FAILED ack with the exception text). `auth`: that vehicle's own
-        FleetAuth when one process serves several vehicles (`covey agent --ids`); default the mesh's."""
+        FleetAuth when one process serves several vehicles (`covey agent --ids`); default the mesh's.
+
+        `polled`: the queries wait in a bounded ring (`COMMAND_RING`, the oldest dropped when
+        full) and are answered when the caller calls `poll()` on the returned `PolledCommands`,
+        on the caller's own thread. A process of many vehicles answers from its tick loop: a
+        command to all then costs no thread wake-ups, where a callback queryable is one Zenoh
+        handler thread per vehicle, all woken at once (docs/scaling.md). Otherwise the answer
+        is given at once, on that handler thread."""
         reply_key = keys.cmd(self.fleet, vehicle_id)
         auth = auth if auth is not None else self.auth
         ack_key = keys.ack(self.fleet, vehicle_id)
@@ -539,6 +548,11 @@ class Mesh:
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
             self._answer(query, reply_key, ack_key, answer, payload, auth)
 
+        if polled:
+            ring = zenoh.handlers.RingChannel(COMMAND_RING)
+            return PolledCommands(
+                self._keep(self.session.declare_queryable(reply_key, ring)), on_query
+            )
         return self._keep(self.session.declare_queryable(reply_key, on_query))
 
     def _answer(
@@ -672,6 +686,27 @@ class Mesh:
         for vid in sorted(expected - outcomes.keys()):
             outcomes[vid] = Outcome(vid, OutcomeStatus.TIMEOUT, why, None, elapsed_s)
         return CommandResult(command=command, outcomes=outcomes, errors=tuple(errors))
+
+
+COMMAND_RING = 64
+"""Queries a polled command queryable holds between two polls (`Mesh.serve_commands`): a
+vehicle gets a few commands a second, so only a flood fills it, and then the oldest go (their
+senders see no ack) rather than Zenoh's network thread waiting for room."""
+
+
+class PolledCommands:
+    """One vehicle's command queryable whose queries wait until `poll()` answers them."""
+
+    def __init__(self, queryable: Any, answer: Callable[[zenoh.Query], None]) -> None:
+        self._queryable, self._answer = queryable, answer
+
+    def poll(self) -> int:
+        """Answer every query that came since the last poll, in order; returns how many."""
+        n = 0
+        while (query := self._queryable.try_recv()) is not None:
+            self._answer(query)
+            n += 1
+        return n
 
 
 class CellSubscription:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import shutil
 import sys
+import threading
 import time
 
 import numpy as np
@@ -237,8 +238,12 @@ def test_a_keyed_host_answers_and_signs_as_each_of_its_vehicles(authority) -> No
         presence = station.presence()
         fleet = Fleet(cfg, mesh, auths=auths, clock_s=lambda: clock[0])
         assert presence.wait_for(lambda v, _g: v >= set(ids), timeout_s=20)
-        res = station.send_command(
-            Command.takeoff(5.0, nonce=new_nonce(), stamp_ns=0), expect=ids, timeout_s=10
+        res = _while_ticking(
+            fleet,
+            clock,
+            lambda: station.send_command(
+                Command.takeoff(5.0, nonce=new_nonce(), stamp_ns=0), expect=ids, timeout_s=10
+            ),
         )
         assert res.ok and sorted(res.outcomes) == list(ids), res.summary()  # acks verified
         deadline = time.monotonic() + 20
@@ -251,13 +256,30 @@ def test_a_keyed_host_answers_and_signs_as_each_of_its_vehicles(authority) -> No
         assert station.stats.states_refused == 0
         # An unsigned command is refused by every vehicle, in an ack signed by that vehicle.
         raw = Command.takeoff(5.0, nonce=new_nonce(), stamp_ns=time.time_ns(), source_id=1)
-        replies = mesh.session.get(keys.all_cmds(FLEET), payload=raw.encode(), timeout=5.0)
+        replies = _while_ticking(
+            fleet,
+            clock,
+            lambda: list(mesh.session.get(keys.all_cmds(FLEET), payload=raw.encode(), timeout=5.0)),
+        )
         acks = [_decode_ack(r) for r in replies]
         assert sorted(a.vehicle_id for a in acks) == list(ids)
         digest = command_digest(raw.encode())
         for ack in acks:
             assert ack.result is AckResult.REJECTED and "unsigned command" in ack.reason
             assert station_auth.check_ack(ack, raw, digest) is None
+
+
+def _while_ticking(fleet: Fleet, clock: list[float], call):
+    """`call()` (which waits for acks) on a thread while the host ticks: a host answers its
+    vehicles' commands from its tick."""
+    out: list = []
+    thread = threading.Thread(target=lambda: out.append(call()))
+    thread.start()
+    while thread.is_alive():
+        clock[0] += 0.1
+        fleet.tick(clock[0])
+        time.sleep(0.02)
+    return out[0]
 
 
 def _decode_ack(reply):

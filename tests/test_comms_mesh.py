@@ -9,10 +9,11 @@ import time
 
 import pytest
 
+from comms import keys
 from comms.commands import OutcomeStatus, new_nonce
-from comms.mesh import Mesh
-from comms.schema import Command, CommandKind, VehicleState
-from comms.session import embedded_router, free_tcp_port
+from comms.mesh import COMMAND_RING, Mesh
+from comms.schema import AckResult, Command, CommandAck, CommandKind, Mode, VehicleState
+from comms.session import embedded_peer, embedded_router, free_tcp_port
 
 pytestmark = pytest.mark.e2e
 
@@ -115,3 +116,43 @@ def test_malformed_payloads_do_not_kill_a_subscriber(hub, procs) -> None:
     answers = [r for r in reply]
     assert len(answers) == 1 and answers[0].ok is not None
     assert listener.poll() is None
+
+
+def test_a_polled_command_queryable_answers_when_polled_and_keeps_the_newest_of_a_flood(
+    hub,
+) -> None:
+    """A host's vehicles answer from its tick (`serve_commands(polled=True)`): nothing before a
+    poll, every query after it in order, and a flood between two polls keeps the newest."""
+    port, station = hub
+    calls: list[int] = []
+
+    def handler(cmd: Command) -> CommandAck:
+        calls.append(cmd.nonce)
+        return CommandAck(7, cmd.nonce, 0, AckResult.ACCEPTED, "", Mode.LANDED)
+
+    with Mesh(embedded_peer(port)) as vehicle:
+        inbox = vehicle.serve_commands(7, handler, polled=True)
+        time.sleep(0.5)  # the queryable reaches the station
+        hold = Command(CommandKind.HOLD, new_nonce(), time.time_ns())
+        out: list = []
+        sender = threading.Thread(
+            target=lambda: out.append(station.send_command(hold, expect=(7,), timeout_s=5))
+        )
+        sender.start()
+        time.sleep(0.5)
+        assert sender.is_alive() and calls == []  # waits for the poll
+        deadline = time.monotonic() + 5
+        while inbox.poll() == 0:
+            assert time.monotonic() < deadline, "the query never reached the ring"
+            time.sleep(0.01)
+        sender.join(5)
+        assert calls == [hold.nonce] and out[0].ok, out[0].summary()
+
+        calls.clear()
+        flood = [Command(CommandKind.HOLD, new_nonce(), time.time_ns()) for _ in range(100)]
+        for cmd in flood:
+            station.session.get(keys.cmd("covey", 7), lambda _r: None, payload=cmd.encode())
+        time.sleep(1.0)
+        assert inbox.poll() == COMMAND_RING
+        assert calls == [c.nonce for c in flood[-COMMAND_RING:]]
+        assert inbox.poll() == 0
