@@ -161,28 +161,3 @@ def outcome_of(
             f"; back to {back_to.name.lower()}" if back_to is not None else ""
         )
     return ActionOutcome(vehicle_id, action.nonce or 0, error is None, detail)
-
-
-def run_ticks(
-    tick: Callable[[float], None],
-    rate_hz: float,
-    clock_s: Callable[[], float],
-    stop: threading.Event,
-    on_overrun: Callable[[], None] | None = None,
-) -> None:
-    """Call `tick(now_s)` at `rate_hz` until `stop` is set; an overrun skips ahead instead of
-    bunching ticks up. A failing tick is logged and the loop goes on (keep flying)."""
-    period_s = 1.0 / rate_hz
-    next_s = clock_s()
-    while not stop.is_set():
-        try:
-            tick(clock_s())
-        except Exception:  # noqa: BLE001 - keep flying; the log has the traceback
-            log.exception("tick failed")
-        next_s += period_s
-        now = clock_s()
-        if next_s < now:
-            if on_overrun is not None:
-                on_overrun()
-            next_s = now + period_s
-        stop.wait(max(0.0, next_s - now))

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.actions import ActionQueue, outcome_of, perform, run_ticks
+from agent.actions import ActionQueue, outcome_of, perform
 from agent.backends.base import BackendError, Capability, Traffic, VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
@@ -45,6 +45,7 @@ from comms.schema import (
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
+from comms.ticks import run_ticks
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0

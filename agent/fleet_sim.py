@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from agent.actions import ActionQueue, outcome_of, perform, run_ticks
+from agent.actions import ActionQueue, outcome_of, perform
 from agent.backends.sim import SimBackend, SimConfig, SimFleet
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import (
@@ -59,6 +59,7 @@ from comms.schema import (
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
+from comms.ticks import run_ticks
 from policy.runtime import GuidancePolicy
 
 log = logging.getLogger("covey.fleet_sim")

@@ -9,6 +9,7 @@ The mesh feeds the FleetModel from Zenoh threads; one render thread draws the sc
 
 from __future__ import annotations
 
+import itertools
 import logging
 import socket
 import threading
@@ -35,6 +36,7 @@ from comms.schema import (
     Severity,
 )
 from comms.session import MeshConfig
+from comms.ticks import run_ticks
 from groundstation import dispatch, scenarios
 from groundstation.browser_form import BrowserForms
 from groundstation.command_log import CommandLog, LoggedCommand
@@ -107,16 +109,6 @@ def web_host_problem(host: str) -> str | None:
     except OSError as exc:
         return f"--host {host!r}: cannot listen there ({exc.strerror or exc})"
     return None
-
-
-def next_frame_s(last_due_s: float, now_s: float, period_s: float) -> float:
-    """When the render loop's next frame is due, after the frame due at `last_due_s` ended at
-    `now_s`: one period later, so that a frame that starts or ends late (a wait that woke late,
-    a busy machine) costs no frame and the loop keeps `scene_rate_hz`; a frame more than a whole
-    period behind is dropped (the next one is due now), so that renders never bunch up to catch
-    up."""
-    due_s = last_due_s + period_s
-    return due_s if due_s >= now_s - period_s else now_s
 
 
 class GroundStation:
@@ -416,19 +408,14 @@ class GroundStation:
         return time.perf_counter() - t0
 
     def _loop(self) -> None:
-        period_s = 1.0 / self.cfg.scene_rate_hz
         table_every = max(1, round(self.cfg.scene_rate_hz / self.cfg.table_rate_hz))
-        tick = 0
-        next_s = time.monotonic()
-        while not self._stop.is_set():
-            try:
-                self.update_times_s.append(self.render_once(with_table=tick % table_every == 0))
-                del self.update_times_s[:-1000]
-                for panel in self._tabs()[0]:
-                    panel.tick()
-            except Exception:  # noqa: BLE001 - the display must keep going
-                log.exception("render update failed")
-            tick += 1
-            now_s = time.monotonic()
-            next_s = next_frame_s(next_s, now_s, period_s)
-            self._stop.wait(max(0.0, next_s - now_s))
+        frames = itertools.count()
+
+        def frame(_now_s: float) -> None:
+            k = next(frames)
+            self.update_times_s.append(self.render_once(with_table=k % table_every == 0))
+            del self.update_times_s[:-1000]
+            for panel in self._tabs()[0]:
+                panel.tick()
+
+        run_ticks(frame, self.cfg.scene_rate_hz, time.monotonic, self._stop, what="render update")

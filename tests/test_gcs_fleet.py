@@ -292,34 +292,3 @@ def test_vehicles_never_present_are_forgotten_but_present_ones_stay() -> None:
     assert m.ids() == [1, 7]
     m.on_presence(1, False, 1 * NS_PER_S)  # a real vehicle that left stays, shown LOST
     assert [v.vehicle_id for v in m.snapshot(31 * NS_PER_S).vehicles] == [1]
-
-
-def _render_starts(work_s, frames: int, period_s: float = 0.1) -> np.ndarray:
-    """When each frame starts under station.next_frame_s, frame k taking work_s(k) seconds."""
-    from groundstation.station import next_frame_s
-
-    due_s, now_s, starts = 0.0, 0.0, []
-    for k in range(frames):
-        now_s = max(now_s, due_s)  # wait until due (a late frame starts at once)
-        starts.append(now_s)
-        now_s += work_s(k)
-        due_s = next_frame_s(due_s, now_s, period_s)
-    return np.array(starts)
-
-
-def test_the_render_loop_keeps_its_rate_through_late_frames_and_never_bunches() -> None:
-    """station.next_frame_s: a frame late by less than a period costs nothing (the schedule
-    holds: the loop renders scene_rate_hz frames a second); one more than a whole period behind
-    is dropped instead of caught up with a burst of frames."""
-    from groundstation.station import next_frame_s
-
-    assert next_frame_s(1.0, 1.02, 0.1) == pytest.approx(1.1)  # on time: one period on
-    assert next_frame_s(1.0, 1.15, 0.1) == pytest.approx(1.1)  # late: due at once, kept
-    assert next_frame_s(1.0, 1.25, 0.1) == pytest.approx(1.25)  # a frame behind: dropped
-    # 10 Hz, every 7th frame 150 ms of work (a busy machine), the rest 15 ms: 100 frames in 10 s
-    starts = _render_starts(lambda k: 0.15 if k % 7 == 6 else 0.015, 100)
-    assert starts[-1] < 9.95, starts[-1]
-    # one stall of 450 ms: afterwards frames go on at 10 Hz, not 4 at once to catch up
-    starts = _render_starts(lambda k: 0.45 if k == 20 else 0.015, 40)
-    after = starts[starts > starts[20]]
-    assert np.diff(after).min() >= 0.1 - 1e-9, np.diff(after)
