@@ -161,9 +161,12 @@ class FoxgloveWorker:
     ) -> None:
         # The child imports this very comms (first on its path, before the working folder),
         # and lowers its priority before those imports (numpy, foxglove, mcap: ~0.3 s of CPU).
+        # It ignores SIGINT: a terminal's Ctrl-C reaches the whole process group, and is for
+        # the recorder, which then ends the child itself once the last chunks are back.
         root = str(Path(__file__).resolve().parent.parent)
         start = (
-            f"import contextlib, os, sys\nsys.path.insert(0, {root!r})\n"
+            "import contextlib, os, signal, sys\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+            f"sys.path.insert(0, {root!r})\n"
             f"with contextlib.suppress(OSError): os.nice({WORKER_NICE})\n"
             "from comms.foxglove_worker import main\n"
             "raise SystemExit(main())\n"

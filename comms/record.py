@@ -334,9 +334,11 @@ class Recorder:
         cfg: RecordConfig,
         clock_ns: Callable[[], int] = time.time_ns,
         sink: Sink | None = None,
+        stop: threading.Event | None = None,
     ) -> None:
         """`sink` replaces the MCAP file (cfg.path is then unused): the live Foxglove bridge is
-        a recorder whose sink is a WebSocket server."""
+        a recorder whose sink is a WebSocket server. `stop`: give up waiting for the router
+        (a client's) once set (comms.session.open_session)."""
         self.cfg = cfg
         self._clock_ns = clock_ns
         fleet = cfg.mesh.fleet
@@ -349,7 +351,7 @@ class Recorder:
                 self.sink = McapSink(
                     self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s, foxglove=cfg.foxglove
                 )
-            self._session: zenoh.Session | None = open_session(cfg.mesh)
+            self._session: zenoh.Session | None = open_session(cfg.mesh, stop)
             s = self._session
             self._entities.append(s.declare_subscriber(keys.everything(fleet), self._on_sample))
             self._entities.append(
@@ -415,7 +417,7 @@ def record(
 ) -> dict[str, int]:
     """Record until cfg.duration_s passes or `stop` is set; returns message counts by kind."""
     stop = stop or threading.Event()
-    with Recorder(cfg) as rec:
+    with Recorder(cfg, stop=stop) as rec:
         if on_open is not None:
             on_open(rec)
         stop.wait(cfg.duration_s)

@@ -15,13 +15,17 @@ Multicast scouting is off unless asked for: it floods the LAN and makes tests fl
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import socket
+import threading
 from dataclasses import dataclass, field
 from typing import Literal
 
 import zenoh
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 7447
 Mode = Literal["peer", "client", "router"]
@@ -194,10 +198,44 @@ def with_free_port(endpoint: str) -> str:
     return f"{proto}/{host}:{port}{tail}"
 
 
-def open_session(cfg: MeshConfig) -> zenoh.Session:
+def open_session(
+    cfg: MeshConfig, stop: threading.Event | None = None, note_every_s: float = 5.0
+) -> zenoh.Session:
     """Open a Zenoh session; the caller closes it (or uses it as a context manager).
-    Raises MeshConfigError (one line) when Zenoh refuses: a busy port, a bad certificate..."""
+    Raises MeshConfigError (one line) when Zenoh refuses: a busy port, a bad certificate...
+
+    A client waits inside Zenoh until a router at `cfg.connect` answers. It waits on a thread
+    here, so that this one logs where it waits every `note_every_s` and gives up (a
+    MeshConfigError) once `stop` is set, instead of hanging deaf to Ctrl-C."""
     conf = cfg.zenoh_config()
+    if cfg.mode != "client":
+        return _open(conf, cfg)
+    out: list = []
+    opened = threading.Event()
+
+    def run() -> None:
+        try:
+            out.append(_open(conf, cfg))
+        except MeshConfigError as exc:
+            out.append(exc)
+        finally:
+            opened.set()
+
+    threading.Thread(target=run, name="zenoh-open", daemon=True).start()
+    waited_s, where = 0.0, ", ".join(cfg.connect)
+    while not opened.wait(0.1):
+        if stop is not None and stop.is_set():
+            raise MeshConfigError(f"stopped while waiting for a router at {where}")
+        waited_s += 0.1
+        if waited_s >= note_every_s:
+            waited_s = 0.0
+            log.warning("waiting for a router at %s (a client starts once one answers)", where)
+    if isinstance(out[0], MeshConfigError):
+        raise out[0]
+    return out[0]
+
+
+def _open(conf: zenoh.Config, cfg: MeshConfig) -> zenoh.Session:
     try:
         return zenoh.open(conf)
     except Exception as exc:  # noqa: BLE001 - zenoh.ZError: one line, not a traceback
