@@ -211,13 +211,20 @@ def open_session(
     if cfg.mode != "client":
         return _open(conf, cfg)
     out: list = []
-    opened = threading.Event()
+    opened, lock, gave_up = threading.Event(), threading.Lock(), [False]
 
     def run() -> None:
         try:
-            out.append(_open(conf, cfg))
+            session = _open(conf, cfg)
         except MeshConfigError as exc:
             out.append(exc)
+        else:
+            with lock:
+                late = gave_up[0]
+                if not late:
+                    out.append(session)
+            if late:  # the caller has gone: nobody else would close it
+                session.close()
         finally:
             opened.set()
 
@@ -225,7 +232,11 @@ def open_session(
     waited_s, where = 0.0, ", ".join(cfg.connect)
     while not opened.wait(0.1):
         if stop is not None and stop.is_set():
-            raise MeshConfigError(f"stopped while waiting for a router at {where}")
+            with lock:
+                gave_up[0] = not out
+            if gave_up[0]:
+                raise MeshConfigError(f"stopped while waiting for a router at {where}")
+            break  # it opened just now: the caller closes it
         waited_s += 0.1
         if waited_s >= note_every_s:
             waited_s = 0.0
