@@ -38,7 +38,7 @@ class ScopeConfig:
     """Subscribe to the cells within reach only; False: every state of the fleet (the old way)."""
     sense_range_m: float = 15.0
     """The farthest a neighbour can be and still change what guidance does. At least the safety
-    filter's reach (separation * 1.1 + 2 * cruise * 4 s horizon = 11.3 m) and the stale-caution
+    filter's reach (separation * 1.2 + 2 * cruise * 4 s horizon = 11.6 m) and the stale-caution
     radius (15 m); the shipped policy has no sense range of its own, so this is its sense range."""
     separation_m: float = 3.0
     """The separation guidance keeps (a neighbour's state is its centre; its disc reaches this far)."""

@@ -32,7 +32,7 @@ covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_
 {
     covey_safety_config_t c;
     c.radius_m = separation_m;
-    c.margin = 0.1f;
+    c.margin = 0.2f; /* policy/safety.py SafetyConfig.margin */
     c.time_horizon_s = 4.0f;
     c.dt_s = 0.1f;
     c.max_speed_m_s = max_speed_m_s;

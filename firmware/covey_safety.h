@@ -34,7 +34,7 @@ extern "C" {
 /* Filter parameters in world units (policy/safety.py SafetyConfig, same defaults). */
 typedef struct {
     float radius_m;        /* [0.01, 1000]: combined radius kept between centres (the separation), 3 */
-    float margin;          /* [0, 10]: relative padding on radius_m, 0.1 */
+    float margin;          /* [0, 10]: relative padding on radius_m, 0.2 */
     float time_horizon_s;  /* [1e-3, 1000]: how far ahead velocity obstacles look, 4 */
     float dt_s;            /* [1e-3, 1000]: control period, used only when vehicles overlap, 0.1 */
     float max_speed_m_s;   /* [0.01, 100]: speed limit of the output, 1 */

@@ -151,6 +151,8 @@ def bind(lib: ctypes.CDLL) -> None:
         vp,
         ctypes.POINTER(SafetyOutC),
     ]
+    lib.covey_safety_defaults.restype = SafetyConfigC
+    lib.covey_safety_defaults.argtypes = [ctypes.c_float, ctypes.c_float]
     lib.covey_safety_scratch_bytes.restype = ctypes.c_uint32
     lib.covey_safety_scratch_bytes.argtypes = []
     lib.covey_guidance_scratch_bytes.restype = ctypes.c_uint32

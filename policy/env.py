@@ -79,6 +79,12 @@ class EnvConfig:
     """Fly every commanded velocity through the separation filter (policy.safety, ORCA), as
     flight does, with each vehicle seeing the others of its arena exactly: the policy then
     learns with the guarantee it will fly with (issue 16). Off in the paper."""
+    filter_margin: float = safety.SafetyConfig.margin
+    """That filter's relative padding on eps_cav_m (flight's SafetyConfig.margin by default)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.filter_margin <= 10.0:
+            raise ValueError(f"filter_margin must be in [0, 10], got {self.filter_margin}")
 
 
 def cav_reward(d, cfg: EnvConfig):
@@ -92,8 +98,13 @@ def cav_reward(d, cfg: EnvConfig):
 
 def safety_config(cfg: EnvConfig) -> safety.SafetyConfig:
     """The filter of `safety_filter` in policy units: it keeps the collision distance at the
-    vehicles' speed (its other settings are flight's)."""
-    return safety.SafetyConfig(radius_m=cfg.eps_cav_m, dt_s=cfg.dt_s, max_speed_m_s=cfg.speed)
+    vehicles' speed with `filter_margin` (its other settings are flight's)."""
+    return safety.SafetyConfig(
+        radius_m=cfg.eps_cav_m,
+        margin=cfg.filter_margin,
+        dt_s=cfg.dt_s,
+        max_speed_m_s=cfg.speed,
+    )
 
 
 def sample_vehicle_count(rng: np.random.Generator, cfg: EnvConfig) -> int:

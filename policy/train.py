@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from policy.safety import SafetyConfig
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -76,6 +78,9 @@ class TrainConfig:
     """Share of arenas drawn as forced conflicts (EnvConfig.conflict_share)."""
     safety_filter: bool = False
     """Fly the actions through the separation filter, as flight does (EnvConfig.safety_filter)."""
+    filter_margin: float = SafetyConfig.margin
+    """With --safety-filter: the filter's relative padding on the separation
+    (EnvConfig.filter_margin; flight's policy.safety.SafetyConfig.margin, 0.1 before issue 16)."""
     delta_cav_m: float = 10.0
     """The proximity penalty R_CAV starts this close (the paper: 10 m; see EnvConfig)."""
     knee_cav_m: float = 6.0
@@ -125,6 +130,7 @@ def main(cfg: TrainConfig) -> dict:
         w_prog=cfg.w_prog,
         ccd=cfg.ccd,
         safety_filter=cfg.safety_filter,
+        filter_margin=cfg.filter_margin,
         conflict_share=cfg.conflict_share,
         delta_cav_m=cfg.delta_cav_m,
         knee_cav_m=cfg.knee_cav_m,
@@ -413,6 +419,8 @@ def cli(argv=None) -> dict:
     cfg = config_from_flags(TrainConfig, args, **over)
     if cfg.preset not in ("paper", "improved"):
         ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
+    if not 0.0 <= cfg.filter_margin <= 10.0:
+        ap.error(f"--filter-margin must be in [0, 10], got {cfg.filter_margin}")
     if cfg.encoder not in ("lstm", "occupancy"):
         ap.error(f"--encoder must be lstm or occupancy, got {cfg.encoder!r}")
     last = main(cfg)

@@ -214,6 +214,17 @@ def test_policy_separation_scales_the_network_not_the_filter():
     assert filt.safety_cfg.radius_m == 3.0
 
 
+def test_safety_defaults_in_c_are_the_runtimes(cpol):
+    """covey_safety_defaults (what the PX4 module and the emulator's onboard mode fly) is
+    policy.safety.SafetyConfig at the same separation and speed, field by field: one filter
+    setting in C and Python (the margin included, raised to 0.2 in issue 16)."""
+    for sep_m, vmax in ((3.0, 1.0), (5.0, 12.0)):
+        c = cpol._lib.covey_safety_defaults(sep_m, vmax)
+        ref = safety.SafetyConfig(radius_m=sep_m, max_speed_m_s=vmax)
+        for name, _ in type(c)._fields_:
+            assert getattr(c, name) == pytest.approx(getattr(ref, name), rel=1e-6), name
+
+
 def test_told_separation_in_c_is_the_runtimes(cpol):
     """covey_told_separation_m (the PX4 module's CVY_POL_SEP_M, 0 = default) is
     policy.runtime.told_separation_m (None = default): one rule for the berth, in C and Python."""

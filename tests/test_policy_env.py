@@ -1,5 +1,7 @@
 """The vectorised environment equals the plain per-agent loop; reward constants."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -109,12 +111,8 @@ def test_ccd_catches_a_pass_between_steps(ccd):
     assert info["collided"][0].all() == ccd
 
 
-@pytest.mark.parametrize("safety_filter", [False, True])
-def test_filter_in_the_loop_keeps_a_head_on_pair_apart(safety_filter):
-    """Two vehicles flying straight at each other: they collide unless the environment flies
-    their commands through the separation filter, which keeps them 3 m apart and still lets
-    both arrive."""
-    cfg = EnvConfig(num_envs=1, max_vehicles=2, ccd=True, safety_filter=safety_filter)
+def _fly_head_on(cfg: EnvConfig):
+    """Two vehicles flying straight at each other's start: (closest, collided, arrived)."""
     env = SwarmEnv(cfg, ObsConfig())
     env.reset(seed=0)
     env.pos[0] = [[0.0, 0.0], [20.0, 0.2]]
@@ -134,10 +132,32 @@ def test_filter_in_the_loop_keeps_a_head_on_pair_apart(safety_filter):
             closest = min(closest, float(np.hypot(*(env.pos[0, 0] - env.pos[0, 1]))))
         collided |= bool(info["collided"][0].any())
         arrived |= info["arrived"][0]
+    return closest, collided, arrived
+
+
+@pytest.mark.parametrize("safety_filter", [False, True])
+def test_filter_in_the_loop_keeps_a_head_on_pair_apart(safety_filter):
+    """Two vehicles flying straight at each other: they collide unless the environment flies
+    their commands through the separation filter, which keeps them 3 m apart and still lets
+    both arrive."""
+    cfg = EnvConfig(num_envs=1, max_vehicles=2, ccd=True, safety_filter=safety_filter)
+    closest, collided, arrived = _fly_head_on(cfg)
     assert collided != safety_filter
     if safety_filter:
         assert closest >= 3.0
         assert arrived.all()
+
+
+def test_filter_margin_in_the_loop_is_the_given_one():
+    """--filter-margin reaches the environment's filter: the pair keeps about
+    3 m x (1 + margin), and a bad margin is refused."""
+    for margin in (0.1, 0.5):
+        cfg = EnvConfig(num_envs=1, max_vehicles=2, ccd=True, safety_filter=True)
+        closest, collided, arrived = _fly_head_on(replace(cfg, filter_margin=margin))
+        assert not collided and arrived.all()
+        assert 3.0 * (1 + margin) - 0.1 <= closest <= 3.0 * (1 + margin) + 0.6, (margin, closest)
+    with pytest.raises(ValueError, match="filter_margin"):
+        EnvConfig(filter_margin=-0.1)
 
 
 def test_sample_scenario_counts():
