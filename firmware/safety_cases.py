@@ -8,7 +8,7 @@ makes hostile copies for the sanitizer fuzz.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import astuple, dataclass, field, replace
 
 import numpy as np
 
@@ -20,6 +20,7 @@ from firmware.cases import (
     STATUS,
     _f,
 )
+from policy.safety import SafetyConfig
 
 F32 = np.float32
 MAX_ABS_VEL_M_S = F32(1.0e3)
@@ -33,8 +34,9 @@ BAD = (float("nan"), float("inf"), float("-inf"), 3.0e38, -2.0e5, 1.5e3, -0.0, 0
 class FilterCase:
     """One filter call in world units (float32 values)."""
 
-    cfg: tuple = (3.0, 0.1, 4.0, 0.1, 1.0, 0.5)
-    """radius_m, margin, time_horizon_s, dt_s, max_speed_m_s, responsibility."""
+    cfg: tuple = astuple(SafetyConfig())
+    """radius_m, margin, time_horizon_s, dt_s, max_speed_m_s, responsibility (default: flight's,
+    policy.safety.SafetyConfig)."""
     own: tuple = (0.0, 0.0, 0.0, 0.0)
     """pos_n, pos_e, vel_n, vel_e."""
     pref: tuple = (0.0, 0.0)

@@ -40,6 +40,9 @@ NO_UNIT_SUFFIX: dict[str, set[tuple[str, str]]] = {
         )
     },
     "a share of arenas, 0 to 1 (a probability, not a percentage)": {("train", "--conflict-share")},
+    "a relative padding on the separation (0.2 = 20 % more), as SafetyConfig.margin": {
+        ("train", "--filter-margin")
+    },
     "a count, in thousands (the -k is its scale)": {("train", "--episodes-k")},
     "a ratio of real time (2 = twice as fast), no unit": {("replay", "--speed")},
     "LAT,LON,ALT: three numbers in degrees, degrees, metres, named by the metavar": {

@@ -47,8 +47,9 @@ def test_reach_is_sense_plus_separation_plus_closing_speed_times_handover() -> N
 def test_guidance_widens_the_scope_to_what_it_needs() -> None:
     g = GuidanceConfig(separation_m=6.0, cruise_speed_m_s=3.0)
     s = g.scope(ScopeConfig())
-    # the filter reaches 6 x 1.1 + 2 x 3 x 4 = 30.6 m; separation and top speed follow guidance
-    assert s.sense_range_m == pytest.approx(30.6)
+    # the filter reaches 6 x (1 + margin 0.2) + 2 x 3 x 4 = 31.2 m; separation and top speed
+    # follow guidance
+    assert s.sense_range_m == pytest.approx(31.2)
     assert (s.separation_m, s.max_speed_m_s) == (6.0, 3.0)
     assert GuidanceConfig().scope(ScopeConfig()) == ScopeConfig()  # the defaults already cover it
 

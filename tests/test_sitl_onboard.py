@@ -284,7 +284,7 @@ def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation(
 
     assert config_from_args(["--onboard", "--policy-separation-m", "2"]).policy_separation_m == 2.0
     scene = ([0.0, 0.0], [1.0, 0.0], 0.0, [30.0, 0.0], [[8.0, 0.5]], [[-1.0, 0.0]], [math.pi])
-    for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (2.0, 2.0)):
+    for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (1.5, 1.5)):
         link = f"udpin:127.0.0.1:{free_udp_port()}"
         with Emulator(SitlConfig(onboard=True, policy_separation_m=ps, links=(link,))) as emu:
             guidance = emu.vehicle.guidance
