@@ -238,7 +238,9 @@ def test_ghost_attack_is_refused_the_goto_stops_short_and_the_station_shows_the_
                 v[1].state,
                 v[2].state,
             )
-            assert abs(p2[0] - V2_AT[0]) < 1.0 and abs(p2[1] - V2_AT[1]) < 1.0, p2
+            # (within 2 m: holding, it steps aside as vehicle 1 stops short, about 1 m with the
+            # filter's 0.2 margin; the forgery puts it 50 m away)
+            assert abs(p2[0] - V2_AT[0]) < 2.0 and abs(p2[1] - V2_AT[1]) < 2.0, p2
             assert set(v) == {1, 2}, sorted(v)[:10]  # no phantom
             rates.append((v[1].rate_hz, v[2].rate_hz))
             time.sleep(0.05)
