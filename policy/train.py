@@ -419,8 +419,12 @@ def cli(argv=None) -> dict:
     cfg = config_from_flags(TrainConfig, args, **over)
     if cfg.preset not in ("paper", "improved"):
         ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
-    if not 0.0 <= cfg.filter_margin <= 10.0:
-        ap.error(f"--filter-margin must be in [0, 10], got {cfg.filter_margin}")
+    from policy.env import EnvConfig
+
+    try:  # the environment's own check, said as the flag
+        EnvConfig(filter_margin=cfg.filter_margin)
+    except ValueError as exc:
+        ap.error(f"--filter-margin: {exc}")
     if cfg.encoder not in ("lstm", "occupancy"):
         ap.error(f"--encoder must be lstm or occupancy, got {cfg.encoder!r}")
     last = main(cfg)

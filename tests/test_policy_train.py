@@ -83,6 +83,18 @@ def test_every_train_flag_has_help(capsys):
     assert "Adam learning rate" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize(("value", "says"), [("-0.5", "must be in [0, 10]"), ("11", "got 11.0")])
+def test_a_bad_filter_margin_is_refused_before_training(value, says, capsys):
+    """--filter-margin out of the filter's range: exit 2 with the reason, nothing trained."""
+    from policy.train import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli(["--filter-margin", value, "--out", "/nonexistent/never-written"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--filter-margin" in err and says in err
+
+
 def test_init_from_weights_file_reproduces_the_actor(tmp_path):
     """--init policy.npz: the actor acts as the runtime does with that file; a file of another
     network shape is refused with the reason."""
