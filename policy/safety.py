@@ -28,7 +28,7 @@ class SafetyConfig:
     """Relative padding on radius_m (3 m -> 3.6 m), to absorb discrete-time and link errors:
     neighbours dead-reckoned from 3 Hz states with losses are tenths of a metre off. With the
     weights fine-tuned with the filter in the loop, dense circles on such a link came to
-    2.96-2.99 m at 0.1 and 3.004 m at 0.15; 3.24 m at 0.2 (docs/policy.md, issue 16)."""
+    2.96-2.99 m at 0.1 and 3.004 m at 0.15; 3.24-3.34 m at 0.2 (docs/policy.md, issue 16)."""
     time_horizon_s: float = 4.0
     """How far ahead velocity obstacles look."""
     dt_s: float = 0.1

@@ -186,12 +186,8 @@ def test_without_traces_compares_with_recorded_velocity(tmp_path):
     rep = run_closed_loop(ClosedLoopConfig(str(path), vehicle_id=3))
     assert rep["reference"] == "recorded_velocity" and not rep["exact"]
     assert rep["ticks"] == 120
-    # The recorded velocity is the previous tick's command here: close, not equal. Without the
-    # traces the replay's neighbour view differs from the flown one, so a few decisions differ
-    # (vehicle 3's p95 is 0.53 m/s with the weights of issue 16's fine-tune, 0.05-0.09 for 1 and
-    # 2): the mean is the measure of "close".
-    assert 0.0 < rep["mean_diff_m_s"] < 0.2
-    assert rep["p95_diff_m_s"] < 1.0
+    # The recorded velocity is the previous tick's command here: close, not equal.
+    assert 0.0 < rep["p95_diff_m_s"] < 0.5
 
 
 def test_unknown_vehicle_is_a_clear_error(tmp_path):
