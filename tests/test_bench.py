@@ -125,3 +125,31 @@ def test_scale_site_latencies_split_by_the_senders_site() -> None:
     ]
     same, cross = site_latencies_ms(blocks, rows)
     assert sorted(same) == [1.0, 8.0] and sorted(cross) == [2.0, 4.0]
+
+
+def test_scale_spread_reports_each_run_the_median_and_how_many_met_the_targets() -> None:
+    """bench.scale.spread: the repeated largest size, against issue 15's targets."""
+    from bench.scale import spread
+
+    def run(p99_ms: float, ack_ms: float, ups: float) -> dict:
+        return {
+            "latency_ms_p99": p99_ms,
+            "takeoff_ack_ms_p99": ack_ms,
+            "station": {"updates_per_s": ups},
+            "load_avg_1min_at_start": 1.0,
+        }
+
+    got = spread([run(11.0, 500.0, 10.0), run(25.0, 1200.0, 9.96), run(19.0, 900.0, 9.8)])
+    assert got["runs"] == 3
+    assert got["latency_ms_p99"]["values"] == [11.0, 25.0, 19.0]
+    assert got["latency_ms_p99"]["median"] == 19.0
+    assert got["latency_ms_p99"]["met_in"] == 2
+    assert got["takeoff_ack_ms_p99"]["met_in"] == 2
+    assert got["station_updates_per_s"]["met_in"] == 2  # 9.96 prints as 10.0; 9.8 does not
+
+
+def test_scale_bench_refuses_fewer_than_one_repeat() -> None:
+    from bench.scale import main
+
+    with pytest.raises(ValueError, match="repeats must be >= 1"):
+        main(quick=True, repeats=0)
