@@ -105,6 +105,10 @@ class TrainConfig:
     """Updates between checkpoints."""
     progress: bool = True
     """Show a tqdm bar."""
+    recipe: str = ""
+    """Run a whole multi-stage recipe instead of one stage: "shipped" trains the shipped
+    weights' way from scratch (policy.recipe); it sets every other training flag, and
+    --max-minutes is then the budget of all its stages together."""
 
 
 def main(cfg: TrainConfig) -> dict:
@@ -417,6 +421,20 @@ def cli(argv=None) -> dict:
         ap.error("--episodes and --episodes-k say the same thing: give one")
     over = {} if args.episodes_k is None else {"episodes": int(args.episodes_k * 1000)}
     cfg = config_from_flags(TrainConfig, args, **over)
+    if cfg.recipe:
+        from policy import recipe
+
+        if cfg.recipe not in recipe.RECIPES:
+            ap.error(f"--recipe must be one of {', '.join(recipe.RECIPES)}, got {cfg.recipe!r}")
+        clash = given(ap, args, *(f for f in vars(args) if f not in recipe.RUN_FLAGS))
+        if clash:
+            ap.error(f"--recipe {cfg.recipe} sets {', '.join(clash)} itself; leave them out")
+        last = recipe.run(cfg)
+        print(
+            f"covey train --recipe {cfg.recipe}: {len(last['stages'])} stages in "
+            f"{sum(r.get('wall_s', 0.0) for r in last['stages']) / 60:.1f} min; wrote {cfg.out}/final.npz"
+        )
+        return last
     if cfg.preset not in ("paper", "improved"):
         ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
     from policy.env import EnvConfig

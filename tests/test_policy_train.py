@@ -170,3 +170,70 @@ def test_fine_tune_with_the_filter_in_the_loop(tmp_path):
     load_actor(tuned, str(tmp_path / "tuned" / "final.npz"))
     assert not torch.equal(tuned.head[0].weight, shipped.head[0].weight)
     GuidancePolicy.load(tmp_path / "tuned" / "final.npz")
+
+
+def test_the_shipped_recipe_chains_its_stages_within_one_budget():
+    """covey train --recipe shipped: from scratch, then the three fine-tunes with the filter in
+    the loop, each from the weights of the stage before, the budget split between them."""
+    from policy.recipe import SHIPPED, stage_configs
+    from policy.safety import SafetyConfig
+
+    cfg = TrainConfig(recipe="shipped", out="runs/r", seed=11, threads=1, max_minutes=45.0)
+    got = stage_configs(cfg, SHIPPED)
+    assert [c.out for c in got] == [
+        "runs/r/1-scratch",
+        "runs/r/2-filter",
+        "runs/r/3-filter-wacc10",
+        "runs/r/4-filter-wacc14",
+    ]
+    assert got[0].init == "" and not got[0].safety_filter and got[0].ccd
+    for before, after in zip(got, got[1:], strict=False):
+        assert after.init == f"{before.out}/final.npz"
+        assert after.safety_filter and after.conflict_share == 0.5 and after.lone_anchor == 1.0
+        assert after.filter_margin == SafetyConfig.margin  # flight's margin, every fine-tune
+    assert [c.w_acc for c in got] == [6.0, 6.0, 10.0, 14.0]
+    assert [c.seed for c in got] == [11, 12, 13, 14]
+    assert [c.episodes for c in got] == [120_000, 37_000, 30_000, 30_000]
+    assert sum(c.max_minutes for c in got) == pytest.approx(45.0)
+    assert {c.threads for c in got} == {1}
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--recipe", "shipped", "--w-acc", "3"], "--recipe shipped sets --w-acc itself"),
+        (["--recipe", "fastest"], "--recipe must be one of shipped, got 'fastest'"),
+    ],
+)
+def test_a_recipe_refuses_the_flags_it_sets_and_unknown_recipes(argv, says, capsys):
+    from policy.train import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli([*argv, "--out", "/nonexistent/never-written"])
+    assert exc.value.code == 2
+    assert says in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_recipe_runs_its_stages_in_turn_and_keeps_the_last_weights(tmp_path):
+    """Two tiny stages: each writes its weights, the second starts from the first's, and the
+    recipe's final.npz is the last stage's."""
+    from policy.recipe import Stage, run
+
+    tiny = (("num_envs", 16), ("num_steps", 16), ("minibatch_size", 256), ("update_epochs", 1))
+    stages = (
+        Stage("a", 40, 0.5, tiny),
+        Stage("b", 40, 0.5, (*tiny, ("safety_filter", True), ("critic_warmup_updates", 1000))),
+    )
+    cfg = TrainConfig(recipe="shipped", out=str(tmp_path), progress=False, max_minutes=10.0)
+    last = run(cfg, stages)
+    assert [r["stage"] for r in last["stages"]] == ["a", "b"]
+    assert all(r["episodes"] >= 40 for r in last["stages"])
+    a, b = (ActorCritic(IMPROVED) for _ in range(2))
+    from policy.train import load_actor
+
+    load_actor(a, str(tmp_path / "1-a" / "final.npz"))
+    load_actor(b, str(tmp_path / "2-b" / "final.npz"))
+    for p, q in zip(a.head.parameters(), b.head.parameters(), strict=True):
+        assert torch.equal(p, q)  # stage b only warmed its critic: its actor is stage a's
+    assert (tmp_path / "final.npz").read_bytes() == (tmp_path / "2-b" / "final.npz").read_bytes()
