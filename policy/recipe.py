@@ -13,14 +13,17 @@ Four stages of `policy.train.main`, each started from the weights the one before
 4. the same with the turning penalty at 14 (the shipped weights' last stage).
 
 Episodes stop each stage, as in the runs that made the shipped weights; `--max-minutes` is
-the whole recipe's wall-time budget, split between the stages by `Stage.budget_share` (a
-stage that reaches its share stops early, and says so in its log). The recipe sets every
+the whole recipe's wall-time budget, split between the stages by `Stage.budget_share`; what a
+stage leaves unused (it reached its episodes first) goes to the next, and a stage that reaches
+its time first stops early. The recipe sets every
 training flag but the ones in RUN_FLAGS.
 """
 
 from __future__ import annotations
 
 import shutil
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -79,15 +82,26 @@ def stage_configs(cfg: TrainConfig, stages: tuple[Stage, ...]) -> list[TrainConf
     return configs
 
 
-def run(cfg: TrainConfig, stages: tuple[Stage, ...] | None = None) -> dict:
+def run(
+    cfg: TrainConfig,
+    stages: tuple[Stage, ...] | None = None,
+    clock_s: Callable[[], float] = time.monotonic,
+) -> dict:
     """Trains every stage in turn; writes <out>/final.npz; returns the last stage's last row
-    with the stages' rows under "stages"."""
+    with the stages' rows under "stages". `clock_s` times the stages (for the carried-over
+    budget)."""
     from policy import train
 
     stages = RECIPES[cfg.recipe] if stages is None else stages
     rows = []
+    spare_min = 0.0  # budget the stages before left unused (they stopped by their episodes)
     for stage, stage_cfg in zip(stages, stage_configs(cfg, stages), strict=True):
+        if cfg.max_minutes:
+            stage_cfg = replace(stage_cfg, max_minutes=stage_cfg.max_minutes + spare_min)
+        t0 = clock_s()
         row = train.main(stage_cfg)
+        if cfg.max_minutes:
+            spare_min = max(0.0, stage_cfg.max_minutes - (clock_s() - t0) / 60.0)
         rows.append({"stage": stage.name, "out": stage_cfg.out, **row})
         print(
             f"covey train --recipe {cfg.recipe}: stage {stage.name}: "

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -237,3 +238,29 @@ def test_a_recipe_runs_its_stages_in_turn_and_keeps_the_last_weights(tmp_path):
     for p, q in zip(a.head.parameters(), b.head.parameters(), strict=True):
         assert torch.equal(p, q)  # stage b only warmed its critic: its actor is stage a's
     assert (tmp_path / "final.npz").read_bytes() == (tmp_path / "2-b" / "final.npz").read_bytes()
+
+
+def test_a_recipe_gives_the_budget_a_stage_left_unused_to_the_next(tmp_path, monkeypatch):
+    """With --max-minutes, a stage that stops by its episodes early hands its unused minutes on:
+    stages of 0.5 / 0.25 / 0.25 of 40 min taking 5, 20 and 1 min get 20, 10 + 15 and 10 + 5."""
+    from policy import recipe, train
+
+    minutes = iter([5.0, 20.0, 1.0])
+    now = [0.0]
+    budgets = []
+
+    def fake_main(stage_cfg):  # times a stage without training: the budget arithmetic alone
+        budgets.append(stage_cfg.max_minutes)
+        now[0] += 60.0 * next(minutes)
+        out = Path(stage_cfg.out)
+        out.mkdir(parents=True)
+        (out / "final.npz").write_bytes(b"weights")
+        return {"episodes": stage_cfg.episodes}
+
+    monkeypatch.setattr(train, "main", fake_main)
+    stages = tuple(
+        recipe.Stage(n, 10, share, ()) for n, share in (("a", 0.5), ("b", 0.25), ("c", 0.25))
+    )
+    cfg = TrainConfig(recipe="shipped", out=str(tmp_path), max_minutes=40.0)
+    recipe.run(cfg, stages, clock_s=lambda: now[0])
+    assert budgets == pytest.approx([20.0, 25.0, 15.0])
