@@ -66,7 +66,8 @@ def stage_configs(cfg: TrainConfig, stages: tuple[Stage, ...]) -> list[TrainConf
     """The TrainConfig of every stage: cfg's run flags (RUN_FLAGS), the stage's settings, a
     seed and a directory of its own, and the weights of the stage before as its --init."""
     out = Path(cfg.out)
-    run = {name: getattr(cfg, name) for name in RUN_FLAGS if name != "recipe"}
+    per_stage = ("recipe", "seed", "max_minutes")  # set per stage below
+    run = {name: getattr(cfg, name) for name in RUN_FLAGS if name not in per_stage}
     configs: list[TrainConfig] = []
     for k, stage in enumerate(stages, start=1):
         over = dict(stage.settings)
