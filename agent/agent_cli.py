@@ -86,6 +86,7 @@ GUIDANCE_FLAGS = (
     "decision_period_s",
     "trace_guidance",
     "policy_separation_m",
+    "sparse_rule",
 )
 """Flags for the agent's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
 HOST_FLAGS = ("spacing_m", "max_neighbours", "no_see_others")
@@ -144,7 +145,7 @@ def add_flight_args(
         "trained period, 1 s x separation/3 / cruise speed; 0: every tick)",
     )
     p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
-    add_config_flags(p, GuidanceConfig, only=("policy_separation_m",))
+    add_config_flags(p, GuidanceConfig, only=("policy_separation_m", "sparse_rule"))
     p.add_argument(
         "--geofence-radius-m",
         type=float,
@@ -210,6 +211,7 @@ def guidance_from_args(args: argparse.Namespace) -> GuidanceConfig:
         policy_path=args.policy,
         decision_period_s=args.decision_period_s,
         policy_separation_m=args.policy_separation_m,
+        sparse_rule=args.sparse_rule,
     )
 
 

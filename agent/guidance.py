@@ -26,6 +26,7 @@ from agent.neighbours import NeighbourSnapshot
 from comms.scope import ScopeConfig
 from policy import safety
 from policy.runtime import GuidancePolicy, told_separation_m
+from policy.sparse import SparseConfig
 
 DECISION_DUE_SHARE = 0.95
 """A decision is due once this share of the decision period has passed (tick jitter must not
@@ -63,6 +64,10 @@ class GuidanceConfig:
     """Separation the policy is told to keep, its distance scale; the filter still keeps the
     whole separation. None: 1.25 m per 3 m of separation with the filter on (a narrower berth,
     measured in docs/policy.md), the whole separation with it off (policy.runtime.told_separation_m)."""
+    sparse_rule: bool = True
+    """With the filter on: where a vehicle meets at most one other and not dead-on, fly straight
+    at the goal and let the filter resolve it (policy.sparse; docs/policy.md "Sparse traffic").
+    Off, or with the filter off: the policy always."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "cruise_speed_m_s", "arrive_radius_m"):
@@ -109,6 +114,7 @@ class GuidanceConfig:
             cruise_speed_m_s=self.cruise_speed_m_s,
             safety_filter=False,
             max_neighbours=self.max_neighbours,
+            sparse_rule=SparseConfig() if self.safety_filter and self.sparse_rule else None,
         )
 
 

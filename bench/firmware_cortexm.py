@@ -12,7 +12,9 @@ the loads are estimates within that factor.
 
 N is the number of vehicles in the scene, as in the paper: the LSTM runs N - 1 steps.
 "hold+filter" is what the PX4 module runs (covey_guidance_step): one decision per trained
-period (1 s) and the separation filter at every 10 Hz tick, all N - 1 neighbours closing in.
+period (1 s) with the sparse rule (covey_sparse_choose as measured plus one full filter call:
+an upper bound, its own filter call may or may not have run on the bench scene), and the
+separation filter at every 10 Hz tick, all N - 1 neighbours closing in.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ def measure(npz: Path, build_dir: Path) -> dict:
         "instructions_per_tick": 1.0 / run.ticks_per_instruction,
         "instructions": {k: run.instructions(k) for k in sorted(run.bench_ticks)},
         "filter_instructions": {k: run.filter_instructions(k) for k in sorted(run.filter_ticks)},
+        "sparse_instructions": {k: run.sparse_instructions(k) for k in sorted(run.sparse_ticks)},
     }
 
 
@@ -67,8 +70,13 @@ def table(m: dict, hidden: int, x: int) -> list[dict]:
         }
         f_instr = m["filter_instructions"][n - 1]
         row["filter_instructions"] = f_instr
-        # what the module runs: decide at the trained period, filter every 10 Hz tick
-        row["guidance_instructions_per_s"] = DECISION_HZ * instr + TICK_HZ * f_instr
+        s_instr = m["sparse_instructions"][n - 1]
+        row["sparse_instructions"] = s_instr
+        # what the module runs: decide (policy + sparse rule) at the trained period, filter
+        # every 10 Hz tick
+        row["guidance_instructions_per_s"] = (
+            DECISION_HZ * (instr + s_instr + f_instr) + TICK_HZ * f_instr
+        )
         for cname, hz in CLOCKS_HZ.items():
             row[f"load_{cname}_hold_filter"] = row["guidance_instructions_per_s"] / hz
             row[f"ms_at_{cname}"] = 1e3 * instr / hz
@@ -149,7 +157,7 @@ def main(argv=None) -> int:
         )
         print(
             " N  instr      paperFLOPs instr/FLOP  ms@216  %216@10Hz %216@3Hz  ms@480  %480@10Hz"
-            "  Hz@4%(216)  filter  %216 hold+filter"
+            "  Hz@4%(216)  filter  sparse  %216 hold+filter"
         )
         for r in results["tables"][name]:
             print(
@@ -159,7 +167,8 @@ def main(argv=None) -> int:
                 f"{100 * r['load_pixhawk4_216MHz_3Hz_radio']:8.2f} "
                 f"{r['ms_at_pixhawk6_480MHz']:7.2f} {100 * r['load_pixhawk6_480MHz_10Hz']:8.2f} "
                 f"{r['max_rate_hz_within_4pct_pixhawk4_216MHz']:10.1f} "
-                f"{r['filter_instructions']:7,.0f} {100 * r['load_pixhawk4_216MHz_hold_filter']:8.2f}"
+                f"{r['filter_instructions']:7,.0f} {r['sparse_instructions']:7,.0f} "
+                f"{100 * r['load_pixhawk4_216MHz_hold_filter']:8.2f}"
             )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2, default=float) + "\n")

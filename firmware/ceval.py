@@ -75,6 +75,7 @@ def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
         policy_separation_m=told_separation_m(safety_cfg.radius_m, True, cfg.policy_separation_m),
         max_neighbours=cfg.max_neighbours,
         safety_cfg=safety_cfg,
+        sparse_rule=cfg.sparse_rule,
     )
     return COnboardFleet(cpol, cfg.policy_period_s)
 

@@ -158,12 +158,17 @@ class QemuRun:
     """Neighbour count -> SysTick ticks of one evaluation."""
     filter_ticks: dict = None
     """Neighbour count -> SysTick ticks of one covey_safety_filter (all neighbours closing in)."""
+    sparse_ticks: dict = None
+    """Neighbour count -> SysTick ticks of one covey_sparse_choose (its filter call included)."""
 
     def instructions(self, k: int) -> float:
         return self.bench_ticks[k] / self.ticks_per_instruction
 
     def filter_instructions(self, k: int) -> float:
         return self.filter_ticks[k] / self.ticks_per_instruction
+
+    def sparse_instructions(self, k: int) -> float:
+        return self.sparse_ticks[k] / self.ticks_per_instruction
 
 
 def run_qemu(elf: Path) -> QemuRun:
@@ -189,7 +194,7 @@ def run_qemu(elf: Path) -> QemuRun:
     def f(h: str) -> float:
         return float(np.float32(struct.unpack("<f", struct.pack("<I", int(h, 16)))[0]))
 
-    results, bench, filt, cal = [], {}, {}, None
+    results, bench, filt, sparse, cal = [], {}, {}, {}, None
     for line in text.splitlines():
         t = line.split()
         if t and t[0] == "R":
@@ -200,7 +205,9 @@ def run_qemu(elf: Path) -> QemuRun:
             bench[int(t[1])] = int(t[2])
         elif t and t[0] == "F":
             filt[int(t[1])] = int(t[2])
-    return QemuRun(results, cal, bench, filt)
+        elif t and t[0] == "S":
+            sparse[int(t[1])] = int(t[2])
+    return QemuRun(results, cal, bench, filt, sparse)
 
 
 def paper_flops(n_vehicles: int, hidden: int = 63, x: int = 3, head=(64, 64), a: int = 2) -> int:
@@ -230,7 +237,7 @@ def main() -> int:
     for k in run.bench_ticks:
         print(
             f"{k:3d} neighbours: {run.instructions(k):,.0f} instructions, "
-            f"filter {run.filter_instructions(k):,.0f}"
+            f"filter {run.filter_instructions(k):,.0f}, sparse rule {run.sparse_instructions(k):,.0f}"
         )
     return 0
 

@@ -34,7 +34,94 @@ covey_guidance_config_t covey_guidance_defaults(const covey_config_t *policy)
     g.safety = covey_safety_defaults(policy->separation_m, policy->cruise_speed_m_s);
     g.decision_period_s = covey_trained_period_s(policy);
     g.safety_filter = 1;
+    g.sparse_rule = 1;
     return g;
+}
+
+static int32_t finite2(float a, float b)
+{
+    return isfinite(a) && isfinite(b);
+}
+
+covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const covey_track_t *own,
+                                   const covey_goal_t *goal, const float policy_vel_m_s[2],
+                                   const covey_track_t *nbrs, int32_t n_nbrs,
+                                   covey_safety_scratch_t *scratch, covey_sparse_out_t *out)
+{
+    if (out != NULL) {
+        out->vel_n_m_s = 0.0f;
+        out->vel_e_m_s = 0.0f;
+        out->straight = 0;
+        out->n_encounters = 0;
+    }
+    if (safety == NULL || own == NULL || goal == NULL || policy_vel_m_s == NULL ||
+        scratch == NULL || out == NULL || (nbrs == NULL && n_nbrs > 0)) {
+        return COVEY_ERR_NULL;
+    }
+    covey_status_t st = covey_safety_config_check(safety);
+    if (st != COVEY_OK) {
+        return st;
+    }
+    if (n_nbrs < 0 || n_nbrs > COVEY_MAX_INPUTS) {
+        return COVEY_ERR_RANGE;
+    }
+    if (!finite2(own->pos_n_m, own->pos_e_m) || !finite2(own->vel_n_m_s, own->vel_e_m_s) ||
+        !finite2(goal->pos_n_m, goal->pos_e_m) ||
+        !finite2(policy_vel_m_s[0], policy_vel_m_s[1])) {
+        return COVEY_ERR_NONFINITE;
+    }
+    for (int32_t i = 0; i < n_nbrs; ++i) {
+        if (!finite2(nbrs[i].pos_n_m, nbrs[i].pos_e_m) ||
+            !finite2(nbrs[i].vel_n_m_s, nbrs[i].vel_e_m_s)) {
+            return COVEY_ERR_NONFINITE;
+        }
+    }
+    const float sep = safety->radius_m;
+    const float cruise = safety->max_speed_m_s;
+    const float period = COVEY_W_DT * (sep / 3.0f) / cruise;
+    /* straight at the goal at cruise speed, slowed to reach it within one period */
+    const float dn = goal->pos_n_m - own->pos_n_m;
+    const float de = goal->pos_e_m - own->pos_e_m;
+    const float dist = sqrtf(dn * dn + de * de);
+    /* |vs| = dist x gain = min(cruise, dist / period), down to 0 on the goal */
+    const float gain = fminf(cruise / fmaxf(dist, 1e-9f), 1.0f / period);
+    const float vs[2] = {dn * gain, de * gain};
+    const float horizon = COVEY_SPARSE_HORIZON_PERIODS * period;
+    const float reach = COVEY_SPARSE_ENCOUNTER_SEPARATIONS * sep;
+    int32_t count = 0;
+    float nearest = INFINITY;
+    for (int32_t i = 0; i < n_nbrs; ++i) {
+        const float rpn = nbrs[i].pos_n_m - own->pos_n_m;
+        const float rpe = nbrs[i].pos_e_m - own->pos_e_m;
+        const float rvn = nbrs[i].vel_n_m_s - vs[0];
+        const float rve = nbrs[i].vel_e_m_s - vs[1];
+        const float vv = rvn * rvn + rve * rve;
+        const float t = fminf(fmaxf(-(rpn * rvn + rpe * rve) / fmaxf(vv, 1e-12f), 0.0f), horizon);
+        const float cn = rpn + rvn * t;
+        const float ce = rpe + rve * t;
+        const float d = sqrtf(cn * cn + ce * ce);
+        if (d < reach) {
+            ++count;
+            nearest = fminf(nearest, d);
+        }
+    }
+    out->n_encounters = count;
+    int32_t straight = (count <= COVEY_SPARSE_MAX_ENCOUNTERS) &&
+                       (nearest >= COVEY_SPARSE_DEAD_ON_SEPARATIONS * sep);
+    if (straight) {
+        covey_safety_out_t f;
+        st = covey_safety_filter(safety, own, vs, nbrs, n_nbrs, scratch, &f);
+        if (st != COVEY_OK) {
+            return st;
+        }
+        /* (f . vs / |vs|) >= share |vs|, without dividing: on the goal vs = 0 passes */
+        straight = (f.vel_n_m_s * vs[0] + f.vel_e_m_s * vs[1]) >=
+                   COVEY_SPARSE_PROGRESS_SHARE * (vs[0] * vs[0] + vs[1] * vs[1]);
+    }
+    out->straight = straight;
+    out->vel_n_m_s = straight ? vs[0] : policy_vel_m_s[0];
+    out->vel_e_m_s = straight ? vs[1] : policy_vel_m_s[1];
+    return COVEY_OK;
 }
 
 void covey_hold_reset(covey_hold_t *hold)
@@ -84,6 +171,7 @@ covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hol
 {
     if (out != NULL) {
         out->decided = 0;
+        out->straight = 0;
         out->filter.n_lines = 0;
         out->filter.changed = 0;
         out->filter.infeasible = 0;
@@ -157,6 +245,18 @@ covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hol
         t->vel_e_m_s = nbr_vel_m_s[2 * i + 1];
     }
     const covey_track_t me = {own->pos_n_m, own->pos_e_m, own_vel_m_s[0], own_vel_m_s[1]};
+    if (out->decided && cfg->sparse_rule) {
+        covey_sparse_out_t sparse;
+        const float asked[2] = {hold->vel_n_m_s, hold->vel_e_m_s};
+        st = covey_sparse_choose(&cfg->safety, &me, goal, asked, scratch->tracks, n_tracks,
+                                 &scratch->safety, &sparse);
+        if (st != COVEY_OK) {
+            return fail(hold, out, st);
+        }
+        hold->vel_n_m_s = sparse.vel_n_m_s;
+        hold->vel_e_m_s = sparse.vel_e_m_s;
+        out->straight = sparse.straight;
+    }
     const float pref[2] = {hold->vel_n_m_s, hold->vel_e_m_s};
     st = covey_safety_filter(&cfg->safety, &me, pref, scratch->tracks, n_tracks, &scratch->safety,
                              &out->filter);

@@ -28,6 +28,7 @@ typedef struct {
     covey_safety_config_t safety;   /* the filter's (radius_m = policy.separation_m as a rule) */
     float decision_period_s;        /* [0, 10]: seconds between decisions; 0 = every tick */
     int32_t safety_filter;          /* 1: filter every tick; 0: the policy alone (the paper) */
+    int32_t sparse_rule;            /* 1 (with the filter): covey_sparse_choose at each decision */
 } covey_guidance_config_t;
 
 /* The held decision, owned by the caller; zero-initialise or covey_hold_reset. */
@@ -51,7 +52,39 @@ typedef struct {
     int32_t decided;            /* 1: the policy ran this tick */
     covey_command_t command;    /* the policy's output when decided (else zero counts) */
     covey_safety_out_t filter;  /* the filter's result (n_lines = 0 when off) */
+    int32_t straight;           /* 1: this tick decided, by the sparse rule, to fly straight */
 } covey_guidance_out_t;
+
+/*
+ * The sparse-traffic rule, policy/sparse.py's twin with SparseConfig's defaults: where a
+ * vehicle meets at most one other and not dead-on, it flies straight at its goal and leaves
+ * the encounter to the filter (ORCA); else the policy. Time unit: the trained period at the
+ * separation kept, COVEY_W_DT x (radius_m / 3) / max_speed_m_s.
+ */
+#define COVEY_SPARSE_HORIZON_PERIODS 10.0f      /* encounters looked for this far ahead */
+#define COVEY_SPARSE_ENCOUNTER_SEPARATIONS 2.0f /* closest approach nearer: an encounter */
+#define COVEY_SPARSE_DEAD_ON_SEPARATIONS (1.0f / 6.0f) /* nearer still: dead-on, the policy */
+#define COVEY_SPARSE_MAX_ENCOUNTERS 1           /* more at once: dense, the policy */
+#define COVEY_SPARSE_PROGRESS_SHARE 0.5f        /* the filtered straight line must keep this */
+
+typedef struct {
+    float vel_n_m_s;        /* the velocity to hold: straight or the policy's */
+    float vel_e_m_s;
+    int32_t straight;       /* 1: straight at the goal */
+    int32_t n_encounters;   /* neighbours whose straight-line closest approach is an encounter */
+} covey_sparse_out_t;
+
+/*
+ * The rule for `own` (position, velocity) bound for `goal`, whose policy asked for
+ * policy_vel_m_s, against n_nbrs fresh neighbours with velocities; `safety` is the filter
+ * flight keeps (radius_m the separation, max_speed_m_s the cruise speed). Checks, first
+ * failure returned: NULL, the config, n_nbrs in [0, COVEY_MAX_INPUTS], own, goal and
+ * policy_vel_m_s, each neighbour (non-finite first); then the filter's own checks.
+ */
+covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const covey_track_t *own,
+                                   const covey_goal_t *goal, const float policy_vel_m_s[2],
+                                   const covey_track_t *nbrs, int32_t n_nbrs,
+                                   covey_safety_scratch_t *scratch, covey_sparse_out_t *out);
 
 /* With the filter on and no berth asked for, the policy is told this share of
  * the separation: it keeps a narrower berth than the paper's and the filter

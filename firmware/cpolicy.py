@@ -123,9 +123,12 @@ class CPolicy:
         safety_filter: bool = True,
         safety_cfg=None,
         policy_separation_m: float | None = None,
+        sparse_rule: bool = False,
     ):
         """`policy_separation_m`: the separation the network is told (its distance scale,
-        3 policy units = this); None = separation_m. The filter always keeps separation_m."""
+        3 policy units = this); None = separation_m. The filter always keeps separation_m.
+        `sparse_rule` (with the filter): covey_sparse_choose, policy.sparse's C twin, picks
+        the straight line at the goal in sparse traffic (GuidancePolicy's sparse_rule)."""
         if max_neighbours is None:
             max_neighbours = MAX_NEIGHBOURS
         if not 0 <= max_neighbours <= MAX_NEIGHBOURS:
@@ -146,6 +149,7 @@ class CPolicy:
         self.cruise_speed_m_s = float(cruise_speed_m_s)
         self.max_neighbours = max_neighbours
         self.safety_filter = bool(safety_filter)
+        self.sparse_rule = bool(sparse_rule)
         from policy.safety import SafetyConfig  # numpy only: the config's one definition
 
         base = safety_cfg or SafetyConfig()
@@ -185,7 +189,9 @@ class CPolicy:
         """One vehicle's guidance tick (covey_guidance_step) with its own hold state;
         None = the trained period, 0 = decide every tick."""
         p = self.decision_period_s if decision_period_s is None else float(decision_period_s)
-        return csafety.COnboard(self._lib, self._cfg, self.safety_cfg, p, self.safety_filter)
+        return csafety.COnboard(
+            self._lib, self._cfg, self.safety_cfg, p, self.safety_filter, self.sparse_rule
+        )
 
     def evaluate(
         self,
@@ -265,14 +271,20 @@ class CPolicy:
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
         nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
-        if not self.safety_filter or nbr_pos.shape[0] == 0:
+        if not self.safety_filter or (nbr_pos.shape[0] == 0 and not self.sparse_rule):
             return r.vel_m_s
         nbr_vel = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
         if nbr_stamp_s is not None and now_s is not None:
             age_s = now_s - np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
             fresh = age_s * 1e6 <= self._cfg.max_neighbour_age_us
             nbr_pos, nbr_vel = nbr_pos[fresh], nbr_vel[fresh]
-        f = self._filter.evaluate(pos_m, vel_m_s, r.vel_m_s, nbr_pos, nbr_vel)
+        v = r.vel_m_s
+        if self.sparse_rule:
+            sp = self._filter.sparse(pos_m, vel_m_s, goal_m, v, nbr_pos, nbr_vel)
+            if sp.status != "ok":
+                raise CPolicyError(STATUS_NAMES_INV[sp.status])
+            v = sp.vel_m_s
+        f = self._filter.evaluate(pos_m, vel_m_s, v, nbr_pos, nbr_vel)
         if f.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[f.status])
         return f.vel_m_s

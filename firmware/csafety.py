@@ -122,6 +122,7 @@ class GuidanceConfigC(ctypes.Structure):
         ("safety", SafetyConfigC),
         ("decision_period_s", ctypes.c_float),
         ("safety_filter", ctypes.c_int32),
+        ("sparse_rule", ctypes.c_int32),
     ]
 
 
@@ -134,6 +135,18 @@ class GuidanceOutC(ctypes.Structure):
         ("decided", ctypes.c_int32),
         ("command", CommandC),
         ("filter", SafetyOutC),
+        ("straight", ctypes.c_int32),
+    ]
+
+
+class SparseOutC(ctypes.Structure):
+    """covey_sparse_out_t."""
+
+    _fields_ = [
+        ("vel_n_m_s", ctypes.c_float),
+        ("vel_e_m_s", ctypes.c_float),
+        ("straight", ctypes.c_int32),
+        ("n_encounters", ctypes.c_int32),
     ]
 
 
@@ -161,6 +174,17 @@ def bind(lib: ctypes.CDLL) -> None:
     lib.covey_told_separation_m.argtypes = [ctypes.c_float, ctypes.c_int32, ctypes.c_float]
     lib.covey_trained_period_s.restype = ctypes.c_float
     lib.covey_trained_period_s.argtypes = [ctypes.POINTER(ConfigC)]
+    lib.covey_sparse_choose.restype = ctypes.c_int
+    lib.covey_sparse_choose.argtypes = [
+        ctypes.POINTER(SafetyConfigC),
+        ctypes.POINTER(TrackC),
+        fp,
+        fp,
+        vp,
+        ctypes.c_int32,
+        vp,
+        ctypes.POINTER(SparseOutC),
+    ]
     lib.covey_guidance_step.restype = ctypes.c_int
     lib.covey_guidance_step.argtypes = [
         vp,
@@ -206,6 +230,17 @@ class FilterResult:
     """No velocity met every half-plane; the worst violation was minimised."""
 
 
+@dataclass(frozen=True)
+class SparseResult:
+    """One covey_sparse_choose call."""
+
+    status: str
+    vel_m_s: np.ndarray
+    """The velocity to hold: straight at the goal or the policy's; zero on a fault."""
+    straight: bool
+    n_encounters: int
+
+
 class CSafetyFilter:
     """The C separation filter with a policy.safety.SafetyConfig."""
 
@@ -239,6 +274,32 @@ class CSafetyFilter:
             bool(out.infeasible),
         )
 
+    def sparse(self, pos_m, vel_m_s, goal_m, policy_vel_m_s, nbr_pos_m, nbr_vel_m_s):
+        """covey_sparse_choose with this filter's config (policy.sparse.choose_one's twin);
+        faults come back in `status`, never raised."""
+        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
+        v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
+        goal = (ctypes.c_float * 2)(*np.asarray(goal_m, dtype=np.float64).reshape(2))
+        asked = (ctypes.c_float * 2)(*np.asarray(policy_vel_m_s, dtype=np.float64).reshape(2))
+        t = _tracks(nbr_pos_m, nbr_vel_m_s)
+        out = SparseOutC()
+        st = self._lib.covey_sparse_choose(
+            ctypes.byref(self._ccfg),
+            ctypes.byref(TrackC(p[0], p[1], v[0], v[1])),
+            goal,
+            asked,
+            t.ctypes.data,
+            t.shape[0],
+            self._scratch,
+            ctypes.byref(out),
+        )
+        return SparseResult(
+            STATUS_NAMES.get(st, str(st)),
+            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
+            bool(out.straight),
+            int(out.n_encounters),
+        )
+
     def __call__(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
         """Filtered velocity (2,); raises ValueError on a fault."""
         r = self.evaluate(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
@@ -258,15 +319,29 @@ class StepResult:
     """The policy ran this tick."""
     filtered: bool
     """The filter changed the held velocity."""
+    straight: bool = False
+    """This tick decided, by the sparse rule, to fly straight at the goal."""
 
 
 class COnboard:
     """One vehicle's onboard guidance tick: its own hold state and scratch (covey_guidance.h)."""
 
-    def __init__(self, lib, policy_cfg, safety_cfg, decision_period_s: float, safety_filter=True):
+    def __init__(
+        self,
+        lib,
+        policy_cfg,
+        safety_cfg,
+        decision_period_s: float,
+        safety_filter=True,
+        sparse_rule=False,
+    ):
         self._lib = lib
         self._cfg = GuidanceConfigC(
-            policy_cfg, SafetyConfigC.of(safety_cfg), decision_period_s, int(bool(safety_filter))
+            policy_cfg,
+            SafetyConfigC.of(safety_cfg),
+            decision_period_s,
+            int(bool(safety_filter)),
+            int(bool(sparse_rule)),
         )
         self._hold = HoldC()
         self._scratch = ctypes.create_string_buffer(lib.covey_guidance_scratch_bytes())
@@ -331,4 +406,5 @@ class COnboard:
             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
             bool(out.decided),
             bool(out.filter.changed),
+            bool(out.straight),
         )

@@ -59,6 +59,9 @@ class EvalConfig:
     """Separation the learned policies are told to keep (collisions are still counted below
     3 m). None: as flight tells them (policy.runtime.told_separation_m): 1.25 m with a filter
     (policy+filter, c+filter), 3 m without."""
+    sparse_rule: bool = True
+    """Filtered learned policies (policy+filter, c+filter) fly straight where a vehicle meets at
+    most one other and not dead-on, as the agents do (policy.sparse); off: the policy always."""
     quick: bool = False
     """Small smoke suite."""
     seed: int = 0
@@ -115,6 +118,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
     `extra` controllers are built only when cfg.controllers names them."""
     from policy.runtime import GuidancePolicy, told_separation_m
     from policy.safety import SafetyConfig, filter_padded
+    from policy.sparse import SparseConfig
 
     safety_cfg = SafetyConfig(dt_s=cfg.dt_s)
     out = {}
@@ -133,6 +137,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             ),
             safety_filter=False,
             max_neighbours=cfg.max_neighbours,
+            sparse_rule=SparseConfig() if filt and cfg.sparse_rule else None,
         )
         out[name] = Held(pol.command_views, cfg.policy_period_s, safety_cfg if filt else None)
     if cfg.occupancy:

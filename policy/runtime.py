@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from policy import features, safety
+from policy import features, safety, sparse
 from policy.features import ObsConfig
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
@@ -382,11 +382,16 @@ class GuidancePolicy:
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
         policy_separation_m: float | None = None,
+        sparse_rule: sparse.SparseConfig | None = None,
     ):
         """`policy_separation_m`: the separation the network is told, i.e. its distance scale
         (3 policy units = this many metres); None = separation_m. Smaller than separation_m
         makes the policy keep a narrower berth while the filter still keeps separation_m
-        (docs/policy.md, "A narrower berth"). The decision period stays separation_m's."""
+        (docs/policy.md, "A narrower berth"). The decision period stays separation_m's.
+
+        `sparse_rule`: in sparse traffic, command the straight line at the goal instead of the
+        policy's velocity (policy.sparse); only for flight that filters every command, which
+        then resolves the encounter. None: the policy always."""
         if not (np.isfinite(separation_m) and separation_m > 0):
             raise ValueError(f"separation_m must be finite and > 0, got {separation_m}")
         if not (np.isfinite(cruise_speed_m_s) and cruise_speed_m_s > 0):
@@ -409,6 +414,7 @@ class GuidancePolicy:
         self.cruise_speed_m_s = cruise_speed_m_s
         self.max_neighbours = max_neighbours
         self.safety_filter = safety_filter
+        self.sparse_rule = sparse_rule
         base = safety_cfg or safety.SafetyConfig()
         self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
         # the fast path of `command` / `action` (features.closest_last_rows): the projection of
@@ -429,6 +435,7 @@ class GuidancePolicy:
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
         policy_separation_m: float | None = None,
+        sparse_rule: sparse.SparseConfig | None = None,
     ) -> GuidancePolicy:
         """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights."""
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
@@ -459,6 +466,7 @@ class GuidancePolicy:
             max_neighbours,
             safety_cfg,
             policy_separation_m,
+            sparse_rule,
         )
 
     @property
@@ -616,14 +624,26 @@ class GuidancePolicy:
         )
         if a is None:
             return None
-        return self._velocity(a, h, pos_m, vel_m_s, nbr_pos_m, nbr_vel_m_s)
+        return self._velocity(a, h, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s)
 
-    def _velocity(self, a, heading, pos_m, vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
+    def _velocity(self, a, heading, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
         """Body (fwd, right) action a -> (north, east) velocity times the cruise speed, then
-        the filter (when on and there are neighbours)."""
+        the sparse rule (when on), then the filter (when on and there are neighbours)."""
         c, sn, u = math.cos(heading), math.sin(heading), self.cruise_speed_m_s
         a0, a1 = a
         v = np.array(((a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u))
+        if self.sparse_rule is not None:
+            v, _ = sparse.choose_one(
+                pos_m,
+                vel_m_s,
+                goal_m,
+                v,
+                nbr_pos_m,
+                nbr_vel_m_s,
+                self.safety_cfg,
+                self.sparse_rule,
+                self.decision_period_s,
+            )
         if self.safety_filter and nbr_pos_m.shape[0]:
             v = safety.filter_one(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
         return v
@@ -657,7 +677,22 @@ class GuidancePolicy:
         s = self.dist_scale_m
         a = self.action(pos_m / s, heading, goal_m / s, nbr_pos_m / s, nbr_heading)
         return self._velocity(
-            (float(a[0]), float(a[1])), heading, pos_m, vel_m_s, nbr_pos_m, nbr_vel_m_s
+            (float(a[0]), float(a[1])), heading, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s
+        )
+
+    def _sparse(self, pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid):
+        """policy.sparse.choose_padded with this policy's filter and decision period."""
+        return sparse.choose_padded(
+            pos_m,
+            vel_m_s,
+            goal_m,
+            v,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            nbr_valid,
+            self.safety_cfg,
+            self.sparse_rule,
+            self.decision_period_s,
         )
 
     def command_batch(self, pos_m, vel_m_s, heading_rad, goal_m, active=None):
@@ -679,6 +714,10 @@ class GuidancePolicy:
         s = self.dist_scale_m
         a, nbr = self.action_batch(pos_m / s, heading, goal_m / s, active)
         v = features.action_to_velocity(a, heading) * self.cruise_speed_m_s
+        if self.sparse_rule is not None:  # encounters reach past the network's sense range
+            others = active[None, :] & ~np.eye(n, dtype=bool)
+            every_pos, every_vel = (np.broadcast_to(x, (n, n, 2)) for x in (pos_m, vel_m_s))
+            v, _ = self._sparse(pos_m, vel_m_s, goal_m, v, every_pos, every_vel, others)
         if self.safety_filter:
             v = safety.filter_batch(pos_m, vel_m_s, v, nbr, self.safety_cfg)
         v[~active] = 0.0
@@ -715,6 +754,8 @@ class GuidancePolicy:
             self.net.head_forward(self.net.lstm_last_batch(seq, lengths), goal_feat)
         )
         v = features.action_to_velocity(a, heading_rad) * self.cruise_speed_m_s
+        if self.sparse_rule is not None:
+            v, _ = self._sparse(pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid)
         if self.safety_filter:
             v = safety.filter_padded(
                 pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, self.safety_cfg

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -80,17 +81,28 @@ def test_filter_acts_on_held_ticks():
     assert not out.decided and out.filtered
 
 
-def test_arrives_smoothly():
-    """Held decisions give the smooth tracks of training (docs/policy.md: about 0.2 m/s^2)."""
-    outs, track = fly(Guidance(GuidanceConfig()), 400, snapshot())
-    assert math.dist(track[-1][:2], GOAL[:2]) < 1.5
+def _mean_acc(outs) -> float:
     v = np.array([o.vel_ned_m_s[:2] for o in outs])
-    mean_acc = np.mean(np.linalg.norm(np.diff(v, axis=0), axis=1)) / 0.1
-    every_tick, _ = fly(Guidance(GuidanceConfig(decision_period_s=0.0)), 400, snapshot())
-    v_tick = np.array([o.vel_ned_m_s[:2] for o in every_tick])
-    mean_acc_tick = np.mean(np.linalg.norm(np.diff(v_tick, axis=0), axis=1)) / 0.1
-    print(f"mean |accel| held {mean_acc:.3f} m/s^2, every tick {mean_acc_tick:.3f} m/s^2")
+    return float(np.mean(np.linalg.norm(np.diff(v, axis=0), axis=1)) / 0.1)
+
+
+def test_arrives_smoothly():
+    """Held decisions give the smooth tracks of training (docs/policy.md: about 0.2 m/s^2);
+    with the sparse rule (the default) a lone vehicle flies straight and stops on its goal."""
+    policy = GuidanceConfig(sparse_rule=False)
+    outs, track = fly(Guidance(policy), 400, snapshot())
+    assert math.dist(track[-1][:2], GOAL[:2]) < 1.5
+    every_tick, _ = fly(Guidance(replace(policy, decision_period_s=0.0)), 400, snapshot())
+    mean_acc, mean_acc_tick = _mean_acc(outs), _mean_acc(every_tick)
+    ruled, ruled_track = fly(Guidance(GuidanceConfig()), 400, snapshot())
+    print(
+        f"mean |accel| held {mean_acc:.3f} m/s^2, every tick {mean_acc_tick:.3f} m/s^2, "
+        f"sparse rule {_mean_acc(ruled):.3f} m/s^2"
+    )
     assert mean_acc <= mean_acc_tick
+    assert math.dist(ruled_track[-1][:2], GOAL[:2]) < 0.05
+    assert np.abs(ruled_track[:, 1]).max() < 1e-9  # straight along the line to the goal
+    assert _mean_acc(ruled) <= mean_acc
 
 
 def test_bad_period_is_refused():

@@ -283,7 +283,8 @@ def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation(
     from policy.runtime import FILTERED_BERTH_SHARE
 
     assert config_from_args(["--onboard", "--policy-separation-m", "2"]).policy_separation_m == 2.0
-    scene = ([0.0, 0.0], [1.0, 0.0], 0.0, [30.0, 0.0], [[8.0, 0.5]], [[-1.0, 0.0]], [math.pi])
+    # nearly head-on (dead-on for the sparse rule, so the network flies it)
+    scene = ([0.0, 0.0], [1.0, 0.0], 0.0, [30.0, 0.0], [[8.0, 0.2]], [[-1.0, 0.0]], [math.pi])
     for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (1.5, 1.5)):
         link = f"udpin:127.0.0.1:{free_udp_port()}"
         with Emulator(SitlConfig(onboard=True, policy_separation_m=ps, links=(link,))) as emu:
@@ -292,9 +293,11 @@ def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation(
             assert tick._cfg.policy.separation_m == pytest.approx(told_m)
             assert tick._cfg.safety.radius_m == 3.0 and tick._cfg.safety_filter == 1
             assert tick._cfg.decision_period_s == pytest.approx(1.0)
+            assert tick._cfg.sparse_rule == 1  # as the agents fly
             r = tick.step(*scene, now_s=0.0)
-        assert r.status == "ok" and r.decided
-        told = CPolicy.load(separation_m=3.0, policy_separation_m=told_m).command(*scene)
-        wide = CPolicy.load(separation_m=3.0).command(*scene)
+        assert r.status == "ok" and r.decided and not r.straight
+        told = CPolicy.load(separation_m=3.0, policy_separation_m=told_m, sparse_rule=True)
+        told = told.command(*scene)
+        wide = CPolicy.load(separation_m=3.0, sparse_rule=True).command(*scene)
         np.testing.assert_allclose(r.vel_m_s, told, atol=1e-6)
         assert np.abs(r.vel_m_s - wide).max() > 0.05  # the berth changed what was flown

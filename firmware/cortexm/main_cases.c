@@ -6,11 +6,14 @@
  *   B <neighbours> <systick ticks>            (one covey_command, min of BENCH_REPS)
  *   F <neighbours> <systick ticks> <lines> <infeasible>  (one covey_safety_filter, same
  *                                              neighbours, all closing in)
+ *   S <neighbours> <systick ticks> <straight>  (one covey_sparse_choose on that scene,
+ *                                              the goal behind us)
  * The cases come from a generated header (firmware/cortexm.py writes it).
  */
 #include <math.h>
 #include <string.h>
 
+#include "covey_guidance.h"
 #include "covey_policy.h"
 #include "covey_safety.h"
 #include "cortexm_cases.h"
@@ -128,6 +131,30 @@ int main(void)
         sh_put_dec(fout.n_lines);
         sh_puts(" ");
         sh_put_dec(fout.infeasible);
+        sh_puts("\n");
+        /* the sparse rule on the same scene: its encounter scan, and its own filter call
+           when at most one neighbour is an encounter (bench/firmware_cortexm.py counts a
+           full filter call on top, as the upper bound) */
+        const covey_goal_t away = {me.pos_n_m - 50.0f, me.pos_e_m};
+        covey_sparse_out_t sout;
+        best = 0xFFFFFFFFu;
+        for (int rep = 0; rep < BENCH_REPS; ++rep) {
+            uint32_t t0 = systick_now();
+            covey_status_t st = covey_sparse_choose(&scfg, &me, &away, pref, tracks, k,
+                                                    &safety_scratch, &sout);
+            uint32_t dt = systick_elapsed(t0, systick_now());
+            if (st != COVEY_OK) {
+                sh_puts("BENCHFAIL\n");
+                return 2;
+            }
+            best = (dt < best) ? dt : best;
+        }
+        sh_puts("S ");
+        sh_put_dec(k);
+        sh_puts(" ");
+        sh_put_dec((int32_t)best);
+        sh_puts(" ");
+        sh_put_dec(sout.straight);
         sh_puts("\n");
     }
     sh_puts("DONE\n");

@@ -234,6 +234,25 @@ static void test_safety_edges(void)
     gbad.decision_period_s = 11.0f;
     CHECK(covey_guidance_step(&gbad, &h, &own, own_v, &g, &nb, nb_v, 1, 0u, &gs, &go) == COVEY_ERR_RANGE);
     CHECK(h.valid == 0 && go.vel_n_m_s == 0.0f && go.vel_e_m_s == 0.0f);
+
+    /* the sparse rule: on by default; head-on at 6 m is dead-on (the policy's velocity is
+       held), a crossing 2 m behind flies straight; bad input is refused by name */
+    CHECK(gc.sparse_rule == 1);
+    covey_hold_reset(&h);
+    CHECK(covey_guidance_step(&gc, &h, &own, own_v, &g, &nb, nb_v, 1, 0u, &gs, &go) == COVEY_OK);
+    CHECK(go.decided == 1 && go.straight == 0);
+    covey_sparse_out_t so;
+    const covey_track_t me_s = {0.0f, 0.0f, 1.0f, 0.0f};
+    const covey_track_t cross = {12.0f, -10.0f, 0.0f, 1.0f};
+    const covey_goal_t far = {40.0f, 0.0f};
+    const float asked[2] = {0.6f, 0.6f};
+    CHECK(covey_sparse_choose(&gc.safety, &me_s, &far, asked, &cross, 1, &gs.safety, &so) == COVEY_OK);
+    CHECK(so.straight == 1 && so.n_encounters == 1 && fabsf(so.vel_n_m_s - 1.0f) < 1e-6f);
+    CHECK(covey_sparse_choose(&gc.safety, &me_s, &far, asked, NULL, 1, &gs.safety, &so) == COVEY_ERR_NULL);
+    CHECK(covey_sparse_choose(&gc.safety, &me_s, &far, asked, &cross, -1, &gs.safety, &so) == COVEY_ERR_RANGE);
+    const float nan_v[2] = {NAN, 0.0f};
+    CHECK(covey_sparse_choose(&gc.safety, &me_s, &far, nan_v, &cross, 1, &gs.safety, &so) == COVEY_ERR_NONFINITE);
+    CHECK(so.straight == 0 && so.vel_n_m_s == 0.0f);
 }
 
 int main(void)

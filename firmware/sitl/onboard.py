@@ -71,6 +71,7 @@ def load_c_policy(
         separation_m=separation_m,
         cruise_speed_m_s=cruise_speed_m_s,
         policy_separation_m=told_separation_m(separation_m, True, policy_separation_m),
+        sparse_rule=True,
     )
 
 

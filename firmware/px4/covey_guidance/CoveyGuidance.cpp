@@ -33,6 +33,7 @@ void CoveyGuidance::update_parameters()
 				 (int32_t)COVEY_MAX_NEIGHBOURS);
 	_guidance = covey_guidance_defaults(&_config); // trained decision period, filter on
 	_guidance.safety_filter = _param_filter.get() ? 1 : 0;
+	_guidance.sparse_rule = _param_sparse.get() ? 1 : 0; // used only with the filter
 	// the network's berth (0: 1.25 m per 3 m of CVY_SEP_M with the filter); the filter keeps CVY_SEP_M
 	_guidance.policy.separation_m = covey_told_separation_m(_config.separation_m, _guidance.safety_filter,
 					_param_policy_separation_m.get());

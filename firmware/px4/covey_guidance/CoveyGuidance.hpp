@@ -91,6 +91,7 @@ private:
 		(ParamFloat<px4::params::CVY_CRUISE>) _param_cruise_speed_m_s,
 		(ParamFloat<px4::params::CVY_RATE_HZ>) _param_rate_hz,
 		(ParamBool<px4::params::CVY_FILTER>) _param_filter,
+		(ParamBool<px4::params::CVY_SPARSE>) _param_sparse,
 		(ParamFloat<px4::params::CVY_NBR_AGE>) _param_nbr_age_s,
 		(ParamFloat<px4::params::CVY_OWN_AGE>) _param_own_age_s,
 		(ParamInt<px4::params::CVY_MAX_NBR>) _param_max_neighbours,

@@ -1,0 +1,233 @@
+"""The sparse-traffic rule (policy/sparse.py): which encounters fly straight, the same answer on
+every runtime path and in C (covey_sparse_choose), and what it buys in flight."""
+
+from __future__ import annotations
+
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from policy import evalsim, safety, sparse
+from policy.runtime import GuidancePolicy
+
+CFG = sparse.SparseConfig()
+SAFE = safety.SafetyConfig()  # 3 m, 1 m/s: the trained period is 1 s
+GOAL = np.array([40.0, 0.0])
+ASKED = np.array([0.6, 0.6])  # what the "policy" asked for, distinct from any straight line
+
+
+def _choose(nbr_pos, nbr_vel, pos=(0.0, 0.0), vel=(1.0, 0.0), goal=GOAL):
+    return sparse.choose_one(pos, vel, goal, ASKED, nbr_pos, nbr_vel, SAFE, CFG, 1.0)
+
+
+def test_alone_flies_straight_at_cruise_and_slows_to_stop_on_the_goal():
+    v, straight = _choose(np.zeros((0, 2)), np.zeros((0, 2)))
+    assert straight and np.allclose(v, [1.0, 0.0])
+    v, straight = _choose(np.zeros((0, 2)), np.zeros((0, 2)), pos=(39.6, 0.0))
+    assert straight and np.allclose(v, [0.4, 0.0])  # reaches the goal in one period
+
+
+def test_one_crossing_flies_straight_but_dead_on_two_or_blocked_fly_the_policy():
+    # a neighbour crossing 2 m behind us (closest approach ~1.4 m): one encounter, not dead-on
+    v, straight = _choose([[12.0, -10.0]], [[0.0, 1.0]])
+    assert straight and np.allclose(v, [1.0, 0.0])
+    # dead-on: it reaches the crossing when we do
+    v, straight = _choose([[10.0, -10.0]], [[0.0, 1.0]])
+    assert not straight and np.allclose(v, ASKED)
+    # head-on on our line: dead-on too
+    _, straight = _choose([[20.0, 0.0]], [[-1.0, 0.0]])
+    assert not straight
+    # two encounters at once: dense traffic
+    _, straight = _choose([[12.0, -10.0], [12.0, 10.0]], [[0.0, 1.0], [0.0, -1.0]])
+    assert not straight
+    # far away or diverging: no encounter at all
+    _, straight = _choose([[0.0, 30.0], [-10.0, 0.0]], [[0.0, 1.0], [-1.0, 0.0]])
+    assert straight
+    # beyond the horizon (10 periods): not yet an encounter
+    _, straight = _choose([[25.0, -25.0]], [[0.0, 1.0]])
+    assert straight
+    # one encounter the filter alone cannot pass: a vehicle hovering just off our line, 2 m
+    # ahead, inside the separation: the straight line keeps < 50 % of its speed
+    _, straight = _choose([[2.5, 1.0]], [[0.0, 0.0]])
+    assert not straight
+
+
+def test_config_is_validated():
+    for bad in (
+        {"horizon_periods": -1.0},
+        {"encounter_separations": math.nan},
+        {"progress_share": 1.5},
+        {"max_encounters": -1},
+    ):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            sparse.SparseConfig(**bad)
+
+
+def _scenes(rng, n_scenes=60, n=6):
+    for _ in range(n_scenes):
+        pos = rng.uniform(-15, 15, (n, 2))
+        vel = rng.uniform(-1, 1, (n, 2)) * 0.7
+        heading = rng.uniform(-np.pi, np.pi, n)
+        goal = rng.uniform(-40, 40, (n, 2))
+        yield pos, vel, heading, goal
+
+
+def test_every_runtime_path_applies_the_same_rule():
+    """command (one vehicle), command_views (padded views, as agents and eval decide) and
+    command_batch give the same velocities with the rule on, and differ from the policy's
+    where the rule flew straight."""
+    on = GuidancePolicy.load(safety_filter=False, sparse_rule=CFG)
+    off = GuidancePolicy.load(safety_filter=False)
+    rng = np.random.default_rng(16)
+    n_straight = n_policy = 0
+    for pos, vel, h, goal in _scenes(rng):
+        n = len(pos)
+        batch = on.command_batch(pos, vel, h, goal)
+        idx = np.array([[j for j in range(n) if j != i] for i in range(n)])
+        views = on.command_views(
+            pos, vel, h, goal, pos[idx], vel[idx], h[idx], np.ones(idx.shape, bool)
+        )
+        for i in range(n):
+            o = idx[i]
+            one = on.command(pos[i], vel[i], h[i], goal[i], pos[o], vel[o], h[o])
+            np.testing.assert_allclose(views[i], one, atol=2e-6)
+            np.testing.assert_allclose(batch[i], one, atol=2e-6)
+            _, straight = sparse.choose_one(
+                pos[i], vel[i], goal[i], one, pos[o], vel[o], on.safety_cfg, CFG, 1.0
+            )
+            pol = off.command(pos[i], vel[i], h[i], goal[i], pos[o], vel[o], h[o])
+            if straight:
+                n_straight += 1
+                v_s = sparse.straight_velocity(pos[i], goal[i], 1.0, 1.0)
+                np.testing.assert_allclose(one, v_s, atol=1e-12)
+            else:
+                n_policy += 1
+                np.testing.assert_allclose(one, pol, atol=1e-12)
+    assert n_straight > 20 and n_policy > 20
+
+
+def test_agent_guidance_flies_the_rule_only_with_the_filter():
+    from agent.guidance import GuidanceConfig
+
+    assert GuidanceConfig().load_policy().sparse_rule == CFG
+    assert GuidanceConfig(sparse_rule=False).load_policy().sparse_rule is None
+    assert GuidanceConfig(safety_filter=False).load_policy().sparse_rule is None
+
+
+def test_agent_cli_switches_the_rule():
+    from agent.agent_cli import guidance_from_args, parser
+
+    assert guidance_from_args(parser().parse_args(["--id", "1"])).sparse_rule is True
+    args = parser().parse_args(["--id", "1", "--no-sparse-rule"])
+    assert guidance_from_args(args).sparse_rule is False
+
+
+def _fly(controller, starts, goals, link=evalsim.PERFECT):
+    return evalsim.run(
+        np.asarray(starts, float),
+        np.asarray(goals, float),
+        controller,
+        link,
+        evalsim.EvalSimConfig(),
+        np.random.default_rng(0),
+    )
+
+
+def _controllers(rule: bool):
+    from policy.eval import EvalConfig, controllers
+
+    return controllers(EvalConfig(figures=False, progress=False, sparse_rule=rule))
+
+
+@pytest.mark.slow
+def test_a_lone_crossing_is_faster_and_a_circle_still_flows():
+    """Two vehicles crossing at 60 degrees, one 1 m behind: the rule flies it as ORCA does
+    (the later one slows a little) instead of the policy's early, wide turn. Eight on a circle,
+    where ORCA alone deadlocks: the rule leaves it to the policy, and all arrive."""
+    u = np.array([math.cos(math.pi / 3), math.sin(math.pi / 3)])
+    starts, goals = [[-30.0, 0.0], -31.0 * u], [[30.0, 0.0], 30.0 * u]
+    with_rule = _fly(_controllers(True)["policy+filter"], starts, goals)
+    without = _fly(_controllers(False)["policy+filter"], starts, goals)
+    assert with_rule["collisions"] == 0 and with_rule["success"] == 1.0
+    assert with_rule["extra_time"] < without["extra_time"] - 0.01
+    from policy.scenarios import antipodal_circle
+
+    s, g = antipodal_circle(8)
+    circle = _fly(_controllers(True)["policy+filter"], s, g, evalsim.DEGRADED)
+    assert circle["collisions"] == 0 and circle["success"] == 1.0
+    assert circle["min_sep"] >= 3.0
+
+
+needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
+
+
+@needs_cc
+def test_c_rule_is_the_numpy_rule():
+    """covey_sparse_choose against policy.sparse.choose_one on float32-exact random encounters:
+    the same choice, and the same velocity, away from the thresholds (within 1e-4 of one,
+    float32 rounding may fall either side)."""
+    from firmware.cpolicy import CPolicy
+
+    cpol = CPolicy.load(sparse_rule=True)
+    filt = cpol._filter
+    rng = np.random.default_rng(7)
+    agree = near = n_straight = 0
+    for _ in range(2000):
+        k = int(rng.integers(0, 4))
+        f32 = lambda a: np.asarray(a, np.float32).astype(np.float64)  # noqa: E731
+        pos, vel = f32(rng.uniform(-5, 5, 2)), f32(rng.uniform(-1, 1, 2))
+        goal = f32(rng.uniform(-40, 40, 2))
+        asked = f32(rng.uniform(-1, 1, 2))
+        nbr_pos, nbr_vel = f32(rng.uniform(-20, 20, (k, 2))), f32(rng.uniform(-1, 1, (k, 2)))
+        c = filt.sparse(pos, vel, goal, asked, nbr_pos, nbr_vel)
+        assert c.status == "ok"
+        ref, straight = sparse.choose_one(
+            pos, vel, goal, asked, nbr_pos, nbr_vel, cpol.safety_cfg, CFG, 1.0
+        )
+        v_s = sparse.straight_velocity(pos, goal, 1.0, 1.0)
+        count, nearest = sparse.encounters(pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), 10.0, 6.0)
+        if c.straight != straight:
+            near += 1
+            continue
+        agree += 1
+        n_straight += straight
+        assert c.n_encounters == count or near
+        np.testing.assert_allclose(c.vel_m_s, ref, atol=1e-5)
+    assert near <= 4 and agree >= 1990 and 200 < n_straight < 1900
+
+
+@needs_cc
+def test_c_rule_refuses_bad_input_by_name():
+    from firmware.cpolicy import CPolicy
+
+    filt = CPolicy.load(sparse_rule=True)._filter
+    ok = ([0.0, 0.0], [1.0, 0.0], [30.0, 0.0], [1.0, 0.0])
+    assert filt.sparse(*ok, [[5.0, 5.0]], [[0.0, 0.0]]).status == "ok"
+    assert filt.sparse(*ok, [[np.nan, 5.0]], [[0.0, 0.0]]).status == "nonfinite"
+    assert filt.sparse(*ok, [[5.0, 5.0]], [[0.0, np.inf]]).status == "nonfinite"
+    assert filt.sparse([0.0, 0.0], [1.0, 0.0], [np.nan, 0.0], [1.0, 0.0], [], []).status == (
+        "nonfinite"
+    )
+    bad = filt.sparse([0.0, 0.0], [1.0, 0.0], [30.0, 0.0], [np.nan, 0.0], [], [])
+    assert bad.status == "nonfinite" and not bad.straight and not np.any(bad.vel_m_s)
+
+
+@needs_cc
+def test_c_onboard_tick_applies_the_rule_at_decisions():
+    """covey_guidance_step with sparse_rule: a decided tick holds the rule's choice and filters
+    it; CPolicy.command gives the same; the rule off holds the policy's velocity."""
+    from firmware.cpolicy import CPolicy
+
+    on, off = CPolicy.load(sparse_rule=True), CPolicy.load()
+    nbr, nbr_vel, nbr_h = np.array([[12.0, -10.0]]), np.array([[0.0, 1.0]]), np.array([1.57])
+    args = ([0.0, 0.0], [1.0, 0.0], 0.0, GOAL, nbr, nbr_vel, nbr_h)
+    r = on.onboard().step(*args, now_s=1.0)
+    assert r.status == "ok" and r.decided and r.straight
+    ref = safety.filter_velocity(args[0], args[1], [1.0, 0.0], nbr, nbr_vel, on.safety_cfg)
+    np.testing.assert_allclose(r.vel_m_s, ref, atol=1e-5)
+    np.testing.assert_allclose(on.command(*args), r.vel_m_s, atol=1e-5)
+    r_off = off.onboard().step(*args, now_s=1.0)
+    assert r_off.status == "ok" and not r_off.straight
+    assert not np.allclose(r_off.vel_m_s, r.vel_m_s, atol=1e-3)
