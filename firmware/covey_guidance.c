@@ -88,11 +88,14 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     const float vs[2] = {dn * gain, de * gain};
     const float horizon = COVEY_SPARSE_HORIZON_PERIODS * period;
     const float reach = COVEY_SPARSE_ENCOUNTER_SEPARATIONS * sep;
+    const float clear = COVEY_SPARSE_CLEAR_SEPARATIONS * sep;
     int32_t count = 0;
     float nearest = INFINITY;
+    float now = INFINITY;
     for (int32_t i = 0; i < n_nbrs; ++i) {
         const float rpn = nbrs[i].pos_n_m - own->pos_n_m;
         const float rpe = nbrs[i].pos_e_m - own->pos_e_m;
+        now = fminf(now, sqrtf(rpn * rpn + rpe * rpe));
         const float rvn = nbrs[i].vel_n_m_s - vs[0];
         const float rve = nbrs[i].vel_e_m_s - vs[1];
         const float vv = rvn * rvn + rve * rve;
@@ -106,8 +109,16 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
         }
     }
     out->n_encounters = count;
+    /* already flying along vs (within acos COVEY_SPARSE_ALIGNED_COS) */
+    const float along = own->vel_n_m_s * vs[0] + own->vel_e_m_s * vs[1];
+    const float own_sq = own->vel_n_m_s * own->vel_n_m_s + own->vel_e_m_s * own->vel_e_m_s;
+    const float vs_sq = vs[0] * vs[0] + vs[1] * vs[1];
+    const int32_t aligned =
+        (along > 0.0f) &&
+        (along * along >= COVEY_SPARSE_ALIGNED_COS * COVEY_SPARSE_ALIGNED_COS * own_sq * vs_sq);
     int32_t straight = (count <= COVEY_SPARSE_MAX_ENCOUNTERS) &&
-                       (nearest >= COVEY_SPARSE_DEAD_ON_SEPARATIONS * sep);
+                       (nearest >= COVEY_SPARSE_DEAD_ON_SEPARATIONS * sep) &&
+                       ((now >= clear) || aligned);
     if (straight) {
         covey_safety_out_t f;
         st = covey_safety_filter(safety, own, vs, nbrs, n_nbrs, scratch, &f);

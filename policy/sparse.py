@@ -14,8 +14,9 @@ At each decision, for one vehicle:
 - its encounters: neighbours whose closest approach over `horizon_periods` decision periods,
   own v_s against their reported velocity, comes nearer than `encounter_separations`;
 - it flies v_s when it has at most `max_encounters`, none closer than `dead_on_separations`,
-  and the filter alone leaves v_s at least `progress_share` of its speed towards the goal;
-  else the policy's velocity. Either is then held and filtered every tick as before.
+  no neighbour nearer than `clear_separations` now unless it already flies along v_s, and
+  the filter alone leaves v_s at least `progress_share` of its speed towards the goal; else
+  the policy's velocity. Either is then held and filtered every tick as before.
 
 firmware/covey_guidance.c covey_sparse_choose is its C twin (parity tested)."""
 
@@ -44,12 +45,26 @@ class SparseConfig:
     """More encounters than this at once is dense traffic: the policy flies it."""
     progress_share: float = 0.5
     """The filtered v_s must keep this share of its speed towards the goal (else the policy)."""
+    clear_separations: float = 2.0
+    """To take up the straight line, no neighbour may be nearer than this many separations now
+    (6 m at 3 m), unless the vehicle already flies along it (`aligned_cos`): a vehicle the
+    policy has turned aside next to a neighbour keeps the policy, which keeps its berth,
+    rather than turning at the neighbour with only the filter, at its margin, on a stale link."""
+    aligned_cos: float = 0.9
+    """Flying along the straight line: the cosine between the own velocity and it (25 deg)."""
 
     def __post_init__(self) -> None:
-        for name in ("horizon_periods", "encounter_separations", "dead_on_separations"):
+        for name in (
+            "horizon_periods",
+            "encounter_separations",
+            "dead_on_separations",
+            "clear_separations",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+        if not -1.0 <= self.aligned_cos <= 1.0:
+            raise ValueError(f"aligned_cos must be within -1..1, got {self.aligned_cos}")
         if not 0.0 <= self.progress_share <= 1.0:
             raise ValueError(f"progress_share must be within 0..1, got {self.progress_share}")
         if self.max_encounters < 0:
@@ -66,17 +81,19 @@ def straight_velocity(pos_m, goal_m, cruise_speed_m_s: float, period_s: float) -
 
 
 def encounters(pos_m, v_straight, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, radius_m):
-    """(count (...,), nearest approach (...,) in metres, inf when none) of the neighbours
-    (..., K, 2) whose closest approach to a vehicle flying v_straight, within horizon_s, is
-    nearer than radius_m."""
+    """(count (...,), nearest approach (...,), nearest now (...,)) in metres, inf when none: the
+    neighbours (..., K, 2) whose closest approach to a vehicle flying v_straight, within
+    horizon_s, is nearer than radius_m; and the nearest neighbour's distance now."""
     rp = np.asarray(nbr_pos_m, float) - np.asarray(pos_m, float)[..., None, :]
     rv = np.asarray(nbr_vel_m_s, float) - np.asarray(v_straight, float)[..., None, :]
     vv = (rv * rv).sum(-1)
     t = np.clip(-(rp * rv).sum(-1) / np.maximum(vv, 1e-12), 0.0, horizon_s)
     c = rp + rv * t[..., None]
     d = np.hypot(c[..., 0], c[..., 1])
-    hit = (d < radius_m) & np.asarray(nbr_valid, bool)
-    return hit.sum(-1), np.where(hit, d, np.inf).min(-1, initial=np.inf)
+    valid = np.asarray(nbr_valid, bool)
+    hit = (d < radius_m) & valid
+    now = np.where(valid, np.hypot(rp[..., 0], rp[..., 1]), np.inf).min(-1, initial=np.inf)
+    return hit.sum(-1), np.where(hit, d, np.inf).min(-1, initial=np.inf), now
 
 
 def choose_padded(
@@ -97,7 +114,7 @@ def choose_padded(
     pos_m = np.asarray(pos_m, float)
     v_s = straight_velocity(pos_m, goal_m, safety_cfg.max_speed_m_s, period_s)
     sep = safety_cfg.radius_m
-    count, nearest = encounters(
+    count, nearest, now = encounters(
         pos_m,
         v_s,
         nbr_pos_m,
@@ -106,7 +123,17 @@ def choose_padded(
         cfg.horizon_periods * period_s,
         cfg.encounter_separations * sep,
     )
-    straight = (count <= cfg.max_encounters) & (nearest >= cfg.dead_on_separations * sep)
+    vel_m_s = np.asarray(vel_m_s, float)
+    along = (vel_m_s * v_s).sum(-1)
+    aligned = along > 0.0
+    aligned &= along * along >= cfg.aligned_cos**2 * (vel_m_s * vel_m_s).sum(-1) * (v_s * v_s).sum(
+        -1
+    )
+    straight = (
+        (count <= cfg.max_encounters)
+        & (nearest >= cfg.dead_on_separations * sep)
+        & ((now >= cfg.clear_separations * sep) | aligned)
+    )
     if straight.any():
         f = safety.filter_padded(pos_m, vel_m_s, v_s, nbr_pos_m, nbr_vel_m_s, nbr_valid, safety_cfg)
         # (f . v_s / |v_s|) >= share |v_s|, without dividing: on the goal v_s = 0 passes

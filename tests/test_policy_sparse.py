@@ -48,10 +48,28 @@ def test_one_crossing_flies_straight_but_dead_on_two_or_blocked_fly_the_policy()
     # beyond the horizon (10 periods): not yet an encounter
     _, straight = _choose([[25.0, -25.0]], [[0.0, 1.0]])
     assert straight
-    # one encounter the filter alone cannot pass: a vehicle hovering just off our line, 2 m
-    # ahead, inside the separation: the straight line keeps < 50 % of its speed
-    _, straight = _choose([[2.5, 1.0]], [[0.0, 0.0]])
+    # someone near already (3.6 m off) while the policy has us turned aside: the policy keeps
+    # its berth, rather than turning at the neighbour with the filter alone at its margin
+    _, straight = _choose([[0.0, 3.6]], [[1.0, 0.0]], vel=(0.5, 0.8))
     assert not straight
+    _, straight = _choose([[0.0, 6.5]], [[1.0, 0.0]], vel=(0.5, 0.8))
+    assert straight  # nobody within 2 separations
+    _, straight = _choose([[0.0, 3.6]], [[1.0, 0.0]], vel=(0.95, 0.2))
+    assert straight  # already flying along the straight line (within 25 degrees)
+
+
+def test_the_straight_line_must_keep_its_progress_through_the_filter():
+    """An encounter the filter bends (a vehicle crossing 1 m off, 7 m ahead): flown straight
+    only if the filtered straight line keeps progress_share of its speed towards the goal."""
+    nbr, nbr_vel = [[7.0, -4.0]], [[0.0, 1.0]]
+    f = safety.filter_velocity([0.0, 0.0], [1.0, 0.0], [1.0, 0.0], nbr, nbr_vel, SAFE)
+    assert 0.0 < f[0] < 0.999  # the filter slows or bends the straight line
+    for share, expect in ((0.0, True), (float(f[0]) - 0.01, True), (float(f[0]) + 0.01, False)):
+        cfg = sparse.SparseConfig(progress_share=share)
+        _, straight = sparse.choose_one(
+            [0.0, 0.0], [1.0, 0.0], GOAL, ASKED, nbr, nbr_vel, SAFE, cfg, 1.0
+        )
+        assert straight is expect, share
 
 
 def test_config_is_validated():
@@ -60,6 +78,8 @@ def test_config_is_validated():
         {"encounter_separations": math.nan},
         {"progress_share": 1.5},
         {"max_encounters": -1},
+        {"clear_separations": -0.5},
+        {"aligned_cos": 1.5},
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             sparse.SparseConfig(**bad)
@@ -187,7 +207,7 @@ def test_c_rule_is_the_numpy_rule():
             pos, vel, goal, asked, nbr_pos, nbr_vel, cpol.safety_cfg, CFG, 1.0
         )
         v_s = sparse.straight_velocity(pos, goal, 1.0, 1.0)
-        count, nearest = sparse.encounters(pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), 10.0, 6.0)
+        count, _, _ = sparse.encounters(pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), 10.0, 6.0)
         if c.straight != straight:
             near += 1
             continue
