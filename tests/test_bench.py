@@ -153,3 +153,18 @@ def test_scale_bench_refuses_fewer_than_one_repeat() -> None:
 
     with pytest.raises(ValueError, match="repeats must be >= 1"):
         main(quick=True, repeats=0)
+
+
+def test_crossings_bench_smoke(tmp_path: Path, monkeypatch) -> None:
+    """bench/crossings.py flies its quick grid: no pair below 3 m, and the asymmetric 60-degree
+    crossing is where the sparse rule beats the policy's early turn."""
+    from bench import common, crossings
+
+    monkeypatch.setenv(common.OUT_ENV, str(tmp_path))
+    res = crossings.main(quick=True)
+    assert (tmp_path / "crossings.png").is_file()
+    s = res["summary"]
+    assert s["cases"] == 4 and all(s[c]["collisions"] == 0 for c in crossings.CONTROLLERS)
+    assert min(s[c]["min_sep_m"] for c in crossings.CONTROLLERS) >= 3.0
+    row = next(r for r in res["rows"] if r["angle_deg"] == 60 and r["offset_m"] == 1.0)
+    assert row["rule_extra_time"] < row["policy_extra_time"] - 0.01
