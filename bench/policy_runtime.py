@@ -2,7 +2,7 @@
 
 Median wall time of GuidancePolicy.command with 19 neighbours and of
 command_batch for 1000 vehicles with the nearest 10 neighbours, with and
-without the safety filter. Run with OMP_WAIT_POLICY=PASSIVE OPENBLAS_NUM_THREADS=1.
+without the safety filter; and command as the agents decide, with the sparse rule. Run with OMP_WAIT_POLICY=PASSIVE OPENBLAS_NUM_THREADS=1.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from policy.runtime import GuidancePolicy
+from policy.sparse import SparseConfig
 
 
 def median_ms(fn, repeats: int) -> float:
@@ -46,6 +47,32 @@ def main(weights=None, repeats: int = 200, seed: int = 0) -> dict:
         out[f"command_batch@1000 nearest-10 filter={filt}"] = median_ms(
             lambda pol=pol: pol.command_batch(p_n, v_n, h_n, g_n), max(repeats // 10, 5)
         )
+    # the agents' decision: with the sparse rule (policy/sparse.py) too, timed in alternating
+    # rounds against the same call without it (ratios from one run). Two scenes: the one above
+    # (the rule keeps the policy) and every neighbour co-moving 7-18 m away (it flies straight:
+    # its dearer case, one more filter call)
+    ang, rad = rng.uniform(0, 2 * np.pi, k), rng.uniform(7, 18, k)
+    apart = np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)
+    scenes = {
+        "": ([40.0, 10.0], 0.3, nbr_pos, nbr_vel, nbr_h),
+        ", straight": ([40.0, 0.0], 0.0, apart, np.tile([1.0, 0.0], (k, 1)), np.zeros(k)),
+    }
+    pols = {
+        False: GuidancePolicy.load(weights, safety_filter=True),
+        True: GuidancePolicy.load(weights, safety_filter=True, sparse_rule=SparseConfig()),
+    }
+    for tag, (goal, hdg, n_pos, n_vel, n_h) in scenes.items():
+        args = (pos, vel, hdg, goal, n_pos, n_vel, n_h)
+        rounds = {False: [], True: []}
+        for _ in range(9):
+            for rule, pol in pols.items():
+                rounds[rule].append(
+                    median_ms(lambda pol=pol, args=args: pol.command(*args), max(repeats // 9, 5))
+                )
+        base, ruled = float(np.median(rounds[False])), float(np.median(rounds[True]))
+        out[f"command@19 filter=True{tag}"] = base
+        out[f"command@19 filter=True sparse_rule=True{tag}"] = ruled
+        out[f"ratio sparse_rule{tag}"] = ruled / base
     return out
 
 
@@ -55,4 +82,5 @@ if __name__ == "__main__":
     ap.add_argument("--repeats", type=int, default=200)
     a = ap.parse_args()
     for name, ms in main(a.weights, a.repeats).items():
-        print(f"{name:45s} {ms:8.3f} ms (median)")
+        unit = "x" if name.startswith("ratio") else "ms (median)"
+        print(f"{name:55s} {ms:8.3f} {unit}")

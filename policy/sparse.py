@@ -152,18 +152,39 @@ def choose_one(
     cfg: SparseConfig,
     period_s: float,
 ) -> tuple[np.ndarray, bool]:
-    """`choose_padded` for one vehicle and its k neighbours (k, 2): (velocity (2,), straight)."""
-    nbr_pos_m = np.asarray(nbr_pos_m, float).reshape(1, -1, 2)
-    v, straight = choose_padded(
-        np.asarray(pos_m, float).reshape(1, 2),
-        np.asarray(vel_m_s, float).reshape(1, 2),
-        np.asarray(goal_m, float).reshape(1, 2),
-        np.asarray(v_policy, float).reshape(1, 2),
-        nbr_pos_m,
-        np.asarray(nbr_vel_m_s, float).reshape(1, -1, 2),
-        np.ones(nbr_pos_m.shape[:2], bool),
-        safety_cfg,
-        cfg,
-        period_s,
+    """`choose_padded` for one vehicle and its k neighbours (k, 2): (velocity (2,), straight).
+    In Python floats, with safety.filter_one: the runtime's hot path (equal to choose_padded,
+    tests/test_policy_sparse.py)."""
+    x, y = float(pos_m[0]), float(pos_m[1])
+    gx, gy = float(goal_m[0]) - x, float(goal_m[1]) - y
+    gain = min(safety_cfg.max_speed_m_s / max(math.hypot(gx, gy), 1e-9), 1.0 / max(period_s, 1e-9))
+    sx, sy = gx * gain, gy * gain
+    sep = safety_cfg.radius_m
+    horizon_s = cfg.horizon_periods * period_s
+    radius_m = cfg.encounter_separations * sep
+    nbr_pos = np.asarray(nbr_pos_m, float).reshape(-1, 2)
+    nbr_vel = np.asarray(nbr_vel_m_s, float).reshape(-1, 2)
+    count, nearest, now = 0, math.inf, math.inf
+    for (nx, ny), (nvx, nvy) in zip(nbr_pos.tolist(), nbr_vel.tolist(), strict=True):
+        px, py = nx - x, ny - y
+        now = min(now, math.hypot(px, py))
+        rx, ry = nvx - sx, nvy - sy
+        t = min(max(-(px * rx + py * ry) / max(rx * rx + ry * ry, 1e-12), 0.0), horizon_s)
+        d = math.hypot(px + rx * t, py + ry * t)
+        if d < radius_m:
+            count += 1
+            nearest = min(nearest, d)
+    vx, vy = float(vel_m_s[0]), float(vel_m_s[1])
+    along = vx * sx + vy * sy
+    v_s_sq = sx * sx + sy * sy
+    aligned = along > 0.0 and along * along >= cfg.aligned_cos**2 * (vx * vx + vy * vy) * v_s_sq
+    straight = (
+        count <= cfg.max_encounters
+        and nearest >= cfg.dead_on_separations * sep
+        and (now >= cfg.clear_separations * sep or aligned)
     )
-    return v[0], bool(straight[0])
+    v_s = np.array((sx, sy))
+    if straight and len(nbr_pos):
+        f = safety.filter_one((x, y), (vx, vy), v_s, nbr_pos, nbr_vel, safety_cfg)
+        straight = float(f[0] * sx + f[1] * sy) >= cfg.progress_share * v_s_sq
+    return (v_s if straight else np.asarray(v_policy, float).reshape(2)), bool(straight)

@@ -251,3 +251,32 @@ def test_c_onboard_tick_applies_the_rule_at_decisions():
     r_off = off.onboard().step(*args, now_s=1.0)
     assert r_off.status == "ok" and not r_off.straight
     assert not np.allclose(r_off.vel_m_s, r.vel_m_s, atol=1e-3)
+
+
+def test_one_vehicle_fast_path_is_the_padded_reference():
+    """choose_one (Python floats, the runtime's hot path) = choose_padded (numpy, many
+    vehicles) on random encounters: the same choice and the same velocity."""
+    rng = np.random.default_rng(11)
+    n_straight = 0
+    for _ in range(400):
+        k = int(rng.integers(0, 6))
+        pos, vel = rng.uniform(-5, 5, 2), rng.uniform(-1, 1, 2)
+        goal, asked = rng.uniform(-40, 40, 2), rng.uniform(-1, 1, 2)
+        nbr_pos, nbr_vel = rng.uniform(-15, 15, (k, 2)), rng.uniform(-1, 1, (k, 2))
+        one, s1 = sparse.choose_one(pos, vel, goal, asked, nbr_pos, nbr_vel, SAFE, CFG, 1.0)
+        many, s2 = sparse.choose_padded(
+            pos[None],
+            vel[None],
+            goal[None],
+            asked[None],
+            nbr_pos[None],
+            nbr_vel[None],
+            np.ones((1, k), bool),
+            SAFE,
+            CFG,
+            1.0,
+        )
+        assert s1 == bool(s2[0])
+        np.testing.assert_allclose(one, many[0], atol=1e-12)
+        n_straight += s1
+    assert 50 < n_straight < 350
