@@ -38,9 +38,23 @@ covey_guidance_config_t covey_guidance_defaults(const covey_config_t *policy)
     return g;
 }
 
-static int32_t finite2(float a, float b)
+/* Non-finite first, then |a|, |b| <= bound (covey_safety.c's order for its inputs). */
+static covey_status_t check2(float a, float b, float bound)
 {
-    return isfinite(a) && isfinite(b);
+    if (!isfinite(a) || !isfinite(b)) {
+        return COVEY_ERR_NONFINITE;
+    }
+    return (fabsf(a) <= bound && fabsf(b) <= bound) ? COVEY_OK : COVEY_ERR_RANGE;
+}
+
+static covey_status_t check_track2(const covey_track_t *t)
+{
+    if (!isfinite(t->pos_n_m) || !isfinite(t->pos_e_m) || !isfinite(t->vel_n_m_s) ||
+        !isfinite(t->vel_e_m_s)) {
+        return COVEY_ERR_NONFINITE;
+    }
+    covey_status_t st = check2(t->pos_n_m, t->pos_e_m, COVEY_MAX_ABS_POS_M);
+    return (st != COVEY_OK) ? st : check2(t->vel_n_m_s, t->vel_e_m_s, COVEY_MAX_ABS_VEL_M_S);
 }
 
 covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const covey_track_t *own,
@@ -65,16 +79,18 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     if (n_nbrs < 0 || n_nbrs > COVEY_MAX_INPUTS) {
         return COVEY_ERR_RANGE;
     }
-    if (!finite2(own->pos_n_m, own->pos_e_m) || !finite2(own->vel_n_m_s, own->vel_e_m_s) ||
-        !finite2(goal->pos_n_m, goal->pos_e_m) ||
-        !finite2(policy_vel_m_s[0], policy_vel_m_s[1])) {
-        return COVEY_ERR_NONFINITE;
+    st = check_track2(own);
+    if (st == COVEY_OK) {
+        st = check2(goal->pos_n_m, goal->pos_e_m, COVEY_MAX_ABS_POS_M);
     }
-    for (int32_t i = 0; i < n_nbrs; ++i) {
-        if (!finite2(nbrs[i].pos_n_m, nbrs[i].pos_e_m) ||
-            !finite2(nbrs[i].vel_n_m_s, nbrs[i].vel_e_m_s)) {
-            return COVEY_ERR_NONFINITE;
-        }
+    if (st == COVEY_OK) {
+        st = check2(policy_vel_m_s[0], policy_vel_m_s[1], COVEY_MAX_ABS_VEL_M_S);
+    }
+    for (int32_t i = 0; st == COVEY_OK && i < n_nbrs; ++i) {
+        st = check_track2(&nbrs[i]);
+    }
+    if (st != COVEY_OK) {
+        return st;
     }
     const float sep = safety->radius_m;
     const float cruise = safety->max_speed_m_s;

@@ -81,8 +81,10 @@ typedef struct {
  * The rule for `own` (position, velocity) bound for `goal`, whose policy asked for
  * policy_vel_m_s, against n_nbrs fresh neighbours with velocities; `safety` is the filter
  * flight keeps (radius_m the separation, max_speed_m_s the cruise speed). Checks, first
- * failure returned: NULL, the config, n_nbrs in [0, COVEY_MAX_INPUTS], own, goal and
- * policy_vel_m_s, each neighbour (non-finite first); then the filter's own checks.
+ * failure returned: NULL, the config, n_nbrs in [0, COVEY_MAX_INPUTS], then own, goal,
+ * policy_vel_m_s and each neighbour in index order, each non-finite before out of range
+ * (positions COVEY_MAX_ABS_POS_M, velocities COVEY_MAX_ABS_VEL_M_S). On a fault the output
+ * is zero and not straight.
  */
 covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const covey_track_t *own,
                                    const covey_goal_t *goal, const float policy_vel_m_s[2],

@@ -82,6 +82,27 @@ def line(c: FilterCase) -> str:
     return " ".join(toks)
 
 
+def sparse_line(c: FilterCase, goal: tuple) -> str:
+    """The driver line of covey_sparse_choose ("P ..."): c's inputs, its preference being the
+    policy's velocity, and a goal."""
+    toks = ["P", *map(_f, c.cfg), *map(_f, c.own), *map(_f, c.pref), *map(_f, goal)]
+    toks += [str(c.count), str(len(c.nbrs))]
+    for nb in c.nbrs:
+        toks += [_f(v) for v in nb]
+    return " ".join(toks)
+
+
+def parse_sparse_output(text: str) -> dict:
+    """status vel_n vel_e straight n_encounters."""
+    t = text.split()
+    return {
+        "status": int(t[0]),
+        "vel": np.array([float(t[1]), float(t[2])]),
+        "straight": int(t[3]),
+        "n_encounters": int(t[4]),
+    }
+
+
 def parse_output(text: str) -> dict:
     """status vel_n vel_e n_lines changed infeasible."""
     t = text.split()
@@ -104,8 +125,8 @@ def _status(values, bounds) -> int:
     return STATUS["ok"]
 
 
-def expected_status(c: FilterCase) -> int:
-    """The fault covey_safety_filter must return (the order of covey_safety.h)."""
+def _config_status(c: FilterCase) -> int:
+    """The config, then the neighbour count (covey_safety.h's first checks)."""
     cfg = np.asarray(c.cfg, dtype=np.float32)
     if not np.all(np.isfinite(cfg)):
         return STATUS["nonfinite"]
@@ -118,22 +139,51 @@ def expected_status(c: FilterCase) -> int:
         and MIN_CRUISE_SPEED_M_S <= vmax <= MAX_CRUISE_SPEED_M_S
         and 0 < resp <= 1
     )
-    if not ok:
+    if not ok or not 0 <= c.count <= MAX_INPUTS:
         return STATUS["range"]
-    if not 0 <= c.count <= MAX_INPUTS:
-        return STATUS["range"]
-    track_bounds = (MAX_ABS_POS_M, MAX_ABS_POS_M, MAX_ABS_VEL_M_S, MAX_ABS_VEL_M_S)
-    st = _status(c.own, track_bounds)
-    if st != STATUS["ok"]:
-        return st
-    st = _status(c.pref, (MAX_ABS_VEL_M_S, MAX_ABS_VEL_M_S))
-    if st != STATUS["ok"]:
-        return st
-    for nb in c.nbrs[: c.count]:
-        st = _status(nb, track_bounds)
+    return STATUS["ok"]
+
+
+def _first_fault(checks) -> int:
+    """The first fault of (values, bounds) pairs in order (each non-finite before range)."""
+    for values, bounds in checks:
+        st = _status(values, bounds)
         if st != STATUS["ok"]:
             return st
     return STATUS["ok"]
+
+
+TRACK_BOUNDS = (MAX_ABS_POS_M, MAX_ABS_POS_M, MAX_ABS_VEL_M_S, MAX_ABS_VEL_M_S)
+
+
+def expected_status(c: FilterCase) -> int:
+    """The fault covey_safety_filter must return (the order of covey_safety.h)."""
+    st = _config_status(c)
+    if st != STATUS["ok"]:
+        return st
+    return _first_fault(
+        [
+            (c.own, TRACK_BOUNDS),
+            (c.pref, (MAX_ABS_VEL_M_S, MAX_ABS_VEL_M_S)),
+            *((nb, TRACK_BOUNDS) for nb in c.nbrs[: c.count]),
+        ]
+    )
+
+
+def expected_sparse_status(c: FilterCase, goal: tuple) -> int:
+    """The fault covey_sparse_choose must return (covey_guidance.h): the filter's order with
+    the goal checked between the own state and the policy's velocity (c.pref)."""
+    st = _config_status(c)
+    if st != STATUS["ok"]:
+        return st
+    return _first_fault(
+        [
+            (c.own, TRACK_BOUNDS),
+            (goal, (MAX_ABS_POS_M, MAX_ABS_POS_M)),
+            (c.pref, (MAX_ABS_VEL_M_S, MAX_ABS_VEL_M_S)),
+            *((nb, TRACK_BOUNDS) for nb in c.nbrs[: c.count]),
+        ]
+    )
 
 
 def mutate(c: FilterCase, rng: np.random.Generator) -> FilterCase:

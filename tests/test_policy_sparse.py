@@ -280,3 +280,55 @@ def test_one_vehicle_fast_path_is_the_padded_reference():
         np.testing.assert_allclose(one, many[0], atol=1e-12)
         n_straight += s1
     assert 50 < n_straight < 350
+
+
+@needs_cc
+def test_c_rule_fuzz_under_sanitizers(capsys):
+    """covey_sparse_choose on the filter's fuzz cases (firmware/safety_cases.py: valid
+    encounters and hostile copies) with a goal, itself hostile in some: every status is the
+    predicted one, the output finite, zero and not straight on a fault, under ASan + UBSan and
+    with the same bits as the optimised build."""
+    from firmware import hostbuild
+    from firmware import safety_cases as sc
+    from firmware.cases import STATUS
+
+    header = hostbuild.header_for(hostbuild.SHIPPED_NPZ)
+    try:
+        asan = hostbuild.build_driver(header, sanitize=True)
+    except RuntimeError as e:
+        if "sanitize" in str(e) or "asan" in str(e).lower():
+            pytest.skip(f"the C compiler cannot build with sanitizers: {str(e)[-300:]}")
+        raise
+    plain = hostbuild.build_driver(header)
+    rng = np.random.default_rng(83)
+    cases = []
+    for k in range(3000):
+        c = sc.random_case(rng, n_nbrs=None if k % 20 == 0 else int(rng.integers(0, 5)))
+        c = c if k < 600 else sc.mutate(c, rng)
+        goal = tuple(float(g) for g in np.float32(rng.uniform(-60, 60, 2)))
+        if k % 7 == 0:
+            goal = (float(rng.choice(sc.BAD)), goal[1])
+        cases.append((c, goal))
+    text = "\n".join(sc.sparse_line(c, g) for c, g in cases) + "\n"
+    lines, stderr = hostbuild.run_driver(asan, text)
+    assert "runtime error" not in stderr and "Sanitizer" not in stderr, stderr[-2000:]
+    assert len(lines) == len(cases)
+    assert hostbuild.run_driver(plain, text)[0] == lines
+    counts = dict.fromkeys(STATUS, 0)
+    n_straight = 0
+    for (c, goal), out_line in zip(cases, lines, strict=True):
+        out = sc.parse_sparse_output(out_line)
+        expect = sc.expected_sparse_status(c, goal)
+        assert out["status"] == expect, (out_line, c, goal)
+        counts[next(k for k, v in STATUS.items() if v == expect)] += 1
+        assert np.all(np.isfinite(out["vel"]))
+        if expect == STATUS["ok"]:
+            n_straight += out["straight"]
+            if not out["straight"]:  # the policy's velocity, untouched
+                np.testing.assert_array_equal(np.float32(out["vel"]), np.float32(c.pref))
+        else:
+            assert not np.any(out["vel"]) and not out["straight"]
+    assert counts["ok"] >= 600 and counts["nonfinite"] > 300 and counts["range"] > 300
+    assert n_straight > 50
+    with capsys.disabled():
+        print(f"\n[C sparse fuzz] {len(cases)} inputs under ASan+UBSan: statuses {counts}, clean")

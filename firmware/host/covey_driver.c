@@ -9,15 +9,18 @@
  *   A n_steps n_values [value] * n_values      (seq then goal features)
  *   S radius_m margin horizon_s dt_s max_speed_m_s responsibility
  *     own_n own_e own_vn own_ve pref_n pref_e n_nbrs n_rec [n e vn ve] * n_rec
+ *   P as S with goal_n goal_e after pref_e     (covey_sparse_choose; pref = the policy's)
  * stdout, one line per case:
  *   C: status vel_n vel_e a_fwd a_right n_used n_stale n_far n_excess
  *   A: status a_fwd a_right
  *   S: status vel_n vel_e n_lines changed infeasible
+ *   P: status vel_n vel_e straight n_encounters
  * Floats are %.9g (exact for float32); "nan", "inf" parse with strtof.
  * n_nbrs is passed to the core as given (it may be negative or too large: the
  * core must say RANGE before touching the array); n_rec <= COVEY_MAX_INPUTS
  * records are read into a zero-filled array.
  */
+#include "covey_guidance.h"
 #include "covey_policy.h"
 #include "covey_safety.h"
 
@@ -118,16 +121,19 @@ static int run_action_case(covey_scratch_t *scratch, float *values)
     return 1;
 }
 
-static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *tracks)
+/* "S" (the filter) and "P" (the sparse rule, with a goal after the preference) cases. */
+static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *tracks, int sparse)
 {
     covey_safety_config_t cfg;
     covey_track_t own;
     float pref[2];
+    covey_goal_t goal = {0.0f, 0.0f};
     long long n_nbrs, n_rec;
     int ok = read_f(&cfg.radius_m) && read_f(&cfg.margin) && read_f(&cfg.time_horizon_s) &&
              read_f(&cfg.dt_s) && read_f(&cfg.max_speed_m_s) && read_f(&cfg.responsibility) &&
              read_f(&own.pos_n_m) && read_f(&own.pos_e_m) && read_f(&own.vel_n_m_s) &&
              read_f(&own.vel_e_m_s) && read_f(&pref[0]) && read_f(&pref[1]) &&
+             (!sparse || (read_f(&goal.pos_n_m) && read_f(&goal.pos_e_m))) &&
              read_i64(&n_nbrs) && read_i64(&n_rec);
     if (!ok || n_rec < 0 || n_rec > COVEY_MAX_INPUTS) {
         return 0;
@@ -138,6 +144,14 @@ static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *track
               read_f(&tracks[i].vel_n_m_s) && read_f(&tracks[i].vel_e_m_s))) {
             return 0;
         }
+    }
+    if (sparse) {
+        covey_sparse_out_t so;
+        covey_status_t st = covey_sparse_choose(&cfg, &own, &goal, pref, tracks, (int32_t)n_nbrs,
+                                                scratch, &so);
+        printf("%d %.9g %.9g %d %d\n", (int)st, (double)so.vel_n_m_s, (double)so.vel_e_m_s,
+               (int)so.straight, (int)so.n_encounters);
+        return 1;
     }
     covey_safety_out_t out;
     covey_status_t st =
@@ -162,7 +176,9 @@ int main(void)
         } else if (strcmp(kind, "A") == 0) {
             ok = run_action_case(&scratch, values);
         } else if (strcmp(kind, "S") == 0) {
-            ok = run_safety_case(&safety_scratch, tracks);
+            ok = run_safety_case(&safety_scratch, tracks, 0);
+        } else if (strcmp(kind, "P") == 0) {
+            ok = run_safety_case(&safety_scratch, tracks, 1);
         }
         if (!ok) {
             fprintf(stderr, "covey_driver: malformed case\n");
