@@ -283,6 +283,11 @@ def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation(
     from policy.runtime import FILTERED_BERTH_SHARE
 
     assert config_from_args(["--onboard", "--policy-separation-m", "2"]).policy_separation_m == 2.0
+    assert config_from_args(["--onboard"]).sparse_rule is True
+    assert config_from_args(["--onboard", "--no-sparse-rule"]).sparse_rule is False
+    link = f"udpin:127.0.0.1:{free_udp_port()}"
+    with Emulator(SitlConfig(onboard=True, sparse_rule=False, links=(link,))) as emu:
+        assert emu.vehicle.guidance._tick._cfg.sparse_rule == 0
     # nearly head-on (dead-on for the sparse rule, so the network flies it)
     scene = ([0.0, 0.0], [1.0, 0.0], 0.0, [30.0, 0.0], [[8.0, 0.2]], [[-1.0, 0.0]], [math.pi])
     for ps, told_m in ((None, 3.0 * FILTERED_BERTH_SHARE), (1.5, 1.5)):

@@ -33,6 +33,10 @@ class SitlConfig:
     (policy.runtime.told_separation_m)."""
     policy_speed_m_s: float = 1.0
     """Onboard policy cruise speed (the policy's unit speed)."""
+    sparse_rule: bool = True
+    """Onboard guidance flies the straight line where the vehicle meets at most one other and
+    not dead-on, and leaves it to the filter (covey_sparse_choose, PX4 CVY_SPARSE), as the
+    agents do."""
     healthy: bool = True
     """Pre-arm checks pass. False emulates a failed sensor: SYS_STATUS reports it, arming is refused."""
     params: VehicleParams = field(default_factory=VehicleParams)

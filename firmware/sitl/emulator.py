@@ -42,6 +42,7 @@ class Emulator:
                     cfg.separation_m,
                     cfg.policy_speed_m_s,
                     cfg.policy_separation_m,
+                    cfg.sparse_rule,
                 ),
                 self.traffic,
                 cfg.home,

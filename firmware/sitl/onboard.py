@@ -54,6 +54,7 @@ def load_c_policy(
     separation_m: float,
     cruise_speed_m_s: float,
     policy_separation_m: float | None = None,
+    sparse_rule: bool = True,
 ) -> Policy:
     """The C policy with its filter, which keeps `separation_m`; the network is told
     `policy_separation_m` (None: policy.runtime.told_separation_m, as the agents fly). Imported
@@ -71,7 +72,7 @@ def load_c_policy(
         separation_m=separation_m,
         cruise_speed_m_s=cruise_speed_m_s,
         policy_separation_m=told_separation_m(separation_m, True, policy_separation_m),
-        sparse_rule=True,
+        sparse_rule=sparse_rule,
     )
 
 

@@ -37,9 +37,10 @@ CONFIG_FLAGS = (
     "separation_m",
     "policy_separation_m",
     "policy_speed_m_s",
+    "sparse_rule",
     "duration_s",
 )
-ONBOARD_ONLY = ("weights", "separation_m", "policy_separation_m", "policy_speed_m_s")
+ONBOARD_ONLY = ("weights", "separation_m", "policy_separation_m", "policy_speed_m_s", "sparse_rule")
 """Settings of the onboard C policy: refused without --onboard, where nothing would read them."""
 RENAMED = {
     "--separation": "--separation-m",
@@ -98,7 +99,7 @@ def parser() -> argparse.ArgumentParser:
         p,
         SitlConfig,
         only=CONFIG_FLAGS,
-        types={n: _positive(n) for n in CONFIG_FLAGS if n != "onboard"},
+        types={n: _positive(n) for n in CONFIG_FLAGS if n not in ("onboard", "sparse_rule")},
     )
     g = p.add_argument_group("airframe (PX4 parameter names in brackets)")
     add_config_flags(
