@@ -81,3 +81,20 @@ def keyed_agent_argv(authority, vehicle_id: int) -> list[str]:
         "--key-file",
         str(authority.member_path(Role.VEHICLE, vehicle_id)),
     ]
+
+
+@pytest.fixture(scope="session")
+def fuzz_drivers():
+    """(sanitized, plain) host drivers of the C core for the shipped weights
+    (firmware/host/covey_driver.c): ASan + UBSan and the optimised build, whose outputs a fuzz
+    test compares bit for bit. Skips where the C compiler cannot build with sanitizers."""
+    from firmware import hostbuild
+
+    header = hostbuild.header_for(hostbuild.SHIPPED_NPZ)
+    try:
+        asan = hostbuild.build_driver(header, sanitize=True)
+    except RuntimeError as e:
+        if "sanitize" in str(e) or "asan" in str(e).lower():
+            pytest.skip(f"the C compiler cannot build with sanitizers: {str(e)[-300:]}")
+        raise
+    return asan, hostbuild.build_driver(header)

@@ -283,7 +283,7 @@ def test_one_vehicle_fast_path_is_the_padded_reference():
 
 
 @needs_cc
-def test_c_rule_fuzz_under_sanitizers(capsys):
+def test_c_rule_fuzz_under_sanitizers(capsys, fuzz_drivers):
     """covey_sparse_choose on the filter's fuzz cases (firmware/safety_cases.py: valid
     encounters and hostile copies) with a goal, itself hostile in some: every status is the
     predicted one, the output finite, zero and not straight on a fault, under ASan + UBSan and
@@ -292,14 +292,7 @@ def test_c_rule_fuzz_under_sanitizers(capsys):
     from firmware import safety_cases as sc
     from firmware.cases import STATUS
 
-    header = hostbuild.header_for(hostbuild.SHIPPED_NPZ)
-    try:
-        asan = hostbuild.build_driver(header, sanitize=True)
-    except RuntimeError as e:
-        if "sanitize" in str(e) or "asan" in str(e).lower():
-            pytest.skip(f"the C compiler cannot build with sanitizers: {str(e)[-300:]}")
-        raise
-    plain = hostbuild.build_driver(header)
+    asan, plain = fuzz_drivers
     rng = np.random.default_rng(83)
     cases = []
     for k in range(3000):
