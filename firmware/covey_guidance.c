@@ -38,23 +38,13 @@ covey_guidance_config_t covey_guidance_defaults(const covey_config_t *policy)
     return g;
 }
 
-/* Non-finite first, then |a|, |b| <= bound (covey_safety.c's order for its inputs). */
+/* A goal or a velocity as covey_track_check checks a track: non-finite first, then range. */
 static covey_status_t check2(float a, float b, float bound)
 {
     if (!isfinite(a) || !isfinite(b)) {
         return COVEY_ERR_NONFINITE;
     }
     return (fabsf(a) <= bound && fabsf(b) <= bound) ? COVEY_OK : COVEY_ERR_RANGE;
-}
-
-static covey_status_t check_track2(const covey_track_t *t)
-{
-    if (!isfinite(t->pos_n_m) || !isfinite(t->pos_e_m) || !isfinite(t->vel_n_m_s) ||
-        !isfinite(t->vel_e_m_s)) {
-        return COVEY_ERR_NONFINITE;
-    }
-    covey_status_t st = check2(t->pos_n_m, t->pos_e_m, COVEY_MAX_ABS_POS_M);
-    return (st != COVEY_OK) ? st : check2(t->vel_n_m_s, t->vel_e_m_s, COVEY_MAX_ABS_VEL_M_S);
 }
 
 covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const covey_track_t *own,
@@ -79,7 +69,7 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     if (n_nbrs < 0 || n_nbrs > COVEY_MAX_INPUTS) {
         return COVEY_ERR_RANGE;
     }
-    st = check_track2(own);
+    st = covey_track_check(own);
     if (st == COVEY_OK) {
         st = check2(goal->pos_n_m, goal->pos_e_m, COVEY_MAX_ABS_POS_M);
     }
@@ -87,7 +77,7 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
         st = check2(policy_vel_m_s[0], policy_vel_m_s[1], COVEY_MAX_ABS_VEL_M_S);
     }
     for (int32_t i = 0; st == COVEY_OK && i < n_nbrs; ++i) {
-        st = check_track2(&nbrs[i]);
+        st = covey_track_check(&nbrs[i]);
     }
     if (st != COVEY_OK) {
         return st;

@@ -65,9 +65,11 @@ covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
     return COVEY_OK;
 }
 
-/* Non-finite first (over all four fields), then range. */
-static covey_status_t check_track(const covey_track_t *t)
+covey_status_t covey_track_check(const covey_track_t *t)
 {
+    if (t == NULL) {
+        return COVEY_ERR_NULL;
+    }
     if (!isfinite(t->pos_n_m) || !isfinite(t->pos_e_m) || !isfinite(t->vel_n_m_s) ||
         !isfinite(t->vel_e_m_s)) {
         return COVEY_ERR_NONFINITE;
@@ -327,7 +329,7 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
     if (n_nbrs < 0 || n_nbrs > COVEY_MAX_INPUTS) {
         return fail(out, COVEY_ERR_RANGE);
     }
-    st = check_track(own);
+    st = covey_track_check(own);
     if (st != COVEY_OK) {
         return fail(out, st);
     }
@@ -339,7 +341,7 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
         return fail(out, COVEY_ERR_RANGE);
     }
     for (int32_t i = 0; i < n_nbrs; ++i) {
-        st = check_track(&nbrs[i]);
+        st = covey_track_check(&nbrs[i]);
         if (st != COVEY_OK) {
             return fail(out, st);
         }

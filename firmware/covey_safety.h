@@ -94,6 +94,10 @@ covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_
 /* Checks a filter configuration: NULL, then non-finite, then the ranges above. */
 covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg);
 
+/* Checks one track: NULL, then non-finite (any of the four fields), then
+ * |pos| <= COVEY_MAX_ABS_POS_M and |vel| <= COVEY_MAX_ABS_VEL_M_S. */
+covey_status_t covey_track_check(const covey_track_t *t);
+
 /*
  * Filters pref_vel (north, east) of `own` against n_nbrs neighbours.
  * Checks, first failure returned: NULL pointers (nbrs may be NULL when n_nbrs

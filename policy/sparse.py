@@ -134,10 +134,20 @@ def choose_padded(
         & (nearest >= cfg.dead_on_separations * sep)
         & ((now >= cfg.clear_separations * sep) | aligned)
     )
-    if straight.any():
-        f = safety.filter_padded(pos_m, vel_m_s, v_s, nbr_pos_m, nbr_vel_m_s, nbr_valid, safety_cfg)
+    rows = np.flatnonzero(straight)
+    if rows.size:  # the filter only for the rows that may fly straight
+        f = safety.filter_padded(
+            pos_m[rows],
+            vel_m_s[rows],
+            v_s[rows],
+            np.asarray(nbr_pos_m, float)[rows],
+            np.asarray(nbr_vel_m_s, float)[rows],
+            np.asarray(nbr_valid, bool)[rows],
+            safety_cfg,
+        )
         # (f . v_s / |v_s|) >= share |v_s|, without dividing: on the goal v_s = 0 passes
-        straight &= (f * v_s).sum(-1) >= cfg.progress_share * (v_s * v_s).sum(-1)
+        s = v_s[rows]
+        straight[rows] = (f * s).sum(-1) >= cfg.progress_share * (s * s).sum(-1)
     return np.where(straight[:, None], v_s, np.asarray(v_policy, float)), straight
 
 
