@@ -41,7 +41,8 @@ def time_numpy(
     """`action` (policy units, no filter) or, with `command`, `command` with the filter."""
     from policy.runtime import GuidancePolicy
 
-    pol = GuidancePolicy.load(safety_filter=command)
+    # told the whole 3 m, without the sparse rule: every neighbour is fed to the network
+    pol = GuidancePolicy.load(safety_filter=command, policy_separation_m=3.0, sparse_rule=False)
     rng = np.random.default_rng(0)
     out = {}
     own, vel, goal = np.zeros(2), np.array([1.0, 0.0]), np.array([40.0, 25.0])

@@ -3,9 +3,10 @@
     pol = CPolicy.load(separation_m=3.0, cruise_speed_m_s=1.0)   # shipped weights
     v_m_s = pol.command(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
 
-`command` mirrors `policy.runtime.GuidancePolicy.command`: the network, then (with
-`safety_filter=True`, the default) the C separation filter (covey_safety.c) on the
-neighbours' positions and velocities. `onboard()` gives one vehicle's guidance tick as the
+`command` mirrors `policy.runtime.GuidancePolicy.command`, with the same defaults (as the
+agents fly): the network told 1.25 m per 3 m of separation, then (with `safety_filter=True`,
+the default) the sparse-traffic rule (covey_sparse_choose) and the C separation filter
+(covey_safety.c) on the neighbours' positions and velocities. `onboard()` gives one vehicle's guidance tick as the
 PX4 module flies it (covey_guidance.c): decide at the trained period, filter every tick.
 Freshness is optional: pass `now_s` with `stamp_s` / `nbr_stamp_s` (seconds on one
 clock) and neighbours older than `max_neighbour_age_s` are dropped, an own state older
@@ -123,12 +124,14 @@ class CPolicy:
         safety_filter: bool = True,
         safety_cfg=None,
         policy_separation_m: float | None = None,
-        sparse_rule: bool = False,
+        sparse_rule: bool = True,
     ):
-        """`policy_separation_m`: the separation the network is told (its distance scale,
-        3 policy units = this); None = separation_m. The filter always keeps separation_m.
-        `sparse_rule` (with the filter): covey_sparse_choose, policy.sparse's C twin, picks
-        the straight line at the goal in sparse traffic (GuidancePolicy's sparse_rule)."""
+        """The defaults fly as the agents and the PX4 module do (GuidancePolicy's defaults).
+        `policy_separation_m`: the separation the network is told (its distance scale, 3
+        policy units = this); None: told_separation_m, as flight tells it (1.25 m per
+        3 m with the filter on, the whole separation without it). The filter always keeps
+        separation_m. `sparse_rule` (with the filter only): covey_sparse_choose, policy.sparse's
+        C twin, picks the straight line at the goal in sparse traffic."""
         if max_neighbours is None:
             max_neighbours = MAX_NEIGHBOURS
         if not 0 <= max_neighbours <= MAX_NEIGHBOURS:
@@ -138,8 +141,12 @@ class CPolicy:
             )
         self._lib = load_library(npz_path)
         self._scratch = ctypes.create_string_buffer(self._lib.covey_scratch_bytes())
+        # numpy only, like policy.safety below: the rule's one definition (C twin parity tested)
+        from policy.runtime import told_separation_m
+
+        told_m = told_separation_m(separation_m, bool(safety_filter), policy_separation_m)
         self._cfg = _Config(
-            separation_m if policy_separation_m is None else policy_separation_m,
+            told_m,
             cruise_speed_m_s,
             _us(max_neighbour_age_s),
             _us(max_own_age_s),
@@ -149,7 +156,7 @@ class CPolicy:
         self.cruise_speed_m_s = float(cruise_speed_m_s)
         self.max_neighbours = max_neighbours
         self.safety_filter = bool(safety_filter)
-        self.sparse_rule = bool(sparse_rule)
+        self.sparse_rule = bool(sparse_rule) and self.safety_filter
         from policy.safety import SafetyConfig  # numpy only: the config's one definition
 
         base = safety_cfg or SafetyConfig()

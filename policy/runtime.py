@@ -382,16 +382,22 @@ class GuidancePolicy:
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
         policy_separation_m: float | None = None,
-        sparse_rule: sparse.SparseConfig | None = None,
+        sparse_rule: sparse.SparseConfig | bool | None = True,
     ):
-        """`policy_separation_m`: the separation the network is told, i.e. its distance scale
-        (3 policy units = this many metres); None = separation_m. Smaller than separation_m
-        makes the policy keep a narrower berth while the filter still keeps separation_m
-        (docs/policy.md, "A narrower berth"). The decision period stays separation_m's.
+        """The defaults fly as the agents do (agent.guidance.GuidanceConfig).
+
+        `policy_separation_m`: the separation the network is told, i.e. its distance scale (3
+        policy units = this many metres). None: as flight tells it, `told_separation_m` (1.25 m
+        per 3 m of separation with the filter on, the whole separation without it). Smaller
+        than separation_m makes the policy keep a narrower berth while the filter still keeps
+        separation_m (docs/policy.md, "The policy's berth"). The decision period stays
+        separation_m's.
 
         `sparse_rule`: in sparse traffic, command the straight line at the goal instead of the
-        policy's velocity (policy.sparse); only for flight that filters every command, which
-        then resolves the encounter. None: the policy always."""
+        policy's velocity (policy.sparse), for flight that filters every command, which then
+        resolves the encounter. True: SparseConfig() with the filter on, off without it; a
+        SparseConfig: these thresholds, also without this policy's filter (for a caller that
+        filters every tick itself, as the agents do); False or None: the policy always."""
         if not (np.isfinite(separation_m) and separation_m > 0):
             raise ValueError(f"separation_m must be finite and > 0, got {separation_m}")
         if not (np.isfinite(cruise_speed_m_s) and cruise_speed_m_s > 0):
@@ -401,8 +407,7 @@ class GuidancePolicy:
         self.net = net
         self.obs_cfg = obs_cfg
         self.config = config
-        if policy_separation_m is None:
-            policy_separation_m = separation_m
+        policy_separation_m = told_separation_m(separation_m, safety_filter, policy_separation_m)
         if not (np.isfinite(policy_separation_m) and policy_separation_m > 0):
             raise ValueError(
                 f"policy_separation_m must be finite and > 0, got {policy_separation_m}"
@@ -414,7 +419,14 @@ class GuidancePolicy:
         self.cruise_speed_m_s = cruise_speed_m_s
         self.max_neighbours = max_neighbours
         self.safety_filter = safety_filter
-        self.sparse_rule = sparse_rule
+        if sparse_rule is None or isinstance(sparse_rule, (bool, np.bool_)):
+            sparse_rule = sparse.SparseConfig() if sparse_rule and safety_filter else None
+        elif not isinstance(sparse_rule, sparse.SparseConfig):
+            raise TypeError(
+                f"sparse_rule must be a SparseConfig, True, False or None, got {sparse_rule!r}"
+            )
+        self.sparse_rule: sparse.SparseConfig | None = sparse_rule
+        """The rule's thresholds, None when it is off."""
         base = safety_cfg or safety.SafetyConfig()
         self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
         # the fast path of `command` / `action` (features.closest_last_rows): the projection of
@@ -435,9 +447,10 @@ class GuidancePolicy:
         max_neighbours: int | None = None,
         safety_cfg: safety.SafetyConfig | None = None,
         policy_separation_m: float | None = None,
-        sparse_rule: sparse.SparseConfig | None = None,
+        sparse_rule: sparse.SparseConfig | bool | None = True,
     ) -> GuidancePolicy:
-        """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights."""
+        """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights. The other
+        arguments are the constructor's: the defaults fly as the agents do."""
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
         if not path.is_file():
             raise FileNotFoundError(f"no policy weights at {path}")

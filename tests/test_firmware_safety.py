@@ -29,9 +29,17 @@ PARITY_TOL = 1e-6
 
 @pytest.fixture(scope="module")
 def cpol():
+    """The network and the filter, without the sparse rule (tests/test_policy_sparse.py)."""
     from firmware.cpolicy import CPolicy
 
-    return CPolicy.load()
+    return CPolicy.load(sparse_rule=False)
+
+
+def _bare(cpol):
+    """cpol's network alone, told the same separation."""
+    from firmware.cpolicy import CPolicy
+
+    return CPolicy.load(safety_filter=False, policy_separation_m=cpol._cfg.separation_m)
 
 
 def _ref(c: sc.FilterCase) -> np.ndarray:
@@ -123,9 +131,7 @@ def _scene(rng, n=6):
 
 
 def test_command_with_filter_is_the_filter_of_the_network(cpol):
-    from firmware.cpolicy import CPolicy
-
-    bare = CPolicy.load(safety_filter=False)
+    bare = _bare(cpol)
     rng = np.random.default_rng(3)
     moved = 0
     for _ in range(100):
@@ -145,7 +151,7 @@ def test_onboard_decides_at_the_trained_period_and_filters_every_tick(cpol):
     decide when 95 % of the period has passed (or the goal changed), filter every tick."""
     from firmware.cpolicy import CPolicy
 
-    bare = CPolicy.load(safety_filter=False)
+    bare = _bare(cpol)
     assert cpol.decision_period_s == pytest.approx(1.0)
     assert CPolicy.load(separation_m=6.0, cruise_speed_m_s=2.0).decision_period_s == pytest.approx(
         1.0

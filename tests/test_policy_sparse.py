@@ -136,6 +136,35 @@ def test_agent_guidance_flies_the_rule_only_with_the_filter():
     assert GuidanceConfig(safety_filter=False).load_policy().sparse_rule is None
 
 
+def test_runtime_defaults_fly_as_the_agents():
+    """GuidancePolicy.load() with its defaults is what an agent flies (GuidanceConfig(): told
+    1.25 m per 3 m of separation, the sparse rule, then the filter), so that any caller of the
+    runtime gets flight's behaviour; without the filter: the whole separation, no rule."""
+    from agent.guidance import GuidanceConfig
+    from policy.runtime import FILTERED_BERTH_SHARE
+
+    pol = GuidancePolicy.load()
+    assert pol.sparse_rule == CFG and pol.safety_filter
+    assert pol.dist_scale_m == pytest.approx(FILTERED_BERTH_SHARE)
+    bare = GuidancePolicy.load(safety_filter=False)
+    assert bare.sparse_rule is None and bare.dist_scale_m == pytest.approx(1.0)
+    assert GuidancePolicy.load(sparse_rule=False).sparse_rule is None
+    with pytest.raises(TypeError, match="sparse_rule"):
+        GuidancePolicy.load(sparse_rule="on")
+    agent = GuidanceConfig().load_policy()  # unfiltered: the agent filters every tick itself
+    rng = np.random.default_rng(23)
+    n_straight = 0
+    for p, v, h, g in _scenes(rng):
+        o = np.arange(1, len(p))
+        args = (p[0], v[0], h[0], g[0], p[o], v[o], h[o])
+        want = agent.command(*args)
+        if len(o):
+            want = safety.filter_velocity(p[0], v[0], want, p[o], v[o], agent.safety_cfg)
+        np.testing.assert_allclose(pol.command(*args), want, atol=1e-12)
+        n_straight += sparse.choose_one(p[0], v[0], g[0], want, p[o], v[o], SAFE, CFG, 1.0)[1]
+    assert n_straight > 5
+
+
 def test_agent_cli_switches_the_rule():
     from agent.agent_cli import guidance_from_args, parser
 
@@ -219,6 +248,27 @@ def test_c_rule_is_the_numpy_rule():
 
 
 @needs_cc
+def test_c_policy_defaults_are_the_runtime_defaults():
+    """CPolicy.load() tells the network what GuidancePolicy.load() does and flies the rule with
+    its filter; without the filter, neither."""
+    from firmware.cpolicy import CPolicy
+
+    c, py = CPolicy.load(), GuidancePolicy.load()
+    assert c.sparse_rule and c.safety_filter
+    assert c._cfg.separation_m == pytest.approx(3.0 * py.dist_scale_m)
+    bare = CPolicy.load(safety_filter=False)
+    assert not bare.sparse_rule and bare._cfg.separation_m == pytest.approx(3.0)
+    rng = np.random.default_rng(29)
+    worst, n = 0.0, 0
+    for p, v, h, g in _scenes(rng):
+        o = np.arange(1, len(p))
+        args = (p[0], v[0], h[0], g[0], p[o], v[o], h[o])
+        worst = max(worst, float(np.abs(c.command(*args) - py.command(*args)).max()))
+        n += 1
+    assert n > 20 and worst <= 1e-4, worst  # float32; no choice fell on a threshold here
+
+
+@needs_cc
 def test_c_rule_refuses_bad_input_by_name():
     from firmware.cpolicy import CPolicy
 
@@ -240,7 +290,7 @@ def test_c_onboard_tick_applies_the_rule_at_decisions():
     it; CPolicy.command gives the same; the rule off holds the policy's velocity."""
     from firmware.cpolicy import CPolicy
 
-    on, off = CPolicy.load(sparse_rule=True), CPolicy.load()
+    on, off = CPolicy.load(), CPolicy.load(sparse_rule=False)
     nbr, nbr_vel, nbr_h = np.array([[12.0, -10.0]]), np.array([[0.0, 1.0]]), np.array([1.57])
     args = ([0.0, 0.0], [1.0, 0.0], 0.0, GOAL, nbr, nbr_vel, nbr_h)
     r = on.onboard().step(*args, now_s=1.0)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from firmware import safety_cases as sc
-from policy import features, safety
+from policy import features, safety, sparse
 from policy.runtime import GuidancePolicy
 
 TOL = 1e-5
@@ -25,7 +25,27 @@ TOL = 1e-5
 
 @pytest.fixture(scope="module")
 def pol():
-    return GuidancePolicy.load()
+    return GuidancePolicy.load()  # as the agents fly: told 1.25 m, the sparse rule, the filter
+
+
+def _reference(pol, own, vel, h, goal, nbr, nv, hdg) -> np.ndarray:
+    """The plain pipeline: the reference network, then (when on) the padded sparse rule, then
+    (with neighbours) the filter."""
+    s = pol.dist_scale_m
+    a = pol.action_reference(own / s, h, goal / s, nbr / s, hdg)
+    ref = features.action_to_velocity(a, h) * pol.cruise_speed_m_s
+    if pol.sparse_rule is not None:
+        one = (x[None] for x in (own, vel, np.asarray(goal, float), ref, nbr, nv))
+        ref = sparse.choose_padded(
+            *one,
+            np.ones((1, len(nbr)), bool),
+            pol.safety_cfg,
+            pol.sparse_rule,
+            pol.decision_period_s,
+        )[0][0]
+    if pol.safety_filter and len(nbr):
+        ref = safety.filter_velocity(own, vel, ref, nbr, nv, pol.safety_cfg)
+    return ref
 
 
 def _scene(rng, k, spread=25.0):
@@ -131,7 +151,6 @@ def test_filter_one_equals_filter_velocity():
 
 def test_command_equals_the_reference_pipeline(pol):
     rng = np.random.default_rng(3)
-    s = pol.dist_scale_m
     worst = 0.0
     for k in (0, 1, 5, 19, 30):
         for _ in range(15):
@@ -144,10 +163,7 @@ def test_command_equals_the_reference_pipeline(pol):
                 rng.uniform(-30, 30, 2),
             )
             v = pol.command(own, vel, h, goal, nbr, nv, hdg)
-            a = pol.action_reference(own / s, h, goal / s, nbr / s, hdg)
-            ref = features.action_to_velocity(a, h) * pol.cruise_speed_m_s
-            if k:
-                ref = safety.filter_velocity(own, vel, ref, nbr, nv, pol.safety_cfg)
+            ref = _reference(pol, own, vel, h, goal, nbr, nv, hdg)
             worst = max(worst, float(np.abs(v - ref).max()))
     assert worst <= TOL, worst
 
@@ -234,7 +250,6 @@ def test_command_fast_path_equals_checked_path_and_reference(filt, policy_sep):
     plain reference agree, for 0-60 neighbours, views of wider arrays (as the agents pass),
     a list goal and a numpy heading."""
     pol = GuidancePolicy.load(safety_filter=filt, policy_separation_m=policy_sep)
-    s = pol.dist_scale_m
     rng = np.random.default_rng(13)
     worst = 0.0
     for k in (0, 1, 5, 19, 60):
@@ -249,10 +264,7 @@ def test_command_fast_path_equals_checked_path_and_reference(filt, policy_sep):
             assert pol._command_fast(own, vel, h, goal_in, nbr, nv, hdg) is not None
             v = pol.command(own, vel, h, goal_in, nbr, nv, hdg)
             v_checked = pol._command_checked(own, vel, h, goal_in, nbr, nv, hdg)
-            a = pol.action_reference(own / s, h, goal / s, nbr / s, hdg)
-            ref = features.action_to_velocity(a, h) * pol.cruise_speed_m_s
-            if filt and k:
-                ref = safety.filter_velocity(own, vel, ref, nbr, nv, pol.safety_cfg)
+            ref = _reference(pol, own, vel, h, goal, nbr, nv, hdg)
             assert v.shape == (2,) and v.dtype == np.float64
             worst = max(worst, float(np.abs(v - ref).max()), float(np.abs(v_checked - ref).max()))
     assert worst <= TOL, worst

@@ -301,8 +301,7 @@ def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation(
             assert tick._cfg.sparse_rule == 1  # as the agents fly
             r = tick.step(*scene, now_s=0.0)
         assert r.status == "ok" and r.decided and not r.straight
-        told = CPolicy.load(separation_m=3.0, policy_separation_m=told_m, sparse_rule=True)
-        told = told.command(*scene)
-        wide = CPolicy.load(separation_m=3.0, sparse_rule=True).command(*scene)
+        told = CPolicy.load(separation_m=3.0, policy_separation_m=told_m).command(*scene)
+        wide = CPolicy.load(separation_m=3.0, policy_separation_m=3.0).command(*scene)
         np.testing.assert_allclose(r.vel_m_s, told, atol=1e-6)
         assert np.abs(r.vel_m_s - wide).max() > 0.05  # the berth changed what was flown
