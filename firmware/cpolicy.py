@@ -271,7 +271,43 @@ class CPolicy:
     ) -> np.ndarray:
         """Velocity command (2,) in m/s (north, east); raises CPolicyError on a fault.
 
-        With the filter on, it sees the neighbours the network kept fresh (stale ones dropped)."""
+        With the filter on, it sees the neighbours the network kept fresh (stale ones dropped).
+        For the decision hold, hold `preferred` and `filter` it every tick (`onboard()` does)."""
+        args = (pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
+        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=True)
+
+    def preferred(
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        now_s=None,
+        stamp_s=None,
+        nbr_stamp_s=None,
+    ) -> np.ndarray:
+        """GuidancePolicy.preferred in C: the velocity to hold for one decision period (the
+        network's, or the sparse rule's straight line), not yet filtered."""
+        args = (pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
+        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=False)
+
+    def _command(
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        now_s,
+        stamp_s,
+        nbr_stamp_s,
+        filtered: bool,
+    ) -> np.ndarray:
         r = self.evaluate(
             pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s, stamp_s, nbr_stamp_s
         )
@@ -291,6 +327,8 @@ class CPolicy:
             if sp.status != "ok":
                 raise CPolicyError(STATUS_NAMES_INV[sp.status])
             v = sp.vel_m_s
+        if not filtered:
+            return v
         f = self._filter.evaluate(pos_m, vel_m_s, v, nbr_pos, nbr_vel)
         if f.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[f.status])

@@ -1,7 +1,10 @@
 """Numpy runtime of the guidance policy (no torch): what the agents run.
 
-    pol = GuidancePolicy.load()                 # shipped weights
+    pol = GuidancePolicy.load()                 # shipped weights, flown as the agents fly them
     v_m_s = pol.command(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
+
+or, with the decision hold: `held = pol.preferred(...)` every `pol.decision_period_s`, and
+`pol.filter(pos_m, vel_m_s, held, nbr_pos_m, nbr_vel_m_s)` every tick.
 
 World frame: x north, y east, metres; heading 0 = north, clockwise positive.
 The contract is docs/POLICY_SPEC.md; observations come from policy.features.
@@ -484,8 +487,9 @@ class GuidancePolicy:
 
     @property
     def decision_period_s(self) -> float:
-        """World time of one training step (1 s in policy units): call `command` at this
-        period and hold the velocity in between; run `filter` at the control rate."""
+        """World time of one training step (1 s in policy units): call `preferred` at this
+        period and hold it in between, running `filter` on it at the control rate (as the
+        agents do); or call `command` at the control rate."""
         return float(self.config.get("dt_s", 1.0)) * self.separation_m / 3.0 / self.cruise_speed_m_s
 
     def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
@@ -584,18 +588,55 @@ class GuidancePolicy:
         Inputs that are already float64 arrays of the right shapes (a 2-vector may also be a
         list of two floats, the heading a float), with the shipped observation, take
         `_command_fast`; anything else, and every bad input, `_command_checked`, which
-        names what is wrong. Both give the same velocity within 1e-5."""
+        names what is wrong. Both give the same velocity within 1e-5.
+
+        Called every tick, this is all a caller needs. For the decision hold (as the agents
+        fly), hold `preferred` instead and `filter` it every tick: a held `command` keeps the
+        filter's answer to the moment it decided, on top of the filter's answer to now."""
+        return self._command(
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, True
+        )
+
+    def preferred(
+        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+    ):
+        """The velocity (2,) to hold for one decision period, as the agents do: the policy's,
+        or the sparse rule's straight line, not yet filtered. Every tick, fly
+        `filter(pos_m, vel_m_s, held, nbr_pos_m, nbr_vel_m_s)`; at the decision that is
+        `command`. Same inputs and checks as `command`."""
+        return self._command(
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, False
+        )
+
+    def _command(
+        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, filtered
+    ) -> np.ndarray:
         v = self._command_fast(
-            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, filtered
         )
         if v is None:
             v = self._command_checked(
-                pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+                pos_m,
+                vel_m_s,
+                heading_rad,
+                goal_m,
+                nbr_pos_m,
+                nbr_vel_m_s,
+                nbr_heading_rad,
+                filtered,
             )
         return v
 
     def _command_fast(
-        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        filtered: bool = True,
     ) -> np.ndarray | None:
         """`command` in metres without scaling the inputs (the projection takes metres), or
         None when the inputs are not the common case or not all finite.
@@ -637,11 +678,14 @@ class GuidancePolicy:
         )
         if a is None:
             return None
-        return self._velocity(a, h, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s)
+        return self._velocity(a, h, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s, filtered)
 
-    def _velocity(self, a, heading, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
+    def _velocity(
+        self, a, heading, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s, filtered: bool = True
+    ) -> np.ndarray:
         """Body (fwd, right) action a -> (north, east) velocity times the cruise speed, then
-        the sparse rule (when on), then the filter (when on and there are neighbours)."""
+        the sparse rule (when on), then the filter (when on, `filtered`, and there are
+        neighbours)."""
         c, sn, u = math.cos(heading), math.sin(heading), self.cruise_speed_m_s
         a0, a1 = a
         v = np.array(((a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u))
@@ -657,12 +701,20 @@ class GuidancePolicy:
                 self.sparse_rule,
                 self.decision_period_s,
             )
-        if self.safety_filter and nbr_pos_m.shape[0]:
+        if filtered and self.safety_filter and nbr_pos_m.shape[0]:
             v = safety.filter_one(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
         return v
 
     def _command_checked(
-        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        filtered: bool = True,
     ) -> np.ndarray:
         """`command` for any input: checked (a ValueError naming the input), then scaled to
         policy units and through `action`."""
@@ -690,7 +742,14 @@ class GuidancePolicy:
         s = self.dist_scale_m
         a = self.action(pos_m / s, heading, goal_m / s, nbr_pos_m / s, nbr_heading)
         return self._velocity(
-            (float(a[0]), float(a[1])), heading, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s
+            (float(a[0]), float(a[1])),
+            heading,
+            pos_m,
+            vel_m_s,
+            goal_m,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            filtered,
         )
 
     def _sparse(self, pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid):

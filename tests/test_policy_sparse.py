@@ -165,6 +165,29 @@ def test_runtime_defaults_fly_as_the_agents():
     assert n_straight > 5
 
 
+def test_preferred_is_what_the_agents_hold_and_command_filters_it():
+    """`preferred` (the velocity to hold for a decision period) is the agents' decision, before
+    the filter; `command` is the filter of it. Same on the checked path (lists in)."""
+    from agent.guidance import GuidanceConfig
+
+    pol, agent = GuidancePolicy.load(), GuidanceConfig().load_policy()
+    rng = np.random.default_rng(31)
+    n_filtered = 0
+    for p, v, h, g in _scenes(rng, n_scenes=40):
+        o = np.arange(1, len(p))
+        args = (p[0], v[0], h[0], g[0], p[o], v[o], h[o])
+        held = pol.preferred(*args)
+        np.testing.assert_array_equal(held, agent.command(*args))
+        listed = [x.tolist() if isinstance(x, np.ndarray) else x for x in args]
+        np.testing.assert_allclose(pol.preferred(*listed), held, atol=1e-5)
+        now = pol.filter(p[0], v[0], held, p[o], v[o])
+        np.testing.assert_allclose(pol.command(*args), now, atol=1e-12)
+        n_filtered += not np.allclose(now, held)
+    assert n_filtered > 5
+    with pytest.raises(ValueError, match="goal_m"):
+        pol.preferred(p[0], v[0], h[0], [np.nan, 0.0], p[o], v[o], h[o])
+
+
 def test_agent_cli_switches_the_rule():
     from agent.agent_cli import guidance_from_args, parser
 
@@ -266,6 +289,23 @@ def test_c_policy_defaults_are_the_runtime_defaults():
         worst = max(worst, float(np.abs(c.command(*args) - py.command(*args)).max()))
         n += 1
     assert n > 20 and worst <= 1e-4, worst  # float32; no choice fell on a threshold here
+
+
+@needs_cc
+def test_c_preferred_is_the_runtime_preferred():
+    """CPolicy.preferred = GuidancePolicy.preferred (float32), and its filter is `command`."""
+    from firmware.cpolicy import CPolicy
+
+    c, py = CPolicy.load(), GuidancePolicy.load()
+    rng = np.random.default_rng(37)
+    worst = 0.0
+    for p, v, h, g in _scenes(rng, n_scenes=30):
+        o = np.arange(1, len(p))
+        args = (p[0], v[0], h[0], g[0], p[o], v[o], h[o])
+        held = c.preferred(*args)
+        worst = max(worst, float(np.abs(held - py.preferred(*args)).max()))
+        np.testing.assert_allclose(c.filter(p[0], v[0], held, p[o], v[o]), c.command(*args))
+    assert worst <= 1e-4, worst
 
 
 @needs_cc
