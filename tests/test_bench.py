@@ -168,3 +168,25 @@ def test_crossings_bench_smoke(tmp_path: Path, monkeypatch) -> None:
     assert min(s[c]["min_sep_m"] for c in crossings.CONTROLLERS) >= 3.0
     row = next(r for r in res["rows"] if r["angle_deg"] == 60 and r["offset_m"] == 1.0)
     assert row["rule_extra_time"] < row["policy_extra_time"] - 0.01
+
+
+def test_call_patterns_bench_smoke(tmp_path: Path, monkeypatch) -> None:
+    """bench/call_patterns.py flies the public runtime's calling patterns on its quick cases:
+    no pair below 3 m for the policy, every policy pattern arrives, ORCA deadlocks the circle
+    of 8, and holding `preferred` beats holding the already-filtered `command` there."""
+    from bench import call_patterns, common
+
+    monkeypatch.setenv(common.OUT_ENV, str(tmp_path))
+    res = call_patterns.main(quick=True)
+    assert (tmp_path / "call_patterns.png").is_file()
+    s = res["summary"]
+    for suite in ("conflict", "circle"):
+        for p in call_patterns.PATTERNS[:3]:
+            m = s[suite][p]
+            assert m["collisions"] == 0 and m["min_sep_m"] >= 3.0
+            assert m["succeeded"] == m["cases"]
+    assert s["circle"]["orca"]["succeeded"] < s["circle"]["orca"]["cases"]
+    circle8 = next(r for r in res["rows"] if r["case"] == "circle-8")
+    assert circle8["hold preferred"]["extra_time"] < circle8["hold command"]["extra_time"] - 0.05
+    with pytest.raises(ValueError, match="pattern must be one of"):
+        call_patterns.PublicCaller(None, "sometimes")
