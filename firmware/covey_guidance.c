@@ -92,7 +92,9 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     /* |vs| = dist x gain = min(cruise, dist / period), down to 0 on the goal */
     const float gain = fminf(cruise / fmaxf(dist, 1e-9f), 1.0f / period);
     const float vs[2] = {dn * gain, de * gain};
-    const float horizon = COVEY_SPARSE_HORIZON_PERIODS * period;
+    /* encounters only until vs reaches the goal: max(dist / cruise, period) (policy.sparse) */
+    const float horizon =
+        fminf(COVEY_SPARSE_HORIZON_PERIODS * period, fmaxf(dist / cruise, period));
     const float reach = COVEY_SPARSE_ENCOUNTER_SEPARATIONS * sep;
     const float clear = COVEY_SPARSE_CLEAR_SEPARATIONS * sep;
     int32_t count = 0;

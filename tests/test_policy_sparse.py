@@ -259,7 +259,10 @@ def test_c_rule_is_the_numpy_rule():
             pos, vel, goal, asked, nbr_pos, nbr_vel, cpol.safety_cfg, CFG, 1.0
         )
         v_s = sparse.straight_velocity(pos, goal, 1.0, 1.0)
-        count, _, _ = sparse.encounters(pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), 10.0, 6.0)
+        horizon_s = min(10.0, float(sparse.time_to_goal_s(pos, goal, 1.0, 1.0)))
+        count, _, _ = sparse.encounters(
+            pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), horizon_s, 6.0
+        )
         if c.straight != straight:
             near += 1
             continue
