@@ -2,8 +2,8 @@
 hold `command`, or call `command` every tick; and ORCA, on forced conflicts, small circles and
 random swarms.
 
-    python -m bench.call_patterns [--quick] [--link perfect|degraded]
-                                              # table; bench/results/call_patterns.{json,png}
+    python -m bench.call_patterns [--quick] [--links perfect,degraded]
+                                              # tables; bench/results/call_patterns.{json,png}
 
 Each pattern goes only through `GuidancePolicy.load()` with its defaults (the agents'
 configuration) and its public methods, one vehicle at a time, as an outside harness would:
@@ -27,6 +27,7 @@ from bench import common
 
 PATTERNS = ("hold preferred", "hold command", "command every tick", "orca")
 SUITES = ("conflict", "circle", "large")
+LINKS = ("perfect", "degraded")
 
 
 class PublicCaller:
@@ -144,10 +145,18 @@ def summary(rows: list[dict]) -> dict:
     return out
 
 
-def plot(s: dict, link_name: str) -> None:
+def plot(by_link: dict[str, dict]) -> None:
     plt = common.pyplot()
+    fig, axes = plt.subplots(1, len(by_link), figsize=(7.0 * len(by_link), 3.8), squeeze=False)
+    for ax, (link_name, s) in zip(axes[0], by_link.items(), strict=True):
+        _bars(ax, s, link_name)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    common.save_figure(fig, "call_patterns")
+
+
+def _bars(ax, s: dict, link_name: str) -> None:
     suites = list(s)
-    fig, ax = plt.subplots(figsize=(7.5, 3.6))
     width = 0.8 / len(PATTERNS)
     for j, p in enumerate(PATTERNS):
         ys = [s[x][p]["mean_extra_time"] or np.nan for x in suites]
@@ -161,34 +170,41 @@ def plot(s: dict, link_name: str) -> None:
                 ax.text(x, y, f"{y:.3f}", ha="center", va="bottom", fontsize=6)
     ax.set_xticks(np.arange(len(suites)), suites)
     ax.set_ylabel("mean extra time (flight / straight line)")
-    ax.set_title(
-        f"Calling the runtime: hold preferred, hold command, every tick, ORCA ({link_name})"
-    )
-    ax.legend(fontsize=7)
+    ax.set_title(f"Calling the runtime: {link_name} link")
     ax.grid(alpha=0.3, axis="y")
-    fig.tight_layout()
-    common.save_figure(fig, "call_patterns")
 
 
-def main(quick: bool = False, link_name: str = "perfect") -> dict:
-    rows = fly_all(quick, link_name)
-    s = summary(rows)
-    plot(s, link_name)
-    print(f"link {link_name}")
-    print("suite     pattern              ok      coll  closest  extra   |acc|")
-    for suite, per in s.items():
-        for p, m in per.items():
-            extra = f"{m['mean_extra_time']:.4f}" if m["mean_extra_time"] else "  -   "
-            print(
-                f"{suite:9s} {p:20s} {m['succeeded']:2d}/{m['cases']:<2d}  {m['collisions']:4d}"
-                f"  {m['min_sep_m']:.2f} m  {extra}  {m['mean_acc_m_s2']:.3f}"
-            )
-    return {"link": link_name, "rows": rows, "summary": s}
+def main(quick: bool = False, links: tuple[str, ...] = LINKS) -> dict:
+    if not links or not set(links) <= set(LINKS):
+        raise ValueError(f"links must be some of {LINKS}, got {links!r}")
+    out = {}
+    for link_name in links:
+        rows = fly_all(quick, link_name)
+        out[link_name] = {"rows": rows, "summary": summary(rows)}
+    plot({k: v["summary"] for k, v in out.items()})
+    for link_name, res in out.items():
+        print(f"link {link_name}")
+        print("suite     pattern              ok      coll  closest  extra   |acc|")
+        for suite, per in res["summary"].items():
+            for p, m in per.items():
+                extra = f"{m['mean_extra_time']:.4f}" if m["mean_extra_time"] else "  -   "
+                print(
+                    f"{suite:9s} {p:20s} {m['succeeded']:2d}/{m['cases']:<2d}  "
+                    f"{m['collisions']:4d}  {m['min_sep_m']:.2f} m  {extra}  "
+                    f"{m['mean_acc_m_s2']:.3f}"
+                )
+    return {"links": out}
 
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="4 cases instead of 33")
-    ap.add_argument("--link", choices=("perfect", "degraded"), default="perfect")
+    ap.add_argument("--quick", action="store_true", help="4 cases instead of 33, perfect link")
+    ap.add_argument(
+        "--links",
+        type=lambda v: tuple(x for x in v.split(",") if x),
+        default=None,
+        help="comma-separated, of perfect,degraded (default both; --quick: perfect)",
+    )
     args = ap.parse_args()
-    common.write_json("call_patterns", main(args.quick, args.link))
+    links = args.links or (("perfect",) if args.quick else LINKS)
+    common.write_json("call_patterns", main(args.quick, links))

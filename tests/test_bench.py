@@ -177,16 +177,18 @@ def test_call_patterns_bench_smoke(tmp_path: Path, monkeypatch) -> None:
     from bench import call_patterns, common
 
     monkeypatch.setenv(common.OUT_ENV, str(tmp_path))
-    res = call_patterns.main(quick=True)
+    res = call_patterns.main(quick=True, links=("perfect",))
     assert (tmp_path / "call_patterns.png").is_file()
-    s = res["summary"]
+    s = res["links"]["perfect"]["summary"]
     for suite in ("conflict", "circle"):
         for p in call_patterns.PATTERNS[:3]:
             m = s[suite][p]
             assert m["collisions"] == 0 and m["min_sep_m"] >= 3.0
             assert m["succeeded"] == m["cases"]
     assert s["circle"]["orca"]["succeeded"] < s["circle"]["orca"]["cases"]
-    circle8 = next(r for r in res["rows"] if r["case"] == "circle-8")
+    circle8 = next(r for r in res["links"]["perfect"]["rows"] if r["case"] == "circle-8")
     assert circle8["hold preferred"]["extra_time"] < circle8["hold command"]["extra_time"] - 0.05
     with pytest.raises(ValueError, match="pattern must be one of"):
         call_patterns.PublicCaller(None, "sometimes")
+    with pytest.raises(ValueError, match="links must be some of"):
+        call_patterns.main(quick=True, links=("lossy",))
