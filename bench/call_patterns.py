@@ -28,6 +28,8 @@ from bench import common
 PATTERNS = ("hold preferred", "hold command", "command every tick", "orca")
 SUITES = ("conflict", "circle", "large")
 LINKS = ("perfect", "degraded")
+METRICS = ("extra_time", "min_sep", "collisions", "success", "mean_acc")
+"""Per case and pattern, from policy.evalsim.run."""
 
 
 class PublicCaller:
@@ -98,28 +100,34 @@ def fly_all(quick: bool, link_name: str, seed: int = 0) -> list[dict]:
     pol = GuidancePolicy.load()  # the defaults: as the agents fly
     rows = []
     for i, (suite, name, starts, goals) in enumerate(cases(quick, np.random.default_rng(seed))):
-        row = {"suite": suite, "case": name, "n": int(len(starts))}
-        for pattern in PATTERNS:
-            r = evalsim.run(
+        runs = {
+            p: evalsim.run(
                 starts,
                 goals,
-                PublicCaller(pol, pattern),
+                PublicCaller(pol, p),
                 link,
                 evalsim.EvalSimConfig(),
                 np.random.default_rng([seed, i]),
             )
-            row[pattern] = {
-                k: r[k] for k in ("success", "collisions", "min_sep", "extra_time", "mean_acc")
-            }
+            for p in PATTERNS
+        }
+        # flat, the extra times first (bench/report.py shows the first columns)
+        row = {"suite": suite, "case": name, "n": int(len(starts))}
+        for metric in METRICS:
+            row.update({_key(p, metric): runs[p][metric] for p in PATTERNS})
         rows.append(row)
         common.say(
-            f"{name}: "
-            + ", ".join(
-                f"{p} {row[p]['extra_time']:.3f}" if row[p]["extra_time"] else f"{p} -"
-                for p in PATTERNS
-            )
+            f"{name}: " + ", ".join(f"{p} {_fmt(row[_key(p, 'extra_time')])}" for p in PATTERNS)
         )
     return rows
+
+
+def _key(pattern: str, metric: str) -> str:
+    return f"{pattern.replace(' ', '_')}_{metric}"
+
+
+def _fmt(extra_time) -> str:
+    return f"{extra_time:.3f}" if extra_time is not None else "-"
 
 
 def summary(rows: list[dict]) -> dict:
@@ -132,15 +140,15 @@ def summary(rows: list[dict]) -> dict:
             continue
         out[suite] = {}
         for p in PATTERNS:
-            ok = [r[p]["extra_time"] for r in mine if r[p]["success"]]
-            seps = [r[p]["min_sep"] for r in mine if r[p]["min_sep"] is not None]
+            ok = [r[_key(p, "extra_time")] for r in mine if r[_key(p, "success")]]
+            seps = [r[_key(p, "min_sep")] for r in mine if r[_key(p, "min_sep")] is not None]
             out[suite][p] = {
                 "cases": len(mine),
                 "succeeded": len(ok),
-                "collisions": int(sum(r[p]["collisions"] for r in mine)),
+                "collisions": int(sum(r[_key(p, "collisions")] for r in mine)),
                 "min_sep_m": float(min(seps)) if seps else None,
                 "mean_extra_time": float(np.mean(ok)) if ok else None,
-                "mean_acc_m_s2": float(np.mean([r[p]["mean_acc"] for r in mine])),
+                "mean_acc_m_s2": float(np.mean([r[_key(p, "mean_acc")] for r in mine])),
             }
     return out
 
@@ -159,13 +167,20 @@ def _bars(ax, s: dict, link_name: str) -> None:
     suites = list(s)
     width = 0.8 / len(PATTERNS)
     for j, p in enumerate(PATTERNS):
-        ys = [s[x][p]["mean_extra_time"] or np.nan for x in suites]
+        # a suite where some case got stuck has no mean: no bar, a label instead
+        ys = [
+            (s[x][p]["mean_extra_time"] or np.nan)
+            if s[x][p]["succeeded"] == s[x][p]["cases"]
+            else np.nan
+            for x in suites
+        ]
         xs = np.arange(len(suites)) + (j - (len(PATTERNS) - 1) / 2) * width
         ax.bar(xs, np.asarray(ys) - 1.0, width, bottom=1.0, label=p)
         for x, y, suite in zip(xs, ys, suites, strict=True):
             m = s[suite][p]
             if m["succeeded"] < m["cases"]:
-                ax.text(x, 1.0, f"{m['cases'] - m['succeeded']} stuck", rotation=90, fontsize=7)
+                stuck = m["cases"] - m["succeeded"]
+                ax.text(x, 1.0, f"{stuck} of {m['cases']} stuck", rotation=90, fontsize=7)
             elif np.isfinite(y):
                 ax.text(x, y, f"{y:.3f}", ha="center", va="bottom", fontsize=6)
     ax.set_xticks(np.arange(len(suites)), suites)
@@ -193,7 +208,13 @@ def main(quick: bool = False, links: tuple[str, ...] = LINKS) -> dict:
                     f"{m['collisions']:4d}  {m['min_sep_m']:.2f} m  {extra}  "
                     f"{m['mean_acc_m_s2']:.3f}"
                 )
-    return {"links": out}
+    table = [
+        {"link": link_name, "suite": suite, "pattern": p, **m}
+        for link_name, res in out.items()
+        for suite, per in res["summary"].items()
+        for p, m in per.items()
+    ]
+    return {"table": table, "links": out}
 
 
 if __name__ == "__main__":

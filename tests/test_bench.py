@@ -187,7 +187,8 @@ def test_call_patterns_bench_smoke(tmp_path: Path, monkeypatch) -> None:
             assert m["succeeded"] == m["cases"]
     assert s["circle"]["orca"]["succeeded"] < s["circle"]["orca"]["cases"]
     circle8 = next(r for r in res["links"]["perfect"]["rows"] if r["case"] == "circle-8")
-    assert circle8["hold preferred"]["extra_time"] < circle8["hold command"]["extra_time"] - 0.05
+    assert circle8["hold_preferred_extra_time"] < circle8["hold_command_extra_time"] - 0.05
+    assert len(res["table"]) == 2 * len(call_patterns.PATTERNS)  # 2 suites, 1 link
     with pytest.raises(ValueError, match="pattern must be one of"):
         call_patterns.PublicCaller(None, "sometimes")
     with pytest.raises(ValueError, match="links must be some of"):
