@@ -6,8 +6,9 @@
 `command` mirrors `policy.runtime.GuidancePolicy.command`, with the same defaults (as the
 agents fly): the network told 1.25 m per 3 m of separation, then (with `safety_filter=True`,
 the default) the sparse-traffic rule (covey_sparse_choose) and the C separation filter
-(covey_safety.c) on the neighbours' positions and velocities. `onboard()` gives one vehicle's guidance tick as the
-PX4 module flies it (covey_guidance.c): decide at the trained period, filter every tick.
+(covey_safety.c) on the neighbours' positions and velocities; `preferred` is the same before
+the filter. `onboard()` gives one vehicle's guidance tick as the PX4 module flies it
+(covey_guidance.c): decide at the trained period, filter every tick.
 Freshness is optional: pass `now_s` with `stamp_s` / `nbr_stamp_s` (seconds on one
 clock) and neighbours older than `max_neighbour_age_s` are dropped, an own state older
 than `max_own_age_s` raises. The shared library is built on demand into firmware/build/
