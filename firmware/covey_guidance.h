@@ -69,6 +69,7 @@ typedef struct {
 #define COVEY_SPARSE_PROGRESS_SHARE 0.5f        /* the filtered straight line must keep this */
 #define COVEY_SPARSE_CLEAR_SEPARATIONS 2.0f     /* nobody nearer than this now, */
 #define COVEY_SPARSE_ALIGNED_COS 0.9f           /* unless already flying along the line */
+#define COVEY_SPARSE_STANDING_SHARE 0.25f       /* slower: standing; next to the goal, taken */
 
 typedef struct {
     float vel_n_m_s;        /* the velocity to hold: straight or the policy's */

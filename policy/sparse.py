@@ -15,7 +15,9 @@ At each decision, for one vehicle:
   own v_s against their reported velocity, comes nearer than `encounter_separations`; looked
   for only until v_s reaches the goal (the line ends there: what passes the goal later is the
   other vehicle's encounter, with a vehicle standing on its goal);
-- it flies v_s when it has at most `max_encounters`, none closer than `dead_on_separations`,
+- it flies v_s when its goal is not taken (a standing neighbour within one separation of it
+  when v_s arrives: `goal_occupied`), it has at most `max_encounters`, none closer than
+  `dead_on_separations`,
   no neighbour nearer than `clear_separations` now unless it already flies along v_s, and
   the filter alone leaves v_s at least `progress_share` of its speed towards the goal; else
   the policy's velocity. Either is then held and filtered every tick as before.
@@ -55,6 +57,9 @@ class SparseConfig:
     rather than turning at the neighbour with only the filter, at its margin, on a stale link."""
     aligned_cos: float = 0.9
     """Flying along the straight line: the cosine between the own velocity and it (25 deg)."""
+    standing_share: float = 0.25
+    """A neighbour slower than this share of cruise speed stands: standing within one
+    separation of the goal when the straight line arrives, it has taken the goal."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -68,6 +73,8 @@ class SparseConfig:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
         if not -1.0 <= self.aligned_cos <= 1.0:
             raise ValueError(f"aligned_cos must be within -1..1, got {self.aligned_cos}")
+        if not 0.0 <= self.standing_share <= 1.0:
+            raise ValueError(f"standing_share must be within 0..1, got {self.standing_share}")
         if not 0.0 <= self.progress_share <= 1.0:
             raise ValueError(f"progress_share must be within 0..1, got {self.progress_share}")
         if self.max_encounters < 0:
@@ -110,6 +117,24 @@ def encounters(pos_m, v_straight, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, 
     return hit.sum(-1), np.where(hit, d, np.inf).min(-1, initial=np.inf), now
 
 
+def goal_occupied(
+    goal_m, nbr_pos_m, nbr_vel_m_s, nbr_valid, arrive_s, cfg, sep_m, cruise_m_s, period_s
+):
+    """(...,): a neighbour that stands (slower than `standing_share` of cruise) will be within
+    one separation of the goal when the straight line reaches it (arrive_s (...,), within the
+    horizon): the goal is taken, not an encounter to fly through (the policy deals with it)."""
+    arrive_s = np.asarray(arrive_s, float)
+    at = (
+        np.asarray(nbr_pos_m, float)
+        + np.asarray(nbr_vel_m_s, float) * arrive_s[..., None, None]
+        - np.asarray(goal_m, float)[..., None, :]
+    )
+    v = np.asarray(nbr_vel_m_s, float)
+    standing = np.hypot(v[..., 0], v[..., 1]) < cfg.standing_share * cruise_m_s
+    near = (np.hypot(at[..., 0], at[..., 1]) < sep_m) & standing & np.asarray(nbr_valid, bool)
+    return near.any(-1) & (arrive_s < cfg.horizon_periods * period_s)
+
+
 def choose_padded(
     pos_m,
     vel_m_s,
@@ -135,6 +160,9 @@ def choose_padded(
     count, nearest, now = encounters(
         pos_m, v_s, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, cfg.encounter_separations * sep
     )
+    occupied = goal_occupied(
+        goal_m, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, cfg, sep, cruise, period_s
+    )
     vel_m_s = np.asarray(vel_m_s, float)
     along = (vel_m_s * v_s).sum(-1)
     aligned = along > 0.0
@@ -143,6 +171,7 @@ def choose_padded(
     )
     straight = (
         (count <= cfg.max_encounters)
+        & ~occupied
         & (nearest >= cfg.dead_on_separations * sep)
         & ((now >= cfg.clear_separations * sep) | aligned)
     )
@@ -189,8 +218,13 @@ def choose_one(
     nbr_pos = np.asarray(nbr_pos_m, float).reshape(-1, 2)
     nbr_vel = np.asarray(nbr_vel_m_s, float).reshape(-1, 2)
     count, nearest, now = 0, math.inf, math.inf
+    occupied = False
     for (nx, ny), (nvx, nvy) in zip(nbr_pos.tolist(), nbr_vel.tolist(), strict=True):
         px, py = nx - x, ny - y
+        if horizon_s < cfg.horizon_periods * period_s and (  # goal_occupied
+            math.hypot(nvx, nvy) < cfg.standing_share * cruise
+        ):
+            occupied |= math.hypot(px + nvx * horizon_s - gx, py + nvy * horizon_s - gy) < sep
         now = min(now, math.hypot(px, py))
         rx, ry = nvx - sx, nvy - sy
         t = min(max(-(px * rx + py * ry) / max(rx * rx + ry * ry, 1e-12), 0.0), horizon_s)
@@ -204,6 +238,7 @@ def choose_one(
     aligned = along > 0.0 and along * along >= cfg.aligned_cos**2 * (vx * vx + vy * vy) * v_s_sq
     straight = (
         count <= cfg.max_encounters
+        and not occupied
         and nearest >= cfg.dead_on_separations * sep
         and (now >= cfg.clear_separations * sep or aligned)
     )
