@@ -219,11 +219,11 @@ def choose_one(
     nbr_vel = np.asarray(nbr_vel_m_s, float).reshape(-1, 2)
     count, nearest, now = 0, math.inf, math.inf
     occupied = False
+    judge_goal = horizon_s < cfg.horizon_periods * period_s  # goal_occupied: arrives in time
+    standing_m_s = cfg.standing_share * cruise
     for (nx, ny), (nvx, nvy) in zip(nbr_pos.tolist(), nbr_vel.tolist(), strict=True):
         px, py = nx - x, ny - y
-        if horizon_s < cfg.horizon_periods * period_s and (  # goal_occupied
-            math.hypot(nvx, nvy) < cfg.standing_share * cruise
-        ):
+        if judge_goal and math.hypot(nvx, nvy) < standing_m_s:
             occupied |= math.hypot(px + nvx * horizon_s - gx, py + nvy * horizon_s - gy) < sep
         now = min(now, math.hypot(px, py))
         rx, ry = nvx - sx, nvy - sy
