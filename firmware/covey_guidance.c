@@ -92,12 +92,7 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     /* |vs| = dist x gain = min(cruise, dist / period), down to 0 on the goal */
     const float gain = fminf(cruise / fmaxf(dist, 1e-9f), 1.0f / period);
     const float vs[2] = {dn * gain, de * gain};
-    /* encounters only until vs reaches the goal: max(dist / cruise, period) (policy.sparse) */
-    const float arrive = fmaxf(dist / cruise, period);
-    const float horizon = fminf(COVEY_SPARSE_HORIZON_PERIODS * period, arrive);
-    /* goal_occupied: a standing neighbour within one separation of the goal when vs arrives */
-    const int32_t check_goal = arrive < COVEY_SPARSE_HORIZON_PERIODS * period;
-    int32_t occupied = 0;
+    const float horizon = COVEY_SPARSE_HORIZON_PERIODS * period;
     const float reach = COVEY_SPARSE_ENCOUNTER_SEPARATIONS * sep;
     const float clear = COVEY_SPARSE_CLEAR_SEPARATIONS * sep;
     int32_t count = 0;
@@ -107,13 +102,6 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
         const float rpn = nbrs[i].pos_n_m - own->pos_n_m;
         const float rpe = nbrs[i].pos_e_m - own->pos_e_m;
         now = fminf(now, sqrtf(rpn * rpn + rpe * rpe));
-        const float nvn = nbrs[i].vel_n_m_s;
-        const float nve = nbrs[i].vel_e_m_s;
-        if (check_goal && sqrtf(nvn * nvn + nve * nve) < COVEY_SPARSE_STANDING_SHARE * cruise) {
-            const float an = nbrs[i].pos_n_m + nvn * horizon - goal->pos_n_m;
-            const float ae = nbrs[i].pos_e_m + nve * horizon - goal->pos_e_m;
-            occupied |= sqrtf(an * an + ae * ae) < sep;
-        }
         const float rvn = nbrs[i].vel_n_m_s - vs[0];
         const float rve = nbrs[i].vel_e_m_s - vs[1];
         const float vv = rvn * rvn + rve * rve;
@@ -134,7 +122,7 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     const int32_t aligned =
         (along > 0.0f) &&
         (along * along >= COVEY_SPARSE_ALIGNED_COS * COVEY_SPARSE_ALIGNED_COS * own_sq * vs_sq);
-    int32_t straight = !occupied && (count <= COVEY_SPARSE_MAX_ENCOUNTERS) &&
+    int32_t straight = (count <= COVEY_SPARSE_MAX_ENCOUNTERS) &&
                        (nearest >= COVEY_SPARSE_DEAD_ON_SEPARATIONS * sep) &&
                        ((now >= clear) || aligned);
     if (straight) {

@@ -62,14 +62,13 @@ typedef struct {
  * else the policy. Time unit: the trained period at the
  * separation kept, COVEY_W_DT x (radius_m / 3) / max_speed_m_s.
  */
-#define COVEY_SPARSE_HORIZON_PERIODS 10.0f      /* encounters this far ahead, not past the goal */
+#define COVEY_SPARSE_HORIZON_PERIODS 10.0f      /* encounters looked for this far ahead */
 #define COVEY_SPARSE_ENCOUNTER_SEPARATIONS 2.0f /* closest approach nearer: an encounter */
 #define COVEY_SPARSE_DEAD_ON_SEPARATIONS (1.0f / 6.0f) /* nearer still: dead-on, the policy */
 #define COVEY_SPARSE_MAX_ENCOUNTERS 1           /* more at once: dense, the policy */
 #define COVEY_SPARSE_PROGRESS_SHARE 0.5f        /* the filtered straight line must keep this */
 #define COVEY_SPARSE_CLEAR_SEPARATIONS 2.0f     /* nobody nearer than this now, */
 #define COVEY_SPARSE_ALIGNED_COS 0.9f           /* unless already flying along the line */
-#define COVEY_SPARSE_STANDING_SHARE 0.25f       /* slower: standing; next to the goal, taken */
 
 typedef struct {
     float vel_n_m_s;        /* the velocity to hold: straight or the policy's */

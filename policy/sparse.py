@@ -12,12 +12,8 @@ policy is needed; there a vehicle sees several encounters at once and keeps the 
 At each decision, for one vehicle:
 - v_s = straight at the goal at cruise speed, slower only to stop on it within one period;
 - its encounters: neighbours whose closest approach over `horizon_periods` decision periods,
-  own v_s against their reported velocity, comes nearer than `encounter_separations`; looked
-  for only until v_s reaches the goal (the line ends there: what passes the goal later is the
-  other vehicle's encounter, with a vehicle standing on its goal);
-- it flies v_s when its goal is not taken (a standing neighbour within one separation of it
-  when v_s arrives: `goal_occupied`), it has at most `max_encounters`, none closer than
-  `dead_on_separations`,
+  own v_s against their reported velocity, comes nearer than `encounter_separations`;
+- it flies v_s when it has at most `max_encounters`, none closer than `dead_on_separations`,
   no neighbour nearer than `clear_separations` now unless it already flies along v_s, and
   the filter alone leaves v_s at least `progress_share` of its speed towards the goal; else
   the policy's velocity. Either is then held and filtered every tick as before.
@@ -39,8 +35,7 @@ class SparseConfig:
     """The rule's thresholds, in units of the separation and of the decision period."""
 
     horizon_periods: float = 10.0
-    """How far ahead encounters are looked for (10 s at 3 m and 1 m/s), and never past the
-    moment the straight line reaches the goal."""
+    """How far ahead encounters are looked for (10 s at 3 m and 1 m/s)."""
     encounter_separations: float = 2.0
     """A neighbour whose straight-line closest approach is nearer than this many separations
     is an encounter (6 m at 3 m)."""
@@ -57,9 +52,6 @@ class SparseConfig:
     rather than turning at the neighbour with only the filter, at its margin, on a stale link."""
     aligned_cos: float = 0.9
     """Flying along the straight line: the cosine between the own velocity and it (25 deg)."""
-    standing_share: float = 0.25
-    """A neighbour slower than this share of cruise speed stands: standing within one
-    separation of the goal when the straight line arrives, it has taken the goal."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -73,8 +65,6 @@ class SparseConfig:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
         if not -1.0 <= self.aligned_cos <= 1.0:
             raise ValueError(f"aligned_cos must be within -1..1, got {self.aligned_cos}")
-        if not 0.0 <= self.standing_share <= 1.0:
-            raise ValueError(f"standing_share must be within 0..1, got {self.standing_share}")
         if not 0.0 <= self.progress_share <= 1.0:
             raise ValueError(f"progress_share must be within 0..1, got {self.progress_share}")
         if self.max_encounters < 0:
@@ -90,49 +80,20 @@ def straight_velocity(pos_m, goal_m, cruise_speed_m_s: float, period_s: float) -
     return d * gain[..., None]
 
 
-def time_to_goal_s(pos_m, goal_m, cruise_speed_m_s: float, period_s: float) -> np.ndarray:
-    """(...,): how long `straight_velocity` takes to the goal, max(distance / cruise, period)
-    (inside one period's reach it slows to arrive in exactly one period)."""
-    d = np.asarray(goal_m, float) - np.asarray(pos_m, float)
-    return np.maximum(np.hypot(d[..., 0], d[..., 1]) / cruise_speed_m_s, period_s)
-
-
 def encounters(pos_m, v_straight, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, radius_m):
     """(count (...,), nearest approach (...,), nearest now (...,)) in metres, inf when none: the
     neighbours (..., K, 2) whose closest approach to a vehicle flying v_straight, within
-    horizon_s (a number, or (...,) per vehicle), is nearer than radius_m; and the nearest
-    neighbour's distance now."""
+    horizon_s, is nearer than radius_m; and the nearest neighbour's distance now."""
     rp = np.asarray(nbr_pos_m, float) - np.asarray(pos_m, float)[..., None, :]
     rv = np.asarray(nbr_vel_m_s, float) - np.asarray(v_straight, float)[..., None, :]
     vv = (rv * rv).sum(-1)
-    t = np.minimum(
-        np.maximum(-(rp * rv).sum(-1) / np.maximum(vv, 1e-12), 0.0),
-        np.asarray(horizon_s, float)[..., None],
-    )
+    t = np.clip(-(rp * rv).sum(-1) / np.maximum(vv, 1e-12), 0.0, horizon_s)
     c = rp + rv * t[..., None]
     d = np.hypot(c[..., 0], c[..., 1])
     valid = np.asarray(nbr_valid, bool)
     hit = (d < radius_m) & valid
     now = np.where(valid, np.hypot(rp[..., 0], rp[..., 1]), np.inf).min(-1, initial=np.inf)
     return hit.sum(-1), np.where(hit, d, np.inf).min(-1, initial=np.inf), now
-
-
-def goal_occupied(
-    goal_m, nbr_pos_m, nbr_vel_m_s, nbr_valid, arrive_s, cfg, sep_m, cruise_m_s, period_s
-):
-    """(...,): a neighbour that stands (slower than `standing_share` of cruise) will be within
-    one separation of the goal when the straight line reaches it (arrive_s (...,), within the
-    horizon): the goal is taken, not an encounter to fly through (the policy deals with it)."""
-    arrive_s = np.asarray(arrive_s, float)
-    at = (
-        np.asarray(nbr_pos_m, float)
-        + np.asarray(nbr_vel_m_s, float) * arrive_s[..., None, None]
-        - np.asarray(goal_m, float)[..., None, :]
-    )
-    v = np.asarray(nbr_vel_m_s, float)
-    standing = np.hypot(v[..., 0], v[..., 1]) < cfg.standing_share * cruise_m_s
-    near = (np.hypot(at[..., 0], at[..., 1]) < sep_m) & standing & np.asarray(nbr_valid, bool)
-    return near.any(-1) & (arrive_s < cfg.horizon_periods * period_s)
 
 
 def choose_padded(
@@ -151,17 +112,16 @@ def choose_padded(
     padded views (N, K, ...) of their neighbours; safety_cfg is the filter flight keeps
     (its radius_m the separation, its max_speed_m_s the cruise speed)."""
     pos_m = np.asarray(pos_m, float)
-    cruise = safety_cfg.max_speed_m_s
-    v_s = straight_velocity(pos_m, goal_m, cruise, period_s)
+    v_s = straight_velocity(pos_m, goal_m, safety_cfg.max_speed_m_s, period_s)
     sep = safety_cfg.radius_m
-    horizon_s = np.minimum(
-        cfg.horizon_periods * period_s, time_to_goal_s(pos_m, goal_m, cruise, period_s)
-    )
     count, nearest, now = encounters(
-        pos_m, v_s, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, cfg.encounter_separations * sep
-    )
-    occupied = goal_occupied(
-        goal_m, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, cfg, sep, cruise, period_s
+        pos_m,
+        v_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_valid,
+        cfg.horizon_periods * period_s,
+        cfg.encounter_separations * sep,
     )
     vel_m_s = np.asarray(vel_m_s, float)
     along = (vel_m_s * v_s).sum(-1)
@@ -171,7 +131,6 @@ def choose_padded(
     )
     straight = (
         (count <= cfg.max_encounters)
-        & ~occupied
         & (nearest >= cfg.dead_on_separations * sep)
         & ((now >= cfg.clear_separations * sep) | aligned)
     )
@@ -208,23 +167,16 @@ def choose_one(
     tests/test_policy_sparse.py)."""
     x, y = float(pos_m[0]), float(pos_m[1])
     gx, gy = float(goal_m[0]) - x, float(goal_m[1]) - y
-    cruise = safety_cfg.max_speed_m_s
-    gain = min(cruise / max(math.hypot(gx, gy), 1e-9), 1.0 / max(period_s, 1e-9))
+    gain = min(safety_cfg.max_speed_m_s / max(math.hypot(gx, gy), 1e-9), 1.0 / max(period_s, 1e-9))
     sx, sy = gx * gain, gy * gain
     sep = safety_cfg.radius_m
-    # time_to_goal_s: the line ends on the goal
-    horizon_s = min(cfg.horizon_periods * period_s, max(math.hypot(gx, gy) / cruise, period_s))
+    horizon_s = cfg.horizon_periods * period_s
     radius_m = cfg.encounter_separations * sep
     nbr_pos = np.asarray(nbr_pos_m, float).reshape(-1, 2)
     nbr_vel = np.asarray(nbr_vel_m_s, float).reshape(-1, 2)
     count, nearest, now = 0, math.inf, math.inf
-    occupied = False
-    judge_goal = horizon_s < cfg.horizon_periods * period_s  # goal_occupied: arrives in time
-    standing_m_s = cfg.standing_share * cruise
     for (nx, ny), (nvx, nvy) in zip(nbr_pos.tolist(), nbr_vel.tolist(), strict=True):
         px, py = nx - x, ny - y
-        if judge_goal and math.hypot(nvx, nvy) < standing_m_s:
-            occupied |= math.hypot(px + nvx * horizon_s - gx, py + nvy * horizon_s - gy) < sep
         now = min(now, math.hypot(px, py))
         rx, ry = nvx - sx, nvy - sy
         t = min(max(-(px * rx + py * ry) / max(rx * rx + ry * ry, 1e-12), 0.0), horizon_s)
@@ -238,7 +190,6 @@ def choose_one(
     aligned = along > 0.0 and along * along >= cfg.aligned_cos**2 * (vx * vx + vy * vy) * v_s_sq
     straight = (
         count <= cfg.max_encounters
-        and not occupied
         and nearest >= cfg.dead_on_separations * sep
         and (now >= cfg.clear_separations * sep or aligned)
     )

@@ -58,30 +58,6 @@ def test_one_crossing_flies_straight_but_dead_on_two_or_blocked_fly_the_policy()
     assert straight  # already flying along the straight line (within 25 degrees)
 
 
-def test_the_line_ends_at_the_goal_and_a_taken_goal_keeps_the_policy():
-    """Encounters are looked for only until the straight line reaches the goal; a neighbour
-    that will be within one separation of the goal then makes it taken: the policy."""
-    goal = np.array([6.0, 0.0])  # 6 s away at 1 m/s
-    # it crosses our line dead-on 10 m out: past this goal, so not dead-on for it (and 5.7 m
-    # from the goal when we arrive: not taken)
-    v, straight = _choose([[10.0, -10.0]], [[0.0, 1.0]], goal=goal)
-    assert straight and np.allclose(v, [1.0, 0.0])
-    _, straight = _choose([[10.0, -10.0]], [[0.0, 1.0]])  # the goal beyond: dead-on
-    assert not straight
-    # someone standing 1 m from the goal (not dead-on, one encounter): the goal is taken
-    _, straight = _choose([[6.0, 1.0]], [[0.0, 0.0]], goal=goal)
-    assert not straight
-    # standing 4 m from it: an encounter the filter resolves, straight
-    _, straight = _choose([[6.0, 4.0]], [[0.0, 0.0]], goal=goal)
-    assert straight
-    # the same neighbour next to a goal beyond the horizon (40 m): not judged yet
-    _, straight = _choose([[40.0, 1.0]], [[0.0, 0.0]])
-    assert straight
-    # passing 1 m from the goal when we arrive, at cruise speed: an encounter, not a taken goal
-    _, straight = _choose([[6.0, -5.0]], [[0.0, 1.0]], goal=goal)
-    assert straight
-
-
 def test_the_straight_line_must_keep_its_progress_through_the_filter():
     """An encounter the filter bends (a vehicle crossing 1 m off, 7 m ahead): flown straight
     only if the filtered straight line keeps progress_share of its speed towards the goal."""
@@ -101,7 +77,6 @@ def test_config_is_validated():
         {"horizon_periods": -1.0},
         {"encounter_separations": math.nan},
         {"progress_share": 1.5},
-        {"standing_share": -0.1},
         {"max_encounters": -1},
         {"clear_separations": -0.5},
         {"aligned_cos": 1.5},
@@ -284,10 +259,7 @@ def test_c_rule_is_the_numpy_rule():
             pos, vel, goal, asked, nbr_pos, nbr_vel, cpol.safety_cfg, CFG, 1.0
         )
         v_s = sparse.straight_velocity(pos, goal, 1.0, 1.0)
-        horizon_s = min(10.0, float(sparse.time_to_goal_s(pos, goal, 1.0, 1.0)))
-        count, _, _ = sparse.encounters(
-            pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), horizon_s, 6.0
-        )
+        count, _, _ = sparse.encounters(pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), 10.0, 6.0)
         if c.straight != straight:
             near += 1
             continue
