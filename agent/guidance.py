@@ -65,7 +65,7 @@ class GuidanceConfig:
     whole separation. None: 1.25 m per 3 m of separation with the filter on (a narrower berth,
     measured in docs/policy.md), the whole separation with it off (policy.runtime.told_separation_m)."""
     sparse_rule: bool = True
-    """With the filter on: where a vehicle meets at most one other and not dead-on, fly straight
+    """With the filter on: where a vehicle meets at most two others and not dead-on, fly straight
     at the goal and let the filter resolve it (policy.sparse; docs/policy.md "Sparse traffic").
     Off, or with the filter off: the policy always."""
 

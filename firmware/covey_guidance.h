@@ -57,7 +57,7 @@ typedef struct {
 
 /*
  * The sparse-traffic rule, policy/sparse.py's twin with SparseConfig's defaults: where a
- * vehicle meets at most one other, not dead-on, and nobody is near yet (or it already flies
+ * vehicle meets at most two others, not dead-on, and nobody is near yet (or it already flies
  * that way), it flies straight at its goal and leaves the encounter to the filter (ORCA);
  * else the policy. Time unit: the trained period at the
  * separation kept, COVEY_W_DT x (radius_m / 3) / max_speed_m_s.
@@ -65,7 +65,7 @@ typedef struct {
 #define COVEY_SPARSE_HORIZON_PERIODS 10.0f      /* encounters looked for this far ahead */
 #define COVEY_SPARSE_ENCOUNTER_SEPARATIONS 2.0f /* closest approach nearer: an encounter */
 #define COVEY_SPARSE_DEAD_ON_SEPARATIONS (1.0f / 6.0f) /* nearer still: dead-on, the policy */
-#define COVEY_SPARSE_MAX_ENCOUNTERS 1           /* more at once: dense, the policy */
+#define COVEY_SPARSE_MAX_ENCOUNTERS 2           /* more at once: dense, the policy */
 #define COVEY_SPARSE_PROGRESS_SHARE 0.5f        /* the filtered straight line must keep this */
 #define COVEY_SPARSE_CLEAR_SEPARATIONS 2.0f     /* nobody nearer than this now, */
 #define COVEY_SPARSE_ALIGNED_COS 0.9f           /* unless already flying along the line */

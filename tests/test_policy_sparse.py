@@ -29,7 +29,7 @@ def test_alone_flies_straight_at_cruise_and_slows_to_stop_on_the_goal():
     assert straight and np.allclose(v, [0.4, 0.0])  # reaches the goal in one period
 
 
-def test_one_crossing_flies_straight_but_dead_on_two_or_blocked_fly_the_policy():
+def test_two_crossings_fly_straight_but_dead_on_three_or_blocked_fly_the_policy():
     # a neighbour crossing 2 m behind us (closest approach ~1.4 m): one encounter, not dead-on
     v, straight = _choose([[12.0, -10.0]], [[0.0, 1.0]])
     assert straight and np.allclose(v, [1.0, 0.0])
@@ -39,8 +39,26 @@ def test_one_crossing_flies_straight_but_dead_on_two_or_blocked_fly_the_policy()
     # head-on on our line: dead-on too
     _, straight = _choose([[20.0, 0.0]], [[-1.0, 0.0]])
     assert not straight
-    # two encounters at once: dense traffic
+    # two encounters at once (crossing behind us from either side): still sparse
     _, straight = _choose([[12.0, -10.0], [12.0, 10.0]], [[0.0, 1.0], [0.0, -1.0]])
+    assert straight
+    # three at once: dense traffic
+    _, straight = _choose(
+        [[12.0, -10.0], [12.0, 10.0], [14.0, -12.0]], [[0.0, 1.0], [0.0, -1.0], [0.0, 1.0]]
+    )
+    assert not straight
+    # and with one encounter allowed, as before, two are dense
+    _, straight = sparse.choose_one(
+        (0.0, 0.0),
+        (1.0, 0.0),
+        GOAL,
+        ASKED,
+        [[12.0, -10.0], [12.0, 10.0]],
+        [[0.0, 1.0], [0.0, -1.0]],
+        SAFE,
+        sparse.SparseConfig(max_encounters=1),
+        1.0,
+    )
     assert not straight
     # far away or diverging: no encounter at all
     _, straight = _choose([[0.0, 30.0], [-10.0, 0.0]], [[0.0, 1.0], [-1.0, 0.0]])

@@ -133,7 +133,7 @@ int main(void)
         sh_put_dec(fout.infeasible);
         sh_puts("\n");
         /* the sparse rule on the same scene: its encounter scan, and its own filter call
-           when at most one neighbour is an encounter (bench/firmware_cortexm.py counts a
+           when at most two neighbours are encounters (bench/firmware_cortexm.py counts a
            full filter call on top, as the upper bound) */
         const covey_goal_t away = {me.pos_n_m - 50.0f, me.pos_e_m};
         covey_sparse_out_t sout;

@@ -34,7 +34,7 @@ class SitlConfig:
     policy_speed_m_s: float = 1.0
     """Onboard policy cruise speed (the policy's unit speed)."""
     sparse_rule: bool = True
-    """Onboard guidance flies the straight line where the vehicle meets at most one other and
+    """Onboard guidance flies the straight line where the vehicle meets at most two others and
     not dead-on, and leaves it to the filter (covey_sparse_choose, PX4 CVY_SPARSE), as the
     agents do."""
     healthy: bool = True
