@@ -92,7 +92,17 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     /* |vs| = dist x gain = min(cruise, dist / period), down to 0 on the goal */
     const float gain = fminf(cruise / fmaxf(dist, 1e-9f), 1.0f / period);
     const float vs[2] = {dn * gain, de * gain};
-    const float horizon = COVEY_SPARSE_HORIZON_PERIODS * period;
+    /* goal_taken: a neighbour within one separation of the goal now */
+    int32_t taken = 0;
+    for (int32_t i = 0; i < n_nbrs && !taken; ++i) {
+        const float tn = nbrs[i].pos_n_m - goal->pos_n_m;
+        const float te = nbrs[i].pos_e_m - goal->pos_e_m;
+        taken = sqrtf(tn * tn + te * te) < sep;
+    }
+    /* encounters only until vs reaches the goal, max(dist / cruise, period), unless it is
+       taken (policy.sparse.encounter_horizon_s) */
+    const float full = COVEY_SPARSE_HORIZON_PERIODS * period;
+    const float horizon = taken ? full : fminf(full, fmaxf(dist / cruise, period));
     const float reach = COVEY_SPARSE_ENCOUNTER_SEPARATIONS * sep;
     const float clear = COVEY_SPARSE_CLEAR_SEPARATIONS * sep;
     int32_t count = 0;

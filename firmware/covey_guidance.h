@@ -62,7 +62,7 @@ typedef struct {
  * else the policy. Time unit: the trained period at the
  * separation kept, COVEY_W_DT x (radius_m / 3) / max_speed_m_s.
  */
-#define COVEY_SPARSE_HORIZON_PERIODS 10.0f      /* encounters looked for this far ahead */
+#define COVEY_SPARSE_HORIZON_PERIODS 10.0f      /* this far ahead, not past a goal nobody is at */
 #define COVEY_SPARSE_ENCOUNTER_SEPARATIONS 2.0f /* closest approach nearer: an encounter */
 #define COVEY_SPARSE_DEAD_ON_SEPARATIONS (1.0f / 6.0f) /* nearer still: dead-on, the policy */
 #define COVEY_SPARSE_MAX_ENCOUNTERS 2           /* more at once: dense, the policy */

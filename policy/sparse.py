@@ -12,7 +12,11 @@ policy is needed; there a vehicle sees several encounters at once and keeps the 
 At each decision, for one vehicle:
 - v_s = straight at the goal at cruise speed, slower only to stop on it within one period;
 - its encounters: neighbours whose closest approach over `horizon_periods` decision periods,
-  own v_s against their reported velocity, comes nearer than `encounter_separations`;
+  own v_s against their reported velocity, comes nearer than `encounter_separations`; looked
+  for only until v_s reaches the goal (the line ends there: what passes the goal later is the
+  other vehicle's encounter, with a vehicle standing on its goal), unless the goal is taken
+  (a neighbour within one separation of it now, `goal_taken`: then over the whole horizon,
+  so that a vehicle on the goal, or pushed just past it, is dead-on and left to the policy);
 - it flies v_s when it has at most `max_encounters`, none closer than `dead_on_separations`,
   no neighbour nearer than `clear_separations` now unless it already flies along v_s, and
   the filter alone leaves v_s at least `progress_share` of its speed towards the goal; else
@@ -35,7 +39,8 @@ class SparseConfig:
     """The rule's thresholds, in units of the separation and of the decision period."""
 
     horizon_periods: float = 10.0
-    """How far ahead encounters are looked for (10 s at 3 m and 1 m/s)."""
+    """How far ahead encounters are looked for (10 s at 3 m and 1 m/s), and never past the
+    moment the straight line reaches the goal unless the goal is taken (`goal_taken`)."""
     encounter_separations: float = 2.0
     """A neighbour whose straight-line closest approach is nearer than this many separations
     is an encounter (6 m at 3 m)."""
@@ -82,20 +87,49 @@ def straight_velocity(pos_m, goal_m, cruise_speed_m_s: float, period_s: float) -
     return d * gain[..., None]
 
 
+def time_to_goal_s(pos_m, goal_m, cruise_speed_m_s: float, period_s: float) -> np.ndarray:
+    """(...,): how long `straight_velocity` takes to the goal, max(distance / cruise, period)
+    (inside one period's reach it slows to arrive in exactly one period)."""
+    d = np.asarray(goal_m, float) - np.asarray(pos_m, float)
+    return np.maximum(np.hypot(d[..., 0], d[..., 1]) / cruise_speed_m_s, period_s)
+
+
 def encounters(pos_m, v_straight, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, radius_m):
     """(count (...,), nearest approach (...,), nearest now (...,)) in metres, inf when none: the
     neighbours (..., K, 2) whose closest approach to a vehicle flying v_straight, within
-    horizon_s, is nearer than radius_m; and the nearest neighbour's distance now."""
+    horizon_s (a number, or (...,) per vehicle), is nearer than radius_m; and the nearest
+    neighbour's distance now."""
     rp = np.asarray(nbr_pos_m, float) - np.asarray(pos_m, float)[..., None, :]
     rv = np.asarray(nbr_vel_m_s, float) - np.asarray(v_straight, float)[..., None, :]
     vv = (rv * rv).sum(-1)
-    t = np.clip(-(rp * rv).sum(-1) / np.maximum(vv, 1e-12), 0.0, horizon_s)
+    t = np.minimum(
+        np.maximum(-(rp * rv).sum(-1) / np.maximum(vv, 1e-12), 0.0),
+        np.asarray(horizon_s, float)[..., None],
+    )
     c = rp + rv * t[..., None]
     d = np.hypot(c[..., 0], c[..., 1])
     valid = np.asarray(nbr_valid, bool)
     hit = (d < radius_m) & valid
     now = np.where(valid, np.hypot(rp[..., 0], rp[..., 1]), np.inf).min(-1, initial=np.inf)
     return hit.sum(-1), np.where(hit, d, np.inf).min(-1, initial=np.inf), now
+
+
+def goal_taken(goal_m, nbr_pos_m, nbr_valid, sep_m: float) -> np.ndarray:
+    """(...,): a neighbour (..., K, 2) is within one separation of the goal now. Whoever is
+    there, standing or pushed aside, the encounters are then looked for over the whole horizon
+    (a goto onto a holding vehicle's spot: tests/test_trust_keyed.py)."""
+    d = np.asarray(nbr_pos_m, float) - np.asarray(goal_m, float)[..., None, :]
+    return ((np.hypot(d[..., 0], d[..., 1]) < sep_m) & np.asarray(nbr_valid, bool)).any(-1)
+
+
+def encounter_horizon_s(
+    pos_m, goal_m, taken, cfg: SparseConfig, cruise_speed_m_s: float, period_s: float
+):
+    """(...,): how far ahead encounters are looked for: `horizon_periods`, cut at
+    `time_to_goal_s` unless the goal is `taken`."""
+    full = cfg.horizon_periods * period_s
+    to_goal = time_to_goal_s(pos_m, goal_m, cruise_speed_m_s, period_s)
+    return np.where(taken, full, np.minimum(full, to_goal))
 
 
 def choose_padded(
@@ -114,15 +148,17 @@ def choose_padded(
     padded views (N, K, ...) of their neighbours; safety_cfg is the filter flight keeps
     (its radius_m the separation, its max_speed_m_s the cruise speed)."""
     pos_m = np.asarray(pos_m, float)
-    v_s = straight_velocity(pos_m, goal_m, safety_cfg.max_speed_m_s, period_s)
+    cruise = safety_cfg.max_speed_m_s
+    v_s = straight_velocity(pos_m, goal_m, cruise, period_s)
     sep = safety_cfg.radius_m
+    taken = goal_taken(goal_m, nbr_pos_m, nbr_valid, sep)
     count, nearest, now = encounters(
         pos_m,
         v_s,
         nbr_pos_m,
         nbr_vel_m_s,
         nbr_valid,
-        cfg.horizon_periods * period_s,
+        encounter_horizon_s(pos_m, goal_m, taken, cfg, cruise, period_s),
         cfg.encounter_separations * sep,
     )
     vel_m_s = np.asarray(vel_m_s, float)
@@ -169,15 +205,22 @@ def choose_one(
     tests/test_policy_sparse.py)."""
     x, y = float(pos_m[0]), float(pos_m[1])
     gx, gy = float(goal_m[0]) - x, float(goal_m[1]) - y
-    gain = min(safety_cfg.max_speed_m_s / max(math.hypot(gx, gy), 1e-9), 1.0 / max(period_s, 1e-9))
+    cruise = safety_cfg.max_speed_m_s
+    gain = min(cruise / max(math.hypot(gx, gy), 1e-9), 1.0 / max(period_s, 1e-9))
     sx, sy = gx * gain, gy * gain
     sep = safety_cfg.radius_m
-    horizon_s = cfg.horizon_periods * period_s
     radius_m = cfg.encounter_separations * sep
     nbr_pos = np.asarray(nbr_pos_m, float).reshape(-1, 2)
     nbr_vel = np.asarray(nbr_vel_m_s, float).reshape(-1, 2)
+    pairs = list(zip(nbr_pos.tolist(), nbr_vel.tolist(), strict=True))
+    # horizon_s: the line ends on the goal (time_to_goal_s) unless the goal is taken
+    full_s = cfg.horizon_periods * period_s
+    if any(math.hypot(nx - x - gx, ny - y - gy) < sep for (nx, ny), _ in pairs):
+        horizon_s = full_s
+    else:
+        horizon_s = min(full_s, max(math.hypot(gx, gy) / cruise, period_s))
     count, nearest, now = 0, math.inf, math.inf
-    for (nx, ny), (nvx, nvy) in zip(nbr_pos.tolist(), nbr_vel.tolist(), strict=True):
+    for (nx, ny), (nvx, nvy) in pairs:
         px, py = nx - x, ny - y
         now = min(now, math.hypot(px, py))
         rx, ry = nvx - sx, nvy - sy

@@ -76,6 +76,34 @@ def test_two_crossings_fly_straight_but_dead_on_three_or_blocked_fly_the_policy(
     assert straight  # already flying along the straight line (within 25 degrees)
 
 
+def test_the_line_ends_at_the_goal_unless_someone_is_there():
+    """Encounters are looked for only until the straight line reaches the goal; when a
+    neighbour is within one separation of the goal now, over the whole horizon, so that one
+    standing on it or pushed just past it is dead-on and left to the policy."""
+    goal = np.array([6.0, 0.0])  # 6 s away at 1 m/s
+    # it crosses our line dead-on 10 m out: past this goal, so not dead-on for it
+    v, straight = _choose([[10.0, -10.0]], [[0.0, 1.0]], goal=goal)
+    assert straight and np.allclose(v, [1.0, 0.0])
+    _, straight = _choose([[10.0, -10.0]], [[0.0, 1.0]])  # the goal beyond: dead-on
+    assert not straight
+    # standing on our line 4 m past the goal: the line ends 4 m from it, one encounter
+    _, straight = _choose([[10.0, 0.0]], [[0.0, 0.0]], goal=goal)
+    assert straight
+    # 2 m past the goal: within one separation of it, the goal is taken, the whole horizon
+    # sees it dead-on ahead: the policy
+    assert sparse.goal_taken(goal, [[8.0, 0.0]], [True], 3.0)
+    v, straight = _choose([[8.0, 0.0]], [[0.0, 0.0]], goal=goal)
+    assert not straight and np.allclose(v, ASKED)
+    # and the horizon is cut only where the goal is free
+    cut = sparse.encounter_horizon_s(
+        np.zeros((2, 2)), np.tile(goal, (2, 1)), np.array([False, True]), CFG, 1.0, 1.0
+    )
+    assert np.allclose(cut, [6.0, 10.0])
+    # passing 0.7 m from the goal when we arrive, 5 m from it now: an encounter, straight
+    _, straight = _choose([[6.0, -5.0]], [[0.0, 1.0]], goal=goal)
+    assert straight
+
+
 def test_the_straight_line_must_keep_its_progress_through_the_filter():
     """An encounter the filter bends (a vehicle crossing 1 m off, 7 m ahead): flown straight
     only if the filtered straight line keeps progress_share of its speed towards the goal."""
@@ -277,7 +305,11 @@ def test_c_rule_is_the_numpy_rule():
             pos, vel, goal, asked, nbr_pos, nbr_vel, cpol.safety_cfg, CFG, 1.0
         )
         v_s = sparse.straight_velocity(pos, goal, 1.0, 1.0)
-        count, _, _ = sparse.encounters(pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), 10.0, 6.0)
+        taken = sparse.goal_taken(goal, nbr_pos, np.ones(k, bool), 3.0)
+        horizon_s = sparse.encounter_horizon_s(pos, goal, taken, CFG, 1.0, 1.0)
+        count, _, _ = sparse.encounters(
+            pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), horizon_s, 6.0
+        )
         if c.straight != straight:
             near += 1
             continue
@@ -286,6 +318,25 @@ def test_c_rule_is_the_numpy_rule():
         assert c.n_encounters == count or near
         np.testing.assert_allclose(c.vel_m_s, ref, atol=1e-5)
     assert near <= 4 and agree >= 1990 and 200 < n_straight < 1900
+
+
+@needs_cc
+def test_c_rule_ends_the_line_unless_someone_is_there():
+    """The C twin on the scenes of test_the_line_ends_at_the_goal_unless_someone_is_there."""
+    from firmware.cpolicy import CPolicy
+
+    filt = CPolicy.load(sparse_rule=True)._filter
+    goal = np.array([6.0, 0.0])
+    for nbr, nbr_vel, expect in (
+        ([[10.0, -10.0]], [[0.0, 1.0]], True),  # dead-on past the goal
+        ([[10.0, 0.0]], [[0.0, 0.0]], True),  # standing 4 m past the goal
+        ([[8.0, 0.0]], [[0.0, 0.0]], False),  # 2 m past it: taken, dead-on
+        ([[6.0, -5.0]], [[0.0, 1.0]], True),
+    ):
+        c = filt.sparse((0.0, 0.0), (1.0, 0.0), goal, ASKED, np.array(nbr), np.array(nbr_vel))
+        assert c.status == "ok" and bool(c.straight) is expect, (nbr, c)
+        _, ref = _choose(nbr, nbr_vel, goal=goal)
+        assert ref is expect
 
 
 @needs_cc
