@@ -48,8 +48,8 @@ class SparseConfig:
     """An encounter nearer than this (0.5 m at 3 m) is dead-on: the policy flies it."""
     max_encounters: int = 2
     """More encounters than this at once is dense traffic: the policy flies it. Two, not one:
-    large swarms 1.0035 -> 1.0018 (ORCA 1.0026), for conflicts +0.4 % and circles +0.7 %
-    (docs/policy.md "Two encounters at once")."""
+    large swarms 1.0035 -> 1.0018 (ORCA 1.0026; 1.0008 with the line ended at a free goal),
+    for conflicts +0.4 % and circles +0.7 % (docs/policy.md "Two encounters at once")."""
     progress_share: float = 0.5
     """The filtered v_s must keep this share of its speed towards the goal (else the policy)."""
     clear_separations: float = 2.0
