@@ -7,6 +7,9 @@ applies it through the mode machine and publishes each transition as an Event.
   stop and hold; still lost after `gcs_lost_land_s`: land. If a station comes back while the
   vehicle holds, it resumes the goto it was flying.
 - Battery below `low_battery_return_pct`: return home; below `critical_battery_land_pct`: land.
+  The battery failsafe re-arms: it acts whenever an airborne vehicle is below a threshold and
+  not already doing what the threshold asks (returning or landing; landing), and a vehicle
+  below it refuses the commands the failsafe would undo (`FailsafeConfig.battery_refusal`).
 - Outside the geofence while flying a goto: hold (the fence also rejects gotos outside it).
 The autopilot-link failsafe lives in the autopilot (PX4 has its own); the agent flags it.
 """
@@ -19,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.modes import AIRBORNE, Trigger
-from comms.schema import Mode, StateFlag
+from comms.schema import CommandKind, Mode, StateFlag
 
 
 @dataclass(frozen=True)
@@ -31,7 +34,12 @@ class FailsafeConfig:
     gcs_lost_hold_s: float = 5.0
     gcs_lost_land_s: float = 30.0
     low_battery_return_pct: float = 25.0
+    """At or below: airborne vehicles return home, and take-off, goto and hold are refused."""
     critical_battery_land_pct: float = 10.0
+    """At or below: airborne vehicles land, and only land and kill are accepted."""
+    battery_retry_s: float = 5.0
+    """A battery failsafe whose mode did not stick (its autopilot action failed) acts again
+    after this long, not every tick."""
     geofence_radius_m: float = 500.0
     """Horizontal radius around the fleet origin; 0 switches the fence off."""
     max_alt_m: float = 120.0
@@ -46,6 +54,25 @@ class FailsafeConfig:
             raise ValueError(f"geofence_radius_m must be >= 0, got {self.geofence_radius_m}")
         if not 0 <= self.min_alt_m < self.max_alt_m:
             raise ValueError("need 0 <= min_alt_m < max_alt_m")
+
+    def battery_refusal(self, kind: CommandKind, battery_pct: float) -> str | None:
+        """Why a command is refused at this battery level (what the battery failsafe would
+        undo at once), or None. An unknown battery (NaN) refuses nothing."""
+        if kind in (CommandKind.LAND, CommandKind.KILL) or not battery_pct <= max(
+            self.low_battery_return_pct, self.critical_battery_land_pct
+        ):
+            return None
+        if battery_pct <= self.critical_battery_land_pct:
+            return (
+                f"battery {battery_pct:.0f} % below the {self.critical_battery_land_pct:g} % "
+                "landing threshold: only land and kill are accepted"
+            )
+        if kind is CommandKind.RETURN:
+            return None
+        return (
+            f"battery {battery_pct:.0f} % below the {self.low_battery_return_pct:g} % return "
+            "threshold: only return, land and kill are accepted"
+        )
 
     def check_target(self, target_ned_m: np.ndarray) -> str | None:
         """Why a goto target is refused, or None if it is fine."""
@@ -92,7 +119,7 @@ class Failsafes:
         self.cfg = cfg
         self._gcs_seen_s = now_s
         self._gcs_failsafe = 0  # 0 none, 1 holding, 2 landing
-        self._battery_stage = 0  # 0 fine, 1 returning, 2 landing
+        self._battery_acted: tuple[Trigger | None, float] = (None, -math.inf)  # what, when
         self._fence_tripped = False
         self.flags = StateFlag.NONE
 
@@ -143,25 +170,29 @@ class Failsafes:
                         f"no ground station for {lost_s:.0f} s: holding",
                         StateFlag.FAILSAFE_GCS_LOST,
                     )
+        # Level-triggered, not once per flight: whenever an airborne vehicle is below a
+        # threshold and not already doing what it asks. Once the mode is entered the condition
+        # is false, so nothing repeats; a mode that did not stick is retried after a pause.
         if airborne and mode is not Mode.LANDING:
-            if battery_pct <= cfg.critical_battery_land_pct and self._battery_stage < 2:
-                self._battery_stage = 2
-                return FailsafeAction(
+            act = None
+            if battery_pct <= cfg.critical_battery_land_pct:
+                act = FailsafeAction(
                     Trigger.FAILSAFE_LAND,
                     f"battery critical ({battery_pct:.0f} %): landing",
                     StateFlag.NONE,
                 )
-            if (
-                battery_pct <= cfg.low_battery_return_pct
-                and self._battery_stage < 1
-                and mode is not Mode.RETURNING
-            ):
-                self._battery_stage = 1
-                return FailsafeAction(
+            elif battery_pct <= cfg.low_battery_return_pct and mode is not Mode.RETURNING:
+                act = FailsafeAction(
                     Trigger.FAILSAFE_RETURN,
                     f"battery low ({battery_pct:.0f} %): returning home",
                     StateFlag.NONE,
                 )
+            last, when_s = self._battery_acted
+            if act is not None and (
+                act.trigger is not last or now_s - when_s >= cfg.battery_retry_s
+            ):
+                self._battery_acted = (act.trigger, now_s)
+                return act
         inside = self.cfg.inside_fence(pos_ned_m)
         if inside:
             self._fence_tripped = False

@@ -190,6 +190,8 @@ class FlightCore:
         self.takeoff_alt_m = np.full(n, cfg.takeoff_alt_m)
         self.heading_rad = np.zeros(n)
         self.failsafes = [Failsafes(cfg.failsafe, now_s) for _ in range(n)]
+        self.battery_pct = np.full(n, np.nan)
+        """(N,) the battery as last observed (NaN: not yet); commands are checked against it."""
         self.notes: list[Note] = []
         """Events for the shell to publish (it drains the list)."""
 
@@ -262,6 +264,9 @@ class FlightCore:
         res = step(mode, trigger)
         if not res.accepted:
             return Decision(AckResult.REJECTED, res.reason, mode)
+        low_battery = fs.battery_refusal(cmd.kind, float(self.battery_pct[i]))
+        if low_battery:
+            return Decision(AckResult.REJECTED, low_battery, mode)
         actions = self._enter(i, res.mode, trigger, np.asarray(pos_m, float), target, alt_m)
         actions = tuple(
             replace(
@@ -389,6 +394,7 @@ class FlightCore:
         """Vehicle events and failsafes from this tick's telemetry; returns the actions they need."""
         actions: list[Action] = []
         pos, vel = obs.pos_m, obs.vel_m_s
+        self.battery_pct[:] = obs.battery_pct
         cruise = self.cfg.guidance.cruise_speed_m_s
         speed = np.hypot(vel[:, 0], vel[:, 1])
         moving = speed > SPEED_FOR_HEADING * cruise

@@ -68,7 +68,7 @@ def test_targets_outside_limits_are_refused(target, why) -> None:
 
 
 def _inner(fs: Failsafes) -> tuple:
-    return (fs._gcs_seen_s, fs._gcs_failsafe, fs._battery_stage, fs._fence_tripped, fs.flags)
+    return (fs._gcs_seen_s, fs._gcs_failsafe, fs._battery_acted, fs._fence_tripped, fs.flags)
 
 
 @pytest.mark.parametrize("seed", range(4))
