@@ -392,6 +392,8 @@ class Fleet:
                 [np.zeros(self.cfg.vehicles, bool), ext.age_s > self.others.cfg.stale_s]
             ),
             self.cfg.max_neighbours,
+            np.concatenate([self.ids, np.array(ext.ids, np.int64)]),
+            self.ids[rows],
         )
 
     def _states(self, rows: np.ndarray) -> list[VehicleState]:

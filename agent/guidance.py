@@ -132,10 +132,15 @@ class NeighbourViews:
     """(k, K) bool"""
     stale: np.ndarray
     """(k, K) bool: the entry's data is old (guidance slows down near it)."""
+    ids: np.ndarray | None = None
+    """(k, K) the entries' vehicle ids (0: unknown); with `own_ids`, the filter pushes
+    coincident vehicles apart by id (policy.safety.untie). None: it cannot."""
+    own_ids: np.ndarray | None = None
+    """(k,) each row's own vehicle id."""
 
     @classmethod
-    def of_snapshot(cls, nbrs: NeighbourSnapshot) -> NeighbourViews:
-        """One row: an agent's neighbour table."""
+    def of_snapshot(cls, nbrs: NeighbourSnapshot, own_id: int | None = None) -> NeighbourViews:
+        """One row: an agent's neighbour table (`own_id`: the agent's vehicle)."""
         k = len(nbrs)
         stale = np.array([vid in nbrs.stale_ids for vid in nbrs.ids], bool).reshape(1, k)
         return cls(
@@ -144,6 +149,8 @@ class NeighbourViews:
             np.asarray(nbrs.heading_rad, float).reshape(1, k),
             np.ones((1, k), bool),
             stale,
+            None if own_id is None else np.array(nbrs.ids, np.int64).reshape(1, k),
+            None if own_id is None else np.array([own_id], np.int64),
         )
 
     @classmethod
@@ -157,9 +164,12 @@ class NeighbourViews:
         world_active: np.ndarray,
         world_stale: np.ndarray,
         max_neighbours: int | None,
+        world_ids: np.ndarray | None = None,
+        rows_ids: np.ndarray | None = None,
     ) -> NeighbourViews:
         """Each row sees the nearest `max_neighbours` active world entries (horizontal
-        distance) other than itself (`self_index`, -1 = not in the world)."""
+        distance) other than itself (`self_index`, -1 = not in the world); with the world's and
+        the rows' vehicle ids, the views carry them (coincident vehicles are untied)."""
         k, m = len(rows_pos_m), len(world_pos_m)
         # squared horizontal distances, per axis: a quarter of the cost of a (k, m, 2) difference
         key = np.square(rows_pos_m[:, None, 0] - world_pos_m[None, :, 0])
@@ -173,12 +183,15 @@ class NeighbourViews:
         else:  # all of them, or none (max_neighbours 0, as the policy runtime reads it)
             cols = np.broadcast_to(np.arange(width), (k, width))
         valid = np.isfinite(np.take_along_axis(key, cols, axis=1))
+        with_ids = world_ids is not None and rows_ids is not None
         return cls(
             world_pos_m[cols],
             world_vel_m_s[cols],
             world_heading_rad[cols],
             valid,
             world_stale[cols] & valid,
+            np.asarray(world_ids, np.int64)[cols] if with_ids else None,
+            np.asarray(rows_ids, np.int64) if with_ids else None,
         )
 
     def row(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -316,10 +329,18 @@ class BatchGuidance:
         k = len(pos_m)
         if not self.cfg.safety_filter or not views.valid.any():
             return pref_m_s, np.zeros(k, bool)
+        ids = views.ids is not None and views.own_ids is not None
         if k == 1:  # the single-vehicle fast path
             p, v, _, _ = views.row(0)
             out = safety.filter_one(
-                pos_m[0, :2], vel_m_s[0, :2], pref_m_s[0], p[:, :2], v[:, :2], self.safety_cfg
+                pos_m[0, :2],
+                vel_m_s[0, :2],
+                pref_m_s[0],
+                p[:, :2],
+                v[:, :2],
+                self.safety_cfg,
+                int(views.own_ids[0]) if ids else None,
+                views.ids[0, views.valid[0]] if ids else None,
             )
             out = np.asarray(out, float)[None]
         else:
@@ -331,6 +352,8 @@ class BatchGuidance:
                 views.vel_m_s[..., :2],
                 views.valid,
                 self.safety_cfg,
+                views.own_ids if ids else None,
+                views.ids if ids else None,
             )
             none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
             out[none] = pref_m_s[none]

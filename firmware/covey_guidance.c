@@ -270,8 +270,9 @@ covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hol
         t->pos_e_m = nbrs[i].pos_e_m;
         t->vel_n_m_s = nbr_vel_m_s[2 * i];
         t->vel_e_m_s = nbr_vel_m_s[2 * i + 1];
+        t->id = 0u; /* the tick takes no ids yet: coincident neighbours are not untied here */
     }
-    const covey_track_t me = {own->pos_n_m, own->pos_e_m, own_vel_m_s[0], own_vel_m_s[1]};
+    const covey_track_t me = {own->pos_n_m, own->pos_e_m, own_vel_m_s[0], own_vel_m_s[1], 0u};
     if (out->decided && cfg->sparse_rule) {
         covey_sparse_out_t sparse;
         const float asked[2] = {hold->vel_n_m_s, hold->vel_e_m_s};

@@ -26,6 +26,33 @@ typedef covey_halfplane_t line_t;
 
 /* Guard of divisions and parallel-line tests; policy/safety.py EPS. */
 #define COVEY_SAFETY_EPS R(1.0e-9)
+#if COVEY_SAFETY_DOUBLE
+#define R_COS cos
+#define R_SIN sin
+#define COINCIDENT_M 0.01
+#else
+#define R_COS cosf
+#define R_SIN sinf
+#define COINCIDENT_M COVEY_SAFETY_COINCIDENT_M
+#endif
+
+/*
+ * Where a coincident neighbour is taken to be, as a unit (north, east) vector: one bearing per
+ * unordered pair of ids, h = (lo 0x9E3779B1 xor hi 0x85EBCA77) mod 2^32, h ^= h >> 15,
+ * bearing = 2 pi (h mod 2^16) / 2^16, seen from the lower id; the higher id sees the opposite.
+ * policy/safety.py tie_direction computes the same integers.
+ */
+static void tie_direction(uint32_t own_id, uint32_t nbr_id, real_t *dn, real_t *de)
+{
+    const uint32_t lo = own_id < nbr_id ? own_id : nbr_id;
+    const uint32_t hi = own_id < nbr_id ? nbr_id : own_id;
+    uint32_t h = (lo * 0x9E3779B1u) ^ (hi * 0x85EBCA77u);
+    h ^= h >> 15;
+    const real_t bearing = R(h & 0xFFFFu) * R(6.283185307179586 / 65536.0);
+    const real_t sign = own_id == lo ? R(1.0) : R(-1.0);
+    *dn = sign * R_COS(bearing);
+    *de = sign * R_SIN(bearing);
+}
 
 
 covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_m_s)
@@ -354,10 +381,18 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
     const real_t reach = r + R(2.0) * vmax * R(cfg->time_horizon_s);
     int32_t n_lines = 0;
     for (int32_t i = 0; i < n_nbrs; ++i) {
-        const real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
-        const real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
+        real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
+        real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
         if (px * px + py * py >= reach * reach) {
             continue;
+        }
+        /* coincident: no direction in p, so the pair of ids gives one (tie_direction) */
+        if (px * px + py * py < R(COINCIDENT_M) * R(COINCIDENT_M) && own->id != 0u &&
+            nbrs[i].id != 0u && own->id != nbrs[i].id) {
+            real_t dn, de;
+            tie_direction(own->id, nbrs[i].id, &dn, &de);
+            px = dn * R(COINCIDENT_M);
+            py = de * R(COINCIDENT_M);
         }
         const real_t vx = R(own->vel_n_m_s) - R(nbrs[i].vel_n_m_s);
         const real_t vy = R(own->vel_e_m_s) - R(nbrs[i].vel_e_m_s);

@@ -41,12 +41,20 @@ typedef struct {
     float responsibility;  /* (0, 1]: share of the avoidance this vehicle takes, 0.5 */
 } covey_safety_config_t;
 
+/* Nearer than this, two tracks are coincident: their relative position gives no direction
+ * to push apart, so the ordered pair of ids gives one (policy/safety.py COINCIDENT_M). */
+#define COVEY_SAFETY_COINCIDENT_M 0.01f
+
 /* A vehicle for the filter: position and velocity in the local frame (north, east). */
 typedef struct {
     float pos_n_m;
     float pos_e_m;
     float vel_n_m_s;
     float vel_e_m_s;
+    uint32_t id;  /* vehicle id, 0 = unknown: a
+                     coincident neighbour with a known id other than own's is taken to be
+                     COVEY_SAFETY_COINCIDENT_M away along a bearing hashed from both ids, the
+                     opposite one for the other vehicle (policy/safety.py tie_direction) */
 } covey_track_t;
 
 /*

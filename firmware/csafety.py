@@ -27,9 +27,15 @@ VEHICLE_DTYPE = np.dtype(
 )
 """covey_vehicle_t (24 bytes: 4 of padding before the stamp)."""
 TRACK_DTYPE = np.dtype(
-    [("pos_n_m", "<f4"), ("pos_e_m", "<f4"), ("vel_n_m_s", "<f4"), ("vel_e_m_s", "<f4")]
+    [
+        ("pos_n_m", "<f4"),
+        ("pos_e_m", "<f4"),
+        ("vel_n_m_s", "<f4"),
+        ("vel_e_m_s", "<f4"),
+        ("id", "<u4"),
+    ]
 )
-"""covey_track_t."""
+"""covey_track_t (id 0: unknown)."""
 
 
 class ConfigC(ctypes.Structure):
@@ -86,7 +92,7 @@ class SafetyConfigC(ctypes.Structure):
 class TrackC(ctypes.Structure):
     """covey_track_t."""
 
-    _fields_ = [(n, ctypes.c_float) for n in TRACK_DTYPE.names]
+    _fields_ = [(n, ctypes.c_float) for n in TRACK_DTYPE.names[:4]] + [("id", ctypes.c_uint32)]
 
 
 class SafetyOutC(ctypes.Structure):
@@ -201,7 +207,7 @@ def bind(lib: ctypes.CDLL) -> None:
     ]
 
 
-def _tracks(pos_m, vel_m_s) -> np.ndarray:
+def _tracks(pos_m, vel_m_s, ids=None) -> np.ndarray:
     pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
     vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
     if vel.shape != pos.shape:
@@ -211,6 +217,8 @@ def _tracks(pos_m, vel_m_s) -> np.ndarray:
     t = np.zeros(max(pos.shape[0], 1), TRACK_DTYPE)[: pos.shape[0]]
     t["pos_n_m"], t["pos_e_m"] = pos[:, 0], pos[:, 1]
     t["vel_n_m_s"], t["vel_e_m_s"] = vel[:, 0], vel[:, 1]
+    if ids is not None:
+        t["id"] = np.asarray(ids, dtype=np.int64).reshape(-1)
     return t
 
 
@@ -250,16 +258,19 @@ class CSafetyFilter:
         self._ccfg = SafetyConfigC.of(cfg)
         self._scratch = ctypes.create_string_buffer(lib.covey_safety_scratch_bytes())
 
-    def evaluate(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> FilterResult:
-        """One call; faults come back in `status`, never raised."""
+    def evaluate(
+        self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id=0, nbr_ids=None
+    ) -> FilterResult:
+        """One call; faults come back in `status`, never raised. Ids (0: unknown) untie
+        coincident neighbours as policy.safety.untie does."""
         p = np.asarray(pos_m, dtype=np.float64).reshape(2)
         v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
         pref = (ctypes.c_float * 2)(*np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s)
+        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids)
         out = SafetyOutC()
         st = self._lib.covey_safety_filter(
             ctypes.byref(self._ccfg),
-            ctypes.byref(TrackC(p[0], p[1], v[0], v[1])),
+            ctypes.byref(TrackC(p[0], p[1], v[0], v[1], int(own_id))),
             pref,
             t.ctypes.data,
             t.shape[0],
@@ -300,9 +311,11 @@ class CSafetyFilter:
             int(out.n_encounters),
         )
 
-    def __call__(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
+    def __call__(
+        self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id=0, nbr_ids=None
+    ) -> np.ndarray:
         """Filtered velocity (2,); raises ValueError on a fault."""
-        r = self.evaluate(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
+        r = self.evaluate(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id, nbr_ids)
         if r.status != "ok":
             raise ValueError(f"C safety filter fault: {r.status}")
         return r.vel_m_s

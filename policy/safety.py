@@ -16,6 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 EPS = 1e-9
+COINCIDENT_M = 0.01
+"""Neighbours nearer than this (horizontally) are coincident: their relative position gives no
+direction to push apart (two vehicles that took off from one point and hover there give exactly
+zero), so the ordered pair of vehicle ids gives one (`tie_direction`). The C twin is
+COVEY_SAFETY_COINCIDENT_M."""
 
 
 @dataclass(frozen=True)
@@ -37,6 +42,40 @@ class SafetyConfig:
     """Speed limit of the filtered velocity."""
     responsibility: float = 0.5
     """Share of the avoidance each vehicle takes (0.5 = reciprocal)."""
+
+
+def tie_direction(own_id: int, nbr_id: int) -> tuple[float, float]:
+    """Unit (north, east) vector at which a coincident neighbour is taken to be: one bearing per
+    unordered pair of ids, seen from the lower id; the higher id sees the opposite, so the two
+    are pushed apart along one line, each its own way. The bearing is hashed from both ids so
+    that several vehicles at one point spread in different directions. Ids are 32-bit unsigned;
+    the C twin (covey_safety.c tie_direction) computes the same integers."""
+    lo, hi = min(own_id, nbr_id), max(own_id, nbr_id)
+    h = ((lo * 0x9E3779B1) ^ (hi * 0x85EBCA77)) & 0xFFFFFFFF
+    h ^= h >> 15
+    bearing_rad = (h & 0xFFFF) * (2.0 * math.pi / 65536.0)
+    sign = 1.0 if own_id == lo else -1.0
+    return sign * math.cos(bearing_rad), sign * math.sin(bearing_rad)
+
+
+def untie(rel_pos, own_ids, nbr_ids):
+    """rel_pos (..., K, 2) with coincident neighbours (nearer than COINCIDENT_M) moved to
+    COINCIDENT_M along `tie_direction`; own_ids (...,) and nbr_ids (..., K) are vehicle ids, 0 or
+    equal ids: unknown, left as they are. A copy only where something changes (it is rare)."""
+    if own_ids is None or nbr_ids is None:
+        return rel_pos
+    near = (rel_pos**2).sum(-1) < COINCIDENT_M * COINCIDENT_M
+    if not near.any():
+        return rel_pos
+    own = np.broadcast_to(np.asarray(own_ids, np.int64)[..., None], near.shape)
+    nbr = np.asarray(nbr_ids, np.int64)
+    fix = near & (own > 0) & (nbr > 0) & (own != nbr)
+    if not fix.any():
+        return rel_pos
+    out = np.array(rel_pos, dtype=np.float64)
+    for idx in zip(*np.nonzero(fix), strict=True):
+        out[idx] = np.multiply(tie_direction(int(own[idx]), int(nbr[idx])), COINCIDENT_M)
+    return out
 
 
 def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig):
@@ -180,12 +219,22 @@ def solve(point, direction, pref_vel, max_speed):
     return np.array(result)
 
 
-def filter_velocity(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: SafetyConfig):
-    """The filtered velocity of one vehicle (2,), world units."""
+def filter_velocity(
+    pos_m,
+    vel_m_s,
+    pref_vel_m_s,
+    nbr_pos_m,
+    nbr_vel_m_s,
+    cfg: SafetyConfig,
+    own_id: int | None = None,
+    nbr_ids=None,
+):
+    """The filtered velocity of one vehicle (2,), world units. With ids (own_id, nbr_ids (K,)),
+    coincident neighbours are pushed apart by id (`untie`); without, they are not."""
     nbr_pos_m = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
     if nbr_pos_m.shape[0] == 0:
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
-    rel_pos = nbr_pos_m - pos_m
+    rel_pos = untie(nbr_pos_m - pos_m, own_id, nbr_ids)
     rel_vel = np.asarray(vel_m_s) - np.asarray(nbr_vel_m_s).reshape(-1, 2)
     # vehicles that cannot meet within the horizon add no constraint
     reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
@@ -239,9 +288,19 @@ def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     return (own_vx + k * (dot2 * lx - vx), own_vy + k * (dot2 * ly - vy)), (lx, ly)
 
 
-def filter_one(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: SafetyConfig):
+def filter_one(
+    pos_m,
+    vel_m_s,
+    pref_vel_m_s,
+    nbr_pos_m,
+    nbr_vel_m_s,
+    cfg: SafetyConfig,
+    own_id: int | None = None,
+    nbr_ids=None,
+):
     """`filter_velocity` for one vehicle in Python floats: the runtime's hot path, faster for
     the few neighbours within reach (equal within 1e-12, tests/test_policy_speed.py)."""
+    ids = None if own_id is None or nbr_ids is None else np.asarray(nbr_ids).tolist()
     r = cfg.radius_m * (1 + cfg.margin)
     reach = r + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
     reach_sq = reach * reach
@@ -249,11 +308,20 @@ def filter_one(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: Safety
     own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
     lines = []
     consts = None
-    for (nx, ny), (nvx, nvy) in zip(
-        np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True
+    for k, ((nx, ny), (nvx, nvy)) in enumerate(
+        zip(np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True)
     ):
         px, py = nx - x, ny - y
         if px * px + py * py < reach_sq:
+            if (
+                ids is not None
+                and px * px + py * py < COINCIDENT_M * COINCIDENT_M
+                and own_id > 0
+                and ids[k] > 0
+                and own_id != ids[k]
+            ):
+                tx, ty = tie_direction(own_id, ids[k])
+                px, py = tx * COINCIDENT_M, ty * COINCIDENT_M
             if consts is None:
                 consts = _line_constants(r, cfg)
             lines.append(_orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts))
@@ -266,18 +334,31 @@ def filter_one(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, cfg: Safety
     return np.array(result)
 
 
-def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig):
-    """Filtered velocities (N,2) for N vehicles; nbr (N,K) neighbour indices, -1 = none."""
+def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig, ids=None):
+    """Filtered velocities (N,2) for N vehicles; nbr (N,K) neighbour indices, -1 = none;
+    ids (N,) vehicle ids for `untie` (None: coincident vehicles are not pushed apart)."""
     pos_m = np.asarray(pos_m, dtype=np.float64)
     vel_m_s = np.asarray(vel_m_s, dtype=np.float64)
     j = np.maximum(nbr, 0)
-    return filter_padded(pos_m, vel_m_s, pref_vel_m_s, pos_m[j], vel_m_s[j], nbr >= 0, cfg)
+    nbr_ids = None if ids is None else np.asarray(ids)[j]
+    return filter_padded(
+        pos_m, vel_m_s, pref_vel_m_s, pos_m[j], vel_m_s[j], nbr >= 0, cfg, ids, nbr_ids
+    )
 
 
 def filter_padded(
-    pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, nbr_valid, cfg: SafetyConfig
+    pos_m,
+    vel_m_s,
+    pref_vel_m_s,
+    nbr_pos_m,
+    nbr_vel_m_s,
+    nbr_valid,
+    cfg: SafetyConfig,
+    own_ids=None,
+    nbr_ids=None,
 ):
-    """Filtered velocities (N,2); each vehicle has its own neighbour list (N,K,...).
+    """Filtered velocities (N,2); each vehicle has its own neighbour list (N,K,...), and with
+    own_ids (N,) and nbr_ids (N,K) coincident neighbours are pushed apart by id (`untie`).
 
     Half-planes are built for all vehicles at once; the LP runs only for the
     vehicles whose preferred velocity breaks a constraint.
@@ -287,7 +368,7 @@ def filter_padded(
     pref = _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
     if nbr_valid.shape[1] == 0:
         return pref
-    rel_pos = np.asarray(nbr_pos_m, dtype=np.float64) - pos_m[:, None]
+    rel_pos = untie(np.asarray(nbr_pos_m, dtype=np.float64) - pos_m[:, None], own_ids, nbr_ids)
     rel_vel = vel_m_s[:, None] - np.asarray(nbr_vel_m_s, dtype=np.float64)
     reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
     ok = np.asarray(nbr_valid, dtype=bool) & ((rel_pos**2).sum(-1) < reach * reach)

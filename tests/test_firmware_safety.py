@@ -89,6 +89,62 @@ def test_filter_keeps_a_head_on_pair_apart(cpol):
     assert np.allclose(v, [0.6, 0.8], atol=1e-6)
 
 
+def test_tie_direction_is_one_line_each_its_own_way_and_spreads():
+    """The pair (a, b) gets one bearing; b sees the opposite; different pairs spread."""
+    for a, b in [(1, 2), (1, 7), (3, 250), (4_000_000_000, 5)]:
+        da, db = np.array(safety.tie_direction(a, b)), np.array(safety.tie_direction(b, a))
+        assert np.isclose(np.hypot(*da), 1.0) and np.allclose(da, -db)
+    bearings = {round(float(np.arctan2(*safety.tie_direction(1, k)[::-1])), 1) for k in range(2, 9)}
+    assert len(bearings) == 7
+
+
+def test_coincident_vehicles_are_pushed_apart_by_id_in_c_as_in_numpy(cpol):
+    """Two vehicles at one point with the same velocity (after a take-off from one spot): the
+    relative position and velocity are zero, so ORCA has no direction and, without ids, leaves
+    both where they are (the 0.0 m hover of issue 39). With ids, each is pushed its own way
+    along the pair's bearing, at full speed, in C as in numpy (parity), and the two ways are
+    opposite."""
+    from firmware.csafety import CSafetyFilter
+
+    cfg = cpol.safety_cfg
+    filt = CSafetyFilter(cpol._lib, cfg)
+    rng = np.random.default_rng(39)
+    errs = []
+    for k in range(300):
+        p = rng.uniform(-50, 50, 2).astype(np.float32).astype(np.float64)
+        v = rng.uniform(-0.3, 0.3, 2).astype(np.float32).astype(np.float64) * (k % 2)
+        off = rng.uniform(-1, 1, 2) * safety.COINCIDENT_M * 0.5 * (k % 3 == 0)
+        q = (p + off).astype(np.float32).astype(np.float64)
+        pref = rng.uniform(-0.5, 0.5, 2).astype(np.float32).astype(np.float64)
+        a, b = (int(x) for x in rng.choice(np.arange(1, 400), 2, replace=False))
+        # others farther off, without ids and with
+        extra = (p + rng.uniform(6, 9, (2, 2))).astype(np.float32).astype(np.float64)
+        nb_pos = np.vstack([q, extra])
+        nb_vel = np.vstack([v, np.zeros((2, 2))])
+        ids = [b, 0, b + 1]
+        c = filt.evaluate(p, v, pref, nb_pos, nb_vel, a, ids)
+        ref = safety.filter_velocity(p, v, pref, nb_pos, nb_vel, cfg, a, ids)
+        fast = safety.filter_one(p, v, pref, nb_pos, nb_vel, cfg, a, ids)
+        assert c.status == "ok"
+        errs.append(np.abs(c.vel_m_s - ref).max() / cfg.max_speed_m_s)
+        assert np.allclose(fast, ref, atol=1e-12)
+    assert max(errs) <= PARITY_TOL, max(errs)
+
+    # exactly coincident, both at rest, both asked to stay: before, no push at all
+    zero = np.zeros(2)
+    still = filt.evaluate(zero, zero, zero, [zero], [zero])
+    assert np.allclose(still.vel_m_s, 0.0), "no ids: no direction (the old behaviour)"
+    va = filt.evaluate(zero, zero, zero, [zero], [zero], 1, [7]).vel_m_s
+    vb = filt.evaluate(zero, zero, zero, [zero], [zero], 7, [1]).vel_m_s
+    assert np.hypot(*va) > 0.9 * cfg.max_speed_m_s
+    assert np.allclose(va, -vb, atol=1e-6)
+    assert np.dot(va, np.array(safety.tie_direction(1, 7))) < 0, "away from the neighbour"
+    pad = safety.filter_batch(
+        np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)), np.array([[1], [0]]), cfg, [1, 7]
+    )
+    np.testing.assert_allclose(pad, [va, vb], atol=1e-6)
+
+
 def test_filter_fuzz_under_sanitizers(capsys, fuzz_drivers):
     asan, plain = fuzz_drivers
     rng = np.random.default_rng(61)

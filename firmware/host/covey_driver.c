@@ -125,7 +125,7 @@ static int run_action_case(covey_scratch_t *scratch, float *values)
 static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *tracks, int sparse)
 {
     covey_safety_config_t cfg;
-    covey_track_t own;
+    covey_track_t own = {0.0f, 0.0f, 0.0f, 0.0f, 0u}; /* no ids in the cases: id 0 */
     float pref[2];
     covey_goal_t goal = {0.0f, 0.0f};
     long long n_nbrs, n_rec;

@@ -182,8 +182,8 @@ static void test_safety_edges(void)
     bad = sc;
     bad.dt_s = NAN;
     CHECK(covey_safety_config_check(&bad) == COVEY_ERR_NONFINITE);
-    covey_track_t me = {0.0f, 0.0f, 1.0f, 0.0f};
-    covey_track_t other = {6.0f, 0.0f, -1.0f, 0.0f};
+    covey_track_t me = {0.0f, 0.0f, 1.0f, 0.0f, 0u};
+    covey_track_t other = {6.0f, 0.0f, -1.0f, 0.0f, 0u};
     float pref[2] = {1.0f, 0.0f};
     covey_safety_out_t o;
     CHECK(covey_safety_filter(&sc, &me, pref, NULL, 1, &ss, &o) == COVEY_ERR_NULL);
@@ -242,8 +242,8 @@ static void test_safety_edges(void)
     CHECK(covey_guidance_step(&gc, &h, &own, own_v, &g, &nb, nb_v, 1, 0u, &gs, &go) == COVEY_OK);
     CHECK(go.decided == 1 && go.straight == 0);
     covey_sparse_out_t so;
-    const covey_track_t me_s = {0.0f, 0.0f, 1.0f, 0.0f};
-    const covey_track_t cross = {12.0f, -10.0f, 0.0f, 1.0f};
+    const covey_track_t me_s = {0.0f, 0.0f, 1.0f, 0.0f, 0u};
+    const covey_track_t cross = {12.0f, -10.0f, 0.0f, 1.0f, 0u};
     const covey_goal_t far = {40.0f, 0.0f};
     const float asked[2] = {0.6f, 0.6f};
     CHECK(covey_sparse_choose(&gc.safety, &me_s, &far, asked, &cross, 1, &gs.safety, &so) == COVEY_OK);
