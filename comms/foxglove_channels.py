@@ -139,6 +139,17 @@ ACK_JSON = _json(ACK_JSON_SCHEMA)
 LINK_JSON = _json(LINK_JSON_SCHEMA)
 
 
+FLEET_CHANNELS: tuple[tuple[str, SchemaSpec], ...] = (
+    (TF_TOPIC, FRAME_TRANSFORM),
+    (SCENE_TOPIC, SCENE_UPDATE),
+    (EVENTS_TOPIC, LOG),
+    (COMMANDS_TOPIC, COMMAND_JSON),
+    (ACKS_TOPIC, ACK_JSON),
+)
+"""The channels of the fleet as a whole (not of one vehicle): the live bridge advertises them
+when it starts, so a client can subscribe before the first command, ack or event."""
+
+
 class Out(NamedTuple):
     """One standard message to write or send (a tuple: a frozen dataclass took ~1 us to make,
     and a state makes four or five)."""

@@ -29,7 +29,7 @@ from comms.cli_options import (
     refuse,
     stop_on_signals,
 )
-from comms.foxglove_channels import Converter, FoxgloveConfig, Out
+from comms.foxglove_channels import FLEET_CHANNELS, Converter, FoxgloveConfig, SchemaSpec
 from comms.geo import GeoOrigin
 from comms.record import RecordConfig, Recorder
 from comms.session import MeshConfig
@@ -58,7 +58,9 @@ class BridgeConfig:
 
 
 class WebSocketSink:
-    """Converts what the recorder hears and logs it on foxglove-sdk channels (one per topic)."""
+    """Converts what the recorder hears and logs it on foxglove-sdk channels (one per topic).
+    The fleet's channels (/tf, /scene, /events, /commands, /acks) are advertised at start; a
+    vehicle's when it is first heard."""
 
     def __init__(self, cfg: BridgeConfig) -> None:
         self._ctx = foxglove.Context()
@@ -66,17 +68,18 @@ class WebSocketSink:
         self._channels: dict[str, foxglove.Channel] = {}
         self._lock = threading.Lock()
         self.counts: dict[str, int] = {}
+        for topic, spec in FLEET_CHANNELS:
+            self._channel(topic, spec)
         self.server = foxglove.start_server(
             name=f"covey {cfg.mesh.fleet}", host=cfg.host, port=cfg.port, context=self._ctx
         )
 
-    def _channel(self, out: Out) -> foxglove.Channel:
-        ch = self._channels.get(out.topic)
+    def _channel(self, topic: str, spec: SchemaSpec) -> foxglove.Channel:
+        ch = self._channels.get(topic)
         if ch is None:
-            spec = out.schema
             schema = foxglove.Schema(name=spec.name, encoding=spec.encoding, data=spec.data)
-            ch = self._channels[out.topic] = foxglove.Channel(
-                out.topic, schema=schema, message_encoding=spec.message_encoding, context=self._ctx
+            ch = self._channels[topic] = foxglove.Channel(
+                topic, schema=schema, message_encoding=spec.message_encoding, context=self._ctx
             )
         return ch
 
@@ -84,7 +87,7 @@ class WebSocketSink:
         # Zenoh calls back from several threads; the converter keeps per-vehicle state.
         with self._lock:
             for out in self._converter.convert(topic, data, recv_ns):
-                self._channel(out).log(out.data, log_time=out.log_time_ns)
+                self._channel(out.topic, out.schema).log(out.data, log_time=out.log_time_ns)
                 self.counts[out.topic] = self.counts.get(out.topic, 0) + 1
 
     def close(self) -> None:

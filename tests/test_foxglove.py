@@ -644,3 +644,48 @@ def test_bridge_cli_refuses_bad_ports(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["foxglove", "--origin", "1,2"])
     assert exc.value.code == 2 and "LAT,LON,ALT" in capsys.readouterr().err
+
+
+@pytest.mark.e2e
+def test_a_client_subscribed_before_the_first_command_gets_it():
+    """The fleet's channels are advertised when the bridge starts (issue 39 #11): before, /commands,
+    /acks and /events appeared only with their first message, so a client that subscribed
+    earlier had nothing to subscribe to ("Unknown channel ID") and missed the first command."""
+    fleet = "fox" + uuid.uuid4().hex[:8]
+    port = free_tcp_port()
+    with Mesh(embedded_router(port, fleet=fleet)) as mesh:
+        peer = embedded_peer(port, fleet=fleet)
+        with (
+            FoxgloveBridge(BridgeConfig(mesh=peer, port=0)) as bridge,
+            connect(f"ws://127.0.0.1:{bridge.port}", subprotocols=SUBPROTOCOLS) as ws,
+        ):
+            topics: dict[str, int] = {}
+            end = time.monotonic() + 5.0
+            while not {fc.COMMANDS_TOPIC, fc.ACKS_TOPIC, fc.EVENTS_TOPIC} <= set(topics):
+                assert time.monotonic() < end, f"only {sorted(topics)} advertised before traffic"
+                try:
+                    msg = json.loads(ws.recv(timeout=0.5))
+                except TimeoutError:
+                    continue
+                if msg.get("op") == "advertise":
+                    topics.update({ch["topic"]: ch["id"] for ch in msg["channels"]})
+            assert {t for t, _ in fc.FLEET_CHANNELS} <= set(topics)
+            sub = {"id": 1, "channelId": topics[fc.COMMANDS_TOPIC]}
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [sub]}))
+            time.sleep(1.0)  # the bridge's Zenoh peer finds the router
+            nonce = new_nonce()
+            cmd = schema.Command.takeoff(4.0, nonce=nonce, stamp_ns=time.time_ns(), targets=(5,))
+            got = None
+            end = time.monotonic() + 15.0
+            while got is None and time.monotonic() < end:
+                mesh.send_command(cmd, timeout_s=0.5)  # nobody answers; the bridge records it
+                try:
+                    while got is None:
+                        frame = ws.recv(timeout=0.5)
+                        if isinstance(frame, bytes) and frame[0] == 0x01:
+                            assert struct.unpack_from("<I", frame, 1)[0] == 1
+                            got = json.loads(frame[13:])
+                except TimeoutError:
+                    continue
+            assert got is not None, "the first command never reached the early subscriber"
+            assert got["nonce"] == nonce and got["kind"] == "TAKEOFF" and got["targets"] == [5]
