@@ -68,6 +68,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "keygen_cli",
         "fleet authority: init, add/revoke members, push the roster",
     ),
+    "tls": (
+        "groundstation.tls_cli",
+        "tls_cli",
+        "fleet TLS: a CA, one certificate per identity, ready-to-use Zenoh configs",
+    ),
     "fleet-sim": (
         "agent.host_cli",
         "fleet_sim_cli",

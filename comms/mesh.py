@@ -8,9 +8,9 @@ thread, so one bad message cannot kill a process.
 
 Keyed mode (`auth`, comms/auth.py): every state, event, command and ack this process sends is
 signed with its own key; every state and event it receives passes a comms/gate.py Gate first
-(unsigned, forged, stale, replayed and out-of-order ones are dropped and counted); newer rosters
-pushed on `keys.roster` are applied at once, and this process answers roster queries with its
-own, so a member that missed a push catches up when it (re)joins.
+(unsigned, forged, stale, replayed and out-of-order ones are dropped and counted); the roster is
+followed by comms/roster_sync.py (newer ones applied at once, cheapest checks first; pulls at
+start, on every new link and periodically; members that are behind answered).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from comms.commands import CommandResult, Outcome, OutcomeStatus
 from comms.feed import FeedBuffer
 from comms.gate import SKIPPED, Gate, GateConfig
 from comms.presence import Presence
+from comms.roster_sync import RosterSync, RosterSyncConfig
 from comms.schema import (
     AckResult,
     Command,
@@ -93,6 +94,7 @@ class Mesh:
         *,
         clock_ns: Callable[[], int] = time.time_ns,
         auth: Any = None,
+        roster_sync: RosterSyncConfig = RosterSyncConfig(),
     ) -> None:
         """`auth` is a comms.auth.FleetAuth (this member's key and the roster), or None for
         open mode. Raises FleetKeyError if the key is for another fleet."""
@@ -119,9 +121,20 @@ class Mesh:
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._error_log_ns = 0
+        self.roster_sync: RosterSync | None = None
+        """Keyed mode: the roster follower (comms/roster_sync.py), for its counts."""
         if auth is not None:
             try:
-                self._follow_roster()
+                self.roster_sync = self._keep(
+                    RosterSync(
+                        self.session,
+                        cfg.fleet,
+                        auth,
+                        roster_sync,
+                        on_summary=self._summary,
+                        on_applied=lambda _r: self.stats.bump("rosters_applied"),
+                    )
+                )
             except BaseException:
                 self.close()
                 raise
@@ -185,41 +198,6 @@ class Mesh:
         gate = Gate(self.auth, cfg, on_summary=self._summary, what=what)
         self.gates.append(gate)
         return gate
-
-    def _follow_roster(self) -> None:
-        key = keys.roster(self.fleet)
-
-        def offer(payload: bytes, where: str) -> None:
-            try:
-                roster = Roster.decode(payload)
-            except DecodeError as exc:
-                self._bad(where, exc)
-                return
-            if roster.version <= self.auth.roster.version:
-                return  # the common case (re-pushes, answers from members): no verification
-            problem = self.auth.apply_roster(roster)
-            if problem:
-                self._summary(f"refused roster v{roster.version}: {problem}"[:119])
-            else:
-                self.stats.bump("rosters_applied")
-
-        def on_sample(sample: zenoh.Sample) -> None:
-            offer(sample.payload.to_bytes(), str(sample.key_expr))
-
-        def on_query(query: zenoh.Query) -> None:
-            try:
-                query.reply(key, self.auth.roster.encode())
-            except Exception as exc:  # noqa: BLE001 - the querier may be gone
-                log.debug("could not answer a roster query: %s", exc)
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is not None:
-                offer(reply.ok.payload.to_bytes(), key)
-
-        self._keep(self.session.declare_subscriber(key, on_sample))
-        self._keep(self.session.declare_queryable(key, on_query))
-        # Catch up with a roster pushed while this process was away (answers arrive on a Zenoh thread).
-        self.session.get(key, on_reply, target=zenoh.QueryTarget.ALL, timeout=5.0)
 
     def publish_roster(self, roster: Roster) -> None:
         """Push a roster (the fleet authority's tool: covey keygen push). Members check it."""

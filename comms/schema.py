@@ -21,7 +21,8 @@ Layouts (all little-endian, packed; `<` struct codes):
         type, version, vehicle_id, stamp_ns, severity, kind, text (utf-8, zero padded), [sig]
     Roster        type 5 v1  <BB32sIQH + n*<BH32s + 64s  48 bytes + 35 per member + 64 sig
         type, version, fleet (ascii, zero padded), roster version, stamp_ns, n_members,
-        members[n] (role, id, Ed25519 public key), sig (the fleet authority's Ed25519)
+        members[n] (role, id, Ed25519 public key), sig (the fleet authority's Ed25519);
+        at most MAX_ROSTER_BYTES; `Roster.peek` reads the header alone
     GuidanceTrace type 6 v1  <BBHIQd3dBH + n*<HId [+ 64s]  51 bytes + 14 per neighbour [+ 64]
         type, version, vehicle_id, state_seq, stamp_ns, heading_rad (float64),
         cmd_vel_ned_m_s[3] (float64), flags (TraceFlag), n_neighbours,
@@ -56,6 +57,10 @@ TAG_BYTES = 64
 """An Ed25519 signature."""
 PUBLIC_KEY_BYTES = 32
 MAX_ROSTER_MEMBERS = 4096
+MAX_ROSTER_BYTES = 48 + 35 * MAX_ROSTER_MEMBERS + TAG_BYTES
+"""The largest Roster on the wire (143,472 bytes: a header, 4096 members, the signature).
+Anything longer is refused before a byte of it is read (`Roster.peek`), and the shipped routers
+pass nothing longer on the roster key (comms/zenoh_configs/)."""
 FLEET_NAME_BYTES = 32
 MAX_TRACE_NEIGHBOURS = 256
 """A guidance trace lists at most this many neighbours; a longer list is cut (TraceFlag.CUT).
@@ -955,16 +960,34 @@ class Roster:
         return self.signed_bytes() + self.sig
 
     @classmethod
-    def decode(cls, data: bytes) -> Roster:
+    def peek(cls, data: bytes) -> RosterHead:
+        """The fixed header of a roster's wire bytes, checked in O(1): size (at most
+        MAX_ROSTER_BYTES, refused before anything else), type and version, fleet name, roster
+        version and a length that matches the member count. Says nothing of the signature or
+        the members: a receiver drops what is not newer than its own roster, then verifies the
+        signature over `RosterHead.signed`, and only then decodes the members."""
+        if len(data) > MAX_ROSTER_BYTES:
+            raise DecodeError(f"Roster of {len(data)} bytes, at most {MAX_ROSTER_BYTES}")
         _header(data, cls.TYPE)
         if len(data) < cls._HEAD.size + TAG_BYTES:
             raise DecodeError(f"Roster too short: {len(data)} bytes")
-        _, _, fleet_raw, version, stamp_ns, n = cls._HEAD.unpack_from(data)
+        _, _, fleet_raw, version, _stamp_ns, n = cls._HEAD.unpack_from(data)
         if n > MAX_ROSTER_MEMBERS:
             raise DecodeError(f"{n} roster members, at most {MAX_ROSTER_MEMBERS}")
         expected = cls._HEAD.size + n * cls._MEMBER.size + TAG_BYTES
         if len(data) != expected:
             raise DecodeError(f"Roster with {n} members must be {expected} bytes, got {len(data)}")
+        fleet = _text_field(fleet_raw, "fleet")
+        if not fleet or not fleet.isascii() or not all(c.isalnum() or c in "_-" for c in fleet):
+            raise DecodeError(f"roster fleet name {fleet!r} must be 1-32 of A-Z a-z 0-9 _ -")
+        if version < 1:
+            raise DecodeError(f"roster version {version} must be within 1..2^32-1")
+        return RosterHead(fleet, version, n, bytes(data[:-TAG_BYTES]), bytes(data[-TAG_BYTES:]))
+
+    @classmethod
+    def decode(cls, data: bytes) -> Roster:
+        head = cls.peek(data)
+        _, _, fleet_raw, version, stamp_ns, n = cls._HEAD.unpack_from(data)
         members = []
         for i in range(n):
             role, mid, key = cls._MEMBER.unpack_from(data, cls._HEAD.size + i * cls._MEMBER.size)
@@ -974,10 +997,22 @@ class Roster:
             version=version,
             stamp_ns=stamp_ns,
             members=tuple(members),
-            sig=data[-TAG_BYTES:],
+            sig=head.sig,
         )
         msg.validate()
         return msg
+
+
+@dataclass(frozen=True)
+class RosterHead:
+    """What `Roster.peek` reads of a roster's wire bytes without decoding its members."""
+
+    fleet: str
+    version: int
+    n_members: int
+    signed: bytes
+    """The bytes the fleet authority signs (`Roster.signed_bytes()` of the decoded roster)."""
+    sig: bytes
 
 
 Message = VehicleState | Command | CommandAck | Event | Roster | GuidanceTrace | FeedBatch
@@ -1025,6 +1060,7 @@ __all__ = [
     "MsgType",
     "Role",
     "Roster",
+    "RosterHead",
     "Severity",
     "StateFlag",
     "TraceFlag",

@@ -13,6 +13,9 @@ viser's own handler runs, and keeps that snapshot in the tab's localStorage. The
 callback reads the snapshot of *that* tab over viser's request/response localStorage channel
 (`ClientHandle.local_storage.get_item`) and builds the command from it. A snapshot that is
 missing, late, malformed or taken for another button is refused with a message; nothing is sent.
+
+The same script gives every labelled input its label as its accessible name (viser links labels
+with `for=`, which its text fields do not answer), so screen readers and `getByLabel` find them.
 """
 
 from __future__ import annotations
@@ -40,20 +43,44 @@ _SCRIPT = """
   const previous = window.__coveyForm;
   if (previous !== undefined) localStorage.removeItem(previous.key);
   window.__coveyForm = {key: %(key)s, token: %(token)s, seq: 0};
-  // A reconnect installs again with a new token; the listener is added once per page.
+  // A reconnect installs again with a new token; the listeners are added once per page.
   if (previous !== undefined) return;
+  // The input a viser label names: the one in the label's row.
+  const inputOf = (label) => {
+    const row = label.closest(".mantine-Flex-root");
+    return row && row.querySelector("input, textarea");
+  };
   const fields = () => {
     const values = {};
     for (const label of document.querySelectorAll("label")) {
       const name = label.textContent.trim();
       if (!labels.has(name)) continue;
-      const row = label.closest(".mantine-Flex-root");
-      const input = row && row.querySelector("input");
+      const input = inputOf(label);
       if (!input) continue;
       values[name] = input.type === "checkbox" ? String(input.checked) : input.value;
     }
     return values;
   };
+  // Accessible names: viser's label points (for=) at an id that some inputs (text fields) do
+  // not carry, so screen readers and getByLabel found no name. Name each such input by its
+  // label, again whenever the panel re-renders.
+  const name = () => {
+    for (const label of document.querySelectorAll("label[for]")) {
+      if (label.control) continue;
+      const input = inputOf(label);
+      const text = label.textContent.trim();
+      if (input && text && input.getAttribute("aria-label") !== text) {
+        input.setAttribute("aria-label", text);
+      }
+    }
+  };
+  let queued = false;
+  new MutationObserver(() => {
+    if (queued) return;
+    queued = true;
+    requestAnimationFrame(() => { queued = false; name(); });
+  }).observe(document.body, {childList: true, subtree: true});
+  name();
   document.addEventListener("click", (event) => {
     const button = event.target instanceof Element ? event.target.closest("button") : null;
     if (!button) return;

@@ -1,9 +1,20 @@
-"""Every command sent to the fleet, from any station, with each vehicle's answer.
+"""Every command sent to the fleet, from any station, with what became of it on each vehicle.
 
 Several stations (and several tabs of one station) can command one fleet. Each station observes
 every command query on the mesh and every vehicle's ack copy (`Mesh.observe_commands`), and keeps
-them here, so that every operator sees one truth: who sent what to whom, what each vehicle
-answered, and which accepted command a later accepted one replaced on a vehicle ("superseded").
+them here, so that every operator sees one truth: who sent what to whom, and per vehicle whether
+it is still waiting for an answer, was accepted, is done ("landed", "reached goal"), failed, was
+superseded by a newer command before it finished, timed out, or was not reachable.
+
+In keyed mode a command enters the log only if its signature verifies as a command (a station of
+the roster signed it, and it is fresh: `FleetAuth.verify_command`); every other attempt is only
+counted, per cause, for the last minute (`refused_last_minute`), so a flood of forged queries can
+neither pose as a station nor push a real command out. In open mode nothing is signed, and each
+entry says so.
+
+"Done" is the vehicle's own report: its signed state shows the mode the command ends in (a
+take-off ends HOLDING at altitude, a goto HOLDING at its goal, a land LANDED), stamped after the
+vehicle's ack. The autopilot's outcome (an ACTION event, `ActionOutcome`) marks a failure.
 
 Pure and thread-safe: no viser, no Zenoh, no clock. Bounded: at most `max_commands` commands,
 each with at most `max_answers` answers; a vehicle id only stays while a kept command refers to it.
@@ -11,12 +22,31 @@ each with at most `max_answers` answers; a vehicle id only stays while a kept co
 
 from __future__ import annotations
 
+import enum
+import math
 import threading
-from collections import OrderedDict
-from collections.abc import Callable
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
-from comms.schema import AckResult, ActionOutcome, Command, CommandAck, CommandKind
+from comms.schema import (
+    AckResult,
+    ActionOutcome,
+    Command,
+    CommandAck,
+    CommandKind,
+    Mode,
+    StateFlag,
+    VehicleState,
+)
+from groundstation.inputs import describe
+
+REFUSED_WINDOW_S = 60
+"""Refused command attempts are summarised over this many seconds."""
+_MAX_CAUSES = 8
+"""Distinct refusal causes counted; more share the last one ("other")."""
+GOAL_MATCH_M = 0.5
+"""A vehicle holding within this of a goto's goal has reached it."""
 
 
 @dataclass(frozen=True)
@@ -27,10 +57,36 @@ class CommandLogConfig:
     """Newest commands kept; older ones are dropped."""
     max_answers: int = 1024
     """Answers kept per command (a broadcast to a large fleet); more are counted, not kept."""
+    max_own: int = 1000
+    """Nonces of the commands this station sent that are remembered (to say "this station")."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.max_commands <= 100_000 or not 1 <= self.max_answers <= 100_000:
             raise ValueError("max_commands and max_answers must be within 1..100000")
+        if not 1 <= self.max_own <= 100_000:
+            raise ValueError("max_own must be within 1..100000")
+
+
+class Status(enum.Enum):
+    """What became of a command on one vehicle, as the operator reads it."""
+
+    WAITING = "no answer yet"
+    ACCEPTED = "accepted"
+    DONE = "done"
+    FAILED = "failed"
+    REJECTED = "rejected"
+    SUPERSEDED = "superseded"
+    TIMED_OUT = "timed out"
+    UNREACHABLE = "not reachable"
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One vehicle's part of one command."""
+
+    status: Status
+    detail: str = ""
+    """The vehicle's reason, or the command's outcome ("landed", "reached goal")."""
 
 
 @dataclass(frozen=True)
@@ -39,6 +95,10 @@ class Answer:
 
     result: AckResult
     reason: str
+    stamp_ns: int = 0
+    """The ack's stamp (the vehicle's clock): only states stamped after it can finish the command."""
+    mode: Mode = Mode.LANDED
+    """The vehicle's mode after the command."""
 
 
 @dataclass(frozen=True)
@@ -52,28 +112,102 @@ class LoggedCommand:
     answers: dict[int, Answer]
     """Vehicle id -> its answer (acks seen so far)."""
     superseded: dict[int, int]
-    """Vehicle id -> seq of the later accepted command that replaced this one there."""
+    """Vehicle id -> seq of the later accepted command that replaced this one there before it
+    finished."""
     dropped_answers: int = 0
     done: dict[int, ActionOutcome] = field(default_factory=dict)
     """Vehicle id -> how the autopilot's part ended (done, or failed with the reason); absent
     while it runs, and for commands with no autopilot part (e.g. a goto flown by the agent)."""
+    finished: dict[int, str] = field(default_factory=dict)
+    """Vehicle id -> the command's outcome as the vehicle's state showed it ("landed")."""
+    own: bool = False
+    """Sent by this station (this process), not only signed with a key of the same id."""
+    signed: bool = False
+    """Its station signature verified (keyed mode); False in open mode."""
 
     @property
     def source_id(self) -> int:
         return self.command.source_id
 
     def describe(self) -> str:
-        p, kind = self.command.params, self.command.kind
-        if kind is CommandKind.TAKEOFF:
-            what = f"takeoff to {p[0]:g} m"
-        elif kind is CommandKind.GOTO_LOCAL:
-            what = f"goto N {p[0]:g} E {p[1]:g} D {p[2]:g} m"
-        elif kind is CommandKind.GOTO_GLOBAL:
-            what = f"goto lat {p[0]:.6f} lon {p[1]:.6f} alt {p[2]:g} m"
-        else:
-            what = kind.name.lower()
         who = ",".join(map(str, self.command.targets)) if self.command.targets else "all"
-        return f"{what} → {who}"
+        return f"{describe(self.command.kind, self.command.params)} → {who}"
+
+    def sender(self) -> str:
+        """Who sent it, as far as this station can tell."""
+        if self.own:
+            return "this station" if self.signed else "this station (unsigned: open mode)"
+        if self.signed:
+            return f"station {self.source_id}"
+        return f"unsigned, claims station {self.source_id}"
+
+    def progress(
+        self, vehicle_id: int, now_ns: int, answer_timeout_s: float, present: set[int] | None
+    ) -> Progress:
+        """Where this command stands on `vehicle_id` at `now_ns`. Without an answer after
+        `answer_timeout_s`, an addressed vehicle is "not reachable" when it is not in `present`
+        (None: unknown), else "timed out"."""
+        answer = self.answers.get(vehicle_id)
+        if answer is None:
+            if (now_ns - self.recv_ns) / 1e9 < answer_timeout_s:
+                return Progress(Status.WAITING)
+            if present is not None and vehicle_id not in present:
+                return Progress(Status.UNREACHABLE, "not on the mesh")
+            return Progress(Status.TIMED_OUT, f"no answer within {answer_timeout_s:g} s")
+        if answer.result is AckResult.REJECTED:
+            return Progress(Status.REJECTED, answer.reason)
+        if answer.result is not AckResult.ACCEPTED:
+            return Progress(Status.FAILED, answer.reason)
+        if vehicle_id in self.finished:
+            return Progress(Status.DONE, self.finished[vehicle_id])
+        if vehicle_id in self.superseded:  # only set while it had not ended there
+            return Progress(Status.SUPERSEDED, f"by command #{self.superseded[vehicle_id]}")
+        outcome = self.done.get(vehicle_id)
+        if outcome is not None and not outcome.ok:
+            return Progress(Status.FAILED, outcome.detail)
+        detail = "autopilot took it; under way" if outcome is not None else "under way"
+        return Progress(Status.ACCEPTED, detail)
+
+    def vehicles(self) -> list[int]:
+        """The vehicles it concerns: every one that answered, and every one it named."""
+        return sorted(set(self.answers) | set(self.command.targets))
+
+
+def outcome_text(command: Command, mode: Mode, state: VehicleState | None) -> str | None:
+    """The command's outcome if the vehicle in `mode` (with `state`, None: only the ack's mode
+    is known) has finished it, else None."""
+    kind = command.kind
+    if kind is CommandKind.KILL and mode is Mode.KILLED:
+        return "killed"
+    if kind is CommandKind.HOLD and mode is Mode.HOLDING:
+        return "holding"
+    if kind is CommandKind.LAND and mode is Mode.LANDED:
+        return "landed"
+    if state is None:
+        return None
+    if kind is CommandKind.RETURN and mode is Mode.LANDED:
+        return "returned and landed"
+    if kind is CommandKind.TAKEOFF and mode is Mode.HOLDING:
+        return f"reached {-state.pos_ned_m[2]:.1f} m"
+    holding_goal = mode is Mode.HOLDING and state.flags & StateFlag.HAS_GOAL
+    if kind is CommandKind.GOTO_LOCAL and holding_goal:
+        # Held at this goto's goal (a failsafe hold keeps the goal where the vehicle stopped).
+        return (
+            "reached goal" if math.dist(state.goal_ned_m, command.params) <= GOAL_MATCH_M else None
+        )
+    return None
+
+
+SupersededCallback = Callable[[LoggedCommand, int, LoggedCommand], None]
+"""Called with (the earlier command, the vehicle, the later command) when a vehicle accepts a
+command that replaces one it had accepted and not finished."""
+
+AckCheck = Callable[[CommandAck, Command, bytes], str | None]
+"""Returns why an ack must not be believed for a command whose wire bytes hash to the digest
+(a forged or replayed ack), or None."""
+
+CommandCheck = Callable[[Command], str | None]
+"""Returns why a command must not be believed (`FleetAuth.verify_command`), or None."""
 
 
 @dataclass
@@ -82,10 +216,15 @@ class _Entry:
     recv_ns: int
     command: Command
     digest: bytes = b""
+    own: bool = False
+    signed: bool = False
     answers: dict[int, Answer] = field(default_factory=dict)
     superseded: dict[int, int] = field(default_factory=dict)
     dropped_answers: int = 0
     done: dict[int, ActionOutcome] = field(default_factory=dict)
+    finished: dict[int, str] = field(default_factory=dict)
+    running: dict[int, bool] = field(default_factory=dict)
+    """GOTO_GLOBAL: vehicle -> a state after the ack showed it flying there."""
 
     def view(self) -> LoggedCommand:
         return LoggedCommand(
@@ -96,16 +235,43 @@ class _Entry:
             dict(self.superseded),
             self.dropped_answers,
             dict(self.done),
+            dict(self.finished),
+            self.own,
+            self.signed,
         )
 
+    def ended(self, vehicle_id: int) -> bool:
+        outcome = self.done.get(vehicle_id)
+        return vehicle_id in self.finished or (outcome is not None and not outcome.ok)
 
-SupersededCallback = Callable[[LoggedCommand, int, LoggedCommand], None]
-"""Called with (the earlier command, the vehicle, the later command) when a vehicle accepts a
-command that replaces one it had accepted before."""
 
-AckCheck = Callable[[CommandAck, Command, bytes], str | None]
-"""Returns why an ack must not be believed for a command whose wire bytes hash to the digest
-(a forged or replayed ack), or None."""
+class _RefusedCounts:
+    """Refused command attempts per cause, in one-second buckets over the last minute."""
+
+    def __init__(self) -> None:
+        self._buckets: dict[str, deque[list[int]]] = {}  # cause -> [second, count], oldest first
+        self.total = 0
+
+    def add(self, cause: str, recv_ns: int) -> None:
+        self.total += 1
+        if cause not in self._buckets and len(self._buckets) >= _MAX_CAUSES:
+            cause = "other"
+        q = self._buckets.setdefault(cause, deque(maxlen=REFUSED_WINDOW_S + 1))
+        second = recv_ns // 1_000_000_000
+        if q and q[-1][0] == second:
+            q[-1][1] += 1
+        else:
+            q.append([second, 1])
+
+    def last_minute(self, now_ns: int) -> dict[str, int]:
+        since = now_ns // 1_000_000_000 - REFUSED_WINDOW_S
+        counts = {c: sum(n for s, n in q if s > since) for c, q in self._buckets.items()}
+        return {c: n for c, n in sorted(counts.items(), key=lambda kv: -kv[1]) if n}
+
+
+def refusal_cause(reason: str) -> str:
+    """The cause of a refusal, without its particulars ("unsigned command", "bad signature")."""
+    return reason.partition(":")[0].strip()[:40] or "refused"
 
 
 class CommandLog:
@@ -121,19 +287,57 @@ class CommandLog:
         self._early: OrderedDict[int, list[tuple[CommandAck, AckCheck | None]]] = OrderedDict()
         # Autopilot outcomes that arrived before the ack they follow, by (nonce, vehicle).
         self._early_outcomes: OrderedDict[tuple[int, int], ActionOutcome] = OrderedDict()
+        self._own: OrderedDict[int, None] = OrderedDict()  # nonces this station sent
+        self._refused = _RefusedCounts()
         self._seq = 0
         self.version = 0
         """Bumped on every change (a renderer redraws only when it moved)."""
         self.refused_acks = 0
         """Acks that failed the check, or whose command never arrived (counted, not shown)."""
 
-    def on_command(self, command: Command, recv_ns: int, digest: bytes = b"") -> None:
-        """`digest`: SHA-256 of the command's wire bytes (its acks are signed over it)."""
+    @property
+    def refused_commands(self) -> int:
+        """Command attempts refused since the start (counted, never logged)."""
         with self._lock:
+            return self._refused.total
+
+    def refused_last_minute(self, now_ns: int) -> dict[str, int]:
+        """Refused command attempts of the last minute per cause, most first."""
+        with self._lock:
+            return self._refused.last_minute(now_ns)
+
+    def mark_own(self, nonce: int) -> None:
+        """`nonce` is a command this station is sending (called before it goes out)."""
+        with self._lock:
+            self._own[nonce] = None
+            while len(self._own) > self.cfg.max_own:
+                self._own.popitem(last=False)
+            entry = self._entries.get(nonce)
+            if entry is not None:
+                entry.own = True
+
+    def on_command(
+        self,
+        command: Command,
+        recv_ns: int,
+        digest: bytes = b"",
+        check: CommandCheck | None = None,
+    ) -> bool:
+        """`digest`: SHA-256 of the command's wire bytes (its acks are signed over it). `check`
+        (keyed mode): a command it refuses is counted by cause, never logged. True if logged."""
+        problem = check(command) if check is not None else None
+        with self._lock:
+            if problem is not None:
+                self._refused.add(refusal_cause(problem), recv_ns)
+                self.version += 1
+                return False
             if command.nonce in self._entries:  # the same query seen twice (or resent)
-                return
+                return False
             self._seq += 1
-            self._entries[command.nonce] = _Entry(self._seq, recv_ns, command, digest)
+            own = command.nonce in self._own
+            self._entries[command.nonce] = _Entry(
+                self._seq, recv_ns, command, digest, own=own, signed=check is not None
+            )
             while len(self._entries) > self.cfg.max_commands:
                 nonce, _ = self._entries.popitem(last=False)
                 for vid in [v for v, n in self._last_accepted.items() if n == nonce]:
@@ -141,8 +345,9 @@ class CommandLog:
             self.version += 1
             early = self._early.pop(command.nonce, [])
         # An ack can overtake its command on the mesh (it takes another path): apply it now.
-        for ack, check in early:
-            self.on_ack(ack, recv_ns, check)
+        for ack, ack_check in early:
+            self.on_ack(ack, recv_ns, ack_check)
+        return True
 
     def on_ack(self, ack: CommandAck, recv_ns: int, check: AckCheck | None = None) -> None:
         notify: tuple[LoggedCommand, int, LoggedCommand] | None = None
@@ -163,19 +368,23 @@ class CommandLog:
             if vid not in entry.answers and len(entry.answers) >= self.cfg.max_answers:
                 entry.dropped_answers += 1
                 return
-            entry.answers[vid] = Answer(ack.result, ack.reason)
+            entry.answers[vid] = Answer(ack.result, ack.reason, ack.stamp_ns, ack.mode)
             self.version += 1
             if ack.result is not AckResult.ACCEPTED:
                 return
             early_outcome = self._early_outcomes.pop((ack.nonce, vid), None)
             if early_outcome is not None:
                 entry.done[vid] = early_outcome
+            text = outcome_text(entry.command, ack.mode, None)
+            if text is not None:  # a hold, a kill, a land on the ground: finished at once
+                entry.finished[vid] = text
             before = self._entries.get(self._last_accepted.get(vid, -1))
             if before is not None and before.seq > entry.seq:
-                entry.superseded[vid] = before.seq  # this ack arrived late: already replaced
+                if not entry.ended(vid):  # this ack arrived late: already replaced
+                    entry.superseded[vid] = before.seq
                 return
             self._last_accepted[vid] = ack.nonce
-            if before is not None and before is not entry:
+            if before is not None and before is not entry and not before.ended(vid):
                 before.superseded[vid] = entry.seq
                 notify = (before.view(), vid, entry.view())
         if notify is not None and self.on_superseded is not None:
@@ -199,6 +408,37 @@ class CommandLog:
             self.version += 1
             return True
 
+    def on_state(self, state: VehicleState) -> None:
+        """A vehicle's (verified) state: it may show that the vehicle finished its latest
+        command. Cheap for every state of a large fleet: one lookup for most."""
+        vid = state.vehicle_id
+        with self._lock:
+            entry = self._entries.get(self._last_accepted.get(vid, -1))
+            if entry is None or vid in entry.finished or vid in entry.superseded:
+                return
+            answer = entry.answers.get(vid)
+            if answer is None or state.stamp_ns <= answer.stamp_ns:
+                return  # a state from before the vehicle took the command
+            if entry.command.kind is CommandKind.GOTO_GLOBAL:
+                # Its goal is in the vehicle's frame: done once seen flying there, then holding.
+                if state.mode is Mode.GOTO:
+                    entry.running[vid] = True
+                    return
+                if entry.running.get(vid) and state.mode is Mode.HOLDING:
+                    entry.finished[vid] = "reached goal"
+                    self.version += 1
+                return
+            text = outcome_text(entry.command, state.mode, state)
+            if text is not None:
+                entry.finished[vid] = text
+                self.version += 1
+
+    def name_of(self, nonce: int) -> str | None:
+        """The command with this nonce as an operator reads it, if it is kept."""
+        with self._lock:
+            entry = self._entries.get(nonce)
+            return None if entry is None else entry.view().describe()
+
     def entries(self) -> list[LoggedCommand]:
         """Kept commands, newest first."""
         with self._lock:
@@ -207,3 +447,11 @@ class CommandLog:
     def __len__(self) -> int:
         with self._lock:
             return len(self._entries)
+
+
+def progress_all(
+    entry: LoggedCommand, now_ns: int, answer_timeout_s: float, present: Iterable[int] | None
+) -> dict[int, Progress]:
+    """Vehicle id -> its progress, for every vehicle `entry` concerns."""
+    pres = set(present) if present is not None else None
+    return {v: entry.progress(v, now_ns, answer_timeout_s, pres) for v in entry.vehicles()}

@@ -84,10 +84,19 @@ class EventBuffer:
 class EventsView:
     """One tab's event panel with its own filters."""
 
-    def __init__(self, gui: viser.GuiApi, buffer: EventBuffer) -> None:
+    def __init__(
+        self,
+        gui: viser.GuiApi,
+        buffer: EventBuffer,
+        name_command: Callable[[int], str | None] | None = None,
+        order: float | None = None,
+    ) -> None:
+        """`name_command`: nonce -> the command as the command log names it (autopilot outcomes
+        name their command, not its nonce). `order`: where the panel goes (viser GUI order)."""
         self.buffer = buffer
+        self._name_command = name_command
         self._shown = (-1, "", "")
-        with gui.add_folder("Events", expand_by_default=False):
+        with gui.add_folder("Events", expand_by_default=True, order=order):
             self.kind = gui.add_dropdown(
                 "Event kind",
                 (ALL_KINDS, *(k.name.lower() for k in EventKind)),
@@ -106,4 +115,4 @@ class EventsView:
         self._shown = key
         kind = None if self.kind.value == ALL_KINDS else EventKind[self.kind.value.upper()]
         events = self.buffer.latest(kind, Severity[self.severity.value.upper()])
-        self.html.content = event_log(events)
+        self.html.content = event_log(events, self._name_command)

@@ -2,6 +2,12 @@
 
 The GUI and `covey cmd` both go through here, so a value that the wire would reject (non-finite,
 out of range) is caught at the ground station and explained, before anything is sent.
+
+One altitude convention wherever an operator types or reads one: altitude UP, in metres, with its
+datum said. Take-off and local gotos are above the fleet origin (local NED 0,0,0, on the ground
+where the fleet takes off); global gotos are AMSL (the datum of the fleet origin's altitude,
+comms/geo.py). NED, with its down axis, exists only inside: `goto_local` turns the altitude into
+the wire's down coordinate here, and `describe` turns it back.
 """
 
 from __future__ import annotations
@@ -30,14 +36,24 @@ class CommandRequest:
     params: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def describe(self) -> str:
-        p = self.params
-        if self.kind is CommandKind.TAKEOFF:
-            return f"takeoff to {p[0]:g} m"
-        if self.kind is CommandKind.GOTO_LOCAL:
-            return f"goto N {p[0]:g} E {p[1]:g} D {p[2]:g} m"
-        if self.kind is CommandKind.GOTO_GLOBAL:
-            return f"goto lat {p[0]:.7f} lon {p[1]:.7f} alt {p[2]:g} m"
-        return self.kind.name.lower()
+        return describe(self.kind, self.params)
+
+
+def _m(x: float) -> str:
+    """Metres to one decimal, without a "-0.0" (1e-15 from a float round trip reads 0.0)."""
+    return f"{x if abs(x) >= 0.05 else 0.0:.1f}"
+
+
+def describe(kind: CommandKind, params: tuple[float, float, float]) -> str:
+    """What a command asks, as an operator reads it: rounded, altitude up with its datum."""
+    p = params
+    if kind is CommandKind.TAKEOFF:
+        return f"takeoff to {_m(p[0])} m above origin"
+    if kind is CommandKind.GOTO_LOCAL:
+        return f"goto N {_m(p[0])} E {_m(p[1])} alt {_m(-p[2])} m above origin"
+    if kind is CommandKind.GOTO_GLOBAL:
+        return f"goto lat {p[0]:.6f} lon {p[1]:.6f} alt {_m(p[2])} m AMSL"
+    return kind.name.lower()
 
 
 def number(name: str, raw: object, lo: float, hi: float, unit: str = "") -> float:
@@ -58,26 +74,30 @@ def number(name: str, raw: object, lo: float, hi: float, unit: str = "") -> floa
 
 
 def takeoff(alt_m: object) -> CommandRequest:
-    alt = number("Takeoff altitude", alt_m, *TAKEOFF_ALT_RANGE_M, unit=" m")
+    """`alt_m`: altitude above the fleet origin, up."""
+    alt = number("Take-off altitude above origin", alt_m, *TAKEOFF_ALT_RANGE_M, unit=" m")
     return CommandRequest(CommandKind.TAKEOFF, (alt, 0.0, 0.0))
 
 
-def goto_local(n_m: object, e_m: object, d_m: object, limit_m: float = 1000.0) -> CommandRequest:
-    """`limit_m`: how far from the origin a local goal may be (the geofence, or a sane bound)."""
+def goto_local(n_m: object, e_m: object, alt_m: object, limit_m: float = 1000.0) -> CommandRequest:
+    """North and east of the fleet origin and `alt_m` above it (up; the wire's down is -alt).
+    `limit_m`: how far from the origin a local goal may be (the geofence, or a sane bound)."""
     n = number("North", n_m, -limit_m, limit_m, unit=" m")
     e = number("East", e_m, -limit_m, limit_m, unit=" m")
-    d = number("Down", d_m, *LOCAL_DOWN_RANGE_M, unit=" m")
+    lo_m, hi_m = -LOCAL_DOWN_RANGE_M[1], -LOCAL_DOWN_RANGE_M[0]
+    alt = number("Altitude above origin", alt_m, lo_m, hi_m, unit=" m")
     if math.hypot(n, e) > limit_m:
         raise InputError(
             f"Goto: ({n:g}, {e:g}) is {math.hypot(n, e):.0f} m from the origin, beyond {limit_m:g} m"
         )
-    return CommandRequest(CommandKind.GOTO_LOCAL, (n, e, d))
+    return CommandRequest(CommandKind.GOTO_LOCAL, (n, e, -alt if alt else 0.0))
 
 
-def goto_global(lat_deg: object, lon_deg: object, alt_m: object) -> CommandRequest:
+def goto_global(lat_deg: object, lon_deg: object, alt_amsl_m: object) -> CommandRequest:
+    """`alt_amsl_m`: altitude above mean sea level (the datum of the fleet origin's altitude)."""
     lat = number("Latitude", lat_deg, -90.0, 90.0, unit="°")
     lon = number("Longitude", lon_deg, -180.0, 180.0, unit="°")
-    alt = number("Altitude", alt_m, *GLOBAL_ALT_RANGE_M, unit=" m")
+    alt = number("Altitude AMSL", alt_amsl_m, *GLOBAL_ALT_RANGE_M, unit=" m")
     return CommandRequest(CommandKind.GOTO_GLOBAL, (lat, lon, alt))
 
 
@@ -108,7 +128,9 @@ def targets(text: str, known: set[int] | None = None) -> tuple[int, ...]:
         except ValueError:
             raise InputError(f"Targets: {part!r} is not a vehicle id or a range like 1-4") from None
         if not 1 <= lo <= hi <= MAX_VEHICLE_ID:
-            raise InputError(f"Targets: {part!r} must be ids within 1..{MAX_VEHICLE_ID}, low-high")
+            raise InputError(
+                f"Targets: {part!r}: vehicle ids start at 1 (1..{MAX_VEHICLE_ID}; a range is low-high)"
+            )
         if hi - lo > 1024:
             raise InputError(f"Targets: range {part!r} is too long")
         ids.update(range(lo, hi + 1))

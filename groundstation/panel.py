@@ -23,7 +23,7 @@ import viser
 
 from comms.geo import GeoOrigin
 from comms.schema import CommandKind
-from groundstation import inputs
+from groundstation import inputs, layout
 from groundstation.browser_form import BrowserForms, FormSnapshot
 from groundstation.dispatch import Dispatched, KillGuard
 from groundstation.frames import ground_hit_ned, ned_to_scene
@@ -32,11 +32,14 @@ from groundstation.tables import ack_matrix
 
 Job = tuple[CommandRequest, tuple[int, ...]]
 
-# The labels of the inputs a command is built from (each tab reports these at every click).
-TARGETS, TAKEOFF_ALT = "Targets", "Takeoff alt (m)"
-NORTH, EAST, DOWN = "North (m)", "East (m)", "Down (m)"
-LAT, LON, GLOBAL_ALT = "Latitude (deg)", "Longitude (deg)", "Altitude (m)"
-FORM_LABELS = (TARGETS, TAKEOFF_ALT, NORTH, EAST, DOWN, LAT, LON, GLOBAL_ALT)
+# The labels of the inputs a command is built from (each tab reports these at every click, and
+# each is the accessible name of its input). Altitudes are up, in metres, with their datum
+# (groundstation.inputs): above the fleet origin for take-off and local gotos, AMSL for global.
+TARGETS, TAKEOFF_ALT = "Targets", "Take-off altitude above origin (m)"
+NORTH, EAST, ALT = "North (m)", "East (m)", "Altitude above origin (m)"
+LAT, LON, GLOBAL_ALT = "Latitude (deg)", "Longitude (deg)", "Altitude AMSL (m)"
+FORM_LABELS = (TARGETS, TAKEOFF_ALT, NORTH, EAST, ALT, LAT, LON, GLOBAL_ALT)
+SELECT_HELP = "Click a vehicle in the 3D view to select it; shift-click adds it to Targets."
 
 
 @dataclass(frozen=True)
@@ -82,39 +85,48 @@ class CommandPanel:
         self._armed: ArmedKill | None = None
         self._ground_click: Callable | None = None
         gui = client.gui
-        # Messages and acks first: the operator must see what happened without scrolling.
-        self.message = gui.add_html("")
-        self.acks = gui.add_html("")
-        with gui.add_folder("Command"):
-            self.targets = gui.add_text(
-                TARGETS,
-                "all",
-                hint="'all', an id, or ids like 1,2,5 or 1-4. Click a vehicle to select it.",
-            )
-            self.alt = gui.add_number(TAKEOFF_ALT, 5.0, step=0.5)
-            self.takeoff = gui.add_button("Takeoff", icon=viser.Icon.ARROW_BAR_UP)
-            self.simple = gui.add_button_group("Now", ("Land", "Hold", "Return"))
-        tabs = gui.add_tab_group()
-        with tabs.add_tab("Goto local", viser.Icon.TARGET):
-            self.north = gui.add_number(NORTH, 0.0, step=0.5)
-            self.east = gui.add_number(EAST, 0.0, step=0.5)
-            self.down = gui.add_number(DOWN, -5.0, step=0.5)
-            self.pick = gui.add_checkbox("Click ground to set N/E", False)
-            self.goto = gui.add_button("Goto local", icon=viser.Icon.TARGET)
-        with tabs.add_tab("Goto global", viser.Icon.WORLD):
-            self.lat = gui.add_number(LAT, origin.lat_deg, step=1e-5)
-            self.lon = gui.add_number(LON, origin.lon_deg, step=1e-5)
-            self.galt = gui.add_number(GLOBAL_ALT, origin.alt_m + 5.0, step=0.5)
-            self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
-        with tabs.add_tab("Scenarios", viser.Icon.ROUTE):
-            self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
-        with gui.add_folder("Kill (motors off, vehicles fall)"):
+        # The kill first (groundstation.layout): nothing opened below can push it out of view.
+        with gui.add_folder("Kill (motors off, vehicles fall)", order=layout.KILL):
             self.kill_arm = gui.add_button(
                 "Arm kill", color="orange", icon=viser.Icon.ALERT_TRIANGLE
             )
             self.kill_confirm = gui.add_button(
                 "CONFIRM KILL", color="red", disabled=True, icon=viser.Icon.SKULL
             )
+        # Messages and acks next: the operator must see what happened without scrolling.
+        self.message = gui.add_html("", order=layout.MESSAGES)
+        self.acks = gui.add_html("", order=layout.MESSAGES + 0.1)
+        with gui.add_folder("Command", order=layout.COMMAND):
+            self.targets = gui.add_text(
+                TARGETS, "all", hint="'all', an id, or ids like 1,2,5 or 1-4. " + SELECT_HELP
+            )
+            gui.add_html(f"<div style='font-size:0.75em;color:#555'>{SELECT_HELP}</div>")
+            self.alt = gui.add_number(
+                TAKEOFF_ALT, 5.0, step=0.5, hint="Metres, up, above the fleet origin (N 0, E 0)."
+            )
+            self.takeoff = gui.add_button("Takeoff", icon=viser.Icon.ARROW_BAR_UP)
+            self.simple = gui.add_button_group("Now", ("Land", "Hold", "Return"))
+        tabs = gui.add_tab_group(order=layout.GOTO)
+        with tabs.add_tab("Goto local", viser.Icon.TARGET):
+            self.north = gui.add_number(NORTH, 0.0, step=0.5, hint="Metres north of the origin.")
+            self.east = gui.add_number(EAST, 0.0, step=0.5, hint="Metres east of the origin.")
+            self.up = gui.add_number(
+                ALT, 5.0, step=0.5, hint="Metres, up, above the fleet origin (as take-off)."
+            )
+            self.pick = gui.add_checkbox("Click ground to set N/E", False)
+            self.goto = gui.add_button("Goto local", icon=viser.Icon.TARGET)
+        with tabs.add_tab("Goto global", viser.Icon.WORLD):
+            self.lat = gui.add_number(LAT, origin.lat_deg, step=1e-5)
+            self.lon = gui.add_number(LON, origin.lon_deg, step=1e-5)
+            self.galt = gui.add_number(
+                GLOBAL_ALT,
+                origin.alt_m + 5.0,
+                step=0.5,
+                hint=f"Metres above mean sea level; the fleet origin is at {origin.alt_m:g} m AMSL.",
+            )
+            self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
+        with tabs.add_tab("Scenarios", viser.Icon.ROUTE):
+            self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
         self._wire()
 
     # -- wiring --------------------------------------------------------------------------
@@ -131,7 +143,7 @@ class CommandPanel:
                 e,
                 "Goto local",
                 lambda f: inputs.goto_local(
-                    f.get(NORTH), f.get(EAST), f.get(DOWN), self.goto_limit_m
+                    f.get(NORTH), f.get(EAST), f.get(ALT), self.goto_limit_m
                 ),
             )
         )
@@ -179,9 +191,18 @@ class CommandPanel:
         self._ground_click = ground_click
 
     # -- actions -------------------------------------------------------------------------
-    def select(self, vehicle_id: int) -> None:
-        self.targets.value = str(vehicle_id)
-        self.say(f"Selected vehicle {vehicle_id}.")
+    def select(self, vehicle_id: int, add: bool = False) -> None:
+        """A click on a vehicle: it alone becomes the Targets; with `add` (shift-click), it
+        joins the vehicles already there."""
+        ids = {vehicle_id}
+        if add:
+            try:
+                ids.update(inputs.targets(self.targets.value))
+            except InputError:
+                pass  # what was there is not a list of ids: the click starts a new one
+        text = ",".join(map(str, sorted(ids)))
+        self.targets.value = text
+        self.say(f"Targets: vehicle(s) {text} (shift-click adds, a click selects one).")
 
     def say(self, text: str, error: bool = False) -> None:
         color = "#c5221f" if error else "#333"

@@ -130,8 +130,10 @@ class FleetScene:
         self,
         server: viser.ViserServer,
         cfg: SceneConfig,
-        on_vehicle_click: Callable[[int, int | None], None] | None = None,
+        on_vehicle_click: Callable[[int, int | None, bool], None] | None = None,
     ) -> None:
+        """`on_vehicle_click(vehicle id, client id, add)`: a vehicle was clicked in a tab (its
+        body or its separation ring); `add` when shift was held (add it to the selection)."""
         self.server = server
         self.cfg = cfg
         self._on_vehicle_click = on_vehicle_click
@@ -181,6 +183,15 @@ class FleetScene:
                 np.array(GEOFENCE_RGB, np.uint8),
                 thickness=4.0,
                 thickness_units="screen",
+            )
+            # Said where it is drawn: an unlabelled orange arc reads as anything.
+            at_m = geo.fence_label_position(cfg.geofence_radius_m)
+            self.fence_label = scene.add_label(
+                "/geofence/label",
+                f"geofence {cfg.geofence_radius_m:g} m",
+                position=at_m,
+                anchor="bottom-center",
+                font_screen_scale=0.9,
             )
         scene.add_frame("/origin", axes_length=2.0, axes_radius=0.06)
         self.target_marker = scene.add_icosphere(
@@ -268,9 +279,13 @@ class FleetScene:
 
             def clicked(event: Any) -> None:
                 if event.instance_index is not None and 0 <= event.instance_index < len(ids):
-                    cb(ids[event.instance_index], event.client_id)
+                    cb(ids[event.instance_index], event.client_id, event.modifier == "shift")
 
-            self.nodes["bodies"].on_click(clicked)
+            # The ring (the separation radius) is a far larger target than the body: both
+            # select, so any vehicle can be hit at any zoom.
+            for layer in ("bodies", "rings"):
+                self.nodes[layer].on_click(clicked)
+                self.nodes[layer].on_click(modifier="shift")(clicked)
 
     def _update_layers(self, fleet: _Fleet) -> None:
         n, pos = len(fleet.ids), fleet.pos_m

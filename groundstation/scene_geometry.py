@@ -89,6 +89,13 @@ def circle_segments(radius_m: float, n: int = 48, z_m: float = 0.0) -> np.ndarra
     return np.stack([pts[:-1], pts[1:]], axis=1).astype(np.float32)
 
 
+def fence_label_position(radius_m: float) -> tuple[float, float, float]:
+    """Where the geofence's label sits in the scene frame (x east, y north, z up): on the
+    circle due north of the origin, straight ahead of the station's initial camera (which
+    looks north from the south, so the southern arc is behind it)."""
+    return (0.0, radius_m, 0.3)
+
+
 def thin(points: np.ndarray, max_points: int) -> np.ndarray:
     """At most `max_points` of (K, 3) points, evenly spread, first and latest kept."""
     if len(points) <= max_points:

@@ -6,10 +6,12 @@ from __future__ import annotations
 import html
 import math
 import time
+from collections.abc import Callable, Iterable
 
 from comms.commands import OutcomeStatus
-from comms.schema import AckResult, Event
-from groundstation.command_log import LoggedCommand
+from comms.geo import GeoOrigin
+from comms.schema import ActionOutcome, DecodeError, Event, EventKind
+from groundstation.command_log import LoggedCommand, Status, progress_all
 from groundstation.dispatch import Dispatched
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.palette import ALERT_RGB, MODE_RGB, css, mode_rgb
@@ -47,9 +49,24 @@ def _link(v: VehicleView) -> str:
     )
 
 
-def fleet_table(snap: FleetSnapshot, max_rows: int = 60, refused_states: int = 0) -> str:
-    """One row per vehicle: id, mode, armed, N/E/alt, speed, battery, Hz, age, loss.
-    `refused_states`: states the mesh refused (keyed mode), shown as a counter."""
+_HEAD_TITLES = {
+    "N m": "metres north of the fleet origin",
+    "E m": "metres east of the fleet origin",
+    "alt m": "altitude above the fleet origin, metres, up",
+    "lat": "latitude, degrees (WGS-84)",
+    "lon": "longitude, degrees (WGS-84)",
+}
+
+
+def fleet_table(
+    snap: FleetSnapshot,
+    max_rows: int = 60,
+    refused_states: int = 0,
+    origin: GeoOrigin | None = None,
+) -> str:
+    """One row per vehicle: id, mode, armed, N/E/alt (above the origin), lat/lon (with an
+    `origin`), speed, battery, Hz, age, loss. `refused_states`: states the mesh refused (keyed
+    mode), shown as a counter."""
     heads = [
         ("id", "right"),
         ("mode", "left"),
@@ -57,13 +74,23 @@ def fleet_table(snap: FleetSnapshot, max_rows: int = 60, refused_states: int = 0
         ("N m", "right"),
         ("E m", "right"),
         ("alt m", "right"),
+        *((("lat", "right"), ("lon", "right")) if origin is not None else ()),
         ("m/s", "right"),
         ("bat %", "right"),
         ("Hz", "right"),
         ("age s", "right"),
         ("loss %", "right"),
     ]
-    rows = ["<tr>" + "".join(_TH.format(a=a, t=t) for t, a in heads) + "</tr>"]
+    rows = [
+        "<tr>"
+        + "".join(
+            _TH.format(a=a, t=f'<span title="{_HEAD_TITLES[t]}">{t}</span>')
+            if t in _HEAD_TITLES
+            else _TH.format(a=a, t=t)
+            for t, a in heads
+        )
+        + "</tr>"
+    ]
     for v in snap.vehicles[:max_rows]:
         alert = v.too_close or (not v.alive and v.state) or v.unverified
         row_style = "background:#fde2e2" if alert else ""
@@ -76,14 +103,20 @@ def fleet_table(snap: FleetSnapshot, max_rows: int = 60, refused_states: int = 0
         cells = [_td(f"<b>{v.vehicle_id}</b>"), _td(mode, "left")]
         s = v.state
         if s is None:
-            cells += [_td("—", "center")] + [_td("")] * 5
+            cells += [_td("—", "center")] + [_td("")] * (5 if origin is None else 7)
         else:
             bat_style = f"color:{css(ALERT_RGB)};font-weight:bold" if s.battery_pct < 20 else ""
+            n_m, e_m = s.pos_ned_m[0], s.pos_ned_m[1]
             cells += [
                 _td("●" if s.armed else "○", "center"),
-                _td(f"{s.pos_ned_m[0]:.1f}"),
-                _td(f"{s.pos_ned_m[1]:.1f}"),
+                _td(f"{n_m:.1f}"),
+                _td(f"{e_m:.1f}"),
                 _td(f"{v.alt_m:.1f}"),
+            ]
+            if origin is not None:
+                lat, lon, _ = origin.to_global(n_m, e_m, 0.0)
+                cells += [_td(f"{lat:.6f}"), _td(f"{lon:.6f}")]
+            cells += [
                 _td(f"{v.speed_m_s:.1f}"),
                 _td(f"{s.battery_pct:.0f}", style=bat_style),
             ]
@@ -154,63 +187,108 @@ def ack_matrix(done: Dispatched) -> str:
     )
 
 
-_ANSWER_STYLE = {
-    AckResult.ACCEPTED: ("accepted", "#188038"),
-    AckResult.REJECTED: ("rejected", "#c5221f"),
-    AckResult.FAILED: ("failed", "#b06000"),
+_PROGRESS_COLOR = {
+    Status.WAITING: "#777",
+    Status.ACCEPTED: "#188038",
+    Status.DONE: "#1e5e9e",
+    Status.FAILED: "#c5221f",
+    Status.REJECTED: "#c5221f",
+    Status.SUPERSEDED: "#777",
+    Status.TIMED_OUT: "#b06000",
+    Status.UNREACHABLE: "#b06000",
 }
 
 
+def refused_line(counts: dict[str, int]) -> str:
+    """One line for the command attempts refused in the last minute (by cause), or ""."""
+    total = sum(counts.values())
+    if not total:
+        return ""
+    causes = ", ".join(f"{n:,} {html.escape(cause)}" for cause, n in counts.items())
+    return (
+        f"<div data-refused-commands='{total}' style='color:{css(ALERT_RGB)};margin-bottom:3px'>"
+        f"⚠ {total:,} refused command attempt{'s' if total != 1 else ''} in the last minute, "
+        f"not shown: {causes}</div>"
+    )
+
+
 def command_log_html(
-    entries: list[LoggedCommand], own_station: int, max_rows: int = 20, max_chips: int = 24
+    entries: list[LoggedCommand],
+    now_ns: int | None = None,
+    present: Iterable[int] | None = None,
+    answer_timeout_s: float = 5.0,
+    refused: dict[str, int] | None = None,
+    max_rows: int = 20,
+    max_chips: int = 24,
 ) -> str:
     """Every command on the fleet from any station, newest first: who sent what to whom, and
-    each vehicle's answer ("superseded" once a later accepted command replaced it there)."""
+    per vehicle whether it was accepted, is done (with its outcome), failed, was superseded,
+    timed out or was not reachable. `refused`: command attempts refused in the last minute by
+    cause (keyed mode), one line above the log that never displaces an entry."""
+    now_ns = time.time_ns() if now_ns is None else now_ns
+    head = refused_line(refused or {})
     if not entries:
-        return "<div style='font-size:0.75em;color:#777'>no commands yet</div>"
+        return (
+            "<div style='font-size:0.75em;color:#777'>"
+            f"{head}<div data-empty='1'>no commands yet: what any station sends shows here</div>"
+            "</div>"
+        )
     rows = []
     for e in entries[:max_rows]:
         when = time.strftime("%H:%M:%S", time.localtime(e.recv_ns / 1e9))
-        who = "this station" if e.source_id == own_station else f"station {e.source_id}"
-        chips, tally = [], {}
-        for vid in sorted(e.answers):
-            name, color = _ANSWER_STYLE.get(e.answers[vid].result, ("failed", "#b06000"))
-            reason = e.answers[vid].reason
-            done = e.done.get(vid)
-            if done is not None and name == "accepted":  # the autopilot's part has ended
-                name, color = ("done", "#1e7e34") if done.ok else ("failed", "#b06000")
-                reason = done.detail
-            if vid in e.superseded and name in ("accepted", "done"):
-                name, color = "superseded", "#777"
-            tally[name] = tally.get(name, 0) + 1
+        shown = progress_all(e, now_ns, answer_timeout_s, present)
+        chips, counts = [], {}
+        for vid, pr in shown.items():
+            name, color = pr.status.value, _PROGRESS_COLOR[pr.status]
+            counts[name] = counts.get(name, 0) + 1
             if len(chips) < max_chips:
-                reason = html.escape(reason)
+                label = f"{name}: {pr.detail}" if pr.detail else name
                 chips.append(
-                    f'<span data-vehicle="{vid}" data-answer="{name}" title="{name} {reason}" '
+                    f'<span data-vehicle="{vid}" data-answer="{name}" title="{html.escape(label)}" '
                     f'style="display:inline-block;margin:1px;padding:0 3px;border-radius:3px;'
-                    f'color:white;background:{color}">{vid} {name}</span>'
+                    f'color:white;background:{color}">{vid} {html.escape(label[:48])}</span>'
                 )
-        more = len(e.answers) - len(chips)
-        summary = " · ".join(f"{n} {k}" for k, n in tally.items()) or "no answer yet"
+        more = len(shown) - len(chips)
+        summary = " · ".join(f"{n} {k}" for k, n in counts.items()) or "no answer yet"
+        who_style = "" if e.signed or e.own else f"color:{css(ALERT_RGB)}"
         rows.append(
             f'<div data-command="{e.command.nonce}" data-station="{e.source_id}" '
-            f'style="margin-bottom:3px"><b>{when}</b> {html.escape(who)}: '
+            f'data-signed="{int(e.signed)}" style="margin-bottom:3px"><b>#{e.seq} {when}</b> '
+            f"<span style='{who_style}'>{html.escape(e.sender())}</span>: "
             f"{html.escape(e.describe())} <span style='color:#555'>({summary})</span><br>"
             f"{''.join(chips)}{f' +{more} more' if more > 0 else ''}</div>"
         )
-    return f"<div style='font-size:0.72em;line-height:1.35'>{''.join(rows)}</div>"
+    return f"<div style='font-size:0.72em;line-height:1.35'>{head}{''.join(rows)}</div>"
 
 
 _SEVERITY_COLOR = {0: "#777", 1: "#333", 2: "#b06000", 3: "#c5221f", 4: "#c5221f"}
 
 
-def event_log(events: list[tuple[str, Event]]) -> str:
+def event_text(event: Event, name_command: Callable[[int], str | None] | None = None) -> str:
+    """What an event says, for the operator. An autopilot outcome (ACTION) names its command
+    (`name_command`: nonce -> the command as the log shows it), never the raw nonce."""
+    if event.kind is not EventKind.ACTION:
+        return event.text
+    try:
+        outcome = ActionOutcome.from_event(event)
+    except DecodeError:
+        return event.text
+    name = name_command(outcome.nonce) if name_command is not None else None
+    word = "autopilot done" if outcome.ok else "autopilot FAILED"
+    if name is None:
+        return f"{word}: {outcome.detail}"
+    return f"{word}: {name}" + ("" if outcome.ok else f": {outcome.detail}")
+
+
+def event_log(
+    events: list[tuple[str, Event]], name_command: Callable[[int], str | None] | None = None
+) -> str:
     """The latest events, newest first: (local time text, event)."""
     if not events:
         return "<div style='font-size:0.75em;color:#777'>no events yet</div>"
     rows = "".join(
         f"<div style='color:{_SEVERITY_COLOR.get(int(ev.severity), '#333')}'>{when} <b>{ev.vehicle_id}</b> "
-        f"{html.escape(ev.text)}</div>"
+        f"{html.escape(event_text(ev, name_command))}</div>"
         for when, ev in reversed(events)
     )
     return f"<div style='font-size:0.72em;line-height:1.3'>{rows}</div>"

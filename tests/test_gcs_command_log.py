@@ -2,9 +2,26 @@
 
 from __future__ import annotations
 
-from comms.schema import AckResult, Command, CommandAck, CommandKind, Event, EventKind, Severity
-from groundstation.command_log import CommandLog, CommandLogConfig
+import pytest
+
+from comms.schema import (
+    AckResult,
+    ActionOutcome,
+    Command,
+    CommandAck,
+    CommandKind,
+    Event,
+    EventKind,
+    Mode,
+    Severity,
+    StateFlag,
+    VehicleState,
+)
+from groundstation.command_log import CommandLog, CommandLogConfig, Progress, Status
 from groundstation.events import EventBuffer, EventsConfig
+from groundstation.tables import command_log_html, event_text
+
+S = 1_000_000_000
 
 
 def cmd(nonce: int, targets=(1,), source_id: int = 2, kind=CommandKind.GOTO_LOCAL) -> Command:
@@ -38,7 +55,7 @@ def test_answers_are_kept_per_command_and_stray_acks_are_refused():
     # An ack that overtook its command is applied when the command arrives.
     log.on_command(cmd(99), 6)
     assert log.entries()[0].answers[1].result is AckResult.ACCEPTED
-    assert e.describe() == "goto N 1 E 2 D -3 m → 1,2"
+    assert e.describe() == "goto N 1.0 E 2.0 alt 3.0 m above origin → 1,2"
 
 
 def test_a_later_accepted_command_supersedes_the_earlier_on_that_vehicle_only():
@@ -100,3 +117,190 @@ def test_a_flood_of_one_event_kind_never_hides_another():
     assert len(buf.latest(EventKind.SECURITY)) == 12
     assert buf.latest(min_severity=Severity.ERROR) == []
     assert sum(len(q) for q in buf._by_kind.values()) == 51
+
+
+def state(vid: int, stamp_ns: int, mode: Mode, pos=(0.0, 0.0, -5.0), goal=None) -> VehicleState:
+    return VehicleState(
+        vehicle_id=vid,
+        seq=stamp_ns,
+        stamp_ns=stamp_ns,
+        pos_ned_m=pos,
+        vel_ned_m_s=(0.0, 0.0, 0.0),
+        heading_rad=0.0,
+        mode=mode,
+        armed=mode is not Mode.LANDED,
+        battery_pct=90.0,
+        flags=StateFlag.HAS_GOAL if goal is not None else StateFlag.NONE,
+        goal_ned_m=goal or (0.0, 0.0, 0.0),
+    )
+
+
+def accepted(vid: int, nonce: int, stamp_ns: int, mode: Mode) -> CommandAck:
+    return CommandAck(vid, nonce, stamp_ns, AckResult.ACCEPTED, "", mode)
+
+
+def status(log: CommandLog, nonce: int, vid: int, now_ns: int = 0, present=None):
+    e = next(e for e in log.entries() if e.command.nonce == nonce)
+    return e.progress(vid, now_ns, 3.0, present)
+
+
+def refuse_unsigned(c: Command) -> str | None:
+    """Stands in for FleetAuth.verify_command (tests/test_trust_* run the real one)."""
+    return None if c.tag != bytes(len(c.tag)) else "unsigned command: no station signature"
+
+
+def test_forged_commands_are_counted_by_cause_and_never_displace_real_ones():
+    log = CommandLog(CommandLogConfig(max_commands=5))
+    signed = [
+        Command(CommandKind.LAND, nonce=n, stamp_ns=n, source_id=1, tag=b"\x01" * 64)
+        for n in (1, 2)
+    ]
+    for c in signed:
+        assert log.on_command(c, 10 * S, check=refuse_unsigned)
+    for n in range(100, 3240):  # 3,140 forged queries claiming this station, over 30 s
+        kill = Command(CommandKind.KILL, nonce=n, stamp_ns=n, source_id=1)
+        assert not log.on_command(kill, 10 * S + n * 10_000_000, check=refuse_unsigned)
+    assert [e.command.nonce for e in log.entries()] == [2, 1]
+    assert all(e.signed for e in log.entries())
+    counts = log.refused_last_minute(45 * S)
+    assert counts == {"unsigned command": 3140}
+    html = command_log_html(log.entries(), 45 * S, refused=counts)
+    assert "3,140 refused command attempts in the last minute" in html
+    assert html.count("data-command=") == 2 and "kill" not in html
+    assert log.refused_last_minute(200 * S) == {}  # a minute later the line is gone
+    assert log.refused_commands == 3140
+
+
+def test_senders_are_labelled_honestly():
+    log = CommandLog()
+    log.mark_own(1)
+    log.on_command(Command(CommandKind.HOLD, nonce=1, stamp_ns=1, source_id=1), 1)
+    log.on_command(Command(CommandKind.HOLD, nonce=2, stamp_ns=2, source_id=1), 2)
+    signed = Command(CommandKind.HOLD, nonce=3, stamp_ns=3, source_id=2, tag=b"\x01" * 64)
+    log.on_command(signed, 3, check=refuse_unsigned)
+    who = {e.command.nonce: e.sender() for e in log.entries()}
+    assert who == {
+        1: "this station (unsigned: open mode)",
+        2: "unsigned, claims station 1",  # a CLI or anyone else, in open mode
+        3: "station 2",
+    }
+
+
+def test_each_vehicle_reads_done_failed_superseded_timed_out_or_unreachable():
+    log = CommandLog()
+    takeoff = Command(CommandKind.TAKEOFF, nonce=1, stamp_ns=1, params=(5.0, 0, 0), targets=())
+    log.on_command(takeoff, 1 * S)
+    for vid in (1, 2, 3):
+        log.on_ack(accepted(vid, 1, 2 * S, Mode.TAKING_OFF), 2 * S)
+    assert status(log, 1, 1).status is Status.ACCEPTED
+    log.on_state(state(1, 1 * S, Mode.HOLDING))  # from before the ack: proves nothing
+    assert status(log, 1, 1).status is Status.ACCEPTED
+    log.on_state(state(1, 3 * S, Mode.HOLDING, pos=(0.0, 0.0, -4.96)))
+    log.on_state(state(2, 3 * S, Mode.HOLDING))
+    assert status(log, 1, 1) == Progress(Status.DONE, "reached 5.0 m")
+    # Vehicle 3 fails in the autopilot; vehicles 1 and 2 then get a goto: the take-off stays
+    # done (it had finished), it is not "superseded".
+    log.on_outcome(ActionOutcome(3, 1, False, "takeoff to 5 m: arming denied"))
+    goto = Command(CommandKind.GOTO_LOCAL, nonce=2, stamp_ns=2, params=(10.0, 1.46958e-15, -5.0))
+    log.on_command(goto, 4 * S)
+    for vid in (1, 2):
+        log.on_ack(accepted(vid, 2, 5 * S, Mode.GOTO), 5 * S)
+    assert [status(log, 1, v).status for v in (1, 2, 3)] == [
+        Status.DONE,
+        Status.DONE,
+        Status.FAILED,
+    ]
+    assert "arming denied" in status(log, 1, 3).detail
+    # Vehicle 1 reaches its goal; vehicle 2 is sent elsewhere before it does: superseded.
+    log.on_state(state(1, 6 * S, Mode.HOLDING, goal=(10.0, 0.0, -5.0)))
+    assert status(log, 2, 1) == Progress(Status.DONE, "reached goal")
+    land = Command(CommandKind.LAND, nonce=3, stamp_ns=3, targets=(2, 9))
+    log.on_command(land, 7 * S)
+    log.on_ack(accepted(2, 3, 8 * S, Mode.LANDING), 8 * S)
+    assert status(log, 2, 2).status is Status.SUPERSEDED
+    log.on_state(state(2, 9 * S, Mode.LANDED, pos=(0.0, 0.0, 0.0)))
+    assert status(log, 3, 2).detail == "landed"
+    # Vehicle 9 never answers: waiting, then timed out (present) or not reachable (absent).
+    assert status(log, 3, 9, now_ns=8 * S).status is Status.WAITING
+    assert status(log, 3, 9, now_ns=20 * S, present={2, 9}).status is Status.TIMED_OUT
+    assert status(log, 3, 9, now_ns=20 * S, present={2}).status is Status.UNREACHABLE
+    html = command_log_html(log.entries(), 20 * S, present={1, 2, 3}, answer_timeout_s=3.0)
+    assert "goto N 10.0 E 0.0 alt 5.0 m above origin" in html and "e-15" not in html
+    assert 'data-vehicle="1" data-answer="done"' in html
+    assert 'data-vehicle="9" data-answer="not reachable"' in html
+    assert 'data-vehicle="2" data-answer="superseded"' in html
+
+
+@pytest.mark.parametrize(
+    ("kind", "ack_mode", "later", "text"),
+    [
+        (CommandKind.HOLD, Mode.HOLDING, None, "holding"),
+        (CommandKind.KILL, Mode.KILLED, None, "killed"),
+        (CommandKind.RETURN, Mode.RETURNING, Mode.LANDED, "returned and landed"),
+        (CommandKind.LAND, Mode.LANDING, Mode.LANDED, "landed"),
+    ],
+)
+def test_a_command_is_done_in_the_mode_it_ends_in(kind, ack_mode, later, text):
+    log = CommandLog()
+    log.on_command(Command(kind, nonce=7, stamp_ns=7, targets=(4,)), S)
+    log.on_ack(accepted(4, 7, 2 * S, ack_mode), 2 * S)
+    if later is not None:
+        assert status(log, 7, 4).status is Status.ACCEPTED
+        log.on_state(state(4, 3 * S, later))
+    assert status(log, 7, 4) == Progress(Status.DONE, text)
+
+
+def test_autopilot_events_name_their_command_not_the_nonce():
+    log = CommandLog()
+    log.on_command(Command(CommandKind.TAKEOFF, nonce=0x5FBFE957, stamp_ns=1, params=(5, 0, 0)), 1)
+    ok = ActionOutcome(1, 0x5FBFE957, True, "takeoff to 5 m").to_event(2)
+    assert event_text(ok, log.name_of) == "autopilot done: takeoff to 5.0 m above origin → all"
+    bad = ActionOutcome(1, 0x1234, False, "land: link lost").to_event(2)
+    assert event_text(bad, log.name_of) == "autopilot FAILED: land: link lost"
+    assert "5fbfe957" not in event_text(ok, log.name_of)
+
+
+@pytest.mark.e2e
+def test_a_keyless_command_query_is_only_counted_by_a_keyed_station(tmp_path):
+    """Real Zenoh, a keyed station (station 1) and a keyless process that queries the fleet's
+    command keys with kills that claim source_id=1, as issue 34 found: none enters the log, the
+    one summary line counts them, and a command signed by station 2 is logged as station 2's."""
+    import time
+
+    from conftest import wait_until
+
+    from comms import keys
+    from comms.auth import load_auth
+    from comms.authority import throwaway_fleet
+    from comms.mesh import Mesh
+    from comms.schema import Role
+    from comms.session import embedded_peer, embedded_router, free_tcp_port, open_session
+    from groundstation.station import GcsConfig, GroundStation
+
+    authority = throwaway_fleet(tmp_path / "keys", "covey", vehicles=[1], stations=[1, 2])
+    key = {sid: str(authority.member_path(Role.STATION, sid)) for sid in (1, 2)}
+    port = free_tcp_port()
+    with (
+        Mesh(embedded_router(port)),
+        GroundStation(GcsConfig(mesh=embedded_peer(port), port=0, key_file=key[1])) as gcs,
+        open_session(embedded_peer(port)) as attacker,
+    ):
+        time.sleep(0.5)  # the station's queryable reaches the attacker's session
+        forged = 60
+        for n in range(1, forged + 1):
+            kill = Command(CommandKind.KILL, nonce=n, stamp_ns=time.time_ns(), source_id=1)
+            for _ in attacker.get(keys.all_cmds("covey"), payload=kill.encode(), timeout=0.2):
+                pass
+        assert wait_until(lambda: gcs.commands.refused_commands == forged, 10)
+        assert gcs.commands.entries() == []
+        with Mesh(embedded_peer(port), auth=load_auth(key[2])) as other:
+            hold = Command(CommandKind.HOLD, nonce=0, stamp_ns=0, targets=(1,))
+            sent = other.send_command(hold, timeout_s=0.5).command
+        assert wait_until(lambda: len(gcs.commands) == 1, 10)
+        (entry,) = gcs.commands.entries()
+        assert entry.command.nonce == sent.nonce and entry.sender() == "station 2"
+        assert wait_until(
+            lambda: f"data-refused-commands='{forged}'" in gcs.command_log_html.content, 10
+        )
+        html = gcs.command_log_html.content
+        assert "60 unsigned command" in html and "this station" not in html

@@ -22,10 +22,12 @@ BAD_NUMBERS = [math.nan, math.inf, -math.inf, "nan", "inf", "abc", "", None, Tru
 
 @pytest.mark.parametrize("raw", BAD_NUMBERS)
 def test_non_finite_or_non_numbers_are_refused_with_a_message(raw):
-    with pytest.raises(InputError, match="Takeoff altitude"):
+    with pytest.raises(InputError, match="Take-off altitude above origin"):
         inputs.takeoff(raw)
     with pytest.raises(InputError, match="North"):
-        inputs.goto_local(raw, 0.0, -5.0)
+        inputs.goto_local(raw, 0.0, 5.0)
+    with pytest.raises(InputError, match="Altitude above origin"):
+        inputs.goto_local(0.0, 0.0, raw)
     with pytest.raises(InputError, match="Latitude"):
         inputs.goto_global(raw, 9.0, 450.0)
 
@@ -35,12 +37,12 @@ def test_non_finite_or_non_numbers_are_refused_with_a_message(raw):
     [
         (lambda: inputs.takeoff(0.1), r"outside the allowed range \[0.5, 500\] m"),
         (lambda: inputs.takeoff(900), "outside"),
-        (lambda: inputs.goto_local(0, 0, 200), "Down"),
-        (lambda: inputs.goto_local(40, 40, -5, limit_m=50), "beyond 50 m"),
-        (lambda: inputs.goto_local(60, 0, -5, limit_m=50), "North"),
+        (lambda: inputs.goto_local(0, 0, -200), r"Altitude above origin: -200 m is outside"),
+        (lambda: inputs.goto_local(40, 40, 5, limit_m=50), "beyond 50 m"),
+        (lambda: inputs.goto_local(60, 0, 5, limit_m=50), "North"),
         (lambda: inputs.goto_global(91, 0, 10), "Latitude"),
         (lambda: inputs.goto_global(0, 181, 10), "Longitude"),
-        (lambda: inputs.goto_global(0, 0, 20_000), "Altitude"),
+        (lambda: inputs.goto_global(0, 0, 20_000), "Altitude AMSL"),
         (lambda: inputs.simple(CommandKind.TAKEOFF), "needs parameters"),
     ],
 )
@@ -52,14 +54,29 @@ def test_out_of_range_is_refused_with_a_message(build, match):
 def test_valid_inputs_build_commands_the_wire_accepts():
     for req in (
         inputs.takeoff("7.5"),
-        inputs.goto_local(10, -4, -6),
+        inputs.goto_local(10, -4, 6),
         inputs.goto_global(48.75, 9.1, 455),
         inputs.simple(CommandKind.KILL),
     ):
         cmd = build_command(req, (1, 2), source_id=1, stamp_ns=5)
         assert Command.decode(cmd.encode()) == cmd
     assert inputs.takeoff(7.5).params == (7.5, 0.0, 0.0)
-    assert "goto N 10" in inputs.goto_local(10, -4, -6).describe()
+    assert inputs.goto_local(10, -4, 6).describe() == "goto N 10.0 E -4.0 alt 6.0 m above origin"
+
+
+def test_one_altitude_convention_up_with_its_datum_in_the_form_and_the_cli():
+    """Altitude up, in metres, above the origin for take-off and local gotos, AMSL for global;
+    NED (down) only on the wire. `covey cmd goto 10 10 5` flies 5 m up, as the form does."""
+    req = inputs.goto_local(10, 10, 5)
+    assert req.params == (10.0, 10.0, -5.0)  # the wire's NED down
+    parser = ops.cmd_parser()
+    args = parser.parse_args(["goto", "10", "10", "5", "--to", "1"])
+    assert ops._request(args) == req
+    args = parser.parse_args(["goto-global", "48.75", "9.1", "455", "--to", "1"])
+    assert ops._request(args).describe() == "goto lat 48.750000 lon 9.100000 alt 455.0 m AMSL"
+    assert inputs.takeoff(5).describe() == "takeoff to 5.0 m above origin"
+    goto_help = parser._subparsers._group_actions[0].choices["goto"].format_help()
+    assert "above the fleet origin" in goto_help and "down" not in goto_help.lower()
 
 
 @pytest.mark.parametrize(
@@ -198,7 +215,7 @@ def test_fleet_table_and_ack_matrix_show_what_matters():
         ["takeoff", "nan", "--to", "all"],
         ["takeoff", "5"],  # no --to
         ["takeoff", "5", "--to", "x"],
-        ["goto", "1", "2", "--to", "1"],  # missing down
+        ["goto", "1", "2", "--to", "1"],  # missing the altitude
         ["goto", "1", "2", "inf", "--to", "1"],
         ["goto-global", "95", "0", "10", "--to", "1"],
         ["fly", "--to", "1"],
