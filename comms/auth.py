@@ -237,7 +237,10 @@ class FleetAuth:
             except Exception:  # noqa: BLE001 - a listener bug must not turn a refusal into a crash
                 log.exception("on_reject listener failed")
 
-    def _check_command(self, cmd: Command, vehicle_id: int) -> str | None:
+    def verify_command(self, cmd: Command) -> str | None:
+        """None if `cmd` is signed by a station of the roster and fresh, else why not: the
+        checks a vehicle makes before its replay cache, which this leaves untouched (for an
+        observer, such as a station's command log, that executes nothing)."""
         if cmd.tag == _NO_TAG:
             return "unsigned command: this vehicle requires commands signed by a fleet station"
         problem = self.check_signature(
@@ -245,13 +248,19 @@ class FleetAuth:
         )
         if problem:
             return problem
-        now = self.clock_ns()
-        age_ns = now - cmd.stamp_ns
+        age_ns = self.clock_ns() - cmd.stamp_ns
         if abs(age_ns) > self.max_skew_ns:
             return (
                 f"stale command: stamped {age_ns / 1e9:+.1f} s from this vehicle's clock "
                 f"(limit {self.max_skew_ns / 1e9:g} s)"
             )
+        return None
+
+    def _check_command(self, cmd: Command, vehicle_id: int) -> str | None:
+        problem = self.verify_command(cmd)
+        if problem:
+            return problem
+        now = self.clock_ns()
         ident = (vehicle_id, cmd.nonce)
         with self._lock:
             # Forget what the skew check already refuses: the cache only spans the window.

@@ -2,7 +2,7 @@
 
     covey status --connect tcp/127.0.0.1:7447
     covey cmd takeoff 5 --to all
-    covey cmd goto 10 0 -5 --to 1,2
+    covey cmd goto 10 0 5 --to 1,2        # N 10 m, E 0 m, 5 m above the fleet origin
     covey cmd kill --to 3 --yes
 
 `covey cmd` exits non-zero when any addressed vehicle rejected, failed or timed out.
@@ -171,10 +171,21 @@ def _request(args: argparse.Namespace) -> CommandRequest:
     if verb == "takeoff":
         return inputs.takeoff(args.alt_m)
     if verb == "goto":
-        return inputs.goto_local(args.north_m, args.east_m, args.down_m, limit_m=100_000.0)
+        return inputs.goto_local(args.north_m, args.east_m, args.alt_m, limit_m=100_000.0)
     if verb == "goto-global":
-        return inputs.goto_global(args.lat_deg, args.lon_deg, args.alt_m)
+        return inputs.goto_global(args.lat_deg, args.lon_deg, args.alt_amsl_m)
     return inputs.simple(CommandKind[verb.upper()])
+
+
+_PARAM_HELP = {
+    "alt_m": "altitude in metres above the fleet origin, up (as the station's form)",
+    "north_m": "metres north of the fleet origin",
+    "east_m": "metres east of the fleet origin",
+    "lat_deg": "latitude in degrees (WGS-84)",
+    "lon_deg": "longitude in degrees (WGS-84)",
+    "alt_amsl_m": "altitude in metres above mean sea level",
+}
+"""Each positional value with its unit and datum (one altitude convention: up, metres)."""
 
 
 def cmd_parser() -> argparse.ArgumentParser:
@@ -183,18 +194,24 @@ def cmd_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
     verbs = {
-        "takeoff": ("take off to ALT_M metres", ["alt_m"]),
+        "takeoff": ("take off to ALT_M metres above the fleet origin", ["alt_m"]),
         "land": ("land where you are", []),
         "hold": ("hold position", []),
         "return": ("return to the start position", []),
-        "goto": ("fly to a local NED position", ["north_m", "east_m", "down_m"]),
-        "goto-global": ("fly to a WGS-84 position", ["lat_deg", "lon_deg", "alt_m"]),
+        "goto": (
+            "fly to NORTH_M, EAST_M of the fleet origin, ALT_M above it (up)",
+            ["north_m", "east_m", "alt_m"],
+        ),
+        "goto-global": (
+            "fly to a WGS-84 position, ALT_AMSL_M above mean sea level",
+            ["lat_deg", "lon_deg", "alt_amsl_m"],
+        ),
         "kill": ("motors off NOW (the vehicle falls); asks to confirm", []),
     }
     for verb, (text, params) in verbs.items():
         sp = sub.add_parser(verb, help=text, description=text)
         for name in params:
-            sp.add_argument(name, type=str, help=name.replace("_", " "))
+            sp.add_argument(name, type=str, help=_PARAM_HELP[name])
         sp.add_argument("--to", required=True, help="vehicle ids (1,2,5 or 1-4) or 'all'")
         sp.add_argument(
             "--timeout-s", type=float, default=3.0, help="seconds to wait for acks (default 3)"

@@ -34,10 +34,11 @@ from comms.schema import (
     Event,
     EventKind,
     Severity,
+    VehicleState,
 )
 from comms.session import MeshConfig
 from comms.ticks import run_ticks
-from groundstation import dispatch, scenarios
+from groundstation import dispatch, layout, scenarios
 from groundstation.browser_form import BrowserForms
 from groundstation.command_log import CommandLog, LoggedCommand
 from groundstation.dispatch import CommandWorker, Dispatched
@@ -134,7 +135,7 @@ class GroundStation:
         self.update_times_s: list[float] = []
         self.events = EventBuffer()
         self.commands = CommandLog(on_superseded=self._on_superseded)
-        self._commands_shown = -1
+        self._commands_shown: tuple[int, int] = (-1, -1)
         self._tabs_lock = threading.Lock()
         self.panels: dict[int, CommandPanel] = {}
         self._event_views: dict[int, EventsView] = {}
@@ -170,10 +171,10 @@ class GroundStation:
             )
             self._link.__enter__()
         subscribe = self.mesh.subscribe_states if cfg.every_state else self.mesh.subscribe_feed
-        subscribe(self.fleet.on_state, link=self._link, on_refused=self.fleet.on_state_refused)
+        subscribe(self._on_state, link=self._link, on_refused=self.fleet.on_state_refused)
         self.mesh.on_security = self._on_security
         self.mesh.subscribe_events(self._on_event)
-        self.mesh.observe_commands(self.commands.on_command, self._on_ack)
+        self.mesh.observe_commands(self._on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
         self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="covey", verbose=False)
         self.server.gui.configure_theme(
@@ -199,13 +200,14 @@ class GroundStation:
             else "**OPEN MODE**: commands and states are not signed"
         )
         gui.add_markdown(
-            f"**covey** ground station · fleet `{self.mesh.fleet}` · station {self.cfg.gcs_id} · {trust}"
+            f"**covey** ground station · fleet `{self.mesh.fleet}` · station {self.cfg.gcs_id} · {trust}",
+            order=layout.TITLE,
         )
-        with gui.add_folder("Fleet"):
+        with gui.add_folder("Fleet", order=layout.FLEET):
             self.table = gui.add_html("<i>waiting for vehicles…</i>")
             gui.add_html(legend())
-        with gui.add_folder("Command log (every station)", expand_by_default=False):
-            self.command_log_html = gui.add_html(command_log_html([], self.cfg.gcs_id))
+        with gui.add_folder("Command log (every station)", order=layout.COMMAND_LOG):
+            self.command_log_html = gui.add_html(command_log_html([]))
         self.forms = BrowserForms(self.server, FORM_LABELS)
         self._hooks = PanelHooks(
             known_ids=self.known_ids,
@@ -223,7 +225,7 @@ class GroundStation:
 
     # -- browser tabs: each has its own events filter and command panel ------------------
     def _open_tab(self, client: viser.ClientHandle) -> None:
-        view = EventsView(client.gui, self.events)
+        view = EventsView(client.gui, self.events, self.commands.name_of, order=layout.EVENTS)
         panel = CommandPanel(
             client,
             self._hooks,
@@ -245,11 +247,11 @@ class GroundStation:
         with self._tabs_lock:
             return list(self.panels.values()), list(self._event_views.values())
 
-    def _select(self, vehicle_id: int, client_id: int | None) -> None:
+    def _select(self, vehicle_id: int, client_id: int | None, add: bool = False) -> None:
         with self._tabs_lock:
             panel = self.panels.get(client_id) if client_id is not None else None
         if panel is not None:
-            panel.select(vehicle_id)
+            panel.select(vehicle_id, add)
 
     def close(self) -> None:
         self._stop.set()
@@ -304,6 +306,18 @@ class GroundStation:
             except DecodeError as exc:
                 log.warning("vehicle %d sent a malformed action outcome: %s", event.vehicle_id, exc)
         self.events.add(event, recv_ns)
+
+    def _on_state(self, state: VehicleState, recv_ns: int, *entry_seq: int) -> None:
+        self.fleet.on_state(state, recv_ns, *entry_seq)
+        self.commands.on_state(state)  # it may show the vehicle finished its latest command
+
+    def _on_command(self, command: Command, recv_ns: int, digest: bytes) -> None:
+        """Keyed mode: only commands whose station signature verifies are logged; the rest are
+        counted by cause (one summary line), so a forger can neither pose as a station nor push
+        real commands out of the log."""
+        auth = self.mesh.auth if self.mesh is not None else None
+        check = auth.verify_command if auth is not None else None
+        self.commands.on_command(command, recv_ns, digest, check=check)
 
     def _on_ack(self, ack: CommandAck, recv_ns: int) -> None:
         auth = self.mesh.auth if self.mesh is not None else None
@@ -364,6 +378,7 @@ class GroundStation:
         self._worker.submit(label, run, on_done)
 
     def _remember_sender(self, cmd: Command, client_id: int | None) -> None:
+        self.commands.mark_own(cmd.nonce)
         if client_id is None:
             return
         with self._tabs_lock:
@@ -397,12 +412,21 @@ class GroundStation:
         with self.server.atomic():
             self.scene.update(snap)
             if with_table:
-                self.table.content = fleet_table(snap, refused_states=self.fleet.phantom_refusals)
-                if self._commands_shown != self.commands.version:
-                    self._commands_shown = self.commands.version
+                self.table.content = fleet_table(
+                    snap, refused_states=self.fleet.phantom_refusals, origin=self.cfg.origin
+                )
+                # Redrawn on a change, and each second (timeouts, the refusals' minute).
+                shown = (self.commands.version, now_ns // 1_000_000_000)
+                if self._commands_shown != shown:
+                    self._commands_shown = shown
                     self.command_log_html.content = command_log_html(
-                        self.commands.entries(), self.cfg.gcs_id
+                        self.commands.entries(),
+                        now_ns,
+                        present=self.known_ids(),
+                        answer_timeout_s=self.cfg.command_timeout_s + 1.0,
+                        refused=self.commands.refused_last_minute(now_ns),
                     )
+
                 for view in self._tabs()[1]:
                     view.render()
         return time.perf_counter() - t0
