@@ -30,11 +30,13 @@ from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
+from comms.heartbeat import HeartbeatConfig, StationHeartbeats
 from comms.mesh import Mesh
 from comms.schema import (
     AckResult,
     Command,
     CommandAck,
+    CommandKind,
     EventKind,
     GuidanceTrace,
     Mode,
@@ -140,8 +142,18 @@ class Agent:
         self.actions = ActionQueue(
             lambda a: perform(a, backend), self._on_outcome, name=f"actions-{self.vid}"
         )
-        self.presence = mesh.presence()
+        # The station-lost failsafe and the take-off check trust signed station heartbeats,
+        # not liveliness tokens (comms/heartbeat.py); they also give this vehicle's clock offset.
+        self.stations = StationHeartbeats(
+            mesh,
+            HeartbeatConfig(),
+            clock_s=clock_s,
+            on_summary=lambda line: self._event(
+                line, EventKind.SECURITY, Severity.WARNING, quiet=True
+            ),
+        )
         if getattr(mesh, "auth", None) is not None:
+            mesh.auth.clock_note = self.stations.clock_problem  # named in stale-command refusals
             # Commands refused before handle_command runs: one SECURITY event per cause a second
             # (a flood must not become one).
             mesh.auth.on_reject = command_refusals(
@@ -191,6 +203,7 @@ class Agent:
     def close(self) -> None:
         """Stop the action queue (what still waits is reported as not run)."""
         self.actions.close()
+        self.stations.close()
 
     def __enter__(self) -> Agent:
         return self
@@ -226,8 +239,13 @@ class Agent:
         """Answer at once: the mode machine's verdict. The autopilot's part is queued."""
         tel = self.backend.telemetry()
         pos = None if tel is None else np.array(tel.pos_ned_m)
+        problem = None
+        if cmd.kind is CommandKind.TAKEOFF:
+            problem = self.stations.takeoff_problem(self.clock_s(), self.cfg.failsafe.require_gcs)
         with self._lock:
-            decision = self.core.command(0, cmd, pos, link_ok=tel is not None and tel.link_ok)
+            decision = self.core.command(
+                0, cmd, pos, link_ok=tel is not None and tel.link_ok, takeoff_problem=problem
+            )
             notes = self.core.drain_notes()
         self._notes(notes)
         for action in decision.actions:
@@ -258,10 +276,13 @@ class Agent:
         if action.nonce is None:
             return
         outcome = outcome_of(action, self.vid, error, self.mode if rolled else None)
+        self._publish_event(outcome.to_event(self.mesh.clock_ns()))
+
+    def _publish_event(self, event) -> None:
         try:
-            self.mesh.publish_event(outcome.to_event(self.mesh.clock_ns()))
+            self.mesh.publish_event(event)
         except Exception as exc:  # noqa: BLE001 - an event that cannot be sent must not stop flying
-            log.warning("could not publish an action outcome: %s", exc)
+            log.warning("could not publish an event: %s", exc)
 
     # -- the loop ------------------------------------------------------------------------------
     def tick(self, now_s: float) -> None:
@@ -293,7 +314,9 @@ class Agent:
             np.array([tel.battery_pct]),
             np.array([tel.link_ok]),
         )
-        gcs_alive = bool(self.presence.ground_stations)
+        gcs_alive = self.stations.alive(now_s)
+        for report, stamp_ns in self.stations.clock_reports(now_s, (self.vid,)):
+            self._publish_event(report.to_event(stamp_ns))
         nbrs = self.table.snapshot(now_s, pos)
         busy = self.actions.busy
         flags = self.flags

@@ -3,9 +3,13 @@
 `Failsafes.evaluate()` is called every guidance tick and returns what should happen; the agent
 applies it through the mode machine and publishes each transition as an Event.
 
-- Ground station lost (no station's liveliness token on the mesh) for `gcs_lost_hold_s`:
-  stop and hold; still lost after `gcs_lost_land_s`: land. If a station comes back while the
-  vehicle holds, it resumes the goto it was flying.
+- Ground station lost for `gcs_lost_hold_s`: stop and hold; still lost after
+  `gcs_lost_land_s`: land. If a station comes back while the vehicle holds, it resumes the goto
+  it was flying. "A station" is a verified, fresh heartbeat from a station of the roster
+  (comms/heartbeat.py: the shell asks `StationHeartbeats.alive`), never a liveliness token,
+  which anyone on the mesh can declare (open mode only: a token counts too). With the failsafe
+  on, a take-off without a station is refused (`StationHeartbeats.takeoff_problem`): the
+  failsafe would hold the vehicle as soon as it climbed.
 - Battery below `low_battery_return_pct`: return home; below `critical_battery_land_pct`: land.
   The battery failsafe re-arms: it acts whenever an airborne vehicle is below a threshold and
   not already doing what the threshold asks (returning or landing; landing), and a vehicle
@@ -30,7 +34,7 @@ class FailsafeConfig:
     """Thresholds of the agent's failsafes."""
 
     require_gcs: bool = True
-    """Hold, then land, when no ground station is on the mesh."""
+    """Hold, then land, when no ground station is on the mesh; refuse take-off without one."""
     gcs_lost_hold_s: float = 5.0
     gcs_lost_land_s: float = 30.0
     low_battery_return_pct: float = 25.0

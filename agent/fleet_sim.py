@@ -44,12 +44,14 @@ from comms.auth import FleetAuth, host_signers
 from comms.cli_options import stop_after
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
+from comms.heartbeat import HeartbeatConfig, StationHeartbeats
 from comms.mesh import Mesh
 from comms.schema import (
     POSITION_LIMIT_M,
     AckResult,
     Command,
     CommandAck,
+    CommandKind,
     EventKind,
     Mode,
     Severity,
@@ -225,8 +227,20 @@ class Fleet:
         self._lock = threading.RLock()
         self.others = NeighbourTable(None, replace(NeighbourConfig(), drop_s=cfg.drop_s))
         """Other processes' vehicles (ours are kept out by `_on_state`)."""
-        self.presence = mesh.presence() if cfg.failsafe.require_gcs else None
+        # As the agent: the station-lost failsafe and the take-off check trust signed station
+        # heartbeats (comms/heartbeat.py), which also give the host's clock offset.
+        self.stations = StationHeartbeats(
+            mesh,
+            HeartbeatConfig(),
+            clock_s=clock_s,
+            on_summary=(lambda line: self._event(0, line, EventKind.SECURITY))
+            if auths is not None
+            else None,
+            tokens=cfg.failsafe.require_gcs,
+        )
         if auths is not None:
+            for auth in self.auths:  # named in stale-command refusals
+                auth.clock_note = self.stations.clock_problem
             # As the agent: refused commands and neighbour states become SECURITY events (one
             # per cause a second), a vehicle's own refusals from that vehicle, signed by it.
             for i, auth in enumerate(self.auths):
@@ -284,9 +298,12 @@ class Fleet:
 
     def handle_command(self, i: int, cmd: Command) -> CommandAck:
         """Vehicle i's answer at once (the mode machine's verdict), as the agent's."""
+        problem = None
+        if cmd.kind is CommandKind.TAKEOFF:
+            problem = self.stations.takeoff_problem(self.clock_s(), self.cfg.failsafe.require_gcs)
         with self._lock:
             tel = self.sim.telemetry(i)
-            d = self.core.command(i, cmd, np.array(tel.pos_ned_m), tel.link_ok)
+            d = self.core.command(i, cmd, np.array(tel.pos_ned_m), tel.link_ok, problem)
             for action in d.actions:
                 self.actions.submit(action)
             notes = self.core.drain_notes()
@@ -342,7 +359,7 @@ class Fleet:
             obs = Observed(
                 sim.pos_m, sim.vel_m_s, sim.armed, sim.pos_m[:, 2] < -0.05, sim.battery_pct, link_ok
             )
-            gcs_alive = self.presence is None or bool(self.presence.ground_stations)
+            gcs_alive = not self.cfg.failsafe.require_gcs or self.stations.alive(now_s)
             for action in core.observe(now_s, obs, gcs_alive):
                 self.actions.submit(action)
             rows = core.guided_rows(sim.armed, link_ok)
@@ -373,6 +390,9 @@ class Fleet:
         if cells is not None:  # outside the lock: Zenoh's threads take it to deliver states
             self.states.set_cells(cells)
         self._publish_notes(notes)
+        reports = self.stations.clock_reports(now_s, self.cfg.ids)  # one per vehicle, in order
+        for row, (report, stamp_ns) in enumerate(reports):
+            self._send(self.mesh.publish_event, report.to_event(stamp_ns), auth=self.auths[row])
         self.stats.ticks += 1
         self.stats.tick_ms.append((time.perf_counter() - t0) * 1e3)
 

@@ -229,8 +229,18 @@ class FlightCore:
         return notes
 
     # -- commands ------------------------------------------------------------------------------
-    def command(self, i: int, cmd: Command, pos_m: np.ndarray | None, link_ok: bool = True):
-        """Check `cmd` for vehicle i at `pos_m` (None: no telemetry yet) and enter its mode."""
+    def command(
+        self,
+        i: int,
+        cmd: Command,
+        pos_m: np.ndarray | None,
+        link_ok: bool = True,
+        takeoff_problem: str | None = None,
+    ):
+        """Check `cmd` for vehicle i at `pos_m` (None: no telemetry yet) and enter its mode.
+        `takeoff_problem`: why the shell's ground facts rule out leaving the ground now (no
+        station on the mesh, the clock off: comms/heartbeat.py `takeoff_problem`); it refuses a
+        take-off of a landed vehicle."""
         mode = self.mode_of(i)
         if pos_m is None:
             return Decision(AckResult.REJECTED, "no telemetry from the vehicle yet", mode)
@@ -264,6 +274,8 @@ class FlightCore:
         res = step(mode, trigger)
         if not res.accepted:
             return Decision(AckResult.REJECTED, res.reason, mode)
+        if takeoff_problem and cmd.kind is CommandKind.TAKEOFF and mode is Mode.LANDED:
+            return Decision(AckResult.REJECTED, takeoff_problem, mode)
         low_battery = fs.battery_refusal(cmd.kind, float(self.battery_pct[i]))
         if low_battery:
             return Decision(AckResult.REJECTED, low_battery, mode)

@@ -58,6 +58,7 @@ from comms.schema import (
     GuidanceTrace,
     Role,
     Roster,
+    StationHeartbeat,
     VehicleState,
 )
 
@@ -125,6 +126,10 @@ class FleetAuth:
         thread; the agent publishes a SECURITY event from it. Exceptions are logged, not raised."""
         self.on_roster: Callable[[Roster], None] | None = None
         """Called after a newer roster was applied."""
+        self.clock_note: Callable[[], str | None] | None = None
+        """What this member knows of its clock against the stations' (comms/heartbeat.py), as a
+        line ("vehicle clock +10.0 s against station 1 ..."), or None: a stale command's refusal
+        names it, so that the operator learns the cause rather than a bare "stale"."""
 
     # -- identity and roster ---------------------------------------------------------------------
     @property
@@ -250,6 +255,9 @@ class FleetAuth:
             return problem
         age_ns = self.clock_ns() - cmd.stamp_ns
         if abs(age_ns) > self.max_skew_ns:
+            note = self._clock_note()
+            if note:
+                return f"stale command: {note}"
             return (
                 f"stale command: stamped {age_ns / 1e9:+.1f} s from this vehicle's clock "
                 f"(limit {self.max_skew_ns / 1e9:g} s)"
@@ -327,6 +335,35 @@ class FleetAuth:
         return self.check_signature(
             Role.VEHICLE, trace.vehicle_id, "trace", trace.signed_bytes(), trace.sig
         )
+
+    # -- station heartbeats ----------------------------------------------------------------------
+    def sign_heartbeat(self, heartbeat: StationHeartbeat) -> StationHeartbeat:
+        """Sign a heartbeat as this station (comms/heartbeat.py); a vehicle's key never does."""
+        if self.role is not Role.STATION or heartbeat.gcs_id != self.member_id:
+            raise FleetKeyError(
+                f"this is {self.key.name}'s key: it signs only station {self.member_id}'s "
+                "heartbeats"
+                if self.role is Role.STATION
+                else f"this is {self.key.name}'s key: only a station key signs heartbeats"
+            )
+        return dataclasses.replace(heartbeat, sig=self._sign("hb", heartbeat.signed_bytes()))
+
+    def check_heartbeat(self, heartbeat: StationHeartbeat) -> str | None:
+        """None if station `gcs_id` of the current roster signed `heartbeat`, else why not."""
+        if not heartbeat.sig:
+            return "unsigned: a keyed member trusts only signed station heartbeats"
+        return self.check_signature(
+            Role.STATION, heartbeat.gcs_id, "hb", heartbeat.signed_bytes(), heartbeat.sig
+        )
+
+    def _clock_note(self) -> str | None:
+        if self.clock_note is None:
+            return None
+        try:
+            return self.clock_note()
+        except Exception:  # noqa: BLE001 - a note that fails must not change a refusal
+            log.exception("clock_note failed")
+            return None
 
 
 class _RosterBook:

@@ -12,6 +12,9 @@
                                   process, batched at a bounded rate (ground stations); <id> is
                                   the first vehicle that process published (comms/feed.py)
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
+    covey/<fleet>/gcs/<id>/heartbeat
+                                  pub/sub StationHeartbeat, signed by station <id> (keyed mode):
+                                  what the station-lost failsafe trusts (comms/heartbeat.py)
     covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
 
 A state's key carries the coarse grid cell of the position it reports, so that a vehicle can
@@ -82,6 +85,7 @@ _LEGACY_CELL_STATE_KEY_RE = re.compile(
 _FEED_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/(?:msg|v)/([0-9]{1,5})/feed$")
 _F32 = struct.Struct("<2f")
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
+_HEARTBEAT_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/heartbeat$")
 
 
 def check_fleet(fleet: str) -> str:
@@ -223,6 +227,24 @@ def gcs_alive(fleet: str, gcs_id: int) -> str:
 
 def all_gcs_alive(fleet: str) -> str:
     return f"{ROOT}/{check_fleet(fleet)}/gcs/*/alive"
+
+
+def gcs_heartbeat(fleet: str, gcs_id: int) -> str:
+    """Where station `gcs_id` publishes its signed heartbeats (the routers' access control lets
+    only `gcs-*` identities publish here)."""
+    return f"{ROOT}/{check_fleet(fleet)}/gcs/{check_vehicle_id(gcs_id)}/heartbeat"
+
+
+def all_gcs_heartbeats(fleet: str) -> str:
+    return f"{ROOT}/{check_fleet(fleet)}/gcs/*/heartbeat"
+
+
+def parse_gcs_heartbeat_key(key: str) -> tuple[str, int] | None:
+    """(fleet, station id) of a heartbeat key, or None if `key` is not one."""
+    m = _HEARTBEAT_KEY_RE.match(str(key))
+    if not m or not 1 <= int(m.group(2)) <= MAX_VEHICLE_ID:
+        return None
+    return m.group(1), int(m.group(2))
 
 
 def roster(fleet: str) -> str:

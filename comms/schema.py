@@ -31,6 +31,8 @@ Layouts (all little-endian, packed; `<` struct codes):
                                                              at most MAX_FEED_BYTES
         type, version, feed_seq, n_entries, entries[n] (entry_seq, state length, the state's
         bytes exactly as its vehicle published them: a VehicleState, signed or not)
+    StationHeartbeat type 8 v1  <BBHIQ [+ 64s]       16 bytes, 80 signed
+        type, version, gcs_id, seq, stamp_ns, [sig: Ed25519 of station gcs_id]
 
 Signatures are made and checked in comms/auth.py; this module only carries their bytes.
 """
@@ -92,6 +94,7 @@ class MsgType(enum.IntEnum):
     ROSTER = 5
     GUIDANCE_TRACE = 6
     FEED_BATCH = 7
+    STATION_HEARTBEAT = 8
 
 
 class Role(enum.IntEnum):
@@ -163,6 +166,8 @@ class EventKind(enum.IntEnum):
     SECURITY = 5
     ACTION = 6
     """The autopilot's outcome of an accepted command (`ActionOutcome` in the text)."""
+    CLOCK = 7
+    """The vehicle's clock against the stations' (`ClockReport` in the text)."""
 
 
 _MODE_VALUES = frozenset(m.value for m in Mode)
@@ -884,6 +889,101 @@ class FeedBatch:
 
 
 @dataclass(frozen=True)
+class StationHeartbeat:
+    """A ground station's sign of life, a few times a second (comms/heartbeat.py). Signed by the
+    station in keyed mode: the station-lost failsafe trusts only these, never a liveliness token,
+    and members estimate their clock's offset to the stations from `stamp_ns`."""
+
+    gcs_id: int
+    seq: int
+    """This station's heartbeat count since it started (wrapping at 2**32)."""
+    stamp_ns: int
+    """The station's wall clock when it sent this heartbeat."""
+    sig: bytes = b""
+    """Ed25519 signature of station `gcs_id` over `signed_bytes()` (comms/auth.py); empty:
+    unsigned (open mode)."""
+
+    TYPE: ClassVar[MsgType] = MsgType.STATION_HEARTBEAT
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ")
+
+    def validate(self) -> None:
+        _check_vehicle_id("gcs_id", self.gcs_id)
+        if not 0 <= self.seq < 2**32:
+            raise DecodeError(f"seq={self.seq} does not fit 32 bits")
+        if not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError(f"stamp_ns={self.stamp_ns} does not fit 64 bits")
+        _check_sig(self.sig)
+
+    def signed_bytes(self) -> bytes:
+        return self._FMT.pack(self.TYPE, SCHEMA_VERSION, self.gcs_id, self.seq, self.stamp_ns)
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.sig
+
+    @classmethod
+    def decode(cls, data: bytes) -> StationHeartbeat:
+        _header(data, cls.TYPE)
+        if len(data) not in (cls._FMT.size, cls._FMT.size + TAG_BYTES):
+            raise DecodeError(
+                f"StationHeartbeat must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), "
+                f"got {len(data)}"
+            )
+        _, _, gcs_id, seq, stamp_ns = cls._FMT.unpack_from(data)
+        msg = cls(gcs_id, seq, stamp_ns, data[cls._FMT.size :])
+        msg.validate()
+        return msg
+
+
+@dataclass(frozen=True)
+class ClockReport:
+    """A vehicle's clock offset to a station, as its agent estimates it from the station's
+    signed heartbeats (comms/heartbeat.py). It travels as a signed Event of kind CLOCK whose
+    text is `clock <+s.s> s against station <id>` (` ok` appended once it is back within the
+    limit), so that the ground station can show the offset as a health problem."""
+
+    vehicle_id: int
+    offset_s: float
+    """This vehicle's clock minus the station's, in seconds (positive: the vehicle is ahead)."""
+    gcs_id: int
+    ok: bool = False
+    """The offset is within the freshness window again (the report that ends a problem)."""
+
+    def to_event(self, stamp_ns: int) -> Event:
+        text = f"clock {self.offset_s:+.1f} s against station {self.gcs_id}" + (
+            " ok" if self.ok else ""
+        )
+        severity = Severity.INFO if self.ok else Severity.ERROR
+        return Event(self.vehicle_id, stamp_ns, text, severity, EventKind.CLOCK)
+
+    @classmethod
+    def from_event(cls, event: Event) -> ClockReport:
+        """The report a CLOCK event carries; DecodeError says what is wrong with it."""
+        if event.kind is not EventKind.CLOCK:
+            raise DecodeError(f"a clock report needs a CLOCK event, got {event.kind.name}")
+        words = event.text.split(" ")
+        if len(words) not in (6, 7) or words[:1] + words[2:5] != [
+            "clock",
+            "s",
+            "against",
+            "station",
+        ]:
+            raise DecodeError(
+                f"clock report text must be 'clock <s> s against station <id>', got "
+                f"{event.text[:40]!r}"
+            )
+        if len(words) == 7 and words[6] != "ok":
+            raise DecodeError(f"clock report ends in {words[6]!r}, not 'ok'")
+        try:
+            offset_s, gcs_id = float(words[1]), int(words[5])
+        except ValueError:
+            raise DecodeError(f"clock report numbers do not parse: {event.text[:40]!r}") from None
+        _check_finite("clock offset_s", offset_s)
+        _check_vehicle_id("clock report gcs_id", gcs_id)
+        return cls(event.vehicle_id, offset_s, gcs_id, ok=len(words) == 7)
+
+
+@dataclass(frozen=True)
 class Member:
     """One key of a fleet roster: who holds it and what it may sign."""
 
@@ -1015,7 +1115,16 @@ class RosterHead:
     sig: bytes
 
 
-Message = VehicleState | Command | CommandAck | Event | Roster | GuidanceTrace | FeedBatch
+Message = (
+    VehicleState
+    | Command
+    | CommandAck
+    | Event
+    | Roster
+    | GuidanceTrace
+    | FeedBatch
+    | StationHeartbeat
+)
 _DECODERS: dict[int, type] = {
     MsgType.VEHICLE_STATE: VehicleState,
     MsgType.COMMAND: Command,
@@ -1024,6 +1133,7 @@ _DECODERS: dict[int, type] = {
     MsgType.ROSTER: Roster,
     MsgType.GUIDANCE_TRACE: GuidanceTrace,
     MsgType.FEED_BATCH: FeedBatch,
+    MsgType.STATION_HEARTBEAT: StationHeartbeat,
 }
 
 
@@ -1045,6 +1155,7 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
 
 __all__ = [
     "AckResult",
+    "ClockReport",
     "Command",
     "CommandAck",
     "CommandKind",
@@ -1063,6 +1174,7 @@ __all__ = [
     "RosterHead",
     "Severity",
     "StateFlag",
+    "StationHeartbeat",
     "TraceFlag",
     "VehicleState",
     "decode",

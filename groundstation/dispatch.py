@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from comms.commands import CommandResult, new_nonce
 from comms.mesh import Mesh
-from comms.schema import Command
+from comms.schema import Command, Role
 from groundstation.inputs import CommandRequest
 
 log = logging.getLogger(__name__)
@@ -47,13 +47,24 @@ def send(
     on_built: Callable[[Command], None] | None = None,
 ) -> CommandResult:
     """Send one command (one query) and collect every answer. For the whole fleet (targets=()),
-    every vehicle in `present` is expected to answer, so a silent one shows as a timeout.
+    every vehicle in `present` is expected to answer, so a silent one shows as a timeout; in
+    keyed mode only the roster's vehicles among them (`expected_for_all`).
     `on_built` sees the command (its nonce) before it goes out."""
     cmd = build_command(req, targets, source_id, mesh.clock_ns())
     if on_built is not None:
         on_built(cmd)
-    expect = set(targets) if targets else set(present)
+    expect = set(targets) if targets else expected_for_all(present, getattr(mesh, "auth", None))
     return mesh.send_command(cmd, expect=expect, timeout_s=timeout_s)
+
+
+def expected_for_all(present: Iterable[int], auth) -> set[int]:
+    """Which of the `present` vehicles a command to all should wait for: all of them in open
+    mode; in keyed mode (`auth`, a comms.auth.FleetAuth) only the vehicles of its roster, since
+    anyone can declare a presence token: a flood of fake ones costs no waiting and no rows of
+    timeouts (a roster vehicle that is not running shows as not reachable)."""
+    if auth is None:
+        return set(present)
+    return {vid for vid in present if auth.is_member(Role.VEHICLE, vid)}
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,17 @@ whose claimed states were refused lately is marked `unverified` (a forger speaks
 own key is revoked or wrong). Refusals for ids the model does not know (phantoms) only bump a
 counter: they never create a vehicle. Made-up ids in open mode expire as above.
 
+Presence is not signed (anyone on the mesh can declare a vehicle's liveliness token), so with
+`FleetConfig.verified_only` (the station and tools in keyed mode) the table lists only vehicles
+that something signed proved: a verified state, or a verified clock report (`on_clock`). A
+token of a vehicle with neither is counted apart, in a set of at most `max_unverified` ids (a
+counter beyond); it never takes a row, so 2,000 fake tokens cannot push a real vehicle out.
+When the vehicle's first verified state arrives, its token moves over with it.
+
+Clock: a vehicle whose clock is off reports it in a signed ClockReport (comms/heartbeat.py);
+the view carries the offset (`VehicleView.clock_offset_s`) while the report is recent, so that
+the station shows "clock +10.0 s" instead of the last state it could accept.
+
 Link health per vehicle, over a sliding window of `rate_window_s`:
     rate_hz  = (received - 1) / (t_last - t_first)
     loss     = 1 - received / (n_last - n_first + 1)
@@ -33,13 +44,13 @@ from __future__ import annotations
 import itertools
 import math
 import threading
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from comms.schema import Mode, StateFlag, VehicleState
+from comms.schema import ClockReport, Mode, StateFlag, VehicleState
 from comms.state_rate import MAX_IDLE_PERIOD_S, announces_idle
 
 _HAS_GOAL = StateFlag.HAS_GOAL.value
@@ -73,10 +84,21 @@ class FleetConfig:
     """The most vehicles the table holds; states of new ids beyond it are refused (counted)."""
     unverified_window_s: float = 3.0
     """A vehicle stays marked unverified this long after a state claiming it was refused."""
+    verified_only: bool = False
+    """Keyed mode: list only vehicles proved by a verified state or clock report; presence
+    tokens of others are only counted (`FleetModel.unverified_present`)."""
+    max_unverified: int = 256
+    """The most presence tokens without a verified vehicle kept apart (verified_only); more are
+    only counted."""
+    clock_shown_s: float = 15.0
+    """A vehicle's clock report is shown this long after it arrived (it repeats every 5 s
+    while its clock is off)."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.max_vehicles <= 1_000_000:
             raise ValueError(f"max_vehicles={self.max_vehicles} must be within 1..1000000")
+        if not 0 <= self.max_unverified <= 1_000_000:
+            raise ValueError(f"max_unverified={self.max_unverified} must be within 0..1000000")
         for name in (
             "trail_s",
             "trail_min_step_s",
@@ -87,6 +109,7 @@ class FleetConfig:
             "unconfirmed_expire_s",
             "lost_expire_s",
             "unverified_window_s",
+            "clock_shown_s",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -117,6 +140,9 @@ class _Track:
     refused_cause: str = ""
     stale_after_s: float = 0.0
     """FleetConfig.stale_after(state), set with each state (the snapshot reads it per frame)."""
+    clock: ClockReport | None = None
+    clock_ns: int = 0
+    """The vehicle's latest clock report and when it arrived."""
 
 
 @dataclass(frozen=True)
@@ -149,6 +175,10 @@ class VehicleView:
     """States claiming this vehicle that the mesh refused, since the station started."""
     refused_cause: str = ""
     """Why the latest one was refused ("forged", "replayed", "unknown signer", ...)."""
+    clock_offset_s: float | None = None
+    """The vehicle's clock minus a station's, as its latest clock report said (within
+    FleetConfig.clock_shown_s, until a report says it is back); None: no clock problem. Its
+    states are then likely refused as stale: the station shows this, not the last state."""
 
     @property
     def speed_m_s(self) -> float:
@@ -178,6 +208,8 @@ class FleetSnapshot:
     vehicles: tuple[VehicleView, ...]
     close_pairs: tuple[tuple[int, int, float], ...]
     """(id_a, id_b, distance_m) for every pair closer than the separation distance."""
+    unverified_present: int = 0
+    """Presence tokens of vehicles not listed: nothing signed proved them (verified_only)."""
 
 
 class FleetModel:
@@ -193,6 +225,9 @@ class FleetModel:
         """Vehicles forgotten because they were not present on the mesh (see the module doc)."""
         self.phantom_refusals = 0
         """Refused states for ids this model does not know (never created a vehicle)."""
+        self._unverified: OrderedDict[int, int] = OrderedDict()  # id -> since (verified_only)
+        self.unverified_dropped = 0
+        """Presence tokens without a verified vehicle beyond `max_unverified` (only counted)."""
 
     def _track(self, vehicle_id: int, now_ns: int, present: bool) -> _Track | None:
         """The track of `vehicle_id`, made if there is room (lock held). A present vehicle may
@@ -234,7 +269,7 @@ class FleetModel:
         `entry_seq`: its entry number in its feed, on which loss is counted; None: its seq."""
         cfg = self.cfg
         with self._lock:
-            track = self._track(state.vehicle_id, recv_ns, present=False)
+            track = self._verified_track(state.vehicle_id, recv_ns)
             if track is None:
                 self.refused_states += 1
                 return
@@ -276,9 +311,46 @@ class FleetModel:
             track.refused_ns = recv_ns
             track.refused_cause = cause
 
-    def on_presence(self, vehicle_id: int, alive: bool, now_ns: int) -> None:
-        """Record a liveliness change (a Mesh.presence on_change callback, vehicles only)."""
+    def on_clock(self, report: ClockReport, recv_ns: int) -> None:
+        """Record a vehicle's clock report (from a CLOCK event, verified in keyed mode: it
+        proves the vehicle as a verified state does)."""
         with self._lock:
+            track = self._verified_track(report.vehicle_id, recv_ns)
+            if track is None:
+                self.refused_states += 1
+                return
+            track.clock, track.clock_ns = report, recv_ns
+
+    def _verified_track(self, vehicle_id: int, now_ns: int) -> _Track | None:
+        """The track of a vehicle that something signed (or, open mode, anything) just proved,
+        made if there is room; its presence token, kept apart until now, moves over (lock held)."""
+        track = self._tracks.get(vehicle_id)
+        if track is not None:
+            return track
+        token_ns = self._unverified.pop(vehicle_id, None)
+        track = self._track(vehicle_id, now_ns, present=token_ns is not None)
+        if track is None:
+            if token_ns is not None:
+                self._unverified[vehicle_id] = token_ns
+            return None
+        if token_ns is not None:
+            track.alive = track.ever_alive = True
+        return track
+
+    def on_presence(self, vehicle_id: int, alive: bool, now_ns: int) -> None:
+        """Record a liveliness change (a Mesh.presence on_change callback, vehicles only).
+        With `verified_only`, the token of a vehicle not listed yet is only kept apart."""
+        with self._lock:
+            if self.cfg.verified_only and vehicle_id not in self._tracks:
+                if not alive:
+                    self._unverified.pop(vehicle_id, None)
+                elif vehicle_id in self._unverified:
+                    pass
+                elif len(self._unverified) < self.cfg.max_unverified:
+                    self._unverified[vehicle_id] = now_ns
+                else:
+                    self.unverified_dropped += 1
+                return
             track = self._track(vehicle_id, now_ns, present=alive)
             if track is None:
                 return
@@ -294,6 +366,19 @@ class FleetModel:
     def ids(self) -> list[int]:
         with self._lock:
             return sorted(self._tracks)
+
+    def present_ids(self) -> set[int]:
+        """The listed vehicles whose presence token is up: who should answer a command to all
+        (with `verified_only`, never a vehicle that nothing signed proved)."""
+        with self._lock:
+            return {vid for vid, t in self._tracks.items() if t.alive}
+
+    @property
+    def unverified_present(self) -> int:
+        """Presence tokens of vehicles that are not listed (verified_only): kept apart plus
+        those only counted beyond `max_unverified`."""
+        with self._lock:
+            return len(self._unverified) + self.unverified_dropped
 
     def positions(self) -> dict[int, tuple[float, float, float]]:
         """Latest NED position of every vehicle with a state."""
@@ -333,14 +418,17 @@ class FleetModel:
                         _trail_array(t.trail) if t.trail and want(vid) else None,
                         (t.refused, t.refused_ns, t.refused_cause),
                         t.stale_after_s,
+                        _clock_offset(t, now_ns, cfg.clock_shown_s),
                     )
                 )
+            unverified_present = len(self._unverified) + self.unverified_dropped
         with_pos = [(vid, s.pos_ned_m) for vid, s, *_ in raw if s is not None]
         pairs = close_pairs(with_pos, cfg.separation_m)
         close_ids = {a for a, _, _ in pairs} | {b for _, b, _ in pairs}
         views = []
         unverified_ns = int(cfg.unverified_window_s * NS_PER_S)
-        for vid, state, alive, last_ns, (rate_hz, loss_pct), trail, refusal, stale_after_s in raw:
+        for vid, state, alive, last_ns, health, trail, refusal, stale_after_s, clock in raw:
+            rate_hz, loss_pct = health
             refused, refused_ns, cause = refusal
             age_s = (now_ns - last_ns) / NS_PER_S if state is not None else math.inf
             views.append(
@@ -357,9 +445,23 @@ class FleetModel:
                     unverified=refused_ns is not None and now_ns - refused_ns <= unverified_ns,
                     refused_states=refused,
                     refused_cause=cause,
+                    clock_offset_s=clock,
                 )
             )
-        return FleetSnapshot(now_ns=now_ns, vehicles=tuple(views), close_pairs=tuple(pairs))
+        return FleetSnapshot(
+            now_ns=now_ns,
+            vehicles=tuple(views),
+            close_pairs=tuple(pairs),
+            unverified_present=unverified_present,
+        )
+
+
+def _clock_offset(track: _Track, now_ns: int, shown_s: float) -> float | None:
+    """The clock offset a track's latest report shows now, or None (none, old, or 'ok')."""
+    report = track.clock
+    if report is None or report.ok or now_ns - track.clock_ns > shown_s * NS_PER_S:
+        return None
+    return report.offset_s
 
 
 def _trail_array(trail: deque[tuple[int, tuple[float, float, float]]]) -> np.ndarray:

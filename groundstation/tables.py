@@ -92,10 +92,17 @@ def fleet_table(
         + "</tr>"
     ]
     for v in snap.vehicles[:max_rows]:
-        alert = v.too_close or (not v.alive and v.state) or v.unverified
+        clock = v.clock_offset_s
+        alert = v.too_close or (not v.alive and v.state) or v.unverified or clock is not None
         row_style = "background:#fde2e2" if alert else ""
         mode = _mode_badge(v)
-        if v.unverified:  # keyed mode: states claiming this vehicle failed verification lately
+        if clock is not None:  # its own signed report: the cause, not the last state it could send
+            mode = (
+                f"<b data-clock='1' style='color:{css(ALERT_RGB)}' title='vehicle clock minus "
+                "station clock: past 5 s its states and commands are refused as stale; set "
+                f"its time (NTP or GPS)'>CLOCK {clock:+.1f} s</b>"
+            )
+        elif v.unverified:  # keyed mode: states claiming this vehicle failed verification lately
             mode += (
                 f" <b data-unverified='1' style='color:{css(ALERT_RGB)}'>UNVERIFIED "
                 f"({html.escape(v.refused_cause)})</b>"
@@ -130,6 +137,10 @@ def fleet_table(
     summary = f"<div style='font-size:0.8em;margin-bottom:2px'><b>{alive}</b> of {len(snap.vehicles)} vehicles present"
     if refused_states:
         summary += f" · {refused_states} states from unknown vehicles refused"
+    if snap.unverified_present:
+        summary += (
+            f" · {snap.unverified_present:,} presence tokens of unverified vehicles (not listed)"
+        )
     if snap.close_pairs:
         pairs = ", ".join(f"{a}–{b} ({d:.1f} m)" for a, b, d in snap.close_pairs[:5])
         summary += f" · <b style='color:{css(ALERT_RGB)}'>TOO CLOSE: {html.escape(pairs)}</b>"
