@@ -23,7 +23,7 @@ from comms.mesh import Mesh
 from comms.schema import CommandKind
 from comms.session import MeshConfig
 from groundstation import dispatch, inputs
-from groundstation.fleet import FleetModel, FleetSnapshot
+from groundstation.fleet import FleetConfig, FleetModel, FleetSnapshot
 from groundstation.inputs import CommandRequest, InputError
 
 
@@ -62,8 +62,9 @@ def format_status(snap: FleetSnapshot) -> str:
 
 
 def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
-    fleet = FleetModel()
-    with Mesh(cfg.mesh, auth=load_auth(cfg.key_file, fleet=cfg.mesh.fleet)) as mesh:
+    auth = load_auth(cfg.key_file, fleet=cfg.mesh.fleet)
+    fleet = FleetModel(FleetConfig(verified_only=auth is not None))  # keyed: no bare tokens
+    with Mesh(cfg.mesh, auth=auth) as mesh:
         mesh.subscribe_feed(fleet.on_state)  # the whole fleet at a bounded rate, as the station
         pres = mesh.presence(
             lambda kind, vid, alive: (
@@ -75,6 +76,8 @@ def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
         stations = sorted(pres.ground_stations)
         refused = mesh.stats.states_refused
     out(format_status(snap) if snap.vehicles else "no vehicles on the mesh")
+    if snap.unverified_present:
+        out(f"{snap.unverified_present:,} presence tokens of unverified vehicles (not listed)")
     if refused:
         out(
             f"SECURITY: {refused} states refused (forged, replayed or unsigned); "
@@ -142,7 +145,8 @@ def format_result(res: CommandResult) -> str:
 
 
 def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
-    with Mesh(cfg.mesh, auth=load_auth(cfg.key_file, fleet=cfg.mesh.fleet)) as mesh:
+    auth = load_auth(cfg.key_file, fleet=cfg.mesh.fleet)
+    with Mesh(cfg.mesh, auth=auth) as mesh:
         pres = mesh.presence()
         if not cfg.targets:
             # Wait until presence is quiet: no new vehicle for a while, bounded by discover_s.
@@ -152,16 +156,20 @@ def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
             # seen, so a present vehicle is not reported unreachable because we were too quick.
             wanted = set(cfg.targets)
             pres.wait_for(lambda v, _g: wanted <= set(v), timeout_s=cfg.discover_s)
+        present = pres.vehicles
         res = dispatch.send(
             mesh,
             cfg.request,
             cfg.targets,
-            present=pres.vehicles,
+            present=present,
             source_id=cfg.source_id,
             timeout_s=cfg.timeout_s,
         )
+    ignored = 0 if cfg.targets else len(present - dispatch.expected_for_all(present, auth))
     out(f"{cfg.request.describe()}:")
     out(format_result(res))
+    if ignored:
+        out(f"ignored {ignored:,} presence tokens of vehicles outside the fleet roster")
     bad = [o for o in res.outcomes.values() if o.status is not OutcomeStatus.ACCEPTED]
     return 0 if res.outcomes and not bad else 1
 

@@ -23,10 +23,12 @@ import viser
 
 from comms.auth import load_auth
 from comms.geo import GeoOrigin
+from comms.heartbeat import HeartbeatPublisher
 from comms.mesh import Mesh
 from comms.presence import Presence
 from comms.schema import (
     ActionOutcome,
+    ClockReport,
     Command,
     CommandAck,
     CommandKind,
@@ -142,6 +144,7 @@ class GroundStation:
         self._sent_by: OrderedDict[int, int] = OrderedDict()  # nonce -> client id that sent it
         self.last_result: Dispatched | None = None
         self._link = None
+        self._heartbeats: HeartbeatPublisher | None = None
 
     # -- lifecycle -----------------------------------------------------------------------
     def __enter__(self) -> GroundStation:
@@ -163,6 +166,8 @@ class GroundStation:
         self.mesh = self._given_mesh or Mesh(
             cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file)
         )
+        if self.mesh.auth is not None:  # list only vehicles that something signed proved
+            self.fleet = FleetModel(FleetConfig(separation_m=cfg.separation_m, verified_only=True))
         if cfg.link not in ("", "perfect"):
             from comms.link import emulator_from_spec
 
@@ -189,6 +194,8 @@ class GroundStation:
         # Present on the mesh only once the web app and the mesh are both up: vehicles treat a
         # present station as one that an operator can use.
         self.mesh.declare_gcs(cfg.gcs_id)
+        # What the vehicles' station-lost failsafe trusts (the token above is unsigned).
+        self._heartbeats = HeartbeatPublisher(self.mesh, cfg.gcs_id)
 
     def _build_gui(self) -> None:
         assert self.server is not None
@@ -265,6 +272,9 @@ class GroundStation:
         if self.server is not None:
             self.server.stop()
             self.server = None
+        if self._heartbeats is not None:
+            self._heartbeats.close()
+            self._heartbeats = None
         if self.mesh is not None and self._given_mesh is None:
             self.mesh.close()
         self.mesh = None
@@ -305,6 +315,11 @@ class GroundStation:
                 self.commands.on_outcome(ActionOutcome.from_event(event))
             except DecodeError as exc:
                 log.warning("vehicle %d sent a malformed action outcome: %s", event.vehicle_id, exc)
+        elif event.kind is EventKind.CLOCK:
+            try:
+                self.fleet.on_clock(ClockReport.from_event(event), recv_ns)
+            except DecodeError as exc:
+                log.warning("vehicle %d sent a malformed clock report: %s", event.vehicle_id, exc)
         self.events.add(event, recv_ns)
 
     def _on_state(self, state: VehicleState, recv_ns: int, *entry_seq: int) -> None:
@@ -344,9 +359,15 @@ class GroundStation:
         )
 
     # -- panel hooks ---------------------------------------------------------------------
+    def _present(self) -> set[int]:
+        """Who should answer a command to all: in keyed mode the listed (verified) vehicles
+        whose token is up, never a bare token; in open mode every vehicle token."""
+        if self.fleet.cfg.verified_only:
+            return self.fleet.present_ids()
+        return self.presence.vehicles if self.presence else set()
+
     def known_ids(self) -> set[int]:
-        present = self.presence.vehicles if self.presence else set()
-        return present | set(self.fleet.ids())
+        return self._present() | set(self.fleet.ids())
 
     def dispatch(
         self,
@@ -355,7 +376,7 @@ class GroundStation:
         on_done: Callable[[Dispatched], None],
         client_id: int | None = None,
     ) -> None:
-        mesh, present = self.mesh, self.presence.vehicles if self.presence else set()
+        mesh, present = self.mesh, self._present()
         timeout_s, source = self.cfg.command_timeout_s, self.cfg.gcs_id
 
         def remember(cmd: Command) -> None:
