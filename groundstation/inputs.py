@@ -128,9 +128,14 @@ def targets(text: str, known: set[int] | None = None) -> tuple[int, ...]:
         except ValueError:
             raise InputError(f"Targets: {part!r} is not a vehicle id or a range like 1-4") from None
         if not 1 <= lo <= hi <= MAX_VEHICLE_ID:
-            raise InputError(
-                f"Targets: {part!r}: vehicle ids start at 1 (1..{MAX_VEHICLE_ID}; a range is low-high)"
+            why = (
+                "vehicle ids start at 1"
+                if lo < 1
+                else f"vehicle ids end at {MAX_VEHICLE_ID}"
+                if hi > MAX_VEHICLE_ID
+                else "a range is low-high"
             )
+            raise InputError(f"Targets: {part!r}: {why}")
         if hi - lo > 1024:
             raise InputError(f"Targets: range {part!r} is too long")
         ids.update(range(lo, hi + 1))
