@@ -158,14 +158,17 @@ def _run(
                 ]
             )
             print(f"covey demo: vehicle {vid} pid {proc.pid} start N {n:g} E {e:g}", flush=True)
-        port = gcs.server.get_port()
+        port = gcs.port
         if cfg.port and port != cfg.port:
             print(f"covey demo: web port {cfg.port} is busy; using {port} instead", flush=True)
         print(
             f"covey demo: mesh {endpoint} (covey status --connect {endpoint} --fleet {cfg.fleet}{cli_key})",
             flush=True,
         )
-        print(f"covey demo: ground station at {gcs.url}  (Ctrl-C to stop)", flush=True)
+        print(
+            f"covey demo: ground station at {gcs.url}  (the token logs you in; Ctrl-C to stop)",
+            flush=True,
+        )
         reported: set[int] = set()
         while not stop.wait(0.5):
             for proc in children:

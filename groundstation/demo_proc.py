@@ -15,7 +15,7 @@ import sys
 from comms.procs import Child
 
 _MESH_RE = re.compile(r"covey demo: mesh (tcp/\S+)")
-_URL_RE = re.compile(r"covey demo: ground station at (http://\S+)")
+_URL_RE = re.compile(r"covey demo: ground station at (https?://\S+)")
 _PID_RE = re.compile(r"covey demo: vehicle (\d+) pid (\d+)")
 _KEY_RE = re.compile(r"covey demo: mesh .*--key-file (\S+)\)")
 

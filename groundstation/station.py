@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import secrets
 import socket
 import threading
 import time
@@ -50,6 +51,9 @@ from groundstation.inputs import CommandRequest
 from groundstation.panel import FORM_LABELS, CommandPanel, Job, PanelHooks
 from groundstation.scene import FleetScene, SceneConfig
 from groundstation.tables import command_log_html, fleet_table, legend
+from groundstation.web_auth import Gate, GateConfig, is_loopback, read_password_file, url_host
+from groundstation.web_proxy import WebProxy, bind_listener, tls_context
+from groundstation.web_viser import operator_of, start_viser
 
 log = logging.getLogger(__name__)
 
@@ -61,9 +65,29 @@ class GcsConfig:
     mesh: MeshConfig = field(default_factory=MeshConfig)
     """How to join the mesh (ignored when a Mesh is passed to GroundStation)."""
     host: str = "127.0.0.1"
-    """Address the web app listens on (loopback unless you mean to share it)."""
+    """Address the web app listens on (loopback unless you mean to share it: another address
+    needs `certfile`/`keyfile`, or `insecure_http`)."""
     port: int = 8080
     """Web port; if busy, the next free one is used and printed."""
+    login_token: str | None = None
+    """The token of the login URL (`/?token=...`); None: a random one made at start. Unused with
+    a password file."""
+    token_label: str = "operator"
+    """Operator name of a token login (the command log names it)."""
+    password_file: str | None = None
+    """Operator accounts (`name:<scrypt hash>` lines, mode 600): log in by name and password
+    instead of the token; the account names the operator."""
+    allow_origins: tuple[str, ...] = ()
+    """Origins besides the page's own allowed to open the websocket (a reverse proxy's)."""
+    certfile: str | None = None
+    """TLS certificate (PEM): serve HTTPS and WSS."""
+    keyfile: str | None = None
+    """The certificate's private key (PEM)."""
+    insecure_http: bool = False
+    """Serve plain HTTP on a non-loopback host: the token, the session cookie and every command
+    cross the network readable and alterable by anyone on the path."""
+    session_max_age_s: float = 12 * 3600.0
+    """How long a browser login lasts."""
     gcs_id: int = 1
     """This station's id on the mesh (its liveliness token; the commands' source id)."""
     geofence_radius_m: float = 50.0
@@ -114,6 +138,26 @@ def web_host_problem(host: str) -> str | None:
     return None
 
 
+def web_exposure_problem(cfg: GcsConfig) -> str | None:
+    """Why the web app must not start as configured (a network-reachable host without TLS and
+    without --insecure-http, half a certificate), or None. Checked before the station joins the
+    mesh."""
+    if (cfg.certfile is None) != (cfg.keyfile is None):
+        return "--certfile and --keyfile go together (the certificate and its private key)"
+    tls = cfg.certfile is not None
+    if cfg.insecure_http and tls:
+        return "--insecure-http and --certfile contradict each other: choose one"
+    if cfg.insecure_http and is_loopback(cfg.host):
+        return f"--insecure-http is for a non-loopback --host; {cfg.host} is loopback"
+    if not is_loopback(cfg.host) and not tls and not cfg.insecure_http:
+        return (
+            f"--host {cfg.host} is reachable from the network: serve it over TLS (--certfile "
+            "and --keyfile), or pass --insecure-http to accept that anyone on the path can read "
+            "the login and the commands"
+        )
+    return None
+
+
 class GroundStation:
     """Context manager: the running ground station."""
 
@@ -131,6 +175,8 @@ class GroundStation:
         self.fleet = FleetModel(FleetConfig(separation_m=cfg.separation_m))
         self.presence: Presence | None = None
         self.server: viser.ViserServer | None = None
+        self.web: WebProxy | None = None
+        self._operators: dict[int, str | None] = {}  # client id -> who logged in that tab
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._rng = np.random.default_rng(cfg.seed)
@@ -160,9 +206,11 @@ class GroundStation:
 
     def _start(self) -> None:
         cfg = self.cfg
-        problem = web_host_problem(cfg.host)
+        problem = web_host_problem(cfg.host) or web_exposure_problem(cfg)
         if problem:  # before anything joins the mesh
             raise ValueError(problem)
+        accounts = read_password_file(cfg.password_file) if cfg.password_file else {}
+        tls = tls_context(cfg.certfile, cfg.keyfile) if cfg.certfile and cfg.keyfile else None
         self.mesh = self._given_mesh or Mesh(
             cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file)
         )
@@ -181,7 +229,7 @@ class GroundStation:
         self.mesh.subscribe_events(self._on_event)
         self.mesh.observe_commands(self._on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
-        self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="covey", verbose=False)
+        self._start_web(accounts, tls)
         self.server.gui.configure_theme(
             control_width="large", show_share_button=False, brand_color=(20, 110, 160)
         )
@@ -196,6 +244,28 @@ class GroundStation:
         self.mesh.declare_gcs(cfg.gcs_id)
         # What the vehicles' station-lost failsafe trusts (the token above is unsigned).
         self._heartbeats = HeartbeatPublisher(self.mesh, cfg.gcs_id)
+
+    def _start_web(self, accounts: dict[str, str], tls) -> None:
+        """viser on an internal port, behind the login gate on the public one (web_viser)."""
+        cfg, secret = self.cfg, secrets.token_urlsafe(32)
+        self.server = start_viser(secret)
+        sock = bind_listener(cfg.host, cfg.port)
+        token = None if accounts else (cfg.login_token or secrets.token_urlsafe(24))
+        gate = Gate(
+            GateConfig(
+                scheme="https" if tls else "http",
+                port=sock.getsockname()[1],
+                bind_host=cfg.host,
+                token=token,
+                token_label=cfg.token_label,
+                accounts=accounts,
+                allow_origins=cfg.allow_origins,
+                session_max_age_s=cfg.session_max_age_s,
+            ),
+            clock_s=lambda: self._clock_ns() / 1e9,
+        )
+        self.web = WebProxy(sock, gate, self.server.get_port(), secret, ssl_context=tls)
+        self.web.__enter__()
 
     def _build_gui(self) -> None:
         assert self.server is not None
@@ -241,14 +311,17 @@ class GroundStation:
             goto_limit_m=self.cfg.geofence_radius_m,
             kill_window_s=self.cfg.kill_window_s,
         )
+        operator = operator_of(self.server, client.client_id)
         with self._tabs_lock:
             self._event_views[client.client_id] = view
             self.panels[client.client_id] = panel
+            self._operators[client.client_id] = operator
 
     def _close_tab(self, client: viser.ClientHandle) -> None:
         with self._tabs_lock:
             self._event_views.pop(client.client_id, None)
             self.panels.pop(client.client_id, None)
+            self._operators.pop(client.client_id, None)
 
     def _tabs(self) -> tuple[list[CommandPanel], list[EventsView]]:
         with self._tabs_lock:
@@ -269,6 +342,9 @@ class GroundStation:
         if worker is not None:
             worker.close()
             self._worker = None
+        if self.web is not None:
+            self.web.close()
+            self.web = None
         if self.server is not None:
             self.server.stop()
             self.server = None
@@ -283,9 +359,18 @@ class GroundStation:
             self._link = None
 
     @property
+    def port(self) -> int:
+        """The public web port (the login gate's)."""
+        assert self.web is not None
+        return self.web.port
+
+    @property
     def url(self) -> str:
-        assert self.server is not None
-        return f"http://{self.cfg.host}:{self.server.get_port()}"
+        """The page's URL, with the login token when token login is on (click it to log in)."""
+        assert self.web is not None
+        gate = self.web.gate.cfg
+        token = f"/?token={gate.token}" if gate.token else "/"
+        return f"{gate.scheme}://{url_host(self.cfg.host)}:{self.web.port}{token}"
 
     def wait(self) -> None:
         """Block until close() is called from another thread (or a signal handler)."""
@@ -378,9 +463,14 @@ class GroundStation:
     ) -> None:
         mesh, present = self.mesh, self._present()
         timeout_s, source = self.cfg.command_timeout_s, self.cfg.gcs_id
+        operator = self.operator(client_id)
+        if operator is None:  # a tab the login gate did not name: never send for it
+            on_done(Dispatched(label, (), error="this tab has no logged-in operator; nothing sent"))
+            return
+        log.info("operator %s: %s", operator, label)
 
         def remember(cmd: Command) -> None:
-            self._remember_sender(cmd, client_id)
+            self._remember_sender(cmd, client_id, operator)
 
         def run() -> list:
             return [
@@ -398,7 +488,15 @@ class GroundStation:
 
         self._worker.submit(label, run, on_done)
 
-    def _remember_sender(self, cmd: Command, client_id: int | None) -> None:
+    def operator(self, client_id: int | None) -> str | None:
+        """Who sends for browser tab `client_id` (the login's account or token label; None if
+        the tab has none); "station" for a command with no tab (this process's own API)."""
+        if client_id is None:
+            return "station"
+        with self._tabs_lock:
+            return self._operators.get(client_id)
+
+    def _remember_sender(self, cmd: Command, client_id: int | None, operator: str) -> None:
         self.commands.mark_own(cmd.nonce)
         if client_id is None:
             return
@@ -447,7 +545,6 @@ class GroundStation:
                         answer_timeout_s=self.cfg.command_timeout_s + 1.0,
                         refused=self.commands.refused_last_minute(now_ns),
                     )
-
                 for view in self._tabs()[1]:
                     view.render()
         return time.perf_counter() - t0

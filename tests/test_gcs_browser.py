@@ -293,13 +293,13 @@ def test_a_kill_armed_for_one_vehicle_is_disarmed_when_targets_change(page, stat
     assert all(s.mode is not Mode.KILLED for s in states.get().values())
 
 
-def test_a_second_tab_cannot_confirm_a_kill_armed_in_the_first(page, states, commands):
+def test_a_second_tab_cannot_confirm_a_kill_armed_in_the_first(page, states, commands, demo):
     # Tab 1 arms a kill for vehicle 3. Tab 2 (another operator, its own form and guard) types
     # Targets = all and presses CONFIRM: nothing is killed. Each tab has its own kill guard.
     other = page.context.browser.new_context(viewport={"width": 1200, "height": 800}).new_page()
     try:
         other.set_default_timeout(60_000)
-        other.goto(page.url)
+        other.goto(demo.url)  # its own login (a new browser context has no cookie)
         other.get_by_role("button", name="Arm kill").wait_for()
         fill(page, "Targets", "3")
         page.get_by_role("button", name="Arm kill").click(force=True)
