@@ -21,7 +21,8 @@ Presence is not signed (anyone on the mesh can declare a vehicle's liveliness to
 that something signed proved: a verified state, or a verified clock report (`on_clock`). A
 token of a vehicle with neither is counted apart, in a set of at most `max_unverified` ids (a
 counter beyond); it never takes a row, so 2,000 fake tokens cannot push a real vehicle out.
-When the vehicle's first verified state arrives, its token moves over with it.
+When the vehicle's first verified state arrives, it is listed as present (its agent declared
+its token before its first state, though the token may have been only counted).
 
 Clock: a vehicle whose clock is off reports it in a signed ClockReport (comms/heartbeat.py);
 the view carries the offset (`VehicleView.clock_offset_s`) while the report is recent, so that
@@ -227,7 +228,8 @@ class FleetModel:
         """Refused states for ids this model does not know (never created a vehicle)."""
         self._unverified: OrderedDict[int, int] = OrderedDict()  # id -> since (verified_only)
         self.unverified_dropped = 0
-        """Presence tokens without a verified vehicle beyond `max_unverified` (only counted)."""
+        """Presence tokens without a verified vehicle beyond `max_unverified` (only counted; a
+        leave of an id not kept takes one off; a vehicle listed later may stay counted)."""
 
     def _track(self, vehicle_id: int, now_ns: int, present: bool) -> _Track | None:
         """The track of `vehicle_id`, made if there is room (lock held). A present vehicle may
@@ -333,7 +335,9 @@ class FleetModel:
             if token_ns is not None:
                 self._unverified[vehicle_id] = token_ns
             return None
-        if token_ns is not None:
+        if token_ns is not None or self.cfg.verified_only:
+            # A member that signs states runs its agent, which declared its token before its
+            # first state: present (its token may have been only counted, beyond the bound).
             track.alive = track.ever_alive = True
         return track
 
@@ -343,7 +347,8 @@ class FleetModel:
         with self._lock:
             if self.cfg.verified_only and vehicle_id not in self._tracks:
                 if not alive:
-                    self._unverified.pop(vehicle_id, None)
+                    if self._unverified.pop(vehicle_id, None) is None and self.unverified_dropped:
+                        self.unverified_dropped -= 1  # one of those only counted has gone
                 elif vehicle_id in self._unverified:
                     pass
                 elif len(self._unverified) < self.cfg.max_unverified:
