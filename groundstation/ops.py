@@ -22,6 +22,7 @@ from comms.commands import CommandResult, OutcomeStatus
 from comms.mesh import Mesh
 from comms.schema import CommandKind
 from comms.session import MeshConfig
+from comms.state_rate import MAX_IDLE_PERIOD_S
 from groundstation import dispatch, inputs
 from groundstation.fleet import FleetConfig, FleetModel, FleetSnapshot
 from groundstation.inputs import CommandRequest, InputError
@@ -52,7 +53,8 @@ def format_status(snap: FleetSnapshot) -> str:
         lines.append(
             f"{v.vehicle_id:>5} {'yes' if v.alive else 'LOST':>5} {s.mode.name:<10} {'yes' if s.armed else 'no':>3} "
             f"{s.pos_ned_m[0]:>7.1f} {s.pos_ned_m[1]:>7.1f} {v.alt_m:>6.1f} {v.speed_m_s:>5.1f} "
-            f"{s.battery_pct:>5.0f} {v.rate_hz:>5.1f} {v.age_s:>6.2f} {v.loss_pct:>5.0f}"
+            f"{s.battery_pct:>5.0f} {f'{v.rate_hz:.1f}' if v.rate_hz else '-':>5} "
+            f"{v.age_s:>6.2f} {v.loss_pct:>5.0f}"
         )
     if snap.close_pairs:
         lines.append(
@@ -73,6 +75,14 @@ def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
         )
         time.sleep(cfg.listen_s)
         snap = fleet.snapshot(time.time_ns())
+        # A landed vehicle publishes once a second (comms/state_rate.py): a short listen may
+        # hold one state of it (or none) and no rate. Listen on, two idle periods at most.
+        end_s = time.monotonic() + 2 * MAX_IDLE_PERIOD_S + 0.5
+        while any(v.alive and not v.rate_hz for v in snap.vehicles):
+            if time.monotonic() > end_s:
+                break
+            time.sleep(0.1)
+            snap = fleet.snapshot(time.time_ns())
         stations = sorted(pres.ground_stations)
         refused = mesh.stats.states_refused
     out(format_status(snap) if snap.vehicles else "no vehicles on the mesh")
@@ -245,8 +255,8 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
     try:
         req = _request(args)
         targets = inputs.targets(args.to)
-    except InputError as exc:
-        p.error(str(exc))
+    except InputError as exc:  # one line naming the flag, not the parent's usage
+        die(p, f"{args.verb}: " + str(exc).replace("Targets:", "--to", 1))
     if not 0.1 <= args.timeout_s <= 60:
         p.error(f"--timeout-s {args.timeout_s} must be within 0.1..60 s")
     cfg = CmdConfig(
