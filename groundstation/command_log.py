@@ -124,6 +124,9 @@ class LoggedCommand:
     """Sent by this station (this process), not only signed with a key of the same id."""
     signed: bool = False
     """Its station signature verified (keyed mode); False in open mode."""
+    operator: str = ""
+    """Own commands: who was logged in to the tab that sent it (web login account or token
+    label; "station" for the station's own API)."""
 
     @property
     def source_id(self) -> int:
@@ -136,7 +139,8 @@ class LoggedCommand:
     def sender(self) -> str:
         """Who sent it, as far as this station can tell."""
         if self.own:
-            return "this station" if self.signed else "this station (unsigned: open mode)"
+            who = f"this station ({self.operator})" if self.operator else "this station"
+            return who if self.signed else f"{who} (unsigned: open mode)"
         if self.signed:
             return f"station {self.source_id}"
         return f"unsigned, claims station {self.source_id}"
@@ -218,6 +222,7 @@ class _Entry:
     digest: bytes = b""
     own: bool = False
     signed: bool = False
+    operator: str = ""
     answers: dict[int, Answer] = field(default_factory=dict)
     superseded: dict[int, int] = field(default_factory=dict)
     dropped_answers: int = 0
@@ -238,6 +243,7 @@ class _Entry:
             dict(self.finished),
             self.own,
             self.signed,
+            self.operator,
         )
 
     def ended(self, vehicle_id: int) -> bool:
@@ -287,7 +293,7 @@ class CommandLog:
         self._early: OrderedDict[int, list[tuple[CommandAck, AckCheck | None]]] = OrderedDict()
         # Autopilot outcomes that arrived before the ack they follow, by (nonce, vehicle).
         self._early_outcomes: OrderedDict[tuple[int, int], ActionOutcome] = OrderedDict()
-        self._own: OrderedDict[int, None] = OrderedDict()  # nonces this station sent
+        self._own: OrderedDict[int, str] = OrderedDict()  # nonce this station sent -> operator
         self._refused = _RefusedCounts()
         self._seq = 0
         self.version = 0
@@ -306,15 +312,15 @@ class CommandLog:
         with self._lock:
             return self._refused.last_minute(now_ns)
 
-    def mark_own(self, nonce: int) -> None:
-        """`nonce` is a command this station is sending (called before it goes out)."""
+    def mark_own(self, nonce: int, operator: str = "") -> None:
+        """`nonce` is a command this station is sending for `operator` (before it goes out)."""
         with self._lock:
-            self._own[nonce] = None
+            self._own[nonce] = operator
             while len(self._own) > self.cfg.max_own:
                 self._own.popitem(last=False)
             entry = self._entries.get(nonce)
             if entry is not None:
-                entry.own = True
+                entry.own, entry.operator = True, operator
 
     def on_command(
         self,
@@ -336,7 +342,13 @@ class CommandLog:
             self._seq += 1
             own = command.nonce in self._own
             self._entries[command.nonce] = _Entry(
-                self._seq, recv_ns, command, digest, own=own, signed=check is not None
+                self._seq,
+                recv_ns,
+                command,
+                digest,
+                own=own,
+                signed=check is not None,
+                operator=self._own.get(command.nonce) or "",
             )
             while len(self._entries) > self.cfg.max_commands:
                 nonce, _ = self._entries.popitem(last=False)

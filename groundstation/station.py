@@ -497,7 +497,7 @@ class GroundStation:
             return self._operators.get(client_id)
 
     def _remember_sender(self, cmd: Command, client_id: int | None, operator: str) -> None:
-        self.commands.mark_own(cmd.nonce)
+        self.commands.mark_own(cmd.nonce, operator)
         if client_id is None:
             return
         with self._tabs_lock:

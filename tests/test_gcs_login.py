@@ -300,3 +300,88 @@ def test_cli_refuses_a_readable_password_file_and_hashes_one(tmp_path):
     r = gcs_cli("--connect", "tcp/127.0.0.1:9", "--password-file", str(f))
     assert r.returncode == 2 and "chmod 600" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+# -- real Chromium: a page of another origin cannot drive the station; the logged-in page can ---
+FOREIGN_PAGE = """<!doctype html><html><body><script>
+window.result = new Promise((resolve) => {
+  const out = {opened: false, messages: 0, closed: false, fetched: null};
+  const ws = new WebSocket("ws://127.0.0.1:%(port)d/", ["viser-v%(viser)s"]);
+  ws.onopen = () => { out.opened = true; };
+  ws.onmessage = () => { out.messages += 1; };
+  ws.onclose = () => { out.closed = true; };
+  fetch("http://127.0.0.1:%(port)d/", {credentials: "include"})
+    .then((r) => r.text()).then((t) => { out.fetched = t.length; })
+    .catch((e) => { out.fetched = "refused: " + e; });
+  setTimeout(() => resolve(out), 4000);
+});
+</script></body></html>"""
+
+
+@pytest.fixture
+def foreign_site(tmp_path):
+    """An HTTP server on another port of 127.0.0.1 (another origin, the same site)."""
+    import functools
+    import http.server
+    import threading
+
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
+    handler.log_message = lambda *a: None  # type: ignore[attr-defined]
+    with http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler) as srv:
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+        yield tmp_path, srv.server_address[1]
+        srv.shutdown()
+
+
+@pytest.mark.browser
+@pytest.mark.e2e
+def test_chromium_on_another_origin_cannot_drive_the_station_the_logged_in_page_flies(
+    foreign_site,
+):
+    import shutil
+    import urllib.parse
+
+    import viser
+    from conftest import wait_until
+
+    from comms.schema import Mode
+    from comms.session import MeshConfig
+    from groundstation.demo_proc import DemoProcess
+    from groundstation.panel import TAKEOFF_ALT, TARGETS
+
+    chromium = shutil.which("chromium")
+    if chromium is None:
+        pytest.skip("Debian chromium is not installed (apt-get install chromium); CI installs it")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from test_gcs_browser import CHROMIUM_ARGS, field
+
+    site, site_port = foreign_site
+    with DemoProcess(["--vehicles", "1", "--port", "0"]) as demo:
+        port = urllib.parse.urlsplit(demo.url).port
+        (site / "attack.html").write_text(FOREIGN_PAGE % {"port": port, "viser": viser.__version__})
+        states: dict = {}
+        with (
+            Mesh(MeshConfig(mode="peer", connect=(demo.mesh_endpoint,))) as mesh,
+            sync_api.sync_playwright() as p,
+        ):
+            mesh.subscribe_states(lambda s, _t: states.__setitem__(s.vehicle_id, s))
+            browser = p.chromium.launch(executable_path=chromium, headless=True, args=CHROMIUM_ARGS)
+            context = browser.new_context(viewport={"width": 1200, "height": 800})
+            page = context.new_page()
+            page.set_default_timeout(60_000)
+            page.goto(demo.url)  # logs in: the foreign page below runs with the cookie set
+            page.get_by_role("button", name="Takeoff").wait_for()
+            assert "token" not in page.url
+            evil = context.new_page()
+            evil.goto(f"http://127.0.0.1:{site_port}/attack.html")
+            out = evil.evaluate("() => window.result")
+            assert out["opened"] is False and out["messages"] == 0 and out["closed"], out
+            assert str(out["fetched"]).startswith("refused"), out  # 403, and CORS hides it anyway
+            assert wait_until(lambda: 1 in states, 30)
+            field(page, TARGETS).fill("1")
+            field(page, TAKEOFF_ALT).fill("4")
+            page.get_by_role("button", name="Takeoff").click(force=True)
+            assert wait_until(lambda: states[1].mode is not Mode.LANDED, 30), states
+            # The shared command log names the operator of the token login.
+            page.locator("[data-command]", has_text="this station (operator)").first.wait_for()
+            browser.close()
