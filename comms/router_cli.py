@@ -11,8 +11,9 @@ to connect: a router keeps trying an endpoint that is not up yet, and re-makes a
 (`zenohd -l tcp/0.0.0.0:7447 -e tcp/site-b:7447 --no-multicast-scouting` does the same job.)
 
 It prints `READY <endpoints>` once it listens (port 0: a free port, picked and printed), then a
-line for each router that links or unlinks, and the number of clients and peers when it
-changed. SIGINT or SIGTERM stop it (exit status 0); a bad endpoint, Zenoh config or busy port
+line for each router that links or unlinks, named by its Zenoh id, the address its link comes
+from and, over TLS or user/password, who it authenticated as (`peer_name`), and the number of
+clients and peers when it changed. SIGINT or SIGTERM stop it (exit status 0); a bad endpoint, Zenoh config or busy port
 is one line and exit status 2.
 """
 
@@ -63,10 +64,14 @@ class Links:
     A router's arrival or departure is said at once (there are few, and they make the site
     topology); clients and peers are counted (a site may have hundreds)."""
 
-    def __init__(self, say: Callable[[str], None]) -> None:
+    def __init__(
+        self, say: Callable[[str], None], name: Callable[[str], str] = lambda zid: zid
+    ) -> None:
         self._say = say
+        self._name = name
         self._lock = threading.Lock()
         self._roles: dict[str, str] = {}
+        self._names: dict[str, str] = {}  # linked routers' names, to say who went
 
     def on_event(self, event: zenoh.TransportEvent) -> None:
         """Zenoh's thread: never raises."""
@@ -81,8 +86,13 @@ class Links:
                     self._roles.pop(zid, None)
                 routers = sum(r == "router" for r in self._roles.values())
             if role == "router" and up != was:
+                with self._lock:
+                    if up:
+                        name = self._names[zid] = self._name(zid)
+                    else:
+                        name = self._names.pop(zid, zid)
                 self._say(
-                    f"router {zid} {'linked' if up else 'unlinked'}; {routers} router link(s)"
+                    f"router {name} {'linked' if up else 'unlinked'}; {routers} router link(s)"
                 )
         except Exception as exc:  # noqa: BLE001 - a report must not kill Zenoh's thread
             self._say(f"could not read a transport event: {exc}")
@@ -92,6 +102,17 @@ class Links:
         with self._lock:
             roles = list(self._roles.values())
         return {role: roles.count(role) for role in ROLES}
+
+
+def peer_name(session: zenoh.Session, zid: str) -> str:
+    """A linked node as an operator can place it: its Zenoh id, the remote address of its link,
+    and the identity it authenticated with (TLS certificate name or user), where there is one:
+    `3f1c… at tcp/10.0.0.7:41234 (site-b)`. The id alone if its link is not found."""
+    for link in session.info.links():
+        if str(link.zid) == zid:
+            who = f" ({link.auth_identifier})" if link.auth_identifier else ""
+            return f"{zid} at {link.dst}{who}"
+    return zid
 
 
 def main(
@@ -110,8 +131,8 @@ def main(
         emit(f"covey router: {line}")
 
     mesh = replace(cfg.mesh, listen=tuple(with_free_port(ep) for ep in cfg.mesh.listen))
-    links = Links(say)
     with open_session(mesh) as session:
+        links = Links(say, lambda zid: peer_name(session, zid))
         emit(f"READY {','.join(mesh.listen)}")
         to = ", ".join(mesh.connect) or "no other router"
         say(f"listening on {', '.join(mesh.listen)}; linking to {to} (Ctrl-C to stop)")

@@ -72,6 +72,9 @@ def test_routers_link_in_any_order_and_carry_states_between_their_clients() -> N
         assert wait_until(lambda: b_lines.has(f"READY {b_ep}"), 10)
         threads.append(run(router(a_ep), a_lines, stop))
         assert wait_until(lambda: a_lines.has("linked; 1 router link(s)"), 20), a_lines.lines
+        # named by its id and the address of its link, not by a bare hex id (issue 39 #13)
+        assert any(" at tcp/127.0.0.1:" in line for line in a_lines.lines if "linked" in line)
+        assert any(f" at {a_ep} " in line for line in b_lines.lines if "linked" in line)
         assert wait_until(lambda: b_lines.has("linked; 1 router link(s)"), 20), b_lines.lines
         heard: list[int] = []
         with (
