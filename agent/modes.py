@@ -95,7 +95,10 @@ TRANSITIONS[(M.KILLED, T.TOUCHED_DOWN)] = M.KILLED
 
 def _reason(mode: Mode, trigger: Trigger) -> str:
     if mode is M.KILLED:
-        return "vehicle was killed; inspect it and restart its agent before flying again"
+        return (
+            "vehicle was killed; inspect it and restart its agent before flying again "
+            "(its `covey agent` process; under `covey demo`, stop and start the demo)"
+        )
     if mode is M.LANDED:
         return f"{trigger.value} needs the vehicle airborne; it is landed (take off first)"
     if trigger is T.TAKEOFF:

@@ -75,3 +75,4 @@ def test_goto_while_landed_says_take_off_first() -> None:
 
 def test_killed_is_final() -> None:
     assert "restart its agent" in step(K, Trigger.TAKEOFF).reason
+    assert "under `covey demo`, stop and start the demo" in step(K, Trigger.TAKEOFF).reason
