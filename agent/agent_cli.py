@@ -310,11 +310,12 @@ def main(
 ) -> int:
     stop = stop or threading.Event()
     clock_s = time.monotonic
-    with contextlib.ExitStack() as stack:
+    # The duration bounds the whole run, waiting for a router included.
+    with contextlib.ExitStack() as stack, stop_after(duration_s, stop):
         backend = stack.enter_context(
             make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s)
         )
-        mesh = stack.enter_context(Mesh(cfg.mesh, auth=auth))
+        mesh = stack.enter_context(Mesh(cfg.mesh, auth=auth, stop=stop))
         own_pos: list = [None]  # filled once the agent exists; range-dependent loss needs it
         link = make_link(cfg.link, cfg.vehicle_id, receiver_pos=lambda: own_pos[0])
         if link is not None:
@@ -329,8 +330,7 @@ def main(
             vehicle,
             cfg.link,
         )
-        with stop_after(duration_s, stop):
-            agent.run(stop)
+        agent.run(stop)
     return 0
 
 
@@ -360,6 +360,7 @@ def cli(argv: list[str]) -> int:
         )
     try:
         cfg = config_from_args(args, p)
+        cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:
         die(p, str(exc))
     auth = load_keys(p, args, (cfg.vehicle_id,), cfg.mesh.fleet)

@@ -476,10 +476,13 @@ def main(
     """Run the host until `stop` (or `duration_s`); returns the tick statistics. `auths`: one
     FleetAuth per vehicle (keyed mode), the first of which keys the mesh."""
     stop = stop or threading.Event()
-    with Mesh(cfg.mesh, auth=auths[cfg.ids[0]] if auths else None) as mesh:
+    # The duration bounds the whole run, waiting for a router included.
+    with (
+        stop_after(duration_s, stop),
+        Mesh(cfg.mesh, auth=auths[cfg.ids[0]] if auths else None, stop=stop) as mesh,
+    ):
         fleet = Fleet(cfg, mesh, auths=auths)
         if ready is not None:
             ready(fleet)
-        with stop_after(duration_s, stop):
-            fleet.run(stop)
+        fleet.run(stop)
         return fleet.stats.summary()

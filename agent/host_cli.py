@@ -40,7 +40,7 @@ def host_config(
 ) -> FleetSimConfig:
     """The host's config from the shared flags; a bad value exits 2 with the reason."""
     try:
-        return FleetSimConfig(
+        cfg = FleetSimConfig(
             ids=ids,
             mesh=mesh_config(args, p),
             rate_hz=rate_hz,
@@ -54,8 +54,10 @@ def host_config(
             failsafe=agent_cli.failsafe_from_args(args),
             origin=args.origin or GeoOrigin(),
         )
+        cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:
         die(p, str(exc))
+    return cfg
 
 
 def run(

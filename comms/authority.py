@@ -15,6 +15,7 @@ from pathlib import Path
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from comms.identity import (
+    MAX_KEY_FILE_BYTES,
     FleetKeyError,
     authority_doc,
     check_roster,
@@ -27,6 +28,7 @@ from comms.identity import (
     write_private_file,
 )
 from comms.keys import check_fleet
+from comms.safe_load import BadFileError, read_bounded
 from comms.schema import DecodeError, Member, Role, Roster
 
 DEFAULT_DIR = Path("~/.config/covey/fleet")
@@ -41,8 +43,11 @@ class Authority:
         self.dir = Path(directory).expanduser()
         self.fleet, self.key = read_authority(self.dir / AUTHORITY)
         try:
-            self.roster = Roster.decode((self.dir / ROSTER).read_bytes())
-        except (OSError, DecodeError) as exc:
+            raw = read_bounded(self.dir / ROSTER, MAX_KEY_FILE_BYTES, "roster")
+            self.roster = Roster.decode(raw)
+        except BadFileError as exc:
+            raise FleetKeyError(str(exc)) from None
+        except DecodeError as exc:
             raise FleetKeyError(f"{self.dir / ROSTER}: cannot use it ({exc})") from None
         problem = check_roster(self.roster, public_bytes(self.key), self.fleet)
         if problem:

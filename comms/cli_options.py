@@ -5,7 +5,8 @@
 - value types that refuse a bad value with a message naming its unit;
 - flags built from a config dataclass: one per field, help from the docstring under the field;
 - flags that are renamed or refused: accepted by the parser only to say why not, in one line;
-- `die`: a set-up error as one line on stderr and exit status 2;
+- `die`: a set-up error as one line on stderr and exit status 2; `nobody_answered`: no
+  router or peer at the endpoints, one line and exit status 1;
 - `stop_on_signals`: SIGINT and SIGTERM set a threading.Event instead of raising.
 
 It lives in comms/ because imports run downward (comms <- policy <- agent <- groundstation and
@@ -73,6 +74,13 @@ def die(parser: argparse.ArgumentParser, message: str) -> NoReturn:
     """A set-up error (key file, roster, Zenoh config, endpoint): one line, exit status 2."""
     print(f"{parser.prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def nobody_answered(parser: argparse.ArgumentParser, exc: BaseException) -> int:
+    """A tool found nobody at its endpoints (comms.session.MeshUnreachable): one line on
+    stderr naming them, and exit status 1 (it ran; there was nothing to talk to)."""
+    print(f"{parser.prog}: {' '.join(str(exc).split())}", file=sys.stderr)
+    return 1
 
 
 # -- value types ---------------------------------------------------------------------------------

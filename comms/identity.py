@@ -26,6 +26,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from comms.keys import check_fleet
+from comms.safe_load import BadFileError, decode_utf8, parse_json
 from comms.schema import MAX_VEHICLE_ID, TAG_BYTES, DecodeError, Role, Roster
 
 MEMBER_FILE = "member-key"
@@ -131,16 +132,16 @@ def _read_private_file(path: str | os.PathLike[str], what: str) -> dict:
         raw = p.read_bytes()
     except OSError as exc:  # PermissionError: someone else's file
         raise FleetKeyError(f"{what} {p}: cannot read it ({exc.strerror or exc})") from None
+    text = raw.strip()
+    if len(text) in (64, 44) and text.isascii() and not text.startswith(b"{"):
+        raise FleetKeyError(
+            f"{what} {p} is a shared fleet key from an older covey; covey now gives every "
+            "member its own key: covey keygen init, then covey keygen add vehicle N"
+        )
     try:
-        doc = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError):
-        text = raw.strip()
-        if len(text) in (64, 44) and text.isascii():
-            raise FleetKeyError(
-                f"{what} {p} is a shared fleet key from an older covey; covey now gives every "
-                "member its own key: covey keygen init, then covey keygen add vehicle N"
-            ) from None
-        raise FleetKeyError(f"{what} {p} is not a covey key file (not JSON)") from None
+        doc = parse_json(decode_utf8(raw, f"{what} {p}"), f"{what} {p}")
+    except BadFileError as exc:  # too deep, not UTF-8, not JSON: one line, never a traceback
+        raise FleetKeyError(f"{exc}: not a covey key file") from None
     if not isinstance(doc, dict):
         raise FleetKeyError(f"{what} {p} is not a covey key file (not a JSON object)")
     return doc

@@ -94,10 +94,14 @@ class Mesh:
         *,
         clock_ns: Callable[[], int] = time.time_ns,
         auth: Any = None,
+        stop: threading.Event | None = None,
+        wait_s: float | None = None,
         roster_sync: RosterSyncConfig = RosterSyncConfig(),
     ) -> None:
         """`auth` is a comms.auth.FleetAuth (this member's key and the roster), or None for
-        open mode. Raises FleetKeyError if the key is for another fleet."""
+        open mode. Raises FleetKeyError if the key is for another fleet. `stop`, `wait_s`: a
+        client waiting for its router gives up (MeshUnreachable) once `stop` is set or after
+        `wait_s` (comms.session.open_session)."""
         if auth is not None and auth.fleet != cfg.fleet:
             raise FleetKeyError(
                 f"the key file is for fleet {auth.fleet!r}, but this process joins "
@@ -113,7 +117,7 @@ class Mesh:
         self.on_security: Callable[[str], None] | None = None
         """Gets one-line summaries of refused states/events (rate-limited per cause); the agent
         publishes them as SECURITY events. Default: a log warning."""
-        self._session: zenoh.Session | None = open_session(cfg)
+        self._session: zenoh.Session | None = open_session(cfg, stop, wait_s=wait_s)
         self._publishers: dict[int, tuple[keys.Cell, zenoh.Publisher]] = {}
         """Each vehicle's state publisher, on the key of the cell it was last in."""
         self._feed = FeedBuffer(cfg.feed_hz)

@@ -55,7 +55,7 @@ from comms.foxglove_worker import (
     FoxgloveWorker,
     WorkerDone,
 )
-from comms.mcap_chunks import BuiltChunk, ChunkBuilder, McapFile
+from comms.mcap_chunks import MAGIC, BuiltChunk, ChunkBuilder, McapFile
 from comms.session import MeshConfig, open_session
 
 log = logging.getLogger(__name__)
@@ -415,12 +415,16 @@ def record(
     stop: threading.Event | None = None,
     on_open: Callable[[Recorder], None] | None = None,
 ) -> dict[str, int]:
-    """Record until cfg.duration_s passes or `stop` is set; returns message counts by kind."""
+    """Record until cfg.duration_s passes or `stop` is set; returns message counts by kind.
+    The duration bounds the whole run, a client's wait for its router included: nobody
+    answering by then raises MeshUnreachable."""
+    from comms.cli_options import stop_after
+
     stop = stop or threading.Event()
-    with Recorder(cfg, stop=stop) as rec:
+    with stop_after(cfg.duration_s, stop), Recorder(cfg, stop=stop) as rec:
         if on_open is not None:
             on_open(rec)
-        stop.wait(cfg.duration_s)
+        stop.wait()
         counts = rec.counts
     return counts
 
@@ -450,13 +454,25 @@ class Recording:
 COVEY_ENCODINGS = (MESSAGE_ENCODING, PRESENCE_ENCODING)
 
 
+MCAP_MAGIC = MAGIC
+MAX_RECORD_BYTES = 256 * 2**20
+"""The largest MCAP record read (covey's chunks are 16 KiB to 1 MiB): a torn or corrupted
+length field is refused rather than allocated."""
+PARTIAL_EXIT = 1
+"""The exit status of `covey replay` and `covey record --foxglove-from` when the recording is
+cut off or corrupted: what could be read was used, and a warning says how much."""
+
+
 def iter_recording(path: str | Path) -> Iterator[Recorded | str]:
     """covey's messages in file order (standard Foxglove channels are skipped). Stops at a torn
-    tail, yielding one final str saying why."""
+    tail or a corrupted record (every chunk's CRC is checked), yielding one final str saying
+    why."""
     channels: dict[int, Channel] = {}
     with open(path, "rb") as f:
         try:
-            for rec in StreamReader(f).records:
+            for rec in StreamReader(
+                f, validate_crcs=True, record_size_limit=MAX_RECORD_BYTES
+            ).records:
                 if isinstance(rec, Channel):
                     if rec.message_encoding in COVEY_ENCODINGS:
                         channels[rec.id] = rec
@@ -471,15 +487,24 @@ def iter_recording(path: str | Path) -> Iterator[Recorded | str]:
                 elif isinstance(rec, Schema):
                     continue
         except EndOfFile:
-            yield "truncated: the file ends without a summary or footer (recorder killed?)"
-        except Exception as exc:  # noqa: BLE001 - any failure at the tail means a cut-off file
-            yield f"truncated: torn record at the end ({type(exc).__name__}: {exc})"
+            yield (
+                f"cut off near byte {f.tell()}: the file ends without a summary or footer "
+                "(recorder killed?)"
+            )
+        except Exception as exc:  # noqa: BLE001 - whatever the reader trips on: the rest is lost
+            why = " ".join(str(exc).split())[:160] or type(exc).__name__
+            yield f"unreadable from near byte {f.tell()} on ({type(exc).__name__}: {why})"
 
 
 def read_recording(path: str | Path) -> Recording:
-    """Load a recording (complete or cut off by a kill), sorted by log time."""
+    """Load a recording (complete or cut off by a kill), sorted by log time. Raises
+    FileNotFoundError or ValueError (not an MCAP file) saying why in one line."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"no recording at {path}")
+    with open(path, "rb") as f:
+        head = f.read(len(MCAP_MAGIC))
+    if not MCAP_MAGIC.startswith(head):  # a shorter prefix: cut off at once, read as empty
+        raise ValueError(f"{path} is not an MCAP file (it does not start with the MCAP magic)")
     msgs: list[Recorded] = []
     fleet, truncated = None, ""
     for item in iter_recording(path):
@@ -499,25 +524,31 @@ def read_recording(path: str | Path) -> Recording:
     return Recording(msgs, fleet, truncated)
 
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
+def partial_warning(rec: Recording, path: str | Path) -> str:
+    """One line for a cut-off or corrupted recording: why, and what was kept."""
+    info = summarise(rec)
+    kinds = ", ".join(f"{n} {kind}" for kind, n in info["counts"].items()) or "nothing"
+    return (
+        f"warning: {path} is incomplete, {rec.truncated}; kept {info['messages']} messages "
+        f"({kinds}) over {info['duration_s']:.1f} s"
+    )
 
 
 def add_foxglove_channels(
-    src: str | Path, dst: str | Path, cfg: FoxgloveConfig = FoxgloveConfig()
+    src: str | Path,
+    dst: str | Path,
+    cfg: FoxgloveConfig = FoxgloveConfig(),
+    recording: Recording | None = None,
 ) -> dict[str, int]:
-    """Write `dst`: the covey channels of recording `src`, unchanged (same bytes and log times),
-    plus the standard Foxglove channels made from them. Returns message counts by kind.
+    """Write `dst`: the covey channels of recording `src` (or of `recording`, read from it
+    already), unchanged (same bytes and log times), plus the standard Foxglove channels made
+    from them. Returns message counts by kind.
 
     Raises FileNotFoundError or ValueError (not an MCAP file, or dst is src) saying why."""
     src, dst = Path(src), Path(dst)
-    if not src.is_file():
-        raise FileNotFoundError(f"no recording at {src}")
-    with open(src, "rb") as f:
-        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-            raise ValueError(f"{src} is not an MCAP file (it does not start with the MCAP magic)")
+    rec = recording if recording is not None else read_recording(src)
     if dst.exists() and dst.resolve() == src.resolve():
         raise ValueError(f"the output {dst} would overwrite the recording it reads")
-    rec = read_recording(src)
     with open(dst, "wb") as out:
         sink = McapSink(
             out, rec.fleet or "covey", 1024 * 1024, 60.0, foxglove=cfg, foxglove_worker=False

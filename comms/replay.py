@@ -23,7 +23,11 @@ from comms import keys
 from comms.mesh import Mesh
 from comms.record import Recorded, Recording, read_recording
 from comms.schema import DecodeError, Event, StateFlag, VehicleState
-from comms.session import MeshConfig
+from comms.session import MeshConfig, expects_answer, unreachable, wait_linked
+
+LINK_WAIT_S = 3.0
+"""How long a replay waits for a router or peer to answer at its --connect endpoints before it
+says that nobody did (MeshUnreachable) instead of replaying into nothing."""
 
 
 class LiveFleetError(RuntimeError):
@@ -181,13 +185,16 @@ def replay(
     sleep: Callable[[float], None] = time.sleep,
     recording: Recording | None = None,
 ) -> ReplayResult:
-    """Refuse a live fleet, then play the recording (looping if asked) until done or stopped."""
+    """Refuse a live fleet, then play the recording (looping if asked) until done or stopped.
+    Raises MeshUnreachable when nobody answers at cfg.mesh.connect within LINK_WAIT_S."""
     rec = recording if recording is not None else read_recording(cfg.path)
     items = prepare(rec, cfg.start_s, cfg.end_s)
     if not items:
         raise ValueError(f"{cfg.path}: nothing to replay in [{cfg.start_s}, {cfg.end_s}) s")
     result = ReplayResult()
-    with Mesh(cfg.mesh) as mesh:
+    with Mesh(cfg.mesh, stop=stop, wait_s=LINK_WAIT_S) as mesh:
+        if expects_answer(cfg.mesh) and not wait_linked(mesh.session, LINK_WAIT_S, stop):
+            raise unreachable(cfg.mesh, LINK_WAIT_S)  # nobody to replay into: nothing sent
         refuse_live(mesh, recorded_vehicles(items), cfg.presence_wait_s)
         while True:
             play(mesh, items, cfg.speed, clock_s, sleep, stop, result)

@@ -20,17 +20,22 @@ import os
 import re
 import socket
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
 import zenoh
+
+from comms.safe_load import BadFileError, check_depth, decode_utf8, read_bounded
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 7447
 Mode = Literal["peer", "client", "router"]
 _ENDPOINT_RE = re.compile(r"^([a-z0-9]+)/(.+):([0-9]+)(#.*|\?.*)?$")
-MAX_CONFIG_BYTES = 1_000_000
+MAX_CONFIG_BYTES = 1 << 20
+"""The largest --zenoh-config accepted (1 MiB; the shipped ones are under 4 KiB)."""
 
 
 class MeshConfigError(ValueError):
@@ -55,29 +60,59 @@ def check_endpoint(ep: object) -> str:
 
 
 def check_config_file(path: str) -> None:
-    """Refuse a --zenoh-config that is missing, not a file, unreadable, not UTF-8 or too big,
-    before Zenoh sees it (its errors are multi-line)."""
+    """Refuse a --zenoh-config that is missing, not a file, unreadable, not UTF-8, too big or
+    nested deeper than MAX_DEPTH, before Zenoh sees it: its errors are multi-line, and deep
+    nesting overflows its parser's stack (the process dies of SIGSEGV)."""
     if not isinstance(path, str) or not path.strip():
         raise MeshConfigError("--zenoh-config path is empty (an unset variable?)")
+    what = f"Zenoh config {path}"
+    if os.path.isdir(path):
+        raise MeshConfigError(f"{what} is a directory, not a JSON5 file")
     try:
-        if os.path.isdir(path):
-            raise MeshConfigError(f"Zenoh config {path} is a directory, not a JSON5 file")
-        with open(path, "rb") as f:
-            raw = f.read(MAX_CONFIG_BYTES + 1)
-    except FileNotFoundError:
-        raise MeshConfigError(f"Zenoh config {path} does not exist") from None
-    except OSError as exc:
-        raise MeshConfigError(
-            f"Zenoh config {path}: cannot read it ({exc.strerror or exc})"
-        ) from None
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise MeshConfigError(f"Zenoh config {path} is over {MAX_CONFIG_BYTES} bytes")
+        raw = read_bounded(path, MAX_CONFIG_BYTES, "Zenoh config")
+        check_depth(decode_utf8(raw, what), what)
+    except BadFileError as exc:
+        raise MeshConfigError(str(exc)) from None
+
+
+TLS_FILE_FIELDS = (
+    "root_ca_certificate",
+    "listen_certificate",
+    "listen_private_key",
+    "connect_certificate",
+    "connect_private_key",
+)
+"""The fields of transport.link.tls that name files (their *_base64 twins hold the data)."""
+
+
+def check_config_paths(conf: zenoh.Config, where: str = "Zenoh config") -> None:
+    """Refuse a Zenoh config whose TLS certificates, keys or password dictionary do not exist
+    or cannot be read, naming the field and the file: Zenoh would only fail to connect and a
+    client would wait for its router forever."""
+    named: list[tuple[str, object]] = []
+    tls = _config_json(conf, "transport/link/tls")
+    if isinstance(tls, dict):
+        named += [(f"transport.link.tls.{k}", tls.get(k)) for k in TLS_FILE_FIELDS]
+    usrpwd = _config_json(conf, "transport/auth/usrpwd")
+    if isinstance(usrpwd, dict):
+        named.append(("transport.auth.usrpwd.dictionary_file", usrpwd.get("dictionary_file")))
+    for field_name, file in named:
+        if file is None:
+            continue
+        if not isinstance(file, str) or not file:
+            raise MeshConfigError(f"{where}: {field_name} must name a file")
+        if not os.path.isfile(file):
+            why = "is not a file" if os.path.exists(file) else "does not exist"
+            raise MeshConfigError(f"{where}: {field_name} {file} {why}")
+        if not os.access(file, os.R_OK):
+            raise MeshConfigError(f"{where}: {field_name} {file} cannot be read")
+
+
+def _config_json(conf: zenoh.Config, key: str) -> object:
     try:
-        raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise MeshConfigError(
-            f"Zenoh config {path} is not UTF-8 text ({exc.reason} at byte {exc.start})"
-        ) from None
+        return json.loads(conf.get_json(key))
+    except Exception:  # noqa: BLE001 - not in this config (Zenoh says so by raising)
+        return None
 
 
 @dataclass(frozen=True)
@@ -147,7 +182,53 @@ class MeshConfig:
         conf.insert_json5("connect/exit_on_failure", "false")
         for path, value in self.extra:
             conf.insert_json5(path, value)
+        where = f"Zenoh config {self.config_file}" if self.config_file else "Zenoh config"
+        check_config_paths(conf, where)
         return conf
+
+
+class MeshUnreachable(MeshConfigError):
+    """No router or peer answered at the endpoints this process connects to; the message
+    names them. The tools (status, cmd, record, replay, keygen push) exit 1 on it."""
+
+
+def unreachable(cfg: MeshConfig, waited_s: float, how: str = "waited") -> MeshUnreachable:
+    """The one way to say that nobody answered at `cfg.connect`."""
+    role = "router" if cfg.mode == "client" else "router or peer"
+    return MeshUnreachable(
+        f"no {role} answered at {', '.join(cfg.connect) or '(no --connect endpoint)'} "
+        f"({how} {waited_s:.1f} s): start `covey demo` or `covey router` there, or give "
+        "--connect the endpoint it printed"
+    )
+
+
+def linked(session: zenoh.Session) -> bool:
+    """True once this session has a link to some router or peer."""
+    info = session.info
+    return bool(list(info.routers_zid()) or list(info.peers_zid()))
+
+
+def wait_linked(
+    session: zenoh.Session,
+    timeout_s: float,
+    stop: threading.Event | None = None,
+    clock_s: Callable[[], float] = time.monotonic,
+) -> bool:
+    """Wait until the session links to a router or peer: True, or False after `timeout_s`
+    (or once `stop` is set) with no link."""
+    deadline = clock_s() + timeout_s
+    while not linked(session):
+        if clock_s() >= deadline or (stop is not None and stop.is_set()):
+            return False
+        (stop or threading.Event()).wait(0.05)
+    return True
+
+
+def expects_answer(cfg: MeshConfig) -> bool:
+    """Whether a tool joining with `cfg` should hear from someone at cfg.connect: a peer or
+    client that connects somewhere (a router, or a peer with nothing to connect to, may rightly
+    wait alone for others to come)."""
+    return cfg.mode != "router" and bool(cfg.connect)
 
 
 def embedded_router(port: int, fleet: str = "covey", host: str = "127.0.0.1") -> MeshConfig:
@@ -170,6 +251,20 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
     with socket.socket(family, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return s.getsockname()[1]
+
+
+def port_free(port: int, host: str = "127.0.0.1") -> bool:
+    """True if a TCP listener could bind `host`:`port` a moment ago (connections of a closed
+    one lingering in TIME_WAIT do not count, as for Zenoh's listener)."""
+    host = host.strip("[]")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
 
 
 TCP_PROTOCOLS = ("tcp", "tls", "ws")
@@ -199,14 +294,18 @@ def with_free_port(endpoint: str) -> str:
 
 
 def open_session(
-    cfg: MeshConfig, stop: threading.Event | None = None, note_every_s: float = 5.0
+    cfg: MeshConfig,
+    stop: threading.Event | None = None,
+    note_every_s: float = 5.0,
+    wait_s: float | None = None,
 ) -> zenoh.Session:
     """Open a Zenoh session; the caller closes it (or uses it as a context manager).
     Raises MeshConfigError (one line) when Zenoh refuses: a busy port, a bad certificate...
 
     A client waits inside Zenoh until a router at `cfg.connect` answers. It waits on a thread
     here, so that this one logs where it waits every `note_every_s` and gives up (a
-    MeshConfigError) once `stop` is set, instead of hanging deaf to Ctrl-C."""
+    MeshUnreachable naming the endpoints) once `stop` is set or after `wait_s` (None: no
+    limit), instead of hanging deaf to Ctrl-C."""
     conf = cfg.zenoh_config()
     if cfg.mode != "client":
         return _open(conf, cfg)
@@ -229,17 +328,19 @@ def open_session(
             opened.set()
 
     threading.Thread(target=run, name="zenoh-open", daemon=True).start()
-    waited_s, where = 0.0, ", ".join(cfg.connect)
+    where, started_s = ", ".join(cfg.connect), time.monotonic()
+    noted_s = started_s
     while not opened.wait(0.1):
-        if stop is not None and stop.is_set():
+        late = wait_s is not None and time.monotonic() - started_s >= wait_s
+        if late or (stop is not None and stop.is_set()):
             with lock:
                 gave_up[0] = not out
             if gave_up[0]:
-                raise MeshConfigError(f"stopped while waiting for a router at {where}")
+                how = "gave up after" if late else "stopped after"
+                raise unreachable(cfg, time.monotonic() - started_s, how)
             break  # it opened just now: the caller closes it
-        waited_s += 0.1
-        if waited_s >= note_every_s:
-            waited_s = 0.0
+        if time.monotonic() - noted_s >= note_every_s:
+            noted_s = time.monotonic()
             log.warning("waiting for a router at %s (a client starts once one answers)", where)
     if isinstance(out[0], MeshConfigError):
         raise out[0]

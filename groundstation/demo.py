@@ -1,6 +1,7 @@
 """`covey demo`: a simulated fleet and the browser ground station, with no external services.
 
-This process hosts the mesh (an embedded Zenoh router on a free loopback port) and the ground
+This process hosts the mesh (an embedded Zenoh router on loopback port 7447, where every tool
+connects by default, or a free one if it is busy) and the ground
 station; each vehicle is a `covey agent --vehicle sim` child process (comms/procs.py). Every child
 runs in its own process group and gets SIGTERM if this process dies (PR_SET_PDEATHSIG), so
 neither Ctrl-C, nor SIGTERM, nor a crash of the demo leaves orphans.
@@ -24,7 +25,7 @@ from comms.cli_options import port as tcp_port
 from comms.mesh import Mesh
 from comms.procs import ChildGroup
 from comms.schema import Role
-from comms.session import embedded_router, free_tcp_port
+from comms.session import DEFAULT_PORT, embedded_router, free_tcp_port, port_free
 from groundstation.station import GcsConfig, GroundStation
 
 
@@ -40,8 +41,9 @@ class DemoConfig:
     """Web port of the ground station (the next free one is used if busy)."""
     fleet: str = "covey"
     """Fleet name."""
-    mesh_port: int = 0
-    """Loopback port of the embedded Zenoh router; 0 = any free port."""
+    mesh_port: int = DEFAULT_PORT
+    """Loopback port of the embedded Zenoh router: covey's 7447, where every tool connects by
+    default (if it is busy, a free one is used and said); 0 = any free port."""
     spacing_m: float = 6.0
     """Distance between neighbouring start positions on the grid."""
     geofence_radius_m: float = 50.0
@@ -79,6 +81,13 @@ def grid_starts(n: int, spacing_m: float) -> list[tuple[float, float]]:
 def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
     stop = stop or threading.Event()
     mesh_port = cfg.mesh_port or free_tcp_port()
+    if not port_free(mesh_port):
+        busy, mesh_port = mesh_port, free_tcp_port()
+        print(
+            f"covey demo: mesh port {busy} is busy; using {mesh_port} instead: give the tools "
+            f"--connect tcp/127.0.0.1:{mesh_port}",
+            flush=True,
+        )
     endpoint = f"tcp/127.0.0.1:{mesh_port}"
     gcs_cfg = GcsConfig(port=cfg.port, geofence_radius_m=cfg.geofence_radius_m, link=cfg.link)
     with contextlib.ExitStack() as stack:

@@ -20,7 +20,7 @@ from groundstation.web_proxy import tls_context
 
 
 def main(cfg: GcsConfig) -> int:
-    with stop_on_signals() as stop, GroundStation(cfg) as gcs:
+    with stop_on_signals() as stop, GroundStation(cfg, stop=stop) as gcs:
         if cfg.insecure_http:
             print(
                 f"covey gcs: WARNING: plain HTTP on {cfg.host} (--insecure-http): anyone on the "

@@ -12,16 +12,32 @@ from __future__ import annotations
 
 import argparse
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from comms.auth import load_auth
-from comms.cli_options import add_mesh_args, die, finite, mesh_config, renamed
+from comms.cli_options import (
+    add_mesh_args,
+    die,
+    finite,
+    mesh_config,
+    nobody_answered,
+    renamed,
+    stop_on_signals,
+)
 from comms.commands import CommandResult, OutcomeStatus
 from comms.mesh import Mesh
 from comms.schema import CommandKind
-from comms.session import MeshConfig
+from comms.session import (
+    MeshConfig,
+    MeshUnreachable,
+    expects_answer,
+    linked,
+    unreachable,
+    wait_linked,
+)
 from comms.state_rate import MAX_IDLE_PERIOD_S
 from groundstation import dispatch, inputs
 from groundstation.fleet import FleetConfig, FleetModel, FleetSnapshot
@@ -63,23 +79,29 @@ def format_status(snap: FleetSnapshot) -> str:
     return "\n".join(lines)
 
 
-def status_main(cfg: StatusConfig, out: Callable[[str], None] = print) -> int:
+def status_main(
+    cfg: StatusConfig, out: Callable[[str], None] = print, stop: threading.Event | None = None
+) -> int:
+    """Print the fleet. Raises MeshUnreachable when no router or peer answered at
+    cfg.mesh.connect within listen_s (a client's wait for its router included)."""
     auth = load_auth(cfg.key_file, fleet=cfg.mesh.fleet)
     fleet = FleetModel(FleetConfig(verified_only=auth is not None))  # keyed: no bare tokens
-    with Mesh(cfg.mesh, auth=auth) as mesh:
+    with Mesh(cfg.mesh, auth=auth, stop=stop, wait_s=cfg.listen_s) as mesh:
         mesh.subscribe_feed(fleet.on_state)  # the whole fleet at a bounded rate, as the station
         pres = mesh.presence(
             lambda kind, vid, alive: (
                 kind == "vehicle" and fleet.on_presence(vid, alive, time.time_ns())
             )
         )
-        time.sleep(cfg.listen_s)
+        (stop or threading.Event()).wait(cfg.listen_s)
+        if expects_answer(cfg.mesh) and not linked(mesh.session):
+            raise unreachable(cfg.mesh, cfg.listen_s, "listened")
         snap = fleet.snapshot(time.time_ns())
         # A landed vehicle publishes once a second (comms/state_rate.py): a short listen may
         # hold one state of it (or none) and no rate. Listen on, two idle periods at most.
         end_s = time.monotonic() + 2 * MAX_IDLE_PERIOD_S + 0.5
         while any(v.alive and not v.rate_hz for v in snap.vehicles):
-            if time.monotonic() > end_s:
+            if time.monotonic() > end_s or (stop is not None and stop.is_set()):
                 break
             time.sleep(0.1)
             snap = fleet.snapshot(time.time_ns())
@@ -118,7 +140,10 @@ def status_cli(argv: list[str] | None = None) -> int:
         p.error("--listen-s must be within 0.1..60")
     cfg = StatusConfig(mesh=mesh_config(args, p), listen_s=args.listen_s, key_file=args.key_file)
     try:
-        return status_main(cfg)
+        with stop_on_signals() as stop:
+            return status_main(cfg, stop=stop)
+    except MeshUnreachable as exc:  # nobody at --connect: one line, exit 1
+        return nobody_answered(p, exc)
     except ValueError as exc:  # FleetKeyError, MeshConfigError: one line, exit 2
         die(p, str(exc))
 
@@ -154,9 +179,15 @@ def format_result(res: CommandResult) -> str:
     return "\n".join(lines) or "no vehicle answered"
 
 
-def cmd_main(cfg: CmdConfig, out: Callable[[str], None] = print) -> int:
+def cmd_main(
+    cfg: CmdConfig, out: Callable[[str], None] = print, stop: threading.Event | None = None
+) -> int:
+    """Send the command and print every answer. Raises MeshUnreachable, before sending
+    anything, when no router or peer answered at cfg.mesh.connect (within timeout_s)."""
     auth = load_auth(cfg.key_file, fleet=cfg.mesh.fleet)
-    with Mesh(cfg.mesh, auth=auth) as mesh:
+    with Mesh(cfg.mesh, auth=auth, stop=stop, wait_s=cfg.timeout_s) as mesh:
+        if expects_answer(cfg.mesh) and not wait_linked(mesh.session, cfg.timeout_s, stop):
+            raise unreachable(cfg.mesh, cfg.timeout_s)
         pres = mesh.presence()
         if not cfg.targets:
             # Wait until presence is quiet: no new vehicle for a while, bounded by discover_s.
@@ -278,6 +309,9 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
             print("not confirmed; nothing sent", file=sys.stderr)
             return 1
     try:
-        return cmd_main(cfg)
+        with stop_on_signals() as stop:
+            return cmd_main(cfg, stop=stop)
+    except MeshUnreachable as exc:  # nobody at --connect: one line, exit 1, nothing sent
+        return nobody_answered(p, exc)
     except ValueError as exc:  # FleetKeyError, MeshConfigError: one line, exit 2
         die(p, str(exc))

@@ -167,8 +167,11 @@ class GroundStation:
         *,
         mesh: Mesh | None = None,
         clock_ns: Callable[[], int] = time.time_ns,
+        stop: threading.Event | None = None,
     ) -> None:
+        """`stop`: a client waiting for its router gives up once it is set (Mesh)."""
         self.cfg = cfg
+        self._stop_waiting = stop
         self._clock_ns = clock_ns
         self._given_mesh = mesh
         self.mesh: Mesh | None = None
@@ -212,7 +215,10 @@ class GroundStation:
         accounts = read_password_file(cfg.password_file) if cfg.password_file else {}
         tls = tls_context(cfg.certfile, cfg.keyfile) if cfg.certfile and cfg.keyfile else None
         self.mesh = self._given_mesh or Mesh(
-            cfg.mesh, clock_ns=self._clock_ns, auth=load_auth(cfg.key_file)
+            cfg.mesh,
+            clock_ns=self._clock_ns,
+            auth=load_auth(cfg.key_file),
+            stop=self._stop_waiting,
         )
         if self.mesh.auth is not None:  # list only vehicles that something signed proved
             self.fleet = FleetModel(FleetConfig(separation_m=cfg.separation_m, verified_only=True))

@@ -12,14 +12,15 @@ The contract is docs/POLICY_SPEC.md; observations come from policy.features.
 
 from __future__ import annotations
 
-import json
 import math
 import threading
+import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from comms.safe_load import npz_headers, parse_json
 from policy import features, safety, sparse
 from policy.features import ObsConfig
 
@@ -371,6 +372,59 @@ def _rows_f64(x, shape: tuple) -> bool:
     return type(x) is np.ndarray and x.dtype is _F64 and x.shape == shape
 
 
+MAX_WEIGHT_ARRAY_BYTES = 16 * 2**20
+"""The largest array a weights file may hold (the shipped network's largest is 63 KiB)."""
+MAX_CONFIG_CHARS = 65_536
+"""The longest 'config' entry of a weights file (the shipped one is 181 characters)."""
+LSTM_KEYS = {"lstm.weight_ih": 2, "lstm.weight_hh": 2, "lstm.bias": 1}
+"""The LSTM's arrays and their dimensions; head.<k>.weight (2) and head.<k>.bias (1) follow."""
+
+
+def load_weight_arrays(path: str | Path) -> dict[str, np.ndarray]:
+    """The arrays of weights file `path` that the runtime uses, after the archive's member
+    names and each array's header (dtype, dimensions, size) were checked against what it
+    expects: a missing key, a wrong shape or a huge declared array is refused (ValueError,
+    naming the key) before anything is loaded."""
+    heads = npz_headers(path)
+    where = f"weights file {path}"
+
+    def need(name: str, ndim: int) -> None:
+        h = heads.get(name)
+        if h is None:
+            raise ValueError(f"{where} has no {name!r} array (not covey weights?)")
+        if name == "config":
+            if h.dtype.kind != "U" or h.shape != () or h.dtype.itemsize > 4 * MAX_CONFIG_CHARS:
+                raise ValueError(
+                    f"{where}: 'config' must be one JSON text, got {h.dtype} {h.shape}"
+                )
+            return
+        if h.dtype.kind != "f" or len(h.shape) != ndim or 0 in h.shape:
+            raise ValueError(
+                f"{where}: {name!r} must be a non-empty {ndim}-D float array, "
+                f"got {h.dtype} of shape {h.shape}"
+            )
+        if h.nbytes > MAX_WEIGHT_ARRAY_BYTES:
+            raise ValueError(
+                f"{where}: {name!r} declares {h.shape} ({h.nbytes} bytes), over the "
+                f"{MAX_WEIGHT_ARRAY_BYTES} byte limit"
+            )
+
+    names = ["config", *LSTM_KEYS]
+    for name in names:
+        need(name, LSTM_KEYS.get(name, 0))
+    k = 0
+    while f"head.{k}.weight" in heads or k == 0:
+        need(f"head.{k}.weight", 2)
+        need(f"head.{k}.bias", 1)
+        names += [f"head.{k}.weight", f"head.{k}.bias"]
+        k += 1
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {name: z[name] for name in names}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # a torn member
+        raise ValueError(f"{where}: cannot read it ({' '.join(str(exc).split())})") from None
+
+
 class GuidancePolicy:
     """The trained guidance policy with world-unit scaling and an optional safety filter."""
 
@@ -457,17 +511,19 @@ class GuidancePolicy:
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
         if not path.is_file():
             raise FileNotFoundError(f"no policy weights at {path}")
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-        if "config" not in arrays:
-            raise ValueError(f"{path} has no 'config' entry")
-        config = json.loads(str(arrays["config"]))
+        arrays = load_weight_arrays(path)
+        config = parse_json(str(arrays["config"]), f"{path} 'config'")
+        if not isinstance(config, dict):
+            raise ValueError(f"{path}: 'config' is not a JSON object")
         if config.get("encoder", "lstm") != "lstm":
             raise ValueError(
                 f"{path}: the runtime only runs encoder 'lstm', not {config['encoder']!r}"
             )
-        obs_cfg = ObsConfig.from_dict(config)
-        net = Network.from_arrays(arrays)
+        try:
+            obs_cfg = ObsConfig.from_dict(config)
+            net = Network.from_arrays(arrays)
+        except (KeyError, TypeError, IndexError, ValueError) as exc:
+            raise ValueError(f"{path}: not usable weights ({' '.join(str(exc).split())})") from None
         if net.w_ih.shape[1] != obs_cfg.input_size:
             raise ValueError(
                 f"{path}: LSTM input {net.w_ih.shape[1]} does not fit encoding {obs_cfg.encoding}"

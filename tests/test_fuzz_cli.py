@@ -12,6 +12,7 @@ import argparse
 import contextlib
 import io
 import random
+import re
 
 import pytest
 
@@ -263,7 +264,13 @@ def bad_setups(tmp_path) -> dict[str, list[str]]:
     return cases, keys
 
 
-def run_one_line(fn, argv: list[str]) -> str:
+LOG_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ ")
+"""A log record (comms.cli_options.setup_logging), not a line the CLI wrote."""
+
+
+def run_one_line(fn, argv: list[str], strict: bool = False) -> str:
+    """Run a CLI that must refuse `argv`: exit 2, one error line, no traceback; `strict`:
+    nothing else on stderr either, but log records."""
     err = io.StringIO()
     with (
         contextlib.redirect_stderr(err),
@@ -276,6 +283,9 @@ def run_one_line(fn, argv: list[str]) -> str:
     assert exc.value.code == 2, (argv, exc.value.code, text)
     assert "Traceback" not in text, (argv, text)
     assert len(errors) == 1 and "error:" in errors[0], (argv, text)
+    if strict:
+        lines = [ln for ln in text.splitlines() if ln.strip() and not LOG_LINE.match(ln)]
+        assert len(lines) == 1, (argv, text)
     return errors[0]
 
 

@@ -19,19 +19,23 @@ from comms.cli_options import (
     given,
     key_env_note,
     mesh_config,
+    nobody_answered,
     refuse,
     renamed,
     stop_on_signals,
 )
 from comms.record import (
+    PARTIAL_EXIT,
     FoxgloveIncomplete,
     RecordConfig,
     add_foxglove_channels,
     format_info,
+    partial_warning,
     read_recording,
     record,
     summarise,
 )
+from comms.session import MeshUnreachable
 from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
 
 RECORD_NO_KEY = (
@@ -86,15 +90,25 @@ def record_parser() -> argparse.ArgumentParser:
 
 
 def foxglove_from_main(src: str, dst: str, args: argparse.Namespace) -> int:
+    """Copy `src` with Foxglove's channels added; PARTIAL_EXIT, with a warning that says what
+    was kept, when `src` is cut off or corrupted."""
     try:
-        counts = add_foxglove_channels(src, dst, foxglove_config(args))
+        rec = read_recording(src)
+        if not rec.messages:
+            raise ValueError(
+                f"{src} holds no covey messages" + (f" ({rec.truncated})" * bool(rec.truncated))
+            )
+        counts = add_foxglove_channels(src, dst, foxglove_config(args), recording=rec)
     except (FileNotFoundError, ValueError) as exc:
         print(f"covey record: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
-        print(f"covey record: cannot write {dst}: {exc}", file=sys.stderr)
+        print(f"covey record: cannot write {dst}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     print(f"wrote {dst}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    if rec.truncated:
+        print(partial_warning(rec, src), file=sys.stderr)
+        return PARTIAL_EXIT
     return 0
 
 
@@ -121,8 +135,8 @@ def record_cli(argv: list[str]) -> int:
     if args.info:
         try:
             return info_main(args.info, args.json)
-        except FileNotFoundError as exc:
-            p.error(str(exc))
+        except (FileNotFoundError, ValueError) as exc:  # ValueError: not an MCAP file
+            die(p, str(exc))
     if args.foxglove_from:
         if args.no_foxglove:
             p.error("--foxglove-from adds the Foxglove channels; it cannot take --no-foxglove")
@@ -145,6 +159,8 @@ def record_cli(argv: list[str]) -> int:
     try:
         with stop_on_signals() as stop:
             counts = record(cfg, stop)
+    except MeshUnreachable as exc:  # no router answered within --duration-s or before Ctrl-C
+        return nobody_answered(p, exc)
     except FoxgloveIncomplete as exc:  # covey's channels are whole; Foxglove's can be added later
         print(f"covey record: {' '.join(str(exc).split())}", file=sys.stderr)
         return 1

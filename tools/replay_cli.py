@@ -14,18 +14,19 @@ from pathlib import Path
 
 from comms.cli_options import (
     add_mesh_args,
+    die,
     finite,
     given,
     key_env_note,
     mesh_config,
+    nobody_answered,
     refuse,
     renamed,
     stop_on_signals,
 )
-from comms.record import (
-    read_recording,
-)
+from comms.record import PARTIAL_EXIT, partial_warning, read_recording
 from comms.replay import LiveFleetError, ReplayConfig, replay
+from comms.session import MeshUnreachable
 
 REPLAY_NO_KEY = (
     "a replay cannot be signed: replayed states carry the REPLAY flag, which their vehicles' "
@@ -132,12 +133,17 @@ def replay_cli(argv: list[str]) -> int:
         return _closed_loop_cli(args, p)
     if flags := given(p, args, *CLOSED_LOOP_ONLY):
         p.error(f"{', '.join(flags)}: closed-loop replay only (with --policy and --vehicle)")
-    rec = read_recording(args.file)
-    if rec.truncated:
-        print(
-            f"note: {args.file} was cut off ({rec.truncated}); replaying what is there",
-            file=sys.stderr,
+    try:
+        rec = read_recording(args.file)
+    except (FileNotFoundError, ValueError) as exc:  # not an MCAP file
+        die(p, str(exc))
+    if not rec.messages:
+        die(
+            p,
+            f"{args.file} holds no covey messages" + (f" ({rec.truncated})" * bool(rec.truncated)),
         )
+    if rec.truncated:  # replay what is there, say how much, and exit PARTIAL_EXIT
+        print(partial_warning(rec, args.file), file=sys.stderr)
     if args.fleet is None:
         args.fleet = rec.fleet or "covey"
     try:
@@ -152,6 +158,10 @@ def replay_cli(argv: list[str]) -> int:
         )
     except ValueError as exc:
         p.error(str(exc))
+    try:
+        cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
+    except ValueError as exc:
+        die(p, str(exc))
     key_env_note(p, REPLAY_NO_KEY)
     print(f"replaying {args.file} into fleet {cfg.mesh.fleet!r} at {cfg.speed:g}x", file=sys.stderr)
     try:
@@ -160,14 +170,15 @@ def replay_cli(argv: list[str]) -> int:
     except LiveFleetError as exc:
         print(f"covey replay: refused: {exc}", file=sys.stderr)
         return 1
-    except ValueError as exc:
-        print(f"covey replay: {exc}", file=sys.stderr)
-        return 2
+    except MeshUnreachable as exc:  # replaying into nothing: said, nothing sent, exit 1
+        return nobody_answered(p, exc)
+    except ValueError as exc:  # MeshConfigError (a busy port), an empty window
+        die(p, str(exc))
     print(
         f"replayed {result.states} states and {result.events} events in {result.loops} pass(es); "
         f"{result.commands_skipped} recorded commands not sent"
     )
-    return 0
+    return PARTIAL_EXIT if rec.truncated else 0
 
 
 def _closed_loop_cli(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
