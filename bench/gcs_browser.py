@@ -10,7 +10,9 @@ tests) opens the station through Playwright. Measured in the page, while the fle
 - main-thread lag: a 50 ms timer's lateness, p50/p99/max (what a click waits for at worst);
 - input round trip: typing into the "Targets" field until the page shows the new value.
 
-Skipped (with a reason) when chromium or Playwright is missing.
+Skipped (with a reason) when chromium or Playwright is missing. Playwright is a test
+dependency: `make test` installs it, or `.venv/bin/pip install -e '.[test]'` (the runtime venv
+of `make demo` has none).
 """
 
 from __future__ import annotations
