@@ -32,6 +32,7 @@ from comms.feed import FeedBuffer
 from comms.gate import SKIPPED, Gate, GateConfig
 from comms.presence import Presence
 from comms.roster_sync import RosterSync, RosterSyncConfig
+from comms.roster_sync import publish as publish_roster
 from comms.schema import (
     AckResult,
     Command,
@@ -205,7 +206,7 @@ class Mesh:
 
     def publish_roster(self, roster: Roster) -> None:
         """Push a roster (the fleet authority's tool: covey keygen push). Members check it."""
-        self.session.put(keys.roster(self.fleet), roster.encode())
+        publish_roster(self.session, self.fleet, roster.encode())
 
     # -- states ----------------------------------------------------------------------------
     def publish_state(self, state: VehicleState, *, auth: Any = None) -> None:

@@ -329,7 +329,7 @@ class RosterSync:
                 jitter = self._rng.uniform(0.8, 1.2)
                 self._next_pull_ns = now + _s_ns(self.cfg.pull_every_s * jitter)
         if republish:
-            self.session.put(self.key, self._our_bytes())
+            publish(self.session, self.fleet, self._our_bytes())
             self._count("republished")
         if pull:
             self.session.get(
@@ -376,11 +376,24 @@ def _have(query: zenoh.Query) -> int | None:
     return int(raw)
 
 
+def publish(session: zenoh.Session, fleet: str, data: bytes) -> None:
+    """Put a roster's bytes on the fleet's roster key, never dropped on a full queue (Zenoh's
+    default for puts): a revocation must get through a flood, so it waits for room, and goes
+    ahead of telemetry."""
+    session.put(
+        keys.roster(fleet),
+        data,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        priority=zenoh.Priority.INTERACTIVE_HIGH,
+    )
+
+
 @dataclass(frozen=True)
 class Confirmation:
     """A member's answer to the pusher: which roster version it holds."""
 
     replier: str
+    """The answering session's Zenoh id (one per process)."""
     version: int
 
 
@@ -405,5 +418,6 @@ def confirmations(
         except DecodeError:
             continue
         if head.fleet == fleet and head.version >= version:
-            out.append(Confirmation(str(reply.replier_id or "?"), head.version))
+            who = reply.replier_id
+            out.append(Confirmation(str(who.zid) if who is not None else "?", head.version))
     return out

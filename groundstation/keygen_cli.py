@@ -5,10 +5,13 @@
     covey keygen add    [--dir D] station 1          key file for ground station 1
     covey keygen revoke [--dir D] station 1          drop a member; roster version +1
     covey keygen list   [--dir D]                    print the roster
-    covey keygen push   [--dir D] [mesh options]     publish the roster to a running fleet
+    covey keygen push   [--dir D] [mesh options]     publish the roster to a running fleet, and
+                                                     say how many members confirmed they hold it
 
-Give each process its own file: `covey agent --id 3 --key-file vehicle-3.key`,
-`covey gcs --gcs-id 1 --key-file station-1.key`. The authority key never leaves the operator.
+Give each process its own file, by the path `add` prints: `covey agent --id 3 --key-file
+~/.config/covey/fleet/vehicle-3.key`, `covey gcs --key-file ~/.config/covey/fleet/station-1.key`.
+The authority key never leaves the operator. `push` is a Zenoh client of the router at
+--connect (give --zenoh-config a station's TLS config on a secured mesh: `covey tls init`).
 """
 
 from __future__ import annotations
@@ -18,7 +21,14 @@ import sys
 import time
 
 from comms.authority import AUTHORITY, DEFAULT_DIR, ROSTER, Authority
-from comms.cli_options import add_mesh_args, die, mesh_config, refuse
+from comms.cli_options import (
+    add_mesh_args,
+    die,
+    mesh_config,
+    nobody_answered,
+    refuse,
+    stop_on_signals,
+)
 from comms.identity import FleetKeyError
 from comms.schema import MAX_VEHICLE_ID, Role
 
@@ -51,7 +61,13 @@ def keygen_parser() -> argparse.ArgumentParser:
             sp.add_argument("role", choices=("vehicle", "station"), help="what the member is")
             sp.add_argument("id", type=int, help=f"vehicle id or station id, 1..{MAX_VEHICLE_ID}")
         if verb == "push":
-            add_mesh_args(sp, key_file=False)
+            add_mesh_args(
+                sp,
+                key_file=False,
+                mode_default="client",
+                mode_help="default: client, of the router or station at --connect; "
+                "peer: join a peer mesh",
+            )
             refuse(
                 sp,
                 "--key-file",
@@ -61,8 +77,9 @@ def keygen_parser() -> argparse.ArgumentParser:
             sp.add_argument(
                 "--duration-s",
                 type=float,
-                default=2.0,
-                help="keep re-publishing this long while peers connect (default 2)",
+                default=5.0,
+                help="re-publish until a member confirms it holds the roster, at most this "
+                "long (default 5); nobody confirming is exit status 1",
             )
     return p
 
@@ -112,24 +129,49 @@ def keygen_cli(argv: list[str]) -> int:
     return 0
 
 
+PUSH_LINK_WAIT_S = 3.0
+"""How long `keygen push` waits for a router or peer to answer before saying nobody did."""
+
+
 def _push(auth: Authority, args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     from comms.mesh import Mesh
+    from comms.roster_sync import confirmations
+    from comms.session import MeshUnreachable, expects_answer, unreachable, wait_linked
 
-    if not 0 <= args.duration_s <= 60:
-        p.error("--duration-s must be within 0..60")
+    if not 0.5 <= args.duration_s <= 60:
+        p.error("--duration-s must be within 0.5..60")
     args.fleet = auth.fleet
     cfg = mesh_config(args, p)
+    wait_s = max(args.duration_s, PUSH_LINK_WAIT_S)
+    roster = auth.roster
+    what = f"fleet {auth.fleet} roster v{roster.version} ({len(roster.members)} members)"
+    heard: list = []
     try:
-        with Mesh(cfg) as mesh:
+        with stop_on_signals() as stop, Mesh(cfg, stop=stop, wait_s=wait_s) as mesh:
+            if expects_answer(cfg) and not wait_linked(mesh.session, wait_s, stop):
+                raise unreachable(cfg, wait_s)  # a push into nothing is not "pushed"
             deadline = time.monotonic() + args.duration_s
-            while True:  # re-put a few times: peers may still be connecting
-                mesh.publish_roster(auth.roster)
-                if time.monotonic() >= deadline:
+            while not stop.is_set():  # re-put: members may still be connecting
+                mesh.publish_roster(roster)
+                heard = confirmations(mesh.session, auth.fleet, roster.version, timeout_s=0.5)
+                if heard or time.monotonic() >= deadline:
                     break
-                time.sleep(0.25)
+                stop.wait(0.25)
+    except MeshUnreachable as exc:
+        return nobody_answered(p, exc)
     except ValueError as exc:  # MeshConfigError: busy port, bad config
         die(p, str(exc))
-    print(
-        f"pushed fleet {auth.fleet} roster v{auth.roster.version} ({len(auth.roster.members)} members)"
-    )
+    if not heard:
+        where = ", ".join(cfg.connect) or "the mesh"
+        print(
+            f"covey keygen push: published {what} at {where}, but no member confirmed it "
+            f"within {args.duration_s:g} s (no keyed member running, or a router that drops "
+            "covey/<fleet>/roster: see comms/zenoh_configs)",
+            file=sys.stderr,
+        )
+        return 1
+    members = len({c.replier for c in heard})
+    newer = max(c.version for c in heard)
+    note = f"; the fleet holds v{newer}, newer than {auth.dir}'s" if newer > roster.version else ""
+    print(f"pushed {what}: {members} member(s) confirmed they hold it{note}")
     return 0
