@@ -85,14 +85,20 @@ class CommandPanel:
         self._armed: ArmedKill | None = None
         self._ground_click: Callable | None = None
         gui = client.gui
-        # The kill first (groundstation.layout): nothing opened below can push it out of view.
-        with gui.add_folder("Kill (motors off, vehicles fall)", order=layout.KILL):
+        # The kill in a window of its own, floating over the 3D view: nothing opened or scrolled
+        # in the control panel can push it out of view (groundstation.layout).
+        self.kill_panel = gui.add_panel(order=layout.KILL)
+        with self.kill_panel.add_tab("Kill", viser.Icon.SKULL):
             self.kill_arm = gui.add_button(
                 "Arm kill", color="orange", icon=viser.Icon.ALERT_TRIANGLE
             )
             self.kill_confirm = gui.add_button(
                 "CONFIRM KILL", color="red", disabled=True, icon=viser.Icon.SKULL
             )
+            self.kill_note = gui.add_html(
+                _note("Motors off, vehicles fall. Arms for the Targets in the panel.")
+            )
+        self.kill_panel.float(**layout.KILL_WINDOW)
         # Messages and acks next: the operator must see what happened without scrolling.
         self.message = gui.add_html("", order=layout.MESSAGES)
         self.acks = gui.add_html("", order=layout.MESSAGES + 0.1)
@@ -204,13 +210,12 @@ class CommandPanel:
         self.targets.value = text
         self.say(f"Targets: vehicle(s) {text} (shift-click adds, a click selects one).")
 
-    def say(self, text: str, error: bool = False) -> None:
-        color = "#c5221f" if error else "#333"
-        weight = "bold" if error else "normal"
-        self.message.content = (
-            f"<div data-msg='{'error' if error else 'info'}' style='color:{color};font-weight:{weight};"
-            f"font-size:0.82em'>{html.escape(text)}</div>"
-        )
+    def say(self, text: str, error: bool = False, kill_note: str | None = None) -> None:
+        """Show `text` in the panel's message line, and `kill_note` (short) in the kill window,
+        which stays in view when the panel is scrolled."""
+        self.message.content = _note(text, error, data_msg=True)
+        if kill_note is not None:
+            self.kill_note.content = _note(kill_note, error)
 
     def _form(self, event: viser.GuiEvent, button: str) -> FormSnapshot:
         """What the pressing tab showed at the click (InputError if the station cannot know)."""
@@ -251,7 +256,7 @@ class CommandPanel:
             form = self._form(event, "Arm kill")
             targets = self._targets(form)
         except InputError as exc:
-            self.say(str(exc), error=True)
+            self.say(str(exc), error=True, kill_note="Not armed: check Targets in the panel.")
             return
         self._armed = ArmedKill(form.get(TARGETS), targets)
         self.kill_guard.arm(self.hooks.now_s())
@@ -260,6 +265,7 @@ class CommandPanel:
             f"Kill ARMED for {_who(targets).replace('all vehicles', 'ALL vehicles')}: press "
             f"CONFIRM KILL within {self.kill_guard.window_s:g} s.",
             error=True,
+            kill_note=f"ARMED, {_who(targets)}: confirm within {self.kill_guard.window_s:g} s",
         )
 
     def confirm_kill(self, event: viser.GuiEvent) -> None:
@@ -267,12 +273,16 @@ class CommandPanel:
         in_window = self.kill_guard.confirm(self.hooks.now_s())
         self.kill_confirm.disabled = True
         if armed is None or not in_window:
-            self.say("Kill not armed (or the window passed): press 'Arm kill' first.", error=True)
+            self.say(
+                "Kill not armed (or the window passed): press 'Arm kill' first.",
+                error=True,
+                kill_note="Not armed: press Arm kill first.",
+            )
             return
         try:
             form = self._form(event, "CONFIRM KILL")
         except InputError as exc:
-            self.say(f"Kill disarmed: {exc}", error=True)
+            self.say(f"Kill disarmed: {exc}", error=True, kill_note="Disarmed; nothing sent.")
             return
         shown = form.values.get(TARGETS)
         if shown != armed.targets_text:
@@ -280,16 +290,18 @@ class CommandPanel:
                 f"Kill disarmed: Targets changed from {armed.targets_text!r} to {shown!r} after "
                 "arming; nothing sent. Arm again for the vehicles you mean.",
                 error=True,
+                kill_note="Disarmed (Targets changed); nothing sent.",
             )
             return
         self._dispatch(inputs.simple(CommandKind.KILL), armed.targets)
+        self.kill_note.content = _note(f"Kill sent to {_who(armed.targets)}.", error=True)
 
     def tick(self) -> None:
         """Called by the station's loop: closes an expired kill window."""
         if not self.kill_confirm.disabled and not self.kill_guard.armed(self.hooks.now_s()):
             self.kill_confirm.disabled = True
             self._armed = None
-            self.say("Kill window expired; nothing was sent.")
+            self.say("Kill window expired; nothing was sent.", kill_note="Expired; nothing sent.")
 
     def show_result(self, done: Dispatched) -> None:
         self.acks.content = ack_matrix(done)
@@ -297,6 +309,15 @@ class CommandPanel:
             f"Done: {done.label}" if not done.error else f"Failed: {done.error}",
             error=bool(done.error),
         )
+
+
+def _note(text: str, error: bool = False, data_msg: bool = False) -> str:
+    color, weight = ("#c5221f", "bold") if error else ("#333", "normal")
+    tag = f" data-msg='{'error' if error else 'info'}'" if data_msg else ""
+    return (
+        f"<div{tag} style='color:{color};font-weight:{weight};font-size:0.82em'>"
+        f"{html.escape(text)}</div>"
+    )
 
 
 def _who(targets: tuple[int, ...]) -> str:

@@ -186,7 +186,7 @@ def test_vehicles_appear_in_the_fleet_table(page):
 
 
 def test_bad_input_is_refused_in_the_gui_and_nothing_is_sent(page, states):
-    fill(page, "Takeoff alt (m)", "1000")
+    fill(page, "Take-off altitude above origin (m)", "1000")
     page.get_by_role("button", name="Takeoff").click(force=True)
     msg = page.locator("[data-msg=error]")
     msg.wait_for()
@@ -201,10 +201,12 @@ def test_typed_values_and_a_click_in_the_same_frame_are_what_is_sent(page, state
     # The fields hold other values first (the station knows them), then the operator types new
     # ones and clicks before the page could send each edit: the command carries the typed ones.
     fill(page, "Targets", "2")
-    fill(page, "Takeoff alt (m)", "9")
+    fill(page, "Take-off altitude above origin (m)", "9")
     page.wait_for_timeout(300)
     n = len(commands.since(0))
-    type_then_click(page, {"Targets": "1,3", "Takeoff alt (m)": "4.5"}, "Takeoff")
+    type_then_click(
+        page, {"Targets": "1,3", "Take-off altitude above origin (m)": "4.5"}, "Takeoff"
+    )
     cmd = commands.wait_new(n, 15.0, "takeoff typed and clicked in one frame")
     assert (cmd.kind, cmd.targets, cmd.params[0]) == (CommandKind.TAKEOFF, (1, 3), 4.5)
     states.wait(lambda s: s[1].armed and s[3].armed, 15.0, "vehicles 1 and 3 armed")
@@ -212,10 +214,10 @@ def test_typed_values_and_a_click_in_the_same_frame_are_what_is_sent(page, state
 
     fill(page, "North (m)", "1")
     fill(page, "East (m)", "1")
-    fill(page, "Down (m)", "-3")
+    fill(page, "Altitude above origin (m)", "3")
     page.wait_for_timeout(300)
     n = len(commands.since(0))
-    typed = {"Targets": "3", "North (m)": "-7.5", "East (m)": "6", "Down (m)": "-4"}
+    typed = {"Targets": "3", "North (m)": "-7.5", "East (m)": "6", "Altitude above origin (m)": "4"}
     type_then_click(page, typed, "Goto local")
     cmd = commands.wait_new(n, 15.0, "goto typed and clicked in one frame")
     assert (cmd.kind, cmd.targets, cmd.params) == (CommandKind.GOTO_LOCAL, (3,), (-7.5, 6.0, -4.0))
@@ -229,7 +231,7 @@ def test_typed_values_and_a_click_in_the_same_frame_are_what_is_sent(page, state
 
 def test_takeoff_to_all_makes_them_airborne(page, states):
     fill(page, "Targets", "all")
-    fill(page, "Takeoff alt (m)", "5")
+    fill(page, "Take-off altitude above origin (m)", "5")
     page.get_by_role("button", name="Takeoff").click(force=True)
     wait_ack(page, 3)
     states.wait(
@@ -237,6 +239,29 @@ def test_takeoff_to_all_makes_them_airborne(page, states):
         30.0,
         "all three airborne above 3 m",
     )
+    # The shared command log says so, per vehicle, once each holds at its altitude.
+    takeoff = page.locator("[data-command]", has_text="takeoff to 5.0 m above origin").first
+    for vid in (1, 2, 3):
+        takeoff.locator(f"span[data-vehicle='{vid}'][data-answer='done']").wait_for()
+    assert "reached" in takeoff.inner_text()
+
+
+def test_a_keyless_command_query_is_counted_never_logged(page, demo, commands):
+    # Issue 34: a process without keys queries the fleet's command keys with a kill that
+    # claims to come from station 1. The keyed station logs none of it, as any of its
+    # commands; one line counts the attempts.
+    with open_session(MeshConfig(mode="peer", connect=(demo.mesh_endpoint,))) as attacker:
+        for n in range(1, 61):
+            kill = Command(CommandKind.KILL, nonce=n, stamp_ns=time.time_ns(), source_id=1)
+            for _ in attacker.get(keys.all_cmds("covey"), payload=kill.encode(), timeout=0.3):
+                pass
+    line = page.locator("[data-refused-commands]")
+    line.wait_for()
+    page.wait_for_function(
+        "() => +document.querySelector('[data-refused-commands]').dataset.refusedCommands >= 60"
+    )
+    assert "unsigned command" in line.inner_text()
+    assert page.locator("[data-command]", has_text="kill").count() == 0
 
 
 def test_goto_from_the_form_moves_a_vehicle(page, states):
@@ -253,7 +278,7 @@ def test_goto_from_the_form_moves_a_vehicle(page, states):
     fill(page, "Targets", "2")
     fill(page, "North (m)", f"{target[0]:g}")
     fill(page, "East (m)", f"{target[1]:g}")
-    fill(page, "Down (m)", "-5")
+    fill(page, "Altitude above origin (m)", "5")
     page.get_by_role("button", name="Goto local", exact=True).click(force=True)
     states.wait(
         lambda s: s[2].flags & StateFlag.HAS_GOAL and math.dist(s[2].goal_ned_m[:2], target) < 0.1,
