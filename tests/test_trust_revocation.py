@@ -205,6 +205,37 @@ def test_an_authentic_older_roster_is_answered_once_and_a_forged_one_never(tmp_p
     assert mesh.roster_sync.counts()["republished"] == 1
 
 
+def test_a_member_pulls_when_its_router_comes_back(tmp_path) -> None:
+    """A client that was cut off while the roster changed catches up on the new link, not at its
+    next periodic pull (set to a minute here)."""
+    authority = throwaway_fleet(tmp_path / "keys", FLEET, vehicles=[1], stations=[1, 2])
+    member = load_auth(str(authority.member_path(Role.VEHICLE, 1)))
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    router_cfg = MeshConfig(fleet=FLEET, mode="router", connect=(), listen=(ep,))
+    slow = RosterSyncConfig(pull_every_s=60.0)
+    with (
+        Mesh(router_cfg) as router,
+        Mesh(
+            MeshConfig(fleet=FLEET, mode="client", connect=(ep,)), auth=member, roster_sync=slow
+        ) as client,
+    ):
+        assert wait_for(lambda: client.roster_sync.counts().get("pulls", 0) >= 1, 5)
+        router.close()  # the router goes; the roster changes while it is away
+        authority.revoke(Role.STATION, 2)
+        held = load_auth(str(authority.member_path(Role.STATION, 1)))
+        time.sleep(1.0)
+        assert client.auth.roster.version < held.roster.version
+        # The router comes back as a keyed station that holds the new roster (its own start
+        # pull found nobody: the client has not linked yet).
+        with Mesh(router_cfg, auth=held, roster_sync=slow):
+            took = wait_for(lambda: client.auth.roster.version == held.roster.version, 10)
+        assert took is not None, client.roster_sync.counts()
+        assert not client.auth.is_member(Role.STATION, 2)
+        assert client.roster_sync.counts()["pulls"] >= 2  # the start and the new link
+    print(f"caught up {took:.2f} s after the router came back")
+
+
 # -- end to end through the shipped configs --------------------------------------------------------
 FLOOD = r"""
 import struct, sys, time
