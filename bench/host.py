@@ -70,6 +70,7 @@ def host_run(quick: bool, keyed: bool) -> dict:
     from comms.auth import load_auth
     from comms.authority import throwaway_fleet
     from comms.commands import new_nonce
+    from comms.heartbeat import HeartbeatPublisher
     from comms.mesh import Mesh
     from comms.schema import Command, Mode, Role
 
@@ -88,6 +89,7 @@ def host_run(quick: bool, keyed: bool) -> dict:
         ):
             mesh.session.declare_subscriber(keys.all_states(FLEET), states.on_sample)
             mesh.declare_gcs(1)
+            HeartbeatPublisher(mesh, 1)  # what the host's station-lost failsafe trusts
             host = kids.start(
                 "-m",
                 "covey_cli",

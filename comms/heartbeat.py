@@ -116,23 +116,39 @@ class HeartbeatPublisher:
         self.mesh, self.gcs_id, self.cfg = mesh, keys.check_vehicle_id(gcs_id), cfg
         self.seq = 0
         self._lock = threading.Lock()
-        self._pub = mesh.session.declare_publisher(
-            keys.gcs_heartbeat(mesh.fleet, gcs_id),
-            congestion_control=zenoh.CongestionControl.DROP,
-            express=True,
-        )
+        self._key = keys.gcs_heartbeat(mesh.fleet, gcs_id)
+        # A member that just joined asks at once (StationHeartbeats), rather than wait for the
+        # next beat: a take-off right after an agent starts is not refused for want of one.
+        self._queryable = mesh.session.declare_queryable(self._key, self._on_query)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"heartbeat-{gcs_id}", daemon=True)
         self._thread.start()
 
+    def _next(self) -> StationHeartbeat:
+        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        hb = StationHeartbeat(self.gcs_id, self.seq, self.mesh.clock_ns())
+        return hb if self.mesh.auth is None else self.mesh.auth.sign_heartbeat(hb)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            with self._lock:
+                query.reply(self._key, self._next().encode())
+        except Exception as exc:  # noqa: BLE001 - the querier may be gone
+            log.debug("could not answer a heartbeat query: %s", exc)
+
     def beat(self) -> StationHeartbeat:
         """Publish the next heartbeat now; returns it (signed in keyed mode)."""
-        with self._lock:  # the thread and a caller: seq and stamp rise in the order sent
-            self.seq = (self.seq + 1) & 0xFFFFFFFF
-            hb = StationHeartbeat(self.gcs_id, self.seq, self.mesh.clock_ns())
-            if self.mesh.auth is not None:
-                hb = self.mesh.auth.sign_heartbeat(hb)
-            self._pub.put(hb.encode())
+        with self._lock:  # the thread, a caller, a query: seq and stamp rise in the order sent
+            hb = self._next()
+            # A put, not a declared publisher: a client's publisher declared before the
+            # subscribers of members behind other routers existed never reached them (covey
+            # router chains, zenoh 1.10); a put is routed each time.
+            self.mesh.session.put(
+                self._key,
+                hb.encode(),
+                congestion_control=zenoh.CongestionControl.DROP,
+                express=True,
+            )
         return hb
 
     def _run(self) -> None:
@@ -140,8 +156,8 @@ class HeartbeatPublisher:
             try:
                 self.beat()
             except Exception as exc:  # noqa: BLE001 - a closing session must not crash the thread
-                if self._stop.is_set():
-                    return
+                if self._stop.is_set() or _closed(self.mesh):
+                    return  # the mesh went first: nothing left to beat on
                 log.warning("station %d: heartbeat not sent: %s", self.gcs_id, exc)
             self._stop.wait(self.cfg.period_s)
 
@@ -151,7 +167,7 @@ class HeartbeatPublisher:
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout=5.0)
         try:
-            self._pub.undeclare()
+            self._queryable.undeclare()
         except Exception:  # noqa: BLE001 - the session may be closed already
             pass
 
@@ -227,9 +243,11 @@ class StationHeartbeats:
         if subscribe:
             if self.auth is None and tokens:
                 self.tokens = mesh.presence()
-            self._sub = mesh.session.declare_subscriber(
-                keys.all_gcs_heartbeats(self.fleet), self._on_sample
-            )
+            key = keys.all_gcs_heartbeats(self.fleet)
+            self._sub = mesh.session.declare_subscriber(key, self._on_sample)
+            # Ask the stations now (HeartbeatPublisher answers with a fresh heartbeat): a
+            # member that just started knows its stations in a round trip, not a period.
+            mesh.session.get(key, self._on_reply, target=zenoh.QueryTarget.ALL, timeout=2.0)
 
     def close(self) -> None:
         sub, self._sub = self._sub, None
@@ -251,6 +269,13 @@ class StationHeartbeats:
             self.receive(str(sample.key_expr), sample.payload.to_bytes())
         except Exception:  # noqa: BLE001 - one bad message never kills Zenoh's thread
             log.exception("heartbeat handling failed")
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        try:
+            if reply.ok is not None:
+                self.receive(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+        except Exception:  # noqa: BLE001 - one bad reply never kills Zenoh's thread
+            log.exception("heartbeat reply handling failed")
 
     def receive(self, key: str, payload: bytes) -> str | None:
         """Decode and `offer` one heartbeat that arrived on `key` now; the refusal or None."""
@@ -392,6 +417,14 @@ class StationHeartbeats:
             (ClockReport(vid, off.offset_s, off.gcs_id, ok=not bad), stamp_ns)
             for vid in vehicle_ids
         ]
+
+
+def _closed(mesh: Any) -> bool:
+    try:
+        mesh.session  # noqa: B018 - a closed Mesh raises here
+    except RuntimeError:
+        return True
+    return False
 
 
 def _log_summary(line: str) -> None:

@@ -31,6 +31,7 @@ from comms.authority import Authority, throwaway_fleet
 from comms.cli_options import id_ranges, vehicle_ids
 from comms.commands import OutcomeStatus, new_nonce
 from comms.gate import Refusal
+from comms.heartbeat import HeartbeatPublisher
 from comms.identity import read_member_key, verify
 from comms.mesh import Mesh
 from comms.procs import ChildGroup, python_env
@@ -315,6 +316,7 @@ class Station:
             )
         )
         self.token = mesh.declare_gcs(1)
+        self.heartbeats = HeartbeatPublisher(mesh, 1)  # what the station failsafe trusts
 
     def views(self):
         return views_by_id(self.fleet.snapshot(time.time_ns(), trails=False))
@@ -459,6 +461,7 @@ def test_single_agents_and_a_host_fly_as_one_keyed_fleet(tmp_path) -> None:
 
         # The host honours the ground-station failsafe: without a station, its vehicles hold.
         station.token.undeclare()
+        station.heartbeats.close()
         station.wait(
             lambda v: all(v[i].state.flags & StateFlag.FAILSAFE_GCS_LOST for i in HOST_IDS),
             20,

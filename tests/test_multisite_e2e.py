@@ -30,6 +30,7 @@ from comms import keys
 from comms.auth import load_auth
 from comms.authority import throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
+from comms.heartbeat import HeartbeatPublisher
 from comms.mesh import Mesh
 from comms.schema import (
     Command,
@@ -78,6 +79,7 @@ class Station:
             )
         )
         mesh.declare_gcs(1)
+        HeartbeatPublisher(mesh, 1)  # what the vehicles' station-lost failsafe trusts
 
     def on_state(self, s: VehicleState, _t: int) -> None:
         with self.lock:

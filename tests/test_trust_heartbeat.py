@@ -231,24 +231,34 @@ def test_open_mode_accepts_unsigned_heartbeats_from_a_bounded_set_of_stations() 
     assert rx.alive(clocks.mono_s) and rx.tokens is None
 
 
-def test_the_publisher_signs_with_the_station_key_only(fleet) -> None:
-    sent = []
-    mesh = SimpleNamespace(
-        auth=member(fleet, Role.STATION, 2),
-        fleet=FLEET,
-        clock_ns=lambda: NOW_NS,
-        session=SimpleNamespace(
-            declare_publisher=lambda key, **_kw: SimpleNamespace(
-                put=lambda b: sent.append((key, b)), undeclare=lambda: None
-            )
-        ),
-    )
-    with HeartbeatPublisher(mesh, 2, HeartbeatConfig(period_s=3600.0, alive_s=3600.0)) as pub:
-        hb = pub.beat()
-    assert (keys.gcs_heartbeat(FLEET, 2), hb.encode()) in sent and hb.seq <= len(sent)
-    assert member(fleet, Role.VEHICLE, 1).check_heartbeat(hb) is None
-    with pytest.raises(ValueError, match="need station 1's key"):
-        HeartbeatPublisher(mesh, 1)
+def test_a_station_beats_signed_and_a_member_that_joins_asks_at_once(fleet) -> None:
+    """Real Zenoh sessions: a member that starts after the station knows it from the answer to
+    its query (the station's period here is an hour), then from each beat."""
+    from comms.mesh import Mesh
+    from comms.session import embedded_peer, embedded_router, free_tcp_port
+
+    port = free_tcp_port()
+    slow = HeartbeatConfig(period_s=3600.0, alive_s=3600.0)
+    with (
+        Mesh(
+            embedded_router(port, fleet=FLEET), auth=member(fleet, Role.STATION, 2, time.time_ns)
+        ) as gcs,
+        HeartbeatPublisher(gcs, 2, slow) as pub,
+    ):
+        with pytest.raises(ValueError, match="need station 1's key"):
+            HeartbeatPublisher(gcs, 1)
+        time.sleep(0.2)  # the thread's first beat is out: nobody heard it
+        vehicle = member(fleet, Role.VEHICLE, 1, time.time_ns)
+        with Mesh(embedded_peer(port, fleet=FLEET), auth=vehicle) as mesh:
+            rx = StationHeartbeats(mesh, slow)
+            assert wait_until(lambda: rx.stations(time.monotonic()) == {2}, 10), rx.refused
+            assert rx.accepted == 1 and rx.tokens is None
+            hb = pub.beat()
+            assert wait_until(lambda: rx.accepted == 2, 10)
+            assert vehicle.check_heartbeat(hb) is None and hb.seq == pub.seq
+            off = rx.offset(time.monotonic())
+            assert off.gcs_id == 2 and abs(off.offset_s) < 1.0
+            rx.close()
 
 
 # -- real processes --------------------------------------------------------------------------
