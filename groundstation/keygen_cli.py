@@ -157,6 +157,9 @@ def _push(auth: Authority, args: argparse.Namespace, p: argparse.ArgumentParser)
                 if heard or time.monotonic() >= deadline:
                     break
                 stop.wait(0.25)
+            if heard:  # one more round: members still applying it count too
+                stop.wait(0.5)
+                heard += confirmations(mesh.session, auth.fleet, roster.version, timeout_s=0.5)
     except MeshUnreachable as exc:
         return nobody_answered(p, exc)
     except ValueError as exc:  # MeshConfigError: busy port, bad config
