@@ -18,17 +18,30 @@ from dataclasses import dataclass, field
 
 MAX_POLYGON_VERTICES = 256
 """Most vertices one polygon may have (bounds the wire message and every check's cost)."""
+MAX_PLAN_VERTICES = 2048
+"""Most vertices of all the plan's polygons together (bounds the wire message)."""
 MAX_ZONES = 64
 """Most keep-out zones one plan may hold."""
 MAX_RALLY_POINTS = 32
 """Most rally points one plan may hold."""
-MAX_NAME_CHARS = 64
-"""Longest zone or rally point name."""
+MAX_NAME_BYTES = 64
+"""Longest zone or rally point name, in UTF-8 bytes."""
 MAX_COORD_M = 1.0e6
 """No plan coordinate is further than this from the fleet origin (a swarm's plan spans km)."""
 
 PolygonNE = tuple[tuple[float, float], ...]
 """A polygon as (north_m, east_m) vertices, not closed (the last vertex is not the first)."""
+
+
+def _polygon(vertices_ne_m: object, what: str) -> PolygonNE:
+    """`vertices_ne_m` as a tuple of (float, float), checked: 3..MAX_POLYGON_VERTICES finite
+    vertices within MAX_COORD_M of the origin."""
+    try:
+        out = tuple((float(n), float(e)) for n, e in vertices_ne_m)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} needs (north_m, east_m) vertex pairs") from None
+    _check_polygon(out, what)
+    return out
 
 
 def _check_polygon(vertices_ne_m: PolygonNE, what: str) -> None:
@@ -42,8 +55,8 @@ def _check_polygon(vertices_ne_m: PolygonNE, what: str) -> None:
 
 
 def _check_name(name: str, what: str) -> None:
-    if not isinstance(name, str) or len(name) > MAX_NAME_CHARS or not name.isprintable():
-        raise ValueError(f"{what} name must be printable text of at most {MAX_NAME_CHARS} chars")
+    if not isinstance(name, str) or len(name.encode()) > MAX_NAME_BYTES or not name.isprintable():
+        raise ValueError(f"{what} name must be printable text of at most {MAX_NAME_BYTES} bytes")
 
 
 def _check_alt_band(floor_alt_m: float | None, ceiling_alt_m: float | None, what: str) -> None:
@@ -68,7 +81,7 @@ class Fence:
     """Highest altitude above the origin; None: no ceiling."""
 
     def __post_init__(self) -> None:
-        _check_polygon(self.vertices_ne_m, "the fence")
+        object.__setattr__(self, "vertices_ne_m", _polygon(self.vertices_ne_m, "the fence"))
         _check_alt_band(self.floor_alt_m, self.ceiling_alt_m, "the fence")
 
 
@@ -89,7 +102,7 @@ class Zone:
     def __post_init__(self) -> None:
         what = f"keep-out zone {self.name!r}" if self.name else "a keep-out zone"
         _check_name(self.name, what)
-        _check_polygon(self.vertices_ne_m, what)
+        object.__setattr__(self, "vertices_ne_m", _polygon(self.vertices_ne_m, what))
         _check_alt_band(self.floor_alt_m, self.ceiling_alt_m, what)
 
     def covers_alt(self, alt_m: float) -> bool:
@@ -135,14 +148,24 @@ class FleetPlan:
     """Keep-out zones."""
     rally: tuple[RallyPoint, ...] = ()
     """Home and rally points."""
-    signer: str = ""
-    """Key id of who signed it (the authority or a roster station); empty while unsigned."""
+    signer_id: int = 0
+    """Who signed it: 0 the fleet authority, N ground station N of the roster."""
     signature: bytes = field(default=b"", repr=False)
-    """Ed25519 signature over the canonical encoding (comms/auth.py); empty while unsigned."""
+    """Ed25519 signature over the wire encoding (comms/schema.py PlanMessage, comms/auth.py);
+    empty while unsigned."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.version, int) or self.version < 0:
-            raise ValueError(f"plan version must be a non-negative integer, got {self.version!r}")
+        if not isinstance(self.version, int) or not 1 <= self.version < 2**32:
+            raise ValueError(f"plan version must be an integer in 1..2^32-1, got {self.version!r}")
+        if not isinstance(self.stamp_ns, int) or not 0 <= self.stamp_ns < 2**64:
+            raise ValueError(f"plan stamp_ns must fit 64 bits, got {self.stamp_ns!r}")
+        if not isinstance(self.signer_id, int) or not 0 <= self.signer_id < 2**16:
+            raise ValueError("plan signer_id must be 0 (authority) or a station id")
+        n_vertices = sum(len(p) for p in self.polygons_ne_m())
+        if n_vertices > MAX_PLAN_VERTICES:
+            raise ValueError(f"a plan holds at most {MAX_PLAN_VERTICES} vertices, got {n_vertices}")
+        object.__setattr__(self, "keep_out", tuple(self.keep_out))
+        object.__setattr__(self, "rally", tuple(self.rally))
         if len(self.keep_out) > MAX_ZONES:
             raise ValueError(f"a plan holds at most {MAX_ZONES} keep-out zones")
         if len(self.rally) > MAX_RALLY_POINTS:
@@ -152,6 +175,11 @@ class FleetPlan:
     def home(self) -> RallyPoint | None:
         """The rally point named 'home', if any."""
         return next((r for r in self.rally if r.name == "home"), None)
+
+    def polygons_ne_m(self) -> list[PolygonNE]:
+        """The fence's polygon (first, if any) and every keep-out polygon."""
+        fence = [self.fence.vertices_ne_m] if self.fence is not None else []
+        return fence + self.keep_out_polygons_ne_m()
 
     def keep_out_polygons_ne_m(self) -> list[PolygonNE]:
         """Every keep-out polygon's vertices (what the route planner and the filter inflate)."""
