@@ -16,6 +16,8 @@
                                   pub/sub StationHeartbeat, signed by station <id> (keyed mode):
                                   what the station-lost failsafe trusts (comms/heartbeat.py)
     covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
+    covey/<fleet>/plan            pub/sub and queryable: the signed fleet plan (fence, keep-out
+                                  zones, rally points), followed like the roster (comms/plan_sync.py)
 
 A state's key carries the coarse grid cell of the position it reports, so that a vehicle can
 subscribe to the cells within its reach (comms/scope.py, docs/scaling.md) instead of the whole
@@ -250,6 +252,11 @@ def parse_gcs_heartbeat_key(key: str) -> tuple[str, int] | None:
 def roster(fleet: str) -> str:
     """Where a new fleet roster is pushed, and where every keyed member answers with its own."""
     return f"{ROOT}/{check_fleet(fleet)}/roster"
+
+
+def plan(fleet: str) -> str:
+    """Where a new fleet plan is pushed, and where every member answers with the one it holds."""
+    return f"{ROOT}/{check_fleet(fleet)}/plan"
 
 
 def everything(fleet: str) -> str:

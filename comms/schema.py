@@ -33,6 +33,12 @@ Layouts (all little-endian, packed; `<` struct codes):
         bytes exactly as its vehicle published them: a VehicleState, signed or not)
     StationHeartbeat type 8 v1  <BBHIQ [+ 64s]       16 bytes, 80 signed
         type, version, gcs_id, seq, stamp_ns, [sig: Ed25519 of station gcs_id]
+    PlanMessage   type 11 v1 <BB32sIQHBBB + fence + zones + rally + 64s  at most MAX_PLAN_BYTES
+        type, version, fleet, plan version, stamp_ns, signer_id (0: the fleet authority, N:
+        station N), flags (1: has a fence), n_zones, n_rally; fence: <ddH floor, ceiling (NaN:
+        none), n + n*<dd vertices (north, east m); each zone: <B name length, name (utf-8), then
+        as the fence; each rally point: <dddB north, east, alt m, name length, name; sig (the
+        signer's Ed25519; zeros in open mode). `PlanMessage.peek` reads the header alone
 
 Signatures are made and checked in comms/auth.py; this module only carries their bytes.
 """
@@ -44,6 +50,17 @@ import math
 import struct
 from dataclasses import dataclass
 from typing import ClassVar
+
+from comms.plan import (
+    MAX_NAME_BYTES,
+    MAX_PLAN_VERTICES,
+    MAX_RALLY_POINTS,
+    MAX_ZONES,
+    Fence,
+    FleetPlan,
+    RallyPoint,
+    Zone,
+)
 
 SCHEMA_VERSION = 1
 """Version of VehicleState, Event, Roster and GuidanceTrace (the signature is an optional
@@ -95,6 +112,7 @@ class MsgType(enum.IntEnum):
     GUIDANCE_TRACE = 6
     FEED_BATCH = 7
     STATION_HEARTBEAT = 8
+    PLAN = 11
 
 
 class Role(enum.IntEnum):
@@ -1115,6 +1133,209 @@ class RosterHead:
     sig: bytes
 
 
+MAX_PLAN_BYTES = (
+    (51 + 18 + MAX_ZONES * (1 + MAX_NAME_BYTES + 18) + MAX_RALLY_POINTS * (25 + MAX_NAME_BYTES))
+    + 16 * MAX_PLAN_VERTICES
+    + TAG_BYTES
+)
+"""The largest PlanMessage on the wire (41,061 bytes): anything longer is refused before a byte
+of it is read (`PlanMessage.peek`), and the shipped routers pass nothing longer on the plan key."""
+
+
+class _Reader:
+    """Reads a variable-length message front to back; running out is a DecodeError."""
+
+    def __init__(self, data: bytes, at: int, end: int, what: str) -> None:
+        self.data, self.at, self.end, self.what = data, at, end, what
+
+    def take(self, fmt: struct.Struct) -> tuple:
+        if self.at + fmt.size > self.end:
+            raise DecodeError(f"{self.what} ends early at byte {self.at}")
+        out = fmt.unpack_from(self.data, self.at)
+        self.at += fmt.size
+        return out
+
+    def text(self, n: int, name: str) -> str:
+        if self.at + n > self.end:
+            raise DecodeError(f"{self.what} ends inside {name}")
+        raw = self.data[self.at : self.at + n]
+        self.at += n
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise DecodeError(f"{name} is not valid UTF-8") from None
+
+
+def _alt_or_nan(alt_m: float | None) -> float:
+    return math.nan if alt_m is None else alt_m
+
+
+def _nan_or_alt(value: float, name: str) -> float | None:
+    if math.isnan(value):
+        return None
+    _check_finite(name, value)
+    return value
+
+
+def _check_fleet_name(fleet: str, what: str) -> None:
+    if not isinstance(fleet, str) or not 1 <= len(fleet.encode()) <= FLEET_NAME_BYTES:
+        raise DecodeError(f"{what} fleet name {fleet!r} must be 1-{FLEET_NAME_BYTES} bytes")
+    if not fleet.isascii() or not all(c.isalnum() or c in "_-" for c in fleet):
+        raise DecodeError(f"{what} fleet name {fleet!r} must be A-Z a-z 0-9 _ -")
+
+
+@dataclass(frozen=True)
+class PlanMessage:
+    """A fleet plan on the wire (comms/plan.py): signed by the fleet authority or a roster
+    station (comms/auth.py), followed like the roster (comms/plan_sync.py): a higher `version`
+    replaces a lower one on every member."""
+
+    plan: FleetPlan
+
+    TYPE: ClassVar[MsgType] = MsgType.PLAN
+    FLAG_FENCE: ClassVar[int] = 1
+    _HEAD: ClassVar[struct.Struct] = struct.Struct(f"<BB{FLEET_NAME_BYTES}sIQHBBB")
+    _POLY: ClassVar[struct.Struct] = struct.Struct("<ddH")
+    _VERTEX: ClassVar[struct.Struct] = struct.Struct("<dd")
+    _LEN: ClassVar[struct.Struct] = struct.Struct("<B")
+    _RALLY: ClassVar[struct.Struct] = struct.Struct("<dddB")
+
+    def validate(self) -> None:
+        p = self.plan
+        _check_fleet_name(p.fleet, "plan")
+        if len(p.signature) not in (0, TAG_BYTES):
+            raise DecodeError(f"plan signature must be {TAG_BYTES} bytes, got {len(p.signature)}")
+
+    def _poly(self, vertices: tuple, floor: float | None, ceiling: float | None) -> bytes:
+        out = [self._POLY.pack(_alt_or_nan(floor), _alt_or_nan(ceiling), len(vertices))]
+        out += [self._VERTEX.pack(n, e) for n, e in vertices]
+        return b"".join(out)
+
+    def signed_bytes(self) -> bytes:
+        """What the signer signs: everything but the signature."""
+        self.validate()
+        p = self.plan
+        out = [
+            self._HEAD.pack(
+                self.TYPE,
+                SCHEMA_VERSION,
+                p.fleet.encode(),
+                p.version,
+                p.stamp_ns,
+                p.signer_id,
+                self.FLAG_FENCE if p.fence is not None else 0,
+                len(p.keep_out),
+                len(p.rally),
+            )
+        ]
+        if p.fence is not None:
+            f = p.fence
+            out.append(self._poly(f.vertices_ne_m, f.floor_alt_m, f.ceiling_alt_m))
+        for z in p.keep_out:
+            name = z.name.encode()
+            out += [self._LEN.pack(len(name)), name]
+            out.append(self._poly(z.vertices_ne_m, z.floor_alt_m, z.ceiling_alt_m))
+        for r in p.rally:
+            name = r.name.encode()
+            out += [self._RALLY.pack(r.n_m, r.e_m, r.alt_m, len(name)), name]
+        return b"".join(out)
+
+    def encode(self) -> bytes:
+        """The wire bytes; an unsigned plan (open mode) carries a zero signature."""
+        data = self.signed_bytes() + (self.plan.signature or bytes(TAG_BYTES))
+        if len(data) > MAX_PLAN_BYTES:  # unreachable within FleetPlan's limits; kept honest
+            raise DecodeError(f"PlanMessage of {len(data)} bytes, at most {MAX_PLAN_BYTES}")
+        return data
+
+    @classmethod
+    def peek(cls, data: bytes) -> PlanHead:
+        """The fixed header of a plan's wire bytes, checked in O(1) (size first, at most
+        MAX_PLAN_BYTES): a receiver drops what is not newer than its own plan, verifies the
+        signature over `PlanHead.signed`, and only then decodes the polygons."""
+        if len(data) > MAX_PLAN_BYTES:
+            raise DecodeError(f"PlanMessage of {len(data)} bytes, at most {MAX_PLAN_BYTES}")
+        _header(data, cls.TYPE)
+        if len(data) < cls._HEAD.size + TAG_BYTES:
+            raise DecodeError(f"PlanMessage too short: {len(data)} bytes")
+        _, _, fleet_raw, version, _stamp, signer_id, _flags, _nz, _nr = cls._HEAD.unpack_from(data)
+        fleet = _text_field(fleet_raw, "fleet")
+        _check_fleet_name(fleet, "plan")
+        if version < 1:
+            raise DecodeError(f"plan version {version} must be within 1..2^32-1")
+        return PlanHead(
+            fleet, version, signer_id, bytes(data[:-TAG_BYTES]), bytes(data[-TAG_BYTES:])
+        )
+
+    @classmethod
+    def decode(cls, data: bytes) -> PlanMessage:
+        head = cls.peek(data)
+        _, _, _, version, stamp_ns, signer_id, flags, n_zones, n_rally = cls._HEAD.unpack_from(data)
+        if flags & ~cls.FLAG_FENCE:
+            raise DecodeError(f"plan flags {flags:#x} has unknown bits")
+        if n_zones > MAX_ZONES or n_rally > MAX_RALLY_POINTS:
+            raise DecodeError(
+                f"plan with {n_zones} zones and {n_rally} rally points: at most {MAX_ZONES} "
+                f"and {MAX_RALLY_POINTS}"
+            )
+        rd = _Reader(data, cls._HEAD.size, len(data) - TAG_BYTES, "PlanMessage")
+        budget = [MAX_PLAN_VERTICES]
+
+        def poly(what: str) -> tuple[tuple, float | None, float | None]:
+            floor, ceiling, n = rd.take(cls._POLY)
+            if n > budget[0]:
+                raise DecodeError(f"{what}: {n} vertices, over the plan's {MAX_PLAN_VERTICES}")
+            budget[0] -= n
+            vertices = tuple(rd.take(cls._VERTEX) for _ in range(n))
+            return (
+                vertices,
+                _nan_or_alt(floor, f"{what} floor"),
+                _nan_or_alt(ceiling, f"{what} ceiling"),
+            )
+
+        try:
+            fence = Fence(*poly("the fence")) if flags & cls.FLAG_FENCE else None
+            zones = []
+            for i in range(n_zones):
+                (size,) = rd.take(cls._LEN)
+                name = rd.text(size, f"zone {i} name")
+                vertices, floor, ceiling = poly(f"zone {name!r}")
+                zones.append(Zone(vertices, name, floor, ceiling))
+            rally = []
+            for i in range(n_rally):
+                n_m, e_m, alt_m, size = rd.take(cls._RALLY)
+                rally.append(RallyPoint(n_m, e_m, alt_m, rd.text(size, f"rally point {i} name")))
+            if rd.at != rd.end:
+                raise DecodeError(f"PlanMessage has {rd.end - rd.at} bytes after its content")
+            plan = FleetPlan(
+                head.fleet,
+                version,
+                stamp_ns,
+                fence,
+                tuple(zones),
+                tuple(rally),
+                signer_id=signer_id,
+                signature=head.sig,
+            )
+        except DecodeError:
+            raise
+        except ValueError as exc:  # the geometry's own checks: one line, as a DecodeError
+            raise DecodeError(f"plan v{version}: {exc}") from None
+        return cls(plan)
+
+
+@dataclass(frozen=True)
+class PlanHead:
+    """What `PlanMessage.peek` reads of a plan's wire bytes without decoding its polygons."""
+
+    fleet: str
+    version: int
+    signer_id: int
+    """0: the fleet authority; N: ground station N."""
+    signed: bytes
+    """The bytes the signer signs (`PlanMessage.signed_bytes()` of the decoded plan)."""
+    sig: bytes
+
+
 Message = (
     VehicleState
     | Command
@@ -1124,6 +1345,7 @@ Message = (
     | GuidanceTrace
     | FeedBatch
     | StationHeartbeat
+    | PlanMessage
 )
 _DECODERS: dict[int, type] = {
     MsgType.VEHICLE_STATE: VehicleState,
@@ -1134,6 +1356,7 @@ _DECODERS: dict[int, type] = {
     MsgType.GUIDANCE_TRACE: GuidanceTrace,
     MsgType.FEED_BATCH: FeedBatch,
     MsgType.STATION_HEARTBEAT: StationHeartbeat,
+    MsgType.PLAN: PlanMessage,
 }
 
 
@@ -1169,6 +1392,8 @@ __all__ = [
     "Message",
     "Mode",
     "MsgType",
+    "PlanHead",
+    "PlanMessage",
     "Role",
     "Roster",
     "RosterHead",
