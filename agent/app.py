@@ -342,7 +342,12 @@ class Agent:
                 # Traced flights decide only on published ticks (replayable), unless nothing is held.
                 decide = np.zeros(1, bool) if self.cfg.trace_guidance and not publish else None
                 out = core.guide(
-                    now_s, rows, obs.pos_m, obs.vel_m_s, NeighbourViews.of_snapshot(nbrs, self.vid), decide
+                    now_s,
+                    rows,
+                    obs.pos_m,
+                    obs.vel_m_s,
+                    NeighbourViews.of_snapshot(nbrs, self.vid),
+                    decide,
                 )
             flags |= core.flags_of(0)
             mode, target, heading = core.mode_of(0), core.target_of(0), float(core.heading_rad[0])
