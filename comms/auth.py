@@ -38,7 +38,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from comms.identity import (
     FleetKeyError,
@@ -50,12 +50,14 @@ from comms.identity import (
     signed_message,
     verify,
 )
+from comms.plan import FleetPlan
 from comms.schema import (
     TAG_BYTES,
     Command,
     CommandAck,
     Event,
     GuidanceTrace,
+    PlanMessage,
     Role,
     Roster,
     StationHeartbeat,
@@ -76,6 +78,7 @@ __all__ = [
     "host_signers",
     "load_auth",
     "load_vehicle_auths",
+    "sign_plan",
 ]
 
 
@@ -356,6 +359,23 @@ class FleetAuth:
             Role.STATION, heartbeat.gcs_id, "hb", heartbeat.signed_bytes(), heartbeat.sig
         )
 
+    # -- the fleet plan --------------------------------------------------------------------------
+    def sign_plan(self, plan: FleetPlan) -> FleetPlan:
+        """`plan` signed by this station (its signer becomes this station's id)."""
+        if self.role is not Role.STATION:
+            raise FleetKeyError(f"this is {self.key.name}'s key: only a station key signs plans")
+        return sign_plan(self.key.private_key, plan, self.member_id)
+
+    def check_plan(self, signer_id: int, signed: bytes, sig: bytes) -> str | None:
+        """None if a plan's `signed` bytes (PlanHead.signed) carry the signature of the fleet
+        authority (`signer_id` 0) or of station `signer_id` of the current roster, else why not."""
+        if signer_id == 0:
+            authority = Ed25519PublicKey.from_public_bytes(self.key.authority_public_key)
+            if verify(authority, sig, PLAN_LABEL, self.fleet, signed):
+                return None
+            return f"bad signature: not made by fleet {self.fleet}'s authority key"
+        return self.check_signature(Role.STATION, signer_id, PLAN_LABEL, signed, sig)
+
     def _clock_note(self) -> str | None:
         if self.clock_note is None:
             return None
@@ -364,6 +384,19 @@ class FleetAuth:
         except Exception:  # noqa: BLE001 - a note that fails must not change a refusal
             log.exception("clock_note failed")
             return None
+
+
+PLAN_LABEL = "plan"
+"""The signature label of a fleet plan (comms/identity.py signed_message)."""
+
+
+def sign_plan(private_key: Ed25519PrivateKey, plan: FleetPlan, signer_id: int = 0) -> FleetPlan:
+    """`plan` signed with `private_key` as `signer_id` (0: the fleet authority's key, N: station
+    N's), over its wire bytes (comms/schema.py PlanMessage)."""
+    unsigned = dataclasses.replace(plan, signer_id=signer_id, signature=b"")
+    data = PlanMessage(unsigned).signed_bytes()
+    sig = private_key.sign(signed_message(PLAN_LABEL, plan.fleet, data))
+    return dataclasses.replace(unsigned, signature=sig)
 
 
 class _RosterBook:
