@@ -1,4 +1,5 @@
-"""Following the fleet roster on the mesh: a revocation reaches every keyed member within a second.
+"""Following a signed fleet document on the mesh: the roster (a revocation reaches every keyed
+member within a second) and, through the same `DocSync`, the fleet plan (comms/plan_sync.py).
 
 Every keyed process (agent, station, multi-vehicle host) runs one `RosterSync` on
 `covey/<fleet>/roster` (comms/keys.py). It
@@ -22,6 +23,9 @@ newer than the roster held is dropped there, undecoded and unverified; a newer o
 members are decoded and it is applied. Refusals are counted per cause and reported at most once
 per second per cause (`on_summary`, which the agent publishes as a SECURITY event): a flood
 becomes a few lines, never one event per message.
+
+`DocSync` does all of this for any `SignedDoc` (a key, an O(1) header peek, a signature check,
+an apply); `RosterSync` is it with `RosterDoc`.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
@@ -86,7 +90,7 @@ class RosterSyncConfig:
 
 
 class Offer(enum.Enum):
-    """What `RosterSync.offer` made of a roster."""
+    """What `DocSync.offer` made of a document."""
 
     APPLIED = "applied"
     SAME = "same"
@@ -96,40 +100,113 @@ class Offer(enum.Enum):
     REFUSED = "refused"
 
 
-class RosterSync:
-    """One keyed member's roster follower on an open Zenoh session (see the module docstring).
-    Declared by `Mesh`; `undeclare()` stops it (the Mesh does, when it closes)."""
+class DocHead(Protocol):
+    """What a document's O(1) header peek gives: enough to drop it or verify it."""
+
+    fleet: str
+    version: int
+
+
+class SignedDoc(Protocol):
+    """One kind of signed, versioned fleet document that `DocSync` follows (the roster, the
+    plan): it says where it lives, reads a header cheaply, checks a signature, applies."""
+
+    name: str
+    """What it is called in counts, logs and refusals ("roster", "plan")."""
+    key: str
+    """Its Zenoh key (comms/keys.py)."""
+
+    def peek(self, data: bytes) -> DocHead:
+        """The header in O(1); raises DecodeError."""
+        ...
+
+    def held_version(self) -> int:
+        """The version held now (0: none)."""
+        ...
+
+    def genuine(self, head: DocHead) -> str | None:
+        """None if the header's signature is a signer's this member trusts, else why not."""
+        ...
+
+    def apply(self, data: bytes, head: DocHead) -> tuple[object, str | None]:
+        """Decode and apply a genuine newer document: (the document, None) or (None or the
+        document, why it was not applied); raises DecodeError."""
+        ...
+
+    def held_bytes(self) -> bytes | None:
+        """The held document's wire bytes (None: none held, nothing to answer with)."""
+        ...
+
+
+class RosterDoc:
+    """The fleet roster as a `SignedDoc`: signed by the fleet authority, held by `auth`."""
+
+    name = "roster"
+
+    def __init__(self, fleet: str, auth: Any) -> None:
+        self.key = keys.roster(fleet)
+        self.auth = auth
+        self._authority = Ed25519PublicKey.from_public_bytes(auth.key.authority_public_key)
+        self._lock = threading.Lock()
+        self._encoded: tuple[int, bytes] = (0, b"")
+
+    def peek(self, data: bytes) -> RosterHead:
+        return Roster.peek(data)
+
+    def held_version(self) -> int:
+        return self.auth.roster.version
+
+    def genuine(self, head: RosterHead) -> str | None:  # type: ignore[override]
+        if verify(self._authority, head.sig, "roster", head.fleet, head.signed):
+            return None
+        return "not signed by the fleet authority"
+
+    def apply(self, data: bytes, head: RosterHead) -> tuple[object, str | None]:  # type: ignore[override]
+        roster = Roster.decode(data)
+        return roster, self.auth.apply_roster(roster)
+
+    def held_bytes(self) -> bytes:
+        roster = self.auth.roster
+        with self._lock:
+            version, data = self._encoded
+        if version != roster.version:
+            data = roster.encode()  # O(members): encode once per version, not per answer
+            with self._lock:
+                self._encoded = (roster.version, data)
+        return data
+
+
+class DocSync:
+    """One member's follower of a `SignedDoc` on an open Zenoh session (see the module
+    docstring). `undeclare()` stops it."""
 
     def __init__(
         self,
         session: zenoh.Session,
         fleet: str,
-        auth: Any,
+        doc: SignedDoc,
         cfg: RosterSyncConfig = RosterSyncConfig(),
         *,
         on_summary: Callable[[str], None] | None = None,
-        on_applied: Callable[[Roster], None] | None = None,
+        on_applied: Callable[[Any], None] | None = None,
         mono_ns: Callable[[], int] = time.monotonic_ns,
         rng: random.Random | None = None,
     ) -> None:
-        """`auth`: this member's comms.auth.FleetAuth (its roster is the one followed).
-        `on_summary(line)`: refusal summaries. `on_applied(roster)`: after a newer roster was
+        """`on_summary(line)`: refusal summaries. `on_applied(doc)`: after a newer document was
         applied. `mono_ns`: a monotonic clock; `rng`: jitter and suppression delays."""
         self.session = session
         self.fleet = fleet
-        self.auth = auth
+        self.doc = doc
         self.cfg = cfg
-        self.key = keys.roster(fleet)
+        self.key = doc.key
         self._on_applied = on_applied
         self._mono_ns = mono_ns
         self._rng = rng if rng is not None else random.Random()
-        self._authority = Ed25519PublicKey.from_public_bytes(auth.key.authority_public_key)
         self._summaries = Summaries(on_summary, cfg.summary_period_s)
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._closed = False
         self._counts: dict[str, int] = {}
-        self._encoded: tuple[int, bytes] = (0, b"")
         now = mono_ns()
         self._next_pull_ns = now  # the first pull at once
         self._last_pull_ns = now - _s_ns(60.0)
@@ -147,21 +224,21 @@ class RosterSync:
         except BaseException:
             self.undeclare()
             raise
-        self._thread = threading.Thread(target=self._run, name="roster-sync", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"{doc.name}-sync", daemon=True)
         self._thread.start()
 
     # -- what arrives ---------------------------------------------------------------------------
     def offer(self, data: bytes) -> Offer:
-        """Check one roster's wire bytes, cheapest first, and apply it if it is newer and the
-        authority's. Never raises; refusals are counted and summarised."""
+        """Check one document's wire bytes, cheapest first, and apply it if it is newer and
+        genuine. Never raises; refusals are counted and summarised."""
         now = self._mono_ns()
         try:
-            head = Roster.peek(data)
+            head = self.doc.peek(data)
         except DecodeError as exc:
             return self._refuse("malformed", now, str(exc))
         if head.fleet != self.fleet:
-            return self._refuse("other fleet", now, f"a roster for fleet {head.fleet!r}")
-        held = self.auth.roster.version
+            return self._refuse("other fleet", now, f"a {self.doc.name} for fleet {head.fleet!r}")
+        held = self.doc.held_version()
         if head.version == held:
             with self._lock:
                 self._republish_ns = None  # another member said it first
@@ -171,32 +248,28 @@ class RosterSync:
             self._count("older")
             self._behind(head, now)
             return Offer.OLDER
-        if not self._genuine(head):
-            return self._refuse(
-                "forged",
-                now,
-                f"v{head.version}: not signed by the fleet authority",
-            )
+        forged = self.doc.genuine(head)
+        if forged is not None:
+            return self._refuse("forged", now, f"v{head.version}: {forged}")
         try:
-            roster = Roster.decode(data)
-        except DecodeError as exc:  # signed by the authority, yet invalid: say so
+            applied, problem = self.doc.apply(data, head)
+        except DecodeError as exc:  # genuinely signed, yet invalid: say so
             return self._refuse("malformed", now, f"v{head.version}: {exc}")
-        problem = self.auth.apply_roster(roster)
         if problem:
-            if roster.version <= self.auth.roster.version:
+            if head.version <= self.doc.held_version():
                 self._count("same")  # another thread applied it (or a newer one) just now
                 return Offer.SAME
             return self._refuse("refused", now, problem)
         self._count("applied")
         if self._on_applied is not None:
             try:
-                self._on_applied(roster)
-            except Exception:  # noqa: BLE001 - a listener bug must not undo an applied roster
+                self._on_applied(applied)
+            except Exception:  # noqa: BLE001 - a listener bug must not undo an applied document
                 log.exception("on_applied listener failed")
         return Offer.APPLIED
 
     def counts(self) -> dict[str, int]:
-        """How many rosters were applied, same, older, refused per cause ("refused: forged"),
+        """How many documents were applied, same, older, refused per cause ("refused: forged"),
         how many pulls, answers and re-publishes; a snapshot."""
         with self._lock:
             return dict(self._counts)
@@ -209,13 +282,10 @@ class RosterSync:
             self._next_pull_ns = min(self._next_pull_ns, due)
         self._wake.set()
 
-    def _genuine(self, head: RosterHead) -> bool:
-        return verify(self._authority, head.sig, "roster", head.fleet, head.signed)
-
-    def _behind(self, head: RosterHead, now: int) -> None:
-        """An older roster was put on the key: a member is behind. Re-publish ours (once, soon,
-        unless someone else does), if that older roster is authentic: a forged one must not make
-        the fleet answer (an amplifier), and only one is verified per interval."""
+    def _behind(self, head: DocHead, now: int) -> None:
+        """An older document was put on the key: a member is behind. Re-publish ours (once,
+        soon, unless someone else does), if that older one is authentic: a forged one must not
+        make the fleet answer (an amplifier), and only one is verified per interval."""
         with self._lock:
             if (
                 self._republish_ns is not None
@@ -224,8 +294,9 @@ class RosterSync:
             ):
                 return
             self._last_behind_ns = now
-        if not self._genuine(head):
-            self._refuse("forged", now, f"v{head.version}: not signed by the fleet authority")
+        forged = self.doc.genuine(head)
+        if forged is not None:
+            self._refuse("forged", now, f"v{head.version}: {forged}")
             return
         delay_ns = _s_ns(self._rng.uniform(0.0, self.cfg.republish_delay_max_s))
         with self._lock:
@@ -238,9 +309,9 @@ class RosterSync:
             cause,
             now,
             lambda n: (
-                f"refused a roster ({cause}): {why}"
+                f"refused a {self.doc.name} ({cause}): {why}"
                 if n == 1
-                else f"refused {n} rosters ({cause}) in the last second; latest: {why}"
+                else f"refused {n} {self.doc.name}s ({cause}) in the last second; latest: {why}"
             ),
         )
         return Offer.REFUSED
@@ -254,27 +325,30 @@ class RosterSync:
         try:
             self.offer(sample.payload.to_bytes())
         except Exception:  # noqa: BLE001 - one bad message never kills a process
-            log.exception("roster offer failed")
+            log.exception("%s offer failed", self.doc.name)
 
     def _on_reply(self, reply: zenoh.Reply) -> None:
         try:
             if reply.ok is not None:
                 self.offer(reply.ok.payload.to_bytes())
         except Exception:  # noqa: BLE001
-            log.exception("roster offer failed")
+            log.exception("%s offer failed", self.doc.name)
 
     def _on_query(self, query: zenoh.Query) -> None:
         try:
             have = _have(query)
-            held = self.auth.roster.version
+            held = self.doc.held_version()
             if have is not None and have >= held:
                 if have > held:  # the querier is ahead of us: catch up
                     self.request_pull()
                 return
-            query.reply(self.key, self._our_bytes())
+            data = self.doc.held_bytes()
+            if data is None:
+                return
+            query.reply(self.key, data)
             self._count("answered")
         except Exception as exc:  # noqa: BLE001 - the querier may be gone
-            log.debug("could not answer a roster query: %s", exc)
+            log.debug("could not answer a %s query: %s", self.doc.name, exc)
 
     def _on_link(self, event: Any) -> None:
         try:
@@ -283,19 +357,9 @@ class RosterSync:
                     self._followup_ns = self._mono_ns() + _s_ns(self.cfg.reconnect_pull_s)
                 self.request_pull()
         except Exception:  # noqa: BLE001
-            log.exception("roster link event failed")
+            log.exception("%s link event failed", self.doc.name)
 
     # -- the sync thread ------------------------------------------------------------------------
-    def _our_bytes(self) -> bytes:
-        roster = self.auth.roster
-        with self._lock:
-            version, data = self._encoded
-        if version != roster.version:
-            data = roster.encode()  # O(members): encode once per version, not per answer
-            with self._lock:
-                self._encoded = (roster.version, data)
-        return data
-
     def _run(self) -> None:
         while True:
             now = self._mono_ns()
@@ -311,7 +375,7 @@ class RosterSync:
             except Exception as exc:  # noqa: BLE001 - the session may be closing
                 if self._closed:
                     return
-                log.warning("roster sync: %s", exc)
+                log.warning("%s sync: %s", self.doc.name, exc)
                 self._wake.wait(0.5)
 
     def _step(self, now: int) -> None:
@@ -329,11 +393,13 @@ class RosterSync:
                 jitter = self._rng.uniform(0.8, 1.2)
                 self._next_pull_ns = now + _s_ns(self.cfg.pull_every_s * jitter)
         if republish:
-            publish(self.session, self.fleet, self._our_bytes())
-            self._count("republished")
+            data = self.doc.held_bytes()
+            if data is not None:
+                publish_doc(self.session, self.key, data)
+                self._count("republished")
         if pull:
             self.session.get(
-                f"{self.key}?{HAVE}={self.auth.roster.version}",
+                f"{self.key}?{HAVE}={self.doc.held_version()}",
                 self._on_reply,
                 target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE,
@@ -356,6 +422,36 @@ class RosterSync:
                 pass
 
 
+class RosterSync(DocSync):
+    """One keyed member's roster follower (see the module docstring). Declared by `Mesh`;
+    `undeclare()` stops it (the Mesh does, when it closes)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        fleet: str,
+        auth: Any,
+        cfg: RosterSyncConfig = RosterSyncConfig(),
+        *,
+        on_summary: Callable[[str], None] | None = None,
+        on_applied: Callable[[Roster], None] | None = None,
+        mono_ns: Callable[[], int] = time.monotonic_ns,
+        rng: random.Random | None = None,
+    ) -> None:
+        """`auth`: this member's comms.auth.FleetAuth (its roster is the one followed)."""
+        self.auth = auth
+        super().__init__(
+            session,
+            fleet,
+            RosterDoc(fleet, auth),
+            cfg,
+            on_summary=on_summary,
+            on_applied=on_applied,
+            mono_ns=mono_ns,
+            rng=rng,
+        )
+
+
 MIN_PULL_GAP_S = 0.2
 """Two pulls are at least this far apart (a burst of new links makes one pull, not many)."""
 
@@ -365,7 +461,7 @@ def _s_ns(seconds: float) -> int:
 
 
 def _have(query: zenoh.Query) -> int | None:
-    """The querier's roster version from `?have=<v>`, or None (no parameter, or not a number:
+    """The querier's version from `?have=<v>`, or None (no parameter, or not a number:
     answered as a plain query)."""
     try:
         raw = query.parameters.get(HAVE)
@@ -377,11 +473,16 @@ def _have(query: zenoh.Query) -> int | None:
 
 
 def publish(session: zenoh.Session, fleet: str, data: bytes) -> None:
-    """Put a roster's bytes on the fleet's roster key, never dropped on a full queue (Zenoh's
-    default for puts): a revocation must get through a flood, so it waits for room, and goes
-    ahead of telemetry."""
+    """Put a roster's bytes on the fleet's roster key (`publish_doc`)."""
+    publish_doc(session, keys.roster(fleet), data)
+
+
+def publish_doc(session: zenoh.Session, key: str, data: bytes) -> None:
+    """Put a document's bytes on its key, never dropped on a full queue (Zenoh's default for
+    puts): a revocation must get through a flood, so it waits for room, and goes ahead of
+    telemetry."""
     session.put(
-        keys.roster(fleet),
+        key,
         data,
         congestion_control=zenoh.CongestionControl.BLOCK,
         priority=zenoh.Priority.INTERACTIVE_HIGH,
@@ -390,7 +491,7 @@ def publish(session: zenoh.Session, fleet: str, data: bytes) -> None:
 
 @dataclass(frozen=True)
 class Confirmation:
-    """A member's answer to the pusher: which roster version it holds."""
+    """A member's answer to the pusher: which version of the document it holds."""
 
     replier: str
     """The answering session's Zenoh id (one per process)."""
@@ -398,14 +499,21 @@ class Confirmation:
 
 
 def confirmations(
-    session: zenoh.Session, fleet: str, version: int, timeout_s: float = 1.0
+    session: zenoh.Session,
+    fleet: str,
+    version: int,
+    timeout_s: float = 1.0,
+    *,
+    key: str | None = None,
+    peek: Callable[[bytes], DocHead] = Roster.peek,
 ) -> list[Confirmation]:
     """Ask the fleet who holds roster `version` or newer (the pusher's check that a push was
     heard): one query `roster?have=<version - 1>`, so only such members answer. Answers that are
-    not a roster's header are skipped; signatures are not checked (the pusher only reports)."""
+    not a roster's header are skipped; signatures are not checked (the pusher only reports).
+    Another document: its `key` and header `peek` (the plan: keys.plan, PlanMessage.peek)."""
     out = []
     replies = session.get(
-        f"{keys.roster(fleet)}?{HAVE}={version - 1}",
+        f"{key or keys.roster(fleet)}?{HAVE}={version - 1}",
         target=zenoh.QueryTarget.ALL,
         consolidation=zenoh.ConsolidationMode.NONE,
         timeout=timeout_s,
@@ -414,7 +522,7 @@ def confirmations(
         if reply.ok is None:
             continue
         try:
-            head = Roster.peek(reply.ok.payload.to_bytes())
+            head = peek(reply.ok.payload.to_bytes())
         except DecodeError:
             continue
         if head.fleet == fleet and head.version >= version:
