@@ -24,8 +24,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.spatial import cKDTree
 
 from comms.plan import FleetPlan, plan_refusal
 from comms.safe_load import decode_utf8, parse_json, read_bounded
@@ -151,6 +149,8 @@ def slots_ned_m(spec: FormationSpec, n: int) -> np.ndarray:
 def assign(pos_ned_m: np.ndarray, slots_ned_m_: np.ndarray) -> np.ndarray:
     """slot[i] for vehicle row i: the assignment of minimum sum of squared 3-D distances
     (rows == slots; scipy's Jonker-Volgenant, O(n^3))."""
+    from scipy.optimize import linear_sum_assignment  # not at import: `covey cmd` starts fast
+
     d = pos_ned_m[:, None, :] - slots_ned_m_[None, :, :]
     cost = np.einsum("ijk,ijk->ij", d, d)
     rows, cols = linear_sum_assignment(cost)
@@ -163,6 +163,8 @@ def closest_pair(points_ned_m: np.ndarray) -> tuple[int, int, float]:
     """(a, b, distance) of the two closest points (a < b); (-1, -1, inf) for fewer than two."""
     if len(points_ned_m) < 2:
         return -1, -1, math.inf
+    from scipy.spatial import cKDTree
+
     dist, idx = cKDTree(points_ned_m).query(points_ned_m, k=2)  # column 1: nearest other
     a = int(np.argmin(dist[:, 1]))
     b = int(idx[a, 1])

@@ -39,7 +39,7 @@ from comms.session import (
     wait_linked,
 )
 from comms.state_rate import MAX_IDLE_PERIOD_S
-from groundstation import dispatch, inputs
+from groundstation import dispatch, formation_cmd, inputs
 from groundstation.fleet import FleetConfig, FleetModel, FleetSnapshot
 from groundstation.inputs import CommandRequest, InputError
 
@@ -269,6 +269,7 @@ def cmd_parser() -> argparse.ArgumentParser:
         add_mesh_args(sp)
         if verb == "kill":
             sp.add_argument("--yes", action="store_true", help="do not ask for confirmation")
+    formation_cmd.add_parser(sub)
     return p
 
 
@@ -281,6 +282,8 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
         if token.lower().lstrip("-") in ("inf", "infinity", "nan") and token.startswith("-"):
             p.error(f"{token}: coordinates and altitudes must be finite numbers")
     args = p.parse_args(argv)
+    if args.verb == "formation":
+        return _formation(p, args)
     # Negative numbers after a verb (goto 10 0 -5) are positional values, which argparse handles
     # because no option of ours looks like a number.
     try:
@@ -315,3 +318,18 @@ def cmd_cli(argv: list[str] | None = None, stdin=None) -> int:
         return nobody_answered(p, exc)
     except ValueError as exc:  # FleetKeyError, MeshConfigError: one line, exit 2
         die(p, str(exc))
+
+
+def _formation(p: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """`covey cmd formation`: a bad value or a refused formation is one line, exit 2, nothing
+    sent (groundstation/formation_cmd.py)."""
+    if not 0.1 <= args.timeout_s <= 60:
+        p.error(f"--timeout-s {args.timeout_s} must be within 0.1..60 s")
+    try:
+        cfg = formation_cmd.config_of(args, mesh_config(args, p))
+        with stop_on_signals() as stop:
+            return formation_cmd.formation_main(cfg, stop=stop)
+    except MeshUnreachable as exc:  # nobody at --connect: one line, exit 1, nothing sent
+        return nobody_answered(p, exc)
+    except ValueError as exc:  # FormationError, InputError, BadFileError, FleetKeyError
+        die(p, "formation: " + str(exc).replace("Targets:", "--to", 1))
