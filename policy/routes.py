@@ -1,0 +1,319 @@
+"""Routes around keep-out zones: a visibility graph over inflated polygons turns a goto into
+waypoints.
+
+Each keep-out polygon is inflated by `RouteConfig.inflate_m` (the filter's zone radius plus a
+route margin, shapely buffer with mitre joins, then simplified without coming any closer) and
+the inflated polygons are merged, so a gap narrower than twice the inflation is closed. The fence
+(an inclusion polygon) is deflated by the same amount. The graph's nodes are the corners of that
+free space that a shortest path can bend around (its reflex corners); its edges, the straight
+segments between them that stay in the free space. A goal is joined to the nodes it sees, and
+Dijkstra from the goal gives every node's distance to it (cached per goal; the graph is cached
+per plan: zones change rarely).
+
+Segments from the vehicle's position are checked against the zones inflated by half the route
+margin less (`RouteConfig.sight_m`): a vehicle that drifts a little inside the route's
+inflation (traffic, lag) still sees its way on instead of being led back out every tick. So:
+- `next_waypoint(pos, goal)` is stateless: the goal when it is in sight, else the node in sight
+  with the least (distance to it + its distance to the goal); as the vehicle rounds a corner the
+  next one comes into sight, so it advances without a radius to hit;
+- a position nearer a zone than `sight_m` (or outside the fence deflated by it) is first led to
+  the nearest point of the route's free space (projected out);
+- a goal inside a keep-out zone or outside the fence is refused with the reason; a goal next to
+  a zone (within the inflation, outside the zone) is approached through the nearest free point,
+  and the separation filter stops the vehicle at its radius (policy.zone_lines, 1.8 m at 3 m);
+- no path (the goal walled off): `Route.reason` says so, and `next_waypoint` gives the goal
+  itself (the filter still keeps the vehicle out of every zone).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from policy.zone_lines import ZONE_CLEARANCE_SHARE
+
+BOUNDARY_TOL_M = 1e-6
+"""Segments along the free space's boundary count as inside (numerical slack of the checks)."""
+PROJECT_IN_M = 0.01
+"""A point projected out of a zone's band is put this far inside the free space."""
+MAX_CACHED_GOALS = 64
+"""Goals whose Dijkstra distances are kept (a fleet flies to a few goals at a time)."""
+
+
+@dataclass(frozen=True)
+class RouteConfig:
+    """How far routes keep from zones (world units)."""
+
+    separation_m: float = 3.0
+    """The fleet's separation (the filter's radius_m)."""
+    margin: float = 0.2
+    """The filter's relative padding (policy.safety.SafetyConfig.margin)."""
+    route_margin_m: float = 0.5
+    """Routes keep this much more than the filter's zone radius: the filter then rarely has to
+    act on a vehicle flying its route (3 m separation: polygons inflated by 1.8 + 0.5 = 2.3 m,
+    so gaps narrower than 4.6 m are closed)."""
+    mitre_limit: float = 2.0
+    """Sharp corners are bevelled beyond this many inflations from the vertex (shapely)."""
+    simplify_m: float = 0.05
+    """The inflated polygons are simplified to this tolerance (after inflating by as much more,
+    so no simplified edge comes nearer than the inflation)."""
+
+    def __post_init__(self) -> None:
+        for name in ("separation_m", "simplify_m", "mitre_limit"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {v}")
+        for name in ("margin", "route_margin_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+
+    @property
+    def reach_m(self) -> float:
+        """The separation filter's distance from a zone (policy.zone_lines)."""
+        return ZONE_CLEARANCE_SHARE * self.separation_m * (1.0 + self.margin)
+
+    @property
+    def inflate_m(self) -> float:
+        """How far route legs keep from a zone."""
+        return self.reach_m + self.route_margin_m
+
+    @property
+    def sight_m(self) -> float:
+        """How far the legs from the vehicle's own position keep (the hysteresis)."""
+        return self.reach_m + 0.5 * self.route_margin_m
+
+
+@dataclass(frozen=True)
+class Route:
+    """A planned route."""
+
+    waypoints_m: np.ndarray
+    """(M, 2) north/east waypoints after the start, the goal last; empty when refused."""
+    length_m: float
+    """Length from the start along the waypoints (inf when refused or walled off)."""
+    reason: str = ""
+    """Why there is no route ("" when there is)."""
+
+
+def _polygons(geom) -> list:
+    if geom.is_empty:
+        return []
+    return list(geom.geoms) if hasattr(geom, "geoms") else [geom]
+
+
+def _inflate(polys, dist_m: float, cfg: RouteConfig):
+    """Union of the polygons grown by at least dist_m (mitre joins), simplified."""
+    grown = [
+        shapely.Polygon(p).buffer(
+            dist_m + cfg.simplify_m, join_style="mitre", mitre_limit=cfg.mitre_limit
+        )
+        for p in polys
+    ]
+    return shapely.union_all(grown).simplify(cfg.simplify_m, preserve_topology=True)
+
+
+class Router:
+    """Routes around one set of keep-out zones (and a fence), for any start and goal."""
+
+    def __init__(self, keep_out_m, cfg: RouteConfig | None = None, fence_m=None) -> None:
+        """keep_out_m: [(K, 2) polygon vertices, north/east metres]; fence_m: (K, 2) or None."""
+        self.cfg = cfg or RouteConfig()
+        polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in keep_out_m]
+        for p in polys:
+            if len(p) < 3 or not np.isfinite(p).all() or not shapely.Polygon(p).is_valid:
+                raise ValueError("a keep-out zone must be a simple polygon of 3+ finite vertices")
+        self.keep_out_m = polys
+        self.fence_m = None if fence_m is None else np.asarray(fence_m, np.float64).reshape(-1, 2)
+        zones = shapely.union_all([shapely.Polygon(p) for p in polys]) if polys else None
+        self._zones = zones if zones is not None else shapely.Polygon()
+        fence = None if self.fence_m is None else shapely.Polygon(self.fence_m)
+        if fence is not None and not fence.is_valid:
+            raise ValueError("the fence must be a simple polygon")
+        self._fence = fence
+        c = self.cfg
+        self.free_route = self._free(c.inflate_m)
+        """The space route legs keep to: outside the inflated zones, inside the deflated fence."""
+        self._route_ok = shapely.buffer(self.free_route, BOUNDARY_TOL_M)
+        self._reach_ok = shapely.buffer(self._free(c.sight_m), BOUNDARY_TOL_M)
+        shapely.prepare(self._route_ok)
+        shapely.prepare(self._reach_ok)
+        self.nodes_m = self._corners()
+        self._graph = self._visibility(self.nodes_m)
+        self._goals: OrderedDict = OrderedDict()
+
+    def _free(self, dist_m: float):
+        keep = _inflate(self.keep_out_m, dist_m, self.cfg) if self.keep_out_m else None
+        if self._fence is not None:
+            inner = self._fence.buffer(
+                -dist_m, join_style="mitre", mitre_limit=self.cfg.mitre_limit
+            )
+            return inner if keep is None else inner.difference(keep)
+        if keep is None:
+            return shapely.Polygon()
+        # unbounded outside: a box well around the zones stands for the plane
+        x0, y0, x1, y1 = keep.bounds
+        pad = 1e4 + (x1 - x0) + (y1 - y0)
+        return shapely.box(x0 - pad, y0 - pad, x1 + pad, y1 + pad).difference(keep)
+
+    def _corners(self) -> np.ndarray:
+        """(V, 2) corners of the free space a shortest path can bend around: those where the
+        free side's angle is above 180 degrees (the box around an unfenced plan excluded)."""
+        out = []
+        for poly in _polygons(self.free_route):
+            rings = list(poly.interiors)
+            if self._fence is not None:
+                rings.append(poly.exterior)
+            for ring in rings:
+                v = np.asarray(ring.coords)[:-1]
+                if len(v) < 3:
+                    continue
+                a, c = np.roll(v, 1, axis=0), np.roll(v, -1, axis=0)
+                ua = (a - v) / np.maximum(np.linalg.norm(a - v, axis=1), 1e-12)[:, None]
+                uc = (c - v) / np.maximum(np.linalg.norm(c - v, axis=1), 1e-12)[:, None]
+                bis = ua + uc
+                n = np.linalg.norm(bis, axis=1)
+                probe = v + 1e-3 * bis / np.maximum(n, 1e-12)[:, None]
+                # inside the narrow angle a-v-c lies the obstacle at a corner worth keeping
+                keep = ~shapely.contains_xy(poly, probe[:, 0], probe[:, 1]) & (n > 1e-9)
+                out.append(v[keep])
+        return np.concatenate(out) if out else np.zeros((0, 2))
+
+    def _visible(self, region, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(M,) segment a[i] -> b[i] stays within `region`."""
+        if len(a) == 0:
+            return np.zeros(0, bool)
+        segs = shapely.linestrings(np.stack([a, b], axis=1))
+        same = np.all(np.abs(a - b) < 1e-12, axis=1)
+        ok = shapely.covers(region, segs)
+        return ok | (same & shapely.covers(region, shapely.points(a)))
+
+    def _visibility(self, nodes: np.ndarray) -> np.ndarray:
+        """(V, V) leg lengths between corners that see each other (inf: they do not)."""
+        v = len(nodes)
+        g = np.full((v, v), np.inf)
+        if v < 2:
+            return g
+        i, j = np.triu_indices(v, 1)
+        ok = self._visible(self._route_ok, nodes[i], nodes[j])
+        d = np.hypot(*(nodes[i] - nodes[j]).T)
+        g[i[ok], j[ok]] = d[ok]
+        g[j[ok], i[ok]] = d[ok]
+        return g
+
+    def inside_zone(self, pt) -> bool:
+        """Whether a point is inside a keep-out zone or outside the fence."""
+        p = shapely.Point(float(pt[0]), float(pt[1]))
+        if self._zones.covers(p):
+            return True
+        return self._fence is not None and not self._fence.covers(p)
+
+    def _project(self, pt: np.ndarray, region) -> np.ndarray:
+        """`pt` when `region` covers it, else the nearest point of the route's free space,
+        PROJECT_IN_M inside it."""
+        p = shapely.Point(float(pt[0]), float(pt[1]))
+        if region.covers(p) or self.free_route.is_empty:
+            return pt
+        target = self.free_route.buffer(-PROJECT_IN_M)
+        if target.is_empty:
+            target = self.free_route
+        q = shapely.shortest_line(target, p).coords[0]
+        return np.array([q[0], q[1]])
+
+    def _to_goal(self, goal: np.ndarray):
+        """(distance to the goal per node, next node per node (-1: the goal), entry point of
+        the goal) for one goal, cached."""
+        key = (round(float(goal[0]), 6), round(float(goal[1]), 6))
+        hit = self._goals.get(key)
+        if hit is not None:
+            self._goals.move_to_end(key)
+            return hit
+        entry = self._project(goal, self._route_ok)
+        nodes = self.nodes_m
+        v = len(nodes)
+        seen = self._visible(self._route_ok, nodes, np.broadcast_to(entry, nodes.shape))
+        w = np.full((v + 1, v + 1), np.inf)
+        w[:v, :v] = self._graph
+        leg = np.hypot(*(nodes - entry).T)
+        w[:v, v][seen] = leg[seen]
+        w[v, :v][seen] = leg[seen]
+        w[~np.isfinite(w)] = 0.0  # csgraph: 0 = no edge (no two corners coincide)
+        dist, pred = dijkstra(csr_matrix(w), directed=False, indices=v, return_predecessors=True)
+        hit = (dist[:v], np.where(pred[:v] == v, -1, pred[:v]), entry)
+        self._goals[key] = hit
+        if len(self._goals) > MAX_CACHED_GOALS:
+            self._goals.popitem(last=False)
+        return hit
+
+    def refusal(self, goal) -> str:
+        """Why a route to `goal` is refused ("" when it is not)."""
+        g = np.asarray(goal, dtype=np.float64).reshape(2)
+        if not np.isfinite(g).all():
+            return "the goal is not a finite north/east position"
+        p = shapely.Point(float(g[0]), float(g[1]))
+        if self._zones.covers(p):
+            return "the goal is inside a keep-out zone"
+        if self._fence is not None and not self._fence.covers(p):
+            return "the goal is outside the fence"
+        return ""
+
+    def next_waypoint(self, pos, goal) -> np.ndarray:
+        """Where to fly now (2,): see the module docstring. The goal itself when there is no
+        route (refused or walled off)."""
+        pos = np.asarray(pos, dtype=np.float64).reshape(2)
+        goal = np.asarray(goal, dtype=np.float64).reshape(2)
+        if self.refusal(goal):
+            return goal
+        start = self._project(pos, self._reach_ok)
+        if start is not pos:
+            return start
+        dist, _, entry = self._to_goal(goal)
+        if self._visible(self._reach_ok, pos[None], entry[None])[0]:
+            return goal if entry is goal else entry
+        if not len(self.nodes_m):
+            return goal
+        seen = self._visible(self._reach_ok, np.broadcast_to(pos, self.nodes_m.shape), self.nodes_m)
+        cost = np.where(seen, np.hypot(*(self.nodes_m - pos).T) + dist, np.inf)
+        k = int(np.argmin(cost))
+        return self.nodes_m[k].copy() if np.isfinite(cost[k]) else goal
+
+    def plan(self, start, goal) -> Route:
+        """The whole route from `start` to `goal`: what `next_waypoint` leads through."""
+        start = np.asarray(start, dtype=np.float64).reshape(2)
+        goal = np.asarray(goal, dtype=np.float64).reshape(2)
+        why = self.refusal(goal)
+        if why:
+            return Route(np.zeros((0, 2)), math.inf, why)
+        pts = [start]
+        first = self._project(start, self._reach_ok)
+        if first is not start:
+            pts.append(first)
+        dist, nxt, entry = self._to_goal(goal)
+        here = pts[-1]
+        if self._visible(self._reach_ok, here[None], entry[None])[0]:
+            tail = [entry]
+        else:
+            seen = self._visible(
+                self._reach_ok, np.broadcast_to(here, self.nodes_m.shape), self.nodes_m
+            )
+            cost = np.where(seen, np.hypot(*(self.nodes_m - here).T) + dist, np.inf)
+            if not len(cost) or not np.isfinite(cost.min()):
+                return Route(np.zeros((0, 2)), math.inf, "no route: the goal is walled off")
+            k = int(np.argmin(cost))
+            tail = []
+            while k >= 0 and len(tail) <= len(self.nodes_m):
+                tail.append(self.nodes_m[k])
+                k = int(nxt[k])
+            tail.append(entry)
+        pts += tail
+        if np.hypot(*(entry - goal)) > 0.0:
+            pts.append(goal)
+        way = np.array(pts)
+        length = float(np.hypot(*np.diff(way, axis=0).T).sum())
+        return Route(way[1:], length)

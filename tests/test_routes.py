@@ -1,0 +1,127 @@
+"""Route planner around keep-out zones (policy/routes.py): legs never cut an inflated zone,
+concave zones, narrow gaps closed, fences, refusals; and the stateless next waypoint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+
+from policy.routes import RouteConfig, Router
+
+SQ = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+# a C open to the west: its pocket is x 0..15, y 5..15
+C_SHAPE = np.array([[0, 0], [20, 0], [20, 20], [0, 20], [0, 15], [15, 15], [15, 5], [0, 5]], float)
+
+
+def _clear_of(route_pts, zones, dist_m) -> bool:
+    """The polyline keeps at least dist_m (less a hair) from every zone."""
+    line = shapely.LineString(route_pts)
+    grown = shapely.union_all([shapely.Polygon(z).buffer(dist_m - 1e-3) for z in zones])
+    return not line.intersects(grown)
+
+
+def test_convex_zone_is_rounded_and_legs_keep_the_inflation():
+    r = Router([SQ])
+    rt = r.plan([-10, 5], [20, 5])
+    assert rt.reason == ""
+    assert len(rt.waypoints_m) >= 2
+    np.testing.assert_allclose(rt.waypoints_m[-1], [20, 5])
+    assert _clear_of(np.vstack([[-10, 5], rt.waypoints_m]), [SQ], RouteConfig().inflate_m)
+    # a straight line would cut through the zone: the route is longer, but not by much
+    assert 30.0 < rt.length_m < 40.0
+
+
+def test_concave_zone_start_in_its_pocket():
+    r = Router([C_SHAPE])
+    rt = r.plan([5, 10], [30, 10])
+    assert rt.reason == ""
+    pts = np.vstack([[5, 10], rt.waypoints_m])
+    assert _clear_of(pts, [C_SHAPE], RouteConfig().inflate_m - 0.5 * RouteConfig().route_margin_m)
+    assert shapely.LineString(pts).intersects(shapely.Point(-2.0, 10).buffer(3.0))  # out the mouth
+
+
+def test_gap_of_three_separations_is_open_and_a_narrow_one_closed():
+    a = SQ
+    wide = Router([a, a + [0, 19]])  # a 9 m gap: 3 separations
+    rt = wide.plan([-10, 14.5], [20, 14.5])
+    assert len(rt.waypoints_m) == 1 and rt.length_m == pytest.approx(30.0)
+    narrow = Router([a, a + [0, 14]])  # 4 m < 2 x 2.3 m: closed
+    rt = narrow.plan([-10, 12], [20, 12])
+    pts = np.vstack([[-10, 12], rt.waypoints_m])
+    assert not shapely.LineString(pts).intersects(shapely.box(0, 10, 10, 14))
+    assert _clear_of(pts, [a, a + [0, 14]], RouteConfig().sight_m)
+
+
+def test_refusals_and_walled_off_goal():
+    r = Router([SQ])
+    assert r.plan([-10, 5], [5, 5]).reason == "the goal is inside a keep-out zone"
+    fence = np.array([[-30, -30], [30, -30], [30, 30], [-30, 30]], float)
+    rf = Router([SQ], fence_m=fence)
+    assert rf.plan([-10, 5], [40, 5]).reason == "the goal is outside the fence"
+    # a ring of zones around the goal: no way in
+    ring = [
+        np.array([[-10, -10], [10, -10], [10, -6], [-10, -6]], float),
+        np.array([[-10, 6], [10, 6], [10, 10], [-10, 10]], float),
+        np.array([[-10, -10], [-6, -10], [-6, 10], [-10, 10]], float),
+        np.array([[6, -10], [10, -10], [10, 10], [6, 10]], float),
+    ]
+    rw = Router(ring)
+    rt = rw.plan([-30, 0], [0, 0])
+    assert rt.reason.startswith("no route")
+    np.testing.assert_allclose(rw.next_waypoint([-30, 0], [0, 0]), [0, 0])
+
+
+def test_fence_keeps_routes_inside():
+    fence = np.array([[-15, -15], [25, -15], [25, 25], [-15, 25]], float)
+    r = Router([SQ], fence_m=fence)
+    rt = r.plan([-10, 5], [20, 5])
+    pts = np.vstack([[-10, 5], rt.waypoints_m])
+    inner = shapely.Polygon(fence).buffer(-RouteConfig().inflate_m + 1e-3)
+    assert inner.covers(shapely.LineString(pts[:-1]))
+
+
+def test_next_waypoint_advances_when_the_next_is_in_sight():
+    r = Router([SQ])
+    first = r.next_waypoint([-10, 5], [20, 5])
+    assert not np.allclose(first, [20, 5])
+    # past the zone's corner the goal is in sight
+    np.testing.assert_allclose(r.next_waypoint([12.5, 12.5], [20, 5]), [20, 5])
+    # a vehicle pushed near the zone is led out first, not through it
+    out = r.next_waypoint([-0.5, 5], [20, 5])
+    assert out[0] < -0.5
+
+
+def test_goal_next_to_a_zone_edge_is_reached_through_its_nearest_free_point():
+    r = Router([SQ])
+    goal = np.array(
+        [12.0, 5.0]
+    )  # 2 m from the east edge: within the inflation, outside the filter's
+    rt = r.plan([-10, 5], goal)
+    assert rt.reason == ""
+    np.testing.assert_allclose(rt.waypoints_m[-1], goal)
+    assert rt.waypoints_m[-2][0] > 10 + RouteConfig().inflate_m - 0.05
+
+
+def test_random_scenes_never_cut_the_inflated_zones():
+    rng = np.random.default_rng(3)
+    cfg = RouteConfig()
+    checked = 0
+    for _ in range(30):
+        zones = []
+        for _ in range(rng.integers(1, 4)):
+            c = rng.uniform(-20, 20, 2)
+            w, h = rng.uniform(3, 12, 2)
+            zones.append(c + np.array([[0, 0], [w, 0], [w, h], [0, h]]))
+        r = Router(zones)
+        grown = shapely.union_all([shapely.Polygon(z).buffer(cfg.sight_m) for z in zones])
+        for _ in range(5):
+            s, g = rng.uniform(-40, 40, (2, 2))
+            if grown.covers(shapely.Point(s)) or grown.covers(shapely.Point(g)):
+                continue
+            rt = r.plan(s, g)
+            if rt.reason:
+                continue
+            checked += 1
+            assert _clear_of(np.vstack([s, rt.waypoints_m]), zones, cfg.sight_m)
+    assert checked > 50
