@@ -196,6 +196,19 @@ covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hol
                                    const float *nbr_vel_m_s, int32_t n_nbrs, uint64_t now_us,
                                    covey_guidance_scratch_t *scratch, covey_guidance_out_t *out)
 {
+    return covey_guidance_step_sky(cfg, hold, own, own_vel_m_s, 0.0f, goal, nbrs, nbr_vel_m_s,
+                                   NULL, NULL, n_nbrs, now_us, scratch, out);
+}
+
+covey_status_t covey_guidance_step_sky(const covey_guidance_config_t *cfg, covey_hold_t *hold,
+                                       const covey_vehicle_t *own, const float own_vel_m_s[2],
+                                       float own_pos_sigma_m, const covey_goal_t *goal,
+                                       const covey_vehicle_t *nbrs, const float *nbr_vel_m_s,
+                                       const float *nbr_pos_sigma_m,
+                                       const uint8_t *nbr_non_cooperative, int32_t n_nbrs,
+                                       uint64_t now_us, covey_guidance_scratch_t *scratch,
+                                       covey_guidance_out_t *out)
+{
     if (out != NULL) {
         out->decided = 0;
         out->straight = 0;
@@ -271,8 +284,12 @@ covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hol
         t->vel_n_m_s = nbr_vel_m_s[2 * i];
         t->vel_e_m_s = nbr_vel_m_s[2 * i + 1];
         t->id = 0u; /* the tick takes no ids yet: coincident neighbours are not untied here */
+        t->pos_sigma_m = nbr_pos_sigma_m != NULL ? nbr_pos_sigma_m[i] : 0.0f;
+        t->non_cooperative = (nbr_non_cooperative != NULL && nbr_non_cooperative[i]) ? 1u : 0u;
     }
-    const covey_track_t me = {own->pos_n_m, own->pos_e_m, own_vel_m_s[0], own_vel_m_s[1], 0u};
+    const covey_track_t me = {own->pos_n_m,  own->pos_e_m, own_vel_m_s[0],
+                              own_vel_m_s[1], 0u,           own_pos_sigma_m,
+                              0u};
     if (out->decided && cfg->sparse_rule) {
         covey_sparse_out_t sparse;
         const float asked[2] = {hold->vel_n_m_s, hold->vel_e_m_s};

@@ -133,6 +133,22 @@ covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hol
                                    const float *nbr_vel_m_s, int32_t n_nbrs, uint64_t now_us,
                                    covey_guidance_scratch_t *scratch, covey_guidance_out_t *out);
 
+/*
+ * covey_guidance_step with what the filter needs of real vehicles: own_pos_sigma_m, the own
+ * position estimate's 1-sigma (metres, per axis), and per neighbour nbr_pos_sigma_m (n_nbrs,
+ * or NULL: all 0) and nbr_non_cooperative (n_nbrs, 1 = does not avoid; NULL: all cooperative),
+ * as covey_track_t carries them (covey_safety.h). covey_guidance_step is this with 0, NULL,
+ * NULL. Checked by covey_safety_filter (non-finite, then [0, COVEY_SAFETY_MAX_SIGMA_M]).
+ */
+covey_status_t covey_guidance_step_sky(const covey_guidance_config_t *cfg, covey_hold_t *hold,
+                                       const covey_vehicle_t *own, const float own_vel_m_s[2],
+                                       float own_pos_sigma_m, const covey_goal_t *goal,
+                                       const covey_vehicle_t *nbrs, const float *nbr_vel_m_s,
+                                       const float *nbr_pos_sigma_m,
+                                       const uint8_t *nbr_non_cooperative, int32_t n_nbrs,
+                                       uint64_t now_us, covey_guidance_scratch_t *scratch,
+                                       covey_guidance_out_t *out);
+
 /* sizeof(covey_guidance_scratch_t), for bindings (ctypes). */
 uint32_t covey_guidance_scratch_bytes(void);
 

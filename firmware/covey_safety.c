@@ -64,6 +64,8 @@ covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_
     c.dt_s = 0.1f;
     c.max_speed_m_s = max_speed_m_s;
     c.responsibility = 0.5f;
+    c.sigma_k = 2.0f; /* policy/safety.py SIGMA_K */
+    c.non_cooperative_radius_m = 0.0f;
     return c;
 }
 
@@ -78,7 +80,8 @@ covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
         return COVEY_ERR_NULL;
     }
     if (!isfinite(cfg->radius_m) || !isfinite(cfg->margin) || !isfinite(cfg->time_horizon_s) ||
-        !isfinite(cfg->dt_s) || !isfinite(cfg->max_speed_m_s) || !isfinite(cfg->responsibility)) {
+        !isfinite(cfg->dt_s) || !isfinite(cfg->max_speed_m_s) || !isfinite(cfg->responsibility) ||
+        !isfinite(cfg->sigma_k) || !isfinite(cfg->non_cooperative_radius_m)) {
         return COVEY_ERR_NONFINITE;
     }
     if (!in_range(cfg->radius_m, COVEY_SAFETY_MIN_RADIUS_M, COVEY_SAFETY_MAX_RADIUS_M) ||
@@ -86,7 +89,11 @@ covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
         !in_range(cfg->time_horizon_s, COVEY_SAFETY_MIN_TIME_S, COVEY_SAFETY_MAX_TIME_S) ||
         !in_range(cfg->dt_s, COVEY_SAFETY_MIN_TIME_S, COVEY_SAFETY_MAX_TIME_S) ||
         !in_range(cfg->max_speed_m_s, COVEY_MIN_CRUISE_SPEED_M_S, COVEY_MAX_CRUISE_SPEED_M_S) ||
-        !(cfg->responsibility > 0.0f && cfg->responsibility <= 1.0f)) {
+        !(cfg->responsibility > 0.0f && cfg->responsibility <= 1.0f) ||
+        !in_range(cfg->sigma_k, 0.0f, COVEY_SAFETY_MAX_SIGMA_K) ||
+        !(cfg->non_cooperative_radius_m == 0.0f ||
+          in_range(cfg->non_cooperative_radius_m, COVEY_SAFETY_MIN_RADIUS_M,
+                   COVEY_SAFETY_MAX_RADIUS_M))) {
         return COVEY_ERR_RANGE;
     }
     return COVEY_OK;
@@ -98,11 +105,12 @@ covey_status_t covey_track_check(const covey_track_t *t)
         return COVEY_ERR_NULL;
     }
     if (!isfinite(t->pos_n_m) || !isfinite(t->pos_e_m) || !isfinite(t->vel_n_m_s) ||
-        !isfinite(t->vel_e_m_s)) {
+        !isfinite(t->vel_e_m_s) || !isfinite(t->pos_sigma_m)) {
         return COVEY_ERR_NONFINITE;
     }
     if (fabsf(t->pos_n_m) > COVEY_MAX_ABS_POS_M || fabsf(t->pos_e_m) > COVEY_MAX_ABS_POS_M ||
-        fabsf(t->vel_n_m_s) > COVEY_MAX_ABS_VEL_M_S || fabsf(t->vel_e_m_s) > COVEY_MAX_ABS_VEL_M_S) {
+        fabsf(t->vel_n_m_s) > COVEY_MAX_ABS_VEL_M_S || fabsf(t->vel_e_m_s) > COVEY_MAX_ABS_VEL_M_S ||
+        !in_range(t->pos_sigma_m, 0.0f, COVEY_SAFETY_MAX_SIGMA_M)) {
         return COVEY_ERR_RANGE;
     }
     return COVEY_OK;
@@ -137,8 +145,8 @@ static real_t det2(real_t ax, real_t ay, real_t bx, real_t by)
  *   overlapping: the same with the disc centred on p / dt, to separate within one period.
  *   point = v_own + responsibility u.
  */
-static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t px, real_t py, real_t vx,
-                      real_t vy, const covey_track_t *own, line_t *line)
+static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, real_t px,
+                      real_t py, real_t vx, real_t vy, const covey_track_t *own, line_t *line)
 {
     const real_t tau = R(cfg->time_horizon_s);
     const real_t dist_sq = px * px + py * py;
@@ -186,7 +194,7 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t px, rea
             u_y = dot2 * ly - vy;
         }
     }
-    const real_t k = R(cfg->responsibility);
+    const real_t k = share;
     line->point[0] = R(own->vel_n_m_s) + k * u_x;
     line->point[1] = R(own->vel_e_m_s) + k * u_y;
     line->dir[0] = dir_x;
@@ -374,15 +382,28 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
         }
     }
 
-    /* neighbours that cannot meet us within the horizon add no line:
-     * |p| >= r (1 + margin) + 2 max_speed tau */
-    const real_t r = R(cfg->radius_m) * (R(1.0) + R(cfg->margin));
+    /* neighbours that cannot meet us within the horizon add no line: |p| >= reach (see
+     * covey_safety.h: r and share per pair) */
+    const real_t one_margin = R(1.0) + R(cfg->margin);
     const real_t vmax = R(cfg->max_speed_m_s);
-    const real_t reach = r + R(2.0) * vmax * R(cfg->time_horizon_s);
+    const real_t tau = R(cfg->time_horizon_s);
+    const real_t nc_base = cfg->non_cooperative_radius_m > 0.0f ? R(cfg->non_cooperative_radius_m)
+                                                               : R(cfg->radius_m);
+    const real_t s_own = R(own->pos_sigma_m);
     int32_t n_lines = 0;
     for (int32_t i = 0; i < n_nbrs; ++i) {
         real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
         real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
+        const int nc = nbrs[i].non_cooperative != 0u;
+        const real_t s_nbr = R(nbrs[i].pos_sigma_m);
+        const real_t r = (nc ? nc_base : R(cfg->radius_m)) * one_margin +
+                         R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
+        const real_t share = nc ? R(1.0) : R(cfg->responsibility);
+        real_t reach = r + R(2.0) * vmax * tau;
+        if (nc) {
+            const real_t nvn = R(nbrs[i].vel_n_m_s), nve = R(nbrs[i].vel_e_m_s);
+            reach = r + (vmax + R_FMAX(vmax, R_SQRT(nvn * nvn + nve * nve))) * tau;
+        }
         if (px * px + py * py >= reach * reach) {
             continue;
         }
@@ -396,7 +417,7 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
         }
         const real_t vx = R(own->vel_n_m_s) - R(nbrs[i].vel_n_m_s);
         const real_t vy = R(own->vel_e_m_s) - R(nbrs[i].vel_e_m_s);
-        orca_line(cfg, r, px, py, vx, vy, own, &scratch->lines[n_lines++]);
+        orca_line(cfg, r, share, px, py, vx, vy, own, &scratch->lines[n_lines++]);
     }
 
     const real_t pref[2] = {R(pref_vel_m_s[0]), R(pref_vel_m_s[1])};

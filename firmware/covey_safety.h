@@ -30,6 +30,8 @@ extern "C" {
 #define COVEY_SAFETY_MAX_MARGIN 10.0f         /* margin in [0, this] */
 #define COVEY_SAFETY_MIN_TIME_S 1.0e-3f       /* time_horizon_s and dt_s in [this, max] */
 #define COVEY_SAFETY_MAX_TIME_S 1000.0f
+#define COVEY_SAFETY_MAX_SIGMA_K 10.0f        /* sigma_k in [0, this] */
+#define COVEY_SAFETY_MAX_SIGMA_M 1000.0f      /* a track's pos_sigma_m in [0, this] */
 
 /* Filter parameters in world units (policy/safety.py SafetyConfig, same defaults). */
 typedef struct {
@@ -39,6 +41,11 @@ typedef struct {
     float dt_s;            /* [1e-3, 1000]: control period, used only when vehicles overlap, 0.1 */
     float max_speed_m_s;   /* [0.01, 100]: speed limit of the output, 1 */
     float responsibility;  /* (0, 1]: share of the avoidance this vehicle takes, 0.5 */
+    float sigma_k;         /* [0, 10]: each pair keeps sigma_k sqrt(sigma_i^2 + sigma_j^2) more
+                              between estimated centres (policy/safety.py SIGMA_K), 2; 0 (as a
+                              zero-initialised config has it): estimates taken as the truth */
+    float non_cooperative_radius_m; /* 0 = radius_m, else [0.01, 1000]: the separation kept
+                                       from a non-cooperative track (before margin/sigma) */
 } covey_safety_config_t;
 
 /* Nearer than this, two tracks are coincident: their relative position gives no direction
@@ -55,7 +62,21 @@ typedef struct {
                      coincident neighbour with a known id other than own's is taken to be
                      COVEY_SAFETY_COINCIDENT_M away along a bearing hashed from both ids, the
                      opposite one for the other vehicle (policy/safety.py tie_direction) */
+    float pos_sigma_m;         /* [0, 1000]: 1-sigma per axis of the position estimate (eph);
+                                  0 (zero-initialised) = exact */
+    uint32_t non_cooperative;  /* 1: a neighbour that does not avoid (ADS-B, Remote ID, flown
+                                  by hand): this vehicle takes the whole correction and keeps
+                                  non_cooperative_radius_m; 0 (zero-initialised): a covey vehicle */
 } covey_track_t;
+
+/*
+ * What one pair keeps (policy/safety.py pair_radius_m):
+ *   r = base (1 + margin) + sigma_k sqrt(sigma_own^2 + sigma_nbr^2),
+ *   base = radius_m, or non_cooperative_radius_m (when set) for a non-cooperative track;
+ *   share = responsibility, or 1 for a non-cooperative track (it will not take its half).
+ * Reach (no line beyond): r + 2 max_speed tau, or r + (max_speed + max(max_speed, |v_nbr|)) tau
+ * for a non-cooperative track (it may be faster than us).
+ */
 
 /*
  * The LP runs in double by default: near-parallel half-planes in a dense,
@@ -102,8 +123,9 @@ covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_
 /* Checks a filter configuration: NULL, then non-finite, then the ranges above. */
 covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg);
 
-/* Checks one track: NULL, then non-finite (any of the four fields), then
- * |pos| <= COVEY_MAX_ABS_POS_M and |vel| <= COVEY_MAX_ABS_VEL_M_S. */
+/* Checks one track: NULL, then non-finite (any of the four fields or pos_sigma_m), then
+ * |pos| <= COVEY_MAX_ABS_POS_M, |vel| <= COVEY_MAX_ABS_VEL_M_S, pos_sigma_m in
+ * [0, COVEY_SAFETY_MAX_SIGMA_M]. */
 covey_status_t covey_track_check(const covey_track_t *t);
 
 /*

@@ -33,9 +33,11 @@ TRACK_DTYPE = np.dtype(
         ("vel_n_m_s", "<f4"),
         ("vel_e_m_s", "<f4"),
         ("id", "<u4"),
+        ("pos_sigma_m", "<f4"),
+        ("non_cooperative", "<u4"),
     ]
 )
-"""covey_track_t (id 0: unknown)."""
+"""covey_track_t (id 0: unknown; pos_sigma_m 0: exact; non_cooperative 0: a covey vehicle)."""
 
 
 class ConfigC(ctypes.Structure):
@@ -74,11 +76,13 @@ class SafetyConfigC(ctypes.Structure):
         ("dt_s", ctypes.c_float),
         ("max_speed_m_s", ctypes.c_float),
         ("responsibility", ctypes.c_float),
+        ("sigma_k", ctypes.c_float),
+        ("non_cooperative_radius_m", ctypes.c_float),
     ]
 
     @classmethod
     def of(cls, cfg) -> SafetyConfigC:
-        """From a policy.safety.SafetyConfig."""
+        """From a policy.safety.SafetyConfig (non_cooperative_radius_m None: 0 here)."""
         return cls(
             cfg.radius_m,
             cfg.margin,
@@ -86,13 +90,19 @@ class SafetyConfigC(ctypes.Structure):
             cfg.dt_s,
             cfg.max_speed_m_s,
             cfg.responsibility,
+            cfg.sigma_k,
+            cfg.non_cooperative_radius_m or 0.0,
         )
 
 
 class TrackC(ctypes.Structure):
     """covey_track_t."""
 
-    _fields_ = [(n, ctypes.c_float) for n in TRACK_DTYPE.names[:4]] + [("id", ctypes.c_uint32)]
+    _fields_ = [(n, ctypes.c_float) for n in TRACK_DTYPE.names[:4]] + [
+        ("id", ctypes.c_uint32),
+        ("pos_sigma_m", ctypes.c_float),
+        ("non_cooperative", ctypes.c_uint32),
+    ]
 
 
 class SafetyOutC(ctypes.Structure):
@@ -205,9 +215,26 @@ def bind(lib: ctypes.CDLL) -> None:
         vp,
         vp,
     ]
+    lib.covey_guidance_step_sky.restype = ctypes.c_int
+    lib.covey_guidance_step_sky.argtypes = [
+        vp,
+        ctypes.POINTER(HoldC),
+        vp,
+        fp,
+        ctypes.c_float,
+        vp,
+        vp,
+        vp,
+        vp,
+        vp,
+        ctypes.c_int32,
+        ctypes.c_uint64,
+        vp,
+        vp,
+    ]
 
 
-def _tracks(pos_m, vel_m_s, ids=None) -> np.ndarray:
+def _tracks(pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None) -> np.ndarray:
     pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
     vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
     if vel.shape != pos.shape:
@@ -219,6 +246,10 @@ def _tracks(pos_m, vel_m_s, ids=None) -> np.ndarray:
     t["vel_n_m_s"], t["vel_e_m_s"] = vel[:, 0], vel[:, 1]
     if ids is not None:
         t["id"] = np.asarray(ids, dtype=np.int64).reshape(-1)
+    if pos_sigma_m is not None:
+        t["pos_sigma_m"] = np.broadcast_to(np.asarray(pos_sigma_m, np.float64), (pos.shape[0],))
+    if cooperative is not None:
+        t["non_cooperative"] = ~np.broadcast_to(np.asarray(cooperative, bool), (pos.shape[0],))
     return t
 
 
@@ -259,18 +290,30 @@ class CSafetyFilter:
         self._scratch = ctypes.create_string_buffer(lib.covey_safety_scratch_bytes())
 
     def evaluate(
-        self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id=0, nbr_ids=None
+        self,
+        pos_m,
+        vel_m_s,
+        pref_vel_m_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        own_id=0,
+        nbr_ids=None,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ) -> FilterResult:
         """One call; faults come back in `status`, never raised. Ids (0: unknown) untie
-        coincident neighbours as policy.safety.untie does."""
+        coincident neighbours as policy.safety.untie does; position uncertainties and
+        cooperative flags as policy.safety.pair_radius_m takes them."""
         p = np.asarray(pos_m, dtype=np.float64).reshape(2)
         v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
         pref = (ctypes.c_float * 2)(*np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids)
+        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative)
         out = SafetyOutC()
+        own = TrackC(p[0], p[1], v[0], v[1], int(own_id), float(pos_sigma_m), 0)
         st = self._lib.covey_safety_filter(
             ctypes.byref(self._ccfg),
-            ctypes.byref(TrackC(p[0], p[1], v[0], v[1], int(own_id))),
+            ctypes.byref(own),
             pref,
             t.ctypes.data,
             t.shape[0],
@@ -312,10 +355,13 @@ class CSafetyFilter:
         )
 
     def __call__(
-        self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id=0, nbr_ids=None
+        self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id=0, nbr_ids=None, **sky
     ) -> np.ndarray:
-        """Filtered velocity (2,); raises ValueError on a fault."""
-        r = self.evaluate(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id, nbr_ids)
+        """Filtered velocity (2,); raises ValueError on a fault. `sky`: `evaluate`'s
+        pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative."""
+        r = self.evaluate(
+            pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id, nbr_ids, **sky
+        )
         if r.status != "ok":
             raise ValueError(f"C safety filter fault: {r.status}")
         return r.vel_m_s
@@ -376,8 +422,12 @@ class COnboard:
         now_s: float,
         stamp_s: float | None = None,
         nbr_stamp_s=None,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ) -> StepResult:
-        """One tick at `now_s` (stamps default to now: fresh)."""
+        """One tick at `now_s` (stamps default to now: fresh); position uncertainties and
+        cooperative flags for the filter (covey_guidance_step_sky)."""
         now_us = int(round(now_s * 1e6))
         nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
         k = nbr_pos.shape[0]
@@ -400,15 +450,25 @@ class COnboard:
         own["stamp_us"] = now_us if stamp_s is None else int(round(stamp_s * 1e6))
         ov = (ctypes.c_float * 2)(*np.asarray(vel_m_s, dtype=np.float64).reshape(2))
         goal = np.asarray(goal_m, dtype=np.float32).reshape(2)
+        ns = nc = None
+        if nbr_pos_sigma_m is not None:
+            ns = np.zeros(max(k, 1), np.float32)
+            ns[:k] = np.broadcast_to(np.asarray(nbr_pos_sigma_m, np.float64), (k,))
+        if nbr_cooperative is not None:
+            nc = np.zeros(max(k, 1), np.uint8)
+            nc[:k] = ~np.broadcast_to(np.asarray(nbr_cooperative, bool), (k,))
         out = self._out
-        st = self._lib.covey_guidance_step(
+        st = self._lib.covey_guidance_step_sky(
             ctypes.addressof(self._cfg),
             ctypes.byref(self._hold),
             own.ctypes.data,
             ov,
+            float(pos_sigma_m),
             goal.ctypes.data,
             nb.ctypes.data,
             nv.ctypes.data,
+            None if ns is None else ns.ctypes.data,
+            None if nc is None else nc.ctypes.data,
             k,
             now_us,
             self._scratch,

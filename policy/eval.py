@@ -27,6 +27,7 @@ import numpy as np
 
 from policy import evalsim, scenarios
 from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
+from policy.pointmass import VEHICLE_MODELS, VehicleModel
 
 
 def flops(n: int, h: int = 63, x: int = 3, layers=(64, 64), a: int = 2) -> int:
@@ -81,6 +82,16 @@ class EvalConfig:
     """Show a tqdm bar."""
     suites: tuple = field(default=("circle", "conflict", "large"))
     """Scenario suites to run: circle, conflict, large."""
+    vehicles: str = "ideal"
+    """How the vehicles fly (policy.pointmass.VehicleModel): ideal (exactly what is commanded,
+    exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, GNSS estimate
+    drifting 0.5 m); collisions and min_sep are judged on true positions, est_* on estimates."""
+    sigma_k: float | None = None
+    """Confidence factor of the filter's uncertainty inflation (policy.safety.SafetyConfig.sigma_k,
+    None = its default); 0: the filter takes the estimates as the truth."""
+    tell_inflation: bool = False
+    """Tell the learned policies the separation inflated by the uncertainty as well
+    (policy.runtime.told_separation_m's inflation_m); off: they are told what ideal vehicles are."""
     controllers: tuple = ()
     """Run only these controllers, e.g. policy,orca (empty = all available but c+filter, the C
     core as onboard, which runs only when named)."""
@@ -116,11 +127,16 @@ SafetyConfig that policy+filter flies with."""
 def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None = None) -> dict:
     """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid).
     `extra` controllers are built only when cfg.controllers names them."""
+    from policy.pointmass import VehicleModel
     from policy.runtime import GuidancePolicy, told_separation_m
     from policy.safety import SafetyConfig, filter_padded
     from policy.sparse import SparseConfig
 
     safety_cfg = SafetyConfig(dt_s=cfg.dt_s)
+    if cfg.sigma_k is not None:
+        safety_cfg = dataclasses.replace(safety_cfg, sigma_k=cfg.sigma_k)
+    sigma_m = VehicleModel.named(cfg.vehicles).drift_m
+    inflation_m = inflation_told_m(safety_cfg, sigma_m) if cfg.tell_inflation else 0.0
     out = {}
     for name, path, filt in [
         ("policy+filter", cfg.weights, True),
@@ -133,7 +149,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             path,
             separation_m=safety_cfg.radius_m,
             policy_separation_m=told_separation_m(
-                safety_cfg.radius_m, filt, cfg.policy_separation_m
+                safety_cfg.radius_m, filt, cfg.policy_separation_m, inflation_m if filt else 0.0
             ),
             safety_filter=False,
             max_neighbours=cfg.max_neighbours,
@@ -145,10 +161,21 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             _occupancy_controller(cfg.occupancy, cfg.max_neighbours), cfg.policy_period_s
         )
 
-    def orca(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
+    def orca(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sig):
         v = evalsim.straight_line(ids, t_s, pos, vel, heading, goal)
-        return filter_padded(pos, vel, v, nbr_pos, nbr_vel, nbr_valid, safety_cfg)
+        return filter_padded(
+            pos,
+            vel,
+            v,
+            nbr_pos,
+            nbr_vel,
+            nbr_valid,
+            safety_cfg,
+            pos_sigma_m=sig.get("pos_sigma_m"),
+            nbr_pos_sigma_m=sig.get("nbr_pos_sigma_m"),
+        )
 
+    orca.uses_sigma = True
     out["orca"] = orca
     out["straight"] = evalsim.straight_line
     for name, make in (extra or {}).items():
@@ -157,16 +184,40 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
     return out
 
 
+def inflation_told_m(safety_cfg, sigma_m: float) -> float:
+    """What the filter adds to a pair's distance when both vehicles report sigma_m:
+    sigma_k sqrt(2) sigma_m (policy.safety.pair_radius_m), told to the policy with
+    --tell-inflation."""
+    return float(safety_cfg.sigma_k * np.sqrt(2.0) * sigma_m)
+
+
 class Held:
     """Runs a learned policy every period_s (its training step) and holds the velocity in
-    between; the optional safety filter runs at every simulation step."""
+    between; the optional safety filter runs at every simulation step, with the position
+    uncertainties when the simulator passes them."""
+
+    uses_sigma = True
 
     def __init__(self, policy, period_s: float, safety_cfg=None):
         self.policy, self.period_s, self.safety_cfg = policy, period_s, safety_cfg
         self.v: dict = {}
         self.next_t = -1.0
 
-    def __call__(self, ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
+    def __call__(
+        self,
+        ids,
+        t_s,
+        pos,
+        vel,
+        heading,
+        goal,
+        nbr_pos,
+        nbr_vel,
+        nbr_heading,
+        nbr_valid,
+        pos_sigma_m=None,
+        nbr_pos_sigma_m=None,
+    ):
         from policy.safety import filter_padded
 
         if t_s < self.next_t - 1e-9 and self.v and t_s > 0:
@@ -176,7 +227,17 @@ class Held:
             self.v = dict(zip(ids.tolist(), v, strict=True))
             self.next_t = t_s + self.period_s
         if self.safety_cfg is not None:
-            v = filter_padded(pos, vel, v, nbr_pos, nbr_vel, nbr_valid, self.safety_cfg)
+            v = filter_padded(
+                pos,
+                vel,
+                v,
+                nbr_pos,
+                nbr_vel,
+                nbr_valid,
+                self.safety_cfg,
+                pos_sigma_m=pos_sigma_m,
+                nbr_pos_sigma_m=nbr_pos_sigma_m,
+            )
         return v
 
     def reset(self):
@@ -220,6 +281,7 @@ def summarise(rows: list) -> list:
             return float(np.mean(v)) if v else None
 
         seps = [r["min_sep"] for r in rs if r["min_sep"] is not None]
+        est_seps = [r["est_min_sep"] for r in rs if r.get("est_min_sep") is not None]
         out.append(
             {
                 "controller": c,
@@ -229,8 +291,11 @@ def summarise(rows: list) -> list:
                 "vehicles": int(sum(r["n"] for r in rs)),
                 "success": float(np.mean([r["success"] for r in rs])),
                 "collisions": int(sum(r["collisions"] for r in rs)),
+                "collision_cases": int(sum(r["collisions"] > 0 for r in rs)),
                 "timeouts": int(sum(r["timeouts"] for r in rs)),
                 "min_sep": float(min(seps)) if seps else None,
+                "est_min_sep": float(min(est_seps)) if est_seps else None,
+                "est_collisions": int(sum(r.get("est_collisions", 0) for r in rs)),
                 "extra_time": mean("extra_time"),
                 "path_ratio": mean("path_ratio"),
                 "mean_acc": mean("mean_acc"),
@@ -248,8 +313,10 @@ def markdown(summary: list) -> str:
         "vehicles",
         "success",
         "collisions",
+        "collision_cases",
         "timeouts",
         "min_sep",
+        "est_min_sep",
         "extra_time",
         "path_ratio",
         "mean_acc",
@@ -280,6 +347,7 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
             )
         ctrls = {k: v for k, v in ctrls.items() if k in cfg.controllers}
     links = {"perfect": PERFECT, "degraded": DEGRADED}
+    vehicles = VehicleModel.named(cfg.vehicles)
     all_cases = cases(cfg)
     rows, tracks = [], {}
     jobs = [(c, ln, name) for c in all_cases for ln in cfg.links for name in ctrls]
@@ -289,7 +357,9 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
         record = (
             cfg.figures and link == "perfect" and case in ("circle-16", "circle-8", "large-35-s0")
         )
-        sim_cfg = EvalSimConfig(dt_s=cfg.dt_s, record=record, dead_reckon=cfg.dead_reckon)
+        sim_cfg = EvalSimConfig(
+            dt_s=cfg.dt_s, record=record, dead_reckon=cfg.dead_reckon, vehicles=vehicles
+        )
         rng = np.random.default_rng([cfg.seed, len(rows)])
         if hasattr(ctrls[name], "reset"):
             ctrls[name].reset()
@@ -345,6 +415,7 @@ def parser() -> argparse.ArgumentParser:
             "dt_s": finite("seconds"),
             "policy_period_s": finite("seconds", inclusive=True),
             "policy_separation_m": finite("metres"),
+            "sigma_k": finite("standard deviations", inclusive=True),
         },
     )
     ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")
@@ -375,6 +446,8 @@ def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = N
         return result
     if not set(a.links) <= {"perfect", "degraded"}:
         ap.error(f"--links takes perfect and/or degraded, got {','.join(a.links)!r}")
+    if a.vehicles not in VEHICLE_MODELS:
+        ap.error(f"--vehicles takes {' or '.join(VEHICLE_MODELS)}, got {a.vehicles!r}")
     if not set(a.suites) <= {"circle", "conflict", "large"}:
         ap.error(f"--suites takes circle, conflict, large, got {','.join(a.suites)!r}")
     cfg = config_from_flags(EvalConfig, a)

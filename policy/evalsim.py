@@ -4,7 +4,12 @@ Point masses fly the commanded velocity (Euler, dt_s); heading is the direction 
 the last displacement, at the start the goal. Each vehicle knows itself exactly
 and the others only through what the link delivered: broadcasts at `rate_hz`
 (random phase), each copy lost with probability `loss`, delivered `latency_s`
-later. Like the agents' neighbour tables (agent/neighbours.py), a receiver dead-reckons the last
+later. Vehicles fly through policy.pointmass's `VehicleModel` (`EvalSimConfig.vehicles`): with
+the ideal one they fly the command exactly and know where they are; with a realistic one the
+controllers see (and the link carries) each vehicle's drifting position estimate and its
+ground velocity, with the 1-sigma it reports, while collisions and the closest approach are
+judged on the true positions (`min_sep`, `collisions`; on the estimates: `est_min_sep`,
+`est_collisions`). Like the agents' neighbour tables (agent/neighbours.py), a receiver dead-reckons the last
 state it got to now at that state's velocity, from when it got it (`dead_reckon`). Vehicles leave on arrival and on collision (as in training); a departed
 vehicle is known to have left (presence tokens), so it is no longer avoided.
 """
@@ -17,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from comms.link import PROFILES, LinkProfile
-from policy.pointmass import integrate
+from policy.pointmass import VehicleModel, Vehicles
 from policy.sparse import straight_velocity
 
 
@@ -68,13 +73,19 @@ class EvalSimConfig:
     """A vehicle times out after time_factor x its straight-line time."""
     record: bool = False
     """Keep the trajectories (for plots)."""
+    vehicles: VehicleModel = VehicleModel()
+    """How the vehicles fly and how well they know where they are (VehicleModel.ideal() or
+    .realistic()); arrival is judged on the estimate (what the vehicle knows), collisions on
+    the truth."""
     dead_reckon: bool = True
     """Receivers extrapolate each neighbour's last delivered state to now, p + v (t - t_rx), as
     the agents do (agent/neighbours.py); False: they use it as it came (staler on a slow link)."""
 
 
 # controller(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid) -> vel (N, 2)
-# ids are the vehicle numbers of the rows (the active vehicles), t_s the time.
+# ids are the vehicle numbers of the rows (the active vehicles), t_s the time. A controller
+# with `uses_sigma = True` also gets pos_sigma_m= (N,) and nbr_pos_sigma_m= (N, K): the
+# position 1-sigma each vehicle reports of itself and the ones its link delivered.
 Controller = Callable[..., np.ndarray]
 
 
@@ -96,28 +107,34 @@ def run(
     starts = np.asarray(starts, dtype=np.float64)
     goals = np.asarray(goals, dtype=np.float64)
     n = starts.shape[0]
-    pos, vel = starts.copy(), np.zeros((n, 2))
+    fleet = Vehicles(starts, cfg.vehicles, rng)
+    pos = fleet.pos_m  # the truth, flown in place
+    est, gvel = fleet.est_pos_m, fleet.ground_vel_m_s
+    sigma = np.full(n, fleet.pos_sigma_m)
+    uses_sigma = bool(getattr(controller, "uses_sigma", False))
     rel = goals - starts
     trip = np.hypot(rel[:, 0], rel[:, 1])
     heading = np.arctan2(rel[:, 1], rel[:, 0])
     active = np.ones(n, bool)
     arrive_t = np.full(n, np.nan)
     collided = np.zeros(n, bool)
+    est_collided = np.zeros(n, bool)
     timed_out = np.zeros(n, bool)
     path = np.zeros(n)
     acc_sum, acc_n = 0.0, 0
-    min_sep = np.inf
+    min_sep = est_min_sep = np.inf
     t_limit = cfg.time_factor * trip / cfg.speed
     # what receiver i last got from sender j
     k_pos, k_vel, k_head = (
-        np.broadcast_to(pos, (n, n, 2)).copy(),
+        np.broadcast_to(est, (n, n, 2)).copy(),
         np.zeros((n, n, 2)),
         np.broadcast_to(heading, (n, n)).copy(),
     )
+    k_sig = np.broadcast_to(sigma, (n, n)).copy()
     k_rx = np.zeros((n, n))  # when receiver i got sender j's state
     phase = rng.uniform(0, 1.0 / link.rate_hz, n) if not link.perfect else np.zeros(n)
     next_tx = phase.copy()
-    pending: list = []  # (deliver_at, sender, receivers mask, pos, vel, heading)
+    pending: list = []  # (deliver_at, sender, receivers mask, pos, vel, heading, sigma)
     eye = np.eye(n, dtype=bool)
     tracks = [pos.copy()] if cfg.record else None
     t = 0.0
@@ -125,63 +142,88 @@ def run(
     while active.any():
         if link.perfect:
             nbr_pos, nbr_vel, nbr_head = (
-                np.broadcast_to(a, (n, *a.shape)) for a in (pos, vel, heading)
+                np.broadcast_to(a, (n, *a.shape)) for a in (est, gvel, heading)
             )
+            nbr_sig = np.broadcast_to(sigma, (n, n))
         else:
             # broadcasts due now, then deliveries due now
             for j in np.flatnonzero(active & (next_tx <= t + 1e-9)):
                 recv = rng.random(n) >= link.loss
                 pending.append(
-                    (t + link.latency_s, j, recv, pos[j].copy(), vel[j].copy(), heading[j])
+                    (
+                        t + link.latency_s,
+                        j,
+                        recv,
+                        est[j].copy(),
+                        gvel[j].copy(),
+                        heading[j],
+                        sigma[j],
+                    )
                 )
                 next_tx[j] += 1.0 / link.rate_hz
             keep = []
             for msg in pending:
                 if msg[0] <= t + 1e-9:
-                    _, j, recv, p, v, h = msg
+                    _, j, recv, p, v, h, sg = msg
                     k_pos[recv, j], k_vel[recv, j], k_head[recv, j] = p, v, h
+                    k_sig[recv, j] = sg
                     k_rx[recv, j] = t
                 else:
                     keep.append(msg)
             pending = keep
-            nbr_pos, nbr_vel, nbr_head = k_pos, k_vel, k_head
+            nbr_pos, nbr_vel, nbr_head, nbr_sig = k_pos, k_vel, k_head, k_sig
             if cfg.dead_reckon:
                 nbr_pos = k_pos + k_vel * (t - k_rx)[..., None]
         valid = active[None, :] & active[:, None] & ~eye
         idx = np.flatnonzero(active)
         v = np.zeros((n, 2))
+        extra = {}
+        if uses_sigma:
+            extra = {"pos_sigma_m": sigma[idx], "nbr_pos_sigma_m": nbr_sig[idx]}
         v[idx] = controller(
             idx,
             t,
-            pos[idx],
-            vel[idx],
+            est[idx],
+            gvel[idx],
             heading[idx],
             goals[idx],
             nbr_pos[idx],
             nbr_vel[idx],
             nbr_head[idx],
             valid[idx],
+            **extra,
         )
-        acc = np.hypot(*(v[idx] - vel[idx]).T) / cfg.dt_s
+        acc = np.hypot(*(v[idx] - gvel[idx]).T) / cfg.dt_s
         acc_sum += float(acc.sum())
         acc_n += idx.size
-        integrate(pos, vel, v, cfg.dt_s)  # the point mass flies the command exactly
-        disp = vel * cfg.dt_s
+        before = pos.copy()
+        # the point mass flies the command (exactly, with ideal vehicles), only active ones
+        powered = active.copy()
+        fleet.step(v, cfg.dt_s, powered)
+        pos[~active] = before[~active]
+        est, gvel = fleet.est_pos_m, fleet.ground_vel_m_s
+        disp = pos - before
         step_len = np.hypot(disp[:, 0], disp[:, 1])
-        heading = np.where(step_len > 1e-9, np.arctan2(disp[:, 1], disp[:, 0]), heading)
+        flown = fleet.vel_m_s * cfg.dt_s  # heading: where the loop flies, not where gusts push
+        flown_len = np.hypot(flown[:, 0], flown[:, 1])
+        heading = np.where(flown_len > 1e-9, np.arctan2(flown[:, 1], flown[:, 0]), heading)
         path += step_len
         t += cfg.dt_s
         steps += 1
         if tracks is not None:
             tracks.append(np.where(active[:, None], pos, np.nan))
-        # separation among the vehicles that flew this step
-        dx = pos[idx, None, :] - pos[None, idx, :]
-        d = np.hypot(dx[..., 0], dx[..., 1]) + np.eye(idx.size) * 1e9
+        # separation among the vehicles that flew this step: true positions, and estimates
         if idx.size > 1:
+            d = _pair_dist(pos[idx])
             min_sep = min(min_sep, float(d.min()))
-        hit = (d < cfg.collide_m).any(axis=1)
+            de = d if cfg.vehicles.drift_m == 0 else _pair_dist(est[idx])
+            est_min_sep = min(est_min_sep, float(de.min()))
+            hit = (d < cfg.collide_m).any(axis=1)
+            est_collided[idx[(de < cfg.collide_m).any(axis=1)]] = True
+        else:
+            hit = np.zeros(idx.size, bool)
         collided[idx[hit]] = True
-        gd = goals[idx] - pos[idx]
+        gd = goals[idx] - est[idx]
         arrived = (np.hypot(gd[:, 0], gd[:, 1]) <= cfg.arrive_m) & ~hit
         arrive_t[idx[arrived]] = t
         late = (t >= t_limit[idx]) & ~arrived & ~hit
@@ -195,6 +237,8 @@ def run(
         "collisions": int(collided.sum()),
         "timeouts": int(timed_out.sum()),
         "min_sep": float(min_sep) if np.isfinite(min_sep) else None,
+        "est_collisions": int(est_collided.sum()),
+        "est_min_sep": float(est_min_sep) if np.isfinite(est_min_sep) else None,
         "extra_time": float(np.mean(arrive_t[ok] * cfg.speed / trip[ok])) if ok.any() else None,
         "path_ratio": float(np.mean(path[ok] / trip[ok])) if ok.any() else None,
         "mean_acc": acc_sum / max(acc_n, 1),
@@ -204,3 +248,9 @@ def run(
         out["tracks"] = np.array(tracks)
         out["goals"] = goals
     return out
+
+
+def _pair_dist(p: np.ndarray) -> np.ndarray:
+    """Distances between the rows of p (M, 2), the diagonal 1e9."""
+    dx = p[:, None, :] - p[None, :, :]
+    return np.hypot(dx[..., 0], dx[..., 1]) + np.eye(p.shape[0]) * 1e9

@@ -38,16 +38,22 @@ once on the degraded link."""
 
 
 def told_separation_m(
-    separation_m: float, safety_filter: bool, policy_separation_m: float | None = None
+    separation_m: float,
+    safety_filter: bool,
+    policy_separation_m: float | None = None,
+    inflation_m: float = 0.0,
 ) -> float:
     """The separation flight tells the policy (its distance scale): `policy_separation_m` when
-    given; else FILTERED_BERTH_SHARE x separation_m with the filter on, and separation_m without
-    it (alone, the policy keeps the separation itself). The filter always keeps separation_m.
+    given; else FILTERED_BERTH_SHARE x (separation_m + inflation_m) with the filter on, and
+    separation_m + inflation_m without it (alone, the policy keeps the separation itself).
+    The filter always keeps separation_m, plus its uncertainty inflation per pair
+    (policy.safety.pair_radius_m); `inflation_m` tells the policy a typical one (0: none).
     One rule for the agents, fleet-sim, `covey eval` and the emulator's onboard C mode;
     firmware/covey_guidance.c covey_told_separation_m is its C twin (parity tested)."""
     if policy_separation_m is not None:
         return float(policy_separation_m)
-    return float(separation_m) * (FILTERED_BERTH_SHARE if safety_filter else 1.0)
+    told = float(separation_m) + float(inflation_m)
+    return told * (FILTERED_BERTH_SHARE if safety_filter else 1.0)
 
 
 @dataclass(frozen=True)

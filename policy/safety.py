@@ -23,6 +23,16 @@ zero), so the ordered pair of vehicle ids gives one (`tie_direction`). The C twi
 COVEY_SAFETY_COINCIDENT_M."""
 
 
+SIGMA_K = 2.0
+"""Default `SafetyConfig.sigma_k`. The relative error of two independent estimates is a 2-D
+Gaussian with per-axis sigma_rel = sqrt(sigma_i^2 + sigma_j^2); only its component along the
+line between the vehicles eats into the separation, so a pair at the inflated distance comes
+within radius_m (1 + margin) of the truth with probability Phi(-sigma_k) per look (2.3 % at 2;
+the Rayleigh tail of the whole error, exp(-k^2 / 2), is 13.5 %), and within the bare radius_m
+only if the error also exceeds the margin: Phi(-(k + margin radius_m / sigma_rel)), 1e-4 for
+0.5 m GNSS. Chosen by measurement with realistic vehicles (docs/policy.md, "Real vehicles")."""
+
+
 @dataclass(frozen=True)
 class SafetyConfig:
     """ORCA parameters in world units (the runtime scales them)."""
@@ -42,6 +52,15 @@ class SafetyConfig:
     """Speed limit of the filtered velocity."""
     responsibility: float = 0.5
     """Share of the avoidance each vehicle takes (0.5 = reciprocal)."""
+    sigma_k: float = SIGMA_K
+    """Confidence factor on position uncertainty: a pair whose estimates have 1-sigma errors
+    sigma_i and sigma_j (per axis, metres) keeps radius_m (1 + margin) + sigma_k sqrt(sigma_i^2 +
+    sigma_j^2) between estimated centres (`pair_radius_m`), so that the true centres keep
+    radius_m with the confidence SIGMA_K states. 0: estimates are taken as the truth."""
+    non_cooperative_radius_m: float | None = None
+    """Separation kept from a non-cooperative neighbour (manned aircraft, another operator's
+    drone; one that does not avoid), before margin and uncertainty; None = radius_m. Such a
+    neighbour also gets full responsibility: this vehicle takes the whole correction."""
 
 
 def tie_direction(own_id: int, nbr_id: int) -> tuple[float, float]:
@@ -56,6 +75,47 @@ def tie_direction(own_id: int, nbr_id: int) -> tuple[float, float]:
     bearing_rad = (h & 0xFFFF) * (2.0 * math.pi / 65536.0)
     sign = 1.0 if own_id == lo else -1.0
     return sign * math.cos(bearing_rad), sign * math.sin(bearing_rad)
+
+
+def pair_radius_m(cfg: SafetyConfig, pos_sigma_m=None, nbr_pos_sigma_m=None, nbr_cooperative=None):
+    """The distance each pair keeps between estimated centres and this vehicle's share of the
+    correction, from the position uncertainties (1-sigma, metres) and the cooperative flags.
+
+        r_ij = base_j (1 + margin) + sigma_k sqrt(sigma_i^2 + sigma_j^2)
+        base_j = radius_m (cooperative) or non_cooperative_radius_m;
+        share_j = responsibility (cooperative) or 1 (it will not avoid: all of it is ours).
+
+    pos_sigma_m scalar or (...,); nbr_pos_sigma_m and nbr_cooperative (..., K) or None (0 and
+    True). Returns (r, share): Python floats when nothing per-neighbour is given (today's
+    values), else arrays broadcast to the neighbours' shape. The C twin is
+    covey_safety.c pair_radius."""
+    base = cfg.radius_m * (1.0 + cfg.margin)
+    if (
+        nbr_pos_sigma_m is None
+        and nbr_cooperative is None
+        and (pos_sigma_m is None or not np.any(pos_sigma_m))
+    ):
+        return base, cfg.responsibility
+    own = np.asarray(0.0 if pos_sigma_m is None else pos_sigma_m, dtype=np.float64)
+    nbr = np.asarray(0.0 if nbr_pos_sigma_m is None else nbr_pos_sigma_m, dtype=np.float64)
+    coop = np.asarray(True if nbr_cooperative is None else nbr_cooperative, dtype=bool)
+    shape = np.broadcast_shapes(own[..., None].shape, nbr.shape, coop.shape)
+    nc = cfg.radius_m if cfg.non_cooperative_radius_m is None else cfg.non_cooperative_radius_m
+    r = np.where(coop, cfg.radius_m, nc) * (1.0 + cfg.margin)
+    r = r + cfg.sigma_k * np.sqrt(own[..., None] ** 2 + nbr**2)
+    share = np.where(coop, cfg.responsibility, 1.0)
+    return np.broadcast_to(r, shape), np.broadcast_to(share, shape)
+
+
+def pair_reach_m(cfg: SafetyConfig, r, nbr_speed_m_s=None, nbr_cooperative=None):
+    """Beyond this distance a neighbour cannot come within r in the horizon: r + 2 max_speed
+    tau for a cooperative one (it flies at most our speed), r + (max_speed + max(max_speed,
+    |v_j|)) tau for a non-cooperative one (it may be faster)."""
+    vmax, tau = cfg.max_speed_m_s, cfg.time_horizon_s
+    if nbr_cooperative is None:
+        return r + 2.0 * vmax * tau
+    fast = np.maximum(vmax, np.asarray(nbr_speed_m_s, dtype=np.float64))
+    return r + (vmax + np.where(nbr_cooperative, vmax, fast)) * tau
 
 
 def untie(rel_pos, own_ids, nbr_ids):
@@ -78,14 +138,19 @@ def untie(rel_pos, own_ids, nbr_ids):
     return out
 
 
-def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig):
+def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None):
     """ORCA half-planes for one or many vehicles.
 
     rel_pos = p_j - p_i, rel_vel = v_i - v_j, shapes (..., K, 2); own_vel (..., 2).
+    r and share (scalars or (..., K)): each pair's distance and this vehicle's share of the
+    correction (`pair_radius_m`); None: radius_m (1 + margin) and responsibility.
     Returns (point, direction), each (..., K, 2): the allowed side is
     det(direction, point - v) <= 0, with det(a, b) = a_x b_y - a_y b_x.
     """
-    r = cfg.radius_m * (1.0 + cfg.margin)
+    if r is None:
+        r = cfg.radius_m * (1.0 + cfg.margin)
+    if share is None:
+        share = cfg.responsibility
     tau = cfg.time_horizon_s
     px, py = rel_pos[..., 0], rel_pos[..., 1]
     vx, vy = rel_vel[..., 0], rel_vel[..., 1]
@@ -118,7 +183,7 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig):
     dir_y = np.where(colliding, -ucx, dir_y)
     u_x = np.where(colliding, (r * inv_dt - c_len) * ucx, u_x)
     u_y = np.where(colliding, (r * inv_dt - c_len) * ucy, u_y)
-    k = cfg.responsibility
+    k = share
     point = np.stack([own_vel[..., None, 0] + k * u_x, own_vel[..., None, 1] + k * u_y], axis=-1)
     return point, np.stack([dir_x, dir_y], axis=-1)
 
@@ -177,13 +242,15 @@ def _lp2(lines, radius, opt, direction_opt):
     return len(lines), (rx, ry)
 
 
-def _lp3(lines, begin, radius, result):
+def _lp3(lines, begin, radius, result, n_hard=0):
+    # lines[:n_hard] are hard (keep-out zones, policy.zone_lines): they stay as they are in
+    # every projected program, so only the others are relaxed (RVO2's numObstLines)
     distance = 0.0
-    for i in range(begin, len(lines)):
+    for i in range(max(begin, n_hard), len(lines)):
         (px, py), (dx, dy) = lines[i]
         if _det(dx, dy, px - result[0], py - result[1]) > distance:
-            proj = []
-            for j in range(i):
+            proj = list(lines[:n_hard])
+            for j in range(n_hard, i):
                 (qx, qy), (ex, ey) = lines[j]
                 determinant = _det(dx, dy, ex, ey)
                 if abs(determinant) <= EPS:
@@ -203,19 +270,31 @@ def _lp3(lines, begin, radius, result):
     return result
 
 
-def solve(point, direction, pref_vel, max_speed):
+def solve(point, direction, pref_vel, max_speed, hard=()):
     """Velocity closest to pref_vel inside all half-planes and |v| <= max_speed.
 
-    When infeasible, minimises the largest violation (ORCA's fallback).
+    When infeasible, minimises the largest violation (ORCA's fallback). `hard` lines
+    [((px, py), (dx, dy))] (keep-out zones) go first and are never relaxed (`solve_lines`).
     """
     lines = [
         ((float(p[0]), float(p[1])), (float(d[0]), float(d[1])))
         for p, d in zip(point, direction, strict=True)
     ]
-    opt = (float(pref_vel[0]), float(pref_vel[1]))
-    fail, result = _lp2(lines, max_speed, opt, False)
+    return solve_lines(
+        list(hard) + lines, (float(pref_vel[0]), float(pref_vel[1])), max_speed, len(hard)
+    )
+
+
+def solve_lines(lines, pref, max_speed, n_hard=0):
+    """`solve` on lines [((px, py), (dx, dy))], the first n_hard of them hard: when the rest
+    cannot all be met, the worst violation of the rest is minimised inside the hard ones. Hard
+    lines that cannot be met together (never for zone lines outside their radius: v = 0 meets
+    them) are relaxed with the rest. The C twin is covey_safety.c covey_safety_solve."""
+    if not lines:
+        return _clip_speed(np.array(pref, dtype=np.float64), max_speed)
+    fail, result = _lp2(lines, max_speed, pref, False)
     if fail < len(lines):
-        result = _lp3(lines, fail, max_speed, result)
+        result = _lp3(lines, fail, max_speed, result, n_hard if fail >= n_hard else 0)
     return np.array(result)
 
 
@@ -228,20 +307,50 @@ def filter_velocity(
     cfg: SafetyConfig,
     own_id: int | None = None,
     nbr_ids=None,
+    pos_sigma_m: float = 0.0,
+    nbr_pos_sigma_m=None,
+    nbr_cooperative=None,
+    zones=None,
 ):
     """The filtered velocity of one vehicle (2,), world units. With ids (own_id, nbr_ids (K,)),
-    coincident neighbours are pushed apart by id (`untie`); without, they are not."""
+    coincident neighbours are pushed apart by id (`untie`); without, they are not. Position
+    uncertainties (pos_sigma_m, nbr_pos_sigma_m (K,), 1-sigma metres) and cooperative flags
+    (nbr_cooperative (K,) bool, default all True) set each pair's distance and share
+    (`pair_radius_m`). `zones` (policy.zone_lines.ZoneSet): keep-out edges as hard lines,
+    through `filter_one`."""
+    if zones is not None:
+        return filter_one(
+            pos_m,
+            vel_m_s,
+            pref_vel_m_s,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            cfg,
+            own_id,
+            nbr_ids,
+            pos_sigma_m,
+            nbr_pos_sigma_m,
+            nbr_cooperative,
+            zones,
+        )
     nbr_pos_m = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
     if nbr_pos_m.shape[0] == 0:
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
+    nbr_vel_m_s = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
     rel_pos = untie(nbr_pos_m - pos_m, own_id, nbr_ids)
-    rel_vel = np.asarray(vel_m_s) - np.asarray(nbr_vel_m_s).reshape(-1, 2)
+    rel_vel = np.asarray(vel_m_s) - nbr_vel_m_s
+    r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
     # vehicles that cannot meet within the horizon add no constraint
-    reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
+    coop = None if nbr_cooperative is None else np.asarray(nbr_cooperative, dtype=bool)
+    reach = pair_reach_m(cfg, r, np.hypot(*nbr_vel_m_s.T), coop)
     near = (rel_pos**2).sum(-1) < reach * reach
     if not near.any():
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
-    point, direction = orca_lines(rel_pos[near], rel_vel[near], np.asarray(vel_m_s, float), cfg)
+    if np.ndim(r):
+        r, share = r[near], share[near]
+    point, direction = orca_lines(
+        rel_pos[near], rel_vel[near], np.asarray(vel_m_s, float), cfg, r, share
+    )
     return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
 
 
@@ -250,11 +359,13 @@ def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
     return _orca_line_k(px, py, vx, vy, own_vx, own_vy, _line_constants(r, cfg))
 
 
-def _line_constants(r: float, cfg: SafetyConfig) -> tuple:
-    """What `_orca_line_k` needs of the config, computed once per vehicle."""
+def _line_constants(r: float, cfg: SafetyConfig, share: float | None = None) -> tuple:
+    """What `_orca_line_k` needs of the config, computed once per vehicle (per neighbour when
+    the pairs differ: `pair_radius_m`)."""
     tau = cfg.time_horizon_s
     inv_dt = 1.0 / cfg.dt_s
-    return r, r * r, tau, r / tau, inv_dt, r * inv_dt, cfg.responsibility
+    k = cfg.responsibility if share is None else share
+    return r, r * r, tau, r / tau, inv_dt, r * inv_dt, k
 
 
 def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
@@ -297,12 +408,29 @@ def filter_one(
     cfg: SafetyConfig,
     own_id: int | None = None,
     nbr_ids=None,
+    pos_sigma_m: float = 0.0,
+    nbr_pos_sigma_m=None,
+    nbr_cooperative=None,
+    zones=None,
 ):
     """`filter_velocity` for one vehicle in Python floats: the runtime's hot path, faster for
-    the few neighbours within reach (equal within 1e-12, tests/test_policy_speed.py)."""
+    the few neighbours within reach (equal within 1e-12, tests/test_policy_speed.py). `zones`
+    (policy.zone_lines.ZoneSet): its edges near the vehicle are hard lines (`solve_lines`)."""
     ids = None if own_id is None or nbr_ids is None else np.asarray(nbr_ids).tolist()
-    r = cfg.radius_m * (1 + cfg.margin)
-    reach = r + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
+    base = cfg.radius_m * (1 + cfg.margin)
+    per_nbr = nbr_pos_sigma_m is not None or nbr_cooperative is not None or bool(pos_sigma_m)
+    if per_nbr:
+        radii, shares = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
+        k_n = np.asarray(nbr_pos_m).reshape(-1, 2).shape[0]
+        radii = np.broadcast_to(radii, (k_n,)).tolist()
+        shares = np.broadcast_to(shares, (k_n,)).tolist()
+        coops = (
+            [True] * k_n
+            if nbr_cooperative is None
+            else np.broadcast_to(np.asarray(nbr_cooperative, bool), (k_n,)).tolist()
+        )
+    vmax_tau = cfg.max_speed_m_s * cfg.time_horizon_s
+    reach = base + 2.0 * vmax_tau
     reach_sq = reach * reach
     x, y = float(pos_m[0]), float(pos_m[1])
     own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
@@ -312,6 +440,11 @@ def filter_one(
         zip(np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True)
     ):
         px, py = nx - x, ny - y
+        if per_nbr:
+            r = radii[k]
+            fast = max(cfg.max_speed_m_s, math.hypot(nvx, nvy)) if not coops[k] else None
+            reach = r + (2.0 * vmax_tau if fast is None else vmax_tau + fast * cfg.time_horizon_s)
+            reach_sq = reach * reach
         if px * px + py * py < reach_sq:
             if (
                 ids is not None
@@ -322,27 +455,37 @@ def filter_one(
             ):
                 tx, ty = tie_direction(own_id, ids[k])
                 px, py = tx * COINCIDENT_M, ty * COINCIDENT_M
-            if consts is None:
-                consts = _line_constants(r, cfg)
+            if per_nbr:
+                consts = _line_constants(radii[k], cfg, shares[k])
+            elif consts is None:
+                consts = _line_constants(base, cfg)
             lines.append(_orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts))
     pref = (float(pref_vel_m_s[0]), float(pref_vel_m_s[1]))
-    if not lines:
-        return _clip_speed(np.array(pref), cfg.max_speed_m_s)
-    fail, result = _lp2(lines, cfg.max_speed_m_s, pref, False)
-    if fail < len(lines):
-        result = _lp3(lines, fail, cfg.max_speed_m_s, result)
-    return np.array(result)
+    hard = [] if zones is None else zones.lines(pos_m, vel_m_s, cfg.max_speed_m_s)
+    return solve_lines(hard + lines, pref, cfg.max_speed_m_s, len(hard))
 
 
-def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig, ids=None):
+def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig, ids=None, pos_sigma_m=None):
     """Filtered velocities (N,2) for N vehicles; nbr (N,K) neighbour indices, -1 = none;
-    ids (N,) vehicle ids for `untie` (None: coincident vehicles are not pushed apart)."""
+    ids (N,) vehicle ids for `untie` (None: coincident vehicles are not pushed apart);
+    pos_sigma_m (N,) their position uncertainties (None: exact)."""
     pos_m = np.asarray(pos_m, dtype=np.float64)
     vel_m_s = np.asarray(vel_m_s, dtype=np.float64)
     j = np.maximum(nbr, 0)
     nbr_ids = None if ids is None else np.asarray(ids)[j]
+    sig = None if pos_sigma_m is None else np.asarray(pos_sigma_m, dtype=np.float64)
     return filter_padded(
-        pos_m, vel_m_s, pref_vel_m_s, pos_m[j], vel_m_s[j], nbr >= 0, cfg, ids, nbr_ids
+        pos_m,
+        vel_m_s,
+        pref_vel_m_s,
+        pos_m[j],
+        vel_m_s[j],
+        nbr >= 0,
+        cfg,
+        ids,
+        nbr_ids,
+        sig,
+        None if sig is None else sig[j],
     )
 
 
@@ -356,9 +499,15 @@ def filter_padded(
     cfg: SafetyConfig,
     own_ids=None,
     nbr_ids=None,
+    pos_sigma_m=None,
+    nbr_pos_sigma_m=None,
+    nbr_cooperative=None,
+    zones=None,
 ):
     """Filtered velocities (N,2); each vehicle has its own neighbour list (N,K,...), and with
     own_ids (N,) and nbr_ids (N,K) coincident neighbours are pushed apart by id (`untie`).
+    pos_sigma_m (N,), nbr_pos_sigma_m (N,K) and nbr_cooperative (N,K): `pair_radius_m`.
+    `zones` (policy.zone_lines.ZoneSet): every vehicle's nearby zone edges are hard lines.
 
     Half-planes are built for all vehicles at once; the LP runs only for the
     vehicles whose preferred velocity breaks a constraint.
@@ -366,13 +515,16 @@ def filter_padded(
     pos_m = np.asarray(pos_m, dtype=np.float64)
     vel_m_s = np.asarray(vel_m_s, dtype=np.float64)
     pref = _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
-    if nbr_valid.shape[1] == 0:
+    if nbr_valid.shape[1] == 0 and zones is None:
         return pref
+    nbr_vel_m_s = np.asarray(nbr_vel_m_s, dtype=np.float64)
     rel_pos = untie(np.asarray(nbr_pos_m, dtype=np.float64) - pos_m[:, None], own_ids, nbr_ids)
-    rel_vel = vel_m_s[:, None] - np.asarray(nbr_vel_m_s, dtype=np.float64)
-    reach = cfg.radius_m * (1 + cfg.margin) + 2.0 * cfg.max_speed_m_s * cfg.time_horizon_s
+    rel_vel = vel_m_s[:, None] - nbr_vel_m_s
+    r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
+    coop = None if nbr_cooperative is None else np.asarray(nbr_cooperative, dtype=bool)
+    reach = pair_reach_m(cfg, r, np.hypot(nbr_vel_m_s[..., 0], nbr_vel_m_s[..., 1]), coop)
     ok = np.asarray(nbr_valid, dtype=bool) & ((rel_pos**2).sum(-1) < reach * reach)
-    point, direction = orca_lines(rel_pos, rel_vel, vel_m_s, cfg)
+    point, direction = orca_lines(rel_pos, rel_vel, vel_m_s, cfg, r, share)
     viol = _det(
         direction[..., 0],
         direction[..., 1],
@@ -380,9 +532,15 @@ def filter_padded(
         point[..., 1] - pref[:, None, 1],
     )
     out = pref.copy()
-    for i in np.flatnonzero(((viol > 0) & ok).any(axis=1)):
+    need = ((viol > 0) & ok).any(axis=1)
+    hard = (
+        [()] * len(pref)
+        if zones is None
+        else zones.lines_rows(pos_m, vel_m_s, pref, need, cfg.max_speed_m_s)
+    )
+    for i in np.flatnonzero(need):
         m = ok[i]
-        out[i] = solve(point[i, m], direction[i, m], pref[i], cfg.max_speed_m_s)
+        out[i] = solve(point[i, m], direction[i, m], pref[i], cfg.max_speed_m_s, hard[i])
     return out
 
 

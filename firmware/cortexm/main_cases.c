@@ -97,7 +97,7 @@ int main(void)
     /* the filter on the same scene: every neighbour flies at us at 1 m/s, we fly north */
     const covey_safety_config_t scfg = covey_safety_defaults(cm_bench_cfg.separation_m,
                                                              cm_bench_cfg.cruise_speed_m_s);
-    const covey_track_t me = {cm_bench_own.pos_n_m, cm_bench_own.pos_e_m, 1.0f, 0.0f, 0u};
+    const covey_track_t me = {cm_bench_own.pos_n_m, cm_bench_own.pos_e_m, 1.0f, 0.0f, 0u, 0.0f, 0u};
     const float pref[2] = {1.0f, 0.0f};
     for (int32_t b = 0; b < CM_N_BENCH; ++b) {
         const int32_t k = cm_bench_k[b];

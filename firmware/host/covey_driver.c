@@ -125,7 +125,7 @@ static int run_action_case(covey_scratch_t *scratch, float *values)
 static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *tracks, int sparse)
 {
     covey_safety_config_t cfg;
-    covey_track_t own = {0.0f, 0.0f, 0.0f, 0.0f, 0u}; /* no ids in the cases: id 0 */
+    covey_track_t own = {0.0f, 0.0f, 0.0f, 0.0f, 0u, 0.0f, 0u}; /* no ids, sigmas or traffic */
     float pref[2];
     covey_goal_t goal = {0.0f, 0.0f};
     long long n_nbrs, n_rec;
@@ -138,6 +138,8 @@ static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *track
     if (!ok || n_rec < 0 || n_rec > COVEY_MAX_INPUTS) {
         return 0;
     }
+    cfg.sigma_k = 0.0f; /* the "S" lines carry no uncertainty (tests/test_safety_sky.py: ctypes) */
+    cfg.non_cooperative_radius_m = 0.0f;
     memset(tracks, 0, sizeof(covey_track_t) * COVEY_MAX_INPUTS);
     for (long long i = 0; i < n_rec; ++i) {
         if (!(read_f(&tracks[i].pos_n_m) && read_f(&tracks[i].pos_e_m) &&
