@@ -168,7 +168,7 @@ class Failsafes:
             if lost_s >= cfg.gcs_lost_hold_s and self._gcs_failsafe < 1:
                 self._gcs_failsafe = 1
                 self.flags |= StateFlag.FAILSAFE_GCS_LOST
-                if mode in (Mode.GOTO, Mode.RETURNING, Mode.TAKING_OFF):
+                if mode in (Mode.GOTO, Mode.RETURNING, Mode.TAKING_OFF, Mode.MISSION):
                     return FailsafeAction(
                         Trigger.FAILSAFE_HOLD,
                         f"no ground station for {lost_s:.0f} s: holding",
@@ -201,7 +201,7 @@ class Failsafes:
         if inside:
             self._fence_tripped = False
             self.flags &= ~StateFlag.GEOFENCE
-        elif mode is Mode.GOTO and not self._fence_tripped:
+        elif mode in (Mode.GOTO, Mode.MISSION) and not self._fence_tripped:
             self._fence_tripped = True
             self.flags |= StateFlag.GEOFENCE
             return FailsafeAction(

@@ -2,6 +2,9 @@
 transitions, and a pure `step(mode, trigger)`.
 
     LANDED -> TAKING_OFF -> HOLDING <-> GOTO -> LANDING -> LANDED, plus RETURNING
+    MISSION (an uploaded mission's items, agent/mission.py): entered by mission start (or
+    resume of a paused one) from any airborne mode; pause and abort hold in place, and every
+    command and failsafe leaves it as it leaves a goto. Mission status changes nothing anywhere.
     KILL is allowed from every state and is final for this agent process: a killed vehicle
     needs a person to look at it before it flies again (restart its agent).
 
@@ -28,6 +31,11 @@ class Trigger(enum.Enum):
     HOLD = "hold"
     RETURN = "return"
     KILL = "kill"
+    MISSION_START = "mission start"
+    MISSION_PAUSE = "mission pause"
+    MISSION_RESUME = "mission resume"
+    MISSION_ABORT = "mission abort"
+    MISSION_STATUS = "mission status"
     # Vehicle events (not from the ground station):
     REACHED_ALTITUDE = "reached_altitude"
     ARRIVED = "arrived"
@@ -35,6 +43,8 @@ class Trigger(enum.Enum):
     FAILSAFE_HOLD = "failsafe_hold"
     FAILSAFE_LAND = "failsafe_land"
     FAILSAFE_RETURN = "failsafe_return"
+    MISSION_DONE = "mission_done"
+    """The mission's last item is done (a land or return item ends it in that mode instead)."""
 
 
 COMMAND_TRIGGERS: dict[CommandKind, Trigger] = {
@@ -45,10 +55,15 @@ COMMAND_TRIGGERS: dict[CommandKind, Trigger] = {
     CommandKind.HOLD: Trigger.HOLD,
     CommandKind.RETURN: Trigger.RETURN,
     CommandKind.KILL: Trigger.KILL,
+    CommandKind.MISSION_START: Trigger.MISSION_START,
+    CommandKind.MISSION_PAUSE: Trigger.MISSION_PAUSE,
+    CommandKind.MISSION_RESUME: Trigger.MISSION_RESUME,
+    CommandKind.MISSION_ABORT: Trigger.MISSION_ABORT,
+    CommandKind.MISSION_STATUS: Trigger.MISSION_STATUS,
 }
 
 M, T = Mode, Trigger
-AIRBORNE = frozenset({M.TAKING_OFF, M.HOLDING, M.GOTO, M.LANDING, M.RETURNING})
+AIRBORNE = frozenset({M.TAKING_OFF, M.HOLDING, M.GOTO, M.LANDING, M.RETURNING, M.MISSION})
 
 # (mode, trigger) -> next mode. Anything missing is rejected (see REJECT_REASONS).
 TRANSITIONS: dict[tuple[Mode, Trigger], Mode] = {
@@ -79,15 +94,32 @@ TRANSITIONS: dict[tuple[Mode, Trigger], Mode] = {
     (M.LANDING, T.HOLD): M.HOLDING,
     (M.LANDING, T.GOTO): M.GOTO,
     (M.LANDING, T.TAKEOFF): M.TAKING_OFF,
+    (M.MISSION, T.HOLD): M.HOLDING,
+    (M.MISSION, T.GOTO): M.GOTO,
+    (M.MISSION, T.LAND): M.LANDING,
+    (M.MISSION, T.RETURN): M.RETURNING,
+    (M.MISSION, T.MISSION_PAUSE): M.HOLDING,
+    (M.MISSION, T.MISSION_RESUME): M.MISSION,
+    (M.MISSION, T.MISSION_DONE): M.HOLDING,
+    (M.HOLDING, T.MISSION_PAUSE): M.HOLDING,
+    (M.HOLDING, T.MISSION_RESUME): M.MISSION,
 }
+# Start (again, from item 1) from any airborne mode; the flight core refuses it without a mission.
+for _mode in AIRBORNE:
+    TRANSITIONS[(_mode, T.MISSION_START)] = M.MISSION
+# Abort holds a vehicle flying a mission and changes nothing elsewhere (a fleet-wide abort must
+# not stop a return or a landing); status changes nothing anywhere.
+for _mode in Mode:
+    TRANSITIONS[(_mode, T.MISSION_ABORT)] = M.HOLDING if _mode is M.MISSION else _mode
+    TRANSITIONS[(_mode, T.MISSION_STATUS)] = _mode
 for _mode in Mode:
     if _mode is not M.KILLED:
         TRANSITIONS[(_mode, T.KILL)] = M.KILLED
-for _mode in (M.TAKING_OFF, M.GOTO, M.RETURNING):
+for _mode in (M.TAKING_OFF, M.GOTO, M.RETURNING, M.MISSION):
     TRANSITIONS[(_mode, T.FAILSAFE_HOLD)] = M.HOLDING
 for _mode in AIRBORNE - {M.LANDING}:
     TRANSITIONS[(_mode, T.FAILSAFE_LAND)] = M.LANDING
-for _mode in (M.TAKING_OFF, M.HOLDING, M.GOTO):
+for _mode in (M.TAKING_OFF, M.HOLDING, M.GOTO, M.MISSION):
     TRANSITIONS[(_mode, T.FAILSAFE_RETURN)] = M.RETURNING
 TRANSITIONS[(M.KILLED, T.KILL)] = M.KILLED  # killing twice is harmless
 TRANSITIONS[(M.KILLED, T.TOUCHED_DOWN)] = M.KILLED

@@ -57,6 +57,7 @@ from comms.schema import (
     CommandAck,
     Event,
     GuidanceTrace,
+    Mission,
     PlanMessage,
     Role,
     Roster,
@@ -211,21 +212,37 @@ class FleetAuth:
     # -- commands --------------------------------------------------------------------------------
     def sign_command(self, cmd: Command) -> Command:
         """Stamp `cmd` with now, give it a nonce if it has none, name this station, and sign it."""
+        return self._sign_request(cmd, "cmd")
+
+    def sign_mission(self, mission: Mission) -> Mission:
+        """As `sign_command`, for a mission upload (its own signature label: a mission's bytes
+        can never pass as a command's, nor the other way)."""
+        return self._sign_request(mission, "mission")
+
+    def _sign_request(self, msg, label: str):
         if self.role is not Role.STATION:
             raise FleetKeyError(f"this is {self.key.name}'s key: only a station key signs commands")
-        nonce = cmd.nonce
+        nonce = msg.nonce
         while not nonce:
             nonce = self._rng(64)
         stamped = dataclasses.replace(
-            cmd, nonce=nonce, stamp_ns=self.clock_ns(), source_id=self.member_id, tag=_NO_TAG
+            msg, nonce=nonce, stamp_ns=self.clock_ns(), source_id=self.member_id, tag=_NO_TAG
         )
-        return dataclasses.replace(stamped, tag=self._sign("cmd", stamped.signed_bytes()))
+        return dataclasses.replace(stamped, tag=self._sign(label, stamped.signed_bytes()))
 
     def check_command(self, cmd: Command, vehicle_id: int) -> str | None:
         """None if `cmd` may be executed by `vehicle_id`, else why not (for the ack)."""
         reason = self._check_command(cmd, vehicle_id)
         if reason is not None:
             self.refuse(cmd, vehicle_id, reason)
+        return reason
+
+    def check_mission(self, mission: Mission, vehicle_id: int) -> str | None:
+        """As `check_command`, for a mission upload: the same checks in the same order (signed,
+        a roster station's, fresh, never seen), sharing the command replay cache."""
+        reason = self._check_command(mission, vehicle_id, "mission")
+        if reason is not None:
+            self.refuse(mission, vehicle_id, reason)
         return reason
 
     def refuse(self, cmd: Command, vehicle_id: int, reason: str) -> None:
@@ -245,14 +262,15 @@ class FleetAuth:
             except Exception:  # noqa: BLE001 - a listener bug must not turn a refusal into a crash
                 log.exception("on_reject listener failed")
 
-    def verify_command(self, cmd: Command) -> str | None:
+    def verify_command(self, cmd: Command | Mission, label: str = "cmd") -> str | None:
         """None if `cmd` is signed by a station of the roster and fresh, else why not: the
         checks a vehicle makes before its replay cache, which this leaves untouched (for an
-        observer, such as a station's command log, that executes nothing)."""
+        observer, such as a station's command log, that executes nothing). `label`: "mission"
+        for a Mission."""
         if cmd.tag == _NO_TAG:
             return "unsigned command: this vehicle requires commands signed by a fleet station"
         problem = self.check_signature(
-            Role.STATION, cmd.source_id, "cmd", cmd.signed_bytes(), cmd.tag
+            Role.STATION, cmd.source_id, label, cmd.signed_bytes(), cmd.tag
         )
         if problem:
             return problem
@@ -267,8 +285,10 @@ class FleetAuth:
             )
         return None
 
-    def _check_command(self, cmd: Command, vehicle_id: int) -> str | None:
-        problem = self.verify_command(cmd)
+    def _check_command(
+        self, cmd: Command | Mission, vehicle_id: int, label: str = "cmd"
+    ) -> str | None:
+        problem = self.verify_command(cmd, label)
         if problem:
             return problem
         now = self.clock_ns()

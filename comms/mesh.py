@@ -41,7 +41,9 @@ from comms.schema import (
     Event,
     FeedBatch,
     GuidanceTrace,
+    Mission,
     Mode,
+    MsgType,
     Roster,
     VehicleState,
 )
@@ -55,6 +57,8 @@ FeedCallback = Callable[[VehicleState, int, int], None]
 """Called with (state, receive stamp in ns, its entry number in its feed) on a Zenoh thread."""
 EventCallback = Callable[[Event, int], None]
 CommandHandler = Callable[[Command], CommandAck]
+MissionHandler = Callable[[Mission], CommandAck]
+"""Answers a mission upload that passed the command checks (agent/mission.py loads it)."""
 RefusedCallback = Callable[[int, str, int], None]
 """Called with (claimed vehicle id, refusal cause, receive stamp in ns) for a refused state."""
 
@@ -481,7 +485,13 @@ class Mesh:
 
     # -- commands --------------------------------------------------------------------------
     def serve_commands(
-        self, vehicle_id: int, handler: CommandHandler, *, auth: Any = None, polled: bool = False
+        self,
+        vehicle_id: int,
+        handler: CommandHandler,
+        *,
+        auth: Any = None,
+        polled: bool = False,
+        on_mission: MissionHandler | None = None,
     ) -> Any:
         """Answer commands for `vehicle_id`; `handler` returns the ack (never raise from it:
         an exception becomes a FAILED ack with the exception text). `auth`: that vehicle's own
@@ -492,7 +502,10 @@ class Mesh:
         on the caller's own thread. A process of many vehicles answers from its tick loop: a
         command to all then costs no thread wake-ups, where a callback queryable is one Zenoh
         handler thread per vehicle, all woken at once (docs/scaling.md). Otherwise the answer
-        is given at once, on that handler thread."""
+        is given at once, on that handler thread.
+
+        A Mission uploaded on the same key passes the same checks (`auth.check_mission`) and
+        goes to `on_mission`; without one it is refused ("does not fly missions")."""
         reply_key = keys.cmd(self.fleet, vehicle_id)
         auth = auth if auth is not None else self.auth
         ack_key = keys.ack(self.fleet, vehicle_id)
@@ -503,7 +516,8 @@ class Mesh:
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             try:
-                command = Command.decode(payload)
+                is_mission = payload[:1] == bytes([MsgType.MISSION])
+                command = (Mission if is_mission else Command).decode(payload)
             except DecodeError as exc:
                 self._bad(reply_key, exc)
                 answer = ack(0, AckResult.REJECTED, f"malformed command: {exc}")
@@ -520,12 +534,23 @@ class Mesh:
                     self._answer(query, reply_key, ack_key, answer, payload, auth)
                     return
                 self.stats.bump("commands_served")
-                problem = auth.check_command(command, vehicle_id) if auth is not None else None
+                check = (
+                    None
+                    if auth is None
+                    else auth.check_mission
+                    if is_mission
+                    else auth.check_command
+                )
+                problem = check(command, vehicle_id) if check is not None else None
                 if problem:
                     answer = ack(command.nonce, AckResult.REJECTED, problem)
+                elif is_mission and on_mission is None:
+                    answer = ack(
+                        command.nonce, AckResult.REJECTED, "this vehicle does not fly missions"
+                    )
                 else:
                     try:
-                        answer = handler(command)
+                        answer = on_mission(command) if is_mission else handler(command)
                     except Exception as exc:  # noqa: BLE001 - a handler bug must not kill the agent
                         log.exception("command handler failed")
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
@@ -572,6 +597,8 @@ class Mesh:
         def on_query(query: zenoh.Query) -> None:
             recv_ns = self.clock_ns()
             payload = query.payload.to_bytes() if query.payload else b""
+            if payload[:1] == bytes([MsgType.MISSION]):
+                return  # a mission upload: the log lists commands (its acks still arrive)
             try:
                 command = Command.decode(payload)
             except DecodeError as exc:
@@ -595,7 +622,7 @@ class Mesh:
 
     def send_command(
         self,
-        command: Command,
+        command: Command | Mission,
         *,
         expect: Iterable[int] | None = None,
         timeout_s: float = 2.0,
@@ -604,11 +631,15 @@ class Mesh:
 
         `expect`: the vehicles that should answer (default: `command.targets`). A vehicle in it
         that does not answer in time is reported as TIMEOUT. Answers from others are kept too.
+        A Mission goes the same way (an upload, acked per vehicle), signed as a mission.
         """
         if not 0.0 < timeout_s <= 60.0:
             raise ValueError(f"timeout_s={timeout_s} must be within (0, 60]")
         if self.auth is not None:
-            command = self.auth.sign_command(command)
+            sign = (
+                self.auth.sign_mission if isinstance(command, Mission) else self.auth.sign_command
+            )
+            command = sign(command)
         payload = command.encode()
         digest = command_digest(payload)
         expected = set(command.targets if expect is None else expect)

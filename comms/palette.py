@@ -15,6 +15,7 @@ MODE_RGB: dict[Mode, tuple[int, int, int]] = {
     Mode.LANDING: (235, 140, 0),
     Mode.RETURNING: (150, 60, 200),
     Mode.KILLED: (20, 20, 20),
+    Mode.MISSION: (0, 150, 140),
 }
 UNKNOWN_RGB = (190, 190, 190)
 LOST_RGB = (200, 200, 200)

@@ -7,9 +7,10 @@ out-of-range fields. Nothing else escapes a decoder.
 
 Layouts (all little-endian, packed; `<` struct codes):
 
-    VehicleState  type 1 v1  <BBHIQ3f3ff3fBBHf [+ 64s]  64 bytes, 128 signed
+    VehicleState  type 1 v2  <BBHIQ3f3ff3fBBHfBB [+ 64s]  66 bytes, 130 signed
         type, version, vehicle_id, seq, stamp_ns, pos_ned_m[3], vel_ned_m_s[3], heading_rad,
-        goal_ned_m[3], mode, armed, flags, battery_pct, [sig: Ed25519 of vehicle_id]
+        goal_ned_m[3], mode, armed, flags, battery_pct, mission_item, mission_items,
+        [sig: Ed25519 of vehicle_id]   (v1, without the mission progress, is refused)
     Command       type 2 v2  <BBQQHB3dIH + n*H + 64s  header 51 bytes + 2 per target + 64 tag
         type, version, nonce, stamp_ns, source_id, kind, params[3] (float64), seq, n_targets,
         targets[n_targets] (empty = the whole fleet), tag (Ed25519 of station source_id, or
@@ -39,6 +40,12 @@ Layouts (all little-endian, packed; `<` struct codes):
         none), n + n*<dd vertices (north, east m); each zone: <B name length, name (utf-8), then
         as the fence; each rally point: <dddB north, east, alt m, name length, name; sig (the
         signer's Ed25519; zeros in open mode). `PlanMessage.peek` reads the header alone
+    Mission       type 10 v1 <BBQQHIIHH + n*H + k*<BBddfff + 64s  34 + 2 per target + 30 per
+                                                             item + 64, at most MAX_MISSION_BYTES
+        type, version, nonce, stamp_ns, source_id, mission_id, mission_version, n_targets,
+        n_items, targets[n], items[k] (kind, frame, x, y (float64: north_m/east_m or
+        lat_deg/lon_deg), alt_m (up: above the origin for LOCAL, AMSL for GLOBAL), speed_m_s
+        (0: cruise), hold_s), tag (Ed25519 of station source_id, as a Command's)
 
 Signatures are made and checked in comms/auth.py; this module only carries their bytes.
 """
@@ -112,6 +119,7 @@ class MsgType(enum.IntEnum):
     GUIDANCE_TRACE = 6
     FEED_BATCH = 7
     STATION_HEARTBEAT = 8
+    MISSION = 10
     PLAN = 11
 
 
@@ -134,6 +142,8 @@ class Mode(enum.IntEnum):
     LANDING = 4
     RETURNING = 5
     KILLED = 6
+    MISSION = 7
+    """Flying an uploaded mission's items (agent/mission.py)."""
 
 
 class StateFlag(enum.IntFlag):
@@ -159,6 +169,16 @@ class CommandKind(enum.IntEnum):
     HOLD = 5
     RETURN = 6
     KILL = 7
+    MISSION_START = 8
+    """Fly the uploaded mission from its first item."""
+    MISSION_PAUSE = 9
+    """Hold in place; the mission waits at its current item."""
+    MISSION_RESUME = 10
+    """Continue a paused mission's current item."""
+    MISSION_ABORT = 11
+    """Hold in place and drop the mission's progress (start flies it from item 1 again)."""
+    MISSION_STATUS = 12
+    """Change nothing; the ack's reason says the vehicle's mission and progress."""
 
 
 class AckResult(enum.IntEnum):
@@ -277,9 +297,16 @@ class VehicleState:
     """Where guidance is flying to; meaningful only with StateFlag.HAS_GOAL."""
     sig: bytes = b""
     """Ed25519 signature of the vehicle over `signed_bytes()` (comms/auth.py); empty: unsigned."""
+    mission_item: int = 0
+    """The mission item being flown, from 1 (agent/mission.py); 0: none (no mission, not
+    started, aborted); mission_items + 1: the mission is done."""
+    mission_items: int = 0
+    """How many items the vehicle's mission has (0: no mission)."""
 
     TYPE: ClassVar[MsgType] = MsgType.VEHICLE_STATE
-    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ3f3ff3fBBHf")
+    VERSION: ClassVar[int] = 2
+    """v2 added the mission progress (issue 36)."""
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ3f3ff3fBBHfBB")
 
     def validate(self) -> None:
         """Raise DecodeError with the reason unless every field is within its limits. The first
@@ -311,6 +338,8 @@ class VehicleState:
             and self.mode in _MODE_VALUES
             and not int(self.flags) & ~0xFF
             and len(self.sig) in (0, TAG_BYTES)
+            and 0 <= self.mission_items <= MAX_MISSION_ITEMS
+            and 0 <= self.mission_item <= self.mission_items + 1
         ):
             return
         self._validate_reasoned()
@@ -336,13 +365,21 @@ class VehicleState:
         _enum(Mode, "mode", int(self.mode))
         if int(self.flags) & ~0xFF:
             raise DecodeError(f"flags={int(self.flags):#x} has unknown bits")
+        if not 0 <= self.mission_items <= MAX_MISSION_ITEMS:
+            raise DecodeError(
+                f"mission_items={self.mission_items} is outside [0, {MAX_MISSION_ITEMS}]"
+            )
+        if not 0 <= self.mission_item <= self.mission_items + 1:
+            raise DecodeError(
+                f"mission_item={self.mission_item} is outside [0, {self.mission_items + 1}]"
+            )
         _check_sig(self.sig)
 
     def signed_bytes(self) -> bytes:
         """Every byte that the signature covers (the whole state but the signature)."""
         return self._FMT.pack(
             self.TYPE,
-            SCHEMA_VERSION,
+            self.VERSION,
             self.vehicle_id,
             self.seq,
             self.stamp_ns,
@@ -354,6 +391,8 @@ class VehicleState:
             int(self.armed),
             int(self.flags),
             self.battery_pct,
+            self.mission_item,
+            self.mission_items,
         )
 
     def encode(self) -> bytes:
@@ -362,7 +401,7 @@ class VehicleState:
 
     @classmethod
     def decode(cls, data: bytes) -> VehicleState:
-        _header(data, cls.TYPE)
+        _header(data, cls.TYPE, cls.VERSION)
         if len(data) not in (cls._FMT.size, cls._FMT.size + TAG_BYTES):
             raise DecodeError(
                 f"VehicleState must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), got {len(data)}"
@@ -386,6 +425,8 @@ class VehicleState:
             flags=StateFlag(f[17]),
             battery_pct=f[18],
             sig=data[cls._FMT.size :],
+            mission_item=f[19],
+            mission_items=f[20],
         )
         msg.validate()
         return msg
@@ -1133,6 +1174,217 @@ class RosterHead:
     sig: bytes
 
 
+MAX_MISSION_ITEMS = 100
+"""The most items one mission holds (QGC plans of a few dozen are usual)."""
+MAX_MISSION_BYTES = 4096
+"""The largest Mission on the wire: the routers' message size limit (comms/zenoh_configs/). A
+mission for more vehicles than fit is sent as several (groundstation/mission_cli.py)."""
+MISSION_SPEED_RANGE_M_S = (0.0, 100.0)
+MISSION_HOLD_RANGE_S = (0.0, 3600.0)
+
+
+class MissionItemKind(enum.IntEnum):
+    """What one mission item asks (QGC's MAV_CMD in brackets)."""
+
+    WAYPOINT = 1
+    """Fly to a position, then wait `hold_s` there (NAV_WAYPOINT 16, NAV_LOITER_TIME 19)."""
+    TAKEOFF = 2
+    """Climb to `alt_m` where the vehicle is (NAV_TAKEOFF 22; an airborne vehicle climbs)."""
+    HOLD = 3
+    """Hold where the vehicle is for `hold_s`."""
+    LAND = 4
+    """Land where the vehicle is; the mission ends (NAV_LAND 21)."""
+    RETURN = 5
+    """Return home and land; the mission ends (NAV_RETURN_TO_LAUNCH 20)."""
+
+
+class MissionFrame(enum.IntEnum):
+    """How a mission item's position reads."""
+
+    LOCAL = 0
+    """x, y: metres north and east of the fleet origin; alt_m above the origin (up)."""
+    GLOBAL = 1
+    """x, y: WGS-84 latitude and longitude in degrees; alt_m above mean sea level."""
+
+
+_POSITIONED = frozenset({MissionItemKind.WAYPOINT, MissionItemKind.TAKEOFF})
+
+
+@dataclass(frozen=True)
+class MissionItem:
+    """One item of a mission. Unused fields are 0 (a TAKEOFF uses alt_m only, LAND and RETURN
+    none, HOLD hold_s only)."""
+
+    kind: MissionItemKind
+    frame: MissionFrame = MissionFrame.LOCAL
+    x: float = 0.0
+    """North metres (LOCAL) or latitude degrees (GLOBAL)."""
+    y: float = 0.0
+    """East metres (LOCAL) or longitude degrees (GLOBAL)."""
+    alt_m: float = 0.0
+    """Altitude, up: above the fleet origin (LOCAL) or above mean sea level (GLOBAL)."""
+    speed_m_s: float = 0.0
+    """Horizontal speed on the way to this item; 0: the guidance's cruise speed."""
+    hold_s: float = 0.0
+    """Seconds to wait once there (WAYPOINT, HOLD)."""
+
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBddfff")
+
+    def validate(self, i: int = 0) -> None:
+        where = f"mission item {i + 1}"
+        kind = _enum(MissionItemKind, f"{where} kind", int(self.kind))
+        frame = _enum(MissionFrame, f"{where} frame", int(self.frame))
+        _check_finite(where, self.x, self.y, self.alt_m, self.speed_m_s, self.hold_s)
+        _check_range(f"{where} speed_m_s", self.speed_m_s, *MISSION_SPEED_RANGE_M_S)
+        _check_range(f"{where} hold_s", self.hold_s, *MISSION_HOLD_RANGE_S)
+        if kind is MissionItemKind.WAYPOINT:
+            if frame is MissionFrame.GLOBAL:
+                _check_range(f"{where} lat_deg", self.x, -90.0, 90.0)
+                _check_range(f"{where} lon_deg", self.y, -180.0, 180.0)
+                _check_range(f"{where} alt_m", self.alt_m, *GLOBAL_ALT_RANGE_M)
+            else:
+                lim = LOCAL_HORIZONTAL_LIMIT_M
+                _check_range(f"{where} north_m", self.x, -lim, lim)
+                _check_range(f"{where} east_m", self.y, -lim, lim)
+                _check_range(
+                    f"{where} alt_m", self.alt_m, -LOCAL_DOWN_RANGE_M[1], -LOCAL_DOWN_RANGE_M[0]
+                )
+            return
+        if frame is not MissionFrame.LOCAL or self.x or self.y or self.speed_m_s:
+            raise DecodeError(f"{where}: a {kind.name} has no position or speed (keep them 0)")
+        if kind is MissionItemKind.TAKEOFF:
+            _check_range(f"{where} takeoff alt_m", self.alt_m, *TAKEOFF_ALT_RANGE_M)
+        elif self.alt_m:
+            raise DecodeError(f"{where}: a {kind.name} has no altitude (keep it 0)")
+        if kind in (MissionItemKind.LAND, MissionItemKind.RETURN) and self.hold_s:
+            raise DecodeError(f"{where}: a {kind.name} has no hold time (keep it 0)")
+
+    def pack(self) -> bytes:
+        return self._FMT.pack(
+            int(self.kind), int(self.frame), self.x, self.y, self.alt_m, self.speed_m_s, self.hold_s
+        )
+
+
+@dataclass(frozen=True)
+class Mission:
+    """A route for one vehicle, several, or the fleet: uploaded like a command (one query,
+    `Mesh.send_command`), signed like one by a roster station (comms/auth.py `sign_mission`),
+    answered by each vehicle with a CommandAck that says why when it is refused."""
+
+    nonce: int
+    stamp_ns: int
+    items: tuple[MissionItem, ...]
+    """1..MAX_MISSION_ITEMS items, flown in order."""
+    mission_id: int = 1
+    """The operator's number for this mission (shown in progress and events)."""
+    mission_version: int = 1
+    """Its revision (a re-upload of an edited mission)."""
+    targets: tuple[int, ...] = ()
+    """Vehicle ids this mission is for; empty means every vehicle of the fleet."""
+    source_id: int = 0
+    """Who sent it (a ground station id); part of the signed bytes."""
+    tag: bytes = bytes(TAG_BYTES)
+    """Ed25519 signature of station `source_id`; zeros in open mode."""
+
+    TYPE: ClassVar[MsgType] = MsgType.MISSION
+    VERSION: ClassVar[int] = SCHEMA_VERSION
+    kind: ClassVar[str] = "MISSION"
+    """What logs and refusals call it (a Command's kind is its CommandKind)."""
+    _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBQQHIIHH")
+
+    @classmethod
+    def size(cls, n_targets: int, n_items: int) -> int:
+        """Wire bytes of a mission with these counts (the signature included)."""
+        return cls._HEAD.size + 2 * n_targets + MissionItem._FMT.size * n_items + TAG_BYTES
+
+    def applies_to(self, vehicle_id: int) -> bool:
+        return not self.targets or vehicle_id in self.targets
+
+    def validate(self) -> None:
+        if not 0 <= self.nonce < 2**64 or not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError("nonce and stamp_ns must fit 64 bits")
+        _check_vehicle_id("source_id", self.source_id, allow_zero=True)
+        for name, v in (("mission_id", self.mission_id), ("mission_version", self.mission_version)):
+            if not 0 <= v < 2**32:
+                raise DecodeError(f"{name}={v} does not fit 32 bits")
+        if len(set(self.targets)) != len(self.targets):
+            raise DecodeError("targets contain duplicates")
+        for t in self.targets:
+            _check_vehicle_id("target", t)
+        if not 1 <= len(self.items) <= MAX_MISSION_ITEMS:
+            raise DecodeError(f"{len(self.items)} mission items, must be 1..{MAX_MISSION_ITEMS}")
+        size = self.size(len(self.targets), len(self.items))
+        if size > MAX_MISSION_BYTES:
+            raise DecodeError(f"Mission of {size} bytes, at most {MAX_MISSION_BYTES}")
+        for i, item in enumerate(self.items):
+            item.validate(i)
+        if len(self.tag) != TAG_BYTES:
+            raise DecodeError(f"tag must be {TAG_BYTES} bytes, got {len(self.tag)}")
+
+    def signed_bytes(self) -> bytes:
+        """Every byte that the tag covers."""
+        head = self._HEAD.pack(
+            self.TYPE,
+            self.VERSION,
+            self.nonce,
+            self.stamp_ns,
+            self.source_id,
+            self.mission_id,
+            self.mission_version,
+            len(self.targets),
+            len(self.items),
+        )
+        targets = struct.pack(f"<{len(self.targets)}H", *self.targets)
+        return head + targets + b"".join(item.pack() for item in self.items)
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.tag
+
+    @classmethod
+    def decode(cls, data: bytes) -> Mission:
+        if len(data) > MAX_MISSION_BYTES:
+            raise DecodeError(f"Mission of {len(data)} bytes, at most {MAX_MISSION_BYTES}")
+        _header(data, cls.TYPE, cls.VERSION)
+        if len(data) < cls._HEAD.size + TAG_BYTES:
+            raise DecodeError(f"Mission too short: {len(data)} bytes")
+        f = cls._HEAD.unpack_from(data)
+        n_targets, n_items = f[7], f[8]
+        if not 1 <= n_items <= MAX_MISSION_ITEMS:
+            raise DecodeError(f"{n_items} mission items, must be 1..{MAX_MISSION_ITEMS}")
+        expected = cls.size(n_targets, n_items)
+        if len(data) != expected:
+            raise DecodeError(
+                f"Mission with {n_targets} targets and {n_items} items must be {expected} "
+                f"bytes, got {len(data)}"
+            )
+        at = cls._HEAD.size
+        targets = struct.unpack_from(f"<{n_targets}H", data, at)
+        at += 2 * n_targets
+        items = []
+        for k in range(n_items):
+            g = MissionItem._FMT.unpack_from(data, at + k * MissionItem._FMT.size)
+            items.append(
+                MissionItem(
+                    _enum(MissionItemKind, f"mission item {k + 1} kind", g[0]),  # type: ignore[arg-type]
+                    _enum(MissionFrame, f"mission item {k + 1} frame", g[1]),  # type: ignore[arg-type]
+                    *g[2:],
+                )
+            )
+        msg = cls(
+            nonce=f[2],
+            stamp_ns=f[3],
+            source_id=f[4],
+            mission_id=f[5],
+            mission_version=f[6],
+            targets=targets,
+            items=tuple(items),
+            tag=data[-TAG_BYTES:],
+        )
+        msg.validate()
+        return msg
+
+
 MAX_PLAN_BYTES = (
     (51 + 18 + MAX_ZONES * (1 + MAX_NAME_BYTES + 18) + MAX_RALLY_POINTS * (25 + MAX_NAME_BYTES))
     + 16 * MAX_PLAN_VERTICES
@@ -1345,6 +1597,7 @@ Message = (
     | GuidanceTrace
     | FeedBatch
     | StationHeartbeat
+    | Mission
     | PlanMessage
 )
 _DECODERS: dict[int, type] = {
@@ -1356,6 +1609,7 @@ _DECODERS: dict[int, type] = {
     MsgType.GUIDANCE_TRACE: GuidanceTrace,
     MsgType.FEED_BATCH: FeedBatch,
     MsgType.STATION_HEARTBEAT: StationHeartbeat,
+    MsgType.MISSION: Mission,
     MsgType.PLAN: PlanMessage,
 }
 
@@ -1390,6 +1644,10 @@ __all__ = [
     "GuidanceTrace",
     "Member",
     "Message",
+    "Mission",
+    "MissionFrame",
+    "MissionItem",
+    "MissionItemKind",
     "Mode",
     "MsgType",
     "PlanHead",

@@ -36,6 +36,8 @@ _DTYPE = np.dtype(
         ("armed", "u1"),
         ("flags", "<u2"),
         ("battery", "<f4"),
+        ("mission_item", "u1"),
+        ("mission_items", "u1"),
     ]
 )
 _SIZE = schema.VehicleState._FMT.size
@@ -92,7 +94,7 @@ def _valid(a: np.ndarray) -> np.ndarray:
 
 
 def _checks(a: np.ndarray) -> np.ndarray:
-    ok = (a["type"] == schema.MsgType.VEHICLE_STATE) & (a["version"] == schema.SCHEMA_VERSION)
+    ok = (a["type"] == schema.MsgType.VEHICLE_STATE) & (a["version"] == schema.VehicleState.VERSION)
     ok &= (a["vehicle_id"] >= 1) & (a["vehicle_id"] <= schema.MAX_VEHICLE_ID)
     ok &= _within(a["pos"], schema.POSITION_LIMIT_M) & _within(a["goal"], schema.POSITION_LIMIT_M)
     ok &= _within(a["vel"], schema.SPEED_LIMIT_M_S)
@@ -101,6 +103,8 @@ def _checks(a: np.ndarray) -> np.ndarray:
     ok &= np.isfinite(battery) & (battery >= 0.0) & (battery <= 100.0)
     ok &= np.isin(a["mode"], [int(m) for m in schema.Mode])
     ok &= (a["armed"] <= 1) & (a["flags"] <= 0xFF)
+    n_items = a["mission_items"].astype(np.int64)
+    ok &= (n_items <= schema.MAX_MISSION_ITEMS) & (a["mission_item"] <= n_items + 1)
     return ok
 
 

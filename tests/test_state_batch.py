@@ -19,7 +19,7 @@ F32_2PI = float(np.float32(2 * math.pi))  # the float32 nearest 2*pi lies above 
 def _fields(rng: random.Random) -> list:
     return [
         schema.MsgType.VEHICLE_STATE,
-        schema.SCHEMA_VERSION,
+        schema.VehicleState.VERSION,
         rng.randint(1, schema.MAX_VEHICLE_ID),
         rng.randint(0, 2**32 - 1),
         rng.randint(0, 2**64 - 1),
@@ -31,6 +31,7 @@ def _fields(rng: random.Random) -> list:
         rng.randint(0, 1),
         rng.randint(0, 0xFF),
         rng.uniform(0, 100),
+        *((k := rng.randint(0, 7)), rng.randint(max(0, k - 1), 9)),  # mission item, items
     ]
 
 
@@ -46,6 +47,8 @@ EDGES = {  # field index -> values around its limits
     16: [0, 1, 2, 255],
     17: [0xFF, 0x100, 0xFFFF],
     18: [0.0, 100.0, -0.0, 100.00001, -1e-7, math.nan],
+    19: [0, 10, 11, 255],
+    20: [0, 100, 101, 255],
 }
 
 
