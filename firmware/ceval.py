@@ -38,7 +38,24 @@ class COnboardFleet:
             t = self._ticks[vid] = self.policy.onboard(self.decision_period_s)
         return t
 
-    def __call__(self, ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid):
+    uses_sigma = True
+    """policy.evalsim passes the position uncertainties (covey_guidance_step_sky)."""
+
+    def __call__(
+        self,
+        ids,
+        t_s,
+        pos,
+        vel,
+        heading,
+        goal,
+        nbr_pos,
+        nbr_vel,
+        nbr_heading,
+        nbr_valid,
+        pos_sigma_m=None,
+        nbr_pos_sigma_m=None,
+    ):
         out = np.zeros((len(ids), 2))
         for row, vid in enumerate(np.asarray(ids).tolist()):
             m = np.flatnonzero(nbr_valid[row])
@@ -54,6 +71,8 @@ class COnboardFleet:
                 nbr_vel[row, m],
                 nbr_heading[row, m],
                 t_s,
+                pos_sigma_m=0.0 if pos_sigma_m is None else float(pos_sigma_m[row]),
+                nbr_pos_sigma_m=None if nbr_pos_sigma_m is None else nbr_pos_sigma_m[row, m],
             )
             if r.status != "ok":
                 raise RuntimeError(
@@ -67,12 +86,19 @@ def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
     """The `c+filter` controller: the C policy with the C filter at policy+filter's settings
     (`safety_cfg`, policy.safety.SafetyConfig: it keeps 3 m, as policy+filter does)."""
     from firmware.cpolicy import CPolicy
+    from policy.pointmass import VehicleModel
     from policy.runtime import told_separation_m
 
+    inflation_m = 0.0
+    if cfg.tell_inflation:
+        sigma_m = VehicleModel.named(cfg.vehicles).drift_m
+        inflation_m = policy_eval.inflation_told_m(safety_cfg, sigma_m)
     cpol = CPolicy.load(
         cfg.weights,
         separation_m=safety_cfg.radius_m,
-        policy_separation_m=told_separation_m(safety_cfg.radius_m, True, cfg.policy_separation_m),
+        policy_separation_m=told_separation_m(
+            safety_cfg.radius_m, True, cfg.policy_separation_m, inflation_m
+        ),
         max_neighbours=cfg.max_neighbours,
         safety_cfg=safety_cfg,
         sparse_rule=cfg.sparse_rule,

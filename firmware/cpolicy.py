@@ -189,9 +189,29 @@ class CPolicy:
         )
         return float(self._lib.covey_trained_period_s(ctypes.byref(cfg)))
 
-    def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s) -> np.ndarray:
-        """The C safety filter alone (world units); raises ValueError on a fault."""
-        return self._filter(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
+    def filter(
+        self,
+        pos_m,
+        vel_m_s,
+        pref_vel_m_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+    ) -> np.ndarray:
+        """The C safety filter alone (world units); raises ValueError on a fault.
+        Uncertainties and cooperative flags as `command` takes them."""
+        return self._filter(
+            pos_m,
+            vel_m_s,
+            pref_vel_m_s,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            pos_sigma_m=pos_sigma_m,
+            nbr_pos_sigma_m=nbr_pos_sigma_m,
+            nbr_cooperative=nbr_cooperative,
+        )
 
     def onboard(self, decision_period_s: float | None = None) -> csafety.COnboard:
         """One vehicle's guidance tick (covey_guidance_step) with its own hold state;
@@ -269,13 +289,19 @@ class CPolicy:
         now_s=None,
         stamp_s=None,
         nbr_stamp_s=None,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ) -> np.ndarray:
         """Velocity command (2,) in m/s (north, east); raises CPolicyError on a fault.
 
         With the filter on, it sees the neighbours the network kept fresh (stale ones dropped).
-        For the decision hold, hold `preferred` and `filter` it every tick (`onboard()` does)."""
+        For the decision hold, hold `preferred` and `filter` it every tick (`onboard()` does).
+        pos_sigma_m, nbr_pos_sigma_m (K,) and nbr_cooperative (K,): as
+        GuidancePolicy.command takes them (the C filter's covey_track_t fields)."""
         args = (pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
-        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=True)
+        sky = _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_pos_m)
+        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=True, sky=sky)
 
     def preferred(
         self,
@@ -289,11 +315,15 @@ class CPolicy:
         now_s=None,
         stamp_s=None,
         nbr_stamp_s=None,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ) -> np.ndarray:
         """GuidancePolicy.preferred in C: the velocity to hold for one decision period (the
         network's, or the sparse rule's straight line), not yet filtered."""
         args = (pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
-        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=False)
+        sky = _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_pos_m)
+        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=False, sky=sky)
 
     def _command(
         self,
@@ -308,6 +338,7 @@ class CPolicy:
         stamp_s,
         nbr_stamp_s,
         filtered: bool,
+        sky: dict,
     ) -> np.ndarray:
         r = self.evaluate(
             pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s, stamp_s, nbr_stamp_s
@@ -322,15 +353,18 @@ class CPolicy:
             age_s = now_s - np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
             fresh = age_s * 1e6 <= self._cfg.max_neighbour_age_us
             nbr_pos, nbr_vel = nbr_pos[fresh], nbr_vel[fresh]
+            for key in ("nbr_pos_sigma_m", "nbr_cooperative"):
+                if sky[key] is not None:
+                    sky[key] = sky[key][fresh]
         v = r.vel_m_s
         if self.sparse_rule:
-            sp = self._filter.sparse(pos_m, vel_m_s, goal_m, v, nbr_pos, nbr_vel)
+            sp = self._filter.sparse(pos_m, vel_m_s, goal_m, v, nbr_pos, nbr_vel, **sky)
             if sp.status != "ok":
                 raise CPolicyError(STATUS_NAMES_INV[sp.status])
             v = sp.vel_m_s
         if not filtered:
             return v
-        f = self._filter.evaluate(pos_m, vel_m_s, v, nbr_pos, nbr_vel)
+        f = self._filter.evaluate(pos_m, vel_m_s, v, nbr_pos, nbr_vel, **sky)
         if f.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[f.status])
         return f.vel_m_s
@@ -364,3 +398,12 @@ class CPolicy:
 
 
 STATUS_NAMES_INV = {v: k for k, v in STATUS_NAMES.items()}
+
+
+def _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_pos_m) -> dict:
+    """The filter's real-vehicle inputs, checked as GuidancePolicy.command checks them
+    (a ValueError naming the bad one); the C core checks them again."""
+    from policy.runtime import _sky as checked  # numpy only: one set of checks
+
+    k = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2).shape[0]
+    return checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k)

@@ -328,18 +328,29 @@ class CSafetyFilter:
             bool(out.infeasible),
         )
 
-    def sparse(self, pos_m, vel_m_s, goal_m, policy_vel_m_s, nbr_pos_m, nbr_vel_m_s):
+    def sparse(
+        self,
+        pos_m,
+        vel_m_s,
+        goal_m,
+        policy_vel_m_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+    ):
         """covey_sparse_choose with this filter's config (policy.sparse.choose_one's twin);
         faults come back in `status`, never raised."""
         p = np.asarray(pos_m, dtype=np.float64).reshape(2)
         v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
         goal = (ctypes.c_float * 2)(*np.asarray(goal_m, dtype=np.float64).reshape(2))
         asked = (ctypes.c_float * 2)(*np.asarray(policy_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s)
+        t = _tracks(nbr_pos_m, nbr_vel_m_s, None, nbr_pos_sigma_m, nbr_cooperative)
         out = SparseOutC()
         st = self._lib.covey_sparse_choose(
             ctypes.byref(self._ccfg),
-            ctypes.byref(TrackC(p[0], p[1], v[0], v[1])),
+            ctypes.byref(TrackC(p[0], p[1], v[0], v[1], 0, float(pos_sigma_m), 0)),
             goal,
             asked,
             t.ctypes.data,

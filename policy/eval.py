@@ -223,7 +223,12 @@ class Held:
         if t_s < self.next_t - 1e-9 and self.v and t_s > 0:
             v = np.array([self.v[i] for i in ids])
         else:
-            v = self.policy(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid)
+            sky = {}
+            if pos_sigma_m is not None and getattr(self.policy, "__name__", "") == "command_views":
+                sky = {"pos_sigma_m": pos_sigma_m, "nbr_pos_sigma_m": nbr_pos_sigma_m}
+            v = self.policy(
+                pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky
+            )
             self.v = dict(zip(ids.tolist(), v, strict=True))
             self.next_t = t_s + self.period_s
         if self.safety_cfg is not None:

@@ -363,6 +363,32 @@ def _check(name: str, x, shape: tuple, finite: bool = True) -> np.ndarray:
     return a
 
 
+def _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k: int) -> dict:
+    """The filter's real-vehicle inputs, checked: pos_sigma_m a finite float >= 0,
+    nbr_pos_sigma_m (k,) finite >= 0 or None, nbr_cooperative (k,) bool or None (k = -1: any
+    length, checked later against the neighbours); a ValueError naming the bad one."""
+    try:
+        own = float(pos_sigma_m)
+    except (TypeError, ValueError):
+        raise ValueError(f"pos_sigma_m must be a number, got {pos_sigma_m!r}") from None
+    if not (math.isfinite(own) and own >= 0.0):
+        raise ValueError(f"pos_sigma_m must be finite and >= 0, got {own}")
+    sig = None
+    if nbr_pos_sigma_m is not None:
+        sig = _check("nbr_pos_sigma_m", nbr_pos_sigma_m, (k,))
+        if (sig < 0).any():
+            raise ValueError(f"nbr_pos_sigma_m must be >= 0, got {sig!r}")
+    coop = None
+    if nbr_cooperative is not None:
+        coop = np.asarray(nbr_cooperative)
+        if coop.ndim != 1 or (k >= 0 and coop.shape != (k,)):
+            raise ValueError(f"nbr_cooperative must have shape (K,) = ({k},), got {coop.shape}")
+        if coop.dtype != bool and not np.isin(coop, (0, 1)).all():
+            raise ValueError("nbr_cooperative must be booleans")
+        coop = coop.astype(bool)
+    return {"pos_sigma_m": own, "nbr_pos_sigma_m": sig, "nbr_cooperative": coop}
+
+
 def _pair(x) -> list | tuple | None:
     """A finite-or-not (2,) float64 array, or a list / tuple of two Python floats, as two
     floats; None for anything else (the checked path then says what is wrong)."""
@@ -554,10 +580,22 @@ class GuidancePolicy:
         agents do); or call `command` at the control rate."""
         return float(self.config.get("dt_s", 1.0)) * self.separation_m / 3.0 / self.cruise_speed_m_s
 
-    def filter(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
-        """The safety filter alone (world units): pref_vel_m_s changed as little as possible."""
+    def filter(
+        self,
+        pos_m,
+        vel_m_s,
+        pref_vel_m_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+    ):
+        """The safety filter alone (world units): pref_vel_m_s changed as little as possible.
+        Uncertainties and cooperative flags as `command` takes them."""
         pos_m = _check("pos_m", pos_m, (2,))
         nbr_pos_m = _check("nbr_pos_m", nbr_pos_m, (-1, 2))
+        sky = _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_pos_m.shape[0])
         return safety.filter_velocity(
             pos_m,
             _check("vel_m_s", vel_m_s, (2,)),
@@ -565,6 +603,7 @@ class GuidancePolicy:
             nbr_pos_m,
             _check("nbr_vel_m_s", nbr_vel_m_s, (nbr_pos_m.shape[0], 2)),
             self.safety_cfg,
+            **sky,
         )
 
     # --- policy units -------------------------------------------------------------
@@ -644,8 +683,27 @@ class GuidancePolicy:
 
     # --- world units ----------------------------------------------------------------
 
-    def command(self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad):
+    def command(
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+    ):
         """Velocity command (2,) in m/s (north, east) for one vehicle.
+
+        Real vehicles: `pos_sigma_m` is the own position estimate's 1-sigma (metres, per axis;
+        PX4's eph), `nbr_pos_sigma_m` (K,) the neighbours' as they reported them, and
+        `nbr_cooperative` (K,) bool False for a neighbour that does not avoid (traffic): the
+        filter keeps each pair apart by separation_m (1 + margin) + sigma_k sqrt(si^2 + sj^2)
+        and takes the whole correction against traffic (policy.safety.pair_radius_m). The
+        defaults (0, None, None) fly as before.
 
         Inputs that are already float64 arrays of the right shapes (a 2-vector may also be a
         list of two floats, the heading a float), with the shipped observation, take
@@ -656,25 +714,78 @@ class GuidancePolicy:
         fly), hold `preferred` instead and `filter` it every tick: a held `command` keeps the
         filter's answer to the moment it decided, on top of the filter's answer to now."""
         return self._command(
-            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, True
+            pos_m,
+            vel_m_s,
+            heading_rad,
+            goal_m,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            nbr_heading_rad,
+            True,
+            pos_sigma_m,
+            nbr_pos_sigma_m,
+            nbr_cooperative,
         )
 
     def preferred(
-        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ):
         """The velocity (2,) to hold for one decision period, as the agents do: the policy's,
         or the sparse rule's straight line, not yet filtered. Every tick, fly
         `filter(pos_m, vel_m_s, held, nbr_pos_m, nbr_vel_m_s)`; at the decision that is
         `command`. Same inputs and checks as `command`."""
         return self._command(
-            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, False
+            pos_m,
+            vel_m_s,
+            heading_rad,
+            goal_m,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            nbr_heading_rad,
+            False,
+            pos_sigma_m,
+            nbr_pos_sigma_m,
+            nbr_cooperative,
         )
 
     def _command(
-        self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, filtered
+        self,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        nbr_heading_rad,
+        filtered,
+        pos_sigma_m=0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ) -> np.ndarray:
+        sky = None
+        if pos_sigma_m or nbr_pos_sigma_m is not None or nbr_cooperative is not None:
+            k = np.shape(nbr_pos_m)[0] if np.ndim(nbr_pos_m) == 2 else -1
+            sky = _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k)
         v = self._command_fast(
-            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, filtered
+            pos_m,
+            vel_m_s,
+            heading_rad,
+            goal_m,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            nbr_heading_rad,
+            filtered,
+            sky,
         )
         if v is None:
             v = self._command_checked(
@@ -686,6 +797,7 @@ class GuidancePolicy:
                 nbr_vel_m_s,
                 nbr_heading_rad,
                 filtered,
+                sky,
             )
         return v
 
@@ -699,6 +811,7 @@ class GuidancePolicy:
         nbr_vel_m_s,
         nbr_heading_rad,
         filtered: bool = True,
+        sky: dict | None = None,
     ) -> np.ndarray | None:
         """`command` in metres without scaling the inputs (the projection takes metres), or
         None when the inputs are not the common case or not all finite.
@@ -740,10 +853,19 @@ class GuidancePolicy:
         )
         if a is None:
             return None
-        return self._velocity(a, h, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s, filtered)
+        return self._velocity(a, h, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s, filtered, sky)
 
     def _velocity(
-        self, a, heading, pos_m, vel_m_s, goal_m, nbr_pos_m, nbr_vel_m_s, filtered: bool = True
+        self,
+        a,
+        heading,
+        pos_m,
+        vel_m_s,
+        goal_m,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        filtered: bool = True,
+        sky: dict | None = None,
     ) -> np.ndarray:
         """Body (fwd, right) action a -> (north, east) velocity times the cruise speed, then
         the sparse rule (when on), then the filter (when on, `filtered`, and there are
@@ -762,9 +884,12 @@ class GuidancePolicy:
                 self.safety_cfg,
                 self.sparse_rule,
                 self.decision_period_s,
+                **(sky or {}),
             )
         if filtered and self.safety_filter and nbr_pos_m.shape[0]:
-            v = safety.filter_one(pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg)
+            v = safety.filter_one(
+                pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg, **(sky or {})
+            )
         return v
 
     def _command_checked(
@@ -777,6 +902,7 @@ class GuidancePolicy:
         nbr_vel_m_s,
         nbr_heading_rad,
         filtered: bool = True,
+        sky: dict | None = None,
     ) -> np.ndarray:
         """`command` for any input: checked (a ValueError naming the input), then scaled to
         policy units and through `action`."""
@@ -793,6 +919,16 @@ class GuidancePolicy:
         k = nbr_pos_m.shape[0]
         nbr_vel_m_s = _check("nbr_vel_m_s", nbr_vel_m_s, (k, 2), finite=False)
         nbr_heading = _check("nbr_heading_rad", nbr_heading_rad, (k,), finite=False)
+        if sky is not None and sky["nbr_pos_sigma_m"] is not None:
+            sky = {
+                **sky,
+                "nbr_pos_sigma_m": _check("nbr_pos_sigma_m", sky["nbr_pos_sigma_m"], (k,)),
+            }
+        if sky is not None and sky["nbr_cooperative"] is not None:
+            coop = np.asarray(sky["nbr_cooperative"])
+            if coop.shape != (k,):
+                raise ValueError(f"nbr_cooperative must have shape ({k},), got {coop.shape}")
+            sky = {**sky, "nbr_cooperative": coop.astype(bool)}
         _finite(
             pos_m=pos_m,
             vel_m_s=vel_m_s,
@@ -812,10 +948,12 @@ class GuidancePolicy:
             nbr_pos_m,
             nbr_vel_m_s,
             filtered,
+            sky,
         )
 
-    def _sparse(self, pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid):
-        """policy.sparse.choose_padded with this policy's filter and decision period."""
+    def _sparse(self, pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, **sky):
+        """policy.sparse.choose_padded with this policy's filter and decision period (`sky`:
+        its uncertainties and cooperative flags)."""
         return sparse.choose_padded(
             pos_m,
             vel_m_s,
@@ -827,6 +965,7 @@ class GuidancePolicy:
             self.safety_cfg,
             self.sparse_rule,
             self.decision_period_s,
+            **sky,
         )
 
     def command_batch(self, pos_m, vel_m_s, heading_rad, goal_m, active=None):
@@ -867,12 +1006,22 @@ class GuidancePolicy:
         nbr_vel_m_s,
         nbr_heading_rad,
         nbr_valid,
+        pos_sigma_m=None,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ):
         """Velocity commands (N, 2) in m/s when each vehicle has its own view of the others.
 
         nbr_* are (N, K, ...) padded with nbr_valid (N, K) False: what each vehicle's link
-        delivered (stale, lossy). Unchecked fast path for simulations.
+        delivered (stale, lossy); pos_sigma_m (N,), nbr_pos_sigma_m and nbr_cooperative (N, K)
+        as `command` takes them (None: exact, all cooperative). Unchecked fast path for
+        simulations.
         """
+        sky = {
+            "pos_sigma_m": pos_sigma_m,
+            "nbr_pos_sigma_m": nbr_pos_sigma_m,
+            "nbr_cooperative": nbr_cooperative,
+        }
         s = self.dist_scale_m
         seq, lengths, goal_feat, _ = features.observe_padded(
             pos_m / s,
@@ -889,9 +1038,9 @@ class GuidancePolicy:
         )
         v = features.action_to_velocity(a, heading_rad) * self.cruise_speed_m_s
         if self.sparse_rule is not None:
-            v, _ = self._sparse(pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid)
+            v, _ = self._sparse(pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, **sky)
         if self.safety_filter:
             v = safety.filter_padded(
-                pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, self.safety_cfg
+                pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, self.safety_cfg, **sky
             )
         return v

@@ -143,10 +143,14 @@ def choose_padded(
     safety_cfg: safety.SafetyConfig,
     cfg: SparseConfig,
     period_s: float,
+    pos_sigma_m=None,
+    nbr_pos_sigma_m=None,
+    nbr_cooperative=None,
 ):
     """The velocities to hold (N, 2) and which rows fly straight (N,), for N vehicles with
     padded views (N, K, ...) of their neighbours; safety_cfg is the filter flight keeps
-    (its radius_m the separation, its max_speed_m_s the cruise speed)."""
+    (its radius_m the separation, its max_speed_m_s the cruise speed). The uncertainties and
+    cooperative flags ((N,), (N, K), (N, K) or None) go to the filter's progress check."""
     pos_m = np.asarray(pos_m, float)
     cruise = safety_cfg.max_speed_m_s
     v_s = straight_velocity(pos_m, goal_m, cruise, period_s)
@@ -182,6 +186,9 @@ def choose_padded(
             np.asarray(nbr_vel_m_s, float)[rows],
             np.asarray(nbr_valid, bool)[rows],
             safety_cfg,
+            pos_sigma_m=None if pos_sigma_m is None else np.asarray(pos_sigma_m)[rows],
+            nbr_pos_sigma_m=None if nbr_pos_sigma_m is None else np.asarray(nbr_pos_sigma_m)[rows],
+            nbr_cooperative=None if nbr_cooperative is None else np.asarray(nbr_cooperative)[rows],
         )
         # (f . v_s / |v_s|) >= share |v_s|, without dividing: on the goal v_s = 0 passes
         s = v_s[rows]
@@ -199,10 +206,12 @@ def choose_one(
     safety_cfg: safety.SafetyConfig,
     cfg: SparseConfig,
     period_s: float,
+    **sky,
 ) -> tuple[np.ndarray, bool]:
     """`choose_padded` for one vehicle and its k neighbours (k, 2): (velocity (2,), straight).
     In Python floats, with safety.filter_one: the runtime's hot path (equal to choose_padded,
-    tests/test_policy_sparse.py)."""
+    tests/test_policy_sparse.py). `sky`: safety.filter_one's pos_sigma_m, nbr_pos_sigma_m,
+    nbr_cooperative, for the progress check."""
     x, y = float(pos_m[0]), float(pos_m[1])
     gx, gy = float(goal_m[0]) - x, float(goal_m[1]) - y
     cruise = safety_cfg.max_speed_m_s
@@ -240,6 +249,6 @@ def choose_one(
     )
     v_s = np.array((sx, sy))
     if straight and len(nbr_pos):
-        f = safety.filter_one((x, y), (vx, vy), v_s, nbr_pos, nbr_vel, safety_cfg)
+        f = safety.filter_one((x, y), (vx, vy), v_s, nbr_pos, nbr_vel, safety_cfg, **sky)
         straight = float(f[0] * sx + f[1] * sy) >= cfg.progress_share * v_s_sq
     return (v_s if straight else np.asarray(v_policy, float).reshape(2)), bool(straight)

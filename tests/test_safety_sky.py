@@ -202,3 +202,76 @@ def test_c_guidance_tick_passes_uncertainty_and_traffic_to_the_filter():
                 nbr_cooperative=coop,
             )
             assert np.abs(s.vel_m_s - ref).max() < 1e-5
+
+
+def _scene(rng, k=5):
+    pos = rng.uniform(-2, 2, 2)
+    return (
+        pos,
+        rng.uniform(-0.5, 0.5, 2),
+        float(rng.uniform(-np.pi, np.pi)),
+        pos + np.array([15.0, 3.0]),
+        pos + rng.uniform(-6, 6, (k, 2)),
+        rng.uniform(-1, 1, (k, 2)),
+        rng.uniform(-np.pi, np.pi, k),
+    )
+
+
+def test_runtime_command_takes_uncertainty_and_traffic():
+    from policy.runtime import GuidancePolicy
+
+    pol = GuidancePolicy.load()
+    rng = np.random.default_rng(39)
+    for _ in range(20):
+        args = _scene(rng)
+        k = len(args[4])
+        plain = pol.command(*args)
+        assert np.array_equal(
+            plain, pol.command(*args, pos_sigma_m=0.0, nbr_pos_sigma_m=np.zeros(k))
+        )
+        sky = {
+            "pos_sigma_m": 0.5,
+            "nbr_pos_sigma_m": np.full(k, 0.5),
+            "nbr_cooperative": rng.random(k) > 0.3,
+        }
+        got = pol.command(*args, **sky)
+        held = pol.preferred(*args, **sky)
+        want = safety.filter_one(args[0], args[1], held, args[4], args[5], pol.safety_cfg, **sky)
+        assert np.allclose(got, want, atol=1e-12)
+        # the checked path (lists, not arrays) gives the same
+        listed = [a.tolist() if isinstance(a, np.ndarray) else a for a in args]
+        assert np.allclose(pol.command(*listed, **sky), got, atol=1e-5)
+    args = _scene(rng)
+    for bad, match in (
+        ({"pos_sigma_m": -1.0}, "pos_sigma_m must be finite and >= 0"),
+        ({"pos_sigma_m": math.nan}, "pos_sigma_m must be finite and >= 0"),
+        ({"nbr_pos_sigma_m": np.ones(3)}, "nbr_pos_sigma_m must have shape"),
+        ({"nbr_pos_sigma_m": -np.ones(5)}, "nbr_pos_sigma_m must be >= 0"),
+        ({"nbr_cooperative": np.ones(4, bool)}, "nbr_cooperative must have shape"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            pol.command(*args, **bad)
+
+
+@needs_cc
+def test_cpolicy_command_takes_uncertainty_and_traffic():
+    from firmware.cpolicy import CPolicy
+
+    cpol = CPolicy.load()
+    rng = np.random.default_rng(40)
+    for _ in range(10):
+        args = _scene(rng)
+        k = len(args[4])
+        sky = {
+            "pos_sigma_m": 0.4,
+            "nbr_pos_sigma_m": rng.uniform(0, 1, k),
+            "nbr_cooperative": rng.random(k) > 0.3,
+        }
+        held = cpol.preferred(*args, **sky)
+        got = cpol.command(*args, **sky)
+        want = safety.filter_velocity(
+            args[0], args[1], held, args[4], args[5], cpol.safety_cfg, **sky
+        )
+        assert np.abs(got - want).max() < 1e-5
+    with pytest.raises(ValueError, match="nbr_pos_sigma_m must be >= 0"):
+        cpol.command(*_scene(rng), nbr_pos_sigma_m=-np.ones(5))
