@@ -78,6 +78,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "fleet_sim_cli",
         "simulate hundreds of vehicles in one process (open mode; covey agent --ids keyed)",
     ),
+    "intruder": (
+        "tools.intruder_cli",
+        "cli",
+        "fly one simulated non-cooperative vehicle through the fleet (traffic)",
+    ),
     "bench": ("bench.__main__", "cli", "run the benchmark suite"),
 }
 

@@ -28,6 +28,14 @@ from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
+from agent.traffic import (
+    TrafficConfig,
+    TrafficListener,
+    TrafficTable,
+    TrafficTrack,
+    is_traffic_id,
+    publish_report,
+)
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatConfig, StationHeartbeats
@@ -40,6 +48,7 @@ from comms.schema import (
     EventKind,
     GuidanceTrace,
     Mode,
+    Role,
     Severity,
     StateFlag,
     VehicleState,
@@ -76,6 +85,11 @@ class AgentConfig:
     origin: GeoOrigin = GeoOrigin()
     guidance: GuidanceConfig = GuidanceConfig()
     neighbours: NeighbourConfig = NeighbourConfig()
+    traffic: TrafficConfig = TrafficConfig()
+    """Traffic that does not cooperate (agent/traffic.py): mesh reports and the autopilot's
+    ADS-B receiver, flown around as non-cooperative neighbours."""
+    traffic_report_hz: float = 2.0
+    """How often the traffic the autopilot's receiver hears is reported on the mesh."""
     scope: ScopeConfig = ScopeConfig()
     """Which neighbours' states to hear: the grid cells within reach (widened to what `guidance`
     needs), or the whole fleet with `enabled=False` (comms/scope.py, docs/scaling.md)."""
@@ -129,6 +143,10 @@ class Agent:
             guidance=guidance.batch if guidance is not None else None,
         )
         self.table = NeighbourTable(self.vid, cfg.neighbours)
+        self.traffic = TrafficTable(cfg.traffic)
+        self.traffic_listener = TrafficListener(mesh, self.traffic, clock_s)
+        self._last_traffic_report_s = -math.inf
+        self._heard: dict[int, TrafficTrack] = {}  # heard by our autopilot since the last report
         self.flags = StateFlag.OPEN_MODE if cfg.open_mode else StateFlag.NONE
         self.seq = 0
         self._lock = threading.Lock()  # guards the core: the tick and Zenoh's threads share it
@@ -204,6 +222,7 @@ class Agent:
         """Stop the action queue (what still waits is reported as not run)."""
         self.actions.close()
         self.stations.close()
+        self.traffic_listener.close()
 
     def __enter__(self) -> Agent:
         return self
@@ -317,7 +336,8 @@ class Agent:
         gcs_alive = self.stations.alive(now_s)
         for report, stamp_ns in self.stations.clock_reports(now_s, (self.vid,)):
             self._publish_event(report.to_event(stamp_ns))
-        nbrs = self.table.snapshot(now_s, pos)
+        self._hear_traffic(now_s)
+        nbrs = self.traffic.merge(self.table.snapshot(now_s, pos), now_s, pos)
         busy = self.actions.busy
         flags = self.flags
         out = None
@@ -374,8 +394,17 @@ class Agent:
             and now_s - self._last_traffic_s >= 0.1
         ):
             self._last_traffic_s = now_s
+            manned = {t.neighbour_id for t in self.traffic.tracks(now_s) if t.manned}
             traffic = [
-                Traffic(vid, tuple(p), tuple(v), float(h), float(a))
+                Traffic(
+                    vid,
+                    tuple(p),
+                    tuple(v),
+                    float(h),
+                    float(a),
+                    cooperative=not is_traffic_id(vid),
+                    manned=vid in manned,
+                )
                 for vid, p, v, h, a in zip(
                     nbrs.ids,
                     nbrs.pos_ned_m,
@@ -395,6 +424,27 @@ class Agent:
             self._publish(tel, pos, vel, heading, mode, target, flags)
             if self.cfg.trace_guidance and out is not None:
                 self._trace(heading_in_rad, out, nbrs)
+
+    def _hear_traffic(self, now_s: float) -> None:
+        """The autopilot's receiver's traffic into the table, and onto the mesh for the others
+        (as this vehicle's signed reports) at `traffic_report_hz`."""
+        if Capability.TRAFFIC_RECEIVER not in self.backend.capabilities:
+            return
+        for track in self.backend.traffic_tracks(now_s):
+            if self.traffic.put(track):
+                self._heard[track.track_id] = track
+        if now_s - self._last_traffic_report_s < 1.0 / self.cfg.traffic_report_hz:
+            return
+        self._last_traffic_report_s = now_s
+        stamp_ns = self.mesh.clock_ns()
+        # only what our own receiver heard since the last report, never others' reports again
+        heard, self._heard = list(self._heard.values()), {}
+        for track in heard:
+            age_ns = int(max(0.0, now_s - track.stamp_s) * 1e9)
+            try:
+                publish_report(self.mesh, track.report(Role.VEHICLE, self.vid, stamp_ns - age_ns))
+            except Exception as exc:  # noqa: BLE001 - a full network buffer must not stop the tick
+                log.warning("traffic report not published: %s", exc)
 
     def _trace(self, heading_in_rad: float, out, nbrs) -> None:
         trace = GuidanceTrace.build(

@@ -40,6 +40,7 @@ from agent.flight_core import (
 )
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
+from agent.traffic import TrafficListener, TrafficTable
 from comms.auth import FleetAuth, host_signers
 from comms.cli_options import stop_after
 from comms.gate import GateConfig, command_refusals
@@ -227,6 +228,9 @@ class Fleet:
         self._lock = threading.RLock()
         self.others = NeighbourTable(None, replace(NeighbourConfig(), drop_s=cfg.drop_s))
         """Other processes' vehicles (ours are kept out by `_on_state`)."""
+        self.traffic = TrafficTable()
+        """Traffic that does not cooperate, from the mesh (agent/traffic.py)."""
+        self.traffic_listener = TrafficListener(mesh, self.traffic, clock_s)
         # As the agent: the station-lost failsafe and the take-off check trust signed station
         # heartbeats (comms/heartbeat.py), which also give the host's clock offset.
         self.stations = StationHeartbeats(
@@ -399,7 +403,7 @@ class Fleet:
     def _views(self, now_s: float, rows: np.ndarray) -> NeighbourViews:
         """What each guided row sees: the nearest airborne vehicles, ours and other processes'
         (dead-reckoned from their last state; stale past NeighbourConfig.stale_s)."""
-        sim, ext = self.sim, self.others.snapshot(now_s)
+        sim, ext = self.sim, self.traffic.merge(self.others.snapshot(now_s), now_s)
         airborne = np.isin(self.core.mode, AIRBORNE_MODES) & sim.armed
         return NeighbourViews.nearest(
             sim.pos_m[rows],

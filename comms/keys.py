@@ -15,6 +15,11 @@
     covey/<fleet>/gcs/<id>/heartbeat
                                   pub/sub StationHeartbeat, signed by station <id> (keyed mode):
                                   what the station-lost failsafe trusts (comms/heartbeat.py)
+    covey/<fleet>/gcs/<id>/traffic
+    covey/<fleet>/msg/<id>/traffic
+                                  pub/sub TrafficReport: vehicles that do not cooperate, as station
+                                  <id> (an intruder, a hand-flown vehicle) or vehicle <id>'s
+                                  ADS-B receiver sees them, signed by <id> (agent/traffic.py)
     covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
     covey/<fleet>/plan            pub/sub and queryable: the signed fleet plan (fence, keep-out
                                   zones, rally points), followed like the roster (comms/plan_sync.py)
@@ -247,6 +252,21 @@ def parse_gcs_heartbeat_key(key: str) -> tuple[str, int] | None:
     if not m or not 1 <= int(m.group(2)) <= MAX_VEHICLE_ID:
         return None
     return m.group(1), int(m.group(2))
+
+
+def gcs_traffic(fleet: str, gcs_id: int) -> str:
+    """Where station `gcs_id` publishes traffic reports (intruders it flies or tracks)."""
+    return f"{ROOT}/{check_fleet(fleet)}/gcs/{check_vehicle_id(gcs_id)}/traffic"
+
+
+def vehicle_traffic(fleet: str, vehicle_id: int) -> str:
+    """Where vehicle `vehicle_id` publishes the traffic its autopilot's receiver hears."""
+    return _msg(fleet, vehicle_id, "traffic")
+
+
+def all_traffic(fleet: str) -> str:
+    """Every traffic report of the fleet, from stations and vehicles alike."""
+    return f"{ROOT}/{check_fleet(fleet)}/*/*/traffic"
 
 
 def roster(fleet: str) -> str:

@@ -46,6 +46,22 @@ Layouts (all little-endian, packed; `<` struct codes):
         n_items, targets[n], items[k] (kind, frame, x, y (float64: north_m/east_m or
         lat_deg/lon_deg), alt_m (up: above the origin for LOCAL, AMSL for GLOBAL), speed_m_s
         (0: cruise), hold_s), tag (Ed25519 of station source_id, as a Command's)
+    TrafficReport type 9 v1  <BBBHIBBBQ3f3f [+ 64s]  44 bytes, 108 signed
+        type, version, reporter_role, reporter_id, track_id, source, emitter_type, flags,
+        stamp_ns, pos_ned_m[3], vel_ned_m_s[3], [sig: Ed25519 of the reporter (a station, or a
+        vehicle relaying its autopilot's ADS-B)]
+    PlanMessage   type 11 v1 <BB32sIQHBBB + fence + zones + rally + 64s  at most MAX_PLAN_BYTES
+        type, version, fleet, plan version, stamp_ns, signer_id (0: the fleet authority, N:
+        station N), flags (1: has a fence), n_zones, n_rally; fence: <ddH floor, ceiling (NaN:
+        none), n + n*<dd vertices (north, east m); each zone: <B name length, name (utf-8), then
+        as the fence; each rally point: <dddB north, east, alt m, name length, name; sig (the
+        signer's Ed25519; zeros in open mode). `PlanMessage.peek` reads the header alone
+    Mission       type 10 v1 <BBQQHIIHH + n*H + k*<BBddfff + 64s  34 + 2 per target + 30 per
+                                                             item + 64, at most MAX_MISSION_BYTES
+        type, version, nonce, stamp_ns, source_id, mission_id, mission_version, n_targets,
+        n_items, targets[n], items[k] (kind, frame, x, y (float64: north_m/east_m or
+        lat_deg/lon_deg), alt_m (up: above the origin for LOCAL, AMSL for GLOBAL), speed_m_s
+        (0: cruise), hold_s), tag (Ed25519 of station source_id, as a Command's)
 
 Signatures are made and checked in comms/auth.py; this module only carries their bytes.
 """
@@ -119,6 +135,7 @@ class MsgType(enum.IntEnum):
     GUIDANCE_TRACE = 6
     FEED_BATCH = 7
     STATION_HEARTBEAT = 8
+    TRAFFIC_REPORT = 9
     MISSION = 10
     PLAN = 11
 
@@ -994,6 +1011,125 @@ class StationHeartbeat:
         return msg
 
 
+class TrafficSource(enum.IntEnum):
+    """Where a traffic report comes from."""
+
+    ADSB = 1
+    """An ADS-B (or FLARM) receiver on a vehicle's autopilot."""
+    REMOTE_ID = 2
+    """A Remote ID broadcast heard by a receiver."""
+    MANUAL = 3
+    """Entered by an operator (a vehicle flown by hand that the station tracks)."""
+    SIM = 4
+    """A simulated intruder (`covey intruder`)."""
+
+
+class TrafficFlag(enum.IntFlag):
+    NONE = 0
+    MANNED = 1
+    """A manned aircraft: covey keeps the larger separation from it."""
+
+
+MAX_TRAFFIC_TRACK_ID = 0xFFFFFFFF
+"""Track ids are 32-bit: an ADS-B ICAO address (24 bits), or one a reporter assigns."""
+
+
+@dataclass(frozen=True)
+class TrafficReport:
+    """One vehicle that is not a covey member (it does not cooperate), as a station or a
+    vehicle's receiver saw it (agent/traffic.py). Agents treat it as a non-cooperative
+    neighbour; in keyed mode only a roster member's signed report counts (docs/sky.md)."""
+
+    reporter_role: Role
+    reporter_id: int
+    """The station (or vehicle) that reports it, and whose key signs it."""
+    track_id: int
+    """Which traffic this is, per reporter: an ICAO address for ADS-B."""
+    source: TrafficSource
+    stamp_ns: int
+    """When the position was true, on the reporter's wall clock."""
+    pos_ned_m: tuple[float, float, float]
+    """In the fleet's local NED frame."""
+    vel_ned_m_s: tuple[float, float, float]
+    emitter_type: int = 0
+    """ADS-B emitter category (MAVLink ADSB_EMITTER_TYPE, 0..19; 0: no information)."""
+    flags: TrafficFlag = TrafficFlag.NONE
+    sig: bytes = b""
+    """Ed25519 signature of the reporter over `signed_bytes()`; empty: unsigned (open mode)."""
+
+    TYPE: ClassVar[MsgType] = MsgType.TRAFFIC_REPORT
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBBHIBBBQ3f3f")
+
+    def validate(self) -> None:
+        _enum(Role, "reporter_role", self.reporter_role)
+        _check_vehicle_id("reporter_id", self.reporter_id)
+        if not 0 <= self.track_id <= MAX_TRAFFIC_TRACK_ID:
+            raise DecodeError(f"track_id={self.track_id} does not fit 32 bits")
+        _enum(TrafficSource, "source", self.source)
+        if not 0 <= self.emitter_type <= 19:
+            raise DecodeError(f"emitter_type={self.emitter_type} is outside [0, 19]")
+        if not 0 <= int(self.flags) <= int(TrafficFlag.MANNED):
+            raise DecodeError(f"flags={int(self.flags)} has unknown bits")
+        if not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError(f"stamp_ns={self.stamp_ns} does not fit 64 bits")
+        if len(self.pos_ned_m) != 3 or len(self.vel_ned_m_s) != 3:
+            raise DecodeError("pos_ned_m and vel_ned_m_s must have 3 components")
+        _check_finite("traffic pos_ned_m", *self.pos_ned_m)
+        _check_finite("traffic vel_ned_m_s", *self.vel_ned_m_s)
+        for v in self.pos_ned_m:
+            _check_range("traffic pos_ned_m", v, -POSITION_LIMIT_M, POSITION_LIMIT_M)
+        for v in self.vel_ned_m_s:
+            _check_range("traffic vel_ned_m_s", v, -SPEED_LIMIT_M_S, SPEED_LIMIT_M_S)
+        _check_sig(self.sig)
+
+    @property
+    def manned(self) -> bool:
+        return bool(self.flags & TrafficFlag.MANNED)
+
+    def signed_bytes(self) -> bytes:
+        return self._FMT.pack(
+            self.TYPE,
+            SCHEMA_VERSION,
+            self.reporter_role,
+            self.reporter_id,
+            self.track_id,
+            self.source,
+            self.emitter_type,
+            self.flags,
+            self.stamp_ns,
+            *self.pos_ned_m,
+            *self.vel_ned_m_s,
+        )
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.sig
+
+    @classmethod
+    def decode(cls, data: bytes) -> TrafficReport:
+        _header(data, cls.TYPE)
+        if len(data) not in (cls._FMT.size, cls._FMT.size + TAG_BYTES):
+            raise DecodeError(
+                f"TrafficReport must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), "
+                f"got {len(data)}"
+            )
+        f = cls._FMT.unpack_from(data)
+        msg = cls(
+            _enum(Role, "reporter_role", f[2]),
+            f[3],
+            f[4],
+            _enum(TrafficSource, "source", f[5]),
+            f[8],
+            tuple(f[9:12]),
+            tuple(f[12:15]),
+            f[6],
+            TrafficFlag(f[7]) if 0 <= f[7] <= int(TrafficFlag.MANNED) else f[7],
+            data[cls._FMT.size :],
+        )
+        msg.validate()
+        return msg
+
+
 @dataclass(frozen=True)
 class ClockReport:
     """A vehicle's clock offset to a station, as its agent estimates it from the station's
@@ -1597,6 +1733,7 @@ Message = (
     | GuidanceTrace
     | FeedBatch
     | StationHeartbeat
+    | TrafficReport
     | Mission
     | PlanMessage
 )
@@ -1609,6 +1746,7 @@ _DECODERS: dict[int, type] = {
     MsgType.GUIDANCE_TRACE: GuidanceTrace,
     MsgType.FEED_BATCH: FeedBatch,
     MsgType.STATION_HEARTBEAT: StationHeartbeat,
+    MsgType.TRAFFIC_REPORT: TrafficReport,
     MsgType.MISSION: Mission,
     MsgType.PLAN: PlanMessage,
 }
@@ -1659,6 +1797,9 @@ __all__ = [
     "StateFlag",
     "StationHeartbeat",
     "TraceFlag",
+    "TrafficFlag",
+    "TrafficReport",
+    "TrafficSource",
     "VehicleState",
     "decode",
 ]

@@ -17,6 +17,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from agent.backends.base import BackendError, Capability, NotSupported, Traffic
 from agent.backends.relay import RelayBackend, RelayConfig, adsb_vehicle
+from comms.adsb import covey_icao
 from comms.geo import GeoOrigin
 from firmware.sitl.process import SitlProcess, free_udp_port
 
@@ -99,7 +100,11 @@ def relay_and_sitl():
 @pytest.mark.e2e
 def test_relay_flies_the_emulator_and_forwards_traffic(relay_and_sitl) -> None:
     relay, proc, obs = relay_and_sitl
-    assert relay.capabilities == {Capability.ONBOARD_GUIDANCE, Capability.TRAFFIC_INPUT}
+    assert relay.capabilities == {
+        Capability.ONBOARD_GUIDANCE,
+        Capability.TRAFFIC_INPUT,
+        Capability.TRAFFIC_RECEIVER,
+    }
     with pytest.raises(NotSupported):
         relay.set_velocity_ned((1.0, 0.0, 0.0), 0.0)
     t = wait_for(relay, lambda t: True, what="first telemetry")
@@ -119,14 +124,14 @@ def test_relay_flies_the_emulator_and_forwards_traffic(relay_and_sitl) -> None:
     ]
     relay.send_traffic(neighbours)
     for n in neighbours:
-        echo = obs.adsb(lambda m, n=n: m.ICAO_address == n.vehicle_id)
+        echo = obs.adsb(lambda m, n=n: m.ICAO_address == covey_icao(n.vehicle_id))
         back = ORIGIN.to_local(echo.lat * 1e-7, echo.lon * 1e-7, echo.altitude * 1e-3)
         assert back == pytest.approx(n.pos_ned_m, abs=0.05)
         assert echo.heading == round(math.degrees(n.heading_rad) * 100) % 36000
         assert echo.hor_velocity == round(math.hypot(*n.vel_ned_m_s[:2]) * 100)
         assert echo.ver_velocity == round(-n.vel_ned_m_s[2] * 100)
         assert (
-            echo.flags & mavlink.ADSB_FLAGS_VALID_COORDS and echo.callsign == f"COVEY{n.vehicle_id}"
+            echo.flags & mavlink.ADSB_FLAGS_VALID_COORDS and echo.callsign == f"CVY{n.vehicle_id}"
         )
 
     target = (HOME_NED_M[0] + 12.0, HOME_NED_M[1] - 6.0, -6.0)
@@ -162,7 +167,7 @@ def test_relay_refuses_bad_input_without_sending_it(relay_and_sitl) -> None:
     )
     with pytest.raises(BackendError, match=r"\[12\]"):
         relay.send_traffic([bad, good])
-    assert obs.adsb(lambda m: m.ICAO_address == 11)  # the good neighbour still went out
+    assert obs.adsb(lambda m: m.ICAO_address == covey_icao(11))  # the good one still went out
     assert proc.alive()
 
 
@@ -266,10 +271,10 @@ def test_relay_config_and_adsb_encoding_validate() -> None:
     with pytest.raises(ValueError, match="attempts"):
         RelayConfig(attempts=0)
     msg = adsb_vehicle(
-        Traffic(0xABCDEF, (0.0, 0.0, -10.0), (3.0, 4.0, 1.0), -math.pi / 2, 300.0), ORIGIN
+        Traffic(0xABCD, (0.0, 0.0, -10.0), (3.0, 4.0, 1.0), -math.pi / 2, 300.0), ORIGIN
     )
     assert (msg.ICAO_address, msg.heading, msg.hor_velocity, msg.ver_velocity, msg.tslc) == (
-        0xABCDEF,
+        covey_icao(0xABCD),
         27000,
         500,
         -100,

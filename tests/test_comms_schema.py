@@ -288,7 +288,7 @@ def test_reason_text_is_cut_on_a_character_boundary() -> None:
     ("mutate", "why"),
     [
         (lambda b: b[:-1], "must be 66 bytes"),
-        (lambda b: bytes([9]) + b[1:], "unknown message type 9"),
+        (lambda b: bytes([99]) + b[1:], "unknown message type 99"),
         (lambda b: b[:1] + bytes([7]) + b[2:], "unsupported VEHICLE_STATE version 7"),
         (lambda b: b[:16] + struct.pack("<f", math.nan) + b[20:], "must be finite"),
         (lambda b: b[:16] + struct.pack("<f", math.inf) + b[20:], "must be finite"),

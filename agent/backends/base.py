@@ -21,6 +21,8 @@ class Capability(enum.Enum):
     """Runs the policy itself: the agent only forwards goto targets (onboard mode)."""
     TRAFFIC_INPUT = "traffic_input"
     """Accepts neighbour states as traffic reports (MAVLink ADSB_VEHICLE)."""
+    TRAFFIC_RECEIVER = "traffic_receiver"
+    """Hears traffic that does not cooperate (the autopilot's ADS-B receiver): `traffic_tracks`."""
 
 
 class NotSupported(Exception):
@@ -57,6 +59,11 @@ class Traffic:
     vel_ned_m_s: tuple[float, float, float]
     heading_rad: float
     age_s: float
+    cooperative: bool = True
+    """A covey vehicle; False: traffic that does not cooperate (agent/traffic.py), which the
+    relay forwards under its own address, not covey's (comms/adsb.py)."""
+    manned: bool = False
+    """Traffic only: a manned aircraft."""
 
 
 class VehicleBackend(ABC):
@@ -109,6 +116,11 @@ class VehicleBackend(ABC):
     def send_traffic(self, traffic: Sequence[Traffic]) -> None:
         """Tell the autopilot where the neighbours are (onboard mode)."""
         raise NotSupported(f"{type(self).__name__} does not take traffic reports")
+
+    def traffic_tracks(self, now_s: float) -> list:
+        """The traffic the autopilot's receiver heard that is not covey's own (agent.traffic
+        TrafficTrack list, local NED), new since the last call."""
+        raise NotSupported(f"{type(self).__name__} has no traffic receiver")
 
     def step(self, now_s: float) -> None:  # noqa: B027 - optional hook, no-op by default
         """Advance by one agent tick. The simulator integrates here; real links do nothing."""

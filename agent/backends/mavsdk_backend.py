@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
+from agent.traffic import TrafficTrack, track_from_adsb
 from comms.geo import GeoOrigin
 
 
@@ -80,7 +81,7 @@ class _Latest:
 class MavsdkBackend(VehicleBackend):
     """One PX4 vehicle through MAVSDK. Use as a context manager."""
 
-    capabilities = frozenset({Capability.VELOCITY_SETPOINT})
+    capabilities = frozenset({Capability.VELOCITY_SETPOINT, Capability.TRAFFIC_RECEIVER})
 
     def __init__(
         self,
@@ -101,6 +102,9 @@ class MavsdkBackend(VehicleBackend):
         self._closed = False
         self._system: Any = None
         self._plugins: dict[str, Any] = {}
+        self._traffic: dict[int, TrafficTrack] = {}  # newest per ICAO since the last read
+        self.traffic_reports = 0
+        """ADS-B reports the transponder stream delivered (covey's own and unusable included)."""
         self._ready = threading.Event()
         self._tasks: list[asyncio.Task[Any]] = []
         self._loop = asyncio.new_event_loop()
@@ -133,6 +137,7 @@ class MavsdkBackend(VehicleBackend):
         from mavsdk.asyncio.plugins.action import ActionAsync
         from mavsdk.asyncio.plugins.offboard import OffboardAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+        from mavsdk.asyncio.plugins.transponder import TransponderAsync
 
         system = None
         while system is None and not self._closed:
@@ -154,6 +159,7 @@ class MavsdkBackend(VehicleBackend):
             "action": ActionAsync(system),
             "offboard": OffboardAsync(system),
             "telemetry": TelemetryAsync(system),
+            "transponder": TransponderAsync(system),
         }
         tel = self._plugins["telemetry"]
         watchers = [
@@ -168,6 +174,7 @@ class MavsdkBackend(VehicleBackend):
             ),
             (tel.subscribe_flight_mode(), self._on_flight_mode),
             (system.is_connected_state(), lambda c: setattr(self._latest, "connected", bool(c))),
+            (self._plugins["transponder"].subscribe_transponder(), self._on_transponder),
         ]
         self._latest.connected = await system.is_connected()
         self._tasks += [asyncio.create_task(self._watch(gen, fn)) for gen, fn in watchers]
@@ -197,6 +204,34 @@ class MavsdkBackend(VehicleBackend):
             self._latest.flight_mode = mode.name
             if self._streaming and mode.name == "OFFBOARD":
                 self._seen_offboard = True
+
+    def _on_transponder(self, a: Any) -> None:
+        """One AdsbVehicle: traffic unless it is covey's own report (comms/adsb.py)."""
+        self.traffic_reports += 1
+        track = track_from_adsb(
+            icao_address=int(a.icao_address),
+            lat_deg=float(a.latitude_deg),
+            lon_deg=float(a.longitude_deg),
+            alt_m=float(a.absolute_altitude_m),
+            heading_deg=float(a.heading_deg),
+            hor_speed_m_s=float(a.horizontal_velocity_m_s),
+            ver_speed_m_s=float(a.vertical_velocity_m_s),
+            callsign=str(a.callsign),
+            emitter_type=int(a.emitter_type),
+            age_s=float(a.tslc_s),
+            origin=self.origin,
+            now_s=self.clock(),
+        )
+        if track is None:
+            return
+        with self._lock:
+            if track.track_id in self._traffic or len(self._traffic) < 256:  # bounded per read
+                self._traffic[track.track_id] = track
+
+    def traffic_tracks(self, now_s: float) -> list[TrafficTrack]:
+        with self._lock:
+            tracks, self._traffic = list(self._traffic.values()), {}
+        return tracks
 
     def _on_heading(self, h: Any) -> None:
         if math.isfinite(h.heading_deg):

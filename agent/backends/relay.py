@@ -22,6 +22,8 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
+from agent.traffic import TRAFFIC_ID_BASE, TrafficTrack, track_from_adsb
+from comms import adsb
 from comms.geo import GeoOrigin
 from comms.mavlink_udp import LinkUrl, UdpLink
 from comms.schema import POSITION_LIMIT_M, SPEED_LIMIT_M_S
@@ -101,6 +103,9 @@ class RelayConfig:
     """No heartbeat for this long means the link is down (`Telemetry.link_ok` False)."""
     heartbeat_hz: float = 1.0
     """Our own heartbeat rate (PX4 watches companion heartbeats)."""
+    echo_window_s: float = 10.0
+    """An ADSB_VEHICLE the autopilot streams under an address we sent it as mesh traffic within
+    this long is our own report's echo, not new traffic."""
 
     def __post_init__(self) -> None:
         LinkUrl.parse(self.connection)  # raises ValueError with the expected form
@@ -131,7 +136,9 @@ class RelayBackend(VehicleBackend):
     """Relay to one PX4 autopilot that runs the policy onboard. Use as a context manager."""
 
     takes_global_targets = True
-    capabilities = frozenset({Capability.ONBOARD_GUIDANCE, Capability.TRAFFIC_INPUT})
+    capabilities = frozenset(
+        {Capability.ONBOARD_GUIDANCE, Capability.TRAFFIC_INPUT, Capability.TRAFFIC_RECEIVER}
+    )
 
     def __init__(
         self,
@@ -156,6 +163,12 @@ class RelayBackend(VehicleBackend):
         self._closed = False
         self.rejected_messages = 0
         """Autopilot state messages dropped as implausible (NaN, inf, out of range)."""
+        self._traffic: dict[int, TrafficTrack] = {}  # real traffic heard since the last read
+        self._sent_traffic_s: dict[int, float] = {}  # ICAO -> when we last sent it as traffic
+        self._heard_traffic_s: dict[int, float] = {}  # ICAO -> when the autopilot last had it
+        self.own_echoes = 0
+        """ADSB_VEHICLE reports that were covey's own (neighbours or forwarded traffic) echoed
+        back by the autopilot: never taken for traffic."""
         self._thread = threading.Thread(target=self._receive_loop, name="relay-rx", daemon=True)
         self._thread.start()
 
@@ -237,6 +250,60 @@ class RelayBackend(VehicleBackend):
             elif kind == "PARAM_VALUE":
                 self._param = (msg.param_id.rstrip("\x00"), msg.param_value)
                 self._cond.notify_all()
+            elif kind == "ADSB_VEHICLE":
+                self._on_adsb(msg)
+
+    def _on_adsb(self, msg: Any) -> None:
+        """A traffic report the autopilot holds (called under the lock): real traffic becomes a
+        track; covey's own neighbour reports and the echo of traffic we forwarded do not."""
+        callsign = (
+            msg.callsign
+            if isinstance(msg.callsign, str)
+            else bytes(msg.callsign).decode("ascii", "replace")
+        )
+        callsign = callsign.rstrip("\x00 ")
+        icao, now = int(msg.ICAO_address), self.clock()
+        sent_s = self._sent_traffic_s.get(icao, -math.inf)
+        if adsb.is_covey_report(icao, callsign, msg.emitter_type) or (
+            callsign.startswith(adsb.TRAFFIC_CALLSIGN_PREFIX)
+            and now - sent_s <= self.cfg.echo_window_s
+        ):
+            self.own_echoes += 1
+            return
+        flags = int(msg.flags)
+        if not flags & mavlink.ADSB_FLAGS_VALID_COORDS:
+            return
+        track = track_from_adsb(
+            icao_address=icao,
+            lat_deg=msg.lat * 1e-7,
+            lon_deg=msg.lon * 1e-7,
+            alt_m=msg.altitude * 1e-3 if flags & mavlink.ADSB_FLAGS_VALID_ALTITUDE else math.nan,
+            heading_deg=msg.heading * 0.01 if flags & mavlink.ADSB_FLAGS_VALID_HEADING else 0.0,
+            hor_speed_m_s=msg.hor_velocity * 0.01
+            if flags & mavlink.ADSB_FLAGS_VALID_VELOCITY
+            else 0.0,
+            ver_speed_m_s=msg.ver_velocity * 0.01
+            if flags & mavlink.ADSB_FLAGS_VERTICAL_VELOCITY_VALID
+            else 0.0,
+            callsign=callsign,
+            emitter_type=int(msg.emitter_type),
+            age_s=float(msg.tslc),
+            origin=self.origin,
+            now_s=now,
+        )
+        if track is None:  # no altitude, or not a position covey can use
+            return
+        self._heard_traffic_s[icao] = now
+        if icao in self._traffic or len(self._traffic) < 256:  # bounded between reads
+            self._traffic[icao] = track
+        if len(self._heard_traffic_s) > 1024:
+            cutoff = now - self.cfg.echo_window_s
+            self._heard_traffic_s = {k: t for k, t in self._heard_traffic_s.items() if t >= cutoff}
+
+    def traffic_tracks(self, now_s: float) -> list[TrafficTrack]:
+        with self._cond:
+            tracks, self._traffic = list(self._traffic.values()), {}
+        return tracks
 
     # ---- lifecycle -----------------------------------------------------------------------------
 
@@ -408,27 +475,57 @@ class RelayBackend(VehicleBackend):
         )
 
     def send_traffic(self, traffic: Sequence[Traffic]) -> None:
+        """Neighbours under covey's marking; traffic that does not cooperate under its own
+        address, unless the autopilot heard it itself (never echoed back as new)."""
         self._require_link()
         bad = []
+        now = self.clock()
         for t in traffic:
             values = (*t.pos_ned_m, *t.vel_ned_m_s, t.heading_rad, t.age_s)
-            if not all(math.isfinite(x) for x in values) or not 0 <= t.vehicle_id <= 0xFFFFFF:
-                bad.append(t.vehicle_id)
+            vid = t.vehicle_id
+            ok_id = 0 < vid < 0x1_0000 if t.cooperative else vid >= TRAFFIC_ID_BASE
+            if not all(math.isfinite(x) for x in values) or not ok_id:
+                bad.append(vid)
                 continue
+            if not t.cooperative:
+                icao = (vid - TRAFFIC_ID_BASE) & 0xFFFF_FFFF
+                with self._cond:
+                    heard_s = self._heard_traffic_s.get(icao, -math.inf)
+                    if now - heard_s <= self.cfg.echo_window_s:
+                        continue  # the autopilot's own receiver has it: do not echo it back
+                    self._sent_traffic_s[icao] = now
+                    if len(self._sent_traffic_s) > 1024:
+                        cutoff = now - self.cfg.echo_window_s
+                        self._sent_traffic_s = {
+                            k: s for k, s in self._sent_traffic_s.items() if s >= cutoff
+                        }
             self._send(adsb_vehicle(t, self.origin))
         if bad:
             raise BackendError(
-                f"traffic of vehicles {bad} not sent: non-finite fields or id out of the 24-bit ICAO range"
+                f"traffic of vehicles {bad} not sent: non-finite fields, or a vehicle id outside "
+                "covey's ICAO block (1..65535)"
             )
 
 
 def adsb_vehicle(t: Traffic, origin: GeoOrigin) -> Any:
-    """One neighbour as an ADSB_VEHICLE report (ICAO address = vehicle id)."""
+    """One neighbour as an ADSB_VEHICLE report under covey's marking (ICAO address in covey's
+    block, callsign CVY<id>, emitter UAV: comms/adsb.py); traffic that does not cooperate under
+    its own address (the track id), callsign TRF, and its emitter class (manned or not)."""
     lat, lon, alt = origin.to_global(*t.pos_ned_m)
+    if t.cooperative:
+        icao, callsign, emitter = (
+            adsb.covey_icao(t.vehicle_id),
+            adsb.covey_callsign(t.vehicle_id),
+            mavlink.ADSB_EMITTER_TYPE_UAV,
+        )
+    else:
+        icao = (t.vehicle_id - TRAFFIC_ID_BASE) & 0xFFFF_FFFF
+        callsign = f"{adsb.TRAFFIC_CALLSIGN_PREFIX}{icao & 0xFFFFF:X}"
+        emitter = mavlink.ADSB_EMITTER_TYPE_LIGHT if t.manned else mavlink.ADSB_EMITTER_TYPE_NO_INFO
     vn, ve, vd = t.vel_ned_m_s
     heading_cdeg = round(math.degrees(t.heading_rad) * 100.0) % 36000
     return mavlink.MAVLink_adsb_vehicle_message(
-        t.vehicle_id,
+        icao,
         round(lat * 1e7),
         round(lon * 1e7),
         mavlink.ADSB_ALTITUDE_TYPE_GEOMETRIC,
@@ -436,8 +533,8 @@ def adsb_vehicle(t: Traffic, origin: GeoOrigin) -> Any:
         heading_cdeg,
         min(65535, round(math.hypot(vn, ve) * 100.0)),
         max(-32767, min(32767, round(-vd * 100.0))),
-        f"COVEY{t.vehicle_id}".encode()[:9],
-        mavlink.ADSB_EMITTER_TYPE_UAV,
+        callsign.encode()[:8],
+        emitter,
         min(255, round(t.age_s)),
         ADSB_FLAGS,
         0,

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from typing import Any
 
+from comms.adsb import covey_icao
 from comms.mavlink_udp import UdpLink
 from firmware.sitl import streams
 from firmware.sitl.commands import Autopilot
@@ -33,7 +34,8 @@ class Emulator:
     def __init__(self, cfg: SitlConfig, now_s: float = 0.0) -> None:
         self.cfg = cfg
         self.boot_s = now_s
-        self.traffic = TrafficStore(cfg.traffic_timeout_s, own_icao=cfg.vehicle_id)
+        # covey's own report of this vehicle, echoed back by a relay, is not a neighbour
+        self.traffic = TrafficStore(cfg.traffic_timeout_s, own_icao=covey_icao(cfg.vehicle_id))
         guidance = None
         if cfg.onboard:
             guidance = PolicyGuidance(

@@ -189,7 +189,7 @@ def adsb_vehicle(e: TrafficEntry, now_s: float) -> Any:
         int(min(65535, round(e.hor_speed_m_s * 100))),
         int(max(-32767, min(32767, round(e.ver_speed_m_s * 100)))),
         e.callsign.encode()[:9],
-        mavlink.ADSB_EMITTER_TYPE_UAV,
+        e.emitter_type,
         int(min(255, max(0, now_s - e.received_s))),
         flags,
         0,

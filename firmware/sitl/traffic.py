@@ -31,6 +31,8 @@ class TrafficEntry:
     callsign: str
     received_s: float
     """Receive time on the autopilot's clock."""
+    emitter_type: int = 14
+    """ADSB_EMITTER_TYPE (14: UAV), streamed back out as received."""
 
 
 def entry_from_adsb(msg: Any, now_s: float) -> TrafficEntry | None:
@@ -61,6 +63,7 @@ def entry_from_adsb(msg: Any, now_s: float) -> TrafficEntry | None:
         ver_m_s,
         callsign.rstrip("\x00"),
         now_s,
+        int(msg.emitter_type) if 0 <= int(msg.emitter_type) <= 19 else 0,
     )
 
 
