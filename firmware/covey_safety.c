@@ -289,17 +289,21 @@ static int32_t lp2(const line_t *lines, int32_t count, real_t radius, const real
  * pushing as far as possible along the normal (-d_y, d_x).
  */
 static void lp3(const line_t *lines, int32_t count, int32_t begin, real_t radius,
-                line_t *proj, real_t result[2])
+                line_t *proj, real_t result[2], int32_t n_hard)
 {
+    /* lines [0, n_hard) are hard: copied into every projected program as they are */
     real_t distance = R(0.0);
-    for (int32_t i = begin; i < count; ++i) {
+    for (int32_t i = begin > n_hard ? begin : n_hard; i < count; ++i) {
         const real_t px = lines[i].point[0], py = lines[i].point[1];
         const real_t dx = lines[i].dir[0], dy = lines[i].dir[1];
         if (det2(dx, dy, px - result[0], py - result[1]) <= distance) {
             continue;
         }
         int32_t n_proj = 0;
-        for (int32_t j = 0; j < i; ++j) {
+        for (; n_proj < n_hard; ++n_proj) {
+            proj[n_proj] = lines[n_proj];
+        }
+        for (int32_t j = n_hard; j < i; ++j) {
             const real_t qx = lines[j].point[0], qy = lines[j].point[1];
             const real_t ex = lines[j].dir[0], ey = lines[j].dir[1];
             const real_t determinant = det2(dx, dy, ex, ey);
@@ -348,6 +352,14 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
                                    int32_t n_nbrs, covey_safety_scratch_t *scratch,
                                    covey_safety_out_t *out)
 {
+    return covey_safety_filter_hard(cfg, own, pref_vel_m_s, nbrs, n_nbrs, 0, scratch, out);
+}
+
+covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const covey_track_t *own,
+                                        const float pref_vel_m_s[2], const covey_track_t *nbrs,
+                                        int32_t n_nbrs, int32_t n_hard,
+                                        covey_safety_scratch_t *scratch, covey_safety_out_t *out)
+{
     if (out != NULL) {
         out->n_lines = 0;
         out->changed = 0;
@@ -390,7 +402,13 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
     const real_t nc_base = cfg->non_cooperative_radius_m > 0.0f ? R(cfg->non_cooperative_radius_m)
                                                                : R(cfg->radius_m);
     const real_t s_own = R(own->pos_sigma_m);
+    if (n_hard < 0 || n_hard > COVEY_SAFETY_MAX_HARD_LINES) {
+        return fail(out, COVEY_ERR_RANGE);
+    }
     int32_t n_lines = 0;
+    for (; n_lines < n_hard; ++n_lines) {
+        scratch->lines[n_lines] = scratch->hard[n_lines];
+    }
     for (int32_t i = 0; i < n_nbrs; ++i) {
         real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
         real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
@@ -424,7 +442,8 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
     real_t v[2];
     const int32_t failed = lp2(scratch->lines, n_lines, vmax, pref, 0, v);
     if (failed < n_lines) {
-        lp3(scratch->lines, n_lines, failed, vmax, scratch->proj, v);
+        lp3(scratch->lines, n_lines, failed, vmax, scratch->proj, v,
+            failed >= n_hard ? n_hard : 0);
         out->infeasible = 1;
     }
     real_t start[2]; /* what lp2 starts from: the preference clipped to the speed disc */

@@ -102,10 +102,14 @@ typedef struct {
     covey_real_t dir[2];
 } covey_halfplane_t;
 
-/* Caller-owned working memory (4 KB at COVEY_MAX_INPUTS = 64 in double). */
+/* Most hard lines (keep-out zone edges, covey_zones.h) one call takes before the neighbours'. */
+#define COVEY_SAFETY_MAX_HARD_LINES 32
+
+/* Caller-owned working memory (7 KB at COVEY_MAX_INPUTS = 64 in double). */
 typedef struct {
-    covey_halfplane_t lines[COVEY_MAX_INPUTS];
-    covey_halfplane_t proj[COVEY_MAX_INPUTS]; /* the fallback's projected lines */
+    covey_halfplane_t lines[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES];
+    covey_halfplane_t proj[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES]; /* the fallback's */
+    covey_halfplane_t hard[COVEY_SAFETY_MAX_HARD_LINES]; /* covey_safety_filter_hard's input */
 } covey_safety_scratch_t;
 
 /* Result of one filter call. */
@@ -139,6 +143,18 @@ covey_status_t covey_safety_filter(const covey_safety_config_t *cfg, const covey
                                    const float pref_vel_m_s[2], const covey_track_t *nbrs,
                                    int32_t n_nbrs, covey_safety_scratch_t *scratch,
                                    covey_safety_out_t *out);
+
+/*
+ * covey_safety_filter with n_hard hard lines in scratch->hard (keep-out zones: covey_zones.c
+ * covey_safety_filter_zones fills them): they go first and are never relaxed; when the
+ * neighbours' lines cannot all be met, their worst violation is minimised inside the hard ones
+ * (RVO2's obstacle lines; policy/safety.py solve_lines). n_hard in [0,
+ * COVEY_SAFETY_MAX_HARD_LINES], else COVEY_ERR_RANGE; out->n_lines counts both kinds.
+ */
+covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const covey_track_t *own,
+                                        const float pref_vel_m_s[2], const covey_track_t *nbrs,
+                                        int32_t n_nbrs, int32_t n_hard,
+                                        covey_safety_scratch_t *scratch, covey_safety_out_t *out);
 
 /* sizeof(covey_safety_scratch_t), for bindings (ctypes). */
 uint32_t covey_safety_scratch_bytes(void);

@@ -19,8 +19,12 @@ from firmware.export_c import export_c_header
 
 FIRMWARE_DIR = Path(__file__).resolve().parent
 BUILD_DIR = FIRMWARE_DIR / "build"
-CORE_C = tuple(FIRMWARE_DIR / f"covey_{m}.c" for m in ("policy", "traffic", "safety", "guidance"))
-CORE_H = tuple(FIRMWARE_DIR / f"covey_{m}.h" for m in ("policy", "traffic", "safety", "guidance"))
+CORE_C = tuple(
+    FIRMWARE_DIR / f"covey_{m}.c" for m in ("policy", "traffic", "safety", "guidance", "zones")
+)
+CORE_H = tuple(
+    FIRMWARE_DIR / f"covey_{m}.h" for m in ("policy", "traffic", "safety", "guidance", "zones")
+)
 DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_driver.c"
 BENCH_SOURCE = FIRMWARE_DIR / "host" / "covey_bench.c"
 UNIT_SOURCE = FIRMWARE_DIR / "host" / "covey_unit.c"

@@ -31,6 +31,8 @@ when a true position comes within ZONE_ENTRY_SHARE x radius_m (1.5 m) of a zone,
 absorbs lag and discrete time as it does between vehicles."""
 ZONE_ENTRY_SHARE = 0.5
 """A true position within this share of the separation (1.5 m at 3 m) of a zone is an entry."""
+MAX_ZONE_EDGES = 32
+"""Nearest facing edges that get a line per call (COVEY_MAX_ZONE_EDGES in C): bounds the LP."""
 ZONE_TIME_HORIZON_S = 2.0
 """How far ahead zone edges are looked at (RVO2's timeHorizonObst): shorter than the neighbours'
 4 s, as an edge does not come towards the vehicle; a vehicle flying along an edge is not slowed,
@@ -119,7 +121,7 @@ class ZoneSet:
         next_idx = np.concatenate(nxt) if nxt else np.zeros(0, np.int64)
         prev_idx = np.concatenate(prv) if prv else np.zeros(0, np.int64)
         d = points[next_idx] - points
-        unit = d / np.maximum(np.hypot(d[:, 0], d[:, 1]), EPS)[:, None]
+        unit = d / np.maximum(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]), EPS)[:, None]
         # convex: the next vertex is not to the right of prev -> this (RVO2's leftOf >= 0)
         a, b, c = points[prev_idx], points, points[next_idx]
         left_of = (a[:, 0] - c[:, 0]) * (b[:, 1] - a[:, 1]) - (a[:, 1] - c[:, 1]) * (
@@ -159,7 +161,7 @@ class ZoneSet:
         dist_sq = dx * dx + dy * dy
         reach = self.time_horizon_s * max_speed_m_s + self.radius_m
         ok = np.flatnonzero((left_of < 0.0) & (dist_sq < reach * reach))
-        return ok[np.argsort(dist_sq[ok], kind="stable")].tolist()
+        return ok[np.argsort(dist_sq[ok], kind="stable")][:MAX_ZONE_EDGES].tolist()
 
     def lines(self, pos_m, vel_m_s, max_speed_m_s: float) -> list:
         """The vehicle's obstacle half-planes [((point_n, point_e), (dir_n, dir_e))] in absolute

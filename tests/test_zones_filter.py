@@ -1,0 +1,213 @@
+"""Keep-out zones in the separation filter: ORCA's obstacle half-planes (policy/zone_lines.py)
+and their C twin (firmware/covey_zones.c), parity tested on random convex and concave scenes,
+and flown in closed loop: the filter never commands a velocity that enters a zone, with or
+without a crowd pushing towards it."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import shapely
+
+from policy import safety
+from policy.zone_lines import MAX_ZONE_EDGES, ZoneSet
+
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
+
+RADIUS_M = float(np.float32(1.8))
+"""The filter's zone radius at 3 m (policy.zone_lines), as the C core reads it (float32)."""
+PARITY_TOL = 1e-6
+"""Max |C - numpy| per component of a velocity, m/s at 1 m/s (the C output is float32)."""
+
+
+@pytest.fixture(scope="module")
+def lib():
+    from firmware.cpolicy import load_library
+
+    return load_library()
+
+
+def _f32(x) -> np.ndarray:
+    """Values both sides read the same: float32-representable float64."""
+    return np.asarray(x, dtype=np.float32).astype(np.float64)
+
+
+def random_polygon(rng, centre_box_m=8.0) -> np.ndarray:
+    """A simple star-shaped polygon (angular gaps under pi), concave about half the time."""
+    while True:
+        k = int(rng.integers(3, 10))
+        ang = np.sort(rng.uniform(0, 2 * np.pi, k))
+        if np.max(np.diff(np.r_[ang, ang[0] + 2 * np.pi])) >= 0.9 * np.pi:
+            continue
+        rad = rng.uniform(2.0, 9.0, k)
+        c = rng.uniform(-centre_box_m, centre_box_m, 2)
+        p = _f32(c + np.stack([rad * np.cos(ang), rad * np.sin(ang)], 1))
+        if shapely.Polygon(p).is_valid and shapely.Polygon(p).area > 1.0:
+            return p
+
+
+def random_scene(rng):
+    polys = [random_polygon(rng)]
+    if rng.random() < 0.5:
+        q = _f32(random_polygon(rng) + rng.choice([-1, 1], 2) * 12.0)
+        if not shapely.Polygon(q).intersects(shapely.Polygon(polys[0])):
+            polys.append(q)
+    return polys
+
+
+def test_lines_and_filter_match_c_on_random_scenes(lib):
+    from firmware.czones import CZones
+
+    rng = np.random.default_rng(35)
+    cfg = safety.SafetyConfig()
+    n_lines = n_changed = n_concave = 0
+    worst = 0.0
+    for _ in range(300):
+        polys = random_scene(rng)
+        n_concave += any(
+            not shapely.Polygon(p).convex_hull.equals(shapely.Polygon(p)) for p in polys
+        )
+        zs = ZoneSet.of(polys, RADIUS_M)
+        cz = CZones(lib, polys, RADIUS_M)
+        union = shapely.union_all([shapely.Polygon(p) for p in polys])
+        for _ in range(10):
+            pos = _f32(rng.uniform(-20, 20, 2))
+            if union.distance(shapely.Point(pos)) < 0.05:
+                continue  # on an edge: a sign flip away from the other side (both are right)
+            vel = _f32(rng.uniform(-1, 1, 2))
+            pref = _f32(rng.uniform(-1.2, 1.2, 2))
+            ref_lines = zs.lines(pos, vel, cfg.max_speed_m_s)
+            c_lines = cz.lines(pos, vel, cfg.max_speed_m_s)
+            assert len(ref_lines) == len(c_lines)
+            for (p, d), (q, e) in zip(ref_lines, c_lines, strict=True):
+                np.testing.assert_allclose(p, q, atol=1e-9)
+                np.testing.assert_allclose(d, e, atol=1e-9)
+            n_lines += len(ref_lines)
+            k = int(rng.integers(0, 5))
+            nbr_pos = _f32(pos + rng.uniform(-8, 8, (k, 2)))
+            nbr_vel = _f32(rng.uniform(-1, 1, (k, 2)))
+            ref = safety.filter_one(pos, vel, pref, nbr_pos, nbr_vel, cfg, zones=zs)
+            st, c_v, _ = cz.evaluate(cfg, pos, vel, pref, nbr_pos, nbr_vel)
+            assert st == "ok"
+            worst = max(worst, float(np.abs(ref - c_v).max()))
+            n_changed += not np.allclose(ref, safety._clip_speed(pref, 1.0))
+    assert worst <= PARITY_TOL, worst
+    assert n_lines > 500 and n_changed > 300 and n_concave > 50  # the cases exercise it
+
+
+def test_no_zones_is_exactly_the_filter(lib):
+    from firmware.csafety import CSafetyFilter
+    from firmware.czones import CZones
+
+    cfg = safety.SafetyConfig()
+    far = [np.array([[1000.0, 1000.0], [1010.0, 1000.0], [1010.0, 1010.0]])]
+    cz = CZones(lib, far, RADIUS_M)
+    plain = CSafetyFilter(lib, cfg)
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        pos, vel, pref = _f32(rng.uniform(-5, 5, (3, 2)))
+        nbr = _f32(rng.uniform(-6, 6, (3, 2)))
+        nv = _f32(rng.uniform(-1, 1, (3, 2)))
+        assert np.array_equal(
+            cz.filter(cfg, pos, vel, pref, nbr, nv), plain(pos, vel, pref, nbr, nv)
+        )
+        assert np.array_equal(
+            safety.filter_one(pos, vel, pref, nbr, nv, cfg, zones=ZoneSet.of(far, RADIUS_M)),
+            safety.filter_one(pos, vel, pref, nbr, nv, cfg),
+        )
+
+
+def _fly(step_fn, polys, rng, n_steps=400, dt_s=0.1, crowd=False):
+    """Closed loop on an ideal point mass aimed through the zones; the closest true distance."""
+    union = shapely.union_all([shapely.Polygon(p) for p in polys])
+    while True:
+        pos = rng.uniform(-25, 25, 2)
+        if union.distance(shapely.Point(pos)) > RADIUS_M + 0.5:
+            break
+    goal = -pos
+    vel = np.zeros(2)
+    closest = np.inf
+    for _ in range(n_steps):
+        d = goal - pos
+        pref = d / max(np.hypot(*d), 1e-9)
+        if crowd:  # three vehicles flying at us from the side away from the zones
+            away = pos - np.array(union.centroid.coords[0])
+            away /= max(np.hypot(*away), 1e-9)
+            nbr_pos = pos + away * 3.7 + np.array([[0, 0], [1.5, -1.5], [-1.5, 1.5]])
+            nbr_vel = np.broadcast_to(-away, (3, 2))
+        else:
+            nbr_pos, nbr_vel = np.zeros((0, 2)), np.zeros((0, 2))
+        vel = step_fn(_f32(pos), _f32(vel), _f32(pref), _f32(nbr_pos), _f32(nbr_vel))
+        pos = pos + vel * dt_s
+        closest = min(closest, union.distance(shapely.Point(pos)))
+    return closest
+
+
+@pytest.mark.parametrize("crowd", [False, True])
+def test_the_filter_never_enters_a_zone_numpy_and_c(lib, crowd):
+    from firmware.czones import CZones
+
+    cfg = safety.SafetyConfig()
+    rng = np.random.default_rng(7 + crowd)
+    closest = {"numpy": np.inf, "c": np.inf}
+    for _ in range(12):
+        polys = random_scene(rng)
+        zs = ZoneSet.of(polys, RADIUS_M)
+        cz = CZones(lib, polys, RADIUS_M)
+        seed = int(rng.integers(1 << 30))
+
+        def ref(p, v, pref, np_, nv, zs=zs):
+            return safety.filter_one(p, v, pref, np_, nv, cfg, zones=zs)
+
+        def c(p, v, pref, np_, nv, cz=cz):
+            return cz.filter(cfg, p, v, pref, np_, nv)
+
+        for name, fn in (("numpy", ref), ("c", c)):
+            got = _fly(fn, polys, np.random.default_rng(seed), crowd=crowd)
+            closest[name] = min(closest[name], got)
+    # the discrete step and float32 inputs cost micrometres, never the radius
+    assert closest["numpy"] >= RADIUS_M - 1e-3, closest
+    assert closest["c"] >= RADIUS_M - 1e-3, closest
+
+
+def test_without_zone_lines_a_vehicle_flies_straight_in():
+    """The check above can fail: the same flight without the zones' lines enters."""
+    cfg = safety.SafetyConfig()
+    sq = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    pos, v = np.array([-10.0, 5.0]), np.zeros(2)
+    for _ in range(200):
+        v = safety.filter_one(pos, v, np.array([1.0, 0.0]), np.zeros((0, 2)), np.zeros((0, 2)), cfg)
+        pos = pos + 0.1 * v
+    assert shapely.Polygon(sq).contains(shapely.Point(pos))
+
+
+def test_c_refuses_bad_polygons(lib):
+    from firmware.czones import CZones
+
+    with pytest.raises(ValueError, match="range"):
+        CZones(lib, [np.array([[0, 0], [10, 10], [10, 0], [0, 12]], float)], RADIUS_M)  # a bow tie
+    with pytest.raises(ValueError, match="range"):
+        CZones(lib, [np.array([[0, 0], [1, 0]], float)], RADIUS_M)
+    with pytest.raises(ValueError, match="nonfinite"):
+        CZones(lib, [np.array([[0, 0], [np.nan, 0], [1, 1]], float)], RADIUS_M)
+    with pytest.raises(ValueError, match="range"):
+        CZones(lib, [np.array([[0, 0], [0, 0], [1, 0], [1, 1]], float)], RADIUS_M)  # repeated
+    with pytest.raises(ValueError, match="crosses itself"):
+        ZoneSet.of([np.array([[0, 0], [10, 10], [10, 0], [0, 12]], float)], RADIUS_M)
+
+
+def test_many_edges_are_capped_to_the_nearest(lib):
+    """A 200-vertex circle next to the vehicle: both sides keep the same 32 nearest edges."""
+    from firmware.czones import CZones
+
+    ang = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    circle = _f32(np.stack([5 * np.cos(ang), 5 * np.sin(ang)], 1))
+    zs = ZoneSet.of([circle], RADIUS_M)
+    cz = CZones(lib, [circle], RADIUS_M)
+    pos, vel = _f32([7.5, 0.0]), _f32([-1.0, 0.0])
+    assert len(zs.nearby_edges(pos, 1.0)) == MAX_ZONE_EDGES
+    ref, c = zs.lines(pos, vel, 1.0), cz.lines(pos, vel, 1.0)
+    assert len(ref) == len(c) > 0
+    np.testing.assert_allclose(np.array(ref), np.array(c), atol=1e-9)
