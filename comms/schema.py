@@ -7,10 +7,11 @@ out-of-range fields. Nothing else escapes a decoder.
 
 Layouts (all little-endian, packed; `<` struct codes):
 
-    VehicleState  type 1 v2  <BBHIQ3f3ff3fBBHfBB [+ 64s]  66 bytes, 130 signed
+    VehicleState  type 1 v3  <BBHIQ3f3ff3fBBHfBBf [+ 64s]  70 bytes, 134 signed
         type, version, vehicle_id, seq, stamp_ns, pos_ned_m[3], vel_ned_m_s[3], heading_rad,
         goal_ned_m[3], mode, armed, flags, battery_pct, mission_item, mission_items,
-        [sig: Ed25519 of vehicle_id]   (v1, without the mission progress, is refused)
+        pos_sigma_m, [sig: Ed25519 of vehicle_id]   (v1, without the mission progress, and v2,
+        without the position uncertainty, are refused with the version named)
     Command       type 2 v2  <BBQQHB3dIH + n*H + 64s  header 51 bytes + 2 per target + 64 tag
         type, version, nonce, stamp_ns, source_id, kind, params[3] (float64), seq, n_targets,
         targets[n_targets] (empty = the whole fleet), tag (Ed25519 of station source_id, or
@@ -120,6 +121,8 @@ LOCAL_DOWN_RANGE_M = (-10_000.0, 100.0)
 GLOBAL_ALT_RANGE_M = (-500.0, 10_000.0)
 POSITION_LIMIT_M = 1_000_000.0
 SPEED_LIMIT_M_S = 1_000.0
+POS_SIGMA_LIMIT_M = 1_000.0
+"""Largest position uncertainty a state may carry (the C filter's COVEY_SAFETY_MAX_SIGMA_M)."""
 
 
 class DecodeError(ValueError):
@@ -319,11 +322,15 @@ class VehicleState:
     started, aborted); mission_items + 1: the mission is done."""
     mission_items: int = 0
     """How many items the vehicle's mission has (0: no mission)."""
+    pos_sigma_m: float = 0.0
+    """1-sigma of the horizontal position estimate, per axis, metres (PX4's eph, the GNSS
+    receiver's accuracy, the simulator's drift); 0: exact or not reported. The separation
+    filter keeps each pair this much further apart, scaled (policy.safety.pair_radius_m)."""
 
     TYPE: ClassVar[MsgType] = MsgType.VEHICLE_STATE
-    VERSION: ClassVar[int] = 2
-    """v2 added the mission progress (issue 36)."""
-    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ3f3ff3fBBHfBB")
+    VERSION: ClassVar[int] = 3
+    """v2 added the mission progress (issue 36), v3 the position uncertainty (issue 35)."""
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHIQ3f3ff3fBBHfBBf")
 
     def validate(self) -> None:
         """Raise DecodeError with the reason unless every field is within its limits. The first
@@ -357,6 +364,7 @@ class VehicleState:
             and len(self.sig) in (0, TAG_BYTES)
             and 0 <= self.mission_items <= MAX_MISSION_ITEMS
             and 0 <= self.mission_item <= self.mission_items + 1
+            and 0.0 <= self.pos_sigma_m <= POS_SIGMA_LIMIT_M
         ):
             return
         self._validate_reasoned()
@@ -390,6 +398,8 @@ class VehicleState:
             raise DecodeError(
                 f"mission_item={self.mission_item} is outside [0, {self.mission_items + 1}]"
             )
+        _check_finite("pos_sigma_m", self.pos_sigma_m)
+        _check_range("pos_sigma_m", self.pos_sigma_m, 0.0, POS_SIGMA_LIMIT_M)
         _check_sig(self.sig)
 
     def signed_bytes(self) -> bytes:
@@ -410,6 +420,7 @@ class VehicleState:
             self.battery_pct,
             self.mission_item,
             self.mission_items,
+            self.pos_sigma_m,
         )
 
     def encode(self) -> bytes:
@@ -444,6 +455,7 @@ class VehicleState:
             sig=data[cls._FMT.size :],
             mission_item=f[19],
             mission_items=f[20],
+            pos_sigma_m=f[21],
         )
         msg.validate()
         return msg

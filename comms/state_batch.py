@@ -38,6 +38,7 @@ _DTYPE = np.dtype(
         ("battery", "<f4"),
         ("mission_item", "u1"),
         ("mission_items", "u1"),
+        ("pos_sigma", "<f4"),
     ]
 )
 _SIZE = schema.VehicleState._FMT.size
@@ -105,6 +106,8 @@ def _checks(a: np.ndarray) -> np.ndarray:
     ok &= (a["armed"] <= 1) & (a["flags"] <= 0xFF)
     n_items = a["mission_items"].astype(np.int64)
     ok &= (n_items <= schema.MAX_MISSION_ITEMS) & (a["mission_item"] <= n_items + 1)
+    sigma = a["pos_sigma"].astype(np.float64)
+    ok &= np.isfinite(sigma) & (sigma >= 0.0) & (sigma <= schema.POS_SIGMA_LIMIT_M)
     return ok
 
 

@@ -253,10 +253,10 @@ def _feed(n: int, signed: bool = False, size: int | None = None) -> FeedBatch:
 @pytest.mark.parametrize(
     ("batch", "why"),
     [
-        (_feed(0), "0 feed entries, must be 1..57"),
-        (_feed(58), "58 feed entries, must be 1..57"),
-        (_feed(31, signed=True), "FeedBatch of 4193 bytes, at most 4096"),
-        (_feed(2, size=63), "entry 0: a state is 66 or 130 bytes, not 63"),
+        (_feed(0), "0 feed entries, must be 1..54"),
+        (_feed(55), "55 feed entries, must be 1..54"),
+        (_feed(30, signed=True), "FeedBatch of 4178 bytes, at most 4096"),
+        (_feed(2, size=63), "entry 0: a state is 70 or 134 bytes, not 63"),
         (FeedBatch(2**32, _feed(1).entries), "feed_seq=4294967296 does not fit"),
         (FeedBatch(1, (FeedEntry(-1, _feed(1).entries[0].state),)), "entry_seq=-1 does not fit"),
     ],
@@ -266,13 +266,13 @@ def test_feed_batch_refuses_what_it_cannot_carry(batch, why) -> None:
         batch.encode()
 
 
-def test_feed_batch_holds_57_unsigned_or_30_signed_states() -> None:
-    assert FeedBatch.MAX_ENTRIES == 57
-    for batch in (_feed(57), _feed(30, signed=True)):
+def test_feed_batch_holds_54_unsigned_or_29_signed_states() -> None:
+    assert FeedBatch.MAX_ENTRIES == 54
+    for batch in (_feed(54), _feed(29, signed=True)):
         data = batch.encode()
         assert len(data) <= schema.MAX_FEED_BYTES and decode(data) == batch
     # The entries are carried as bytes, not checked: the receiver decodes each on its own.
-    junk = FeedBatch(1, (FeedEntry(1, bytes(66)),))
+    junk = FeedBatch(1, (FeedEntry(1, bytes(70)),))
     assert decode(junk.encode()) == junk
     with pytest.raises(DecodeError):
         VehicleState.decode(junk.entries[0].state)
@@ -287,7 +287,7 @@ def test_reason_text_is_cut_on_a_character_boundary() -> None:
 @pytest.mark.parametrize(
     ("mutate", "why"),
     [
-        (lambda b: b[:-1], "must be 66 bytes"),
+        (lambda b: b[:-1], "must be 70 bytes"),
         (lambda b: bytes([99]) + b[1:], "unknown message type 99"),
         (lambda b: b[:1] + bytes([7]) + b[2:], "unsupported VEHICLE_STATE version 7"),
         (lambda b: b[:16] + struct.pack("<f", math.nan) + b[20:], "must be finite"),

@@ -32,6 +32,7 @@ def _fields(rng: random.Random) -> list:
         rng.randint(0, 0xFF),
         rng.uniform(0, 100),
         *((k := rng.randint(0, 7)), rng.randint(max(0, k - 1), 9)),  # mission item, items
+        rng.uniform(0, 3),  # pos_sigma_m
     ]
 
 
@@ -49,6 +50,7 @@ EDGES = {  # field index -> values around its limits
     18: [0.0, 100.0, -0.0, 100.00001, -1e-7, math.nan],
     19: [0, 10, 11, 255],
     20: [0, 100, 101, 255],
+    21: [0.0, -0.0, 1000.0, 1000.0001, -1e-7, math.nan, math.inf],
 }
 
 
