@@ -68,6 +68,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "keygen_cli",
         "fleet authority: init, add/revoke members, push the roster",
     ),
+    "plan": (
+        "groundstation.plan_cli",
+        "plan_cli",
+        "fleet plan: load a GeoJSON/QGC fence and keep-out zones, show, push to the fleet",
+    ),
     "tls": (
         "groundstation.tls_cli",
         "tls_cli",

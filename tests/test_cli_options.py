@@ -51,6 +51,7 @@ NO_UNIT_SUFFIX: dict[str, set[tuple[str, str]]] = {
         ("sitl", "--home"),
         ("record", "--origin"),
         ("foxglove", "--origin"),
+        ("plan", "--origin"),
     },
 }
 ALLOWED = {flag for flags in NO_UNIT_SUFFIX.values() for flag in flags}
