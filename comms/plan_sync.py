@@ -40,6 +40,11 @@ from comms.schema import PlanHead, PlanMessage
 
 log = logging.getLogger(__name__)
 
+START_PULL_S = 1.0
+"""A process that starts waits at most this long for the plan from the members that hold it
+(`DocSync.pull_now`) before it answers commands: a rebooted vehicle never flies a goto the
+fleet's plan refuses."""
+
 
 class PlanDoc:
     """The fleet plan as a `SignedDoc` (comms/roster_sync.py): the plan this member holds."""

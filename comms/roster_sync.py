@@ -282,6 +282,20 @@ class DocSync:
             self._next_pull_ns = min(self._next_pull_ns, due)
         self._wake.set()
 
+    def pull_now(self, timeout_s: float = 1.0) -> None:
+        """Pull once and wait for the answers, at most `timeout_s` (Zenoh ends the wait as soon
+        as every member's queryable has answered or declined): a process that starts holds the
+        fleet's newest document before it answers anything that depends on it."""
+        replies = self.session.get(
+            f"{self.key}?{HAVE}={self.doc.held_version()}",
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout_s,
+        )
+        self._count("pulls")
+        for reply in replies:
+            self._on_reply(reply)
+
     def _behind(self, head: DocHead, now: int) -> None:
         """An older document was put on the key: a member is behind. Re-publish ours (once,
         soon, unless someone else does), if that older one is authentic: a forged one must not
@@ -373,7 +387,7 @@ class DocSync:
             try:
                 self._step(self._mono_ns())
             except Exception as exc:  # noqa: BLE001 - the session may be closing
-                if self._closed:
+                if self._closed or self.session.is_closed():  # closed under us: nothing to do
                     return
                 log.warning("%s sync: %s", self.doc.name, exc)
                 self._wake.wait(0.5)
