@@ -178,3 +178,17 @@ def test_refusals_are_one_line_and_exit_2(capsys, tmp_path) -> None:
     with pytest.raises(SystemExit):
         cmd_cli(["formation", "star", *base])
     assert "invalid choice: 'star'" in capsys.readouterr().err
+
+
+def test_formation_bench_smoke(tmp_path, monkeypatch) -> None:
+    """bench/formation.py --quick: 30 simulated vehicles settle in their circle's slots with no
+    pair below the separation; the assignment times are there."""
+    from bench import common, formation
+
+    monkeypatch.setenv(common.OUT_ENV, str(tmp_path))
+    res = formation.main(quick=True)
+    assert (tmp_path / "formation.png").is_file()
+    change = res["change"]
+    assert change["vehicles"] == 30 and math.isfinite(change["settle_s"])
+    assert change["min_separation_m"] >= SEPARATION_M
+    assert [r["vehicles"] for r in res["assignment"]] == [10, 30, 100]
