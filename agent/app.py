@@ -40,6 +40,8 @@ from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatConfig, StationHeartbeats
 from comms.mesh import Mesh
+from comms.plan import FleetPlan
+from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
     AckResult,
     Command,
@@ -197,6 +199,17 @@ class Agent:
             self.states = mesh.subscribe_states(
                 self._on_state, link=link, ignore_id=self.vid, gate=gate
             )
+        # The fleet plan (comms/plan_sync.py): gotos and take-offs are checked against it.
+        self.plan = PlanSync(
+            mesh.session,
+            mesh.fleet,
+            getattr(mesh, "auth", None),
+            on_plan=self._on_plan,
+            on_summary=lambda line: self._event(
+                line, EventKind.SECURITY, Severity.WARNING, quiet=True
+            ),
+        )
+        self.plan.pull_now(START_PULL_S)  # a rebooted vehicle holds the plan before any command
         # Answer commands before announcing presence: whoever sees us alive can command us.
         mesh.serve_commands(self.vid, self.handle_command)
         mesh.declare_vehicle(self.vid)
@@ -221,6 +234,7 @@ class Agent:
     def close(self) -> None:
         """Stop the action queue (what still waits is reported as not run)."""
         self.actions.close()
+        self.plan.undeclare()
         self.stations.close()
         self.traffic_listener.close()
 
@@ -235,6 +249,11 @@ class Agent:
         return self.core.mode_of(0)
 
     # -- events ------------------------------------------------------------------------------
+    def _on_plan(self, plan: FleetPlan) -> None:
+        with self._lock:
+            self.core.set_plan(plan)
+        self._event(f"fleet plan v{plan.version}: {describe(plan)}")
+
     def _event(
         self,
         text: str,

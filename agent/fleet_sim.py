@@ -47,6 +47,8 @@ from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatConfig, StationHeartbeats
 from comms.mesh import Mesh
+from comms.plan import FleetPlan
+from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
     POSITION_LIMIT_M,
     AckResult,
@@ -251,6 +253,18 @@ class Fleet:
                 emit = lambda line, i=i: self._event(i, line, EventKind.SECURITY)  # noqa: E731
                 auth.on_reject = command_refusals(emit, mesh.clock_ns)
             mesh.on_security = lambda line: self._event(0, line, EventKind.SECURITY)
+        # The fleet plan (comms/plan_sync.py): every row's gotos and take-offs are checked against
+        # it; it lives as long as the mesh session.
+        self.plan = PlanSync(
+            mesh.session,
+            mesh.fleet,
+            mesh.auth,
+            on_plan=self._on_plan,
+            on_summary=(lambda line: self._event(0, line, EventKind.SECURITY))
+            if auths is not None
+            else None,
+        )
+        self.plan.pull_now(START_PULL_S)  # hold the plan before answering any command
         gate = GateConfig(min_interval_s=NeighbourConfig().verify_min_interval_s)
         self.scope: Scope | None = None
         self.states = None
@@ -330,6 +344,11 @@ class Fleet:
         outcome = outcome_of(action, int(self.ids[i]), error)
         auth = self.auths[i]
         self._send(self.mesh.publish_event, outcome.to_event(self.mesh.clock_ns()), auth=auth)
+
+    def _on_plan(self, plan: FleetPlan) -> None:
+        with self._lock:
+            self.core.set_plan(plan)
+        log.info("fleet plan v%d: %s", plan.version, describe(plan))
 
     def _publish_notes(self, notes: list[Note]) -> None:
         for n in notes:

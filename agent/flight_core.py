@@ -30,6 +30,7 @@ from agent.failsafe import FailsafeConfig, Failsafes
 from agent.guidance import BatchGuidance, GuidanceConfig, GuidanceStep, NeighbourViews
 from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
 from comms.geo import GeoOrigin
+from comms.plan import FleetPlan, plan_refusal
 from comms.schema import AckResult, Command, CommandKind, EventKind, Mode, Severity, StateFlag
 
 FLYING = (Mode.GOTO, Mode.RETURNING)
@@ -194,6 +195,9 @@ class FlightCore:
         """(N,) the battery as last observed (NaN: not yet); commands are checked against it."""
         self.notes: list[Note] = []
         """Events for the shell to publish (it drains the list)."""
+        self.mission_plan: FleetPlan | None = None
+        """The fleet plan mission items are checked against (fence, keep-out zones, ceiling);
+        None: the circular geofence and altitude limits alone."""
 
     # -- reading -------------------------------------------------------------------------------
     def mode_of(self, i: int) -> Mode:
@@ -255,7 +259,7 @@ class FlightCore:
                 target = np.array(self.cfg.origin.to_local(*target_global))
             else:
                 target = np.array(cmd.params[:3], dtype=float)
-            problem = fs.check_target(target)
+            problem = self.target_problem(target)
             if problem:
                 return Decision(AckResult.REJECTED, problem, mode)
         alt_m = None
@@ -271,6 +275,10 @@ class FlightCore:
                     f"takeoff altitude {alt_m:g} m is above the {fs.max_alt_m:g} m limit",
                     mode,
                 )
+            here = (float(pos_m[0]), float(pos_m[1]))
+            problem = plan_refusal(self.mission_plan, here, alt_m)
+            if problem:
+                return Decision(AckResult.REJECTED, f"cannot take off here: {problem}", mode)
         res = step(mode, trigger)
         if not res.accepted:
             return Decision(AckResult.REJECTED, res.reason, mode)
@@ -371,6 +379,28 @@ class FlightCore:
         if why:
             self.notes.append(Note(i, why, EventKind.FAILSAFE, Severity.WARNING))
         return actions
+
+    # -- the fleet plan -------------------------------------------------------------------------
+    def set_plan(self, plan: FleetPlan | None) -> None:
+        """Check every goto, take-off and mission target against `plan` from now on (the shell
+        calls it when comms/plan_sync.py applies a newer plan); None: no plan."""
+        self.mission_plan = plan
+
+    def target_problem(self, target_ned_m: np.ndarray) -> str | None:
+        """Why a goto target is refused, or None: the altitude limits (agent/failsafe.py), then
+        the fleet plan (keep-out zones, its fence and floor/ceiling, comms/plan.py), whose
+        polygon fence replaces the circular geofence; without a plan fence, the circle."""
+        fs = self.cfg.failsafe
+        plan = self.mission_plan
+        if plan is not None and plan.fence is not None and fs.geofence_radius_m:
+            fs = replace(fs, geofence_radius_m=0.0)
+        problem = fs.check_target(target_ned_m)
+        if problem:
+            return problem
+        why = plan_refusal(
+            plan, (float(target_ned_m[0]), float(target_ned_m[1])), -float(target_ned_m[2])
+        )
+        return f"target {why}" if why else None
 
     # -- the autopilot's answers ---------------------------------------------------------------
     def action_failed(self, action: Action, reason: str) -> bool:
