@@ -8,7 +8,9 @@ Standard channels (schemas and encoders from foxglove-sdk; protobuf unless marke
     /vehicles/<id>/fix        LocationFix     WGS-84 from the fleet origin (comms.geo)
     /vehicles/<id>/link       JSON            rate_hz, age_s, loss_share of its state stream
     /scene                    SceneUpdate     per vehicle: body, velocity arrow, separation ring,
-                                              goal, coloured by mode; deleted when it leaves
+                                              goal, coloured by mode; deleted when it leaves;
+                                              per TrafficReport an entity "traffic/<reporter>/
+                                              <track>": magenta sphere, ring, arrow, "TRF" label
     /events                   Log             every Event, level from its severity
     /commands                 JSON            who sent which command to whom
     /acks                     JSON            each vehicle's answer to a command
@@ -30,7 +32,7 @@ from foxglove import messages as fm
 
 from comms import keys, schema
 from comms.geo import GeoOrigin
-from comms.palette import GOAL_RGB, RING_OK_RGB, mode_rgb
+from comms.palette import GOAL_RGB, RING_OK_RGB, TRAFFIC_RGB, mode_rgb
 from comms.state_batch import StateRow, decode_states
 
 _STATE_TYPE = bytes([schema.MsgType.VEHICLE_STATE])
@@ -307,6 +309,8 @@ class Converter:
             return [self.command(msg, recv_ns)]
         if isinstance(msg, schema.CommandAck):
             return [self.ack(msg, recv_ns)]
+        if isinstance(msg, schema.TrafficReport):
+            return [self.traffic(msg, recv_ns)]
         return []
 
     def convert_all(self, items: Sequence[tuple[str, bytes, int]]) -> Iterator[list[Out]]:
@@ -462,6 +466,66 @@ class Converter:
             spheres=spheres,
             texts=[label],
         )
+
+    def traffic(self, r: schema.TrafficReport, recv_ns: int) -> Out:
+        """Traffic that does not cooperate, in the scene: a magenta sphere, a ring at the
+        separation, its velocity and a label; it fades with the vehicles' entity lifetime."""
+        position = _v3(*r.pos_ned_m)
+        colour = _colour(TRAFFIC_RGB)
+        speed = math.sqrt(sum(v * v for v in r.vel_ned_m_s))
+        arrows = []
+        if speed > 0.05:
+            arrows.append(
+                fm.ArrowPrimitive(
+                    pose=fm.Pose(position=position, orientation=_q(*x_to(r.vel_ned_m_s))),
+                    shaft_length=speed,
+                    shaft_diameter=0.1,
+                    head_length=0.4,
+                    head_diameter=0.3,
+                    color=colour,
+                )
+            )
+        n, e, d = r.pos_ned_m
+        kind = "manned" if r.manned else "unmanned"
+        entity = fm.SceneEntity(
+            timestamp=_ts(recv_ns),
+            frame_id=NED_FRAME,
+            id=f"traffic/{r.reporter_id}/{r.track_id}",
+            lifetime=self._lifetime,
+            metadata=[
+                fm.KeyValuePair(key="source", value=r.source.name),
+                fm.KeyValuePair(key="manned", value=str(r.manned)),
+                fm.KeyValuePair(key="reporter", value=f"{r.reporter_role.name} {r.reporter_id}"),
+            ],
+            spheres=[
+                fm.SpherePrimitive(
+                    pose=fm.Pose(position=position, orientation=self._identity),
+                    size=_v3(1.0, 1.0, 1.0),
+                    color=colour,
+                )
+            ],
+            cylinders=[
+                fm.CylinderPrimitive(
+                    pose=fm.Pose(position=position, orientation=self._identity),
+                    size=self._ring_size,
+                    bottom_scale=1.0,
+                    top_scale=1.0,
+                    color=_colour(TRAFFIC_RGB, 0.25),
+                )
+            ],
+            arrows=arrows,
+            texts=[
+                fm.TextPrimitive(
+                    pose=fm.Pose(position=_v3(n, e, d - 1.0), orientation=self._identity),
+                    billboard=True,
+                    font_size=14.0,
+                    scale_invariant=True,
+                    color=colour,
+                    text=f"TRF {r.track_id:X} {r.source.name} {kind}",
+                )
+            ],
+        )
+        return Out(SCENE_TOPIC, SCENE_UPDATE, fm.SceneUpdate(entities=[entity]).encode(), recv_ns)
 
     def scene_update(self, states: list[schema.VehicleState]) -> fm.SceneUpdate:
         return fm.SceneUpdate(entities=[self.scene_entity(s) for s in states])

@@ -23,6 +23,8 @@ ALERT_RGB = (230, 30, 30)
 RING_OK_RGB = (90, 160, 90)
 GEOFENCE_RGB = (230, 120, 0)
 GOAL_RGB = (255, 200, 0)
+TRAFFIC_RGB = (220, 0, 160)
+"""Traffic that does not cooperate (agent/traffic.py): magenta, a colour no mode uses."""
 
 
 def mode_rgb(mode: Mode | None) -> tuple[int, int, int]:

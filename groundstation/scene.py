@@ -5,6 +5,7 @@
     /fleet/velocity, /fleet/stalks                      line segments, every vehicle in one node
     /fleet/trails                                       point cloud, every vehicle's trail
     /labels/<id>                                        only a few (see SceneConfig.labels_*)
+    /traffic/<track>/body, ring, label                  traffic that does not cooperate (few)
 
 A browser pays per scene node (a draw call, a React component, an update message), so the fleet
 is drawn in batches: the node count does not grow with the fleet. Trails are dots: as one line node
@@ -33,6 +34,7 @@ from groundstation.palette import (
     GOAL_RGB,
     LOST_RGB,
     RING_OK_RGB,
+    TRAFFIC_RGB,
     mode_rgb,
 )
 
@@ -71,6 +73,9 @@ class SceneConfig:
     frame rate in Chromium without a GPU (bench/gcs_browser: 6.8 -> 3.0 frames/s)."""
     labels_max: int = 20
     """At most this many labels above `labels_all_max_vehicles` vehicles."""
+    traffic_separation_m: float | None = None
+    """The berth kept from traffic that does not cooperate (its ring's radius less half the
+    separation); None: the separation."""
 
 
 @dataclass(frozen=True)
@@ -116,6 +121,17 @@ def _fleet(vehicles: list[VehicleView], velocity_scale_s: float) -> _Fleet:
     )
 
 
+def traffic_label(track: Any, now_s: float) -> str:
+    """What a traffic marker says: TRF, its track id, what it is, its speed and age."""
+    speed_m_s = math.hypot(*track.vel_ned_m_s[:2])
+    kind = "manned" if track.manned else "unmanned"
+    age_s = max(0.0, now_s - track.stamp_s)
+    return (
+        f"TRF {track.track_id:X} {track.source.name} {kind} {speed_m_s:.1f}m/s "
+        f"{-track.pos_ned_m[2]:.0f}m {age_s:.1f}s"
+    )
+
+
 def label_text(v: VehicleView) -> str:
     s = v.state
     assert s is not None
@@ -146,6 +162,8 @@ class FleetScene:
         self.sent: dict[str, Any] = {}
         """What was last assigned to each node property (quantised), to send only changes."""
         self._trails: dict[int, np.ndarray] = {}
+        self.traffic: dict[int, dict[str, Any]] = {}
+        """Drawn traffic by track id: its body (a magenta diamond), its ring and its label."""
         self._fresh: set[int] = set()
         self._trail_tick = 0
         self._meshes = {
@@ -221,6 +239,56 @@ class FleetScene:
             self._update_layers(fleet)
             self._update_trails(fleet, drawn if send_trails else [])
         self._update_labels(fleet, drawn, len(snap.vehicles))
+
+    def update_traffic(self, tracks: list, now_s: float) -> None:
+        """Draw traffic that does not cooperate (agent.traffic tracks, dead-reckoned to `now_s`):
+        a magenta diamond, a ring at the berth kept from it, a label; gone tracks are removed.
+        Few nodes each (the table is bounded), so one node set per track."""
+        scene = self.server.scene
+        keep = set()
+        for t in tracks:
+            keep.add(t.track_id)
+            pos = tuple(float(x) for x in ned_to_scene(np.array([t.at(now_s)], np.float32))[0])
+            nodes = self.traffic.get(t.track_id)
+            if nodes is None:
+                path = f"/traffic/{t.track_id}"
+                berth_m = self.cfg.traffic_separation_m or self.cfg.separation_m
+                # vehicles' rings are half the separation: the two rings touch at the berth
+                vertices, faces = geo.band_mesh(berth_m - self.cfg.separation_m / 2.0, 0.2)
+                nodes = self.traffic[t.track_id] = {
+                    "body": scene.add_icosphere(
+                        f"{path}/body",
+                        radius=0.6,
+                        subdivisions=0,
+                        color=TRAFFIC_RGB,
+                        position=pos,
+                        **NO_SHADOW,
+                    ),
+                    "ring": scene.add_mesh_simple(
+                        f"{path}/ring",
+                        vertices,
+                        faces,
+                        color=TRAFFIC_RGB,
+                        position=pos,
+                        side="double",
+                        **NO_SHADOW,
+                    ),
+                    "label": scene.add_label(
+                        f"{path}/label",
+                        traffic_label(t, now_s),
+                        position=(pos[0], pos[1], pos[2] + LABEL_HEIGHT_M + 0.3),
+                        anchor="bottom-center",
+                        font_screen_scale=0.9,
+                    ),
+                }
+                continue
+            nodes["body"].position = pos
+            nodes["ring"].position = pos
+            nodes["label"].position = (pos[0], pos[1], pos[2] + LABEL_HEIGHT_M + 0.3)
+            nodes["label"].text = traffic_label(t, now_s)
+        for track_id in set(self.traffic) - keep:
+            for node in self.traffic.pop(track_id).values():
+                node.remove()
 
     def _put(
         self, layer: str, prop: str, value: Any, make: Callable[[Any], Any] | None = None

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import viser
 
+from agent.traffic import TrafficListener, TrafficTable
 from comms.auth import load_auth
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatPublisher
@@ -50,7 +51,7 @@ from groundstation.fleet import FleetConfig, FleetModel
 from groundstation.inputs import CommandRequest
 from groundstation.panel import FORM_LABELS, CommandPanel, Job, PanelHooks
 from groundstation.scene import FleetScene, SceneConfig
-from groundstation.tables import command_log_html, fleet_table, legend
+from groundstation.tables import command_log_html, fleet_table, legend, traffic_table
 from groundstation.web_auth import Gate, GateConfig, is_loopback, read_password_file, url_host
 from groundstation.web_proxy import WebProxy, bind_listener, tls_context
 from groundstation.web_viser import operator_of, start_viser
@@ -194,6 +195,9 @@ class GroundStation:
         self.last_result: Dispatched | None = None
         self._link = None
         self._heartbeats: HeartbeatPublisher | None = None
+        self.traffic = TrafficTable()
+        """Traffic that does not cooperate, as the mesh reports it (agent/traffic.py)."""
+        self._traffic_listener: TrafficListener | None = None
 
     # -- lifecycle -----------------------------------------------------------------------
     def __enter__(self) -> GroundStation:
@@ -233,6 +237,7 @@ class GroundStation:
         subscribe(self._on_state, link=self._link, on_refused=self.fleet.on_state_refused)
         self.mesh.on_security = self._on_security
         self.mesh.subscribe_events(self._on_event)
+        self._traffic_listener = TrafficListener(self.mesh, self.traffic, time.monotonic)
         self.mesh.observe_commands(self._on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
         self._start_web(accounts, tls)
@@ -289,6 +294,8 @@ class GroundStation:
         with gui.add_folder("Fleet", order=layout.FLEET):
             self.table = gui.add_html("<i>waiting for vehicles…</i>")
             gui.add_html(legend())
+        with gui.add_folder("Traffic (not cooperating)", order=layout.TRAFFIC):
+            self.traffic_html = gui.add_html(traffic_table([], 0.0))
         with gui.add_folder("Command log (every station)", order=layout.COMMAND_LOG):
             self.command_log_html = gui.add_html(command_log_html([]))
         self.forms = BrowserForms(self.server, FORM_LABELS)
@@ -357,6 +364,9 @@ class GroundStation:
         if self._heartbeats is not None:
             self._heartbeats.close()
             self._heartbeats = None
+        if self._traffic_listener is not None:
+            self._traffic_listener.close()
+            self._traffic_listener = None
         if self.mesh is not None and self._given_mesh is None:
             self.mesh.close()
         self.mesh = None
@@ -534,12 +544,16 @@ class GroundStation:
         now_ns = self._clock_ns()
         trails = self.scene.trail_ids(self.fleet.ids())
         snap = self.fleet.snapshot(now_ns, trails=trails)
+        now_s = time.monotonic()
+        tracks = self.traffic.tracks(now_s)
         with self.server.atomic():
             self.scene.update(snap)
+            self.scene.update_traffic(tracks, now_s)
             if with_table:
                 self.table.content = fleet_table(
                     snap, refused_states=self.fleet.phantom_refusals, origin=self.cfg.origin
                 )
+                self.traffic_html.content = traffic_table(tracks, now_s)
                 # Redrawn on a change, and each second (timeouts, the refusals' minute).
                 shown = (self.commands.version, now_ns // 1_000_000_000)
                 if self._commands_shown != shown:

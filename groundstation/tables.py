@@ -14,7 +14,7 @@ from comms.schema import ActionOutcome, DecodeError, Event, EventKind
 from groundstation.command_log import LoggedCommand, Status, progress_all
 from groundstation.dispatch import Dispatched
 from groundstation.fleet import FleetSnapshot, VehicleView
-from groundstation.palette import ALERT_RGB, MODE_RGB, css, mode_rgb
+from groundstation.palette import ALERT_RGB, MODE_RGB, TRAFFIC_RGB, css, mode_rgb
 
 _TABLE = (
     '<table style="width:100%;border-collapse:collapse;font-size:0.78em;'
@@ -313,3 +313,39 @@ def legend() -> str:
         for mode, rgb in MODE_RGB.items()
     )
     return f"<div style='font-size:0.72em;line-height:1.3'>{chips}</div>"
+
+
+def traffic_table(tracks: Iterable, now_s: float) -> str:
+    """Traffic that does not cooperate (agent.traffic tracks): what it is, where, how fast, how
+    old its last report is (red once stale)."""
+    rows = []
+    for t in tracks:
+        n, e, d = (float(x) for x in t.at(now_s))
+        age_s = max(0.0, now_s - t.stamp_s)
+        kind = "manned" if t.manned else "unmanned"
+        rows.append(
+            "<tr>"
+            + _td(f"<b style='color:{css(TRAFFIC_RGB)}'>{t.track_id:X}</b>", "left")
+            + _td(f"{t.source.name.lower()} {kind}", "left")
+            + _td(f"{n:.1f}")
+            + _td(f"{e:.1f}")
+            + _td(f"{-d:.1f}")
+            + _td(f"{math.hypot(*t.vel_ned_m_s[:2]):.1f}")
+            + _td(f"{age_s:.1f}", style=f"color:{css(ALERT_RGB)}" if age_s > 2.0 else "")
+            + "</tr>"
+        )
+    if not rows:
+        return "<i style='font-size:0.78em'>no traffic reported</i>"
+    head = "".join(
+        _TH.format(a=a, t=t)
+        for a, t in (
+            ("left", "track"),
+            ("left", "what"),
+            ("right", "N m"),
+            ("right", "E m"),
+            ("right", "alt m"),
+            ("right", "m/s"),
+            ("right", "age s"),
+        )
+    )
+    return f"{_TABLE}<tr>{head}</tr>{''.join(rows)}</table>"
