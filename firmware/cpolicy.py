@@ -126,6 +126,8 @@ class CPolicy:
         safety_cfg=None,
         policy_separation_m: float | None = None,
         sparse_rule: bool = True,
+        keep_out_m=None,
+        fence_m=None,
     ):
         """The defaults fly as the agents and the PX4 module do (GuidancePolicy's defaults).
         `policy_separation_m`: the separation the network is told (its distance scale, 3
@@ -163,6 +165,28 @@ class CPolicy:
         base = safety_cfg or SafetyConfig()
         self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
         self._filter = csafety.CSafetyFilter(self._lib, self.safety_cfg)
+        self.zones = None
+        """The C keep-out zones (firmware.czones.CZones), None: none."""
+        self.router = None
+        """The route planner around them (policy.routes.Router, Python: the companion's)."""
+        if keep_out_m is not None or fence_m is not None:
+            self.set_zones(keep_out_m or (), fence_m)
+
+    def set_zones(self, keep_out_m, fence_m=None) -> None:
+        """GuidancePolicy.set_zones with the C core's zone filter (covey_zones.c): the route
+        planner (Python) picks the waypoint, the C filter keeps the zone edges as hard lines."""
+        from firmware.czones import CZones
+        from policy.routes import RouteConfig, Router
+        from policy.zone_lines import ZONE_CLEARANCE_SHARE
+
+        polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in keep_out_m]
+        if not polys and fence_m is None:
+            self.zones = self.router = None
+            return
+        cfg = self.safety_cfg
+        radius_m = ZONE_CLEARANCE_SHARE * cfg.radius_m * (1.0 + cfg.margin)
+        self.zones = CZones(self._lib, polys, radius_m, fence_m=fence_m)
+        self.router = Router(polys, RouteConfig(cfg.radius_m, cfg.margin), fence_m)
 
     @classmethod
     def load(
@@ -201,7 +225,23 @@ class CPolicy:
         nbr_cooperative=None,
     ) -> np.ndarray:
         """The C safety filter alone (world units); raises ValueError on a fault.
-        Uncertainties and cooperative flags as `command` takes them."""
+        Uncertainties and cooperative flags as `command` takes them; with zones, their edges
+        are hard lines (covey_safety_filter_zones)."""
+        if self.zones is not None:
+            sky = {"pos_sigma_m": pos_sigma_m, "nbr_pos_sigma_m": nbr_pos_sigma_m}
+            r = self.zones.evaluate(
+                self.safety_cfg,
+                pos_m,
+                vel_m_s,
+                pref_vel_m_s,
+                nbr_pos_m,
+                nbr_vel_m_s,
+                nbr_cooperative=nbr_cooperative,
+                **sky,
+            )
+            if r.status != "ok":
+                raise ValueError(f"C safety filter fault: {r.status}")
+            return r.vel_m_s
         return self._filter(
             pos_m,
             vel_m_s,
@@ -340,13 +380,20 @@ class CPolicy:
         filtered: bool,
         sky: dict,
     ) -> np.ndarray:
+        if self.router is not None:
+            try:
+                goal_m = self.router.next_waypoint(pos_m, goal_m)
+            except (TypeError, ValueError):
+                pass  # evaluate names the bad input
         r = self.evaluate(
             pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s, stamp_s, nbr_stamp_s
         )
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
         nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
-        if not self.safety_filter or (nbr_pos.shape[0] == 0 and not self.sparse_rule):
+        if not self.safety_filter or (
+            nbr_pos.shape[0] == 0 and not self.sparse_rule and self.zones is None
+        ):
             return r.vel_m_s
         nbr_vel = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
         if nbr_stamp_s is not None and now_s is not None:
@@ -364,7 +411,10 @@ class CPolicy:
             v = sp.vel_m_s
         if not filtered:
             return v
-        f = self._filter.evaluate(pos_m, vel_m_s, v, nbr_pos, nbr_vel, **sky)
+        if self.zones is not None:
+            f = self.zones.evaluate(self.safety_cfg, pos_m, vel_m_s, v, nbr_pos, nbr_vel, **sky)
+        else:
+            f = self._filter.evaluate(pos_m, vel_m_s, v, nbr_pos, nbr_vel, **sky)
         if f.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[f.status])
         return f.vel_m_s

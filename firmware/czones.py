@@ -13,7 +13,14 @@ import ctypes
 
 import numpy as np
 
-from firmware.csafety import STATUS_NAMES, SafetyConfigC, SafetyOutC, TrackC, _tracks
+from firmware.csafety import (
+    STATUS_NAMES,
+    FilterResult,
+    SafetyConfigC,
+    SafetyOutC,
+    TrackC,
+    _tracks,
+)
 from policy.zone_lines import ZONE_TIME_HORIZON_S
 
 MAX_ZONE_VERTICES = 512
@@ -105,29 +112,49 @@ class CZones:
         )
         return [((ln.point[0], ln.point[1]), (ln.dir[0], ln.dir[1])) for ln in out[:n]]
 
-    def evaluate(self, safety_cfg, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
-        """covey_safety_filter_zones: (status, velocity (2,), n_lines); never raises."""
+    def evaluate(
+        self,
+        safety_cfg,
+        pos_m,
+        vel_m_s,
+        pref_vel_m_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        own_id=0,
+        nbr_ids=None,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+    ) -> FilterResult:
+        """covey_safety_filter_zones, as CSafetyFilter.evaluate takes its inputs; faults come
+        back in `status`, never raised."""
         p = np.asarray(pos_m, dtype=np.float64).reshape(2)
         v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
         pref = (ctypes.c_float * 2)(*np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s)
+        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative)
         out = SafetyOutC()
+        own = TrackC(p[0], p[1], v[0], v[1], int(own_id), float(pos_sigma_m), 0)
         st = self._lib.covey_safety_filter_zones(
             ctypes.byref(SafetyConfigC.of(safety_cfg)),
             self._buf,
-            ctypes.byref(TrackC(p[0], p[1], v[0], v[1])),
+            ctypes.byref(own),
             pref,
             t.ctypes.data,
             t.shape[0],
             self._scratch,
             ctypes.byref(out),
         )
-        vel = np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64)
-        return STATUS_NAMES.get(st, str(st)), vel, int(out.n_lines)
+        return FilterResult(
+            STATUS_NAMES.get(st, str(st)),
+            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
+            out.n_lines,
+            bool(out.changed),
+            bool(out.infeasible),
+        )
 
     def filter(self, safety_cfg, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
         """The filtered velocity (2,); ValueError on a fault."""
-        st, vel, _ = self.evaluate(safety_cfg, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
-        if st != "ok":
-            raise ValueError(f"C zone filter fault: {st}")
-        return vel
+        r = self.evaluate(safety_cfg, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
+        if r.status != "ok":
+            raise ValueError(f"C zone filter fault: {r.status}")
+        return r.vel_m_s

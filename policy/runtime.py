@@ -23,6 +23,7 @@ import numpy as np
 from comms.safe_load import npz_headers, parse_json
 from policy import features, safety, sparse
 from policy.features import ObsConfig
+from policy.zone_lines import ZONE_CLEARANCE_SHARE, ZoneSet
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
 _F32 = np.dtype(np.float32)
@@ -472,8 +473,13 @@ class GuidancePolicy:
         safety_cfg: safety.SafetyConfig | None = None,
         policy_separation_m: float | None = None,
         sparse_rule: sparse.SparseConfig | bool | None = True,
+        keep_out_m=None,
+        fence_m=None,
     ):
         """The defaults fly as the agents do (agent.guidance.GuidanceConfig).
+
+        `keep_out_m` [(K, 2) polygon vertices, local north/east metres] and `fence_m` (K, 2):
+        see `set_zones`; None: no zones (today's behaviour).
 
         `policy_separation_m`: the separation the network is told, i.e. its distance scale (3
         policy units = this many metres). None: as flight tells it, `told_separation_m` (1.25 m
@@ -525,6 +531,49 @@ class GuidancePolicy:
             self._rows_proj = net.rows_projection(obs_cfg.dist_scale)
             self._rows_proj_m = net.rows_projection(obs_cfg.dist_scale * self.dist_scale_m)
         self._sense_range_m = obs_cfg.sense_range * self.dist_scale_m
+        self.zones: ZoneSet | None = None
+        """Keep-out edges the filter keeps clear of (policy.zone_lines), None: none."""
+        self.router = None
+        """The route planner around them (policy.routes.Router), None: none."""
+        if keep_out_m is not None or fence_m is not None:
+            self.set_zones(keep_out_m or (), fence_m)
+
+    def set_zones(self, keep_out_m, fence_m=None) -> None:
+        """Keep out of these polygons [(K, 2) north/east metres] (and inside the fence):
+        `command` and `preferred` fly towards the route planner's next waypoint instead of the
+        goal (policy.routes: around the zones inflated by the filter's zone radius plus a
+        margin), and the filter (when on) keeps ZONE_CLEARANCE_SHARE x the padded separation
+        from every zone edge as a hard constraint (policy.zone_lines). Empty: no zones. A bad
+        polygon is a ValueError naming it."""
+        from policy.routes import RouteConfig, Router  # shapely and scipy: only with zones
+
+        polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in keep_out_m]
+        if not polys and fence_m is None:
+            self.zones = self.router = None
+            return
+        cfg = self.safety_cfg
+        radius_m = ZONE_CLEARANCE_SHARE * cfg.radius_m * (1.0 + cfg.margin)
+        self.zones = ZoneSet.of(polys, radius_m, fence_m=fence_m)
+        self.router = Router(polys, RouteConfig(cfg.radius_m, cfg.margin), fence_m)
+
+    def waypoint(self, pos_m, goal_m):
+        """Where to fly now for `goal_m` (2,): the route's next waypoint with zones, else
+        the goal. Inputs that are not two finite numbers come back as they are (the checked
+        path names them)."""
+        if self.router is None:
+            return goal_m
+        try:
+            return self.router.next_waypoint(pos_m, goal_m)
+        except (TypeError, ValueError):
+            return goal_m
+
+    def waypoints(self, pos_m, goal_m) -> np.ndarray:
+        """`waypoint` of N rows (N, 2)."""
+        if self.router is None:
+            return goal_m
+        return np.array(
+            [self.router.next_waypoint(p, g) for p, g in zip(pos_m, goal_m, strict=True)]
+        )
 
     @classmethod
     def load(
@@ -537,6 +586,8 @@ class GuidancePolicy:
         safety_cfg: safety.SafetyConfig | None = None,
         policy_separation_m: float | None = None,
         sparse_rule: sparse.SparseConfig | bool | None = True,
+        keep_out_m=None,
+        fence_m=None,
     ) -> GuidancePolicy:
         """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights. The other
         arguments are the constructor's: the defaults fly as the agents do."""
@@ -571,6 +622,8 @@ class GuidancePolicy:
             safety_cfg,
             policy_separation_m,
             sparse_rule,
+            keep_out_m,
+            fence_m,
         )
 
     @property
@@ -604,6 +657,7 @@ class GuidancePolicy:
             _check("nbr_vel_m_s", nbr_vel_m_s, (nbr_pos_m.shape[0], 2)),
             self.safety_cfg,
             **sky,
+            zones=self.zones,
         )
 
     # --- policy units -------------------------------------------------------------
@@ -772,6 +826,8 @@ class GuidancePolicy:
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
     ) -> np.ndarray:
+        if self.router is not None:
+            goal_m = self.waypoint(pos_m, goal_m)
         sky = None
         if pos_sigma_m or nbr_pos_sigma_m is not None or nbr_cooperative is not None:
             k = np.shape(nbr_pos_m)[0] if np.ndim(nbr_pos_m) == 2 else -1
@@ -886,9 +942,16 @@ class GuidancePolicy:
                 self.decision_period_s,
                 **(sky or {}),
             )
-        if filtered and self.safety_filter and nbr_pos_m.shape[0]:
+        if filtered and self.safety_filter and (nbr_pos_m.shape[0] or self.zones is not None):
             v = safety.filter_one(
-                pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, self.safety_cfg, **(sky or {})
+                pos_m,
+                vel_m_s,
+                v,
+                nbr_pos_m,
+                nbr_vel_m_s,
+                self.safety_cfg,
+                **(sky or {}),
+                zones=self.zones,
             )
         return v
 
@@ -984,6 +1047,7 @@ class GuidancePolicy:
         if active.shape != (n,):
             raise ValueError(f"active must have shape ({n},), got {active.shape}")
         active = active.astype(bool)
+        goal_m = self.waypoints(pos_m, goal_m)
         s = self.dist_scale_m
         a, nbr = self.action_batch(pos_m / s, heading, goal_m / s, active)
         v = features.action_to_velocity(a, heading) * self.cruise_speed_m_s
@@ -992,7 +1056,7 @@ class GuidancePolicy:
             every_pos, every_vel = (np.broadcast_to(x, (n, n, 2)) for x in (pos_m, vel_m_s))
             v, _ = self._sparse(pos_m, vel_m_s, goal_m, v, every_pos, every_vel, others)
         if self.safety_filter:
-            v = safety.filter_batch(pos_m, vel_m_s, v, nbr, self.safety_cfg)
+            v = safety.filter_batch(pos_m, vel_m_s, v, nbr, self.safety_cfg, zones=self.zones)
         v[~active] = 0.0
         return v
 
@@ -1022,6 +1086,7 @@ class GuidancePolicy:
             "nbr_pos_sigma_m": nbr_pos_sigma_m,
             "nbr_cooperative": nbr_cooperative,
         }
+        goal_m = self.waypoints(pos_m, goal_m)
         s = self.dist_scale_m
         seq, lengths, goal_feat, _ = features.observe_padded(
             pos_m / s,
@@ -1041,6 +1106,14 @@ class GuidancePolicy:
             v, _ = self._sparse(pos_m, vel_m_s, goal_m, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, **sky)
         if self.safety_filter:
             v = safety.filter_padded(
-                pos_m, vel_m_s, v, nbr_pos_m, nbr_vel_m_s, nbr_valid, self.safety_cfg, **sky
+                pos_m,
+                vel_m_s,
+                v,
+                nbr_pos_m,
+                nbr_vel_m_s,
+                nbr_valid,
+                self.safety_cfg,
+                **sky,
+                zones=self.zones,
             )
         return v

@@ -465,7 +465,9 @@ def filter_one(
     return solve_lines(hard + lines, pref, cfg.max_speed_m_s, len(hard))
 
 
-def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig, ids=None, pos_sigma_m=None):
+def filter_batch(
+    pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig, ids=None, pos_sigma_m=None, zones=None
+):
     """Filtered velocities (N,2) for N vehicles; nbr (N,K) neighbour indices, -1 = none;
     ids (N,) vehicle ids for `untie` (None: coincident vehicles are not pushed apart);
     pos_sigma_m (N,) their position uncertainties (None: exact)."""
@@ -486,6 +488,7 @@ def filter_batch(pos_m, vel_m_s, pref_vel_m_s, nbr, cfg: SafetyConfig, ids=None,
         nbr_ids,
         sig,
         None if sig is None else sig[j],
+        zones=zones,
     )
 
 

@@ -89,8 +89,9 @@ def test_lines_and_filter_match_c_on_random_scenes(lib):
             nbr_pos = _f32(pos + rng.uniform(-8, 8, (k, 2)))
             nbr_vel = _f32(rng.uniform(-1, 1, (k, 2)))
             ref = safety.filter_one(pos, vel, pref, nbr_pos, nbr_vel, cfg, zones=zs)
-            st, c_v, _ = cz.evaluate(cfg, pos, vel, pref, nbr_pos, nbr_vel)
-            assert st == "ok"
+            r = cz.evaluate(cfg, pos, vel, pref, nbr_pos, nbr_vel)
+            assert r.status == "ok"
+            c_v = r.vel_m_s
             worst = max(worst, float(np.abs(ref - c_v).max()))
             n_changed += not np.allclose(ref, safety._clip_speed(pref, 1.0))
     assert worst <= PARITY_TOL, worst
