@@ -36,6 +36,11 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "print the fleet: presence, last state, link age",
     ),
     "cmd": ("groundstation.ops", "cmd_cli", "send one command and print every vehicle's ack"),
+    "mission": (
+        "groundstation.mission_cli",
+        "mission_cli",
+        "upload a mission (covey JSON or QGC .plan), start/pause/resume/abort it, show progress",
+    ),
     "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
     "eval": (
         "firmware.ceval",

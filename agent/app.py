@@ -49,6 +49,7 @@ from comms.schema import (
     CommandKind,
     EventKind,
     GuidanceTrace,
+    Mission,
     Mode,
     Role,
     Severity,
@@ -151,6 +152,8 @@ class Agent:
         self._heard: dict[int, TrafficTrack] = {}  # heard by our autopilot since the last report
         self.flags = StateFlag.OPEN_MODE if cfg.open_mode else StateFlag.NONE
         self.seq = 0
+        self._progress = (0, 0)
+        """The mission progress (item, items) of the last tick, for its state."""
         self._lock = threading.Lock()  # guards the core: the tick and Zenoh's threads share it
         self.pacer = StatePacer(cfg.state_hz, cfg.idle_state_hz, cfg.tick_hz, steady=cfg.steady)
         """Which ticks publish a state (comms/state_rate.py: the idle rate while idle)."""
@@ -211,7 +214,7 @@ class Agent:
         )
         self.plan.pull_now(START_PULL_S)  # a rebooted vehicle holds the plan before any command
         # Answer commands before announcing presence: whoever sees us alive can command us.
-        mesh.serve_commands(self.vid, self.handle_command)
+        mesh.serve_commands(self.vid, self.handle_command, on_mission=self.handle_mission)
         mesh.declare_vehicle(self.vid)
 
     def _on_state(self, state: VehicleState, _recv_ns: int) -> None:
@@ -297,6 +300,23 @@ class Agent:
         return CommandAck(
             self.vid,
             cmd.nonce,
+            self.mesh.clock_ns(),
+            decision.result,
+            decision.reason,
+            decision.mode,
+        )
+
+    def handle_mission(self, mission: Mission) -> CommandAck:
+        """Answer a mission upload at once: kept (flown on a start), or refused with the reason."""
+        with self._lock:
+            decision = self.core.load_mission(0, mission)
+            notes = self.core.drain_notes()
+        self._notes(notes)
+        if decision.result is not AckResult.ACCEPTED:
+            self._event(f"refused mission: {decision.reason}", EventKind.COMMAND, Severity.WARNING)
+        return CommandAck(
+            self.vid,
+            mission.nonce,
             self.mesh.clock_ns(),
             decision.result,
             decision.reason,
@@ -390,6 +410,8 @@ class Agent:
                 )
             flags |= core.flags_of(0)
             mode, target, heading = core.mode_of(0), core.target_of(0), float(core.heading_rad[0])
+            run = core.missions[0]
+            self._progress = run.progress() if run is not None else (0, 0)
             notes = core.drain_notes()
         self._notes(notes)
         for action in actions:
@@ -498,6 +520,8 @@ class Agent:
             battery_pct=float(min(100.0, max(0.0, tel.battery_pct))),
             flags=flags,
             goal_ned_m=tuple(float(x) for x in target) if target is not None else (0.0, 0.0, 0.0),
+            mission_item=self._progress[0],
+            mission_items=self._progress[1],
         )
         try:
             self.mesh.publish_state(state)

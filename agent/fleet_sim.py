@@ -56,6 +56,7 @@ from comms.schema import (
     CommandAck,
     CommandKind,
     EventKind,
+    Mission,
     Mode,
     Severity,
     StateFlag,
@@ -281,7 +282,11 @@ class Fleet:
         # all would wake every one of them at once (docs/scaling.md, "Commands to a host").
         self.commands = [
             mesh.serve_commands(
-                vid, lambda c, i=i: self.handle_command(i, c), auth=self.auths[i], polled=True
+                vid,
+                lambda c, i=i: self.handle_command(i, c),
+                auth=self.auths[i],
+                polled=True,
+                on_mission=lambda m, i=i: self.handle_mission(i, m),
             )
             for i, vid in enumerate(cfg.ids)
         ]
@@ -332,6 +337,20 @@ class Fleet:
             self._event(i, why, EventKind.COMMAND, Severity.WARNING)
         return CommandAck(
             int(self.ids[i]), cmd.nonce, self.mesh.clock_ns(), d.result, d.reason, mode
+        )
+
+    def handle_mission(self, i: int, mission: Mission) -> CommandAck:
+        """Vehicle i's answer to a mission upload: kept (not flown before a start), or refused
+        with the first bad item's reason."""
+        with self._lock:
+            d = self.core.load_mission(i, mission)
+            notes = self.core.drain_notes()
+            mode = self.core.mode_of(i)
+        self._publish_notes(notes)
+        if d.result is not AckResult.ACCEPTED:
+            self._event(i, f"refused mission: {d.reason}", EventKind.COMMAND, Severity.WARNING)
+        return CommandAck(
+            int(self.ids[i]), mission.nonce, self.mesh.clock_ns(), d.result, d.reason, mode
         )
 
     # -- the simulated autopilots --------------------------------------------------------------
@@ -463,6 +482,7 @@ class Fleet:
         modes = [_MODES[m] for m in core.mode[rows].tolist()]
         ids, seqs = self.ids[rows].tolist(), self.seq[rows].tolist()
         armed, battery = sim.armed[rows].tolist(), sim.battery_pct[rows].tolist()
+        item, items = (x.tolist() for x in core.mission_progress(rows))
         return [
             VehicleState(
                 vehicle_id=ids[i],
@@ -476,6 +496,8 @@ class Fleet:
                 battery_pct=battery[i],
                 flags=flags[i],
                 goal_ned_m=tuple(goal[i]),
+                mission_item=item[i],
+                mission_items=items[i],
             )
             for i in range(len(ids))
         ]

@@ -28,12 +28,22 @@ import numpy as np
 
 from agent.failsafe import FailsafeConfig, Failsafes
 from agent.guidance import BatchGuidance, GuidanceConfig, GuidanceStep, NeighbourViews
+from agent.mission import Ending, MissionRun, RunStatus, resolve
 from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
 from comms.geo import GeoOrigin
 from comms.plan import FleetPlan, plan_refusal
-from comms.schema import AckResult, Command, CommandKind, EventKind, Mode, Severity, StateFlag
+from comms.schema import (
+    AckResult,
+    Command,
+    CommandKind,
+    EventKind,
+    Mission,
+    Mode,
+    Severity,
+    StateFlag,
+)
 
-FLYING = (Mode.GOTO, Mode.RETURNING)
+FLYING = (Mode.GOTO, Mode.RETURNING, Mode.MISSION)
 AIRBORNE_MODES = [int(m) for m in AIRBORNE]
 """The airborne modes as integers, for `np.isin` on `FlightCore.mode`."""
 
@@ -48,7 +58,19 @@ def mode_mask(modes) -> np.ndarray:
 
 
 _FLYING = mode_mask(FLYING)
-_GUIDED = mode_mask((Mode.GOTO, Mode.RETURNING, Mode.HOLDING))
+_GUIDED = mode_mask((Mode.GOTO, Mode.RETURNING, Mode.HOLDING, Mode.MISSION))
+_ARRIVING = mode_mask((Mode.GOTO, Mode.RETURNING))
+"""Modes whose arrival is a mode event (a mission's arrivals are its items', `_missions`)."""
+_MISSION = int(Mode.MISSION)
+MISSION_KINDS = frozenset(
+    {
+        CommandKind.MISSION_START,
+        CommandKind.MISSION_PAUSE,
+        CommandKind.MISSION_RESUME,
+        CommandKind.MISSION_ABORT,
+        CommandKind.MISSION_STATUS,
+    }
+)
 _TOUCHING_DOWN = mode_mask((Mode.LANDING, Mode.KILLED))
 _DOWN_UNASKED = mode_mask(AIRBORNE - {Mode.TAKING_OFF, Mode.LANDING})
 _TAKING_OFF = int(Mode.TAKING_OFF)
@@ -195,9 +217,16 @@ class FlightCore:
         """(N,) the battery as last observed (NaN: not yet); commands are checked against it."""
         self.notes: list[Note] = []
         """Events for the shell to publish (it drains the list)."""
+        self.missions: list[MissionRun | None] = [None] * n
+        """Each vehicle's uploaded mission and its progress (agent/mission.py), or None."""
+        self.mission_waiting = np.zeros(n, bool)
+        """(N,) a vehicle in MISSION mode waits at a reached item (guidance holds it there)."""
         self.mission_plan: FleetPlan | None = None
         """The fleet plan mission items are checked against (fence, keep-out zones, ceiling);
         None: the circular geofence and altitude limits alone."""
+        self.now_s = now_s
+        """The latest time the shell gave the core (`observe`): a pause keeps the rest of a
+        wait from it."""
 
     # -- reading -------------------------------------------------------------------------------
     def mode_of(self, i: int) -> Mode:
@@ -246,10 +275,15 @@ class FlightCore:
         station on the mesh, the clock off: comms/heartbeat.py `takeoff_problem`); it refuses a
         take-off of a landed vehicle."""
         mode = self.mode_of(i)
+        if cmd.kind is CommandKind.MISSION_STATUS:
+            run = self.missions[i]
+            return Decision(AckResult.ACCEPTED, run.describe() if run else "no mission", mode)
         if pos_m is None:
             return Decision(AckResult.REJECTED, "no telemetry from the vehicle yet", mode)
         if not link_ok and cmd.kind is not CommandKind.KILL:
             return Decision(AckResult.REJECTED, "autopilot link lost", mode)
+        if cmd.kind in MISSION_KINDS:
+            return self._mission_command(i, cmd, np.asarray(pos_m, float))
         trigger = COMMAND_TRIGGERS[cmd.kind]
         fs = self.cfg.failsafe
         target = target_global = None
@@ -353,6 +387,22 @@ class FlightCore:
         elif mode is Mode.LANDING:
             kind = ActionKind.LAND
             self.hold_m[i] = pos_m
+        elif mode is Mode.MISSION:
+            run = self.missions[i]
+            assert run is not None and run.target is not None
+            self.goal_m[i] = run.target
+            self.heading_rad[i] = heading_towards(pos_m, run.target, self.heading_rad[i])
+            self.resume_goal_m[i] = np.nan
+            self.mission_waiting[i] = not math.isnan(run.wait_until_s)  # resumed mid-wait
+            if not self.velocity_mode:
+                kind, action_kw = ActionKind.GOTO, {"target_ned_m": tuple(map(float, run.target))}
+        if previous is Mode.MISSION and mode is not Mode.MISSION:
+            # Whatever takes a vehicle out of its mission (a command, a failsafe) pauses it
+            # there: resume continues the item; a failsafe's hold resumes it once it ends.
+            run = self.missions[i]
+            if run is not None:
+                run.pause(self.now_s, by_failsafe=trigger is Trigger.FAILSAFE_HOLD)
+            self.mission_waiting[i] = False
         if mode is not previous:
             self.notes.append(
                 Note(
@@ -436,6 +486,7 @@ class FlightCore:
         """Vehicle events and failsafes from this tick's telemetry; returns the actions they need."""
         actions: list[Action] = []
         pos, vel = obs.pos_m, obs.vel_m_s
+        self.now_s = now_s
         self.battery_pct[:] = obs.battery_pct
         cruise = self.cfg.guidance.cruise_speed_m_s
         speed = np.hypot(vel[:, 0], vel[:, 1])
@@ -450,7 +501,7 @@ class FlightCore:
         on_ground = ~obs.in_air & ~obs.armed
         events = (
             (mode == _TAKING_OFF) & (-pos[:, 2] >= self.takeoff_alt_m - TAKEOFF_DONE_M),
-            _FLYING[mode] & arrived,
+            _ARRIVING[mode] & arrived,
             _TOUCHING_DOWN[mode] & on_ground,
             _DOWN_UNASKED[mode] & on_ground,
         )
@@ -476,6 +527,8 @@ class FlightCore:
                     )
                 else:
                     actions += self._internal(i, trigger, pos[i])
+        for i in np.flatnonzero(mode == _MISSION).tolist():
+            actions += self._mission_step(i, now_s, pos[i], bool(arrived[i]))
         calm = self.cfg.failsafe.calm_rows(gcs_alive, obs.battery_pct, pos).tolist()
         for i, fs in enumerate(self.failsafes):
             # most ticks, most vehicles: evaluate would only note the station
@@ -489,10 +542,157 @@ class FlightCore:
                 if self.mode_of(i) is Mode.HOLDING and resume is not None:
                     self.resume_goal_m[i] = np.nan
                     actions += self._enter(i, Mode.GOTO, Trigger.GOTO, pos[i], resume)
+                run = self.missions[i]
+                if self.mode_of(i) is Mode.HOLDING and run is not None and run.by_failsafe:
+                    run.resume(now_s)
+                    actions += self._enter(i, Mode.MISSION, Trigger.MISSION_RESUME, pos[i])
             act = fs.evaluate(now_s, self.mode_of(i), gcs_alive, float(obs.battery_pct[i]), pos[i])
             if act is not None:
                 actions += self._internal(i, act.trigger, pos[i], act.reason)
         return actions
+
+    # -- missions ------------------------------------------------------------------------------
+    def mission_alt_problem(self, alt_m: float) -> str | None:
+        """Why a mission take-off altitude (above the origin) is refused."""
+        fs = self.cfg.failsafe
+        if not fs.min_alt_m <= alt_m <= fs.max_alt_m:
+            return f"altitude {alt_m:.1f} m is outside [{fs.min_alt_m:g}, {fs.max_alt_m:g}] m"
+        fence = self.mission_plan.fence if self.mission_plan is not None else None
+        if fence is not None and fence.ceiling_alt_m is not None and alt_m > fence.ceiling_alt_m:
+            return f"altitude {alt_m:.1f} m is above the {fence.ceiling_alt_m:g} m ceiling"
+        return None
+
+    def load_mission(self, i: int, mission: Mission) -> Decision:
+        """Check vehicle i's uploaded mission item by item and keep it (not flown before a
+        start). Refused with the first bad item's reason; a mission being flown is not replaced
+        (pause or abort it first)."""
+        mode = self.mode_of(i)
+        if mode is Mode.KILLED:
+            return Decision(AckResult.REJECTED, step(mode, Trigger.MISSION_START).reason, mode)
+        run = self.missions[i]
+        if mode is Mode.MISSION and run is not None:
+            k, n = run.progress()
+            return Decision(
+                AckResult.REJECTED,
+                f"flying mission {run.mission_id} (item {k}/{n}): pause or abort it first",
+                mode,
+            )
+        items, problem = resolve(
+            mission, self.cfg.origin, self.target_problem, self.mission_alt_problem
+        )
+        if problem:
+            return Decision(AckResult.REJECTED, problem, mode)
+        self.missions[i] = MissionRun(mission.mission_id, mission.mission_version, items)
+        self.notes.append(
+            Note(
+                i,
+                f"mission {mission.mission_id} v{mission.mission_version} loaded: {len(items)} items",
+            )
+        )
+        return Decision(AckResult.ACCEPTED, f"{len(items)} items", mode)
+
+    def mission_progress(self, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(k, n) per row (`MissionRun.progress`): k the item flown, n the items; 0, 0 for no
+        mission."""
+        rows = np.arange(self.n) if rows is None else np.asarray(rows)
+        k, n = np.zeros(len(rows), np.int64), np.zeros(len(rows), np.int64)
+        for j, r in enumerate(rows.tolist()):
+            run = self.missions[r]
+            if run is not None:
+                k[j], n[j] = run.progress()
+        return k, n
+
+    def _mission_command(self, i: int, cmd: Command, pos_m: np.ndarray) -> Decision:
+        mode, run = self.mode_of(i), self.missions[i]
+        kind = cmd.kind
+        trigger = COMMAND_TRIGGERS[kind]
+        res = step(mode, trigger)
+        if not res.accepted:
+            return Decision(AckResult.REJECTED, res.reason, mode)
+        if kind is CommandKind.MISSION_ABORT:
+            if run is None or run.status is RunStatus.LOADED:
+                return Decision(AckResult.ACCEPTED, "no mission flying", mode)
+            run.abort()
+            self.notes.append(Note(i, f"mission {run.mission_id} aborted", EventKind.COMMAND))
+            actions = self._enter(i, res.mode, trigger, pos_m) if mode is Mode.MISSION else []
+            return self._decided(i, cmd, actions)
+        if run is None:
+            return Decision(AckResult.REJECTED, "no mission uploaded", mode)
+        low_battery = self.cfg.failsafe.battery_refusal(kind, float(self.battery_pct[i]))
+        if low_battery and kind in (CommandKind.MISSION_START, CommandKind.MISSION_RESUME):
+            return Decision(AckResult.REJECTED, low_battery, mode)
+        if kind is CommandKind.MISSION_PAUSE:
+            if run.status is RunStatus.PAUSED and mode is Mode.HOLDING:
+                return Decision(AckResult.ACCEPTED, run.describe(), mode)
+            if mode is not Mode.MISSION:
+                return Decision(
+                    AckResult.REJECTED, f"not flying a mission ({run.describe()})", mode
+                )
+            run.pause(self.now_s)
+            self.notes.append(Note(i, f"mission {run.mission_id} paused", EventKind.COMMAND))
+            return self._decided(i, cmd, self._enter(i, Mode.HOLDING, trigger, pos_m))
+        if kind is CommandKind.MISSION_RESUME:
+            if mode is Mode.MISSION:
+                return Decision(AckResult.ACCEPTED, run.describe(), mode)
+            if run.status is not RunStatus.PAUSED:
+                return Decision(AckResult.REJECTED, f"no paused mission ({run.describe()})", mode)
+            run.resume(self.now_s)
+            self.notes.append(Note(i, f"mission {run.mission_id} resumed", EventKind.COMMAND))
+            return self._decided(i, cmd, self._enter(i, Mode.MISSION, trigger, pos_m))
+        # MISSION_START: from item 1, whatever the progress
+        tick = run.start(pos_m)
+        self.mission_waiting[i] = False
+        self.notes.append(
+            Note(i, f"mission {run.mission_id} started: {run.n} items", EventKind.COMMAND)
+        )
+        return self._decided(i, cmd, self._mission_begun(i, tick, pos_m, trigger))
+
+    def _decided(self, i: int, cmd: Command, actions: list[Action]) -> Decision:
+        actions = [replace(a, nonce=cmd.nonce) for a in actions]
+        return Decision(AckResult.ACCEPTED, "", self.mode_of(i), tuple(actions))
+
+    def _mission_begun(self, i: int, tick, pos_m: np.ndarray, trigger: Trigger) -> list[Action]:
+        """Enter what the item just begun asks: fly to its target (MISSION), or the mission's
+        end (land, return)."""
+        run = self.missions[i]
+        assert run is not None
+        if tick.started:
+            n = run.n
+            item = run.items[tick.started - 1]
+            self.notes.append(
+                Note(
+                    i, f"mission {run.mission_id}: item {tick.started}/{n} {item.kind.name.lower()}"
+                )
+            )
+        if tick.ending is Ending.LAND:
+            return self._enter(i, Mode.LANDING, Trigger.LAND, pos_m)
+        if tick.ending is Ending.RETURN:
+            return self._enter(i, Mode.RETURNING, Trigger.RETURN, pos_m)
+        if tick.ending is Ending.HOLD:
+            self.notes.append(Note(i, f"mission {run.mission_id} done", EventKind.STATUS))
+            return self._enter(i, Mode.HOLDING, Trigger.MISSION_DONE, pos_m)
+        if self.mode_of(i) is Mode.MISSION:  # the next item: a new goal, same mode
+            self.goal_m[i] = run.target
+            self.mission_waiting[i] = False
+            if not self.velocity_mode:
+                target = tuple(map(float, run.target))
+                return [Action(i, ActionKind.GOTO, target_ned_m=target, epoch=int(self.epoch[i]))]
+            return []
+        return self._enter(i, Mode.MISSION, trigger, pos_m)
+
+    def _mission_step(self, i: int, now_s: float, pos_m: np.ndarray, arrived: bool) -> list[Action]:
+        run = self.missions[i]
+        if run is None or run.status is not RunStatus.ACTIVE:
+            return []
+        tick = run.step(now_s, pos_m, arrived)
+        if tick.reached:
+            self.mission_waiting[i] = True
+            self.notes.append(
+                Note(i, f"mission {run.mission_id}: reached item {tick.reached}/{run.n}")
+            )
+        if not (tick.started or tick.ending):
+            return []
+        return self._mission_begun(i, tick, pos_m, Trigger.MISSION_START)
 
     def guided_rows(self, armed: np.ndarray, link_ok: np.ndarray) -> np.ndarray:
         """Rows the shell should fly with velocity setpoints this tick."""
@@ -513,7 +713,9 @@ class FlightCore:
         decide: np.ndarray | None = None,
     ) -> GuidanceStep:
         """Velocity setpoints for `rows` (from `guided_rows`); pos/vel/views are those rows'."""
-        holding = self.mode[rows] == int(Mode.HOLDING)
+        holding = (self.mode[rows] == int(Mode.HOLDING)) | (
+            self.mission_waiting[rows] & (self.mode[rows] == _MISSION)
+        )
         out = self.guidance.step(
             now_s,
             rows,
