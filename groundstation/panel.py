@@ -16,16 +16,18 @@ log and the scene stay shared (groundstation.station).
 from __future__ import annotations
 
 import html
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 import viser
 
 from comms.geo import GeoOrigin
+from comms.plan import FleetPlan
 from comms.schema import CommandKind
-from groundstation import inputs, layout
+from groundstation import formation_panel, inputs, layout
 from groundstation.browser_form import BrowserForms, FormSnapshot
 from groundstation.dispatch import Dispatched, KillGuard
+from groundstation.formation import FormationMemory
 from groundstation.frames import ground_hit_ned, ned_to_scene
 from groundstation.inputs import CommandRequest, InputError
 from groundstation.tables import ack_matrix
@@ -38,7 +40,17 @@ Job = tuple[CommandRequest, tuple[int, ...]]
 TARGETS, TAKEOFF_ALT = "Targets", "Take-off altitude above origin (m)"
 NORTH, EAST, ALT = "North (m)", "East (m)", "Altitude above origin (m)"
 LAT, LON, GLOBAL_ALT = "Latitude (deg)", "Longitude (deg)", "Altitude AMSL (m)"
-FORM_LABELS = (TARGETS, TAKEOFF_ALT, NORTH, EAST, ALT, LAT, LON, GLOBAL_ALT)
+FORM_LABELS = (
+    TARGETS,
+    TAKEOFF_ALT,
+    NORTH,
+    EAST,
+    ALT,
+    LAT,
+    LON,
+    GLOBAL_ALT,
+    *formation_panel.LABELS,
+)
 SELECT_HELP = "Click a vehicle in the 3D view to select it; shift-click adds it to Targets."
 
 
@@ -63,6 +75,14 @@ class PanelHooks:
     """Build the jobs of a named scenario ("swap", "random")."""
     now_s: Callable[[], float]
     """Monotonic seconds (the kill window is measured with it)."""
+    positions: Callable[[], Mapping[int, tuple[float, float, float]]] = dict
+    """The vehicles' latest NED positions (formations are assigned from them)."""
+    formations: FormationMemory = field(default_factory=FormationMemory)
+    """The station's remembered formation assignments (a moved formation keeps its slots)."""
+    separation_m: float = 3.0
+    """Formation slots closer than this are refused."""
+    fleet_plan: Callable[[], FleetPlan | None] = lambda: None
+    """The fleet plan whose fence and keep-out zones refuse formation slots."""
 
 
 class CommandPanel:
@@ -133,6 +153,22 @@ class CommandPanel:
             self.goto_global = gui.add_button("Goto global", icon=viser.Icon.WORLD)
         with tabs.add_tab("Scenarios", viser.Icon.ROUTE):
             self.scenarios = gui.add_button_group("Run", ("Swap", "Random goals"))
+        with tabs.add_tab("Formation", viser.Icon.GRID_DOTS):
+            self.formation = formation_panel.FormationSection(
+                client,
+                read_form=self._form,
+                targets=self._targets,
+                positions=hooks.positions,
+                memory=hooks.formations,
+                separation_m=hooks.separation_m,
+                plan_of_fleet=hooks.fleet_plan,
+                send=lambda label, jobs: hooks.dispatch(
+                    label, jobs, self.show_result, client.client_id
+                ),
+                say=self.say,
+                goto_limit_m=goto_limit_m,
+                targets_label=TARGETS,
+            )
         self._wire()
 
     # -- wiring --------------------------------------------------------------------------

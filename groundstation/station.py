@@ -48,6 +48,7 @@ from groundstation.command_log import CommandLog, LoggedCommand
 from groundstation.dispatch import CommandWorker, Dispatched
 from groundstation.events import EventBuffer, EventsView
 from groundstation.fleet import FleetConfig, FleetModel
+from groundstation.formation import FormationMemory
 from groundstation.inputs import CommandRequest
 from groundstation.panel import FORM_LABELS, CommandPanel, Job, PanelHooks
 from groundstation.scene import FleetScene, SceneConfig
@@ -304,6 +305,9 @@ class GroundStation:
             dispatch=self.dispatch,
             scenario=self.scenario_jobs,
             now_s=time.monotonic,
+            positions=self.fleet.positions,
+            formations=FormationMemory(),
+            separation_m=self.cfg.separation_m,
         )
         self.server.on_client_connect(self._open_tab)
         self.server.on_client_disconnect(self._close_tab)
