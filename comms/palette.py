@@ -22,6 +22,8 @@ LOST_RGB = (200, 200, 200)
 ALERT_RGB = (230, 30, 30)
 RING_OK_RGB = (90, 160, 90)
 GEOFENCE_RGB = (230, 120, 0)
+KEEP_OUT_RGB = (200, 30, 30)
+"""Keep-out zones of the fleet plan (comms/plan.py): red, drawn translucent on the ground."""
 GOAL_RGB = (255, 200, 0)
 TRAFFIC_RGB = (220, 0, 160)
 """Traffic that does not cooperate (agent/traffic.py): magenta, a colour no mode uses."""

@@ -79,9 +79,26 @@ def read_plan_file(
     """A GeoJSON or QGC `.plan` file's geometry, checked (BadPlanError otherwise).
     `floor_alt_m`, `ceiling_alt_m`: the fence's floor and ceiling above the origin; they
     replace the file's (a QGC file has none)."""
-    where = f"plan file {Path(path).expanduser()}"
     try:
         raw = read_bounded(path, MAX_PLAN_FILE_BYTES, "plan file")
+    except BadFileError as exc:
+        raise BadPlanError(str(exc)) from None
+    where = f"plan file {Path(path).expanduser()}"
+    return parse_plan(raw, where, origin, floor_alt_m=floor_alt_m, ceiling_alt_m=ceiling_alt_m)
+
+
+def parse_plan(
+    raw: bytes,
+    where: str,
+    origin: GeoOrigin,
+    *,
+    floor_alt_m: float | None = None,
+    ceiling_alt_m: float | None = None,
+) -> PlanGeometry:
+    """As `read_plan_file`, for a file's bytes (an upload in the station); `where` names it."""
+    if len(raw) > MAX_PLAN_FILE_BYTES:
+        raise BadPlanError(f"{where} is {len(raw)} bytes, over the {MAX_PLAN_FILE_BYTES} limit")
+    try:
         doc = parse_json(decode_utf8(raw, where), where)
     except BadFileError as exc:
         raise BadPlanError(str(exc)) from None

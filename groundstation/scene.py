@@ -6,6 +6,8 @@
     /fleet/trails                                       point cloud, every vehicle's trail
     /labels/<id>                                        only a few (see SceneConfig.labels_*)
     /traffic/<track>/body, ring, label                  traffic that does not cooperate (few)
+    /plan/fence, /plan/zones/<k>/{fill,edge,label},      the fleet plan (comms/plan.py) on the
+    /plan/rally/<k>                                     ground: fence, keep-out zones, rally points
 
 A browser pays per scene node (a draw call, a React component, an update message), so the fleet
 is drawn in batches: the node count does not grow with the fleet. Trails are dots: as one line node
@@ -25,6 +27,7 @@ from typing import Any
 import numpy as np
 import viser
 
+from comms.plan import FleetPlan
 from groundstation import scene_geometry as geo
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.frames import heading_to_wxyz, ned_to_scene
@@ -32,6 +35,7 @@ from groundstation.palette import (
     ALERT_RGB,
     GEOFENCE_RGB,
     GOAL_RGB,
+    KEEP_OUT_RGB,
     LOST_RGB,
     RING_OK_RGB,
     TRAFFIC_RGB,
@@ -163,6 +167,8 @@ class FleetScene:
         """What was last assigned to each node property (quantised), to send only changes."""
         self._trails: dict[int, np.ndarray] = {}
         self.traffic: dict[int, dict[str, Any]] = {}
+        self.plan_nodes: list[Any] = []
+        """The drawn fleet plan's nodes (`update_plan`)."""
         """Drawn traffic by track id: its body (a magenta diamond), its ring and its label."""
         self._fresh: set[int] = set()
         self._trail_tick = 0
@@ -417,3 +423,136 @@ class FleetScene:
                 )
             else:
                 label.text, label.position = key
+
+    # -- the fleet plan ------------------------------------------------------------------------
+    def update_plan(self, plan: FleetPlan | None) -> None:
+        """Draw the fleet plan on the ground, replacing the previous one: the fence as a closed
+        orange line (the circular geofence hidden while the plan has a fence: the vehicles then
+        check the polygon), each keep-out zone filled translucent red with its edge and its
+        name, each rally point a small marker with its name. A few nodes per zone; a plan holds
+        at most 64 zones."""
+        scene = self.server.scene
+        for handle in reversed(self.plan_nodes):  # children (labels) before their parents
+            handle.remove()
+        self.plan_nodes = []
+        root = scene.get_handle_by_name("/plan")  # the frames viser made for the paths
+        if root is not None:
+            root.remove()
+        for name in ("/geofence", "/geofence/label"):
+            circle = scene.get_handle_by_name(name)
+            if circle is not None:
+                circle.visible = plan is None or plan.fence is None
+        if plan is None:
+            return
+        add = self.plan_nodes.append
+        if plan.fence is not None:
+            f = plan.fence
+            add(
+                scene.add_line_segments(
+                    "/plan/fence",
+                    polygon_segments(f.vertices_ne_m, 0.04),
+                    np.array(GEOFENCE_RGB, np.uint8),
+                    thickness=4.0,
+                    thickness_units="screen",
+                )
+            )
+            band = [
+                f"{a} {v:g} m"
+                for a, v in (("floor", f.floor_alt_m), ("ceiling", f.ceiling_alt_m))
+                if v is not None
+            ]
+            n, e = f.vertices_ne_m[0]
+            add(
+                scene.add_label(
+                    "/plan/fence/label",
+                    "fence" + (f" ({', '.join(band)})" if band else ""),
+                    position=(e, n, 0.3),
+                    anchor="bottom-center",
+                    font_screen_scale=0.9,
+                )
+            )
+        for k, z in enumerate(plan.keep_out):
+            path = f"/plan/zones/{k}"
+            vertices, faces = polygon_mesh(z.vertices_ne_m, 0.02)
+            add(
+                scene.add_mesh_simple(
+                    f"{path}/fill",
+                    vertices,
+                    faces,
+                    color=KEEP_OUT_RGB,
+                    opacity=0.35,
+                    side="double",
+                    **NO_SHADOW,
+                )
+            )
+            add(
+                scene.add_line_segments(
+                    f"{path}/edge",
+                    polygon_segments(z.vertices_ne_m, 0.05),
+                    np.array(KEEP_OUT_RGB, np.uint8),
+                    thickness=3.0,
+                    thickness_units="screen",
+                )
+            )
+            n, e = zone_label_position(z.vertices_ne_m)
+            top = "" if z.ceiling_alt_m is None else f" (to {z.ceiling_alt_m:g} m)"
+            add(
+                scene.add_label(
+                    f"{path}/label",
+                    f"keep out: {z.name or k + 1}{top}",
+                    position=(e, n, 0.5),
+                    anchor="bottom-center",
+                    font_screen_scale=0.9,
+                )
+            )
+        for k, r in enumerate(plan.rally):
+            path = f"/plan/rally/{k}"
+            add(
+                scene.add_icosphere(
+                    path,
+                    radius=0.5,
+                    color=GEOFENCE_RGB,
+                    position=(r.e_m, r.n_m, r.alt_m + 0.5),
+                    **NO_SHADOW,
+                )
+            )
+            add(
+                scene.add_label(
+                    f"{path}/label",
+                    r.name or f"rally {k + 1}",
+                    position=(0.0, 0.0, 0.8),
+                    anchor="bottom-center",
+                    font_screen_scale=0.9,
+                )
+            )
+
+
+def polygon_segments(vertices_ne_m, z_m: float) -> np.ndarray:
+    """(k, 2, 3) scene-frame segments of a closed polygon given as (north, east) vertices."""
+    ne = np.asarray(vertices_ne_m, np.float32)
+    pts = np.stack([ne[:, 1], ne[:, 0], np.full(len(ne), z_m, np.float32)], axis=-1)
+    return np.stack([pts, np.roll(pts, -1, axis=0)], axis=1)
+
+
+def polygon_mesh(vertices_ne_m, z_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A flat (vertices, faces) mesh of a simple polygon, concave ones included (shapely's
+    constrained Delaunay triangulation keeps every triangle inside the polygon)."""
+    import shapely
+
+    triangles = shapely.constrained_delaunay_triangles(shapely.Polygon(vertices_ne_m))
+    tris = np.array(
+        [np.asarray(t.exterior.coords)[:3] for t in shapely.get_parts(triangles)], np.float32
+    ).reshape(-1, 3, 2)
+    verts = np.stack(
+        [tris[..., 1], tris[..., 0], np.full(tris.shape[:2], z_m, np.float32)], axis=-1
+    ).reshape(-1, 3)
+    return verts, np.arange(len(verts), dtype=np.uint32).reshape(-1, 3)
+
+
+def zone_label_position(vertices_ne_m) -> tuple[float, float]:
+    """A point inside the polygon (north, east) for its name: shapely's representative point
+    (the centroid of a U-shaped zone lies outside it)."""
+    import shapely
+
+    p = shapely.Polygon(vertices_ne_m).representative_point()
+    return float(p.x), float(p.y)

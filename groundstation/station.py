@@ -48,9 +48,9 @@ from groundstation.command_log import CommandLog, LoggedCommand
 from groundstation.dispatch import CommandWorker, Dispatched
 from groundstation.events import EventBuffer, EventsView
 from groundstation.fleet import FleetConfig, FleetModel
-from groundstation.formation import FormationMemory
 from groundstation.inputs import CommandRequest
 from groundstation.panel import FORM_LABELS, CommandPanel, Job, PanelHooks
+from groundstation.plan_view import PlanView
 from groundstation.scene import FleetScene, SceneConfig
 from groundstation.tables import command_log_html, fleet_table, legend, traffic_table
 from groundstation.web_auth import Gate, GateConfig, is_loopback, read_password_file, url_host
@@ -305,9 +305,6 @@ class GroundStation:
             dispatch=self.dispatch,
             scenario=self.scenario_jobs,
             now_s=time.monotonic,
-            positions=self.fleet.positions,
-            formations=FormationMemory(),
-            separation_m=self.cfg.separation_m,
         )
         self.server.on_client_connect(self._open_tab)
         self.server.on_client_disconnect(self._close_tab)
@@ -315,6 +312,10 @@ class GroundStation:
             self.server,
             SceneConfig(self.cfg.geofence_radius_m, self.cfg.separation_m),
             on_vehicle_click=self._select,
+        )
+        # The fleet plan: followed, drawn, listed, replaced by an uploaded file (plan_view.py).
+        self.plan_view = PlanView(
+            self.server, self.mesh, self.scene, self.cfg.origin, order=layout.TRAFFIC + 0.25
         )
 
     # -- browser tabs: each has its own events filter and command panel ------------------
@@ -371,6 +372,9 @@ class GroundStation:
         if self._traffic_listener is not None:
             self._traffic_listener.close()
             self._traffic_listener = None
+        if getattr(self, "plan_view", None) is not None:
+            self.plan_view.close()
+            self.plan_view = None
         if self.mesh is not None and self._given_mesh is None:
             self.mesh.close()
         self.mesh = None
@@ -583,5 +587,6 @@ class GroundStation:
             del self.update_times_s[:-1000]
             for panel in self._tabs()[0]:
                 panel.tick()
+            self.plan_view.tick()
 
         run_ticks(frame, self.cfg.scene_rate_hz, time.monotonic, self._stop, what="render update")

@@ -1,0 +1,126 @@
+"""The fleet plan in the browser station: followed on the mesh, drawn on the ground, listed in
+the panel, and replaced from a file an operator uploads (GeoJSON or QGC .plan), signed with this
+station's key and pushed to the fleet.
+
+The station is a plan member like any vehicle (comms/plan_sync.py): it answers a rebooted
+vehicle's pull with the plan it holds. What arrives on a Zenoh thread is only noted; the render
+thread draws it (`tick`), as the rest of the scene.
+"""
+
+from __future__ import annotations
+
+import html
+import threading
+import time
+from typing import Any
+
+import viser
+
+from comms.geo import GeoOrigin
+from comms.plan import FleetPlan
+from comms.plan_io import BadPlanError, next_version, parse_plan
+from comms.plan_sync import PlanSync
+from comms.roster_sync import Offer
+from groundstation.scene import FleetScene
+from groundstation.web_viser import operator_of
+
+
+class PlanView:
+    """The station's plan follower, its list in the panel and its upload button."""
+
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        mesh: Any,
+        scene: FleetScene,
+        origin: GeoOrigin,
+        *,
+        order: float,
+        clock_ns=time.time_ns,
+    ) -> None:
+        """`mesh`: the station's comms.mesh.Mesh (its auth signs uploaded plans)."""
+        self.server, self.mesh, self.scene, self.origin = server, mesh, scene, origin
+        self._clock_ns = clock_ns
+        self._lock = threading.Lock()
+        self._pending: tuple[FleetPlan | None] | None = None
+        self.drawn: FleetPlan | None = None
+        """The plan on screen (read by tests)."""
+        gui = server.gui
+        with gui.add_folder("Fleet plan", order=order):
+            self.html = gui.add_html(plan_html(None))
+            self.status = gui.add_html("")
+            self.upload = gui.add_upload_button(
+                "Load plan file (GeoJSON or QGC .plan), sign, push",
+                hint="checked, signed with this station's key and sent to every vehicle",
+                mime_type="*/*",
+            )
+        self.upload.on_upload(self._on_upload)
+        self.sync = PlanSync(mesh.session, mesh.fleet, mesh.auth, on_plan=self._on_plan)
+
+    def close(self) -> None:
+        self.sync.undeclare()
+
+    def _on_plan(self, plan: FleetPlan) -> None:
+        with self._lock:
+            self._pending = (plan,)
+
+    def tick(self) -> None:
+        """Draw a plan that arrived since the last tick (the render thread)."""
+        with self._lock:
+            pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        (plan,) = pending
+        with self.server.atomic():
+            self.scene.update_plan(plan)
+        self.html.content = plan_html(plan)
+        self.drawn = plan
+
+    def load(self, raw: bytes, name: str, operator: str | None = None) -> str:
+        """Check an uploaded file, sign it as this station, push it; the line to show."""
+        try:
+            geometry = parse_plan(raw, f"uploaded {name!r}", self.origin)
+        except BadPlanError as exc:
+            return f"refused: {exc}"
+        now_ns = self._clock_ns()
+        plan = geometry.plan(self.mesh.fleet, next_version(self.sync.plan, now_ns), now_ns)
+        auth = self.mesh.auth
+        if auth is not None:
+            plan = auth.sign_plan(plan)
+        result = self.sync.push(plan)
+        if result is not Offer.APPLIED:
+            return f"refused: plan v{plan.version} was not applied here ({result.value})"
+        who = f" by {operator}" if operator else ""
+        notes = "".join(f"; {n}" for n in geometry.notes)
+        return f"plan v{plan.version} from {name!r} pushed{who}{notes}"
+
+    def _on_upload(self, event: viser.GuiEvent) -> None:
+        upload = self.upload.value
+        operator = operator_of(self.server, event.client_id) if event.client_id else None
+        line = self.load(upload.content, upload.name, operator)
+        error = line.startswith("refused")
+        colour = "#b00020" if error else "#1b5e20"
+        self.status.content = f'<div style="color:{colour}">{html.escape(line)}</div>'
+
+
+def plan_html(plan: FleetPlan | None) -> str:
+    """The plan as a short list: fence, zones, rally points."""
+    if plan is None:
+        return "<i>no fleet plan: the vehicles' circular geofence applies</i>"
+    rows = []
+    who = "fleet authority" if plan.signer_id == 0 else f"station {plan.signer_id}"
+    rows.append(f"<b>v{plan.version}</b>, signed by {who}")
+    if plan.fence is not None:
+        f = plan.fence
+        band = ", ".join(
+            f"{a} {v:g} m"
+            for a, v in (("floor", f.floor_alt_m), ("ceiling", f.ceiling_alt_m))
+            if v is not None
+        )
+        rows.append(f"fence: {len(f.vertices_ne_m)} vertices" + (f" ({band})" if band else ""))
+    for z in plan.keep_out:
+        top = "" if z.ceiling_alt_m is None else f", up to {z.ceiling_alt_m:g} m"
+        rows.append(f"keep out: {html.escape(z.name or 'unnamed')}{top}")
+    for r in plan.rally:
+        rows.append(f"{html.escape(r.name or 'rally')}: N {r.n_m:.0f} m, E {r.e_m:.0f} m")
+    return "<br>".join(rows)
