@@ -28,14 +28,7 @@ from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
-from agent.traffic import (
-    TrafficConfig,
-    TrafficListener,
-    TrafficTable,
-    TrafficTrack,
-    is_traffic_id,
-    publish_report,
-)
+from agent.traffic import merge_traffic
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatConfig, StationHeartbeats
@@ -60,6 +53,14 @@ from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
 from comms.ticks import run_ticks
+from comms.traffic import (
+    TrafficConfig,
+    TrafficListener,
+    TrafficTable,
+    TrafficTrack,
+    is_traffic_id,
+    publish_report,
+)
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
@@ -376,7 +377,7 @@ class Agent:
         for report, stamp_ns in self.stations.clock_reports(now_s, (self.vid,)):
             self._publish_event(report.to_event(stamp_ns))
         self._hear_traffic(now_s)
-        nbrs = self.traffic.merge(self.table.snapshot(now_s, pos), now_s, pos)
+        nbrs = merge_traffic(self.traffic, self.table.snapshot(now_s, pos), now_s, pos)
         busy = self.actions.busy
         flags = self.flags
         out = None

@@ -40,7 +40,7 @@ from agent.flight_core import (
 )
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
-from agent.traffic import TrafficListener, TrafficTable
+from agent.traffic import merge_traffic
 from comms.auth import FleetAuth, host_signers
 from comms.cli_options import stop_after
 from comms.gate import GateConfig, command_refusals
@@ -66,6 +66,7 @@ from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
 from comms.ticks import run_ticks
+from comms.traffic import TrafficListener, TrafficTable
 from policy.runtime import GuidancePolicy
 
 log = logging.getLogger("covey.fleet_sim")
@@ -441,7 +442,7 @@ class Fleet:
     def _views(self, now_s: float, rows: np.ndarray) -> NeighbourViews:
         """What each guided row sees: the nearest airborne vehicles, ours and other processes'
         (dead-reckoned from their last state; stale past NeighbourConfig.stale_s)."""
-        sim, ext = self.sim, self.traffic.merge(self.others.snapshot(now_s), now_s)
+        sim, ext = self.sim, merge_traffic(self.traffic, self.others.snapshot(now_s), now_s)
         airborne = np.isin(self.core.mode, AIRBORNE_MODES) & sim.armed
         return NeighbourViews.nearest(
             sim.pos_m[rows],

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import viser
 
-from agent.traffic import TrafficListener, TrafficTable
 from comms.auth import load_auth
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatPublisher
@@ -42,6 +41,7 @@ from comms.schema import (
 )
 from comms.session import MeshConfig
 from comms.ticks import run_ticks
+from comms.traffic import TrafficListener, TrafficTable
 from groundstation import dispatch, layout, scenarios
 from groundstation.browser_form import BrowserForms
 from groundstation.command_log import CommandLog, LoggedCommand

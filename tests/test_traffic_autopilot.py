@@ -18,10 +18,10 @@ from pymavlink.dialects.v20 import common as mavlink
 from agent.backends.base import Capability, Traffic
 from agent.backends.mavsdk_backend import MavsdkBackend, MavsdkConfig
 from agent.backends.relay import RelayBackend, RelayConfig
-from agent.traffic import TRAFFIC_ID_BASE
 from comms import adsb
 from comms.geo import GeoOrigin
 from comms.schema import TrafficSource
+from comms.traffic import TRAFFIC_ID_BASE
 from firmware.sitl.process import SitlProcess, free_udp_port
 
 pytestmark = pytest.mark.e2e

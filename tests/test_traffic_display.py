@@ -11,10 +11,10 @@ import pytest
 import viser
 from conftest import wait_until
 
-from agent.traffic import TrafficTrack
 from comms.palette import TRAFFIC_RGB
 from comms.schema import TrafficSource
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from comms.traffic import TrafficTrack
 from groundstation.scene import FleetScene, SceneConfig
 from groundstation.tables import traffic_table
 from tools.intruder_cli import IntruderConfig, intruder_main

@@ -14,11 +14,12 @@ import pytest
 from conftest import wait_until
 
 from agent.fleet_sim import Fleet, FleetSimConfig
-from agent.traffic import TRAFFIC_ID_BASE, TrafficConfig, TrafficTable, track_from_report
+from agent.traffic import merge_traffic
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import Command, CommandKind, Mode, Role, TrafficFlag, TrafficReport, TrafficSource
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from comms.traffic import TRAFFIC_ID_BASE, TrafficConfig, TrafficTable, track_from_report
 from tools.intruder_cli import IntruderConfig, intruder_main, track_at
 
 SEPARATION_M = 3.0
@@ -56,13 +57,15 @@ def test_table_is_bounded_expires_and_merges_as_non_cooperative() -> None:
     assert [t.track_id for t in table.tracks(0.5)] == [2, 3, 4]
     from agent.neighbours import NeighbourTable
 
-    merged = table.merge(NeighbourTable(1).snapshot(1.35), 1.35, np.array([0.0, 0.0, -5.0]))
+    merged = merge_traffic(table, NeighbourTable(1).snapshot(1.35), 1.35, np.array([0, 0, -5.0]))
     assert merged.ids == tuple(TRAFFIC_ID_BASE + i for i in (2, 3, 4))
     assert merged.pos_ned_m[0] == pytest.approx([2.15, 2.0, -5.0])  # dead-reckoned 1.15 s
     assert merged.stale_ids == (TRAFFIC_ID_BASE + 2, TRAFFIC_ID_BASE + 3)
     if hasattr(merged, "cooperative"):
         assert not np.any(merged.cooperative)
-    assert len(table.merge(NeighbourTable(1).snapshot(1.5), 1.5, np.array([0, 0, -50.0]))) == 0
+    assert (
+        len(merge_traffic(table, NeighbourTable(1).snapshot(1.5), 1.5, np.array([0, 0, -50]))) == 0
+    )
     assert table.tracks(3.0) == []
 
 
@@ -96,7 +99,7 @@ def test_fleet_keeps_clear_of_an_intruder_on_true_positions(speed_m_s: float) ->
         assert fleet.modes == [Mode.HOLDING] * 4
         start_s = clock[0]
         sent = 0
-        from agent.traffic import publish_report
+        from comms.traffic import publish_report
 
         for k in range(round(icfg.duration_s * 10) + 30):
             t_s = clock[0] - start_s
@@ -126,7 +129,7 @@ def test_covey_intruder_cli_reaches_the_fleet() -> None:
     port = free_tcp_port()
     table = TrafficTable()
     with Mesh(embedded_router(port, fleet="intrcli")) as mesh:
-        from agent.traffic import TrafficListener
+        from comms.traffic import TrafficListener
 
         got: list = []
         with TrafficListener(mesh, table, time.monotonic, lambda t, r: got.append(r)):

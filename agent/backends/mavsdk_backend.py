@@ -24,8 +24,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
-from agent.traffic import TrafficTrack, track_from_adsb
 from comms.geo import GeoOrigin
+from comms.traffic import TrafficTrack, track_from_adsb
 
 
 @dataclass(frozen=True)

@@ -22,11 +22,11 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
-from agent.traffic import TRAFFIC_ID_BASE, TrafficTrack, track_from_adsb
 from comms import adsb
 from comms.geo import GeoOrigin
 from comms.mavlink_udp import LinkUrl, UdpLink
 from comms.schema import POSITION_LIMIT_M, SPEED_LIMIT_M_S
+from comms.traffic import TRAFFIC_ID_BASE, TrafficTrack, track_from_adsb
 
 log = logging.getLogger(__name__)
 
