@@ -28,7 +28,14 @@ from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
-from agent.traffic import merge_traffic
+from agent.traffic import (
+    TrafficConfig,
+    TrafficListener,
+    TrafficTable,
+    TrafficTrack,
+    is_traffic_id,
+    publish_report,
+)
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatConfig, StationHeartbeats
@@ -36,6 +43,7 @@ from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
+    POS_SIGMA_LIMIT_M,
     AckResult,
     Command,
     CommandAck,
@@ -53,14 +61,6 @@ from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
 from comms.ticks import run_ticks
-from comms.traffic import (
-    TrafficConfig,
-    TrafficListener,
-    TrafficTable,
-    TrafficTrack,
-    is_traffic_id,
-    publish_report,
-)
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
@@ -377,7 +377,7 @@ class Agent:
         for report, stamp_ns in self.stations.clock_reports(now_s, (self.vid,)):
             self._publish_event(report.to_event(stamp_ns))
         self._hear_traffic(now_s)
-        nbrs = merge_traffic(self.traffic, self.table.snapshot(now_s, pos), now_s, pos)
+        nbrs = self.traffic.merge(self.table.snapshot(now_s, pos), now_s, pos)
         busy = self.actions.busy
         flags = self.flags
         out = None
@@ -406,7 +406,7 @@ class Agent:
                     rows,
                     obs.pos_m,
                     obs.vel_m_s,
-                    NeighbourViews.of_snapshot(nbrs, self.vid),
+                    NeighbourViews.of_snapshot(nbrs, self.vid, tel.pos_sigma_m),
                     decide,
                 )
             flags |= core.flags_of(0)
@@ -523,6 +523,7 @@ class Agent:
             goal_ned_m=tuple(float(x) for x in target) if target is not None else (0.0, 0.0, 0.0),
             mission_item=self._progress[0],
             mission_items=self._progress[1],
+            pos_sigma_m=float(min(POS_SIGMA_LIMIT_M, max(0.0, tel.pos_sigma_m))),
         )
         try:
             self.mesh.publish_state(state)

@@ -40,7 +40,7 @@ from agent.flight_core import (
 )
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
-from agent.traffic import merge_traffic
+from agent.traffic import TrafficListener, TrafficTable
 from comms.auth import FleetAuth, host_signers
 from comms.cli_options import stop_after
 from comms.gate import GateConfig, command_refusals
@@ -66,7 +66,6 @@ from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
 from comms.ticks import run_ticks
-from comms.traffic import TrafficListener, TrafficTable
 from policy.runtime import GuidancePolicy
 
 log = logging.getLogger("covey.fleet_sim")
@@ -442,7 +441,7 @@ class Fleet:
     def _views(self, now_s: float, rows: np.ndarray) -> NeighbourViews:
         """What each guided row sees: the nearest airborne vehicles, ours and other processes'
         (dead-reckoned from their last state; stale past NeighbourConfig.stale_s)."""
-        sim, ext = self.sim, merge_traffic(self.traffic, self.others.snapshot(now_s), now_s)
+        sim, ext = self.sim, self.traffic.merge(self.others.snapshot(now_s), now_s)
         airborne = np.isin(self.core.mode, AIRBORNE_MODES) & sim.armed
         return NeighbourViews.nearest(
             sim.pos_m[rows],
@@ -457,7 +456,23 @@ class Fleet:
             self.cfg.max_neighbours,
             np.concatenate([self.ids, np.array(ext.ids, np.int64)]),
             self.ids[rows],
+            **self._sky(ext, rows),
         )
+
+    def _sky(self, ext, rows: np.ndarray) -> dict:
+        """NeighbourViews.nearest's position 1-sigmas and cooperative flags for our vehicles
+        (the simulator's drift) and the others (their states', traffic non-cooperative); none
+        when every position is exact and everyone cooperates (the views as before)."""
+        n = self.cfg.vehicles
+        sigma = np.concatenate([np.full(n, self.sim.pos_sigma_m), ext.column("pos_sigma_m", 0.0)])
+        coop = np.concatenate([np.ones(n, bool), ext.column("cooperative", True)])
+        out: dict = {}
+        if sigma.any():
+            out["world_pos_sigma_m"] = sigma
+            out["rows_pos_sigma_m"] = sigma[rows]
+        if not coop.all():
+            out["world_cooperative"] = coop
+        return out
 
     def _states(self, rows: np.ndarray) -> list[VehicleState]:
         """The states of `rows` (those due: comms/state_rate.py), each with its next seq."""
@@ -483,6 +498,7 @@ class Fleet:
         modes = [_MODES[m] for m in core.mode[rows].tolist()]
         ids, seqs = self.ids[rows].tolist(), self.seq[rows].tolist()
         armed, battery = sim.armed[rows].tolist(), sim.battery_pct[rows].tolist()
+        sigma = float(sim.pos_sigma_m)
         item, items = (x.tolist() for x in core.mission_progress(rows))
         return [
             VehicleState(
@@ -499,6 +515,7 @@ class Fleet:
                 goal_ned_m=tuple(goal[i]),
                 mission_item=item[i],
                 mission_items=items[i],
+                pos_sigma_m=sigma,
             )
             for i in range(len(ids))
         ]

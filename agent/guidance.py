@@ -68,6 +68,10 @@ class GuidanceConfig:
     """With the filter on: where a vehicle meets at most two others and not dead-on, fly straight
     at the goal and let the filter resolve it (policy.sparse; docs/policy.md "Sparse traffic").
     Off, or with the filter off: the policy always."""
+    non_cooperative_separation_m: float | None = None
+    """Separation the filter keeps from traffic that does not cooperate (it also takes the
+    whole correction for it; policy.safety.SafetyConfig.non_cooperative_radius_m). None:
+    separation_m."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "cruise_speed_m_s", "arrive_radius_m"):
@@ -82,6 +86,11 @@ class GuidanceConfig:
         ps = self.policy_separation_m
         if ps is not None and not (math.isfinite(ps) and ps > 0):
             raise ValueError(f"policy_separation_m must be a positive number (or None), got {ps}")
+        nc = self.non_cooperative_separation_m
+        if nc is not None and not (math.isfinite(nc) and nc > 0):
+            raise ValueError(
+                f"non_cooperative_separation_m must be a positive number (or None), got {nc}"
+            )
 
     @property
     def told_separation_m(self) -> float:
@@ -115,6 +124,9 @@ class GuidanceConfig:
             safety_filter=False,
             max_neighbours=self.max_neighbours,
             sparse_rule=SparseConfig() if self.safety_filter and self.sparse_rule else None,
+            safety_cfg=safety.SafetyConfig(
+                non_cooperative_radius_m=self.non_cooperative_separation_m
+            ),
         )
 
 
@@ -137,12 +149,23 @@ class NeighbourViews:
     coincident vehicles apart by id (policy.safety.untie). None: it cannot."""
     own_ids: np.ndarray | None = None
     """(k,) each row's own vehicle id."""
+    pos_sigma_m: np.ndarray | None = None
+    """(k, K) the entries' position 1-sigma (m); None: all 0 (exact)."""
+    cooperative: np.ndarray | None = None
+    """(k, K) bool, False for traffic that does not avoid; None: all cooperative."""
+    own_pos_sigma_m: np.ndarray | None = None
+    """(k,) each row's own position 1-sigma; None: all 0."""
 
     @classmethod
-    def of_snapshot(cls, nbrs: NeighbourSnapshot, own_id: int | None = None) -> NeighbourViews:
-        """One row: an agent's neighbour table (`own_id`: the agent's vehicle)."""
+    def of_snapshot(
+        cls, nbrs: NeighbourSnapshot, own_id: int | None = None, own_pos_sigma_m: float = 0.0
+    ) -> NeighbourViews:
+        """One row: an agent's neighbour table (`own_id`: the agent's vehicle; own_pos_sigma_m:
+        its position estimate's 1-sigma, from its telemetry)."""
         k = len(nbrs)
         stale = np.array([vid in nbrs.stale_ids for vid in nbrs.ids], bool).reshape(1, k)
+        sigma = nbrs.column("pos_sigma_m", 0.0)
+        coop = nbrs.column("cooperative", True)
         return cls(
             np.asarray(nbrs.pos_ned_m, float).reshape(1, k, 3),
             np.asarray(nbrs.vel_ned_m_s, float).reshape(1, k, 3),
@@ -151,6 +174,9 @@ class NeighbourViews:
             stale,
             None if own_id is None else np.array(nbrs.ids, np.int64).reshape(1, k),
             None if own_id is None else np.array([own_id], np.int64),
+            sigma.reshape(1, k) if sigma.any() else None,
+            None if coop.all() else coop.reshape(1, k),
+            np.array([own_pos_sigma_m], float) if own_pos_sigma_m else None,
         )
 
     @classmethod
@@ -166,10 +192,14 @@ class NeighbourViews:
         max_neighbours: int | None,
         world_ids: np.ndarray | None = None,
         rows_ids: np.ndarray | None = None,
+        world_pos_sigma_m: np.ndarray | None = None,
+        rows_pos_sigma_m: np.ndarray | None = None,
+        world_cooperative: np.ndarray | None = None,
     ) -> NeighbourViews:
         """Each row sees the nearest `max_neighbours` active world entries (horizontal
         distance) other than itself (`self_index`, -1 = not in the world); with the world's and
-        the rows' vehicle ids, the views carry them (coincident vehicles are untied)."""
+        the rows' vehicle ids, the views carry them (coincident vehicles are untied); likewise
+        the position 1-sigmas (world (m,), rows (k,)) and the world's cooperative flags."""
         k, m = len(rows_pos_m), len(world_pos_m)
         # squared horizontal distances, per axis: a quarter of the cost of a (k, m, 2) difference
         key = np.square(rows_pos_m[:, None, 0] - world_pos_m[None, :, 0])
@@ -192,12 +222,38 @@ class NeighbourViews:
             world_stale[cols] & valid,
             np.asarray(world_ids, np.int64)[cols] if with_ids else None,
             np.asarray(rows_ids, np.int64) if with_ids else None,
+            None if world_pos_sigma_m is None else np.asarray(world_pos_sigma_m, float)[cols],
+            None if world_cooperative is None else np.asarray(world_cooperative, bool)[cols],
+            None if rows_pos_sigma_m is None else np.asarray(rows_pos_sigma_m, float),
         )
 
     def row(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Row r's valid neighbours: positions (K', 3), velocities, headings, stale flags."""
         v = self.valid[r]
         return self.pos_m[r, v], self.vel_m_s[r, v], self.heading_rad[r, v], self.stale[r, v]
+
+    def sky(self, rows=None) -> dict:
+        """The filter's real-vehicle inputs (policy.safety.pair_radius_m) for one row (an int:
+        its valid neighbours, as `row`) or view rows (an index array, None = all: padded), as
+        keyword arguments; empty when the views carry none (exact, all cooperative)."""
+        out: dict = {}
+        if isinstance(rows, int | np.integer):
+            v = self.valid[rows]
+            if self.own_pos_sigma_m is not None:
+                out["pos_sigma_m"] = float(self.own_pos_sigma_m[rows])
+            if self.pos_sigma_m is not None:
+                out["nbr_pos_sigma_m"] = self.pos_sigma_m[rows, v]
+            if self.cooperative is not None:
+                out["nbr_cooperative"] = self.cooperative[rows, v]
+            return out
+        sel = slice(None) if rows is None else rows
+        if self.own_pos_sigma_m is not None:
+            out["pos_sigma_m"] = self.own_pos_sigma_m[sel]
+        if self.pos_sigma_m is not None:
+            out["nbr_pos_sigma_m"] = self.pos_sigma_m[sel]
+        if self.cooperative is not None:
+            out["nbr_cooperative"] = self.cooperative[sel]
+        return out
 
 
 @dataclass(frozen=True)
@@ -303,7 +359,14 @@ class BatchGuidance:
         if len(idx) == 1:  # one vehicle (an agent): the single-vehicle fast path
             p, v, h, _ = views.row(int(idx[0]))
             out = pol.command(
-                pos_m[0, :2], vel_m_s[0, :2], heading_rad[0], goal_m[0, :2], p[:, :2], v[:, :2], h
+                pos_m[0, :2],
+                vel_m_s[0, :2],
+                heading_rad[0],
+                goal_m[0, :2],
+                p[:, :2],
+                v[:, :2],
+                h,
+                **views.sky(int(idx[0])),
             )
             return np.asarray(out, float)[None]
         return pol.command_views(
@@ -315,6 +378,7 @@ class BatchGuidance:
             views.vel_m_s[idx, :, :2],
             views.heading_rad[idx],
             views.valid[idx],
+            **views.sky(idx),
         )
 
     def _stale_factor(self, pos_m: np.ndarray, views: NeighbourViews) -> np.ndarray:
@@ -341,6 +405,7 @@ class BatchGuidance:
                 self.safety_cfg,
                 int(views.own_ids[0]) if ids else None,
                 views.ids[0, views.valid[0]] if ids else None,
+                **views.sky(0),
             )
             out = np.asarray(out, float)[None]
         else:
@@ -354,6 +419,7 @@ class BatchGuidance:
                 self.safety_cfg,
                 views.own_ids if ids else None,
                 views.ids if ids else None,
+                **views.sky(),
             )
             none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
             out[none] = pref_m_s[none]

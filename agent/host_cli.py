@@ -53,6 +53,7 @@ def host_config(
             guidance=agent_cli.guidance_from_args(args),
             failsafe=agent_cli.failsafe_from_args(args),
             origin=args.origin or GeoOrigin(),
+            sim=agent_cli.sim_config(args.vehicle_model),
         )
         cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:

@@ -45,9 +45,28 @@ class NeighbourSnapshot:
     stale_ids: tuple[int, ...]
     seqs: tuple[int, ...] = ()
     """The seq of each neighbour's state used (guidance traces for closed-loop replay)."""
+    pos_sigma_m: np.ndarray | None = None
+    """(K,) the 1-sigma each neighbour reported of its position estimate (VehicleState
+    pos_sigma_m); None: all 0. Rows appended without one (traffic) count as 0."""
+    cooperative: np.ndarray | None = None
+    """(K,) bool: False for a neighbour that does not avoid (traffic, agent/traffic.py): the
+    filter takes the whole correction for it. None: all cooperative (covey vehicles)."""
+    manned: np.ndarray | None = None
+    """(K,) bool: a manned aircraft (traffic only). None: none."""
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    def column(self, name: str, fill) -> np.ndarray:
+        """Per-neighbour column `name` (pos_sigma_m, cooperative, manned) as (K,), its rows
+        missing or absent filled with `fill` (a snapshot merged with rows that carry none)."""
+        k = len(self.ids)
+        got = getattr(self, name)
+        out = np.full(k, fill, dtype=np.asarray(fill).dtype)
+        if got is not None:
+            got = np.asarray(got).reshape(-1)[:k]
+            out[: len(got)] = got
+        return out
 
 
 class NeighbourTable:
@@ -91,7 +110,7 @@ class NeighbourTable:
         self.expire(now_s)
         with self._lock:
             items = list(self._latest.values())
-        pos, vel, hdg, ids, ages, stale, seqs = [], [], [], [], [], [], []
+        pos, vel, hdg, ids, ages, stale, seqs, sigma = [], [], [], [], [], [], [], []
         for state, recv_s in items:
             if state.mode in (Mode.LANDED, Mode.KILLED) and not state.armed:
                 continue
@@ -107,6 +126,7 @@ class NeighbourTable:
             hdg.append(state.heading_rad)
             ids.append(state.vehicle_id)
             seqs.append(state.seq)
+            sigma.append(state.pos_sigma_m)
             ages.append(age_s)
             if age_s > self.cfg.stale_s:
                 stale.append(state.vehicle_id)
@@ -119,6 +139,7 @@ class NeighbourTable:
             age_s=np.array(ages, dtype=float).reshape(k),
             stale_ids=tuple(stale),
             seqs=tuple(seqs),
+            pos_sigma_m=np.array(sigma, dtype=float).reshape(k),
         )
 
     def latest(self) -> dict[int, VehicleState]:

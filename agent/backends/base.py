@@ -48,6 +48,9 @@ class Telemetry:
     battery_pct: float
     link_ok: bool = True
     """False when the autopilot link is lost (heartbeat timeout)."""
+    pos_sigma_m: float = 0.0
+    """1-sigma of the horizontal position estimate, per axis, metres (PX4's eph, GPS h_acc, the
+    simulator's drift); 0: exact or not reported."""
 
 
 @dataclass(frozen=True)

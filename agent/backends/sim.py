@@ -6,6 +6,11 @@ fleet-sim`); `SimBackend` is one of them behind the `VehicleBackend` interface (
 vertically at fixed rates, drains a battery in the air, and falls when killed; the physics is
 the one point-mass model (policy/pointmass.py). The simulator integrates only when `step(now_s)`
 is called, so time is whatever the caller says it is. Thread-safe: one lock guards the arrays.
+
+With a `VehicleModel` (`SimConfig.vehicle`, e.g. `realistic`: velocity lag, gusts, a drifting
+GNSS estimate) the vehicles fly like real ones: `pos_m` is then what each autopilot believes and
+reports (its estimate, which its position holds act on), `true_pos_m` where it really is (what
+separation is judged on), and telemetry carries the estimate's 1-sigma (`pos_sigma_m`).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
-from policy.pointmass import integrate
+from policy.pointmass import VehicleModel, Vehicles
 
 
 @dataclass(frozen=True)
@@ -44,6 +49,10 @@ class SimConfig:
     """Like PX4 offboard: with no velocity setpoint for this long, the vehicle holds."""
     max_step_s: float = 0.5
     """Longest time one `step` integrates: a stalled process must not teleport the vehicles."""
+    vehicle: VehicleModel | None = None
+    """How real the vehicles are (policy.pointmass: VehicleModel.realistic() for lag, gusts and
+    GNSS drift; its acceleration limit then replaces max_accel_m_s2). None: no lag, no gusts,
+    exact positions, max_accel_m_s2 (the simulator as it always was)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -83,16 +92,27 @@ class SimFleet:
         cfg: SimConfig = SimConfig(),
         starts_ned_m: np.ndarray | None = None,
         now_s: float = 0.0,
+        rng: np.random.Generator | None = None,
     ) -> None:
+        """`rng` draws the gusts and the drift of `cfg.vehicle` (None: fresh entropy)."""
         self.cfg = cfg
         starts = np.array([cfg.start_ned_m] if starts_ned_m is None else starts_ned_m, float)
         if starts.ndim != 2 or starts.shape[1] != 3 or not np.all(np.isfinite(starts)):
             raise ValueError(f"starts_ned_m must be finite (N, 3), got shape {starts.shape}")
         n = len(starts)
         self.n = n
-        self.pos_m = starts.copy()
-        self.pos_m[:, 2] = np.minimum(self.pos_m[:, 2], 0.0)
-        self.vel_m_s = np.zeros((n, 3))
+        starts = starts.copy()
+        starts[:, 2] = np.minimum(starts[:, 2], 0.0)
+        model = cfg.vehicle or VehicleModel(max_accel_m_s2=cfg.max_accel_m_s2)
+        self.body = Vehicles(starts, model, rng if rng is not None else np.random.default_rng())
+        """The vehicles' physics (policy.pointmass): truth, loop velocity, gusts, drift."""
+        self.true_pos_m = self.body.pos_m
+        """Where the vehicles really are (N, 3)."""
+        self.pos_m = self.true_pos_m if model.drift_m == 0 else self.body.est_pos_m
+        """Where each autopilot believes it is (N, 3): the truth with exact positions."""
+        self.pos_sigma_m = model.drift_m
+        """The 1-sigma each reports of its horizontal position estimate."""
+        self.vel_m_s = self.body.vel_m_s
         self.heading_rad = np.full(n, cfg.start_heading_rad)
         self.armed = np.zeros(n, bool)
         self.battery_pct = np.full(n, 100.0)
@@ -126,6 +146,7 @@ class SimFleet:
                 in_air=self.in_air(i),
                 battery_pct=float(self.battery_pct[i]),
                 link_ok=not self.closed[i],
+                pos_sigma_m=self.pos_sigma_m,
             )
 
     def takeoff(self, i: int, alt_m: float) -> None:
@@ -234,9 +255,10 @@ class SimFleet:
     def _integrate(self, dt_s: float) -> None:
         cfg = self.cfg
         powered = (self.mode != SimMode.IDLE) & (self.mode != SimMode.FALLING)
-        hit = integrate(
-            self.pos_m, self.vel_m_s, self._wanted_velocity(), dt_s, cfg.max_accel_m_s2, powered
-        )
+        hit = self.body.step(self._wanted_velocity(), dt_s, powered)
+        if self.pos_m is not self.true_pos_m:  # the estimate follows the truth, off by the drift
+            self.pos_m[:] = self.true_pos_m
+            self.pos_m[:, :2] += self.body.drift_m
         down = hit & np.isin(self.mode, (SimMode.LAND, SimMode.FALLING))
         self.armed[down] = False
         self.mode[down] = SimMode.IDLE
