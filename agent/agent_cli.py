@@ -26,10 +26,12 @@ from agent.app import Agent, AgentConfig
 from agent.backends.base import VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
+from agent.returning import ReturnConfig
 from comms.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
 from comms.cli_options import (
     add_config_flags,
     add_mesh_args,
+    config_from_flags,
     die,
     floats,
     geo_origin,
@@ -50,19 +52,14 @@ log = logging.getLogger("covey.agent")
 
 
 def make_backend(
-    spec: str,
-    cfg: AgentConfig,
-    start_ned_m: tuple[float, float, float],
-    clock_s,
-    vehicle_model: str = "ideal",
+    spec: str, cfg: AgentConfig, start_ned_m: tuple[float, float, float], clock_s
 ) -> VehicleBackend:
-    """Build the backend named by `spec`: sim | mavsdk:<url> | relay:<url>; a simulated one
-    flies `vehicle_model` (`sim_config`)."""
+    """Build the backend named by `spec`: sim | mavsdk:<url> | relay:<url>."""
     kind, _, url = spec.partition(":")
     if kind == "sim":
-        from agent.backends.sim import SimBackend
+        from agent.backends.sim import SimBackend, SimConfig
 
-        return SimBackend(sim_config(vehicle_model, start_ned_m=start_ned_m), now_s=clock_s())
+        return SimBackend(SimConfig(start_ned_m=start_ned_m), now_s=clock_s())
     if kind == "mavsdk":
         from agent.backends.mavsdk_backend import MavsdkBackend
 
@@ -106,31 +103,12 @@ SINGLE_FLAGS = {
 """Flags of a single agent (--id) only, and why a host (--ids) refuses them."""
 
 
-def sim_config(vehicle_model: str, **kw):
-    """The simulator's config for --vehicle-model: ideal = the simulator as it always was (it
-    flies the setpoint with SimConfig's acceleration limit and knows where it is), realistic =
-    policy.pointmass.VehicleModel.realistic() (0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift)."""
-    from agent.backends.sim import SimConfig
-    from policy.pointmass import VehicleModel
-
-    model = None if vehicle_model == "ideal" else VehicleModel.named(vehicle_model)
-    return SimConfig(vehicle=model, **kw)
-
-
 def add_flight_args(
     p: argparse.ArgumentParser, *, geofence_radius_m: float = 500.0, gcs_failsafe: bool = True
 ) -> None:
     """The flags every shell of the flight core shares (`covey agent`, one vehicle or many, and
     `covey fleet-sim`): start position, fleet origin, guidance, geofence, the ground-station
     failsafe (unless `gcs_failsafe` is False: fleet-sim flies without one), run time, logging."""
-    p.add_argument(
-        "--vehicle-model",
-        choices=("ideal", "realistic"),
-        default="ideal",
-        help="how simulated vehicles fly: ideal (exactly the setpoint within the acceleration "
-        "limit, exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, "
-        "GNSS estimate drifting 0.5 m: they report the estimate and its sigma); sim only",
-    )
     p.add_argument(
         "--start-ne-m",
         type=_start_ne,
@@ -176,6 +154,7 @@ def add_flight_args(
         default=geofence_radius_m,
         help=f"0 = no fence (default {geofence_radius_m:g})",
     )
+    add_config_flags(p, ReturnConfig)  # return layers and landing order (agent/returning.py)
     if gcs_failsafe:
         p.add_argument(
             "--gcs-lost-hold-s",
@@ -247,13 +226,17 @@ def steady_from_args(args: argparse.Namespace) -> SteadyConfig | None:
 
 def failsafe_from_args(args: argparse.Namespace) -> FailsafeConfig:
     """The failsafes the flags ask for; without the ground-station flags (fleet-sim), none."""
+    returning = config_from_flags(ReturnConfig, args)
     if not hasattr(args, "no_gcs_failsafe"):
-        return FailsafeConfig(require_gcs=False, geofence_radius_m=args.geofence_radius_m)
+        return FailsafeConfig(
+            require_gcs=False, geofence_radius_m=args.geofence_radius_m, returning=returning
+        )
     return FailsafeConfig(
         require_gcs=not args.no_gcs_failsafe,
         gcs_lost_hold_s=args.gcs_lost_hold_s,
         gcs_lost_land_s=args.gcs_lost_land_s,
         geofence_radius_m=args.geofence_radius_m,
+        returning=returning,
     )
 
 
@@ -331,14 +314,13 @@ def main(
     stop: threading.Event | None = None,
     duration_s: float | None = None,
     auth: FleetAuth | None = None,
-    vehicle_model: str = "ideal",
 ) -> int:
     stop = stop or threading.Event()
     clock_s = time.monotonic
     # The duration bounds the whole run, waiting for a router included.
     with contextlib.ExitStack() as stack, stop_after(duration_s, stop):
         backend = stack.enter_context(
-            make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s, vehicle_model)
+            make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s)
         )
         mesh = stack.enter_context(Mesh(cfg.mesh, auth=auth, stop=stop))
         own_pos: list = [None]  # filled once the agent exists; range-dependent loss needs it
@@ -378,8 +360,6 @@ def cli(argv: list[str]) -> int:
     kind = args.vehicle.partition(":")[0]
     if kind != "sim" and given(p, args, "start_ne_m"):
         p.error(f"--start-ne-m places a simulated vehicle; a {kind} vehicle is where it is")
-    if kind != "sim" and given(p, args, "vehicle_model"):
-        p.error(f"--vehicle-model is how a simulated vehicle flies; a {kind} vehicle flies itself")
     if kind == "relay" and (flags := given(p, args, *GUIDANCE_FLAGS)):
         p.error(
             f"{', '.join(flags)}: a relay vehicle runs the policy onboard (covey sitl "
@@ -402,7 +382,6 @@ def cli(argv: list[str]) -> int:
                 stop=stop,
                 duration_s=args.duration_s,
                 auth=auth,
-                vehicle_model=args.vehicle_model,
             )
         except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad config, busy port
             die(p, str(exc))

@@ -28,14 +28,7 @@ from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
-from agent.traffic import (
-    TrafficConfig,
-    TrafficListener,
-    TrafficTable,
-    TrafficTrack,
-    is_traffic_id,
-    publish_report,
-)
+from agent.traffic import merge_traffic
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatConfig, StationHeartbeats
@@ -43,7 +36,6 @@ from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
-    POS_SIGMA_LIMIT_M,
     AckResult,
     Command,
     CommandAck,
@@ -61,6 +53,14 @@ from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
 from comms.ticks import run_ticks
+from comms.traffic import (
+    TrafficConfig,
+    TrafficListener,
+    TrafficTable,
+    TrafficTrack,
+    is_traffic_id,
+    publish_report,
+)
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
@@ -145,6 +145,7 @@ class Agent:
             now_s=now,
             velocity_mode=self.velocity_mode,
             guidance=guidance.batch if guidance is not None else None,
+            vehicle_ids=(self.vid,),
         )
         self.table = NeighbourTable(self.vid, cfg.neighbours)
         self.traffic = TrafficTable(cfg.traffic)
@@ -377,13 +378,13 @@ class Agent:
         for report, stamp_ns in self.stations.clock_reports(now_s, (self.vid,)):
             self._publish_event(report.to_event(stamp_ns))
         self._hear_traffic(now_s)
-        nbrs = self.traffic.merge(self.table.snapshot(now_s, pos), now_s, pos)
+        nbrs = merge_traffic(self.traffic, self.table.snapshot(now_s, pos), now_s, pos)
         busy = self.actions.busy
         flags = self.flags
         out = None
         with self._lock:
             core = self.core
-            actions = core.observe(now_s, obs, gcs_alive)
+            actions = core.observe(now_s, obs, gcs_alive, nbrs)
             idle = bool(idle_rows(core.mode, tel.armed, tel.in_air, busy or bool(actions))[0])
             publish = bool(
                 self.pacer.due(
@@ -406,7 +407,7 @@ class Agent:
                     rows,
                     obs.pos_m,
                     obs.vel_m_s,
-                    NeighbourViews.of_snapshot(nbrs, self.vid, tel.pos_sigma_m),
+                    NeighbourViews.of_snapshot(nbrs, self.vid),
                     decide,
                 )
             flags |= core.flags_of(0)
@@ -523,7 +524,6 @@ class Agent:
             goal_ned_m=tuple(float(x) for x in target) if target is not None else (0.0, 0.0, 0.0),
             mission_item=self._progress[0],
             mission_items=self._progress[1],
-            pos_sigma_m=float(min(POS_SIGMA_LIMIT_M, max(0.0, tel.pos_sigma_m))),
         )
         try:
             self.mesh.publish_state(state)

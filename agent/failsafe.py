@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.modes import AIRBORNE, Trigger
+from agent.returning import ReturnConfig
 from comms.schema import CommandKind, Mode, StateFlag
 
 
@@ -50,6 +51,9 @@ class FailsafeConfig:
     """Highest goto or takeoff altitude above the origin."""
     min_alt_m: float = 1.0
     """Lowest goto altitude above the origin (landing is a command of its own)."""
+    returning: ReturnConfig = ReturnConfig()
+    """How a vehicle returns, commanded or by a failsafe: its altitude layer and landing order
+    (agent/returning.py; default off: home at its own altitude, landing as it arrives)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.gcs_lost_hold_s <= self.gcs_lost_land_s:

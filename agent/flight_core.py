@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -30,6 +31,8 @@ from agent.failsafe import FailsafeConfig, Failsafes
 from agent.guidance import BatchGuidance, GuidanceConfig, GuidanceStep, NeighbourViews
 from agent.mission import Ending, MissionRun, RunStatus, resolve
 from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
+from agent.neighbours import NeighbourSnapshot
+from agent.returning import Returns
 from comms.geo import GeoOrigin
 from comms.plan import FleetPlan, plan_refusal
 from comms.schema import (
@@ -74,6 +77,7 @@ MISSION_KINDS = frozenset(
 _TOUCHING_DOWN = mode_mask((Mode.LANDING, Mode.KILLED))
 _DOWN_UNASKED = mode_mask(AIRBORNE - {Mode.TAKING_OFF, Mode.LANDING})
 _TAKING_OFF = int(Mode.TAKING_OFF)
+_RETURNING = int(Mode.RETURNING)
 TAKEOFF_DONE_M = 0.3
 """Take-off is complete within this distance below the take-off altitude."""
 SPEED_FOR_HEADING = 0.2
@@ -196,9 +200,14 @@ class FlightCore:
         now_s: float,
         velocity_mode: bool = True,
         guidance: BatchGuidance | None = None,
+        vehicle_ids: Sequence[int] | None = None,
     ) -> None:
+        """`vehicle_ids`: the rows' vehicle ids (their return layers); default 1..n."""
         if n < 1:
             raise ValueError(f"a core needs at least one vehicle, got {n}")
+        ids = np.arange(1, n + 1) if vehicle_ids is None else np.asarray(vehicle_ids, np.int64)
+        self.returns = Returns(cfg.failsafe.returning, ids)
+        """Each vehicle's return phase, landing spot and layer (agent/returning.py)."""
         self.cfg = cfg
         self.n = n
         self.velocity_mode = velocity_mode
@@ -376,8 +385,16 @@ class FlightCore:
             if not self.velocity_mode:
                 kind, action_kw = ActionKind.GOTO, {"target_ned_m": tuple(map(float, target))}
         elif mode is Mode.RETURNING:
-            home = self.home_m[i] if not np.isnan(self.home_m[i, 0]) else np.zeros(3)
-            self.goal_m[i] = (home[0], home[1], min(pos_m[2], -self.cfg.failsafe.min_alt_m))
+            # its landing spot (home or the nearest rally point) on its layer (agent/returning.py)
+            plan = self.mission_plan
+            self.goal_m[i] = self.returns.enter(
+                i,
+                pos_m,
+                self.home_m[i],
+                [(r.n_m, r.e_m) for r in plan.rally] if plan is not None else [],
+                self.cfg.failsafe.min_alt_m,
+                self.cfg.guidance.arrive_alt_tol_m,
+            )
             self.heading_rad[i] = heading_towards(pos_m, self.goal_m[i], self.heading_rad[i])
             if not self.velocity_mode:
                 kind, action_kw = (
@@ -482,8 +499,16 @@ class FlightCore:
         return True
 
     # -- each tick -----------------------------------------------------------------------------
-    def observe(self, now_s: float, obs: Observed, gcs_alive: bool) -> list[Action]:
-        """Vehicle events and failsafes from this tick's telemetry; returns the actions they need."""
+    def observe(
+        self,
+        now_s: float,
+        obs: Observed,
+        gcs_alive: bool,
+        others: NeighbourSnapshot | None = None,
+    ) -> list[Action]:
+        """Vehicle events and failsafes from this tick's telemetry; returns the actions they need.
+        `others`: vehicles outside the core (the neighbour table), which a returning vehicle
+        lets land first when they are below it near its spot (agent/returning.py)."""
         actions: list[Action] = []
         pos, vel = obs.pos_m, obs.vel_m_s
         self.now_s = now_s
@@ -497,6 +522,21 @@ class FlightCore:
         arrived = (np.hypot(miss[:, 0], miss[:, 1]) <= g.arrive_radius_m) & (
             np.abs(miss[:, 2]) <= g.arrive_alt_tol_m
         )
+        returning = self.mode == _RETURNING
+        if returning.any():
+            arrived, turned = self.returns.arrivals(
+                returning,
+                arrived,
+                pos,
+                self.goal_m,
+                None if others is None else others.pos_ned_m,
+                None if others is None else np.array(others.ids, np.int64),
+            )
+            if not self.velocity_mode:  # the autopilot flies the new leg itself
+                actions += [
+                    Action(i, ActionKind.GOTO, target_ned_m=tuple(map(float, self.goal_m[i])))
+                    for i in turned
+                ]
         mode = self.mode
         on_ground = ~obs.in_air & ~obs.armed
         events = (

@@ -1,0 +1,218 @@
+"""The coordinated return (agent/returning.py) in the flight core: layers from ids, the climb
+to the layer, the level leg, the landing order; then a fleet of 12 simulated vehicles (the
+fleet-sim code, a real Zenoh mesh, injected time) told `covey cmd return --to all` through
+the real CLI: no pair below the separation, each on its layer, all landed at home."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from agent.failsafe import FailsafeConfig
+from agent.fleet_sim import Fleet, FleetSimConfig
+from agent.guidance import GuidanceConfig
+from agent.returning import CLIMB, CRUISE, ReturnConfig, Returns
+from comms.commands import new_nonce
+from comms.mesh import Mesh
+from comms.schema import AckResult, Command, CommandKind, Mode
+from comms.session import embedded_router, free_tcp_port
+from groundstation.ops import cmd_cli
+
+SEPARATION_M = 3.0
+
+
+def test_layers_and_pads_come_from_the_id() -> None:
+    cfg = ReturnConfig(return_layer_m=4.0, return_layers=3, return_base_alt_m=8.0)
+    assert [cfg.layer_alt_m(v) for v in (1, 2, 3, 4)] == [8.0, 12.0, 16.0, 8.0]
+    pads = {cfg.pad_ne_m(v) for v in range(1, 26)}
+    assert len(pads) == 25 and (0.0, 0.0) in pads  # 5 x 5 around the point
+    for bad in ({"return_layer_m": -1.0}, {"return_base_alt_m": 0.0}, {"return_layers": 0}):
+        with pytest.raises(ValueError):
+            ReturnConfig(**bad)
+
+
+def test_enter_climbs_first_then_flies_level() -> None:
+    r = Returns(ReturnConfig(return_layer_m=5.0, return_layers=4, return_base_alt_m=10.0), [1, 2])
+    home = np.array([0.0, 0.0, 0.0])
+    goal = r.enter(1, np.array([20.0, 5.0, -30.0]), home, [], 1.0, 0.5)
+    assert r.phase[1] == CLIMB and goal.tolist() == [20.0, 5.0, -15.0]  # down to layer 1 first
+    goals = np.array([[0.0, 0.0, 0.0], goal])
+    arrived, turned = r.arrivals(
+        np.array([False, True]), np.array([False, True]), np.array([[0, 0, 0], goal]), goals
+    )
+    assert turned == [1] and not arrived[1] and r.phase[1] == CRUISE
+    assert goals[1].tolist() == [0.0, 0.0, -15.0]
+    # already on the layer: straight to the spot; a rally point nearer than home is taken
+    goal = r.enter(0, np.array([50.0, 0.0, -10.2]), home, [(60.0, 0.0)], 1.0, 0.5)
+    assert r.phase[0] == CRUISE and goal[2] == -10.0
+    assert np.hypot(*(goal[:2] - (60.0, 0.0))) <= 15.0  # its pad around the rally point
+    off = Returns(ReturnConfig(), [1])
+    assert off.enter(0, np.array([5.0, 5.0, -7.0]), home, [], 1.0, 0.5).tolist() == [0, 0, -7.0]
+
+
+def test_lowest_lands_first_within_the_radius() -> None:
+    r = Returns(ReturnConfig(return_layer_m=4.0, return_layers=4, land_radius_m=5.0), [1, 2, 3])
+    for i in range(3):
+        r.spot_ne_m[i] = (0.0, 4.0 * i)
+    pos = np.array([[0.0, 0.0, -10.0], [0.0, 4.0, -14.0], [0.0, 8.0, -18.0]])
+    assert r.blocker(0, pos, None, None) is None
+    assert r.blocker(1, pos, None, None) == 1
+    assert r.blocker(2, pos, None, None) == 2  # 3 waits for 2 (4 m away), not for 1 (8 m)
+    pos[0, 2] = 0.0  # landed: no longer in the way
+    assert r.blocker(1, pos, None, None) is None
+    # a neighbour of another process, level and of a lower id, goes first
+    assert r.blocker(0, pos, np.array([[0.0, 1.0, 0.2 - pos[0, 2] * 0 - 0.2]]), [9]) is None
+    assert r.blocker(1, pos, np.array([[0.0, 5.0, -14.2]]), np.array([1])) == 1
+
+
+def _cmd(kind: CommandKind, *params: float) -> Command:
+    return Command(kind, new_nonce(), 0, params=tuple(params) + (0.0,) * (3 - len(params)))
+
+
+def _random_targets(rng, n: int) -> np.ndarray:
+    pts: list[np.ndarray] = []
+    while len(pts) < n:
+        p = np.array([rng.uniform(-30, 40), rng.uniform(-30, 40), -rng.uniform(4, 25)])
+        if all(np.hypot(*(p[:2] - q[:2])) >= 8.0 for q in pts):
+            pts.append(p)
+    return np.array(pts)
+
+
+class Ticker:
+    """Ticks a fleet on injected time in a thread (ten sim seconds in about one wall second on
+    an idle machine) and records what the test judges, on true positions, after every tick."""
+
+    def __init__(self, fleet: Fleet, clock: list[float]) -> None:
+        self.fleet, self.clock = fleet, clock
+        self.stop = threading.Event()
+        self.min_pair_m = math.inf
+        self.off_layer_m = 0.0
+        self.cruised = np.zeros(fleet.cfg.vehicles, bool)
+        self.thread = threading.Thread(target=self.run, daemon=True)
+
+    def run(self) -> None:
+        f = self.fleet
+        while not self.stop.is_set():
+            self.clock[0] += 0.1
+            f.tick(self.clock[0])
+            pos = f.pos_m
+            up = (-pos[:, 2] > 0.3) & f.armed
+            if up.sum() > 1:
+                p = pos[up]
+                d = np.linalg.norm(p[:, None] - p[None], axis=2) + np.eye(len(p)) * 1e9
+                self.min_pair_m = min(self.min_pair_m, float(d.min()))
+            r = f.core.returns
+            cruise = (r.phase == CRUISE) & (f.core.mode == int(Mode.RETURNING))
+            if cruise.any():
+                self.cruised |= cruise
+                dev = np.abs(-pos[cruise, 2] - r.layer_alt_m[cruise])
+                self.off_layer_m = max(self.off_layer_m, float(dev.max()))
+            self.stop.wait(0.002)
+
+
+@pytest.mark.e2e
+def test_return_of_12_from_random_positions_on_layers() -> None:
+    clock = [0.0]
+    port = free_tcp_port()
+    fleet_name = "returning"
+    returning = ReturnConfig(
+        return_layer_m=4.0, return_layers=12, return_base_alt_m=8.0, land_radius_m=4.0
+    )
+    cfg = FleetSimConfig(
+        ids=tuple(range(1, 13)),
+        mesh=embedded_router(port, fleet=fleet_name),
+        spacing_m=6.0,
+        guidance=GuidanceConfig(cruise_speed_m_s=3.0),
+        failsafe=FailsafeConfig(require_gcs=False, geofence_radius_m=2000.0, returning=returning),
+    )
+    rng = np.random.default_rng(36)
+    with Mesh(cfg.mesh) as mesh:
+        fleet = Fleet(cfg, mesh, clock_s=lambda: clock[0])
+        for i in range(12):
+            assert (
+                fleet.handle_command(i, _cmd(CommandKind.TAKEOFF, 5.0)).result is AckResult.ACCEPTED
+            )
+        for _ in range(80):
+            clock[0] += 0.1
+            fleet.tick(clock[0])
+        for i, t in enumerate(_random_targets(rng, 12)):
+            ack = fleet.handle_command(i, _cmd(CommandKind.GOTO_LOCAL, *t))
+            assert ack.result is AckResult.ACCEPTED, ack.reason
+        for _ in range(600):
+            clock[0] += 0.1
+            fleet.tick(clock[0])
+            if fleet.modes == [Mode.HOLDING] * 12:
+                break
+        assert fleet.modes == [Mode.HOLDING] * 12, fleet.modes
+        homes = fleet.home_m.copy()
+        ticker = Ticker(fleet, clock)
+        ticker.thread.start()
+        try:
+            rc = cmd_cli(
+                ["return", "--to", "all", "--fleet", fleet_name]
+                + ["--connect", f"tcp/127.0.0.1:{port}"]
+            )
+            assert rc == 0
+            end = clock[0] + 300.0
+            while clock[0] < end and fleet.modes != [Mode.LANDED] * 12:
+                ticker.stop.wait(0.05)
+        finally:
+            ticker.stop.set()
+            ticker.thread.join(5)
+        print(
+            f"return of 12: closest pair {ticker.min_pair_m:.2f} m, furthest off its layer "
+            f"{ticker.off_layer_m:.2f} m, {clock[0]:.0f} s of sim time"
+        )
+        assert fleet.modes == [Mode.LANDED] * 12, fleet.modes
+        assert ticker.cruised.all()  # every one flew a level leg on its layer
+        assert ticker.off_layer_m <= 1.0
+        assert ticker.min_pair_m >= SEPARATION_M, ticker.min_pair_m
+        assert np.allclose(fleet.pos_m[:, :2], homes[:, :2], atol=1.0)
+
+
+def test_close_homes_land_one_at_a_time() -> None:
+    """Four vehicles whose homes are 4 to 5.7 m apart, land radius 8 m (the filter may push a
+    waiting vehicle a metre off its spot): never two coming down at once (airborne in LANDING);
+    lowest layer first."""
+    clock = [0.0]
+    port = free_tcp_port()
+    returning = ReturnConfig(
+        return_layer_m=4.0, return_layers=4, return_base_alt_m=6.0, land_radius_m=8.0
+    )
+    cfg = FleetSimConfig(
+        ids=(4, 3, 2, 1),
+        mesh=embedded_router(port, fleet="landorder"),
+        spacing_m=4.0,
+        guidance=GuidanceConfig(cruise_speed_m_s=3.0),
+        failsafe=FailsafeConfig(require_gcs=False, returning=returning),
+    )
+    with Mesh(cfg.mesh) as mesh:
+        fleet = Fleet(cfg, mesh, clock_s=lambda: clock[0])
+        for i in range(4):
+            assert (
+                fleet.handle_command(i, _cmd(CommandKind.TAKEOFF, 5.0)).result is AckResult.ACCEPTED
+            )
+        for _ in range(80):
+            clock[0] += 0.1
+            fleet.tick(clock[0])
+        for i in range(4):
+            assert fleet.handle_command(i, _cmd(CommandKind.RETURN)).result is AckResult.ACCEPTED
+        order: list[int] = []
+        most_landing = 0
+        for _ in range(3000):
+            clock[0] += 0.1
+            fleet.tick(clock[0])
+            coming_down = [
+                int(fleet.ids[i])
+                for i, m in enumerate(fleet.modes)
+                if m is Mode.LANDING and -fleet.pos_m[i, 2] > 0.3
+            ]
+            most_landing = max(most_landing, len(coming_down))
+            order += [v for v in coming_down if v not in order]
+            if fleet.modes == [Mode.LANDED] * 4:
+                break
+        assert fleet.modes == [Mode.LANDED] * 4
+        assert most_landing == 1 and order == [1, 2, 3, 4], (most_landing, order)
