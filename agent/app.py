@@ -36,6 +36,7 @@ from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
+    POS_SIGMA_LIMIT_M,
     AckResult,
     Command,
     CommandAck,
@@ -145,7 +146,6 @@ class Agent:
             now_s=now,
             velocity_mode=self.velocity_mode,
             guidance=guidance.batch if guidance is not None else None,
-            vehicle_ids=(self.vid,),
         )
         self.table = NeighbourTable(self.vid, cfg.neighbours)
         self.traffic = TrafficTable(cfg.traffic)
@@ -384,7 +384,7 @@ class Agent:
         out = None
         with self._lock:
             core = self.core
-            actions = core.observe(now_s, obs, gcs_alive, nbrs)
+            actions = core.observe(now_s, obs, gcs_alive)
             idle = bool(idle_rows(core.mode, tel.armed, tel.in_air, busy or bool(actions))[0])
             publish = bool(
                 self.pacer.due(
@@ -407,7 +407,7 @@ class Agent:
                     rows,
                     obs.pos_m,
                     obs.vel_m_s,
-                    NeighbourViews.of_snapshot(nbrs, self.vid),
+                    NeighbourViews.of_snapshot(nbrs, self.vid, tel.pos_sigma_m),
                     decide,
                 )
             flags |= core.flags_of(0)
@@ -524,6 +524,7 @@ class Agent:
             goal_ned_m=tuple(float(x) for x in target) if target is not None else (0.0, 0.0, 0.0),
             mission_item=self._progress[0],
             mission_items=self._progress[1],
+            pos_sigma_m=float(min(POS_SIGMA_LIMIT_M, max(0.0, tel.pos_sigma_m))),
         )
         try:
             self.mesh.publish_state(state)

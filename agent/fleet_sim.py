@@ -216,13 +216,7 @@ class Fleet:
         now = clock_s()
         self.sim = SimFleet(cfg.sim, start_grid(n, cfg.spacing_m, cfg.start_ne_m), now_s=now)
         core_cfg = CoreConfig(origin=cfg.origin, guidance=g, failsafe=cfg.failsafe)
-        self.core = FlightCore(
-            core_cfg,
-            n,
-            now_s=now,
-            guidance=BatchGuidance(g, n, self.policy),
-            vehicle_ids=cfg.ids,
-        )
+        self.core = FlightCore(core_cfg, n, now_s=now, guidance=BatchGuidance(g, n, self.policy))
         # Each vehicle's actions run on its row of the simulator, at once (its calls take microseconds).
         self.backends = [SimBackend(fleet=self.sim, index=i) for i in range(n)]
         self.actions = ActionQueue(
@@ -409,10 +403,7 @@ class Fleet:
                 sim.pos_m, sim.vel_m_s, sim.armed, sim.pos_m[:, 2] < -0.05, sim.battery_pct, link_ok
             )
             gcs_alive = not self.cfg.failsafe.require_gcs or self.stations.alive(now_s)
-            # a landing order needs the other processes' vehicles (agent/returning.py)
-            ordered = self.cfg.failsafe.returning.land_radius_m > 0
-            others = self.others.snapshot(now_s) if ordered else None
-            for action in core.observe(now_s, obs, gcs_alive, others):
+            for action in core.observe(now_s, obs, gcs_alive):
                 self.actions.submit(action)
             rows = core.guided_rows(sim.armed, link_ok)
             self.filtered[:] = False
@@ -466,7 +457,23 @@ class Fleet:
             self.cfg.max_neighbours,
             np.concatenate([self.ids, np.array(ext.ids, np.int64)]),
             self.ids[rows],
+            **self._sky(ext, rows),
         )
+
+    def _sky(self, ext, rows: np.ndarray) -> dict:
+        """NeighbourViews.nearest's position 1-sigmas and cooperative flags for our vehicles
+        (the simulator's drift) and the others (their states', traffic non-cooperative); none
+        when every position is exact and everyone cooperates (the views as before)."""
+        n = self.cfg.vehicles
+        sigma = np.concatenate([np.full(n, self.sim.pos_sigma_m), ext.column("pos_sigma_m", 0.0)])
+        coop = np.concatenate([np.ones(n, bool), ext.column("cooperative", True)])
+        out: dict = {}
+        if sigma.any():
+            out["world_pos_sigma_m"] = sigma
+            out["rows_pos_sigma_m"] = sigma[rows]
+        if not coop.all():
+            out["world_cooperative"] = coop
+        return out
 
     def _states(self, rows: np.ndarray) -> list[VehicleState]:
         """The states of `rows` (those due: comms/state_rate.py), each with its next seq."""
@@ -492,6 +499,7 @@ class Fleet:
         modes = [_MODES[m] for m in core.mode[rows].tolist()]
         ids, seqs = self.ids[rows].tolist(), self.seq[rows].tolist()
         armed, battery = sim.armed[rows].tolist(), sim.battery_pct[rows].tolist()
+        sigma = float(sim.pos_sigma_m)
         item, items = (x.tolist() for x in core.mission_progress(rows))
         return [
             VehicleState(
@@ -508,6 +516,7 @@ class Fleet:
                 goal_ned_m=tuple(goal[i]),
                 mission_item=item[i],
                 mission_items=items[i],
+                pos_sigma_m=sigma,
             )
             for i in range(len(ids))
         ]
