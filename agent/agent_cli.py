@@ -52,14 +52,19 @@ log = logging.getLogger("covey.agent")
 
 
 def make_backend(
-    spec: str, cfg: AgentConfig, start_ned_m: tuple[float, float, float], clock_s
+    spec: str,
+    cfg: AgentConfig,
+    start_ned_m: tuple[float, float, float],
+    clock_s,
+    vehicle_model: str = "ideal",
 ) -> VehicleBackend:
-    """Build the backend named by `spec`: sim | mavsdk:<url> | relay:<url>."""
+    """Build the backend named by `spec`: sim | mavsdk:<url> | relay:<url>; a simulated one
+    flies `vehicle_model` (`sim_config`)."""
     kind, _, url = spec.partition(":")
     if kind == "sim":
-        from agent.backends.sim import SimBackend, SimConfig
+        from agent.backends.sim import SimBackend
 
-        return SimBackend(SimConfig(start_ned_m=start_ned_m), now_s=clock_s())
+        return SimBackend(sim_config(vehicle_model, start_ned_m=start_ned_m), now_s=clock_s())
     if kind == "mavsdk":
         from agent.backends.mavsdk_backend import MavsdkBackend
 
@@ -103,12 +108,31 @@ SINGLE_FLAGS = {
 """Flags of a single agent (--id) only, and why a host (--ids) refuses them."""
 
 
+def sim_config(vehicle_model: str, **kw):
+    """The simulator's config for --vehicle-model: ideal = the simulator as it always was (it
+    flies the setpoint with SimConfig's acceleration limit and knows where it is), realistic =
+    policy.pointmass.VehicleModel.realistic() (0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift)."""
+    from agent.backends.sim import SimConfig
+    from policy.pointmass import VehicleModel
+
+    model = None if vehicle_model == "ideal" else VehicleModel.named(vehicle_model)
+    return SimConfig(vehicle=model, **kw)
+
+
 def add_flight_args(
     p: argparse.ArgumentParser, *, geofence_radius_m: float = 500.0, gcs_failsafe: bool = True
 ) -> None:
     """The flags every shell of the flight core shares (`covey agent`, one vehicle or many, and
     `covey fleet-sim`): start position, fleet origin, guidance, geofence, the ground-station
     failsafe (unless `gcs_failsafe` is False: fleet-sim flies without one), run time, logging."""
+    p.add_argument(
+        "--vehicle-model",
+        choices=("ideal", "realistic"),
+        default="ideal",
+        help="how simulated vehicles fly: ideal (exactly the setpoint within the acceleration "
+        "limit, exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, "
+        "GNSS estimate drifting 0.5 m: they report the estimate and its sigma); sim only",
+    )
     p.add_argument(
         "--start-ne-m",
         type=_start_ne,
@@ -314,13 +338,14 @@ def main(
     stop: threading.Event | None = None,
     duration_s: float | None = None,
     auth: FleetAuth | None = None,
+    vehicle_model: str = "ideal",
 ) -> int:
     stop = stop or threading.Event()
     clock_s = time.monotonic
     # The duration bounds the whole run, waiting for a router included.
     with contextlib.ExitStack() as stack, stop_after(duration_s, stop):
         backend = stack.enter_context(
-            make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s)
+            make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s, vehicle_model)
         )
         mesh = stack.enter_context(Mesh(cfg.mesh, auth=auth, stop=stop))
         own_pos: list = [None]  # filled once the agent exists; range-dependent loss needs it
@@ -360,6 +385,8 @@ def cli(argv: list[str]) -> int:
     kind = args.vehicle.partition(":")[0]
     if kind != "sim" and given(p, args, "start_ne_m"):
         p.error(f"--start-ne-m places a simulated vehicle; a {kind} vehicle is where it is")
+    if kind != "sim" and given(p, args, "vehicle_model"):
+        p.error(f"--vehicle-model is how a simulated vehicle flies; a {kind} vehicle flies itself")
     if kind == "relay" and (flags := given(p, args, *GUIDANCE_FLAGS)):
         p.error(
             f"{', '.join(flags)}: a relay vehicle runs the policy onboard (covey sitl "
@@ -382,6 +409,7 @@ def cli(argv: list[str]) -> int:
                 stop=stop,
                 duration_s=args.duration_s,
                 auth=auth,
+                vehicle_model=args.vehicle_model,
             )
         except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad config, busy port
             die(p, str(exc))
