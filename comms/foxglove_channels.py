@@ -433,12 +433,26 @@ class Converter:
                     color=colour,
                 )
             )
-        spheres = []
+        spheres, lines = [], []
         if s.flags & schema.StateFlag.HAS_GOAL:
+            goal = _v3(*s.goal_ned_m)
+            n, e, d = s.pos_ned_m
+            gn, ge, gd = s.goal_ned_m
             spheres.append(
                 fm.SpherePrimitive(
-                    pose=fm.Pose(position=_v3(*s.goal_ned_m), orientation=self._identity),
+                    pose=fm.Pose(position=goal, orientation=self._identity),
                     size=self._goal_size,
+                    color=self._goal_colour,
+                )
+            )
+            # the leg to it: a formation's slot assignment, a mission's next item
+            lines.append(
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineList,
+                    pose=fm.Pose(position=_v3(0.0, 0.0, 0.0), orientation=self._identity),
+                    thickness=2.0,
+                    scale_invariant=True,
+                    points=[fm.Point3(x=n, y=e, z=d), fm.Point3(x=gn, y=ge, z=gd)],
                     color=self._goal_colour,
                 )
             )
@@ -464,6 +478,7 @@ class Converter:
             cylinders=[ring],
             arrows=arrows,
             spheres=spheres,
+            lines=lines,
             texts=[label],
         )
 

@@ -176,3 +176,32 @@ def test_slot_file(tmp_path) -> None:
         load_slots(str(good))
     with pytest.raises(BadFileError, match="does not exist"):
         load_slots(str(tmp_path / "none.json"))
+
+
+def test_foxglove_draws_each_vehicles_leg_to_its_slot() -> None:
+    """A recording or the live bridge shows a formation: each vehicle's goal (its slot) as a
+    sphere and the leg to it as a line, decoded with protobuf from the channel's own schema."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    from comms import foxglove_channels as fc
+    from comms import schema
+
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(fc.SCENE_UPDATE.data).file:
+        pool.Add(fd)
+    cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(fc.SCENE_UPDATE.name))
+    s = schema.VehicleState(
+        3, 1, 10**9, (1.0, 2.0, -5.0), (0.5, 0.0, 0.0), 0.0, schema.Mode.GOTO, True, 90.0,
+        schema.StateFlag.HAS_GOAL, (10.0, 2.0, -6.0),
+    )  # fmt: skip
+    out = fc.Converter().state(s, 10**9)
+    update = cls.FromString(next(o.data for o in out if o.topic == fc.SCENE_TOPIC))
+    (entity,) = update.entities
+    (line,) = entity.lines
+    assert [(p.x, p.y, p.z) for p in line.points] == [(1.0, 2.0, -5.0), (10.0, 2.0, -6.0)]
+    assert len(entity.spheres) == 1
+    s_no_goal = schema.VehicleState(4, 1, 10**9, (1.0, 2.0, -5.0), (0.0, 0.0, 0.0), 0.0)
+    update = cls.FromString(
+        next(o.data for o in fc.Converter().state(s_no_goal, 10**9) if o.topic == fc.SCENE_TOPIC)
+    )
+    assert not update.entities[0].lines
