@@ -450,8 +450,14 @@ class FlightCore:
     # -- the fleet plan -------------------------------------------------------------------------
     def set_plan(self, plan: FleetPlan | None) -> None:
         """Check every goto, take-off and mission target against `plan` from now on (the shell
-        calls it when comms/plan_sync.py applies a newer plan); None: no plan."""
+        calls it when comms/plan_sync.py applies a newer plan); None: no plan. Guidance then
+        routes every goto around the plan's keep-out zones and its filter keeps their edges
+        (and the fence's) as hard lines (agent/guidance.py set_zones, policy/routes.py)."""
         self.mission_plan = plan
+        if self.guidance is not None:
+            fence = None if plan is None or plan.fence is None else plan.fence.vertices_ne_m
+            zones = [] if plan is None else plan.keep_out_polygons_ne_m()
+            self.guidance.set_zones(zones, fence)
 
     def target_problem(self, target_ned_m: np.ndarray) -> str | None:
         """Why a goto target is refused, or None: the altitude limits (agent/failsafe.py), then

@@ -268,6 +268,8 @@ class GuidanceStep:
     slowed_for_stale: np.ndarray
     decided: np.ndarray
     """(k,) the policy decided this tick (False: its last decision was held)."""
+    waypoint_m: np.ndarray | None = None
+    """(k, 2) the waypoint each row flies to on a routed goto (NaN: none); None without zones."""
 
 
 class BatchGuidance:
@@ -283,6 +285,41 @@ class BatchGuidance:
         """The last decision's horizontal velocity per row (NaN: nothing held)."""
         self.held_goal_m = np.full((n, 3), np.nan)
         self.decided_s = np.full(n, -np.inf)
+        self.zones = None
+        """Keep-out edges the filter keeps clear of (policy.zone_lines.ZoneSet), None: none."""
+        self.router = None
+        """Routes around them (policy.routes.Router): a goto row flies to its next waypoint."""
+        self.waypoint_m = np.full((n, 2), np.nan)
+        """Each row's current waypoint (north, east) while it flies a routed goto, else NaN."""
+
+    def set_zones(self, keep_out_m, fence_m=None) -> None:
+        """Keep out of these polygons [(K, 2) north/east metres] and inside the fence from
+        now on: goto rows fly the route planner's next waypoint (policy.routes), and the filter
+        keeps the zone edges as hard lines (policy.zone_lines), holding rows included. Empty
+        and no fence: no zones. Zones are closed at every altitude (a floor or ceiling is not
+        used here: the conservative reading)."""
+        from policy.routes import zones_for  # shapely and scipy: only with zones
+
+        self.zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
+        self.waypoint_m[:] = np.nan
+
+    def route(self, pos_m, goal_m):
+        """The whole route (policy.routes.Route) from pos_m to goal_m (north/east), for the
+        station and Foxglove to draw; None without zones."""
+        if self.router is None:
+            return None
+        return self.router.plan(np.asarray(pos_m, float)[:2], np.asarray(goal_m, float)[:2])
+
+    def _routed(self, rows, pos_m, target_m, goto) -> np.ndarray:
+        """target_m with each goto row's horizontal target replaced by its next waypoint."""
+        self.waypoint_m[rows] = np.nan
+        if self.router is None or not goto.any():
+            return target_m
+        out = target_m.copy()
+        for k in np.flatnonzero(goto):
+            out[k, :2] = self.router.next_waypoint(pos_m[k, :2], target_m[k, :2])
+        self.waypoint_m[rows[goto]] = out[goto, :2]
+        return out
 
     def due(self, now_s: float | None, rows: np.ndarray, goal_m: np.ndarray) -> np.ndarray:
         """Whether each row's policy should decide now: nothing held (first tick, after a hold),
@@ -320,6 +357,7 @@ class BatchGuidance:
         k = len(rows)
         goto = ~holding
         self.forget(rows[holding])
+        target_m = self._routed(rows, pos_m, target_m, goto)
         want = self.due(now_s, rows, target_m) if decide is None else np.asarray(decide, bool)
         deciding = goto & (want | np.isnan(self.held_m_s[rows, 0]))
         d = np.flatnonzero(deciding)
@@ -349,7 +387,8 @@ class BatchGuidance:
         moving = np.hypot(v_h[:, 0], v_h[:, 1]) >= min_speed
         heading = np.where(moving, np.arctan2(v_h[:, 1], v_h[:, 0]), heading_rad)
         vel = np.column_stack([v_h, vz])
-        return GuidanceStep(vel, heading, filtered, factor < 1.0, deciding)
+        way = None if self.router is None else self.waypoint_m[rows].copy()
+        return GuidanceStep(vel, heading, filtered, factor < 1.0, deciding, way)
 
     def _decide(
         self, pos_m, vel_m_s, heading_rad, goal_m, views: NeighbourViews, idx
@@ -391,7 +430,7 @@ class BatchGuidance:
 
     def _filter(self, pos_m, vel_m_s, pref_m_s, views: NeighbourViews):
         k = len(pos_m)
-        if not self.cfg.safety_filter or not views.valid.any():
+        if not self.cfg.safety_filter or (not views.valid.any() and self.zones is None):
             return pref_m_s, np.zeros(k, bool)
         ids = views.ids is not None and views.own_ids is not None
         if k == 1:  # the single-vehicle fast path
@@ -406,6 +445,7 @@ class BatchGuidance:
                 int(views.own_ids[0]) if ids else None,
                 views.ids[0, views.valid[0]] if ids else None,
                 **views.sky(0),
+                zones=self.zones,
             )
             out = np.asarray(out, float)[None]
         else:
@@ -420,9 +460,11 @@ class BatchGuidance:
                 views.own_ids if ids else None,
                 views.ids if ids else None,
                 **views.sky(),
+                zones=self.zones,
             )
-            none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
-            out[none] = pref_m_s[none]
+            if self.zones is None:
+                none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
+                out[none] = pref_m_s[none]
         return out, np.linalg.norm(out - pref_m_s, axis=1) > 1e-6
 
 

@@ -176,17 +176,13 @@ class CPolicy:
         """GuidancePolicy.set_zones with the C core's zone filter (covey_zones.c): the route
         planner (Python) picks the waypoint, the C filter keeps the zone edges as hard lines."""
         from firmware.czones import CZones
-        from policy.routes import RouteConfig, Router
-        from policy.zone_lines import ZONE_CLEARANCE_SHARE
+        from policy.routes import zones_for
 
-        polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in keep_out_m]
-        if not polys and fence_m is None:
-            self.zones = self.router = None
-            return
-        cfg = self.safety_cfg
-        radius_m = ZONE_CLEARANCE_SHARE * cfg.radius_m * (1.0 + cfg.margin)
-        self.zones = CZones(self._lib, polys, radius_m, fence_m=fence_m)
-        self.router = Router(polys, RouteConfig(cfg.radius_m, cfg.margin), fence_m)
+        zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
+        self.zones = None
+        if zones is not None:
+            keep = list(zones.polygons[: zones.n_keep_out])
+            self.zones = CZones(self._lib, keep, zones.radius_m, zones.time_horizon_s, fence_m)
 
     @classmethod
     def load(

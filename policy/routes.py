@@ -317,3 +317,18 @@ class Router:
         way = np.array(pts)
         length = float(np.hypot(*np.diff(way, axis=0).T).sum())
         return Route(way[1:], length)
+
+
+def zones_for(safety_cfg, keep_out_m, fence_m=None):
+    """(ZoneSet, Router) for a filter config (policy.safety.SafetyConfig: radius_m, margin):
+    the filter keeps ZONE_CLEARANCE_SHARE x radius_m (1 + margin) from every zone edge, routes
+    that plus RouteConfig.route_margin_m; (None, None) without polygons or a fence. One rule for
+    the runtime, the C wrapper, the agents' guidance and `covey eval`."""
+    from policy.zone_lines import ZoneSet
+
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in keep_out_m or ()]
+    if not polys and fence_m is None:
+        return None, None
+    route = RouteConfig(float(safety_cfg.radius_m), float(safety_cfg.margin))
+    zones = ZoneSet.of(polys, route.reach_m, fence_m=fence_m)
+    return zones, Router(polys, route, fence_m)

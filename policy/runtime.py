@@ -23,7 +23,7 @@ import numpy as np
 from comms.safe_load import npz_headers, parse_json
 from policy import features, safety, sparse
 from policy.features import ObsConfig
-from policy.zone_lines import ZONE_CLEARANCE_SHARE, ZoneSet
+from policy.zone_lines import ZoneSet
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
 _F32 = np.dtype(np.float32)
@@ -545,16 +545,9 @@ class GuidancePolicy:
         margin), and the filter (when on) keeps ZONE_CLEARANCE_SHARE x the padded separation
         from every zone edge as a hard constraint (policy.zone_lines). Empty: no zones. A bad
         polygon is a ValueError naming it."""
-        from policy.routes import RouteConfig, Router  # shapely and scipy: only with zones
+        from policy.routes import zones_for  # shapely and scipy: only with zones
 
-        polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in keep_out_m]
-        if not polys and fence_m is None:
-            self.zones = self.router = None
-            return
-        cfg = self.safety_cfg
-        radius_m = ZONE_CLEARANCE_SHARE * cfg.radius_m * (1.0 + cfg.margin)
-        self.zones = ZoneSet.of(polys, radius_m, fence_m=fence_m)
-        self.router = Router(polys, RouteConfig(cfg.radius_m, cfg.margin), fence_m)
+        self.zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
 
     def waypoint(self, pos_m, goal_m):
         """Where to fly now for `goal_m` (2,): the route's next waypoint with zones, else
