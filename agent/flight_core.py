@@ -628,6 +628,14 @@ class FlightCore:
         )
         if problem:
             return Decision(AckResult.REJECTED, problem, mode)
+        cruise = self.cfg.guidance.cruise_speed_m_s
+        for k, item in enumerate(items, 1):
+            if item.speed_m_s > cruise:
+                problem = (
+                    f"item {k}: speed {item.speed_m_s:g} m/s is above the {cruise:g} m/s cruise "
+                    "speed (guidance flies at most that)"
+                )
+                return Decision(AckResult.REJECTED, problem, mode)
         self.missions[i] = MissionRun(mission.mission_id, mission.mission_version, items)
         self.notes.append(
             Note(
@@ -759,9 +767,17 @@ class FlightCore:
         decide: np.ndarray | None = None,
     ) -> GuidanceStep:
         """Velocity setpoints for `rows` (from `guided_rows`); pos/vel/views are those rows'."""
-        holding = (self.mode[rows] == int(Mode.HOLDING)) | (
-            self.mission_waiting[rows] & (self.mode[rows] == _MISSION)
-        )
+        on_mission = self.mode[rows] == _MISSION
+        holding = (self.mode[rows] == int(Mode.HOLDING)) | (self.mission_waiting[rows] & on_mission)
+        cap = None
+        if on_mission.any():
+            cap = np.array(
+                [
+                    self.missions[r].speed_m_s if m else 0.0
+                    for r, m in zip(rows.tolist(), on_mission.tolist(), strict=True)
+                ]
+            )
+            cap = cap if cap.any() else None
         out = self.guidance.step(
             now_s,
             rows,
@@ -772,6 +788,7 @@ class FlightCore:
             holding,
             views,
             decide,
+            speed_cap_m_s=cap,
         )
         self.heading_rad[rows] = out.heading_rad
         return out

@@ -349,10 +349,13 @@ class BatchGuidance:
         holding: np.ndarray,
         views: NeighbourViews,
         decide: np.ndarray | None = None,
+        speed_cap_m_s: np.ndarray | None = None,
     ) -> GuidanceStep:
         """One tick for `rows`: goto rows fly the (held) policy towards `target_m`, holding rows
         keep `target_m`; everyone goes through the filter. `decide` (k,) forces (True) or skips
-        (False) a decision; None: `due`. A goto row with nothing held decides regardless."""
+        (False) a decision; None: `due`. A goto row with nothing held decides regardless.
+        `speed_cap_m_s` (k,): a horizontal speed limit per row (a mission item's speed), applied
+        to the preference before the filter; 0 or None: none."""
         cfg = self.cfg
         k = len(rows)
         goto = ~holding
@@ -371,6 +374,10 @@ class BatchGuidance:
         factor = np.where(goto, self._stale_factor(pos_m, views), 1.0)
         pref = np.zeros((k, 2))
         pref[goto] = self.held_m_s[rows[goto]] * factor[goto, None]
+        if speed_cap_m_s is not None:  # slower than the policy's cruise, before the filter
+            cap = np.where(speed_cap_m_s > 0, speed_cap_m_s, np.inf)
+            norm = np.maximum(np.hypot(pref[:, 0], pref[:, 1]), 1e-9)
+            pref *= np.minimum(1.0, cap / norm)[:, None]
         hold = cfg.hold_gain_1_s * (target_m[holding, :2] - pos_m[holding, :2])
         speed = np.hypot(hold[:, 0], hold[:, 1])
         hold *= (cfg.cruise_speed_m_s / np.maximum(speed, cfg.cruise_speed_m_s))[:, None]

@@ -28,6 +28,10 @@ from comms.schema import (
     FeedBatch,
     FeedEntry,
     GuidanceTrace,
+    Mission,
+    MissionFrame,
+    MissionItem,
+    MissionItemKind,
     Mode,
     Role,
     Roster,
@@ -66,6 +70,17 @@ def valid_messages(rng: random.Random, keys: dict | None = None) -> list[bytes]:
         Command(CommandKind.KILL, 12, 4, targets=tuple(range(1, 200))).encode(),
         CommandAck(5, 9, 1, AckResult.REJECTED, "too high — über", Mode.HOLDING).encode(),
         Event(2, 1, "battery low ✈", Severity.WARNING, EventKind.FAILSAFE).encode(),
+        Mission(
+            13,
+            5,
+            (
+                MissionItem(MissionItemKind.TAKEOFF, alt_m=8.0),
+                MissionItem(MissionItemKind.WAYPOINT, MissionFrame.GLOBAL, 48.75, 9.1, 470.0),
+                MissionItem(MissionItemKind.WAYPOINT, x=10.0, y=-4.0, alt_m=8.0, hold_s=2.0),
+                MissionItem(MissionItemKind.LAND),
+            ),
+            targets=(1, 2),
+        ).encode(),
     ]
     if keys is not None:
         station, vehicle = keys["station"], keys["vehicle"]
@@ -143,7 +158,10 @@ def check_one(data: bytes, keys: dict, stats: dict[str, int]) -> None:
     else:
         assert msg.encode() == data, f"decoded but does not round-trip: {data.hex()}"
         stats["decoded"] += 1
-        if isinstance(msg, Command):
+        if isinstance(msg, Mission):
+            reason = vehicle.check_mission(msg, 1)  # unsigned seeds: never accepted
+            assert isinstance(reason, str) and reason, "a mutated mission verified"
+        elif isinstance(msg, Command):
             reason = vehicle.check_command(msg, 1)
             assert reason is None or isinstance(reason, str)
         elif isinstance(msg, CommandAck):
@@ -180,7 +198,16 @@ def check_one(data: bytes, keys: dict, stats: dict[str, int]) -> None:
             if reason is None:
                 keys["reset"]()
     # Also through the typed decoders: they must refuse foreign types with DecodeError too.
-    for cls in (VehicleState, Command, CommandAck, Event, Roster, GuidanceTrace, FeedBatch):
+    for cls in (
+        VehicleState,
+        Command,
+        CommandAck,
+        Event,
+        Roster,
+        GuidanceTrace,
+        FeedBatch,
+        Mission,
+    ):
         try:
             cls.decode(data)
         except DecodeError:
@@ -292,8 +319,10 @@ def test_mutated_and_random_feed_batches_only_raise_decode_error(auth) -> None:
     seeds = [
         FeedBatch(1, (FeedEntry(1, unsigned),)).encode(),
         FeedBatch(2, (FeedEntry(5, signed), FeedEntry(6, unsigned))).encode(),
-        FeedBatch(3, tuple(FeedEntry(k, unsigned) for k in range(59))).encode(),
-        FeedBatch(4, tuple(FeedEntry(k, signed) for k in range(30))).encode(),
+        FeedBatch(3, tuple(FeedEntry(k, unsigned) for k in range(FeedBatch.MAX_ENTRIES))).encode(),
+        FeedBatch(
+            4, tuple(FeedEntry(k, signed) for k in range(4088 // (5 + len(signed))))
+        ).encode(),
     ]
     stats = {"decoded": 0, "rejected": 0, "slowest_us": 0}
     for i in range(20_000):
