@@ -27,6 +27,7 @@ from comms.cli_options import add_mesh_args, finite, floats
 from comms.commands import CommandResult, OutcomeStatus
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
+from comms.plan_sync import START_PULL_S, PlanSync
 from comms.session import MeshConfig, expects_answer, unreachable, wait_linked
 from groundstation import dispatch, inputs
 from groundstation.fleet import FleetConfig, FleetModel
@@ -62,7 +63,8 @@ class FormationCmdConfig:
     separation_m: float = FleetConfig().separation_m
     """Slots closer than this are refused (the fleet's separation)."""
     plan: FleetPlan | None = None
-    """The fleet plan whose fence and keep-out zones refuse slots; None: the vehicles' own checks."""
+    """The fleet plan whose fence and keep-out zones refuse slots; None: the fleet's, pulled
+    from the mesh (none there: the vehicles' own checks alone)."""
     dry_run: bool = False
     """Print the assignment only; send nothing."""
     reassign: bool = False
@@ -151,11 +153,16 @@ def formation_main(
         ids = wanted or dispatch.expected_for_all(present, auth)
         positions = _positions(fleet, ids, cfg.discover_s, stop)
         memory = _load_memory(cfg.state_file)
+        plan = cfg.plan
+        if plan is None:  # the fleet's plan, as the vehicles hold it (comms/plan_sync.py)
+            with PlanSync(mesh.session, cfg.mesh.fleet, auth) as sync:
+                sync.pull_now(START_PULL_S)
+                plan = sync.plan
         fp = plan_formation(
             cfg.spec,
             positions,
             cfg.separation_m,
-            plan=cfg.plan,
+            plan=plan,
             memory=memory,
             reassign=cfg.reassign,
         )

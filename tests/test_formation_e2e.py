@@ -13,6 +13,9 @@ import pytest
 from conftest import wait_until
 
 from comms.mesh import Mesh
+from comms.plan import FleetPlan, Zone
+from comms.plan_sync import PlanSync
+from comms.roster_sync import Offer
 from comms.schema import Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
 from groundstation.formation import FormationSpec, slots_ned_m
@@ -86,7 +89,7 @@ def fleet8(procs):
         assert wait_until(lambda: all(s.mode is Mode.HOLDING for s in track.snap().values()), 40), {
             v: s.mode for v, s in track.snap().items()
         }
-        yield port, track
+        yield port, track, station
 
 
 def _at_slots(track: Track, slots: np.ndarray, tol_m: float = 1.0) -> bool:
@@ -105,7 +108,7 @@ def _slot_of(track: Track, slots: np.ndarray) -> dict[int, int]:
 
 @pytest.mark.e2e
 def test_circle_of_8_from_a_shuffled_grid(fleet8, tmp_path, capsys) -> None:
-    port, track = fleet8
+    port, track, station = fleet8
     state = str(tmp_path / "formations.json")
     args = ["--spacing-m", "5", "--alt-m", "8", "--to", "all", "--state-file", state]
     start = {v: np.array(s.pos_ned_m) for v, s in track.snap().items()}
@@ -119,8 +122,18 @@ def test_circle_of_8_from_a_shuffled_grid(fleet8, tmp_path, capsys) -> None:
             + ["--spacing-m", "2"]
         )
     assert exc.value.code == 2
-    err = capsys.readouterr().err
-    assert "closer than the 3 m separation" in err and err.count("\n") == 1, err
+    err = capsys.readouterr().err.splitlines()
+    assert "closer than the 3 m separation" in err[-1], err
+    # Refused: a slot inside a keep-out zone of the fleet plan on the mesh (which the CLI pulls
+    # as the vehicles do); nothing is sent.
+    school = Zone(((50.0, 50.0), (50.0, 70.0), (70.0, 70.0), (70.0, 50.0)), name="school")
+    with PlanSync(station.session, FLEET, None) as sync:
+        assert sync.push(FleetPlan(FLEET, 1, 0, keep_out=(school,))) is Offer.APPLIED
+        with pytest.raises(SystemExit) as exc:
+            cmd_cli(["formation", "circle", "--center-ne-m", "60,60", *args, *_mesh_args(port)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.splitlines()
+    assert "inside keep-out zone 'school'" in err[-1], err
     # A dry run prints the assignment only.
     dry = ["formation", "circle", "--center-ne-m", "20,9", "--dry-run", *args, *_mesh_args(port)]
     assert cmd_cli(dry) == 0
