@@ -132,3 +132,42 @@ def test_integrate_without_the_new_options_is_unchanged():
     ground = np.zeros((1, 3))
     integrate(ground, np.zeros((1, 3)), np.zeros((1, 3)), 1.0, wind_m_s=np.array([[1.0, 0.0]]))
     assert np.array_equal(ground, np.zeros((1, 3)))
+
+
+def test_the_simulator_reports_its_estimate_and_sigma_and_holds_on_it():
+    from agent.backends.sim import SimConfig, SimFleet
+
+    fleet = SimFleet(
+        SimConfig(vehicle=VehicleModel.realistic()),
+        np.zeros((3, 3)),
+        rng=np.random.default_rng(4),
+    )
+    for i in range(3):
+        fleet.takeoff(i, 5.0)
+    for k in range(1, 301):  # 30 s: take off, then hold where each believes it is
+        fleet.step(0.1 * k)
+    tel = fleet.telemetry(0)
+    assert tel.pos_sigma_m == 0.5 and tel.pos_ned_m[:2] == tuple(fleet.pos_m[0, :2])
+    off = fleet.pos_m[:, :2] - fleet.true_pos_m[:, :2]
+    assert np.allclose(off, fleet.body.drift_m) and np.abs(off).max() > 0.05
+    assert np.allclose(fleet.pos_m[:, 2], fleet.true_pos_m[:, 2])  # the drift is horizontal
+    ideal = SimFleet(SimConfig(), np.zeros((1, 3)))
+    assert ideal.pos_m is ideal.true_pos_m and ideal.telemetry(0).pos_sigma_m == 0.0
+
+
+def test_the_emulator_reports_its_estimate_and_sigma():
+    from comms.geo import GeoOrigin
+    from firmware.sitl import streams
+    from firmware.sitl.vehicle import Vehicle
+
+    v = Vehicle(model=VehicleModel.realistic(), rng=np.random.default_rng(6))
+    assert v.arm(0.0).result == 0 and v.takeoff(5.0, 0.0).result == 0
+    v.step(20.0)
+    assert v.pos_sigma_m == 0.5
+    assert np.allclose(v.est_pos_ned_m[:2] - v.pos_ned_m[:2], v.drift_m)
+    assert np.abs(v.drift_m).max() > 0.01
+    msg = streams.local_position_ned(v, 0)
+    assert (msg.x, msg.y) == pytest.approx(tuple(v.est_pos_ned_m[:2]), abs=1e-4)
+    assert streams.gps_raw_int(v, GeoOrigin(), 0).h_acc == 500
+    plain = Vehicle()
+    assert plain.pos_sigma_m == 0.0 and streams.gps_raw_int(plain, GeoOrigin(), 0).h_acc == 0

@@ -51,6 +51,10 @@ class SitlConfig:
     """Rate at which onboard guidance evaluates the policy."""
     duration_s: float | None = None
     """Stop after this long (None: run until stopped)."""
+    vehicle_model: str = "ideal"
+    """How real the airframe flies (policy.pointmass.VehicleModel): ideal (the setpoint within
+    MPC_ACC_HOR, exact positions) or realistic (0.3 s lag, gusts, GNSS drifting 0.5 m: the
+    position messages carry the estimate, GPS_RAW_INT h_acc its 1-sigma)."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.vehicle_id <= 254:
@@ -59,6 +63,10 @@ class SitlConfig:
             )
         if not self.links:
             raise ValueError("at least one MAVLink link is needed")
+        if self.vehicle_model not in ("ideal", "realistic"):
+            raise ValueError(
+                f"vehicle_model must be ideal or realistic, got {self.vehicle_model!r}"
+            )
         for name in (
             "physics_hz",
             "position_hz",

@@ -22,6 +22,7 @@ from firmware.sitl.config import SitlConfig
 from firmware.sitl.onboard import PolicyGuidance, load_c_policy
 from firmware.sitl.traffic import TrafficStore
 from firmware.sitl.vehicle import Vehicle
+from policy.pointmass import VehicleModel
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +51,9 @@ class Emulator:
                 cfg.home,
                 cfg.policy_hz,
             )
+        model = None if cfg.vehicle_model == "ideal" else VehicleModel.named(cfg.vehicle_model)
         self.vehicle = Vehicle(
-            params=cfg.params, healthy=cfg.healthy, guidance=guidance, now_s=now_s
+            params=cfg.params, healthy=cfg.healthy, guidance=guidance, now_s=now_s, model=model
         )
         self.autopilot = Autopilot(self.vehicle, cfg.home, cfg.vehicle_id, self.traffic)
         self._stack = ExitStack()

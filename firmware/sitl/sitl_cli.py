@@ -95,6 +95,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--unhealthy", action="store_true", help="emulate a failed sensor: arming is refused"
     )
+    p.add_argument(
+        "--vehicle-model",
+        choices=("ideal", "realistic"),
+        default="ideal",
+        help="ideal: the setpoint within MPC_ACC_HOR, exact positions; realistic: 0.3 s lag, "
+        "0.2 m/s gusts, GNSS drifting 0.5 m (reported, with its sigma as GPS_RAW_INT h_acc)",
+    )
     add_config_flags(
         p,
         SitlConfig,
@@ -127,6 +134,7 @@ def _config(a: argparse.Namespace) -> SitlConfig:
         vehicle_id=a.id,
         links=tuple(links),
         home=a.home,
+        vehicle_model=a.vehicle_model,
         policy_weights=a.weights,
         healthy=not a.unhealthy,
         params=config_from_flags(VehicleParams, a, only=PARAM_FLAGS),

@@ -17,7 +17,7 @@ import numpy as np
 from firmware.sitl import px4
 from firmware.sitl.params import VehicleParams
 from firmware.sitl.px4 import OK, Px4Mode, Px4Result
-from policy.pointmass import integrate
+from policy.pointmass import VehicleModel, gauss_markov, integrate
 
 if TYPE_CHECKING:
     from firmware.sitl.onboard import OnboardGuidance
@@ -70,12 +70,44 @@ class Vehicle:
     took_off: bool = False
     events: list[str] = field(default_factory=list)
     """STATUSTEXTs to send; the link layer drains it."""
+    model: VehicleModel | None = None
+    """How real the airframe is (policy.pointmass): velocity lag, gusts the loop does not
+    reject, a drifting GNSS estimate (reported in the position messages, its 1-sigma as
+    GPS_RAW_INT h_acc). None: exactly the setpoint within accel_m_s2, exact positions. Its
+    acceleration limit is params.accel_m_s2 (MPC_ACC_HOR) either way."""
+    rng: np.random.Generator | None = None
+    """Draws the gusts and the drift (None with a model: fresh entropy)."""
+    gust_m_s: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """The wind gust now (north, east), m/s."""
+    drift_m: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """The GNSS estimate's error now (north, east), m."""
+
+    def __post_init__(self) -> None:
+        m = self.model
+        if m is not None and (m.gust_m_s > 0 or m.drift_m > 0):
+            if self.rng is None:
+                self.rng = np.random.default_rng()
+            # stationary from the start, as policy.pointmass.Vehicles
+            self.gust_m_s = self.rng.standard_normal(2) * m.gust_m_s
+            self.drift_m = self.rng.standard_normal(2) * m.drift_m
 
     # ---- state ---------------------------------------------------------------------------------
 
     @property
     def landed(self) -> bool:
         return self.pos_ned_m[2] >= -1e-3 and self.vel_ned_m_s[2] >= -1e-3
+
+    @property
+    def est_pos_ned_m(self) -> np.ndarray:
+        """Where the autopilot believes it is (what it reports): the truth plus the drift."""
+        est = self.pos_ned_m.copy()
+        est[:2] += self.drift_m
+        return est
+
+    @property
+    def pos_sigma_m(self) -> float:
+        """The 1-sigma of the horizontal estimate it simulates (and reports)."""
+        return 0.0 if self.model is None else self.model.drift_m
 
     @property
     def alt_m(self) -> float:
@@ -261,9 +293,19 @@ class Vehicle:
             self._ground_checks(now)
             return
         self.landed_at_s, self.took_off = math.inf, True
+        m = self.model
         hit = integrate(
-            self.pos_ned_m[None], self.vel_ned_m_s[None], vel_cmd[None], dt, p.accel_m_s2
+            self.pos_ned_m[None],
+            self.vel_ned_m_s[None],
+            vel_cmd[None],
+            dt,
+            p.accel_m_s2,
+            lag_s=0.0 if m is None else m.lag_s,
+            wind_m_s=None if m is None or m.gust_m_s == 0 else self.gust_m_s[None],
         )
+        if m is not None:
+            gauss_markov(self.gust_m_s, m.gust_m_s, m.gust_corr_s, dt, self.rng)
+            gauss_markov(self.drift_m, m.drift_m, m.drift_corr_s, dt, self.rng)
         if hit[0]:
             self.landed_at_s = now
             self._say("Landing detected")
