@@ -23,7 +23,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.actions import ActionQueue, outcome_of, perform
-from agent.backends.base import BackendError, Capability, Traffic, VehicleBackend
+from agent.backends.base import (
+    BackendError,
+    Capability,
+    NotSupported,
+    Traffic,
+    VehicleBackend,
+)
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
@@ -258,6 +264,20 @@ class Agent:
         with self._lock:
             self.core.set_plan(plan)
         self._event(f"fleet plan v{plan.version}: {describe(plan)}")
+        if Capability.GEOFENCE in self.backend.capabilities:  # the autopilot's own backstop
+            threading.Thread(
+                target=self._upload_fence, args=(plan,), name="fence-upload", daemon=True
+            ).start()
+
+    def _upload_fence(self, plan: FleetPlan) -> None:
+        """Give the autopilot the plan's fence (slow I/O: off the Zenoh thread), and say how
+        that went."""
+        try:
+            self.backend.upload_fence(plan)
+        except (BackendError, NotSupported) as exc:
+            self._event(f"autopilot geofence NOT updated: {exc}", severity=Severity.WARNING)
+            return
+        self._event(f"autopilot geofence set from fleet plan v{plan.version}")
 
     def _event(
         self,

@@ -181,7 +181,11 @@ def test_backend_flies_the_emulator_in_the_fleet_frame() -> None:
         connection=f"udpin://127.0.0.1:{port}", link_timeout_s=1.0, action_timeout_s=4.0
     )
     with sitl(port) as proc, MavsdkBackend(cfg, ORIGIN) as vb:
-        assert vb.capabilities == {Capability.VELOCITY_SETPOINT}
+        assert vb.capabilities == {
+            Capability.VELOCITY_SETPOINT,
+            Capability.TRAFFIC_RECEIVER,
+            Capability.GEOFENCE,
+        }
         assert vb.wait_connected()
         t = wait_for(vb, lambda t: True, what="first telemetry")
         assert t.pos_ned_m == pytest.approx(

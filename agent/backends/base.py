@@ -13,6 +13,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from comms.plan import FleetPlan
+
 
 class Capability(enum.Enum):
     VELOCITY_SETPOINT = "velocity_setpoint"
@@ -23,6 +25,8 @@ class Capability(enum.Enum):
     """Accepts neighbour states as traffic reports (MAVLink ADSB_VEHICLE)."""
     TRAFFIC_RECEIVER = "traffic_receiver"
     """Hears traffic that does not cooperate (the autopilot's ADS-B receiver): `traffic_tracks`."""
+    GEOFENCE = "geofence"
+    """Keeps a geofence of its own: `upload_fence` gives it the fleet plan's (a backstop)."""
 
 
 class NotSupported(Exception):
@@ -124,6 +128,12 @@ class VehicleBackend(ABC):
         """The traffic the autopilot's receiver heard that is not covey's own (agent.traffic
         TrafficTrack list, local NED), new since the last call."""
         raise NotSupported(f"{type(self).__name__} has no traffic receiver")
+
+    def upload_fence(self, plan: FleetPlan) -> None:
+        """Give the autopilot the fleet plan's fence (inclusion) and keep-out zones (exclusion)
+        as its own geofence, replacing the one it holds; an empty plan clears it. Blocks until
+        the autopilot accepted it (BackendError otherwise)."""
+        raise NotSupported(f"{type(self).__name__} keeps no geofence of its own")
 
     def step(self, now_s: float) -> None:  # noqa: B027 - optional hook, no-op by default
         """Advance by one agent tick. The simulator integrates here; real links do nothing."""

@@ -25,6 +25,7 @@ from typing import Any
 
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
 from comms.geo import GeoOrigin
+from comms.plan import FleetPlan
 from comms.traffic import TrafficTrack, track_from_adsb
 
 
@@ -81,7 +82,9 @@ class _Latest:
 class MavsdkBackend(VehicleBackend):
     """One PX4 vehicle through MAVSDK. Use as a context manager."""
 
-    capabilities = frozenset({Capability.VELOCITY_SETPOINT, Capability.TRAFFIC_RECEIVER})
+    capabilities = frozenset(
+        {Capability.VELOCITY_SETPOINT, Capability.TRAFFIC_RECEIVER, Capability.GEOFENCE}
+    )
 
     def __init__(
         self,
@@ -135,6 +138,7 @@ class MavsdkBackend(VehicleBackend):
 
     async def _discover(self) -> None:
         from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.geofence import GeofenceAsync
         from mavsdk.asyncio.plugins.offboard import OffboardAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
         from mavsdk.asyncio.plugins.transponder import TransponderAsync
@@ -160,6 +164,7 @@ class MavsdkBackend(VehicleBackend):
             "offboard": OffboardAsync(system),
             "telemetry": TelemetryAsync(system),
             "transponder": TransponderAsync(system),
+            "geofence": GeofenceAsync(system),
         }
         tel = self._plugins["telemetry"]
         watchers = [
@@ -346,6 +351,32 @@ class MavsdkBackend(VehicleBackend):
         action = self._plugin("action")
         self._stop_streaming()
         self._call("kill", action.kill)
+
+    def upload_fence(self, plan: FleetPlan) -> None:
+        """The plan's fence as an INCLUSION polygon and each keep-out zone as an EXCLUSION
+        polygon, in WGS-84 around the fleet origin, through MAVSDK's geofence plugin (PX4 keeps
+        it and acts on a breach: the backstop if covey's own checks fail). PX4's fence is
+        two-dimensional: a zone with a floor or ceiling is uploaded closed at every altitude (the
+        safe side), and the plan's ceiling is not sent (PX4's GF_MAX_VER_DIST is a parameter)."""
+        from mavsdk.plugins.geofence import FenceType, GeofenceData, Point, Polygon
+
+        def polygon(vertices_ne_m, kind: FenceType) -> Polygon:
+            points = []
+            for n, e in vertices_ne_m:
+                lat, lon, _ = self.origin.to_global(n, e, 0.0)
+                points.append(Point(lat, lon))
+            return Polygon(points, kind)
+
+        polygons = [polygon(plan.fence.vertices_ne_m, FenceType.INCLUSION)] if plan.fence else []
+        polygons += [polygon(z.vertices_ne_m, FenceType.EXCLUSION) for z in plan.keep_out]
+        geofence = self._plugin("geofence")
+        if not polygons:
+            self._call("clear geofence", geofence.clear_geofence)
+            return
+        data = GeofenceData(polygons, [])
+        self._call(
+            f"upload geofence (plan v{plan.version})", lambda: geofence.upload_geofence(data)
+        )
 
     def set_velocity_ned(self, vel_ned_m_s: Sequence[float], heading_rad: float) -> None:
         v = tuple(float(x) for x in vel_ned_m_s)

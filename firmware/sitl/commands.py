@@ -16,6 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from comms.geo import GeoOrigin
 from firmware.sitl import px4, streams
+from firmware.sitl.fence import MISSION_MESSAGES, FenceStore
 from firmware.sitl.px4 import OK, Px4Mode, Px4Result
 from firmware.sitl.traffic import TrafficStore, entry_from_adsb
 from firmware.sitl.vehicle import Vehicle
@@ -50,6 +51,8 @@ class Autopilot:
     ) -> None:
         self.vehicle, self.home, self.system_id, self.traffic = vehicle, home, system_id, traffic
         self.boot_ms = 0
+        self.fence = FenceStore(system_id)
+        """The geofence uploaded over the mission protocol (firmware/sitl/fence.py)."""
 
     def _for_us(self, msg: Any) -> bool:
         return msg.target_system in (0, self.system_id) and msg.target_component in (0, 1)
@@ -80,6 +83,8 @@ class Autopilot:
             return self._command(msg, msg.command, params, msg.frame, now_s)
         if kind == "SET_POSITION_TARGET_LOCAL_NED" and self._for_us(msg):
             self._setpoint(msg, now_s)
+        elif kind in MISSION_MESSAGES and self._for_us(msg):
+            return self.fence.handle(msg, now_s, (msg.get_srcSystem(), msg.get_srcComponent()))
         elif kind == "ADSB_VEHICLE":
             entry = entry_from_adsb(msg, now_s)
             if entry is not None:
@@ -180,6 +185,9 @@ class Autopilot:
             return self._refused(px4.DENIED, "Reposition denied: latitude/longitude not finite")
         if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
             return self._refused(px4.DENIED, f"Reposition denied: lat {lat} lon {lon} out of range")
+        breach = self.fence.refusal(lat, lon, self.home.lat_deg)
+        if breach:
+            return self._refused(px4.DENIED, f"Reposition denied: target {breach}")
         n, e, d = self.home.to_local(lat, lon, alt if math.isfinite(alt) else self.home.alt_m)
         return v.reposition(np.array([n, e, d if math.isfinite(alt) else math.nan]), now_s)
 
