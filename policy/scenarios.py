@@ -63,3 +63,85 @@ def random_large(rng: np.random.Generator, n: int, min_gap_m: float = 10.0):
                 break
         goals[i] = g
     return starts, goals
+
+
+def _box(n0: float, e0: float, n1: float, e1: float) -> np.ndarray:
+    return np.array([[n0, e0], [n1, e0], [n1, e1], [n0, e1]], float)
+
+
+def zone_scenes(rng: np.random.Generator, quick: bool = False):
+    """Scenes with keep-out zones (policy units, 3 m separation): [(name, starts, goals,
+    zones)], zones a list of (K, 2) polygons. Every straight path runs into a zone:
+    - convex: a 16 m square in a circle swap of 6;
+    - concave: a C whose pocket faces three of the six, the other three flying into its back;
+    - gap: two blocks 9 m apart (3 separations), three vehicles one way through the gap and two
+      the other;
+    - edge goals: four vehicles bound for points 2 m off each side of a square (within the
+      route's inflation, outside the filter's 1.8 m), from beyond the opposite side;
+    - random: two to three random convex or concave zones, 6 vehicles with random ends clear
+      of them (a seed per scene)."""
+    out = []
+    starts, goals = antipodal_circle(6, min_radius_m=25.0)
+    out.append(("convex", starts, goals, [_box(-8, -8, 8, 8)]))
+    # a C whose pocket (n -10..4, e -4..4) opens to the south
+    c_shape = np.array(
+        [[-10, -10], [10, -10], [10, 10], [-10, 10], [-10, 4], [4, 4], [4, -4], [-10, -4]], float
+    )
+    starts = np.array([[-28, -6], [-28, 0], [-28, 6], [28, -4], [28, 2], [28, 8]], float)
+    out.append(("concave", starts, starts * [-1, 1], [c_shape]))
+    gap = [_box(-14.5, -4, -4.5, 4), _box(4.5, -4, 14.5, 4)]  # 9 m apart along north = 0
+    starts = np.array([[-10, -25], [0, -30], [10, -35], [-6, 28], [6, 33]], float)
+    goals = np.array([[10, 25], [0, 30], [-10, 35], [6, -28], [-6, -33]], float)
+    out.append(("gap-9m", starts, goals, gap))
+    sq = _box(-8, -8, 8, 8)
+    goals = np.array([[10, 0], [-10, 0], [0, 10], [0, -10]], float)
+    starts = np.array([[-30, 2], [30, -2], [2, -30], [-2, 30]], float)
+    out.append(("edge-goals", starts, goals, [sq]))
+    for s in range(1 if quick else 3):
+        zones = _random_zones(rng)
+        starts, goals = _clear_ends(rng, zones, 6)
+        out.append((f"random-s{s}", starts, goals, zones))
+    return out[:3] if quick else out
+
+
+def _random_zones(rng: np.random.Generator) -> list:
+    """Two or three separate star-shaped zones (concave about half the time) around the origin."""
+    import shapely
+
+    zones: list = []
+    while len(zones) < int(rng.integers(2, 4)):
+        k = int(rng.integers(4, 9))
+        ang = np.sort(rng.uniform(0, 2 * math.pi, k))
+        if np.max(np.diff(np.r_[ang, ang[0] + 2 * math.pi])) >= 0.8 * math.pi:
+            continue
+        rad = rng.uniform(4.0, 10.0, k)
+        c = rng.uniform(-15.0, 15.0, 2)
+        p = c + np.stack([rad * np.cos(ang), rad * np.sin(ang)], 1)
+        poly = shapely.Polygon(p)
+        if poly.is_valid and all(poly.distance(shapely.Polygon(z)) > 9.0 for z in zones):
+            zones.append(p)
+    return zones
+
+
+def _clear_ends(rng: np.random.Generator, zones, n: int):
+    """n starts on a 35 m circle and goals across it, each at least 6 m from every zone and
+    6 m from the other ends."""
+    import shapely
+
+    union = shapely.union_all([shapely.Polygon(z) for z in zones])
+
+    def ok(p, taken) -> bool:
+        return union.distance(shapely.Point(p)) >= 6.0 and all(
+            math.dist(p, q) >= 6.0 for q in taken
+        )
+
+    starts: list = []
+    goals: list = []
+    while len(starts) < n:
+        a = rng.uniform(0, 2 * math.pi)
+        s = 35.0 * np.array([math.cos(a), math.sin(a)])
+        g = -s + rng.uniform(-8, 8, 2)
+        if ok(s, starts + goals) and ok(g, starts + goals + [s]):
+            starts.append(s)
+            goals.append(g)
+    return np.array(starts), np.array(goals)
