@@ -23,13 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.actions import ActionQueue, outcome_of, perform
-from agent.backends.base import (
-    BackendError,
-    Capability,
-    NotSupported,
-    Traffic,
-    VehicleBackend,
-)
+from agent.backends.base import BackendError, Capability, Traffic, VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
@@ -152,6 +146,7 @@ class Agent:
             now_s=now,
             velocity_mode=self.velocity_mode,
             guidance=guidance.batch if guidance is not None else None,
+            vehicle_ids=(self.vid,),
         )
         self.table = NeighbourTable(self.vid, cfg.neighbours)
         self.traffic = TrafficTable(cfg.traffic)
@@ -264,20 +259,6 @@ class Agent:
         with self._lock:
             self.core.set_plan(plan)
         self._event(f"fleet plan v{plan.version}: {describe(plan)}")
-        if Capability.GEOFENCE in self.backend.capabilities:  # the autopilot's own backstop
-            threading.Thread(
-                target=self._upload_fence, args=(plan,), name="fence-upload", daemon=True
-            ).start()
-
-    def _upload_fence(self, plan: FleetPlan) -> None:
-        """Give the autopilot the plan's fence (slow I/O: off the Zenoh thread), and say how
-        that went."""
-        try:
-            self.backend.upload_fence(plan)
-        except (BackendError, NotSupported) as exc:
-            self._event(f"autopilot geofence NOT updated: {exc}", severity=Severity.WARNING)
-            return
-        self._event(f"autopilot geofence set from fleet plan v{plan.version}")
 
     def _event(
         self,
@@ -404,7 +385,7 @@ class Agent:
         out = None
         with self._lock:
             core = self.core
-            actions = core.observe(now_s, obs, gcs_alive)
+            actions = core.observe(now_s, obs, gcs_alive, nbrs)
             idle = bool(idle_rows(core.mode, tel.armed, tel.in_air, busy or bool(actions))[0])
             publish = bool(
                 self.pacer.due(

@@ -216,7 +216,13 @@ class Fleet:
         now = clock_s()
         self.sim = SimFleet(cfg.sim, start_grid(n, cfg.spacing_m, cfg.start_ne_m), now_s=now)
         core_cfg = CoreConfig(origin=cfg.origin, guidance=g, failsafe=cfg.failsafe)
-        self.core = FlightCore(core_cfg, n, now_s=now, guidance=BatchGuidance(g, n, self.policy))
+        self.core = FlightCore(
+            core_cfg,
+            n,
+            now_s=now,
+            guidance=BatchGuidance(g, n, self.policy),
+            vehicle_ids=cfg.ids,
+        )
         # Each vehicle's actions run on its row of the simulator, at once (its calls take microseconds).
         self.backends = [SimBackend(fleet=self.sim, index=i) for i in range(n)]
         self.actions = ActionQueue(
@@ -403,7 +409,10 @@ class Fleet:
                 sim.pos_m, sim.vel_m_s, sim.armed, sim.pos_m[:, 2] < -0.05, sim.battery_pct, link_ok
             )
             gcs_alive = not self.cfg.failsafe.require_gcs or self.stations.alive(now_s)
-            for action in core.observe(now_s, obs, gcs_alive):
+            # a landing order needs the other processes' vehicles (agent/returning.py)
+            ordered = self.cfg.failsafe.returning.land_radius_m > 0
+            others = self.others.snapshot(now_s) if ordered else None
+            for action in core.observe(now_s, obs, gcs_alive, others):
                 self.actions.submit(action)
             rows = core.guided_rows(sim.armed, link_ok)
             self.filtered[:] = False

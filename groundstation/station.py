@@ -26,6 +26,7 @@ from comms.auth import load_auth
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatPublisher
 from comms.mesh import Mesh
+from comms.plan import FleetPlan
 from comms.presence import Presence
 from comms.schema import (
     ActionOutcome,
@@ -48,6 +49,7 @@ from groundstation.command_log import CommandLog, LoggedCommand
 from groundstation.dispatch import CommandWorker, Dispatched
 from groundstation.events import EventBuffer, EventsView
 from groundstation.fleet import FleetConfig, FleetModel
+from groundstation.formation import FormationMemory
 from groundstation.inputs import CommandRequest
 from groundstation.panel import FORM_LABELS, CommandPanel, Job, PanelHooks
 from groundstation.plan_view import PlanView
@@ -305,6 +307,10 @@ class GroundStation:
             dispatch=self.dispatch,
             scenario=self.scenario_jobs,
             now_s=time.monotonic,
+            positions=self.fleet.positions,
+            formations=FormationMemory(),
+            separation_m=self.cfg.separation_m,
+            fleet_plan=self._fleet_plan,
         )
         self.server.on_client_connect(self._open_tab)
         self.server.on_client_disconnect(self._close_tab)
@@ -474,6 +480,11 @@ class GroundStation:
         if self.fleet.cfg.verified_only:
             return self.fleet.present_ids()
         return self.presence.vehicles if self.presence else set()
+
+    def _fleet_plan(self) -> FleetPlan | None:
+        """The fleet plan the station follows (plan_view.py), or None."""
+        view = getattr(self, "plan_view", None)  # None before start and after close
+        return view.sync.plan if view is not None else None
 
     def known_ids(self) -> set[int]:
         return self._present() | set(self.fleet.ids())
