@@ -9,11 +9,13 @@ serve raises `NotSupported` (a permanent property of that backend), which is kep
 from __future__ import annotations
 
 import enum
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 from comms.plan import FleetPlan
+from comms.schema import POS_SIGMA_LIMIT_M
 
 
 class Capability(enum.Enum):
@@ -35,6 +37,14 @@ class NotSupported(Exception):
 
 class BackendError(Exception):
     """The vehicle refused or failed this call now; the message says why."""
+
+
+def pos_sigma_of(h_acc_m: float) -> float:
+    """An autopilot's horizontal accuracy (metres) as Telemetry.pos_sigma_m: 0 (not reported)
+    unless a finite positive number, else at most comms.schema.POS_SIGMA_LIMIT_M."""
+    if not (math.isfinite(h_acc_m) and h_acc_m > 0.0):
+        return 0.0
+    return min(float(h_acc_m), POS_SIGMA_LIMIT_M)
 
 
 @dataclass(frozen=True)

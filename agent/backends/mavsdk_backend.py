@@ -23,7 +23,13 @@ from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
+from agent.backends.base import (
+    BackendError,
+    Capability,
+    Telemetry,
+    VehicleBackend,
+    pos_sigma_of,
+)
 from comms.geo import GeoOrigin
 from comms.plan import FleetPlan
 from comms.traffic import TrafficTrack, track_from_adsb
@@ -77,6 +83,9 @@ class _Latest:
     battery_pct: float = math.nan
     connected: bool = False
     flight_mode: str = "UNKNOWN"
+    pos_sigma_m: float = 0.0
+    """The GNSS receiver's horizontal accuracy (RawGps.horizontal_uncertainty_m: GPS_RAW_INT
+    h_acc, PX4's eph); 0 until one is reported."""
 
 
 class MavsdkBackend(VehicleBackend):
@@ -178,6 +187,7 @@ class MavsdkBackend(VehicleBackend):
                 lambda b: setattr(self._latest, "battery_pct", float(b.remaining_percent)),
             ),
             (tel.subscribe_flight_mode(), self._on_flight_mode),
+            (tel.subscribe_raw_gps(), self._on_raw_gps),
             (system.is_connected_state(), lambda c: setattr(self._latest, "connected", bool(c))),
             (self._plugins["transponder"].subscribe_transponder(), self._on_transponder),
         ]
@@ -191,6 +201,9 @@ class MavsdkBackend(VehicleBackend):
         async for item in gen:
             with contextlib.suppress(Exception):  # a malformed sample must not end the stream
                 on_item(item)
+
+    def _on_raw_gps(self, g: Any) -> None:
+        self._latest.pos_sigma_m = pos_sigma_of(float(g.horizontal_uncertainty_m))
 
     def _on_position(self, p: Any) -> None:
         if not all(
@@ -318,6 +331,7 @@ class MavsdkBackend(VehicleBackend):
                 in_air=lt.in_air,
                 battery_pct=lt.battery_pct,
                 link_ok=lt.connected and fresh and not self._closed,
+                pos_sigma_m=lt.pos_sigma_m,
             )
 
     @property

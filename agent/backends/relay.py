@@ -21,7 +21,14 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from agent.backends.base import BackendError, Capability, Telemetry, Traffic, VehicleBackend
+from agent.backends.base import (
+    BackendError,
+    Capability,
+    Telemetry,
+    Traffic,
+    VehicleBackend,
+    pos_sigma_of,
+)
 from comms import adsb
 from comms.geo import GeoOrigin
 from comms.mavlink_udp import LinkUrl, UdpLink
@@ -128,6 +135,8 @@ class _State:
     landed_state: int = mavlink.MAV_LANDED_STATE_UNDEFINED
     rel_alt_m: float = 0.0
     battery_pct: float = math.nan
+    pos_sigma_m: float = 0.0
+    """GPS_RAW_INT h_acc in metres (PX4 sends its eph there); 0 until one is reported."""
     custom_mode: int = 0
     heartbeat_s: float = -math.inf
 
@@ -240,6 +249,8 @@ class RelayBackend(VehicleBackend):
                 s.heading_rad = msg.yaw % (2.0 * math.pi)
             elif kind == "EXTENDED_SYS_STATE":
                 s.landed_state = msg.landed_state
+            elif kind == "GPS_RAW_INT":  # h_acc (mm) is a MAVLink 2 extension: 0 if absent
+                s.pos_sigma_m = pos_sigma_of(getattr(msg, "h_acc", 0) * 1e-3)
             elif kind == "SYS_STATUS" and msg.battery_remaining >= 0:
                 s.battery_pct = float(min(msg.battery_remaining, 100))
             elif kind == "COMMAND_ACK" and msg.target_system in (0, self.cfg.source_system):
@@ -432,6 +443,7 @@ class RelayBackend(VehicleBackend):
                 in_air=in_air,
                 battery_pct=s.battery_pct,
                 link_ok=self.link_ok,
+                pos_sigma_m=s.pos_sigma_m,
             )
 
     def takeoff(self, alt_m: float) -> None:
