@@ -10,7 +10,9 @@ Standard channels (schemas and encoders from foxglove-sdk; protobuf unless marke
     /scene                    SceneUpdate     per vehicle: body, velocity arrow, separation ring,
                                               goal, coloured by mode; deleted when it leaves;
                                               per TrafficReport an entity "traffic/<reporter>/
-                                              <track>": magenta sphere, ring, arrow, "TRF" label
+                                              <track>": magenta sphere, ring, arrow, "TRF" label;
+                                              the fleet plan as one entity "plan": the fence
+                                              (orange loop), keep-out zones (red loops, named)
     /events                   Log             every Event, level from its severity
     /commands                 JSON            who sent which command to whom
     /acks                     JSON            each vehicle's answer to a command
@@ -32,7 +34,8 @@ from foxglove import messages as fm
 
 from comms import keys, schema
 from comms.geo import GeoOrigin
-from comms.palette import GOAL_RGB, RING_OK_RGB, TRAFFIC_RGB, mode_rgb
+from comms.palette import GEOFENCE_RGB, GOAL_RGB, KEEP_OUT_RGB, RING_OK_RGB, TRAFFIC_RGB, mode_rgb
+from comms.plan import FleetPlan
 from comms.state_batch import StateRow, decode_states
 
 _STATE_TYPE = bytes([schema.MsgType.VEHICLE_STATE])
@@ -311,6 +314,8 @@ class Converter:
             return [self.ack(msg, recv_ns)]
         if isinstance(msg, schema.TrafficReport):
             return [self.traffic(msg, recv_ns)]
+        if isinstance(msg, schema.PlanMessage):
+            return [self.plan(msg.plan, recv_ns)]
         return []
 
     def convert_all(self, items: Sequence[tuple[str, bytes, int]]) -> Iterator[list[Out]]:
@@ -539,6 +544,52 @@ class Converter:
                     text=f"TRF {r.track_id:X} {r.source.name} {kind}",
                 )
             ],
+        )
+        return Out(SCENE_TOPIC, SCENE_UPDATE, fm.SceneUpdate(entities=[entity]).encode(), recv_ns)
+
+    def plan(self, plan: FleetPlan, recv_ns: int) -> Out:
+        """The fleet plan on the ground (frame ned, z = 0): the fence as an orange loop, each
+        keep-out zone a red loop with its name; one entity, replaced by the next plan's. The
+        plan as it was put on the mesh, signed or not (the recorder shows what was sent)."""
+        loops = []
+        if plan.fence is not None:
+            loops.append((plan.fence.vertices_ne_m, _colour(GEOFENCE_RGB), 3.0))
+        loops += [(z.vertices_ne_m, _colour(KEEP_OUT_RGB), 2.0) for z in plan.keep_out]
+        lines = [
+            fm.LinePrimitive(
+                type=fm.LinePrimitiveLineType.LineLoop,
+                pose=fm.Pose(position=_v3(0.0, 0.0, 0.0), orientation=self._identity),
+                thickness=thickness,
+                scale_invariant=True,
+                points=[fm.Point3(x=n, y=e, z=0.0) for n, e in vertices],
+                color=colour,
+            )
+            for vertices, colour, thickness in loops
+        ]
+        texts = []
+        for z in plan.keep_out:
+            n = sum(v[0] for v in z.vertices_ne_m) / len(z.vertices_ne_m)
+            e = sum(v[1] for v in z.vertices_ne_m) / len(z.vertices_ne_m)
+            texts.append(
+                fm.TextPrimitive(
+                    pose=fm.Pose(position=_v3(n, e, -0.5), orientation=self._identity),
+                    billboard=True,
+                    font_size=14.0,
+                    scale_invariant=True,
+                    color=_colour(KEEP_OUT_RGB),
+                    text=f"keep out: {z.name}" if z.name else "keep out",
+                )
+            )
+        entity = fm.SceneEntity(
+            timestamp=_ts(recv_ns),
+            frame_id=NED_FRAME,
+            id="plan",
+            metadata=[
+                fm.KeyValuePair(key="version", value=str(plan.version)),
+                fm.KeyValuePair(key="signer", value=str(plan.signer_id)),
+            ],
+            lines=lines,
+            texts=texts,
         )
         return Out(SCENE_TOPIC, SCENE_UPDATE, fm.SceneUpdate(entities=[entity]).encode(), recv_ns)
 

@@ -100,3 +100,18 @@ def test_a_keyed_station_draws_a_pushed_plan_and_pushes_an_upload(tmp_path) -> N
         assert wait_until(lambda: view.drawn.version == follower.plan.version, 10)
         bad = view.load(b"{not json", "oops.geojson")
         assert bad.startswith("refused: uploaded 'oops.geojson' is not JSON")
+
+
+def test_foxglove_shows_the_plan_as_one_scene_entity() -> None:
+    from comms import foxglove_channels as fc
+    from comms.schema import PlanMessage
+    from tests.test_foxglove import proto_class
+
+    (out,) = fc.Converter().convert(
+        f"covey/{FLEET}/plan", PlanMessage(sample_plan(3, fleet=FLEET)).encode(), 5
+    )
+    scene = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data).FromString(out.data)
+    (entity,) = scene.entities
+    assert entity.id == "plan" and entity.frame_id == fc.NED_FRAME
+    assert [len(line.points) for line in entity.lines] == [4, 4, 8]  # fence, school, hangar
+    assert [t.text for t in entity.texts] == ["keep out: school", "keep out: hangar"]
