@@ -89,7 +89,7 @@ def test_no_uncertainty_and_all_cooperative_is_todays_filter():
 
 
 def test_uncertainty_widens_the_berth_and_traffic_takes_no_share():
-    cfg = safety.SafetyConfig()  # 3 m, margin 0.2, sigma_k 2
+    cfg = safety.SafetyConfig(sigma_k=2.0)  # 3 m, margin 0.2
     r, share = safety.pair_radius_m(cfg, 0.5, np.array([0.5, 0.0]), np.array([True, False]))
     assert r[0] == pytest.approx(3.6 + 2 * math.sqrt(0.5)) and r[1] == pytest.approx(3.6 + 1.0)
     assert share.tolist() == [0.5, 1.0]
