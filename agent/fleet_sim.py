@@ -204,7 +204,10 @@ class Fleet:
         auths: Mapping[int, FleetAuth] | None = None,
         policy: GuidancePolicy | None = None,
         clock_s: Callable[[], float] = time.monotonic,
+        rng: np.random.Generator | None = None,
     ) -> None:
+        """`rng` draws the simulated vehicles' gusts and GNSS drift (cfg.sim.vehicle; None:
+        fresh entropy)."""
         n = cfg.vehicles
         self.cfg, self.mesh, self.clock_s = cfg, mesh, clock_s
         self.ids = np.array(cfg.ids)
@@ -214,7 +217,9 @@ class Fleet:
         g = replace(cfg.guidance, max_neighbours=cfg.max_neighbours)
         self.policy = policy or g.load_policy()
         now = clock_s()
-        self.sim = SimFleet(cfg.sim, start_grid(n, cfg.spacing_m, cfg.start_ne_m), now_s=now)
+        self.sim = SimFleet(
+            cfg.sim, start_grid(n, cfg.spacing_m, cfg.start_ne_m), now_s=now, rng=rng
+        )
         core_cfg = CoreConfig(origin=cfg.origin, guidance=g, failsafe=cfg.failsafe)
         self.core = FlightCore(
             core_cfg,
