@@ -133,10 +133,13 @@ class Router:
         self.fence_m = None if fence_m is None else np.asarray(fence_m, np.float64).reshape(-1, 2)
         zones = shapely.union_all([shapely.Polygon(p) for p in polys]) if polys else None
         self._zones = zones if zones is not None else shapely.Polygon()
+        shapely.prepare(self._zones)
         fence = None if self.fence_m is None else shapely.Polygon(self.fence_m)
         if fence is not None and not fence.is_valid:
             raise ValueError("the fence must be a simple polygon")
         self._fence = fence
+        if fence is not None:
+            shapely.prepare(fence)
         c = self.cfg
         self.free_route = self._free(c.inflate_m)
         """The space route legs keep to: outside the inflated zones, inside the deflated fence."""
@@ -144,9 +147,10 @@ class Router:
         self._reach_ok = shapely.buffer(self._free(c.sight_m), BOUNDARY_TOL_M)
         shapely.prepare(self._route_ok)
         shapely.prepare(self._reach_ok)
-        self.nodes_m = self._corners()
+        self.nodes_m, self._nb_a, self._nb_c = self._corners()
         self._graph = self._visibility(self.nodes_m)
         self._goals: OrderedDict = OrderedDict()
+        self._inner = None  # the free space PROJECT_IN_M in (`_project`), made when first needed
 
     def _free(self, dist_m: float):
         keep = _inflate(self.keep_out_m, dist_m, self.cfg) if self.keep_out_m else None
@@ -162,10 +166,11 @@ class Router:
         pad = 1e4 + (x1 - x0) + (y1 - y0)
         return shapely.box(x0 - pad, y0 - pad, x1 + pad, y1 + pad).difference(keep)
 
-    def _corners(self) -> np.ndarray:
+    def _corners(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(V, 2) corners of the free space a shortest path can bend around: those where the
-        free side's angle is above 180 degrees (the box around an unfenced plan excluded)."""
-        out = []
+        free side's angle is above 180 degrees (the box around an unfenced plan excluded); and
+        each one's neighbours along its ring (V, 2) twice, for the tangent test."""
+        out, nb_a, nb_c = [], [], []
         for poly in _polygons(self.free_route):
             rings = list(poly.interiors)
             if self._fence is not None:
@@ -183,16 +188,54 @@ class Router:
                 # inside the narrow angle a-v-c lies the obstacle at a corner worth keeping
                 keep = ~shapely.contains_xy(poly, probe[:, 0], probe[:, 1]) & (n > 1e-9)
                 out.append(v[keep])
-        return np.concatenate(out) if out else np.zeros((0, 2))
+                nb_a.append(a[keep])
+                nb_c.append(c[keep])
+        if not out:
+            return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+        return np.concatenate(out), np.concatenate(nb_a), np.concatenate(nb_c)
+
+    def _tangent(self, k: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """(M,) the line through corner k[m] along d[m] touches the obstacle there without
+        entering it (both ring neighbours on one side): only such legs can be on a shortest
+        path (the reduced visibility graph), so the others need no geometry check."""
+        u = self.nodes_m[k]
+        a, c = self._nb_a[k] - u, self._nb_c[k] - u
+        s1 = d[:, 0] * a[:, 1] - d[:, 1] * a[:, 0]
+        s2 = d[:, 0] * c[:, 1] - d[:, 1] * c[:, 0]
+        return s1 * s2 >= -1e-9 * (np.abs(s1) + np.abs(s2) + 1e-12)
+
+    def _nearest_seen(self, here: np.ndarray, dist: np.ndarray) -> int:
+        """The corner with the least |here - corner| + dist[corner] among those `here` sees
+        (-1: none): candidates in that order, checked a few at a time, so the first visible
+        one is the answer and most calls check a few."""
+        nodes = self.nodes_m
+        if not len(nodes):
+            return -1
+        d = nodes - here
+        cost = np.hypot(d[:, 0], d[:, 1]) + dist
+        # no tangent test here: a vehicle a little inside the route's inflation (it flies in
+        # the sight region) sees legs along the boundary that are not quite tangent
+        cand = np.flatnonzero(np.isfinite(cost))
+        cand = cand[np.argsort(cost[cand], kind="stable")]
+        for lo in range(0, len(cand), 8):
+            chunk = cand[lo : lo + 8]
+            seen = self._visible(
+                self._reach_ok, np.broadcast_to(here, (len(chunk), 2)), nodes[chunk]
+            )
+            if seen.any():
+                return int(chunk[np.argmax(seen)])
+        return -1
 
     def _visible(self, region, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """(M,) segment a[i] -> b[i] stays within `region`."""
         if len(a) == 0:
             return np.zeros(0, bool)
         segs = shapely.linestrings(np.stack([a, b], axis=1))
-        same = np.all(np.abs(a - b) < 1e-12, axis=1)
         ok = shapely.covers(region, segs)
-        return ok | (same & shapely.covers(region, shapely.points(a)))
+        same = np.all(np.abs(a - b) < 1e-12, axis=1)  # a point: no line to check
+        if same.any():
+            ok[same] = shapely.covers(region, shapely.points(a[same]))
+        return ok
 
     def _visibility(self, nodes: np.ndarray) -> np.ndarray:
         """(V, V) leg lengths between corners that see each other (inf: they do not)."""
@@ -201,6 +244,9 @@ class Router:
         if v < 2:
             return g
         i, j = np.triu_indices(v, 1)
+        d_ij = nodes[j] - nodes[i]
+        tan = self._tangent(i, d_ij) & self._tangent(j, d_ij)
+        i, j = i[tan], j[tan]
         ok = self._visible(self._route_ok, nodes[i], nodes[j])
         d = np.hypot(*(nodes[i] - nodes[j]).T)
         g[i[ok], j[ok]] = d[ok]
@@ -220,10 +266,10 @@ class Router:
         p = shapely.Point(float(pt[0]), float(pt[1]))
         if region.covers(p) or self.free_route.is_empty:
             return pt
-        target = self.free_route.buffer(-PROJECT_IN_M)
-        if target.is_empty:
-            target = self.free_route
-        q = shapely.shortest_line(target, p).coords[0]
+        if self._inner is None:
+            inner = self.free_route.buffer(-PROJECT_IN_M)
+            self._inner = self.free_route if inner.is_empty else inner
+        q = shapely.shortest_line(self._inner, p).coords[0]
         return np.array([q[0], q[1]])
 
     def _to_goal(self, goal: np.ndarray):
@@ -276,12 +322,8 @@ class Router:
         dist, _, entry = self._to_goal(goal)
         if self._visible(self._reach_ok, pos[None], entry[None])[0]:
             return goal if entry is goal else entry
-        if not len(self.nodes_m):
-            return goal
-        seen = self._visible(self._reach_ok, np.broadcast_to(pos, self.nodes_m.shape), self.nodes_m)
-        cost = np.where(seen, np.hypot(*(self.nodes_m - pos).T) + dist, np.inf)
-        k = int(np.argmin(cost))
-        return self.nodes_m[k].copy() if np.isfinite(cost[k]) else goal
+        k = self._nearest_seen(pos, dist)
+        return self.nodes_m[k].copy() if k >= 0 else goal
 
     def plan(self, start, goal) -> Route:
         """The whole route from `start` to `goal`: what `next_waypoint` leads through."""
@@ -299,13 +341,9 @@ class Router:
         if self._visible(self._reach_ok, here[None], entry[None])[0]:
             tail = [entry]
         else:
-            seen = self._visible(
-                self._reach_ok, np.broadcast_to(here, self.nodes_m.shape), self.nodes_m
-            )
-            cost = np.where(seen, np.hypot(*(self.nodes_m - here).T) + dist, np.inf)
-            if not len(cost) or not np.isfinite(cost.min()):
+            k = self._nearest_seen(here, dist)
+            if k < 0:
                 return Route(np.zeros((0, 2)), math.inf, "no route: the goal is walled off")
-            k = int(np.argmin(cost))
             tail = []
             while k >= 0 and len(tail) <= len(self.nodes_m):
                 tail.append(self.nodes_m[k])
