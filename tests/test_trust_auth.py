@@ -363,7 +363,7 @@ def test_key_files_that_cannot_be_used_refuse_to_start(fleet, tmp_path, caplog) 
         str(tmp_path): "not a regular file",
         bad("loose.key", good.read_text(), 0o644): "chmod 600",
         bad("old.key", "ab" * 32 + "\n"): "shared fleet key from an older covey",
-        bad("binary.key", b"\xff\xfe\x00garbage"): "not JSON",
+        bad("binary.key", b"\xff\xfe\x00garbage"): "not UTF-8 text",
         bad("list.key", "[1, 2]"): "not a JSON object",
         bad("other.key", '{"covey": "something"}'): "not a covey member key file",
         bad("noid.key", json.dumps({**doc, "id": "one"})): "'id' is missing or not a int",
