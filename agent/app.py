@@ -23,11 +23,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.actions import ActionQueue, outcome_of, perform
-from agent.backends.base import BackendError, Capability, Traffic, VehicleBackend
+from agent.backends.base import (
+    BackendError,
+    Capability,
+    NotSupported,
+    Traffic,
+    VehicleBackend,
+)
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import Guidance, GuidanceConfig, NeighbourViews
-from agent.neighbours import NeighbourConfig, NeighbourTable
+from agent.neighbours import NeighbourConfig, NeighbourSnapshot, NeighbourTable
 from agent.traffic import merge_traffic
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
@@ -259,6 +265,20 @@ class Agent:
         with self._lock:
             self.core.set_plan(plan)
         self._event(f"fleet plan v{plan.version}: {describe(plan)}")
+        if Capability.GEOFENCE in self.backend.capabilities:  # the autopilot's own backstop
+            threading.Thread(
+                target=self._upload_fence, args=(plan,), name="fence-upload", daemon=True
+            ).start()
+
+    def _upload_fence(self, plan: FleetPlan) -> None:
+        """Give the autopilot the plan's fence (slow I/O: off the Zenoh thread), and say how
+        that went."""
+        try:
+            self.backend.upload_fence(plan)
+        except (BackendError, NotSupported) as exc:
+            self._event(f"autopilot geofence NOT updated: {exc}", severity=Severity.WARNING)
+            return
+        self._event(f"autopilot geofence set from fleet plan v{plan.version}")
 
     def _event(
         self,
@@ -385,7 +405,7 @@ class Agent:
         out = None
         with self._lock:
             core = self.core
-            actions = core.observe(now_s, obs, gcs_alive, nbrs)
+            actions = core.observe(now_s, obs, gcs_alive, self._landing_traffic(now_s))
             idle = bool(idle_rows(core.mode, tel.armed, tel.in_air, busy or bool(actions))[0])
             publish = bool(
                 self.pacer.due(
@@ -468,6 +488,13 @@ class Agent:
             self._publish(tel, pos, vel, heading, mode, target, flags)
             if self.cfg.trace_guidance and out is not None:
                 self._trace(heading_in_rad, out, nbrs)
+
+    def _landing_traffic(self, now_s: float) -> NeighbourSnapshot | None:
+        """For the landing order (agent/returning.py): every flying neighbour at any height (the
+        guidance's snapshot keeps only those in its vertical band); None while it is off."""
+        if self.cfg.failsafe.returning.land_radius_m <= 0:
+            return None
+        return self.table.snapshot(now_s)
 
     def _hear_traffic(self, now_s: float) -> None:
         """The autopilot's receiver's traffic into the table, and onto the mesh for the others
