@@ -14,8 +14,9 @@ from dataclasses import dataclass
 
 from comms.commands import CommandResult, new_nonce
 from comms.mesh import Mesh
-from comms.schema import Command, Role
+from comms.schema import Command, Mission, Role
 from groundstation.inputs import CommandRequest
+from groundstation.mission_io import MissionRequest
 
 log = logging.getLogger(__name__)
 
@@ -36,9 +37,25 @@ def build_command(
     return cmd
 
 
+def build_mission(
+    req: MissionRequest, targets: tuple[int, ...], source_id: int, stamp_ns: int
+) -> Mission:
+    """A wire Mission for `req` to `targets` (() = whole fleet)."""
+    mission = Mission(
+        nonce=new_nonce(),
+        stamp_ns=stamp_ns,
+        items=req.items,
+        mission_id=req.mission_id,
+        targets=targets,
+        source_id=source_id,
+    )
+    mission.validate()
+    return mission
+
+
 def send(
     mesh: Mesh,
-    req: CommandRequest,
+    req: CommandRequest | MissionRequest,
     targets: tuple[int, ...],
     *,
     present: Iterable[int] = (),
@@ -49,8 +66,10 @@ def send(
     """Send one command (one query) and collect every answer. For the whole fleet (targets=()),
     every vehicle in `present` is expected to answer, so a silent one shows as a timeout; in
     keyed mode only the roster's vehicles among them (`expected_for_all`).
-    `on_built` sees the command (its nonce) before it goes out."""
-    cmd = build_command(req, targets, source_id, mesh.clock_ns())
+    `on_built` sees the command (its nonce) before it goes out. A MissionRequest is uploaded
+    the same way (one query, an ack per vehicle)."""
+    build = build_mission if isinstance(req, MissionRequest) else build_command
+    cmd = build(req, targets, source_id, mesh.clock_ns())
     if on_built is not None:
         on_built(cmd)
     expect = set(targets) if targets else expected_for_all(present, getattr(mesh, "auth", None))

@@ -53,7 +53,7 @@ def describe(kind: CommandKind, params: tuple[float, float, float]) -> str:
         return f"goto N {_m(p[0])} E {_m(p[1])} alt {_m(-p[2])} m above origin"
     if kind is CommandKind.GOTO_GLOBAL:
         return f"goto lat {p[0]:.6f} lon {p[1]:.6f} alt {_m(p[2])} m AMSL"
-    return kind.name.lower()
+    return kind.name.lower().replace("_", " ")
 
 
 def number(name: str, raw: object, lo: float, hi: float, unit: str = "") -> float:
@@ -101,8 +101,24 @@ def goto_global(lat_deg: object, lon_deg: object, alt_amsl_m: object) -> Command
     return CommandRequest(CommandKind.GOTO_GLOBAL, (lat, lon, alt))
 
 
+SIMPLE_KINDS = frozenset(
+    {
+        CommandKind.LAND,
+        CommandKind.HOLD,
+        CommandKind.RETURN,
+        CommandKind.KILL,
+        CommandKind.MISSION_START,
+        CommandKind.MISSION_PAUSE,
+        CommandKind.MISSION_RESUME,
+        CommandKind.MISSION_ABORT,
+        CommandKind.MISSION_STATUS,
+    }
+)
+"""The commands without parameters."""
+
+
 def simple(kind: CommandKind) -> CommandRequest:
-    if kind not in (CommandKind.LAND, CommandKind.HOLD, CommandKind.RETURN, CommandKind.KILL):
+    if kind not in SIMPLE_KINDS:
         raise InputError(f"{kind.name} needs parameters")
     return CommandRequest(kind)
 

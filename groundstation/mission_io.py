@@ -59,6 +59,30 @@ class MissionFile:
     """The file's `mission_id` (covey JSON), else 1."""
 
 
+@dataclass(frozen=True)
+class MissionRequest:
+    """A checked mission, not yet addressed or stamped (the station's upload job; what a
+    CommandRequest is to a command)."""
+
+    items: tuple[MissionItem, ...]
+    mission_id: int = 1
+
+    def describe(self) -> str:
+        return f"mission {self.mission_id} upload ({len(self.items)} items)"
+
+    def route_ned_m(self, origin: GeoOrigin) -> list[tuple[float, float, float]]:
+        """The waypoints' positions in local NED, in order (what the station draws)."""
+        out = []
+        for item in self.items:
+            if item.kind is not K.WAYPOINT:
+                continue
+            if item.frame is MissionFrame.GLOBAL:
+                out.append(origin.to_local(item.x, item.y, item.alt_m))
+            else:
+                out.append((item.x, item.y, -item.alt_m))
+        return out
+
+
 def load_mission_file(path: str | os.PathLike[str]) -> MissionFile:
     """The items of a covey mission JSON or a QGC `.plan` file (told apart by their content)."""
     what = f"mission file {Path(path).name}"

@@ -24,7 +24,7 @@ import viser
 from comms.geo import GeoOrigin
 from comms.plan import FleetPlan
 from comms.schema import CommandKind
-from groundstation import formation_panel, inputs, layout
+from groundstation import formation_panel, inputs, layout, mission_panel
 from groundstation.browser_form import BrowserForms, FormSnapshot
 from groundstation.dispatch import Dispatched, KillGuard
 from groundstation.formation import FormationMemory
@@ -50,6 +50,7 @@ FORM_LABELS = (
     LON,
     GLOBAL_ALT,
     *formation_panel.LABELS,
+    *mission_panel.LABELS,
 )
 SELECT_HELP = "Click a vehicle in the 3D view to select it; shift-click adds it to Targets."
 
@@ -168,6 +169,18 @@ class CommandPanel:
                 say=self.say,
                 goto_limit_m=goto_limit_m,
                 targets_label=TARGETS,
+            )
+        with tabs.add_tab("Mission", viser.Icon.ROUTE_2):
+            self.mission = mission_panel.MissionSection(
+                client,
+                read_form=self._form,
+                targets=self._targets,
+                send=lambda label, jobs: hooks.dispatch(
+                    label, jobs, self.show_result, client.client_id
+                ),
+                say=self.say,
+                origin=origin,
+                goto_limit_m=goto_limit_m,
             )
         self._wire()
 

@@ -28,6 +28,7 @@ import numpy as np
 import viser
 
 from comms.plan import FleetPlan
+from comms.schema import Mode
 from groundstation import scene_geometry as geo
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.frames import heading_to_wxyz, ned_to_scene
@@ -168,6 +169,8 @@ class FleetScene:
         self._trails: dict[int, np.ndarray] = {}
         self.traffic: dict[int, dict[str, Any]] = {}
         self.plan_nodes: list[Any] = []
+        self.route_nodes: dict[int, Any] = {}
+        """Each vehicle's mission route (`update_routes`)."""
         """The drawn fleet plan's nodes (`update_plan`)."""
         """Drawn traffic by track id: its body (a magenta diamond), its ring and its label."""
         self._fresh: set[int] = set()
@@ -525,6 +528,30 @@ class FleetScene:
                     font_screen_scale=0.9,
                 )
             )
+
+    # -- missions ------------------------------------------------------------------------------
+    def update_routes(self, routes: dict[int, list[tuple[float, float, float]]]) -> None:
+        """Draw each vehicle's mission route (its waypoints in order, NED) as a line in the
+        MISSION colour, replacing what was drawn; vehicles left out lose theirs."""
+        scene = self.server.scene
+        for vid in [v for v in self.route_nodes if v not in routes]:
+            self.route_nodes.pop(vid).remove()
+        for vid, points in routes.items():
+            self.route_nodes[vid] = scene.add_line_segments(
+                f"/missions/{vid}",
+                route_segments(points),
+                np.array(mode_rgb(Mode.MISSION), np.uint8),
+                thickness=2.0,
+                thickness_units="screen",
+            )
+
+
+def route_segments(points_ned_m) -> np.ndarray:
+    """(k-1, 2, 3) scene-frame segments joining a route's NED points in order."""
+    p = ned_to_scene(np.asarray(points_ned_m, np.float32).reshape(-1, 3))
+    if len(p) < 2:
+        return np.zeros((0, 2, 3), np.float32)
+    return np.stack([p[:-1], p[1:]], axis=1).astype(np.float32)
 
 
 def polygon_segments(vertices_ne_m, z_m: float) -> np.ndarray:

@@ -23,6 +23,7 @@ import numpy as np
 import viser
 
 from comms.auth import load_auth
+from comms.commands import OutcomeStatus
 from comms.geo import GeoOrigin
 from comms.heartbeat import HeartbeatPublisher
 from comms.mesh import Mesh
@@ -51,6 +52,7 @@ from groundstation.events import EventBuffer, EventsView
 from groundstation.fleet import FleetConfig, FleetModel
 from groundstation.formation import FormationMemory
 from groundstation.inputs import CommandRequest
+from groundstation.mission_io import MissionRequest
 from groundstation.panel import FORM_LABELS, CommandPanel, Job, PanelHooks
 from groundstation.plan_view import PlanView
 from groundstation.scene import FleetScene, SceneConfig
@@ -196,6 +198,11 @@ class GroundStation:
         self._event_views: dict[int, EventsView] = {}
         self._sent_by: OrderedDict[int, int] = OrderedDict()  # nonce -> client id that sent it
         self.last_result: Dispatched | None = None
+        self.routes: dict[int, list[tuple[float, float, float]]] = {}
+        """Each vehicle's route (NED waypoints) of the last mission it accepted from this
+        station, drawn while its states say it has a mission."""
+        self._routes_drawn: frozenset[int] | None = None
+        self._routes_lock = threading.Lock()
         self._link = None
         self._heartbeats: HeartbeatPublisher | None = None
         self.traffic = TrafficTable()
@@ -508,8 +515,9 @@ class GroundStation:
             self._remember_sender(cmd, client_id, operator)
 
         def run() -> list:
-            return [
-                dispatch.send(
+            results = []
+            for req, targets in jobs:
+                res = dispatch.send(
                     mesh,
                     req,
                     targets,
@@ -518,8 +526,14 @@ class GroundStation:
                     timeout_s=timeout_s,
                     on_built=remember,
                 )
-                for req, targets in jobs
-            ]
+                if isinstance(req, MissionRequest):  # the accepted routes, for the scene
+                    route = req.route_ned_m(self.cfg.origin)
+                    with self._routes_lock:
+                        for vid in res.by_status(OutcomeStatus.ACCEPTED):
+                            self.routes[vid] = route
+                        self._routes_drawn = None
+                results.append(res)
+            return results
 
         self._worker.submit(label, run, on_done)
 
@@ -565,9 +579,19 @@ class GroundStation:
         snap = self.fleet.snapshot(now_ns, trails=trails)
         now_s = time.monotonic()
         tracks = self.traffic.tracks(now_s)
+        with self._routes_lock:  # a vehicle's route while its states say it has a mission
+            flying = frozenset(
+                v.vehicle_id
+                for v in snap.vehicles
+                if v.state is not None and v.state.mission_items and v.vehicle_id in self.routes
+            )
+            routes = None if flying == self._routes_drawn else {v: self.routes[v] for v in flying}
+            self._routes_drawn = flying
         with self.server.atomic():
             self.scene.update(snap)
             self.scene.update_traffic(tracks, now_s)
+            if routes is not None:
+                self.scene.update_routes(routes)
             if with_table:
                 self.table.content = fleet_table(
                     snap, refused_states=self.fleet.phantom_refusals, origin=self.cfg.origin

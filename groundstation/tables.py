@@ -107,6 +107,10 @@ def fleet_table(
                 f" <b data-unverified='1' style='color:{css(ALERT_RGB)}'>UNVERIFIED "
                 f"({html.escape(v.refused_cause)})</b>"
             )
+        if v.state is not None and v.state.mission_items:  # mission item k of n
+            k, n = v.state.mission_item, v.state.mission_items
+            text = "done" if k > n else f"item {k}/{n}" if k else f"loaded, {n} items"
+            mode += f" <span data-mission='{k}/{n}' style='font-size:0.85em'>{text}</span>"
         cells = [_td(f"<b>{v.vehicle_id}</b>"), _td(mode, "left")]
         s = v.state
         if s is None:
