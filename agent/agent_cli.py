@@ -102,6 +102,7 @@ SINGLE_FLAGS = {
     "link": "per-vehicle radio links are emulated by a single agent (--id) only",
     "state_hz": "a host publishes every vehicle's state each tick: set --tick-hz",
     "trace_guidance": "guidance traces come from a single agent (--id) only",
+    "plan": "a host follows the fleet plan on the mesh; --plan starts a single agent with one",
     "key_file": "a key file signs for one vehicle; give --key-dir DIR with vehicle-<id>.key "
     "for each",
 }
@@ -291,6 +292,14 @@ def parser() -> argparse.ArgumentParser:
         "--state-hz", type=float, default=10.0, help="state broadcast rate on the mesh (default 10)"
     )
     p.add_argument(
+        "--plan",
+        default=None,
+        metavar="FILE",
+        help="a signed fleet plan to hold from start (covey plan load writes plan.bin): fence "
+        "and keep-out zones apply before any station is reachable; a newer one on the mesh "
+        "replaces it",
+    )
+    p.add_argument(
         "--trace-guidance",
         action="store_true",
         help="publish guidance traces so `covey replay --policy` can replay the flight exactly",
@@ -317,7 +326,18 @@ def config_from_args(
         failsafe=failsafe_from_args(args),
         link=args.link,
         trace_guidance=args.trace_guidance,
+        plan=signed_plan(args.plan),
     )
+
+
+def signed_plan(path: str | None):
+    """The signed fleet plan in `path` (comms/plan_io.py; shapely is imported only then), or
+    None; BadPlanError (a ValueError, one line) if it cannot be used."""
+    if path is None:
+        return None
+    from comms.plan_io import read_signed_plan
+
+    return read_signed_plan(path)
 
 
 def make_link(spec: str, vehicle_id: int, receiver_pos=None):

@@ -112,6 +112,9 @@ class AgentConfig:
     trace_guidance: bool = False
     """Publish a GuidanceTrace message after each state (what the policy saw and commanded), so
     that `covey replay --policy` can replay this flight closed-loop exactly."""
+    plan: FleetPlan | None = None
+    """A fleet plan to hold from start (`covey agent --plan plan.bin`), checked as one that
+    arrives (its signer, in keyed mode); a newer one on the mesh replaces it."""
 
     def __post_init__(self) -> None:
         from comms.keys import check_vehicle_id
@@ -216,11 +219,14 @@ class Agent:
             mesh.session,
             mesh.fleet,
             getattr(mesh, "auth", None),
+            plan=cfg.plan,
             on_plan=self._on_plan,
             on_summary=lambda line: self._event(
                 line, EventKind.SECURITY, Severity.WARNING, quiet=True
             ),
         )
+        if self.plan.plan is not None:  # the one it started with
+            self.core.set_plan(self.plan.plan)
         self.plan.pull_now(START_PULL_S)  # a rebooted vehicle holds the plan before any command
         # Answer commands before announcing presence: whoever sees us alive can command us.
         mesh.serve_commands(self.vid, self.handle_command, on_mission=self.handle_mission)

@@ -113,3 +113,32 @@ def test_a_keyed_agent_refuses_a_goto_into_a_zone_and_again_after_a_reboot(tmp_p
         out = goto(mesh, 60, 60, 10)
         print(f"rebooted agent answered {time.monotonic() - t0:.2f} s after start: {out.reason}")
         assert out.reason == "target inside keep-out zone 'school'"
+
+
+@pytest.mark.e2e
+def test_an_agent_started_with_a_plan_file_holds_it_and_a_forged_file_is_one_line(
+    tmp_path, procs
+) -> None:
+    from comms.auth import sign_plan
+    from comms.plan_io import write_signed_plan
+
+    authority = throwaway_fleet(tmp_path / "keys", FLEET, vehicles=[1], stations=[1])
+    station = load_auth(str(authority.member_path(Role.STATION, 1)))
+    good = write_signed_plan(tmp_path / "plan.bin", sign_plan(authority.key, sample_plan(3, FLEET)))
+    forged = dataclasses.replace(sign_plan(authority.key, sample_plan(3, FLEET)), keep_out=())
+    bad = write_signed_plan(tmp_path / "forged.bin", forged)
+    port = free_tcp_port()
+    router = MeshConfig(fleet=FLEET, mode="router", connect=(), listen=(f"tcp/127.0.0.1:{port}",))
+    argv = [*keyed_agent_argv(authority, 1), "--fleet", FLEET, "--connect"]
+    argv += [f"tcp/127.0.0.1:{port}", "--start-ne-m=20,20", "--no-gcs-failsafe"]
+    refused = procs.start(*argv, "--plan", str(bad))
+    assert refused.wait(60) == 2
+    lines = refused.output().strip().splitlines()
+    assert "bad signature" in lines[-1] and "Traceback" not in refused.output(), lines
+    with Mesh(router, auth=station) as mesh:  # a station that holds no plan
+        presence = mesh.presence()
+        procs.start(*argv, "--plan", str(good))
+        assert presence.wait_for(lambda v, g: 1 in v, timeout_s=60)
+        cmd = Command.goto_local(60, 60, -10, nonce=new_nonce(), stamp_ns=0, targets=(1,))
+        out = mesh.send_command(cmd, timeout_s=5).outcomes[1]
+        assert out.reason == "target inside keep-out zone 'school'"
