@@ -216,3 +216,57 @@ def test_close_homes_land_one_at_a_time() -> None:
                 break
         assert fleet.modes == [Mode.LANDED] * 4
         assert most_landing == 1 and order == [1, 2, 3, 4], (most_landing, order)
+
+
+@pytest.mark.e2e
+def test_two_agents_return_on_their_layers_and_land_in_order(procs) -> None:
+    """Two real `covey agent` processes (one vehicle each, homes 5 m apart): a return to all puts
+    vehicle 1 on the 6 m layer and vehicle 2 on the 10 m one, and 2 comes down only once 1 is
+    down, each knowing the other from its neighbour table alone (before the landing order read
+    every height, 2 came down with 1 still 3.4 m up: the guidance's table keeps a 5 m band)."""
+    from conftest import wait_until
+
+    from comms.schema import VehicleState
+
+    port = free_tcp_port()
+    fleet_name = "returnagents"
+    seen: dict[int, list[tuple[float, Mode]]] = {1: [], 2: []}
+    when_2_came_down: list[float] = []  # vehicle 1's altitude when 2 began to land
+    lock = threading.Lock()
+
+    def on_state(s: VehicleState, _t: int) -> None:
+        with lock:
+            seen[s.vehicle_id].append((-s.pos_ned_m[2], s.mode))
+            if s.vehicle_id == 2 and s.mode is Mode.LANDING and not when_2_came_down:
+                when_2_came_down.append(seen[1][-1][0] if seen[1] else math.nan)
+
+    def latest() -> dict[int, tuple[float, Mode]]:
+        with lock:
+            return {v: xs[-1] for v, xs in seen.items() if xs}
+
+    flags = ["--return-layer-m", "4", "--return-layers", "2", "--return-base-alt-m", "6"]
+    flags += ["--land-radius-m", "8", "--no-gcs-failsafe", "--cruise-speed-m-s", "2"]
+    mesh = ["--fleet", fleet_name, "--connect", f"tcp/127.0.0.1:{port}"]
+    with Mesh(embedded_router(port, fleet=fleet_name)) as station:
+        station.subscribe_states(on_state)
+        for vid, start in ((1, "0,0"), (2, "0,5")):
+            procs.start(
+                "-m", "covey_cli", "agent", "--id", str(vid), f"--start-ne-m={start}", *flags, *mesh
+            )
+        assert wait_until(lambda: len(latest()) == 2, 60), latest()
+        assert cmd_cli(["takeoff", "4", "--to", "all", *mesh]) == 0
+        assert wait_until(lambda: all(m is Mode.HOLDING for _, m in latest().values()), 30)
+        with lock:
+            for xs in seen.values():
+                xs.clear()
+        assert cmd_cli(["return", "--to", "all", *mesh]) == 0
+        assert wait_until(
+            lambda: all(m is Mode.LANDED for _, m in latest().values()) and len(latest()) == 2, 90
+        ), latest()
+    with lock:
+        tops = {v: max(a for a, _ in xs) for v, xs in seen.items()}
+    print(f"two agents: tops {tops}, vehicle 1 at {when_2_came_down} m when 2 came down")
+    assert abs(tops[1] - 6.0) <= 0.8 and abs(tops[2] - 10.0) <= 0.8, tops
+    # vehicle 2 waits until 1 is below 0.3 m; the station's last state of 1 is up to a tick
+    # older (1 m/s down): within a metre of the ground
+    assert when_2_came_down and when_2_came_down[0] <= 1.0, when_2_came_down
