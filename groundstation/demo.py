@@ -37,6 +37,9 @@ class DemoConfig:
     """Number of simulated vehicles (one agent process each)."""
     link: str = "perfect"
     """Emulated radio link of every agent: perfect | xbee | wifi."""
+    vehicle_model: str = "ideal"
+    """How the simulated vehicles fly: ideal | realistic (covey agent --vehicle-model: lag,
+    gusts, GNSS drifting 0.5 m, reported with its sigma)."""
     port: int = 8080
     """Web port of the ground station (the next free one is used if busy)."""
     fleet: str = "covey"
@@ -159,6 +162,8 @@ def _run(
                     "sim",
                     "--link",
                     cfg.link,
+                    "--vehicle-model",
+                    cfg.vehicle_model,
                     f"--start-ne-m={n:g},{e:g}",
                     "--geofence-radius-m",
                     f"{cfg.geofence_radius_m:g}",
@@ -227,6 +232,13 @@ def parser() -> argparse.ArgumentParser:
         "--link", choices=("perfect", "xbee", "wifi"), default="perfect", help="emulated radio link"
     )
     p.add_argument(
+        "--vehicle-model",
+        choices=("ideal", "realistic"),
+        default="ideal",
+        help="how the simulated vehicles fly: ideal, or realistic (0.3 s lag, 2.5 m/s^2, "
+        "0.2 m/s gusts, GNSS drifting 0.5 m)",
+    )
+    p.add_argument(
         "--open-mode",
         action="store_true",
         help="run without keys: nothing authenticated (tests only; default: keyed with "
@@ -241,7 +253,12 @@ def cli(argv: list[str] | None = None) -> int:
     if not 1 <= args.vehicles <= 200:
         p.error(f"--vehicles {args.vehicles} must be within 1..200 (one process each)")
     cfg = config_from_flags(
-        DemoConfig, args, only=DEMO_FLAGS, link=args.link, keyed=not args.open_mode
+        DemoConfig,
+        args,
+        only=DEMO_FLAGS,
+        link=args.link,
+        keyed=not args.open_mode,
+        vehicle_model=args.vehicle_model,
     )
     with stop_on_signals() as stop:
         return main(cfg, stop)

@@ -171,3 +171,26 @@ def test_the_emulator_reports_its_estimate_and_sigma():
     assert streams.gps_raw_int(v, GeoOrigin(), 0).h_acc == 500
     plain = Vehicle()
     assert plain.pos_sigma_m == 0.0 and streams.gps_raw_int(plain, GeoOrigin(), 0).h_acc == 0
+
+
+def test_vehicle_model_flags(capsys):
+    from agent import agent_cli
+    from agent.host_cli import fleet_sim_parser
+    from groundstation.demo import parser as demo_parser
+
+    assert fleet_sim_parser().parse_args(["--vehicle-model", "realistic"]).vehicle_model == (
+        "realistic"
+    )
+    assert demo_parser().parse_args([]).vehicle_model == "ideal"
+    assert agent_cli.sim_config("realistic").vehicle == VehicleModel.realistic()
+    assert agent_cli.sim_config("ideal").vehicle is None
+    for argv, why in (
+        (["--vehicle-model", "real"], "invalid choice: 'real'"),
+        (
+            ["--id", "1", "--vehicle", "mavsdk:udpin://0.0.0.0:1", "--vehicle-model", "realistic"],
+            "--vehicle-model is how a simulated vehicle flies; a mavsdk vehicle flies itself",
+        ),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            agent_cli.cli(argv)
+        assert exc.value.code == 2 and why in capsys.readouterr().err
