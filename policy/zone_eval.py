@@ -42,9 +42,11 @@ class Routed:
     ):
         from policy.safety import filter_padded
 
-        way = np.array(
-            [self.router.next_waypoint(p, g) for p, g in zip(pos, goal, strict=True)]
-        ).reshape(-1, 2)
+        way = goal
+        if self.router is not None:
+            way = np.array(
+                [self.router.next_waypoint(p, g) for p, g in zip(pos, goal, strict=True)]
+            ).reshape(-1, 2)
         v = self.inner(ids, t_s, pos, vel, heading, way, nbr_pos, nbr_vel, nbr_heading, valid, **kw)
         if self.kind == "numpy":
             sky = {
@@ -64,10 +66,11 @@ class Routed:
         return v
 
 
-def run(name, starts, goals, zones_m, controller, link, sim_cfg, rng, **options):
+def run(name, starts, goals, zones_m, controller, link, sim_cfg, rng, aware=True, **options):
     """One zone scene with one controller: evalsim.run's metrics plus the zone counts (module
     docstring); the tracks stay in the result (`tracks`, `goals`) for figures. The filter's
-    config is the controller's own (Held.safety_cfg, orca's, CPolicy's), else the default."""
+    config is the controller's own (Held.safety_cfg, orca's, CPolicy's), else the default.
+    `aware` False: the controller as it is, told nothing of the zones (the "before" numbers)."""
     import dataclasses
 
     import shapely
@@ -82,13 +85,13 @@ def run(name, starts, goals, zones_m, controller, link, sim_cfg, rng, **options)
     )
 
     zones, router = zones_for(safety_cfg, zones_m)
-    kind = ZONE_FILTER.get(name)
+    kind = ZONE_FILTER.get(name) if aware else None
     czones = None
     if kind == "c":
         from firmware.czones import CZones
 
         czones = CZones(controller.policy._lib, zones_m, zones.radius_m, zones.time_horizon_s)
-    routed = Routed(controller, router, zones, safety_cfg, kind, czones)
+    routed = Routed(controller, router if aware else None, zones, safety_cfg, kind, czones)
     r = evalsim.run(
         starts, goals, routed, link, dataclasses.replace(sim_cfg, record=True), rng, **options
     )
