@@ -25,19 +25,45 @@ static covey_status_t check_report(const covey_vehicle_t *v)
     return COVEY_OK;
 }
 
+int32_t covey_traffic_is_covey(uint32_t icao_address, const char *callsign, int32_t emitter_type)
+{
+    return (icao_address & COVEY_TRAFFIC_ICAO_MASK) == COVEY_TRAFFIC_ICAO_BASE &&
+           callsign != NULL && callsign[0] == 'C' && callsign[1] == 'V' && callsign[2] == 'Y' &&
+           emitter_type == COVEY_ADSB_EMITTER_UAV;
+}
+
+int32_t covey_emitter_is_manned(int32_t emitter_type)
+{
+    /* light 1 .. highly manoeuvrable 6, rotorcraft 7, glider 9, lighter than air 10,
+     * parachute 11, ultralight 12 (8 and 13 are unassigned, 14 UAV, 15+ not aircraft) */
+    return (emitter_type >= 1 && emitter_type <= 7) || (emitter_type >= 9 && emitter_type <= 12);
+}
+
 static void store(covey_traffic_t *t, int32_t i, uint32_t id, const covey_vehicle_t *report,
-                  float vel_n_m_s, float vel_e_m_s)
+                  float vel_n_m_s, float vel_e_m_s, uint8_t non_cooperative, uint8_t manned)
 {
     t->id[i] = id;
     t->report[i] = *report;
     t->vel_m_s[i][0] = vel_n_m_s;
     t->vel_m_s[i][1] = vel_e_m_s;
+    t->non_cooperative[i] = non_cooperative;
+    t->manned[i] = manned;
 }
 
 covey_status_t covey_traffic_put_track(covey_traffic_t *t, uint32_t id,
                                        const covey_vehicle_t *report, float vel_n_m_s,
                                        float vel_e_m_s)
 {
+    return covey_traffic_put_classified(t, id, report, vel_n_m_s, vel_e_m_s, 0, 0);
+}
+
+covey_status_t covey_traffic_put_classified(covey_traffic_t *t, uint32_t id,
+                                            const covey_vehicle_t *report, float vel_n_m_s,
+                                            float vel_e_m_s, int32_t non_cooperative,
+                                            int32_t manned)
+{
+    const uint8_t nc = non_cooperative ? 1u : 0u;
+    const uint8_t mn = manned ? 1u : 0u;
     if (t == NULL || report == NULL) {
         return COVEY_ERR_NULL;
     }
@@ -57,7 +83,7 @@ covey_status_t covey_traffic_put_track(covey_traffic_t *t, uint32_t id,
     int32_t oldest = 0;
     for (int32_t i = 0; i < t->n; ++i) {
         if (t->id[i] == id) {
-            store(t, i, id, report, vel_n_m_s, vel_e_m_s);
+            store(t, i, id, report, vel_n_m_s, vel_e_m_s, nc, mn);
             return COVEY_OK;
         }
         if (t->report[i].stamp_us < t->report[oldest].stamp_us) {
@@ -65,10 +91,10 @@ covey_status_t covey_traffic_put_track(covey_traffic_t *t, uint32_t id,
         }
     }
     if (t->n < COVEY_MAX_INPUTS) {
-        store(t, t->n, id, report, vel_n_m_s, vel_e_m_s);
+        store(t, t->n, id, report, vel_n_m_s, vel_e_m_s, nc, mn);
         t->n++;
     } else if (report->stamp_us > t->report[oldest].stamp_us) {
-        store(t, oldest, id, report, vel_n_m_s, vel_e_m_s);
+        store(t, oldest, id, report, vel_n_m_s, vel_e_m_s, nc, mn);
     }
     return COVEY_OK;
 }
@@ -87,7 +113,8 @@ int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_ag
     for (int32_t i = 0; i < t->n; ++i) {
         const uint64_t stamp = t->report[i].stamp_us;
         if (stamp <= now_us && now_us - stamp <= max_age_us) {
-            store(t, kept, t->id[i], &t->report[i], t->vel_m_s[i][0], t->vel_m_s[i][1]);
+            store(t, kept, t->id[i], &t->report[i], t->vel_m_s[i][0], t->vel_m_s[i][1],
+                  t->non_cooperative[i], t->manned[i]);
             kept++;
         }
     }

@@ -21,12 +21,34 @@ extern "C" {
 /* Below this commanded speed the heading is kept (hover does not turn the vehicle). */
 #define COVEY_HEADING_MIN_SPEED_M_S 0.05f
 
+/*
+ * How covey's own ADSB_VEHICLE reports are told from real traffic (comms/adsb.py, the Python
+ * twin, parity tested): ICAO address COVEY_TRAFFIC_ICAO_BASE | vehicle id (bit 24 set: outside
+ * the 24-bit space of every real transponder), callsign "CVY<id>", emitter type UAV. Anything
+ * else is traffic that does not cooperate: the filter takes the whole correction for it.
+ */
+#define COVEY_TRAFFIC_ICAO_BASE 0x01000000u
+#define COVEY_TRAFFIC_ICAO_MASK 0xFFFF0000u
+#define COVEY_ADSB_EMITTER_UAV 14
+
+/* 1 if an ADS-B report is a covey vehicle's own (all three marks), else 0. `callsign` is the
+ * report's field (up to 8 characters, NUL-padded; NULL: not ours). */
+int32_t covey_traffic_is_covey(uint32_t icao_address, const char *callsign, int32_t emitter_type);
+
+/* 1 for the ADSB_EMITTER_TYPE values of aircraft with people aboard (light, small, large,
+ * high-vortex large, heavy, highly manoeuvrable, rotorcraft, glider, lighter than air,
+ * parachute, ultralight), else 0. */
+int32_t covey_emitter_is_manned(int32_t emitter_type);
+
 /* Latest report per neighbour id; entries [0, n) are valid, in insertion order.
- * vel_m_s[i] is report i's (north, east) velocity, the layout covey_guidance_step takes. */
+ * vel_m_s[i] is report i's (north, east) velocity, the layout covey_guidance_step takes;
+ * non_cooperative[i] the layout covey_guidance_step_sky takes. */
 typedef struct {
     uint32_t id[COVEY_MAX_INPUTS];
     covey_vehicle_t report[COVEY_MAX_INPUTS];
     float vel_m_s[COVEY_MAX_INPUTS][2];
+    uint8_t non_cooperative[COVEY_MAX_INPUTS]; /* 1: traffic that does not avoid */
+    uint8_t manned[COVEY_MAX_INPUTS];          /* 1: a manned aircraft (traffic only) */
     int32_t n;
 } covey_traffic_t;
 
@@ -48,6 +70,16 @@ covey_status_t covey_traffic_put(covey_traffic_t *t, uint32_t id, const covey_ve
 covey_status_t covey_traffic_put_track(covey_traffic_t *t, uint32_t id,
                                        const covey_vehicle_t *report, float vel_n_m_s,
                                        float vel_e_m_s);
+
+/*
+ * The same, classified: `non_cooperative` (traffic that does not avoid; covey_traffic_is_covey
+ * says which reports are covey's) and `manned` (covey_emitter_is_manned), each 0 or 1.
+ * covey_traffic_put_track stores a cooperative, unmanned neighbour.
+ */
+covey_status_t covey_traffic_put_classified(covey_traffic_t *t, uint32_t id,
+                                            const covey_vehicle_t *report, float vel_n_m_s,
+                                            float vel_e_m_s, int32_t non_cooperative,
+                                            int32_t manned);
 
 /* Removes entries older than max_age_us (or stamped after now_us); returns how many. */
 int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_age_us);

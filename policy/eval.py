@@ -81,7 +81,8 @@ class EvalConfig:
     progress: bool = True
     """Show a tqdm bar."""
     suites: tuple = field(default=("circle", "conflict", "large"))
-    """Scenario suites to run: circle, conflict, large."""
+    """Scenario suites to run: circle, conflict, large, intruder (a vehicle that does not
+    cooperate flies straight through at 1x, 1.5x and 2x the fleet's speed)."""
     vehicles: str = "ideal"
     """How the vehicles fly (policy.pointmass.VehicleModel): ideal (exactly what is commanded,
     exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, GNSS estimate
@@ -92,13 +93,20 @@ class EvalConfig:
     tell_inflation: bool = False
     """Tell the learned policies the separation inflated by the uncertainty as well
     (policy.runtime.told_separation_m's inflation_m); off: they are told what ideal vehicles are."""
+    non_cooperative_separation_m: float | None = None
+    """Separation the filter keeps from vehicles that do not cooperate (intruder suite;
+    policy.safety.SafetyConfig.non_cooperative_radius_m); None: the separation."""
+    mark_non_cooperative: bool = True
+    """Tell the controllers which vehicles do not cooperate (the filter takes the whole
+    correction for them); off: they take intruders for covey vehicles (before issue 35)."""
     controllers: tuple = ()
     """Run only these controllers, e.g. policy,orca (empty = all available but c+filter, the C
     core as onboard, which runs only when named)."""
 
 
 def cases(cfg: EvalConfig):
-    """[(suite, name, starts, goals)]."""
+    """[(suite, name, starts, goals)], or (suite, name, starts, goals, run options) where a case
+    has intruders (evalsim.run's non_cooperative and speed_m_s)."""
     rng = np.random.default_rng(cfg.seed)
     out = []
     circle = [4, 8] if cfg.quick else [2, 4, 8, 16, 32, 50]
@@ -115,6 +123,11 @@ def cases(cfg: EvalConfig):
         ]
     if "large" in cfg.suites:
         out += [("large", f"large-{n}-s{s}", *scenarios.random_large(rng, n)) for n, s in large]
+    if "intruder" in cfg.suites:
+        for ratio in scenarios.INTRUDER_SPEED_RATIOS:
+            for name, starts, goals, nc, speeds in scenarios.intruder_cases(rng, ratio, cfg.quick):
+                options = {"non_cooperative": nc, "speed_m_s": speeds}
+                out.append(("intruder", f"intruder-{ratio:g}x-{name}", starts, goals, options))
     return out
 
 
@@ -135,6 +148,10 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
     safety_cfg = SafetyConfig(dt_s=cfg.dt_s)
     if cfg.sigma_k is not None:
         safety_cfg = dataclasses.replace(safety_cfg, sigma_k=cfg.sigma_k)
+    if cfg.non_cooperative_separation_m is not None:
+        safety_cfg = dataclasses.replace(
+            safety_cfg, non_cooperative_radius_m=cfg.non_cooperative_separation_m
+        )
     sigma_m = VehicleModel.named(cfg.vehicles).drift_m
     inflation_m = inflation_told_m(safety_cfg, sigma_m) if cfg.tell_inflation else 0.0
     out = {}
@@ -173,9 +190,11 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             safety_cfg,
             pos_sigma_m=sig.get("pos_sigma_m"),
             nbr_pos_sigma_m=sig.get("nbr_pos_sigma_m"),
+            nbr_cooperative=sig.get("nbr_cooperative"),
         )
 
     orca.uses_sigma = True
+    orca.uses_cooperative = True
     out["orca"] = orca
     out["straight"] = evalsim.straight_line
     for name, make in (extra or {}).items():
@@ -197,6 +216,7 @@ class Held:
     uncertainties when the simulator passes them."""
 
     uses_sigma = True
+    uses_cooperative = True
 
     def __init__(self, policy, period_s: float, safety_cfg=None):
         self.policy, self.period_s, self.safety_cfg = policy, period_s, safety_cfg
@@ -217,6 +237,7 @@ class Held:
         nbr_valid,
         pos_sigma_m=None,
         nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ):
         from policy.safety import filter_padded
 
@@ -242,6 +263,7 @@ class Held:
                 self.safety_cfg,
                 pos_sigma_m=pos_sigma_m,
                 nbr_pos_sigma_m=nbr_pos_sigma_m,
+                nbr_cooperative=nbr_cooperative,
             )
         return v
 
@@ -356,7 +378,7 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
     all_cases = cases(cfg)
     rows, tracks = [], {}
     jobs = [(c, ln, name) for c in all_cases for ln in cfg.links for name in ctrls]
-    for (suite, case, starts, goals), link, name in tqdm(
+    for (suite, case, starts, goals, *options), link, name in tqdm(
         jobs, disable=not cfg.progress, unit="run"
     ):
         record = (
@@ -368,7 +390,10 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
         rng = np.random.default_rng([cfg.seed, len(rows)])
         if hasattr(ctrls[name], "reset"):
             ctrls[name].reset()
-        r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng)
+        if not cfg.mark_non_cooperative and getattr(ctrls[name], "uses_cooperative", False):
+            ctrls[name].uses_cooperative = False  # intruders taken for covey vehicles
+        opts = dict(options[0]) if options else {}
+        r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng, **opts)
         if record:
             tracks[(case, name)] = (r.pop("tracks"), r.pop("goals"))
         rows.append({"suite": suite, "case": case, "link": link, "controller": name, **r})
@@ -453,8 +478,8 @@ def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = N
         ap.error(f"--links takes perfect and/or degraded, got {','.join(a.links)!r}")
     if a.vehicles not in VEHICLE_MODELS:
         ap.error(f"--vehicles takes {' or '.join(VEHICLE_MODELS)}, got {a.vehicles!r}")
-    if not set(a.suites) <= {"circle", "conflict", "large"}:
-        ap.error(f"--suites takes circle, conflict, large, got {','.join(a.suites)!r}")
+    if not set(a.suites) <= {"circle", "conflict", "large", "intruder"}:
+        ap.error(f"--suites takes circle, conflict, large, intruder, got {','.join(a.suites)!r}")
     cfg = config_from_flags(EvalConfig, a)
     result = main(cfg, extra_controllers)
     print(markdown(result["summary"]))

@@ -85,7 +85,9 @@ class EvalSimConfig:
 # controller(ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid) -> vel (N, 2)
 # ids are the vehicle numbers of the rows (the active vehicles), t_s the time. A controller
 # with `uses_sigma = True` also gets pos_sigma_m= (N,) and nbr_pos_sigma_m= (N, K): the
-# position 1-sigma each vehicle reports of itself and the ones its link delivered.
+# position 1-sigma each vehicle reports of itself and the ones its link delivered; with
+# `uses_cooperative = True`, nbr_cooperative= (N, K) bool when the case has traffic that does
+# not cooperate (False for those columns; a controller without it takes them for covey vehicles).
 Controller = Callable[..., np.ndarray]
 
 
@@ -102,11 +104,20 @@ def run(
     link: LinkConfig,
     cfg: EvalSimConfig,
     rng: np.random.Generator,
+    non_cooperative=None,
+    speed_m_s=None,
 ) -> dict:
-    """Flies one scenario to the end; returns its metrics (and tracks if cfg.record)."""
+    """Flies one scenario to the end; returns its metrics (and tracks if cfg.record).
+    `non_cooperative` (n,) bool marks intruders: they fly straight at their goal at their
+    `speed_m_s` (n,) whatever happens (the controller never steers them), broadcast like the
+    others, and are told to controllers as not cooperating. Success, arrivals, timeouts, times
+    and paths count the covey vehicles only; a covey vehicle that hits an intruder collided."""
     starts = np.asarray(starts, dtype=np.float64)
     goals = np.asarray(goals, dtype=np.float64)
     n = starts.shape[0]
+    nc = np.zeros(n, bool) if non_cooperative is None else np.asarray(non_cooperative, bool)
+    own_speed = np.full(n, cfg.speed) if speed_m_s is None else np.asarray(speed_m_s, float)
+    uses_coop = nc.any() and bool(getattr(controller, "uses_cooperative", False))
     fleet = Vehicles(starts, cfg.vehicles, rng)
     pos = fleet.pos_m  # the truth, flown in place
     est, gvel = fleet.est_pos_m, fleet.ground_vel_m_s
@@ -122,8 +133,8 @@ def run(
     timed_out = np.zeros(n, bool)
     path = np.zeros(n)
     acc_sum, acc_n = 0.0, 0
-    min_sep = est_min_sep = np.inf
-    t_limit = cfg.time_factor * trip / cfg.speed
+    min_sep = est_min_sep = intruder_min_sep = np.inf
+    t_limit = cfg.time_factor * trip / own_speed
     # what receiver i last got from sender j
     k_pos, k_vel, k_head = (
         np.broadcast_to(est, (n, n, 2)).copy(),
@@ -176,23 +187,30 @@ def run(
                 nbr_pos = k_pos + k_vel * (t - k_rx)[..., None]
         valid = active[None, :] & active[:, None] & ~eye
         idx = np.flatnonzero(active)
+        ctl = idx[~nc[idx]]  # the covey vehicles: intruders are never steered
         v = np.zeros((n, 2))
         extra = {}
         if uses_sigma:
-            extra = {"pos_sigma_m": sigma[idx], "nbr_pos_sigma_m": nbr_sig[idx]}
-        v[idx] = controller(
-            idx,
-            t,
-            est[idx],
-            gvel[idx],
-            heading[idx],
-            goals[idx],
-            nbr_pos[idx],
-            nbr_vel[idx],
-            nbr_head[idx],
-            valid[idx],
-            **extra,
-        )
+            extra = {"pos_sigma_m": sigma[ctl], "nbr_pos_sigma_m": nbr_sig[ctl]}
+        if uses_coop:
+            extra["nbr_cooperative"] = np.broadcast_to(~nc, (ctl.size, n))
+        if ctl.size:
+            v[ctl] = controller(
+                ctl,
+                t,
+                est[ctl],
+                gvel[ctl],
+                heading[ctl],
+                goals[ctl],
+                nbr_pos[ctl],
+                nbr_vel[ctl],
+                nbr_head[ctl],
+                valid[ctl],
+                **extra,
+            )
+        straight = idx[nc[idx]]
+        for i in straight:  # each at its own speed, on the truth (it knows where it goes)
+            v[i] = straight_velocity(pos[i], goals[i], float(own_speed[i]), cfg.dt_s)
         acc = np.hypot(*(v[idx] - gvel[idx]).T) / cfg.dt_s
         acc_sum += float(acc.sum())
         acc_n += idx.size
@@ -219,6 +237,10 @@ def run(
             de = d if cfg.vehicles.drift_m == 0 else _pair_dist(est[idx])
             est_min_sep = min(est_min_sep, float(de.min()))
             hit = (d < cfg.collide_m).any(axis=1)
+            if nc.any():  # covey vehicle to intruder, true positions
+                m = nc[idx]
+                if m.any() and (~m).any():
+                    intruder_min_sep = min(intruder_min_sep, float(d[~m][:, m].min()))
             est_collided[idx[(de < cfg.collide_m).any(axis=1)]] = True
         else:
             hit = np.zeros(idx.size, bool)
@@ -229,16 +251,18 @@ def run(
         late = (t >= t_limit[idx]) & ~arrived & ~hit
         timed_out[idx[late]] = True
         active[idx[hit | arrived | late]] = False
-    ok = ~np.isnan(arrive_t)
+    ok = ~np.isnan(arrive_t) & ~nc
+    coop = ~nc
     out = {
-        "n": n,
-        "success": bool(ok.all() and not collided.any()),
+        "n": int(coop.sum()),
+        "success": bool(ok.sum() == coop.sum() and not collided[coop].any()),
         "arrived": int(ok.sum()),
-        "collisions": int(collided.sum()),
-        "timeouts": int(timed_out.sum()),
+        "collisions": int(collided[coop].sum()),
+        "timeouts": int(timed_out[coop].sum()),
         "min_sep": float(min_sep) if np.isfinite(min_sep) else None,
-        "est_collisions": int(est_collided.sum()),
+        "est_collisions": int(est_collided[coop].sum()),
         "est_min_sep": float(est_min_sep) if np.isfinite(est_min_sep) else None,
+        "intruder_min_sep": float(intruder_min_sep) if np.isfinite(intruder_min_sep) else None,
         "extra_time": float(np.mean(arrive_t[ok] * cfg.speed / trip[ok])) if ok.any() else None,
         "path_ratio": float(np.mean(path[ok] / trip[ok])) if ok.any() else None,
         "mean_acc": acc_sum / max(acc_n, 1),

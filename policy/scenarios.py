@@ -65,6 +65,71 @@ def random_large(rng: np.random.Generator, n: int, min_gap_m: float = 10.0):
     return starts, goals
 
 
+INTRUDER_SPEED_RATIOS = (1.0, 1.5, 2.0)
+"""Intruder speeds the `intruder` suite flies, in multiples of the fleet's cruise speed."""
+
+
+def _with_intruder(starts, goals, cross_from, cross_to, speed, meet_s: float):
+    """Append one intruder that flies straight from the direction `cross_from` -> `cross_to`
+    (through their midpoint) at `speed`, timed to pass the midpoint `meet_s` after the start,
+    when the fleet's straight paths meet there. Returns starts, goals, non_cooperative, speeds."""
+    a, b = np.asarray(cross_from, float), np.asarray(cross_to, float)
+    mid = (a + b) / 2.0
+    u = (b - a) / np.linalg.norm(b - a)
+    start = mid - u * speed * meet_s
+    goal = mid + u * speed * meet_s
+    n = len(starts)
+    nc = np.zeros(n + 1, bool)
+    nc[n] = True
+    speeds = np.ones(n + 1)
+    speeds[n] = speed
+    return (
+        np.vstack([starts, start]),
+        np.vstack([goals, goal]),
+        nc,
+        speeds,
+    )
+
+
+def intruder_cases(rng: np.random.Generator, speed_ratio: float, quick: bool = False):
+    """A vehicle that does not avoid anyone flies straight through the fleet at `speed_ratio`
+    x its cruise speed (1 m/s): [(name, starts, goals, non_cooperative, speeds)]. It is on the
+    link from the start, at least 20 s before it meets anyone (heard at least 2 s before the
+    conflict on any link the evaluation models). Head-on and crossing one vehicle, through a
+    overtaking one from behind on its line (faster intruders only), through a block of 10 flying
+    together, through forced conflicts, through a circle swap."""
+    r = speed_ratio
+    out = []
+    one_s, one_g = np.array([[0.0, -20.0]]), np.array([[0.0, 20.0]])
+    out.append(("head-on", *_with_intruder(one_s, one_g, (0.0, 20.0), (0.0, -20.0), r, 20.0)))
+    out.append(("crossing", *_with_intruder(one_s, one_g, (-20.0, 0.0), (20.0, 0.0), r, 20.0)))
+    if r > 1.0:  # caught up from behind on its own line, mid-way (at 1x it never is)
+        out.append(("overtake", *_with_intruder(one_s, one_g, (0.0, -1.0), (0.0, 1.0), r, 20.0)))
+    block = np.array([(n, e) for n in (-3.0, 3.0) for e in (-12.0, -6.0, 0.0, 6.0, 12.0)])
+    starts, goals = block + (0.0, -25.0), block + (0.0, 25.0)
+    out.append(("block-10", *_with_intruder(starts, goals, (-25.0, 0.0), (25.0, 0.0), r, 25.0)))
+    if quick:
+        return out
+    for s, n in enumerate((4, 6, 8)):
+        starts, goals = random_conflict(rng, n)
+        ends = np.vstack([starts, goals])
+        for _ in range(
+            1000
+        ):  # its start and goal clear of the fleet's (>= 8 m): no conflict at t=0
+            a = rng.uniform(0, 2 * math.pi)
+            u = np.array([math.cos(a), math.sin(a)])
+            mine = np.vstack([-u * 25.0 * r, u * 25.0 * r])
+            if np.hypot(*(mine[:, None] - ends[None]).transpose(2, 0, 1)).min() >= 8.0:
+                break
+        d = u * 25.0
+        out.append((f"conflict-{n}-s{s}", *_with_intruder(starts, goals, -d, d, r, 25.0)))
+    starts, goals = antipodal_circle(8)
+    rad = float(np.hypot(*starts[0]))
+    cross = (-rad, rad * 0.3), (rad, -rad * 0.3)
+    out.append(("circle-8", *_with_intruder(starts, goals, *cross, r, rad)))
+    return out
+
+
 def _box(n0: float, e0: float, n1: float, e1: float) -> np.ndarray:
     return np.array([[n0, e0], [n1, e0], [n1, e1], [n0, e1]], float)
 

@@ -18,6 +18,7 @@ import pytest
 
 from agent.backends.base import Traffic
 from agent.backends.relay import RelayBackend, RelayConfig
+from comms.adsb import covey_icao
 from comms.geo import GeoOrigin
 from firmware.sitl.onboard import PolicyGuidance
 from firmware.sitl.process import REPO_ROOT, SitlProcess, free_udp_port
@@ -84,8 +85,11 @@ class Repulsion:
 def entry(
     icao: int, n_m: float, e_m: float, d_m: float, t_s: float, heading_rad=0.0, speed_m_s=0.0
 ) -> TrafficEntry:
+    """Covey vehicle `icao` as the relay reports it (covey's marking: comms/adsb.py)."""
     lat, lon, alt = HOME.to_global(n_m, e_m, d_m)
-    return TrafficEntry(icao, lat, lon, alt, heading_rad, speed_m_s, 0.0, f"COVEY{icao}", t_s)
+    return TrafficEntry(
+        covey_icao(icao), lat, lon, alt, heading_rad, speed_m_s, 0.0, f"CVY{icao}", t_s
+    )
 
 
 def airborne(guidance) -> Vehicle:

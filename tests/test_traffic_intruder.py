@@ -61,19 +61,38 @@ def test_table_is_bounded_expires_and_merges_as_non_cooperative() -> None:
     assert merged.ids == tuple(TRAFFIC_ID_BASE + i for i in (2, 3, 4))
     assert merged.pos_ned_m[0] == pytest.approx([2.15, 2.0, -5.0])  # dead-reckoned 1.15 s
     assert merged.stale_ids == (TRAFFIC_ID_BASE + 2, TRAFFIC_ID_BASE + 3)
-    if hasattr(merged, "cooperative"):
-        assert not np.any(merged.cooperative)
+    assert merged.cooperative is not None and not merged.cooperative.any()
     assert (
         len(merge_traffic(table, NeighbourTable(1).snapshot(1.5), 1.5, np.array([0, 0, -50]))) == 0
     )
     assert table.tracks(3.0) == []
 
 
+FASTER = pytest.mark.xfail(
+    strict=True,
+    reason="the separation filter (policy.safety, ORCA) has a hovering vehicle flee along the "
+    "line of a faster non-cooperative vehicle that comes at it dead-on, instead of stepping aside: "
+    "it is caught (0.04 m at 1.5 m/s). Remove this mark once the filter steps aside",
+)
+
+
 @pytest.mark.e2e
-@pytest.mark.parametrize("speed_m_s", [1.0])
-def test_fleet_keeps_clear_of_an_intruder_on_true_positions(speed_m_s: float) -> None:
-    """A hovering 2 x 2 block, 8 m apart; an intruder flies straight through its middle and
-    right at one of them. Reports cross a real mesh at 5 Hz; time is injected."""
+@pytest.mark.parametrize(
+    ("speed_m_s", "offset_m"),
+    [
+        (1.0, 0.0),
+        pytest.param(1.5, 0.0, marks=FASTER),
+        pytest.param(2.0, 0.0, marks=FASTER),
+        (1.5, 1.0),
+        (2.0, 1.0),
+    ],
+)
+def test_fleet_keeps_clear_of_an_intruder_on_true_positions(
+    speed_m_s: float, offset_m: float
+) -> None:
+    """A hovering 2 x 2 block, 8 m apart; an intruder flies straight through it, right at two
+    of them (or `offset_m` beside their line). Reports cross a real mesh at 5 Hz; time is
+    injected."""
     clock = [0.0]
     port = free_tcp_port()
     cfg = FleetSimConfig(
@@ -81,8 +100,8 @@ def test_fleet_keeps_clear_of_an_intruder_on_true_positions(speed_m_s: float) ->
     )
     icfg = IntruderConfig(
         mesh=embedded_peer(port, fleet="intr"),
-        from_ne_m=(-30.0, 0.0),
-        to_ne_m=(40.0, 0.0),
+        from_ne_m=(-30.0, offset_m),
+        to_ne_m=(40.0, offset_m),
         speed_m_s=speed_m_s,
         alt_m=ALT_M,
     )
@@ -118,7 +137,7 @@ def test_fleet_keeps_clear_of_an_intruder_on_true_positions(speed_m_s: float) ->
             closest["intruder"] = min(
                 closest["intruder"], float(np.hypot(*(pos[:, :2] - truth[:2]).T).min())
             )
-    print(f"intruder at {speed_m_s} m/s: closest {closest}")
+    print(f"intruder at {speed_m_s} m/s, {offset_m} m aside: closest {closest}")
     assert closest["intruder"] >= SEPARATION_M and closest["fleet"] >= SEPARATION_M, closest
 
 

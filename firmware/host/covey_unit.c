@@ -75,6 +75,25 @@ static void test_traffic(void)
     CHECK(covey_traffic_put_track(&t, 3u, &b, 0.0f, 2.0e3f) == COVEY_ERR_RANGE && t.n == 2);
     CHECK(covey_traffic_prune(&t, 25u, 10u) == 1 && t.n == 1);
     CHECK(t.id[0] == 2u && t.vel_m_s[0][0] == 1.5f && t.vel_m_s[0][1] == 2.0f);
+
+    /* the traffic classes travel with their reports too; put_track is a covey neighbour */
+    CHECK(t.non_cooperative[0] == 0u && t.manned[0] == 0u);
+    b.stamp_us = 30u;
+    CHECK(covey_traffic_put_classified(&t, 0x3C6444u, &b, 30.0f, 0.0f, 1, 1) == COVEY_OK);
+    b.stamp_us = 40u;
+    CHECK(covey_traffic_put_classified(&t, 0x2000001u, &b, 2.0f, 0.0f, 7, 0) == COVEY_OK);
+    CHECK(covey_traffic_prune(&t, 45u, 15u) == 1 && t.n == 2);
+    CHECK(t.id[0] == 0x3C6444u && t.non_cooperative[0] == 1u && t.manned[0] == 1u);
+    CHECK(t.id[1] == 0x2000001u && t.non_cooperative[1] == 1u && t.manned[1] == 0u);
+    /* covey's marking: block address, CVY callsign, UAV emitter; all three needed */
+    CHECK(covey_traffic_is_covey(COVEY_TRAFFIC_ICAO_BASE | 7u, "CVY7", COVEY_ADSB_EMITTER_UAV));
+    CHECK(!covey_traffic_is_covey(7u, "CVY7", COVEY_ADSB_EMITTER_UAV));
+    CHECK(!covey_traffic_is_covey(COVEY_TRAFFIC_ICAO_BASE | 7u, "DLH7", COVEY_ADSB_EMITTER_UAV));
+    CHECK(!covey_traffic_is_covey(COVEY_TRAFFIC_ICAO_BASE | 7u, "CVY7", 1));
+    CHECK(!covey_traffic_is_covey(COVEY_TRAFFIC_ICAO_BASE | 7u, NULL, COVEY_ADSB_EMITTER_UAV));
+    CHECK(covey_emitter_is_manned(1) && covey_emitter_is_manned(7) && covey_emitter_is_manned(9));
+    CHECK(!covey_emitter_is_manned(0) && !covey_emitter_is_manned(8) &&
+          !covey_emitter_is_manned(COVEY_ADSB_EMITTER_UAV) && !covey_emitter_is_manned(19));
 }
 
 static void test_heading(void)
@@ -182,8 +201,8 @@ static void test_safety_edges(void)
     bad = sc;
     bad.dt_s = NAN;
     CHECK(covey_safety_config_check(&bad) == COVEY_ERR_NONFINITE);
-    covey_track_t me = {0.0f, 0.0f, 1.0f, 0.0f, 0u};
-    covey_track_t other = {6.0f, 0.0f, -1.0f, 0.0f, 0u};
+    covey_track_t me = {0.0f, 0.0f, 1.0f, 0.0f, 0u, 0.0f, 0u};
+    covey_track_t other = {6.0f, 0.0f, -1.0f, 0.0f, 0u, 0.0f, 0u};
     float pref[2] = {1.0f, 0.0f};
     covey_safety_out_t o;
     CHECK(covey_safety_filter(&sc, &me, pref, NULL, 1, &ss, &o) == COVEY_ERR_NULL);
@@ -242,8 +261,8 @@ static void test_safety_edges(void)
     CHECK(covey_guidance_step(&gc, &h, &own, own_v, &g, &nb, nb_v, 1, 0u, &gs, &go) == COVEY_OK);
     CHECK(go.decided == 1 && go.straight == 0);
     covey_sparse_out_t so;
-    const covey_track_t me_s = {0.0f, 0.0f, 1.0f, 0.0f, 0u};
-    const covey_track_t cross = {12.0f, -10.0f, 0.0f, 1.0f, 0u};
+    const covey_track_t me_s = {0.0f, 0.0f, 1.0f, 0.0f, 0u, 0.0f, 0u};
+    const covey_track_t cross = {12.0f, -10.0f, 0.0f, 1.0f, 0u, 0.0f, 0u};
     const covey_goal_t far = {40.0f, 0.0f};
     const float asked[2] = {0.6f, 0.6f};
     CHECK(covey_sparse_choose(&gc.safety, &me_s, &far, asked, &cross, 1, &gs.safety, &so) == COVEY_OK);

@@ -15,6 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from comms import adsb
 from comms.geo import GeoOrigin
 from firmware.sitl.traffic import TrafficStore
 
@@ -97,10 +98,11 @@ class PolicyGuidance:
         """Ticks on which the policy decided (C tick: at its trained period)."""
         self.filtered = 0
         """Ticks on which the C filter changed the held velocity."""
+        self.cooperative = np.zeros(0, bool)
 
     def neighbours(self, now_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fresh traffic in the vehicle's local frame: positions (k,2), velocities (k,2), headings (k,)."""
-        pos, vel, hdg = [], [], []
+        pos, vel, hdg, coop = [], [], [], []
         for e in self.traffic.fresh(now_s):
             if math.isnan(e.alt_m):
                 continue
@@ -112,6 +114,10 @@ class PolicyGuidance:
             pos.append(np.array([n, east]) + v * age_s)
             vel.append(v)
             hdg.append(course)
+            coop.append(adsb.is_covey_report(e.icao_address, e.callsign, e.emitter_type))
+        self.cooperative = np.array(coop, dtype=bool)
+        """The last `neighbours` call's cooperative flags: covey's own reports (comms/adsb.py);
+        any other traffic does not cooperate, as the PX4 module classifies it."""
         return (
             np.array(pos, dtype=float).reshape(-1, 2),
             np.array(vel, dtype=float).reshape(-1, 2),
@@ -143,6 +149,7 @@ class PolicyGuidance:
                 nbr_vel,
                 nbr_hdg,
                 now_s,
+                nbr_cooperative=None if self.cooperative.all() else self.cooperative,
             )
             if r.status != "ok":
                 log.warning("onboard guidance fault: %s", r.status)

@@ -7,6 +7,8 @@
 
 #include <px4_platform_common/log.h>
 
+#include <string.h>
+
 using namespace time_literals;
 
 CoveyGuidance::CoveyGuidance() :
@@ -38,6 +40,9 @@ void CoveyGuidance::update_parameters()
 	_guidance.policy.separation_m = covey_told_separation_m(_config.separation_m, _guidance.safety_filter,
 					_param_policy_separation_m.get());
 	_guidance.safety.dt_s = 1.f / math::constrain(_param_rate_hz.get(), 1.f, 50.f);
+	// the berth kept from traffic that does not cooperate (0: CVY_SEP_M); the filter takes the
+	// whole correction for it (covey_safety.h)
+	_guidance.safety.non_cooperative_radius_m = math::max(_param_nc_separation_m.get(), 0.f);
 	covey_hold_reset(&_hold); // decide afresh with the new parameters
 	const float rate_hz = math::constrain(_param_rate_hz.get(), 1.f, 50.f);
 	ScheduleOnInterval((uint32_t)(1e6f / rate_hz));
@@ -65,8 +70,14 @@ void CoveyGuidance::ingest_traffic()
 		// velocity over ground from course and horizontal speed (the filter needs it)
 		const float speed_m_s = (report.flags & transponder_report_s::PX4_ADSB_FLAGS_VALID_VELOCITY)
 					? report.hor_velocity : 0.f;
-		covey_traffic_put_track(&_traffic, report.icao_address, &v, speed_m_s * cosf(report.heading),
-					speed_m_s * sinf(report.heading)); // refuses non-finite/out of range
+		// covey's own neighbours carry its marking (covey_traffic.h); any other report (a real
+		// ADS-B receiver, a station's intruder forwarded by the relay) does not cooperate
+		char callsign[sizeof(report.callsign) + 1] {};
+		memcpy(callsign, report.callsign, sizeof(report.callsign));
+		const int32_t ours = covey_traffic_is_covey(report.icao_address, callsign, report.emitter_type);
+		covey_traffic_put_classified(&_traffic, report.icao_address, &v, speed_m_s * cosf(report.heading),
+					     speed_m_s * sinf(report.heading), !ours,
+					     covey_emitter_is_manned(report.emitter_type)); // refuses non-finite/out of range
 	}
 }
 
@@ -131,8 +142,9 @@ void CoveyGuidance::Run()
 		const float own_vel_m_s[2] {_local_position.vx, _local_position.vy};
 		// decides at the trained period (the held velocity in between), filters every tick
 		covey_guidance_out_t out{};
-		_last_status = covey_guidance_step(&_guidance, &_hold, &own, own_vel_m_s, &_goal, _traffic.report,
-						   &_traffic.vel_m_s[0][0], _traffic.n, now, &_scratch, &out);
+		_last_status = covey_guidance_step_sky(&_guidance, &_hold, &own, own_vel_m_s, 0.f, &_goal,
+						       _traffic.report, &_traffic.vel_m_s[0][0], nullptr,
+						       _traffic.non_cooperative, _traffic.n, now, &_scratch, &out);
 		_ticks++;
 		_faults[math::min((int)_last_status, 4)]++;
 

@@ -95,6 +95,7 @@ private:
 		(ParamFloat<px4::params::CVY_NBR_AGE>) _param_nbr_age_s,
 		(ParamFloat<px4::params::CVY_OWN_AGE>) _param_own_age_s,
 		(ParamInt<px4::params::CVY_MAX_NBR>) _param_max_neighbours,
-		(ParamInt<px4::params::CVY_OWN_ICAO>) _param_own_icao
+		(ParamInt<px4::params::CVY_OWN_ICAO>) _param_own_icao,
+		(ParamFloat<px4::params::CVY_NC_SEP_M>) _param_nc_separation_m
 	)
 };

@@ -1,0 +1,93 @@
+"""Intruders: a vehicle that does not cooperate flies straight through the fleet (covey eval's
+`intruder` suite: head-on, crossing, through a block of 10, through forced conflicts and a
+circle swap, at 1x, 1.5x and 2x the fleet's speed), on the perfect and the 3 Hz lossy link.
+
+Compared: the controllers told which vehicle does not cooperate (the filter takes the whole
+correction for it) against the same controllers taking it for a covey vehicle (the reciprocal
+half, before issue 35); ideal and realistic vehicles; the non-cooperative berth at the
+separation and at 4 m. Collisions are judged on true positions, below 3 m.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from policy.eval import EvalConfig
+from policy.eval import main as eval_main
+
+RESULTS = Path(__file__).resolve().parent / "results"
+CONTROLLERS = ("policy+filter", "orca")
+VARIANTS = {
+    "marked": {},
+    "unmarked": {"mark_non_cooperative": False},
+    "marked-berth-4m": {"non_cooperative_separation_m": 4.0},
+    "marked-realistic": {"vehicles": "realistic"},
+}
+
+
+def _rows(result: dict) -> list[dict]:
+    keep = ("case", "link", "controller", "collisions", "min_sep", "intruder_min_sep", "success")
+    return [{k: r.get(k) for k in keep} for r in result["runs"]]
+
+
+def main(quick: bool = False) -> dict:
+    out: dict = {"controllers": list(CONTROLLERS), "variants": {}}
+    for name, overrides in VARIANTS.items():
+        if quick and name != "marked":
+            continue
+        cfg = EvalConfig(
+            out=f"/tmp/covey-bench-intruder/{name}",
+            suites=("intruder",),
+            controllers=CONTROLLERS,
+            figures=False,
+            progress=False,
+            quick=quick,
+            **overrides,
+        )
+        t0 = time.perf_counter()
+        result = eval_main(cfg)
+        runs = _rows(result)
+        summary = {}
+        for link in cfg.links:
+            for ctrl in CONTROLLERS:
+                mine = [r for r in runs if r["link"] == link and r["controller"] == ctrl]
+                by_ratio = {}
+                for ratio in ("1x", "1.5x", "2x"):
+                    rs = [r for r in mine if r["case"].startswith(f"intruder-{ratio}-")]
+                    by_ratio[ratio] = {
+                        "cases": len(rs),
+                        "collision_cases": sum(1 for r in rs if r["collisions"]),
+                        "closest_to_intruder_m": min(
+                            (r["intruder_min_sep"] for r in rs if r["intruder_min_sep"]),
+                            default=None,
+                        ),
+                        "closest_m": min((r["min_sep"] for r in rs if r["min_sep"]), default=None),
+                    }
+                summary[f"{link}/{ctrl}"] = by_ratio
+        out["variants"][name] = {
+            "config": overrides,
+            "seconds": round(time.perf_counter() - t0, 1),
+            "summary": summary,
+            "collided": [r for r in runs if r["collisions"]],
+        }
+    return out
+
+
+if __name__ == "__main__":
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    a = ap.parse_args()
+    res = main(a.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "intruder.json").write_text(json.dumps(res, indent=1))
+    for variant, v in res["variants"].items():
+        for key, by_ratio in v["summary"].items():
+            cells = "  ".join(
+                f"{r}: {s['collision_cases']}/{s['cases']} ({s['closest_to_intruder_m'] or 0:.2f} m)"
+                for r, s in by_ratio.items()
+            )
+            print(f"{variant:18s} {key:24s} {cells}")
