@@ -177,3 +177,36 @@ def test_keyed_members_take_only_fresh_reports_signed_by_a_roster_member(fleet, 
         with pytest.raises(ValueError, match="needs that member's key"):
             publish_report(gcs, dataclasses.replace(report, reporter_id=9))
     assert rx.refused == {"unsigned": 1, "forged or unknown signer": 1, "stale": 1}
+
+
+@pytest.mark.e2e
+def test_shipped_router_acls_let_stations_and_vehicles_report_traffic_and_no_one_else(
+    tmp_path,
+) -> None:
+    """Through the shipped usrpwd router (comms/zenoh_configs): station gcs-1 reports on its
+    traffic key, vehicle 2 on its own; vehicle 2 may not put on a station's key."""
+    from test_trust_mesh import Setup
+
+    from comms.mesh import Mesh
+
+    setup = Setup("usrpwd", tmp_path)
+    report = TrafficReport(
+        Role.STATION, 1, 0x2000001, TrafficSource.SIM, 1, (0.0, 5.0, -5.0), (2.0, 0.0, 0.0)
+    )
+    table = TrafficTable()
+    got: list[TrafficReport] = []
+    with (
+        Mesh(setup.router()),
+        Mesh(setup.client("vehicle-1")) as v1,
+        TrafficListener(v1, table, time.monotonic, lambda _t, r: got.append(r)),
+        Mesh(setup.client("gcs-1")) as gcs,
+        Mesh(setup.client("vehicle-2")) as v2,
+    ):
+        time.sleep(0.5)
+        publish_report(v2, dataclasses.replace(report, track_id=66))  # posing as station 1
+        publish_report(gcs, report)
+        vehicle_report = dataclasses.replace(report, reporter_role=Role.VEHICLE, reporter_id=2)
+        publish_report(v2, dataclasses.replace(vehicle_report, track_id=77))
+        assert wait_until(lambda: {r.track_id for r in got} >= {0x2000001, 77}, 10), got
+        time.sleep(0.3)
+    assert 66 not in {r.track_id for r in got}, "a vehicle put on a station's traffic key"
