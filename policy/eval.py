@@ -82,7 +82,8 @@ class EvalConfig:
     """Show a tqdm bar."""
     suites: tuple = field(default=("circle", "conflict", "large"))
     """Scenario suites to run: circle, conflict, large, intruder (a vehicle that does not
-    cooperate flies straight through at 1x, 1.5x and 2x the fleet's speed)."""
+    cooperate flies straight through at 1x, 1.5x and 2x the fleet's speed), zones (keep-out
+    zones, routed gotos: policy/zone_eval.py)."""
     vehicles: str = "ideal"
     """How the vehicles fly (policy.pointmass.VehicleModel): ideal (exactly what is commanded,
     exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, GNSS estimate
@@ -123,6 +124,9 @@ def cases(cfg: EvalConfig):
         ]
     if "large" in cfg.suites:
         out += [("large", f"large-{n}-s{s}", *scenarios.random_large(rng, n)) for n, s in large]
+    if "zones" in cfg.suites:  # keep-out zones (policy/zone_eval.py)
+        for name, starts, goals, zones_m in scenarios.zone_scenes(rng, cfg.quick):
+            out.append(("zones", f"zones-{name}", starts, goals, {"zones_m": zones_m}))
     if "intruder" in cfg.suites:
         for ratio in scenarios.INTRUDER_SPEED_RATIOS:
             for name, starts, goals, nc, speeds in scenarios.intruder_cases(rng, ratio, cfg.quick):
@@ -194,6 +198,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
         )
 
     orca.uses_sigma = True
+    orca.safety_cfg = safety_cfg  # the zone suite filters with the same config
     orca.uses_cooperative = True
     out["orca"] = orca
     out["straight"] = evalsim.straight_line
@@ -326,6 +331,15 @@ def summarise(rows: list) -> list:
                 "extra_time": mean("extra_time"),
                 "path_ratio": mean("path_ratio"),
                 "mean_acc": mean("mean_acc"),
+                **(
+                    {
+                        "zone_entries": int(sum(r["zone_entries"] for r in rs)),
+                        "min_zone_m": float(min(r["min_zone_m"] for r in rs)),
+                        "route_time": mean("route_time"),
+                    }
+                    if all("zone_entries" in r for r in rs)
+                    else {}
+                ),
             }
         )
     return out
@@ -348,11 +362,13 @@ def markdown(summary: list) -> str:
         "path_ratio",
         "mean_acc",
     ]
+    if any("zone_entries" in s for s in summary):  # the zones suite's counts
+        cols += ["zone_entries", "min_zone_m", "route_time"]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for s in sorted(summary, key=lambda s: (s["suite"], s["link"], s["controller"])):
         cells = []
         for c in cols:
-            v = s[c]
+            v = s.get(c)
             cells.append("-" if v is None else f"{v:.3g}" if isinstance(v, float) else str(v))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -376,7 +392,7 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     vehicles = VehicleModel.named(cfg.vehicles)
     all_cases = cases(cfg)
-    rows, tracks = [], {}
+    rows, tracks, zone_tracks = [], {}, {}
     jobs = [(c, ln, name) for c in all_cases for ln in cfg.links for name in ctrls]
     for (suite, case, starts, goals, *options), link, name in tqdm(
         jobs, disable=not cfg.progress, unit="run"
@@ -393,7 +409,18 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
         if not cfg.mark_non_cooperative and getattr(ctrls[name], "uses_cooperative", False):
             ctrls[name].uses_cooperative = False  # intruders taken for covey vehicles
         opts = dict(options[0]) if options else {}
-        r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng, **opts)
+        zones_m = opts.pop("zones_m", None)
+        if zones_m is not None:
+            from policy import zone_eval
+
+            r = zone_eval.run(
+                name, starts, goals, zones_m, ctrls[name], links[link], sim_cfg, rng, **opts
+            )
+            tr, gl = r.pop("tracks"), r.pop("goals")
+            if cfg.figures and link == "perfect" and name in ("policy+filter", "c+filter"):
+                zone_tracks.setdefault(name, []).append((case, tr, gl, zones_m))
+        else:
+            r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng, **opts)
         if record:
             tracks[(case, name)] = (r.pop("tracks"), r.pop("goals"))
         rows.append({"suite": suite, "case": case, "link": link, "controller": name, **r})
@@ -406,6 +433,11 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
 
         for (case, name), (tr, goals) in tracks.items():
             figures.plot_tracks(tr, goals, f"{case} / {name}", out / f"tracks_{case}_{name}.png")
+        for name, flown in zone_tracks.items():
+            from policy import zone_eval
+
+            panels = [(f"{case} / {name}", tr, gl, z) for case, tr, gl, z in flown[:4]]
+            zone_eval.plot_scenes(panels, out / f"tracks_zones_{name}.png")
         from policy.runtime import GuidancePolicy
 
         pol = GuidancePolicy.load(cfg.weights, safety_filter=False)
@@ -478,8 +510,10 @@ def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = N
         ap.error(f"--links takes perfect and/or degraded, got {','.join(a.links)!r}")
     if a.vehicles not in VEHICLE_MODELS:
         ap.error(f"--vehicles takes {' or '.join(VEHICLE_MODELS)}, got {a.vehicles!r}")
-    if not set(a.suites) <= {"circle", "conflict", "large", "intruder"}:
-        ap.error(f"--suites takes circle, conflict, large, intruder, got {','.join(a.suites)!r}")
+    if not set(a.suites) <= {"circle", "conflict", "large", "intruder", "zones"}:
+        ap.error(
+            f"--suites takes circle, conflict, large, intruder, zones, got {','.join(a.suites)!r}"
+        )
     cfg = config_from_flags(EvalConfig, a)
     result = main(cfg, extra_controllers)
     print(markdown(result["summary"]))
