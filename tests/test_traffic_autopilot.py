@@ -8,6 +8,7 @@ tracks in the fleet frame, and never take covey's own reports for traffic nor ec
 
 from __future__ import annotations
 
+import contextlib
 import math
 import socket
 import time
@@ -151,3 +152,83 @@ def test_relay_forwards_real_traffic_and_never_echoes_one_as_the_other() -> None
         relay.send_traffic([Traffic(**{**echo_back.__dict__, "cooperative": False})])
         assert CESSNA not in relay._sent_traffic_s
     rx.close()
+
+
+def test_a_relay_agent_reports_what_its_autopilot_hears_and_forwards_the_mesh_intruder(
+    procs,
+) -> None:
+    """Real processes: the emulator (an ADS-B receiver on one link, an observer on another)
+    behind `covey agent --vehicle relay:...` on a Zenoh mesh. The Cessna its receiver hears
+    reaches the mesh as vehicle 2's signed-in-keyed-mode report; a station's intruder reaches
+    the autopilot as traffic (callsign TRF), and its echo never comes back as vehicle 2's report."""
+    import dataclasses
+
+    from test_backend_relay import Observer
+
+    from comms.mesh import Mesh
+    from comms.schema import Role, TrafficFlag, TrafficReport
+    from comms.session import embedded_router, free_tcp_port
+    from comms.traffic import TrafficListener, TrafficTable, publish_report
+
+    port, relay_port, rx_port = free_tcp_port(), free_udp_port(), free_udp_port()
+    rx, obs = Receiver(rx_port), Observer()
+    home = f"{HOME.lat_deg},{HOME.lon_deg},{HOME.alt_m}"
+    origin = f"{ORIGIN.lat_deg},{ORIGIN.lon_deg},{ORIGIN.alt_m}"
+    got: list[TrafficReport] = []
+    with Mesh(embedded_router(port)) as mesh:
+        mesh.declare_gcs(1)
+        listener = TrafficListener(
+            mesh, TrafficTable(), time.monotonic, lambda _t, r: got.append(r)
+        )
+        procs.start(
+            "-m",
+            "firmware.sitl",
+            "--id",
+            "2",
+            "--connect",
+            f"udpout:127.0.0.1:{relay_port}",
+            "--connect",
+            f"udpout:127.0.0.1:{obs.port}",
+            "--listen",
+            f"udpin:127.0.0.1:{rx_port}",
+            "--home",
+            home,
+        )
+        procs.start(
+            "-m",
+            "covey_cli",
+            "agent",
+            "--id",
+            "2",
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+            "--vehicle",
+            f"relay:udpin:127.0.0.1:{relay_port}",
+            "--origin",
+            origin,
+            "--no-gcs-failsafe",
+        )
+        assert mesh.presence().wait_for(lambda v, _g: 2 in v, timeout_s=60)
+        intruder = TrafficReport(
+            Role.STATION, 1, 0x2000001, TrafficSource.SIM, 0, (0.0, 8.0, -5.0), (0.0, -2.0, 0.0)
+        )
+        end = time.monotonic() + 30
+        forwarded = None
+        while time.monotonic() < end and not (forwarded and any(r.track_id == CESSNA for r in got)):
+            rx.send(CESSNA, (40.0, -10.0, -60.0), (-30.0, 40.0), "DEGAB", 1)
+            publish_report(mesh, dataclasses.replace(intruder, stamp_ns=time.time_ns()))
+            if forwarded is None:
+                with contextlib.suppress(AssertionError):
+                    forwarded = obs.adsb(lambda m: m.ICAO_address == 0x2000001, timeout_s=0.3)
+            time.sleep(0.2)
+        time.sleep(2.0)  # time for an echo to come back, were it going to
+        listener.close()
+    rx.close()
+    obs.close()
+    mine = [r for r in got if r.reporter_role is Role.VEHICLE]
+    cessna = [r for r in mine if r.track_id == CESSNA]
+    assert cessna and cessna[-1].reporter_id == 2 and cessna[-1].flags & TrafficFlag.MANNED
+    assert cessna[-1].pos_ned_m == pytest.approx((40.0, -10.0, -60.0), abs=0.5)
+    assert forwarded is not None and forwarded.callsign.startswith("TRF")
+    assert forwarded.emitter_type == 0  # unmanned intruder: no emitter information
+    assert {r.track_id for r in mine} == {CESSNA}, "the forwarded intruder came back as traffic"

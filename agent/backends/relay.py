@@ -118,7 +118,13 @@ class RelayConfig:
         LinkUrl.parse(self.connection)  # raises ValueError with the expected form
         if self.attempts < 1:
             raise ValueError(f"attempts must be at least 1, got {self.attempts}")
-        for name in ("ack_timeout_s", "connect_timeout_s", "link_timeout_s", "heartbeat_hz"):
+        for name in (
+            "ack_timeout_s",
+            "connect_timeout_s",
+            "link_timeout_s",
+            "heartbeat_hz",
+            "echo_window_s",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
