@@ -16,6 +16,8 @@ typedef covey_real_t real_t;
 #define R_SQRT sqrtf
 #endif
 #define ZONES_EPS R(1.0e-9) /* policy/zone_lines.py EPS */
+#define ZONE_RECOVER_S R(1.0)     /* policy/zone_lines.py ZONE_RECOVER_S */
+#define ZONE_MAX_PUSH_SHARE R(0.5) /* ZONE_MAX_PUSH_SHARE */
 
 /* det(a, b) = a_x b_y - a_y b_x */
 static real_t det2(real_t ax, real_t ay, real_t bx, real_t by)
@@ -157,18 +159,27 @@ static void put(covey_halfplane_t *l, real_t px, real_t py, real_t dx, real_t dy
     l->dir[1] = dy;
 }
 
+/* The speed away from an edge found at d < r: (r - d) / ZONE_RECOVER_S, at most cap. */
+static real_t push(real_t r, real_t d, real_t cap)
+{
+    const real_t k = (r - d) / ZONE_RECOVER_S;
+    return k > cap ? cap : k;
+}
+
 int32_t covey_zones_lines(const covey_zones_t *z, const covey_track_t *own, float max_speed_m_s,
-                          covey_halfplane_t *lines)
+                          float pad_m, covey_halfplane_t *lines)
 {
     if (z == NULL || own == NULL || lines == NULL) {
         return -1;
     }
     const real_t px = R(own->pos_n_m), py = R(own->pos_e_m);
     const real_t vx = R(own->vel_n_m_s), vy = R(own->vel_e_m_s);
-    const real_t r = R(z->radius_m);
+    const real_t pad = pad_m >= 0.0f ? R(pad_m) : R(0.0);
+    const real_t r = R(z->radius_m) + pad;
     const real_t r_sq = r * r;
     const real_t inv_tau = R(1.0) / R(z->time_horizon_s);
-    const real_t reach = R(z->time_horizon_s) * R(max_speed_m_s) + r;
+    const real_t reach = R(z->time_horizon_s) * R(max_speed_m_s) + R(z->radius_m) + pad;
+    const real_t cap = ZONE_MAX_PUSH_SHARE * R(max_speed_m_s);
 
     /* the facing edges within reach, nearest first (a stable insertion sort, ties by index) */
     int32_t edge[COVEY_MAX_ZONE_EDGES];
@@ -231,11 +242,14 @@ int32_t covey_zones_lines(const covey_zones_t *z, const covey_track_t *own, floa
         const real_t lx_ = -r1x - s * ovx, ly_ = -r1y - s * ovy;
         const real_t dist_sq_line = lx_ * lx_ + ly_ * ly_;
         real_t dx, dy;
+        /* within r at distance d: away at s = min((r - d) / recover, cap); the line passes
+         * through s times the unit normal (RVO2's, through 0, only forbids approaching) */
         if (s < R(0.0) && dist_sq1 <= r_sq) {
-            /* within r of the left vertex: do not approach it (a reflex one: its edges do) */
+            /* the left vertex (a reflex one: its edges do it); point -k r1 / |r1| */
             if (z->convex[o1] && dist_sq1 > R(0.0)) {
                 normalize(-r1y, r1x, &dx, &dy);
-                put(&lines[n++], R(0.0), R(0.0), dx, dy);
+                const real_t k = push(r, R_SQRT(dist_sq1), cap);
+                put(&lines[n++], -k * dy, k * dx, dx, dy);
             }
             continue;
         }
@@ -244,13 +258,16 @@ int32_t covey_zones_lines(const covey_zones_t *z, const covey_track_t *own, floa
             if (z->convex[o2] && r2x * z->unit_dir[o2][1] - r2y * z->unit_dir[o2][0] >= R(0.0) &&
                 dist_sq2 > R(0.0)) {
                 normalize(-r2y, r2x, &dx, &dy);
-                put(&lines[n++], R(0.0), R(0.0), dx, dy);
+                const real_t k = push(r, R_SQRT(dist_sq2), cap);
+                put(&lines[n++], -k * dy, k * dx, dx, dy);
             }
             continue;
         }
         if (s >= R(0.0) && s <= R(1.0) && dist_sq_line <= r_sq) {
-            /* within r of the edge itself: no velocity towards it */
-            put(&lines[n++], R(0.0), R(0.0), -z->unit_dir[o1][0], -z->unit_dir[o1][1]);
+            /* the edge itself: along the outward normal (e_y, -e_x) */
+            const real_t ex = z->unit_dir[o1][0], ey = z->unit_dir[o1][1];
+            const real_t k = push(r, R_SQRT(dist_sq_line), cap);
+            put(&lines[n++], k * ey, -k * ex, -ex, -ey);
             continue;
         }
         /* no collision: the legs (tangents to the discs at the ends); seen obliquely, both
@@ -388,7 +405,9 @@ covey_status_t covey_safety_filter_zones(const covey_safety_config_t *cfg,
     if (st != COVEY_OK) { /* the filter reports it, with its zero output */
         return covey_safety_filter(cfg, own, pref_vel_m_s, nbrs, n_nbrs, scratch, out);
     }
-    const int32_t n_hard = covey_zones_lines(zones, own, cfg->max_speed_m_s, scratch->hard);
+    /* zones padded like pairs: sigma_k x the own 1-sigma (policy/safety.py filter_one) */
+    const float pad_m = cfg->sigma_k * own->pos_sigma_m;
+    const int32_t n_hard = covey_zones_lines(zones, own, cfg->max_speed_m_s, pad_m, scratch->hard);
     return covey_safety_filter_hard(cfg, own, pref_vel_m_s, nbrs, n_nbrs, n_hard, scratch, out);
 }
 

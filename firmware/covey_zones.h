@@ -59,15 +59,19 @@ covey_status_t covey_zones_init(covey_zones_t *zones, const float *vertices_ne_m
 /*
  * The obstacle half-planes of `own` (position; its velocity picks each cone's side), at most
  * COVEY_MAX_ZONE_EDGES edges (nearest first, ties by index) within time_horizon_s
- * max_speed_m_s + radius_m that face it. Returns the number of lines written, or -1 on NULL.
- * Inputs are not checked here (covey_safety_filter_zones does).
+ * max_speed_m_s + radius_m + pad_m that face it, keeping radius_m + pad_m (pad_m: sigma_k x
+ * the own position 1-sigma; negative is 0). A vehicle found within that distance of an edge
+ * must move away at (distance short) / 1 s, at most half of max_speed_m_s. Returns the number
+ * of lines written, or -1 on NULL. Inputs are not checked here (covey_safety_filter_zones
+ * does).
  */
 int32_t covey_zones_lines(const covey_zones_t *zones, const covey_track_t *own,
-                          float max_speed_m_s, covey_halfplane_t *lines);
+                          float max_speed_m_s, float pad_m, covey_halfplane_t *lines);
 
 /*
  * covey_safety_filter with the zones' lines as hard constraints (zones NULL: exactly
- * covey_safety_filter). out->n_lines counts the neighbours' and the zones' lines.
+ * covey_safety_filter), padded by cfg->sigma_k x own->pos_sigma_m. out->n_lines counts the
+ * neighbours' and the zones' lines.
  */
 covey_status_t covey_safety_filter_zones(const covey_safety_config_t *cfg,
                                          const covey_zones_t *zones, const covey_track_t *own,

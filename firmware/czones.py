@@ -52,7 +52,13 @@ def bind(lib: ctypes.CDLL) -> None:
         ctypes.c_float,
     ]
     lib.covey_zones_lines.restype = ctypes.c_int32
-    lib.covey_zones_lines.argtypes = [vp, ctypes.POINTER(TrackC), ctypes.c_float, vp]
+    lib.covey_zones_lines.argtypes = [
+        vp,
+        ctypes.POINTER(TrackC),
+        ctypes.c_float,
+        ctypes.c_float,
+        vp,
+    ]
     lib.covey_safety_filter_zones.restype = ctypes.c_int
     lib.covey_safety_filter_zones.argtypes = [
         ctypes.POINTER(SafetyConfigC),
@@ -102,13 +108,17 @@ class CZones:
         if st != 0:
             raise ValueError(f"C zones refused the polygons: {STATUS_NAMES.get(st, st)}")
 
-    def lines(self, pos_m, vel_m_s, max_speed_m_s: float) -> list:
+    def lines(self, pos_m, vel_m_s, max_speed_m_s: float, pad_m: float = 0.0) -> list:
         """covey_zones_lines: [((point_n, point_e), (dir_n, dir_e))], as ZoneSet.lines."""
         p = np.asarray(pos_m, dtype=np.float64).reshape(2)
         v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
         out = (HalfplaneC * 32)()
         n = self._lib.covey_zones_lines(
-            self._buf, ctypes.byref(TrackC(p[0], p[1], v[0], v[1])), float(max_speed_m_s), out
+            self._buf,
+            ctypes.byref(TrackC(p[0], p[1], v[0], v[1])),
+            float(max_speed_m_s),
+            float(pad_m),
+            out,
         )
         return [((ln.point[0], ln.point[1]), (ln.dir[0], ln.dir[1])) for ln in out[:n]]
 

@@ -464,7 +464,11 @@ def filter_one(
                 consts = _line_constants(base, cfg)
             lines.append(_orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts))
     pref = (float(pref_vel_m_s[0]), float(pref_vel_m_s[1]))
-    hard = [] if zones is None else zones.lines(pos_m, vel_m_s, cfg.max_speed_m_s)
+    hard = (
+        []
+        if zones is None
+        else zones.lines(pos_m, vel_m_s, cfg.max_speed_m_s, cfg.sigma_k * float(pos_sigma_m or 0))
+    )
     return solve_lines(hard + lines, pref, cfg.max_speed_m_s, len(hard))
 
 
@@ -542,7 +546,14 @@ def filter_padded(
     hard = (
         [()] * len(pref)
         if zones is None
-        else zones.lines_rows(pos_m, vel_m_s, pref, need, cfg.max_speed_m_s)
+        else zones.lines_rows(
+            pos_m,
+            vel_m_s,
+            pref,
+            need,
+            cfg.max_speed_m_s,
+            None if pos_sigma_m is None else cfg.sigma_k * np.asarray(pos_sigma_m, np.float64),
+        )
     )
     for i in np.flatnonzero(need):
         m = ok[i]

@@ -33,6 +33,11 @@ ZONE_ENTRY_SHARE = 0.5
 """A true position within this share of the separation (1.5 m at 3 m) of a zone is an entry."""
 MAX_ZONE_EDGES = 32
 """Nearest facing edges that get a line per call (COVEY_MAX_ZONE_EDGES in C): bounds the LP."""
+ZONE_RECOVER_S = 1.0
+"""A vehicle found within the radius of an edge (gusts, lag, a jump of its estimate) must move
+away from it at (radius - distance) / ZONE_RECOVER_S, at most ZONE_MAX_PUSH_SHARE of its speed
+limit (RVO2 only forbids moving closer: a gust the loop does not reject would carry it in)."""
+ZONE_MAX_PUSH_SHARE = 0.5
 ZONE_TIME_HORIZON_S = 2.0
 """How far ahead zone edges are looked at (RVO2's timeHorizonObst): shorter than the neighbours'
 4 s, as an edge does not come towards the vehicle; a vehicle flying along an edge is not slowed,
@@ -142,9 +147,9 @@ class ZoneSet:
     def __len__(self) -> int:
         return len(self.points)
 
-    def nearby_edges(self, pos_m, max_speed_m_s: float) -> list[int]:
-        """Edges (by start vertex) that face the vehicle and lie within tau vmax + radius,
-        nearest first (ties by index: the order the C twin sorts in)."""
+    def nearby_edges(self, pos_m, max_speed_m_s: float, pad_m: float = 0.0) -> list[int]:
+        """Edges (by start vertex) that face the vehicle and lie within tau vmax + radius +
+        pad_m, nearest first (ties by index: the order the C twin sorts in)."""
         if not len(self.points):
             return []
         px, py = float(pos_m[0]), float(pos_m[1])
@@ -159,30 +164,45 @@ class ZoneSet:
         s = np.clip((-ax * ex - ay * ey) / ee, 0.0, 1.0)
         dx, dy = ax + s * ex, ay + s * ey
         dist_sq = dx * dx + dy * dy
-        reach = self.time_horizon_s * max_speed_m_s + self.radius_m
+        reach = self.time_horizon_s * max_speed_m_s + self.radius_m + pad_m
         ok = np.flatnonzero((left_of < 0.0) & (dist_sq < reach * reach))
         return ok[np.argsort(dist_sq[ok], kind="stable")][:MAX_ZONE_EDGES].tolist()
 
-    def lines(self, pos_m, vel_m_s, max_speed_m_s: float) -> list:
+    def lines(self, pos_m, vel_m_s, max_speed_m_s: float, pad_m: float = 0.0) -> list:
         """The vehicle's obstacle half-planes [((point_n, point_e), (dir_n, dir_e))] in absolute
-        velocity space: velocities v with det(dir, point - v) <= 0 keep it radius_m off every
-        edge for time_horizon_s. `vel_m_s` (the current velocity) picks the side of each cone."""
-        edges = self.nearby_edges(pos_m, max_speed_m_s)
+        velocity space: velocities v with det(dir, point - v) <= 0 keep it radius_m + pad_m off
+        every edge for time_horizon_s. `vel_m_s` (the current velocity) picks the side of each
+        cone. pad_m: the position estimate's uncertainty times sigma_k (policy.safety: the
+        filter pads zones as it pads pairs, sigma_k x the own 1-sigma)."""
+        if not (pad_m >= 0.0):
+            pad_m = 0.0
+        edges = self.nearby_edges(pos_m, max_speed_m_s, pad_m)
         if not edges:
             return []
-        return obstacle_lines(self, float(pos_m[0]), float(pos_m[1]), vel_m_s, edges)
+        r = self.radius_m + pad_m
+        push = ZONE_MAX_PUSH_SHARE * max_speed_m_s
+        return obstacle_lines(self, float(pos_m[0]), float(pos_m[1]), vel_m_s, edges, r, push)
 
-    def lines_rows(self, pos_m, vel_m_s, pref_m_s, need: np.ndarray, max_speed_m_s: float):
-        """`lines` of N vehicles (rows of (N, 2) arrays); marks in `need` (N,) bool the rows
-        whose preferred velocity breaks one of them (their LP must run)."""
+    def lines_rows(
+        self, pos_m, vel_m_s, pref_m_s, need: np.ndarray, max_speed_m_s: float, pad_m=None
+    ):
+        """`lines` of N vehicles (rows of (N, 2) arrays), pad_m (N,) or None; marks in `need`
+        (N,) bool the rows whose preferred velocity breaks one of them (their LP must run)."""
         out = []
         for i in range(len(pos_m)):
-            ls = self.lines(pos_m[i], vel_m_s[i], max_speed_m_s)
+            pad = 0.0 if pad_m is None else float(pad_m[i])
+            ls = self.lines(pos_m[i], vel_m_s[i], max_speed_m_s, pad)
             out.append(ls)
             if not need[i]:
                 vx, vy = float(pref_m_s[i][0]), float(pref_m_s[i][1])
                 need[i] = any(dx * (py - vy) - dy * (px - vx) > 0.0 for (px, py), (dx, dy) in ls)
         return out
+
+
+def _push(r: float, d: float, cap: float) -> float:
+    """The speed away from an edge found at d < r: (r - d) / ZONE_RECOVER_S, at most cap."""
+    k = (r - d) / ZONE_RECOVER_S
+    return cap if k > cap else k
 
 
 def _normalize(x: float, y: float) -> tuple[float, float]:
@@ -191,12 +211,16 @@ def _normalize(x: float, y: float) -> tuple[float, float]:
     return x / n, y / n
 
 
-def obstacle_lines(zones: ZoneSet, px: float, py: float, vel_m_s, edges: list[int]) -> list:
+def obstacle_lines(
+    zones: ZoneSet, px: float, py: float, vel_m_s, edges: list[int], r: float, push_cap: float
+) -> list:
     """RVO2's obstacle lines for `edges` (nearest first), in Python floats; see ZoneSet.lines.
 
     With p1, p2 the edge's ends relative to the vehicle, r the radius and 1/tau:
       already covered by an earlier line (both cut-off points beyond it by r / tau): nothing;
-      within r of the edge (or an end): v must not approach it, a line through 0;
+      within r of the edge (or an end) at distance d: v must move away from it at
+      s = min((r - d) / ZONE_RECOVER_S, push_cap), a line through s times the unit normal
+      (RVO2's, through 0, only forbids approaching);
       else the truncated cone between the legs (tangents to the discs at the ends, or the
       neighbour edge where the leg would point into the polygon) and the cut-off segment
       p1 / tau -> p2 / tau: the line nearest to v among its left cut-off disc, right disc,
@@ -204,7 +228,6 @@ def obstacle_lines(zones: ZoneSet, px: float, py: float, vel_m_s, edges: list[in
     """
     pts, nxt, prv = zones.points.tolist(), zones.next_idx.tolist(), zones.prev_idx.tolist()
     udir, convex = zones.unit_dir.tolist(), zones.convex.tolist()
-    r = zones.radius_m
     r_sq = r * r
     inv_tau = 1.0 / zones.time_horizon_s
     vx, vy = float(vel_m_s[0]), float(vel_m_s[1])
@@ -230,18 +253,24 @@ def obstacle_lines(zones: ZoneSet, px: float, py: float, vel_m_s, edges: list[in
         lx_, ly_ = -r1x - s * ovx, -r1y - s * ovy
         dist_sq_line = lx_ * lx_ + ly_ * ly_
         if s < 0.0 and dist_sq1 <= r_sq:
-            # within r of the left vertex: do not approach it (a reflex one: its edges do it)
+            # within r of the left vertex: away from it (a reflex one: its edges do it)
             if convex[o1] and dist_sq1 > 0.0:
-                lines.append(((0.0, 0.0), _normalize(-r1y, r1x)))
+                dx, dy = _normalize(-r1y, r1x)
+                k = _push(r, math.sqrt(dist_sq1), push_cap)
+                lines.append(((-k * dy, k * dx), (dx, dy)))  # point -k r1 / |r1|
             continue
         if s > 1.0 and dist_sq2 <= r_sq:
             # the right vertex; the next edge covers it unless the vehicle is beside this one
             if convex[o2] and r2x * udir[o2][1] - r2y * udir[o2][0] >= 0.0 and dist_sq2 > 0.0:
-                lines.append(((0.0, 0.0), _normalize(-r2y, r2x)))
+                dx, dy = _normalize(-r2y, r2x)
+                k = _push(r, math.sqrt(dist_sq2), push_cap)
+                lines.append(((-k * dy, k * dx), (dx, dy)))
             continue
         if 0.0 <= s <= 1.0 and dist_sq_line <= r_sq:
-            # within r of the edge itself: no velocity towards it
-            lines.append(((0.0, 0.0), (-udir[o1][0], -udir[o1][1])))
+            # within r of the edge itself: away from it, along the outward normal (e_y, -e_x)
+            ex, ey = udir[o1]
+            k = _push(r, math.sqrt(dist_sq_line), push_cap)
+            lines.append(((k * ey, -k * ex), (-ex, -ey)))
             continue
         # no collision: the legs; seen obliquely, both come from one vertex
         if s < 0.0 and dist_sq_line <= r_sq:

@@ -78,8 +78,10 @@ def test_lines_and_filter_match_c_on_random_scenes(lib):
                 continue  # on an edge: a sign flip away from the other side (both are right)
             vel = _f32(rng.uniform(-1, 1, 2))
             pref = _f32(rng.uniform(-1.2, 1.2, 2))
-            ref_lines = zs.lines(pos, vel, cfg.max_speed_m_s)
-            c_lines = cz.lines(pos, vel, cfg.max_speed_m_s)
+            sigma = float(rng.choice([0.0, 0.0, 0.5]))  # padded by sigma_k x the own 1-sigma
+            pad = float(np.float32(cfg.sigma_k * sigma))
+            ref_lines = zs.lines(pos, vel, cfg.max_speed_m_s, pad)
+            c_lines = cz.lines(pos, vel, cfg.max_speed_m_s, pad)
             assert len(ref_lines) == len(c_lines)
             for (p, d), (q, e) in zip(ref_lines, c_lines, strict=True):
                 np.testing.assert_allclose(p, q, atol=1e-9)
@@ -88,8 +90,10 @@ def test_lines_and_filter_match_c_on_random_scenes(lib):
             k = int(rng.integers(0, 5))
             nbr_pos = _f32(pos + rng.uniform(-8, 8, (k, 2)))
             nbr_vel = _f32(rng.uniform(-1, 1, (k, 2)))
-            ref = safety.filter_one(pos, vel, pref, nbr_pos, nbr_vel, cfg, zones=zs)
-            r = cz.evaluate(cfg, pos, vel, pref, nbr_pos, nbr_vel)
+            ref = safety.filter_one(
+                pos, vel, pref, nbr_pos, nbr_vel, cfg, pos_sigma_m=sigma, zones=zs
+            )
+            r = cz.evaluate(cfg, pos, vel, pref, nbr_pos, nbr_vel, pos_sigma_m=sigma)
             assert r.status == "ok"
             c_v = r.vel_m_s
             worst = max(worst, float(np.abs(ref - c_v).max()))
@@ -212,3 +216,29 @@ def test_many_edges_are_capped_to_the_nearest(lib):
     ref, c = zs.lines(pos, vel, 1.0), cz.lines(pos, vel, 1.0)
     assert len(ref) == len(c) > 0
     np.testing.assert_allclose(np.array(ref), np.array(c), atol=1e-9)
+
+
+def test_a_vehicle_inside_the_radius_is_pushed_out_against_a_gust(lib):
+    """RVO2 only forbids approaching an edge; a gust the velocity loop does not reject would
+    carry a vehicle in. The zone lines ask for (radius - distance) / 1 s outwards instead."""
+    from firmware.czones import CZones
+
+    cfg = safety.SafetyConfig()
+    sq = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    zs, cz = ZoneSet.of([sq], RADIUS_M), CZones(lib, [sq], RADIUS_M)
+    for name, step in (
+        (
+            "numpy",
+            lambda p, v: safety.filter_one(
+                p, v, np.zeros(2), np.zeros((0, 2)), np.zeros((0, 2)), cfg, zones=zs
+            ),
+        ),
+        ("c", lambda p, v: cz.filter(cfg, p, v, np.zeros(2), np.zeros((0, 2)), np.zeros((0, 2)))),
+    ):
+        pos, v = np.array([-1.0, 5.0]), np.zeros(2)  # 1 m off the west edge, radius 1.8
+        gust = np.array([0.2, 0.0])  # towards the zone, never rejected
+        for _ in range(100):
+            v = step(_f32(pos), _f32(v))
+            pos = pos + 0.1 * (v + gust)
+        assert -pos[0] >= RADIUS_M - 0.25, (name, pos)  # held off against the gust
+        assert v[0] < 0.0, name
