@@ -57,11 +57,25 @@ class Routed:
             )
         elif self.kind == "c":
             out = np.zeros_like(v)
+            sig, nsig, coop = (
+                kw.get(k) for k in ("pos_sigma_m", "nbr_pos_sigma_m", "nbr_cooperative")
+            )
             for i in range(len(pos)):
                 m = valid[i]
-                out[i] = self.czones.filter(
-                    self.safety_cfg, pos[i], vel[i], v[i], nbr_pos[i, m], nbr_vel[i, m]
+                r = self.czones.evaluate(
+                    self.safety_cfg,
+                    pos[i],
+                    vel[i],
+                    v[i],
+                    nbr_pos[i, m],
+                    nbr_vel[i, m],
+                    pos_sigma_m=0.0 if sig is None else float(sig[i]),
+                    nbr_pos_sigma_m=None if nsig is None else nsig[i, m],
+                    nbr_cooperative=None if coop is None else coop[i, m],
                 )
+                if r.status != "ok":
+                    raise RuntimeError(f"C zone filter fault: {r.status}")
+                out[i] = r.vel_m_s
             v = out
         return v
 
