@@ -187,8 +187,14 @@ def outcome_text(command: Command, mode: Mode, state: VehicleState | None) -> st
         return "holding"
     if kind is CommandKind.LAND and mode is Mode.LANDED:
         return "landed"
+    if kind in (CommandKind.MISSION_PAUSE, CommandKind.MISSION_ABORT) and mode is Mode.HOLDING:
+        return "holding"
+    if kind is CommandKind.MISSION_STATUS:
+        return "answered"  # it changes nothing: its ack is its outcome
     if state is None:
         return None
+    if kind is CommandKind.MISSION_START and 0 < state.mission_items < state.mission_item:
+        return "mission done"
     if kind is CommandKind.RETURN and mode is Mode.LANDED:
         return "returned and landed"
     if kind is CommandKind.TAKEOFF and mode is Mode.HOLDING:

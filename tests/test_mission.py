@@ -381,7 +381,9 @@ def test_a_vehicle_outside_the_roster_is_refused_before_anything_is_sent(tmp_pat
     authority = throwaway_fleet(tmp_path / "keys", "covey", vehicles=[1, 2], stations=[1])
     key = str(authority.member_path(Role.STATION, 1))
     cfg = UploadConfig(mesh=ISOLATED, items=(_wp(1, 2, 5),), targets=(2, 7), key_file=key)
-    with pytest.raises(NotInRoster, match=r"vehicle 7 is not in fleet roster v\d+: no mission sent"):
+    with pytest.raises(
+        NotInRoster, match=r"vehicle 7 is not in fleet roster v\d+: no mission sent"
+    ):
         upload_main(cfg)  # raised before a mesh session opens: nothing sent
     path = tmp_path / "m.json"
     path.write_text('{"items": [{"kind": "land"}]}')
@@ -391,3 +393,30 @@ def test_a_vehicle_outside_the_roster_is_refused_before_anything_is_sent(tmp_pat
         )
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "vehicle 7 is not in fleet roster" in err, err
+
+
+def test_the_command_log_says_when_mission_commands_are_done() -> None:
+    import dataclasses
+
+    from comms.schema import VehicleState
+    from groundstation.command_log import outcome_text
+
+    def cmd(kind: CommandKind) -> Command:
+        return Command(kind, 1, 0)
+
+    assert outcome_text(cmd(CommandKind.MISSION_PAUSE), Mode.HOLDING, None) == "holding"
+    assert outcome_text(cmd(CommandKind.MISSION_STATUS), Mode.LANDED, None) == "answered"
+    done = VehicleState(
+        1,
+        1,
+        1,
+        (0.0, 0.0, -5.0),
+        (0.0, 0.0, 0.0),
+        0.0,
+        Mode.HOLDING,
+        mission_item=4,
+        mission_items=3,
+    )
+    assert outcome_text(cmd(CommandKind.MISSION_START), Mode.HOLDING, done) == "mission done"
+    flying = dataclasses.replace(done, mode=Mode.MISSION, mission_item=2)
+    assert outcome_text(cmd(CommandKind.MISSION_START), Mode.MISSION, flying) is None
