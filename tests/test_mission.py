@@ -420,3 +420,27 @@ def test_the_command_log_says_when_mission_commands_are_done() -> None:
     assert outcome_text(cmd(CommandKind.MISSION_START), Mode.HOLDING, done) == "mission done"
     flying = dataclasses.replace(done, mode=Mode.MISSION, mission_item=2)
     assert outcome_text(cmd(CommandKind.MISSION_START), Mode.MISSION, flying) is None
+
+
+def test_uploads_split_long_target_lists_and_spread_copies() -> None:
+    from comms.geo import GeoOrigin
+    from groundstation.mission_cli import missions_for
+
+    items = (
+        MissionItem(K.TAKEOFF, alt_m=5.0),
+        MissionItem(K.WAYPOINT, MissionFrame.GLOBAL, 48.75, 9.1, 460.0),
+        _wp(10.0, 2.0, 5.0),
+    )
+    many = UploadConfig(mesh=ISOLATED, items=items, targets=tuple(range(1, 3001)))
+    missions = missions_for(many, set(), 1)
+    assert len(missions) == 2 and sum(len(m.targets) for m in missions) == 3000
+    assert all(len(m.encode()) <= MAX_MISSION_BYTES for m in missions)
+    spread = UploadConfig(mesh=ISOLATED, items=items, targets=(), spread_m=8.0)
+    copies = missions_for(spread, {4, 2, 9}, 1)
+    assert [m.targets for m in copies] == [(2,), (4,), (9,)]
+    origin = GeoOrigin(48.75, 9.1, 0.0)
+    for k, m in enumerate(copies):
+        n, e, _ = origin.to_local(m.items[1].x, m.items[1].y, 0.0)
+        assert abs(n) < 1e-3 and abs(e - 8.0 * k) < 1e-3
+        assert (m.items[2].x, m.items[2].y) == (10.0, 2.0 + 8.0 * k)
+        assert m.items[0] == items[0]
