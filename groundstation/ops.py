@@ -59,7 +59,7 @@ class StatusConfig:
 def format_status(snap: FleetSnapshot) -> str:
     lines = [
         f"{'id':>5} {'alive':>5} {'mode':<10} {'arm':>3} {'N m':>7} {'E m':>7} {'alt m':>6} "
-        f"{'m/s':>5} {'bat%':>5} {'Hz':>5} {'age s':>6} {'loss%':>5}"
+        f"{'m/s':>5} {'bat%':>5} {'Hz':>5} {'age s':>6} {'loss%':>5} {'mission':>7}"
     ]
     for v in snap.vehicles:
         s = v.state
@@ -70,13 +70,19 @@ def format_status(snap: FleetSnapshot) -> str:
             f"{v.vehicle_id:>5} {'yes' if v.alive else 'LOST':>5} {s.mode.name:<10} {'yes' if s.armed else 'no':>3} "
             f"{s.pos_ned_m[0]:>7.1f} {s.pos_ned_m[1]:>7.1f} {v.alt_m:>6.1f} {v.speed_m_s:>5.1f} "
             f"{s.battery_pct:>5.0f} {f'{v.rate_hz:.1f}' if v.rate_hz else '-':>5} "
-            f"{v.age_s:>6.2f} {v.loss_pct:>5.0f}"
+            f"{v.age_s:>6.2f} {v.loss_pct:>5.0f} {_progress(s):>7}"
         )
     if snap.close_pairs:
         lines.append(
             "TOO CLOSE: " + ", ".join(f"{a}-{b} {d:.1f} m" for a, b, d in snap.close_pairs)
         )
     return "\n".join(lines)
+
+
+def _progress(s) -> str:
+    """A state's mission progress as `covey status` shows it: item k/n, done, or '-'."""
+    k, n = s.mission_item, s.mission_items
+    return "-" if not n else "done" if k > n else f"{k}/{n}"
 
 
 def status_main(

@@ -444,3 +444,20 @@ def test_uploads_split_long_target_lists_and_spread_copies() -> None:
         assert abs(n) < 1e-3 and abs(e - 8.0 * k) < 1e-3
         assert (m.items[2].x, m.items[2].y) == (10.0, 2.0 + 8.0 * k)
         assert m.items[0] == items[0]
+
+
+def test_covey_status_shows_the_mission_progress() -> None:
+    from comms.schema import VehicleState
+    from groundstation.fleet import FleetModel
+    from groundstation.ops import format_status
+
+    fleet = FleetModel()
+    for vid, (k, n) in {1: (3, 6), 2: (7, 6), 3: (0, 0)}.items():
+        state = VehicleState(
+            vid, 1, 1_000, (0.0, 0.0, -5.0), (0.0, 0.0, 0.0), 0.0, Mode.MISSION, True, 90.0,
+            mission_item=k, mission_items=n,
+        )  # fmt: skip
+        fleet.on_state(state, 1_000)
+    lines = format_status(fleet.snapshot(2_000)).splitlines()
+    assert lines[0].split()[-1] == "mission"
+    assert [line.split()[-1] for line in lines[1:4]] == ["3/6", "done", "-"]
