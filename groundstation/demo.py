@@ -180,6 +180,12 @@ def _run(
             flush=True,
         )
         print(
+            "covey demo: fly a vehicle that does not cooperate through the fleet: covey intruder "
+            f"--from-ne-m=-40,0 --to-ne-m=40,0 --speed-m-s 2 --alt-m 10 --connect {endpoint} "
+            f"--fleet {cfg.fleet}{cli_key}",
+            flush=True,
+        )
+        print(
             f"covey demo: ground station at {gcs.url}  (the token logs you in; Ctrl-C to stop)",
             flush=True,
         )

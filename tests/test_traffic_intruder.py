@@ -184,3 +184,38 @@ def test_intruder_main_stops_on_request() -> None:
     stop.set()
     t.join(10.0)
     assert not t.is_alive() and lines[-1].endswith("reports sent")
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_the_demo_says_how_to_fly_an_intruder_and_members_accept_it() -> None:
+    """`covey demo` (keyed): the intruder command it prints runs as printed, and its reports,
+    signed with the demo's CLI station key, pass a keyed member's checks (signer in the roster,
+    fresh, in order)."""
+    import shlex
+
+    from comms.auth import load_auth
+    from comms.session import MeshConfig
+    from comms.traffic import TrafficListener
+    from groundstation.demo_proc import DemoProcess
+
+    with DemoProcess(["--vehicles", "2", "--port", "0", "--mesh-port", "0"]) as demo:
+        line = next(x for x in demo.lines if "covey intruder " in x)  # printed before the URL
+        argv = shlex.split(line[line.index("covey intruder ") :])[2:]
+        argv = [a if a != "--to-ne-m=40,0" else "--to-ne-m=-20,0" for a in argv]  # a short flight
+        member = load_auth(demo.cli_key_file, fleet="covey")
+        cfg = MeshConfig(fleet="covey", mode="client", connect=(demo.mesh_endpoint,))
+        with (
+            Mesh(cfg, auth=member) as mesh,
+            TrafficListener(mesh, TrafficTable(), time.monotonic) as rx,
+        ):
+            time.sleep(0.5)
+            proc = subprocess.run(
+                [sys.executable, "-m", "covey_cli", "intruder", *argv, "--speed-m-s", "20"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert proc.returncode == 0, proc.stderr
+            assert wait_until(lambda: rx.accepted >= 2, 10), rx.refused
+    assert "reports sent" in proc.stdout and "--key-file" in line and not rx.refused

@@ -164,7 +164,10 @@ def parser() -> argparse.ArgumentParser:
         description="fly one simulated vehicle that does not cooperate (straight line, no "
         "avoidance) through the fleet, reported on the mesh as traffic",
     )
-    p.add_argument("--from-ne-m", required=True, type=_ne("--from-ne-m"), help="start N,E (m)")
+    # A negative first number needs the = form (--from-ne-m=-30,0), as every covey N,E flag.
+    p.add_argument(
+        "--from-ne-m", required=True, type=_ne("--from-ne-m"), help="start N,E (m), e.g. =-30,0"
+    )
     p.add_argument("--to-ne-m", required=True, type=_ne("--to-ne-m"), help="end N,E (m)")
     p.add_argument("--speed-m-s", type=finite("m/s"), default=2.0, help="ground speed (2)")
     p.add_argument(
