@@ -100,7 +100,7 @@ def sys_status(v: Vehicle, healthy: bool) -> Any:
 
 
 def global_position_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
-    lat, lon, alt = home.to_global(*map(float, v.pos_ned_m))
+    lat, lon, alt = home.to_global(*map(float, v.est_pos_ned_m))
     vel = np.clip(np.round(v.vel_ned_m_s * 100.0), -32767, 32767).astype(int)
     hdg_cdeg = int(round(math.degrees(v.heading_rad) * 100.0)) % 36000
     return mavlink.MAVLink_global_position_int_message(
@@ -117,7 +117,7 @@ def global_position_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
 
 
 def local_position_ned(v: Vehicle, boot_ms: int) -> Any:
-    p, u = v.pos_ned_m, v.vel_ned_m_s
+    p, u = v.est_pos_ned_m, v.vel_ned_m_s
     return mavlink.MAVLink_local_position_ned_message(
         boot_ms, float(p[0]), float(p[1]), float(p[2]), float(u[0]), float(u[1]), float(u[2])
     )
@@ -150,7 +150,8 @@ def home_position(home: GeoOrigin, boot_ms: int) -> Any:
 
 
 def gps_raw_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
-    lat, lon, alt = home.to_global(*map(float, v.pos_ned_m))
+    """GPS_RAW_INT with the estimate and, as h_acc (mm), the 1-sigma the vehicle simulates."""
+    lat, lon, alt = home.to_global(*map(float, v.est_pos_ned_m))
     speed_cm_s = int(min(65534, round(float(np.linalg.norm(v.vel_ned_m_s[:2])) * 100.0)))
     return mavlink.MAVLink_gps_raw_int_message(
         boot_ms * 1000,
@@ -163,6 +164,7 @@ def gps_raw_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
         speed_cm_s,
         65535,
         12,
+        h_acc=int(round(v.pos_sigma_m * 1000.0)),
     )
 
 
