@@ -16,6 +16,8 @@ from conftest import wait_until
 
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
+from comms.plan_io import read_plan_file
+from comms.plan_sync import publish_plan
 from comms.schema import Event, EventKind, Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
 from groundstation.mission_cli import mission_cli
@@ -45,6 +47,7 @@ def qgc_plan(fence_m: float = 60.0) -> dict:
     """Six items as QGroundControl writes them: take-off, waypoint, loiter 2 s, waypoint,
     waypoint, land; a square inclusion fence."""
     (a, b, c) = WAYPOINTS_NE_M
+    zone = [ORIGIN.to_global(n, e, 0)[:2] for n, e in ((30, -40), (30, -30), (40, -30), (40, -40))]
     corners = [
         ORIGIN.to_global(n, e, 0)[:2]
         for n, e in (
@@ -76,7 +79,10 @@ def qgc_plan(fence_m: float = 60.0) -> dict:
         "geoFence": {
             "version": 2,
             "circles": [],
-            "polygons": [{"inclusion": True, "polygon": [list(p) for p in corners], "version": 1}],
+            "polygons": [
+                {"inclusion": True, "polygon": [list(p) for p in corners], "version": 1},
+                {"inclusion": False, "polygon": [list(p) for p in zone], "version": 1},
+            ],
         },
         "rallyPoints": {"version": 2, "points": []},
     }
@@ -153,16 +159,30 @@ def test_a_qgc_plan_flies_on_three_vehicles_with_pause_resume_abort(procs, tmp_p
         sim.wait_for("READY", timeout_s=90)
         watch.until(lambda s: set(s) >= set(IDS), 30, "a state from every vehicle")
 
-        # Refused with the reason, and nothing kept: a waypoint outside the 100 m geofence, an
-        # altitude above the 120 m limit.
+        # The plan file's fence (60 m square) and keep-out zone, as the fleet plan (open mode:
+        # unsigned), replace the vehicles' 100 m circle (comms/plan_sync.py).
+        geometry = read_plan_file(plan, ORIGIN)
+        assert geometry.fence is not None and len(geometry.keep_out) == 1
+        publish_plan(mesh.session, geometry.plan(FLEET, 1))
+        # Refused with the reason, and nothing kept: a waypoint outside the fence (inside the
+        # circle), one in the keep-out zone, an altitude above the 120 m limit.
         far = tmp_path / "far.json"
         far.write_text(
-            json.dumps({"items": [{"kind": "waypoint", "north_m": 150, "east_m": 0, "alt_m": 6}]})
+            json.dumps({"items": [{"kind": "waypoint", "north_m": 80, "east_m": 0, "alt_m": 6}]})
         )
-        rc, out = _cli(capsys, "upload", str(far), "--to", "1", *mesh_args)
-        assert rc == 1 and "rejected" in out and "item 1 (waypoint)" in out and "geofence" in out, (
-            out
-        )
+
+        def refused_outside_fence() -> bool:
+            rc, out = _cli(capsys, "upload", str(far), "--to", "1", *mesh_args)
+            return rc == 1 and "item 1 (waypoint): target outside the fence" in out
+
+        assert wait_until(refused_outside_fence, 20), "the plan's fence never applied"
+        zone = tmp_path / "zone.json"
+        zone.write_text(json.dumps({"items": [
+            {"kind": "waypoint", "north_m": 10, "east_m": -10, "alt_m": 6},
+            {"kind": "waypoint", "north_m": 35, "east_m": -35, "alt_m": 6},
+        ]}))  # fmt: skip
+        rc, out = _cli(capsys, "upload", str(zone), "--to", "1-3", *mesh_args)
+        assert rc == 1 and out.count("item 2 (waypoint): target inside keep-out zone") == 3, out
         high = tmp_path / "high.json"
         high.write_text(
             json.dumps({"items": [{"kind": "waypoint", "north_m": 5, "east_m": 0, "alt_m": 150}]})
