@@ -316,8 +316,7 @@ class BatchGuidance:
         if self.router is None or not goto.any():
             return target_m
         out = target_m.copy()
-        for k in np.flatnonzero(goto):
-            out[k, :2] = self.router.next_waypoint(pos_m[k, :2], target_m[k, :2])
+        out[goto, :2] = self.router.next_waypoints(pos_m[goto, :2], target_m[goto, :2])
         self.waypoint_m[rows[goto]] = out[goto, :2]
         return out
 

@@ -42,8 +42,9 @@ BOUNDARY_TOL_M = 1e-6
 """Segments along the free space's boundary count as inside (numerical slack of the checks)."""
 PROJECT_IN_M = 0.01
 """A point projected out of a zone's band is put this far inside the free space."""
-MAX_CACHED_GOALS = 64
-"""Goals whose Dijkstra distances are kept (a fleet flies to a few goals at a time)."""
+MAX_CACHED_GOALS = 2048
+"""Goals whose Dijkstra distances are kept (each vehicle of a fleet-sim host has its own: a
+thrashing cache re-runs Dijkstra every tick; 2048 x 434 corners is 14 MB at most)."""
 
 
 @dataclass(frozen=True)
@@ -324,6 +325,57 @@ class Router:
             return goal if entry is goal else entry
         k = self._nearest_seen(pos, dist)
         return self.nodes_m[k].copy() if k >= 0 else goal
+
+    def next_waypoints(self, pos_m, goal_m) -> np.ndarray:
+        """`next_waypoint` of N rows (N, 2), the common case at once: a row whose position is
+        clear, whose goal is clear of the route's inflation and in sight flies at its goal (one
+        vectorised check for all of them); the others one by one."""
+        pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
+        goal = np.asarray(goal_m, dtype=np.float64).reshape(-1, 2)
+        out = goal.copy()
+        if not len(pos):
+            return out
+        finite = np.isfinite(pos).all(axis=1) & np.isfinite(goal).all(axis=1)
+        clear = finite.copy()  # position clear, goal clear of the inflation (its own entry)
+        if clear.any():
+            f = np.flatnonzero(clear)
+            clear[f] = shapely.covers(self._reach_ok, shapely.points(pos[f])) & shapely.covers(
+                self._route_ok, shapely.points(goal[f])
+            )
+        seen = np.zeros(len(pos), bool)
+        if clear.any():
+            f = np.flatnonzero(clear)
+            seen[f] = self._visible(self._reach_ok, pos[f], goal[f])
+        blocked = np.flatnonzero(clear & ~seen)
+        if len(blocked) and len(self.nodes_m):
+            out[blocked] = self._corners_for(pos[blocked], goal[blocked])
+        for i in np.flatnonzero(finite & ~clear):  # led out, refused, goal near a zone: rare
+            out[i] = self.next_waypoint(pos[i], goal[i])
+        return out
+
+    def _corners_for(self, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """`_nearest_seen` of R rows whose goal is out of sight, at once: every row's corners in
+        order of route length, the k-th candidates of the unresolved rows checked together,
+        k = 0, 1, ... (most rows resolve at the first or second). Unresolved: the goal."""
+        nodes = self.nodes_m
+        dist = np.stack([self._to_goal(g)[0] for g in goal])  # (R, V), cached per goal
+        d = nodes[None] - pos[:, None]
+        cost = np.hypot(d[..., 0], d[..., 1]) + dist
+        order = np.argsort(cost, axis=1, kind="stable")
+        out = goal.copy()
+        todo = np.arange(len(pos))
+        for rank in range(nodes.shape[0]):
+            cand = order[todo, rank]
+            live = np.isfinite(cost[todo, cand])
+            todo, cand = todo[live], cand[live]
+            if not len(todo):
+                break
+            ok = self._visible(self._reach_ok, pos[todo], nodes[cand])
+            out[todo[ok]] = nodes[cand[ok]]
+            todo = todo[~ok]
+            if not len(todo):
+                break
+        return out
 
     def plan(self, start, goal) -> Route:
         """The whole route from `start` to `goal`: what `next_waypoint` leads through."""

@@ -564,9 +564,7 @@ class GuidancePolicy:
         """`waypoint` of N rows (N, 2)."""
         if self.router is None:
             return goal_m
-        return np.array(
-            [self.router.next_waypoint(p, g) for p, g in zip(pos_m, goal_m, strict=True)]
-        )
+        return self.router.next_waypoints(pos_m, goal_m)
 
     @classmethod
     def load(

@@ -44,9 +44,7 @@ class Routed:
 
         way = goal
         if self.router is not None:
-            way = np.array(
-                [self.router.next_waypoint(p, g) for p, g in zip(pos, goal, strict=True)]
-            ).reshape(-1, 2)
+            way = self.router.next_waypoints(pos, goal)
         v = self.inner(ids, t_s, pos, vel, heading, way, nbr_pos, nbr_vel, nbr_heading, valid, **kw)
         if self.kind == "numpy":
             sky = {

@@ -183,15 +183,34 @@ class ZoneSet:
         push = ZONE_MAX_PUSH_SHARE * max_speed_m_s
         return obstacle_lines(self, float(pos_m[0]), float(pos_m[1]), vel_m_s, edges, r, push)
 
+    def _near_rows(self, pos_m: np.ndarray, max_speed_m_s: float, pads: np.ndarray) -> np.ndarray:
+        """(N,) some edge lies within tau vmax + radius + pad of the row (all rows at once)."""
+        if not len(self.points) or not len(pos_m):
+            return np.zeros(len(pos_m), bool)
+        a = self.points
+        e = a[self.next_idx] - a
+        ee = (e * e).sum(axis=1)
+        rel = pos_m[:, None, :] - a[None]
+        t = np.clip((rel * e[None]).sum(axis=2) / ee[None], 0.0, 1.0)
+        d = rel - t[..., None] * e[None]
+        dist_sq = (d * d).sum(axis=2).min(axis=1)
+        reach = self.time_horizon_s * max_speed_m_s + self.radius_m + pads
+        return dist_sq < reach * reach
+
     def lines_rows(
         self, pos_m, vel_m_s, pref_m_s, need: np.ndarray, max_speed_m_s: float, pad_m=None
     ):
         """`lines` of N vehicles (rows of (N, 2) arrays), pad_m (N,) or None; marks in `need`
         (N,) bool the rows whose preferred velocity breaks one of them (their LP must run)."""
+        n = len(pos_m)
+        pads = np.zeros(n) if pad_m is None else np.broadcast_to(np.asarray(pad_m, float), (n,))
+        near = self._near_rows(np.asarray(pos_m, float).reshape(-1, 2), max_speed_m_s, pads)
         out = []
-        for i in range(len(pos_m)):
-            pad = 0.0 if pad_m is None else float(pad_m[i])
-            ls = self.lines(pos_m[i], vel_m_s[i], max_speed_m_s, pad)
+        for i in range(n):
+            if not near[i]:  # no edge within reach: no line (most rows, most ticks)
+                out.append([])
+                continue
+            ls = self.lines(pos_m[i], vel_m_s[i], max_speed_m_s, float(pads[i]))
             out.append(ls)
             if not need[i]:
                 vx, vy = float(pref_m_s[i][0]), float(pref_m_s[i][1])

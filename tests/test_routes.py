@@ -125,3 +125,18 @@ def test_random_scenes_never_cut_the_inflated_zones():
             checked += 1
             assert _clear_of(np.vstack([s, rt.waypoints_m]), zones, cfg.sight_m)
     assert checked > 50
+
+
+def test_next_waypoints_equals_the_one_by_one_answer():
+    rng = np.random.default_rng(11)
+    r = Router([SQ, C_SHAPE + [30, 0]])
+    pos = rng.uniform(-20, 60, (300, 2))
+    goal = rng.uniform(-20, 60, (300, 2))
+    goal[:5] = pos[:5]  # on the spot
+    pos[5] = [np.nan, 0.0]  # a bad row passes through as it is
+    got = r.next_waypoints(pos, goal)
+    for i in range(300):
+        if i == 5:
+            np.testing.assert_array_equal(got[i], goal[i])
+            continue
+        np.testing.assert_allclose(got[i], r.next_waypoint(pos[i], goal[i]), err_msg=str(i))

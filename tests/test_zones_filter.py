@@ -242,3 +242,30 @@ def test_a_vehicle_inside_the_radius_is_pushed_out_against_a_gust(lib):
             pos = pos + 0.1 * (v + gust)
         assert -pos[0] >= RADIUS_M - 0.25, (name, pos)  # held off against the gust
         assert v[0] < 0.0, name
+
+
+def test_padded_rows_equal_the_one_vehicle_path():
+    """filter_padded (fleet-sim, covey eval) with zones = filter_one row by row."""
+    cfg = safety.SafetyConfig()
+    rng = np.random.default_rng(3)
+    polys = [random_polygon(rng) for _ in range(2)]
+    zs = ZoneSet.of(polys, RADIUS_M)
+    n, k = 60, 4
+    pos = rng.uniform(-20, 20, (n, 2))
+    vel = rng.uniform(-1, 1, (n, 2))
+    # within the speed disc: filter_padded clips the preference first, filter_one optimises
+    # towards the unclipped one (they differ there with or without zones)
+    pref = rng.uniform(-0.7, 0.7, (n, 2))
+    nbr_pos = pos[:, None] + rng.uniform(-6, 6, (n, k, 2))
+    nbr_vel = rng.uniform(-1, 1, (n, k, 2))
+    valid = rng.random((n, k)) < 0.7
+    sig = rng.choice([0.0, 0.5], n)
+    got = safety.filter_padded(
+        pos, vel, pref, nbr_pos, nbr_vel, valid, cfg, pos_sigma_m=sig, zones=zs
+    )
+    for i in range(n):
+        m = valid[i]
+        ref = safety.filter_one(
+            pos[i], vel[i], pref[i], nbr_pos[i, m], nbr_vel[i, m], cfg, pos_sigma_m=sig[i], zones=zs
+        )
+        np.testing.assert_allclose(got[i], ref, atol=1e-9, err_msg=str(i))
