@@ -28,6 +28,7 @@ CORE_H = tuple(
 DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_driver.c"
 BENCH_SOURCE = FIRMWARE_DIR / "host" / "covey_bench.c"
 UNIT_SOURCE = FIRMWARE_DIR / "host" / "covey_unit.c"
+ZONES_DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_zones_driver.c"
 SHIPPED_NPZ = FIRMWARE_DIR.parent / "policy" / "weights" / "policy.npz"
 COMMITTED_HEADER = FIRMWARE_DIR / "covey_weights.h"
 
@@ -125,6 +126,12 @@ def build_driver(header: Path, sanitize: bool = False, defines: tuple[str, ...] 
 def build_unit(header: Path) -> Path:
     """The C unit tests (firmware/host/covey_unit.c), with ASan and UBSan."""
     return _build("unit-asan", header, SANITIZE_FLAGS, (UNIT_SOURCE,), "")
+
+
+def build_zones_driver(header: Path) -> Path:
+    """The keep-out zones' stdin/stdout driver (firmware/host/covey_zones_driver.c), with ASan
+    and UBSan."""
+    return _build("zones-driver-asan", header, SANITIZE_FLAGS, (ZONES_DRIVER_SOURCE,), "")
 
 
 def build_bench(header: Path) -> Path:

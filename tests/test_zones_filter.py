@@ -269,3 +269,91 @@ def test_padded_rows_equal_the_one_vehicle_path():
             pos[i], vel[i], pref[i], nbr_pos[i, m], nbr_vel[i, m], cfg, pos_sigma_m=sig[i], zones=zs
         )
         np.testing.assert_allclose(got[i], ref, atol=1e-9, err_msg=str(i))
+
+
+def _case_tokens(polys, fence: bool, own, pref, radius=1.8, horizon=2.0) -> list:
+    flat = [f"{v:.9g}" for p in polys for v in np.asarray(p, np.float32).ravel()]
+    return [
+        str(len(polys)),
+        str(int(fence)),
+        f"{radius:.9g}",
+        f"{horizon:.9g}",
+        str(len(polys)),
+        *[str(len(p)) for p in polys],
+        str(len(flat)),
+        *flat,
+        *[f"{v:.9g}" for v in own],
+        *[f"{v:.9g}" for v in pref],
+    ]
+
+
+def test_zones_fuzz_under_asan_and_ubsan():
+    """covey_zones_init and covey_safety_filter_zones on valid scenes and on hostile mutations
+    (NaN, inf, huge, negative and oversized counts, a count that disagrees with the vertices),
+    built with ASan + UBSan: exactly the predicted status where one is predicted, never a crash,
+    and the output inside the speed disc."""
+    from firmware import hostbuild
+
+    driver = hostbuild.build_zones_driver(hostbuild.header_for(hostbuild.SHIPPED_NPZ))
+    rng = np.random.default_rng(99)
+    lines, want = [], []
+    fence = np.array([[-60, -60], [60, -60], [60, 60], [-60, 60]], float)
+    for i in range(300):
+        polys = random_scene(rng)
+        with_fence = i % 3 == 0
+        if with_fence:
+            polys = [*polys, fence]
+        own = [*rng.uniform(-20, 20, 2), *rng.uniform(-1, 1, 2), float(rng.choice([0.0, 0.5]))]
+        pref = rng.uniform(-1.5, 1.5, 2)
+        tokens = _case_tokens(polys, with_fence, own, pref)
+        lines.append(" ".join(tokens))
+        want.append("valid")
+        n_head = 5 + len(polys)  # n_polygons .. counts
+        n_flat = int(tokens[n_head])
+        targeted = [
+            (n_head + 1 + int(rng.integers(n_flat)), "nan", "2"),  # a vertex
+            (n_head + 1 + int(rng.integers(n_flat)), "-inf", "2"),
+            (n_head + 1 + int(rng.integers(n_flat)), "3e6", "3"),  # beyond the position range
+            (5, "2", "3"),  # a polygon of 2 vertices
+            (0, "-1", "3"),  # n_polygons
+            (0, "65", "3"),
+            (1, "2", "3"),  # has_fence
+            (2, "0", "3"),  # radius
+            (2, "nan", "2"),
+            (3, "1e9", "3"),  # horizon
+        ]
+        for pos, value, status in targeted:
+            mutated = list(tokens)
+            mutated[pos] = value
+            lines.append(" ".join(mutated))
+            want.append(status)
+        for _ in range(8):  # anything at all in any numeric slot but the framing
+            mutated = list(tokens)
+            ints = [0, 1, *range(5, n_head)]  # n_polygons, has_fence, the counts
+            floats = [2, 3, *range(n_head + 1, len(tokens))]
+            for _ in range(int(rng.integers(1, 4))):
+                if rng.random() < 0.3:
+                    mutated[int(rng.choice(ints))] = str(
+                        rng.choice(["-1", "0", "2", "7", "65", "100000", "-2147483648"])
+                    )
+                else:
+                    mutated[int(rng.choice(floats))] = str(
+                        rng.choice(["nan", "inf", "-inf", "0", "-1", "1e30", "-3e38", "1e-40"])
+                    )
+            lines.append(" ".join(mutated))
+            want.append("any")
+    out, _ = hostbuild.run_driver(driver, "\n".join(lines) + "\n")
+    assert len(out) == len(lines)
+    seen: dict = {}
+    for got, w in zip(out, want, strict=True):
+        init, filt, *rest = got.split()
+        seen[init] = seen.get(init, 0) + 1
+        if w == "valid":
+            assert init == "0" and filt == "0", got
+        elif w != "any":
+            assert init == w, (got, w)
+        assert init in {"0", "2", "3"}, got
+        if init == "0" and filt == "0":
+            vn, ve = float(rest[0]), float(rest[1])
+            assert np.hypot(vn, ve) <= 1.0 + 1e-6, got
+    print(f"[zones fuzz] {len(lines)} inputs under ASan+UBSan: init statuses {seen}, clean")
