@@ -3,8 +3,9 @@
 Every simulator in covey flies its vehicles through `integrate`: the built-in vehicle simulator
 behind the agent and `covey fleet-sim` (agent/backends/sim.py), the PX4 emulator
 (firmware/sitl/vehicle.py, which adds PX4's modes on top), the policy's evaluation simulator
-(policy/evalsim.py) and its training arenas (policy/env.py), both 2-D with no acceleration limit. What differs between them is only how the
-wanted velocity is chosen; the physics is this.
+(policy/evalsim.py, 2-D, ideal or realistic: `VehicleModel`) and its training arenas
+(policy/env.py, 2-D, ideal). What differs between them is only how the wanted velocity is
+chosen; the physics is this.
 
 Powered rows track their wanted velocity through a first-order velocity loop (time constant
 `lag_s`, 0 = at once) with a limited acceleration (the step of the velocity is clipped to
