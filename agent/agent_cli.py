@@ -172,7 +172,11 @@ def add_flight_args(
         "trained period, 1 s x separation/3 / cruise speed; 0: every tick)",
     )
     p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
-    add_config_flags(p, GuidanceConfig, only=("policy_separation_m", "sparse_rule"))
+    add_config_flags(
+        p,
+        GuidanceConfig,
+        only=("policy_separation_m", "sparse_rule", "non_cooperative_separation_m"),
+    )
     p.add_argument(
         "--geofence-radius-m",
         type=float,
@@ -240,6 +244,7 @@ def guidance_from_args(args: argparse.Namespace) -> GuidanceConfig:
         decision_period_s=args.decision_period_s,
         policy_separation_m=args.policy_separation_m,
         sparse_rule=args.sparse_rule,
+        non_cooperative_separation_m=args.non_cooperative_separation_m,
     )
 
 
