@@ -32,6 +32,13 @@ class COnboardFleet:
         """A new scenario: every vehicle forgets its held decision."""
         self._ticks = {}
 
+    def zone_filter(self, zones_m, radius_m: float, time_horizon_s: float):
+        """The C keep-out zones on this controller's library (firmware.czones.CZones), for
+        policy.zone_eval's c+filter."""
+        from firmware.czones import CZones
+
+        return CZones(self.policy._lib, zones_m, radius_m, time_horizon_s)
+
     def _tick(self, vid: int):
         t = self._ticks.get(vid)
         if t is None:

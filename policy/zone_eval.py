@@ -100,9 +100,9 @@ def run(name, starts, goals, zones_m, controller, link, sim_cfg, rng, aware=True
     kind = ZONE_FILTER.get(name) if aware else None
     czones = None
     if kind == "c":
-        from firmware.czones import CZones
-
-        czones = CZones(controller.policy._lib, zones_m, zones.radius_m, zones.time_horizon_s)
+        # The C controller brings its own zone filter (firmware/ceval.py): policy/ never imports
+        # firmware/, which sits above it.
+        czones = controller.zone_filter(zones_m, zones.radius_m, zones.time_horizon_s)
     routed = Routed(controller, router if aware else None, zones, safety_cfg, kind, czones)
     r = evalsim.run(
         starts, goals, routed, link, dataclasses.replace(sim_cfg, record=True), rng, **options
