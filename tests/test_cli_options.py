@@ -44,6 +44,9 @@ NO_UNIT_SUFFIX: dict[str, set[tuple[str, str]]] = {
         ("train", "--filter-margin")
     },
     "a count, in thousands (the -k is its scale)": {("train", "--episodes-k")},
+    "a confidence factor in standard deviations (k of k sqrt(si^2 + sj^2)), no unit": {
+        ("eval", "--sigma-k")
+    },
     "a ratio of real time (2 = twice as fast), no unit": {("replay", "--speed")},
     "LAT,LON,ALT: three numbers in degrees, degrees, metres, named by the metavar": {
         ("agent", "--origin"),
