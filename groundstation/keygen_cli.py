@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 
 from comms.authority import AUTHORITY, DEFAULT_DIR, ROSTER, Authority
 from comms.cli_options import (
@@ -27,7 +26,6 @@ from comms.cli_options import (
     mesh_config,
     nobody_answered,
     refuse,
-    stop_on_signals,
 )
 from comms.identity import FleetKeyError
 from comms.schema import MAX_VEHICLE_ID, Role
@@ -129,37 +127,26 @@ def keygen_cli(argv: list[str]) -> int:
     return 0
 
 
-PUSH_LINK_WAIT_S = 3.0
-"""How long `keygen push` waits for a router or peer to answer before saying nobody did."""
-
-
 def _push(auth: Authority, args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
-    from comms.mesh import Mesh
     from comms.roster_sync import confirmations
-    from comms.session import MeshUnreachable, expects_answer, unreachable, wait_linked
+    from comms.session import MeshUnreachable
+    from groundstation.push import push_and_confirm
 
     if not 0.5 <= args.duration_s <= 60:
         p.error("--duration-s must be within 0.5..60")
     args.fleet = auth.fleet
     cfg = mesh_config(args, p)
-    wait_s = max(args.duration_s, PUSH_LINK_WAIT_S)
     roster = auth.roster
     what = f"fleet {auth.fleet} roster v{roster.version} ({len(roster.members)} members)"
-    heard: list = []
     try:
-        with stop_on_signals() as stop, Mesh(cfg, stop=stop, wait_s=wait_s) as mesh:
-            if expects_answer(cfg) and not wait_linked(mesh.session, wait_s, stop):
-                raise unreachable(cfg, wait_s)  # a push into nothing is not "pushed"
-            deadline = time.monotonic() + args.duration_s
-            while not stop.is_set():  # re-put: members may still be connecting
-                mesh.publish_roster(roster)
-                heard = confirmations(mesh.session, auth.fleet, roster.version, timeout_s=0.5)
-                if heard or time.monotonic() >= deadline:
-                    break
-                stop.wait(0.25)
-            if heard:  # one more round: members still applying it count too
-                stop.wait(0.5)
-                heard += confirmations(mesh.session, auth.fleet, roster.version, timeout_s=0.5)
+        heard = push_and_confirm(
+            cfg,
+            args.duration_s,
+            lambda mesh: mesh.publish_roster(roster),
+            lambda session, timeout_s: confirmations(
+                session, auth.fleet, roster.version, timeout_s=timeout_s
+            ),
+        )
     except MeshUnreachable as exc:
         return nobody_answered(p, exc)
     except ValueError as exc:  # MeshConfigError: busy port, bad config

@@ -31,7 +31,6 @@ from comms.cli_options import (
     geo_origin,
     mesh_config,
     nobody_answered,
-    stop_on_signals,
 )
 from comms.geo import GeoOrigin
 from comms.identity import FleetKeyError, public_bytes, verify
@@ -52,8 +51,6 @@ VERBS = {
     "show": "print a signed plan or what a plan file holds",
     "push": "publish the signed plan to a running fleet",
 }
-PUSH_LINK_WAIT_S = 3.0
-"""How long `plan push` waits for a router or peer to answer before saying nobody did."""
 
 
 def plan_parser() -> argparse.ArgumentParser:
@@ -256,9 +253,9 @@ def _alt(alt_m: float | None, none: str) -> str:
 
 
 def _push(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
-    from comms.mesh import Mesh
     from comms.plan_sync import plan_confirmations, publish_plan
-    from comms.session import MeshUnreachable, expects_answer, unreachable, wait_linked
+    from comms.session import MeshUnreachable
+    from groundstation.push import push_and_confirm
 
     if not 0.5 <= args.duration_s <= 60:
         p.error("--duration-s must be within 0.5..60")
@@ -268,23 +265,16 @@ def _push(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
         die(p, f"--fleet {args.fleet} but {path} is fleet {plan.fleet!r}'s plan")
     args.fleet = plan.fleet
     cfg = mesh_config(args, p)
-    wait_s = max(args.duration_s, PUSH_LINK_WAIT_S)
     what = f"fleet {plan.fleet} plan v{plan.version}"
-    heard: list = []
     try:
-        with stop_on_signals() as stop, Mesh(cfg, stop=stop, wait_s=wait_s) as mesh:
-            if expects_answer(cfg) and not wait_linked(mesh.session, wait_s, stop):
-                raise unreachable(cfg, wait_s)
-            deadline = time.monotonic() + args.duration_s
-            while not stop.is_set():  # re-put: members may still be connecting
-                publish_plan(mesh.session, plan)
-                heard = plan_confirmations(mesh.session, plan.fleet, plan.version, timeout_s=0.5)
-                if heard or time.monotonic() >= deadline:
-                    break
-                stop.wait(0.25)
-            if heard:  # one more round: members still applying it count too
-                stop.wait(0.5)
-                heard += plan_confirmations(mesh.session, plan.fleet, plan.version, timeout_s=0.5)
+        heard = push_and_confirm(
+            cfg,
+            args.duration_s,
+            lambda mesh: publish_plan(mesh.session, plan),
+            lambda session, timeout_s: plan_confirmations(
+                session, plan.fleet, plan.version, timeout_s=timeout_s
+            ),
+        )
     except MeshUnreachable as exc:
         return nobody_answered(p, exc)
     except ValueError as exc:  # MeshConfigError: busy port, bad config
