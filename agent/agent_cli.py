@@ -184,6 +184,12 @@ def add_flight_args(
         help=f"0 = no fence (default {geofence_radius_m:g})",
     )
     add_config_flags(p, ReturnConfig)  # return layers and landing order (agent/returning.py)
+    p.add_argument(
+        "--no-coordinated-return",
+        action="store_true",
+        help="return home at its own altitude and land as it arrives (--return-layer-m 0 "
+        "--land-radius-m 0); default: on its layer, landing one at a time",
+    )
     if gcs_failsafe:
         p.add_argument(
             "--gcs-lost-hold-s",
@@ -255,8 +261,21 @@ def steady_from_args(args: argparse.Namespace) -> SteadyConfig | None:
 
 
 def failsafe_from_args(args: argparse.Namespace) -> FailsafeConfig:
-    """The failsafes the flags ask for; without the ground-station flags (fleet-sim), none."""
+    """The failsafes the flags ask for; without the ground-station flags (fleet-sim), none.
+    --no-coordinated-return with a layer or radius flag raises ValueError (one of them would
+    be ignored)."""
     returning = config_from_flags(ReturnConfig, args)
+    if args.no_coordinated_return:
+        default = ReturnConfig()
+        if (returning.return_layer_m, returning.land_radius_m) != (
+            default.return_layer_m,
+            default.land_radius_m,
+        ):
+            raise ValueError(
+                "--no-coordinated-return turns the layers and the landing order off: "
+                "drop --return-layer-m / --land-radius-m"
+            )
+        returning = dataclasses.replace(returning, return_layer_m=0.0, land_radius_m=0.0)
     if not hasattr(args, "no_gcs_failsafe"):
         return FailsafeConfig(
             require_gcs=False, geofence_radius_m=args.geofence_radius_m, returning=returning

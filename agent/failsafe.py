@@ -53,7 +53,8 @@ class FailsafeConfig:
     """Lowest goto altitude above the origin (landing is a command of its own)."""
     returning: ReturnConfig = ReturnConfig()
     """How a vehicle returns, commanded or by a failsafe: its altitude layer and landing order
-    (agent/returning.py; default off: home at its own altitude, landing as it arrives)."""
+    (agent/returning.py; default on: layers 4 m apart from 10 m, landing one at a time within
+    8 m)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.gcs_lost_hold_s <= self.gcs_lost_land_s:

@@ -394,6 +394,7 @@ class FlightCore:
                 [(r.n_m, r.e_m) for r in plan.rally] if plan is not None else [],
                 self.cfg.failsafe.min_alt_m,
                 self.cfg.guidance.arrive_alt_tol_m,
+                self.return_ceiling_m(),
             )
             self.heading_rad[i] = heading_towards(pos_m, self.goal_m[i], self.heading_rad[i])
             if not self.velocity_mode:
@@ -596,6 +597,14 @@ class FlightCore:
             if act is not None:
                 actions += self._internal(i, act.trigger, pos[i], act.reason)
         return actions
+
+    def return_ceiling_m(self) -> float:
+        """The highest a return layer may be: the failsafe's maximum or the plan's ceiling."""
+        fence = self.mission_plan.fence if self.mission_plan is not None else None
+        top = self.cfg.failsafe.max_alt_m
+        if fence is not None and fence.ceiling_alt_m is not None:
+            top = min(top, fence.ceiling_alt_m)
+        return top
 
     # -- missions ------------------------------------------------------------------------------
     def mission_alt_problem(self, alt_m: float) -> str | None:

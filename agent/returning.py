@@ -19,6 +19,13 @@ unheard for longer than that no longer holds it back.
 The landing spot is the vehicle's home (where it took off) or, with rally points in the fleet
 plan, the nearest of its home and the rally points; at a rally point each vehicle has its own
 pad on a square grid around the point, `rally_pad_spacing_m` apart, pad (id - 1) mod rally_pads.
+
+On by default (layers 4 m apart from 10 m, 8 layers, landing one at a time within 8 m): a
+return to all no longer sends every vehicle home at its own altitude. A layer above the fleet
+plan's ceiling or the failsafe's maximum altitude is flown at that limit (less the arrival
+tolerance) instead, where avoidance keeps the vehicles on it apart. `covey agent`,
+`covey fleet-sim` and `covey demo --no-coordinated-return` (`return_layer_m` and
+`land_radius_m` 0) fly the return of old.
 """
 
 from __future__ import annotations
@@ -38,15 +45,17 @@ LEVEL_M = 0.5
 
 @dataclass(frozen=True)
 class ReturnConfig:
-    """How returning vehicles share the sky (defaults: off, the return of old)."""
+    """How returning vehicles share the sky (defaults: on, layers 4 m apart from 10 m, landing
+    one at a time within 8 m; both 0 is the return of old)."""
 
-    return_layer_m: float = 0.0
-    """Height between return layers; 0: each vehicle returns at its own altitude."""
+    return_layer_m: float = 4.0
+    """Height between return layers (above the 3 m separation); 0: each vehicle returns at its
+    own altitude."""
     return_layers: int = 8
     """How many layers; vehicle id v flies layer (v - 1) mod return_layers."""
     return_base_alt_m: float = 10.0
     """Altitude of the lowest layer above the fleet origin."""
-    land_radius_m: float = 0.0
+    land_radius_m: float = 8.0
     """Vehicles whose landing spots are within this horizontal distance land one at a time,
     lowest first; 0: each lands as it arrives."""
     rally_pad_spacing_m: float = 5.0
@@ -65,6 +74,11 @@ class ReturnConfig:
                 raise ValueError(f"{name} must be positive, got {v}")
         if not (1 <= self.return_layers <= 1000 and 1 <= self.rally_pads <= 10_000):
             raise ValueError("return_layers must be within 1..1000 and pads within 1..10000")
+
+    @property
+    def coordinated(self) -> bool:
+        """Layers or a landing order (or both) are on."""
+        return self.return_layer_m > 0 or self.land_radius_m > 0
 
     def layer_alt_m(self, vehicle_id: int) -> float:
         return (
@@ -101,8 +115,11 @@ class Returns:
         rally_ne_m: list[tuple[float, float]],
         min_alt_m: float,
         alt_tol_m: float,
+        max_alt_m: float = math.inf,
     ) -> np.ndarray:
-        """Vehicle i starts returning from `pos_m`: its landing spot, phase, and first goal."""
+        """Vehicle i starts returning from `pos_m`: its landing spot, phase, and first goal.
+        `max_alt_m`: the highest it may fly (the plan's ceiling, the failsafe's maximum): a
+        layer above it is flown just under it."""
         home_ne = home_m[:2] if not np.isnan(home_m[0]) else np.zeros(2)
         spot = np.asarray(home_ne, float)
         if rally_ne_m:
@@ -115,7 +132,7 @@ class Returns:
         if self.cfg.return_layer_m <= 0:  # no layers: level at the current altitude, as before
             self.phase[i] = CRUISE
             return np.array([spot[0], spot[1], min(pos_m[2], -min_alt_m)])
-        alt = max(float(self.layer_alt_m[i]), min_alt_m)
+        alt = max(min(float(self.layer_alt_m[i]), max_alt_m - alt_tol_m), min_alt_m)
         if abs(-pos_m[2] - alt) > alt_tol_m:
             self.phase[i] = CLIMB
             return np.array([pos_m[0], pos_m[1], -alt])

@@ -51,6 +51,9 @@ class DemoConfig:
     """Distance between neighbouring start positions on the grid."""
     geofence_radius_m: float = 50.0
     """Geofence of every agent and of the station's drawing."""
+    coordinated_return: bool = True
+    """A return flies each vehicle home on its own altitude layer and lands them one at a time
+    (agent/returning.py's defaults); off: home at its own altitude, landing as it arrives."""
     agent_argv: tuple[str, ...] = (sys.executable, "-m", "covey_cli", "agent")
     """How to start one agent (arguments are appended)."""
     agent_extra: tuple[str, ...] = field(default_factory=tuple)
@@ -168,6 +171,7 @@ def _run(
                     "--geofence-radius-m",
                     f"{cfg.geofence_radius_m:g}",
                     *key_args(vid),
+                    *(() if cfg.coordinated_return else ("--no-coordinated-return",)),
                     *cfg.agent_extra,
                 ]
             )
@@ -209,6 +213,7 @@ DEMO_FLAGS = (
     "mesh_port",
     "spacing_m",
     "geofence_radius_m",
+    "coordinated_return",
     "agent_mesh_mode",
 )
 AGENT_MESH_MODES = ("client", "peer")

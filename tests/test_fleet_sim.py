@@ -115,10 +115,10 @@ def test_fleet_in_process_follows_the_agents_mode_machine() -> None:
         assert all(fleet.pos_m[i, 0] > 3.0 for i in (1, 2)), fleet.pos_m
         for i in (1, 2):
             assert fleet.handle_command(i, _cmd(CommandKind.RETURN)).result is AckResult.ACCEPTED
-        _fly(fleet, clock, 60.0)
+        _fly(fleet, clock, 100.0)  # each on its layer (14 and 18 m), then down
         assert fleet.modes[1:] == [Mode.LANDED, Mode.LANDED] and not fleet.armed[1:].any()
         assert np.allclose(fleet.pos_m[1:, :2], fleet.home_m[1:, :2], atol=1.0)
-        assert fleet.stats.ticks == 720
+        assert fleet.stats.ticks == 1120
 
 
 def test_idle_rows_publish_at_the_idle_rate_with_their_own_seqs() -> None:

@@ -42,7 +42,8 @@ SCRIPT = [
     (_cmd(CommandKind.GOTO_LOCAL, 12, -4, -7, nonce=5), 40),
     (_cmd(CommandKind.HOLD, nonce=6), 20),
     (_cmd(CommandKind.GOTO_LOCAL, 12, -4, -7, nonce=7), 120),  # arrives, then holds there
-    (_cmd(CommandKind.RETURN, nonce=8), 250),  # home, then lands
+    # home on its layer (id 7: 34 m, agent/returning.py), then lands
+    (_cmd(CommandKind.RETURN, nonce=8), 900),
     (_cmd(CommandKind.LAND, nonce=9), 5),
 ]
 
@@ -53,6 +54,7 @@ def test_agent_and_fleet_sim_answer_and_fly_the_same() -> None:
         fleet = Fleet(
             FleetSimConfig(
                 vehicles=2,
+                first_id=7,  # row 0 is vehicle 7, as the agent: the same return layer
                 spacing_m=250.0,
                 mesh=ISOLATED,
                 see_others=False,
@@ -65,6 +67,7 @@ def test_agent_and_fleet_sim_answer_and_fly_the_same() -> None:
         backend = SimBackend(SimConfig(), now_s=clock[0])
         cfg = AgentConfig(vehicle_id=7, mesh=ISOLATED, failsafe=FENCE)
         with Agent(cfg, backend, mesh_a, clock_s=lambda: clock[0]) as agent:
+            top_m = 0.0
             for cmd, ticks in SCRIPT:
                 a = agent.handle_command(cmd)
                 f = fleet.handle_command(0, cmd)
@@ -75,10 +78,13 @@ def test_agent_and_fleet_sim_answer_and_fly_the_same() -> None:
                     agent.tick(clock[0])
                     assert agent.actions.wait_idle(5.0)  # its queue runs off the tick: let it
                     fleet.tick(clock[0])
+                    if cmd.kind is CommandKind.RETURN:
+                        top_m = max(top_m, -fleet.pos_m[0, 2])
                 pa = np.array(backend.telemetry().pos_ned_m)
                 np.testing.assert_allclose(pa, fleet.pos_m[0], atol=1e-6, err_msg=str(cmd.kind))
                 assert agent.mode is fleet.modes[0], cmd.kind
             assert agent.mode is Mode.LANDED and not backend.telemetry().armed
+            assert top_m == pytest.approx(34.0, abs=0.6)  # the return flew vehicle 7's layer
             results = [agent.handle_command(c).result for c, _ in SCRIPT[:1]]
             assert results == [AckResult.REJECTED]
 

@@ -49,8 +49,39 @@ def test_enter_climbs_first_then_flies_level() -> None:
     goal = r.enter(0, np.array([50.0, 0.0, -10.2]), home, [(60.0, 0.0)], 1.0, 0.5)
     assert r.phase[0] == CRUISE and goal[2] == -10.0
     assert np.hypot(*(goal[:2] - (60.0, 0.0))) <= 15.0  # its pad around the rally point
-    off = Returns(ReturnConfig(), [1])
+    off = Returns(ReturnConfig(return_layer_m=0.0, land_radius_m=0.0), [1])
     assert off.enter(0, np.array([5.0, 5.0, -7.0]), home, [], 1.0, 0.5).tolist() == [0, 0, -7.0]
+    # a layer above the ceiling is flown just under it (less the arrival tolerance)
+    high = Returns(ReturnConfig(), [8])  # default layer of vehicle 8: 10 + 7 x 4 = 38 m
+    assert high.enter(0, np.array([5.0, 5.0, -7.0]), home, [], 1.0, 0.5, 30.0)[2] == -29.5
+
+
+def test_the_coordinated_return_is_on_by_default_and_can_be_turned_off() -> None:
+    """The real parsers of covey agent, covey agent --ids (the host), covey fleet-sim and
+    covey demo: layers 4 m apart from 10 m and a landing order within 8 m unless
+    --no-coordinated-return; that flag with a layer flag is refused, not half-used."""
+    from agent import agent_cli, host_cli
+    from groundstation import demo
+
+    assert ReturnConfig().coordinated
+    assert (ReturnConfig().return_layer_m, ReturnConfig().land_radius_m) == (4.0, 8.0)
+    base = ["--id", "3"]
+    args = agent_cli.parser().parse_args(base)
+    on = agent_cli.failsafe_from_args(args).returning
+    assert (on.return_layer_m, on.return_base_alt_m, on.land_radius_m) == (4.0, 10.0, 8.0)
+    assert on.layer_alt_m(3) == 18.0
+    args = agent_cli.parser().parse_args([*base, "--no-coordinated-return"])
+    off = agent_cli.failsafe_from_args(args).returning
+    assert not off.coordinated
+    args = agent_cli.parser().parse_args([*base, "--no-coordinated-return", "--land-radius-m", "5"])
+    with pytest.raises(ValueError, match="no-coordinated-return"):
+        agent_cli.failsafe_from_args(args)
+    p = host_cli.fleet_sim_parser()
+    for argv, want in (([], True), (["--no-coordinated-return"], False)):
+        cfg = host_cli.host_config(p, p.parse_args(argv), (1, 2), 10.0)
+        assert cfg.failsafe.returning.coordinated is want, argv
+    assert demo.parser().parse_args([]).coordinated_return is True
+    assert demo.parser().parse_args(["--no-coordinated-return"]).coordinated_return is False
 
 
 def test_lowest_lands_first_within_the_radius() -> None:
@@ -244,8 +275,9 @@ def test_two_agents_return_on_their_layers_and_land_in_order(procs) -> None:
         with lock:
             return {v: xs[-1] for v, xs in seen.items() if xs}
 
-    flags = ["--return-layer-m", "4", "--return-layers", "2", "--return-base-alt-m", "6"]
-    flags += ["--land-radius-m", "8", "--no-gcs-failsafe", "--cruise-speed-m-s", "2"]
+    # layers 4 m apart and the 8 m landing order are the defaults (on without a flag)
+    flags = ["--return-layers", "2", "--return-base-alt-m", "6"]
+    flags += ["--no-gcs-failsafe", "--cruise-speed-m-s", "2"]
     mesh = ["--fleet", fleet_name, "--connect", f"tcp/127.0.0.1:{port}"]
     with Mesh(embedded_router(port, fleet=fleet_name)) as station:
         station.subscribe_states(on_state)
