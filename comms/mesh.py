@@ -586,21 +586,20 @@ class Mesh:
 
     def observe_commands(
         self,
-        on_command: Callable[[Command, int, bytes], None],
+        on_command: Callable[[Command | Mission, int, bytes], None],
         on_ack: Callable[[CommandAck, int], None],
     ) -> None:
-        """See every command sent to the fleet, from any station, with its receive stamp and the
-        digest its acks are bound to (`auth.command_digest`), and every vehicle's ack copy
-        (`msg/<id>/ack`). A silent queryable (complete=False) sees each command query and never
-        replies, so the vehicles' answers to the sender are untouched."""
+        """See every command and mission upload sent to the fleet, from any station, with its
+        receive stamp and the digest its acks are bound to (`auth.command_digest`), and every
+        vehicle's ack copy (`msg/<id>/ack`). A silent queryable (complete=False) sees each
+        command query and never replies, so the vehicles' answers to the sender are untouched."""
 
         def on_query(query: zenoh.Query) -> None:
             recv_ns = self.clock_ns()
             payload = query.payload.to_bytes() if query.payload else b""
-            if payload[:1] == bytes([MsgType.MISSION]):
-                return  # a mission upload: the log lists commands (its acks still arrive)
+            kind = Mission if payload[:1] == bytes([MsgType.MISSION]) else Command
             try:
-                command = Command.decode(payload)
+                command = kind.decode(payload)
             except DecodeError as exc:
                 self._bad(str(query.key_expr), exc)
                 return

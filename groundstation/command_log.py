@@ -12,6 +12,10 @@ counted, per cause, for the last minute (`refused_last_minute`), so a flood of f
 neither pose as a station nor push a real command out. In open mode nothing is signed, and each
 entry says so.
 
+Mission uploads are listed the same way ("mission 3 (6 items) → 1,2,3"), verified as missions
+(their own signature label), with each vehicle's ack: accepted is "done: loaded" (an upload
+changes no flight, so it never supersedes a command), rejected carries the item and reason.
+
 "Done" is the vehicle's own report: its signed state shows the mode the command ends in (a
 take-off ends HOLDING at altitude, a goto HOLDING at its goal, a land LANDED), stamped after the
 vehicle's ack. The autopilot's outcome (an ACTION event, `ActionOutcome`) marks a failure.
@@ -35,6 +39,7 @@ from comms.schema import (
     Command,
     CommandAck,
     CommandKind,
+    Mission,
     Mode,
     StateFlag,
     VehicleState,
@@ -47,6 +52,9 @@ _MAX_CAUSES = 8
 """Distinct refusal causes counted; more share the last one ("other")."""
 GOAL_MATCH_M = 0.5
 """A vehicle holding within this of a goto's goal has reached it."""
+
+Request = Command | Mission
+"""What the log keeps: a command, or a mission upload (answered through the command path)."""
 
 
 @dataclass(frozen=True)
@@ -108,7 +116,7 @@ class LoggedCommand:
     seq: int
     """Order of arrival at this station (1, 2, ...)."""
     recv_ns: int
-    command: Command
+    command: Request
     answers: dict[int, Answer]
     """Vehicle id -> its answer (acks seen so far)."""
     superseded: dict[int, int]
@@ -134,7 +142,7 @@ class LoggedCommand:
 
     def describe(self) -> str:
         who = ",".join(map(str, self.command.targets)) if self.command.targets else "all"
-        return f"{describe(self.command.kind, self.command.params)} → {who}"
+        return f"{describe_request(self.command)} → {who}"
 
     def sender(self) -> str:
         """Who sent it, as far as this station can tell."""
@@ -177,9 +185,20 @@ class LoggedCommand:
         return sorted(set(self.answers) | set(self.command.targets))
 
 
-def outcome_text(command: Command, mode: Mode, state: VehicleState | None) -> str | None:
+def describe_request(request: Request) -> str:
+    """What a command or a mission upload asks, as an operator reads it (without targets)."""
+    if isinstance(request, Mission):
+        n = len(request.items)
+        v = f" v{request.mission_version}" if request.mission_version != 1 else ""
+        return f"mission {request.mission_id}{v} ({n} item{'s' if n != 1 else ''})"
+    return describe(request.kind, request.params)
+
+
+def outcome_text(command: Request, mode: Mode, state: VehicleState | None) -> str | None:
     """The command's outcome if the vehicle in `mode` (with `state`, None: only the ack's mode
-    is known) has finished it, else None."""
+    is known) has finished it, else None. An accepted mission upload is done at once: loaded."""
+    if isinstance(command, Mission):
+        return "loaded"
     kind = command.kind
     if kind is CommandKind.KILL and mode is Mode.KILLED:
         return "killed"
@@ -216,15 +235,16 @@ AckCheck = Callable[[CommandAck, Command, bytes], str | None]
 """Returns why an ack must not be believed for a command whose wire bytes hash to the digest
 (a forged or replayed ack), or None."""
 
-CommandCheck = Callable[[Command], str | None]
-"""Returns why a command must not be believed (`FleetAuth.verify_command`), or None."""
+CommandCheck = Callable[[Request], str | None]
+"""Returns why a command or mission must not be believed (`FleetAuth.verify_command`), or
+None."""
 
 
 @dataclass
 class _Entry:
     seq: int
     recv_ns: int
-    command: Command
+    command: Request
     digest: bytes = b""
     own: bool = False
     signed: bool = False
@@ -330,7 +350,7 @@ class CommandLog:
 
     def on_command(
         self,
-        command: Command,
+        command: Request,
         recv_ns: int,
         digest: bytes = b"",
         check: CommandCheck | None = None,
@@ -396,6 +416,8 @@ class CommandLog:
             text = outcome_text(entry.command, ack.mode, None)
             if text is not None:  # a hold, a kill, a land on the ground: finished at once
                 entry.finished[vid] = text
+            if isinstance(entry.command, Mission):
+                return  # an upload flies nothing: the vehicle's latest command still runs
             before = self._entries.get(self._last_accepted.get(vid, -1))
             if before is not None and before.seq > entry.seq:
                 if not entry.ended(vid):  # this ack arrived late: already replaced

@@ -9,6 +9,7 @@ The mesh feeds the FleetModel from Zenoh threads; one render thread draws the sc
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import secrets
@@ -38,6 +39,7 @@ from comms.schema import (
     DecodeError,
     Event,
     EventKind,
+    Mission,
     Severity,
     VehicleState,
 )
@@ -448,12 +450,15 @@ class GroundStation:
         self.fleet.on_state(state, recv_ns, *entry_seq)
         self.commands.on_state(state)  # it may show the vehicle finished its latest command
 
-    def _on_command(self, command: Command, recv_ns: int, digest: bytes) -> None:
-        """Keyed mode: only commands whose station signature verifies are logged; the rest are
-        counted by cause (one summary line), so a forger can neither pose as a station nor push
-        real commands out of the log."""
+    def _on_command(self, command: Command | Mission, recv_ns: int, digest: bytes) -> None:
+        """Keyed mode: only commands (and mission uploads) whose station signature verifies are
+        logged; the rest are counted by cause (one summary line), so a forger can neither pose
+        as a station nor push real commands out of the log."""
         auth = self.mesh.auth if self.mesh is not None else None
-        check = auth.verify_command if auth is not None else None
+        check = None
+        if auth is not None:
+            label = "mission" if isinstance(command, Mission) else "cmd"
+            check = functools.partial(auth.verify_command, label=label)
         self.commands.on_command(command, recv_ns, digest, check=check)
 
     def _on_ack(self, ack: CommandAck, recv_ns: int) -> None:

@@ -171,6 +171,39 @@ def test_forged_commands_are_counted_by_cause_and_never_displace_real_ones():
     assert log.refused_commands == 3140
 
 
+def test_a_mission_upload_is_listed_with_each_vehicles_ack():
+    """An upload reads "mission 3 (6 items) → 1,2,3", is done ("loaded") where accepted,
+    rejected with the vehicle's reason where not, and supersedes no command (it flies
+    nothing); a forged one is only counted, like a forged command."""
+    from comms.schema import Mission, MissionItem, MissionItemKind
+
+    log = CommandLog()
+    log.on_command(cmd(5, targets=(1,)), 1 * S)
+    log.on_ack(ack(1, 5), 1 * S)  # vehicle 1 flies a goto
+    items = tuple(
+        MissionItem(MissionItemKind.WAYPOINT, x=float(k), y=0.0, alt_m=6.0) for k in range(6)
+    )
+    up = Mission(7, 7, items, mission_id=3, targets=(1, 2, 3), source_id=2, tag=b"\x01" * 64)
+    assert log.on_command(up, 2 * S, check=refuse_unsigned)
+    log.on_ack(ack(1, 7), 2 * S)
+    log.on_ack(ack(2, 7), 2 * S)
+    log.on_ack(CommandAck(3, 7, 7, AckResult.REJECTED, "item 2: outside the fence"), 2 * S)
+    entry, goto = log.entries()
+    assert entry.describe() == "mission 3 (6 items) → 1,2,3" and entry.sender() == "station 2"
+    assert {v: entry.progress(v, 3 * S, 5.0, None) for v in (1, 2, 3)} == {
+        1: Progress(Status.DONE, "loaded"),
+        2: Progress(Status.DONE, "loaded"),
+        3: Progress(Status.REJECTED, "item 2: outside the fence"),
+    }
+    assert goto.progress(1, 3 * S, 5.0, None) == Progress(Status.ACCEPTED, "under way")
+    forged = Mission(8, 8, items[:1], mission_id=9, targets=(1,), source_id=1)
+    assert not log.on_command(forged, 3 * S, check=refuse_unsigned)
+    assert len(log) == 2 and log.refused_last_minute(4 * S) == {"unsigned command": 1}
+    html = command_log_html(log.entries(), 3 * S, refused=log.refused_last_minute(4 * S))
+    assert "mission 3 (6 items) → 1,2,3" in html and "mission 9" not in html
+    assert "1 refused command attempt in the last minute" in html
+
+
 def test_senders_are_labelled_honestly():
     log = CommandLog()
     log.mark_own(1)
