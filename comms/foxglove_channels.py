@@ -12,9 +12,12 @@ Standard channels (schemas and encoders from foxglove-sdk; protobuf unless marke
                                               per TrafficReport an entity "traffic/<reporter>/
                                               <track>": magenta sphere, ring, arrow, "TRF" label;
                                               the fleet plan as one entity "plan": the fence
-                                              (orange loop), keep-out zones (red loops, named)
+                                              (orange loop), keep-out zones (red loops, named);
+                                              per vehicle that accepted a mission upload an
+                                              entity "route/<id>": its waypoints as a line in
+                                              the MISSION colour, labelled "mission N"
     /events                   Log             every Event, level from its severity
-    /commands                 JSON            who sent which command to whom
+    /commands                 JSON            who sent which command (or mission) to whom
     /acks                     JSON            each vehicle's answer to a command
 
 Poses stay in NED (frame "ned", metres, exactly the wire values); the static world -> ned
@@ -33,7 +36,7 @@ from typing import NamedTuple
 from foxglove import messages as fm
 
 from comms import keys, schema
-from comms.geo import GeoOrigin
+from comms.geo import GeoOrigin, mission_route_ned_m
 from comms.palette import GEOFENCE_RGB, GOAL_RGB, KEEP_OUT_RGB, RING_OK_RGB, TRAFFIC_RGB, mode_rgb
 from comms.plan import FleetPlan
 from comms.state_batch import StateRow, decode_states
@@ -59,6 +62,10 @@ _LOG_LEVEL = {
 
 def vehicle_frame(vehicle_id: int) -> str:
     return f"vehicle/{vehicle_id}"
+
+
+def route_entity_id(vehicle_id: int) -> str:
+    return f"route/{vehicle_id}"
 
 
 def pose_topic(vehicle_id: int) -> str:
@@ -226,6 +233,10 @@ def x_to(v: tuple[float, float, float]) -> tuple[float, float, float, float]:
     return x, y / k, z / k, w / k
 
 
+def _kind_name(c: schema.Command | schema.Mission) -> str:
+    return c.kind if isinstance(c, schema.Mission) else c.kind.name
+
+
 @dataclass
 class _Link:
     first_seq: int
@@ -245,11 +256,14 @@ class Converter:
 
     MAX_COMMANDS = 1024
     MAX_TOPICS = 100_000
+    MAX_EARLY_ACCEPTS = 4096
+    """Accepted acks kept per nonce until their mission arrives (an ack can overtake it)."""
 
     def __init__(self, cfg: FoxgloveConfig = FoxgloveConfig()) -> None:
         self.cfg = cfg
         self._links: dict[int, _Link] = {}
-        self._commands: dict[int, schema.Command] = {}
+        self._commands: dict[int, schema.Command | schema.Mission] = {}
+        self._early_accepts: dict[int, list[int]] = {}  # nonce -> vehicles, command not seen
         self._tf_due_ns = 0
         self._scene_due_ns: dict[int, int] = {}  # vehicle -> next receive time to redraw it
         self._scene_mode: dict[int, schema.Mode] = {}  # a mode change is drawn at once
@@ -310,8 +324,10 @@ class Converter:
             return [self.event(msg, recv_ns)]
         if isinstance(msg, schema.Command):
             return [self.command(msg, recv_ns)]
+        if isinstance(msg, schema.Mission):
+            return [self.command(msg, recv_ns), *self._early_routes(msg, recv_ns)]
         if isinstance(msg, schema.CommandAck):
-            return [self.ack(msg, recv_ns)]
+            return [self.ack(msg, recv_ns), *self._accepted_route(msg, recv_ns)]
         if isinstance(msg, schema.TrafficReport):
             return [self.traffic(msg, recv_ns)]
         if isinstance(msg, schema.PlanMessage):
@@ -605,18 +621,20 @@ class Converter:
         )
         return Out(EVENTS_TOPIC, LOG, log.encode(), recv_ns)
 
-    def command(self, c: schema.Command, recv_ns: int) -> Out:
+    def command(self, c: schema.Command | schema.Mission, recv_ns: int) -> Out:
+        """A command (or a mission upload: kind MISSION, params [mission id, items], seq 0)."""
         if len(self._commands) >= self.MAX_COMMANDS:
             self._commands.pop(next(iter(self._commands)))
         self._commands[c.nonce] = c
+        mission = isinstance(c, schema.Mission)
         body = {
             "nonce": c.nonce,
             "stamp_ns": c.stamp_ns,
             "source_id": c.source_id,
-            "kind": c.kind.name,
-            "params": list(c.params),
+            "kind": c.kind if mission else c.kind.name,
+            "params": [c.mission_id, len(c.items)] if mission else list(c.params),
             "targets": list(c.targets),
-            "seq": c.seq,
+            "seq": 0 if mission else c.seq,
             "signed": any(c.tag),
         }
         return Out(COMMANDS_TOPIC, COMMAND_JSON, json.dumps(body).encode(), recv_ns)
@@ -633,10 +651,82 @@ class Converter:
             "accepted": a.accepted,
             "mode": a.mode.name,
             "reason": a.reason,
-            "command_kind": cmd.kind.name if cmd else "",
+            "command_kind": _kind_name(cmd) if cmd else "",
             "source_id": cmd.source_id if cmd else -1,
         }
         return Out(ACKS_TOPIC, ACK_JSON, json.dumps(body).encode(), recv_ns)
+
+    def route(self, vehicle_id: int, m: schema.Mission, recv_ns: int) -> Out:
+        """The route vehicle `vehicle_id` accepted: its waypoints (local NED, frame ned) as one
+        line and a dot each, in the MISSION colour, labelled "mission N" at the first; one
+        entity per vehicle, replaced by its next accepted upload, deleted when it leaves."""
+        ned = mission_route_ned_m(m.items, self.cfg.origin)
+        pts = [fm.Point3(x=n, y=e, z=d) for n, e, d in ned]
+        colour = self._mode_colours[schema.Mode.MISSION]
+        lines, spheres, texts = [], [], []
+        if len(pts) >= 2:
+            lines.append(
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineStrip,
+                    pose=fm.Pose(position=self._zero, orientation=self._identity),
+                    thickness=2.0,
+                    scale_invariant=True,
+                    points=pts,
+                    color=colour,
+                )
+            )
+        for n, e, d in ned:
+            spheres.append(
+                fm.SpherePrimitive(
+                    pose=fm.Pose(position=_v3(n, e, d), orientation=self._identity),
+                    size=self._goal_size,
+                    color=colour,
+                )
+            )
+        if ned:
+            n, e, d = ned[0]
+            texts.append(
+                fm.TextPrimitive(
+                    pose=fm.Pose(position=_v3(n, e, d - 0.6), orientation=self._identity),
+                    billboard=True,
+                    font_size=12.0,
+                    scale_invariant=True,
+                    color=colour,
+                    text=f"mission {m.mission_id} ({vehicle_id})",
+                )
+            )
+        entity = fm.SceneEntity(
+            timestamp=_ts(recv_ns),
+            frame_id=NED_FRAME,
+            id=route_entity_id(vehicle_id),
+            metadata=[
+                fm.KeyValuePair(key="mission_id", value=str(m.mission_id)),
+                fm.KeyValuePair(key="items", value=str(len(m.items))),
+            ],
+            lines=lines,
+            spheres=spheres,
+            texts=texts,
+        )
+        return Out(SCENE_TOPIC, SCENE_UPDATE, fm.SceneUpdate(entities=[entity]).encode(), recv_ns)
+
+    def _accepted_route(self, a: schema.CommandAck, recv_ns: int) -> list[Out]:
+        """A vehicle accepted a mission upload: its route. An accept that overtook its
+        mission is kept (bounded) until the mission comes."""
+        if not a.accepted:
+            return []
+        cmd = self._commands.get(a.nonce)
+        if isinstance(cmd, schema.Mission):
+            return [self.route(a.vehicle_id, cmd, recv_ns)]
+        if cmd is None:
+            if a.nonce not in self._early_accepts and len(self._early_accepts) >= self.MAX_COMMANDS:
+                self._early_accepts.pop(next(iter(self._early_accepts)))
+            early = self._early_accepts.setdefault(a.nonce, [])
+            if len(early) < self.MAX_EARLY_ACCEPTS:
+                early.append(a.vehicle_id)
+        return []
+
+    def _early_routes(self, m: schema.Mission, recv_ns: int) -> list[Out]:
+        return [self.route(v, m, recv_ns) for v in self._early_accepts.pop(m.nonce, [])]
 
     def _alive(self, vid: int, data: bytes, recv_ns: int) -> list[Out]:
         if data != b"\x00":
@@ -650,8 +740,9 @@ class Converter:
                 fm.SceneEntityDeletion(
                     timestamp=_ts(recv_ns),
                     type=fm.SceneEntityDeletionType.MatchingId,
-                    id=vehicle_frame(vid),
+                    id=entity_id,
                 )
+                for entity_id in (vehicle_frame(vid), route_entity_id(vid))
             ]
         )
         log = fm.Log(

@@ -9,7 +9,10 @@ round trip.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
+
+from comms.schema import MissionFrame, MissionItem, MissionItemKind
 
 WGS84_A_M = 6378137.0
 WGS84_F = 1.0 / 298.257223563
@@ -59,3 +62,20 @@ class GeoOrigin:
         n = math.radians(lat_deg - self.lat_deg) * (m_m + self.alt_m)
         e = math.radians(dlon) * (n_rad_m + self.alt_m) * math.cos(math.radians(self.lat_deg))
         return n, e, self.alt_m - alt_m
+
+
+def mission_route_ned_m(
+    items: Iterable[MissionItem], origin: GeoOrigin
+) -> list[tuple[float, float, float]]:
+    """The waypoints of mission `items` in local NED, in order: what
+    the station and Foxglove draw as a vehicle's route. A global waypoint's altitude is AMSL,
+    a local one's above the origin (up); the other items have no position of their own."""
+    out = []
+    for item in items:
+        if item.kind is not MissionItemKind.WAYPOINT:
+            continue
+        if item.frame is MissionFrame.GLOBAL:
+            out.append(origin.to_local(item.x, item.y, item.alt_m))
+        else:
+            out.append((float(item.x), float(item.y), -float(item.alt_m)))
+    return out

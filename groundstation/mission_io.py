@@ -27,7 +27,7 @@ import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from comms.geo import GeoOrigin
+from comms.geo import GeoOrigin, mission_route_ned_m
 from comms.safe_load import BadFileError, decode_utf8, parse_json, read_bounded
 from comms.schema import (
     MAX_MISSION_ITEMS,
@@ -72,15 +72,7 @@ class MissionRequest:
 
     def route_ned_m(self, origin: GeoOrigin) -> list[tuple[float, float, float]]:
         """The waypoints' positions in local NED, in order (what the station draws)."""
-        out = []
-        for item in self.items:
-            if item.kind is not K.WAYPOINT:
-                continue
-            if item.frame is MissionFrame.GLOBAL:
-                out.append(origin.to_local(item.x, item.y, item.alt_m))
-            else:
-                out.append((item.x, item.y, -item.alt_m))
-        return out
+        return mission_route_ned_m(self.items, origin)
 
 
 def load_mission_file(path: str | os.PathLike[str]) -> MissionFile:

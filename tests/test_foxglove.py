@@ -51,6 +51,17 @@ STARTS = {1: (0.0, 0.0), 2: (0.0, 8.0)}
 GOALS = {1: (6.0, 6.0, -3.0), 2: (6.0, 0.0, -3.0)}
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 ORIGIN = GeoOrigin(47.3977, 8.5456, 488.0)
+MISSIONS = {  # vehicle -> its uploaded waypoints (north, east, altitude up)
+    1: ((10.0, 0.0, 5.0), (10.0, 10.0, 6.0), (0.0, 10.0, 7.0)),
+    2: ((5.0, 5.0, 150.0), (0.0, 0.0, 5.0)),
+}
+
+
+def _mission(vid: int, route, stamp_ns: int, mission_id: int = 40) -> schema.Mission:
+    items = tuple(
+        schema.MissionItem(schema.MissionItemKind.WAYPOINT, x=n, y=e, alt_m=a) for n, e, a in route
+    )
+    return schema.Mission(new_nonce(), stamp_ns, items, mission_id=mission_id + vid, targets=(vid,))
 
 
 def proto_class(name: str, fds: bytes):
@@ -147,6 +158,51 @@ def test_event_becomes_a_log_with_its_level(severity, level):
     (out,) = fc.Converter().convert(keys.event("f", 4), ev.encode(), 9)
     log = proto_class("foxglove.Log", fc.LOG.data).FromString(out.data)
     assert log.level == level and log.name == "vehicle/4" and "geofence" in log.message
+
+
+def _scene_entities(outs) -> list:
+    cls = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data)
+    return [e for o in outs if o.topic == "/scene" for e in cls.FromString(o.data).entities]
+
+
+def test_an_accepted_mission_upload_becomes_its_vehicles_route_line():
+    """A route per vehicle that accepted the upload (none for a refusal), its waypoints in
+    order (a global one at its local position), also when the ack overtook the mission; a
+    vehicle that leaves takes its route along; /commands lists the upload."""
+    conv = fc.Converter(fc.FoxgloveConfig(origin=ORIGIN))
+    lat, lon, amsl = ORIGIN.to_global(0.0, 20.0, -8.0)
+    items = (
+        schema.MissionItem(schema.MissionItemKind.TAKEOFF, alt_m=5.0),
+        schema.MissionItem(schema.MissionItemKind.WAYPOINT, x=10.0, y=0.0, alt_m=5.0),
+        schema.MissionItem(
+            schema.MissionItemKind.WAYPOINT, schema.MissionFrame.GLOBAL, lat, lon, amsl
+        ),
+        schema.MissionItem(schema.MissionItemKind.LAND),
+    )
+    m = schema.Mission(77, 1, items, mission_id=3, targets=(1, 2, 3))
+    # vehicle 3's ack overtakes the upload (another Zenoh path)
+    early = schema.CommandAck(3, 77, 2, schema.AckResult.ACCEPTED, "")
+    assert _scene_entities(conv.convert(keys.ack("f", 3), early.encode(), 2)) == []
+    outs = conv.convert(keys.all_cmds("f"), m.encode(), 3)
+    cmd = json.loads(next(o.data for o in outs if o.topic == "/commands"))
+    assert (cmd["kind"], cmd["params"], cmd["targets"]) == ("MISSION", [3, 4], [1, 2, 3])
+    (r3,) = _scene_entities(outs)
+    ok = schema.CommandAck(1, 77, 4, schema.AckResult.ACCEPTED, "")
+    no = schema.CommandAck(2, 77, 4, schema.AckResult.REJECTED, "item 2: outside the fence")
+    (r1,) = _scene_entities(conv.convert(keys.ack("f", 1), ok.encode(), 4))
+    assert _scene_entities(conv.convert(keys.ack("f", 2), no.encode(), 4)) == []
+    for ent, vid in ((r1, 1), (r3, 3)):
+        assert ent.id == f"route/{vid}" and ent.frame_id == "ned"
+        (line,) = ent.lines
+        pts = [c for p in line.points for c in (p.x, p.y, p.z)]
+        assert pts == pytest.approx([10.0, 0.0, -5.0, 0.0, 20.0, -8.0], abs=1e-3)
+        assert len(ent.spheres) == 2 and ent.texts[0].text == f"mission 3 ({vid})"
+    outs = conv.convert(keys.ack("f", 1), ok.encode(), 5)
+    (ack,) = [json.loads(o.data) for o in outs if o.topic == "/acks"]
+    assert ack["command_kind"] == "MISSION"
+    outs = conv.convert(keys.alive("f", 1), b"\x00", 6)
+    scene = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data).FromString(outs[0].data)
+    assert {d.id for d in scene.deletions} == {"vehicle/1", "route/1"}
 
 
 def test_garbage_and_departures():
@@ -489,6 +545,10 @@ def flight(tmp_path_factory):
                         *GOALS[v], nonce=new_nonce(), stamp_ns=stamp(), targets=(v,)
                     ),
                 )
+                # a route each, kept not flown: vehicle 1 accepts, vehicle 2 refuses (150 m)
+                for vid, route in MISSIONS.items():
+                    up = mesh.send_command(_mission(vid, route, stamp()), timeout_s=5.0)
+                    assert up.ok is (vid == 1), up.summary()
                 time.sleep(2.5)
             finally:
                 ws.stop.set()
@@ -565,6 +625,19 @@ def test_acks_name_the_vehicles_commanded(flight):
             and lg.level == int(ev.severity) + 1
             for lg in logs
         )
+
+
+@pytest.mark.e2e
+def test_the_recording_draws_each_accepted_mission_as_a_route(flight):
+    """Real agents answered the uploads: the recording's /scene holds vehicle 1's route (its
+    three waypoints in order, in NED) and none for vehicle 2, which refused its mission."""
+    std = read_standard(flight["path"])
+    routes = {e.id: e for u in std["/scene"] for e in u.entities if e.id.startswith("route/")}
+    assert set(routes) == {"route/1"}, set(routes)
+    (line,) = routes["route/1"].lines
+    got = [c for p in line.points for c in (p.x, p.y, p.z)]
+    assert got == pytest.approx([c for n, e, a in MISSIONS[1] for c in (n, e, -a)], abs=1e-6)
+    assert any(c["kind"] == "MISSION" for c in std["/commands"])
 
 
 @pytest.mark.e2e
