@@ -47,6 +47,8 @@ class COnboardFleet:
 
     uses_sigma = True
     """policy.evalsim passes the position uncertainties (covey_guidance_step_sky)."""
+    uses_cooperative = True
+    """... and which neighbours do not cooperate (intruders: the C filter's non_cooperative)."""
 
     def __call__(
         self,
@@ -62,6 +64,7 @@ class COnboardFleet:
         nbr_valid,
         pos_sigma_m=None,
         nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
     ):
         out = np.zeros((len(ids), 2))
         for row, vid in enumerate(np.asarray(ids).tolist()):
@@ -80,6 +83,7 @@ class COnboardFleet:
                 t_s,
                 pos_sigma_m=0.0 if pos_sigma_m is None else float(pos_sigma_m[row]),
                 nbr_pos_sigma_m=None if nbr_pos_sigma_m is None else nbr_pos_sigma_m[row, m],
+                nbr_cooperative=None if nbr_cooperative is None else nbr_cooperative[row, m],
             )
             if r.status != "ok":
                 raise RuntimeError(

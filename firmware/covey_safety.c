@@ -145,10 +145,18 @@ static real_t det2(real_t ax, real_t ay, real_t bx, real_t by)
  *   overlapping: the same with the disc centred on p / dt, to separate within one period.
  *   point = v_own + responsibility u.
  */
-static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, real_t px,
-                      real_t py, real_t vx, real_t vy, const covey_track_t *own, line_t *line)
+/*
+ * A non-cooperative pair (nc = 1) looks tau ahead (pair_horizon, not cfg's) and, on a collision
+ * course (v inside the untruncated cone: v.p > 0 and |det(p, v)| < r |v|), always resolves on a
+ * leg of the cone: the half-plane's normal is lateral, so the vehicle steps aside instead of
+ * fleeing along the line of a faster intruder (policy/safety.py orca_lines). The leg keeps us
+ * on our side of the neighbour's track when it is at least as fast as max_speed_m_s (else the
+ * side v leans to); within COVEY_SAFETY_NC_SIDE_BIAS r of it, the right-hand leg (north/east).
+ */
+static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, real_t tau,
+                      int nc, real_t px, real_t py, real_t vx, real_t vy,
+                      const covey_track_t *own, line_t *line)
 {
-    const real_t tau = R(cfg->time_horizon_s);
     const real_t dist_sq = px * px + py * py;
     real_t dir_x, dir_y, u_x, u_y;
     if (dist_sq <= r * r) {
@@ -167,7 +175,25 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
         const real_t wy = vy - py / tau;
         const real_t w_len_sq = wx * wx + wy * wy;
         const real_t dot1 = wx * px + wy * py;
-        if (dot1 < R(0.0) && dot1 * dot1 > r * r * w_len_sq) {
+        int left = px * wy - py * wx > R(0.0);
+        int steer = 0;
+        if (nc) {
+            const real_t det_pv = px * vy - py * vx; /* = det(p, w) */
+            const real_t v_len = R_SQRT(vx * vx + vy * vy);
+            steer = px * vx + py * vy > R(0.0) && R_FABS(det_pv) < r * v_len;
+            if (steer) {
+                /* off the neighbour's own track (p x v_j) when it is at least as fast as we
+                 * are, else the side v leans to; within the bias band, the right-hand leg */
+                const real_t jx = R(own->vel_n_m_s) - vx, jy = R(own->vel_e_m_s) - vy;
+                const real_t j_len = R_SQRT(jx * jx + jy * jy);
+                if (j_len >= R(cfg->max_speed_m_s)) {
+                    left = px * jy - py * jx < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len;
+                } else {
+                    left = -det_pv < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * v_len;
+                }
+            }
+        }
+        if (!steer && dot1 < R(0.0) && dot1 * dot1 > r * r * w_len_sq) {
             const real_t w_len = R_SQRT(R_FMAX(w_len_sq, COVEY_SAFETY_EPS));
             const real_t ux_c = wx / w_len;
             const real_t uy_c = wy / w_len;
@@ -180,7 +206,7 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
             const real_t leg = R_SQRT(R_FMAX(dist_sq - r * r, R(0.0)));
             const real_t inv = R(1.0) / R_FMAX(dist_sq, COVEY_SAFETY_EPS);
             real_t lx, ly;
-            if (px * wy - py * wx > R(0.0)) {
+            if (left) {
                 lx = (px * leg - py * r) * inv;
                 ly = (px * r + py * leg) * inv;
             } else {
@@ -409,33 +435,51 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
     for (; n_lines < n_hard; ++n_lines) {
         scratch->lines[n_lines] = scratch->hard[n_lines];
     }
-    for (int32_t i = 0; i < n_nbrs; ++i) {
-        real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
-        real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
-        const int nc = nbrs[i].non_cooperative != 0u;
-        const real_t s_nbr = R(nbrs[i].pos_sigma_m);
-        const real_t r = (nc ? nc_base : R(cfg->radius_m)) * one_margin +
-                         R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
-        const real_t share = nc ? R(1.0) : R(cfg->responsibility);
-        real_t reach = r + R(2.0) * vmax * tau;
-        if (nc) {
-            const real_t nvn = R(nbrs[i].vel_n_m_s), nve = R(nbrs[i].vel_e_m_s);
-            reach = r + (vmax + R_FMAX(vmax, R_SQRT(nvn * nvn + nve * nve))) * tau;
+    /* two passes: the non-cooperative neighbours' lines first, hard after the zones' (a crowd
+     * that leaves no velocity meeting every line relaxes the covey neighbours', who avoid too,
+     * never the line of traffic that will not: policy/safety.py _solve_nc_hard), then the rest */
+    int32_t n_hard_all = n_hard;
+    for (int32_t pass = 1; pass >= 0; --pass) {
+        if (pass == 0) {
+            n_hard_all = n_lines;
         }
-        if (px * px + py * py >= reach * reach) {
-            continue;
+        for (int32_t i = 0; i < n_nbrs; ++i) {
+            const int nc = nbrs[i].non_cooperative != 0u;
+            if (nc != pass) {
+                continue;
+            }
+            real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
+            real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
+            const real_t s_nbr = R(nbrs[i].pos_sigma_m);
+            const real_t r = (nc ? nc_base : R(cfg->radius_m)) * one_margin +
+                             R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
+            const real_t share = nc ? R(1.0) : R(cfg->responsibility);
+            const real_t vx = R(own->vel_n_m_s) - R(nbrs[i].vel_n_m_s);
+            const real_t vy = R(own->vel_e_m_s) - R(nbrs[i].vel_e_m_s);
+            real_t reach = r + R(2.0) * vmax * tau;
+            real_t tau_j = tau;
+            if (nc) {
+                /* tau_j = clip((r / vmax) (|v| / vmax), tau, factor tau) (policy/safety.py
+                 * pair_horizon_s): time to step one pair distance aside, times how much faster the
+                 * pair closes than we move */
+                tau_j = r / vmax * (R_SQRT(vx * vx + vy * vy) / vmax);
+                tau_j = R_FMIN(R_FMAX(tau_j, tau), R(COVEY_SAFETY_NC_MAX_HORIZON_FACTOR) * tau);
+                const real_t nvn = R(nbrs[i].vel_n_m_s), nve = R(nbrs[i].vel_e_m_s);
+                reach = r + (vmax + R_FMAX(vmax, R_SQRT(nvn * nvn + nve * nve))) * tau_j;
+            }
+            if (px * px + py * py >= reach * reach) {
+                continue;
+            }
+            /* coincident: no direction in p, so the pair of ids gives one (tie_direction) */
+            if (px * px + py * py < R(COINCIDENT_M) * R(COINCIDENT_M) && own->id != 0u &&
+                nbrs[i].id != 0u && own->id != nbrs[i].id) {
+                real_t dn, de;
+                tie_direction(own->id, nbrs[i].id, &dn, &de);
+                px = dn * R(COINCIDENT_M);
+                py = de * R(COINCIDENT_M);
+            }
+            orca_line(cfg, r, share, tau_j, nc, px, py, vx, vy, own, &scratch->lines[n_lines++]);
         }
-        /* coincident: no direction in p, so the pair of ids gives one (tie_direction) */
-        if (px * px + py * py < R(COINCIDENT_M) * R(COINCIDENT_M) && own->id != 0u &&
-            nbrs[i].id != 0u && own->id != nbrs[i].id) {
-            real_t dn, de;
-            tie_direction(own->id, nbrs[i].id, &dn, &de);
-            px = dn * R(COINCIDENT_M);
-            py = de * R(COINCIDENT_M);
-        }
-        const real_t vx = R(own->vel_n_m_s) - R(nbrs[i].vel_n_m_s);
-        const real_t vy = R(own->vel_e_m_s) - R(nbrs[i].vel_e_m_s);
-        orca_line(cfg, r, share, px, py, vx, vy, own, &scratch->lines[n_lines++]);
     }
 
     const real_t pref[2] = {R(pref_vel_m_s[0]), R(pref_vel_m_s[1])};
@@ -443,7 +487,7 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
     const int32_t failed = lp2(scratch->lines, n_lines, vmax, pref, 0, v);
     if (failed < n_lines) {
         lp3(scratch->lines, n_lines, failed, vmax, scratch->proj, v,
-            failed >= n_hard ? n_hard : 0);
+            failed >= n_hard_all ? n_hard_all : 0);
         out->infeasible = 1;
     }
     real_t start[2]; /* what lp2 starts from: the preference clipped to the speed disc */

@@ -52,6 +52,12 @@ typedef struct {
  * to push apart, so the ordered pair of ids gives one (policy/safety.py COINCIDENT_M). */
 #define COVEY_SAFETY_COINCIDENT_M 0.01f
 
+/* A non-cooperative pair's time horizon is at most this many time_horizon_s, and a vehicle steps
+ * aside to the left only when already off the neighbour's track to the left by more than this
+ * share of the pair distance (policy/safety.py NC_MAX_HORIZON_FACTOR, NC_SIDE_BIAS). */
+#define COVEY_SAFETY_NC_MAX_HORIZON_FACTOR 3.0
+#define COVEY_SAFETY_NC_SIDE_BIAS 0.25
+
 /* A vehicle for the filter: position and velocity in the local frame (north, east). */
 typedef struct {
     float pos_n_m;
@@ -74,8 +80,10 @@ typedef struct {
  *   r = base (1 + margin) + sigma_k sqrt(sigma_own^2 + sigma_nbr^2),
  *   base = radius_m, or non_cooperative_radius_m (when set) for a non-cooperative track;
  *   share = responsibility, or 1 for a non-cooperative track (it will not take its half).
- * Reach (no line beyond): r + 2 max_speed tau, or r + (max_speed + max(max_speed, |v_nbr|)) tau
- * for a non-cooperative track (it may be faster than us).
+ * Reach (no line beyond): r + 2 max_speed tau, or r + (max_speed + max(max_speed, |v_nbr|)) tau_j
+ * for a non-cooperative track (it may be faster than us), whose own horizon is
+ *   tau_j = clip((r / max_speed) (|v_own - v_nbr| / max_speed), tau, NC_MAX_HORIZON_FACTOR tau)
+ * and which is passed on a leg of its cone (step aside), never fled along the line.
  */
 
 /*

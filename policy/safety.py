@@ -23,6 +23,18 @@ zero), so the ordered pair of vehicle ids gives one (`tie_direction`). The C twi
 COVEY_SAFETY_COINCIDENT_M."""
 
 
+NC_MAX_HORIZON_FACTOR = 3.0
+"""A non-cooperative pair's time horizon is at most this many time_horizon_s (`pair_horizon_s`).
+The C twin is COVEY_SAFETY_NC_MAX_HORIZON_FACTOR."""
+NC_SIDE_BIAS = 0.25
+"""Step-aside tie-break (`orca_lines`): against a non-cooperative neighbour on a collision course
+this vehicle passes it on the right-hand leg of the cone (north/east frame: the rules of the air
+turn right for head-on) unless it is already off the neighbour's track to the other side by more
+than this share of the pair distance r (for a neighbour slower than us: unless v_rel leans that
+way by more than this share of r |v|). A band, not a sign test, so that a dead-on encounter
+seen through noisy states picks one side and keeps it. The C twin is
+COVEY_SAFETY_NC_SIDE_BIAS."""
+
 SIGMA_K = 3.0
 """Default `SafetyConfig.sigma_k`. The relative error of two independent estimates is a 2-D
 Gaussian with per-axis sigma_rel = sqrt(sigma_i^2 + sigma_j^2); only its component along the
@@ -110,11 +122,32 @@ def pair_radius_m(cfg: SafetyConfig, pos_sigma_m=None, nbr_pos_sigma_m=None, nbr
     return np.broadcast_to(r, shape), np.broadcast_to(share, shape)
 
 
-def pair_reach_m(cfg: SafetyConfig, r, nbr_speed_m_s=None, nbr_cooperative=None):
+def pair_horizon_s(cfg: SafetyConfig, r, rel_speed_m_s, nbr_cooperative=None):
+    """Each pair's time horizon: time_horizon_s for a cooperative neighbour; for one that does
+    not cooperate, long enough to step aside in time,
+
+        tau_j = clip((r / v_max) (|v_i - v_j| / v_max), tau, NC_MAX_HORIZON_FACTOR tau),
+
+    r / v_max being the time to move one pair distance sideways and |v_i - v_j| / v_max how
+    many times faster the pair closes than this vehicle can move (a 2x intruder head-on: 10.8
+    s at 3.6 m and 1 m/s). Scalar tau when nbr_cooperative is None, else an array."""
+    tau = cfg.time_horizon_s
+    if nbr_cooperative is None:
+        return tau
+    vmax = cfg.max_speed_m_s
+    want = np.asarray(r, np.float64) / vmax * (np.asarray(rel_speed_m_s, np.float64) / vmax)
+    nc = np.clip(want, tau, NC_MAX_HORIZON_FACTOR * tau)
+    return np.where(nbr_cooperative, tau, nc)
+
+
+def pair_reach_m(cfg: SafetyConfig, r, nbr_speed_m_s=None, nbr_cooperative=None, tau=None):
     """Beyond this distance a neighbour cannot come within r in the horizon: r + 2 max_speed
     tau for a cooperative one (it flies at most our speed), r + (max_speed + max(max_speed,
-    |v_j|)) tau for a non-cooperative one (it may be faster)."""
-    vmax, tau = cfg.max_speed_m_s, cfg.time_horizon_s
+    |v_j|)) tau_j for a non-cooperative one (it may be faster; tau_j: `pair_horizon_s`, default
+    time_horizon_s)."""
+    vmax = cfg.max_speed_m_s
+    if tau is None:
+        tau = cfg.time_horizon_s
     if nbr_cooperative is None:
         return r + 2.0 * vmax * tau
     fast = np.maximum(vmax, np.asarray(nbr_speed_m_s, dtype=np.float64))
@@ -141,12 +174,22 @@ def untie(rel_pos, own_ids, nbr_ids):
     return out
 
 
-def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None):
+def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None, nc=None):
     """ORCA half-planes for one or many vehicles.
 
     rel_pos = p_j - p_i, rel_vel = v_i - v_j, shapes (..., K, 2); own_vel (..., 2).
     r and share (scalars or (..., K)): each pair's distance and this vehicle's share of the
     correction (`pair_radius_m`); None: radius_m (1 + margin) and responsibility.
+    nc (..., K) bool or None: non-cooperative neighbours, which get their own horizon
+    (`pair_horizon_s`) and, on a collision course (v_rel inside the untruncated cone: v.p > 0
+    and |det(p, v)| < r |v|), the projection onto a leg of the cone instead of the cut-off
+    circle: the half-plane then has a lateral normal, so the vehicle steps aside rather than
+    fleeing along the line of a faster intruder that would catch it. The leg: the one that
+    keeps this vehicle on its side of the neighbour's track when the neighbour is at least as
+    fast as max_speed_m_s (crossing ahead of a faster one lets it catch us from behind), else
+    the side v_rel leans to; within NC_SIDE_BIAS r of the track (or of v_rel's axis), the
+    right-hand leg (north/east frame; the rules of the air turn right for head-on).
+    Cooperative pairs: unchanged.
     Returns (point, direction), each (..., K, 2): the allowed side is
     det(direction, point - v) <= 0, with det(a, b) = a_x b_y - a_y b_x.
     """
@@ -154,9 +197,9 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None)
         r = cfg.radius_m * (1.0 + cfg.margin)
     if share is None:
         share = cfg.responsibility
-    tau = cfg.time_horizon_s
     px, py = rel_pos[..., 0], rel_pos[..., 1]
     vx, vy = rel_vel[..., 0], rel_vel[..., 1]
+    tau = cfg.time_horizon_s if nc is None else pair_horizon_s(cfg, r, np.hypot(vx, vy), ~nc)
     dist_sq = px * px + py * py
     # not yet colliding: w = v_rel - p_rel / tau, relative to the cut-off circle centre
     wx, wy = vx - px / tau, vy - py / tau
@@ -167,6 +210,21 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None)
     ux_c, uy_c = wx / w_len, wy / w_len
     leg = np.sqrt(np.maximum(dist_sq - r * r, 0.0))
     left = (px * wy - py * wx) > 0
+    if nc is not None:
+        # det(p, w) = det(p, v): the side test is the same on v
+        det_pv = px * vy - py * vx
+        v_len = np.sqrt(vx * vx + vy * vy)
+        steer = nc & (px * vx + py * vy > 0) & (np.abs(det_pv) < r * v_len)
+        on_circle = on_circle & ~steer
+        # the side: off the intruder's own track (p x v_j: this vehicle's offset from it, times
+        # |v_j|) when it is at least as fast as we are (crossing ahead of it would let it catch
+        # us), else the side v_rel leans to; within the bias band, the right-hand leg
+        jx = own_vel[..., None, 0] - vx
+        jy = own_vel[..., None, 1] - vy
+        j_len = np.sqrt(jx * jx + jy * jy)
+        fast = j_len >= cfg.max_speed_m_s
+        m = np.where(fast, px * jy - py * jx, -det_pv)
+        left = np.where(steer, m < NC_SIDE_BIAS * r * np.where(fast, j_len, v_len), left)
     inv = 1.0 / np.maximum(dist_sq, EPS)
     lx = np.where(left, px * leg - py * r, -(px * leg + py * r)) * inv
     ly = np.where(left, px * r + py * leg, -(-px * r + py * leg)) * inv
@@ -344,17 +402,42 @@ def filter_velocity(
     rel_vel = np.asarray(vel_m_s) - nbr_vel_m_s
     r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
     # vehicles that cannot meet within the horizon add no constraint
-    coop = None if nbr_cooperative is None else np.asarray(nbr_cooperative, dtype=bool)
-    reach = pair_reach_m(cfg, r, np.hypot(*nbr_vel_m_s.T), coop)
+    coop = None
+    if nbr_cooperative is not None:
+        coop = np.broadcast_to(np.asarray(nbr_cooperative, dtype=bool), rel_pos.shape[:-1])
+    tau = pair_horizon_s(cfg, r, np.hypot(*rel_vel.T), coop)
+    reach = pair_reach_m(cfg, r, np.hypot(*nbr_vel_m_s.T), coop, tau)
     near = (rel_pos**2).sum(-1) < reach * reach
     if not near.any():
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
     if np.ndim(r):
         r, share = r[near], share[near]
     point, direction = orca_lines(
-        rel_pos[near], rel_vel[near], np.asarray(vel_m_s, float), cfg, r, share
+        rel_pos[near],
+        rel_vel[near],
+        np.asarray(vel_m_s, float),
+        cfg,
+        r,
+        share,
+        None if coop is None else ~coop[near],
     )
-    return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
+    if coop is None:
+        return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
+    return _solve_nc_hard(point, direction, coop[near], pref_vel_m_s, cfg.max_speed_m_s, ())
+
+
+def _solve_nc_hard(point, direction, coop, pref, max_speed, hard):
+    """`solve` with the non-cooperative neighbours' lines hard after `hard` (the zones'): in a
+    crowd that leaves no velocity meeting every line, the covey neighbours' lines are relaxed
+    (each of them also avoids), never the line of traffic that will not."""
+    nc = ~np.asarray(coop, bool)
+    if not nc.any():
+        return solve(point, direction, pref, max_speed, hard)
+    extra = [
+        ((float(p[0]), float(p[1])), (float(d[0]), float(d[1])))
+        for p, d in zip(point[nc], direction[nc], strict=True)
+    ]
+    return solve(point[~nc], direction[~nc], pref, max_speed, list(hard) + extra)
 
 
 def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
@@ -362,19 +445,23 @@ def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
     return _orca_line_k(px, py, vx, vy, own_vx, own_vy, _line_constants(r, cfg))
 
 
-def _line_constants(r: float, cfg: SafetyConfig, share: float | None = None) -> tuple:
+def _line_constants(
+    r: float, cfg: SafetyConfig, share: float | None = None, tau: float | None = None
+) -> tuple:
     """What `_orca_line_k` needs of the config, computed once per vehicle (per neighbour when
-    the pairs differ: `pair_radius_m`)."""
-    tau = cfg.time_horizon_s
+    the pairs differ: `pair_radius_m`; tau: a non-cooperative pair's `pair_horizon_s`, which
+    also turns on its step-aside rule)."""
+    nc = tau is not None
+    tau = cfg.time_horizon_s if tau is None else tau
     inv_dt = 1.0 / cfg.dt_s
     k = cfg.responsibility if share is None else share
-    return r, r * r, tau, r / tau, inv_dt, r * inv_dt, k
+    return r, r * r, tau, r / tau, inv_dt, r * inv_dt, k, nc, cfg.max_speed_m_s
 
 
 def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     """`_orca_line` with the config's constants precomputed (`_line_constants`); max(x, EPS)
     as a comparison (the same value, NaN included)."""
-    r, r_sq, tau, r_tau, inv_dt, r_inv_dt, k = consts
+    r, r_sq, tau, r_tau, inv_dt, r_inv_dt, k, nc, vmax = consts
     dist_sq = px * px + py * py
     if dist_sq <= r_sq:
         cx, cy = vx - inv_dt * px, vy - inv_dt * py
@@ -386,7 +473,20 @@ def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     wx, wy = vx - px / tau, vy - py / tau
     w_len_sq = wx * wx + wy * wy
     dot1 = wx * px + wy * py
-    if dot1 < 0 and dot1 * dot1 > r_sq * w_len_sq:
+    left = px * wy - py * wx > 0
+    steer = False
+    if nc:  # the step-aside rule of `orca_lines`
+        det_pv = px * vy - py * vx
+        v_len = math.sqrt(vx * vx + vy * vy)
+        steer = px * vx + py * vy > 0 and abs(det_pv) < r * v_len
+        if steer:
+            jx, jy = own_vx - vx, own_vy - vy
+            j_len = math.sqrt(jx * jx + jy * jy)
+            if j_len >= vmax:
+                left = px * jy - py * jx < NC_SIDE_BIAS * r * j_len
+            else:
+                left = -det_pv < NC_SIDE_BIAS * r * v_len
+    if not steer and dot1 < 0 and dot1 * dot1 > r_sq * w_len_sq:
         w_len = math.sqrt(EPS if w_len_sq < EPS else w_len_sq)
         ux, uy = wx / w_len, wy / w_len
         s = r_tau - w_len
@@ -394,7 +494,7 @@ def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     leg_sq = dist_sq - r_sq
     leg = math.sqrt(0.0 if leg_sq < 0.0 else leg_sq)
     inv = 1.0 / (EPS if dist_sq < EPS else dist_sq)
-    if px * wy - py * wx > 0:
+    if left:
         lx, ly = (px * leg - py * r) * inv, (px * r + py * leg) * inv
     else:
         lx, ly = -(px * leg + py * r) * inv, -(-px * r + py * leg) * inv
@@ -438,15 +538,23 @@ def filter_one(
     x, y = float(pos_m[0]), float(pos_m[1])
     own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
     lines = []
+    nc_lines = []  # hard after the zones' (`_solve_nc_hard`)
     consts = None
     for k, ((nx, ny), (nvx, nvy)) in enumerate(
         zip(np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True)
     ):
         px, py = nx - x, ny - y
+        tau_nc = None
         if per_nbr:
             r = radii[k]
-            fast = max(cfg.max_speed_m_s, math.hypot(nvx, nvy)) if not coops[k] else None
-            reach = r + (2.0 * vmax_tau if fast is None else vmax_tau + fast * cfg.time_horizon_s)
+            if coops[k]:
+                reach = r + 2.0 * vmax_tau
+            else:
+                vmax = cfg.max_speed_m_s
+                rel = math.hypot(own_vx - nvx, own_vy - nvy)
+                tau = cfg.time_horizon_s
+                tau_nc = min(max(r / vmax * (rel / vmax), tau), NC_MAX_HORIZON_FACTOR * tau)
+                reach = r + (vmax + max(vmax, math.hypot(nvx, nvy))) * tau_nc
             reach_sq = reach * reach
         if px * px + py * py < reach_sq:
             if (
@@ -459,16 +567,18 @@ def filter_one(
                 tx, ty = tie_direction(own_id, ids[k])
                 px, py = tx * COINCIDENT_M, ty * COINCIDENT_M
             if per_nbr:
-                consts = _line_constants(radii[k], cfg, shares[k])
+                consts = _line_constants(radii[k], cfg, shares[k], tau_nc)
             elif consts is None:
                 consts = _line_constants(base, cfg)
-            lines.append(_orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts))
+            line = _orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts)
+            (lines if tau_nc is None else nc_lines).append(line)
     pref = (float(pref_vel_m_s[0]), float(pref_vel_m_s[1]))
     hard = (
         []
         if zones is None
         else zones.lines(pos_m, vel_m_s, cfg.max_speed_m_s, cfg.sigma_k * float(pos_sigma_m or 0))
     )
+    hard = hard + nc_lines
     return solve_lines(hard + lines, pref, cfg.max_speed_m_s, len(hard))
 
 
@@ -531,10 +641,15 @@ def filter_padded(
     rel_pos = untie(np.asarray(nbr_pos_m, dtype=np.float64) - pos_m[:, None], own_ids, nbr_ids)
     rel_vel = vel_m_s[:, None] - nbr_vel_m_s
     r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
-    coop = None if nbr_cooperative is None else np.asarray(nbr_cooperative, dtype=bool)
-    reach = pair_reach_m(cfg, r, np.hypot(nbr_vel_m_s[..., 0], nbr_vel_m_s[..., 1]), coop)
+    coop = None
+    if nbr_cooperative is not None:
+        coop = np.broadcast_to(np.asarray(nbr_cooperative, dtype=bool), rel_pos.shape[:-1])
+    tau = pair_horizon_s(cfg, r, np.hypot(rel_vel[..., 0], rel_vel[..., 1]), coop)
+    reach = pair_reach_m(cfg, r, np.hypot(nbr_vel_m_s[..., 0], nbr_vel_m_s[..., 1]), coop, tau)
     ok = np.asarray(nbr_valid, dtype=bool) & ((rel_pos**2).sum(-1) < reach * reach)
-    point, direction = orca_lines(rel_pos, rel_vel, vel_m_s, cfg, r, share)
+    point, direction = orca_lines(
+        rel_pos, rel_vel, vel_m_s, cfg, r, share, None if coop is None else ~coop
+    )
     viol = _det(
         direction[..., 0],
         direction[..., 1],
@@ -557,7 +672,12 @@ def filter_padded(
     )
     for i in np.flatnonzero(need):
         m = ok[i]
-        out[i] = solve(point[i, m], direction[i, m], pref[i], cfg.max_speed_m_s, hard[i])
+        if coop is None:
+            out[i] = solve(point[i, m], direction[i, m], pref[i], cfg.max_speed_m_s, hard[i])
+        else:
+            out[i] = _solve_nc_hard(
+                point[i, m], direction[i, m], coop[i, m], pref[i], cfg.max_speed_m_s, hard[i]
+            )
     return out
 
 

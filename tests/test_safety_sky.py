@@ -108,7 +108,8 @@ def test_uncertainty_widens_the_berth_and_traffic_takes_no_share():
         safety.filter_one(pos, vel, pref, nbr_p, nbr_v, cfg, nbr_cooperative=np.array([False]))
         - pref
     )
-    assert np.linalg.norm(alone) == pytest.approx(2 * np.linalg.norm(coop), rel=0.05)
+    # at least the whole correction, and a step aside to the right (east), not back along the line
+    assert np.linalg.norm(alone) >= 0.95 * 2 * np.linalg.norm(coop) and alone[1] > 0.3
     # a fast intruder is seen from further away than a covey vehicle
     far_p, fast_v = np.array([[25.0, 0.2]]), np.array([[-5.0, 0.0]])
     assert np.array_equal(safety.filter_one(pos, vel, pref, far_p, fast_v, cfg), pref)

@@ -68,21 +68,13 @@ def test_table_is_bounded_expires_and_merges_as_non_cooperative() -> None:
     assert table.tracks(3.0) == []
 
 
-FASTER = pytest.mark.xfail(
-    strict=True,
-    reason="the separation filter (policy.safety, ORCA) has a hovering vehicle flee along the "
-    "line of a faster non-cooperative vehicle that comes at it dead-on, instead of stepping aside: "
-    "it is caught (0.04 m at 1.5 m/s). Remove this mark once the filter steps aside",
-)
-
-
 @pytest.mark.e2e
 @pytest.mark.parametrize(
     ("speed_m_s", "offset_m"),
     [
         (1.0, 0.0),
-        pytest.param(1.5, 0.0, marks=FASTER),
-        pytest.param(2.0, 0.0, marks=FASTER),
+        (1.5, 0.0),
+        (2.0, 0.0),
         (1.5, 1.0),
         (2.0, 1.0),
     ],
