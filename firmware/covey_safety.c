@@ -66,6 +66,7 @@ covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_
     c.responsibility = 0.5f;
     c.sigma_k = 3.0f; /* policy/safety.py SIGMA_K */
     c.non_cooperative_radius_m = 0.0f;
+    c.manned_radius_m = COVEY_SAFETY_MANNED_SEPARATION_M;
     return c;
 }
 
@@ -81,7 +82,8 @@ covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
     }
     if (!isfinite(cfg->radius_m) || !isfinite(cfg->margin) || !isfinite(cfg->time_horizon_s) ||
         !isfinite(cfg->dt_s) || !isfinite(cfg->max_speed_m_s) || !isfinite(cfg->responsibility) ||
-        !isfinite(cfg->sigma_k) || !isfinite(cfg->non_cooperative_radius_m)) {
+        !isfinite(cfg->sigma_k) || !isfinite(cfg->non_cooperative_radius_m) ||
+        !isfinite(cfg->manned_radius_m)) {
         return COVEY_ERR_NONFINITE;
     }
     if (!in_range(cfg->radius_m, COVEY_SAFETY_MIN_RADIUS_M, COVEY_SAFETY_MAX_RADIUS_M) ||
@@ -93,7 +95,9 @@ covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
         !in_range(cfg->sigma_k, 0.0f, COVEY_SAFETY_MAX_SIGMA_K) ||
         !(cfg->non_cooperative_radius_m == 0.0f ||
           in_range(cfg->non_cooperative_radius_m, COVEY_SAFETY_MIN_RADIUS_M,
-                   COVEY_SAFETY_MAX_RADIUS_M))) {
+                   COVEY_SAFETY_MAX_RADIUS_M)) ||
+        !(cfg->manned_radius_m == 0.0f ||
+          in_range(cfg->manned_radius_m, COVEY_SAFETY_MIN_RADIUS_M, COVEY_SAFETY_MAX_RADIUS_M))) {
         return COVEY_ERR_RANGE;
     }
     return COVEY_OK;
@@ -427,6 +431,7 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
     const real_t tau = R(cfg->time_horizon_s);
     const real_t nc_base = cfg->non_cooperative_radius_m > 0.0f ? R(cfg->non_cooperative_radius_m)
                                                                : R(cfg->radius_m);
+    const real_t manned_base = cfg->manned_radius_m > 0.0f ? R(cfg->manned_radius_m) : nc_base;
     const real_t s_own = R(own->pos_sigma_m);
     if (n_hard < 0 || n_hard > COVEY_SAFETY_MAX_HARD_LINES) {
         return fail(out, COVEY_ERR_RANGE);
@@ -451,8 +456,11 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
             real_t px = R(nbrs[i].pos_n_m) - R(own->pos_n_m);
             real_t py = R(nbrs[i].pos_e_m) - R(own->pos_e_m);
             const real_t s_nbr = R(nbrs[i].pos_sigma_m);
-            const real_t r = (nc ? nc_base : R(cfg->radius_m)) * one_margin +
-                             R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
+            const real_t base = !nc ? R(cfg->radius_m)
+                                : nbrs[i].non_cooperative == COVEY_TRACK_MANNED ? manned_base
+                                                                                 : nc_base;
+            const real_t r =
+                base * one_margin + R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
             const real_t share = nc ? R(1.0) : R(cfg->responsibility);
             const real_t vx = R(own->vel_n_m_s) - R(nbrs[i].vel_n_m_s);
             const real_t vy = R(own->vel_e_m_s) - R(nbrs[i].vel_e_m_s);

@@ -46,7 +46,20 @@ typedef struct {
                               zero-initialised config has it): estimates taken as the truth */
     float non_cooperative_radius_m; /* 0 = radius_m, else [0.01, 1000]: the separation kept
                                        from a non-cooperative track (before margin/sigma) */
+    float manned_radius_m; /* 0 = as non_cooperative_radius_m, else [0.01, 1000]: the separation
+                              kept from a manned track (COVEY_TRACK_MANNED), 30
+                              (COVEY_SAFETY_MANNED_SEPARATION_M; policy/safety.py) */
 } covey_safety_config_t;
+
+/* covey_safety_defaults' manned_radius_m (policy/safety.py MANNED_SEPARATION_M). */
+#define COVEY_SAFETY_MANNED_SEPARATION_M 30.0f
+
+/* covey_track_t.non_cooperative values: a covey vehicle, traffic that does not avoid, and a
+ * manned aircraft (traffic too, kept manned_radius_m from). Any other non-zero value is
+ * COVEY_TRACK_TRAFFIC. */
+#define COVEY_TRACK_COOPERATIVE 0u
+#define COVEY_TRACK_TRAFFIC 1u
+#define COVEY_TRACK_MANNED 2u
 
 /* Nearer than this, two tracks are coincident: their relative position gives no direction
  * to push apart, so the ordered pair of ids gives one (policy/safety.py COINCIDENT_M). */
@@ -70,15 +83,18 @@ typedef struct {
                      opposite one for the other vehicle (policy/safety.py tie_direction) */
     float pos_sigma_m;         /* [0, 1000]: 1-sigma per axis of the position estimate (eph);
                                   0 (zero-initialised) = exact */
-    uint32_t non_cooperative;  /* 1: a neighbour that does not avoid (ADS-B, Remote ID, flown
-                                  by hand): this vehicle takes the whole correction and keeps
-                                  non_cooperative_radius_m; 0 (zero-initialised): a covey vehicle */
+    uint32_t non_cooperative;  /* COVEY_TRACK_TRAFFIC (1): a neighbour that does not avoid
+                                  (ADS-B, Remote ID, flown by hand): this vehicle takes the
+                                  whole correction and keeps non_cooperative_radius_m;
+                                  COVEY_TRACK_MANNED (2): the same, keeping manned_radius_m;
+                                  0 (zero-initialised): a covey vehicle */
 } covey_track_t;
 
 /*
  * What one pair keeps (policy/safety.py pair_radius_m):
  *   r = base (1 + margin) + sigma_k sqrt(sigma_own^2 + sigma_nbr^2),
- *   base = radius_m, or non_cooperative_radius_m (when set) for a non-cooperative track;
+ *   base = radius_m, or non_cooperative_radius_m (when set) for a non-cooperative track, or
+ *          manned_radius_m (when set) for a manned one;
  *   share = responsibility, or 1 for a non-cooperative track (it will not take its half).
  * Reach (no line beyond): r + 2 max_speed tau, or r + (max_speed + max(max_speed, |v_nbr|)) tau_j
  * for a non-cooperative track (it may be faster than us), whose own horizon is

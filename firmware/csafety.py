@@ -37,7 +37,8 @@ TRACK_DTYPE = np.dtype(
         ("non_cooperative", "<u4"),
     ]
 )
-"""covey_track_t (id 0: unknown; pos_sigma_m 0: exact; non_cooperative 0: a covey vehicle)."""
+"""covey_track_t (id 0: unknown; pos_sigma_m 0: exact; non_cooperative 0: a covey vehicle, 1:
+traffic, 2: a manned aircraft, covey_safety.h COVEY_TRACK_*)."""
 
 
 class ConfigC(ctypes.Structure):
@@ -78,11 +79,13 @@ class SafetyConfigC(ctypes.Structure):
         ("responsibility", ctypes.c_float),
         ("sigma_k", ctypes.c_float),
         ("non_cooperative_radius_m", ctypes.c_float),
+        ("manned_radius_m", ctypes.c_float),
     ]
 
     @classmethod
     def of(cls, cfg) -> SafetyConfigC:
-        """From a policy.safety.SafetyConfig (non_cooperative_radius_m None: 0 here)."""
+        """From a policy.safety.SafetyConfig (non_cooperative_radius_m and manned_radius_m
+        None: 0 here)."""
         return cls(
             cfg.radius_m,
             cfg.margin,
@@ -92,6 +95,7 @@ class SafetyConfigC(ctypes.Structure):
             cfg.responsibility,
             cfg.sigma_k,
             cfg.non_cooperative_radius_m or 0.0,
+            cfg.manned_radius_m or 0.0,
         )
 
 
@@ -234,7 +238,9 @@ def bind(lib: ctypes.CDLL) -> None:
     ]
 
 
-def _tracks(pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None) -> np.ndarray:
+def _tracks(
+    pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None, manned=None
+) -> np.ndarray:
     pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
     vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
     if vel.shape != pos.shape:
@@ -250,6 +256,9 @@ def _tracks(pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None) -> np.
         t["pos_sigma_m"] = np.broadcast_to(np.asarray(pos_sigma_m, np.float64), (pos.shape[0],))
     if cooperative is not None:
         t["non_cooperative"] = ~np.broadcast_to(np.asarray(cooperative, bool), (pos.shape[0],))
+    if manned is not None:  # manned aircraft never cooperate (policy.safety.effective_cooperative)
+        m = np.broadcast_to(np.asarray(manned, bool), (pos.shape[0],))
+        t["non_cooperative"] = np.where(m, 2, t["non_cooperative"])
     return t
 
 
@@ -301,14 +310,15 @@ class CSafetyFilter:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ) -> FilterResult:
         """One call; faults come back in `status`, never raised. Ids (0: unknown) untie
-        coincident neighbours as policy.safety.untie does; position uncertainties and
-        cooperative flags as policy.safety.pair_radius_m takes them."""
+        coincident neighbours as policy.safety.untie does; position uncertainties,
+        cooperative and manned flags as policy.safety.pair_radius_m takes them."""
         p = np.asarray(pos_m, dtype=np.float64).reshape(2)
         v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
         pref = (ctypes.c_float * 2)(*np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative)
+        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
         out = SafetyOutC()
         own = TrackC(p[0], p[1], v[0], v[1], int(own_id), float(pos_sigma_m), 0)
         st = self._lib.covey_safety_filter(

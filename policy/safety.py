@@ -35,6 +35,12 @@ way by more than this share of r |v|). A band, not a sign test, so that a dead-o
 seen through noisy states picks one side and keeps it. The C twin is
 COVEY_SAFETY_NC_SIDE_BIAS."""
 
+MANNED_SEPARATION_M = 30.0
+"""Default `SafetyConfig.manned_radius_m`: the berth kept from a manned aircraft (ADS-B emitter
+categories light to ultralight, comms/adsb.py MANNED_EMITTERS), whose pilot may not see a small
+drone and whose wake and rotor downwash reach further than a multicopter's. The C twin is
+COVEY_SAFETY_MANNED_SEPARATION_M."""
+
 SIGMA_K = 3.0
 """Default `SafetyConfig.sigma_k`. The relative error of two independent estimates is a 2-D
 Gaussian with per-axis sigma_rel = sqrt(sigma_i^2 + sigma_j^2); only its component along the
@@ -76,6 +82,9 @@ class SafetyConfig:
     """Separation kept from a non-cooperative neighbour (manned aircraft, another operator's
     drone; one that does not avoid), before margin and uncertainty; None = radius_m. Such a
     neighbour also gets full responsibility: this vehicle takes the whole correction."""
+    manned_radius_m: float | None = MANNED_SEPARATION_M
+    """Separation kept from a manned aircraft (a non-cooperative neighbour flagged manned:
+    `nbr_manned`), before margin and uncertainty; None = as any non-cooperative neighbour."""
 
 
 def tie_direction(own_id: int, nbr_id: int) -> tuple[float, float]:
@@ -92,12 +101,29 @@ def tie_direction(own_id: int, nbr_id: int) -> tuple[float, float]:
     return sign * math.cos(bearing_rad), sign * math.sin(bearing_rad)
 
 
-def pair_radius_m(cfg: SafetyConfig, pos_sigma_m=None, nbr_pos_sigma_m=None, nbr_cooperative=None):
+def effective_cooperative(nbr_cooperative=None, nbr_manned=None):
+    """The cooperative flags with manned aircraft (nbr_manned True) made non-cooperative: a
+    manned aircraft never avoids a covey vehicle. None when both are None."""
+    if nbr_manned is None:
+        return nbr_cooperative
+    manned = np.asarray(nbr_manned, dtype=bool)
+    coop = np.asarray(True if nbr_cooperative is None else nbr_cooperative, dtype=bool)
+    return coop & ~manned
+
+
+def pair_radius_m(
+    cfg: SafetyConfig,
+    pos_sigma_m=None,
+    nbr_pos_sigma_m=None,
+    nbr_cooperative=None,
+    nbr_manned=None,
+):
     """The distance each pair keeps between estimated centres and this vehicle's share of the
     correction, from the position uncertainties (1-sigma, metres) and the cooperative flags.
 
         r_ij = base_j (1 + margin) + sigma_k sqrt(sigma_i^2 + sigma_j^2)
-        base_j = radius_m (cooperative) or non_cooperative_radius_m;
+        base_j = radius_m (cooperative), non_cooperative_radius_m, or manned_radius_m for a
+                 manned aircraft (nbr_manned; it is non-cooperative whatever nbr_cooperative says);
         share_j = responsibility (cooperative) or 1 (it will not avoid: all of it is ours).
 
     pos_sigma_m scalar or (...,); nbr_pos_sigma_m and nbr_cooperative (..., K) or None (0 and
@@ -108,15 +134,22 @@ def pair_radius_m(cfg: SafetyConfig, pos_sigma_m=None, nbr_pos_sigma_m=None, nbr
     if (
         nbr_pos_sigma_m is None
         and nbr_cooperative is None
+        and nbr_manned is None
         and (pos_sigma_m is None or not np.any(pos_sigma_m))
     ):
         return base, cfg.responsibility
+    nbr_cooperative = effective_cooperative(nbr_cooperative, nbr_manned)
     own = np.asarray(0.0 if pos_sigma_m is None else pos_sigma_m, dtype=np.float64)
     nbr = np.asarray(0.0 if nbr_pos_sigma_m is None else nbr_pos_sigma_m, dtype=np.float64)
     coop = np.asarray(True if nbr_cooperative is None else nbr_cooperative, dtype=bool)
     shape = np.broadcast_shapes(own[..., None].shape, nbr.shape, coop.shape)
     nc = cfg.radius_m if cfg.non_cooperative_radius_m is None else cfg.non_cooperative_radius_m
-    r = np.where(coop, cfg.radius_m, nc) * (1.0 + cfg.margin)
+    base_j = np.where(coop, cfg.radius_m, nc)
+    if nbr_manned is not None and cfg.manned_radius_m is not None:
+        manned = np.asarray(nbr_manned, dtype=bool)
+        shape = np.broadcast_shapes(shape, manned.shape)
+        base_j = np.where(manned, cfg.manned_radius_m, base_j)
+    r = base_j * (1.0 + cfg.margin)
     r = r + cfg.sigma_k * np.sqrt(own[..., None] ** 2 + nbr**2)
     share = np.where(coop, cfg.responsibility, 1.0)
     return np.broadcast_to(r, shape), np.broadcast_to(share, shape)
@@ -372,12 +405,13 @@ def filter_velocity(
     nbr_pos_sigma_m=None,
     nbr_cooperative=None,
     zones=None,
+    nbr_manned=None,
 ):
     """The filtered velocity of one vehicle (2,), world units. With ids (own_id, nbr_ids (K,)),
     coincident neighbours are pushed apart by id (`untie`); without, they are not. Position
     uncertainties (pos_sigma_m, nbr_pos_sigma_m (K,), 1-sigma metres) and cooperative flags
-    (nbr_cooperative (K,) bool, default all True) set each pair's distance and share
-    (`pair_radius_m`). `zones` (policy.zone_lines.ZoneSet): keep-out edges as hard lines,
+    (nbr_cooperative (K,) bool, default all True) and manned aircraft (nbr_manned (K,) bool,
+    default none) set each pair's distance and share (`pair_radius_m`). `zones` (policy.zone_lines.ZoneSet): keep-out edges as hard lines,
     through `filter_one`."""
     if zones is not None:
         return filter_one(
@@ -393,14 +427,16 @@ def filter_velocity(
             nbr_pos_sigma_m,
             nbr_cooperative,
             zones,
+            nbr_manned,
         )
+    nbr_cooperative = effective_cooperative(nbr_cooperative, nbr_manned)
     nbr_pos_m = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
     if nbr_pos_m.shape[0] == 0:
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
     nbr_vel_m_s = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
     rel_pos = untie(nbr_pos_m - pos_m, own_id, nbr_ids)
     rel_vel = np.asarray(vel_m_s) - nbr_vel_m_s
-    r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
+    r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
     # vehicles that cannot meet within the horizon add no constraint
     coop = None
     if nbr_cooperative is not None:
@@ -515,15 +551,19 @@ def filter_one(
     nbr_pos_sigma_m=None,
     nbr_cooperative=None,
     zones=None,
+    nbr_manned=None,
 ):
     """`filter_velocity` for one vehicle in Python floats: the runtime's hot path, faster for
     the few neighbours within reach (equal within 1e-12, tests/test_policy_speed.py). `zones`
     (policy.zone_lines.ZoneSet): its edges near the vehicle are hard lines (`solve_lines`)."""
     ids = None if own_id is None or nbr_ids is None else np.asarray(nbr_ids).tolist()
     base = cfg.radius_m * (1 + cfg.margin)
+    nbr_cooperative = effective_cooperative(nbr_cooperative, nbr_manned)
     per_nbr = nbr_pos_sigma_m is not None or nbr_cooperative is not None or bool(pos_sigma_m)
     if per_nbr:
-        radii, shares = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
+        radii, shares = pair_radius_m(
+            cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned
+        )
         k_n = np.asarray(nbr_pos_m).reshape(-1, 2).shape[0]
         radii = np.broadcast_to(radii, (k_n,)).tolist()
         shares = np.broadcast_to(shares, (k_n,)).tolist()
@@ -623,10 +663,12 @@ def filter_padded(
     nbr_pos_sigma_m=None,
     nbr_cooperative=None,
     zones=None,
+    nbr_manned=None,
 ):
     """Filtered velocities (N,2); each vehicle has its own neighbour list (N,K,...), and with
     own_ids (N,) and nbr_ids (N,K) coincident neighbours are pushed apart by id (`untie`).
-    pos_sigma_m (N,), nbr_pos_sigma_m (N,K) and nbr_cooperative (N,K): `pair_radius_m`.
+    pos_sigma_m (N,), nbr_pos_sigma_m (N,K), nbr_cooperative (N,K) and nbr_manned (N,K):
+    `pair_radius_m`.
     `zones` (policy.zone_lines.ZoneSet): every vehicle's nearby zone edges are hard lines.
 
     Half-planes are built for all vehicles at once; the LP runs only for the
@@ -640,7 +682,8 @@ def filter_padded(
     nbr_vel_m_s = np.asarray(nbr_vel_m_s, dtype=np.float64)
     rel_pos = untie(np.asarray(nbr_pos_m, dtype=np.float64) - pos_m[:, None], own_ids, nbr_ids)
     rel_vel = vel_m_s[:, None] - nbr_vel_m_s
-    r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
+    nbr_cooperative = effective_cooperative(nbr_cooperative, nbr_manned)
+    r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
     coop = None
     if nbr_cooperative is not None:
         coop = np.broadcast_to(np.asarray(nbr_cooperative, dtype=bool), rel_pos.shape[:-1])
