@@ -175,7 +175,12 @@ def add_flight_args(
     add_config_flags(
         p,
         GuidanceConfig,
-        only=("policy_separation_m", "sparse_rule", "non_cooperative_separation_m"),
+        only=(
+            "policy_separation_m",
+            "sparse_rule",
+            "non_cooperative_separation_m",
+            "manned_separation_m",
+        ),
     )
     p.add_argument(
         "--geofence-radius-m",
@@ -251,6 +256,7 @@ def guidance_from_args(args: argparse.Namespace) -> GuidanceConfig:
         policy_separation_m=args.policy_separation_m,
         sparse_rule=args.sparse_rule,
         non_cooperative_separation_m=args.non_cooperative_separation_m,
+        manned_separation_m=args.manned_separation_m,
     )
 
 

@@ -487,6 +487,9 @@ class Fleet:
             out["rows_pos_sigma_m"] = sigma[rows]
         if not coop.all():
             out["world_cooperative"] = coop
+        manned = np.concatenate([np.zeros(n, bool), ext.column("manned", False)])
+        if manned.any():
+            out["world_manned"] = manned
         return out
 
     def _states(self, rows: np.ndarray) -> list[VehicleState]:

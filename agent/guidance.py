@@ -72,6 +72,10 @@ class GuidanceConfig:
     """Separation the filter keeps from traffic that does not cooperate (it also takes the
     whole correction for it; policy.safety.SafetyConfig.non_cooperative_radius_m). None:
     separation_m."""
+    manned_separation_m: float | None = safety.MANNED_SEPARATION_M
+    """Separation the filter keeps from a manned aircraft (traffic whose ADS-B emitter category
+    is manned, comms/adsb.py; policy.safety.SafetyConfig.manned_radius_m). None: as other
+    traffic (non_cooperative_separation_m)."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "cruise_speed_m_s", "arrive_radius_m"):
@@ -91,6 +95,9 @@ class GuidanceConfig:
             raise ValueError(
                 f"non_cooperative_separation_m must be a positive number (or None), got {nc}"
             )
+        ms = self.manned_separation_m
+        if ms is not None and not (math.isfinite(ms) and ms > 0):
+            raise ValueError(f"manned_separation_m must be a positive number (or None), got {ms}")
 
     @property
     def told_separation_m(self) -> float:
@@ -125,7 +132,8 @@ class GuidanceConfig:
             max_neighbours=self.max_neighbours,
             sparse_rule=SparseConfig() if self.safety_filter and self.sparse_rule else None,
             safety_cfg=safety.SafetyConfig(
-                non_cooperative_radius_m=self.non_cooperative_separation_m
+                non_cooperative_radius_m=self.non_cooperative_separation_m,
+                manned_radius_m=self.manned_separation_m,
             ),
         )
 
@@ -155,6 +163,9 @@ class NeighbourViews:
     """(k, K) bool, False for traffic that does not avoid; None: all cooperative."""
     own_pos_sigma_m: np.ndarray | None = None
     """(k,) each row's own position 1-sigma; None: all 0."""
+    manned: np.ndarray | None = None
+    """(k, K) bool, True for a manned aircraft (traffic; the filter keeps its own berth from
+    it); None: none."""
 
     @classmethod
     def of_snapshot(
@@ -166,6 +177,7 @@ class NeighbourViews:
         stale = np.array([vid in nbrs.stale_ids for vid in nbrs.ids], bool).reshape(1, k)
         sigma = nbrs.column("pos_sigma_m", 0.0)
         coop = nbrs.column("cooperative", True)
+        manned = nbrs.column("manned", False)
         return cls(
             np.asarray(nbrs.pos_ned_m, float).reshape(1, k, 3),
             np.asarray(nbrs.vel_ned_m_s, float).reshape(1, k, 3),
@@ -177,6 +189,7 @@ class NeighbourViews:
             sigma.reshape(1, k) if sigma.any() else None,
             None if coop.all() else coop.reshape(1, k),
             np.array([own_pos_sigma_m], float) if own_pos_sigma_m else None,
+            manned.reshape(1, k) if manned.any() else None,
         )
 
     @classmethod
@@ -195,6 +208,7 @@ class NeighbourViews:
         world_pos_sigma_m: np.ndarray | None = None,
         rows_pos_sigma_m: np.ndarray | None = None,
         world_cooperative: np.ndarray | None = None,
+        world_manned: np.ndarray | None = None,
     ) -> NeighbourViews:
         """Each row sees the nearest `max_neighbours` active world entries (horizontal
         distance) other than itself (`self_index`, -1 = not in the world); with the world's and
@@ -225,6 +239,7 @@ class NeighbourViews:
             None if world_pos_sigma_m is None else np.asarray(world_pos_sigma_m, float)[cols],
             None if world_cooperative is None else np.asarray(world_cooperative, bool)[cols],
             None if rows_pos_sigma_m is None else np.asarray(rows_pos_sigma_m, float),
+            None if world_manned is None else np.asarray(world_manned, bool)[cols],
         )
 
     def row(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -232,11 +247,17 @@ class NeighbourViews:
         v = self.valid[r]
         return self.pos_m[r, v], self.vel_m_s[r, v], self.heading_rad[r, v], self.stale[r, v]
 
-    def sky(self, rows=None) -> dict:
+    def sky(self, rows=None, manned: bool = False) -> dict:
         """The filter's real-vehicle inputs (policy.safety.pair_radius_m) for one row (an int:
         its valid neighbours, as `row`) or view rows (an index array, None = all: padded), as
-        keyword arguments; empty when the views carry none (exact, all cooperative)."""
+        keyword arguments; empty when the views carry none (exact, all cooperative). `manned`:
+        with the manned flags (nbr_manned) for policy.safety's filters (the runtime's calls
+        take none)."""
         out: dict = {}
+        if manned and self.manned is not None:
+            mask = self.valid[rows] if isinstance(rows, int | np.integer) else slice(None)
+            sel = rows if rows is not None else slice(None)
+            out["nbr_manned"] = self.manned[sel][mask]
         if isinstance(rows, int | np.integer):
             v = self.valid[rows]
             if self.own_pos_sigma_m is not None:
@@ -450,7 +471,7 @@ class BatchGuidance:
                 self.safety_cfg,
                 int(views.own_ids[0]) if ids else None,
                 views.ids[0, views.valid[0]] if ids else None,
-                **views.sky(0),
+                **views.sky(0, manned=True),
                 zones=self.zones,
             )
             out = np.asarray(out, float)[None]
@@ -465,7 +486,7 @@ class BatchGuidance:
                 self.safety_cfg,
                 views.own_ids if ids else None,
                 views.ids if ids else None,
-                **views.sky(),
+                **views.sky(manned=True),
                 zones=self.zones,
             )
             if self.zones is None:

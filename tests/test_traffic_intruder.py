@@ -85,6 +85,26 @@ def test_fleet_keeps_clear_of_an_intruder_on_true_positions(
     """A hovering 2 x 2 block, 8 m apart; an intruder flies straight through it, right at two
     of them (or `offset_m` beside their line). Reports cross a real mesh at 5 Hz; time is
     injected."""
+    closest = _fly_through_block(speed_m_s, offset_m)
+    assert closest["intruder"] >= SEPARATION_M and closest["fleet"] >= SEPARATION_M, closest
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("manned", [False, True])
+def test_fleet_gives_a_manned_aircraft_its_own_berth(manned: bool) -> None:
+    """The same block, an aircraft at 2 m/s passing 12 m beside its nearer column, heard from
+    80 m out: plain traffic needs nothing (12 m); flagged manned (an ADS-B light aircraft),
+    the fleet keeps GuidanceConfig.manned_separation_m (30 m) from it, less 10 % for the link."""
+    closest = _fly_through_block(2.0, 20.0, manned=manned, from_n_m=-80.0)
+    if manned:
+        assert closest["intruder"] >= 27.0 and closest["fleet"] >= SEPARATION_M, closest
+    else:
+        assert 11.0 <= closest["intruder"] < 13.0, closest
+
+
+def _fly_through_block(
+    speed_m_s: float, offset_m: float, manned: bool = False, from_n_m: float = -30.0
+) -> dict:
     clock = [0.0]
     port = free_tcp_port()
     cfg = FleetSimConfig(
@@ -92,10 +112,11 @@ def test_fleet_keeps_clear_of_an_intruder_on_true_positions(
     )
     icfg = IntruderConfig(
         mesh=embedded_peer(port, fleet="intr"),
-        from_ne_m=(-30.0, offset_m),
+        from_ne_m=(from_n_m, offset_m),
         to_ne_m=(40.0, offset_m),
         speed_m_s=speed_m_s,
         alt_m=ALT_M,
+        manned=manned,
     )
     closest = {"fleet": math.inf, "intruder": math.inf}
     with Mesh(cfg.mesh) as mesh, Mesh(icfg.mesh) as station:
@@ -129,8 +150,8 @@ def test_fleet_keeps_clear_of_an_intruder_on_true_positions(
             closest["intruder"] = min(
                 closest["intruder"], float(np.hypot(*(pos[:, :2] - truth[:2]).T).min())
             )
-    print(f"intruder at {speed_m_s} m/s, {offset_m} m aside: closest {closest}")
-    assert closest["intruder"] >= SEPARATION_M and closest["fleet"] >= SEPARATION_M, closest
+    print(f"intruder at {speed_m_s} m/s, {offset_m} m aside, manned {manned}: closest {closest}")
+    return closest
 
 
 @pytest.mark.e2e
