@@ -2,10 +2,11 @@
 `intruder` suite: head-on, crossing, through a block of 10, through forced conflicts and a
 circle swap, at 1x, 1.5x and 2x the fleet's speed), on the perfect and the 3 Hz lossy link.
 
-Compared: the controllers told which vehicle does not cooperate (the filter takes the whole
-correction for it) against the same controllers taking it for a covey vehicle (the reciprocal
-half, before issue 35); ideal and realistic vehicles; the non-cooperative berth at the
-separation and at 4 m. Collisions are judged on true positions, below 3 m.
+Compared: the controllers (numpy, the C core, ORCA) told which vehicle does not cooperate (the
+filter takes the whole correction for it, steps aside of it on its own line and keeps its
+line hard) against the same controllers taking it for a covey vehicle (the reciprocal half,
+before issue 35); ideal and realistic vehicles; the non-cooperative berth at the separation
+and at 4 m. Collisions are judged on true positions, below 3 m.
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ import json
 import time
 from pathlib import Path
 
+from firmware.ceval import CONTROLLERS as C_CONTROLLERS
 from policy.eval import EvalConfig
 from policy.eval import main as eval_main
 
 RESULTS = Path(__file__).resolve().parent / "results"
-CONTROLLERS = ("policy+filter", "orca")
+CONTROLLERS = ("policy+filter", "c+filter", "orca")
 VARIANTS = {
     "marked": {},
     "unmarked": {"mark_non_cooperative": False},
@@ -47,7 +49,7 @@ def main(quick: bool = False) -> dict:
             **overrides,
         )
         t0 = time.perf_counter()
-        result = eval_main(cfg)
+        result = eval_main(cfg, C_CONTROLLERS)
         runs = _rows(result)
         summary = {}
         for link in cfg.links:

@@ -163,6 +163,25 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
 {
     const real_t dist_sq = px * px + py * py;
     real_t dir_x, dir_y, u_x, u_y;
+    if (nc && dist_sq <= r * r && px * vx + py * vy > R(0.0)) {
+        /* already within r of it, closing, and it at least as fast as we are: fleeing along the
+         * line cannot work, so v . n >= COVEY_SAFETY_NC_ESCAPE_SHARE max_speed, n off its track
+         * on the step-aside side (policy/safety.py NC_ESCAPE_SHARE) */
+        const real_t jx = R(own->vel_n_m_s) - vx, jy = R(own->vel_e_m_s) - vy;
+        const real_t j_len = R_SQRT(jx * jx + jy * jy);
+        if (j_len >= R(cfg->max_speed_m_s)) {
+            const real_t jn = R_FMAX(j_len, COVEY_SAFETY_EPS);
+            const real_t sgn =
+                px * jy - py * jx < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len ? R(1.0) : R(-1.0);
+            const real_t nx = sgn * jy / jn, ny = -sgn * jx / jn;
+            const real_t spd = R(COVEY_SAFETY_NC_ESCAPE_SHARE) * R(cfg->max_speed_m_s);
+            line->point[0] = spd * nx;
+            line->point[1] = spd * ny;
+            line->dir[0] = ny;
+            line->dir[1] = -nx;
+            return;
+        }
+    }
     if (dist_sq <= r * r) {
         const real_t inv_dt = R(1.0) / R(cfg->dt_s);
         const real_t cx = vx - inv_dt * px;

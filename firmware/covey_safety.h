@@ -70,6 +70,9 @@ typedef struct {
  * share of the pair distance (policy/safety.py NC_MAX_HORIZON_FACTOR, NC_SIDE_BIAS). */
 #define COVEY_SAFETY_NC_MAX_HORIZON_FACTOR 3.0
 #define COVEY_SAFETY_NC_SIDE_BIAS 0.25
+/* Within r of a non-cooperative track at least as fast as us and closing: move off its track at
+ * this share of max_speed_m_s or more (policy/safety.py NC_ESCAPE_SHARE). */
+#define COVEY_SAFETY_NC_ESCAPE_SHARE 0.8
 
 /* A vehicle for the filter: position and velocity in the local frame (north, east). */
 typedef struct {

@@ -41,6 +41,12 @@ categories light to ultralight, comms/adsb.py MANNED_EMITTERS), whose pilot may 
 drone and whose wake and rotor downwash reach further than a multicopter's. The C twin is
 COVEY_SAFETY_MANNED_SEPARATION_M."""
 
+NC_ESCAPE_SHARE = 0.8
+"""Already within a non-cooperative neighbour's distance r, closing, and it at least as fast as
+us: fleeing along the line cannot work, so the line becomes "move off its track at this share of
+max_speed_m_s or more", v . n >= NC_ESCAPE_SHARE max_speed, n perpendicular to its velocity on
+the step-aside side (`orca_lines`). The C twin is COVEY_SAFETY_NC_ESCAPE_SHARE."""
+
 SIGMA_K = 3.0
 """Default `SafetyConfig.sigma_k`. The relative error of two independent estimates is a 2-D
 Gaussian with per-axis sigma_rel = sqrt(sigma_i^2 + sigma_j^2); only its component along the
@@ -278,8 +284,19 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None,
     u_x = np.where(colliding, (r * inv_dt - c_len) * ucx, u_x)
     u_y = np.where(colliding, (r * inv_dt - c_len) * ucy, u_y)
     k = share
-    point = np.stack([own_vel[..., None, 0] + k * u_x, own_vel[..., None, 1] + k * u_y], axis=-1)
-    return point, np.stack([dir_x, dir_y], axis=-1)
+    pt_x, pt_y = own_vel[..., None, 0] + k * u_x, own_vel[..., None, 1] + k * u_y
+    if nc is not None:
+        # within r of a faster one, closing: off its track at NC_ESCAPE_SHARE max speed or more
+        esc = nc & colliding & fast & (px * vx + py * vy > 0)
+        if esc.any():
+            jn = np.maximum(j_len, EPS)
+            tx, ty = jx / jn, jy / jn
+            sgn = np.where(m < NC_SIDE_BIAS * r * j_len, 1.0, -1.0)
+            nx, ny = sgn * ty, -sgn * tx
+            spd = NC_ESCAPE_SHARE * cfg.max_speed_m_s
+            dir_x, dir_y = np.where(esc, ny, dir_x), np.where(esc, -nx, dir_y)
+            pt_x, pt_y = np.where(esc, spd * nx, pt_x), np.where(esc, spd * ny, pt_y)
+    return np.stack([pt_x, pt_y], axis=-1), np.stack([dir_x, dir_y], axis=-1)
 
 
 def _det(ax, ay, bx, by):
@@ -499,6 +516,15 @@ def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     as a comparison (the same value, NaN included)."""
     r, r_sq, tau, r_tau, inv_dt, r_inv_dt, k, nc, vmax = consts
     dist_sq = px * px + py * py
+    if nc and dist_sq <= r_sq and px * vx + py * vy > 0:  # the escape rule of `orca_lines`
+        jx, jy = own_vx - vx, own_vy - vy
+        j_len = math.sqrt(jx * jx + jy * jy)
+        if j_len >= vmax:
+            jn = EPS if j_len < EPS else j_len
+            sgn = 1.0 if px * jy - py * jx < NC_SIDE_BIAS * r * j_len else -1.0
+            nx, ny = sgn * jy / jn, -sgn * jx / jn
+            spd = NC_ESCAPE_SHARE * vmax
+            return (spd * nx, spd * ny), (ny, -nx)
     if dist_sq <= r_sq:
         cx, cy = vx - inv_dt * px, vy - inv_dt * py
         c_sq = cx * cx + cy * cy

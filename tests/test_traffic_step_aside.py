@@ -94,6 +94,12 @@ def test_dead_on_goes_right_and_off_track_keeps_its_side():
     assert west[1] < -0.2
     behind = _numpy(np.zeros(2), vel, vel, np.array([[-10.0, -2.0]]), np.array([[2.0, 0.0]]))
     assert behind[1] > 0.1  # 2 m east of a faster one's track coming from behind: further east
+    # already within r (3.6 m) of a faster one closing from behind: off its track at >= 0.8 m/s
+    # (fleeing ahead at 1 m/s cannot work), on the same side as the step aside (west here)
+    inside = _numpy(np.zeros(2), vel, vel, np.array([[-3.0, 0.0]]), np.array([[2.0, 0.0]]))
+    assert inside[1] <= -0.8 + 1e-9
+    far = _numpy(np.zeros(2), vel, vel, np.array([[-12.0, 0.0]]), np.array([[2.0, 0.0]]))
+    assert far[1] < 0.0  # the step aside from further out goes the same way
 
 
 def test_cooperative_neighbours_are_unchanged():
@@ -113,7 +119,7 @@ def _collinear_cases(rng, n):
     f32 = np.float32
     for _ in range(n):
         k = int(rng.integers(1, 4))
-        d = rng.uniform(4.0, 30.0)
+        d = rng.uniform(1.0, 30.0)  # within r too (the escape rule)
         ang = rng.uniform(0, 2 * np.pi)
         u = np.array([np.cos(ang), np.sin(ang)])
         lat = np.array([-u[1], u[0]]) * rng.choice([0.0, rng.normal(0, 0.5)])
