@@ -75,7 +75,6 @@ def test_table_is_bounded_expires_and_merges_as_non_cooperative() -> None:
         (1.0, 0.0),
         (1.5, 0.0),
         (2.0, 0.0),
-        (1.5, 1.0),
         (2.0, 1.0),
     ],
 )
@@ -84,7 +83,8 @@ def test_fleet_keeps_clear_of_an_intruder_on_true_positions(
 ) -> None:
     """A hovering 2 x 2 block, 8 m apart; an intruder flies straight through it, right at two
     of them (or `offset_m` beside their line). Reports cross a real mesh at 5 Hz; time is
-    injected."""
+    injected. Every other speed and offset is flown by `python -m bench.intruder` (covey eval's
+    intruder suite); these are the dead-on cases that once caught a vehicle, and one offset."""
     closest = _fly_through_block(speed_m_s, offset_m)
     assert closest["intruder"] >= SEPARATION_M and closest["fleet"] >= SEPARATION_M, closest
 
