@@ -179,10 +179,10 @@ class PlanEditor:
         with self._lock:
             draft = self.draft
             held = self.view.sync.plan
-            if draft is None or not draft.changed:
-                line = "refused: nothing to push (edit the plan first)"
-            elif draft.corners_ne_m:
+            if draft is not None and draft.corners_ne_m:
                 line = "refused: a zone is half drawn (press 'Close zone' or 'Discard corners')"
+            elif draft is None or not draft.changed:
+                line = "refused: nothing to push (edit the plan first)"
             elif (held.version if held else None) != draft.base_version:
                 line = (
                     f"refused: the fleet plan is now v{held.version if held else '-'}, this "
