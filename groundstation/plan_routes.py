@@ -9,7 +9,7 @@ where it is now: the agent re-plans from its position every tick (`Router.next_w
 the route drawn from the reported position is the one it is on. A vehicle configured with
 another separation or margin keeps a slightly different distance from the zones than drawn.
 
-Drawn for vehicles flying a goto or a return (`Mode.GOTO`, `Mode.RETURNING`) with a goal while
+Drawn for vehicles flying a goto, a return or a mission item (`ROUTED_MODES`) with a goal while
 the plan has keep-out zones or a fence; a line per vehicle at `/plan_routes/<id>`, in the goto
 colour, from the vehicle through each waypoint to its goal.
 """
@@ -26,8 +26,9 @@ from comms.plan import FleetPlan
 from comms.schema import Mode, StateFlag, VehicleState
 from groundstation.scene import route_segments
 
-ROUTED_MODES = (Mode.GOTO, Mode.RETURNING)
-"""Modes whose goal the agents route around the zones (agent/flight_core.py `_ARRIVING`)."""
+ROUTED_MODES = (Mode.GOTO, Mode.RETURNING, Mode.MISSION)
+"""Modes whose goal the agents route around the zones (agent/flight_core.py: the guided rows
+that do not hold; a mission's goal is its current item)."""
 MAX_ROUTES = 64
 """Vehicles whose routes are drawn at most (the lowest ids): a route costs a planner query."""
 ROUTE_PATH = "/plan_routes"
@@ -93,6 +94,9 @@ class RouteLayer:
             self.nodes.pop(vid).remove()
         colour = np.array(mode_rgb(Mode.GOTO), np.uint8)
         for vid, points in routes.items():
+            old = self.drawn.get(vid)
+            if vid in self.nodes and old is not None and np.array_equal(old, points):
+                continue  # unchanged (a vehicle holding its place): nothing sent
             self.nodes[vid] = self.server.scene.add_line_segments(
                 f"{ROUTE_PATH}/{vid}",
                 route_segments(points),
