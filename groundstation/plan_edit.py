@@ -5,9 +5,10 @@ a zone, set the fence's floor and ceiling), each step checked before it is taken
 A step that would make the plan invalid is refused with the reason, and the draft stays as it
 was (`EditRefused`): the geometry through comms/plan_io.py `check_geometry` (shapely: a
 self-crossing or degenerate polygon, fewer than 3 corners, home or a rally point inside a zone),
-then every vehicle's target through comms/plan.py `plan_refusal` (the check the flight core
+then every vehicle's target as comms/plan.py `plan_refusal` words it (the check the flight core
 makes) and every vehicle's position against the keep-out zones: a zone is never drawn over a
-vehicle or over where one is flying to. The station signs and pushes a draft through the same
+vehicle or over where one is flying to (what the plan already ruled out, e.g. a vehicle that
+drifted into a zone, blocks no edit elsewhere). The station signs and pushes a draft through the same
 path as an uploaded file (groundstation/plan_view.py `PlanView.push_geometry`).
 
 No viser, no Zenoh, no clock (groundstation/plan_editor.py is the panel around it).
@@ -82,34 +83,51 @@ class Draft:
         return shown + (f"; +{more} more" if more > 0 else "")
 
 
+def geometry_of(plan: FleetPlan | None) -> PlanGeometry:
+    """A plan's geometry (None: an empty one)."""
+    if plan is None:
+        return PlanGeometry()
+    return PlanGeometry(plan.fence, plan.keep_out, plan.rally)
+
+
 def draft_of(plan: FleetPlan | None) -> Draft:
     """A draft of `plan` (None: an empty plan) with nothing changed."""
-    if plan is None:
-        return Draft(None, PlanGeometry())
-    return Draft(plan.version, PlanGeometry(plan.fence, plan.keep_out, plan.rally))
+    return Draft(None if plan is None else plan.version, geometry_of(plan))
 
 
-def checked(geometry: PlanGeometry, vehicles: tuple[VehiclePoint, ...] = ()) -> PlanGeometry:
-    """`geometry` if it may be pushed with these vehicles where they are, else EditRefused."""
+def vehicle_refusals(geometry: PlanGeometry, v: VehiclePoint) -> list[str]:
+    """Every reason `geometry` rules out where vehicle `v` is (its keep-out zones) or flies to
+    (its zones and its fence, as comms/plan.py `plan_refusal` words them)."""
+    out = [
+        f"inside keep-out zone {z.name!r}" if z.name else "inside a keep-out zone"
+        for z in geometry.keep_out
+        if z.covers_alt(v.alt_m) and point_in_polygon(v.n_m, v.e_m, z.vertices_ne_m)
+    ]
+    if v.is_target and geometry.fence is not None:
+        fence_only = FleetPlan("draft", 1, 0, geometry.fence)
+        why = plan_refusal(fence_only, (v.n_m, v.e_m), v.alt_m)
+        if why is not None:
+            out.append(why)
+    return out
+
+
+def checked(
+    geometry: PlanGeometry,
+    vehicles: tuple[VehiclePoint, ...] = (),
+    before: PlanGeometry | None = None,
+) -> PlanGeometry:
+    """`geometry` if it may be pushed with these vehicles where they are, else EditRefused.
+    `before`: the geometry it replaces; what that one already ruled out (a vehicle that drifted
+    into a zone) blocks no edit elsewhere, only one that rules it out anew."""
     try:
         out = check_geometry(geometry)
     except ValueError as exc:
         raise EditRefused(" ".join(str(exc).split())) from None
-    plan = FleetPlan("draft", 1, 0, out.fence, out.keep_out, out.rally)
     for v in vehicles:
-        if v.is_target:
-            why = plan_refusal(plan, (v.n_m, v.e_m), v.alt_m)
-        else:
-            why = next(
-                (
-                    f"inside keep-out zone {z.name!r}" if z.name else "inside a keep-out zone"
-                    for z in plan.keep_out
-                    if z.covers_alt(v.alt_m) and point_in_polygon(v.n_m, v.e_m, z.vertices_ne_m)
-                ),
-                None,
-            )
-        if why is not None:
-            raise EditRefused(f"{v} would be {why}")
+        old = set() if before is None else set(vehicle_refusals(before, v))
+        new = [why for why in vehicle_refusals(out, v) if why not in old]
+        if new:
+            raise EditRefused(f"{v} would be {new[0]}")
     return out
 
 
@@ -144,7 +162,7 @@ def _with_zones(
     draft: Draft, zones: list[Zone], edit: str, vehicles: tuple[VehiclePoint, ...]
 ) -> Draft:
     g = draft.geometry
-    geometry = checked(PlanGeometry(g.fence, tuple(zones), g.rally), vehicles)
+    geometry = checked(PlanGeometry(g.fence, tuple(zones), g.rally), vehicles, g)
     return replace(draft, geometry=geometry, edits=(*draft.edits, edit))
 
 
@@ -233,7 +251,7 @@ def set_fence_band(
         fence = Fence(g.fence.vertices_ne_m, floor_alt_m, ceiling_alt_m)
     except ValueError as exc:
         raise EditRefused(str(exc)) from None
-    geometry = checked(PlanGeometry(fence, g.keep_out, g.rally), vehicles)
+    geometry = checked(PlanGeometry(fence, g.keep_out, g.rally), vehicles, g)
     band = ", ".join(
         f"{what} {'none' if v is None else f'{v:g} m'}"
         for what, v in (("floor", floor_alt_m), ("ceiling", ceiling_alt_m))

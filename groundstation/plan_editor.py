@@ -118,7 +118,7 @@ class PlanEditor:
         self.push_button.on_click(self._push_pressed)
         self.reset_button.on_click(lambda _e: self.reset())
 
-    # -- the steps (tests call them directly too) --------------------------------------------
+    # -- the steps (the buttons and the ground clicks call these) ------------------------------
     def _vehicles(self) -> tuple[pe.VehiclePoint, ...]:
         return vehicle_points(self._states())
 
@@ -190,7 +190,8 @@ class PlanEditor:
                 )
             else:
                 try:
-                    geometry = pe.checked(draft.geometry, self._vehicles())
+                    before = pe.geometry_of(held)
+                    geometry = pe.checked(draft.geometry, self._vehicles(), before)
                 except pe.EditRefused as exc:
                     line = f"refused: {exc}"
                 else:
@@ -210,14 +211,19 @@ class PlanEditor:
             return None
 
     def _numbers(self, form: FormSnapshot, *labels: str) -> list[float] | None:
+        """The labelled fields' values; zone and corner numbers must be whole."""
         try:
-            return [
+            out = [
                 number(label, form.get(label), -MAX_COORD_INPUT_M, MAX_COORD_INPUT_M)
                 for label in labels
             ]
+            for label, value in zip(labels, out, strict=True):
+                if label in (ZONE_NO, CORNER_NO) and value != int(value):
+                    raise InputError(f"{label}: enter a whole number, got {value:g}")
         except InputError as exc:
             self._say(str(exc), error=True)
             return None
+        return out
 
     def _zone_pressed(self, event: viser.GuiEvent) -> None:
         button = event.target.value
@@ -277,7 +283,13 @@ class PlanEditor:
             elif self.ground.value == CLICK_MOVE:
                 # A click is no button: the corner is the one the tab's fields name, and the
                 # draft drawn in the view shows which one moved before anything is pushed.
-                self.move_corner(int(self.zone_no.value), int(self.corner_no.value), *hit)
+                zone_no, corner_no = self.zone_no.value, self.corner_no.value
+                if not all(
+                    isinstance(v, int | float) and v == int(v) for v in (zone_no, corner_no)
+                ):
+                    self._say("set a whole zone and corner number to move", error=True)
+                    return
+                self.move_corner(int(zone_no), int(corner_no), *hit)
             else:
                 self.add_corner(*hit)
 

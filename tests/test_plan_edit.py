@@ -69,6 +69,17 @@ def test_a_bad_zone_is_refused_with_its_reason_and_the_draft_is_kept(corners, re
     assert len(d.corners_ne_m) == len(corners) and len(d.geometry.keep_out) == 1
 
 
+def test_a_vehicle_already_in_a_zone_blocks_no_edit_elsewhere_but_any_that_grows_it() -> None:
+    inside = vehicle_points([state(5, (5.0, 5.0))])  # drifted into 'depot'
+    d = drawn([(30, 30), (30, 40), (40, 40)], vehicles=inside)
+    d = pe.set_fence_band(d, None, 70.0, inside)
+    assert len(d.edits) == 2
+    with pytest.raises(pe.EditRefused, match=r"vehicle 5's position \(N 5.0, E 5.0 m\)"):
+        drawn([(3, 3), (3, 8), (8, 8)], "inner", vehicles=inside)  # a second zone over it
+    with pytest.raises(pe.EditRefused, match="vehicle 5's position"):
+        pe.checked(d.geometry, inside)  # without the geometry it replaces: every rule applies
+
+
 def test_corners_and_zones_move_and_go_and_the_fence_band_is_checked() -> None:
     d = drawn([(30, 30), (30, 40), (40, 40), (40, 30), (35, 25)])
     d = pe.move_corner(d, 2, 5, 35, 28)
