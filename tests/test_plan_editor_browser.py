@@ -22,6 +22,7 @@ from comms.schema import Command, Role
 from comms.session import MeshConfig, free_tcp_port
 from groundstation.plan_editor import (
     CLICK_ADD,
+    CLICK_MOVE,
     CORNER_E,
     CORNER_N,
     CORNER_NO,
@@ -176,3 +177,14 @@ def test_a_self_crossing_zone_is_refused_with_its_reason_and_a_corner_moves(page
     version = gcs.plan_view.sync.plan.version
     line = f"this station (operator): plan v{version}: zone 1 (&#x27;depot&#x27;) corner 3 moved"
     assert wait_until(lambda: line in gcs.command_log_html.content, 10)
+    # A ground click moves the corner the fields name (drawn in the draft, not pushed).
+    page.get_by_label(GROUND_CLICK, exact=True).click(force=True)
+    page.get_by_role("option", name=CLICK_MOVE).click(force=True)
+    editor = gcs.plan_editors[page.client.client_id]
+    assert wait_until(lambda: editor.ground.value == CLICK_MOVE, 10)
+    page.mouse.click(*screen_xy(page, page.client, (15.0, 15.0, 0.0)))
+    moved = lambda: editor.draft and editor.draft.geometry.keep_out[0].vertices_ne_m[2]  # noqa: E731
+    assert wait_until(lambda: moved() and abs(moved()[0] - 15.0) < 0.5, 10), editor.draft
+    page.get_by_text("zone 1 ('depot') corner 3 moved to N 1", exact=False).first.wait_for()
+    _press(page, "Reset draft")
+    assert wait_until(lambda: editor.draft is None, 10)
