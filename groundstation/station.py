@@ -46,7 +46,7 @@ from comms.schema import (
 from comms.session import MeshConfig
 from comms.ticks import run_ticks
 from comms.traffic import TrafficListener, TrafficTable
-from groundstation import dispatch, layout, scenarios
+from groundstation import dispatch, layout, plan_editor, scenarios
 from groundstation.browser_form import BrowserForms
 from groundstation.command_log import CommandLog, LoggedCommand
 from groundstation.dispatch import CommandWorker, Dispatched
@@ -197,6 +197,8 @@ class GroundStation:
         self._commands_shown: tuple[int, int] = (-1, -1)
         self._tabs_lock = threading.Lock()
         self.panels: dict[int, CommandPanel] = {}
+        self.plan_editors: dict[int, plan_editor.PlanEditor] = {}
+        """Each browser tab's fleet plan editor, by client id."""
         self._event_views: dict[int, EventsView] = {}
         self._sent_by: OrderedDict[int, int] = OrderedDict()  # nonce -> client id that sent it
         self.last_result: Dispatched | None = None
@@ -310,7 +312,7 @@ class GroundStation:
             self.traffic_html = gui.add_html(traffic_table([], 0.0))
         with gui.add_folder("Command log (every station)", order=layout.COMMAND_LOG):
             self.command_log_html = gui.add_html(command_log_html([]))
-        self.forms = BrowserForms(self.server, FORM_LABELS)
+        self.forms = BrowserForms(self.server, FORM_LABELS + plan_editor.LABELS)
         self._hooks = PanelHooks(
             known_ids=self.known_ids,
             dispatch=self.dispatch,
@@ -330,7 +332,14 @@ class GroundStation:
         )
         # The fleet plan: followed, drawn, listed, replaced by an uploaded file (plan_view.py).
         self.plan_view = PlanView(
-            self.server, self.mesh, self.scene, self.cfg.origin, order=layout.TRAFFIC + 0.25
+            self.server,
+            self.mesh,
+            self.scene,
+            self.cfg.origin,
+            order=layout.TRAFFIC + 0.25,
+            log=self.commands,
+            states=self._vehicle_states,
+            separation_m=self.cfg.separation_m,
         )
 
     # -- browser tabs: each has its own events filter and command panel ------------------
@@ -345,15 +354,25 @@ class GroundStation:
             kill_window_s=self.cfg.kill_window_s,
         )
         operator = operator_of(self.server, client.client_id)
+        editor = plan_editor.PlanEditor(
+            client,
+            self.plan_view,
+            self.forms,
+            states=self._vehicle_states,
+            operator=lambda: operator,
+            order=layout.TRAFFIC + 0.3,
+        )
         with self._tabs_lock:
             self._event_views[client.client_id] = view
             self.panels[client.client_id] = panel
+            self.plan_editors[client.client_id] = editor
             self._operators[client.client_id] = operator
 
     def _close_tab(self, client: viser.ClientHandle) -> None:
         with self._tabs_lock:
             self._event_views.pop(client.client_id, None)
             self.panels.pop(client.client_id, None)
+            self.plan_editors.pop(client.client_id, None)
             self._operators.pop(client.client_id, None)
 
     def _tabs(self) -> tuple[list[CommandPanel], list[EventsView]]:
@@ -493,6 +512,11 @@ class GroundStation:
             return self.fleet.present_ids()
         return self.presence.vehicles if self.presence else set()
 
+    def _vehicle_states(self) -> list[VehicleState]:
+        """The vehicles' latest states (the plan's routes and edits check them)."""
+        snap = self.fleet.snapshot(self._clock_ns(), trails=False)
+        return [v.state for v in snap.vehicles if v.state is not None]
+
     def _fleet_plan(self) -> FleetPlan | None:
         """The fleet plan the station follows (plan_view.py), or None."""
         view = getattr(self, "plan_view", None)  # None before start and after close
@@ -612,6 +636,7 @@ class GroundStation:
                         present=self.known_ids(),
                         answer_timeout_s=self.cfg.command_timeout_s + 1.0,
                         refused=self.commands.refused_last_minute(now_ns),
+                        plans=self.commands.plan_changes(),
                     )
                 for view in self._tabs()[1]:
                     view.render()
