@@ -20,10 +20,10 @@ from firmware.export_c import export_c_header
 FIRMWARE_DIR = Path(__file__).resolve().parent
 BUILD_DIR = FIRMWARE_DIR / "build"
 CORE_C = tuple(
-    FIRMWARE_DIR / f"covey_{m}.c" for m in ("policy", "traffic", "safety", "guidance", "zones")
+    FIRMWARE_DIR / f"covey_{m}.c" for m in ("policy", "traffic", "safety", "guidance", "zones", "fence")
 )
 CORE_H = tuple(
-    FIRMWARE_DIR / f"covey_{m}.h" for m in ("policy", "traffic", "safety", "guidance", "zones")
+    FIRMWARE_DIR / f"covey_{m}.h" for m in ("policy", "traffic", "safety", "guidance", "zones", "fence")
 )
 DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_driver.c"
 BENCH_SOURCE = FIRMWARE_DIR / "host" / "covey_bench.c"
