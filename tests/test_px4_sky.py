@@ -234,3 +234,76 @@ def test_the_tick_keeps_the_manned_berth(lib):
 
     assert fly(1) < 25.0  # plain traffic 20 m aside: no berth to keep
     assert fly(2) >= 30.0
+
+
+def _fence_tokens(items) -> list[str]:
+    toks = [str(len(items)), str(len(items))]
+    for it in items:
+        toks += [str(it.command), str(it.vertex_count)]
+        toks += [repr(float(np.float32(x))) for x in (it.pos_n_m, it.pos_e_m, it.radius_m)]
+    return toks
+
+
+def test_fence_fuzz_under_asan_and_ubsan():
+    """covey_fence_zones on valid fences (random concave and convex polygons, circles, a fence,
+    return points) and on hostile mutations (NaN, inf, huge, counts that disagree with the
+    items, an item count beyond the array), built with ASan + UBSan: the predicted status where
+    one is predicted, never a crash, and no zones kept whenever it refuses."""
+    from firmware import cfence as cf
+    from firmware import hostbuild
+    from tests.test_zones_filter import random_polygon
+
+    driver = hostbuild.build_fence_driver(hostbuild.header_for(hostbuild.SHIPPED_NPZ))
+    rng = np.random.default_rng(41)
+    lines, want = [], []
+    for i in range(250):
+        items = [cf.FenceItem(cf.RETURN_POINT, 0, 1.0, 2.0)] if i % 4 == 0 else []
+        for k in range(int(rng.integers(1, 4))):
+            ring = random_polygon(rng) + np.array([25.0 * k, 0.0])
+            items += cf.polygon_items(cf.POLYGON_EXCLUSION, ring)
+        if i % 2:
+            items.append(cf.FenceItem(cf.CIRCLE_EXCLUSION, 0, -30.0, 5.0, float(rng.uniform(1, 5))))
+        if i % 3 == 0:
+            items += cf.polygon_items(cf.POLYGON_INCLUSION, FENCE * 2.5)
+        toks = _fence_tokens(items)
+        lines.append(" ".join(toks))
+        want.append("ok")
+        vert = 2 + 5 * int(np.flatnonzero([it.command == cf.POLYGON_EXCLUSION for it in items])[0])
+        for pos, value, status in [
+            (vert + 2, "nan", "nonfinite"),  # a vertex
+            (vert + 3, "-inf", "nonfinite"),
+            (vert + 2, "3e6", "range"),  # beyond the position range
+            (vert + 1, "2", "range"),  # a polygon's vertex count disagrees / is too small
+            (vert + 1, "2147483647", "range"),
+            (0, "-1", "range"),  # n_items
+            (0, "4097", "range"),
+            (0, str(len(items) - 1), "range" if items[-1].command != cf.CIRCLE_EXCLUSION else "ok"),
+        ]:
+            mutated = list(toks)
+            mutated[pos] = value
+            lines.append(" ".join(mutated))
+            want.append(status)
+        for _ in range(8):  # anything at all in any numeric slot but the framing
+            mutated = list(toks)
+            for _ in range(int(rng.integers(1, 4))):
+                slot = int(rng.integers(2, len(toks)))
+                if (slot - 2) % 5 < 2:  # command, vertex_count
+                    mutated[slot] = str(rng.choice(["-1", "0", "3", "5001", "5002", "5003",
+                                                    "5004", "65536", "-2147483648"]))  # fmt: skip
+                else:
+                    mutated[slot] = str(rng.choice(["nan", "inf", "-inf", "0", "-1", "1e30",
+                                                    "-3e38", "1e-40"]))  # fmt: skip
+            lines.append(" ".join(mutated))
+            want.append("any")
+    out, _ = hostbuild.run_driver(driver, "\n".join(lines) + "\n")
+    assert len(out) == len(lines)
+    seen: dict = {}
+    for got, w in zip(out, want, strict=True):
+        status, n_vertices, n_lines = got.split()
+        seen[status] = seen.get(status, 0) + 1
+        assert status in ("ok", "nonfinite", "range"), got
+        assert w in ("any", status), (w, got)
+        if status != "ok":
+            assert n_vertices == "0" and n_lines == "0"
+    assert seen.get("ok", 0) >= 250 and seen.get("range", 0) >= 1000
+    print(f"\n[fence fuzz] {len(lines)} inputs under ASan+UBSan: {seen}, clean")
