@@ -236,6 +236,14 @@ def bind(lib: ctypes.CDLL) -> None:
         vp,
         vp,
     ]
+    lib.covey_guidance_step_zones.restype = ctypes.c_int
+    lib.covey_guidance_step_zones.argtypes = [
+        *lib.covey_guidance_step_sky.argtypes[:11],
+        vp,
+        ctypes.c_uint64,
+        vp,
+        vp,
+    ]
 
 
 def _tracks(
@@ -446,9 +454,14 @@ class COnboard:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_kind=None,
+        zones=None,
     ) -> StepResult:
         """One tick at `now_s` (stamps default to now: fresh); position uncertainties and
-        cooperative flags for the filter (covey_guidance_step_sky)."""
+        cooperative flags for the filter (covey_guidance_step_sky). nbr_kind (K,) uint8: each
+        neighbour's COVEY_TRACK_* kind (0 covey, 1 traffic, 2 manned), in place of
+        nbr_cooperative; zones: keep-out zones (firmware.czones.CZones or firmware.cfence.CFence,
+        covey_guidance_step_zones)."""
         now_us = int(round(now_s * 1e6))
         nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
         k = nbr_pos.shape[0]
@@ -478,8 +491,11 @@ class COnboard:
         if nbr_cooperative is not None:
             nc = np.zeros(max(k, 1), np.uint8)
             nc[:k] = ~np.broadcast_to(np.asarray(nbr_cooperative, bool), (k,))
+        if nbr_kind is not None:
+            nc = np.zeros(max(k, 1), np.uint8)
+            nc[:k] = np.broadcast_to(np.asarray(nbr_kind, np.uint8), (k,))
         out = self._out
-        st = self._lib.covey_guidance_step_sky(
+        st = self._lib.covey_guidance_step_zones(
             ctypes.addressof(self._cfg),
             ctypes.byref(self._hold),
             own.ctypes.data,
@@ -491,6 +507,7 @@ class COnboard:
             None if ns is None else ns.ctypes.data,
             None if nc is None else nc.ctypes.data,
             k,
+            None if zones is None else zones.ptr,
             now_us,
             self._scratch,
             ctypes.addressof(out),

@@ -108,6 +108,11 @@ class CZones:
         if st != 0:
             raise ValueError(f"C zones refused the polygons: {STATUS_NAMES.get(st, st)}")
 
+    @property
+    def ptr(self) -> int:
+        """The address of the prepared covey_zones_t (covey_guidance_step_zones takes it)."""
+        return ctypes.addressof(self._buf)
+
     def lines(self, pos_m, vel_m_s, max_speed_m_s: float, pad_m: float = 0.0) -> list:
         """covey_zones_lines: [((point_n, point_e), (dir_n, dir_e))], as ZoneSet.lines."""
         p = np.asarray(pos_m, dtype=np.float64).reshape(2)
