@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from policy.observation import Swarm
 from policy.runtime import GuidancePolicy
 from policy.sparse import SparseConfig
 
@@ -37,6 +38,7 @@ def main(weights=None, repeats: int = 200, seed: int = 0) -> dict:
     side = 20.0 * np.sqrt(n)
     p_n, g_n = rng.uniform(0, side, (n, 2)), rng.uniform(0, side, (n, 2))
     v_n, h_n = rng.normal(0, 0.7, (n, 2)), rng.uniform(-np.pi, np.pi, n)
+    swarm = Swarm.checked(p_n, v_n, h_n, g_n)
     # told the whole 3 m (not flight's 1.25 m, whose 8.3 m sense range would drop most of these
     # neighbours): every one is fed to the network, the dearest case; the rule is timed below
     wide = dict(policy_separation_m=3.0, sparse_rule=False)
@@ -48,7 +50,7 @@ def main(weights=None, repeats: int = 200, seed: int = 0) -> dict:
         )
         pol = GuidancePolicy.load(weights, safety_filter=filt, max_neighbours=10, **wide)
         out[f"command_batch@1000 nearest-10 filter={filt}"] = median_ms(
-            lambda pol=pol: pol.command_batch(p_n, v_n, h_n, g_n), max(repeats // 10, 5)
+            lambda pol=pol: pol.command_batch(swarm), max(repeats // 10, 5)
         )
     # the agents' decision: with the sparse rule (policy/sparse.py) too, timed in alternating
     # rounds against the same call without it (ratios from one run). Two scenes: the one above
