@@ -149,7 +149,7 @@ class GuidancePolicy:
 
         self.zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
 
-    def waypoint(self, pos_m, goal_m):
+    def _waypoint(self, pos_m, goal_m):
         """Where to fly now for `goal_m` (2,): the route's next waypoint with zones, else
         the goal. Inputs that are not two finite numbers come back as they are (the checked
         path names them)."""
@@ -160,7 +160,7 @@ class GuidancePolicy:
         except (TypeError, ValueError):
             return goal_m
 
-    def waypoints(self, pos_m, goal_m) -> np.ndarray:
+    def _waypoints(self, pos_m, goal_m) -> np.ndarray:
         """`waypoint` of N rows (N, 2)."""
         if self.router is None:
             return goal_m
@@ -338,7 +338,7 @@ class GuidancePolicy:
             return self._command_swarm(obs)
         if not isinstance(obs, Observations):
             raise TypeError(f"command_batch takes Observations or a Swarm, got {type(obs)}")
-        obs = replace(obs, goal_m=self.waypoints(obs.pos_m, obs.goal_m))
+        obs = replace(obs, goal_m=self._waypoints(obs.pos_m, obs.goal_m))
         a, _ = self.actor.action_batch(obs)
         v = features.action_to_velocity(a, obs.heading_rad) * self.cruise_speed_m_s
         views = (obs.pos_m, obs.vel_m_s)
@@ -356,7 +356,7 @@ class GuidancePolicy:
     def _command(self, obs: Observation, filtered: bool) -> np.ndarray:
         """The action of `obs` (towards the route's waypoint with zones) as a velocity."""
         if self.router is not None:
-            obs = obs.with_goal(self.waypoint(obs.pos_m, obs.goal_m))
+            obs = obs.with_goal(self._waypoint(obs.pos_m, obs.goal_m))
         return self._velocity(self.actor.action(obs), obs, filtered)
 
     def _velocity(self, a: np.ndarray, obs: Observation, filtered: bool = True) -> np.ndarray:
@@ -417,7 +417,7 @@ class GuidancePolicy:
         past the network's sense range)."""
         n, active = swarm.pos_m.shape[0], swarm.active
         pos_m, vel_m_s = swarm.pos_m, swarm.vel_m_s
-        swarm = replace(swarm, goal_m=self.waypoints(pos_m, swarm.goal_m))
+        swarm = replace(swarm, goal_m=self._waypoints(pos_m, swarm.goal_m))
         a, nbr = self.actor.action_batch(swarm)
         v = features.action_to_velocity(a, swarm.heading_rad) * self.cruise_speed_m_s
         if self.sparse_rule is not None:
