@@ -413,4 +413,4 @@ def _observation(
         pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
     )
     k = obs.nbr_pos_m.shape[0]
-    return Observation(*obs.arrays(), Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k))
+    return obs._replace(sky=Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k))

@@ -51,10 +51,15 @@ class Actor:
         self._sense_range_m = obs_cfg.sense_range * self.dist_scale_m
 
     def action(self, obs: Observation) -> np.ndarray:
-        """Clipped action (2,) of a checked observation: `_action_rows` where it applies,
-        else features.observe_fast and Network.forward_one (the LSTM in float32 either way)."""
+        """Clipped action (2,) of a checked observation (policy.observation.Observation)."""
+        return np.array(self.pair(obs))
+
+    def pair(self, obs: Observation) -> tuple[float, float]:
+        """`action` as two floats (the hot path builds no array): `_action_rows` where it
+        applies, else features.observe_fast and Network.forward_one (the LSTM in float32
+        either way)."""
         a = self._action_rows(obs)
-        return np.array(self._action_seq(obs) if a is None else a)
+        return self._action_seq(obs) if a is None else a
 
     def _action_seq(self, obs: Observation) -> tuple[float, float]:
         """The clipped action through features.observe_fast (policy units) and

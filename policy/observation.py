@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -127,9 +128,9 @@ def _rows_f64(x, shape: tuple) -> bool:
     return type(x) is np.ndarray and x.dtype is _F64 and x.shape == shape
 
 
-@dataclass(frozen=True, slots=True)
-class Observation:
-    """One vehicle and its K neighbours, world units."""
+class Observation(NamedTuple):
+    """One vehicle and its K neighbours, world units. Named arrays (a NamedTuple: immutable,
+    and built on every `command`, where a frozen dataclass's __init__ costs a few µs more)."""
 
     pos_m: np.ndarray
     """(2,) own position (north, east)."""
@@ -184,7 +185,7 @@ class Observation:
         if sky.nbr_cooperative is not None and sky.nbr_cooperative.shape != (k,):
             got = sky.nbr_cooperative.shape
             raise ValueError(f"nbr_cooperative must have shape ({k},), got {got}")
-        return cls(*obs.arrays(), sky)
+        return obs._replace(sky=sky)
 
     @classmethod
     def shaped(
@@ -301,21 +302,9 @@ class Observation:
         )
         return cls(pos_m, vel_m_s, heading, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading)
 
-    def arrays(self) -> tuple:
-        """(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)."""
-        return (
-            self.pos_m,
-            self.vel_m_s,
-            self.heading_rad,
-            self.goal_m,
-            self.nbr_pos_m,
-            self.nbr_vel_m_s,
-            self.nbr_heading_rad,
-        )
-
     def with_goal(self, goal_m) -> Observation:
         """The same observation flying to `goal_m` (a route's waypoint)."""
-        return Observation(*self.arrays()[:3], goal_m, *self.arrays()[4:], self.sky)
+        return self._replace(goal_m=goal_m)
 
     def neighbours(self, keep) -> Observation:
         """Only the neighbours `keep` selects (a mask or indices)."""

@@ -357,15 +357,15 @@ class GuidancePolicy:
         """The action of `obs` (towards the route's waypoint with zones) as a velocity."""
         if self.router is not None:
             obs = obs.with_goal(self._waypoint(obs.pos_m, obs.goal_m))
-        return self._velocity(self.actor.action(obs), obs, filtered)
+        return self._velocity(self.actor.pair(obs), obs, filtered)
 
-    def _velocity(self, a: np.ndarray, obs: Observation, filtered: bool = True) -> np.ndarray:
+    def _velocity(self, a: tuple, obs: Observation, filtered: bool = True) -> np.ndarray:
         """Body (fwd, right) action a -> (north, east) velocity times the cruise speed, then
         the sparse rule (when on), then the filter (when on, `filtered`, and there are
         neighbours or zones)."""
         heading = obs.heading_rad
         c, sn, u = math.cos(heading), math.sin(heading), self.cruise_speed_m_s
-        a0, a1 = a.tolist()
+        a0, a1 = a
         v = np.array(((a0 * c - a1 * sn) * u, (a0 * sn + a1 * c) * u))
         sky = {} if obs.sky is EXACT else obs.sky.kwargs()
         if self.sparse_rule is not None:

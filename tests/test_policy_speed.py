@@ -270,7 +270,7 @@ def test_command_fast_path_equals_checked_path_and_reference(filt, policy_sep):
             assert fast is not None and pol.actor._action_rows(fast) is not None
             v = pol.command(own, vel, h, goal_in, nbr, nv, hdg)
             conv = Observation._converted(own, vel, h, goal_in, nbr, nv, hdg)
-            v_checked = pol._velocity(np.array(pol.actor._action_seq(conv)), conv, True)
+            v_checked = pol._velocity(pol.actor._action_seq(conv), conv, True)
             ref = _reference(pol, own, vel, h, goal, nbr, nv, hdg)
             assert v.shape == (2,) and v.dtype == np.float64
             worst = max(worst, float(np.abs(v - ref).max()), float(np.abs(v_checked - ref).max()))
