@@ -16,7 +16,7 @@ import numpy as np
 
 from firmware.csafety import MAX_INPUTS
 from policy import eval as policy_eval
-from policy.observation import Observation
+from policy.observation import Observation, Sky
 
 
 class COnboardFleet:
@@ -81,9 +81,11 @@ class COnboardFleet:
                 nbr_pos[row, m],
                 nbr_vel[row, m],
                 nbr_heading[row, m],
-                pos_sigma_m=0.0 if pos_sigma_m is None else float(pos_sigma_m[row]),
-                nbr_pos_sigma_m=None if nbr_pos_sigma_m is None else nbr_pos_sigma_m[row, m],
-                nbr_cooperative=None if nbr_cooperative is None else nbr_cooperative[row, m],
+                Sky(
+                    0.0 if pos_sigma_m is None else float(pos_sigma_m[row]),
+                    None if nbr_pos_sigma_m is None else nbr_pos_sigma_m[row, m],
+                    None if nbr_cooperative is None else nbr_cooperative[row, m],
+                ),
             )
             r = self._tick(vid).step(obs, t_s)
             if r.status != "ok":

@@ -291,17 +291,9 @@ class CPolicy:
         For the decision hold, hold `preferred` and `filter` it every tick (`onboard()` does).
         pos_sigma_m, nbr_pos_sigma_m (K,) and nbr_cooperative (K,): as
         GuidancePolicy.command takes them (the C filter's covey_track_t fields)."""
-        obs = _observation(
-            pos_m,
-            vel_m_s,
-            heading_rad,
-            goal_m,
-            nbr_pos_m,
-            nbr_vel_m_s,
-            nbr_heading_rad,
-            pos_sigma_m,
-            nbr_pos_sigma_m,
-            nbr_cooperative,
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)  # as GuidancePolicy
+        obs = Observation.shaped(
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )
         return self._command(obs, now_s, stamp_s, nbr_stamp_s, filtered=True)
 
@@ -323,17 +315,9 @@ class CPolicy:
     ) -> np.ndarray:
         """GuidancePolicy.preferred in C: the velocity to hold for one decision period (the
         network's, or the sparse rule's straight line), not yet filtered."""
-        obs = _observation(
-            pos_m,
-            vel_m_s,
-            heading_rad,
-            goal_m,
-            nbr_pos_m,
-            nbr_vel_m_s,
-            nbr_heading_rad,
-            pos_sigma_m,
-            nbr_pos_sigma_m,
-            nbr_cooperative,
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)  # as GuidancePolicy
+        obs = Observation.shaped(
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )
         return self._command(obs, now_s, stamp_s, nbr_stamp_s, filtered=False)
 
@@ -392,25 +376,3 @@ class CPolicy:
 
 
 STATUS_NAMES_INV = {v: k for k, v in STATUS_NAMES.items()}
-
-
-def _observation(
-    pos_m,
-    vel_m_s,
-    heading_rad,
-    goal_m,
-    nbr_pos_m,
-    nbr_vel_m_s,
-    nbr_heading_rad,
-    pos_sigma_m=0.0,
-    nbr_pos_sigma_m=None,
-    nbr_cooperative=None,
-) -> Observation:
-    """The observation the core gets: shapes checked here, values by the core (a fault), the
-    filter's real-vehicle inputs checked as GuidancePolicy.command checks them (a ValueError
-    naming the bad one; the C core checks them again)."""
-    obs = Observation.shaped(
-        pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
-    )
-    k = obs.nbr_pos_m.shape[0]
-    return obs._replace(sky=Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k))

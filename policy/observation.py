@@ -69,7 +69,9 @@ class Sky:
     def checked(cls, pos_sigma_m=0.0, nbr_pos_sigma_m=None, nbr_cooperative=None, k: int = -1):
         """pos_sigma_m a finite float >= 0, nbr_pos_sigma_m (k,) finite >= 0 or None,
         nbr_cooperative (k,) bool or None (k = -1: any length, checked later against the
-        neighbours); a ValueError naming the bad one."""
+        neighbours: `fit`); a ValueError naming the bad one. All defaults: EXACT."""
+        if not pos_sigma_m and nbr_pos_sigma_m is None and nbr_cooperative is None:
+            return EXACT
         try:
             own = float(pos_sigma_m)
         except (TypeError, ValueError):
@@ -90,6 +92,27 @@ class Sky:
                 raise ValueError("nbr_cooperative must be booleans")
             coop = coop.astype(bool)
         return cls(own, sig, coop)
+
+    def fit(self, k: int) -> Sky:
+        """This sky for k neighbours: a scalar sigma or flag stands for all of them (the C
+        core's callers pass one); another length is a ValueError naming it."""
+        if self is EXACT:
+            return self
+        sig, coop = self.nbr_pos_sigma_m, self.nbr_cooperative
+        if sig is not None:
+            sig = np.asarray(sig, dtype=np.float64)
+            if sig.ndim == 0:
+                sig = np.full(k, float(sig))
+            elif sig.shape != (k,):
+                raise ValueError(f"nbr_pos_sigma_m must have shape ({k},), got {sig.shape}")
+        if coop is not None:
+            coop = np.asarray(coop)
+            if coop.ndim == 0:
+                coop = np.full(k, bool(coop))
+            elif coop.shape != (k,):
+                raise ValueError(f"nbr_cooperative must have shape ({k},), got {coop.shape}")
+            coop = coop.astype(bool)
+        return Sky(float(self.pos_sigma_m), sig, coop)
 
     def kwargs(self) -> dict:
         """As policy.safety's and policy.sparse's keyword arguments."""
@@ -151,25 +174,12 @@ class Observation(NamedTuple):
 
     @classmethod
     def checked(
-        cls,
-        pos_m,
-        vel_m_s,
-        heading_rad,
-        goal_m,
-        nbr_pos_m,
-        nbr_vel_m_s,
-        nbr_heading_rad,
-        pos_sigma_m=0.0,
-        nbr_pos_sigma_m=None,
-        nbr_cooperative=None,
+        cls, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky=EXACT
     ) -> Observation:
         """The observation of these inputs, or a ValueError naming the one that is wrong
         (shape, type, a non-finite value anywhere). float64 arrays of the right shapes (a
-        2-vector may also be a list of two floats, the heading a float) pass uncopied."""
-        sky = EXACT
-        if pos_sigma_m or nbr_pos_sigma_m is not None or nbr_cooperative is not None:
-            k = np.shape(nbr_pos_m)[0] if np.ndim(nbr_pos_m) == 2 else -1
-            sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k)
+        2-vector may also be a list of two floats, the heading a float) pass uncopied. `sky`:
+        Sky.checked's, fitted to the neighbours here."""
         obs = cls._fast(
             pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
         )
@@ -177,29 +187,11 @@ class Observation(NamedTuple):
             obs = cls._converted(
                 pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad
             )
-        if sky is EXACT:
-            return obs
-        k = obs.nbr_pos_m.shape[0]
-        if sky.nbr_pos_sigma_m is not None:
-            check_array("nbr_pos_sigma_m", sky.nbr_pos_sigma_m, (k,))
-        if sky.nbr_cooperative is not None and sky.nbr_cooperative.shape != (k,):
-            got = sky.nbr_cooperative.shape
-            raise ValueError(f"nbr_cooperative must have shape ({k},), got {got}")
-        return obs._replace(sky=sky)
+        return obs if sky is EXACT else obs._replace(sky=sky.fit(obs.nbr_pos_m.shape[0]))
 
     @classmethod
     def shaped(
-        cls,
-        pos_m,
-        vel_m_s,
-        heading_rad,
-        goal_m,
-        nbr_pos_m,
-        nbr_vel_m_s,
-        nbr_heading_rad,
-        pos_sigma_m=0.0,
-        nbr_pos_sigma_m=None,
-        nbr_cooperative=None,
+        cls, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky=EXACT
     ) -> Observation:
         """float64 arrays in the right shapes with the values unchecked: for the C core, which
         checks them itself and reports a fault (firmware.cpolicy, firmware.csafety). A
@@ -212,14 +204,6 @@ class Observation(NamedTuple):
         nbr_vel = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
         if nbr_vel.shape != nbr_pos.shape:
             raise ValueError(f"{k} neighbour positions but {nbr_vel.shape[0]} velocities")
-        sky = EXACT
-        if pos_sigma_m or nbr_pos_sigma_m is not None or nbr_cooperative is not None:
-            sig = coop = None
-            if nbr_pos_sigma_m is not None:
-                sig = np.broadcast_to(np.asarray(nbr_pos_sigma_m, np.float64), (k,))
-            if nbr_cooperative is not None:
-                coop = np.broadcast_to(np.asarray(nbr_cooperative, bool), (k,))
-            sky = Sky(float(pos_sigma_m), sig, coop)
         return cls(
             np.asarray(pos_m, dtype=np.float64).reshape(2),
             np.asarray(vel_m_s, dtype=np.float64).reshape(2),
@@ -228,7 +212,7 @@ class Observation(NamedTuple):
             nbr_pos,
             nbr_vel,
             nbr_h,
-            sky,
+            sky.fit(k),
         )
 
     @classmethod

@@ -282,17 +282,9 @@ class GuidancePolicy:
         Called every tick, this is all a caller needs. For the decision hold (as the agents
         fly), hold `preferred` instead and `filter` it every tick: a held `command` keeps the
         filter's answer to the moment it decided, on top of the filter's answer to now."""
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
         obs = Observation.checked(
-            pos_m,
-            vel_m_s,
-            heading_rad,
-            goal_m,
-            nbr_pos_m,
-            nbr_vel_m_s,
-            nbr_heading_rad,
-            pos_sigma_m,
-            nbr_pos_sigma_m,
-            nbr_cooperative,
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )
         return self._command(obs, filtered=True)
 
@@ -313,17 +305,9 @@ class GuidancePolicy:
         or the sparse rule's straight line, not yet filtered. Every tick, fly
         `filter(pos_m, vel_m_s, held, nbr_pos_m, nbr_vel_m_s)`; at the decision that is
         `command`. Same inputs and checks as `command`."""
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
         obs = Observation.checked(
-            pos_m,
-            vel_m_s,
-            heading_rad,
-            goal_m,
-            nbr_pos_m,
-            nbr_vel_m_s,
-            nbr_heading_rad,
-            pos_sigma_m,
-            nbr_pos_sigma_m,
-            nbr_cooperative,
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )
         return self._command(obs, filtered=False)
 

@@ -18,7 +18,7 @@ import numpy as np
 from comms import adsb
 from comms.geo import GeoOrigin
 from firmware.sitl.traffic import TrafficStore
-from policy.observation import Observation
+from policy.observation import EXACT, Observation, Sky
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class PolicyGuidance:
                 nbr_pos,
                 nbr_vel,
                 nbr_hdg,
-                nbr_cooperative=None if self.cooperative.all() else self.cooperative,
+                EXACT if self.cooperative.all() else Sky(nbr_cooperative=self.cooperative),
             )
             r = self._tick.step(obs, now_s)
             if r.status != "ok":
