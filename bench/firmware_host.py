@@ -5,7 +5,7 @@
 Builds firmware/host/covey_bench.c (hostbuild.OPT_FLAGS: -O3 -march=native, system cc)
 against the shipped weights; for each neighbour count it times 15 batches of 20
 covey_command calls and reports the median and the fastest batch per call. For comparison
-it times the numpy runtime the same way: `GuidancePolicy.action` (the same network without
+it times the numpy runtime the same way: `GuidancePolicy.actor.action` (the same network without
 the safety filter) and `GuidancePolicy.command` (world units, checks, and the filter).
 The machine is shared, so the minimum is the steadier number.
 """

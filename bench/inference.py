@@ -2,7 +2,7 @@
 
     python -m bench.inference [--quick]      # writes inference.json and inference.png
 
-- numpy, one vehicle (`GuidancePolicy.action`: features + LSTM + head) for N = 2..100
+- numpy, one vehicle (`GuidancePolicy.actor.action`: features + LSTM + head) for N = 2..100
   vehicles, i.e. N-1 neighbours, all within the policy's sense range;
 - numpy batched: `command_batch` for 1,000 vehicles, nearest 10 (with and without the safety
   filter), and the network alone on the same batch;

@@ -1,4 +1,4 @@
-"""Runtime timings: `python -m bench.policy_runtime [--weights W] [--repeats N]`.
+"""Runtime timings: `python -m bench.policy_runtime [--weights W] [--repeats N] [--quick]`.
 
 Median wall time of GuidancePolicy.command with 19 neighbours and of
 command_batch for 1000 vehicles with the nearest 10 neighbours, with and
@@ -87,7 +87,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default=None)
     ap.add_argument("--repeats", type=int, default=200)
+    ap.add_argument("--quick", action="store_true", help="smoke-sized: 20 repeats")
     a = ap.parse_args()
-    for name, ms in main(a.weights, a.repeats).items():
+    for name, ms in main(a.weights, 20 if a.quick else a.repeats).items():
         unit = "x" if name.startswith("ratio") else "ms (median)"
         print(f"{name:55s} {ms:8.3f} {unit}")

@@ -224,6 +224,8 @@ class GuidancePolicy:
         agents do); or call `command` at the control rate."""
         return float(self.config.get("dt_s", 1.0)) * self.separation_m / 3.0 / self.cruise_speed_m_s
 
+    # --- the ways in: command, preferred, filter, command_batch ---------------------
+
     def filter(
         self,
         pos_m,
@@ -251,8 +253,6 @@ class GuidancePolicy:
             **sky.kwargs(),
             zones=self.zones,
         )
-
-    # --- the ways in -----------------------------------------------------------------
 
     def command(
         self,
