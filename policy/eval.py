@@ -27,6 +27,7 @@ import numpy as np
 
 from policy import evalsim, scenarios
 from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
+from policy.observation import Observations
 from policy.pointmass import VEHICLE_MODELS, VehicleModel
 
 
@@ -176,7 +177,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             max_neighbours=cfg.max_neighbours,
             sparse_rule=SparseConfig() if filt and cfg.sparse_rule else None,
         )
-        out[name] = Held(pol.command_views, cfg.policy_period_s, safety_cfg if filt else None)
+        out[name] = Held(_decide_views(pol), cfg.policy_period_s, safety_cfg if filt else None)
     if cfg.occupancy:
         out["occupancy"] = Held(
             _occupancy_controller(cfg.occupancy, cfg.max_neighbours), cfg.policy_period_s
@@ -215,6 +216,18 @@ def inflation_told_m(safety_cfg, sigma_m: float) -> float:
     return float(safety_cfg.sigma_k * np.sqrt(2.0) * sigma_m)
 
 
+def _decide_views(pol):
+    """`pol.command_batch` on each vehicle's padded views, as the controllers here are called;
+    it takes the position uncertainties (`takes_sigma`) for its sparse rule."""
+
+    def decide(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky):
+        obs = Observations(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky)
+        return pol.command_batch(obs)
+
+    decide.takes_sigma = True
+    return decide
+
+
 class Held:
     """Runs a learned policy every period_s (its training step) and holds the velocity in
     between; the optional safety filter runs at every simulation step, with the position
@@ -250,7 +263,7 @@ class Held:
             v = np.array([self.v[i] for i in ids])
         else:
             sky = {}
-            if pos_sigma_m is not None and getattr(self.policy, "__name__", "") == "command_views":
+            if pos_sigma_m is not None and getattr(self.policy, "takes_sigma", False):
                 sky = {"pos_sigma_m": pos_sigma_m, "nbr_pos_sigma_m": nbr_pos_sigma_m}
             v = self.policy(
                 pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky

@@ -11,6 +11,7 @@ torch = pytest.importorskip("torch")
 
 from policy.export import cli as export_cli  # noqa: E402
 from policy.model import IMPROVED, PAPER, ActorCritic, OccupancyEncoder  # noqa: E402
+from policy.observation import Observation  # noqa: E402
 from policy.runtime import GuidancePolicy  # noqa: E402
 from policy.train import TrainConfig, main  # noqa: E402
 
@@ -108,7 +109,9 @@ def test_init_from_weights_file_reproduces_the_actor(tmp_path):
     for k in (0, 1, 4):
         nbr = rng.uniform(-15, 15, (k, 2))
         nbr_h = rng.uniform(-np.pi, np.pi, k)
-        a = pol.action(np.zeros(2), 0.3, np.array([20.0, 5.0]), nbr, nbr_h)
+        a = pol.actor.action(
+            Observation.at_rest(np.zeros(2), 0.3, np.array([20.0, 5.0]), nbr, nbr_h)
+        )
         from policy import features
 
         seq, goal_feat, _ = features.observe(

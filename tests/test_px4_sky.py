@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from policy import safety
+from policy.observation import Observation, Sky
 from policy.zone_lines import ZoneSet
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
@@ -138,9 +139,8 @@ def _fly_tick(onboard, goal, n_steps, **step_kw):
     heading = math.atan2(goal[1], goal[0])
     track = [pos]
     for k in range(n_steps):
-        r = onboard.step(
-            pos, vel, heading, goal, np.zeros((0, 2)), np.zeros((0, 2)), [], k * DT_S, **step_kw
-        )
+        obs = Observation.shaped(pos, vel, heading, goal, np.zeros((0, 2)), np.zeros((0, 2)), [])
+        r = onboard.step(obs, k * DT_S, **step_kw)
         assert r.status == "ok"
         vel = r.vel_m_s
         if np.hypot(*vel) > 0.05:
@@ -193,10 +193,9 @@ def test_the_tick_filters_with_the_zones_as_numpy_does(lib):
         nbr_p = _f32(pos + rng.uniform(-7, 7, (3, 2)))
         nbr_v = _f32(rng.uniform(-1, 1, (3, 2)))
         kinds = rng.integers(0, 3, 3).astype(np.uint8)
-        r = pol.onboard(1.0).step(
-            pos, vel, 0.3, goal, nbr_p, nbr_v, np.zeros(3), 0.0,
-            pos_sigma_m=0.5, nbr_pos_sigma_m=np.full(3, 0.5), nbr_kind=kinds, zones=zones,
-        )  # fmt: skip
+        sky = Sky.checked(pos_sigma_m=0.5, nbr_pos_sigma_m=np.full(3, 0.5), k=3)
+        obs = Observation.shaped(pos, vel, 0.3, goal, nbr_p, nbr_v, np.zeros(3), sky)
+        r = pol.onboard(1.0).step(obs, 0.0, nbr_kind=kinds, zones=zones)
         assert r.status == "ok" and r.decided
         held = pol.preferred(pos, vel, 0.3, goal, nbr_p, nbr_v, np.zeros(3))
         ref = safety.filter_one(
@@ -222,10 +221,8 @@ def test_the_tick_keeps_the_manned_berth(lib):
         ipos, ivel = np.array([90.0, 20.0]), np.array([-2.0, 0.0])
         closest = np.inf
         for k in range(800):
-            r = onboard.step(
-                pos, vel, 0.0, (0.0, 0.0), ipos[None], ivel[None], [math.pi], k * DT_S,
-                nbr_kind=[kind],
-            )  # fmt: skip
+            obs = Observation.shaped(pos, vel, 0.0, (0.0, 0.0), ipos[None], ivel[None], [math.pi])
+            r = onboard.step(obs, k * DT_S, nbr_kind=[kind])
             assert r.status == "ok"
             vel = r.vel_m_s
             pos, ipos = pos + vel * DT_S, ipos + ivel * DT_S
