@@ -27,8 +27,7 @@ from agent.backends.base import VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
 from agent.returning import ReturnConfig
-from comms.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
-from comms.cli_options import (
+from cli.options import (
     add_config_flags,
     add_mesh_args,
     config_from_flags,
@@ -47,6 +46,7 @@ from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import POSITION_LIMIT_M
 from comms.state_rate import IDLE_STATE_HZ, MAX_IDLE_PERIOD_S, MIN_STEADY_STATE_HZ, SteadyConfig
+from trust.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
 
 log = logging.getLogger("covey.agent")
 

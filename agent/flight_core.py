@@ -281,7 +281,7 @@ class FlightCore:
     ):
         """Check `cmd` for vehicle i at `pos_m` (None: no telemetry yet) and enter its mode.
         `takeoff_problem`: why the shell's ground facts rule out leaving the ground now (no
-        station on the mesh, the clock off: comms/heartbeat.py `takeoff_problem`); it refuses a
+        station on the mesh, the clock off: trust/heartbeat.py `takeoff_problem`); it refuses a
         take-off of a landed vehicle."""
         mode = self.mode_of(i)
         if cmd.kind is CommandKind.MISSION_STATUS:

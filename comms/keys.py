@@ -14,7 +14,7 @@
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
     covey/<fleet>/gcs/<id>/heartbeat
                                   pub/sub StationHeartbeat, signed by station <id> (keyed mode):
-                                  what the station-lost failsafe trusts (comms/heartbeat.py)
+                                  what the station-lost failsafe trusts (trust/heartbeat.py)
     covey/<fleet>/gcs/<id>/traffic
     covey/<fleet>/msg/<id>/traffic
                                   pub/sub TrafficReport: vehicles that do not cooperate, as station

@@ -6,10 +6,10 @@ and an explicit ack per vehicle; presence is Zenoh liveliness. Every incoming pa
 at this boundary: a malformed one is counted and reported, never raised into Zenoh's callback
 thread, so one bad message cannot kill a process.
 
-Keyed mode (`auth`, comms/auth.py): every state, event, command and ack this process sends is
+Keyed mode (`auth`, trust/auth.py): every state, event, command and ack this process sends is
 signed with its own key; every state and event it receives passes a comms/gate.py Gate first
 (unsigned, forged, stale, replayed and out-of-order ones are dropped and counted); the roster is
-followed by comms/roster_sync.py (newer ones applied at once, cheapest checks first; pulls at
+followed by trust/roster_sync.py (newer ones applied at once, cheapest checks first; pulls at
 start, on every new link and periodically; members that are behind answered).
 """
 
@@ -26,13 +26,10 @@ from typing import Any
 import zenoh
 
 from comms import keys
-from comms.auth import FleetKeyError, command_digest
 from comms.commands import CommandResult, Outcome, OutcomeStatus
 from comms.feed import FeedBuffer
 from comms.gate import SKIPPED, Gate, GateConfig
 from comms.presence import Presence
-from comms.roster_sync import RosterSync, RosterSyncConfig
-from comms.roster_sync import publish as publish_roster
 from comms.schema import (
     AckResult,
     Command,
@@ -48,6 +45,9 @@ from comms.schema import (
     VehicleState,
 )
 from comms.session import MeshConfig, open_session
+from trust.auth import FleetKeyError, command_digest
+from trust.roster_sync import RosterSync, RosterSyncConfig
+from trust.roster_sync import publish as publish_roster
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ class Mesh:
         wait_s: float | None = None,
         roster_sync: RosterSyncConfig = RosterSyncConfig(),
     ) -> None:
-        """`auth` is a comms.auth.FleetAuth (this member's key and the roster), or None for
+        """`auth` is a trust.auth.FleetAuth (this member's key and the roster), or None for
         open mode. Raises FleetKeyError if the key is for another fleet. `stop`, `wait_s`: a
         client waiting for its router gives up (MeshUnreachable) once `stop` is set or after
         `wait_s` (comms.session.open_session)."""
@@ -131,7 +131,7 @@ class Mesh:
         self._lock = threading.Lock()
         self._error_log_ns = 0
         self.roster_sync: RosterSync | None = None
-        """Keyed mode: the roster follower (comms/roster_sync.py), for its counts."""
+        """Keyed mode: the roster follower (trust/roster_sync.py), for its counts."""
         if auth is not None:
             try:
                 self.roster_sync = self._keep(

@@ -4,7 +4,7 @@ never go (keep-out polygons) and where it may come down (home and rally points).
 Plain geometry in local north/east metres relative to the fleet origin (comms/geo.py converts
 WGS-84), altitudes in metres above the origin (up positive; NED down is ``-alt_m``). The agent's
 flight core, the route planner, the separation filter and the station all read this one type;
-the wire encoding and signature live in comms/schema.py and comms/auth.py, the file loaders in
+the wire encoding and signature live in comms/schema.py and trust/auth.py, the file loaders in
 comms/plan_io.py.
 
 ``plan_refusal`` is the one check "may a vehicle be sent here": the flight core refuses a goto or
@@ -151,7 +151,7 @@ class FleetPlan:
     signer_id: int = 0
     """Who signed it: 0 the fleet authority, N ground station N of the roster."""
     signature: bytes = field(default=b"", repr=False)
-    """Ed25519 signature over the wire encoding (comms/schema.py PlanMessage, comms/auth.py);
+    """Ed25519 signature over the wire encoding (comms/schema.py PlanMessage, trust/auth.py);
     empty while unsigned."""
 
     def __post_init__(self) -> None:

@@ -64,7 +64,7 @@ Layouts (all little-endian, packed; `<` struct codes):
         lat_deg/lon_deg), alt_m (up: above the origin for LOCAL, AMSL for GLOBAL), speed_m_s
         (0: cruise), hold_s), tag (Ed25519 of station source_id, as a Command's)
 
-Signatures are made and checked in comms/auth.py; this module only carries their bytes.
+Signatures are made and checked in trust/auth.py; this module only carries their bytes.
 """
 
 from __future__ import annotations
@@ -144,7 +144,7 @@ class MsgType(enum.IntEnum):
 
 
 class Role(enum.IntEnum):
-    """What a fleet member's key may do (comms/auth.py enforces it)."""
+    """What a fleet member's key may do (trust/auth.py enforces it)."""
 
     VEHICLE = 1
     """Signs its own states, events and acks; can never command."""
@@ -316,7 +316,7 @@ class VehicleState:
     goal_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Where guidance is flying to; meaningful only with StateFlag.HAS_GOAL."""
     sig: bytes = b""
-    """Ed25519 signature of the vehicle over `signed_bytes()` (comms/auth.py); empty: unsigned."""
+    """Ed25519 signature of the vehicle over `signed_bytes()` (trust/auth.py); empty: unsigned."""
     mission_item: int = 0
     """The mission item being flown, from 1 (agent/mission.py); 0: none (no mission, not
     started, aborted); mission_items + 1: the mission is done."""
@@ -476,7 +476,7 @@ class Command:
     seq: int = 0
     tag: bytes = bytes(TAG_BYTES)
     """Ed25519 signature of station `source_id` over every byte before it (and the fleet name);
-    zeros in open mode (comms/auth.py)."""
+    zeros in open mode (trust/auth.py)."""
 
     TYPE: ClassVar[MsgType] = MsgType.COMMAND
     VERSION: ClassVar[int] = SIGNED_SCHEMA_VERSION
@@ -592,7 +592,7 @@ class CommandAck:
     """The vehicle's mode after handling the command."""
     tag: bytes = bytes(TAG_BYTES)
     """Ed25519 signature of `vehicle_id` over `signed_bytes()` and the answered command's
-    SHA-256 (comms/auth.py): an ack cannot be replayed as the answer to another command."""
+    SHA-256 (trust/auth.py): an ack cannot be replayed as the answer to another command."""
 
     TYPE: ClassVar[MsgType] = MsgType.COMMAND_ACK
     VERSION: ClassVar[int] = SIGNED_SCHEMA_VERSION
@@ -762,7 +762,7 @@ class GuidanceTrace:
     decided: bool = True
     """The policy decided in this tick (False: guidance held its last decision)."""
     sig: bytes = b""
-    """Ed25519 signature of the vehicle over `signed_bytes()` (comms/auth.py); empty: unsigned."""
+    """Ed25519 signature of the vehicle over `signed_bytes()` (trust/auth.py); empty: unsigned."""
 
     TYPE: ClassVar[MsgType] = MsgType.GUIDANCE_TRACE
     _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBHIQd3dBH")
@@ -978,7 +978,7 @@ class FeedBatch:
 
 @dataclass(frozen=True)
 class StationHeartbeat:
-    """A ground station's sign of life, a few times a second (comms/heartbeat.py). Signed by the
+    """A ground station's sign of life, a few times a second (trust/heartbeat.py). Signed by the
     station in keyed mode: the station-lost failsafe trusts only these, never a liveliness token,
     and members estimate their clock's offset to the stations from `stamp_ns`."""
 
@@ -988,7 +988,7 @@ class StationHeartbeat:
     stamp_ns: int
     """The station's wall clock when it sent this heartbeat."""
     sig: bytes = b""
-    """Ed25519 signature of station `gcs_id` over `signed_bytes()` (comms/auth.py); empty:
+    """Ed25519 signature of station `gcs_id` over `signed_bytes()` (trust/auth.py); empty:
     unsigned (open mode)."""
 
     TYPE: ClassVar[MsgType] = MsgType.STATION_HEARTBEAT
@@ -1145,7 +1145,7 @@ class TrafficReport:
 @dataclass(frozen=True)
 class ClockReport:
     """A vehicle's clock offset to a station, as its agent estimates it from the station's
-    signed heartbeats (comms/heartbeat.py). It travels as a signed Event of kind CLOCK whose
+    signed heartbeats (trust/heartbeat.py). It travels as a signed Event of kind CLOCK whose
     text is `clock <+s.s> s against station <id>` (` ok` appended once it is back within the
     limit), so that the ground station can show the offset as a health problem."""
 
@@ -1204,7 +1204,7 @@ class Member:
 @dataclass(frozen=True)
 class Roster:
     """The fleet's members, signed by the fleet authority. A higher `version` replaces a lower
-    one on every member (comms/auth.py); a member left out is revoked."""
+    one on every member (trust/auth.py); a member left out is revoked."""
 
     fleet: str
     version: int
@@ -1416,7 +1416,7 @@ class MissionItem:
 @dataclass(frozen=True)
 class Mission:
     """A route for one vehicle, several, or the fleet: uploaded like a command (one query,
-    `Mesh.send_command`), signed like one by a roster station (comms/auth.py `sign_mission`),
+    `Mesh.send_command`), signed like one by a roster station (trust/auth.py `sign_mission`),
     answered by each vehicle with a CommandAck that says why when it is refused."""
 
     nonce: int
@@ -1587,7 +1587,7 @@ def _check_fleet_name(fleet: str, what: str) -> None:
 @dataclass(frozen=True)
 class PlanMessage:
     """A fleet plan on the wire (comms/plan.py): signed by the fleet authority or a roster
-    station (comms/auth.py), followed like the roster (comms/plan_sync.py): a higher `version`
+    station (trust/auth.py), followed like the roster (comms/plan_sync.py): a higher `version`
     replaces a lower one on every member."""
 
     plan: FleetPlan

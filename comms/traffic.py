@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 TRAFFIC_ID_BASE = 1 << 32
 """A track's neighbour id is TRAFFIC_ID_BASE + its track id: never a covey vehicle's id."""
 SIGN_LABEL = "traffic"
-"""Domain label of a TrafficReport signature (comms/auth.py signs label, fleet and bytes)."""
+"""Domain label of a TrafficReport signature (trust/auth.py signs label, fleet and bytes)."""
 
 
 @dataclass(frozen=True)

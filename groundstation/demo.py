@@ -2,7 +2,7 @@
 
 This process hosts the mesh (an embedded Zenoh router on loopback port 7447, where every tool
 connects by default, or a free one if it is busy) and the ground
-station; each vehicle is a `covey agent --vehicle sim` child process (comms/procs.py). Every child
+station; each vehicle is a `covey agent --vehicle sim` child process (kit/procs.py). Every child
 runs in its own process group and gets SIGTERM if this process dies (PR_SET_PDEATHSIG), so
 neither Ctrl-C, nor SIGTERM, nor a crash of the demo leaves orphans.
 """
@@ -18,15 +18,15 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from comms.auth import load_auth
-from comms.authority import Authority
-from comms.cli_options import add_config_flags, config_from_flags, finite, stop_on_signals
-from comms.cli_options import port as tcp_port
+from cli.options import add_config_flags, config_from_flags, finite, stop_on_signals
+from cli.options import port as tcp_port
 from comms.mesh import Mesh
-from comms.procs import ChildGroup
 from comms.schema import Role
 from comms.session import DEFAULT_PORT, embedded_router, free_tcp_port, port_free
 from groundstation.station import GcsConfig, GroundStation
+from kit.procs import ChildGroup
+from trust.auth import load_auth
+from trust.authority import Authority
 
 
 @dataclass(frozen=True)

@@ -78,7 +78,7 @@ def send(
 
 def expected_for_all(present: Iterable[int], auth) -> set[int]:
     """Which of the `present` vehicles a command to all should wait for: all of them in open
-    mode; in keyed mode (`auth`, a comms.auth.FleetAuth) only the vehicles of its roster, since
+    mode; in keyed mode (`auth`, a trust.auth.FleetAuth) only the vehicles of its roster, since
     anyone can declare a presence token: a flood of fake ones costs no waiting and no rows of
     timeouts (a roster vehicle that is not running shows as not reachable)."""
     if auth is None:

@@ -24,7 +24,7 @@ counter beyond); it never takes a row, so 2,000 fake tokens cannot push a real v
 When the vehicle's first verified state arrives, it is listed as present (its agent declared
 its token before its first state, though the token may have been only counted).
 
-Clock: a vehicle whose clock is off reports it in a signed ClockReport (comms/heartbeat.py);
+Clock: a vehicle whose clock is off reports it in a signed ClockReport (trust/heartbeat.py);
 the view carries the offset (`VehicleView.clock_offset_s`) while the report is recent, so that
 the station shows "clock +10.0 s" instead of the last state it could accept.
 

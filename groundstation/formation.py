@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from comms.plan import FleetPlan, plan_refusal
-from comms.safe_load import decode_utf8, parse_json, read_bounded
 from comms.schema import LOCAL_DOWN_RANGE_M
+from kit.safe_load import decode_utf8, parse_json, read_bounded
 
 SHAPES = ("grid", "line", "circle", "v", "file")
 """The shapes `covey cmd formation` and the station offer ("file": slots from a JSON file)."""

@@ -1,4 +1,4 @@
-"""`covey keygen`: the fleet authority's tool (comms/authority.py does the work).
+"""`covey keygen`: the fleet authority's tool (trust/authority.py does the work).
 
     covey keygen init   [--dir D] [--fleet NAME]     authority key + empty signed roster (v1)
     covey keygen add    [--dir D] vehicle 3          key file for vehicle 3; roster version +1
@@ -19,16 +19,16 @@ from __future__ import annotations
 import argparse
 import sys
 
-from comms.authority import AUTHORITY, DEFAULT_DIR, ROSTER, Authority
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     mesh_config,
     nobody_answered,
     refuse,
 )
-from comms.identity import FleetKeyError
 from comms.schema import MAX_VEHICLE_ID, Role
+from trust.authority import AUTHORITY, DEFAULT_DIR, ROSTER, Authority
+from trust.identity import FleetKeyError
 
 VERBS = {
     "init": "create the fleet authority key and an empty signed roster",
@@ -128,9 +128,9 @@ def keygen_cli(argv: list[str]) -> int:
 
 
 def _push(auth: Authority, args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
-    from comms.roster_sync import confirmations
     from comms.session import MeshUnreachable
     from groundstation.push import push_and_confirm
+    from trust.roster_sync import confirmations
 
     if not 0.5 <= args.duration_s <= 60:
         p.error("--duration-s must be within 0.5..60")

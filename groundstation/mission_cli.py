@@ -22,8 +22,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from comms.auth import load_auth
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -45,6 +44,7 @@ from groundstation import dispatch, inputs
 from groundstation.inputs import CommandRequest, InputError
 from groundstation.mission_io import BadFileError, load_mission_file, shifted
 from groundstation.ops import CmdConfig, cmd_main, format_result
+from trust.auth import load_auth
 
 CONTROL = {
     "start": CommandKind.MISSION_START,

@@ -17,8 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from comms.auth import load_auth
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -42,6 +41,7 @@ from comms.state_rate import MAX_IDLE_PERIOD_S
 from groundstation import dispatch, formation_cmd, inputs
 from groundstation.fleet import FleetConfig, FleetModel, FleetSnapshot
 from groundstation.inputs import CommandRequest, InputError
+from trust.auth import load_auth
 
 
 @dataclass(frozen=True)

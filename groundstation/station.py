@@ -23,10 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import viser
 
-from comms.auth import load_auth
 from comms.commands import OutcomeStatus
 from comms.geo import GeoOrigin
-from comms.heartbeat import HeartbeatPublisher
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.presence import Presence
@@ -44,7 +42,6 @@ from comms.schema import (
     VehicleState,
 )
 from comms.session import MeshConfig
-from comms.ticks import run_ticks
 from comms.traffic import TrafficListener, TrafficTable
 from groundstation import dispatch, layout, scenarios
 from groundstation.browser_form import BrowserForms
@@ -62,6 +59,9 @@ from groundstation.tables import command_log_html, fleet_table, legend, traffic_
 from groundstation.web_auth import Gate, GateConfig, is_loopback, read_password_file, url_host
 from groundstation.web_proxy import WebProxy, bind_listener, tls_context
 from groundstation.web_viser import operator_of, start_viser
+from kit.ticks import run_ticks
+from trust.auth import load_auth
+from trust.heartbeat import HeartbeatPublisher
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class GcsConfig:
     """Emulated radio link between the vehicles and this station (comms.link spec: perfect, xbee,
     wifi, ...); the station sits at the origin. The link-health columns then show its effect."""
     key_file: str | None = None
-    """Fleet key that signs commands (comms/auth.py); None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY,
+    """Fleet key that signs commands (trust/auth.py); None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY,
     else open mode (ignored when a Mesh is passed to GroundStation)."""
     every_state: bool = False
     """Hear every state of every vehicle at its full rate, instead of the fleet feed (each

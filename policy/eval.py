@@ -465,7 +465,7 @@ def merge(paths, out: str | Path) -> dict:
 
 def parser() -> argparse.ArgumentParser:
     """One flag per EvalConfig field (help: the docstring under it), plus --merge."""
-    from comms.cli_options import add_config_flags, finite, renamed
+    from cli.options import add_config_flags, finite, renamed
 
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
@@ -495,7 +495,7 @@ def parser() -> argparse.ArgumentParser:
 def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
     """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`.
     `extra_controllers`: see `controllers` (named with --controllers)."""
-    from comms.cli_options import config_from_flags, given
+    from cli.options import config_from_flags, given
 
     ap = parser()
     a = ap.parse_args(argv)

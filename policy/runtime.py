@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.safe_load import npz_headers, parse_json
+from kit.safe_load import npz_headers, parse_json
 from policy import features, safety, sparse
 from policy.features import ObsConfig
 from policy.zone_lines import ZoneSet

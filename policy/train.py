@@ -396,7 +396,7 @@ def plot_curve(log_csv: Path, png: Path) -> None:
 
 def parser() -> argparse.ArgumentParser:
     """One flag per TrainConfig field (help: the docstring under it), plus --episodes-k."""
-    from comms.cli_options import add_config_flags, finite
+    from cli.options import add_config_flags, finite
 
     ap = argparse.ArgumentParser(
         prog="covey train", description="Train the guidance policy with PPO."
@@ -413,7 +413,7 @@ def parser() -> argparse.ArgumentParser:
 
 def cli(argv=None) -> dict:
     """`covey train [--field value ...]`: one flag per TrainConfig field."""
-    from comms.cli_options import config_from_flags, given
+    from cli.options import config_from_flags, given
 
     ap = parser()
     args = ap.parse_args(argv)

@@ -21,8 +21,6 @@ import zenoh
 
 from agent.fleet_sim import start_grid
 from comms import keys
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.feed import DUE_SLACK, FeedBuffer
 from comms.gate import Refusal
 from comms.mesh import Mesh
@@ -37,6 +35,8 @@ from comms.schema import (
 from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
 from tests.conftest import views_by_id, wait_until
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 FLEET = "feedtest"
 MS = 1_000_000

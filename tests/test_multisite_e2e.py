@@ -27,10 +27,7 @@ import time
 import pytest
 
 from comms import keys
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
-from comms.heartbeat import HeartbeatPublisher
 from comms.mesh import Mesh
 from comms.schema import (
     Command,
@@ -45,6 +42,9 @@ from comms.schema import (
 from comms.session import MeshConfig, free_tcp_port
 from groundstation.fleet import FleetModel
 from tests.conftest import keyed_agent_argv, views_by_id
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
+from trust.heartbeat import HeartbeatPublisher
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

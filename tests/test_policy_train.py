@@ -72,7 +72,7 @@ def test_training_smoke_run(tmp_path, encoder):
 
 
 def test_every_train_flag_has_help(capsys):
-    from comms.cli_options import field_docs
+    from cli.options import field_docs
     from policy.train import cli
 
     docs = field_docs(TrainConfig)

@@ -26,8 +26,8 @@ import numpy as np
 from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourConfig, NeighbourSnapshot
 from comms import keys
-from comms.record import Recording, read_recording
 from comms.schema import DecodeError, Event, GuidanceTrace, Mode, StateFlag, VehicleState
+from recording.record import Recording, read_recording
 
 GUIDED_MODES = (Mode.GOTO, Mode.RETURNING, Mode.HOLDING)
 LEGACY_TRACE_PREFIX = "trace "

@@ -1,6 +1,6 @@
 """Per-member signatures: commands, acks, states and events, checked against the fleet roster.
 
-Every vehicle and ground station holds its own Ed25519 key (comms/identity.py); the roster,
+Every vehicle and ground station holds its own Ed25519 key (trust/identity.py); the roster,
 signed by the operator's fleet authority, says whose public key is which vehicle or station.
 
 - Commands are signed by a STATION key (the command's `source_id` names it). A vehicle checks,
@@ -40,16 +40,6 @@ from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from comms.identity import (
-    FleetKeyError,
-    MemberKey,
-    check_roster,
-    member_file_name,
-    public_bytes,
-    read_member_key,
-    signed_message,
-    verify,
-)
 from comms.plan import FleetPlan
 from comms.schema import (
     TAG_BYTES,
@@ -63,6 +53,16 @@ from comms.schema import (
     Roster,
     StationHeartbeat,
     VehicleState,
+)
+from trust.identity import (
+    FleetKeyError,
+    MemberKey,
+    check_roster,
+    member_file_name,
+    public_bytes,
+    read_member_key,
+    signed_message,
+    verify,
 )
 
 log = logging.getLogger(__name__)
@@ -131,7 +131,7 @@ class FleetAuth:
         self.on_roster: Callable[[Roster], None] | None = None
         """Called after a newer roster was applied."""
         self.clock_note: Callable[[], str | None] | None = None
-        """What this member knows of its clock against the stations' (comms/heartbeat.py), as a
+        """What this member knows of its clock against the stations' (trust/heartbeat.py), as a
         line ("vehicle clock +10.0 s against station 1 ..."), or None: a stale command's refusal
         names it, so that the operator learns the cause rather than a bare "stale"."""
 
@@ -361,7 +361,7 @@ class FleetAuth:
 
     # -- station heartbeats ----------------------------------------------------------------------
     def sign_heartbeat(self, heartbeat: StationHeartbeat) -> StationHeartbeat:
-        """Sign a heartbeat as this station (comms/heartbeat.py); a vehicle's key never does."""
+        """Sign a heartbeat as this station (trust/heartbeat.py); a vehicle's key never does."""
         if self.role is not Role.STATION or heartbeat.gcs_id != self.member_id:
             raise FleetKeyError(
                 f"this is {self.key.name}'s key: it signs only station {self.member_id}'s "
@@ -407,7 +407,7 @@ class FleetAuth:
 
 
 PLAN_LABEL = "plan"
-"""The signature label of a fleet plan (comms/identity.py signed_message)."""
+"""The signature label of a fleet plan (trust/identity.py signed_message)."""
 
 
 def sign_plan(private_key: Ed25519PrivateKey, plan: FleetPlan, signer_id: int = 0) -> FleetPlan:

@@ -28,9 +28,9 @@ import typing
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any, NoReturn
 
-from comms.auth import ENV_KEY_FILE
 from comms.geo import GeoOrigin
 from comms.session import DEFAULT_PORT, MeshConfig, MeshConfigError
+from trust.auth import ENV_KEY_FILE
 
 UNIT_SUFFIXES: dict[str, str] = {
     "_m_s2": "m/s^2",
@@ -282,7 +282,7 @@ def add_mesh_args(
 ) -> None:
     """--fleet --connect --listen --mesh-mode --zenoh-config, and --key-file unless key_file is
     False (a CLI that signs nothing then refuses it itself, with its reason); with `key_dir`,
-    --key-dir too (a process of several vehicles: one key file each, comms.auth
+    --key-dir too (a process of several vehicles: one key file each, trust.auth
     .load_vehicle_auths). `router`: the process is a Zenoh router and nothing else (covey
     router): no --mesh-mode and no --fleet, which it refuses with the reason (a router carries
     every fleet's keys). `mode_default` / `mode_help`: --mesh-mode's default and why."""

@@ -37,9 +37,16 @@ from foxglove import messages as fm
 
 from comms import keys, schema
 from comms.geo import GeoOrigin, mission_route_ned_m
-from comms.palette import GEOFENCE_RGB, GOAL_RGB, KEEP_OUT_RGB, RING_OK_RGB, TRAFFIC_RGB, mode_rgb
 from comms.plan import FleetPlan
-from comms.state_batch import StateRow, decode_states
+from groundstation.palette import (
+    GEOFENCE_RGB,
+    GOAL_RGB,
+    KEEP_OUT_RGB,
+    RING_OK_RGB,
+    TRAFFIC_RGB,
+    mode_rgb,
+)
+from recording.state_batch import StateRow, decode_states
 
 _STATE_TYPE = bytes([schema.MsgType.VEHICLE_STATE])
 WORLD_FRAME = "world"
@@ -336,7 +343,7 @@ class Converter:
 
     def convert_all(self, items: Sequence[tuple[str, bytes, int]]) -> Iterator[list[Out]]:
         """convert() of each (topic, data, recv_ns), in order, with the states among them
-        decoded together (comms/state_batch.py, a fraction of the cost): the same outputs."""
+        decoded together (recording/state_batch.py, a fraction of the cost): the same outputs."""
         states = [
             i
             for i, (topic, data, _) in enumerate(items)

@@ -26,8 +26,8 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from comms.keys import check_fleet
-from comms.safe_load import BadFileError, decode_utf8, parse_json
 from comms.schema import MAX_VEHICLE_ID, TAG_BYTES, DecodeError, Role, Roster
+from kit.safe_load import BadFileError, decode_utf8, parse_json
 
 MEMBER_FILE = "member-key"
 AUTHORITY_FILE = "fleet-authority"

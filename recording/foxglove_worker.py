@@ -3,8 +3,8 @@
 The recorder's writer thread writes covey's raw bytes in chunks, and at each flush hands the
 uncompressed records of the chunks it wrote since the last one (it has built them anyway) to
 `FoxgloveWorker`. The child (`main()` below, at the lowest priority) reads covey's messages
-back out of them, converts them (comms/foxglove_channels.py, the states as arrays), packs the standard messages into finished, compressed MCAP chunks
-(comms/mcap_chunks.py), and sends those back; the writer thread writes each into the same file
+back out of them, converts them (recording/foxglove_channels.py, the states as arrays), packs the standard messages into finished, compressed MCAP chunks
+(recording/mcap_chunks.py), and sends those back; the writer thread writes each into the same file
 as one blob. The recorder's process so pays nothing per message for the standard channels, only
 a few pipe frames and blob writes per flush, and its GIL stays with Zenoh's callbacks: with the
 conversion in the writer thread, a saturating burst lost 18 % of its states (issue 17).
@@ -36,8 +36,8 @@ from typing import BinaryIO
 
 from mcap.records import Channel, Schema
 
-from comms.foxglove_channels import Converter, FoxgloveConfig
-from comms.mcap_chunks import MAX_ID, BuiltChunk, ChunkBuilder, PlainReader
+from recording.foxglove_channels import Converter, FoxgloveConfig
+from recording.mcap_chunks import MAX_ID, BuiltChunk, ChunkBuilder, PlainReader
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +168,7 @@ class FoxgloveWorker:
             "import contextlib, os, signal, sys\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
             f"sys.path.insert(0, {root!r})\n"
             f"with contextlib.suppress(OSError): os.nice({WORKER_NICE})\n"
-            "from comms.foxglove_worker import main\n"
+            "from recording.foxglove_worker import main\n"
             "raise SystemExit(main())\n"
         )
         self._proc = subprocess.Popen(

@@ -14,7 +14,10 @@ from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
-from comms.identity import (
+from comms.keys import check_fleet
+from comms.schema import DecodeError, Member, Role, Roster
+from kit.safe_load import BadFileError, read_bounded
+from trust.identity import (
     MAX_KEY_FILE_BYTES,
     FleetKeyError,
     authority_doc,
@@ -27,9 +30,6 @@ from comms.identity import (
     sign_roster,
     write_private_file,
 )
-from comms.keys import check_fleet
-from comms.safe_load import BadFileError, read_bounded
-from comms.schema import DecodeError, Member, Role, Roster
 
 DEFAULT_DIR = Path("~/.config/covey/fleet")
 AUTHORITY = "authority.key"

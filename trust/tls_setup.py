@@ -132,7 +132,7 @@ def init(cfg: TlsConfig, now: datetime.datetime | None = None) -> list[Path]:
             text = router_config(d, name, stations, vehicles)
         else:
             text = _paths(_template("client_mtls.json5"), d, name)
-        header = f"// Written by `covey tls init` for {name} (comms/tls_setup.py).\n"
+        header = f"// Written by `covey tls init` for {name} (trust/tls_setup.py).\n"
         out.append(_write(d / f"{name}.json5", (header + text).encode(), 0o600))
     return out
 

@@ -44,8 +44,8 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from comms import keys
 from comms.gate import Summaries
-from comms.identity import verify
 from comms.schema import DecodeError, Roster, RosterHead
+from trust.identity import verify
 
 log = logging.getLogger(__name__)
 
@@ -452,7 +452,7 @@ class RosterSync(DocSync):
         mono_ns: Callable[[], int] = time.monotonic_ns,
         rng: random.Random | None = None,
     ) -> None:
-        """`auth`: this member's comms.auth.FleetAuth (its roster is the one followed)."""
+        """`auth`: this member's trust.auth.FleetAuth (its roster is the one followed)."""
         self.auth = auth
         super().__init__(
             session,

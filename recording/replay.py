@@ -21,9 +21,9 @@ from dataclasses import dataclass, field, replace
 
 from comms import keys
 from comms.mesh import Mesh
-from comms.record import Recorded, Recording, read_recording
 from comms.schema import DecodeError, Event, StateFlag, VehicleState
 from comms.session import MeshConfig, expects_answer, unreachable, wait_linked
+from recording.record import Recorded, Recording, read_recording
 
 LINK_WAIT_S = 3.0
 """How long a replay waits for a router or peer to answer at its --connect endpoints before it
