@@ -41,7 +41,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "mission_cli",
         "upload a mission (covey JSON or QGC .plan), start/pause/resume/abort it, show progress",
     ),
-    "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
+    "train": ("policy.train_cli", "cli", "train the guidance policy with PPO (needs covey[train])"),
     "eval": (
         "firmware.ceval",
         "eval_cli",

@@ -27,8 +27,11 @@ import zenoh
 
 from comms import keys
 from comms.commands import CommandResult, Outcome, OutcomeStatus
+from comms.doc_sync import DocSync, RosterSyncConfig
+from comms.doc_sync import publish as publish_roster
 from comms.feed import FeedBuffer
 from comms.gate import SKIPPED, Gate, GateConfig
+from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
 from comms.schema import (
     AckResult,
@@ -45,9 +48,6 @@ from comms.schema import (
     VehicleState,
 )
 from comms.session import MeshConfig, open_session
-from trust.auth import FleetKeyError, command_digest
-from trust.roster_sync import RosterSync, RosterSyncConfig
-from trust.roster_sync import publish as publish_roster
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ class Mesh:
         cfg: MeshConfig,
         *,
         clock_ns: Callable[[], int] = time.time_ns,
-        auth: Any = None,
+        auth: MemberAuth | None = None,
         stop: threading.Event | None = None,
         wait_s: float | None = None,
         roster_sync: RosterSyncConfig = RosterSyncConfig(),
@@ -130,15 +130,13 @@ class Mesh:
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._error_log_ns = 0
-        self.roster_sync: RosterSync | None = None
+        self.roster_sync: DocSync | None = None
         """Keyed mode: the roster follower (trust/roster_sync.py), for its counts."""
         if auth is not None:
             try:
                 self.roster_sync = self._keep(
-                    RosterSync(
+                    auth.follow_roster(
                         self.session,
-                        cfg.fleet,
-                        auth,
                         roster_sync,
                         on_summary=self._summary,
                         on_applied=lambda _r: self.stats.bump("rosters_applied"),
@@ -213,7 +211,7 @@ class Mesh:
         publish_roster(self.session, self.fleet, roster.encode())
 
     # -- states ----------------------------------------------------------------------------
-    def publish_state(self, state: VehicleState, *, auth: Any = None) -> None:
+    def publish_state(self, state: VehicleState, *, auth: MemberAuth | None = None) -> None:
         """Publish on the key of the state's own grid cell (comms/keys.py); a vehicle that
         crosses into another cell gets a publisher there, and its old one goes. `auth`: the
         vehicle's own FleetAuth when one process hosts several vehicles; default the mesh's."""
@@ -262,7 +260,7 @@ class Mesh:
         self,
         callback: StateCallback,
         vehicle_id: int | None = None,
-        link: Any = None,
+        link: StateLink | None = None,
         *,
         on_refused: RefusedCallback | None = None,
         gate: GateConfig = GateConfig(),
@@ -274,8 +272,8 @@ class Mesh:
         `link.offer(state, recv_ns, deliver)` instead of the callback.
 
         Keyed mode: only states that pass a Gate(`gate`) reach the callback; `on_refused(vid,
-        cause, recv_ns)` hears of the others. If not given and `callback` is a bound method of an
-        object with `on_state_refused` (the ground station's FleetModel), that is used.
+        cause, recv_ns)` hears of the others (the ground station passes its FleetModel's
+        `on_state_refused`).
         `ignore_id`: drop this vehicle's states unchecked (an agent's own, echoed back)."""
         key = (
             keys.all_states(self.fleet)
@@ -289,7 +287,7 @@ class Mesh:
         self,
         callback: StateCallback,
         cells: Iterable[keys.Cell] = (),
-        link: Any = None,
+        link: StateLink | None = None,
         *,
         on_refused: RefusedCallback | None = None,
         gate: GateConfig = GateConfig(),
@@ -308,7 +306,7 @@ class Mesh:
     def subscribe_feed(
         self,
         callback: FeedCallback,
-        link: Any = None,
+        link: StateLink | None = None,
         *,
         on_refused: RefusedCallback | None = None,
         gate: GateConfig = GateConfig(),
@@ -345,7 +343,7 @@ class Mesh:
     def _state_handler(
         self,
         callback: StateCallback,
-        link: Any,
+        link: StateLink | None,
         on_refused: RefusedCallback | None,
         gate: GateConfig,
         ignore_id: int | None,
@@ -381,7 +379,7 @@ class Mesh:
     def _admitter(
         self,
         callback: Callable[..., None],
-        link: Any,
+        link: StateLink | None,
         on_refused: RefusedCallback | None,
         gate: GateConfig,
         ignore_id: int | None,
@@ -389,8 +387,6 @@ class Mesh:
         """What every decoded state passes, whichever way it came (its own key or a feed entry):
         the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
         the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""
-        if on_refused is None:
-            on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
         checker = self.new_gate(gate) if self.auth is not None else None
 
         def admit(state: VehicleState, recv_ns: int, extra: tuple) -> None:
@@ -414,7 +410,7 @@ class Mesh:
         return admit
 
     # -- events ----------------------------------------------------------------------------
-    def publish_event(self, event: Event, *, auth: Any = None) -> None:
+    def publish_event(self, event: Event, *, auth: MemberAuth | None = None) -> None:
         """Publish `event`, signed with `auth` (its vehicle's own FleetAuth when one process
         hosts several vehicles; default the mesh's)."""
         auth = auth if auth is not None else self.auth
@@ -422,7 +418,9 @@ class Mesh:
             event = auth.sign_event(event)
         self.session.put(keys.event(self.fleet, event.vehicle_id or 1), event.encode())
 
-    def event(self, vehicle_id: int, text: str, *, auth: Any = None, **kw: Any) -> None:
+    def event(
+        self, vehicle_id: int, text: str, *, auth: MemberAuth | None = None, **kw: Any
+    ) -> None:
         event = Event(vehicle_id=vehicle_id, stamp_ns=self.clock_ns(), text=text, **kw)
         self.publish_event(event, auth=auth)
 
@@ -489,7 +487,7 @@ class Mesh:
         vehicle_id: int,
         handler: CommandHandler,
         *,
-        auth: Any = None,
+        auth: MemberAuth | None = None,
         polled: bool = False,
         on_mission: MissionHandler | None = None,
     ) -> Any:
@@ -570,7 +568,7 @@ class Mesh:
         ack_key: str,
         answer: CommandAck,
         command_payload: bytes,
-        auth: Any,
+        auth: MemberAuth | None,
     ) -> None:
         if auth is not None:
             answer = auth.sign_ack(answer, command_digest(command_payload))

@@ -22,14 +22,11 @@ import random
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 import zenoh
 
 from comms import keys
-from comms.plan import FleetPlan
-from comms.schema import PlanHead, PlanMessage
-from trust.roster_sync import (
+from comms.doc_sync import (
     Confirmation,
     DocSync,
     Offer,
@@ -37,6 +34,9 @@ from trust.roster_sync import (
     confirmations,
     publish_doc,
 )
+from comms.member import MemberAuth
+from comms.plan import FleetPlan
+from comms.schema import PlanHead, PlanMessage
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ class PlanDoc:
 
     name = "plan"
 
-    def __init__(self, fleet: str, auth: Any, plan: FleetPlan | None = None) -> None:
+    def __init__(self, fleet: str, auth: MemberAuth | None, plan: FleetPlan | None = None) -> None:
         """`auth`: this member's trust.auth.FleetAuth, or None (open mode). `plan`: the plan to
         start from (e.g. read from a file), checked like one that arrives."""
         self.key = keys.plan(fleet)
@@ -110,7 +110,7 @@ class PlanSync(DocSync):
         self,
         session: zenoh.Session,
         fleet: str,
-        auth: Any,
+        auth: MemberAuth | None,
         cfg: RosterSyncConfig = RosterSyncConfig(),
         *,
         plan: FleetPlan | None = None,

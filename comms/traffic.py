@@ -27,6 +27,7 @@ import numpy as np
 
 from comms import adsb, keys
 from comms.geo import GeoOrigin
+from comms.member import MemberAuth
 from comms.schema import (
     POSITION_LIMIT_M,
     SPEED_LIMIT_M_S,
@@ -305,7 +306,7 @@ class TrafficListener:
         self.close()
 
 
-def sign_report(auth: Any, report: TrafficReport) -> TrafficReport:
+def sign_report(auth: MemberAuth, report: TrafficReport) -> TrafficReport:
     """`report` signed by `auth` (its role and member id must be the reporter's)."""
     if auth.role is not report.reporter_role or auth.member_id != report.reporter_id:
         raise ValueError(

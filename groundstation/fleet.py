@@ -302,7 +302,7 @@ class FleetModel:
                 track.trail.popleft()
 
     def on_state_refused(self, vehicle_id: int, cause: str, recv_ns: int) -> None:
-        """Record a state the mesh refused (keyed mode; Mesh.subscribe_states finds this method).
+        """Record a state the mesh refused (keyed mode: passed to Mesh.subscribe_* as `on_refused`).
         Never creates a vehicle: an unknown id only bumps `phantom_refusals`."""
         with self._lock:
             track = self._tracks.get(vehicle_id)

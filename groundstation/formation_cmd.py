@@ -142,7 +142,7 @@ def formation_main(
     with Mesh(cfg.mesh, auth=auth, stop=stop, wait_s=cfg.timeout_s) as mesh:
         if expects_answer(cfg.mesh) and not wait_linked(mesh.session, cfg.timeout_s, stop):
             raise unreachable(cfg.mesh, cfg.timeout_s)
-        mesh.subscribe_feed(fleet.on_state)
+        mesh.subscribe_feed(fleet.on_state, on_refused=fleet.on_state_refused)
         pres = mesh.presence()
         wanted = set(cfg.targets)
         if wanted:

@@ -128,9 +128,9 @@ def keygen_cli(argv: list[str]) -> int:
 
 
 def _push(auth: Authority, args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
+    from comms.doc_sync import confirmations
     from comms.session import MeshUnreachable
     from groundstation.push import push_and_confirm
-    from trust.roster_sync import confirmations
 
     if not 0.5 <= args.duration_s <= 60:
         p.error("--duration-s must be within 0.5..60")

@@ -93,7 +93,9 @@ def status_main(
     auth = load_auth(cfg.key_file, fleet=cfg.mesh.fleet)
     fleet = FleetModel(FleetConfig(verified_only=auth is not None))  # keyed: no bare tokens
     with Mesh(cfg.mesh, auth=auth, stop=stop, wait_s=cfg.listen_s) as mesh:
-        mesh.subscribe_feed(fleet.on_state)  # the whole fleet at a bounded rate, as the station
+        mesh.subscribe_feed(
+            fleet.on_state, on_refused=fleet.on_state_refused
+        )  # the whole fleet at a bounded rate, as the station
         pres = mesh.presence(
             lambda kind, vid, alive: (
                 kind == "vehicle" and fleet.on_presence(vid, alive, time.time_ns())

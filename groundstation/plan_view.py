@@ -16,13 +16,13 @@ from typing import Any
 
 import viser
 
+from comms.doc_sync import Offer
 from comms.geo import GeoOrigin
 from comms.plan import FleetPlan
 from comms.plan_io import BadPlanError, next_version, parse_plan
 from comms.plan_sync import PlanSync
 from groundstation.scene import FleetScene
 from groundstation.web_viser import operator_of
-from trust.roster_sync import Offer
 
 
 class PlanView:

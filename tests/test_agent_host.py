@@ -309,7 +309,7 @@ class Station:
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh
         self.fleet = FleetModel()
-        mesh.subscribe_states(self.fleet.on_state)
+        mesh.subscribe_states(self.fleet.on_state, on_refused=self.fleet.on_state_refused)
         self.presence = mesh.presence(
             lambda kind, vid, alive: (
                 kind == "vehicle" and self.fleet.on_presence(vid, alive, time.time_ns())

@@ -124,7 +124,7 @@ def station():
     port = free_tcp_port()
     with Mesh(embedded_router(port, fleet=FLEET)) as mesh:
         model = FleetModel()
-        mesh.subscribe_feed(model.on_state)
+        mesh.subscribe_feed(model.on_state, on_refused=model.on_state_refused)
         yield port, mesh, model
 
 
@@ -209,7 +209,7 @@ def test_a_forged_entry_is_refused_and_its_batch_mates_are_accepted(fleet_keys) 
         zenoh.open(embedded_peer(port, fleet=FLEET).zenoh_config()) as attacker,
     ):
         model = FleetModel()
-        mesh.subscribe_feed(model.on_state)
+        mesh.subscribe_feed(model.on_state, on_refused=model.on_state_refused)
         time.sleep(0.5)
         now = time.time_ns()
         genuine = [fleet_keys[v].sign_state(state(v, 1, now)).encode() for v in (1, 2, 3)]

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
+from comms.doc_sync import Offer
 from comms.mesh import Mesh
 from comms.plan import FleetPlan, Zone
 from comms.plan_sync import PlanSync
@@ -19,7 +20,6 @@ from comms.schema import Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
 from groundstation.formation import FormationSpec, slots_ned_m
 from groundstation.ops import cmd_cli
-from trust.roster_sync import Offer
 
 FLEET = "formation"
 SHUFFLED = (5, 2, 8, 1, 7, 3, 6, 4)

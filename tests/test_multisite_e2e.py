@@ -69,7 +69,7 @@ class Station:
         """vehicle id -> {neighbour id: age in s} of its latest guidance trace."""
         self.flags_since: dict[int, StateFlag] = {}
         """vehicle id -> the state flags seen since `mark()`."""
-        mesh.subscribe_states(self.fleet.on_state)
+        mesh.subscribe_states(self.fleet.on_state, on_refused=self.fleet.on_state_refused)
         mesh.subscribe_states(self.on_state)
         for vid in IDS:
             mesh.session.declare_subscriber(keys.trace(FLEET, vid), self.on_trace)

@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from comms.doc_sync import RosterSyncConfig
 from comms.mesh import Mesh
 from comms.plan import FleetPlan, RallyPoint, Zone
 from comms.plan_sync import PlanSync, publish_plan
@@ -19,7 +20,6 @@ from comms.session import MeshConfig, free_tcp_port
 from tests.conftest import wait_until
 from trust.auth import load_auth
 from trust.authority import throwaway_fleet
-from trust.roster_sync import RosterSyncConfig
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 FLEET = "planflood"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import time
 
+from comms.doc_sync import Offer, RosterSyncConfig
 from comms.mesh import Mesh
 from comms.plan_sync import PlanSync, plan_confirmations, publish_plan
 from comms.schema import PlanMessage, Role
@@ -15,7 +16,6 @@ from tests.conftest import wait_until
 from tests.test_plan_wire import sample_plan
 from trust.auth import load_auth, sign_plan
 from trust.authority import throwaway_fleet
-from trust.roster_sync import Offer, RosterSyncConfig
 
 FLEET = "planfleet"
 SLOW = RosterSyncConfig(pull_every_s=60.0)

@@ -295,7 +295,7 @@ def test_cli_only_take_off_is_refused_and_a_fake_station_token_cannot_stop_the_f
     ) as hub:
         model = FleetModel(FleetConfig(verified_only=True))
         events: list[tuple[float, Event]] = []
-        hub.subscribe_states(model.on_state)
+        hub.subscribe_states(model.on_state, on_refused=model.on_state_refused)
         hub.subscribe_events(lambda e, _t: events.append((time.monotonic(), e)))
         hub.presence(
             lambda kind, vid, alive: kind == "vehicle" and model.on_presence(vid, alive, 0)

@@ -65,7 +65,7 @@ class Station:
         self.mesh = mesh
         self.fleet = FleetModel()
         self.events: list[Event] = []
-        mesh.subscribe_feed(self.fleet.on_state)  # finds fleet.on_state_refused by itself
+        mesh.subscribe_feed(self.fleet.on_state, on_refused=self.fleet.on_state_refused)
         mesh.subscribe_events(lambda e, _t: self.events.append(e))
         self.presence = mesh.presence(
             lambda kind, vid, alive: (

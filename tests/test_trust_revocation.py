@@ -28,6 +28,7 @@ from pathlib import Path
 import pytest
 
 from comms.commands import OutcomeStatus, new_nonce
+from comms.doc_sync import Offer, RosterSyncConfig, confirmations
 from comms.mesh import Mesh
 from comms.schema import (
     MAX_ROSTER_BYTES,
@@ -43,7 +44,7 @@ from comms.session import MeshConfig, free_tcp_port
 from trust.auth import FleetAuth, load_auth
 from trust.authority import Authority, throwaway_fleet
 from trust.identity import member_doc, read_member_key, write_private_file
-from trust.roster_sync import Offer, RosterSync, RosterSyncConfig, confirmations
+from trust.roster_sync import RosterSync
 from trust.tls_setup import TlsConfig, init
 
 FLEET = "revoke"

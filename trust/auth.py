@@ -38,8 +38,11 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
+import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
+from comms.doc_sync import RosterSyncConfig
+from comms.member import command_digest
 from comms.plan import FleetPlan
 from comms.schema import (
     TAG_BYTES,
@@ -64,6 +67,7 @@ from trust.identity import (
     signed_message,
     verify,
 )
+from trust.roster_sync import RosterSync
 
 log = logging.getLogger(__name__)
 
@@ -81,11 +85,6 @@ __all__ = [
     "load_vehicle_auths",
     "sign_plan",
 ]
-
-
-def command_digest(payload: bytes) -> bytes:
-    """SHA-256 of a command's wire bytes, as bound into the ack that answers it."""
-    return hashlib.sha256(payload).digest()
 
 
 class FleetAuth:
@@ -395,6 +394,20 @@ class FleetAuth:
                 return None
             return f"bad signature: not made by fleet {self.fleet}'s authority key"
         return self.check_signature(Role.STATION, signer_id, PLAN_LABEL, signed, sig)
+
+    def follow_roster(
+        self,
+        session: zenoh.Session,
+        cfg: RosterSyncConfig,
+        *,
+        on_summary: Callable[[str], None],
+        on_applied: Callable[[Roster], None],
+    ) -> RosterSync:
+        """This member's roster follower on `session` (trust/roster_sync.py); `Mesh` starts it
+        and undeclares it when it closes."""
+        return RosterSync(
+            session, self.fleet, self, cfg, on_summary=on_summary, on_applied=on_applied
+        )
 
     def _clock_note(self) -> str | None:
         if self.clock_note is None:

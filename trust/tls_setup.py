@@ -35,7 +35,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from comms.schema import MAX_VEHICLE_ID
 
-CONFIGS = Path(__file__).resolve().parent / "zenoh_configs"
+CONFIGS = Path(__file__).resolve().parent.parent / "comms" / "zenoh_configs"
 """The shipped templates."""
 DEFAULT_DIR = Path("~/.config/covey/tls")
 PLACEHOLDER_DIR = "/etc/covey/tls/"
