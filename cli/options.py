@@ -188,7 +188,10 @@ def vehicle_ids(text: str) -> tuple[int, ...]:
             )
         ids.extend(range(a, b + 1))
     seen: set[int] = set()
-    twice = sorted({v for v in ids if v in seen or seen.add(v)})
+    again: set[int] = set()
+    for v in ids:
+        (again if v in seen else seen).add(v)
+    twice = sorted(again)
     if twice:
         more = ", ..." if len(twice) > 5 else ""
         raise argparse.ArgumentTypeError(

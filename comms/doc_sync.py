@@ -35,7 +35,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Generic, Protocol, TypeVar
 
 import zenoh
 
@@ -99,11 +99,20 @@ class Offer(enum.Enum):
 class DocHead(Protocol):
     """What a document's O(1) header peek gives: enough to drop it or verify it."""
 
-    fleet: str
-    version: int
+    @property
+    def fleet(self) -> str: ...
+
+    @property
+    def version(self) -> int: ...
 
 
-class SignedDoc(Protocol):
+H = TypeVar("H", bound=DocHead)
+"""A document's header type (RosterHead, PlanHead)."""
+D = TypeVar("D", covariant=True)
+"""A document's type (Roster, FleetPlan)."""
+
+
+class SignedDoc(Protocol[H, D]):
     """One kind of signed, versioned fleet document that `DocSync` follows (the roster, the
     plan): it says where it lives, reads a header cheaply, checks a signature, applies."""
 
@@ -112,7 +121,7 @@ class SignedDoc(Protocol):
     key: str
     """Its Zenoh key (comms/keys.py)."""
 
-    def peek(self, data: bytes) -> DocHead:
+    def peek(self, data: bytes) -> H:
         """The header in O(1); raises DecodeError."""
         ...
 
@@ -120,13 +129,13 @@ class SignedDoc(Protocol):
         """The version held now (0: none)."""
         ...
 
-    def genuine(self, head: DocHead) -> str | None:
+    def genuine(self, head: H) -> str | None:
         """None if the header's signature is a signer's this member trusts, else why not."""
         ...
 
-    def apply(self, data: bytes, head: DocHead) -> tuple[object, str | None]:
-        """Decode and apply a genuine newer document: (the document, None) or (None or the
-        document, why it was not applied); raises DecodeError."""
+    def apply(self, data: bytes, head: H) -> tuple[D, str | None]:
+        """Decode and apply a genuine newer document: (the document, None) or (the document,
+        why it was not applied); raises DecodeError."""
         ...
 
     def held_bytes(self) -> bytes | None:
@@ -134,7 +143,7 @@ class SignedDoc(Protocol):
         ...
 
 
-class DocSync:
+class DocSync(Generic[H, D]):
     """One member's follower of a `SignedDoc` on an open Zenoh session (see the module
     docstring). `undeclare()` stops it."""
 
@@ -142,11 +151,11 @@ class DocSync:
         self,
         session: zenoh.Session,
         fleet: str,
-        doc: SignedDoc,
+        doc: SignedDoc[H, D],
         cfg: RosterSyncConfig = RosterSyncConfig(),
         *,
         on_summary: Callable[[str], None] | None = None,
-        on_applied: Callable[[Any], None] | None = None,
+        on_applied: Callable[[D], None] | None = None,
         mono_ns: Callable[[], int] = time.monotonic_ns,
         rng: random.Random | None = None,
     ) -> None:
@@ -254,7 +263,7 @@ class DocSync:
         for reply in replies:
             self._on_reply(reply)
 
-    def _behind(self, head: DocHead, now: int) -> None:
+    def _behind(self, head: H, now: int) -> None:
         """An older document was put on the key: a member is behind. Re-publish ours (once,
         soon, unless someone else does), if that older one is authentic: a forged one must not
         make the fleet answer (an amplifier), and only one is verified per interval."""

@@ -27,6 +27,7 @@ from comms.schema import (
     Mission,
     Role,
     Roster,
+    RosterHead,
     VehicleState,
 )
 
@@ -91,11 +92,11 @@ class MemberAuth(SignatureChecker, Protocol):
 
     def check_mission(self, mission: Mission, vehicle_id: int) -> str | None: ...
 
-    def refuse(self, cmd: Command, vehicle_id: int, reason: str) -> None: ...
+    def refuse(self, cmd: Command | Mission, vehicle_id: int, reason: str) -> None: ...
 
     def sign_ack(self, ack: CommandAck, digest: bytes) -> CommandAck: ...
 
-    def check_ack(self, ack: CommandAck, cmd: Command, digest: bytes) -> str | None: ...
+    def check_ack(self, ack: CommandAck, cmd: Command | Mission, digest: bytes) -> str | None: ...
 
     def check_plan(self, signer_id: int, signed: bytes, sig: bytes) -> str | None:
         """None if a fleet plan's signature is the authority's or a station's, else why not."""
@@ -108,7 +109,7 @@ class MemberAuth(SignatureChecker, Protocol):
         *,
         on_summary: Callable[[str], None],
         on_applied: Callable[[Roster], None],
-    ) -> DocSync:
+    ) -> DocSync[RosterHead, Roster]:
         """Start following the fleet's roster on `session` (the Mesh keeps and closes it)."""
         ...
 

@@ -30,7 +30,7 @@ from comms.commands import CommandResult, Outcome, OutcomeStatus
 from comms.doc_sync import DocSync, RosterSyncConfig
 from comms.doc_sync import publish as publish_roster
 from comms.feed import FeedBuffer
-from comms.gate import SKIPPED, Gate, GateConfig
+from comms.gate import SKIPPED, Gate, GateConfig, Refusal
 from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
 from comms.schema import (
@@ -45,6 +45,7 @@ from comms.schema import (
     Mode,
     MsgType,
     Roster,
+    RosterHead,
     VehicleState,
 )
 from comms.session import MeshConfig, open_session
@@ -130,7 +131,7 @@ class Mesh:
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._error_log_ns = 0
-        self.roster_sync: DocSync | None = None
+        self.roster_sync: DocSync[RosterHead, Roster] | None = None
         """Keyed mode: the roster follower (trust/roster_sync.py), for its counts."""
         if auth is not None:
             try:
@@ -202,6 +203,8 @@ class Mesh:
             log.warning("SECURITY: %s", line)
 
     def new_gate(self, cfg: GateConfig = GateConfig(), what: str = "state") -> Gate:
+        if self.auth is None:
+            raise RuntimeError("an open-mode mesh has no keys to gate with")
         gate = Gate(self.auth, cfg, on_summary=self._summary, what=what)
         self.gates.append(gate)
         return gate
@@ -396,7 +399,7 @@ class Mesh:
                 verdict = checker.admit_state(state, recv_ns)
                 if verdict is SKIPPED:
                     return
-                if verdict is not None:
+                if isinstance(verdict, Refusal):
                     self.stats.bump("states_refused")
                     if on_refused is not None:
                         _guarded(on_refused, state.vehicle_id, verdict.value, recv_ns)
@@ -532,30 +535,33 @@ class Mesh:
                     self._answer(query, reply_key, ack_key, answer, payload, auth)
                     return
                 self.stats.bump("commands_served")
-                check = (
-                    None
-                    if auth is None
-                    else auth.check_mission
-                    if is_mission
-                    else auth.check_command
-                )
-                problem = check(command, vehicle_id) if check is not None else None
+                if auth is None:
+                    problem = None
+                elif isinstance(command, Mission):
+                    problem = auth.check_mission(command, vehicle_id)
+                else:
+                    problem = auth.check_command(command, vehicle_id)
                 if problem:
                     answer = ack(command.nonce, AckResult.REJECTED, problem)
-                elif is_mission and on_mission is None:
-                    answer = ack(
-                        command.nonce, AckResult.REJECTED, "this vehicle does not fly missions"
-                    )
                 else:
                     try:
-                        answer = on_mission(command) if is_mission else handler(command)
+                        if isinstance(command, Command):
+                            answer = handler(command)
+                        elif on_mission is not None:
+                            answer = on_mission(command)
+                        else:
+                            answer = ack(
+                                command.nonce,
+                                AckResult.REJECTED,
+                                "this vehicle does not fly missions",
+                            )
                     except Exception as exc:  # noqa: BLE001 - a handler bug must not kill the agent
                         log.exception("command handler failed")
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
             self._answer(query, reply_key, ack_key, answer, payload, auth)
 
         if polled:
-            ring = zenoh.handlers.RingChannel(COMMAND_RING)
+            ring: zenoh.handlers.RingChannel[zenoh.Query] = zenoh.handlers.RingChannel(COMMAND_RING)
             return PolledCommands(
                 self._keep(self.session.declare_queryable(reply_key, ring)), on_query
             )
@@ -633,10 +639,10 @@ class Mesh:
         if not 0.0 < timeout_s <= 60.0:
             raise ValueError(f"timeout_s={timeout_s} must be within (0, 60]")
         if self.auth is not None:
-            sign = (
-                self.auth.sign_mission if isinstance(command, Mission) else self.auth.sign_command
-            )
-            command = sign(command)
+            if isinstance(command, Mission):
+                command = self.auth.sign_mission(command)
+            else:
+                command = self.auth.sign_command(command)
         payload = command.encode()
         digest = command_digest(payload)
         expected = set(command.targets if expect is None else expect)
@@ -771,8 +777,11 @@ class CellSubscription:
 
 
 def _err_text(reply: zenoh.Reply) -> str:
+    err = reply.err
+    if err is None:
+        return "error reply"
     try:
-        return reply.err.payload.to_string()
+        return err.payload.to_string()
     except Exception:  # noqa: BLE001
         return "error reply"
 

@@ -14,6 +14,7 @@ take-off with its reason, missions and formations refuse their targets with it.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 MAX_POLYGON_VERTICES = 256
@@ -33,11 +34,11 @@ PolygonNE = tuple[tuple[float, float], ...]
 """A polygon as (north_m, east_m) vertices, not closed (the last vertex is not the first)."""
 
 
-def _polygon(vertices_ne_m: object, what: str) -> PolygonNE:
+def _polygon(vertices_ne_m: Iterable[tuple[float, float]], what: str) -> PolygonNE:
     """`vertices_ne_m` as a tuple of (float, float), checked: 3..MAX_POLYGON_VERTICES finite
     vertices within MAX_COORD_M of the origin."""
     try:
-        out = tuple((float(n), float(e)) for n, e in vertices_ne_m)  # type: ignore[union-attr]
+        out = tuple((float(n), float(e)) for n, e in vertices_ne_m)
     except (TypeError, ValueError):
         raise ValueError(f"{what} needs (north_m, east_m) vertex pairs") from None
     _check_polygon(out, what)

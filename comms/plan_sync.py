@@ -79,12 +79,12 @@ class PlanDoc:
         plan = self._plan
         return plan.version if plan is not None else 0
 
-    def genuine(self, head: PlanHead) -> str | None:  # type: ignore[override]
+    def genuine(self, head: PlanHead) -> str | None:
         if self.auth is None:
             return None
         return self.auth.check_plan(head.signer_id, head.signed, head.sig)
 
-    def apply(self, data: bytes, head: PlanHead) -> tuple[object, str | None]:  # type: ignore[override]
+    def apply(self, data: bytes, head: PlanHead) -> tuple[FleetPlan, str | None]:
         plan = PlanMessage.decode(data).plan
         with self._lock:
             held = self.held_version()
@@ -103,7 +103,7 @@ class PlanDoc:
         return self._bytes
 
 
-class PlanSync(DocSync):
+class PlanSync(DocSync[PlanHead, FleetPlan]):
     """One member's plan follower (see the module docstring); a context manager."""
 
     def __init__(

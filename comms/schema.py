@@ -73,7 +73,7 @@ import enum
 import math
 import struct
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, TypeVar
 
 from comms.plan import (
     MAX_NAME_BYTES,
@@ -251,7 +251,10 @@ def _check_range(name: str, value: float, lo: float, hi: float) -> None:
         raise DecodeError(f"{name}={value} is outside [{lo}, {hi}]")
 
 
-def _enum(cls: type[enum.IntEnum], name: str, value: int) -> enum.IntEnum:
+_E = TypeVar("_E", bound=enum.IntEnum)
+
+
+def _enum(cls: type[_E], name: str, value: int) -> _E:
     try:
         return cls(value)
     except ValueError:
@@ -483,16 +486,16 @@ class Command:
     _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBQQHB3dIH")
 
     @staticmethod
-    def takeoff(alt_m: float, **kw: object) -> Command:
-        return Command(kind=CommandKind.TAKEOFF, params=(alt_m, 0.0, 0.0), **kw)  # type: ignore[arg-type]
+    def takeoff(alt_m: float, **kw: Any) -> Command:
+        return Command(kind=CommandKind.TAKEOFF, params=(alt_m, 0.0, 0.0), **kw)
 
     @staticmethod
-    def goto_local(n_m: float, e_m: float, d_m: float, **kw: object) -> Command:
-        return Command(kind=CommandKind.GOTO_LOCAL, params=(n_m, e_m, d_m), **kw)  # type: ignore[arg-type]
+    def goto_local(n_m: float, e_m: float, d_m: float, **kw: Any) -> Command:
+        return Command(kind=CommandKind.GOTO_LOCAL, params=(n_m, e_m, d_m), **kw)
 
     @staticmethod
-    def goto_global(lat_deg: float, lon_deg: float, alt_m: float, **kw: object) -> Command:
-        return Command(kind=CommandKind.GOTO_GLOBAL, params=(lat_deg, lon_deg, alt_m), **kw)  # type: ignore[arg-type]
+    def goto_global(lat_deg: float, lon_deg: float, alt_m: float, **kw: Any) -> Command:
+        return Command(kind=CommandKind.GOTO_GLOBAL, params=(lat_deg, lon_deg, alt_m), **kw)
 
     def applies_to(self, vehicle_id: int) -> bool:
         return not self.targets or vehicle_id in self.targets
@@ -517,7 +520,7 @@ class Command:
         kind = CommandKind(self.kind)
         if kind is CommandKind.TAKEOFF:
             _check_range("takeoff alt_m", p0, *TAKEOFF_ALT_RANGE_M)
-            unused = (p1, p2)
+            unused: tuple[float, ...] = (p1, p2)
         elif kind is CommandKind.GOTO_LOCAL:
             _check_range("goto north_m", p0, -LOCAL_HORIZONTAL_LIMIT_M, LOCAL_HORIZONTAL_LIMIT_M)
             _check_range("goto east_m", p1, -LOCAL_HORIZONTAL_LIMIT_M, LOCAL_HORIZONTAL_LIMIT_M)
@@ -1298,7 +1301,7 @@ class Roster:
         members = []
         for i in range(n):
             role, mid, key = cls._MEMBER.unpack_from(data, cls._HEAD.size + i * cls._MEMBER.size)
-            members.append(Member(_enum(Role, "role", role), mid, key))  # type: ignore[arg-type]
+            members.append(Member(_enum(Role, "role", role), mid, key))
         msg = cls(
             fleet=_text_field(fleet_raw, "fleet"),
             version=version,
@@ -1514,8 +1517,8 @@ class Mission:
             g = MissionItem._FMT.unpack_from(data, at + k * MissionItem._FMT.size)
             items.append(
                 MissionItem(
-                    _enum(MissionItemKind, f"mission item {k + 1} kind", g[0]),  # type: ignore[arg-type]
-                    _enum(MissionFrame, f"mission item {k + 1} frame", g[1]),  # type: ignore[arg-type]
+                    _enum(MissionItemKind, f"mission item {k + 1} kind", g[0]),
+                    _enum(MissionFrame, f"mission item {k + 1} frame", g[1]),
                     *g[2:],
                 )
             )
@@ -1749,7 +1752,7 @@ Message = (
     | Mission
     | PlanMessage
 )
-_DECODERS: dict[int, type] = {
+_DECODERS: dict[int, type[Message]] = {
     MsgType.VEHICLE_STATE: VehicleState,
     MsgType.COMMAND: Command,
     MsgType.COMMAND_ACK: CommandAck,

@@ -104,8 +104,8 @@ class TrafficTrack:
             self.track_id,
             self.source,
             stamp_ns,
-            tuple(float(x) for x in self.pos_ned_m),
-            tuple(float(x) for x in self.vel_ned_m_s),
+            (float(self.pos_ned_m[0]), float(self.pos_ned_m[1]), float(self.pos_ned_m[2])),
+            (float(self.vel_ned_m_s[0]), float(self.vel_ned_m_s[1]), float(self.vel_ned_m_s[2])),
             self.emitter_type,
             TrafficFlag.MANNED if self.manned else TrafficFlag.NONE,
         )

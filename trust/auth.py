@@ -124,7 +124,7 @@ class FleetAuth:
         self._book = book if book is not None else _RosterBook(key)
         self.rejected = 0
         """How many commands this instance refused (read only)."""
-        self.on_reject: Callable[[Command, int, str], None] | None = None
+        self.on_reject: Callable[[Command | Mission, int, str], None] | None = None
         """Called with (command, vehicle_id, reason) for every refused command, on the Zenoh
         thread; the agent publishes a SECURITY event from it. Exceptions are logged, not raised."""
         self.on_roster: Callable[[Roster], None] | None = None
@@ -244,7 +244,7 @@ class FleetAuth:
             self.refuse(mission, vehicle_id, reason)
         return reason
 
-    def refuse(self, cmd: Command, vehicle_id: int, reason: str) -> None:
+    def refuse(self, cmd: Command | Mission, vehicle_id: int, reason: str) -> None:
         """Count and report one refused command (also used for commands sent to the wrong vehicle)."""
         with self._lock:
             self.rejected += 1
@@ -318,7 +318,7 @@ class FleetAuth:
             unsigned, tag=self._sign("ack", unsigned.signed_bytes() + digest)
         )
 
-    def check_ack(self, ack: CommandAck, cmd: Command, digest: bytes) -> str | None:
+    def check_ack(self, ack: CommandAck, cmd: Command | Mission, digest: bytes) -> str | None:
         """None if `ack` is signed by vehicle `ack.vehicle_id` and answers exactly the command
         whose wire bytes hash to `digest`; else why not (a forged or replayed ack)."""
         said = f" (it said: {ack.result.name.lower()}" + (f": {ack.reason})" if ack.reason else ")")

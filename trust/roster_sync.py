@@ -55,12 +55,12 @@ class RosterDoc:
     def held_version(self) -> int:
         return self.auth.roster.version
 
-    def genuine(self, head: RosterHead) -> str | None:  # type: ignore[override]
+    def genuine(self, head: RosterHead) -> str | None:
         if verify(self._authority, head.sig, "roster", head.fleet, head.signed):
             return None
         return "not signed by the fleet authority"
 
-    def apply(self, data: bytes, head: RosterHead) -> tuple[object, str | None]:  # type: ignore[override]
+    def apply(self, data: bytes, head: RosterHead) -> tuple[Roster, str | None]:
         roster = Roster.decode(data)
         return roster, self.auth.apply_roster(roster)
 
@@ -75,7 +75,7 @@ class RosterDoc:
         return data
 
 
-class RosterSync(DocSync):
+class RosterSync(DocSync[RosterHead, Roster]):
     """One keyed member's roster follower (see the module docstring). Declared by `Mesh`;
     `undeclare()` stops it (the Mesh does, when it closes)."""
 

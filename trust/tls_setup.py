@@ -125,7 +125,11 @@ def init(cfg: TlsConfig, now: datetime.datetime | None = None) -> list[Path]:
     if not cfg.configs:
         return certs
     stations = [n for n in cfg.names if role_of(n) == "station"]
-    vehicles = [int(_VEHICLE_RE.match(n).group(1)) for n in cfg.names if role_of(n) == "vehicle"]
+    vehicles = [
+        int(m.group(1))
+        for n in cfg.names
+        if role_of(n) == "vehicle" and (m := _VEHICLE_RE.match(n)) is not None
+    ]
     out = []
     for name in cfg.names:
         if role_of(name) == "router":
