@@ -15,6 +15,7 @@ import math
 import sys
 import tempfile
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from comms.schema import Role
 from comms.session import DEFAULT_PORT, embedded_router, free_tcp_port, port_free
 from groundstation.station import GcsConfig, GroundStation
 from kit.procs import ChildGroup
-from trust.auth import load_auth
+from trust.auth import FleetAuth, load_auth
 from trust.authority import Authority
 
 
@@ -97,7 +98,13 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
     endpoint = f"tcp/127.0.0.1:{mesh_port}"
     gcs_cfg = GcsConfig(port=cfg.port, geofence_radius_m=cfg.geofence_radius_m, link=cfg.link)
     with contextlib.ExitStack() as stack:
-        auth, key_args, cli_key = None, lambda _vid: [], ""
+        auth: FleetAuth | None = None
+
+        def no_key_args(_vid: int) -> list[str]:
+            return []
+
+        key_args: Callable[[int], list[str]] = no_key_args
+        cli_key = ""
         if cfg.keyed:
             keys_dir = Path(
                 stack.enter_context(tempfile.TemporaryDirectory(prefix="covey-demo-keys-"))

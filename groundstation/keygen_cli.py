@@ -97,13 +97,15 @@ def keygen_cli(argv: list[str]) -> int:
             )
             return 0
         auth = Authority(args.dir)
-        if args.verb == "add":
+        if args.verb in ("add", "revoke") and role is None:
+            die(p, f"{args.verb} needs a role")
+        if args.verb == "add" and role is not None:
             path = auth.add(role, args.id)
             print(
                 f"{args.role} {args.id}: key file {path} (mode 0600; copy it to that {args.role} "
                 f"only); roster v{auth.roster.version}"
             )
-        elif args.verb == "revoke":
+        elif args.verb == "revoke" and role is not None:
             auth.revoke(role, args.id)
             print(
                 f"{args.role} {args.id} revoked: roster v{auth.roster.version}; `covey keygen push` "

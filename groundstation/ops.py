@@ -96,11 +96,12 @@ def status_main(
         mesh.subscribe_feed(
             fleet.on_state, on_refused=fleet.on_state_refused
         )  # the whole fleet at a bounded rate, as the station
-        pres = mesh.presence(
-            lambda kind, vid, alive: (
-                kind == "vehicle" and fleet.on_presence(vid, alive, time.time_ns())
-            )
-        )
+
+        def on_presence(kind: str, vid: int, alive: bool) -> None:
+            if kind == "vehicle":
+                fleet.on_presence(vid, alive, time.time_ns())
+
+        pres = mesh.presence(on_presence)
         (stop or threading.Event()).wait(cfg.listen_s)
         if expects_answer(cfg.mesh) and not linked(mesh.session):
             raise unreachable(cfg.mesh, cfg.listen_s, "listened")

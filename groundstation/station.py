@@ -25,6 +25,7 @@ import viser
 
 from comms.commands import OutcomeStatus
 from comms.geo import GeoOrigin
+from comms.link import LinkEmulator
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.presence import Presence
@@ -205,7 +206,7 @@ class GroundStation:
         station, drawn while its states say it has a mission."""
         self._routes_drawn: frozenset[int] | None = None
         self._routes_lock = threading.Lock()
-        self._link = None
+        self._link: LinkEmulator | None = None
         self._heartbeats: HeartbeatPublisher | None = None
         self.traffic = TrafficTable()
         """Traffic that does not cooperate, as the mesh reports it (agent/traffic.py)."""
@@ -253,13 +254,14 @@ class GroundStation:
         self.mesh.observe_commands(self._on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
         self._start_web(accounts, tls)
+        assert self.server is not None  # _start_web started it
         self.server.gui.configure_theme(
             control_width="large", show_share_button=False, brand_color=(20, 110, 160)
         )
         cam, view_m = self.server.initial_camera, self.cfg.view_radius_m
         cam.position, cam.look_at = (-0.45 * view_m, -1.3 * view_m, 0.9 * view_m), (0.0, 0.0, 2.0)
         self._build_gui()
-        self._worker = CommandWorker(self._on_result)
+        self._worker: CommandWorker | None = CommandWorker(self._on_result)
         self._thread = threading.Thread(target=self._loop, name="gcs-render", daemon=True)
         self._thread.start()
         # Present on the mesh only once the web app and the mesh are both up: vehicles treat a
@@ -291,7 +293,7 @@ class GroundStation:
         self.web.__enter__()
 
     def _build_gui(self) -> None:
-        assert self.server is not None
+        assert self.server is not None and self.mesh is not None
         gui = self.server.gui
         auth = self.mesh.auth
         trust = (
@@ -329,7 +331,7 @@ class GroundStation:
             on_vehicle_click=self._select,
         )
         # The fleet plan: followed, drawn, listed, replaced by an uploaded file (plan_view.py).
-        self.plan_view = PlanView(
+        self.plan_view: PlanView | None = PlanView(
             self.server, self.mesh, self.scene, self.cfg.origin, order=layout.TRAFFIC + 0.25
         )
 
@@ -344,6 +346,7 @@ class GroundStation:
             goto_limit_m=self.cfg.geofence_radius_m,
             kill_window_s=self.cfg.kill_window_s,
         )
+        assert self.server is not None  # tabs open only while it serves
         operator = operator_of(self.server, client.client_id)
         with self._tabs_lock:
             self._event_views[client.client_id] = view
@@ -387,8 +390,9 @@ class GroundStation:
         if self._traffic_listener is not None:
             self._traffic_listener.close()
             self._traffic_listener = None
-        if getattr(self, "plan_view", None) is not None:
-            self.plan_view.close()
+        plan_view = getattr(self, "plan_view", None)
+        if plan_view is not None:
+            plan_view.close()
             self.plan_view = None
         if self.mesh is not None and self._given_mesh is None:
             self.mesh.close()
@@ -509,6 +513,7 @@ class GroundStation:
         client_id: int | None = None,
     ) -> None:
         mesh, present = self.mesh, self._present()
+        assert mesh is not None  # commands are sent only while the station runs
         timeout_s, source = self.cfg.command_timeout_s, self.cfg.gcs_id
         operator = self.operator(client_id)
         if operator is None:  # a tab the login gate did not name: never send for it
@@ -516,7 +521,7 @@ class GroundStation:
             return
         log.info("operator %s: %s", operator, label)
 
-        def remember(cmd: Command) -> None:
+        def remember(cmd: Command | Mission) -> None:
             self._remember_sender(cmd, client_id, operator)
 
         def run() -> list:
@@ -540,7 +545,8 @@ class GroundStation:
                 results.append(res)
             return results
 
-        self._worker.submit(label, run, on_done)
+        if self._worker is not None:  # None once closed: nothing is sent any more
+            self._worker.submit(label, run, on_done)
 
     def operator(self, client_id: int | None) -> str | None:
         """Who sends for browser tab `client_id` (the login's account or token label; None if
@@ -627,6 +633,7 @@ class GroundStation:
             del self.update_times_s[:-1000]
             for panel in self._tabs()[0]:
                 panel.tick()
-            self.plan_view.tick()
+            if self.plan_view is not None:
+                self.plan_view.tick()
 
         run_ticks(frame, self.cfg.scene_rate_hz, time.monotonic, self._stop, what="render update")

@@ -158,7 +158,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
         )
     sigma_m = VehicleModel.named(cfg.vehicles).drift_m
     inflation_m = inflation_told_m(safety_cfg, sigma_m) if cfg.tell_inflation else 0.0
-    out = {}
+    out: dict[str, Callable[..., Any]] = {}
     for name, path, filt in [
         ("policy+filter", cfg.weights, True),
         ("policy", cfg.weights, False),
@@ -197,9 +197,8 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             nbr_cooperative=sig.get("nbr_cooperative"),
         )
 
-    orca.uses_sigma = True
-    orca.safety_cfg = safety_cfg  # the zone suite filters with the same config
-    orca.uses_cooperative = True
+    # capability flags evalsim reads off a controller; the zone suite filters with the same config
+    vars(orca).update(uses_sigma=True, safety_cfg=safety_cfg, uses_cooperative=True)
     out["orca"] = orca
     out["straight"] = evalsim.straight_line
     for name, make in (extra or {}).items():
@@ -392,7 +391,9 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     vehicles = VehicleModel.named(cfg.vehicles)
     all_cases = cases(cfg)
-    rows, tracks, zone_tracks = [], {}, {}
+    rows: list[dict] = []
+    tracks: dict = {}
+    zone_tracks: dict = {}
     jobs = [(c, ln, name) for c in all_cases for ln in cfg.links for name in ctrls]
     for (suite, case, starts, goals, *options), link, name in tqdm(
         jobs, disable=not cfg.progress, unit="run"
@@ -452,7 +453,7 @@ def merge(paths, out: str | Path) -> dict:
         rows += json.loads(Path(p).read_text())["runs"]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    result = {
+    result: dict[str, Any] = {
         "merged": [str(p) for p in paths],
         "flops_20": flops(20),
         "summary": summarise(rows),

@@ -27,7 +27,7 @@ def write_npz(arrays: dict, config: dict, path: str | Path) -> Path:
     out = {k: np.asarray(v, dtype=np.float32) for k, v in arrays.items()}
     out["config"] = np.array(json.dumps(config))
     with open(path, "wb") as f:
-        np.savez(f, **out)
+        np.savez(f, allow_pickle=True, **out)
     return path
 
 

@@ -118,7 +118,7 @@ def main(cfg: TrainConfig) -> dict:
 
     from policy.env import EnvConfig, SwarmEnv
     from policy.export import export_model
-    from policy.model import PRESETS, ActorCritic, clip_unit
+    from policy.model import PRESETS, ActorCritic, clip_unit, parameter
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -141,7 +141,7 @@ def main(cfg: TrainConfig) -> dict:
     env = SwarmEnv(env_cfg, model_cfg.obs)
     model = ActorCritic(model_cfg, cfg.init_log_std)
     with torch.no_grad():
-        model.head[-1].bias[0] = cfg.fwd_bias
+        parameter(model.head[-1], "bias")[0] = cfg.fwd_bias
     if cfg.init.endswith(".npz"):
         load_actor(model, cfg.init)
     elif cfg.init:
@@ -177,7 +177,7 @@ def main(cfg: TrainConfig) -> dict:
         return a.numpy(), logp.numpy(), value.numpy()
 
     obs = env.reset(cfg.seed)
-    recent = deque(maxlen=500)
+    recent: deque = deque(maxlen=500)
     episodes, update, t0 = 0, 0, time.time()
     log_path = out / "log.csv"
     log_f = open(log_path, "w", newline="")  # noqa: SIM115 - closed below; a with-block would indent the whole loop

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from policy.train import TrainConfig, main
 
@@ -33,7 +34,9 @@ def cli(argv=None) -> dict:
     args = ap.parse_args(argv)
     if args.episodes_k is not None and given(ap, args, "episodes"):
         ap.error("--episodes and --episodes-k say the same thing: give one")
-    over = {} if args.episodes_k is None else {"episodes": int(args.episodes_k * 1000)}
+    over: dict[str, Any] = (
+        {} if args.episodes_k is None else {"episodes": int(args.episodes_k * 1000)}
+    )
     cfg = config_from_flags(TrainConfig, args, **over)
     if cfg.recipe:
         from policy import recipe
