@@ -447,8 +447,8 @@ def cli(argv: list[str]) -> int:
         cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:
         die(p, str(exc))
-    auth = load_keys(p, args, (cfg.vehicle_id,), cfg.mesh.fleet)
-    auth = auth[cfg.vehicle_id] if auth is not None else None
+    auths = load_keys(p, args, (cfg.vehicle_id,), cfg.mesh.fleet)
+    auth = auths[cfg.vehicle_id] if auths is not None else None
     cfg = dataclasses.replace(cfg, open_mode=auth is None)
     with stop_on_signals() as stop:
         try:

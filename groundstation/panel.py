@@ -16,7 +16,7 @@ log and the scene stay shared (groundstation.station).
 from __future__ import annotations
 
 import html
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import viser
@@ -69,7 +69,7 @@ class PanelHooks:
 
     known_ids: Callable[[], set[int]]
     """Ids of the vehicles the station knows (present or with a state)."""
-    dispatch: Callable[[str, list[Job], Callable[[Dispatched], None], int | None], None]
+    dispatch: Callable[[str, Sequence[Job], Callable[[Dispatched], None], int | None], None]
     """Send these (request, targets) jobs in order for a tab (its client id), then hand the
     answers to the callback."""
     scenario: Callable[[str], list[Job]]

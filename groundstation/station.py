@@ -17,7 +17,7 @@ import socket
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -508,7 +508,7 @@ class GroundStation:
     def dispatch(
         self,
         label: str,
-        jobs: list[Job],
+        jobs: Sequence[Job],
         on_done: Callable[[Dispatched], None],
         client_id: int | None = None,
     ) -> None:
@@ -556,7 +556,9 @@ class GroundStation:
         with self._tabs_lock:
             return self._operators.get(client_id)
 
-    def _remember_sender(self, cmd: Command, client_id: int | None, operator: str) -> None:
+    def _remember_sender(
+        self, cmd: Command | Mission, client_id: int | None, operator: str
+    ) -> None:
         self.commands.mark_own(cmd.nonce, operator)
         if client_id is None:
             return

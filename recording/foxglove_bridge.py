@@ -70,7 +70,7 @@ class WebSocketSink:
         self.counts: dict[str, int] = {}
         for topic, spec in FLEET_CHANNELS:
             self._channel(topic, spec)
-        self.server = foxglove.start_server(
+        self.server: foxglove.WebSocketServer | None = foxglove.start_server(
             name=f"covey {cfg.mesh.fleet}", host=cfg.host, port=cfg.port, context=self._ctx
         )
 
@@ -115,7 +115,10 @@ class FoxgloveBridge:
 
     @property
     def port(self) -> int:
-        return self.sink.server.port
+        server = self.sink.server
+        if server is None:
+            raise RuntimeError("the Foxglove bridge is closed")
+        return server.port
 
     def __enter__(self) -> FoxgloveBridge:
         return self

@@ -31,7 +31,7 @@ import json
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 from foxglove import messages as fm
 
@@ -139,7 +139,13 @@ class SchemaSpec:
     """protobuf or json."""
 
 
-def _proto(cls: type) -> SchemaSpec:
+class _HasSchema(Protocol):
+    """A foxglove-sdk message class (its `get_schema()`: name, encoding, data)."""
+
+    def get_schema(self) -> Any: ...
+
+
+def _proto(cls: _HasSchema) -> SchemaSpec:
     s = cls.get_schema()
     return SchemaSpec(s.name, s.encoding, bytes(s.data), "protobuf")
 
@@ -633,15 +639,19 @@ class Converter:
         if len(self._commands) >= self.MAX_COMMANDS:
             self._commands.pop(next(iter(self._commands)))
         self._commands[c.nonce] = c
-        mission = isinstance(c, schema.Mission)
+        params: list[float]
+        if isinstance(c, schema.Mission):
+            kind, params, seq = c.kind, [c.mission_id, len(c.items)], 0
+        else:
+            kind, params, seq = c.kind.name, list(c.params), c.seq
         body = {
             "nonce": c.nonce,
             "stamp_ns": c.stamp_ns,
             "source_id": c.source_id,
-            "kind": c.kind if mission else c.kind.name,
-            "params": [c.mission_id, len(c.items)] if mission else list(c.params),
+            "kind": kind,
+            "params": params,
             "targets": list(c.targets),
-            "seq": 0 if mission else c.seq,
+            "seq": seq,
             "signed": any(c.tag),
         }
         return Out(COMMANDS_TOPIC, COMMAND_JSON, json.dumps(body).encode(), recv_ns)

@@ -32,7 +32,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import IO, Any
 
 from mcap.records import Channel, Schema
 
@@ -103,7 +103,7 @@ class FoxgloveChunks:
         """Convert the covey messages of raw chunks (BuiltChunk.plain, in file order); returns
         the chunks they filled, the last one cut at the end (so that the file holds a flush's
         standard channels as soon as they are made)."""
-        chunks = []
+        chunks: list[BuiltChunk] = []
         builder = self._builder
         items = [(t, d, r) for plain in plains for t, r, d in self._reader.messages(plain)]
         for (_, _, recv_ns), outs in zip(items, self._conv.convert_all(items), strict=True):
@@ -114,8 +114,8 @@ class FoxgloveChunks:
                     continue
                 builder.add(cid, out.log_time_ns, out.data, recv_ns)
                 self.messages += 1
-            if builder.size >= self._max_chunk_bytes:
-                chunks.append(builder.build())
+            if builder.size >= self._max_chunk_bytes and (full := builder.build()) is not None:
+                chunks.append(full)
         last = builder.build()
         if last is not None:
             chunks.append(last)
@@ -123,14 +123,14 @@ class FoxgloveChunks:
 
 
 # -- the pipe ----------------------------------------------------------------------------------
-def _send(out: BinaryIO, obj: object) -> None:
+def _send(out: IO[bytes], obj: object) -> None:
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
     out.write(_LEN.pack(len(data)))
     out.write(data)
     out.flush()
 
 
-def _recv(inp: BinaryIO) -> object:
+def _recv(inp: IO[bytes]) -> Any:
     """The next frame; EOFError when the other side has gone."""
     head = inp.read(_LEN.size)
     if len(head) < _LEN.size:
@@ -201,6 +201,7 @@ class FoxgloveWorker:
 
     def _feed(self) -> None:
         pipe = self._proc.stdin
+        assert pipe is not None  # Popen(stdin=PIPE)
         try:
             while True:
                 item = self._outbox.get()
@@ -215,6 +216,7 @@ class FoxgloveWorker:
 
     def _read(self) -> None:
         pipe = self._proc.stdout
+        assert pipe is not None  # Popen(stdout=PIPE)
         while True:
             try:
                 item = _recv(pipe)
@@ -242,7 +244,8 @@ class FoxgloveWorker:
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait()
-        self._proc.stdout.close()
+        if self._proc.stdout is not None:
+            self._proc.stdout.close()
 
 
 # -- the child ---------------------------------------------------------------------------------

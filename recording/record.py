@@ -239,8 +239,10 @@ class McapSink:
             plains, self._plains, self._plain_bytes = self._plains, [], 0
             for chunk in self._inline.add(plains):
                 self._write_foxglove(chunk)
-        elif self._plains and (
-            last or rate_hz <= self._defer_hz or self._plain_bytes >= MAX_DEFERRED_BYTES
+        elif (
+            self._plains
+            and self._worker is not None
+            and (last or rate_hz <= self._defer_hz or self._plain_bytes >= MAX_DEFERRED_BYTES)
         ):
             plains, self._plains, self._plain_bytes = self._plains, [], 0
             self._worker.send(plains)
@@ -348,6 +350,7 @@ class Recorder:
             if sink is not None:
                 self.sink: Sink = sink
             else:
+                assert self._file is not None  # opened above when no sink is given
                 self.sink = McapSink(
                     self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s, foxglove=cfg.foxglove
                 )

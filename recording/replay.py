@@ -149,14 +149,14 @@ def play(
     items: list[Playable],
     speed: float = 1.0,
     clock_s: Callable[[], float] = time.monotonic,
-    sleep: Callable[[float], None] = time.sleep,
+    sleep: Callable[[float], object] = time.sleep,
     stop: threading.Event | None = None,
     result: ReplayResult | None = None,
 ) -> ReplayResult:
     """Publish `items` once at the recorded pace / speed. Never sends a command."""
     result = result or ReplayResult()
     if stop is not None and sleep is time.sleep:
-        sleep = stop.wait  # a long gap in the recording must not delay Ctrl-C
+        sleep = stop.wait  # a long gap in the recording must not delay Ctrl-C in the recording must not delay Ctrl-C
     start_s = clock_s()
     for p in items:
         if stop is not None and stop.is_set():

@@ -37,6 +37,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
 import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
@@ -504,7 +505,7 @@ def load_auth(
     key_file: str | None,
     env: Mapping[str, str] = os.environ,
     fleet: str | None = None,
-    **kw: object,
+    **kw: Any,
 ) -> FleetAuth | None:
     """A FleetAuth for the configured member key file, or None (open mode, said loudly once).
 
@@ -529,7 +530,7 @@ def load_auth(
         raise FleetKeyError(
             f"key file {path} is for fleet {key.fleet!r}, but this process joins fleet {fleet!r}"
         )
-    auth = FleetAuth(key, **kw)  # type: ignore[arg-type]
+    auth = FleetAuth(key, **kw)
     log.info(
         "keyed mode: %s of fleet %s (key %s, roster v%d)",
         key.name,
@@ -574,7 +575,7 @@ def load_vehicle_auths(
     key_dir: str | os.PathLike[str],
     vehicle_ids: Iterable[int],
     fleet: str | None = None,
-    **kw: object,
+    **kw: Any,
 ) -> dict[int, FleetAuth]:
     """One FleetAuth per vehicle of a multi-vehicle host, from `key_dir/vehicle-<id>.key` (the
     names `covey keygen` writes), sharing one roster (the newest of their files'): vehicle id ->
@@ -599,7 +600,7 @@ def load_vehicle_auths(
                 f"{fleet!r}"
             )
         if first is None:
-            first = FleetAuth(key, **kw)  # type: ignore[arg-type]
+            first = FleetAuth(key, **kw)
             auth = first
         else:
             try:
