@@ -9,8 +9,8 @@
   router or peer at the endpoints, one line and exit status 1;
 - `stop_on_signals`: SIGINT and SIGTERM set a threading.Event instead of raising.
 
-It lives in comms/ because imports run downward (comms <- policy <- agent <- groundstation and
-tools): every layer's CLI can use it.
+It lives in cli/, on the floor above comms/ and trust/ (it builds mesh configs and names the key
+file) and below policy/ (tests/test_import_layers.py): every command line can use it.
 """
 
 from __future__ import annotations
