@@ -471,8 +471,8 @@ class BatchGuidance:
                 p[:, :2],
                 v[:, :2],
                 self.safety_cfg,
-                int(views.own_ids[0]) if ids else None,
-                views.ids[0, views.valid[0]] if ids else None,
+                int(views.own_ids[0]) if views.own_ids is not None and ids else None,
+                views.ids[0, views.valid[0]] if views.ids is not None and ids else None,
                 **views.sky(0, manned=True),
                 zones=self.zones,
             )

@@ -264,7 +264,7 @@ SupersededCallback = Callable[[LoggedCommand, int, LoggedCommand], None]
 """Called with (the earlier command, the vehicle, the later command) when a vehicle accepts a
 command that replaces one it had accepted and not finished."""
 
-AckCheck = Callable[[CommandAck, Command, bytes], str | None]
+AckCheck = Callable[[CommandAck, Request, bytes], str | None]
 """Returns why an ack must not be believed for a command whose wire bytes hash to the digest
 (a forged or replayed ack), or None."""
 
@@ -503,7 +503,7 @@ class CommandLog:
                 while len(self._early_outcomes) > self.cfg.max_answers:
                     self._early_outcomes.popitem(last=False)
                 return False
-            if answer.result is not AckResult.ACCEPTED:
+            if answer.result is not AckResult.ACCEPTED or entry is None:
                 return False
             entry.done[outcome.vehicle_id] = outcome
             self.version += 1

@@ -21,9 +21,9 @@ from collections.abc import Iterable
 import numpy as np
 import viser
 
-from comms.palette import mode_rgb
 from comms.plan import FleetPlan
 from comms.schema import Mode, StateFlag, VehicleState
+from groundstation.palette import mode_rgb
 from groundstation.scene import route_segments
 
 ROUTED_MODES = (Mode.GOTO, Mode.RETURNING, Mode.MISSION)

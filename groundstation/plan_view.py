@@ -18,11 +18,11 @@ from typing import Any
 
 import viser
 
+from comms.doc_sync import Offer
 from comms.geo import GeoOrigin
 from comms.plan import FleetPlan
 from comms.plan_io import BadPlanError, PlanGeometry, next_version, parse_plan
 from comms.plan_sync import PlanSync, describe
-from comms.roster_sync import Offer
 from groundstation.command_log import CommandLog
 from groundstation.plan_routes import RouteLayer
 from groundstation.scene import FleetScene

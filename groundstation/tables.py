@@ -259,7 +259,8 @@ def command_log_html(
             continue
         when = time.strftime("%H:%M:%S", time.localtime(e.recv_ns / 1e9))
         shown = progress_all(e, now_ns, answer_timeout_s, present)
-        chips, counts = [], {}
+        chips: list[str] = []
+        counts: dict[str, int] = {}
         for vid, pr in shown.items():
             name, color = pr.status.value, _PROGRESS_COLOR[pr.status]
             counts[name] = counts.get(name, 0) + 1

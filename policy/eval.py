@@ -159,7 +159,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
         )
     sigma_m = VehicleModel.named(cfg.vehicles).drift_m
     inflation_m = inflation_told_m(safety_cfg, sigma_m) if cfg.tell_inflation else 0.0
-    out = {}
+    out: dict[str, Callable[..., Any]] = {}
     for name, path, filt in [
         ("policy+filter", cfg.weights, True),
         ("policy", cfg.weights, False),
@@ -198,9 +198,8 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             nbr_cooperative=sig.get("nbr_cooperative"),
         )
 
-    orca.uses_sigma = True
-    orca.safety_cfg = safety_cfg  # the zone suite filters with the same config
-    orca.uses_cooperative = True
+    # capability flags evalsim reads off a controller; the zone suite filters with the same config
+    vars(orca).update(uses_sigma=True, safety_cfg=safety_cfg, uses_cooperative=True)
     out["orca"] = orca
     out["straight"] = evalsim.straight_line
     for name, make in (extra or {}).items():
@@ -405,7 +404,9 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     vehicles = VehicleModel.named(cfg.vehicles)
     all_cases = cases(cfg)
-    rows, tracks, zone_tracks = [], {}, {}
+    rows: list[dict] = []
+    tracks: dict = {}
+    zone_tracks: dict = {}
     jobs = [(c, ln, name) for c in all_cases for ln in cfg.links for name in ctrls]
     for (suite, case, starts, goals, *options), link, name in tqdm(
         jobs, disable=not cfg.progress, unit="run"
@@ -465,7 +466,7 @@ def merge(paths, out: str | Path) -> dict:
         rows += json.loads(Path(p).read_text())["runs"]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    result = {
+    result: dict[str, Any] = {
         "merged": [str(p) for p in paths],
         "flops_20": flops(20),
         "summary": summarise(rows),
@@ -478,7 +479,7 @@ def merge(paths, out: str | Path) -> dict:
 
 def parser() -> argparse.ArgumentParser:
     """One flag per EvalConfig field (help: the docstring under it), plus --merge."""
-    from comms.cli_options import add_config_flags, finite, renamed
+    from cli.options import add_config_flags, finite, renamed
 
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
@@ -508,7 +509,7 @@ def parser() -> argparse.ArgumentParser:
 def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
     """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`.
     `extra_controllers`: see `controllers` (named with --controllers)."""
-    from comms.cli_options import config_from_flags, given
+    from cli.options import config_from_flags, given
 
     ap = parser()
     a = ap.parse_args(argv)

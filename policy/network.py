@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.safe_load import npz_headers
+from kit.safe_load import npz_headers
 from policy import features
 
 _F32 = np.dtype(np.float32)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.safe_load import parse_json
+from kit.safe_load import parse_json
 from policy import features, safety, sparse
 from policy.actor import Actor
 from policy.features import ObsConfig

@@ -420,8 +420,8 @@ def filter_one(
     reach_sq = reach * reach
     x, y = float(pos_m[0]), float(pos_m[1])
     own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
-    lines = []
-    nc_lines = []  # hard after the zones' (`_solve_nc_hard`)
+    lines: list = []
+    nc_lines: list = []  # hard after the zones' (`_solve_nc_hard`)
     consts = None
     for k, ((nx, ny), (nvx, nvy)) in enumerate(
         zip(np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True)
@@ -440,6 +440,7 @@ def filter_one(
         if px * px + py * py < reach_sq:
             if (
                 ids is not None
+                and own_id is not None
                 and px * px + py * py < COINCIDENT_M * COINCIDENT_M
                 and own_id > 0
                 and ids[k] > 0

@@ -205,7 +205,7 @@ class ZoneSet:
         n = len(pos_m)
         pads = np.zeros(n) if pad_m is None else np.broadcast_to(np.asarray(pad_m, float), (n,))
         near = self._near_rows(np.asarray(pos_m, float).reshape(-1, 2), max_speed_m_s, pads)
-        out = []
+        out: list = []
         for i in range(n):
             if not near[i]:  # no edge within reach: no line (most rows, most ticks)
                 out.append([])

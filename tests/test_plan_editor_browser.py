@@ -15,9 +15,7 @@ from conftest import REPO, keyed_agent_argv, wait_until
 from test_gcs_browser import CHROMIUM, CHROMIUM_ARGS
 from test_gcs_layout import screen_xy
 
-from comms.authority import throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
-from comms.procs import ChildGroup, python_env
 from comms.schema import Command, Role
 from comms.session import MeshConfig, free_tcp_port
 from groundstation.plan_editor import (
@@ -31,7 +29,9 @@ from groundstation.plan_editor import (
     ZONE_NO,
 )
 from groundstation.station import GcsConfig, GroundStation
+from kit.procs import ChildGroup, python_env
 from tests.test_plan_files import ORIGIN
+from trust.authority import throwaway_fleet
 
 pytestmark = [pytest.mark.browser, pytest.mark.e2e]
 sync_api = pytest.importorskip("playwright.sync_api")
