@@ -355,7 +355,7 @@ class GroundStation:
             goto_limit_m=self.cfg.geofence_radius_m,
             kill_window_s=self.cfg.kill_window_s,
         )
-        assert self.server is not None  # tabs open only while it serves
+        assert self.server is not None and self.plan_view is not None  # only while it serves
         operator = operator_of(self.server, client.client_id)
         editor = plan_editor.PlanEditor(
             client,

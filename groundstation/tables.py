@@ -252,7 +252,8 @@ def command_log_html(
             "</div>"
         )
     rows = []
-    merged = sorted([*entries, *plans], key=lambda e: -e.seq)[:max_rows]
+    both: list[LoggedCommand | PlanChange] = [*entries, *plans]
+    merged = sorted(both, key=lambda e: -e.seq)[:max_rows]
     for e in merged:
         if isinstance(e, PlanChange):
             rows.append(plan_change_html(e))

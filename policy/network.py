@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import threading
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +41,13 @@ class Network:
     """((W, b), ...) of the tanh head, the output layer last."""
     hidden: int
     """LSTM hidden size H."""
+
+    if TYPE_CHECKING:  # derived layouts that __post_init__ sets (not fields of the dataclass)
+        _w_ib64: np.ndarray = field(init=False)
+        _w_ib32: np.ndarray = field(init=False)
+        _w_hh_half32: np.ndarray = field(init=False)
+        _head_wb32: tuple[np.ndarray, ...] = field(init=False)
+        _scratch: threading.local = field(init=False)
 
     @classmethod
     def from_arrays(cls, arrays: dict) -> Network:
