@@ -78,7 +78,8 @@ def role_host(
 ) -> None:
     """One multi-vehicle host, a client of the router at `connect`. SIGUSR1 starts the
     measurement window (`--window-s`); prints RESULT {json} after it."""
-    from agent.fleet_sim import Fleet, FleetSimConfig
+    from agent.hosts import Fleet
+    from agent.shell_config import FleetSimConfig
     from comms.mesh import Mesh
     from comms.schema import VehicleState
     from comms.scope import ScopeConfig

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from agent.fleet_sim import start_grid
+from agent.shell_config import start_grid
 from comms import keys
 from comms.auth import load_auth
 from comms.authority import throwaway_fleet
