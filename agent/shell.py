@@ -19,6 +19,7 @@ tick, one Zenoh session.
 
 from __future__ import annotations
 
+import collections
 import functools
 import logging
 import math
@@ -31,12 +32,13 @@ import numpy as np
 
 from agent.actions import ActionQueue, outcome_of, perform
 from agent.autopilots import Autopilots
-from agent.backends.base import BackendError, Capability, NotSupported, Traffic
-from agent.flight_core import AIRBORNE_MODES, Action, CoreConfig, FlightCore, Note, Observed
-from agent.guidance import BatchGuidance, GuidanceStep, NeighbourViews
+from agent.backends.base import BackendError, Capability, NotSupported
+from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
+from agent.guidance import BatchGuidance, GuidanceStep
 from agent.neighbours import NeighbourSnapshot, NeighbourTable
 from agent.shell_config import ShellConfig
-from agent.traffic import merge_traffic
+from agent.shell_rows import neighbour_views, stale_rows, vehicle_states
+from agent.traffic import autopilot_traffic, merge_traffic
 from comms.auth import FleetAuth
 from comms.gate import GateConfig, command_refusals
 from comms.heartbeat import HeartbeatConfig, StationHeartbeats
@@ -44,7 +46,6 @@ from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
-    POS_SIGMA_LIMIT_M,
     AckResult,
     Command,
     CommandAck,
@@ -62,18 +63,14 @@ from comms.schema import (
 from comms.scope import Scope
 from comms.state_rate import StatePacer, idle_rows
 from comms.ticks import run_ticks
-from comms.traffic import TrafficListener, TrafficTable, TrafficTrack, is_traffic_id, publish_report
+from comms.traffic import TrafficListener, TrafficTable, TrafficTrack, publish_report
 from policy.runtime import GuidancePolicy
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
 """How often a vehicle behind an emulated link publishes the link's statistics as an Event."""
-_MODES = {m.value: m for m in Mode}
 
-
-@functools.cache
-def _state_flag(bits: int) -> StateFlag:
-    return StateFlag(bits)
+_NOBODY = NeighbourSnapshot(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), (), np.zeros(0), ())
 
 
 @dataclass
@@ -82,10 +79,13 @@ class TickStats:
 
     ticks: int = 0
     overruns: int = 0
-    tick_ms: list[float] = field(default_factory=list)
+    tick_ms: collections.deque[float] = field(
+        default_factory=lambda: collections.deque(maxlen=10_000)
+    )
+    """The last 10,000 ticks' wall times (a process that runs for days keeps no more)."""
 
     def summary(self) -> dict[str, float]:
-        t = np.array(self.tick_ms[-10_000:]) if self.tick_ms else np.zeros(1)
+        t = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
         return {
             "ticks": self.ticks,
             "overruns": self.overruns,
@@ -400,10 +400,6 @@ class VehicleShell:
             self._event(self.link.stats_text(), EventKind.LINK_STATS, Severity.DEBUG)  # type: ignore[attr-defined]
         gcs_alive = self.stations.alive(now_s)
         self._hear_traffic(now_s)
-        # One vehicle hears only the others in its vertical band (agent/neighbours.py); several
-        # hear all of them, and each row's nearest are chosen below.
-        own = obs.pos_m[0] if len(self.ids) == 1 else None
-        ext = merge_traffic(self.traffic, self.table.snapshot(now_s, own), now_s, own)
         landing = (
             self.table.snapshot(now_s) if self.cfg.failsafe.returning.land_radius_m > 0 else None
         )
@@ -421,6 +417,7 @@ class VehicleShell:
                 now_s, idle, obs.pos_m, obs.vel_m_s, core.heading_rad, core.mode, obs.armed
             )
             rows = core.guided_rows(obs.armed, obs.link_ok)
+            ext = self._neighbours(now_s, obs, rows.size > 0 or bool(due.any()))
             self.filtered[:] = False
             self.slowed[:] = False
             if rows.size:
@@ -428,7 +425,15 @@ class VehicleShell:
                 decide = None
                 if self.cfg.trace_guidance and not due[rows].any():
                     decide = np.zeros(len(rows), bool)
-                views = self._views(obs, ext, rows)
+                views = neighbour_views(
+                    core,
+                    obs,
+                    self.vehicles.pos_sigma_m,
+                    self.ids,
+                    ext,
+                    rows,
+                    self.cfg.guidance.max_neighbours,
+                )
                 heading_in_rad = float(core.heading_rad[0])  # what a trace says the policy saw
                 out = core.guide(now_s, rows, obs.pos_m[rows], obs.vel_m_s[rows], views, decide)
                 self.filtered[rows] = out.filtered
@@ -455,6 +460,17 @@ class VehicleShell:
             self._publish_event(report.to_event(stamp_ns), row)
         self.stats.ticks += 1
         self.stats.tick_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def _neighbours(self, now_s: float, obs: Observed, needed: bool) -> NeighbourSnapshot:
+        """The other vehicles and the traffic, dead-reckoned to now, when guidance, a state or
+        an onboard autopilot needs them; else nothing (and the unheard are forgotten)."""
+        if not (needed or not self.velocity_mode):
+            self.table.expire(now_s)
+            return _NOBODY
+        # One vehicle hears only the others in its vertical band (agent/neighbours.py); several
+        # hear all of them, and each row's nearest are chosen (agent/shell_rows.py).
+        own = obs.pos_m[0] if len(self.ids) == 1 else None
+        return merge_traffic(self.traffic, self.table.snapshot(now_s, own), now_s, own)
 
     def _link_events(self, link_ok: np.ndarray) -> None:
         """Say when an autopilot link is lost or restored."""
@@ -485,46 +501,6 @@ class VehicleShell:
             self.states.set_cells(want)
             self._cells = want
 
-    def _views(self, obs: Observed, ext: NeighbourSnapshot, rows: np.ndarray) -> NeighbourViews:
-        """What each guided row sees: the nearest airborne vehicles, ours and the others
-        (dead-reckoned from their last state, stale past NeighbourConfig.stale_s), traffic
-        included."""
-        n = len(self.ids)
-        airborne = np.isin(self.core.mode, AIRBORNE_MODES) & obs.armed
-        sigma = np.concatenate([self.vehicles.pos_sigma_m, ext.column("pos_sigma_m", 0.0)])
-        coop = np.concatenate([np.ones(n, bool), ext.column("cooperative", True)])
-        manned = np.concatenate([np.zeros(n, bool), ext.column("manned", False)])
-        sky: dict[str, np.ndarray] = {}
-        if sigma.any():
-            sky["world_pos_sigma_m"] = sigma
-            sky["rows_pos_sigma_m"] = sigma[rows]
-        if not coop.all():
-            sky["world_cooperative"] = coop
-        if manned.any():
-            sky["world_manned"] = manned
-        return NeighbourViews.nearest(
-            obs.pos_m[rows],
-            rows,
-            np.concatenate([obs.pos_m, ext.pos_ned_m]),
-            np.concatenate([obs.vel_m_s, ext.vel_ned_m_s]),
-            np.concatenate([self.core.heading_rad, ext.heading_rad]),
-            np.concatenate([airborne, np.ones(len(ext), bool)]),
-            np.concatenate([np.zeros(n, bool), np.isin(ext.ids, ext.stale_ids)]),
-            self.cfg.guidance.max_neighbours,
-            np.concatenate([self.ids, np.array(ext.ids, np.int64)]),
-            self.ids[rows],
-            **sky,
-        )
-
-    def _stale_rows(self, obs: Observed, ext: NeighbourSnapshot) -> np.ndarray:
-        """(n,) the rows with a stale neighbour in their vertical band, or slowed for one."""
-        stale = self.slowed.copy()
-        if ext.stale_ids:
-            at = ext.pos_ned_m[np.isin(ext.ids, ext.stale_ids)]
-            dz = np.abs(obs.pos_m[:, None, 2] - at[None, :, 2])
-            stale |= (dz <= self.cfg.neighbours.vertical_band_m).any(axis=1)
-        return stale
-
     def _states(
         self, rows: np.ndarray, obs: Observed, ext: NeighbourSnapshot
     ) -> list[VehicleState]:
@@ -532,50 +508,16 @@ class VehicleShell:
         if not rows.size:
             return []
         self.seq[rows] = (self.seq[rows] + 1) & 0xFFFFFFFF
-        stamp_ns = self.mesh.clock_ns()
-        core = self.core
-        # whole arrays to Python floats once: per-row numpy access costs more than the rest
-        pos, vel = obs.pos_m[rows].tolist(), obs.vel_m_s[rows].tolist()
-        targets = core.targets()[rows]
-        has = ~np.isnan(targets[:, 0])
-        goal = np.where(has[:, None], targets, 0.0).tolist()
-        hdg = (np.remainder(core.heading_rad[rows] + math.pi, 2 * math.pi) - math.pi).tolist()
-        # flags as ints, one enum per distinct value (enum arithmetic per row cost more than the
-        # rest of the state)
+        stale = stale_rows(self.slowed, obs.pos_m, ext, self.cfg.neighbours.vertical_band_m)
         bits = (
             int(self.flags)
-            | np.array([int(core.failsafes[r].flags) for r in rows.tolist()], np.int64)
-            | np.where(has, int(StateFlag.HAS_GOAL), 0)
-            | np.where(self.filtered[rows], int(StateFlag.FILTER_ACTIVE), 0)
-            | np.where(self._stale_rows(obs, ext)[rows], int(StateFlag.NEIGHBOURS_STALE), 0)
-            | np.where(obs.link_ok[rows], 0, int(StateFlag.FAILSAFE_LINK_LOST))
+            | np.where(self.filtered, int(StateFlag.FILTER_ACTIVE), 0)
+            | np.where(stale, int(StateFlag.NEIGHBOURS_STALE), 0)
         )
-        flags = [_state_flag(b) for b in bits.tolist()]
-        modes = [_MODES[m] for m in core.mode[rows].tolist()]
-        ids, seqs = self.ids[rows].tolist(), self.seq[rows].tolist()
-        armed = obs.armed[rows].tolist()
-        battery = np.clip(obs.battery_pct[rows], 0.0, 100.0).tolist()
-        sigma = np.clip(self.vehicles.pos_sigma_m[rows], 0.0, POS_SIGMA_LIMIT_M).tolist()
-        item, items = (x.tolist() for x in core.mission_progress(rows))
-        return [
-            VehicleState(
-                vehicle_id=ids[i],
-                seq=seqs[i],
-                stamp_ns=stamp_ns,
-                pos_ned_m=tuple(pos[i]),
-                vel_ned_m_s=tuple(vel[i]),
-                heading_rad=hdg[i],
-                mode=modes[i],
-                armed=armed[i],
-                battery_pct=battery[i],
-                flags=flags[i],
-                goal_ned_m=tuple(goal[i]),
-                mission_item=item[i],
-                mission_items=items[i],
-                pos_sigma_m=sigma[i],
-            )
-            for i in range(len(ids))
-        ]
+        sigma = self.vehicles.pos_sigma_m
+        return vehicle_states(
+            self.core, obs, sigma, self.ids, self.seq, rows, bits, self.mesh.clock_ns()
+        )
 
     def _trace(self, heading_in_rad: float, out: GuidanceStep, ext: NeighbourSnapshot) -> None:
         """What the one vehicle's policy saw and commanded (`covey replay --policy`)."""
@@ -627,21 +569,7 @@ class VehicleShell:
         if not rows or now_s - self._last_traffic_s < 0.1:
             return
         self._last_traffic_s = now_s
-        manned = {t.neighbour_id for t in self.traffic.tracks(now_s) if t.manned}
-        traffic = [
-            Traffic(
-                vid,
-                tuple(p),
-                tuple(v),
-                float(h),
-                float(a),
-                cooperative=not is_traffic_id(vid),
-                manned=vid in manned,
-            )
-            for vid, p, v, h, a in zip(
-                ext.ids, ext.pos_ned_m, ext.vel_ned_m_s, ext.heading_rad, ext.age_s, strict=True
-            )
-        ]
+        traffic = autopilot_traffic(ext, self.traffic, now_s)
         for i in rows:
             try:
                 self.vehicles.backends[i].send_traffic(traffic)
