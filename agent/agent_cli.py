@@ -30,6 +30,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
 from agent.backends.base import VehicleBackend
 from agent.backends.sim import SimConfig
@@ -64,6 +65,9 @@ from comms.plan import FleetPlan
 from comms.schema import POSITION_LIMIT_M
 from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
 
+if TYPE_CHECKING:  # the link emulator is imported only when one is asked for
+    from comms.link import LinkEmulator
+
 log = logging.getLogger("covey.agent")
 
 GUIDANCE_FIELDS = (
@@ -78,8 +82,14 @@ GUIDANCE_FIELDS = (
     "manned_separation_m",
 )
 """GuidanceConfig's fields that are flags (the others are tuning for code, not for users)."""
-GUIDANCE_FLAGS = ("policy_path", "safety_filter", "decision_period_s", "trace_guidance")
-GUIDANCE_FLAGS += ("policy_separation_m", "sparse_rule")
+GUIDANCE_FLAGS = (
+    "policy_path",
+    "safety_filter",
+    "decision_period_s",
+    "trace_guidance",
+    "policy_separation_m",
+    "sparse_rule",
+)
 """Flags for the shell's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
 HOST_FLAGS = ("spacing_m", "max_neighbours", "see_others")
 """Flags of several simulated vehicles (--ids) only."""
@@ -350,7 +360,11 @@ def make_backend(cfg: ShellConfig, clock_s: Callable[[], float]) -> VehicleBacke
     raise ValueError(f"unknown vehicle {cfg.vehicle!r}: use sim, mavsdk:<url> or relay:<url>")
 
 
-def make_link(spec: str, vehicle_id: int, receiver_pos: Callable[[], object] | None = None):
+def make_link(
+    spec: str,
+    vehicle_id: int,
+    receiver_pos: Callable[[], tuple[float, float, float] | None] | None = None,
+) -> LinkEmulator | None:
     """The emulated radio between one vehicle and its neighbours, or None for a perfect link."""
     if spec in ("", "perfect"):
         return None
@@ -381,7 +395,7 @@ def main(
         if cfg.vehicle.partition(":")[0] != "sim":  # the autopilot link first: it is slow
             backend = stack.enter_context(make_backend(cfg, clock_s))
         mesh = stack.enter_context(Mesh(cfg.mesh, auth=auths[vid] if auths else None, stop=stop))
-        own_pos: list = [None]  # filled once the shell exists; range-dependent loss needs it
+        own_pos: list[tuple[float, float, float] | None] = [None]  # range-dependent loss
         link = make_link(cfg.link, vid, receiver_pos=lambda: own_pos[0])
         if link is not None:
             link = stack.enter_context(link)
@@ -390,7 +404,7 @@ def main(
             shell = stack.enter_context(Fleet(cfg, mesh, auths=auths, clock_s=clock_s, link=link))
         else:
             shell = stack.enter_context(Agent(cfg, backend, mesh, clock_s=clock_s, link=link))
-        shell.on_position = lambda pos: own_pos.__setitem__(0, tuple(pos[0].tolist()))
+        shell.on_position = lambda pos: own_pos.__setitem__(0, (pos[0, 0], pos[0, 1], pos[0, 2]))
         log.info(
             "vehicles %s up: fleet %s, %s, link %s",
             id_ranges(cfg.ids),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +23,9 @@ from comms.mesh import Mesh
 from comms.schema import Command, CommandAck, Mission, Mode
 from policy.runtime import GuidancePolicy
 
+if TYPE_CHECKING:  # the link emulator is imported only when one is asked for
+    from comms.link import LinkEmulator
+
 
 class Agent(VehicleShell):
     """One vehicle: the shell with one row, around `backend`."""
@@ -34,7 +38,7 @@ class Agent(VehicleShell):
         *,
         guidance: Guidance | None = None,
         clock_s: Callable[[], float] = time.monotonic,
-        link: object | None = None,
+        link: LinkEmulator | None = None,
     ) -> None:
         if len(cfg.ids) != 1:
             raise ValueError(f"an Agent flies one vehicle, got ids {cfg.ids}")
@@ -75,7 +79,7 @@ class Fleet(VehicleShell):
         policy: GuidancePolicy | None = None,
         clock_s: Callable[[], float] = time.monotonic,
         rng: np.random.Generator | None = None,
-        link: object | None = None,
+        link: LinkEmulator | None = None,
     ) -> None:
         """`rng` draws the simulated vehicles' gusts and GNSS drift (cfg.sim.vehicle; None:
         fresh entropy); `link`: one vehicle's emulated radio (comms.link), or None."""
@@ -107,7 +111,9 @@ class Fleet(VehicleShell):
 
     @property
     def _decided_s(self) -> np.ndarray:
-        return self.core.guidance.decided_s
+        guidance = self.core.guidance
+        assert guidance is not None  # simulated vehicles fly velocity setpoints
+        return guidance.decided_s
 
     def handle_command(self, i: int, cmd: Command) -> CommandAck:
         return self.command(i, cmd)

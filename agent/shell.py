@@ -27,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -65,6 +66,9 @@ from comms.state_rate import StatePacer, idle_rows
 from comms.ticks import run_ticks
 from comms.traffic import TrafficListener, TrafficTable, TrafficTrack, publish_report
 from policy.runtime import GuidancePolicy
+
+if TYPE_CHECKING:  # the link emulator is imported only when one is asked for
+    from comms.link import LinkEmulator
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
@@ -108,7 +112,7 @@ class VehicleShell:
         *,
         policy: GuidancePolicy | None = None,
         clock_s: Callable[[], float] = time.monotonic,
-        link: object | None = None,
+        link: LinkEmulator | None = None,
     ) -> None:
         n = len(cfg.ids)
         if autopilots.n != n or len(auths) != n:
@@ -397,7 +401,7 @@ class VehicleShell:
             self.on_position(obs.pos_m)
         if self.link is not None and now_s - self._last_link_stats_s >= LINK_STATS_PERIOD_S:
             self._last_link_stats_s = now_s
-            self._event(self.link.stats_text(), EventKind.LINK_STATS, Severity.DEBUG)  # type: ignore[attr-defined]
+            self._event(self.link.stats_text(), EventKind.LINK_STATS, Severity.DEBUG)
         gcs_alive = self.stations.alive(now_s)
         self._hear_traffic(now_s)
         landing = (
