@@ -402,7 +402,8 @@ class VehicleShell:
         if self.link is not None and now_s - self._last_link_stats_s >= LINK_STATS_PERIOD_S:
             self._last_link_stats_s = now_s
             self._event(self.link.stats_text(), EventKind.LINK_STATS, Severity.DEBUG)
-        gcs_alive = self.stations.alive(now_s)
+        # without the station-lost failsafe nobody asks (and the core skips its checks)
+        gcs_alive = not self.cfg.failsafe.require_gcs or self.stations.alive(now_s)
         self._hear_traffic(now_s)
         landing = (
             self.table.snapshot(now_s) if self.cfg.failsafe.returning.land_radius_m > 0 else None

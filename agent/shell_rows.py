@@ -56,12 +56,19 @@ def neighbour_views(
         np.concatenate([obs.vel_m_s, ext.vel_ned_m_s]),
         np.concatenate([core.heading_rad, ext.heading_rad]),
         np.concatenate([airborne, np.ones(len(ext), bool)]),
-        np.concatenate([np.zeros(n, bool), np.isin(ext.ids, ext.stale_ids)]),
+        np.concatenate([np.zeros(n, bool), _stale(ext)]),
         max_neighbours,
         np.concatenate([ids, np.array(ext.ids, np.int64)]),
         ids[rows],
         **sky,
     )
+
+
+def _stale(ext: NeighbourSnapshot) -> np.ndarray:
+    """(len(ext),) which entries are stale."""
+    if not ext.stale_ids:
+        return np.zeros(len(ext), bool)
+    return np.isin(np.asarray(ext.ids, np.int64), np.asarray(ext.stale_ids, np.int64))
 
 
 def stale_rows(
@@ -71,7 +78,7 @@ def stale_rows(
     `vertical_band_m` of their altitude (flying or not)."""
     stale = np.array(slowed, bool)
     if ext.stale_ids:
-        at = ext.pos_ned_m[np.isin(ext.ids, ext.stale_ids)]
+        at = ext.pos_ned_m[_stale(ext)]
         dz = np.abs(pos_m[:, None, 2] - at[None, :, 2])
         stale |= (dz <= vertical_band_m).any(axis=1)
     return stale
