@@ -146,6 +146,7 @@ class VehicleShell:
                 lambda a: perform(a, backends[a.index]), self._on_outcome, threaded=False
             )
             self._queues = [queue] * n
+            self._threaded = False
         else:  # real ones take seconds: each vehicle's run on its own thread
             self._queues = [
                 ActionQueue(
@@ -153,6 +154,8 @@ class VehicleShell:
                 )
                 for v in cfg.ids
             ]
+            self._threaded = True
+        self._idle_q = np.zeros(n, bool)  # an action queue that runs at once is never busy
         self.filtered = np.zeros(n, bool)
         self.slowed = np.zeros(n, bool)
         self.seq = np.zeros(n, np.int64)
@@ -413,7 +416,11 @@ class VehicleShell:
         with self._lock:
             core = self.core
             actions = core.observe(now_s, obs, gcs_alive, landing)
-            busy = np.array([q.busy for q in self._queues], bool)
+            busy = (
+                np.array([q.busy for q in self._queues], bool) if self._threaded else self._idle_q
+            )
+            if actions:
+                busy = busy.copy()
             for action in actions:
                 self._queues[action.index].submit(action)
                 busy[action.index] = True
