@@ -109,3 +109,87 @@ def test_one_config_for_one_vehicle_and_many() -> None:
         ShellConfig(ids=(1, 2), vehicle="mavsdk:udpin://0.0.0.0:14540")
     with pytest.raises(ValueError, match="unknown vehicle"):
         ShellConfig(ids=(1,), vehicle="gazebo")
+
+
+AGENT_FLAGS = [
+    "--id",
+    "--ids",
+    "--vehicle",
+    "--vehicle-model",
+    "--start-ne-m",
+    "--origin",
+    "--separation-m",
+    "--cruise-speed-m-s",
+    "--no-safety-filter",
+    "--decision-period-s",
+    "--policy",
+    "--policy-separation-m",
+    "--sparse-rule",
+    "--no-sparse-rule",
+    "--non-cooperative-separation-m",
+    "--manned-separation-m",
+    "--geofence-radius-m",
+    "--return-layer-m",
+    "--return-layers",
+    "--return-base-alt-m",
+    "--land-radius-m",
+    "--rally-pad-spacing-m",
+    "--rally-pads",
+    "--no-coordinated-return",
+    "--gcs-lost-hold-s",
+    "--gcs-lost-land-s",
+    "--no-gcs-failsafe",
+    "--idle-state-hz",
+    "--steady-state-hz",
+    "--duration-s",
+    "--verbose",
+    "--link",
+    "--tick-hz",
+    "--state-hz",
+    "--plan",
+    "--trace-guidance",
+    "--spacing-m",
+    "--max-neighbours",
+    "--no-see-others",
+    "--fleet",
+    "--connect",
+    "--mesh-mode",
+    "--listen",
+    "--zenoh-config",
+    "--key-file",
+    "--key-dir",
+]
+"""The flags `covey agent` had when its flags were written by hand (README and tests use them)."""
+
+
+def test_the_flags_generated_from_the_configs_keep_their_names_and_defaults() -> None:
+    from agent import agent_cli
+
+    p = agent_cli.parser()
+    shown = {o for a in p._actions for o in a.option_strings}
+    assert set(AGENT_FLAGS) <= shown, sorted(set(AGENT_FLAGS) - shown)
+    one = agent_cli.config_from_args(p.parse_args(["--id", "3"]))
+    many = agent_cli.config_from_args(p.parse_args(["--ids", "3-5"]))
+    fs = agent_cli.fleet_sim_parser()
+    sim = agent_cli.host_config(fs, fs.parse_args([]), (1, 2), 10.0)
+    for cfg in (one, many, sim):
+        g = cfg.guidance
+        assert (g.separation_m, g.cruise_speed_m_s, g.safety_filter, g.policy_path) == (
+            3.0,
+            1.0,
+            True,
+            None,
+        )
+        assert (cfg.tick_hz, cfg.state_hz, cfg.idle_state_hz, cfg.spacing_m) == (10, 10, 1, 8)
+        assert cfg.see_others and cfg.link == "perfect" and not cfg.trace_guidance
+    assert one.ids == (3,) and many.ids == (3, 4, 5) and sim.ids == (1, 2)
+    assert one.guidance.max_neighbours is None and many.guidance.max_neighbours == 10
+    for cfg in (one, many):
+        f = cfg.failsafe
+        assert (f.require_gcs, f.gcs_lost_hold_s, f.gcs_lost_land_s) == (True, 5.0, 30.0)
+        assert f.geofence_radius_m == 500.0
+    assert not sim.failsafe.require_gcs and sim.failsafe.geofence_radius_m == 2000.0
+    off = agent_cli.config_from_args(p.parse_args(["--id", "3", "--no-safety-filter"]))
+    assert not off.guidance.safety_filter
+    nogcs = agent_cli.config_from_args(p.parse_args(["--id", "3", "--no-gcs-failsafe"]))
+    assert not nogcs.failsafe.require_gcs
