@@ -15,6 +15,9 @@ from comms.procs import ChildGroup, python_env
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Scripts that run covey's Python (comms/zenoh_configs/make_certs.sh) run this one: a git
+# worktree has no .venv of its own, and the system python3 has no zenoh.
+os.environ.setdefault("COVEY_PYTHON", sys.executable)
 
 
 def wait_until(predicate, timeout_s: float, period_s: float = 0.05) -> bool:
