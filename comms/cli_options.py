@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import functools
 import logging
 import math
 import os
@@ -440,26 +439,21 @@ def stop_after(duration_s: float | None, stop: threading.Event) -> Iterator[thre
 # -- flags from a config dataclass ------------------------------------------------------------------
 def field_docs(cls: type) -> dict[str, str]:
     """The docstring under each field of a dataclass (the --help text of its flag)."""
-    return dict(_field_docs(cls))
-
-
-@functools.cache  # reading and parsing the class's source is most of the time a parser takes
-def _field_docs(cls: type) -> tuple[tuple[str, str], ...]:
     import ast
     import inspect
     import textwrap
 
     tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     body = next(n for n in tree.body if isinstance(n, ast.ClassDef)).body
-    return tuple(
-        (a.target.id, " ".join(b.value.value.split()))
+    return {
+        a.target.id: " ".join(b.value.value.split())
         for a, b in zip(body, body[1:], strict=False)
         if isinstance(a, ast.AnnAssign)
         and isinstance(a.target, ast.Name)
         and isinstance(b, ast.Expr)
         and isinstance(b.value, ast.Constant)
         and isinstance(b.value.value, str)
-    )
+    }
 
 
 def flag_name(field_name: str) -> str:
