@@ -16,6 +16,9 @@ export OMP_WAIT_POLICY ?= PASSIVE
 export OPENBLAS_NUM_THREADS ?= 1
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
+# Test workers (pytest-xdist; 0: one process). Whole files go to a worker, the files with the
+# most slow tests first (tests/conftest.py): several files share one fleet across their tests.
+PYTEST_WORKERS ?= 2
 
 .PHONY: demo test install install-test system-deps lint lock clean
 
@@ -44,7 +47,7 @@ test: system-deps $(VENV)/.test
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 
 lint: $(VENV)/.test
 	$(BIN)/ruff check .

@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -146,7 +148,11 @@ def export_c_header(npz_path, out_h_path) -> Path:
     out = Path(out_h_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     if not out.exists() or out.read_text() != text:
-        out.write_text(text)
+        # Written aside and renamed: a compiler in another process (parallel test workers)
+        # never reads a half-written header.
+        tmp = out.with_name(f"{out.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, out)
     return out
 
 

@@ -15,6 +15,9 @@ from kit.procs import ChildGroup, python_env
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Scripts that run covey's Python (comms/zenoh_configs/make_certs.sh) run this one: a git
+# worktree has no .venv of its own, and the system python3 has no zenoh.
+os.environ.setdefault("COVEY_PYTHON", sys.executable)
 
 
 def wait_until(predicate, timeout_s: float, period_s: float = 0.05) -> bool:
@@ -98,3 +101,21 @@ def fuzz_drivers():
             pytest.skip(f"the C compiler cannot build with sanitizers: {str(e)[-300:]}")
         raise
     return asan, hostbuild.build_driver(header)
+
+
+SLOW_MARKS = ("e2e", "browser", "slow")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under pytest-xdist (`make test` runs `-n 2 --dist loadfile --no-loadscope-reorder`),
+    hand out the files with the most slow tests first, so that no long file starts last and
+    leaves one worker alone at the end. Each file's tests keep their order (several files share
+    one fleet across their tests); a plain `pytest` run keeps the collection order."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    weight: dict[str, int] = {}
+    for item in items:
+        slow = any(item.get_closest_marker(m) for m in SLOW_MARKS)
+        weight[item.nodeid.split("::")[0]] = weight.get(item.nodeid.split("::")[0], 0) + slow
+    # sorted() is stable: files of equal weight, and the tests within each, keep their order
+    items.sort(key=lambda item: -weight[item.nodeid.split("::")[0]])

@@ -82,7 +82,7 @@ def raw_sitl():
     with SitlProcess(
         ["--id", "1", "--connect", f"udpout:127.0.0.1:{gcs.port}", *FAST_ARGS]
     ) as proc:
-        gcs.recv("HEARTBEAT")
+        gcs.recv("HEARTBEAT", timeout_s=60.0)  # the process's start-up: slow on a busy machine
         yield gcs, proc
     gcs.close()
 

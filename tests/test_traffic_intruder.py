@@ -140,7 +140,11 @@ def _fly_through_block(
                 track = track_at(icfg, t_s)
                 publish_report(station, track.report(Role.STATION, 1, station.clock_ns()))
                 sent += 1
-                assert wait_until(lambda n=sent: fleet.traffic_listener.accepted >= n, 5.0)
+                # polled every ms: a loopback put arrives in well under one, and the flight
+                # waits on each of its hundreds of reports
+                assert wait_until(
+                    lambda n=sent: fleet.traffic_listener.accepted >= n, 5.0, period_s=0.001
+                )
             clock[0] += 0.1
             fleet.tick(clock[0])
             truth = track_at(icfg, clock[0] - start_s).pos_ned_m
