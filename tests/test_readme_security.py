@@ -116,7 +116,7 @@ def test_the_readme_security_quickstart_runs_as_written(tmp_path) -> None:
     revoking = int(pushes[1][0])
     assert all(int(n) >= 1 for _, n in pushes), pushes
     # The agent (its log lines carry the logger's name) applied the roster that revokes station 1.
-    assert re.search(rf"comms\.auth WARNING applied fleet roster v{revoking}\b", out), out[-6000:]
+    assert re.search(rf"trust\.auth WARNING applied fleet roster v{revoking}\b", out), out[-6000:]
     assert re.search(rf"roster v{revoking} REVOKES this process's station 1", out), out[-6000:]
     land = out.split(f"pushed fleet covey roster v{revoking}", 1)[1]
     assert re.search(r"\b1\b.*accepted", land, re.I), land[-3000:]
