@@ -79,6 +79,8 @@ class NeighbourTable:
         self.cfg = cfg
         self._lock = threading.Lock()
         self._latest: dict[int, tuple[VehicleState, float]] = {}
+        self._version = 0  # bumped by every change of _latest: the snapshot cache's key
+        self._cache: tuple | None = None
 
     def update(self, state: VehicleState, recv_s: float) -> None:
         if state.vehicle_id == self.own_id:
@@ -93,20 +95,78 @@ class NeighbourTable:
             ):
                 return
             self._latest[state.vehicle_id] = (state, recv_s)
+            self._version += 1
 
     def forget(self, vehicle_id: int) -> None:
         with self._lock:
-            self._latest.pop(vehicle_id, None)
+            if self._latest.pop(vehicle_id, None) is not None:
+                self._version += 1
 
     def expire(self, now_s: float) -> None:
         """Forget the neighbours unheard for `drop_s` (`snapshot` does it too)."""
         with self._lock:
             for vid in [v for v, (_, t) in self._latest.items() if now_s - t > self.cfg.drop_s]:
                 del self._latest[vid]
+                self._version += 1
 
     def snapshot(self, now_s: float, own_pos_ned_m: np.ndarray | None = None) -> NeighbourSnapshot:
         """Neighbours that are flying, fresh enough and in our vertical band (with
-        `own_pos_ned_m`), dead-reckoned to now."""
+        `own_pos_ned_m`), dead-reckoned to now: p(t) = p + v (t - t_rx).
+
+        One pass of array maths over the table, kept until the table or `now_s` changes, so that
+        the tick's two snapshots (guidance's, band-limited, and the landing order's) cost one
+        (`snapshot_loop` is the plain reference; tests compare them)."""
+        self.expire(now_s)
+        with self._lock:
+            cached = self._cache
+            if cached is None or cached[0] != now_s or cached[1] != self._version:
+                cached = self._cache = (now_s, self._version, self._arrays(now_s))
+        ids, seqs, pos, vel, hdg, sigma, age = cached[2]
+        keep = None
+        if own_pos_ned_m is not None and len(ids):
+            keep = np.abs(pos[:, 2] - float(own_pos_ned_m[2])) <= self.cfg.vertical_band_m
+            if keep.all():
+                keep = None
+        if keep is not None:
+            idx = np.flatnonzero(keep)
+            ids = tuple(ids[i] for i in idx)
+            seqs = tuple(seqs[i] for i in idx)
+            pos, vel, hdg, sigma, age = pos[keep], vel[keep], hdg[keep], sigma[keep], age[keep]
+        stale = tuple(v for v, a in zip(ids, age.tolist(), strict=True) if a > self.cfg.stale_s)
+        return NeighbourSnapshot(
+            pos_ned_m=pos.copy() if keep is None else pos,
+            vel_ned_m_s=vel.copy() if keep is None else vel,
+            heading_rad=hdg.copy() if keep is None else hdg,
+            ids=ids,
+            age_s=age.copy() if keep is None else age,
+            stale_ids=stale,
+            seqs=seqs,
+            pos_sigma_m=sigma.copy() if keep is None else sigma,
+        )
+
+    def _arrays(self, now_s: float) -> tuple:
+        """(ids, seqs, pos, vel, heading, sigma, age) of the flying neighbours, dead-reckoned to
+        `now_s` (lock held)."""
+        rows = [
+            (s, t)
+            for s, t in self._latest.values()
+            if not (s.mode in (Mode.LANDED, Mode.KILLED) and not s.armed)
+        ]
+        k = len(rows)
+        ids = tuple(s.vehicle_id for s, _ in rows)
+        seqs = tuple(s.seq for s, _ in rows)
+        pos = np.array([s.pos_ned_m for s, _ in rows], dtype=float).reshape(k, 3)
+        vel = np.array([s.vel_ned_m_s for s, _ in rows], dtype=float).reshape(k, 3)
+        hdg = np.array([s.heading_rad for s, _ in rows], dtype=float).reshape(k)
+        sigma = np.array([s.pos_sigma_m for s, _ in rows], dtype=float).reshape(k)
+        age = np.maximum(0.0, now_s - np.array([t for _, t in rows], dtype=float).reshape(k))
+        pos += vel * age[:, None]
+        return ids, seqs, pos, vel, hdg, sigma, age
+
+    def snapshot_loop(
+        self, now_s: float, own_pos_ned_m: np.ndarray | None = None
+    ) -> NeighbourSnapshot:
+        """The reference for `snapshot`: the same result, one neighbour at a time."""
         self.expire(now_s)
         with self._lock:
             items = list(self._latest.values())
