@@ -4,10 +4,18 @@ Each entry keeps its receive time. While fresh, a neighbour is dead-reckoned at 
 velocity (p(t) = p + v (t - t_rx)), which hides a 3 Hz link's staleness; past `stale_s` it is
 flagged stale (guidance slows down); past `drop_s` it is forgotten.
 Times are on the agent's clock (receive time), so clock skew between vehicles does not matter.
+
+With a reach (`reach_m`, the scope's: comms/scope.py), the table keeps only the neighbours
+within it: the states that the cells within reach bring from beyond it (a 3 x 3 block of 30 m
+cells holds several times the reach's disc) are dropped before their signatures are checked
+(`worth_checking`, comms/gate.py step 4b), and a neighbour whose verified state says it left
+is forgotten. The reach is centred where the vehicle last looked from (`snapshot` with its own
+position, every tick).
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
@@ -72,18 +80,50 @@ class NeighbourSnapshot:
 class NeighbourTable:
     """Thread-safe: the mesh callback writes, the guidance loop reads."""
 
-    def __init__(self, own_id: int | None, cfg: NeighbourConfig = NeighbourConfig()) -> None:
+    def __init__(
+        self,
+        own_id: int | None,
+        cfg: NeighbourConfig = NeighbourConfig(),
+        reach_m: float | None = None,
+    ) -> None:
         """`own_id`: the vehicle whose table this is (its own states are ignored); None for a
-        host of several vehicles, which keeps its own vehicles out itself."""
+        host of several vehicles, which keeps its own vehicles out itself. `reach_m`: keep only
+        the neighbours within this horizontal distance (module docstring); None: all."""
+        if reach_m is not None and not (math.isfinite(reach_m) and reach_m > 0):
+            raise ValueError(f"reach_m must be a positive distance in metres, got {reach_m}")
         self.own_id = own_id
         self.cfg = cfg
+        self.reach_m = reach_m
+        self._centre_ne_m: tuple[float, float] | None = None  # where the reach is centred
         self._lock = threading.Lock()
         self._latest: dict[int, tuple[VehicleState, float]] = {}
         self._version = 0  # bumped by every change of _latest: the snapshot cache's key
         self._cache: tuple | None = None
 
+    def _within_reach(self, pos_ned_m) -> bool:
+        centre = self._centre_ne_m
+        return (
+            self.reach_m is None
+            or centre is None
+            or math.hypot(pos_ned_m[0] - centre[0], pos_ned_m[1] - centre[1]) <= self.reach_m
+        )
+
+    def worth_checking(self, state: VehicleState) -> bool:
+        """Whether a state that arrived is worth its signature check: it claims a position within
+        reach, or it is from a neighbour the table holds within reach (so that its leaving is
+        heard). Judged on the state's own claims and on verified entries only, so a forger can
+        get its own states dropped, never another vehicle's (comms/gate.py step 4b)."""
+        if self._within_reach(state.pos_ned_m):
+            return True
+        with self._lock:
+            held = self._latest.get(state.vehicle_id)
+        return held is not None and self._within_reach(held[0].pos_ned_m)
+
     def update(self, state: VehicleState, recv_s: float) -> None:
         if state.vehicle_id == self.own_id:
+            return
+        if not self._within_reach(state.pos_ned_m):  # a verified state: it has left our reach
+            self.forget(state.vehicle_id)
             return
         with self._lock:
             prev = self._latest.get(state.vehicle_id)
@@ -115,7 +155,10 @@ class NeighbourTable:
 
         One pass of array maths over the table, kept until the table or `now_s` changes, so that
         the tick's two snapshots (guidance's, band-limited, and the landing order's) cost one
-        (`snapshot_loop` is the plain reference; tests compare them)."""
+        (`snapshot_loop` is the plain reference; tests compare them). With `own_pos_ned_m`, the
+        reach is centred there from now on."""
+        if own_pos_ned_m is not None:
+            self._centre_ne_m = (float(own_pos_ned_m[0]), float(own_pos_ned_m[1]))
         self.expire(now_s)
         with self._lock:
             cached = self._cache
