@@ -157,7 +157,13 @@ class Agent:
             guidance=guidance.batch if guidance is not None else None,
             vehicle_ids=(self.vid,),
         )
-        self.table = NeighbourTable(self.vid, cfg.neighbours)
+        # With scoping, the table keeps (and signature-checks) only the neighbours within the
+        # scope's reach: the subscribed cells hold several times its disc (agent/neighbours.py).
+        self.table = NeighbourTable(
+            self.vid,
+            cfg.neighbours,
+            reach_m=cfg.guidance.scope(cfg.scope).reach_m if cfg.scope.enabled else None,
+        )
         self.traffic = TrafficTable(cfg.traffic)
         self.traffic_listener = TrafficListener(mesh, self.traffic, clock_s)
         self._last_traffic_report_s = -math.inf
@@ -208,7 +214,12 @@ class Agent:
             # ground with nothing to do, hears nothing (`_hear`).
             self.scope = Scope(cfg.guidance.scope(cfg.scope))
             self.states = mesh.subscribe_cells(
-                self._on_state, (), link, gate=gate, ignore_id=self.vid
+                self._on_state,
+                (),
+                link,
+                gate=gate,
+                ignore_id=self.vid,
+                worth_checking=self.table.worth_checking,
             )
         else:
             self.states = mesh.subscribe_states(
