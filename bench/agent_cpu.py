@@ -36,8 +36,10 @@ def neighbour_ids(count: int = NEIGHBOURS) -> list[int]:
     return [100 + k for k in range(count)]
 
 
-def role_neighbours(port: int, keys_dir: str | None = None, count: int = NEIGHBOURS) -> None:
-    """Publish `count` vehicles on a ring around the agent's latest state, at 10 Hz; with
+def role_neighbours(
+    port: int, keys_dir: str | None = None, count: int = NEIGHBOURS, rate_hz: float = TICK_HZ
+) -> None:
+    """Publish `count` vehicles on a ring around the agent's latest state, at `rate_hz`; with
     `keys_dir` (a bench fleet, bench/trust.py) each state is signed with its vehicle's key."""
     from comms import keys
     from comms.auth import load_auth
@@ -57,7 +59,7 @@ def role_neighbours(port: int, keys_dir: str | None = None, count: int = NEIGHBO
     with Mesh(embedded_peer(port, fleet=FLEET), auth=auth) as mesh:
         mesh.subscribe_states(lambda s, _t: latest.__setitem__(0, s), vehicle_id=AGENT_ID)
         print("READY", flush=True)
-        period_s, next_s, seq = 1.0 / TICK_HZ, time.monotonic(), 0
+        period_s, next_s, seq = 1.0 / rate_hz, time.monotonic(), 0
         while True:
             seq += 1
             me = latest[0]
@@ -179,6 +181,7 @@ def agent_flight(
     decision_period_s: float | None = None,
     keys_dir: str | None = None,
     neighbours: int = NEIGHBOURS,
+    neighbour_hz: float = TICK_HZ,
     while_flying: Callable[[int, float], None] | None = None,
 ) -> dict:
     """One real `covey agent` with 10 neighbours: CPU and tick jitter landed, then flying a goto.
@@ -202,7 +205,7 @@ def agent_flight(
         auth = load_auth(str(fleet.member_path(Role.STATION, 1)))
         extra += ["--key-file", str(fleet.member_path(Role.VEHICLE, AGENT_ID))]
         nb_extra = ["--keys-dir", keys_dir]
-    nb_extra += ["--neighbours", str(neighbours)]
+    nb_extra += ["--neighbours", str(neighbours), "--neighbour-hz", str(neighbour_hz)]
     with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
         nb = kids.start(
@@ -300,8 +303,11 @@ if __name__ == "__main__":
         "--keys-dir", default=None, help="neighbours: sign with this bench fleet's keys"
     )
     ap.add_argument("--neighbours", type=int, default=NEIGHBOURS, help="neighbours: how many")
+    ap.add_argument(
+        "--neighbour-hz", type=float, default=TICK_HZ, help="neighbours: their state rate"
+    )
     a = ap.parse_args()
     if a.role == "neighbours":
-        role_neighbours(a.port, a.keys_dir, a.neighbours)
+        role_neighbours(a.port, a.keys_dir, a.neighbours, a.neighbour_hz)
     else:
         main(a.quick)

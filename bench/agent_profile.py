@@ -1,10 +1,12 @@
 """Where one flying keyed agent's CPU goes: py-spy on the real process (a profiling aid, not a
 `covey bench` section; py-spy is not a project dependency: `pip install py-spy` first).
 
-    python -m bench.agent_profile [--neighbours 20] [--window-s 20] [--out /tmp/agent.txt]
+    python -m bench.agent_profile [--neighbours 20] [--neighbour-hz 10] [--out /tmp/agent.txt]
 
 bench/agent_cpu.py's real `covey agent` (sim backend, keyed: every neighbour state signed and
-verified) flies a goto with `--neighbours` signed neighbours around it at 10 Hz; py-spy samples
+verified) flies a goto with `--neighbours` signed neighbours 6-14 m around it, each publishing at
+`--neighbour-hz` (10: all manoeuvring; 3: the steady rate of vehicles flying straight or
+hovering, comms/state_rate.py); py-spy samples
 it (all threads, native frames off, idle frames dropped) over the flying window and writes the
 raw folded stacks; this module prints the CPU per tick and the top frames by own and by
 cumulative samples.
@@ -56,7 +58,7 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return dict(out)
 
 
-def main(neighbours: int, window_s: float, out: str, rate_hz: int = 200) -> None:
+def main(neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200) -> None:
     from comms.authority import throwaway_fleet
 
     pyspy = shutil.which("py-spy") or str(common.REPO / ".venv/bin/py-spy")
@@ -94,11 +96,13 @@ def main(neighbours: int, window_s: float, out: str, rate_hz: int = 200) -> None
     with tempfile.TemporaryDirectory() as d:
         ids = [agent_cpu.AGENT_ID, *agent_cpu.neighbour_ids(neighbours)]
         throwaway_fleet(d, agent_cpu.FLEET, vehicles=ids, stations=[1])
-        r = agent_cpu.agent_flight(False, keys_dir=d, neighbours=neighbours, while_flying=spy)
+        r = agent_cpu.agent_flight(
+            False, keys_dir=d, neighbours=neighbours, neighbour_hz=neighbour_hz, while_flying=spy
+        )
     f = r["flying"]
     total, own, cum = top(Path(folded).read_text(), 40)
     lines = [
-        f"keyed agent, {neighbours} neighbours, flying: {f['cpu_ms_per_tick']:.2f} ms CPU per tick "
+        f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz, flying: {f['cpu_ms_per_tick']:.2f} ms CPU per tick "
         f"({100 * f['cpu_share_of_one_core']:.1f} % of a core), {total} samples at {rate_hz} Hz",
         "CPU ms per tick by thread name (/proc, over py-spy's window):",
         *(f"  {ms:6.3f}  {name}" for name, ms in sorted(by_thread.items(), key=lambda kv: -kv[1])),
@@ -114,7 +118,7 @@ def main(neighbours: int, window_s: float, out: str, rate_hz: int = 200) -> None
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--neighbours", type=int, default=20)
-    ap.add_argument("--window-s", type=float, default=20.0)
+    ap.add_argument("--neighbour-hz", type=float, default=10.0)
     ap.add_argument("--out", default="/tmp/agent_profile.txt")
     a = ap.parse_args()
-    main(a.neighbours, a.window_s, a.out)
+    main(a.neighbours, a.neighbour_hz, a.out)
