@@ -257,7 +257,7 @@ def plot(runs: list[dict]) -> None:
     plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.2))
     trees = sorted({r["tree"] for r in runs})
-    styles = {"idle": ":", "hovering": "--", "flying": "-"}
+    styles = {"idle": ":s", "hovering": "--^", "flying": "-o"}
     for ti, tree in enumerate(trees):
         mine = sorted((r for r in runs if r["tree"] == tree), key=lambda r: r["vehicles"])
         label = "this tree" if tree == str(common.REPO) else Path(tree).name
@@ -266,12 +266,11 @@ def plot(runs: list[dict]) -> None:
                 [r["vehicles"] for r in mine],
                 [r[phase]["agent_cpu_ms_per_tick_mean"] for r in mine],
                 styles[phase],
-                marker="o",
                 color=f"C{ti}",
                 label=f"{label}: {phase}",
             )
     ax.axhline(1.0, color="k", lw=0.8)
-    ax.text(1, 1.03, "target 1 ms / tick", fontsize=8)
+    ax.text(0.01, 1.03, "target: 1 ms per tick", fontsize=8, transform=ax.get_yaxis_transform())
     ax.set_xlabel("agents (covey demo, keyed, 8 m grid)")
     ax.set_ylabel("CPU ms per agent per 10 Hz tick")
     ax.set_title("Real agent processes on 2 cores")
