@@ -196,6 +196,8 @@ class NeighbourTable:
             if not (s.mode in (Mode.LANDED, Mode.KILLED) and not s.armed)
         ]
         k = len(rows)
+        if k == 0:  # an idle vehicle's table (it hears no cells): no array maths at all
+            return (), (), _EMPTY3, _EMPTY3, _EMPTY, _EMPTY, _EMPTY
         ids = tuple(s.vehicle_id for s, _ in rows)
         seqs = tuple(s.seq for s, _ in rows)
         pos = np.array([s.pos_ned_m for s, _ in rows], dtype=float).reshape(k, 3)
@@ -248,6 +250,12 @@ class NeighbourTable:
     def latest(self) -> dict[int, VehicleState]:
         with self._lock:
             return {vid: s for vid, (s, _) in self._latest.items()}
+
+
+_EMPTY = np.zeros(0)
+_EMPTY3 = np.zeros((0, 3))
+for _a in (_EMPTY, _EMPTY3):
+    _a.flags.writeable = False  # shared by every empty snapshot (which copies them anyway)
 
 
 def _seq_older(a: int, b: int) -> bool:
