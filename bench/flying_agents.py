@@ -218,9 +218,15 @@ def measure(cfg: FlyingBenchConfig) -> dict:
             up = command(lambda t: Command.takeoff(cfg.takeoff_alt_m, **fresh(targets=t)), ids)
             if len(up) < cfg.vehicles:
                 raise RuntimeError(f"takeoff accepted by {len(up)} of {cfg.vehicles}")
-            watch.wait(lambda s: s.mode is Mode.HOLDING, cfg.vehicles, 240, "hover")
+            # all but one in 20 (a loaded machine can leave one still climbing or stepping aside)
+            most = cfg.vehicles - cfg.vehicles // 20
+            watch.wait(lambda s: s.mode is Mode.HOLDING, most, 240, "hover")
             time.sleep(cfg.settle_s)
             out["hovering"] = window(pids, demo.pid, watch, cfg.window_s, cfg.vehicles)
+            with watch.lock:
+                out["hovering"]["holding"] = sum(
+                    s.mode is Mode.HOLDING for s in watch.latest.values()
+                )
             gotos = random_gotos(np.random.default_rng(cfg.seed), starts, cfg.takeoff_alt_m)
             with ThreadPoolExecutor(8) as pool:  # one command per vehicle, 8 in flight
                 sent = pool.map(
