@@ -43,11 +43,13 @@ demo: $(VENV)/.runtime
 test: system-deps $(VENV)/.test
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 lint: $(VENV)/.test
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 # Fresh resolution in a throw-away venv: newest versions within pyproject.toml's ranges.
 lock:
@@ -64,4 +66,4 @@ lock:
 	mv .ci/apt.lock.new .ci/apt.lock
 
 clean:
-	rm -rf $(VENV) firmware/build .pytest_cache
+	rm -rf $(VENV) firmware/build .pytest_cache .mypy_cache

@@ -3,7 +3,7 @@ only when used, so `covey --help` is fast and the runtime never imports torch.
 
 A subcommand's module has `<x>cli(argv)`, which parses and runs, and `<x>parser()`, which builds
 its argparse parser (`cli`/`parser`, `record_cli`/`record_parser`, ...): tests check every
-subcommand's options through `parser_of`. Shared options: comms/cli_options.py.
+subcommand's options through `parser_of`. Shared options: cli/options.py.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     ),
     "gcs": ("groundstation.gcs_cli", "cli", "browser ground station (viser)"),
     "router": (
-        "comms.router_cli",
+        "tools.router_cli",
         "cli",
         "the Zenoh router of one site of a multi-site fleet",
     ),
@@ -41,7 +41,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "mission_cli",
         "upload a mission (covey JSON or QGC .plan), start/pause/resume/abort it, show progress",
     ),
-    "train": ("policy.train", "cli", "train the guidance policy with PPO (needs covey[train])"),
+    "train": ("policy.train_cli", "cli", "train the guidance policy with PPO (needs covey[train])"),
     "eval": (
         "firmware.ceval",
         "eval_cli",
@@ -59,7 +59,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "record the mesh to MCAP (--info FILE summarises)",
     ),
     "foxglove": (
-        "groundstation.foxglove_bridge",
+        "recording.foxglove_bridge",
         "cli",
         "serve the live fleet to Foxglove (WebSocket), same channels as a recording",
     ),

@@ -147,8 +147,10 @@ def perform(action: Action, backend: VehicleBackend) -> None:
         backend.kill()
     elif action.target_global is not None and backend.takes_global_targets:
         backend.goto_global(*action.target_global)
-    else:
+    elif action.target_ned_m is not None:
         backend.goto_local(action.target_ned_m)
+    else:
+        raise ValueError(f"{action.kind.name} without a target")
 
 
 def outcome_of(

@@ -27,8 +27,7 @@ from agent.backends.base import VehicleBackend
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
 from agent.returning import ReturnConfig
-from comms.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
-from comms.cli_options import (
+from cli.options import (
     add_config_flags,
     add_mesh_args,
     config_from_flags,
@@ -47,6 +46,7 @@ from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.schema import POSITION_LIMIT_M
 from comms.state_rate import IDLE_STATE_HZ, MAX_IDLE_PERIOD_S, MIN_STEADY_STATE_HZ, SteadyConfig
+from trust.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
 
 log = logging.getLogger("covey.agent")
 
@@ -447,8 +447,8 @@ def cli(argv: list[str]) -> int:
         cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:
         die(p, str(exc))
-    auth = load_keys(p, args, (cfg.vehicle_id,), cfg.mesh.fleet)
-    auth = auth[cfg.vehicle_id] if auth is not None else None
+    auths = load_keys(p, args, (cfg.vehicle_id,), cfg.mesh.fleet)
+    auth = auths[cfg.vehicle_id] if auths is not None else None
     cfg = dataclasses.replace(cfg, open_mode=auth is None)
     with stop_on_signals() as stop:
         try:

@@ -37,7 +37,6 @@ from agent.neighbours import NeighbourConfig, NeighbourSnapshot, NeighbourTable
 from agent.traffic import merge_traffic
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
-from comms.heartbeat import HeartbeatConfig, StationHeartbeats
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
@@ -59,7 +58,6 @@ from comms.schema import (
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
-from comms.ticks import run_ticks
 from comms.traffic import (
     TrafficConfig,
     TrafficListener,
@@ -68,6 +66,8 @@ from comms.traffic import (
     is_traffic_id,
     publish_report,
 )
+from kit.ticks import run_ticks
+from trust.heartbeat import HeartbeatConfig, StationHeartbeats
 
 log = logging.getLogger(__name__)
 LINK_STATS_PERIOD_S = 5.0
@@ -184,7 +184,7 @@ class Agent:
             lambda a: perform(a, backend), self._on_outcome, name=f"actions-{self.vid}"
         )
         # The station-lost failsafe and the take-off check trust signed station heartbeats,
-        # not liveliness tokens (comms/heartbeat.py); they also give this vehicle's clock offset.
+        # not liveliness tokens (trust/heartbeat.py); they also give this vehicle's clock offset.
         self.stations = StationHeartbeats(
             mesh,
             HeartbeatConfig(),

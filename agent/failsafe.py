@@ -6,7 +6,7 @@ applies it through the mode machine and publishes each transition as an Event.
 - Ground station lost for `gcs_lost_hold_s`: stop and hold; still lost after
   `gcs_lost_land_s`: land. If a station comes back while the vehicle holds, it resumes the goto
   it was flying. "A station" is a verified, fresh heartbeat from a station of the roster
-  (comms/heartbeat.py: the shell asks `StationHeartbeats.alive`), never a liveliness token,
+  (trust/heartbeat.py: the shell asks `StationHeartbeats.alive`), never a liveliness token,
   which anyone on the mesh can declare (open mode only: a token counts too). With the failsafe
   on, a take-off without a station is refused (`StationHeartbeats.takeoff_problem`): the
   failsafe would hold the vehicle as soon as it climbed.

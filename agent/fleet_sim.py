@@ -4,7 +4,7 @@ and `covey fleet-sim`, its open-mode alias for scale tests).
 Each vehicle is still its own citizen of the mesh: it publishes its own state on its own key,
 answers its own commands on its own queryable, holds its own liveliness token and publishes its
 own events, and in keyed mode signs its states, events and acks with its own key (one FleetAuth
-per vehicle, sharing one roster: comms/auth.py). It runs the same flight core as `covey agent`
+per vehicle, sharing one roster: trust/auth.py). It runs the same flight core as `covey agent`
 (agent/flight_core.py: modes, checks, vehicle events, failsafes, the ground-station failsafe
 included, decide-and-hold guidance with the safety filter), with N rows instead of one, around
 the simulator's N-row point masses (agent/backends/sim.py). What is shared is the work: one
@@ -41,11 +41,9 @@ from agent.flight_core import (
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourTable
 from agent.traffic import merge_traffic
-from comms.auth import FleetAuth, host_signers
-from comms.cli_options import stop_after
+from cli.options import stop_after
 from comms.gate import GateConfig, command_refusals
 from comms.geo import GeoOrigin
-from comms.heartbeat import HeartbeatConfig, StationHeartbeats
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
@@ -65,9 +63,11 @@ from comms.schema import (
 from comms.scope import Scope, ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, StatePacer, SteadyConfig, check_rates, idle_rows
-from comms.ticks import run_ticks
 from comms.traffic import TrafficListener, TrafficTable
+from kit.ticks import run_ticks
 from policy.runtime import GuidancePolicy
+from trust.auth import FleetAuth, host_signers
+from trust.heartbeat import HeartbeatConfig, StationHeartbeats
 
 log = logging.getLogger("covey.fleet_sim")
 _MODES = {m.value: m for m in Mode}
@@ -120,7 +120,7 @@ class FleetSimConfig:
     """Other processes' vehicles older than this are forgotten."""
 
     def __post_init__(self) -> None:
-        from comms.cli_options import MAX_HOSTED_VEHICLES
+        from cli.options import MAX_HOSTED_VEHICLES
         from comms.keys import check_vehicle_id
 
         if self.ids:
@@ -193,7 +193,7 @@ def start_grid(n: int, spacing_m: float, corner_ne_m: tuple[float, float]) -> np
 
 class Fleet:
     """The vehicles of one process: the flight core with N rows, N simulated point masses, one
-    mesh session. `auths`: each vehicle's own FleetAuth (keyed mode, comms.auth
+    mesh session. `auths`: each vehicle's own FleetAuth (keyed mode, trust.auth
     .load_vehicle_auths; the mesh's must share their roster); None: open mode."""
 
     def __init__(
@@ -247,7 +247,7 @@ class Fleet:
         """Traffic that does not cooperate, from the mesh (agent/traffic.py)."""
         self.traffic_listener = TrafficListener(mesh, self.traffic, clock_s)
         # As the agent: the station-lost failsafe and the take-off check trust signed station
-        # heartbeats (comms/heartbeat.py), which also give the host's clock offset.
+        # heartbeats (trust/heartbeat.py), which also give the host's clock offset.
         self.stations = StationHeartbeats(
             mesh,
             HeartbeatConfig(),

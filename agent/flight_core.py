@@ -51,6 +51,11 @@ AIRBORNE_MODES = [int(m) for m in AIRBORNE]
 """The airborne modes as integers, for `np.isin` on `FlightCore.mode`."""
 
 
+def _xyz(values) -> tuple[float, float, float]:
+    """The first three of `values` (a point: north, east, down or lat, lon, alt) as floats."""
+    return (float(values[0]), float(values[1]), float(values[2]))
+
+
 def mode_mask(modes) -> np.ndarray:
     """A lookup table over mode values: `mode_mask(ms)[core.mode]` equals
     `np.isin(core.mode, ms)`, for the price of one gather (no sort per call; it matters at N = 1,
@@ -281,7 +286,7 @@ class FlightCore:
     ):
         """Check `cmd` for vehicle i at `pos_m` (None: no telemetry yet) and enter its mode.
         `takeoff_problem`: why the shell's ground facts rule out leaving the ground now (no
-        station on the mesh, the clock off: comms/heartbeat.py `takeoff_problem`); it refuses a
+        station on the mesh, the clock off: trust/heartbeat.py `takeoff_problem`); it refuses a
         take-off of a landed vehicle."""
         mode = self.mode_of(i)
         if cmd.kind is CommandKind.MISSION_STATUS:
@@ -298,7 +303,7 @@ class FlightCore:
         target = target_global = None
         if trigger is Trigger.GOTO:
             if cmd.kind is CommandKind.GOTO_GLOBAL:
-                target_global = tuple(float(x) for x in cmd.params[:3])
+                target_global = _xyz(cmd.params)
                 target = np.array(self.cfg.origin.to_local(*target_global))
             else:
                 target = np.array(cmd.params[:3], dtype=float)
@@ -331,7 +336,7 @@ class FlightCore:
         if low_battery:
             return Decision(AckResult.REJECTED, low_battery, mode)
         actions = self._enter(i, res.mode, trigger, np.asarray(pos_m, float), target, alt_m)
-        actions = tuple(
+        decided = tuple(
             replace(
                 a,
                 nonce=cmd.nonce,
@@ -339,7 +344,7 @@ class FlightCore:
             )
             for a in actions
         )
-        return Decision(AckResult.ACCEPTED, "", self.mode_of(i), actions)
+        return Decision(AckResult.ACCEPTED, "", self.mode_of(i), decided)
 
     def _enter(
         self,
@@ -541,8 +546,7 @@ class FlightCore:
             )
             if not self.velocity_mode:  # the autopilot flies the new leg itself
                 actions += [
-                    Action(i, ActionKind.GOTO, target_ned_m=tuple(map(float, self.goal_m[i])))
-                    for i in turned
+                    Action(i, ActionKind.GOTO, target_ned_m=_xyz(self.goal_m[i])) for i in turned
                 ]
         mode = self.mode
         on_ground = ~obs.in_air & ~obs.armed
@@ -738,7 +742,7 @@ class FlightCore:
             self.goal_m[i] = run.target
             self.mission_waiting[i] = False
             if not self.velocity_mode:
-                target = tuple(map(float, run.target))
+                target = _xyz(run.target)
                 return [Action(i, ActionKind.GOTO, target_ned_m=target, epoch=int(self.epoch[i]))]
             return []
         return self._enter(i, Mode.MISSION, trigger, pos_m)
@@ -787,6 +791,8 @@ class FlightCore:
                 ]
             )
             cap = cap if cap.any() else None
+        if self.guidance is None:
+            raise RuntimeError("guide() flies velocity mode; this core has no guidance")
         out = self.guidance.step(
             now_s,
             rows,

@@ -25,6 +25,7 @@ import numpy as np
 from agent.neighbours import NeighbourSnapshot
 from comms.scope import ScopeConfig
 from policy import safety
+from policy.observation import Observations
 from policy.runtime import GuidancePolicy, told_separation_m
 from policy.sparse import SparseConfig
 
@@ -435,7 +436,7 @@ class BatchGuidance:
                 **views.sky(int(idx[0])),
             )
             return np.asarray(out, float)[None]
-        return pol.command_views(
+        obs = Observations(
             pos_m[:, :2],
             vel_m_s[:, :2],
             heading_rad,
@@ -446,6 +447,7 @@ class BatchGuidance:
             views.valid[idx],
             **views.sky(idx),
         )
+        return pol.command_batch(obs)
 
     def _stale_factor(self, pos_m: np.ndarray, views: NeighbourViews) -> np.ndarray:
         cfg = self.cfg
@@ -469,8 +471,8 @@ class BatchGuidance:
                 p[:, :2],
                 v[:, :2],
                 self.safety_cfg,
-                int(views.own_ids[0]) if ids else None,
-                views.ids[0, views.valid[0]] if ids else None,
+                int(views.own_ids[0]) if views.own_ids is not None and ids else None,
+                views.ids[0, views.valid[0]] if views.ids is not None and ids else None,
                 **views.sky(0, manned=True),
                 zones=self.zones,
             )

@@ -20,8 +20,7 @@ from collections.abc import Mapping
 
 from agent import agent_cli
 from agent.fleet_sim import Fleet, FleetSimConfig
-from comms.auth import FleetAuth
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     given,
@@ -33,6 +32,7 @@ from comms.cli_options import (
     stop_on_signals,
 )
 from comms.geo import GeoOrigin
+from trust.auth import FleetAuth
 
 
 def host_config(

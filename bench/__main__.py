@@ -98,7 +98,7 @@ def _env(out: Path) -> dict:
 
 def run_section(sec: Section, quick: bool, out: Path, timeout_s: float) -> dict:
     """Run one section in a child process, showing elapsed time; returns its run record."""
-    from comms.procs import Child
+    from kit.procs import Child
 
     if sec.convention:
         cmd = [sys.executable, "-m", "bench", "--run-one", sec.name] + (
@@ -168,7 +168,7 @@ def run_one(name: str, quick: bool) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    from comms.cli_options import finite
+    from cli.options import finite
 
     ap = argparse.ArgumentParser(
         prog="covey bench",

@@ -42,13 +42,13 @@ def role_neighbours(
     """Publish `count` vehicles on a ring around the agent's latest state, at `rate_hz`; with
     `keys_dir` (a bench fleet, bench/trust.py) each state is signed with its vehicle's key."""
     from comms import keys
-    from comms.auth import load_auth
     from comms.mesh import Mesh
     from comms.schema import Mode, Role, VehicleState
+    from trust.auth import load_auth
 
     signers = {}
     if keys_dir is not None:
-        from comms.authority import Authority
+        from trust.authority import Authority
 
         fleet = Authority(keys_dir)
         signers = {
@@ -188,10 +188,10 @@ def agent_flight(
     `decision_period_s` None: the policy's trained period (the default); 0: every tick.
     `keys_dir`: a keyed fleet (bench/trust.py): every state signed and verified.
     `while_flying(pid, window_s)`: called as the flying window starts (a profiler, bench/agent_profile.py)."""
-    from comms.auth import load_auth
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, Mode, Role
+    from trust.auth import load_auth
 
     window_s = 6.0 if quick else 25.0
     port = free_tcp_port()
@@ -199,7 +199,7 @@ def agent_flight(
     extra = [] if decision_period_s is None else ["--decision-period-s", str(decision_period_s)]
     auth, nb_extra = None, []
     if keys_dir is not None:
-        from comms.authority import Authority
+        from trust.authority import Authority
 
         fleet = Authority(keys_dir)
         auth = load_auth(str(fleet.member_path(Role.STATION, 1)))

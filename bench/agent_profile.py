@@ -86,14 +86,14 @@ def receive_cost(
     from agent.guidance import GuidanceConfig
     from agent.neighbours import NeighbourConfig, NeighbourTable
     from comms import keys
-    from comms.auth import load_auth
-    from comms.authority import throwaway_fleet
     from comms.gate import GateConfig
     from comms.mesh import Mesh
     from comms.schema import Mode, Role, VehicleState
     from comms.scope import ScopeConfig
     from comms.session import embedded_router, free_tcp_port
     from groundstation.demo import grid_starts
+    from trust.auth import load_auth
+    from trust.authority import throwaway_fleet
 
     starts = grid_starts(vehicles, spacing_m)
     me = int(np.argmin([math.hypot(n, e) for n, e in starts])) + 1
@@ -157,7 +157,7 @@ def fleet_ids(vehicles: int) -> range:
 
 
 def main(neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200) -> None:
-    from comms.authority import throwaway_fleet
+    from trust.authority import throwaway_fleet
 
     pyspy = shutil.which("py-spy") or str(common.REPO / ".venv/bin/py-spy")
     folded = out + ".folded"

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.procs import Child, ChildExited, ChildGroup, python_env
+from kit.procs import Child, ChildExited, ChildGroup, python_env
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent

@@ -5,7 +5,7 @@
 Builds firmware/host/covey_bench.c (hostbuild.OPT_FLAGS: -O3 -march=native, system cc)
 against the shipped weights; for each neighbour count it times 15 batches of 20
 covey_command calls and reports the median and the fastest batch per call. For comparison
-it times the numpy runtime the same way: `GuidancePolicy.action` (the same network without
+it times the numpy runtime the same way: `GuidancePolicy.actor.action` (the same network without
 the safety filter) and `GuidancePolicy.command` (world units, checks, and the filter).
 The machine is shared, so the minimum is the steadier number.
 """
@@ -39,6 +39,7 @@ def time_numpy(
     neighbours, repeats: int = 15, batch: int = 5, command: bool = False
 ) -> dict[int, tuple[float, float]]:
     """`action` (policy units, no filter) or, with `command`, `command` with the filter."""
+    from policy.observation import Observation
     from policy.runtime import GuidancePolicy
 
     # told the whole 3 m, without the sparse rule: every neighbour is fed to the network
@@ -54,11 +55,13 @@ def time_numpy(
         hdg = rng.uniform(-np.pi, np.pi, k)
         nbr_vel = rng.normal(0, 0.7, (k, 2))
 
-        def call(nbr=nbr, hdg=hdg, nbr_vel=nbr_vel):
+        obs = Observation.at_rest(own, 0.3, goal, nbr, hdg)
+
+        def call(nbr=nbr, hdg=hdg, nbr_vel=nbr_vel, obs=obs):
             if command:
                 pol.command(own, vel, 0.3, goal, nbr, nbr_vel, hdg)
             else:
-                pol.action(own, 0.3, goal, nbr, hdg)
+                pol.actor.action(obs)
 
         call()
         per_call = []

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.cli_options import renamed
-from comms.procs import Child, python_env
+from cli.options import renamed
+from kit.procs import Child, python_env
 
 REPO = Path(__file__).resolve().parent.parent
 PERIOD_NS = 100_000_000

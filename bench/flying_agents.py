@@ -39,7 +39,7 @@ import numpy as np
 
 from bench import common
 from bench.idle_agents import cpu_s, machine_busy_s
-from comms.procs import Child
+from kit.procs import Child
 
 TARGET_SHARE_OF_2_CORES = 0.25
 """Issue 37: 40 agents hovering and flying use at most a quarter of this 2-core machine."""
@@ -155,11 +155,11 @@ def random_gotos(
 
 def measure(cfg: FlyingBenchConfig) -> dict:
     """Start `covey demo` from `cfg.tree`; idle, take off, hover, fly gotos; CPU per phase."""
-    from comms.auth import load_auth
     from comms.commands import OutcomeStatus, new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, Mode
     from comms.session import MeshConfig
+    from trust.auth import load_auth
 
     env = dict(os.environ, PYTHONPATH=str(cfg.tree), PYTHONUNBUFFERED="1")
     argv = [sys.executable, "-m", "covey_cli", "demo", "--vehicles", str(cfg.vehicles)]

@@ -32,11 +32,11 @@ from mcap.reader import make_reader
 
 from bench.common import DOCS, children, cpu_seconds, pct, pyplot, say, write_json
 from comms import keys
-from comms.foxglove_channels import POSE_IN_FRAME, FoxgloveConfig
 from comms.mesh import Mesh
-from comms.record import McapSink
 from comms.schema import Event, Mode, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from recording.foxglove_channels import POSE_IN_FRAME, FoxgloveConfig
+from recording.record import McapSink
 
 VEHICLES, RATE_HZ, LOG_S = 10, 10.0, 120.0
 

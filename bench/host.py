@@ -67,12 +67,12 @@ def window(pid: int, states: States, window_s: float) -> dict:
 
 def host_run(quick: bool, keyed: bool) -> dict:
     from comms import keys
-    from comms.auth import load_auth
-    from comms.authority import throwaway_fleet
     from comms.commands import new_nonce
-    from comms.heartbeat import HeartbeatPublisher
     from comms.mesh import Mesh
     from comms.schema import Command, Mode, Role
+    from trust.auth import load_auth
+    from trust.authority import throwaway_fleet
+    from trust.heartbeat import HeartbeatPublisher
 
     window_s = 4.0 if quick else 15.0
     port = free_tcp_port()
@@ -133,10 +133,10 @@ def tick_cpu(quick: bool, keyed: bool) -> dict:
     signing and publishing every state), in this process with injected time: steadier than the
     whole process's on a busy machine."""
     from agent.fleet_sim import Fleet, FleetSimConfig
-    from comms.auth import load_vehicle_auths
-    from comms.authority import throwaway_fleet
     from comms.mesh import Mesh
     from comms.schema import Command, CommandKind
+    from trust.auth import load_vehicle_auths
+    from trust.authority import throwaway_fleet
 
     ticks = 20 if quick else 100
     clock = [0.0]

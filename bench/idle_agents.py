@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from bench import common
-from comms.procs import Child
+from kit.procs import Child
 
 TARGET_SHARE_OF_2_CORES = 0.25
 """Issue 15: 40 idle agents use at most a quarter of this 2-core machine."""

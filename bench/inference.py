@@ -2,7 +2,7 @@
 
     python -m bench.inference [--quick]      # writes inference.json and inference.png
 
-- numpy, one vehicle (`GuidancePolicy.action`: features + LSTM + head) for N = 2..100
+- numpy, one vehicle (`GuidancePolicy.actor.action`: features + LSTM + head) for N = 2..100
   vehicles, i.e. N-1 neighbours, all within the policy's sense range;
 - numpy batched: `command_batch` for 1,000 vehicles, nearest 10 (with and without the safety
   filter), and the network alone on the same batch;
@@ -22,6 +22,7 @@ import numpy as np
 
 from bench import common
 from policy.eval import flops as paper_flops
+from policy.observation import Observation, Swarm
 from policy.runtime import GuidancePolicy
 
 N_VEHICLES = (2, 5, 10, 20, 35, 100)
@@ -59,8 +60,9 @@ def single(quick: bool, peak: float) -> list[dict]:
     for n in N_VEHICLES:
         nbr, hdg = scatter(rng, n - 1)
         goal = np.array([40.0, 25.0])
+        obs = Observation.at_rest(np.zeros(2), 0.3, goal, nbr, hdg)
         t = common.time_calls_s(
-            lambda nbr=nbr, hdg=hdg, goal=goal: pol.action(np.zeros(2), 0.3, goal, nbr, hdg),
+            lambda obs=obs: pol.actor.action(obs),
             15 if quick else 100,
             batch=5,
         )
@@ -80,7 +82,7 @@ def single(quick: bool, peak: float) -> list[dict]:
         }
         if cpol is not None and n - 1 <= 64:
             tc = common.time_calls_s(
-                lambda nbr=nbr, hdg=hdg, goal=goal: cpol.action(np.zeros(2), 0.3, goal, nbr, hdg),
+                lambda obs=obs: cpol.action(obs),
                 15 if quick else 100,
                 batch=10,
             )
@@ -99,7 +101,7 @@ def _cpolicy():
     try:
         from firmware.cpolicy import CPolicy
 
-        return CPolicy.load()
+        return CPolicy.load(policy_separation_m=3.0)  # metres = policy units, as numpy's
     except Exception as exc:  # noqa: BLE001 - no C compiler: the section still runs without C
         common.say(f"C policy unavailable: {exc}")
         return None
@@ -127,7 +129,8 @@ def batched(quick: bool, peak: float) -> dict:
             policy_separation_m=3.0,
             sparse_rule=False,
         )
-        t = common.time_calls_s(lambda pol=pol: pol.command_batch(pos, vel, hdg, goal), reps)
+        swarm = Swarm.checked(pos, vel, hdg, goal)
+        t = common.time_calls_s(lambda pol=pol, swarm=swarm: pol.command_batch(swarm), reps)
         out[f"numpy_command_batch_ms{'_filter' if filt else ''}"] = float(np.median(t) * 1e3)
     seq, lengths, goal_feat, _ = features.observe_batch(
         pos, hdg, goal, np.ones(n, bool), pol.obs_cfg, BATCH_NEIGHBOURS

@@ -29,8 +29,8 @@ import numpy as np
 
 from bench import common
 from comms import keys
-from comms.procs import ChildGroup
 from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
+from kit.procs import ChildGroup
 
 FLEET = "bench"
 RATE_HZ = 10.0

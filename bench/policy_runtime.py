@@ -1,4 +1,4 @@
-"""Runtime timings: `python -m bench.policy_runtime [--weights W] [--repeats N]`.
+"""Runtime timings: `python -m bench.policy_runtime [--weights W] [--repeats N] [--quick]`.
 
 Median wall time of GuidancePolicy.command with 19 neighbours and of
 command_batch for 1000 vehicles with the nearest 10 neighbours, with and
@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from policy.observation import Swarm
 from policy.runtime import GuidancePolicy
 from policy.sparse import SparseConfig
 
@@ -37,6 +38,7 @@ def main(weights=None, repeats: int = 200, seed: int = 0) -> dict:
     side = 20.0 * np.sqrt(n)
     p_n, g_n = rng.uniform(0, side, (n, 2)), rng.uniform(0, side, (n, 2))
     v_n, h_n = rng.normal(0, 0.7, (n, 2)), rng.uniform(-np.pi, np.pi, n)
+    swarm = Swarm.checked(p_n, v_n, h_n, g_n)
     # told the whole 3 m (not flight's 1.25 m, whose 8.3 m sense range would drop most of these
     # neighbours): every one is fed to the network, the dearest case; the rule is timed below
     wide = dict(policy_separation_m=3.0, sparse_rule=False)
@@ -48,7 +50,7 @@ def main(weights=None, repeats: int = 200, seed: int = 0) -> dict:
         )
         pol = GuidancePolicy.load(weights, safety_filter=filt, max_neighbours=10, **wide)
         out[f"command_batch@1000 nearest-10 filter={filt}"] = median_ms(
-            lambda pol=pol: pol.command_batch(p_n, v_n, h_n, g_n), max(repeats // 10, 5)
+            lambda pol=pol: pol.command_batch(swarm), max(repeats // 10, 5)
         )
     # the agents' decision: with the sparse rule (policy/sparse.py) too, timed in alternating
     # rounds against the same call without it (ratios from one run). Two scenes: the one above
@@ -85,7 +87,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default=None)
     ap.add_argument("--repeats", type=int, default=200)
+    ap.add_argument("--quick", action="store_true", help="smoke-sized: 20 repeats")
     a = ap.parse_args()
-    for name, ms in main(a.weights, a.repeats).items():
+    for name, ms in main(a.weights, 20 if a.quick else a.repeats).items():
         unit = "x" if name.startswith("ratio") else "ms (median)"
         print(f"{name:55s} {ms:8.3f} {unit}")

@@ -39,12 +39,12 @@ from pathlib import Path
 
 from bench.common import children
 from comms import keys
-from comms.foxglove_channels import FoxgloveConfig
 from comms.mesh import Mesh
-from comms.record import McapSink, RecordConfig, Recorder, read_recording
-from comms.replay import play, prepare
 from comms.schema import VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from recording.foxglove_channels import FoxgloveConfig
+from recording.record import McapSink, RecordConfig, Recorder, read_recording
+from recording.replay import play, prepare
 
 RESULTS = Path(__file__).parent / "results" / "record.json"
 

@@ -80,7 +80,7 @@ def inference(d: dict) -> list[str]:
         rows,
     )
     lines += [
-        "One vehicle: `GuidancePolicy.action` (features + network, no safety filter) and `CPolicy.action` (C core via ctypes; "
+        "One vehicle: `GuidancePolicy.actor.action` (features + network, no safety filter) and `CPolicy.action` (C core via ctypes; "
         "at most 64 reports, so no N = 100). % of peak = the shipped network's FLOPs / median time / CPU peak.",
         "",
     ]

@@ -27,10 +27,10 @@ FLEET = "benchtrust"
 
 
 def crypto(n: int) -> dict:
-    from comms.auth import load_auth
-    from comms.authority import throwaway_fleet
     from comms.gate import Gate
     from comms.schema import Mode, Role, VehicleState
+    from trust.auth import load_auth
+    from trust.authority import throwaway_fleet
 
     with tempfile.TemporaryDirectory() as d:
         fleet = throwaway_fleet(d, FLEET, vehicles=[1, 2], stations=[1])
@@ -71,7 +71,7 @@ def crypto(n: int) -> dict:
 
 
 def agent(quick: bool, pairs: int) -> dict:
-    from comms.authority import throwaway_fleet
+    from trust.authority import throwaway_fleet
 
     runs: dict[str, list[dict]] = {"open": [], "keyed": []}
     with tempfile.TemporaryDirectory() as d:
@@ -100,14 +100,14 @@ def agent(quick: bool, pairs: int) -> dict:
 
 def role_resp(port: int, first: int, count: int, keys_dir: str | None) -> None:
     """Answer commands for `count` vehicles until killed (each with its own key when keyed)."""
-    from comms.auth import load_auth
     from comms.mesh import Mesh
     from comms.schema import AckResult, CommandAck, Mode, Role
+    from trust.auth import load_auth
 
     auths: dict = {}
     mesh_auth = None
     if keys_dir is not None:
-        from comms.authority import Authority
+        from trust.authority import Authority
 
         fleet = Authority(keys_dir)
         auths = {
@@ -130,15 +130,15 @@ def role_resp(port: int, first: int, count: int, keys_dir: str | None) -> None:
 
 
 def commands(n: int, repeats: int, keys_dir: str | None) -> dict:
-    from comms.auth import load_auth
     from comms.commands import OutcomeStatus, new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, CommandKind, Role
+    from trust.auth import load_auth
 
     port = free_tcp_port()
     auth = None
     if keys_dir is not None:
-        from comms.authority import Authority
+        from trust.authority import Authority
 
         auth = load_auth(str(Authority(keys_dir).member_path(Role.STATION, 1)))
     ids = set(range(1, n + 1))
@@ -185,7 +185,7 @@ def commands(n: int, repeats: int, keys_dir: str | None) -> dict:
 
 
 def main(quick: bool = False) -> dict:
-    from comms.authority import throwaway_fleet
+    from trust.authority import throwaway_fleet
 
     c = crypto(500 if quick else 3000)
     common.say(

@@ -12,7 +12,7 @@ import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from comms.schema import AckResult, Command, CommandAck
+from comms.schema import AckResult, Command, CommandAck, Mission
 
 
 class OutcomeStatus(enum.Enum):
@@ -43,7 +43,7 @@ class Outcome:
 
 @dataclass(frozen=True)
 class CommandResult:
-    command: Command
+    command: Command | Mission
     outcomes: dict[int, Outcome]
     errors: tuple[str, ...] = ()
 

@@ -28,8 +28,9 @@ import enum
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
-from comms.schema import Command, Event, Role, VehicleState
+from comms.schema import Command, Event, Role, Roster, VehicleState
 
 
 class Refusal(enum.Enum):
@@ -118,12 +119,26 @@ def command_refusals(
     return on_reject
 
 
+class SignatureChecker(Protocol):
+    """What a gate asks of this member's keys (comms/member.py `MemberAuth` extends it): the
+    roster and the signature checks, each None if fine, else why not."""
+
+    @property
+    def roster(self) -> Roster: ...
+
+    def is_member(self, role: Role, member_id: int) -> bool: ...
+
+    def check_state(self, state: VehicleState) -> str | None: ...
+
+    def check_event(self, event: Event) -> str | None: ...
+
+
 class Gate:
     """One subscription's gate (each keeps its own 'last accepted' per vehicle). Thread-safe."""
 
     def __init__(
         self,
-        auth,
+        auth: SignatureChecker,
         cfg: GateConfig = GateConfig(),
         on_summary: Callable[[str], None] | None = None,
         what: str = "state",

@@ -14,7 +14,7 @@
     covey/<fleet>/gcs/<id>/alive  liveliness token of a ground station
     covey/<fleet>/gcs/<id>/heartbeat
                                   pub/sub StationHeartbeat, signed by station <id> (keyed mode):
-                                  what the station-lost failsafe trusts (comms/heartbeat.py)
+                                  what the station-lost failsafe trusts (trust/heartbeat.py)
     covey/<fleet>/gcs/<id>/traffic
     covey/<fleet>/msg/<id>/traffic
                                   pub/sub TrafficReport: vehicles that do not cooperate, as station
@@ -126,14 +126,14 @@ def cell_of(pos_ned_m: tuple[float, ...]) -> Cell:
     return math.floor(n / CELL_M), math.floor(e / CELL_M)
 
 
-def check_cell(cell: Cell) -> Cell:
+def check_cell(cell: tuple[int, ...]) -> Cell:
     if (
         not isinstance(cell, tuple)
         or len(cell) != 2
         or not all(isinstance(c, int) and -MAX_CELL <= c <= MAX_CELL for c in cell)
     ):
         raise ValueError(f"cell {cell!r} must be two integers within +-{MAX_CELL}")
-    return cell
+    return (cell[0], cell[1])
 
 
 def state(fleet: str, vehicle_id: int, cell: Cell | None = None) -> str:
@@ -303,9 +303,10 @@ def _parse(key: str) -> tuple[str, int, str, Cell | None] | None:
     m = _CELL_STATE_KEY_RE.match(key) or _LEGACY_CELL_STATE_KEY_RE.match(key)
     if m:
         fleet, vid, leaf = m["fleet"], int(m["vid"]), "state"
-        cell: Cell | None = (int(m["cn"]), int(m["ce"]))
-        if max(abs(cell[0]), abs(cell[1])) > MAX_CELL:
+        cn, ce = int(m["cn"]), int(m["ce"])
+        if max(abs(cn), abs(ce)) > MAX_CELL:
             return None
+        cell: Cell | None = (cn, ce)
     else:
         m = _VEHICLE_KEY_RE.match(key)
         if not m or m["leaf"] not in _LEAVES[m["ns"]]:

@@ -355,7 +355,16 @@ class LinkEmulator:
             draws = [self._rng.random() for _ in range(4)]
             vid = state.vehicle_id
             chan = self._channels.get(vid, ChannelState())
-            decision, chan = decide(self.profile, chan, recv_ns, *draws, distance_m=distance)
+            decision, chan = decide(
+                self.profile,
+                chan,
+                recv_ns,
+                draws[0],
+                draws[1],
+                draws[2],
+                draws[3],
+                distance_m=distance,
+            )
             self._channels[vid] = chan
             c = self._counters.setdefault(vid, _Counters())
             c.offered += 1

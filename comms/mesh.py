@@ -6,10 +6,10 @@ and an explicit ack per vehicle; presence is Zenoh liveliness. Every incoming pa
 at this boundary: a malformed one is counted and reported, never raised into Zenoh's callback
 thread, so one bad message cannot kill a process.
 
-Keyed mode (`auth`, comms/auth.py): every state, event, command and ack this process sends is
+Keyed mode (`auth`, trust/auth.py): every state, event, command and ack this process sends is
 signed with its own key; every state and event it receives passes a comms/gate.py Gate first
 (unsigned, forged, stale, replayed and out-of-order ones are dropped and counted); the roster is
-followed by comms/roster_sync.py (newer ones applied at once, cheapest checks first; pulls at
+followed by trust/roster_sync.py (newer ones applied at once, cheapest checks first; pulls at
 start, on every new link and periodically; members that are behind answered).
 """
 
@@ -26,13 +26,13 @@ from typing import Any
 import zenoh
 
 from comms import keys
-from comms.auth import FleetKeyError, command_digest
 from comms.commands import CommandResult, Outcome, OutcomeStatus
+from comms.doc_sync import DocSync, RosterSyncConfig
+from comms.doc_sync import publish as publish_roster
 from comms.feed import FeedBuffer
-from comms.gate import SKIPPED, Gate, GateConfig
+from comms.gate import SKIPPED, Gate, GateConfig, Refusal
+from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
-from comms.roster_sync import RosterSync, RosterSyncConfig
-from comms.roster_sync import publish as publish_roster
 from comms.schema import (
     AckResult,
     Command,
@@ -45,6 +45,7 @@ from comms.schema import (
     Mode,
     MsgType,
     Roster,
+    RosterHead,
     VehicleState,
 )
 from comms.session import MeshConfig, open_session
@@ -100,12 +101,12 @@ class Mesh:
         cfg: MeshConfig,
         *,
         clock_ns: Callable[[], int] = time.time_ns,
-        auth: Any = None,
+        auth: MemberAuth | None = None,
         stop: threading.Event | None = None,
         wait_s: float | None = None,
         roster_sync: RosterSyncConfig = RosterSyncConfig(),
     ) -> None:
-        """`auth` is a comms.auth.FleetAuth (this member's key and the roster), or None for
+        """`auth` is a trust.auth.FleetAuth (this member's key and the roster), or None for
         open mode. Raises FleetKeyError if the key is for another fleet. `stop`, `wait_s`: a
         client waiting for its router gives up (MeshUnreachable) once `stop` is set or after
         `wait_s` (comms.session.open_session)."""
@@ -132,15 +133,13 @@ class Mesh:
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._error_log_ns = 0
-        self.roster_sync: RosterSync | None = None
-        """Keyed mode: the roster follower (comms/roster_sync.py), for its counts."""
+        self.roster_sync: DocSync[RosterHead, Roster] | None = None
+        """Keyed mode: the roster follower (trust/roster_sync.py), for its counts."""
         if auth is not None:
             try:
                 self.roster_sync = self._keep(
-                    RosterSync(
+                    auth.follow_roster(
                         self.session,
-                        cfg.fleet,
-                        auth,
                         roster_sync,
                         on_summary=self._summary,
                         on_applied=lambda _r: self.stats.bump("rosters_applied"),
@@ -211,6 +210,8 @@ class Mesh:
         what: str = "state",
         worth_checking: Callable[[VehicleState], bool] | None = None,
     ) -> Gate:
+        if self.auth is None:
+            raise RuntimeError("an open-mode mesh has no keys to gate with")
         gate = Gate(
             self.auth, cfg, on_summary=self._summary, what=what, worth_checking=worth_checking
         )
@@ -222,7 +223,7 @@ class Mesh:
         publish_roster(self.session, self.fleet, roster.encode())
 
     # -- states ----------------------------------------------------------------------------
-    def publish_state(self, state: VehicleState, *, auth: Any = None) -> None:
+    def publish_state(self, state: VehicleState, *, auth: MemberAuth | None = None) -> None:
         """Publish on the key of the state's own grid cell (comms/keys.py); a vehicle that
         crosses into another cell gets a publisher there, and its old one goes. `auth`: the
         vehicle's own FleetAuth when one process hosts several vehicles; default the mesh's."""
@@ -271,7 +272,7 @@ class Mesh:
         self,
         callback: StateCallback,
         vehicle_id: int | None = None,
-        link: Any = None,
+        link: StateLink | None = None,
         *,
         on_refused: RefusedCallback | None = None,
         gate: GateConfig = GateConfig(),
@@ -283,8 +284,8 @@ class Mesh:
         `link.offer(state, recv_ns, deliver)` instead of the callback.
 
         Keyed mode: only states that pass a Gate(`gate`) reach the callback; `on_refused(vid,
-        cause, recv_ns)` hears of the others. If not given and `callback` is a bound method of an
-        object with `on_state_refused` (the ground station's FleetModel), that is used.
+        cause, recv_ns)` hears of the others (the ground station passes its FleetModel's
+        `on_state_refused`).
         `ignore_id`: drop this vehicle's states unchecked (an agent's own, echoed back)."""
         key = (
             keys.all_states(self.fleet)
@@ -298,7 +299,7 @@ class Mesh:
         self,
         callback: StateCallback,
         cells: Iterable[keys.Cell] = (),
-        link: Any = None,
+        link: StateLink | None = None,
         *,
         on_refused: RefusedCallback | None = None,
         gate: GateConfig = GateConfig(),
@@ -320,7 +321,7 @@ class Mesh:
     def subscribe_feed(
         self,
         callback: FeedCallback,
-        link: Any = None,
+        link: StateLink | None = None,
         *,
         on_refused: RefusedCallback | None = None,
         gate: GateConfig = GateConfig(),
@@ -357,7 +358,7 @@ class Mesh:
     def _state_handler(
         self,
         callback: StateCallback,
-        link: Any,
+        link: StateLink | None,
         on_refused: RefusedCallback | None,
         gate: GateConfig,
         ignore_id: int | None,
@@ -394,7 +395,7 @@ class Mesh:
     def _admitter(
         self,
         callback: Callable[..., None],
-        link: Any,
+        link: StateLink | None,
         on_refused: RefusedCallback | None,
         gate: GateConfig,
         ignore_id: int | None,
@@ -403,8 +404,6 @@ class Mesh:
         """What every decoded state passes, whichever way it came (its own key or a feed entry):
         the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
         the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""
-        if on_refused is None:
-            on_refused = getattr(getattr(callback, "__self__", None), "on_state_refused", None)
         if worth_checking is not None:
             worth_checking = self._counted(worth_checking)
         checker = (
@@ -420,7 +419,7 @@ class Mesh:
                 verdict = checker.admit_state(state, recv_ns)
                 if verdict is SKIPPED:
                     return
-                if verdict is not None:
+                if isinstance(verdict, Refusal):
                     self.stats.bump("states_refused")
                     if on_refused is not None:
                         _guarded(on_refused, state.vehicle_id, verdict.value, recv_ns)
@@ -447,7 +446,7 @@ class Mesh:
         return counted
 
     # -- events ----------------------------------------------------------------------------
-    def publish_event(self, event: Event, *, auth: Any = None) -> None:
+    def publish_event(self, event: Event, *, auth: MemberAuth | None = None) -> None:
         """Publish `event`, signed with `auth` (its vehicle's own FleetAuth when one process
         hosts several vehicles; default the mesh's)."""
         auth = auth if auth is not None else self.auth
@@ -455,7 +454,9 @@ class Mesh:
             event = auth.sign_event(event)
         self.session.put(keys.event(self.fleet, event.vehicle_id or 1), event.encode())
 
-    def event(self, vehicle_id: int, text: str, *, auth: Any = None, **kw: Any) -> None:
+    def event(
+        self, vehicle_id: int, text: str, *, auth: MemberAuth | None = None, **kw: Any
+    ) -> None:
         event = Event(vehicle_id=vehicle_id, stamp_ns=self.clock_ns(), text=text, **kw)
         self.publish_event(event, auth=auth)
 
@@ -522,7 +523,7 @@ class Mesh:
         vehicle_id: int,
         handler: CommandHandler,
         *,
-        auth: Any = None,
+        auth: MemberAuth | None = None,
         polled: bool = False,
         on_mission: MissionHandler | None = None,
     ) -> Any:
@@ -567,30 +568,33 @@ class Mesh:
                     self._answer(query, reply_key, ack_key, answer, payload, auth)
                     return
                 self.stats.bump("commands_served")
-                check = (
-                    None
-                    if auth is None
-                    else auth.check_mission
-                    if is_mission
-                    else auth.check_command
-                )
-                problem = check(command, vehicle_id) if check is not None else None
+                if auth is None:
+                    problem = None
+                elif isinstance(command, Mission):
+                    problem = auth.check_mission(command, vehicle_id)
+                else:
+                    problem = auth.check_command(command, vehicle_id)
                 if problem:
                     answer = ack(command.nonce, AckResult.REJECTED, problem)
-                elif is_mission and on_mission is None:
-                    answer = ack(
-                        command.nonce, AckResult.REJECTED, "this vehicle does not fly missions"
-                    )
                 else:
                     try:
-                        answer = on_mission(command) if is_mission else handler(command)
+                        if isinstance(command, Command):
+                            answer = handler(command)
+                        elif on_mission is not None:
+                            answer = on_mission(command)
+                        else:
+                            answer = ack(
+                                command.nonce,
+                                AckResult.REJECTED,
+                                "this vehicle does not fly missions",
+                            )
                     except Exception as exc:  # noqa: BLE001 - a handler bug must not kill the agent
                         log.exception("command handler failed")
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
             self._answer(query, reply_key, ack_key, answer, payload, auth)
 
         if polled:
-            ring = zenoh.handlers.RingChannel(COMMAND_RING)
+            ring: zenoh.handlers.RingChannel[zenoh.Query] = zenoh.handlers.RingChannel(COMMAND_RING)
             return PolledCommands(
                 self._keep(self.session.declare_queryable(reply_key, ring)), on_query
             )
@@ -603,7 +607,7 @@ class Mesh:
         ack_key: str,
         answer: CommandAck,
         command_payload: bytes,
-        auth: Any,
+        auth: MemberAuth | None,
     ) -> None:
         if auth is not None:
             answer = auth.sign_ack(answer, command_digest(command_payload))
@@ -668,10 +672,10 @@ class Mesh:
         if not 0.0 < timeout_s <= 60.0:
             raise ValueError(f"timeout_s={timeout_s} must be within (0, 60]")
         if self.auth is not None:
-            sign = (
-                self.auth.sign_mission if isinstance(command, Mission) else self.auth.sign_command
-            )
-            command = sign(command)
+            if isinstance(command, Mission):
+                command = self.auth.sign_mission(command)
+            else:
+                command = self.auth.sign_command(command)
         payload = command.encode()
         digest = command_digest(payload)
         expected = set(command.targets if expect is None else expect)
@@ -806,8 +810,11 @@ class CellSubscription:
 
 
 def _err_text(reply: zenoh.Reply) -> str:
+    err = reply.err
+    if err is None:
+        return "error reply"
     try:
-        return reply.err.payload.to_string()
+        return err.payload.to_string()
     except Exception:  # noqa: BLE001
         return "error reply"
 

@@ -4,7 +4,7 @@ never go (keep-out polygons) and where it may come down (home and rally points).
 Plain geometry in local north/east metres relative to the fleet origin (comms/geo.py converts
 WGS-84), altitudes in metres above the origin (up positive; NED down is ``-alt_m``). The agent's
 flight core, the route planner, the separation filter and the station all read this one type;
-the wire encoding and signature live in comms/schema.py and comms/auth.py, the file loaders in
+the wire encoding and signature live in comms/schema.py and trust/auth.py, the file loaders in
 comms/plan_io.py.
 
 ``plan_refusal`` is the one check "may a vehicle be sent here": the flight core refuses a goto or
@@ -14,6 +14,7 @@ take-off with its reason, missions and formations refuse their targets with it.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 MAX_POLYGON_VERTICES = 256
@@ -33,11 +34,11 @@ PolygonNE = tuple[tuple[float, float], ...]
 """A polygon as (north_m, east_m) vertices, not closed (the last vertex is not the first)."""
 
 
-def _polygon(vertices_ne_m: object, what: str) -> PolygonNE:
+def _polygon(vertices_ne_m: Iterable[tuple[float, float]], what: str) -> PolygonNE:
     """`vertices_ne_m` as a tuple of (float, float), checked: 3..MAX_POLYGON_VERTICES finite
     vertices within MAX_COORD_M of the origin."""
     try:
-        out = tuple((float(n), float(e)) for n, e in vertices_ne_m)  # type: ignore[union-attr]
+        out = tuple((float(n), float(e)) for n, e in vertices_ne_m)
     except (TypeError, ValueError):
         raise ValueError(f"{what} needs (north_m, east_m) vertex pairs") from None
     _check_polygon(out, what)
@@ -151,7 +152,7 @@ class FleetPlan:
     signer_id: int = 0
     """Who signed it: 0 the fleet authority, N ground station N of the roster."""
     signature: bytes = field(default=b"", repr=False)
-    """Ed25519 signature over the wire encoding (comms/schema.py PlanMessage, comms/auth.py);
+    """Ed25519 signature over the wire encoding (comms/schema.py PlanMessage, trust/auth.py);
     empty while unsigned."""
 
     def __post_init__(self) -> None:

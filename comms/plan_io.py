@@ -29,15 +29,15 @@ from shapely.validation import explain_validity
 
 from comms.geo import GeoOrigin
 from comms.plan import Fence, FleetPlan, RallyPoint, Zone
-from comms.safe_load import BadFileError, decode_utf8, parse_json, read_bounded
 from comms.schema import MAX_PLAN_BYTES, DecodeError, PlanMessage
+from kit.safe_load import BadFileError, decode_utf8, parse_json, read_bounded
 
 MAX_PLAN_FILE_BYTES = 4_000_000
 """The largest GeoJSON or QGC plan file read (a few hundred vertices take a few KB)."""
 CIRCLE_VERTICES = 32
 """A QGC fence circle becomes a polygon of this many vertices."""
 PLAN_FILE = "plan.bin"
-"""The signed plan `covey plan load` writes next to the roster (comms/authority.py)."""
+"""The signed plan `covey plan load` writes next to the roster (trust/authority.py)."""
 
 
 class BadPlanError(ValueError):

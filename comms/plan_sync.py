@@ -1,7 +1,7 @@
 """Following the fleet plan on the mesh (`covey/<fleet>/plan`), exactly as the roster is followed.
 
 Every agent, multi-vehicle host and ground station runs one `PlanSync`: a `DocSync`
-(comms/roster_sync.py) over `PlanDoc`. A newer plan pushed there (`covey plan push`, the
+(trust/roster_sync.py) over `PlanDoc`. A newer plan pushed there (`covey plan push`, the
 station's plan panel) is applied at once; members answer `plan?have=<v>` only when they hold a
 newer one; a member pulls at start, on every new link and periodically, so a rebooted vehicle
 catches up from whoever holds the plan; a member that sees an older plan put re-publishes its
@@ -9,7 +9,7 @@ own. What arrives is checked cheapest first: size and header (`PlanMessage.peek`
 newer than the held plan -> dropped unverified, then the signature, then the polygons.
 
 Keyed mode: a plan is applied only if the fleet authority (signer 0) or a station of the current
-roster signed it (comms/auth.py `check_plan`). A plan a station signed before it was revoked
+roster signed it (trust/auth.py `check_plan`). A plan a station signed before it was revoked
 stays held by members that applied it; members that check it afterwards refuse it (push a plan
 signed by the authority or a current station). Open mode (no key): every well-formed plan is
 applied, as every command is; said once when the follower starts.
@@ -22,13 +22,11 @@ import random
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 import zenoh
 
 from comms import keys
-from comms.plan import FleetPlan
-from comms.roster_sync import (
+from comms.doc_sync import (
     Confirmation,
     DocSync,
     Offer,
@@ -36,6 +34,8 @@ from comms.roster_sync import (
     confirmations,
     publish_doc,
 )
+from comms.member import MemberAuth
+from comms.plan import FleetPlan
 from comms.schema import PlanHead, PlanMessage
 
 log = logging.getLogger(__name__)
@@ -47,12 +47,12 @@ fleet's plan refuses."""
 
 
 class PlanDoc:
-    """The fleet plan as a `SignedDoc` (comms/roster_sync.py): the plan this member holds."""
+    """The fleet plan as a `SignedDoc` (trust/roster_sync.py): the plan this member holds."""
 
     name = "plan"
 
-    def __init__(self, fleet: str, auth: Any, plan: FleetPlan | None = None) -> None:
-        """`auth`: this member's comms.auth.FleetAuth, or None (open mode). `plan`: the plan to
+    def __init__(self, fleet: str, auth: MemberAuth | None, plan: FleetPlan | None = None) -> None:
+        """`auth`: this member's trust.auth.FleetAuth, or None (open mode). `plan`: the plan to
         start from (e.g. read from a file), checked like one that arrives."""
         self.key = keys.plan(fleet)
         self.fleet = fleet
@@ -79,12 +79,12 @@ class PlanDoc:
         plan = self._plan
         return plan.version if plan is not None else 0
 
-    def genuine(self, head: PlanHead) -> str | None:  # type: ignore[override]
+    def genuine(self, head: PlanHead) -> str | None:
         if self.auth is None:
             return None
         return self.auth.check_plan(head.signer_id, head.signed, head.sig)
 
-    def apply(self, data: bytes, head: PlanHead) -> tuple[object, str | None]:  # type: ignore[override]
+    def apply(self, data: bytes, head: PlanHead) -> tuple[FleetPlan, str | None]:
         plan = PlanMessage.decode(data).plan
         with self._lock:
             held = self.held_version()
@@ -103,14 +103,14 @@ class PlanDoc:
         return self._bytes
 
 
-class PlanSync(DocSync):
+class PlanSync(DocSync[PlanHead, FleetPlan]):
     """One member's plan follower (see the module docstring); a context manager."""
 
     def __init__(
         self,
         session: zenoh.Session,
         fleet: str,
-        auth: Any,
+        auth: MemberAuth | None,
         cfg: RosterSyncConfig = RosterSyncConfig(),
         *,
         plan: FleetPlan | None = None,
@@ -119,7 +119,7 @@ class PlanSync(DocSync):
         mono_ns: Callable[[], int] = time.monotonic_ns,
         rng: random.Random | None = None,
     ) -> None:
-        """`auth`: comms.auth.FleetAuth or None (open mode). `plan`: a plan to start from.
+        """`auth`: trust.auth.FleetAuth or None (open mode). `plan`: a plan to start from.
         `on_plan(plan)`: after a newer plan was applied (on a Zenoh or the sync thread)."""
         self.plan_doc = PlanDoc(fleet, auth, plan)
         if auth is None:

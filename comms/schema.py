@@ -64,7 +64,7 @@ Layouts (all little-endian, packed; `<` struct codes):
         lat_deg/lon_deg), alt_m (up: above the origin for LOCAL, AMSL for GLOBAL), speed_m_s
         (0: cruise), hold_s), tag (Ed25519 of station source_id, as a Command's)
 
-Signatures are made and checked in comms/auth.py; this module only carries their bytes.
+Signatures are made and checked in trust/auth.py; this module only carries their bytes.
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ import enum
 import math
 import struct
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, TypeVar
 
 from comms.plan import (
     MAX_NAME_BYTES,
@@ -144,7 +144,7 @@ class MsgType(enum.IntEnum):
 
 
 class Role(enum.IntEnum):
-    """What a fleet member's key may do (comms/auth.py enforces it)."""
+    """What a fleet member's key may do (trust/auth.py enforces it)."""
 
     VEHICLE = 1
     """Signs its own states, events and acks; can never command."""
@@ -251,7 +251,10 @@ def _check_range(name: str, value: float, lo: float, hi: float) -> None:
         raise DecodeError(f"{name}={value} is outside [{lo}, {hi}]")
 
 
-def _enum(cls: type[enum.IntEnum], name: str, value: int) -> enum.IntEnum:
+_E = TypeVar("_E", bound=enum.IntEnum)
+
+
+def _enum(cls: type[_E], name: str, value: int) -> _E:
     try:
         return cls(value)
     except ValueError:
@@ -316,7 +319,7 @@ class VehicleState:
     goal_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Where guidance is flying to; meaningful only with StateFlag.HAS_GOAL."""
     sig: bytes = b""
-    """Ed25519 signature of the vehicle over `signed_bytes()` (comms/auth.py); empty: unsigned."""
+    """Ed25519 signature of the vehicle over `signed_bytes()` (trust/auth.py); empty: unsigned."""
     mission_item: int = 0
     """The mission item being flown, from 1 (agent/mission.py); 0: none (no mission, not
     started, aborted); mission_items + 1: the mission is done."""
@@ -476,23 +479,23 @@ class Command:
     seq: int = 0
     tag: bytes = bytes(TAG_BYTES)
     """Ed25519 signature of station `source_id` over every byte before it (and the fleet name);
-    zeros in open mode (comms/auth.py)."""
+    zeros in open mode (trust/auth.py)."""
 
     TYPE: ClassVar[MsgType] = MsgType.COMMAND
     VERSION: ClassVar[int] = SIGNED_SCHEMA_VERSION
     _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBQQHB3dIH")
 
     @staticmethod
-    def takeoff(alt_m: float, **kw: object) -> Command:
-        return Command(kind=CommandKind.TAKEOFF, params=(alt_m, 0.0, 0.0), **kw)  # type: ignore[arg-type]
+    def takeoff(alt_m: float, **kw: Any) -> Command:
+        return Command(kind=CommandKind.TAKEOFF, params=(alt_m, 0.0, 0.0), **kw)
 
     @staticmethod
-    def goto_local(n_m: float, e_m: float, d_m: float, **kw: object) -> Command:
-        return Command(kind=CommandKind.GOTO_LOCAL, params=(n_m, e_m, d_m), **kw)  # type: ignore[arg-type]
+    def goto_local(n_m: float, e_m: float, d_m: float, **kw: Any) -> Command:
+        return Command(kind=CommandKind.GOTO_LOCAL, params=(n_m, e_m, d_m), **kw)
 
     @staticmethod
-    def goto_global(lat_deg: float, lon_deg: float, alt_m: float, **kw: object) -> Command:
-        return Command(kind=CommandKind.GOTO_GLOBAL, params=(lat_deg, lon_deg, alt_m), **kw)  # type: ignore[arg-type]
+    def goto_global(lat_deg: float, lon_deg: float, alt_m: float, **kw: Any) -> Command:
+        return Command(kind=CommandKind.GOTO_GLOBAL, params=(lat_deg, lon_deg, alt_m), **kw)
 
     def applies_to(self, vehicle_id: int) -> bool:
         return not self.targets or vehicle_id in self.targets
@@ -517,7 +520,7 @@ class Command:
         kind = CommandKind(self.kind)
         if kind is CommandKind.TAKEOFF:
             _check_range("takeoff alt_m", p0, *TAKEOFF_ALT_RANGE_M)
-            unused = (p1, p2)
+            unused: tuple[float, ...] = (p1, p2)
         elif kind is CommandKind.GOTO_LOCAL:
             _check_range("goto north_m", p0, -LOCAL_HORIZONTAL_LIMIT_M, LOCAL_HORIZONTAL_LIMIT_M)
             _check_range("goto east_m", p1, -LOCAL_HORIZONTAL_LIMIT_M, LOCAL_HORIZONTAL_LIMIT_M)
@@ -592,7 +595,7 @@ class CommandAck:
     """The vehicle's mode after handling the command."""
     tag: bytes = bytes(TAG_BYTES)
     """Ed25519 signature of `vehicle_id` over `signed_bytes()` and the answered command's
-    SHA-256 (comms/auth.py): an ack cannot be replayed as the answer to another command."""
+    SHA-256 (trust/auth.py): an ack cannot be replayed as the answer to another command."""
 
     TYPE: ClassVar[MsgType] = MsgType.COMMAND_ACK
     VERSION: ClassVar[int] = SIGNED_SCHEMA_VERSION
@@ -762,7 +765,7 @@ class GuidanceTrace:
     decided: bool = True
     """The policy decided in this tick (False: guidance held its last decision)."""
     sig: bytes = b""
-    """Ed25519 signature of the vehicle over `signed_bytes()` (comms/auth.py); empty: unsigned."""
+    """Ed25519 signature of the vehicle over `signed_bytes()` (trust/auth.py); empty: unsigned."""
 
     TYPE: ClassVar[MsgType] = MsgType.GUIDANCE_TRACE
     _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBHIQd3dBH")
@@ -978,7 +981,7 @@ class FeedBatch:
 
 @dataclass(frozen=True)
 class StationHeartbeat:
-    """A ground station's sign of life, a few times a second (comms/heartbeat.py). Signed by the
+    """A ground station's sign of life, a few times a second (trust/heartbeat.py). Signed by the
     station in keyed mode: the station-lost failsafe trusts only these, never a liveliness token,
     and members estimate their clock's offset to the stations from `stamp_ns`."""
 
@@ -988,7 +991,7 @@ class StationHeartbeat:
     stamp_ns: int
     """The station's wall clock when it sent this heartbeat."""
     sig: bytes = b""
-    """Ed25519 signature of station `gcs_id` over `signed_bytes()` (comms/auth.py); empty:
+    """Ed25519 signature of station `gcs_id` over `signed_bytes()` (trust/auth.py); empty:
     unsigned (open mode)."""
 
     TYPE: ClassVar[MsgType] = MsgType.STATION_HEARTBEAT
@@ -1145,7 +1148,7 @@ class TrafficReport:
 @dataclass(frozen=True)
 class ClockReport:
     """A vehicle's clock offset to a station, as its agent estimates it from the station's
-    signed heartbeats (comms/heartbeat.py). It travels as a signed Event of kind CLOCK whose
+    signed heartbeats (trust/heartbeat.py). It travels as a signed Event of kind CLOCK whose
     text is `clock <+s.s> s against station <id>` (` ok` appended once it is back within the
     limit), so that the ground station can show the offset as a health problem."""
 
@@ -1204,7 +1207,7 @@ class Member:
 @dataclass(frozen=True)
 class Roster:
     """The fleet's members, signed by the fleet authority. A higher `version` replaces a lower
-    one on every member (comms/auth.py); a member left out is revoked."""
+    one on every member (trust/auth.py); a member left out is revoked."""
 
     fleet: str
     version: int
@@ -1298,7 +1301,7 @@ class Roster:
         members = []
         for i in range(n):
             role, mid, key = cls._MEMBER.unpack_from(data, cls._HEAD.size + i * cls._MEMBER.size)
-            members.append(Member(_enum(Role, "role", role), mid, key))  # type: ignore[arg-type]
+            members.append(Member(_enum(Role, "role", role), mid, key))
         msg = cls(
             fleet=_text_field(fleet_raw, "fleet"),
             version=version,
@@ -1416,7 +1419,7 @@ class MissionItem:
 @dataclass(frozen=True)
 class Mission:
     """A route for one vehicle, several, or the fleet: uploaded like a command (one query,
-    `Mesh.send_command`), signed like one by a roster station (comms/auth.py `sign_mission`),
+    `Mesh.send_command`), signed like one by a roster station (trust/auth.py `sign_mission`),
     answered by each vehicle with a CommandAck that says why when it is refused."""
 
     nonce: int
@@ -1514,8 +1517,8 @@ class Mission:
             g = MissionItem._FMT.unpack_from(data, at + k * MissionItem._FMT.size)
             items.append(
                 MissionItem(
-                    _enum(MissionItemKind, f"mission item {k + 1} kind", g[0]),  # type: ignore[arg-type]
-                    _enum(MissionFrame, f"mission item {k + 1} frame", g[1]),  # type: ignore[arg-type]
+                    _enum(MissionItemKind, f"mission item {k + 1} kind", g[0]),
+                    _enum(MissionFrame, f"mission item {k + 1} frame", g[1]),
                     *g[2:],
                 )
             )
@@ -1587,7 +1590,7 @@ def _check_fleet_name(fleet: str, what: str) -> None:
 @dataclass(frozen=True)
 class PlanMessage:
     """A fleet plan on the wire (comms/plan.py): signed by the fleet authority or a roster
-    station (comms/auth.py), followed like the roster (comms/plan_sync.py): a higher `version`
+    station (trust/auth.py), followed like the roster (comms/plan_sync.py): a higher `version`
     replaces a lower one on every member."""
 
     plan: FleetPlan
@@ -1749,7 +1752,7 @@ Message = (
     | Mission
     | PlanMessage
 )
-_DECODERS: dict[int, type] = {
+_DECODERS: dict[int, type[Message]] = {
     MsgType.VEHICLE_STATE: VehicleState,
     MsgType.COMMAND: Command,
     MsgType.COMMAND_ACK: CommandAck,

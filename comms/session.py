@@ -27,7 +27,7 @@ from typing import Literal
 
 import zenoh
 
-from comms.safe_load import BadFileError, check_depth, decode_utf8, read_bounded
+from kit.safe_load import BadFileError, check_depth, decode_utf8, read_bounded
 
 log = logging.getLogger(__name__)
 

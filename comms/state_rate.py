@@ -198,7 +198,7 @@ class StatePacer:
         self.calls += 1
         self.last_s[due] = now_s
         self.last_idle[due] = idle[due]
-        if track:
+        if track and pos_m is not None and vel_m_s is not None and heading_rad is not None:
             self.last_pos[due], self.last_vel[due] = pos_m[due], vel_m_s[due]
             self.last_hdg[due], self.last_sig[due] = heading_rad[due], sig[due]
         return due
@@ -206,6 +206,7 @@ class StatePacer:
     def _steady(self, now_s, pos_m, vel_m_s, heading_rad, sig) -> np.ndarray:
         """(N,) bool: rows whose last published state still predicts them (module docstring)."""
         cfg = self.steady
+        assert cfg is not None  # asked only with a SteadyConfig (`due`'s `track`)
         age_s = now_s - self.last_s
         known = np.isfinite(age_s) & (sig == self.last_sig)
         age_s = np.where(known, age_s, 0.0)

@@ -27,6 +27,7 @@ import numpy as np
 
 from comms import adsb, keys
 from comms.geo import GeoOrigin
+from comms.member import MemberAuth
 from comms.schema import (
     POSITION_LIMIT_M,
     SPEED_LIMIT_M_S,
@@ -42,7 +43,7 @@ log = logging.getLogger(__name__)
 TRAFFIC_ID_BASE = 1 << 32
 """A track's neighbour id is TRAFFIC_ID_BASE + its track id: never a covey vehicle's id."""
 SIGN_LABEL = "traffic"
-"""Domain label of a TrafficReport signature (comms/auth.py signs label, fleet and bytes)."""
+"""Domain label of a TrafficReport signature (trust/auth.py signs label, fleet and bytes)."""
 
 
 @dataclass(frozen=True)
@@ -103,8 +104,8 @@ class TrafficTrack:
             self.track_id,
             self.source,
             stamp_ns,
-            tuple(float(x) for x in self.pos_ned_m),
-            tuple(float(x) for x in self.vel_ned_m_s),
+            (float(self.pos_ned_m[0]), float(self.pos_ned_m[1]), float(self.pos_ned_m[2])),
+            (float(self.vel_ned_m_s[0]), float(self.vel_ned_m_s[1]), float(self.vel_ned_m_s[2])),
             self.emitter_type,
             TrafficFlag.MANNED if self.manned else TrafficFlag.NONE,
         )
@@ -305,7 +306,7 @@ class TrafficListener:
         self.close()
 
 
-def sign_report(auth: Any, report: TrafficReport) -> TrafficReport:
+def sign_report(auth: MemberAuth, report: TrafficReport) -> TrafficReport:
     """`report` signed by `auth` (its role and member id must be the reporter's)."""
     if auth.role is not report.reporter_role or auth.member_id != report.reporter_id:
         raise ValueError(

@@ -304,6 +304,7 @@ def runtime_reference(npz_path, c: Case):
     The safety filter is off: the C core implements the network policy alone.
     """
     from policy import features
+    from policy.observation import Observation
     from policy.runtime import GuidancePolicy
 
     pol = GuidancePolicy.load(
@@ -320,7 +321,7 @@ def runtime_reference(npz_path, c: Case):
     goal = np.array(c.goal, dtype=np.float64)
     vel = pol.command(pos, np.zeros(2), c.own[2], goal, nbr_pos, np.zeros_like(nbr_pos), nbr_h)
     s = pol.dist_scale_m
-    action = pol.action(pos / s, c.own[2], goal / s, nbr_pos / s, nbr_h)
+    action = pol.actor.action(Observation.at_rest(pos, c.own[2], goal, nbr_pos, nbr_h))
     _, _, idx = features.observe(
         pos / s, c.own[2], goal / s, nbr_pos / s, nbr_h, pol.obs_cfg, c.max_nbrs
     )

@@ -16,6 +16,7 @@ import numpy as np
 
 from firmware.csafety import MAX_INPUTS
 from policy import eval as policy_eval
+from policy.observation import Observation, Sky
 
 
 class COnboardFleet:
@@ -72,7 +73,7 @@ class COnboardFleet:
             if m.size > MAX_INPUTS:  # the C core takes 64 reports: keep the nearest, in order
                 d = ((nbr_pos[row, m] - pos[row]) ** 2).sum(-1)
                 m = np.sort(m[np.argsort(d, kind="stable")[:MAX_INPUTS]])
-            r = self._tick(vid).step(
+            obs = Observation.shaped(
                 pos[row],
                 vel[row],
                 heading[row],
@@ -80,11 +81,13 @@ class COnboardFleet:
                 nbr_pos[row, m],
                 nbr_vel[row, m],
                 nbr_heading[row, m],
-                t_s,
-                pos_sigma_m=0.0 if pos_sigma_m is None else float(pos_sigma_m[row]),
-                nbr_pos_sigma_m=None if nbr_pos_sigma_m is None else nbr_pos_sigma_m[row, m],
-                nbr_cooperative=None if nbr_cooperative is None else nbr_cooperative[row, m],
+                Sky(
+                    0.0 if pos_sigma_m is None else float(pos_sigma_m[row]),
+                    None if nbr_pos_sigma_m is None else nbr_pos_sigma_m[row, m],
+                    None if nbr_cooperative is None else nbr_cooperative[row, m],
+                ),
             )
+            r = self._tick(vid).step(obs, t_s)
             if r.status != "ok":
                 raise RuntimeError(
                     f"C guidance fault for vehicle {vid} at t={t_s:.2f} s: {r.status}"

@@ -209,6 +209,21 @@ covey_status_t covey_guidance_step_sky(const covey_guidance_config_t *cfg, covey
                                        uint64_t now_us, covey_guidance_scratch_t *scratch,
                                        covey_guidance_out_t *out)
 {
+    return covey_guidance_step_zones(cfg, hold, own, own_vel_m_s, own_pos_sigma_m, goal, nbrs,
+                                     nbr_vel_m_s, nbr_pos_sigma_m, nbr_non_cooperative, n_nbrs,
+                                     NULL, now_us, scratch, out);
+}
+
+covey_status_t covey_guidance_step_zones(const covey_guidance_config_t *cfg, covey_hold_t *hold,
+                                         const covey_vehicle_t *own, const float own_vel_m_s[2],
+                                         float own_pos_sigma_m, const covey_goal_t *goal,
+                                         const covey_vehicle_t *nbrs, const float *nbr_vel_m_s,
+                                         const float *nbr_pos_sigma_m,
+                                         const uint8_t *nbr_non_cooperative, int32_t n_nbrs,
+                                         const covey_zones_t *zones, uint64_t now_us,
+                                         covey_guidance_scratch_t *scratch,
+                                         covey_guidance_out_t *out)
+{
     if (out != NULL) {
         out->decided = 0;
         out->straight = 0;
@@ -285,7 +300,8 @@ covey_status_t covey_guidance_step_sky(const covey_guidance_config_t *cfg, covey
         t->vel_e_m_s = nbr_vel_m_s[2 * i + 1];
         t->id = 0u; /* the tick takes no ids yet: coincident neighbours are not untied here */
         t->pos_sigma_m = nbr_pos_sigma_m != NULL ? nbr_pos_sigma_m[i] : 0.0f;
-        t->non_cooperative = (nbr_non_cooperative != NULL && nbr_non_cooperative[i]) ? 1u : 0u;
+        /* the kind as given (COVEY_TRACK_*): a manned aircraft keeps its own berth */
+        t->non_cooperative = nbr_non_cooperative != NULL ? nbr_non_cooperative[i] : 0u;
     }
     const covey_track_t me = {own->pos_n_m,  own->pos_e_m, own_vel_m_s[0],
                               own_vel_m_s[1], 0u,           own_pos_sigma_m,
@@ -303,8 +319,9 @@ covey_status_t covey_guidance_step_sky(const covey_guidance_config_t *cfg, covey
         out->straight = sparse.straight;
     }
     const float pref[2] = {hold->vel_n_m_s, hold->vel_e_m_s};
-    st = covey_safety_filter(&cfg->safety, &me, pref, scratch->tracks, n_tracks, &scratch->safety,
-                             &out->filter);
+    /* zones NULL or empty: exactly covey_safety_filter */
+    st = covey_safety_filter_zones(&cfg->safety, zones, &me, pref, scratch->tracks, n_tracks,
+                                   &scratch->safety, &out->filter);
     if (st != COVEY_OK) {
         return fail(hold, out, st);
     }

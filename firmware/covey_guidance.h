@@ -13,6 +13,7 @@
 #define COVEY_GUIDANCE_H
 
 #include "covey_safety.h"
+#include "covey_zones.h"
 
 #ifdef __cplusplus
 extern "C" {
@@ -136,9 +137,11 @@ covey_status_t covey_guidance_step(const covey_guidance_config_t *cfg, covey_hol
 /*
  * covey_guidance_step with what the filter needs of real vehicles: own_pos_sigma_m, the own
  * position estimate's 1-sigma (metres, per axis), and per neighbour nbr_pos_sigma_m (n_nbrs,
- * or NULL: all 0) and nbr_non_cooperative (n_nbrs, 1 = does not avoid; NULL: all cooperative),
- * as covey_track_t carries them (covey_safety.h). covey_guidance_step is this with 0, NULL,
- * NULL. Checked by covey_safety_filter (non-finite, then [0, COVEY_SAFETY_MAX_SIGMA_M]).
+ * or NULL: all 0) and nbr_non_cooperative (n_nbrs, the kind of each as covey_track_t carries it
+ * (covey_safety.h): COVEY_TRACK_COOPERATIVE 0, COVEY_TRACK_TRAFFIC 1 (does not avoid),
+ * COVEY_TRACK_MANNED 2 (does not avoid, kept manned_radius_m from; covey_traffic_kinds fills
+ * this from the traffic table); NULL: all cooperative). covey_guidance_step is this with 0,
+ * NULL, NULL. Checked by covey_safety_filter (non-finite, then [0, COVEY_SAFETY_MAX_SIGMA_M]).
  */
 covey_status_t covey_guidance_step_sky(const covey_guidance_config_t *cfg, covey_hold_t *hold,
                                        const covey_vehicle_t *own, const float own_vel_m_s[2],
@@ -148,6 +151,22 @@ covey_status_t covey_guidance_step_sky(const covey_guidance_config_t *cfg, covey
                                        const uint8_t *nbr_non_cooperative, int32_t n_nbrs,
                                        uint64_t now_us, covey_guidance_scratch_t *scratch,
                                        covey_guidance_out_t *out);
+
+/*
+ * covey_guidance_step_sky with keep-out zones (covey_zones_init, or covey_fence_zones from the
+ * autopilot's geofence): the filter keeps every zone edge as a hard line (covey_zones.h), so
+ * neither the policy nor traffic takes the vehicle into a zone. NULL or no vertices: exactly
+ * covey_guidance_step_sky. The zones are not checked here (covey_zones_init did).
+ */
+covey_status_t covey_guidance_step_zones(const covey_guidance_config_t *cfg, covey_hold_t *hold,
+                                         const covey_vehicle_t *own, const float own_vel_m_s[2],
+                                         float own_pos_sigma_m, const covey_goal_t *goal,
+                                         const covey_vehicle_t *nbrs, const float *nbr_vel_m_s,
+                                         const float *nbr_pos_sigma_m,
+                                         const uint8_t *nbr_non_cooperative, int32_t n_nbrs,
+                                         const covey_zones_t *zones, uint64_t now_us,
+                                         covey_guidance_scratch_t *scratch,
+                                         covey_guidance_out_t *out);
 
 /* sizeof(covey_guidance_scratch_t), for bindings (ctypes). */
 uint32_t covey_guidance_scratch_bytes(void);

@@ -123,6 +123,19 @@ int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_ag
     return removed;
 }
 
+int32_t covey_traffic_kinds(const covey_traffic_t *t, uint8_t *kinds)
+{
+    if (t == NULL || kinds == NULL || t->n < 0 || t->n > COVEY_MAX_INPUTS) {
+        return 0;
+    }
+    for (int32_t i = 0; i < t->n; ++i) {
+        kinds[i] = (uint8_t)(!t->non_cooperative[i] ? COVEY_TRACK_COOPERATIVE
+                             : t->manned[i]        ? COVEY_TRACK_MANNED
+                                                   : COVEY_TRACK_TRAFFIC);
+    }
+    return t->n;
+}
+
 float covey_heading_for_goal(covey_heading_t *h, float pos_n_m, float pos_e_m,
                              const covey_goal_t *goal)
 {

@@ -84,6 +84,12 @@ covey_status_t covey_traffic_put_classified(covey_traffic_t *t, uint32_t id,
 /* Removes entries older than max_age_us (or stamped after now_us); returns how many. */
 int32_t covey_traffic_prune(covey_traffic_t *t, uint64_t now_us, uint64_t max_age_us);
 
+/* Each entry's kind as the filter takes it (covey_guidance_step_sky's nbr_non_cooperative,
+ * covey_track_t.non_cooperative): COVEY_TRACK_COOPERATIVE, COVEY_TRACK_TRAFFIC, or
+ * COVEY_TRACK_MANNED for a manned aircraft (kept manned_radius_m from). kinds holds
+ * COVEY_MAX_INPUTS; returns t->n (0 on NULL or a corrupt table). */
+int32_t covey_traffic_kinds(const covey_traffic_t *t, uint8_t *kinds);
+
 /* Heading state of the own vehicle. */
 typedef struct {
     float heading_rad;

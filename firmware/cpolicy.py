@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware import csafety, hostbuild
+from policy.observation import Observation, Sky
 
 MAX_NEIGHBOURS = 40
 """COVEY_MAX_NEIGHBOURS: most neighbours fed to the LSTM."""
@@ -34,19 +35,6 @@ STATUS_NAMES = {0: "ok", 1: "null", 2: "nonfinite", 3: "range", 4: "stale"}
 
 
 _Config = csafety.ConfigC
-
-
-class _Vehicle(ctypes.Structure):
-    _fields_ = [
-        ("pos_n_m", ctypes.c_float),
-        ("pos_e_m", ctypes.c_float),
-        ("heading_rad", ctypes.c_float),
-        ("stamp_us", ctypes.c_uint64),
-    ]
-
-
-class _Goal(ctypes.Structure):
-    _fields_ = [("pos_n_m", ctypes.c_float), ("pos_e_m", ctypes.c_float)]
 
 
 _Command = csafety.CommandC
@@ -76,12 +64,6 @@ class CPolicyResult:
     n_excess: int
 
 
-def _us(t_s: float) -> int:
-    if not np.isfinite(t_s) or t_s < 0:
-        raise ValueError(f"times must be finite and >= 0 s, got {t_s}")
-    return int(round(float(t_s) * 1e6))
-
-
 def load_library(npz_path=None) -> ctypes.CDLL:
     """Builds (if needed) and loads the core compiled against `npz_path`'s weights."""
     npz = Path(npz_path) if npz_path is not None else hostbuild.SHIPPED_NPZ
@@ -89,9 +71,9 @@ def load_library(npz_path=None) -> ctypes.CDLL:
     lib.covey_command.restype = ctypes.c_int
     lib.covey_command.argtypes = [
         ctypes.POINTER(_Config),
-        ctypes.POINTER(_Vehicle),
-        ctypes.POINTER(_Goal),
-        ctypes.POINTER(_Vehicle),
+        ctypes.c_void_p,  # covey_vehicle_t (csafety.VEHICLE_DTYPE)
+        ctypes.c_void_p,  # covey_goal_t: float[2]
+        ctypes.c_void_p,
         ctypes.c_int32,
         ctypes.c_uint64,
         ctypes.c_void_p,
@@ -151,8 +133,8 @@ class CPolicy:
         self._cfg = _Config(
             told_m,
             cruise_speed_m_s,
-            _us(max_neighbour_age_s),
-            _us(max_own_age_s),
+            csafety.micros(max_neighbour_age_s),
+            csafety.micros(max_own_age_s),
             max_neighbours,
         )
         self.separation_m = float(separation_m)
@@ -223,31 +205,27 @@ class CPolicy:
         """The C safety filter alone (world units); raises ValueError on a fault.
         Uncertainties and cooperative flags as `command` takes them; with zones, their edges
         are hard lines (covey_safety_filter_zones)."""
-        if self.zones is not None:
-            sky = {"pos_sigma_m": pos_sigma_m, "nbr_pos_sigma_m": nbr_pos_sigma_m}
-            r = self.zones.evaluate(
-                self.safety_cfg,
-                pos_m,
-                vel_m_s,
-                pref_vel_m_s,
-                nbr_pos_m,
-                nbr_vel_m_s,
-                nbr_cooperative=nbr_cooperative,
-                **sky,
-            )
-            if r.status != "ok":
-                raise ValueError(f"C safety filter fault: {r.status}")
-            return r.vel_m_s
-        return self._filter(
+        sky = {"pos_sigma_m": pos_sigma_m, "nbr_pos_sigma_m": nbr_pos_sigma_m}
+        r = self._filtered(
             pos_m,
             vel_m_s,
             pref_vel_m_s,
             nbr_pos_m,
             nbr_vel_m_s,
-            pos_sigma_m=pos_sigma_m,
-            nbr_pos_sigma_m=nbr_pos_sigma_m,
             nbr_cooperative=nbr_cooperative,
+            **sky,
         )
+        if r.status != "ok":
+            raise ValueError(f"C safety filter fault: {r.status}")
+        return r.vel_m_s
+
+    def _filtered(self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, **sky):
+        """One C filter call (with zones: covey_safety_filter_zones); a csafety.FilterResult."""
+        if self.zones is not None:
+            return self.zones.evaluate(
+                self.safety_cfg, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, **sky
+            )
+        return self._filter.evaluate(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, **sky)
 
     def onboard(self, decision_period_s: float | None = None) -> csafety.COnboard:
         """One vehicle's guidance tick (covey_guidance_step) with its own hold state;
@@ -259,46 +237,24 @@ class CPolicy:
 
     def evaluate(
         self,
-        pos_m,
-        heading_rad,
-        goal_m,
-        nbr_pos_m,
-        nbr_heading_rad,
+        obs: Observation,
         now_s=None,
         stamp_s=None,
         nbr_stamp_s=None,
         cfg: _Config | None = None,
     ) -> CPolicyResult:
-        """One call of covey_command; faults come back in `status`, never raised."""
-        nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
-        k = nbr_pos.shape[0]
-        nbr_h = np.asarray(nbr_heading_rad, dtype=np.float64).reshape(-1)
-        if nbr_h.shape[0] != k:
-            raise ValueError(f"nbr_heading_rad has {nbr_h.shape[0]} entries for {k} neighbours")
-        if k > MAX_INPUTS:
-            raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbour reports, got {k}")
-        now_us = _us(now_s) if now_s is not None else 0
-        own_us = _us(stamp_s) if stamp_s is not None else now_us
-        nbr_us = (
-            np.full(k, now_us, dtype=np.int64)
-            if nbr_stamp_s is None
-            else [_us(t) for t in np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)]
-        )
-        if len(nbr_us) != k:
-            raise ValueError(f"nbr_stamp_s has {len(nbr_us)} entries for {k} neighbours")
-        pos = np.asarray(pos_m, dtype=np.float64).reshape(2)
-        goal = np.asarray(goal_m, dtype=np.float64).reshape(2)
-        own = _Vehicle(pos[0], pos[1], float(heading_rad), own_us)
-        nbrs = (_Vehicle * max(k, 1))()
-        for i in range(k):
-            nbrs[i] = _Vehicle(nbr_pos[i, 0], nbr_pos[i, 1], nbr_h[i], int(nbr_us[i]))
+        """One call of covey_command on `obs` (Observation.shaped: the core checks the
+        values); faults come back in `status`, never raised."""
+        now_us = csafety.micros(now_s) if now_s is not None else 0
+        own, nbrs = csafety.vehicles(obs, now_us, stamp_s, nbr_stamp_s)
+        goal = np.asarray(obs.goal_m, dtype=np.float32)
         out = _Command()
         st = self._lib.covey_command(
             ctypes.byref(cfg or self._cfg),
-            ctypes.byref(own),
-            ctypes.byref(_Goal(goal[0], goal[1])),
-            nbrs,
-            k,
+            own.ctypes.data,
+            goal.ctypes.data,
+            nbrs.ctypes.data,
+            obs.nbr_pos_m.shape[0],
             now_us,
             self._scratch,
             ctypes.byref(out),
@@ -335,9 +291,11 @@ class CPolicy:
         For the decision hold, hold `preferred` and `filter` it every tick (`onboard()` does).
         pos_sigma_m, nbr_pos_sigma_m (K,) and nbr_cooperative (K,): as
         GuidancePolicy.command takes them (the C filter's covey_track_t fields)."""
-        args = (pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
-        sky = _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_pos_m)
-        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=True, sky=sky)
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)  # as GuidancePolicy
+        obs = Observation.shaped(
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
+        )
+        return self._command(obs, now_s, stamp_s, nbr_stamp_s, filtered=True)
 
     def preferred(
         self,
@@ -357,74 +315,48 @@ class CPolicy:
     ) -> np.ndarray:
         """GuidancePolicy.preferred in C: the velocity to hold for one decision period (the
         network's, or the sparse rule's straight line), not yet filtered."""
-        args = (pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
-        sky = _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_pos_m)
-        return self._command(*args, now_s, stamp_s, nbr_stamp_s, filtered=False, sky=sky)
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)  # as GuidancePolicy
+        obs = Observation.shaped(
+            pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
+        )
+        return self._command(obs, now_s, stamp_s, nbr_stamp_s, filtered=False)
 
-    def _command(
-        self,
-        pos_m,
-        vel_m_s,
-        heading_rad,
-        goal_m,
-        nbr_pos_m,
-        nbr_vel_m_s,
-        nbr_heading_rad,
-        now_s,
-        stamp_s,
-        nbr_stamp_s,
-        filtered: bool,
-        sky: dict,
-    ) -> np.ndarray:
+    def _command(self, obs: Observation, now_s, stamp_s, nbr_stamp_s, filtered: bool):
         if self.router is not None:
             try:
-                goal_m = self.router.next_waypoint(pos_m, goal_m)
+                obs = obs.with_goal(self.router.next_waypoint(obs.pos_m, obs.goal_m))
             except (TypeError, ValueError):
-                pass  # evaluate names the bad input
-        r = self.evaluate(
-            pos_m, heading_rad, goal_m, nbr_pos_m, nbr_heading_rad, now_s, stamp_s, nbr_stamp_s
-        )
+                pass  # the core names the bad input
+        r = self.evaluate(obs, now_s, stamp_s, nbr_stamp_s)
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
-        nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
         if not self.safety_filter or (
-            nbr_pos.shape[0] == 0 and not self.sparse_rule and self.zones is None
+            obs.nbr_pos_m.shape[0] == 0 and not self.sparse_rule and self.zones is None
         ):
             return r.vel_m_s
-        nbr_vel = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
         if nbr_stamp_s is not None and now_s is not None:
             age_s = now_s - np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
-            fresh = age_s * 1e6 <= self._cfg.max_neighbour_age_us
-            nbr_pos, nbr_vel = nbr_pos[fresh], nbr_vel[fresh]
-            for key in ("nbr_pos_sigma_m", "nbr_cooperative"):
-                if sky[key] is not None:
-                    sky[key] = sky[key][fresh]
+            obs = obs.neighbours(age_s * 1e6 <= self._cfg.max_neighbour_age_us)
         v = r.vel_m_s
+        tracks = (obs.pos_m, obs.vel_m_s)
+        nbrs = (obs.nbr_pos_m, obs.nbr_vel_m_s)
+        sky = obs.sky.kwargs()
         if self.sparse_rule:
-            sp = self._filter.sparse(pos_m, vel_m_s, goal_m, v, nbr_pos, nbr_vel, **sky)
+            sp = self._filter.sparse(*tracks, obs.goal_m, v, *nbrs, **sky)
             if sp.status != "ok":
                 raise CPolicyError(STATUS_NAMES_INV[sp.status])
             v = sp.vel_m_s
         if not filtered:
             return v
-        if self.zones is not None:
-            f = self.zones.evaluate(self.safety_cfg, pos_m, vel_m_s, v, nbr_pos, nbr_vel, **sky)
-        else:
-            f = self._filter.evaluate(pos_m, vel_m_s, v, nbr_pos, nbr_vel, **sky)
+        f = self._filtered(*tracks, v, *nbrs, **sky)
         if f.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[f.status])
         return f.vel_m_s
 
-    def action(self, pos, heading_rad, goal, nbr_pos, nbr_heading_rad) -> np.ndarray:
-        """Clipped network action (fwd, right); inputs in policy units, like GuidancePolicy."""
-        cfg = _Config(
-            3.0,
-            1.0,
-            self._cfg.max_neighbour_age_us,
-            self._cfg.max_own_age_us,
-            self._cfg.max_neighbours,
-        )
-        r = self.evaluate(pos, heading_rad, goal, nbr_pos, nbr_heading_rad, cfg=cfg)
+    def action(self, obs: Observation) -> np.ndarray:
+        """Clipped network action (fwd, right) of `obs` in metres, as
+        GuidancePolicy.actor.action (policy.actor) takes it; raises CPolicyError on a fault."""
+        r = self.evaluate(obs)
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
         return r.action
@@ -444,12 +376,3 @@ class CPolicy:
 
 
 STATUS_NAMES_INV = {v: k for k, v in STATUS_NAMES.items()}
-
-
-def _sky(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_pos_m) -> dict:
-    """The filter's real-vehicle inputs, checked as GuidancePolicy.command checks them
-    (a ValueError naming the bad one); the C core checks them again."""
-    from policy.runtime import _sky as checked  # numpy only: one set of checks
-
-    k = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2).shape[0]
-    return checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k)

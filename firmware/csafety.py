@@ -4,7 +4,7 @@
     v_m_s = filt(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s)
 
     tick = COnboard(lib, policy_cfg, safety_cfg, decision_period_s=1.0)
-    r = tick.step(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, now_s)
+    r = tick.step(obs, now_s)       # obs: policy.observation.Observation.shaped(...)
 
 `firmware.cpolicy.CPolicy` builds these from its library; the structures mirror the headers
 field for field. Arrays cross as numpy structured arrays (no per-neighbour Python loop).
@@ -16,6 +16,8 @@ import ctypes
 from dataclasses import dataclass
 
 import numpy as np
+
+from policy.observation import Observation
 
 STATUS_NAMES = {0: "ok", 1: "null", 2: "nonfinite", 3: "range", 4: "stale"}
 MAX_INPUTS = 64
@@ -236,11 +238,65 @@ def bind(lib: ctypes.CDLL) -> None:
         vp,
         vp,
     ]
+    lib.covey_guidance_step_zones.restype = ctypes.c_int
+    lib.covey_guidance_step_zones.argtypes = [
+        *lib.covey_guidance_step_sky.argtypes[:11],
+        vp,
+        ctypes.c_uint64,
+        vp,
+        vp,
+    ]
 
 
-def _tracks(
-    pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None, manned=None
-) -> np.ndarray:
+def micros(t_s: float) -> int:
+    """Seconds as the core's microseconds; a ValueError unless finite and >= 0."""
+    if not np.isfinite(t_s) or t_s < 0:
+        raise ValueError(f"times must be finite and >= 0 s, got {t_s}")
+    return int(round(float(t_s) * 1e6))
+
+
+def vehicles(
+    obs: Observation, now_us: int, stamp_s=None, nbr_stamp_s=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """covey_vehicle_t arrays of the own state (1,) and the K neighbours (at least one row);
+    stamps default to now (fresh)."""
+    k = obs.nbr_pos_m.shape[0]
+    if k > MAX_INPUTS:
+        raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbour reports, got {k}")
+    own = np.zeros(1, VEHICLE_DTYPE)
+    own["pos_n_m"], own["pos_e_m"] = obs.pos_m[0], obs.pos_m[1]
+    own["heading_rad"] = obs.heading_rad
+    own["stamp_us"] = now_us if stamp_s is None else micros(stamp_s)
+    nb = np.zeros(max(k, 1), VEHICLE_DTYPE)
+    nb["pos_n_m"][:k], nb["pos_e_m"][:k] = obs.nbr_pos_m[:, 0], obs.nbr_pos_m[:, 1]
+    nb["heading_rad"][:k] = obs.nbr_heading_rad
+    if nbr_stamp_s is None:
+        nb["stamp_us"][:k] = now_us
+    else:
+        t = np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
+        if t.shape[0] != k:
+            raise ValueError(f"nbr_stamp_s has {t.shape[0]} entries for {k} neighbours")
+        if not (np.isfinite(t).all() and (t >= 0).all()):
+            raise ValueError(f"times must be finite and >= 0 s, got {t}")
+        nb["stamp_us"][:k] = np.round(t * 1e6).astype(np.uint64)
+    return own, nb
+
+
+def own_track(pos_m, vel_m_s, own_id=0, pos_sigma_m: float = 0.0) -> TrackC:
+    """The own covey_track_t."""
+    p = np.asarray(pos_m, dtype=np.float64).reshape(2)
+    v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
+    return TrackC(p[0], p[1], v[0], v[1], int(own_id), float(pos_sigma_m), 0)
+
+
+def pair_c(xy) -> ctypes.Array:
+    """A (2,) vector as float[2]."""
+    return (ctypes.c_float * 2)(*np.asarray(xy, dtype=np.float64).reshape(2))
+
+
+def tracks(pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None, manned=None) -> np.ndarray:
+    """covey_track_t array of the neighbours (ids, 1-sigma, cooperative and manned flags as
+    policy.safety.pair_radius_m takes them; None: 0, exact, all cooperative, none manned)."""
     pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
     vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
     if vel.shape != pos.shape:
@@ -276,6 +332,16 @@ class FilterResult:
     """The (speed-clipped) preference broke a half-plane."""
     infeasible: bool
     """No velocity met every half-plane; the worst violation was minimised."""
+
+    @classmethod
+    def of(cls, status: int, out: SafetyOutC) -> FilterResult:
+        return cls(
+            STATUS_NAMES.get(status, str(status)),
+            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
+            out.n_lines,
+            bool(out.changed),
+            bool(out.infeasible),
+        )
 
 
 @dataclass(frozen=True)
@@ -315,28 +381,18 @@ class CSafetyFilter:
         """One call; faults come back in `status`, never raised. Ids (0: unknown) untie
         coincident neighbours as policy.safety.untie does; position uncertainties,
         cooperative and manned flags as policy.safety.pair_radius_m takes them."""
-        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
-        v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
-        pref = (ctypes.c_float * 2)(*np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
+        t = tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
         out = SafetyOutC()
-        own = TrackC(p[0], p[1], v[0], v[1], int(own_id), float(pos_sigma_m), 0)
         st = self._lib.covey_safety_filter(
             ctypes.byref(self._ccfg),
-            ctypes.byref(own),
-            pref,
+            ctypes.byref(own_track(pos_m, vel_m_s, own_id, pos_sigma_m)),
+            pair_c(pref_vel_m_s),
             t.ctypes.data,
             t.shape[0],
             self._scratch,
             ctypes.byref(out),
         )
-        return FilterResult(
-            STATUS_NAMES.get(st, str(st)),
-            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
-            out.n_lines,
-            bool(out.changed),
-            bool(out.infeasible),
-        )
+        return FilterResult.of(st, out)
 
     def sparse(
         self,
@@ -352,17 +408,13 @@ class CSafetyFilter:
     ):
         """covey_sparse_choose with this filter's config (policy.sparse.choose_one's twin);
         faults come back in `status`, never raised."""
-        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
-        v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
-        goal = (ctypes.c_float * 2)(*np.asarray(goal_m, dtype=np.float64).reshape(2))
-        asked = (ctypes.c_float * 2)(*np.asarray(policy_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s, None, nbr_pos_sigma_m, nbr_cooperative)
+        t = tracks(nbr_pos_m, nbr_vel_m_s, None, nbr_pos_sigma_m, nbr_cooperative)
         out = SparseOutC()
         st = self._lib.covey_sparse_choose(
             ctypes.byref(self._ccfg),
-            ctypes.byref(TrackC(p[0], p[1], v[0], v[1], 0, float(pos_sigma_m), 0)),
-            goal,
-            asked,
+            ctypes.byref(own_track(pos_m, vel_m_s, 0, pos_sigma_m)),
+            pair_c(goal_m),
+            pair_c(policy_vel_m_s),
             t.ctypes.data,
             t.shape[0],
             self._scratch,
@@ -433,64 +485,50 @@ class COnboard:
 
     def step(
         self,
-        pos_m,
-        vel_m_s,
-        heading_rad,
-        goal_m,
-        nbr_pos_m,
-        nbr_vel_m_s,
-        nbr_heading_rad,
+        obs: Observation,
         now_s: float,
         stamp_s: float | None = None,
         nbr_stamp_s=None,
-        pos_sigma_m: float = 0.0,
-        nbr_pos_sigma_m=None,
-        nbr_cooperative=None,
+        nbr_kind=None,
+        zones=None,
     ) -> StepResult:
-        """One tick at `now_s` (stamps default to now: fresh); position uncertainties and
-        cooperative flags for the filter (covey_guidance_step_sky)."""
-        now_us = int(round(now_s * 1e6))
-        nbr_pos = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
-        k = nbr_pos.shape[0]
-        if k > MAX_INPUTS:
-            raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbours, got {k}")
-        nb = np.zeros(max(k, 1), VEHICLE_DTYPE)
-        nb["pos_n_m"][:k], nb["pos_e_m"][:k] = nbr_pos[:, 0], nbr_pos[:, 1]
-        nb["heading_rad"][:k] = np.asarray(nbr_heading_rad, dtype=np.float64).reshape(k)
-        nb["stamp_us"][:k] = (
-            now_us
-            if nbr_stamp_s is None
-            else np.round(np.asarray(nbr_stamp_s, dtype=np.float64) * 1e6).astype(np.uint64)
-        )
-        nv = np.ascontiguousarray(np.asarray(nbr_vel_m_s, dtype=np.float32).reshape(k, 2))
-        if k == 0:
-            nv = np.zeros((1, 2), np.float32)
-        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
-        own = np.zeros(1, VEHICLE_DTYPE)
-        own["pos_n_m"], own["pos_e_m"], own["heading_rad"] = p[0], p[1], float(heading_rad)
-        own["stamp_us"] = now_us if stamp_s is None else int(round(stamp_s * 1e6))
-        ov = (ctypes.c_float * 2)(*np.asarray(vel_m_s, dtype=np.float64).reshape(2))
-        goal = np.asarray(goal_m, dtype=np.float32).reshape(2)
+        """One tick at `now_s` (stamps default to now: fresh); obs.sky's uncertainties and
+        cooperative flags go to the filter. nbr_kind (K,) uint8: each neighbour's COVEY_TRACK_*
+        kind (0 covey, 1 traffic, 2 manned), in place of obs.sky's cooperative flags; zones:
+        keep-out zones (firmware.czones.CZones or firmware.cfence.CFence), through
+        covey_guidance_step_zones. Values are the core's to check: a bad one comes back as a
+        fault in `status`."""
+        now_us = micros(now_s)
+        own, nb = vehicles(obs, now_us, stamp_s, nbr_stamp_s)
+        k = obs.nbr_pos_m.shape[0]
+        nv = np.zeros((max(k, 1), 2), np.float32)
+        nv[:k] = obs.nbr_vel_m_s
+        goal = np.asarray(obs.goal_m, dtype=np.float32)
+        sky = obs.sky
         ns = nc = None
-        if nbr_pos_sigma_m is not None:
+        if sky.nbr_pos_sigma_m is not None:
             ns = np.zeros(max(k, 1), np.float32)
-            ns[:k] = np.broadcast_to(np.asarray(nbr_pos_sigma_m, np.float64), (k,))
-        if nbr_cooperative is not None:
+            ns[:k] = sky.nbr_pos_sigma_m
+        if sky.nbr_cooperative is not None:
             nc = np.zeros(max(k, 1), np.uint8)
-            nc[:k] = ~np.broadcast_to(np.asarray(nbr_cooperative, bool), (k,))
+            nc[:k] = ~np.asarray(sky.nbr_cooperative, bool)
+        if nbr_kind is not None:
+            nc = np.zeros(max(k, 1), np.uint8)
+            nc[:k] = np.broadcast_to(np.asarray(nbr_kind, np.uint8), (k,))
         out = self._out
-        st = self._lib.covey_guidance_step_sky(
+        st = self._lib.covey_guidance_step_zones(
             ctypes.addressof(self._cfg),
             ctypes.byref(self._hold),
             own.ctypes.data,
-            ov,
-            float(pos_sigma_m),
+            pair_c(obs.vel_m_s),
+            sky.pos_sigma_m,
             goal.ctypes.data,
             nb.ctypes.data,
             nv.ctypes.data,
             None if ns is None else ns.ctypes.data,
             None if nc is None else nc.ctypes.data,
             k,
+            None if zones is None else zones.ptr,
             now_us,
             self._scratch,
             ctypes.addressof(out),

@@ -19,7 +19,9 @@ from firmware.csafety import (
     SafetyConfigC,
     SafetyOutC,
     TrackC,
-    _tracks,
+    own_track,
+    pair_c,
+    tracks,
 )
 from policy.zone_lines import ZONE_TIME_HORIZON_S
 
@@ -108,14 +110,17 @@ class CZones:
         if st != 0:
             raise ValueError(f"C zones refused the polygons: {STATUS_NAMES.get(st, st)}")
 
+    @property
+    def ptr(self) -> int:
+        """The address of the prepared covey_zones_t (covey_guidance_step_zones takes it)."""
+        return ctypes.addressof(self._buf)
+
     def lines(self, pos_m, vel_m_s, max_speed_m_s: float, pad_m: float = 0.0) -> list:
         """covey_zones_lines: [((point_n, point_e), (dir_n, dir_e))], as ZoneSet.lines."""
-        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
-        v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
         out = (HalfplaneC * 32)()
         n = self._lib.covey_zones_lines(
             self._buf,
-            ctypes.byref(TrackC(p[0], p[1], v[0], v[1])),
+            ctypes.byref(own_track(pos_m, vel_m_s)),
             float(max_speed_m_s),
             float(pad_m),
             out,
@@ -138,29 +143,19 @@ class CZones:
     ) -> FilterResult:
         """covey_safety_filter_zones, as CSafetyFilter.evaluate takes its inputs; faults come
         back in `status`, never raised."""
-        p = np.asarray(pos_m, dtype=np.float64).reshape(2)
-        v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
-        pref = (ctypes.c_float * 2)(*np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2))
-        t = _tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative)
+        t = tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative)
         out = SafetyOutC()
-        own = TrackC(p[0], p[1], v[0], v[1], int(own_id), float(pos_sigma_m), 0)
         st = self._lib.covey_safety_filter_zones(
             ctypes.byref(SafetyConfigC.of(safety_cfg)),
             self._buf,
-            ctypes.byref(own),
-            pref,
+            ctypes.byref(own_track(pos_m, vel_m_s, own_id, pos_sigma_m)),
+            pair_c(pref_vel_m_s),
             t.ctypes.data,
             t.shape[0],
             self._scratch,
             ctypes.byref(out),
         )
-        return FilterResult(
-            STATUS_NAMES.get(st, str(st)),
-            np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
-            out.n_lines,
-            bool(out.changed),
-            bool(out.infeasible),
-        )
+        return FilterResult.of(st, out)
 
     def filter(self, safety_cfg, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s):
         """The filtered velocity (2,); ValueError on a fault."""

@@ -20,15 +20,18 @@ from firmware.export_c import export_c_header
 FIRMWARE_DIR = Path(__file__).resolve().parent
 BUILD_DIR = FIRMWARE_DIR / "build"
 CORE_C = tuple(
-    FIRMWARE_DIR / f"covey_{m}.c" for m in ("policy", "traffic", "safety", "guidance", "zones")
+    FIRMWARE_DIR / f"covey_{m}.c"
+    for m in ("policy", "traffic", "safety", "guidance", "zones", "fence")
 )
 CORE_H = tuple(
-    FIRMWARE_DIR / f"covey_{m}.h" for m in ("policy", "traffic", "safety", "guidance", "zones")
+    FIRMWARE_DIR / f"covey_{m}.h"
+    for m in ("policy", "traffic", "safety", "guidance", "zones", "fence")
 )
 DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_driver.c"
 BENCH_SOURCE = FIRMWARE_DIR / "host" / "covey_bench.c"
 UNIT_SOURCE = FIRMWARE_DIR / "host" / "covey_unit.c"
 ZONES_DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_zones_driver.c"
+FENCE_DRIVER_SOURCE = FIRMWARE_DIR / "host" / "covey_fence_driver.c"
 SHIPPED_NPZ = FIRMWARE_DIR.parent / "policy" / "weights" / "policy.npz"
 COMMITTED_HEADER = FIRMWARE_DIR / "covey_weights.h"
 
@@ -132,6 +135,12 @@ def build_zones_driver(header: Path) -> Path:
     """The keep-out zones' stdin/stdout driver (firmware/host/covey_zones_driver.c), with ASan
     and UBSan."""
     return _build("zones-driver-asan", header, SANITIZE_FLAGS, (ZONES_DRIVER_SOURCE,), "")
+
+
+def build_fence_driver(header: Path) -> Path:
+    """The geofence conversion's stdin/stdout driver (firmware/host/covey_fence_driver.c), with
+    ASan and UBSan."""
+    return _build("fence-driver-asan", header, SANITIZE_FLAGS, (FENCE_DRIVER_SOURCE,), "")
 
 
 def build_bench(header: Path) -> Path:

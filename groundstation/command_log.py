@@ -16,6 +16,10 @@ Mission uploads are listed the same way ("mission 3 (6 items) → 1,2,3"), verif
 (their own signature label), with each vehicle's ack: accepted is "done: loaded" (an upload
 changes no flight, so it never supersedes a command), rejected carries the item and reason.
 
+Fleet plan versions are listed too (`on_plan`: every version the station followed, from any
+station or the authority), one line each; a version this station pushed names the operator and
+what they changed (an uploaded file, or edits made in the browser: `mark_own_plan`).
+
 "Done" is the vehicle's own report: its signed state shows the mode the command ends in (a
 take-off ends HOLDING at altitude, a goto HOLDING at its goal, a land LANDED), stamped after the
 vehicle's ack. The autopilot's outcome (an ACTION event, `ActionOutcome`) marks a failure.
@@ -185,6 +189,35 @@ class LoggedCommand:
         return sorted(set(self.answers) | set(self.command.targets))
 
 
+@dataclass(frozen=True)
+class PlanChange:
+    """A fleet plan version the station followed, as the log lists it."""
+
+    seq: int
+    """Order of arrival at this station, shared with the commands."""
+    recv_ns: int
+    version: int
+    signer_id: int
+    """Who signed it: 0 the fleet authority, N station N (open mode: the claim)."""
+    summary: str
+    """What the plan holds (comms/plan_sync.py `describe`)."""
+    own: bool = False
+    """Pushed by this station."""
+    operator: str = ""
+    """Own pushes: who was logged in to the tab that pushed it."""
+    what: str = ""
+    """Own pushes: what changed ('from 'field.geojson'', 'zone 4 ('depot') added')."""
+
+    def sender(self) -> str:
+        if self.own:
+            return f"this station ({self.operator})" if self.operator else "this station"
+        return "the fleet authority" if self.signer_id == 0 else f"station {self.signer_id}"
+
+    def describe(self) -> str:
+        what = f": {self.what}" if self.what else ""
+        return f"plan v{self.version}{what} ({self.summary})"
+
+
 def describe_request(request: Request) -> str:
     """What a command or a mission upload asks, as an operator reads it (without targets)."""
     if isinstance(request, Mission):
@@ -231,7 +264,7 @@ SupersededCallback = Callable[[LoggedCommand, int, LoggedCommand], None]
 """Called with (the earlier command, the vehicle, the later command) when a vehicle accepts a
 command that replaces one it had accepted and not finished."""
 
-AckCheck = Callable[[CommandAck, Command, bytes], str | None]
+AckCheck = Callable[[CommandAck, Request, bytes], str | None]
 """Returns why an ack must not be believed for a command whose wire bytes hash to the digest
 (a forged or replayed ack), or None."""
 
@@ -320,6 +353,8 @@ class CommandLog:
         # Autopilot outcomes that arrived before the ack they follow, by (nonce, vehicle).
         self._early_outcomes: OrderedDict[tuple[int, int], ActionOutcome] = OrderedDict()
         self._own: OrderedDict[int, str] = OrderedDict()  # nonce this station sent -> operator
+        self._plans: deque[PlanChange] = deque(maxlen=self.cfg.max_commands)
+        self._own_plans: OrderedDict[int, tuple[str, str]] = OrderedDict()  # version -> who, what
         self._refused = _RefusedCounts()
         self._seq = 0
         self.version = 0
@@ -347,6 +382,32 @@ class CommandLog:
             entry = self._entries.get(nonce)
             if entry is not None:
                 entry.own, entry.operator = True, operator
+
+    def mark_own_plan(self, version: int, operator: str = "", what: str = "") -> None:
+        """Plan `version` is one this station is pushing for `operator` (before it is applied);
+        `what`: what changed."""
+        with self._lock:
+            self._own_plans[version] = (operator, what)
+            while len(self._own_plans) > self.cfg.max_commands:
+                self._own_plans.popitem(last=False)
+
+    def on_plan(self, version: int, signer_id: int, summary: str, recv_ns: int) -> None:
+        """The station follows plan `version` now (verified by its plan follower)."""
+        with self._lock:
+            own = self._own_plans.pop(version, None)
+            self._seq += 1
+            operator, what = own or ("", "")
+            self._plans.append(
+                PlanChange(
+                    self._seq, recv_ns, version, signer_id, summary, own is not None, operator, what
+                )
+            )
+            self.version += 1
+
+    def plan_changes(self) -> list[PlanChange]:
+        """Kept plan versions, newest first."""
+        with self._lock:
+            return list(reversed(self._plans))
 
     def on_command(
         self,
@@ -442,7 +503,7 @@ class CommandLog:
                 while len(self._early_outcomes) > self.cfg.max_answers:
                     self._early_outcomes.popitem(last=False)
                 return False
-            if answer.result is not AckResult.ACCEPTED:
+            if answer.result is not AckResult.ACCEPTED or entry is None:
                 return False
             entry.done[outcome.vehicle_id] = outcome
             self.version += 1

@@ -2,7 +2,7 @@
 
 This process hosts the mesh (an embedded Zenoh router on loopback port 7447, where every tool
 connects by default, or a free one if it is busy) and the ground
-station; each vehicle is a `covey agent --vehicle sim` child process (comms/procs.py). Every child
+station; each vehicle is a `covey agent --vehicle sim` child process (kit/procs.py). Every child
 runs in its own process group and gets SIGTERM if this process dies (PR_SET_PDEATHSIG), so
 neither Ctrl-C, nor SIGTERM, nor a crash of the demo leaves orphans.
 """
@@ -15,19 +15,20 @@ import math
 import sys
 import tempfile
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from comms.auth import load_auth
-from comms.authority import Authority
-from comms.cli_options import add_config_flags, config_from_flags, finite, stop_on_signals
-from comms.cli_options import port as tcp_port
+from cli.options import add_config_flags, config_from_flags, finite, stop_on_signals
+from cli.options import port as tcp_port
 from comms.mesh import Mesh
-from comms.procs import ChildGroup
 from comms.schema import Role
 from comms.session import DEFAULT_PORT, embedded_router, free_tcp_port, port_free
 from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
 from groundstation.station import GcsConfig, GroundStation
+from kit.procs import ChildGroup
+from trust.auth import FleetAuth, load_auth
+from trust.authority import Authority
 
 
 @dataclass(frozen=True)
@@ -105,7 +106,13 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
     endpoint = f"tcp/127.0.0.1:{mesh_port}"
     gcs_cfg = GcsConfig(port=cfg.port, geofence_radius_m=cfg.geofence_radius_m, link=cfg.link)
     with contextlib.ExitStack() as stack:
-        auth, key_args, cli_key = None, lambda _vid: [], ""
+        auth: FleetAuth | None = None
+
+        def no_key_args(_vid: int) -> list[str]:
+            return []
+
+        key_args: Callable[[int], list[str]] = no_key_args
+        cli_key = ""
         if cfg.keyed:
             keys_dir = Path(
                 stack.enter_context(tempfile.TemporaryDirectory(prefix="covey-demo-keys-"))

@@ -12,7 +12,7 @@ import re
 import signal
 import sys
 
-from comms.procs import Child
+from kit.procs import Child
 
 _MESH_RE = re.compile(r"covey demo: mesh (tcp/\S+)")
 _URL_RE = re.compile(r"covey demo: ground station at (https?://\S+)")

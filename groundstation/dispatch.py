@@ -61,15 +61,18 @@ def send(
     present: Iterable[int] = (),
     source_id: int = 0,
     timeout_s: float = 2.0,
-    on_built: Callable[[Command], None] | None = None,
+    on_built: Callable[[Command | Mission], None] | None = None,
 ) -> CommandResult:
     """Send one command (one query) and collect every answer. For the whole fleet (targets=()),
     every vehicle in `present` is expected to answer, so a silent one shows as a timeout; in
     keyed mode only the roster's vehicles among them (`expected_for_all`).
     `on_built` sees the command (its nonce) before it goes out. A MissionRequest is uploaded
     the same way (one query, an ack per vehicle)."""
-    build = build_mission if isinstance(req, MissionRequest) else build_command
-    cmd = build(req, targets, source_id, mesh.clock_ns())
+    cmd: Command | Mission = (
+        build_mission(req, targets, source_id, mesh.clock_ns())
+        if isinstance(req, MissionRequest)
+        else build_command(req, targets, source_id, mesh.clock_ns())
+    )
     if on_built is not None:
         on_built(cmd)
     expect = set(targets) if targets else expected_for_all(present, getattr(mesh, "auth", None))
@@ -78,7 +81,7 @@ def send(
 
 def expected_for_all(present: Iterable[int], auth) -> set[int]:
     """Which of the `present` vehicles a command to all should wait for: all of them in open
-    mode; in keyed mode (`auth`, a comms.auth.FleetAuth) only the vehicles of its roster, since
+    mode; in keyed mode (`auth`, a trust.auth.FleetAuth) only the vehicles of its roster, since
     anyone can declare a presence token: a flood of fake ones costs no waiting and no rows of
     timeouts (a roster vehicle that is not running shows as not reachable)."""
     if auth is None:
@@ -159,7 +162,8 @@ class KillGuard:
         return self._armed_at is not None
 
     def remaining_s(self, now_s: float) -> float:
-        return max(0.0, self.window_s - (now_s - self._armed_at)) if self.armed(now_s) else 0.0
+        armed_at = self._armed_at if self.armed(now_s) else None
+        return 0.0 if armed_at is None else max(0.0, self.window_s - (now_s - armed_at))
 
     def confirm(self, now_s: float) -> bool:
         ok = self.armed(now_s)

@@ -48,7 +48,9 @@ class EventBuffer:
         self.cfg = cfg or EventsConfig()
         self._clock_text = clock_text
         self._lock = threading.Lock()
-        self._by_kind = {kind: deque(maxlen=self.cfg.per_kind) for kind in EventKind}
+        self._by_kind: dict[EventKind, deque[tuple[int, str, Event]]] = {
+            kind: deque(maxlen=self.cfg.per_kind) for kind in EventKind
+        }
         self._n = 0
         self.version = 0
         """Bumped on every event (a view redraws only when it moved)."""

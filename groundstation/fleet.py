@@ -24,7 +24,7 @@ counter beyond); it never takes a row, so 2,000 fake tokens cannot push a real v
 When the vehicle's first verified state arrives, it is listed as present (its agent declared
 its token before its first state, though the token may have been only counted).
 
-Clock: a vehicle whose clock is off reports it in a signed ClockReport (comms/heartbeat.py);
+Clock: a vehicle whose clock is off reports it in a signed ClockReport (trust/heartbeat.py);
 the view carries the offset (`VehicleView.clock_offset_s`) while the report is recent, so that
 the station shows "clock +10.0 s" instead of the last state it could accept.
 
@@ -302,7 +302,7 @@ class FleetModel:
                 track.trail.popleft()
 
     def on_state_refused(self, vehicle_id: int, cause: str, recv_ns: int) -> None:
-        """Record a state the mesh refused (keyed mode; Mesh.subscribe_states finds this method).
+        """Record a state the mesh refused (keyed mode: passed to Mesh.subscribe_* as `on_refused`).
         Never creates a vehicle: an unknown id only bumps `phantom_refusals`."""
         with self._lock:
             track = self._tracks.get(vehicle_id)

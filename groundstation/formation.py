@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from comms.plan import FleetPlan, plan_refusal
-from comms.safe_load import decode_utf8, parse_json, read_bounded
 from comms.schema import LOCAL_DOWN_RANGE_M
+from kit.safe_load import decode_utf8, parse_json, read_bounded
 
 SHAPES = ("grid", "line", "circle", "v", "file")
 """The shapes `covey cmd formation` and the station offer ("file": slots from a JSON file)."""
@@ -115,10 +115,10 @@ def shape_offsets_fr_m(shape: str, n: int, spacing_m: float) -> np.ndarray:
         fr = np.stack([radius_m * np.cos(ang), radius_m * np.sin(ang)], axis=1)
     elif shape == "v":  # apex first, then the wings' slots alternately right and left
         step = np.ceil(k / 2.0)
-        side = np.where(k % 2 == 1, 1.0, -1.0)
+        hand = np.where(k % 2 == 1, 1.0, -1.0)  # right, left, right, ...
         wing = math.radians(V_WING_DEG)
         fr = np.stack(
-            [-step * spacing_m * math.cos(wing), side * step * spacing_m * math.sin(wing)], axis=1
+            [-step * spacing_m * math.cos(wing), hand * step * spacing_m * math.sin(wing)], axis=1
         )
     else:
         raise FormationError(f"shape {shape!r} has no generated slots")

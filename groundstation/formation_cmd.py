@@ -22,8 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from comms.auth import load_auth
-from comms.cli_options import add_mesh_args, finite, floats
+from cli.options import add_mesh_args, finite, floats
 from comms.commands import CommandResult, OutcomeStatus
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
@@ -39,6 +38,7 @@ from groundstation.formation import (
     FormationSpec,
     plan_formation,
 )
+from trust.auth import load_auth
 
 MAX_STATE_FILE_BYTES = 1 << 20
 """A formation state file larger than this is ignored (a fresh memory)."""
@@ -142,7 +142,7 @@ def formation_main(
     with Mesh(cfg.mesh, auth=auth, stop=stop, wait_s=cfg.timeout_s) as mesh:
         if expects_answer(cfg.mesh) and not wait_linked(mesh.session, cfg.timeout_s, stop):
             raise unreachable(cfg.mesh, cfg.timeout_s)
-        mesh.subscribe_feed(fleet.on_state)
+        mesh.subscribe_feed(fleet.on_state, on_refused=fleet.on_state_refused)
         pres = mesh.presence()
         wanted = set(cfg.targets)
         if wanted:

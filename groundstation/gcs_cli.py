@@ -11,12 +11,12 @@ import getpass
 import secrets
 import sys
 
-from comms.cli_options import add_mesh_args, die, key_file_path, mesh_config, port, stop_on_signals
-from comms.identity import read_member_key
+from cli.options import add_mesh_args, die, key_file_path, mesh_config, port, stop_on_signals
 from comms.schema import Role
 from groundstation.station import GcsConfig, GroundStation, web_exposure_problem, web_host_problem
 from groundstation.web_auth import NAME_RE, hash_password, parse_origin, read_password_file
 from groundstation.web_proxy import tls_context
+from trust.identity import read_member_key
 
 
 def main(cfg: GcsConfig) -> int:

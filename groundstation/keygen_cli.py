@@ -1,4 +1,4 @@
-"""`covey keygen`: the fleet authority's tool (comms/authority.py does the work).
+"""`covey keygen`: the fleet authority's tool (trust/authority.py does the work).
 
     covey keygen init   [--dir D] [--fleet NAME]     authority key + empty signed roster (v1)
     covey keygen add    [--dir D] vehicle 3          key file for vehicle 3; roster version +1
@@ -19,16 +19,16 @@ from __future__ import annotations
 import argparse
 import sys
 
-from comms.authority import AUTHORITY, DEFAULT_DIR, ROSTER, Authority
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     mesh_config,
     nobody_answered,
     refuse,
 )
-from comms.identity import FleetKeyError
 from comms.schema import MAX_VEHICLE_ID, Role
+from trust.authority import AUTHORITY, DEFAULT_DIR, ROSTER, Authority
+from trust.identity import FleetKeyError
 
 VERBS = {
     "init": "create the fleet authority key and an empty signed roster",
@@ -97,13 +97,15 @@ def keygen_cli(argv: list[str]) -> int:
             )
             return 0
         auth = Authority(args.dir)
-        if args.verb == "add":
+        if args.verb in ("add", "revoke") and role is None:
+            die(p, f"{args.verb} needs a role")
+        if args.verb == "add" and role is not None:
             path = auth.add(role, args.id)
             print(
                 f"{args.role} {args.id}: key file {path} (mode 0600; copy it to that {args.role} "
                 f"only); roster v{auth.roster.version}"
             )
-        elif args.verb == "revoke":
+        elif args.verb == "revoke" and role is not None:
             auth.revoke(role, args.id)
             print(
                 f"{args.role} {args.id} revoked: roster v{auth.roster.version}; `covey keygen push` "
@@ -128,7 +130,7 @@ def keygen_cli(argv: list[str]) -> int:
 
 
 def _push(auth: Authority, args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
-    from comms.roster_sync import confirmations
+    from comms.doc_sync import confirmations
     from comms.session import MeshUnreachable
     from groundstation.push import push_and_confirm
 

@@ -22,8 +22,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from comms.auth import load_auth
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -45,6 +44,7 @@ from groundstation import dispatch, inputs
 from groundstation.inputs import CommandRequest, InputError
 from groundstation.mission_io import BadFileError, load_mission_file, shifted
 from groundstation.ops import CmdConfig, cmd_main, format_result
+from trust.auth import load_auth
 
 CONTROL = {
     "start": CommandKind.MISSION_START,
@@ -220,7 +220,7 @@ def mission_cli(argv: list[str] | None = None) -> int:
             mission_id = loaded.mission_id if args.mission_id is None else args.mission_id
             if not 0 <= mission_id < 2**32:
                 die(p, f"--mission-id {mission_id} must be within 0..2^32-1")
-            cfg = UploadConfig(
+            up_cfg = UploadConfig(
                 mesh=mesh,
                 items=loaded.items,
                 targets=targets,
@@ -229,7 +229,7 @@ def mission_cli(argv: list[str] | None = None) -> int:
                 timeout_s=args.timeout_s,
                 key_file=args.key_file,
             )
-            return upload_main(cfg, stop=stop)
+            return upload_main(up_cfg, stop=stop)
     except MeshUnreachable as exc:
         return nobody_answered(p, exc)
     except ValueError as exc:  # NotInRoster, FleetKeyError, MeshConfigError: one line, exit 2

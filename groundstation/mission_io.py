@@ -1,6 +1,6 @@
 """Mission files -> Mission items: covey's own JSON and QGroundControl `.plan` files.
 
-Both are read through comms/safe_load.py (size, nesting) and checked item by item; anything a
+Both are read through kit/safe_load.py (size, nesting) and checked item by item; anything a
 vehicle could not fly, or that covey does not fly, is refused as one line naming the item
 (MissionFileError), so that nothing is sent from a file that was half understood.
 
@@ -28,7 +28,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from comms.geo import GeoOrigin, mission_route_ned_m
-from comms.safe_load import BadFileError, decode_utf8, parse_json, read_bounded
 from comms.schema import (
     MAX_MISSION_ITEMS,
     DecodeError,
@@ -36,6 +35,7 @@ from comms.schema import (
     MissionItem,
     MissionItemKind,
 )
+from kit.safe_load import BadFileError, decode_utf8, parse_json, read_bounded
 
 MAX_MISSION_FILE_BYTES = 1_000_000
 """A mission file larger than this is refused unread (a QGC plan of 100 items is ~40 KB)."""

@@ -16,7 +16,6 @@ from collections.abc import Callable
 import viser
 
 from comms.geo import GeoOrigin
-from comms.safe_load import BadFileError, decode_utf8
 from comms.schema import MAX_MISSION_ITEMS, CommandKind, MissionItem, MissionItemKind
 from groundstation.browser_form import FormSnapshot
 from groundstation.frames import ground_hit_ned
@@ -28,6 +27,7 @@ from groundstation.mission_io import (
     mission_from_text,
 )
 from groundstation.scene import route_segments
+from kit.safe_load import BadFileError, decode_utf8
 
 WP_ALT = "Waypoint altitude above origin (m)"
 LABELS = (WP_ALT,)
@@ -40,7 +40,7 @@ CONTROL_BUTTONS = {
 }
 PREVIEW_PATH = "/mission/preview"
 ROUTE_RGB = (0, 150, 140)
-"""The MISSION mode's colour (comms/palette.py)."""
+"""The MISSION mode's colour (groundstation/palette.py)."""
 
 Job = tuple[CommandRequest | MissionRequest, tuple[int, ...]]
 

@@ -17,8 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from comms.auth import load_auth
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -42,6 +41,7 @@ from comms.state_rate import MAX_IDLE_PERIOD_S
 from groundstation import dispatch, formation_cmd, inputs
 from groundstation.fleet import FleetConfig, FleetModel, FleetSnapshot
 from groundstation.inputs import CommandRequest, InputError
+from trust.auth import load_auth
 
 
 @dataclass(frozen=True)
@@ -93,12 +93,15 @@ def status_main(
     auth = load_auth(cfg.key_file, fleet=cfg.mesh.fleet)
     fleet = FleetModel(FleetConfig(verified_only=auth is not None))  # keyed: no bare tokens
     with Mesh(cfg.mesh, auth=auth, stop=stop, wait_s=cfg.listen_s) as mesh:
-        mesh.subscribe_feed(fleet.on_state)  # the whole fleet at a bounded rate, as the station
-        pres = mesh.presence(
-            lambda kind, vid, alive: (
-                kind == "vehicle" and fleet.on_presence(vid, alive, time.time_ns())
-            )
-        )
+        mesh.subscribe_feed(
+            fleet.on_state, on_refused=fleet.on_state_refused
+        )  # the whole fleet at a bounded rate, as the station
+
+        def on_presence(kind: str, vid: int, alive: bool) -> None:
+            if kind == "vehicle":
+                fleet.on_presence(vid, alive, time.time_ns())
+
+        pres = mesh.presence(on_presence)
         (stop or threading.Event()).wait(cfg.listen_s)
         if expects_answer(cfg.mesh) and not linked(mesh.session):
             raise unreachable(cfg.mesh, cfg.listen_s, "listened")

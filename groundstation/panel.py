@@ -16,7 +16,7 @@ log and the scene stay shared (groundstation.station).
 from __future__ import annotations
 
 import html
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import viser
@@ -32,7 +32,7 @@ from groundstation.frames import ground_hit_ned, ned_to_scene
 from groundstation.inputs import CommandRequest, InputError
 from groundstation.tables import ack_matrix
 
-Job = tuple[CommandRequest, tuple[int, ...]]
+Job = mission_panel.Job
 
 # The labels of the inputs a command is built from (each tab reports these at every click, and
 # each is the accessible name of its input). Altitudes are up, in metres, with their datum
@@ -69,7 +69,7 @@ class PanelHooks:
 
     known_ids: Callable[[], set[int]]
     """Ids of the vehicles the station knows (present or with a state)."""
-    dispatch: Callable[[str, list[Job], Callable[[Dispatched], None], int | None], None]
+    dispatch: Callable[[str, Sequence[Job], Callable[[Dispatched], None], int | None], None]
     """Send these (request, targets) jobs in order for a tab (its client id), then hand the
     answers to the callback."""
     scenario: Callable[[str], list[Job]]
@@ -230,7 +230,8 @@ class CommandPanel:
             if hit is None:
                 self.say("That click does not hit the ground; aim below the horizon.", error=True)
                 return
-            self.north.value, self.east.value = round(hit[0], 1), round(hit[1], 1)
+            # viser types GuiNumberHandle.value read-only (its props class); the setter is real
+            self.north.value, self.east.value = round(hit[0], 1), round(hit[1], 1)  # type: ignore[misc]
             marker = ned_to_scene((hit[0], hit[1], 0.0))
             scene.add_icosphere(
                 "/target",
@@ -239,7 +240,7 @@ class CommandPanel:
                 opacity=0.7,
                 cast_shadow=False,
                 receive_shadow=False,
-                position=tuple(float(x) for x in marker),
+                position=(float(marker[0]), float(marker[1]), float(marker[2])),
             )
             self.say(f"Goto target set to N {hit[0]:.1f} E {hit[1]:.1f}; press 'Goto local'.")
 
@@ -256,7 +257,7 @@ class CommandPanel:
             except InputError:
                 pass  # what was there is not a list of ids: the click starts a new one
         text = ",".join(map(str, sorted(ids)))
-        self.targets.value = text
+        self.targets.value = text  # type: ignore[misc]  # as above: viser's setter is real
         self.say(f"Targets: vehicle(s) {text} (shift-click adds, a click selects one).")
 
     def say(self, text: str, error: bool = False, kill_note: str | None = None) -> None:

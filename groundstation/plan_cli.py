@@ -24,8 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from comms.authority import DEFAULT_DIR, Authority
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     geo_origin,
@@ -33,7 +32,6 @@ from comms.cli_options import (
     nobody_answered,
 )
 from comms.geo import GeoOrigin
-from comms.identity import FleetKeyError, public_bytes, verify
 from comms.plan import FleetPlan
 from comms.plan_io import (
     PLAN_FILE,
@@ -45,6 +43,8 @@ from comms.plan_io import (
     write_signed_plan,
 )
 from comms.schema import PlanMessage, Role
+from trust.authority import DEFAULT_DIR, Authority
+from trust.identity import FleetKeyError, public_bytes, verify
 
 VERBS = {
     "load": "check a GeoJSON or QGC .plan file, sign it, write the signed plan",
@@ -157,7 +157,7 @@ def _load(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     out = Path(args.out).expanduser() if args.out else Path(args.dir).expanduser() / PLAN_FILE
     previous = read_signed_plan(out) if out.exists() else None
     if args.key_file is not None:
-        from comms.auth import load_auth
+        from trust.auth import load_auth
 
         station = load_auth(args.key_file)
         if station is None or station.role is not Role.STATION:
@@ -167,7 +167,7 @@ def _load(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
         signer = f"station {station.member_id}"
     else:
         authority = Authority(args.dir)
-        from comms.auth import sign_plan
+        from trust.auth import sign_plan
 
         plan = sign_plan(authority.key, _versioned(geometry, authority.fleet, previous))
         signer = f"the fleet authority in {authority.dir}"

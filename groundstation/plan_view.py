@@ -1,6 +1,8 @@
 """The fleet plan in the browser station: followed on the mesh, drawn on the ground, listed in
-the panel, and replaced from a file an operator uploads (GeoJSON or QGC .plan), signed with this
-station's key and pushed to the fleet.
+the panel, and replaced from a file an operator uploads (GeoJSON or QGC .plan) or from the edits
+an operator makes in the browser (groundstation/plan_editor.py), signed with this station's key
+and pushed to the fleet (`push_geometry`, the one push path), each version listed in the command
+log with who pushed it. The vehicles' routes around the zones are drawn too (plan_routes.py).
 
 The station is a plan member like any vehicle (comms/plan_sync.py): it answers a rebooted
 vehicle's pull with the plan it holds. What arrives on a Zenoh thread is only noted; the render
@@ -16,11 +18,13 @@ from typing import Any
 
 import viser
 
+from comms.doc_sync import Offer
 from comms.geo import GeoOrigin
 from comms.plan import FleetPlan
-from comms.plan_io import BadPlanError, next_version, parse_plan
-from comms.plan_sync import PlanSync
-from comms.roster_sync import Offer
+from comms.plan_io import BadPlanError, PlanGeometry, next_version, parse_plan
+from comms.plan_sync import PlanSync, describe
+from groundstation.command_log import CommandLog
+from groundstation.plan_routes import RouteLayer
 from groundstation.scene import FleetScene
 from groundstation.web_viser import operator_of
 
@@ -36,11 +40,21 @@ class PlanView:
         origin: GeoOrigin,
         *,
         order: float,
+        log: CommandLog | None = None,
+        states=None,
+        separation_m: float = 3.0,
+        route_period_s: float = 0.5,
         clock_ns=time.time_ns,
     ) -> None:
-        """`mesh`: the station's comms.mesh.Mesh (its auth signs uploaded plans)."""
+        """`mesh`: the station's comms.mesh.Mesh (its auth signs pushed plans). `log`: where
+        each plan version is listed. `states()`: the vehicles' latest VehicleStates, whose
+        routes are drawn every `route_period_s` (None: no routes)."""
         self.server, self.mesh, self.scene, self.origin = server, mesh, scene, origin
+        self.log, self._states = log, states
         self._clock_ns = clock_ns
+        self.routes = RouteLayer(server, separation_m)
+        self._route_period_ns = int(route_period_s * 1e9)
+        self._routes_ns = 0
         self._lock = threading.Lock()
         self._pending: tuple[FleetPlan | None] | None = None
         self.drawn: FleetPlan | None = None
@@ -61,6 +75,8 @@ class PlanView:
         self.sync.undeclare()
 
     def _on_plan(self, plan: FleetPlan) -> None:
+        if self.log is not None:
+            self.log.on_plan(plan.version, plan.signer_id, describe(plan), self._clock_ns())
         with self._lock:
             self._pending = (plan,)
 
@@ -68,13 +84,20 @@ class PlanView:
         """Draw a plan that arrived since the last tick (the render thread)."""
         with self._lock:
             pending, self._pending = self._pending, None
-        if pending is None:
+        now_ns = self._clock_ns()
+        if pending is not None:
+            (plan,) = pending
+            self.routes.set_plan(plan)
+            with self.server.atomic():
+                self.scene.update_plan(plan)
+            self.html.content = plan_html(plan)
+            self.drawn = plan
+        elif self._states is None or now_ns - self._routes_ns < self._route_period_ns:
             return
-        (plan,) = pending
-        with self.server.atomic():
-            self.scene.update_plan(plan)
-        self.html.content = plan_html(plan)
-        self.drawn = plan
+        self._routes_ns = now_ns
+        if self._states is not None:
+            with self.server.atomic():
+                self.routes.draw(self._states())
 
     def load(self, raw: bytes, name: str, operator: str | None = None) -> str:
         """Check an uploaded file, sign it as this station, push it; the line to show."""
@@ -82,17 +105,25 @@ class PlanView:
             geometry = parse_plan(raw, f"uploaded {name!r}", self.origin)
         except BadPlanError as exc:
             return f"refused: {exc}"
+        return self.push_geometry(geometry, f"from {name!r}", operator)
+
+    def push_geometry(self, geometry: PlanGeometry, what: str, operator: str | None) -> str:
+        """Make `geometry` (checked) the fleet's next plan version, signed as this station,
+        applied here and put on the mesh, listed in the command log as `what` (the file, the
+        edits) by `operator`; the line to show."""
         now_ns = self._clock_ns()
         plan = geometry.plan(self.mesh.fleet, next_version(self.sync.plan, now_ns), now_ns)
         auth = self.mesh.auth
         if auth is not None:
             plan = auth.sign_plan(plan)
+        if self.log is not None:
+            self.log.mark_own_plan(plan.version, operator or "", what)
         result = self.sync.push(plan)
         if result is not Offer.APPLIED:
             return f"refused: plan v{plan.version} was not applied here ({result.value})"
         who = f" by {operator}" if operator else ""
         notes = "".join(f"; {n}" for n in geometry.notes)
-        return f"plan v{plan.version} from {name!r} pushed{who}{notes}"
+        return f"plan v{plan.version} {what} pushed{who}{notes}"
 
     def _on_upload(self, event: viser.GuiEvent) -> None:
         upload = self.upload.value

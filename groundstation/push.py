@@ -6,7 +6,7 @@ The one push loop behind `covey keygen push` and `covey plan push`: join the mes
 waits at most PUSH_LINK_WAIT_S for its router and says nobody answered), put the document
 again and again until a member confirms or `duration_s` ends (members may still be joining),
 then ask once more, so that members still applying it count too. Each confirmation names its
-replier and the version it holds (comms/roster_sync.py).
+replier and the version it holds (trust/roster_sync.py).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from comms.cli_options import stop_on_signals
+from cli.options import stop_on_signals
 from comms.session import MeshConfig
 
 PUSH_LINK_WAIT_S = 3.0

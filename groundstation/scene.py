@@ -22,13 +22,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, TypedDict
 
 import numpy as np
 import viser
 
 from comms.plan import FleetPlan
-from comms.schema import Mode
+from comms.schema import Mode, VehicleState
 from groundstation import scene_geometry as geo
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.frames import heading_to_wxyz, ned_to_scene
@@ -43,9 +43,15 @@ from groundstation.palette import (
     mode_rgb,
 )
 
+
 # Shadows need an extra render pass per light; without a GPU (software WebGL) that halves the frame
 # rate, and an operator reads height from the stalks and labels anyway.
-NO_SHADOW = {"cast_shadow": False, "receive_shadow": False}
+class _Shadows(TypedDict):
+    cast_shadow: bool
+    receive_shadow: bool
+
+
+NO_SHADOW: _Shadows = {"cast_shadow": False, "receive_shadow": False}
 HEADING_STEP_RAD = math.radians(2.0)
 BODY_SIZE_M = (0.6, 0.9, 0.25)
 LABEL_HEIGHT_M = 0.7
@@ -102,8 +108,14 @@ def _xyz(rows: list) -> np.ndarray:
     return ned_to_scene(np.array(rows, np.float32).reshape(-1, 3))
 
 
+def _state_of(view: VehicleView) -> VehicleState:
+    if view.state is None:
+        raise ValueError(f"vehicle {view.vehicle_id} has no state to draw")
+    return view.state
+
+
 def _fleet(vehicles: list[VehicleView], velocity_scale_s: float) -> _Fleet:
-    states = [v.state for v in vehicles]
+    states = [_state_of(v) for v in vehicles]
     heading = np.fromiter((s.heading_rad for s in states), np.float64, count=len(states))
     with_goal = [v.has_goal and v.alive for v in vehicles]
     return _Fleet(
@@ -257,7 +269,8 @@ class FleetScene:
         keep = set()
         for t in tracks:
             keep.add(t.track_id)
-            pos = tuple(float(x) for x in ned_to_scene(np.array([t.at(now_s)], np.float32))[0])
+            x, y, z = (float(v) for v in ned_to_scene(np.array([t.at(now_s)], np.float32))[0])
+            pos = (x, y, z)
             nodes = self.traffic.get(t.track_id)
             if nodes is None:
                 path = f"/traffic/{t.track_id}"
@@ -320,7 +333,12 @@ class FleetScene:
         if n == 0:
             return
         scene = self.server.scene
-        for layer, side in (("bodies", "front"), ("rings", "double"), ("goals", "front")):
+        sides: tuple[tuple[str, Literal["front", "double"]], ...] = (
+            ("bodies", "front"),
+            ("rings", "double"),
+            ("goals", "front"),
+        )
+        for layer, side in sides:
             vertices, faces = self._meshes[layer]
             self.nodes[layer] = scene.add_batched_meshes_simple(
                 f"/fleet/{layer}",

@@ -17,16 +17,15 @@ import socket
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import viser
 
-from comms.auth import load_auth
 from comms.commands import OutcomeStatus
 from comms.geo import GeoOrigin
-from comms.heartbeat import HeartbeatPublisher
+from comms.link import LinkEmulator
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.presence import Presence
@@ -44,9 +43,8 @@ from comms.schema import (
     VehicleState,
 )
 from comms.session import MeshConfig
-from comms.ticks import run_ticks
 from comms.traffic import TrafficListener, TrafficTable
-from groundstation import dispatch, layout, scenarios
+from groundstation import dispatch, layout, plan_editor, scenarios
 from groundstation.browser_form import BrowserForms
 from groundstation.command_log import CommandLog, LoggedCommand
 from groundstation.dispatch import CommandWorker, Dispatched
@@ -62,6 +60,9 @@ from groundstation.tables import command_log_html, fleet_table, legend, traffic_
 from groundstation.web_auth import Gate, GateConfig, is_loopback, read_password_file, url_host
 from groundstation.web_proxy import WebProxy, bind_listener, tls_context
 from groundstation.web_viser import operator_of, start_viser
+from kit.ticks import run_ticks
+from trust.auth import load_auth
+from trust.heartbeat import HeartbeatPublisher
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,7 @@ class GcsConfig:
     """Emulated radio link between the vehicles and this station (comms.link spec: perfect, xbee,
     wifi, ...); the station sits at the origin. The link-health columns then show its effect."""
     key_file: str | None = None
-    """Fleet key that signs commands (comms/auth.py); None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY,
+    """Fleet key that signs commands (trust/auth.py); None: $COVEY_FLEET_KEY_FILE, $COVEY_FLEET_KEY,
     else open mode (ignored when a Mesh is passed to GroundStation)."""
     every_state: bool = False
     """Hear every state of every vehicle at its full rate, instead of the fleet feed (each
@@ -197,6 +198,8 @@ class GroundStation:
         self._commands_shown: tuple[int, int] = (-1, -1)
         self._tabs_lock = threading.Lock()
         self.panels: dict[int, CommandPanel] = {}
+        self.plan_editors: dict[int, plan_editor.PlanEditor] = {}
+        """Each browser tab's fleet plan editor, by client id."""
         self._event_views: dict[int, EventsView] = {}
         self._sent_by: OrderedDict[int, int] = OrderedDict()  # nonce -> client id that sent it
         self.last_result: Dispatched | None = None
@@ -205,7 +208,7 @@ class GroundStation:
         station, drawn while its states say it has a mission."""
         self._routes_drawn: frozenset[int] | None = None
         self._routes_lock = threading.Lock()
-        self._link = None
+        self._link: LinkEmulator | None = None
         self._heartbeats: HeartbeatPublisher | None = None
         self.traffic = TrafficTable()
         """Traffic that does not cooperate, as the mesh reports it (agent/traffic.py)."""
@@ -253,13 +256,14 @@ class GroundStation:
         self.mesh.observe_commands(self._on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
         self._start_web(accounts, tls)
+        assert self.server is not None  # _start_web started it
         self.server.gui.configure_theme(
             control_width="large", show_share_button=False, brand_color=(20, 110, 160)
         )
         cam, view_m = self.server.initial_camera, self.cfg.view_radius_m
         cam.position, cam.look_at = (-0.45 * view_m, -1.3 * view_m, 0.9 * view_m), (0.0, 0.0, 2.0)
         self._build_gui()
-        self._worker = CommandWorker(self._on_result)
+        self._worker: CommandWorker | None = CommandWorker(self._on_result)
         self._thread = threading.Thread(target=self._loop, name="gcs-render", daemon=True)
         self._thread.start()
         # Present on the mesh only once the web app and the mesh are both up: vehicles treat a
@@ -291,7 +295,7 @@ class GroundStation:
         self.web.__enter__()
 
     def _build_gui(self) -> None:
-        assert self.server is not None
+        assert self.server is not None and self.mesh is not None
         gui = self.server.gui
         auth = self.mesh.auth
         trust = (
@@ -310,7 +314,7 @@ class GroundStation:
             self.traffic_html = gui.add_html(traffic_table([], 0.0))
         with gui.add_folder("Command log (every station)", order=layout.COMMAND_LOG):
             self.command_log_html = gui.add_html(command_log_html([]))
-        self.forms = BrowserForms(self.server, FORM_LABELS)
+        self.forms = BrowserForms(self.server, FORM_LABELS + plan_editor.LABELS)
         self._hooks = PanelHooks(
             known_ids=self.known_ids,
             dispatch=self.dispatch,
@@ -329,8 +333,15 @@ class GroundStation:
             on_vehicle_click=self._select,
         )
         # The fleet plan: followed, drawn, listed, replaced by an uploaded file (plan_view.py).
-        self.plan_view = PlanView(
-            self.server, self.mesh, self.scene, self.cfg.origin, order=layout.TRAFFIC + 0.25
+        self.plan_view: PlanView | None = PlanView(
+            self.server,
+            self.mesh,
+            self.scene,
+            self.cfg.origin,
+            order=layout.TRAFFIC + 0.25,
+            log=self.commands,
+            states=self._vehicle_states,
+            separation_m=self.cfg.separation_m,
         )
 
     # -- browser tabs: each has its own events filter and command panel ------------------
@@ -344,16 +355,27 @@ class GroundStation:
             goto_limit_m=self.cfg.geofence_radius_m,
             kill_window_s=self.cfg.kill_window_s,
         )
+        assert self.server is not None and self.plan_view is not None  # only while it serves
         operator = operator_of(self.server, client.client_id)
+        editor = plan_editor.PlanEditor(
+            client,
+            self.plan_view,
+            self.forms,
+            states=self._vehicle_states,
+            operator=lambda: operator,
+            order=layout.TRAFFIC + 0.3,
+        )
         with self._tabs_lock:
             self._event_views[client.client_id] = view
             self.panels[client.client_id] = panel
+            self.plan_editors[client.client_id] = editor
             self._operators[client.client_id] = operator
 
     def _close_tab(self, client: viser.ClientHandle) -> None:
         with self._tabs_lock:
             self._event_views.pop(client.client_id, None)
             self.panels.pop(client.client_id, None)
+            self.plan_editors.pop(client.client_id, None)
             self._operators.pop(client.client_id, None)
 
     def _tabs(self) -> tuple[list[CommandPanel], list[EventsView]]:
@@ -387,8 +409,9 @@ class GroundStation:
         if self._traffic_listener is not None:
             self._traffic_listener.close()
             self._traffic_listener = None
-        if getattr(self, "plan_view", None) is not None:
-            self.plan_view.close()
+        plan_view = getattr(self, "plan_view", None)
+        if plan_view is not None:
+            plan_view.close()
             self.plan_view = None
         if self.mesh is not None and self._given_mesh is None:
             self.mesh.close()
@@ -493,6 +516,11 @@ class GroundStation:
             return self.fleet.present_ids()
         return self.presence.vehicles if self.presence else set()
 
+    def _vehicle_states(self) -> list[VehicleState]:
+        """The vehicles' latest states (the plan's routes and edits check them)."""
+        snap = self.fleet.snapshot(self._clock_ns(), trails=False)
+        return [v.state for v in snap.vehicles if v.state is not None]
+
     def _fleet_plan(self) -> FleetPlan | None:
         """The fleet plan the station follows (plan_view.py), or None."""
         view = getattr(self, "plan_view", None)  # None before start and after close
@@ -504,11 +532,12 @@ class GroundStation:
     def dispatch(
         self,
         label: str,
-        jobs: list[Job],
+        jobs: Sequence[Job],
         on_done: Callable[[Dispatched], None],
         client_id: int | None = None,
     ) -> None:
         mesh, present = self.mesh, self._present()
+        assert mesh is not None  # commands are sent only while the station runs
         timeout_s, source = self.cfg.command_timeout_s, self.cfg.gcs_id
         operator = self.operator(client_id)
         if operator is None:  # a tab the login gate did not name: never send for it
@@ -516,7 +545,7 @@ class GroundStation:
             return
         log.info("operator %s: %s", operator, label)
 
-        def remember(cmd: Command) -> None:
+        def remember(cmd: Command | Mission) -> None:
             self._remember_sender(cmd, client_id, operator)
 
         def run() -> list:
@@ -540,7 +569,8 @@ class GroundStation:
                 results.append(res)
             return results
 
-        self._worker.submit(label, run, on_done)
+        if self._worker is not None:  # None once closed: nothing is sent any more
+            self._worker.submit(label, run, on_done)
 
     def operator(self, client_id: int | None) -> str | None:
         """Who sends for browser tab `client_id` (the login's account or token label; None if
@@ -550,7 +580,9 @@ class GroundStation:
         with self._tabs_lock:
             return self._operators.get(client_id)
 
-    def _remember_sender(self, cmd: Command, client_id: int | None, operator: str) -> None:
+    def _remember_sender(
+        self, cmd: Command | Mission, client_id: int | None, operator: str
+    ) -> None:
         self.commands.mark_own(cmd.nonce, operator)
         if client_id is None:
             return
@@ -612,6 +644,7 @@ class GroundStation:
                         present=self.known_ids(),
                         answer_timeout_s=self.cfg.command_timeout_s + 1.0,
                         refused=self.commands.refused_last_minute(now_ns),
+                        plans=self.commands.plan_changes(),
                     )
                 for view in self._tabs()[1]:
                     view.render()
@@ -627,6 +660,7 @@ class GroundStation:
             del self.update_times_s[:-1000]
             for panel in self._tabs()[0]:
                 panel.tick()
-            self.plan_view.tick()
+            if self.plan_view is not None:
+                self.plan_view.tick()
 
         run_ticks(frame, self.cfg.scene_rate_hz, time.monotonic, self._stop, what="render update")

@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterable
 from comms.commands import OutcomeStatus
 from comms.geo import GeoOrigin
 from comms.schema import ActionOutcome, DecodeError, Event, EventKind
-from groundstation.command_log import LoggedCommand, Status, progress_all
+from groundstation.command_log import LoggedCommand, PlanChange, Status, progress_all
 from groundstation.dispatch import Dispatched
 from groundstation.fleet import FleetSnapshot, VehicleView
 from groundstation.palette import ALERT_RGB, MODE_RGB, TRAFFIC_RGB, css, mode_rgb
@@ -235,24 +235,33 @@ def command_log_html(
     refused: dict[str, int] | None = None,
     max_rows: int = 20,
     max_chips: int = 24,
+    plans: list[PlanChange] | None = None,
 ) -> str:
     """Every command on the fleet from any station, newest first: who sent what to whom, and
     per vehicle whether it was accepted, is done (with its outcome), failed, was superseded,
     timed out or was not reachable. `refused`: command attempts refused in the last minute by
-    cause (keyed mode), one line above the log that never displaces an entry."""
+    cause (keyed mode), one line above the log that never displaces an entry. `plans`: the
+    fleet plan versions followed (newest first), listed among the commands in arrival order."""
     now_ns = time.time_ns() if now_ns is None else now_ns
     head = refused_line(refused or {})
-    if not entries:
+    plans = plans or []
+    if not entries and not plans:
         return (
             "<div style='font-size:0.75em;color:#777'>"
             f"{head}<div data-empty='1'>no commands yet: what any station sends shows here</div>"
             "</div>"
         )
     rows = []
-    for e in entries[:max_rows]:
+    both: list[LoggedCommand | PlanChange] = [*entries, *plans]
+    merged = sorted(both, key=lambda e: -e.seq)[:max_rows]
+    for e in merged:
+        if isinstance(e, PlanChange):
+            rows.append(plan_change_html(e))
+            continue
         when = time.strftime("%H:%M:%S", time.localtime(e.recv_ns / 1e9))
         shown = progress_all(e, now_ns, answer_timeout_s, present)
-        chips, counts = [], {}
+        chips: list[str] = []
+        counts: dict[str, int] = {}
         for vid, pr in shown.items():
             name, color = pr.status.value, _PROGRESS_COLOR[pr.status]
             counts[name] = counts.get(name, 0) + 1
@@ -274,6 +283,16 @@ def command_log_html(
             f"{''.join(chips)}{f' +{more} more' if more > 0 else ''}</div>"
         )
     return f"<div style='font-size:0.72em;line-height:1.35'>{head}{''.join(rows)}</div>"
+
+
+def plan_change_html(change: PlanChange) -> str:
+    """One plan version in the command log."""
+    when = time.strftime("%H:%M:%S", time.localtime(change.recv_ns / 1e9))
+    return (
+        f'<div data-plan="{change.version}" data-own="{int(change.own)}" '
+        f'style="margin-bottom:3px"><b>#{change.seq} {when}</b> '
+        f"{html.escape(change.sender())}: {html.escape(change.describe())}</div>"
+    )
 
 
 _SEVERITY_COLOR = {0: "#777", 1: "#333", 2: "#b06000", 3: "#c5221f", 4: "#c5221f"}

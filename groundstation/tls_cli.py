@@ -1,4 +1,4 @@
-"""`covey tls`: the fleet's TLS certificates and Zenoh configs (comms/tls_setup.py does the work).
+"""`covey tls`: the fleet's TLS certificates and Zenoh configs (trust/tls_setup.py does the work).
 
     covey tls init  [--dir D] --names router gcs-1 vehicle-1 ... [--hosts gcs.local,10.0.0.1]
         fleet CA (made once, then reused), a certificate and key per identity, and ready-to-use
@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import argparse
 
-from comms.cli_options import comma_list, die
-from comms.tls_setup import DEFAULT_DIR, TlsConfig, TlsSetupError, init, role_of
+from cli.options import comma_list, die
+from trust.tls_setup import DEFAULT_DIR, TlsConfig, TlsSetupError, init, role_of
 
 
 def tls_parser() -> argparse.ArgumentParser:

@@ -61,7 +61,8 @@ def _guarded_serve(secret: str, used: threading.Event) -> Iterator[None]:
         return real(handler, *args, process_request=check, **kwargs)
 
     with _SERVE_LOCK:
-        websockets.asyncio.server.serve = serve  # type: ignore[assignment]
+        # websockets types `serve` as a class; for this block it is a function that wraps it
+        websockets.asyncio.server.serve = serve  # type: ignore[misc, assignment]
         try:
             yield
         finally:

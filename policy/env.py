@@ -113,7 +113,8 @@ def sample_vehicle_count(rng: np.random.Generator, cfg: EnvConfig) -> int:
 
 def sample_scenario(rng: np.random.Generator, n: int, cfg: EnvConfig):
     """Starts and goals (n, 2) in the arena, min_gap_m apart (rejection sampling)."""
-    starts, goals = [], []
+    starts: list = []
+    goals: list = []
     for _ in range(n):
         for _ in range(10000):
             s = rng.uniform(0.0, cfg.arena_m, 2)
@@ -137,15 +138,15 @@ def sample_conflict(rng: np.random.Generator, n: int, cfg: EnvConfig):
     centre = np.full(2, cfg.arena_m / 2)
     radius_m = rng.uniform(12.0, 28.0)
     jitter_m = rng.uniform(0.0, 4.0)
-    starts = []
+    placed: list = []
     for _ in range(n):
         for _ in range(10000):
             a = rng.uniform(0.0, 2 * np.pi)
             p = radius_m * np.array([np.cos(a), np.sin(a)])
-            if all(np.hypot(*(p - o)) >= 6.0 for o in starts):
+            if all(np.hypot(*(p - o)) >= 6.0 for o in placed):
                 break
-        starts.append(p)
-    starts = np.array(starts).reshape(n, 2)
+        placed.append(p)
+    starts = np.array(placed).reshape(n, 2)
     goals = -starts  # as far apart as the starts; each moves only where it stays 6 m clear
     for i in range(n):
         g = goals[i] + rng.uniform(-jitter_m, jitter_m, 2)

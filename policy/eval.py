@@ -27,6 +27,7 @@ import numpy as np
 
 from policy import evalsim, scenarios
 from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
+from policy.observation import Observations
 from policy.pointmass import VEHICLE_MODELS, VehicleModel
 
 
@@ -158,7 +159,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
         )
     sigma_m = VehicleModel.named(cfg.vehicles).drift_m
     inflation_m = inflation_told_m(safety_cfg, sigma_m) if cfg.tell_inflation else 0.0
-    out = {}
+    out: dict[str, Callable[..., Any]] = {}
     for name, path, filt in [
         ("policy+filter", cfg.weights, True),
         ("policy", cfg.weights, False),
@@ -176,7 +177,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             max_neighbours=cfg.max_neighbours,
             sparse_rule=SparseConfig() if filt and cfg.sparse_rule else None,
         )
-        out[name] = Held(pol.command_views, cfg.policy_period_s, safety_cfg if filt else None)
+        out[name] = Held(_decide_views(pol), cfg.policy_period_s, safety_cfg if filt else None)
     if cfg.occupancy:
         out["occupancy"] = Held(
             _occupancy_controller(cfg.occupancy, cfg.max_neighbours), cfg.policy_period_s
@@ -197,9 +198,8 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             nbr_cooperative=sig.get("nbr_cooperative"),
         )
 
-    orca.uses_sigma = True
-    orca.safety_cfg = safety_cfg  # the zone suite filters with the same config
-    orca.uses_cooperative = True
+    # capability flags evalsim reads off a controller; the zone suite filters with the same config
+    vars(orca).update(uses_sigma=True, safety_cfg=safety_cfg, uses_cooperative=True)
     out["orca"] = orca
     out["straight"] = evalsim.straight_line
     for name, make in (extra or {}).items():
@@ -213,6 +213,18 @@ def inflation_told_m(safety_cfg, sigma_m: float) -> float:
     sigma_k sqrt(2) sigma_m (policy.safety.pair_radius_m), told to the policy with
     --tell-inflation."""
     return float(safety_cfg.sigma_k * np.sqrt(2.0) * sigma_m)
+
+
+def _decide_views(pol):
+    """`pol.command_batch` on each vehicle's padded views, as the controllers here are called;
+    it takes the position uncertainties (`takes_sigma`) for its sparse rule."""
+
+    def decide(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky):
+        obs = Observations(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky)
+        return pol.command_batch(obs)
+
+    decide.takes_sigma = True
+    return decide
 
 
 class Held:
@@ -250,7 +262,7 @@ class Held:
             v = np.array([self.v[i] for i in ids])
         else:
             sky = {}
-            if pos_sigma_m is not None and getattr(self.policy, "__name__", "") == "command_views":
+            if pos_sigma_m is not None and getattr(self.policy, "takes_sigma", False):
                 sky = {"pos_sigma_m": pos_sigma_m, "nbr_pos_sigma_m": nbr_pos_sigma_m}
             v = self.policy(
                 pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky
@@ -392,7 +404,9 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     vehicles = VehicleModel.named(cfg.vehicles)
     all_cases = cases(cfg)
-    rows, tracks, zone_tracks = [], {}, {}
+    rows: list[dict] = []
+    tracks: dict = {}
+    zone_tracks: dict = {}
     jobs = [(c, ln, name) for c in all_cases for ln in cfg.links for name in ctrls]
     for (suite, case, starts, goals, *options), link, name in tqdm(
         jobs, disable=not cfg.progress, unit="run"
@@ -452,7 +466,7 @@ def merge(paths, out: str | Path) -> dict:
         rows += json.loads(Path(p).read_text())["runs"]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    result = {
+    result: dict[str, Any] = {
         "merged": [str(p) for p in paths],
         "flops_20": flops(20),
         "summary": summarise(rows),
@@ -465,7 +479,7 @@ def merge(paths, out: str | Path) -> dict:
 
 def parser() -> argparse.ArgumentParser:
     """One flag per EvalConfig field (help: the docstring under it), plus --merge."""
-    from comms.cli_options import add_config_flags, finite, renamed
+    from cli.options import add_config_flags, finite, renamed
 
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
@@ -495,7 +509,7 @@ def parser() -> argparse.ArgumentParser:
 def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = None) -> dict:
     """`covey eval [--quick] [--out DIR] [--weights W] [--paper-weights W] [--occupancy CKPT]`.
     `extra_controllers`: see `controllers` (named with --controllers)."""
-    from comms.cli_options import config_from_flags, given
+    from cli.options import config_from_flags, given
 
     ap = parser()
     a = ap.parse_args(argv)

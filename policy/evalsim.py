@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -253,7 +254,7 @@ def run(
         active[idx[hit | arrived | late]] = False
     ok = ~np.isnan(arrive_t) & ~nc
     coop = ~nc
-    out = {
+    out: dict[str, Any] = {
         "n": int(coop.sum()),
         "success": bool(ok.sum() == coop.sum() and not collided[coop].any()),
         "arrived": int(ok.sum()),

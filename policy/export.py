@@ -27,7 +27,7 @@ def write_npz(arrays: dict, config: dict, path: str | Path) -> Path:
     out = {k: np.asarray(v, dtype=np.float32) for k, v in arrays.items()}
     out["config"] = np.array(json.dumps(config))
     with open(path, "wb") as f:
-        np.savez(f, **out)
+        np.savez(f, allow_pickle=True, **out)
     return path
 
 
@@ -68,7 +68,7 @@ def parser(formats: Mapping[str, FormatWriter] | None = None) -> argparse.Argume
 def cli(argv=None, formats: Mapping[str, FormatWriter] | None = None) -> int:
     """`covey export CHECKPOINT OUT [--format npz|...]`. `formats`: further output formats by
     name, each a writer of the exported npz file (the npz is written beside OUT first)."""
-    from comms.cli_options import die
+    from cli.options import die
 
     formats = dict(formats or {})
     if "npz" in formats:

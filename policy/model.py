@@ -88,6 +88,10 @@ class LSTMEncoder(nn.Module):
 class OccupancyEncoder(nn.Module):
     """Occupancy map of 8 distance x 25 bearing bins, counts divided by bin area."""
 
+    edges: torch.Tensor
+    inv_area: torch.Tensor
+    """Buffers (register_buffer): the inner distance edges, and 1 / each ring bin's area."""
+
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
@@ -126,7 +130,7 @@ class ActorCritic(nn.Module):
         self.cfg = cfg
         self.encoder = LSTMEncoder(cfg) if cfg.encoder == "lstm" else OccupancyEncoder(cfg)
         z = self.encoder.out_size + cfg.obs.goal_size
-        layers = []
+        layers: list[nn.Linear] = []
         for size in cfg.head:
             layers.append(nn.Linear(z, size))
             z = size
@@ -136,10 +140,10 @@ class ActorCritic(nn.Module):
             nn.Linear(zin, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(), nn.Linear(64, 1)
         )
         self.log_std = nn.Parameter(torch.full((cfg.head[-1],), init_log_std))
-        for lin in self.head:
+        for lin in layers:
             nn.init.orthogonal_(lin.weight, math.sqrt(2))
             nn.init.zeros_(lin.bias)
-        nn.init.orthogonal_(self.head[-1].weight, 0.01)
+        nn.init.orthogonal_(layers[-1].weight, 0.01)
 
     def features(self, seq, lengths, goal):
         return torch.cat([self.encoder(seq, lengths), goal], dim=-1)
@@ -160,6 +164,11 @@ class ActorCritic(nn.Module):
         return z, self.critic(f.detach()).squeeze(-1)
 
 
+def parameter(module: nn.Module, name: str) -> torch.Tensor:
+    """`module`'s parameter `name`, typed (attribute access on a Module is Tensor | Module)."""
+    return module.get_parameter(name)
+
+
 def clip_unit(a: torch.Tensor) -> torch.Tensor:
     """a / max(|a|, 1)."""
     return a / a.norm(dim=-1, keepdim=True).clamp(min=1.0)
@@ -168,26 +177,29 @@ def clip_unit(a: torch.Tensor) -> torch.Tensor:
 def state_arrays(model: ActorCritic) -> dict:
     """Float32 arrays in the weights-file layout of docs/POLICY_SPEC.md (lstm only)."""
     out = {}
-    if model.cfg.encoder == "lstm":
+    if isinstance(model.encoder, LSTMEncoder):  # the encoder is an LSTM iff cfg.encoder says so
         lstm = model.encoder.lstm
-        out["lstm.weight_ih"] = lstm.weight_ih_l0.detach().cpu().numpy()
-        out["lstm.weight_hh"] = lstm.weight_hh_l0.detach().cpu().numpy()
-        out["lstm.bias"] = (lstm.bias_ih_l0 + lstm.bias_hh_l0).detach().cpu().numpy()
+        out["lstm.weight_ih"] = parameter(lstm, "weight_ih_l0").detach().cpu().numpy()
+        out["lstm.weight_hh"] = parameter(lstm, "weight_hh_l0").detach().cpu().numpy()
+        bias = parameter(lstm, "bias_ih_l0") + parameter(lstm, "bias_hh_l0")
+        out["lstm.bias"] = bias.detach().cpu().numpy()
     for k, lin in enumerate(model.head):
-        out[f"head.{k}.weight"] = lin.weight.detach().cpu().numpy()
-        out[f"head.{k}.bias"] = lin.bias.detach().cpu().numpy()
+        out[f"head.{k}.weight"] = parameter(lin, "weight").detach().cpu().numpy()
+        out[f"head.{k}.bias"] = parameter(lin, "bias").detach().cpu().numpy()
     return {k: np.asarray(v, dtype=np.float32) for k, v in out.items()}
 
 
 def load_actor_arrays(model: ActorCritic, arrays: dict) -> None:
     """The weights-file arrays (docs/POLICY_SPEC.md, lstm) into `model`'s LSTM and head; the
     inverse of `state_arrays` (the one combined bias goes to bias_ih, bias_hh is zero)."""
+    if not isinstance(model.encoder, LSTMEncoder):
+        raise ValueError(f"weights files hold an LSTM encoder; this model's is {model.cfg.encoder}")
     lstm = model.encoder.lstm
     with torch.no_grad():
-        lstm.weight_ih_l0.copy_(torch.from_numpy(arrays["lstm.weight_ih"]))
-        lstm.weight_hh_l0.copy_(torch.from_numpy(arrays["lstm.weight_hh"]))
-        lstm.bias_ih_l0.copy_(torch.from_numpy(arrays["lstm.bias"]))
-        lstm.bias_hh_l0.zero_()
+        parameter(lstm, "weight_ih_l0").copy_(torch.from_numpy(arrays["lstm.weight_ih"]))
+        parameter(lstm, "weight_hh_l0").copy_(torch.from_numpy(arrays["lstm.weight_hh"]))
+        parameter(lstm, "bias_ih_l0").copy_(torch.from_numpy(arrays["lstm.bias"]))
+        parameter(lstm, "bias_hh_l0").zero_()
         for k, lin in enumerate(model.head):
-            lin.weight.copy_(torch.from_numpy(arrays[f"head.{k}.weight"]))
-            lin.bias.copy_(torch.from_numpy(arrays[f"head.{k}.bias"]))
+            parameter(lin, "weight").copy_(torch.from_numpy(arrays[f"head.{k}.weight"]))
+            parameter(lin, "bias").copy_(torch.from_numpy(arrays[f"head.{k}.bias"]))

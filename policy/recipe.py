@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 from policy.train import TrainConfig
 
@@ -70,7 +71,7 @@ def stage_configs(cfg: TrainConfig, stages: tuple[Stage, ...]) -> list[TrainConf
     run = {name: getattr(cfg, name) for name in RUN_FLAGS if name not in per_stage}
     configs: list[TrainConfig] = []
     for k, stage in enumerate(stages, start=1):
-        over = dict(stage.settings)
+        over: dict[str, Any] = dict(stage.settings)
         over.update(
             run,
             out=str(out / f"{k}-{stage.name}"),

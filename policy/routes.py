@@ -336,7 +336,7 @@ class Router:
         if not len(pos):
             return out
         finite = np.isfinite(pos).all(axis=1) & np.isfinite(goal).all(axis=1)
-        clear = finite.copy()  # position clear, goal clear of the inflation (its own entry)
+        clear = np.array(finite)  # position clear, goal clear of the inflation (its own entry)
         if clear.any():
             f = np.flatnonzero(clear)
             clear[f] = shapely.covers(self._reach_ok, shapely.points(pos[f])) & shapely.covers(

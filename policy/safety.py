@@ -5,7 +5,8 @@ changes the policy's velocity as little as possible (closest in the Euclidean se
 so that it stays outside every neighbour's velocity obstacle for `time_horizon_s`,
 taking half of the avoidance effort (reciprocity). The maths follows van den Berg et
 al., "Reciprocal n-body collision avoidance" (2011); the LP is their incremental
-2-D program with the fallback that minimises the worst violation when infeasible.
+2-D program with the fallback that minimises the worst violation when infeasible
+(policy.orca_lp). Neighbours that do not cooperate follow policy.traffic_rules.
 """
 
 from __future__ import annotations
@@ -15,6 +16,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# the traffic rules (neighbours that do not cooperate) are policy.traffic_rules; the names
+# callers know from here are re-exported
+from policy.orca_lp import _clip_speed, _det, solve, solve_lines
+from policy.traffic_rules import MANNED_SEPARATION_M as MANNED_SEPARATION_M
+from policy.traffic_rules import NC_ESCAPE_SHARE as NC_ESCAPE_SHARE
+from policy.traffic_rules import NC_MAX_HORIZON_FACTOR as NC_MAX_HORIZON_FACTOR
+from policy.traffic_rules import NC_SIDE_BIAS as NC_SIDE_BIAS
+from policy.traffic_rules import (
+    effective_cooperative,
+    escape,
+    escape_one,
+    pair_horizon_one_s,
+    pair_horizon_s,
+    pair_reach_m,
+    step_aside,
+    step_aside_one,
+)
+
 EPS = 1e-9
 COINCIDENT_M = 0.01
 """Neighbours nearer than this (horizontally) are coincident: their relative position gives no
@@ -22,30 +41,6 @@ direction to push apart (two vehicles that took off from one point and hover the
 zero), so the ordered pair of vehicle ids gives one (`tie_direction`). The C twin is
 COVEY_SAFETY_COINCIDENT_M."""
 
-
-NC_MAX_HORIZON_FACTOR = 3.0
-"""A non-cooperative pair's time horizon is at most this many time_horizon_s (`pair_horizon_s`).
-The C twin is COVEY_SAFETY_NC_MAX_HORIZON_FACTOR."""
-NC_SIDE_BIAS = 0.25
-"""Step-aside tie-break (`orca_lines`): against a non-cooperative neighbour on a collision course
-this vehicle passes it on the right-hand leg of the cone (north/east frame: the rules of the air
-turn right for head-on) unless it is already off the neighbour's track to the other side by more
-than this share of the pair distance r (for a neighbour slower than us: unless v_rel leans that
-way by more than this share of r |v|). A band, not a sign test, so that a dead-on encounter
-seen through noisy states picks one side and keeps it. The C twin is
-COVEY_SAFETY_NC_SIDE_BIAS."""
-
-MANNED_SEPARATION_M = 30.0
-"""Default `SafetyConfig.manned_radius_m`: the berth kept from a manned aircraft (ADS-B emitter
-categories light to ultralight, comms/adsb.py MANNED_EMITTERS), whose pilot may not see a small
-drone and whose wake and rotor downwash reach further than a multicopter's. The C twin is
-COVEY_SAFETY_MANNED_SEPARATION_M."""
-
-NC_ESCAPE_SHARE = 0.8
-"""Already within a non-cooperative neighbour's distance r, closing, and it at least as fast as
-us: fleeing along the line cannot work, so the line becomes "move off its track at this share of
-max_speed_m_s or more", v . n >= NC_ESCAPE_SHARE max_speed, n perpendicular to its velocity on
-the step-aside side (`orca_lines`). The C twin is COVEY_SAFETY_NC_ESCAPE_SHARE."""
 
 SIGMA_K = 3.0
 """Default `SafetyConfig.sigma_k`. The relative error of two independent estimates is a 2-D
@@ -107,16 +102,6 @@ def tie_direction(own_id: int, nbr_id: int) -> tuple[float, float]:
     return sign * math.cos(bearing_rad), sign * math.sin(bearing_rad)
 
 
-def effective_cooperative(nbr_cooperative=None, nbr_manned=None):
-    """The cooperative flags with manned aircraft (nbr_manned True) made non-cooperative: a
-    manned aircraft never avoids a covey vehicle. None when both are None."""
-    if nbr_manned is None:
-        return nbr_cooperative
-    manned = np.asarray(nbr_manned, dtype=bool)
-    coop = np.asarray(True if nbr_cooperative is None else nbr_cooperative, dtype=bool)
-    return coop & ~manned
-
-
 def pair_radius_m(
     cfg: SafetyConfig,
     pos_sigma_m=None,
@@ -159,38 +144,6 @@ def pair_radius_m(
     r = r + cfg.sigma_k * np.sqrt(own[..., None] ** 2 + nbr**2)
     share = np.where(coop, cfg.responsibility, 1.0)
     return np.broadcast_to(r, shape), np.broadcast_to(share, shape)
-
-
-def pair_horizon_s(cfg: SafetyConfig, r, rel_speed_m_s, nbr_cooperative=None):
-    """Each pair's time horizon: time_horizon_s for a cooperative neighbour; for one that does
-    not cooperate, long enough to step aside in time,
-
-        tau_j = clip((r / v_max) (|v_i - v_j| / v_max), tau, NC_MAX_HORIZON_FACTOR tau),
-
-    r / v_max being the time to move one pair distance sideways and |v_i - v_j| / v_max how
-    many times faster the pair closes than this vehicle can move (a 2x intruder head-on: 10.8
-    s at 3.6 m and 1 m/s). Scalar tau when nbr_cooperative is None, else an array."""
-    tau = cfg.time_horizon_s
-    if nbr_cooperative is None:
-        return tau
-    vmax = cfg.max_speed_m_s
-    want = np.asarray(r, np.float64) / vmax * (np.asarray(rel_speed_m_s, np.float64) / vmax)
-    nc = np.clip(want, tau, NC_MAX_HORIZON_FACTOR * tau)
-    return np.where(nbr_cooperative, tau, nc)
-
-
-def pair_reach_m(cfg: SafetyConfig, r, nbr_speed_m_s=None, nbr_cooperative=None, tau=None):
-    """Beyond this distance a neighbour cannot come within r in the horizon: r + 2 max_speed
-    tau for a cooperative one (it flies at most our speed), r + (max_speed + max(max_speed,
-    |v_j|)) tau_j for a non-cooperative one (it may be faster; tau_j: `pair_horizon_s`, default
-    time_horizon_s)."""
-    vmax = cfg.max_speed_m_s
-    if tau is None:
-        tau = cfg.time_horizon_s
-    if nbr_cooperative is None:
-        return r + 2.0 * vmax * tau
-    fast = np.maximum(vmax, np.asarray(nbr_speed_m_s, dtype=np.float64))
-    return r + (vmax + np.where(nbr_cooperative, vmax, fast)) * tau
 
 
 def untie(rel_pos, own_ids, nbr_ids):
@@ -250,20 +203,11 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None,
     leg = np.sqrt(np.maximum(dist_sq - r * r, 0.0))
     left = (px * wy - py * wx) > 0
     if nc is not None:
-        # det(p, w) = det(p, v): the side test is the same on v
-        det_pv = px * vy - py * vx
-        v_len = np.sqrt(vx * vx + vy * vy)
-        steer = nc & (px * vx + py * vy > 0) & (np.abs(det_pv) < r * v_len)
+        # det(p, w) = det(p, v): the side test is the same on v (policy.traffic_rules)
+        steer, nc_left, side = step_aside(px, py, vx, vy, own_vel, r, cfg.max_speed_m_s)
+        steer = nc & steer
         on_circle = on_circle & ~steer
-        # the side: off the intruder's own track (p x v_j: this vehicle's offset from it, times
-        # |v_j|) when it is at least as fast as we are (crossing ahead of it would let it catch
-        # us), else the side v_rel leans to; within the bias band, the right-hand leg
-        jx = own_vel[..., None, 0] - vx
-        jy = own_vel[..., None, 1] - vy
-        j_len = np.sqrt(jx * jx + jy * jy)
-        fast = j_len >= cfg.max_speed_m_s
-        m = np.where(fast, px * jy - py * jx, -det_pv)
-        left = np.where(steer, m < NC_SIDE_BIAS * r * np.where(fast, j_len, v_len), left)
+        left = np.where(steer, nc_left, left)
     inv = 1.0 / np.maximum(dist_sq, EPS)
     lx = np.where(left, px * leg - py * r, -(px * leg + py * r)) * inv
     ly = np.where(left, px * r + py * leg, -(-px * r + py * leg)) * inv
@@ -287,126 +231,11 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None,
     pt_x, pt_y = own_vel[..., None, 0] + k * u_x, own_vel[..., None, 1] + k * u_y
     if nc is not None:
         # within r of a faster one, closing: off its track at NC_ESCAPE_SHARE max speed or more
-        esc = nc & colliding & fast & (px * vx + py * vy > 0)
-        if esc.any():
-            jn = np.maximum(j_len, EPS)
-            tx, ty = jx / jn, jy / jn
-            sgn = np.where(m < NC_SIDE_BIAS * r * j_len, 1.0, -1.0)
-            nx, ny = sgn * ty, -sgn * tx
-            spd = NC_ESCAPE_SHARE * cfg.max_speed_m_s
-            dir_x, dir_y = np.where(esc, ny, dir_x), np.where(esc, -nx, dir_y)
-            pt_x, pt_y = np.where(esc, spd * nx, pt_x), np.where(esc, spd * ny, pt_y)
+        active = nc & colliding & (px * vx + py * vy > 0)
+        (pt_x, pt_y), (dir_x, dir_y) = escape(
+            active, side, r, cfg.max_speed_m_s, (pt_x, pt_y), (dir_x, dir_y)
+        )
     return np.stack([pt_x, pt_y], axis=-1), np.stack([dir_x, dir_y], axis=-1)
-
-
-def _det(ax, ay, bx, by):
-    return ax * by - ay * bx
-
-
-def _lp1(lines, n, radius, opt, direction_opt):
-    # _det inlined and min / max as comparisons (the same values, NaN included): the hot path
-    (px, py), (dx, dy) = lines[n]
-    dot = px * dx + py * dy
-    disc = dot * dot + radius * radius - (px * px + py * py)
-    if disc < 0.0:
-        return None
-    sq = disc**0.5
-    t_left, t_right = -dot - sq, -dot + sq
-    for i in range(n):
-        (qx, qy), (ex, ey) = lines[i]
-        denom = dx * ey - dy * ex  # _det(dx, dy, ex, ey)
-        numer = ex * (py - qy) - ey * (px - qx)  # _det(ex, ey, px - qx, py - qy)
-        if abs(denom) <= EPS:
-            if numer < 0.0:
-                return None
-            continue
-        t = numer / denom
-        if denom >= 0.0:
-            if t < t_right:  # min(t_right, t)
-                t_right = t
-        elif t > t_left:  # max(t_left, t)
-            t_left = t
-        if t_left > t_right:
-            return None
-    if direction_opt:
-        t = t_right if opt[0] * dx + opt[1] * dy > 0.0 else t_left
-    else:
-        t = dx * (opt[0] - px) + dy * (opt[1] - py)
-        t = t_left if t_left > t else t  # max(t, t_left)
-        t = t_right if t_right < t else t  # min(t, t_right)
-    return (px + t * dx, py + t * dy)
-
-
-def _lp2(lines, radius, opt, direction_opt):
-    if direction_opt:
-        result = (opt[0] * radius, opt[1] * radius)
-    else:
-        n = (opt[0] ** 2 + opt[1] ** 2) ** 0.5
-        result = opt if n <= radius else (opt[0] / n * radius, opt[1] / n * radius)
-    rx, ry = result
-    for i, ((px, py), (dx, dy)) in enumerate(lines):
-        if dx * (py - ry) - dy * (px - rx) > 0.0:  # _det(dx, dy, px - rx, py - ry)
-            new = _lp1(lines, i, radius, opt, direction_opt)
-            if new is None:
-                return i, (rx, ry)
-            rx, ry = new
-    return len(lines), (rx, ry)
-
-
-def _lp3(lines, begin, radius, result, n_hard=0):
-    # lines[:n_hard] are hard (keep-out zones, policy.zone_lines): they stay as they are in
-    # every projected program, so only the others are relaxed (RVO2's numObstLines)
-    distance = 0.0
-    for i in range(max(begin, n_hard), len(lines)):
-        (px, py), (dx, dy) = lines[i]
-        if _det(dx, dy, px - result[0], py - result[1]) > distance:
-            proj = list(lines[:n_hard])
-            for j in range(n_hard, i):
-                (qx, qy), (ex, ey) = lines[j]
-                determinant = _det(dx, dy, ex, ey)
-                if abs(determinant) <= EPS:
-                    if dx * ex + dy * ey > 0.0:
-                        continue
-                    point = (0.5 * (px + qx), 0.5 * (py + qy))
-                else:
-                    t = _det(ex, ey, px - qx, py - qy) / determinant
-                    point = (px + t * dx, py + t * dy)
-                nx, ny = ex - dx, ey - dy
-                nn = max((nx * nx + ny * ny) ** 0.5, EPS)
-                proj.append((point, (nx / nn, ny / nn)))
-            fail, new = _lp2(proj, radius, (-dy, dx), True)
-            if fail >= len(proj):
-                result = new
-            distance = _det(dx, dy, px - result[0], py - result[1])
-    return result
-
-
-def solve(point, direction, pref_vel, max_speed, hard=()):
-    """Velocity closest to pref_vel inside all half-planes and |v| <= max_speed.
-
-    When infeasible, minimises the largest violation (ORCA's fallback). `hard` lines
-    [((px, py), (dx, dy))] (keep-out zones) go first and are never relaxed (`solve_lines`).
-    """
-    lines = [
-        ((float(p[0]), float(p[1])), (float(d[0]), float(d[1])))
-        for p, d in zip(point, direction, strict=True)
-    ]
-    return solve_lines(
-        list(hard) + lines, (float(pref_vel[0]), float(pref_vel[1])), max_speed, len(hard)
-    )
-
-
-def solve_lines(lines, pref, max_speed, n_hard=0):
-    """`solve` on lines [((px, py), (dx, dy))], the first n_hard of them hard: when the rest
-    cannot all be met, the worst violation of the rest is minimised inside the hard ones. Hard
-    lines that cannot be met together (never for zone lines outside their radius: v = 0 meets
-    them) are relaxed with the rest. The C twin is covey_safety.c covey_safety_solve."""
-    if not lines:
-        return _clip_speed(np.array(pref, dtype=np.float64), max_speed)
-    fail, result = _lp2(lines, max_speed, pref, False)
-    if fail < len(lines):
-        result = _lp3(lines, fail, max_speed, result, n_hard if fail >= n_hard else 0)
-    return np.array(result)
 
 
 def filter_velocity(
@@ -517,14 +346,9 @@ def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     r, r_sq, tau, r_tau, inv_dt, r_inv_dt, k, nc, vmax = consts
     dist_sq = px * px + py * py
     if nc and dist_sq <= r_sq and px * vx + py * vy > 0:  # the escape rule of `orca_lines`
-        jx, jy = own_vx - vx, own_vy - vy
-        j_len = math.sqrt(jx * jx + jy * jy)
-        if j_len >= vmax:
-            jn = EPS if j_len < EPS else j_len
-            sgn = 1.0 if px * jy - py * jx < NC_SIDE_BIAS * r * j_len else -1.0
-            nx, ny = sgn * jy / jn, -sgn * jx / jn
-            spd = NC_ESCAPE_SHARE * vmax
-            return (spd * nx, spd * ny), (ny, -nx)
+        line = escape_one(px, py, vx, vy, own_vx, own_vy, r, vmax)
+        if line is not None:
+            return line
     if dist_sq <= r_sq:
         cx, cy = vx - inv_dt * px, vy - inv_dt * py
         c_sq = cx * cx + cy * cy
@@ -538,16 +362,9 @@ def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     left = px * wy - py * wx > 0
     steer = False
     if nc:  # the step-aside rule of `orca_lines`
-        det_pv = px * vy - py * vx
-        v_len = math.sqrt(vx * vx + vy * vy)
-        steer = px * vx + py * vy > 0 and abs(det_pv) < r * v_len
+        steer, nc_left = step_aside_one(px, py, vx, vy, own_vx, own_vy, r, vmax)
         if steer:
-            jx, jy = own_vx - vx, own_vy - vy
-            j_len = math.sqrt(jx * jx + jy * jy)
-            if j_len >= vmax:
-                left = px * jy - py * jx < NC_SIDE_BIAS * r * j_len
-            else:
-                left = -det_pv < NC_SIDE_BIAS * r * v_len
+            left = nc_left
     if not steer and dot1 < 0 and dot1 * dot1 > r_sq * w_len_sq:
         w_len = math.sqrt(EPS if w_len_sq < EPS else w_len_sq)
         ux, uy = wx / w_len, wy / w_len
@@ -603,8 +420,8 @@ def filter_one(
     reach_sq = reach * reach
     x, y = float(pos_m[0]), float(pos_m[1])
     own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
-    lines = []
-    nc_lines = []  # hard after the zones' (`_solve_nc_hard`)
+    lines: list = []
+    nc_lines: list = []  # hard after the zones' (`_solve_nc_hard`)
     consts = None
     for k, ((nx, ny), (nvx, nvy)) in enumerate(
         zip(np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True)
@@ -617,14 +434,13 @@ def filter_one(
                 reach = r + 2.0 * vmax_tau
             else:
                 vmax = cfg.max_speed_m_s
-                rel = math.hypot(own_vx - nvx, own_vy - nvy)
-                tau = cfg.time_horizon_s
-                tau_nc = min(max(r / vmax * (rel / vmax), tau), NC_MAX_HORIZON_FACTOR * tau)
+                tau_nc = pair_horizon_one_s(cfg, r, math.hypot(own_vx - nvx, own_vy - nvy))
                 reach = r + (vmax + max(vmax, math.hypot(nvx, nvy))) * tau_nc
             reach_sq = reach * reach
         if px * px + py * py < reach_sq:
             if (
                 ids is not None
+                and own_id is not None
                 and px * px + py * py < COINCIDENT_M * COINCIDENT_M
                 and own_id > 0
                 and ids[k] > 0
@@ -748,8 +564,3 @@ def filter_padded(
                 point[i, m], direction[i, m], coop[i, m], pref[i], cfg.max_speed_m_s, hard[i]
             )
     return out
-
-
-def _clip_speed(v, max_speed):
-    n = np.hypot(v[..., 0], v[..., 1])
-    return v * (max_speed / np.maximum(n, max_speed))[..., None]

@@ -10,7 +10,6 @@ weights (`final.npz`) and the training curve (`curve.png`, as the paper's Fig. 4
 
 from __future__ import annotations
 
-import argparse
 import csv
 import math
 import os
@@ -119,7 +118,7 @@ def main(cfg: TrainConfig) -> dict:
 
     from policy.env import EnvConfig, SwarmEnv
     from policy.export import export_model
-    from policy.model import PRESETS, ActorCritic, clip_unit
+    from policy.model import PRESETS, ActorCritic, clip_unit, parameter
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -142,7 +141,7 @@ def main(cfg: TrainConfig) -> dict:
     env = SwarmEnv(env_cfg, model_cfg.obs)
     model = ActorCritic(model_cfg, cfg.init_log_std)
     with torch.no_grad():
-        model.head[-1].bias[0] = cfg.fwd_bias
+        parameter(model.head[-1], "bias")[0] = cfg.fwd_bias
     if cfg.init.endswith(".npz"):
         load_actor(model, cfg.init)
     elif cfg.init:
@@ -178,7 +177,7 @@ def main(cfg: TrainConfig) -> dict:
         return a.numpy(), logp.numpy(), value.numpy()
 
     obs = env.reset(cfg.seed)
-    recent = deque(maxlen=500)
+    recent: deque = deque(maxlen=500)
     episodes, update, t0 = 0, 0, time.time()
     log_path = out / "log.csv"
     log_f = open(log_path, "w", newline="")  # noqa: SIM115 - closed below; a with-block would indent the whole loop
@@ -392,67 +391,3 @@ def plot_curve(log_csv: Path, png: Path) -> None:
     fig.tight_layout()
     fig.savefig(png, dpi=120)
     plt.close(fig)
-
-
-def parser() -> argparse.ArgumentParser:
-    """One flag per TrainConfig field (help: the docstring under it), plus --episodes-k."""
-    from comms.cli_options import add_config_flags, finite
-
-    ap = argparse.ArgumentParser(
-        prog="covey train", description="Train the guidance policy with PPO."
-    )
-    add_config_flags(ap, TrainConfig, types={"max_minutes": finite("minutes", inclusive=True)})
-    ap.add_argument(
-        "--episodes-k",
-        type=finite("thousand episodes"),
-        default=None,
-        help="episodes in thousands (overrides --episodes)",
-    )
-    return ap
-
-
-def cli(argv=None) -> dict:
-    """`covey train [--field value ...]`: one flag per TrainConfig field."""
-    from comms.cli_options import config_from_flags, given
-
-    ap = parser()
-    args = ap.parse_args(argv)
-    if args.episodes_k is not None and given(ap, args, "episodes"):
-        ap.error("--episodes and --episodes-k say the same thing: give one")
-    over = {} if args.episodes_k is None else {"episodes": int(args.episodes_k * 1000)}
-    cfg = config_from_flags(TrainConfig, args, **over)
-    if cfg.recipe:
-        from policy import recipe
-
-        if cfg.recipe not in recipe.RECIPES:
-            ap.error(f"--recipe must be one of {', '.join(recipe.RECIPES)}, got {cfg.recipe!r}")
-        clash = given(ap, args, *(f for f in vars(args) if f not in recipe.RUN_FLAGS))
-        if clash:
-            ap.error(f"--recipe {cfg.recipe} sets {', '.join(clash)} itself; leave them out")
-        last = recipe.run(cfg)
-        print(
-            f"covey train --recipe {cfg.recipe}: {len(last['stages'])} stages in "
-            f"{sum(r.get('wall_s', 0.0) for r in last['stages']) / 60:.1f} min; wrote {cfg.out}/final.npz"
-        )
-        return last
-    if cfg.preset not in ("paper", "improved"):
-        ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
-    from policy.env import EnvConfig
-
-    try:  # the environment's own check, said as the flag
-        EnvConfig(filter_margin=cfg.filter_margin)
-    except ValueError as exc:
-        ap.error(f"--filter-margin: {exc}")
-    if cfg.encoder not in ("lstm", "occupancy"):
-        ap.error(f"--encoder must be lstm or occupancy, got {cfg.encoder!r}")
-    last = main(cfg)
-    print(
-        f"covey train: {last.get('episodes', 0):,} episodes in {last.get('wall_s', 0.0) / 60:.1f} min; "
-        f"last success {last.get('success', float('nan')):.3f}, collision {last.get('collision', float('nan')):.3f}; "
-        f"wrote {cfg.out}/ (final.npz, final.pt, log.csv, curve.png)"
-    )
-    return last
-
-
-if __name__ == "__main__":
-    cli()

@@ -4,7 +4,7 @@ For each zone edge near the vehicle, the velocities that would bring it within `
 edge within `time_horizon_s` form a truncated cone (the edge's velocity obstacle, van den Berg et
 al. 2011, section 5.3; the construction is RVO2's `Agent::computeNewVelocity`, obstacle part).
 Its half-plane goes into policy.safety's LP *before* the neighbours' and is hard: when the
-neighbours' lines cannot all be met, only theirs are relaxed (`safety._lp3` with `n_hard`), so
+neighbours' lines cannot all be met, only theirs are relaxed (`orca_lp._lp3` with `n_hard`), so
 a crowd can never push a vehicle into a zone. A static edge takes the whole correction (it does
 not move), and v = 0 always meets every edge line of a vehicle outside the radius, so the hard
 lines alone are always feasible.
@@ -205,7 +205,7 @@ class ZoneSet:
         n = len(pos_m)
         pads = np.zeros(n) if pad_m is None else np.broadcast_to(np.asarray(pad_m, float), (n,))
         near = self._near_rows(np.asarray(pos_m, float).reshape(-1, 2), max_speed_m_s, pads)
-        out = []
+        out: list = []
         for i in range(n):
             if not near[i]:  # no edge within reach: no line (most rows, most ticks)
                 out.append([])

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from comms.procs import ChildGroup, python_env
+from kit.procs import ChildGroup, python_env
 
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

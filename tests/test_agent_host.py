@@ -2,7 +2,7 @@
 own member of a keyed fleet (its own key, state, events, acks, presence, command queryable).
 
 - the --ids syntax and every refusal of the command line, in one line with the reason;
-- one key per vehicle from a key directory (comms.auth.load_vehicle_auths): a missing, foreign,
+- one key per vehicle from a key directory (trust.auth.load_vehicle_auths): a missing, foreign,
   wrong-vehicle or revoked key refuses to start; the keys share one roster;
 - a keyed host in this process, against a keyed station on a real Zenoh mesh;
 - end to end: two single agents and a host of 20 vehicles as real processes, and a keyed
@@ -25,16 +25,11 @@ from conftest import REPO, keyed_agent_argv, views_by_id
 
 from agent import agent_cli
 from agent.fleet_sim import Fleet, FleetSimConfig
+from cli.options import id_ranges, vehicle_ids
 from comms import keys
-from comms.auth import FleetKeyError, command_digest, load_auth, load_vehicle_auths
-from comms.authority import Authority, throwaway_fleet
-from comms.cli_options import id_ranges, vehicle_ids
 from comms.commands import OutcomeStatus, new_nonce
 from comms.gate import Refusal
-from comms.heartbeat import HeartbeatPublisher
-from comms.identity import read_member_key, verify
 from comms.mesh import Mesh
-from comms.procs import ChildGroup, python_env
 from comms.schema import (
     AckResult,
     Command,
@@ -46,6 +41,11 @@ from comms.schema import (
 )
 from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
+from kit.procs import ChildGroup, python_env
+from trust.auth import FleetKeyError, command_digest, load_auth, load_vehicle_auths
+from trust.authority import Authority, throwaway_fleet
+from trust.heartbeat import HeartbeatPublisher
+from trust.identity import read_member_key, verify
 
 FLEET = "hostfleet"
 
@@ -309,7 +309,7 @@ class Station:
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh
         self.fleet = FleetModel()
-        mesh.subscribe_states(self.fleet.on_state)
+        mesh.subscribe_states(self.fleet.on_state, on_refused=self.fleet.on_state_refused)
         self.presence = mesh.presence(
             lambda kind, vid, alive: (
                 kind == "vehicle" and self.fleet.on_presence(vid, alive, time.time_ns())

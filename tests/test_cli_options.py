@@ -1,5 +1,5 @@
 """Every covey CLI's options, checked from the parsers themselves (covey_cli.SUBCOMMANDS), and the
-shared options module (comms/cli_options.py): mesh endpoints, renamed and refused flags, flags
+shared options module (cli/options.py): mesh endpoints, renamed and refused flags, flags
 built from a config dataclass, stopping on signals."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import threading
 import pytest
 
 import covey_cli
-from comms import cli_options
-from comms.cli_options import Refused
+from cli import options as cli_options
+from cli.options import Refused
 
 FLAG_UNITS = tuple(sorted({end.replace("_", "-") for end in cli_options.UNIT_SUFFIXES}))
 """A quantity flag ends in one of these: -s, -m, -m-s, -m-s2, -hz, -pct, -rad, -deg, ..."""

@@ -78,7 +78,7 @@ def test_the_refusal_is_in_the_help(name, capsys) -> None:
 def test_a_key_in_the_environment_is_noted_not_silently_dropped(
     tmp_path, capsys, monkeypatch
 ) -> None:
-    from comms.cli_options import key_env_note
+    from cli.options import key_env_note
     from tools.record_cli import RECORD_NO_KEY, record_cli, record_parser
 
     key_env_note(record_parser(), RECORD_NO_KEY, env={})
@@ -149,7 +149,7 @@ def test_replay_refuses_flags_of_the_other_mode(tmp_path, capsys) -> None:
 def test_the_recorder_joins_as_a_client_unless_told_otherwise() -> None:
     """A router hands its clients a new vehicle's states from the first one; a peer recorder
     hears it only once their gossip link is up (tests/test_drill_record.py)."""
-    from comms.cli_options import mesh_config
+    from cli.options import mesh_config
     from tools.record_cli import record_parser
 
     p = record_parser()

@@ -21,8 +21,6 @@ import zenoh
 
 from agent.fleet_sim import start_grid
 from comms import keys
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.feed import DUE_SLACK, FeedBuffer
 from comms.gate import Refusal
 from comms.mesh import Mesh
@@ -37,6 +35,8 @@ from comms.schema import (
 from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
 from tests.conftest import views_by_id, wait_until
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 FLEET = "feedtest"
 MS = 1_000_000
@@ -124,7 +124,7 @@ def station():
     port = free_tcp_port()
     with Mesh(embedded_router(port, fleet=FLEET)) as mesh:
         model = FleetModel()
-        mesh.subscribe_feed(model.on_state)
+        mesh.subscribe_feed(model.on_state, on_refused=model.on_state_refused)
         yield port, mesh, model
 
 
@@ -209,7 +209,7 @@ def test_a_forged_entry_is_refused_and_its_batch_mates_are_accepted(fleet_keys) 
         zenoh.open(embedded_peer(port, fleet=FLEET).zenoh_config()) as attacker,
     ):
         model = FleetModel()
-        mesh.subscribe_feed(model.on_state)
+        mesh.subscribe_feed(model.on_state, on_refused=model.on_state_refused)
         time.sleep(0.5)
         now = time.time_ns()
         genuine = [fleet_keys[v].sign_state(state(v, 1, now)).encode() for v in (1, 2, 3)]

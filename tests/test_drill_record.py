@@ -18,9 +18,9 @@ import pytest
 from comms import keys
 from comms.commands import new_nonce
 from comms.mesh import Mesh
-from comms.record import RecordConfig, Recorder, read_recording
 from comms.schema import Command, CommandKind, VehicleState, decode
 from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
+from recording.record import RecordConfig, Recorder, read_recording
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

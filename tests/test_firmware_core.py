@@ -16,6 +16,7 @@ import pytest
 
 from firmware import cases, hostbuild
 from firmware.export_c import export_c_header, header_text
+from policy.observation import Observation
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 
@@ -127,17 +128,17 @@ def test_cpolicy_mirrors_guidance_policy_command():
     assert err.value.status == "nonfinite"
     # freshness: a stale neighbour is dropped, a stale own state is a fault
     r = cp.evaluate(
-        [0, 0],
-        0.0,
-        [10, 0],
-        [[3, 0], [0, 3]],
-        [0.0, 0.0],
+        Observation.shaped(
+            [0, 0], [0, 0], 0.0, [10, 0], [[3, 0], [0, 3]], [[0, 0]] * 2, [0.0, 0.0]
+        ),
         now_s=100.0,
         stamp_s=99.9,
         nbr_stamp_s=[99.8, 90.0],
     )
     assert (r.status, r.n_used, r.n_stale) == ("ok", 1, 1)
-    r = cp.evaluate([0, 0], 0.0, [10, 0], [], [], now_s=100.0, stamp_s=98.0)
+    r = cp.evaluate(
+        Observation.shaped([0, 0], [0, 0], 0.0, [10, 0], [], [], []), now_s=100.0, stamp_s=98.0
+    )
     assert r.status == "stale" and not np.any(r.vel_m_s)
 
 

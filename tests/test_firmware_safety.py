@@ -17,6 +17,7 @@ from firmware import hostbuild
 from firmware import safety_cases as sc
 from firmware.cases import STATUS
 from policy import safety
+from policy.observation import Observation
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 
@@ -224,7 +225,9 @@ def test_onboard_decides_at_the_trained_period_and_filters_every_tick(cpol):
             goal = np.array([-30.0, 0.0])  # a new goal decides at once
         pos = pos + 0.1 * vel
         vel = vel + rng.normal(0, 0.05, vel.shape)
-        r = tick.step(pos[0], vel[0], hdg[0], goal, pos[1:], vel[1:], hdg[1:], now_s=t)
+        r = tick.step(
+            Observation.shaped(pos[0], vel[0], hdg[0], goal, pos[1:], vel[1:], hdg[1:]), t
+        )
         assert r.status == "ok"
         if r.decided:
             decided_at.append(round(t, 1))
@@ -238,20 +241,20 @@ def test_onboard_faults_hover_and_forget_the_hold(cpol):
     tick = cpol.onboard()
     p = np.zeros(2)
     nbr = np.array([[4.0, 0.0]])
-    ok = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.0)
+
+    def seen(nbr_vel_m_s):
+        return Observation.shaped(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, nbr_vel_m_s, [np.pi])
+
+    ok = tick.step(seen([[-1.0, 0.0]]), now_s=1.0)
     assert ok.status == "ok" and ok.decided
-    bad = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[np.nan, 0.0]], [np.pi], now_s=1.1)
+    bad = tick.step(seen([[np.nan, 0.0]]), now_s=1.1)
     assert bad.status == "nonfinite" and not np.any(bad.vel_m_s)
-    stale = tick.step(
-        p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.2, stamp_s=0.1
-    )
+    stale = tick.step(seen([[-1.0, 0.0]]), now_s=1.2, stamp_s=0.1)
     assert stale.status == "stale" and not np.any(stale.vel_m_s)
-    again = tick.step(p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=1.3)
+    again = tick.step(seen([[-1.0, 0.0]]), now_s=1.3)
     assert again.status == "ok" and again.decided  # the fault dropped the held decision
     # a stale neighbour is dropped from the filter, not a fault
-    r = tick.step(
-        p, [1.0, 0.0], 0.0, [50.0, 0.0], nbr, [[-1.0, 0.0]], [np.pi], now_s=5.0, nbr_stamp_s=[1.0]
-    )
+    r = tick.step(seen([[-1.0, 0.0]]), now_s=5.0, nbr_stamp_s=[1.0])
     assert r.status == "ok" and not r.filtered
 
 

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from comms.plan import Fence, FleetPlan, Zone
-from comms.safe_load import BadFileError
 from groundstation.formation import (
     FormationError,
     FormationMemory,
@@ -22,6 +21,7 @@ from groundstation.formation import (
     plan_formation,
     slots_ned_m,
 )
+from kit.safe_load import BadFileError
 
 
 def _spec(shape: str = "circle", **kw) -> FormationSpec:
@@ -183,8 +183,8 @@ def test_foxglove_draws_each_vehicles_leg_to_its_slot() -> None:
     sphere and the leg to it as a line, decoded with protobuf from the channel's own schema."""
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-    from comms import foxglove_channels as fc
     from comms import schema
+    from recording import foxglove_channels as fc
 
     pool = descriptor_pool.DescriptorPool()
     for fd in descriptor_pb2.FileDescriptorSet.FromString(fc.SCENE_UPDATE.data).file:

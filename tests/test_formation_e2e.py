@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
+from comms.doc_sync import Offer
 from comms.mesh import Mesh
 from comms.plan import FleetPlan, Zone
 from comms.plan_sync import PlanSync
-from comms.roster_sync import Offer
 from comms.schema import Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
 from groundstation.formation import FormationSpec, slots_ned_m

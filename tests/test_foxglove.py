@@ -26,15 +26,17 @@ from mcap.reader import make_reader
 from mcap.records import Channel
 from websockets.sync.client import connect
 
-from comms import foxglove_channels as fc
 from comms import keys, schema
 from comms.commands import new_nonce
-from comms.foxglove_worker import FoxgloveChunks
 from comms.geo import GeoOrigin
-from comms.mcap_chunks import MAX_ID, ChunkBuilder
 from comms.mesh import Mesh
-from comms.procs import ChildGroup
-from comms.record import (
+from comms.session import embedded_peer, embedded_router, free_tcp_port
+from kit.procs import ChildGroup
+from recording import foxglove_channels as fc
+from recording.foxglove_bridge import BridgeConfig, FoxgloveBridge
+from recording.foxglove_worker import FoxgloveChunks
+from recording.mcap_chunks import MAX_ID, ChunkBuilder
+from recording.record import (
     FoxgloveIncomplete,
     McapSink,
     RecordConfig,
@@ -42,8 +44,6 @@ from comms.record import (
     add_foxglove_channels,
     read_recording,
 )
-from comms.session import embedded_peer, embedded_router, free_tcp_port
-from groundstation.foxglove_bridge import BridgeConfig, FoxgloveBridge
 from tools.record_cli import record_cli
 
 VEHICLES = (1, 2)
@@ -356,8 +356,8 @@ def test_the_worker_leaves_when_its_recorder_is_killed(tmp_path):
     """SIGKILL the recording process: its worker reads the end of its pipe and exits."""
     script = (
         "import os, sys, time\n"
-        "from comms.foxglove_channels import FoxgloveConfig\n"
-        "from comms.record import McapSink\n"
+        "from recording.foxglove_channels import FoxgloveConfig\n"
+        "from recording.record import McapSink\n"
         f"sink = McapSink(open({str(tmp_path / 'k.mcap')!r}, 'wb'), 'w', 2048, 0.05,"
         " foxglove=FoxgloveConfig())\n"
         "print(sink._worker._proc.pid, flush=True)\n"
@@ -391,7 +391,7 @@ def test_channel_ids_run_out_without_breaking_the_recording():
 
 
 def test_covey_topics_beyond_the_ids_are_refused_not_fatal(tmp_path, monkeypatch):
-    monkeypatch.setattr("comms.record.FIRST_ID", 4)  # room for 3 covey topics
+    monkeypatch.setattr("recording.record.FIRST_ID", 4)  # room for 3 covey topics
     traffic = _fleet_traffic(5)  # states of 3 vehicles, an event, a command, a departure
     counts = _record_sink(tmp_path / "full.mcap", traffic)
     rec = read_recording(tmp_path / "full.mcap")

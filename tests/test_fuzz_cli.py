@@ -132,7 +132,7 @@ def test_covey_agent_parser(stats) -> None:
 
 def test_covey_cmd_parser(stats) -> None:
     ops = pytest.importorskip("groundstation.ops")
-    from comms.cli_options import mesh_config
+    from cli.options import mesh_config
     from groundstation import inputs
 
     def parse(argv: list[str]) -> None:
@@ -265,7 +265,7 @@ def bad_setups(tmp_path) -> dict[str, list[str]]:
 
 
 LOG_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ ")
-"""A log record (comms.cli_options.setup_logging), not a line the CLI wrote."""
+"""A log record (cli.options.setup_logging), not a line the CLI wrote."""
 
 
 def run_one_line(fn, argv: list[str], strict: bool = False) -> str:
@@ -291,9 +291,8 @@ def run_one_line(fn, argv: list[str], strict: bool = False) -> str:
 
 def test_bad_files_and_endpoints_are_one_line_exit_2_in_every_subcommand(tmp_path) -> None:
     from agent import agent_cli
-    from comms import router_cli
     from groundstation import gcs_cli, ops
-    from tools import record_cli
+    from tools import record_cli, router_cli
 
     mesh_cases, key_cases = bad_setups(tmp_path)
     subcommands = {

@@ -15,8 +15,6 @@ import time
 
 import pytest
 
-from comms.auth import FleetAuth, command_digest, load_auth
-from comms.authority import throwaway_fleet
 from comms.schema import (
     AckResult,
     Command,
@@ -40,6 +38,8 @@ from comms.schema import (
     VehicleState,
     decode,
 )
+from trust.auth import FleetAuth, command_digest, load_auth
+from trust.authority import throwaway_fleet
 
 SEED = 20261122
 N_MUTATED = 60_000
@@ -223,7 +223,7 @@ def auth(tmp_path):
     import dataclasses
     import logging
 
-    logger = logging.getLogger("comms.auth")
+    logger = logging.getLogger("trust.auth")
     level = logger.level
     logger.setLevel(logging.CRITICAL)  # thousands of refusals
     authority = throwaway_fleet(tmp_path / "keys", "fuzz", vehicles=[1, 4], stations=[1])

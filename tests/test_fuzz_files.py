@@ -28,11 +28,11 @@ import numpy as np
 import pytest
 from test_fuzz_cli import LOG_LINE, run_one_line
 
-from comms.authority import ROSTER, Authority
-from comms.record import PARTIAL_EXIT, McapSink, read_recording
-from comms.safe_load import MAX_DEPTH, nesting_depth
 from comms.schema import Event, VehicleState
 from comms.session import free_tcp_port
+from kit.safe_load import MAX_DEPTH, nesting_depth
+from recording.record import PARTIAL_EXIT, McapSink, read_recording
+from trust.authority import ROSTER, Authority
 
 REPO = Path(__file__).resolve().parent.parent
 WEIGHTS = REPO / "policy" / "weights" / "policy.npz"

@@ -303,12 +303,12 @@ def test_a_keyless_command_query_is_only_counted_by_a_keyed_station(tmp_path):
     from conftest import wait_until
 
     from comms import keys
-    from comms.auth import load_auth
-    from comms.authority import throwaway_fleet
     from comms.mesh import Mesh
     from comms.schema import Role
     from comms.session import embedded_peer, embedded_router, free_tcp_port, open_session
     from groundstation.station import GcsConfig, GroundStation
+    from trust.auth import load_auth
+    from trust.authority import throwaway_fleet
 
     authority = throwaway_fleet(tmp_path / "keys", "covey", vehicles=[1], stations=[1, 2])
     key = {sid: str(authority.member_path(Role.STATION, sid)) for sid in (1, 2)}

@@ -13,15 +13,15 @@ import pytest
 from conftest import keyed_agent_argv, wait_until
 
 from comms import keys
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
-from comms.identity import signed_message
 from comms.mesh import Mesh
 from comms.schema import Mission, MissionItem, MissionItemKind, Role
 from comms.session import embedded_peer, embedded_router, free_tcp_port, open_session
 from groundstation.command_log import Progress, Status
 from groundstation.station import GcsConfig, GroundStation
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
+from trust.identity import signed_message
 
 pytestmark = pytest.mark.e2e
 FLEET = "ml"

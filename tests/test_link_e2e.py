@@ -11,8 +11,8 @@ import pytest
 
 from comms.link import emulator_from_spec
 from comms.mesh import Mesh
-from comms.procs import Child
 from comms.session import embedded_router, free_tcp_port
+from kit.procs import Child
 
 pytestmark = pytest.mark.e2e
 

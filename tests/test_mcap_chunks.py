@@ -1,4 +1,4 @@
-"""comms/mcap_chunks.py: files it writes read back with the mcap library's own readers (the
+"""recording/mcap_chunks.py: files it writes read back with the mcap library's own readers (the
 indexed one Foxglove's seeking resembles, and the streaming one with CRCs checked), and its
 hand-packed Message and MessageIndex records agree with the library's."""
 
@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, ChunkIndex, Message, MessageIndex, Schema
 from mcap.stream_reader import StreamReader
 
-from comms.mcap_chunks import ChunkBuilder, McapFile, PlainReader
+from recording.mcap_chunks import ChunkBuilder, McapFile, PlainReader
 
 
 def _two_streams(n: int = 300, seed: int = 3) -> tuple[bytes, list[tuple[str, int, bytes]]]:

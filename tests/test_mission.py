@@ -15,8 +15,6 @@ import pytest
 from agent.failsafe import FailsafeConfig
 from agent.fleet_sim import Fleet, FleetSimConfig
 from agent.mission import Ending, LocalItem, MissionRun, RunStatus
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.mesh import Mesh
 from comms.plan import Fence, FleetPlan, Zone
 from comms.schema import (
@@ -37,6 +35,8 @@ from comms.schema import (
 from comms.session import MeshConfig
 from groundstation.mission_cli import NotInRoster, UploadConfig, mission_cli, upload_main
 from groundstation.mission_io import MissionFileError, mission_from_text
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 K = MissionItemKind
 ISOLATED = MeshConfig(mode="peer", connect=(), listen=("tcp/127.0.0.1:0",))

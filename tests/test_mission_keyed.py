@@ -13,10 +13,7 @@ import pytest
 from conftest import keyed_agent_argv
 
 from comms import keys
-from comms.auth import command_digest, load_auth
-from comms.authority import throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
-from comms.identity import signed_message
 from comms.mesh import Mesh
 from comms.schema import (
     AckResult,
@@ -29,6 +26,9 @@ from comms.schema import (
     Role,
 )
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from trust.auth import command_digest, load_auth
+from trust.authority import throwaway_fleet
+from trust.identity import signed_message
 
 pytestmark = pytest.mark.e2e
 FLEET = "mk"

@@ -27,10 +27,7 @@ import time
 import pytest
 
 from comms import keys
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
-from comms.heartbeat import HeartbeatPublisher
 from comms.mesh import Mesh
 from comms.schema import (
     Command,
@@ -45,6 +42,9 @@ from comms.schema import (
 from comms.session import MeshConfig, free_tcp_port
 from groundstation.fleet import FleetModel
 from tests.conftest import keyed_agent_argv, views_by_id
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
+from trust.heartbeat import HeartbeatPublisher
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -69,7 +69,7 @@ class Station:
         """vehicle id -> {neighbour id: age in s} of its latest guidance trace."""
         self.flags_since: dict[int, StateFlag] = {}
         """vehicle id -> the state flags seen since `mark()`."""
-        mesh.subscribe_states(self.fleet.on_state)
+        mesh.subscribe_states(self.fleet.on_state, on_refused=self.fleet.on_state_refused)
         mesh.subscribe_states(self.on_state)
         for vid in IDS:
             mesh.session.declare_subscriber(keys.trace(FLEET, vid), self.on_trace)

@@ -15,8 +15,6 @@ from conftest import keyed_agent_argv
 from agent.failsafe import FailsafeConfig
 from agent.fleet_sim import Fleet, FleetSimConfig
 from agent.flight_core import CoreConfig, FlightCore
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
 from comms.plan import Fence, FleetPlan, Zone
@@ -24,6 +22,8 @@ from comms.plan_sync import PlanSync
 from comms.schema import AckResult, Command, CommandKind, Role
 from comms.session import MeshConfig, embedded_router, free_tcp_port
 from tests.test_plan_wire import sample_plan
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 FLEET = "planagent"
 
@@ -119,8 +119,8 @@ def test_a_keyed_agent_refuses_a_goto_into_a_zone_and_again_after_a_reboot(tmp_p
 def test_an_agent_started_with_a_plan_file_holds_it_and_a_forged_file_is_one_line(
     tmp_path, procs
 ) -> None:
-    from comms.auth import sign_plan
     from comms.plan_io import write_signed_plan
+    from trust.auth import sign_plan
 
     authority = throwaway_fleet(tmp_path / "keys", FLEET, vehicles=[1], stations=[1])
     station = load_auth(str(authority.member_path(Role.STATION, 1)))

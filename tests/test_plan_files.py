@@ -11,8 +11,6 @@ import sys
 
 import pytest
 
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.plan_io import CIRCLE_VERTICES, BadPlanError, read_plan_file, read_signed_plan
@@ -21,6 +19,8 @@ from comms.schema import Role
 from comms.session import MeshConfig, free_tcp_port
 from groundstation.plan_cli import plan_cli
 from tests.conftest import REPO, wait_until
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 ORIGIN = GeoOrigin(48.7490, 9.1050, 450.0)
 FLEET = "planfiles"

@@ -11,15 +11,15 @@ import time
 
 import pytest
 
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
+from comms.doc_sync import RosterSyncConfig
 from comms.mesh import Mesh
 from comms.plan import FleetPlan, RallyPoint, Zone
 from comms.plan_sync import PlanSync, publish_plan
-from comms.roster_sync import RosterSyncConfig
 from comms.schema import MAX_PLAN_BYTES, PlanMessage, Role
 from comms.session import MeshConfig, free_tcp_port
 from tests.conftest import wait_until
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 FLEET = "planflood"

@@ -12,8 +12,6 @@ import pytest
 import shapely
 import viser
 
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.mesh import Mesh
 from comms.plan_sync import PlanSync
 from comms.schema import Role
@@ -23,6 +21,8 @@ from groundstation.station import GcsConfig, GroundStation
 from tests.conftest import wait_until
 from tests.test_plan_files import ORIGIN, geojson
 from tests.test_plan_wire import HANGAR, sample_plan
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 FLEET = "planstation"
 
@@ -103,8 +103,8 @@ def test_a_keyed_station_draws_a_pushed_plan_and_pushes_an_upload(tmp_path) -> N
 
 
 def test_foxglove_shows_the_plan_as_one_scene_entity() -> None:
-    from comms import foxglove_channels as fc
     from comms.schema import PlanMessage
+    from recording import foxglove_channels as fc
     from tests.test_foxglove import proto_class
 
     (out,) = fc.Converter().convert(

@@ -1,4 +1,4 @@
-"""The fleet plan follows the roster's road (comms/plan_sync.py over comms/roster_sync.py's
+"""The fleet plan follows the roster's road (comms/plan_sync.py over trust/roster_sync.py's
 DocSync), on real Zenoh sessions on loopback: a station's push reaches a vehicle, forged and
 older plans are refused, a rebooted vehicle catches up from the station, open mode accepts."""
 
@@ -7,15 +7,15 @@ from __future__ import annotations
 import dataclasses
 import time
 
-from comms.auth import load_auth, sign_plan
-from comms.authority import throwaway_fleet
+from comms.doc_sync import Offer, RosterSyncConfig
 from comms.mesh import Mesh
 from comms.plan_sync import PlanSync, plan_confirmations, publish_plan
-from comms.roster_sync import Offer, RosterSyncConfig
 from comms.schema import PlanMessage, Role
 from comms.session import MeshConfig, free_tcp_port
 from tests.conftest import wait_until
 from tests.test_plan_wire import sample_plan
+from trust.auth import load_auth, sign_plan
+from trust.authority import throwaway_fleet
 
 FLEET = "planfleet"
 SLOW = RosterSyncConfig(pull_every_s=60.0)

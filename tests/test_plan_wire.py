@@ -9,8 +9,6 @@ import random
 
 import pytest
 
-from comms.auth import FleetAuth, load_auth, sign_plan
-from comms.authority import throwaway_fleet
 from comms.plan import (
     MAX_PLAN_VERTICES,
     Fence,
@@ -21,6 +19,8 @@ from comms.plan import (
     point_in_polygon,
 )
 from comms.schema import MAX_PLAN_BYTES, DecodeError, PlanMessage, Role, decode
+from trust.auth import FleetAuth, load_auth, sign_plan
+from trust.authority import throwaway_fleet
 
 SQUARE = ((0.0, 0.0), (0.0, 200.0), (200.0, 200.0), (200.0, 0.0))
 SCHOOL = ((50.0, 50.0), (50.0, 80.0), (80.0, 80.0), (80.0, 50.0))

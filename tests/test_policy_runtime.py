@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from policy import features
+from policy.observation import Observation, Swarm
 from policy.runtime import GuidancePolicy
 
 
@@ -64,9 +65,13 @@ def test_bad_inputs_raise_clear_errors(kwargs, match):
 def test_bad_batch_and_load_arguments(tmp_path):
     pol = GuidancePolicy.load()
     with pytest.raises(ValueError, match="goal_m must have shape"):
-        pol.command_batch(np.zeros((3, 2)), np.zeros((3, 2)), np.zeros(3), np.zeros((2, 2)))
+        pol.command_batch(
+            Swarm.checked(np.zeros((3, 2)), np.zeros((3, 2)), np.zeros(3), np.zeros((2, 2)))
+        )
     with pytest.raises(ValueError, match="active must have shape"):
-        pol.command_batch(np.zeros((3, 2)), np.zeros((3, 2)), np.zeros(3), np.zeros((3, 2)), [True])
+        pol.command_batch(
+            Swarm.checked(np.zeros((3, 2)), np.zeros((3, 2)), np.zeros(3), np.zeros((3, 2)), [True])
+        )
     with pytest.raises(ValueError, match="separation_m"):
         GuidancePolicy.load(separation_m=-1.0)
     with pytest.raises(FileNotFoundError):
@@ -93,7 +98,7 @@ def test_command_batch_matches_command():
     vel, h = rng.normal(0, 0.5, (n, 2)), rng.uniform(-3, 3, n)
     active = np.ones(n, bool)
     active[3] = False
-    v = pol.command_batch(pos, vel, h, goal, active)
+    v = pol.command_batch(Swarm.checked(pos, vel, h, goal, active))
     assert np.all(v[3] == 0)
     for i in np.flatnonzero(active):
         o = np.flatnonzero(active & (np.arange(n) != i))
@@ -127,7 +132,8 @@ def test_runtime_matches_torch(preset, tmp_path):
                 torch.tensor(g[None], dtype=torch.float32),
             )
         a_t = features.clip_unit(a_t.numpy()[0])
-        np.testing.assert_allclose(pol.action(pos, h, goal, nbr, nh), a_t, atol=1e-5)
+        obs = Observation.checked(pos, np.zeros(2), h, goal, nbr, np.zeros((k, 2)), nh)
+        np.testing.assert_allclose(pol.actor.action(obs), a_t, atol=1e-5)
     # batch path (float32) against torch on padded sequences
     n = 30
     pos, goal, h = rng.uniform(0, 40, (n, 2)), rng.uniform(0, 40, (n, 2)), rng.uniform(-3, 3, n)
@@ -139,14 +145,15 @@ def test_runtime_matches_torch(preset, tmp_path):
             torch.tensor(lengths),
             torch.tensor(g, dtype=torch.float32),
         )
-    a_np, nbr_all = pol.action_batch(pos, h, goal, active)
+    swarm = Swarm.checked(pos, np.zeros((n, 2)), h, goal, active)
+    a_np, nbr_all = pol.actor.action_batch(swarm)
     np.testing.assert_allclose(a_np, features.clip_unit(a_t.numpy()), atol=1e-5)
     # a subset of rows (fleet-sim: only the vehicles whose decision is due) = those rows of the whole
     rows = np.array([3, 0, 17, 29])
-    a_rows, nbr_rows = pol.action_batch(pos, h, goal, active, rows=rows)
+    a_rows, nbr_rows = pol.actor.action_batch(swarm, rows=rows)
     np.testing.assert_allclose(a_rows, a_np[rows], atol=1e-6)
     np.testing.assert_array_equal(nbr_rows, nbr_all)
-    assert pol.action_batch(pos, h, goal, active, rows=np.array([], int))[0].shape == (0, 2)
+    assert pol.actor.action_batch(swarm, rows=np.array([], int))[0].shape == (0, 2)
 
 
 def test_runtime_does_not_import_torch():
@@ -167,7 +174,7 @@ def test_head_on_with_filter_keeps_separation():
     dt = 0.1
     min_d = np.inf
     for _ in range(800):
-        v = pol.command_batch(pos, vel, h, goal)
+        v = pol.command_batch(Swarm.checked(pos, vel, h, goal))
         disp = v * dt
         moving = np.hypot(disp[:, 0], disp[:, 1]) > 1e-9
         h = np.where(moving, np.arctan2(disp[:, 1], disp[:, 0]), h)

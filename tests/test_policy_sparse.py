@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from policy import evalsim, safety, sparse
+from policy.observation import Observation, Observations, Swarm
 from policy.runtime import GuidancePolicy
 
 CFG = sparse.SparseConfig()
@@ -141,8 +142,8 @@ def _scenes(rng, n_scenes=60, n=6):
 
 
 def test_every_runtime_path_applies_the_same_rule():
-    """command (one vehicle), command_views (padded views, as agents and eval decide) and
-    command_batch give the same velocities with the rule on, and differ from the policy's
+    """command (one vehicle), command_batch of Observations (padded views, as agents and eval
+    decide) and of a Swarm give the same velocities with the rule on, and differ from the policy's
     where the rule flew straight."""
     on = GuidancePolicy.load(safety_filter=False, sparse_rule=CFG)
     off = GuidancePolicy.load(safety_filter=False)
@@ -150,10 +151,10 @@ def test_every_runtime_path_applies_the_same_rule():
     n_straight = n_policy = 0
     for pos, vel, h, goal in _scenes(rng):
         n = len(pos)
-        batch = on.command_batch(pos, vel, h, goal)
+        batch = on.command_batch(Swarm.checked(pos, vel, h, goal))
         idx = np.array([[j for j in range(n) if j != i] for i in range(n)])
-        views = on.command_views(
-            pos, vel, h, goal, pos[idx], vel[idx], h[idx], np.ones(idx.shape, bool)
+        views = on.command_batch(
+            Observations(pos, vel, h, goal, pos[idx], vel[idx], h[idx], np.ones(idx.shape, bool))
         )
         for i in range(n):
             o = idx[i]
@@ -402,12 +403,12 @@ def test_c_onboard_tick_applies_the_rule_at_decisions():
     on, off = CPolicy.load(), CPolicy.load(sparse_rule=False)
     nbr, nbr_vel, nbr_h = np.array([[12.0, -10.0]]), np.array([[0.0, 1.0]]), np.array([1.57])
     args = ([0.0, 0.0], [1.0, 0.0], 0.0, GOAL, nbr, nbr_vel, nbr_h)
-    r = on.onboard().step(*args, now_s=1.0)
+    r = on.onboard().step(Observation.shaped(*args), now_s=1.0)
     assert r.status == "ok" and r.decided and r.straight
     ref = safety.filter_velocity(args[0], args[1], [1.0, 0.0], nbr, nbr_vel, on.safety_cfg)
     np.testing.assert_allclose(r.vel_m_s, ref, atol=1e-5)
     np.testing.assert_allclose(on.command(*args), r.vel_m_s, atol=1e-5)
-    r_off = off.onboard().step(*args, now_s=1.0)
+    r_off = off.onboard().step(Observation.shaped(*args), now_s=1.0)
     assert r_off.status == "ok" and not r_off.straight
     assert not np.allclose(r_off.vel_m_s, r.vel_m_s, atol=1e-3)
 

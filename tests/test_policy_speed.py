@@ -6,7 +6,7 @@
 - features.observe_fast = features.observe within 1e-12 (and the same neighbours);
 - safety.filter_one = safety.filter_velocity within 1e-12;
 - features.closest_last_rows (complex rows for their own projection) = features.observe within
-  float32 rounding (and the same neighbours); GuidancePolicy.action = action_reference within 1e-5;
+  float32 rounding (and the same neighbours); Actor.action = action_reference within 1e-5;
 - GuidancePolicy.command (its fast path in metres and its checked path) = the reference pipeline
   within 1e-5; its checks still name the input, a bad value anywhere included.
 """
@@ -18,6 +18,7 @@ import pytest
 
 from firmware import safety_cases as sc
 from policy import features, safety, sparse
+from policy.observation import Observation
 from policy.runtime import GuidancePolicy
 
 TOL = 1e-5
@@ -31,8 +32,7 @@ def pol():
 def _reference(pol, own, vel, h, goal, nbr, nv, hdg) -> np.ndarray:
     """The plain pipeline: the reference network, then (when on) the padded sparse rule, then
     (with neighbours) the filter."""
-    s = pol.dist_scale_m
-    a = pol.action_reference(own / s, h, goal / s, nbr / s, hdg)
+    a = pol.actor.action_reference(Observation.at_rest(own, h, goal, nbr, hdg))
     ref = features.action_to_velocity(a, h) * pol.cruise_speed_m_s
     if pol.sparse_rule is not None:
         one = (x[None] for x in (own, vel, np.asarray(goal, float), ref, nbr, nv))
@@ -225,20 +225,25 @@ def test_action_equals_action_reference(max_n):
     """`action`'s fast path (closest_last_rows + forward_rows) and, beyond max_neighbours, its
     general path, against the float64 reference."""
     pol = GuidancePolicy.load(max_neighbours=max_n)
+    s = pol.dist_scale_m
     rng = np.random.default_rng(12)
     worst = 0.0
     for k in (0, 1, 2, 19, 60):
         for _ in range(8):
             own, h, nbr, hdg = _rows_scene(rng, k, 15.0)
             goal = rng.uniform(-40, 40, 2)
-            a = pol.action(own, h, goal, nbr, hdg)
-            ref = pol.action_reference(own, h, goal, nbr, hdg)
+            obs = Observation.at_rest(own * s, h, goal * s, nbr * s, hdg)
+            a = pol.actor.action(obs)
+            ref = pol.actor.action_reference(obs)
             assert a.shape == (2,)
             worst = max(worst, float(np.abs(a - ref).max()))
     # a neighbour exactly on top: the general path, as the reference
     nbr = np.array([[1.0, 2.0], [5.0, 5.0]])
-    a = pol.action(np.array([1.0, 2.0]), 0.3, [9.0, 9.0], nbr, np.array([0.1, 0.2]))
-    ref = pol.action_reference(np.array([1.0, 2.0]), 0.3, [9.0, 9.0], nbr, np.array([0.1, 0.2]))
+    obs = Observation.at_rest(
+        np.array([1.0, 2.0]) * s, 0.3, [9.0 * s, 9.0 * s], nbr * s, [0.1, 0.2]
+    )
+    a = pol.actor.action(obs)
+    ref = pol.actor.action_reference(obs)
     worst = max(worst, float(np.abs(a - ref).max()))
     assert worst <= TOL, worst
 
@@ -261,9 +266,11 @@ def test_command_fast_path_equals_checked_path_and_reference(filt, policy_sep):
             h = np.float64(rng.uniform(-4, 4)) if trial % 2 else float(rng.uniform(-4, 4))
             goal = rng.uniform(-30, 30, 2)
             goal_in = [float(goal[0]), float(goal[1])] if trial % 3 == 0 else goal
-            assert pol._command_fast(own, vel, h, goal_in, nbr, nv, hdg) is not None
+            fast = Observation._fast(own, vel, h, goal_in, nbr, nv, hdg)
+            assert fast is not None and pol.actor._action_rows(fast) is not None
             v = pol.command(own, vel, h, goal_in, nbr, nv, hdg)
-            v_checked = pol._command_checked(own, vel, h, goal_in, nbr, nv, hdg)
+            conv = Observation._converted(own, vel, h, goal_in, nbr, nv, hdg)
+            v_checked = pol._velocity(pol.actor._action_seq(conv), conv, True)
             ref = _reference(pol, own, vel, h, goal, nbr, nv, hdg)
             assert v.shape == (2,) and v.dtype == np.float64
             worst = max(worst, float(np.abs(v - ref).max()), float(np.abs(v_checked - ref).max()))
@@ -283,7 +290,7 @@ def test_command_finds_one_bad_value_anywhere(pol):
         nbr_vel_m_s=np.zeros((k, 2)),
         nbr_heading_rad=np.zeros(k),
     )
-    assert pol._command_fast(**ok) is not None
+    assert Observation._fast(**ok) is not None
     for name, value in ok.items():
         for bad in (np.nan, np.inf, -np.inf):
             args = dict(ok)

@@ -11,6 +11,7 @@ torch = pytest.importorskip("torch")
 
 from policy.export import cli as export_cli  # noqa: E402
 from policy.model import IMPROVED, PAPER, ActorCritic, OccupancyEncoder  # noqa: E402
+from policy.observation import Observation  # noqa: E402
 from policy.runtime import GuidancePolicy  # noqa: E402
 from policy.train import TrainConfig, main  # noqa: E402
 
@@ -72,8 +73,8 @@ def test_training_smoke_run(tmp_path, encoder):
 
 
 def test_every_train_flag_has_help(capsys):
-    from comms.cli_options import field_docs
-    from policy.train import cli
+    from cli.options import field_docs
+    from policy.train_cli import cli
 
     docs = field_docs(TrainConfig)
     assert set(docs) == {f.name for f in dataclasses.fields(TrainConfig)}, (
@@ -87,7 +88,7 @@ def test_every_train_flag_has_help(capsys):
 @pytest.mark.parametrize(("value", "says"), [("-0.5", "must be in [0, 10]"), ("11", "got 11.0")])
 def test_a_bad_filter_margin_is_refused_before_training(value, says, capsys):
     """--filter-margin out of the filter's range: exit 2 with the reason, nothing trained."""
-    from policy.train import cli
+    from policy.train_cli import cli
 
     with pytest.raises(SystemExit) as exc:
         cli(["--filter-margin", value, "--out", "/nonexistent/never-written"])
@@ -108,7 +109,9 @@ def test_init_from_weights_file_reproduces_the_actor(tmp_path):
     for k in (0, 1, 4):
         nbr = rng.uniform(-15, 15, (k, 2))
         nbr_h = rng.uniform(-np.pi, np.pi, k)
-        a = pol.action(np.zeros(2), 0.3, np.array([20.0, 5.0]), nbr, nbr_h)
+        a = pol.actor.action(
+            Observation.at_rest(np.zeros(2), 0.3, np.array([20.0, 5.0]), nbr, nbr_h)
+        )
         from policy import features
 
         seq, goal_feat, _ = features.observe(
@@ -207,7 +210,7 @@ def test_the_shipped_recipe_chains_its_stages_within_one_budget():
     ],
 )
 def test_a_recipe_refuses_the_flags_it_sets_and_unknown_recipes(argv, says, capsys):
-    from policy.train import cli
+    from policy.train_cli import cli
 
     with pytest.raises(SystemExit) as exc:
         cli([*argv, "--out", "/nonexistent/never-written"])

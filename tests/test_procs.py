@@ -1,4 +1,4 @@
-"""comms/procs.py: the one way covey starts, watches and stops a child process."""
+"""kit/procs.py: the one way covey starts, watches and stops a child process."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import time
 import pytest
 from conftest import wait_until
 
-from comms.procs import Child, ChildExited, ChildGroup, ChildTimeout
+from kit.procs import Child, ChildExited, ChildGroup, ChildTimeout
 
 
 def py(code: str) -> list[str]:
@@ -131,7 +131,7 @@ def test_wait_output_and_a_timeout() -> None:
 def test_die_with_parent_reaps_a_child_whose_parent_is_killed() -> None:
     """The demo's agents: SIGKILL the parent, the kernel SIGTERMs the child."""
     code = (
-        "import sys, time\nfrom comms.procs import Child\n"
+        "import sys, time\nfrom kit.procs import Child\n"
         "c = Child([sys.executable, '-c', 'import time; time.sleep(60)'], output='inherit', "
         "die_with_parent=True).start()\n"
         "print('READY', c.pid, flush=True); time.sleep(60)"

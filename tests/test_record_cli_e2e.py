@@ -12,9 +12,9 @@ import pytest
 from mcap.reader import make_reader
 
 from comms.mesh import Mesh
-from comms.record import read_recording
 from comms.schema import VehicleState
 from comms.session import MeshConfig, MeshConfigError, embedded_router, free_tcp_port, open_session
+from recording.record import read_recording
 
 pytestmark = pytest.mark.e2e
 

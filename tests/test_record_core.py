@@ -10,10 +10,10 @@ import pytest
 from comms import keys
 from comms.commands import new_nonce
 from comms.mesh import Mesh
-from comms.record import McapSink, RecordConfig, Recorder, read_recording, summarise
-from comms.replay import ReplayConfig, play, prepare
 from comms.schema import AckResult, Command, CommandAck, CommandKind, Event, StateFlag, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from recording.record import McapSink, RecordConfig, Recorder, read_recording, summarise
+from recording.replay import ReplayConfig, play, prepare
 
 PROBE_ID = 99
 

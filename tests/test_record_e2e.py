@@ -20,11 +20,11 @@ import pytest
 from comms import keys
 from comms.commands import new_nonce
 from comms.mesh import Mesh
-from comms.procs import ChildGroup
-from comms.record import read_recording, summarise
-from comms.replay import LiveFleetError, ReplayConfig, replay
 from comms.schema import Command, CommandKind, StateFlag, VehicleState
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from kit.procs import ChildGroup
+from recording.record import read_recording, summarise
+from recording.replay import LiveFleetError, ReplayConfig, replay
 from tools.record_cli import info_main, record_cli
 from tools.replay_cli import replay_cli
 

@@ -10,8 +10,8 @@ import pytest
 from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourTable
 from comms import keys
-from comms.record import McapSink, read_recording
 from comms.schema import Event, GuidanceTrace, Mode, Severity, StateFlag, VehicleState
+from recording.record import McapSink, read_recording
 from tools.closed_loop import ClosedLoopConfig, format_report, parse_trace, run_closed_loop
 
 FLEET = "cl"
@@ -162,7 +162,7 @@ def test_event_text_traces_of_older_recordings_replay_exactly(tmp_path):
 
 
 def test_traces_have_their_own_key_and_count_in_the_summary(tmp_path):
-    from comms.record import summarise
+    from recording.record import summarise
 
     path = tmp_path / "cl.mcap"
     _fly(path, n_ticks=5)

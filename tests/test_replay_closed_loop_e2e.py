@@ -14,10 +14,10 @@ import pytest
 
 from comms.commands import new_nonce
 from comms.mesh import Mesh
-from comms.procs import ChildGroup
-from comms.record import RecordConfig, Recorder, read_recording
 from comms.schema import Command
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from kit.procs import ChildGroup
+from recording.record import RecordConfig, Recorder, read_recording
 from tools.closed_loop import ClosedLoopConfig, run_closed_loop
 
 pytestmark = pytest.mark.e2e

@@ -1,4 +1,4 @@
-"""`covey router` (comms/router_cli.py) on real Zenoh sessions on loopback: it says where it
+"""`covey router` (tools/router_cli.py) on real Zenoh sessions on loopback: it says where it
 listens, which routers link to it and how many clients it has; it links to a router that comes
 up after it; it stops on SIGTERM. The fleet across three of them: tests/test_multisite_e2e.py."""
 
@@ -11,9 +11,9 @@ import pytest
 from conftest import wait_until
 
 from comms.mesh import Mesh
-from comms.router_cli import RouterConfig, main
 from comms.schema import VehicleState
 from comms.session import MeshConfig, MeshConfigError, free_tcp_port, with_free_port
+from tools.router_cli import RouterConfig, main
 
 FLEET = "routers"
 
@@ -110,7 +110,7 @@ def test_the_process_says_ready_and_stops_on_sigterm(procs) -> None:
 def test_the_cli_refuses_a_busy_port_in_one_line(capsys) -> None:
     import socket
 
-    from comms.router_cli import cli
+    from tools.router_cli import cli
 
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))

@@ -14,6 +14,7 @@ import pytest
 
 from firmware import safety_cases as sc
 from policy import safety
+from policy.observation import Observation, Sky
 
 PARITY_TOL = 1e-6
 """Max |C - numpy| per component as a share of max_speed (test_firmware_safety's)."""
@@ -182,12 +183,13 @@ def test_c_guidance_tick_passes_uncertainty_and_traffic_to_the_filter():
         pos = rng.uniform(-2, 2, 2)
         nbr_p = pos + rng.uniform(-6, 6, (4, 2))
         nbr_v = rng.uniform(-1, 1, (4, 2))
-        args = (pos, (0.3, 0.1), 0.2, (20.0, 0.0), nbr_p, nbr_v, np.zeros(4), 0.1 * t)
-        a = plain.step(*args)
-        z = none.step(*args, pos_sigma_m=0.0, nbr_pos_sigma_m=np.zeros(4))
+        args = (pos, (0.3, 0.1), 0.2, (20.0, 0.0), nbr_p, nbr_v, np.zeros(4))
+        now_s = 0.1 * t
+        a = plain.step(Observation.shaped(*args), now_s)
+        z = none.step(Observation.shaped(*args, Sky(0.0, np.zeros(4))), now_s)
         assert a.status == z.status == "ok" and np.array_equal(a.vel_m_s, z.vel_m_s)
         coop = np.array([True, False, True, True])
-        s = sky.step(*args, pos_sigma_m=0.5, nbr_pos_sigma_m=np.full(4, 0.5), nbr_cooperative=coop)
+        s = sky.step(Observation.shaped(*args, Sky(0.5, np.full(4, 0.5), coop)), now_s)
         assert s.status == "ok"
         held = pol.preferred(pos, (0.3, 0.1), 0.2, (20.0, 0.0), nbr_p, nbr_v, np.zeros(4))
         if t == 0:

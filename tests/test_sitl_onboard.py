@@ -25,6 +25,7 @@ from firmware.sitl.process import REPO_ROOT, SitlProcess, free_udp_port
 from firmware.sitl.px4 import Px4Mode
 from firmware.sitl.traffic import TrafficEntry, TrafficStore
 from firmware.sitl.vehicle import Vehicle, VehicleParams
+from policy.observation import Observation
 
 HOME = GeoOrigin(48.7490, 9.1050, 450.0)
 PARAMS = VehicleParams(accel_m_s2=10.0, pos_gain_1_s=2.0)
@@ -303,7 +304,7 @@ def test_onboard_policy_is_told_the_berth_and_the_c_filter_keeps_the_separation(
             assert tick._cfg.safety.radius_m == 3.0 and tick._cfg.safety_filter == 1
             assert tick._cfg.decision_period_s == pytest.approx(1.0)
             assert tick._cfg.sparse_rule == 1  # as the agents fly
-            r = tick.step(*scene, now_s=0.0)
+            r = tick.step(Observation.shaped(*scene), now_s=0.0)
         assert r.status == "ok" and r.decided and not r.straight
         told = CPolicy.load(separation_m=3.0, policy_separation_m=told_m).command(*scene)
         wide = CPolicy.load(separation_m=3.0, policy_separation_m=3.0).command(*scene)

@@ -1,4 +1,4 @@
-"""comms/state_batch.py equals schema.VehicleState.decode: the same states kept, the same values,
+"""recording/state_batch.py equals schema.VehicleState.decode: the same states kept, the same values,
 on valid states, every limit's edge and random corruptions (the arrays alone, and with the
 reference's fallback)."""
 
@@ -10,7 +10,7 @@ import random
 import numpy as np
 
 from comms import schema
-from comms.state_batch import _DTYPE, StateRow, _valid, decode_states
+from recording.state_batch import _DTYPE, StateRow, _valid, decode_states
 
 FMT = schema.VehicleState._FMT
 F32_2PI = float(np.float32(2 * math.pi))  # the float32 nearest 2*pi lies above it

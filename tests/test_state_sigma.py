@@ -12,7 +12,7 @@ import pytest
 
 from comms import schema
 from comms.schema import DecodeError, VehicleState, decode
-from comms.state_batch import decode_states
+from recording.state_batch import decode_states
 
 
 def _state(**kw) -> VehicleState:

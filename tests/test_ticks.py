@@ -1,4 +1,4 @@
-"""comms.ticks.run_ticks: the one fixed-rate loop (agent, host, ground station), on an
+"""kit.ticks.run_ticks: the one fixed-rate loop (agent, host, ground station), on an
 injected clock."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import logging
 import numpy as np
 import pytest
 
-from comms.ticks import next_due_s, run_ticks
+from kit.ticks import next_due_s, run_ticks
 
 
 class FakeTime:
@@ -72,7 +72,7 @@ def test_a_stall_drops_the_missed_ticks_instead_of_a_burst() -> None:
 
 
 def test_a_failing_tick_is_logged_and_the_loop_goes_on(caplog) -> None:
-    with caplog.at_level(logging.ERROR, logger="comms.ticks"):
+    with caplog.at_level(logging.ERROR, logger="kit.ticks"):
         starts, _ = _run(lambda k: 0.01, 10, fail=lambda k: k == 3)
     assert len(starts) == 10
     assert "tick failed" in caplog.text and "tick 3 broke" in caplog.text

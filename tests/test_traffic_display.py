@@ -11,10 +11,10 @@ import pytest
 import viser
 from conftest import wait_until
 
-from comms.palette import TRAFFIC_RGB
 from comms.schema import TrafficSource
 from comms.session import embedded_peer, embedded_router, free_tcp_port
 from comms.traffic import TrafficTrack
+from groundstation.palette import TRAFFIC_RGB
 from groundstation.scene import FleetScene, SceneConfig
 from groundstation.tables import traffic_table
 from tools.intruder_cli import IntruderConfig, intruder_main
@@ -104,9 +104,9 @@ def test_station_shows_an_intruder_in_real_chromium() -> None:
 def test_foxglove_draws_a_traffic_report_in_the_scene() -> None:
     from test_foxglove import proto_class
 
-    from comms import foxglove_channels as fc
     from comms import keys
     from comms.schema import Role, TrafficFlag, TrafficReport
+    from recording import foxglove_channels as fc
 
     conv = fc.Converter()
     r = TrafficReport(

@@ -207,10 +207,10 @@ def test_the_demo_says_how_to_fly_an_intruder_and_members_accept_it() -> None:
     fresh, in order)."""
     import shlex
 
-    from comms.auth import load_auth
     from comms.session import MeshConfig
     from comms.traffic import TrafficListener
     from groundstation.demo_proc import DemoProcess
+    from trust.auth import load_auth
 
     with DemoProcess(["--vehicles", "2", "--port", "0", "--mesh-port", "0"]) as demo:
         line = next(x for x in demo.lines if "covey intruder " in x)  # printed before the URL

@@ -13,8 +13,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from comms import adsb
-from comms.auth import load_auth
-from comms.authority import throwaway_fleet
 from comms.schema import (
     DecodeError,
     Role,
@@ -26,6 +24,8 @@ from comms.schema import (
 from comms.traffic import TrafficListener, TrafficTable, publish_report
 from tests.conftest import wait_until
 from tests.test_fuzz_decoders import mutate
+from trust.auth import load_auth
+from trust.authority import throwaway_fleet
 
 FLEET = "covey"
 f32 = st.floats(-1e5, 1e5, allow_nan=False, width=32)
@@ -126,9 +126,9 @@ def fleet(tmp_path_factory):
 
 @pytest.mark.e2e
 def test_keyed_members_take_only_fresh_reports_signed_by_a_roster_member(fleet, tmp_path) -> None:
-    from comms.authority import throwaway_fleet as other_fleet
     from comms.mesh import Mesh
     from comms.session import embedded_peer, embedded_router, free_tcp_port
+    from trust.authority import throwaway_fleet as other_fleet
 
     port = free_tcp_port()
     station = load_auth(str(fleet.member_path(Role.STATION, 1)))

@@ -1,4 +1,4 @@
-"""Per-member signatures (comms/auth.py, comms/identity.py, comms/gate.py): the checks in
+"""Per-member signatures (trust/auth.py, trust/identity.py, comms/gate.py): the checks in
 isolation, key files and `covey keygen`, then across real agent processes with key files."""
 
 from __future__ import annotations
@@ -15,10 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from comms.auth import FleetAuth, FleetKeyError, command_digest, load_auth
-from comms.authority import Authority, throwaway_fleet
 from comms.gate import SKIPPED, Gate, GateConfig, Refusal
-from comms.identity import read_member_key
 from comms.schema import (
     AckResult,
     Command,
@@ -30,6 +27,9 @@ from comms.schema import (
     Role,
     VehicleState,
 )
+from trust.auth import FleetAuth, FleetKeyError, command_digest, load_auth
+from trust.authority import Authority, throwaway_fleet
+from trust.identity import read_member_key
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -127,7 +127,7 @@ def test_a_signature_for_one_fleet_is_refused_in_another(tmp_path) -> None:
         )
     )
     (beta_dir / "authority.key").chmod(0o600)
-    from comms.identity import sign_roster
+    from trust.identity import sign_roster
 
     beta_roster = sign_roster(covey.key, dataclasses.replace(covey.roster, fleet="beta"))
     key = read_member_key(covey.member_path(Role.VEHICLE, 1))

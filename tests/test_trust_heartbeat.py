@@ -2,7 +2,7 @@
 
 - the StationHeartbeat message: round trip, a decoder that says why, a fuzz pass in which no
   mutated heartbeat verifies;
-- the receiver (comms/heartbeat.py) with real keys: unsigned, replayed, out-of-order, forged and
+- the receiver (trust/heartbeat.py) with real keys: unsigned, replayed, out-of-order, forged and
   vehicle-signed heartbeats refused; freshness; the clock offset; the take-off refusals;
 - end to end on real keyed agent processes: a take-off from `covey cmd` with no station is
   refused with the reason; with a station it flies; with the station gone and a keyless process
@@ -25,9 +25,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from comms import keys
-from comms.auth import FleetAuth, FleetKeyError, load_auth
-from comms.authority import throwaway_fleet
-from comms.heartbeat import NO_STATION, HeartbeatConfig, HeartbeatPublisher, StationHeartbeats
 from comms.schema import (
     MAX_VEHICLE_ID,
     ClockReport,
@@ -40,6 +37,9 @@ from comms.schema import (
 )
 from tests.conftest import REPO, views_by_id, wait_until
 from tests.test_fuzz_decoders import mutate
+from trust.auth import FleetAuth, FleetKeyError, load_auth
+from trust.authority import throwaway_fleet
+from trust.heartbeat import NO_STATION, HeartbeatConfig, HeartbeatPublisher, StationHeartbeats
 
 FLEET = "covey"
 NOW_NS = 1_800_000_000 * 10**9
@@ -295,7 +295,7 @@ def test_cli_only_take_off_is_refused_and_a_fake_station_token_cannot_stop_the_f
     ) as hub:
         model = FleetModel(FleetConfig(verified_only=True))
         events: list[tuple[float, Event]] = []
-        hub.subscribe_states(model.on_state)
+        hub.subscribe_states(model.on_state, on_refused=model.on_state_refused)
         hub.subscribe_events(lambda e, _t: events.append((time.monotonic(), e)))
         hub.presence(
             lambda kind, vid, alive: kind == "vehicle" and model.on_presence(vid, alive, 0)

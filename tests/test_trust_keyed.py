@@ -28,14 +28,10 @@ import pytest
 import zenoh
 
 from comms import keys
-from comms.auth import FleetAuth, load_auth
-from comms.authority import Authority, throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
 from comms.feed import split
 from comms.gate import Refusal
-from comms.identity import read_member_key
 from comms.mesh import Mesh
-from comms.procs import ChildGroup, python_env
 from comms.schema import (
     Command,
     CommandKind,
@@ -49,7 +45,11 @@ from comms.schema import (
 )
 from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
 from groundstation.fleet import FleetModel
+from kit.procs import ChildGroup, python_env
 from tests.conftest import REPO, keyed_agent_argv, views_by_id
+from trust.auth import FleetAuth, load_auth
+from trust.authority import Authority, throwaway_fleet
+from trust.identity import read_member_key
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -65,7 +65,7 @@ class Station:
         self.mesh = mesh
         self.fleet = FleetModel()
         self.events: list[Event] = []
-        mesh.subscribe_feed(self.fleet.on_state)  # finds fleet.on_state_refused by itself
+        mesh.subscribe_feed(self.fleet.on_state, on_refused=self.fleet.on_state_refused)
         mesh.subscribe_events(lambda e, _t: self.events.append(e))
         self.presence = mesh.presence(
             lambda kind, vid, alive: (

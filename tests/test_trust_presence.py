@@ -69,12 +69,12 @@ def test_open_mode_still_lists_present_vehicles() -> None:
 def test_2100_fake_tokens_then_a_real_vehicle_is_listed_and_answers_a_command_to_all(
     tmp_path, procs
 ) -> None:
-    from comms.authority import throwaway_fleet
     from comms.mesh import Mesh
     from comms.schema import CommandKind
     from comms.session import MeshConfig, embedded_peer, embedded_router, free_tcp_port
     from groundstation.inputs import CommandRequest
     from groundstation.station import GcsConfig, GroundStation
+    from trust.authority import throwaway_fleet
 
     authority = throwaway_fleet(tmp_path / "keys", FLEET, vehicles=[1, 2], stations=[1, 2])
     port = free_tcp_port()

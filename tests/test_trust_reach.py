@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from agent.neighbours import NeighbourTable
-from comms.auth import FleetAuth, load_auth
-from comms.authority import Authority, throwaway_fleet
 from comms.gate import SKIPPED, Gate, GateConfig, Refusal
 from comms.schema import Mode, Role, VehicleState
+from trust.auth import FleetAuth, load_auth
+from trust.authority import Authority, throwaway_fleet
 
 T0_NS = time.time_ns()
 MS = 10**6

@@ -1,4 +1,4 @@
-"""Revocation that always arrives: the roster follower (comms/roster_sync.py) on its own and
+"""Revocation that always arrives: the roster follower (trust/roster_sync.py) on its own and
 through the shipped mTLS + access-control configs (made by `covey tls init`).
 
 Unit level (one real Zenoh session each): a roster's size and header are read before anything
@@ -27,12 +27,9 @@ from pathlib import Path
 
 import pytest
 
-from comms.auth import FleetAuth, load_auth
-from comms.authority import Authority, throwaway_fleet
 from comms.commands import OutcomeStatus, new_nonce
-from comms.identity import member_doc, read_member_key, write_private_file
+from comms.doc_sync import Offer, RosterSyncConfig, confirmations
 from comms.mesh import Mesh
-from comms.roster_sync import Offer, RosterSync, RosterSyncConfig, confirmations
 from comms.schema import (
     MAX_ROSTER_BYTES,
     Command,
@@ -44,7 +41,11 @@ from comms.schema import (
     Roster,
 )
 from comms.session import MeshConfig, free_tcp_port
-from comms.tls_setup import TlsConfig, init
+from trust.auth import FleetAuth, load_auth
+from trust.authority import Authority, throwaway_fleet
+from trust.identity import member_doc, read_member_key, write_private_file
+from trust.roster_sync import RosterSync
+from trust.tls_setup import TlsConfig, init
 
 FLEET = "revoke"
 REPO = Path(__file__).resolve().parent.parent
@@ -114,9 +115,9 @@ def test_offer_checks_cheapest_first_and_applies_only_the_authoritys_newer_roste
         authority.revoke(Role.STATION, 1)  # the authority's next roster, not yet offered
         newer = authority.roster.encode()
         decodes = Counting(Roster.decode)
-        verifies = Counting(__import__("comms.roster_sync").roster_sync.verify)
+        verifies = Counting(__import__("trust.roster_sync").roster_sync.verify)
         monkeypatch.setattr(Roster, "decode", decodes)
-        monkeypatch.setattr("comms.roster_sync.verify", verifies)
+        monkeypatch.setattr("trust.roster_sync.verify", verifies)
         # Not newer: dropped on the header, neither verified nor decoded.
         assert sync.offer(forged_roster(held)) is Offer.SAME
         assert (decodes.calls, verifies.calls) == (0, 0)

@@ -26,8 +26,8 @@ import numpy as np
 from agent.guidance import Guidance, GuidanceConfig
 from agent.neighbours import NeighbourConfig, NeighbourSnapshot
 from comms import keys
-from comms.record import Recording, read_recording
 from comms.schema import DecodeError, Event, GuidanceTrace, Mode, StateFlag, VehicleState
+from recording.record import Recording, read_recording
 
 GUIDED_MODES = (Mode.GOTO, Mode.RETURNING, Mode.HOLDING)
 LEGACY_TRACE_PREFIX = "trace "
@@ -62,7 +62,7 @@ def parse_trace(text: str, vehicle_id: int = 0, stamp_ns: int = 0) -> GuidanceTr
         return None
     if len(vel) != 3 or not all(map(math.isfinite, (heading, *vel))):
         return None
-    return GuidanceTrace(vehicle_id, seq, stamp_ns, heading, vel, nbrs, complete, decided)  # type: ignore[arg-type]
+    return GuidanceTrace(vehicle_id, seq, stamp_ns, heading, vel, nbrs, complete, decided)
 
 
 # -- replay ----------------------------------------------------------------------------------
@@ -116,9 +116,9 @@ def _index(rec: Recording, vid: int):
                     traces[tr.state_seq] = tr
             elif parsed[2] == "event" and parsed[1] == vid:
                 ev = Event.decode(m.data)
-                tr = parse_trace(ev.text, ev.vehicle_id, ev.stamp_ns)
-                if tr is not None:
-                    traces[tr.state_seq] = tr
+                from_event = parse_trace(ev.text, ev.vehicle_id, ev.stamp_ns)
+                if from_event is not None:
+                    traces[from_event.state_seq] = from_event
         except DecodeError:
             continue
     return own, others, traces

@@ -19,8 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from comms.auth import load_auth
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -34,6 +33,7 @@ from comms.mesh import Mesh
 from comms.schema import MAX_TRAFFIC_TRACK_ID, MAX_VEHICLE_ID, Role, TrafficSource
 from comms.session import MeshConfig, MeshUnreachable
 from comms.traffic import TrafficTrack, publish_report
+from trust.auth import load_auth
 
 DEFAULT_TRACK_ID = 0x0200_0001
 """Outside the 24-bit ICAO space and covey's own block (comms/adsb.py): never a real aircraft."""

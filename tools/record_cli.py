@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -24,7 +24,9 @@ from comms.cli_options import (
     renamed,
     stop_on_signals,
 )
-from comms.record import (
+from comms.session import MeshUnreachable
+from recording.foxglove_bridge import add_foxglove_args, foxglove_config
+from recording.record import (
     PARTIAL_EXIT,
     FoxgloveIncomplete,
     RecordConfig,
@@ -35,8 +37,6 @@ from comms.record import (
     record,
     summarise,
 )
-from comms.session import MeshUnreachable
-from groundstation.foxglove_bridge import add_foxglove_args, foxglove_config
 
 RECORD_NO_KEY = (
     "a recorder stores the mesh's bytes as they are, signatures included, and signs nothing "

@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -24,9 +24,9 @@ from comms.cli_options import (
     renamed,
     stop_on_signals,
 )
-from comms.record import PARTIAL_EXIT, partial_warning, read_recording
-from comms.replay import LiveFleetError, ReplayConfig, replay
 from comms.session import MeshUnreachable
+from recording.record import PARTIAL_EXIT, partial_warning, read_recording
+from recording.replay import LiveFleetError, ReplayConfig, replay
 
 REPLAY_NO_KEY = (
     "a replay cannot be signed: replayed states carry the REPLAY flag, which their vehicles' "

@@ -1,5 +1,5 @@
 #!/bin/sh
-# A fleet CA and one certificate per identity; kept for scripts: `covey tls init` (comms/tls_setup.py)
+# A fleet CA and one certificate per identity; kept for scripts: `covey tls init` (trust/tls_setup.py)
 # does the same and also writes every identity's ready-to-use Zenoh config.
 #   comms/zenoh_configs/make_certs.sh OUTDIR router gcs-1 vehicle-1 vehicle-2 ...
 # Writes OUTDIR/ca.pem, OUTDIR/ca.key and OUTDIR/<name>.pem + <name>.key (keys mode 0600); an

@@ -85,6 +85,17 @@ static void test_traffic(void)
     CHECK(covey_traffic_prune(&t, 45u, 15u) == 1 && t.n == 2);
     CHECK(t.id[0] == 0x3C6444u && t.non_cooperative[0] == 1u && t.manned[0] == 1u);
     CHECK(t.id[1] == 0x2000001u && t.non_cooperative[1] == 1u && t.manned[1] == 0u);
+    /* the kinds the tick takes: manned aircraft keep their own berth (COVEY_TRACK_MANNED) */
+    {
+        uint8_t kinds[COVEY_MAX_INPUTS] = {9u, 9u, 9u};
+        CHECK(covey_traffic_put_track(&t, 5u, &b, 0.0f, 0.0f) == COVEY_OK && t.n == 3);
+        CHECK(covey_traffic_kinds(&t, kinds) == 3);
+        CHECK(kinds[0] == COVEY_TRACK_MANNED && kinds[1] == COVEY_TRACK_TRAFFIC &&
+              kinds[2] == COVEY_TRACK_COOPERATIVE);
+        CHECK(covey_traffic_kinds(NULL, kinds) == 0 && covey_traffic_kinds(&t, NULL) == 0);
+        CHECK(covey_traffic_prune(&t, 45u, 15u) == 0 && t.n == 3);
+        t.n = 2; /* back to the two traffic tracks */
+    }
     /* covey's marking: block address, CVY callsign, UAV emitter; all three needed */
     CHECK(covey_traffic_is_covey(COVEY_TRAFFIC_ICAO_BASE | 7u, "CVY7", COVEY_ADSB_EMITTER_UAV));
     CHECK(!covey_traffic_is_covey(7u, "CVY7", COVEY_ADSB_EMITTER_UAV));

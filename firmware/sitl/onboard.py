@@ -18,6 +18,7 @@ import numpy as np
 from comms import adsb
 from comms.geo import GeoOrigin
 from firmware.sitl.traffic import TrafficStore
+from policy.observation import EXACT, Observation, Sky
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +141,7 @@ class PolicyGuidance:
         nbr_pos, nbr_vel, nbr_hdg = self.neighbours(now_s)
         self.ticks += 1
         if self._tick is not None:
-            r = self._tick.step(
+            obs = Observation.shaped(
                 pos_ned_m[:2],
                 vel_ned_m_s[:2],
                 heading_rad,
@@ -148,9 +149,9 @@ class PolicyGuidance:
                 nbr_pos,
                 nbr_vel,
                 nbr_hdg,
-                now_s,
-                nbr_cooperative=None if self.cooperative.all() else self.cooperative,
+                EXACT if self.cooperative.all() else Sky(nbr_cooperative=self.cooperative),
             )
+            r = self._tick.step(obs, now_s)
             if r.status != "ok":
                 log.warning("onboard guidance fault: %s", r.status)
                 self._last = (math.nan, math.nan)  # the vehicle holds on a non-finite command

@@ -7,7 +7,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from comms.procs import Child, python_env
+from kit.procs import Child, python_env
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 

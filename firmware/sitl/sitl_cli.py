@@ -6,7 +6,7 @@ import argparse
 import logging
 from collections.abc import Sequence
 
-from comms.cli_options import (
+from cli.options import (
     add_config_flags,
     config_from_flags,
     finite,

@@ -43,6 +43,9 @@ void CoveyGuidance::update_parameters()
 	// the berth kept from traffic that does not cooperate (0: CVY_SEP_M); the filter takes the
 	// whole correction for it (covey_safety.h)
 	_guidance.safety.non_cooperative_radius_m = math::max(_param_nc_separation_m.get(), 0.f);
+	// the berth kept from a manned aircraft (its ADS-B emitter category, covey_emitter_is_manned)
+	_guidance.safety.manned_radius_m = math::max(_param_manned_separation_m.get(), 0.f);
+	_fence_pending = true; // the zones' clearance follows CVY_SEP_M
 	covey_hold_reset(&_hold); // decide afresh with the new parameters
 	const float rate_hz = math::constrain(_param_rate_hz.get(), 1.f, 50.f);
 	ScheduleOnInterval((uint32_t)(1e6f / rate_hz));
@@ -78,6 +81,65 @@ void CoveyGuidance::ingest_traffic()
 		covey_traffic_put_classified(&_traffic, report.icao_address, &v, speed_m_s * cosf(report.heading),
 					     speed_m_s * sinf(report.heading), !ours,
 					     covey_emitter_is_manned(report.emitter_type)); // refuses non-finite/out of range
+	}
+}
+
+void CoveyGuidance::ingest_fence()
+{
+	mission_s mission;
+
+	// PX4 bumps geofence_id whenever a fence is uploaded (covey's agents upload the fleet plan)
+	if (_mission_sub.update(&mission) && mission.geofence_id != _fence_id) {
+		_fence_id = mission.geofence_id;
+		_fence_pending = true;
+	}
+
+	if (_fence_pending && _ref.isInitialized()) {
+		_fence_pending = false;
+		load_fence();
+	}
+}
+
+void CoveyGuidance::load_fence()
+{
+	// dataman's fence: a stats entry at index 0, the items after it (as navigator's geofence)
+	mission_stats_entry_s stats{};
+	int32_t n = 0;
+
+	if (_param_zones.get()
+	    && _dataman.readSync(DM_KEY_FENCE_POINTS, 0, reinterpret_cast<uint8_t *>(&stats), sizeof(stats))) {
+		for (int i = 0; i < math::min((int)stats.num_items, kMaxFenceItems); i++) {
+			mission_fence_point_s pt{};
+
+			if (!_dataman.readSync(DM_KEY_FENCE_POINTS, i + 1, reinterpret_cast<uint8_t *>(&pt), sizeof(pt))) {
+				break;
+			}
+
+			covey_fence_item_t &it = _fence_items[n++];
+			_ref.project(pt.lat, pt.lon, it.pos_n_m, it.pos_e_m);
+			it.command = pt.nav_cmd;
+			const bool circle = pt.nav_cmd == COVEY_FENCE_CIRCLE_INCLUSION || pt.nav_cmd == COVEY_FENCE_CIRCLE_EXCLUSION;
+			it.vertex_count = circle ? 0 : pt.vertex_count;
+			it.radius_m = circle ? pt.circle_radius : 0.f;
+		}
+
+		if (stats.num_items > kMaxFenceItems) {
+			n = kMaxFenceItems + 1; // refused by the core as too many, with the reason below
+		}
+	}
+
+	// the core converts and checks (covey_fence_zones); on a fault no zones are kept
+	_fence_status = n > kMaxFenceItems ? COVEY_ERR_RANGE
+			: covey_fence_zones(&_zones, _fence_items, n, &_guidance.safety, &_fence_scratch);
+
+	if (_fence_status != COVEY_OK) {
+		_zones.n_vertices = 0;
+		PX4_ERR("covey guidance: geofence not usable as keep-out zones (%s): flying without them",
+			covey_status_name(_fence_status));
+
+	} else {
+		PX4_INFO("covey guidance: %d fence items, %d zone vertices kept %.1f m from", (int)n,
+			 (int)_zones.n_vertices, (double)covey_zone_radius_m(&_guidance.safety));
 	}
 }
 
@@ -121,10 +183,12 @@ void CoveyGuidance::Run()
 		_ref.initReference(_local_position.ref_lat, _local_position.ref_lon, _local_position.ref_timestamp);
 		_ref_timestamp = _local_position.ref_timestamp;
 		covey_traffic_init(&_traffic); // positions projected on the old reference are void
+		_fence_pending = true;         // so are the zones
 	}
 
 	ingest_traffic();
 	ingest_goal();
+	ingest_fence();
 
 	if (!_param_enable.get()) {
 		return;
@@ -140,11 +204,14 @@ void CoveyGuidance::Run()
 		heading_rad = covey_heading_for_goal(&_heading, _local_position.x, _local_position.y, &_goal);
 		const covey_vehicle_t own{_local_position.x, _local_position.y, heading_rad, _local_position.timestamp};
 		const float own_vel_m_s[2] {_local_position.vx, _local_position.vy};
-		// decides at the trained period (the held velocity in between), filters every tick
+		// decides at the trained period (the held velocity in between), filters every tick:
+		// covey neighbours reciprocally, traffic (manned aircraft at CVY_MANNED_M) with the
+		// whole correction, the geofence's zones as hard lines
+		covey_traffic_kinds(&_traffic, _kinds);
 		covey_guidance_out_t out{};
-		_last_status = covey_guidance_step_sky(&_guidance, &_hold, &own, own_vel_m_s, 0.f, &_goal,
-						       _traffic.report, &_traffic.vel_m_s[0][0], nullptr,
-						       _traffic.non_cooperative, _traffic.n, now, &_scratch, &out);
+		_last_status = covey_guidance_step_zones(&_guidance, &_hold, &own, own_vel_m_s, 0.f, &_goal,
+				_traffic.report, &_traffic.vel_m_s[0][0], nullptr, _kinds,
+				_traffic.n, &_zones, now, &_scratch, &out);
 		_ticks++;
 		_faults[math::min((int)_last_status, 4)]++;
 
@@ -202,6 +269,7 @@ int CoveyGuidance::print_status()
 	PX4_INFO("evaluations %u; ok %u nonfinite %u range %u stale %u; last %s", _evaluations,
 		 _faults[COVEY_OK], _faults[COVEY_ERR_NONFINITE], _faults[COVEY_ERR_RANGE], _faults[COVEY_ERR_STALE],
 		 covey_status_name(_last_status));
+	PX4_INFO("zones: %d vertices (fence %s)", (int)_zones.n_vertices, covey_status_name(_fence_status));
 	PX4_INFO("weights %s", COVEY_W_SOURCE_SHA256);
 	return 0;
 }

@@ -35,7 +35,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from comms.schema import MAX_VEHICLE_ID
 
-CONFIGS = Path(__file__).resolve().parent / "zenoh_configs"
+CONFIGS = Path(__file__).resolve().parent.parent / "comms" / "zenoh_configs"
 """The shipped templates."""
 DEFAULT_DIR = Path("~/.config/covey/tls")
 PLACEHOLDER_DIR = "/etc/covey/tls/"
@@ -125,14 +125,18 @@ def init(cfg: TlsConfig, now: datetime.datetime | None = None) -> list[Path]:
     if not cfg.configs:
         return certs
     stations = [n for n in cfg.names if role_of(n) == "station"]
-    vehicles = [int(_VEHICLE_RE.match(n).group(1)) for n in cfg.names if role_of(n) == "vehicle"]
+    vehicles = [
+        int(m.group(1))
+        for n in cfg.names
+        if role_of(n) == "vehicle" and (m := _VEHICLE_RE.match(n)) is not None
+    ]
     out = []
     for name in cfg.names:
         if role_of(name) == "router":
             text = router_config(d, name, stations, vehicles)
         else:
             text = _paths(_template("client_mtls.json5"), d, name)
-        header = f"// Written by `covey tls init` for {name} (comms/tls_setup.py).\n"
+        header = f"// Written by `covey tls init` for {name} (trust/tls_setup.py).\n"
         out.append(_write(d / f"{name}.json5", (header + text).encode(), 0o600))
     return out
 

@@ -31,15 +31,22 @@ import json
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 from foxglove import messages as fm
 
 from comms import keys, schema
 from comms.geo import GeoOrigin, mission_route_ned_m
-from comms.palette import GEOFENCE_RGB, GOAL_RGB, KEEP_OUT_RGB, RING_OK_RGB, TRAFFIC_RGB, mode_rgb
 from comms.plan import FleetPlan
-from comms.state_batch import StateRow, decode_states
+from groundstation.palette import (
+    GEOFENCE_RGB,
+    GOAL_RGB,
+    KEEP_OUT_RGB,
+    RING_OK_RGB,
+    TRAFFIC_RGB,
+    mode_rgb,
+)
+from recording.state_batch import StateRow, decode_states
 
 _STATE_TYPE = bytes([schema.MsgType.VEHICLE_STATE])
 WORLD_FRAME = "world"
@@ -132,7 +139,13 @@ class SchemaSpec:
     """protobuf or json."""
 
 
-def _proto(cls: type) -> SchemaSpec:
+class _HasSchema(Protocol):
+    """A foxglove-sdk message class (its `get_schema()`: name, encoding, data)."""
+
+    def get_schema(self) -> Any: ...
+
+
+def _proto(cls: _HasSchema) -> SchemaSpec:
     s = cls.get_schema()
     return SchemaSpec(s.name, s.encoding, bytes(s.data), "protobuf")
 
@@ -336,7 +349,7 @@ class Converter:
 
     def convert_all(self, items: Sequence[tuple[str, bytes, int]]) -> Iterator[list[Out]]:
         """convert() of each (topic, data, recv_ns), in order, with the states among them
-        decoded together (comms/state_batch.py, a fraction of the cost): the same outputs."""
+        decoded together (recording/state_batch.py, a fraction of the cost): the same outputs."""
         states = [
             i
             for i, (topic, data, _) in enumerate(items)
@@ -626,15 +639,19 @@ class Converter:
         if len(self._commands) >= self.MAX_COMMANDS:
             self._commands.pop(next(iter(self._commands)))
         self._commands[c.nonce] = c
-        mission = isinstance(c, schema.Mission)
+        params: list[float]
+        if isinstance(c, schema.Mission):
+            kind, params, seq = c.kind, [c.mission_id, len(c.items)], 0
+        else:
+            kind, params, seq = c.kind.name, list(c.params), c.seq
         body = {
             "nonce": c.nonce,
             "stamp_ns": c.stamp_ns,
             "source_id": c.source_id,
-            "kind": c.kind if mission else c.kind.name,
-            "params": [c.mission_id, len(c.items)] if mission else list(c.params),
+            "kind": kind,
+            "params": params,
             "targets": list(c.targets),
-            "seq": 0 if mission else c.seq,
+            "seq": seq,
             "signed": any(c.tag),
         }
         return Out(COMMANDS_TOPIC, COMMAND_JSON, json.dumps(body).encode(), recv_ns)

@@ -10,11 +10,16 @@ new roster up from `push` (or from any member that has it) without restarting.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
+from collections.abc import Set as AbstractSet
 from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
-from comms.identity import (
+from comms.keys import check_fleet
+from comms.schema import DecodeError, Member, Role, Roster
+from kit.safe_load import BadFileError, read_bounded
+from trust.identity import (
     MAX_KEY_FILE_BYTES,
     FleetKeyError,
     authority_doc,
@@ -27,9 +32,6 @@ from comms.identity import (
     sign_roster,
     write_private_file,
 )
-from comms.keys import check_fleet
-from comms.safe_load import BadFileError, read_bounded
-from comms.schema import DecodeError, Member, Role, Roster
 
 DEFAULT_DIR = Path("~/.config/covey/fleet")
 AUTHORITY = "authority.key"
@@ -105,7 +107,12 @@ class Authority:
         )
         self.member_path(role, member_id).unlink(missing_ok=True)
 
-    def _publish(self, members: tuple[Member, ...], clock_ns, skip: set = frozenset()) -> None:
+    def _publish(
+        self,
+        members: tuple[Member, ...],
+        clock_ns,
+        skip: AbstractSet[tuple[Role, int]] = frozenset(),
+    ) -> None:
         self.roster = sign_roster(
             self.key, Roster(self.fleet, self.roster.version + 1, clock_ns(), members)
         )
@@ -134,8 +141,8 @@ class Authority:
 def throwaway_fleet(
     directory: str | Path,
     fleet: str,
-    vehicles: range | list[int] = range(1, 3),
-    stations: range | list[int] = (1,),
+    vehicles: Sequence[int] = range(1, 3),
+    stations: Sequence[int] = (1,),
 ) -> Authority:
     """A new authority with these members enrolled under one roster version (demo, tests, bench)."""
     auth = Authority.init(directory, fleet)

@@ -1,31 +1,29 @@
-"""Following a signed fleet document on the mesh: the roster (a revocation reaches every keyed
-member within a second) and, through the same `DocSync`, the fleet plan (comms/plan_sync.py).
+"""Following a signed, versioned fleet document on the mesh: `DocSync`, for any `SignedDoc`.
 
-Every keyed process (agent, station, multi-vehicle host) runs one `RosterSync` on
-`covey/<fleet>/roster` (comms/keys.py). It
+Two documents are followed this way: the roster (trust/roster_sync.py `RosterSync`: a
+revocation reaches every keyed member within a second) and the fleet plan (comms/plan_sync.py).
+A follower
 
-- applies a newer roster pushed there (`covey keygen push`) at once;
-- answers roster queries: `roster?have=<v>` gets an answer only from members that hold a newer
-  roster than v, so a pull costs nothing on the wire while the fleet agrees;
+- applies a newer document pushed on its key (`covey keygen push`, `covey plan push`) at once;
+- answers queries: `<key>?have=<v>` gets an answer only from members that hold a newer version
+  than v, so a pull costs nothing on the wire while the fleet agrees;
 - pulls (queries with its own version) at start, on every new Zenoh link (a router coming back,
   a peer joining) and again a second later, and every `pull_every_s` (jittered), so a member that
-  was away, rebooted from an old key file or missed the push catches up by itself;
-- re-publishes its roster when it sees an authentic older one put on the key (a member that is
-  behind), after a random delay within `republish_delay_max_s`, cancelled if another member says
-  the same first, and at most once per `republish_min_interval_s`: a fleet answers one stale
-  roster with about one re-publish, not one per member.
+  was away, rebooted from an old file or missed the push catches up by itself;
+- re-publishes its document when it sees an authentic older one put on the key (a member that
+  is behind), after a random delay within `republish_delay_max_s`, cancelled if another member
+  says the same first, and at most once per `republish_min_interval_s`: a fleet answers one stale
+  document with about one re-publish, not one per member.
 
-What arrives is checked cheapest first (`offer`), so that a flood of forged rosters costs each
-receiver almost nothing and never delays a real one: the size (at most MAX_ROSTER_BYTES) and the
-fixed header (`Roster.peek`: type, version, fleet, roster version, length) in O(1); anything not
-newer than the roster held is dropped there, undecoded and unverified; a newer one is verified
-(the authority's Ed25519 signature over its signed bytes, about 1 ms for the largest) before its
-members are decoded and it is applied. Refusals are counted per cause and reported at most once
-per second per cause (`on_summary`, which the agent publishes as a SECURITY event): a flood
-becomes a few lines, never one event per message.
+What arrives is checked cheapest first (`offer`), so that a flood of forged documents costs each
+receiver almost nothing and never delays a real one: the size and the fixed header
+(`SignedDoc.peek`) in O(1); anything not newer than the version held is dropped there,
+undecoded and unverified; a newer one is verified (`SignedDoc.genuine`: the signature, about
+1 ms for the largest roster) before it is decoded and applied. Refusals are counted per cause
+and reported at most once per second per cause (`on_summary`, which the agent publishes as a
+SECURITY event): a flood becomes a few lines, never one event per message.
 
-`DocSync` does all of this for any `SignedDoc` (a key, an O(1) header peek, a signature check,
-an apply); `RosterSync` is it with `RosterDoc`.
+The signature checks live with the documents (trust/), so this module needs no key.
 """
 
 from __future__ import annotations
@@ -37,15 +35,13 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Generic, Protocol, TypeVar
 
 import zenoh
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from comms import keys
 from comms.gate import Summaries
-from comms.identity import verify
-from comms.schema import DecodeError, Roster, RosterHead
+from comms.schema import DecodeError, Roster
 
 log = logging.getLogger(__name__)
 
@@ -103,11 +99,20 @@ class Offer(enum.Enum):
 class DocHead(Protocol):
     """What a document's O(1) header peek gives: enough to drop it or verify it."""
 
-    fleet: str
-    version: int
+    @property
+    def fleet(self) -> str: ...
+
+    @property
+    def version(self) -> int: ...
 
 
-class SignedDoc(Protocol):
+H = TypeVar("H", bound=DocHead)
+"""A document's header type (RosterHead, PlanHead)."""
+D = TypeVar("D", covariant=True)
+"""A document's type (Roster, FleetPlan)."""
+
+
+class SignedDoc(Protocol[H, D]):
     """One kind of signed, versioned fleet document that `DocSync` follows (the roster, the
     plan): it says where it lives, reads a header cheaply, checks a signature, applies."""
 
@@ -116,7 +121,7 @@ class SignedDoc(Protocol):
     key: str
     """Its Zenoh key (comms/keys.py)."""
 
-    def peek(self, data: bytes) -> DocHead:
+    def peek(self, data: bytes) -> H:
         """The header in O(1); raises DecodeError."""
         ...
 
@@ -124,13 +129,13 @@ class SignedDoc(Protocol):
         """The version held now (0: none)."""
         ...
 
-    def genuine(self, head: DocHead) -> str | None:
+    def genuine(self, head: H) -> str | None:
         """None if the header's signature is a signer's this member trusts, else why not."""
         ...
 
-    def apply(self, data: bytes, head: DocHead) -> tuple[object, str | None]:
-        """Decode and apply a genuine newer document: (the document, None) or (None or the
-        document, why it was not applied); raises DecodeError."""
+    def apply(self, data: bytes, head: H) -> tuple[D, str | None]:
+        """Decode and apply a genuine newer document: (the document, None) or (the document,
+        why it was not applied); raises DecodeError."""
         ...
 
     def held_bytes(self) -> bytes | None:
@@ -138,45 +143,7 @@ class SignedDoc(Protocol):
         ...
 
 
-class RosterDoc:
-    """The fleet roster as a `SignedDoc`: signed by the fleet authority, held by `auth`."""
-
-    name = "roster"
-
-    def __init__(self, fleet: str, auth: Any) -> None:
-        self.key = keys.roster(fleet)
-        self.auth = auth
-        self._authority = Ed25519PublicKey.from_public_bytes(auth.key.authority_public_key)
-        self._lock = threading.Lock()
-        self._encoded: tuple[int, bytes] = (0, b"")
-
-    def peek(self, data: bytes) -> RosterHead:
-        return Roster.peek(data)
-
-    def held_version(self) -> int:
-        return self.auth.roster.version
-
-    def genuine(self, head: RosterHead) -> str | None:  # type: ignore[override]
-        if verify(self._authority, head.sig, "roster", head.fleet, head.signed):
-            return None
-        return "not signed by the fleet authority"
-
-    def apply(self, data: bytes, head: RosterHead) -> tuple[object, str | None]:  # type: ignore[override]
-        roster = Roster.decode(data)
-        return roster, self.auth.apply_roster(roster)
-
-    def held_bytes(self) -> bytes:
-        roster = self.auth.roster
-        with self._lock:
-            version, data = self._encoded
-        if version != roster.version:
-            data = roster.encode()  # O(members): encode once per version, not per answer
-            with self._lock:
-                self._encoded = (roster.version, data)
-        return data
-
-
-class DocSync:
+class DocSync(Generic[H, D]):
     """One member's follower of a `SignedDoc` on an open Zenoh session (see the module
     docstring). `undeclare()` stops it."""
 
@@ -184,11 +151,11 @@ class DocSync:
         self,
         session: zenoh.Session,
         fleet: str,
-        doc: SignedDoc,
+        doc: SignedDoc[H, D],
         cfg: RosterSyncConfig = RosterSyncConfig(),
         *,
         on_summary: Callable[[str], None] | None = None,
-        on_applied: Callable[[Any], None] | None = None,
+        on_applied: Callable[[D], None] | None = None,
         mono_ns: Callable[[], int] = time.monotonic_ns,
         rng: random.Random | None = None,
     ) -> None:
@@ -296,7 +263,7 @@ class DocSync:
         for reply in replies:
             self._on_reply(reply)
 
-    def _behind(self, head: DocHead, now: int) -> None:
+    def _behind(self, head: H, now: int) -> None:
         """An older document was put on the key: a member is behind. Re-publish ours (once,
         soon, unless someone else does), if that older one is authentic: a forged one must not
         make the fleet answer (an amplifier), and only one is verified per interval."""
@@ -434,36 +401,6 @@ class DocSync:
                 ent.undeclare()
             except Exception:  # noqa: BLE001 - closing the session frees it anyway
                 pass
-
-
-class RosterSync(DocSync):
-    """One keyed member's roster follower (see the module docstring). Declared by `Mesh`;
-    `undeclare()` stops it (the Mesh does, when it closes)."""
-
-    def __init__(
-        self,
-        session: zenoh.Session,
-        fleet: str,
-        auth: Any,
-        cfg: RosterSyncConfig = RosterSyncConfig(),
-        *,
-        on_summary: Callable[[str], None] | None = None,
-        on_applied: Callable[[Roster], None] | None = None,
-        mono_ns: Callable[[], int] = time.monotonic_ns,
-        rng: random.Random | None = None,
-    ) -> None:
-        """`auth`: this member's comms.auth.FleetAuth (its roster is the one followed)."""
-        self.auth = auth
-        super().__init__(
-            session,
-            fleet,
-            RosterDoc(fleet, auth),
-            cfg,
-            on_summary=on_summary,
-            on_applied=on_applied,
-            mono_ns=mono_ns,
-            rng=rng,
-        )
 
 
 MIN_PULL_GAP_S = 0.2

@@ -11,8 +11,8 @@ schema record holds the binary layout from comms.schema), log_time = receive tim
 
 Beside them, unless RecordConfig.foxglove is off, the same traffic in Foxglove's well-known
 schemas (/tf, /scene, /vehicles/<id>/pose|fix|link, /events, /commands, /acks; see
-comms/foxglove_channels.py), so that Foxglove opens the file as it is. They are made in a child
-process (comms/foxglove_worker.py) from the raw chunks, off the path that receives the mesh.
+recording/foxglove_channels.py), so that Foxglove opens the file as it is. They are made in a child
+process (recording/foxglove_worker.py) from the raw chunks, off the path that receives the mesh.
 Readers here skip those: `read_recording` returns only covey's own channels, so replay is
 unchanged by them.
 
@@ -46,8 +46,9 @@ from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from comms import keys, schema
-from comms.foxglove_channels import FoxgloveConfig
-from comms.foxglove_worker import (
+from comms.session import MeshConfig, open_session
+from recording.foxglove_channels import FoxgloveConfig
+from recording.foxglove_worker import (
     DEFER_ABOVE_HZ,
     FIRST_ID,
     MAX_DEFERRED_BYTES,
@@ -55,8 +56,7 @@ from comms.foxglove_worker import (
     FoxgloveWorker,
     WorkerDone,
 )
-from comms.mcap_chunks import MAGIC, BuiltChunk, ChunkBuilder, McapFile
-from comms.session import MeshConfig, open_session
+from recording.mcap_chunks import MAGIC, BuiltChunk, ChunkBuilder, McapFile
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ class McapSink:
 
     The writer thread writes covey's raw bytes only. With `foxglove` set, at each flush it hands
     the uncompressed records of the raw chunks written since the last flush to the Foxglove
-    worker (a child process, comms/foxglove_worker.py), whose finished chunks of the standard
+    worker (a child process, recording/foxglove_worker.py), whose finished chunks of the standard
     channels come back through the same queue and are written as they are;
     `foxglove_worker=False` converts in the writer thread instead (the reference path, and what
     an offline conversion uses)."""
@@ -239,8 +239,10 @@ class McapSink:
             plains, self._plains, self._plain_bytes = self._plains, [], 0
             for chunk in self._inline.add(plains):
                 self._write_foxglove(chunk)
-        elif self._plains and (
-            last or rate_hz <= self._defer_hz or self._plain_bytes >= MAX_DEFERRED_BYTES
+        elif (
+            self._plains
+            and self._worker is not None
+            and (last or rate_hz <= self._defer_hz or self._plain_bytes >= MAX_DEFERRED_BYTES)
         ):
             plains, self._plains, self._plain_bytes = self._plains, [], 0
             self._worker.send(plains)
@@ -348,6 +350,7 @@ class Recorder:
             if sink is not None:
                 self.sink: Sink = sink
             else:
+                assert self._file is not None  # opened above when no sink is given
                 self.sink = McapSink(
                     self._file, fleet, cfg.chunk_bytes, cfg.flush_interval_s, foxglove=cfg.foxglove
                 )
@@ -418,7 +421,7 @@ def record(
     """Record until cfg.duration_s passes or `stop` is set; returns message counts by kind.
     The duration bounds the whole run, a client's wait for its router included: nobody
     answering by then raises MeshUnreachable."""
-    from comms.cli_options import stop_after
+    from cli.options import stop_after
 
     stop = stop or threading.Event()
     with stop_after(cfg.duration_s, stop), Recorder(cfg, stop=stop) as rec:

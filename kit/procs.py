@@ -10,7 +10,7 @@
 Every child runs in its own process group (unless own_group=False), so stopping it also stops
 whatever it started. Its output is read by a thread as it comes, so a chatty child never blocks
 on a full pipe, and `wait_for` has a real timeout. One module for tests, benchmarks, the demo
-and the emulators; it lives in comms/ so that every layer may use it.
+and the emulators; it lives in kit/ (it imports nothing of covey) so that every layer may use it.
 """
 
 from __future__ import annotations

@@ -21,9 +21,9 @@ from dataclasses import dataclass, field, replace
 
 from comms import keys
 from comms.mesh import Mesh
-from comms.record import Recorded, Recording, read_recording
 from comms.schema import DecodeError, Event, StateFlag, VehicleState
 from comms.session import MeshConfig, expects_answer, unreachable, wait_linked
+from recording.record import Recorded, Recording, read_recording
 
 LINK_WAIT_S = 3.0
 """How long a replay waits for a router or peer to answer at its --connect endpoints before it
@@ -149,14 +149,14 @@ def play(
     items: list[Playable],
     speed: float = 1.0,
     clock_s: Callable[[], float] = time.monotonic,
-    sleep: Callable[[float], None] = time.sleep,
+    sleep: Callable[[float], object] = time.sleep,
     stop: threading.Event | None = None,
     result: ReplayResult | None = None,
 ) -> ReplayResult:
     """Publish `items` once at the recorded pace / speed. Never sends a command."""
     result = result or ReplayResult()
     if stop is not None and sleep is time.sleep:
-        sleep = stop.wait  # a long gap in the recording must not delay Ctrl-C
+        sleep = stop.wait  # a long gap in the recording must not delay Ctrl-C in the recording must not delay Ctrl-C
     start_s = clock_s()
     for p in items:
         if stop is not None and stop.is_set():

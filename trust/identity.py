@@ -26,17 +26,14 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from comms.keys import check_fleet
-from comms.safe_load import BadFileError, decode_utf8, parse_json
+from comms.member import FleetKeyError
 from comms.schema import MAX_VEHICLE_ID, TAG_BYTES, DecodeError, Role, Roster
+from kit.safe_load import BadFileError, decode_utf8, parse_json
 
 MEMBER_FILE = "member-key"
 AUTHORITY_FILE = "fleet-authority"
 MAX_KEY_FILE_BYTES = 1_000_000
 """A member file embeds the roster (35 bytes a member, hex: 70): 4096 members fit."""
-
-
-class FleetKeyError(ValueError):
-    """A key, key file or roster could not be used; the message says why and how to fix it."""
 
 
 def signed_message(label: str, fleet: str, data: bytes) -> bytes:

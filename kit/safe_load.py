@@ -17,6 +17,10 @@ import stat
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
 
 MAX_DEPTH = 32
 """The deepest nesting of objects and arrays accepted in a JSON or JSON5 file (covey's own
@@ -100,7 +104,7 @@ class ArrayHeader:
     """What an npz member's .npy header declares, read without loading its data."""
 
     shape: tuple[int, ...]
-    dtype: object
+    dtype: np.dtype
     """A numpy dtype."""
 
     @property

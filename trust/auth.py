@@ -1,6 +1,6 @@
 """Per-member signatures: commands, acks, states and events, checked against the fleet roster.
 
-Every vehicle and ground station holds its own Ed25519 key (comms/identity.py); the roster,
+Every vehicle and ground station holds its own Ed25519 key (trust/identity.py); the roster,
 signed by the operator's fleet authority, says whose public key is which vehicle or station.
 
 - Commands are signed by a STATION key (the command's `source_id` names it). A vehicle checks,
@@ -37,19 +37,13 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
+import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from comms.identity import (
-    FleetKeyError,
-    MemberKey,
-    check_roster,
-    member_file_name,
-    public_bytes,
-    read_member_key,
-    signed_message,
-    verify,
-)
+from comms.doc_sync import RosterSyncConfig
+from comms.member import command_digest
 from comms.plan import FleetPlan
 from comms.schema import (
     TAG_BYTES,
@@ -64,6 +58,17 @@ from comms.schema import (
     StationHeartbeat,
     VehicleState,
 )
+from trust.identity import (
+    FleetKeyError,
+    MemberKey,
+    check_roster,
+    member_file_name,
+    public_bytes,
+    read_member_key,
+    signed_message,
+    verify,
+)
+from trust.roster_sync import RosterSync
 
 log = logging.getLogger(__name__)
 
@@ -81,11 +86,6 @@ __all__ = [
     "load_vehicle_auths",
     "sign_plan",
 ]
-
-
-def command_digest(payload: bytes) -> bytes:
-    """SHA-256 of a command's wire bytes, as bound into the ack that answers it."""
-    return hashlib.sha256(payload).digest()
 
 
 class FleetAuth:
@@ -125,13 +125,13 @@ class FleetAuth:
         self._book = book if book is not None else _RosterBook(key)
         self.rejected = 0
         """How many commands this instance refused (read only)."""
-        self.on_reject: Callable[[Command, int, str], None] | None = None
+        self.on_reject: Callable[[Command | Mission, int, str], None] | None = None
         """Called with (command, vehicle_id, reason) for every refused command, on the Zenoh
         thread; the agent publishes a SECURITY event from it. Exceptions are logged, not raised."""
         self.on_roster: Callable[[Roster], None] | None = None
         """Called after a newer roster was applied."""
         self.clock_note: Callable[[], str | None] | None = None
-        """What this member knows of its clock against the stations' (comms/heartbeat.py), as a
+        """What this member knows of its clock against the stations' (trust/heartbeat.py), as a
         line ("vehicle clock +10.0 s against station 1 ..."), or None: a stale command's refusal
         names it, so that the operator learns the cause rather than a bare "stale"."""
 
@@ -245,7 +245,7 @@ class FleetAuth:
             self.refuse(mission, vehicle_id, reason)
         return reason
 
-    def refuse(self, cmd: Command, vehicle_id: int, reason: str) -> None:
+    def refuse(self, cmd: Command | Mission, vehicle_id: int, reason: str) -> None:
         """Count and report one refused command (also used for commands sent to the wrong vehicle)."""
         with self._lock:
             self.rejected += 1
@@ -319,7 +319,7 @@ class FleetAuth:
             unsigned, tag=self._sign("ack", unsigned.signed_bytes() + digest)
         )
 
-    def check_ack(self, ack: CommandAck, cmd: Command, digest: bytes) -> str | None:
+    def check_ack(self, ack: CommandAck, cmd: Command | Mission, digest: bytes) -> str | None:
         """None if `ack` is signed by vehicle `ack.vehicle_id` and answers exactly the command
         whose wire bytes hash to `digest`; else why not (a forged or replayed ack)."""
         said = f" (it said: {ack.result.name.lower()}" + (f": {ack.reason})" if ack.reason else ")")
@@ -361,7 +361,7 @@ class FleetAuth:
 
     # -- station heartbeats ----------------------------------------------------------------------
     def sign_heartbeat(self, heartbeat: StationHeartbeat) -> StationHeartbeat:
-        """Sign a heartbeat as this station (comms/heartbeat.py); a vehicle's key never does."""
+        """Sign a heartbeat as this station (trust/heartbeat.py); a vehicle's key never does."""
         if self.role is not Role.STATION or heartbeat.gcs_id != self.member_id:
             raise FleetKeyError(
                 f"this is {self.key.name}'s key: it signs only station {self.member_id}'s "
@@ -396,6 +396,20 @@ class FleetAuth:
             return f"bad signature: not made by fleet {self.fleet}'s authority key"
         return self.check_signature(Role.STATION, signer_id, PLAN_LABEL, signed, sig)
 
+    def follow_roster(
+        self,
+        session: zenoh.Session,
+        cfg: RosterSyncConfig,
+        *,
+        on_summary: Callable[[str], None],
+        on_applied: Callable[[Roster], None],
+    ) -> RosterSync:
+        """This member's roster follower on `session` (trust/roster_sync.py); `Mesh` starts it
+        and undeclares it when it closes."""
+        return RosterSync(
+            session, self.fleet, self, cfg, on_summary=on_summary, on_applied=on_applied
+        )
+
     def _clock_note(self) -> str | None:
         if self.clock_note is None:
             return None
@@ -407,7 +421,7 @@ class FleetAuth:
 
 
 PLAN_LABEL = "plan"
-"""The signature label of a fleet plan (comms/identity.py signed_message)."""
+"""The signature label of a fleet plan (trust/identity.py signed_message)."""
 
 
 def sign_plan(private_key: Ed25519PrivateKey, plan: FleetPlan, signer_id: int = 0) -> FleetPlan:
@@ -491,7 +505,7 @@ def load_auth(
     key_file: str | None,
     env: Mapping[str, str] = os.environ,
     fleet: str | None = None,
-    **kw: object,
+    **kw: Any,
 ) -> FleetAuth | None:
     """A FleetAuth for the configured member key file, or None (open mode, said loudly once).
 
@@ -516,7 +530,7 @@ def load_auth(
         raise FleetKeyError(
             f"key file {path} is for fleet {key.fleet!r}, but this process joins fleet {fleet!r}"
         )
-    auth = FleetAuth(key, **kw)  # type: ignore[arg-type]
+    auth = FleetAuth(key, **kw)
     log.info(
         "keyed mode: %s of fleet %s (key %s, roster v%d)",
         key.name,
@@ -561,7 +575,7 @@ def load_vehicle_auths(
     key_dir: str | os.PathLike[str],
     vehicle_ids: Iterable[int],
     fleet: str | None = None,
-    **kw: object,
+    **kw: Any,
 ) -> dict[int, FleetAuth]:
     """One FleetAuth per vehicle of a multi-vehicle host, from `key_dir/vehicle-<id>.key` (the
     names `covey keygen` writes), sharing one roster (the newest of their files'): vehicle id ->
@@ -586,7 +600,7 @@ def load_vehicle_auths(
                 f"{fleet!r}"
             )
         if first is None:
-            first = FleetAuth(key, **kw)  # type: ignore[arg-type]
+            first = FleetAuth(key, **kw)
             auth = first
         else:
             try:

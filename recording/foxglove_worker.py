@@ -3,8 +3,8 @@
 The recorder's writer thread writes covey's raw bytes in chunks, and at each flush hands the
 uncompressed records of the chunks it wrote since the last one (it has built them anyway) to
 `FoxgloveWorker`. The child (`main()` below, at the lowest priority) reads covey's messages
-back out of them, converts them (comms/foxglove_channels.py, the states as arrays), packs the standard messages into finished, compressed MCAP chunks
-(comms/mcap_chunks.py), and sends those back; the writer thread writes each into the same file
+back out of them, converts them (recording/foxglove_channels.py, the states as arrays), packs the standard messages into finished, compressed MCAP chunks
+(recording/mcap_chunks.py), and sends those back; the writer thread writes each into the same file
 as one blob. The recorder's process so pays nothing per message for the standard channels, only
 a few pipe frames and blob writes per flush, and its GIL stays with Zenoh's callbacks: with the
 conversion in the writer thread, a saturating burst lost 18 % of its states (issue 17).
@@ -32,12 +32,12 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import IO, Any
 
 from mcap.records import Channel, Schema
 
-from comms.foxglove_channels import Converter, FoxgloveConfig
-from comms.mcap_chunks import MAX_ID, BuiltChunk, ChunkBuilder, PlainReader
+from recording.foxglove_channels import Converter, FoxgloveConfig
+from recording.mcap_chunks import MAX_ID, BuiltChunk, ChunkBuilder, PlainReader
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ class FoxgloveChunks:
         """Convert the covey messages of raw chunks (BuiltChunk.plain, in file order); returns
         the chunks they filled, the last one cut at the end (so that the file holds a flush's
         standard channels as soon as they are made)."""
-        chunks = []
+        chunks: list[BuiltChunk] = []
         builder = self._builder
         items = [(t, d, r) for plain in plains for t, r, d in self._reader.messages(plain)]
         for (_, _, recv_ns), outs in zip(items, self._conv.convert_all(items), strict=True):
@@ -114,8 +114,8 @@ class FoxgloveChunks:
                     continue
                 builder.add(cid, out.log_time_ns, out.data, recv_ns)
                 self.messages += 1
-            if builder.size >= self._max_chunk_bytes:
-                chunks.append(builder.build())
+            if builder.size >= self._max_chunk_bytes and (full := builder.build()) is not None:
+                chunks.append(full)
         last = builder.build()
         if last is not None:
             chunks.append(last)
@@ -123,14 +123,14 @@ class FoxgloveChunks:
 
 
 # -- the pipe ----------------------------------------------------------------------------------
-def _send(out: BinaryIO, obj: object) -> None:
+def _send(out: IO[bytes], obj: object) -> None:
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
     out.write(_LEN.pack(len(data)))
     out.write(data)
     out.flush()
 
 
-def _recv(inp: BinaryIO) -> object:
+def _recv(inp: IO[bytes]) -> Any:
     """The next frame; EOFError when the other side has gone."""
     head = inp.read(_LEN.size)
     if len(head) < _LEN.size:
@@ -168,7 +168,7 @@ class FoxgloveWorker:
             "import contextlib, os, signal, sys\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
             f"sys.path.insert(0, {root!r})\n"
             f"with contextlib.suppress(OSError): os.nice({WORKER_NICE})\n"
-            "from comms.foxglove_worker import main\n"
+            "from recording.foxglove_worker import main\n"
             "raise SystemExit(main())\n"
         )
         self._proc = subprocess.Popen(
@@ -201,6 +201,7 @@ class FoxgloveWorker:
 
     def _feed(self) -> None:
         pipe = self._proc.stdin
+        assert pipe is not None  # Popen(stdin=PIPE)
         try:
             while True:
                 item = self._outbox.get()
@@ -215,6 +216,7 @@ class FoxgloveWorker:
 
     def _read(self) -> None:
         pipe = self._proc.stdout
+        assert pipe is not None  # Popen(stdout=PIPE)
         while True:
             try:
                 item = _recv(pipe)
@@ -242,7 +244,8 @@ class FoxgloveWorker:
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait()
-        self._proc.stdout.close()
+        if self._proc.stdout is not None:
+            self._proc.stdout.close()
 
 
 # -- the child ---------------------------------------------------------------------------------

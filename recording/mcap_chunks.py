@@ -1,7 +1,7 @@
 """MCAP written a chunk at a time, where a chunk may be built in another process.
 
 The recorder's writer thread builds chunks of covey's raw messages; the Foxglove worker
-(comms/foxglove_worker.py) builds and compresses the chunks of the standard channels in a child
+(recording/foxglove_worker.py) builds and compresses the chunks of the standard channels in a child
 process and hands them over whole. `McapFile` writes both kinds into one file and keeps the one
 summary (schemas, channels, statistics, chunk and metadata indexes) that Foxglove seeks with.
 mcap.writer.Writer cannot take a chunk built elsewhere, and its per-message record building was

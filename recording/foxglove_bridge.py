@@ -3,7 +3,7 @@
     covey foxglove --fleet demo --connect tcp/127.0.0.1:7447 [--port 8765] [--host 127.0.0.1]
 
 then in Foxglove: Open connection -> Foxglove WebSocket -> ws://127.0.0.1:8765. The channels are
-the ones every recording carries (comms/foxglove_channels.py), from the same conversion: the
+the ones every recording carries (recording/foxglove_channels.py), from the same conversion: the
 bridge is a Recorder (same Zenoh taps) whose sink is foxglove-sdk's WebSocket server.
 """
 
@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import foxglove
 
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,
@@ -29,10 +29,10 @@ from comms.cli_options import (
     refuse,
     stop_on_signals,
 )
-from comms.foxglove_channels import FLEET_CHANNELS, Converter, FoxgloveConfig, SchemaSpec
 from comms.geo import GeoOrigin
-from comms.record import RecordConfig, Recorder
 from comms.session import MeshConfig
+from recording.foxglove_channels import FLEET_CHANNELS, Converter, FoxgloveConfig, SchemaSpec
+from recording.record import RecordConfig, Recorder
 
 DEFAULT_PORT = 8765
 
@@ -70,7 +70,7 @@ class WebSocketSink:
         self.counts: dict[str, int] = {}
         for topic, spec in FLEET_CHANNELS:
             self._channel(topic, spec)
-        self.server = foxglove.start_server(
+        self.server: foxglove.WebSocketServer | None = foxglove.start_server(
             name=f"covey {cfg.mesh.fleet}", host=cfg.host, port=cfg.port, context=self._ctx
         )
 
@@ -115,7 +115,10 @@ class FoxgloveBridge:
 
     @property
     def port(self) -> int:
-        return self.sink.server.port
+        server = self.sink.server
+        if server is None:
+            raise RuntimeError("the Foxglove bridge is closed")
+        return server.port
 
     def __enter__(self) -> FoxgloveBridge:
         return self

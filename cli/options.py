@@ -9,8 +9,8 @@
   router or peer at the endpoints, one line and exit status 1;
 - `stop_on_signals`: SIGINT and SIGTERM set a threading.Event instead of raising.
 
-It lives in comms/ because imports run downward (comms <- policy <- agent <- groundstation and
-tools): every layer's CLI can use it.
+It lives in cli/, on the floor above comms/ and trust/ (it builds mesh configs and names the key
+file) and below policy/ (tests/test_import_layers.py): every command line can use it.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ import typing
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any, NoReturn
 
-from comms.auth import ENV_KEY_FILE
 from comms.geo import GeoOrigin
 from comms.session import DEFAULT_PORT, MeshConfig, MeshConfigError
+from trust.auth import ENV_KEY_FILE
 
 UNIT_SUFFIXES: dict[str, str] = {
     "_m_s2": "m/s^2",
@@ -188,7 +188,10 @@ def vehicle_ids(text: str) -> tuple[int, ...]:
             )
         ids.extend(range(a, b + 1))
     seen: set[int] = set()
-    twice = sorted({v for v in ids if v in seen or seen.add(v)})
+    again: set[int] = set()
+    for v in ids:
+        (again if v in seen else seen).add(v)
+    twice = sorted(again)
     if twice:
         more = ", ..." if len(twice) > 5 else ""
         raise argparse.ArgumentTypeError(
@@ -282,7 +285,7 @@ def add_mesh_args(
 ) -> None:
     """--fleet --connect --listen --mesh-mode --zenoh-config, and --key-file unless key_file is
     False (a CLI that signs nothing then refuses it itself, with its reason); with `key_dir`,
-    --key-dir too (a process of several vehicles: one key file each, comms.auth
+    --key-dir too (a process of several vehicles: one key file each, trust.auth
     .load_vehicle_auths). `router`: the process is a Zenoh router and nothing else (covey
     router): no --mesh-mode and no --fleet, which it refuses with the reason (a router carries
     every fleet's keys). `mode_default` / `mode_help`: --mesh-mode's default and why."""

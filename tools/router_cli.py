@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 
 import zenoh
 
-from comms.cli_options import (
+from cli.options import (
     add_mesh_args,
     die,
     finite,

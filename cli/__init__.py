@@ -1,0 +1,2 @@
+"""What every covey command line shares: mesh and key-file options, unit-checked value
+types, flags built from config dataclasses."""

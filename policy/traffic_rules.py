@@ -1,0 +1,161 @@
+"""How the separation filter treats traffic that does not cooperate (issue 35): its berth, its
+horizon and reach, the step aside on a collision course and the escape off a faster one's track.
+
+policy.safety builds the ORCA half-planes; for a non-cooperative neighbour (manned aircraft,
+another operator's drone, an intruder: one that does not avoid) it asks this module which leg
+of the cone to project on and whether the line becomes an escape. The C twin is in
+firmware/covey_safety.c (orca_line, pair_radius); docs/sky.md, "How the filter treats traffic".
+Conventions as policy.safety.orca_lines: p = p_j - p_i, v = v_i - v_j, r the pair's distance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+EPS = 1e-9
+
+NC_MAX_HORIZON_FACTOR = 3.0
+"""A non-cooperative pair's time horizon is at most this many time_horizon_s (`pair_horizon_s`).
+The C twin is COVEY_SAFETY_NC_MAX_HORIZON_FACTOR."""
+NC_SIDE_BIAS = 0.25
+"""Step-aside tie-break (`step_aside`): against a non-cooperative neighbour on a collision course
+this vehicle passes it on the right-hand leg of the cone (north/east frame: the rules of the air
+turn right for head-on) unless it is already off the neighbour's track to the other side by more
+than this share of the pair distance r (for a neighbour slower than us: unless v_rel leans that
+way by more than this share of r |v|). A band, not a sign test, so that a dead-on encounter
+seen through noisy states picks one side and keeps it. The C twin is
+COVEY_SAFETY_NC_SIDE_BIAS."""
+
+MANNED_SEPARATION_M = 30.0
+"""Default `SafetyConfig.manned_radius_m`: the berth kept from a manned aircraft (ADS-B emitter
+categories light to ultralight, comms/adsb.py MANNED_EMITTERS), whose pilot may not see a small
+drone and whose wake and rotor downwash reach further than a multicopter's. The C twin is
+COVEY_SAFETY_MANNED_SEPARATION_M."""
+
+NC_ESCAPE_SHARE = 0.8
+"""Already within a non-cooperative neighbour's distance r, closing, and it at least as fast as
+us: fleeing along the line cannot work, so the line becomes "move off its track at this share of
+max_speed_m_s or more", v . n >= NC_ESCAPE_SHARE max_speed, n perpendicular to its velocity on
+the step-aside side (`escape`). The C twin is COVEY_SAFETY_NC_ESCAPE_SHARE."""
+
+
+def effective_cooperative(nbr_cooperative=None, nbr_manned=None):
+    """The cooperative flags with manned aircraft (nbr_manned True) made non-cooperative: a
+    manned aircraft never avoids a covey vehicle. None when both are None."""
+    if nbr_manned is None:
+        return nbr_cooperative
+    manned = np.asarray(nbr_manned, dtype=bool)
+    coop = np.asarray(True if nbr_cooperative is None else nbr_cooperative, dtype=bool)
+    return coop & ~manned
+
+
+def pair_horizon_s(cfg, r, rel_speed_m_s, nbr_cooperative=None):
+    """Each pair's time horizon: time_horizon_s for a cooperative neighbour; for one that does
+    not cooperate, long enough to step aside in time,
+
+        tau_j = clip((r / v_max) (|v_i - v_j| / v_max), tau, NC_MAX_HORIZON_FACTOR tau),
+
+    r / v_max being the time to move one pair distance sideways and |v_i - v_j| / v_max how
+    many times faster the pair closes than this vehicle can move (a 2x intruder head-on: 10.8
+    s at 3.6 m and 1 m/s). Scalar tau when nbr_cooperative is None, else an array.
+    cfg: policy.safety.SafetyConfig."""
+    tau = cfg.time_horizon_s
+    if nbr_cooperative is None:
+        return tau
+    vmax = cfg.max_speed_m_s
+    want = np.asarray(r, np.float64) / vmax * (np.asarray(rel_speed_m_s, np.float64) / vmax)
+    nc = np.clip(want, tau, NC_MAX_HORIZON_FACTOR * tau)
+    return np.where(nbr_cooperative, tau, nc)
+
+
+def pair_horizon_one_s(cfg, r: float, rel_speed_m_s: float) -> float:
+    """`pair_horizon_s` of one non-cooperative pair, in Python floats."""
+    vmax, tau = cfg.max_speed_m_s, cfg.time_horizon_s
+    return min(max(r / vmax * (rel_speed_m_s / vmax), tau), NC_MAX_HORIZON_FACTOR * tau)
+
+
+def pair_reach_m(cfg, r, nbr_speed_m_s=None, nbr_cooperative=None, tau=None):
+    """Beyond this distance a neighbour cannot come within r in the horizon: r + 2 max_speed
+    tau for a cooperative one (it flies at most our speed), r + (max_speed + max(max_speed,
+    |v_j|)) tau_j for a non-cooperative one (it may be faster; tau_j: `pair_horizon_s`, default
+    time_horizon_s)."""
+    vmax = cfg.max_speed_m_s
+    if tau is None:
+        tau = cfg.time_horizon_s
+    if nbr_cooperative is None:
+        return r + 2.0 * vmax * tau
+    fast = np.maximum(vmax, np.asarray(nbr_speed_m_s, dtype=np.float64))
+    return r + (vmax + np.where(nbr_cooperative, vmax, fast)) * tau
+
+
+def step_aside(px, py, vx, vy, own_vel, r, vmax: float):
+    """The step-aside rule for arrays (..., K) of pairs (own_vel (..., 2)):
+
+    - steer: on a collision course (v inside the untruncated cone: v.p > 0 and |det(p, v)| <
+      r |v|), where the velocity goes onto a leg of the cone, never the cut-off circle;
+    - left: which leg. Off the neighbour's own track (p x v_j: this vehicle's offset from it,
+      times |v_j|) when it is at least as fast as vmax (crossing ahead of it would let it catch
+      us), else the side v leans to; within NC_SIDE_BIAS r of either, the right-hand leg;
+    - side: what `escape` needs of the same geometry (fast, m, |v_j|, v_j).
+    """
+    det_pv = px * vy - py * vx
+    v_len = np.sqrt(vx * vx + vy * vy)
+    steer = (px * vx + py * vy > 0) & (np.abs(det_pv) < r * v_len)
+    jx = own_vel[..., None, 0] - vx
+    jy = own_vel[..., None, 1] - vy
+    j_len = np.sqrt(jx * jx + jy * jy)
+    fast = j_len >= vmax
+    m = np.where(fast, px * jy - py * jx, -det_pv)
+    left = m < NC_SIDE_BIAS * r * np.where(fast, j_len, v_len)
+    return steer, left, (fast, m, j_len, jx, jy)
+
+
+def escape(active, side, r, vmax: float, point, direction):
+    """The escape rule for arrays: where `active` (non-cooperative, already within r, closing)
+    and the neighbour is fast (`step_aside`'s side), the line "v . n >= NC_ESCAPE_SHARE vmax",
+    n perpendicular to its velocity on the step-aside side, replaces (point, direction), each
+    a pair of (..., K) arrays. Returns the pair of pairs."""
+    fast, m, j_len, jx, jy = side
+    esc = active & fast
+    if not esc.any():
+        return point, direction
+    jn = np.maximum(j_len, EPS)
+    tx, ty = jx / jn, jy / jn
+    sgn = np.where(m < NC_SIDE_BIAS * r * j_len, 1.0, -1.0)
+    nx, ny = sgn * ty, -sgn * tx
+    spd = NC_ESCAPE_SHARE * vmax
+    (pt_x, pt_y), (dir_x, dir_y) = point, direction
+    return (
+        (np.where(esc, spd * nx, pt_x), np.where(esc, spd * ny, pt_y)),
+        (np.where(esc, ny, dir_x), np.where(esc, -nx, dir_y)),
+    )
+
+
+def escape_one(px, py, vx, vy, own_vx, own_vy, r: float, vmax: float):
+    """`escape` for one pair within r and closing, in Python floats: the line ((point),
+    (direction)) when the neighbour is at least as fast as vmax, else None."""
+    jx, jy = own_vx - vx, own_vy - vy
+    j_len = math.sqrt(jx * jx + jy * jy)
+    if j_len < vmax:
+        return None
+    jn = EPS if j_len < EPS else j_len
+    sgn = 1.0 if px * jy - py * jx < NC_SIDE_BIAS * r * j_len else -1.0
+    nx, ny = sgn * jy / jn, -sgn * jx / jn
+    spd = NC_ESCAPE_SHARE * vmax
+    return (spd * nx, spd * ny), (ny, -nx)
+
+
+def step_aside_one(px, py, vx, vy, own_vx, own_vy, r: float, vmax: float):
+    """`step_aside` for one pair in Python floats: (steer, left); left is None when not
+    steering (the cone's own side test then holds)."""
+    det_pv = px * vy - py * vx
+    v_len = math.sqrt(vx * vx + vy * vy)
+    if not (px * vx + py * vy > 0 and abs(det_pv) < r * v_len):
+        return False, None
+    jx, jy = own_vx - vx, own_vy - vy
+    j_len = math.sqrt(jx * jx + jy * jy)
+    if j_len >= vmax:
+        return True, px * jy - py * jx < NC_SIDE_BIAS * r * j_len
+    return True, -det_pv < NC_SIDE_BIAS * r * v_len

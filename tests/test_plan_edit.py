@@ -1,0 +1,161 @@
+"""Editing the fleet plan, without a browser: each step of a draft (groundstation/plan_edit.py)
+is taken or refused with its reason; the station's routes around the zones (plan_routes.py) keep
+out of them and are drawn in a real viser scene; the command log lists plan versions with who
+pushed them and what changed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+import viser
+
+from comms.plan import Fence, FleetPlan, Zone
+from comms.schema import Mode, StateFlag, VehicleState
+from groundstation import plan_edit as pe
+from groundstation.command_log import CommandLog
+from groundstation.plan_editor import vehicle_points
+from groundstation.plan_routes import RouteLayer, planned_routes, router_for
+from groundstation.tables import command_log_html
+
+SQUARE = ((0.0, 0.0), (0.0, 10.0), (10.0, 10.0), (10.0, 0.0))
+FENCE = Fence(((-100, -100), (-100, 100), (100, 100), (100, -100)), 2.0, 80.0)
+
+
+def base_plan() -> FleetPlan:
+    return FleetPlan("f", 7, 0, FENCE, (Zone(SQUARE, "depot"),))
+
+
+def drawn(corners, name="pond", draft=None, vehicles=()) -> pe.Draft:
+    d = draft or pe.draft_of(base_plan())
+    for n, e in corners:
+        d = pe.add_corner(d, n, e)
+    return pe.close_zone(d, name, vehicles)
+
+
+def state(vid, pos_ne, goal_ne=None, alt_m=10.0, mode=Mode.GOTO) -> VehicleState:
+    goal = (0.0, 0.0, 0.0) if goal_ne is None else (*goal_ne, -alt_m)
+    flags = StateFlag.NONE if goal_ne is None else StateFlag.HAS_GOAL
+    return VehicleState(
+        vid, 1, 0, (*pos_ne, -alt_m), (0.0, 0.0, 0.0), 0.0, mode, flags=flags, goal_ned_m=goal
+    )
+
+
+def test_a_zone_clicked_corner_by_corner_is_added_and_listed_as_an_edit() -> None:
+    d = drawn([(30, 30), (30, 40), (40, 40), (40, 30)])
+    assert d.base_version == 7 and d.corners_ne_m == ()
+    assert [z.name for z in d.geometry.keep_out] == ["depot", "pond"]
+    assert d.geometry.keep_out[1].vertices_ne_m == ((30, 30), (30, 40), (40, 40), (40, 30))
+    assert d.describe_edits() == "zone 2 ('pond') added (4 corners)"
+
+
+@pytest.mark.parametrize(
+    ("corners", "reason"),
+    [
+        ([(30, 30), (30, 40)], "a zone needs at least 3 corners; 2 clicked"),
+        ([(30, 30), (40, 40), (30, 40), (40, 30)], "is not a valid polygon: Self-intersection"),
+        ([(30, 30), (30, 40), (30.05, 35)], "degenerate"),
+        ([(-90, -90), (-90, -70), (-70, -70), (-70, -90)], "vehicle 3's target"),
+        ([(45, 45), (45, 55), (55, 55), (55, 45)], "vehicle 4's position"),
+    ],
+)
+def test_a_bad_zone_is_refused_with_its_reason_and_the_draft_is_kept(corners, reason) -> None:
+    vehicles = vehicle_points([state(3, (0, 50), (-80, -80)), state(4, (50, 50))])
+    d = pe.draft_of(base_plan())
+    for n, e in corners:
+        d = pe.add_corner(d, n, e)
+    with pytest.raises(pe.EditRefused, match=reason.replace("(", r"\(").replace(")", r"\)")):
+        pe.close_zone(d, "bad", vehicles)
+    assert len(d.corners_ne_m) == len(corners) and len(d.geometry.keep_out) == 1
+
+
+def test_a_vehicle_already_in_a_zone_blocks_no_edit_elsewhere_but_any_that_grows_it() -> None:
+    inside = vehicle_points([state(5, (5.0, 5.0))])  # drifted into 'depot'
+    d = drawn([(30, 30), (30, 40), (40, 40)], vehicles=inside)
+    d = pe.set_fence_band(d, None, 70.0, inside)
+    assert len(d.edits) == 2
+    with pytest.raises(pe.EditRefused, match=r"vehicle 5's position \(N 5.0, E 5.0 m\)"):
+        drawn([(3, 3), (3, 8), (8, 8)], "inner", vehicles=inside)  # a second zone over it
+    with pytest.raises(pe.EditRefused, match="vehicle 5's position"):
+        pe.checked(d.geometry, inside)  # without the geometry it replaces: every rule applies
+
+
+def test_corners_and_zones_move_and_go_and_the_fence_band_is_checked() -> None:
+    d = drawn([(30, 30), (30, 40), (40, 40), (40, 30), (35, 25)])
+    d = pe.move_corner(d, 2, 5, 35, 28)
+    assert d.geometry.keep_out[1].vertices_ne_m[4] == (35, 28)
+    d = pe.delete_corner(d, 2, 5)
+    assert len(d.geometry.keep_out[1].vertices_ne_m) == 4
+    with pytest.raises(pe.EditRefused, match="Self-intersection"):
+        pe.move_corner(d, 2, 2, 45, 35)  # across the opposite edge: a bow tie
+    with pytest.raises(pe.EditRefused, match="zone 3 does not exist"):
+        pe.delete_zone(d, 3)
+    with pytest.raises(pe.EditRefused, match="zone 2 has no corner 9"):
+        pe.delete_corner(d, 2, 9)
+    target = vehicle_points([state(1, (60, 60), (60, 60), alt_m=50.0)])
+    with pytest.raises(pe.EditRefused, match="vehicle 1's target .* above the 40 m ceiling"):
+        pe.set_fence_band(d, 2.0, 40.0, target)
+    with pytest.raises(pe.EditRefused, match="floor 60 m must be below its ceiling 40 m"):
+        pe.set_fence_band(d, 60.0, 40.0)
+    d = pe.set_fence_band(d, None, 60.0, target)
+    assert d.geometry.fence.ceiling_alt_m == 60.0 and d.geometry.fence.floor_alt_m is None
+    d = pe.delete_zone(d, 1)
+    assert [z.name for z in d.geometry.keep_out] == ["pond"]
+    with pytest.raises(pe.EditRefused, match="has 3 corners, the fewest"):
+        pe.delete_corner(drawn([(30, 30), (30, 40), (40, 40)]), 2, 1)
+    assert d.describe_edits().split("; ") == [
+        "zone 2 ('pond') added (5 corners)",
+        "zone 2 ('pond') corner 5 moved to N 35, E 28",
+        "zone 2 ('pond') corner 5 deleted",
+        "fence floor none, ceiling 60 m",
+        "zone 1 ('depot') deleted",
+    ]
+    with pytest.raises(pe.EditRefused, match="no fence"):
+        pe.set_fence_band(pe.draft_of(None), 1.0, 5.0)
+
+
+def test_the_station_routes_a_goto_around_a_zone_and_draws_it() -> None:
+    plan = base_plan()
+    zone = shapely.Polygon(SQUARE)
+    router = router_for(plan, 3.0)
+    states = [
+        state(1, (-5.0, 5.0), (15.0, 5.0)),  # behind the zone: routed around it
+        state(2, (-5.0, 20.0), (15.0, 20.0)),  # clear of it: straight
+        state(3, (-5.0, 5.0), (15.0, 5.0), mode=Mode.HOLDING),  # not flying a goto: none
+        state(4, (-5.0, 5.0)),  # no goal: none
+    ]
+    routes = planned_routes(router, states)
+    assert set(routes) == {1, 2}
+    bent = routes[1]
+    assert len(bent) >= 4 and tuple(bent[-1]) == (15.0, 5.0, -10.0)
+    line = shapely.LineString(bent[:, :2])
+    assert line.distance(zone) >= 2.0, line.distance(zone)  # inflated by 1.8 + 0.5 m, simplified
+    assert len(routes[2]) == 2 and np.allclose(routes[2][1], (15.0, 20.0, -10.0))
+    assert planned_routes(router_for(None, 3.0), states) == {}
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        layer = RouteLayer(server, 3.0)
+        layer.set_plan(plan)
+        layer.draw(states)
+        assert set(layer.nodes) == {1, 2}
+        assert server.scene.get_handle_by_name("/plan_routes/1") is not None
+        segs = np.asarray(layer.nodes[1].points)  # scene frame: x east, y north
+        assert np.allclose(segs[0, 0, :2], (5.0, -5.0)) and len(segs) == len(bent) - 1
+        layer.draw(states[1:])
+        assert set(layer.nodes) == {2} and server.scene.get_handle_by_name("/plan_routes/1") is None
+    finally:
+        server.stop()
+
+
+def test_the_command_log_lists_plan_versions_with_who_pushed_them() -> None:
+    log = CommandLog()
+    log.mark_own_plan(9, "alice", "zone 2 ('pond') added (4 corners)")
+    log.on_plan(8, 2, "fence of 4 vertices, 1 keep-out zone", 1_000_000_000)
+    log.on_plan(9, 1, "fence of 4 vertices, 2 keep-out zones", 2_000_000_000)
+    newest, older = log.plan_changes()
+    assert newest.own and newest.operator == "alice" and not older.own
+    text = command_log_html([], 3_000_000_000, plans=log.plan_changes())
+    assert "this station (alice): plan v9: zone 2 (&#x27;pond&#x27;) added (4 corners)" in text
+    assert "station 2: plan v8 (fence of 4 vertices, 1 keep-out zone)" in text
+    assert text.index('data-plan="9"') < text.index('data-plan="8"')  # newest first
