@@ -84,7 +84,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
         "fleet TLS: a CA, one certificate per identity, ready-to-use Zenoh configs",
     ),
     "fleet-sim": (
-        "agent.host_cli",
+        "agent.agent_cli",
         "fleet_sim_cli",
         "simulate hundreds of vehicles in one process (open mode; covey agent --ids keyed)",
     ),

@@ -1,14 +1,21 @@
-"""`covey agent`: run the agent of one vehicle, or of many simulated vehicles in one process.
+"""`covey agent` and `covey fleet-sim`: run the vehicle shell for one vehicle or many.
 
 covey agent --id 3 --start-ne-m 0,6                  # built-in simulator
 covey agent --id 3 --vehicle mavsdk:udpin://0.0.0.0:14543   # PX4 via MAVSDK (companion mode)
-covey agent --id 3 --vehicle relay:udpin:0.0.0.0:14553      # PX4 runs the policy (onboard mode)
+covey agent --id 3 --vehicle relay:udpin:0.0.0.0:14553      # PX4 runs the policy onboard
 covey agent --ids 1-100 --key-dir keys/              # a host of 100 simulated vehicles
+covey fleet-sim --vehicles 500 --connect tcp/127.0.0.1:7447  # open mode, for scale tests
 
-With --ids, one process hosts those vehicles (simulated; a real autopilot is one per process):
-each runs the same flight core as a single agent, with its own identity (its own key from
---key-dir DIR/vehicle-<id>.key), state, presence, events and command queryable, so one fleet
-can mix single agents and hosts (agent/fleet_sim.py, docs/scaling.md).
+`--id 3` is `--ids 3`: one process runs the shell (agent/shell.py) for its vehicles, each with
+its own identity (its own key from --key-dir DIR/vehicle-<id>.key, or --key-file for one),
+state, presence, events and command queryable, so one fleet can mix processes of one vehicle
+and of many (docs/scaling.md). Several vehicles are simulated; a real autopilot is one per
+process. `covey fleet-sim` is the open-mode alias for scale tests and benches: ids from
+--vehicles and --first-id, no ground-station failsafe, a 2 km geofence, nothing signed.
+
+Most flags are the fields of the config dataclasses (agent/shell_config.py, GuidanceConfig,
+FailsafeConfig, ReturnConfig), with their defaults and documentation; this module only parses
+them and calls `main(cfg)`.
 """
 
 from __future__ import annotations
@@ -16,17 +23,23 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import json
 import logging
 import math
 import os
 import threading
 import time
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
-from agent.app import Agent, AgentConfig
 from agent.backends.base import VehicleBackend
+from agent.backends.sim import SimConfig
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
+from agent.hosts import Agent, Fleet
 from agent.returning import ReturnConfig
+from agent.shell import VehicleShell
+from agent.shell_config import ShellConfig
 from cli.options import (
     add_config_flags,
     add_mesh_args,
@@ -35,7 +48,10 @@ from cli.options import (
     floats,
     geo_origin,
     given,
+    id_ranges,
+    key_env_note,
     mesh_config,
+    refuse,
     renamed,
     setup_logging,
     stop_after,
@@ -44,38 +60,55 @@ from cli.options import (
 )
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
+from comms.plan import FleetPlan
 from comms.schema import POSITION_LIMIT_M
-from comms.state_rate import IDLE_STATE_HZ, MAX_IDLE_PERIOD_S, MIN_STEADY_STATE_HZ, SteadyConfig
+from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
 from trust.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
+
+if TYPE_CHECKING:  # the link emulator is imported only when one is asked for
+    from comms.link import LinkEmulator
 
 log = logging.getLogger("covey.agent")
 
+GUIDANCE_FIELDS = (
+    "separation_m",
+    "cruise_speed_m_s",
+    "safety_filter",
+    "decision_period_s",
+    "policy_path",
+    "policy_separation_m",
+    "sparse_rule",
+    "non_cooperative_separation_m",
+    "manned_separation_m",
+)
+"""GuidanceConfig's fields that are flags (the others are tuning for code, not for users)."""
+GUIDANCE_FLAGS = (
+    "policy_path",
+    "safety_filter",
+    "decision_period_s",
+    "trace_guidance",
+    "policy_separation_m",
+    "sparse_rule",
+)
+"""Flags for the shell's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
+HOST_FLAGS = ("spacing_m", "max_neighbours", "see_others")
+"""Flags of several simulated vehicles (--ids) only."""
+SINGLE_FLAGS = {
+    "link": "per-vehicle radio links are emulated by a single agent (--id) only",
+    "state_hz": "a host publishes every vehicle's state each tick: set --tick-hz",
+    "trace_guidance": "guidance traces come from a single agent (--id) only",
+    "plan": "a host follows the fleet plan on the mesh; --plan starts a single agent with one",
+    "key_file": "a key file signs for one vehicle; give --key-dir DIR with vehicle-<id>.key "
+    "for each",
+}
+"""Flags of a single agent (--id) only, and why a host (--ids) refuses them."""
+NO_KEY_REASON = (
+    "fleet-sim is the open-mode host for scale tests: to sign, run covey agent --ids "
+    "with --key-dir (one key per vehicle)"
+)
 
-def make_backend(
-    spec: str,
-    cfg: AgentConfig,
-    start_ned_m: tuple[float, float, float],
-    clock_s,
-    vehicle_model: str = "ideal",
-) -> VehicleBackend:
-    """Build the backend named by `spec`: sim | mavsdk:<url> | relay:<url>; a simulated one
-    flies `vehicle_model` (`sim_config`)."""
-    kind, _, url = spec.partition(":")
-    if kind == "sim":
-        from agent.backends.sim import SimBackend
 
-        return SimBackend(sim_config(vehicle_model, start_ned_m=start_ned_m), now_s=clock_s())
-    if kind == "mavsdk":
-        from agent.backends.mavsdk_backend import MavsdkBackend
-
-        return MavsdkBackend(url or "udpin://0.0.0.0:14540", origin=cfg.origin)
-    if kind == "relay":
-        from agent.backends.relay import RelayBackend
-
-        return RelayBackend(url or "udpin:0.0.0.0:14550", origin=cfg.origin)
-    raise ValueError(f"unknown vehicle {spec!r}: use sim, mavsdk:<url> or relay:<url>")
-
-
+# -- flags -------------------------------------------------------------------------------------------
 def _start_ne(text: str) -> tuple[float, ...]:
     """--start-ne-m: two finite numbers that a VehicleState can carry (else no state is ever
     sent)."""
@@ -87,45 +120,12 @@ def _start_ne(text: str) -> tuple[float, ...]:
     return ne
 
 
-GUIDANCE_FLAGS = (
-    "policy",
-    "no_safety_filter",
-    "decision_period_s",
-    "trace_guidance",
-    "policy_separation_m",
-    "sparse_rule",
-)
-"""Flags for the agent's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
-HOST_FLAGS = ("spacing_m", "max_neighbours", "no_see_others")
-"""Flags of the multi-vehicle host (--ids) only."""
-SINGLE_FLAGS = {
-    "link": "per-vehicle radio links are emulated by a single agent (--id) only",
-    "state_hz": "a host publishes every vehicle's state each tick: set --tick-hz",
-    "trace_guidance": "guidance traces come from a single agent (--id) only",
-    "plan": "a host follows the fleet plan on the mesh; --plan starts a single agent with one",
-    "key_file": "a key file signs for one vehicle; give --key-dir DIR with vehicle-<id>.key "
-    "for each",
-}
-"""Flags of a single agent (--id) only, and why a host (--ids) refuses them."""
-
-
-def sim_config(vehicle_model: str, **kw):
-    """The simulator's config for --vehicle-model: ideal = the simulator as it always was (it
-    flies the setpoint with SimConfig's acceleration limit and knows where it is), realistic =
-    policy.pointmass.VehicleModel.realistic() (0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift)."""
-    from agent.backends.sim import SimConfig
-    from policy.pointmass import VehicleModel
-
-    model = None if vehicle_model == "ideal" else VehicleModel.named(vehicle_model)
-    return SimConfig(vehicle=model, **kw)
-
-
 def add_flight_args(
     p: argparse.ArgumentParser, *, geofence_radius_m: float = 500.0, gcs_failsafe: bool = True
 ) -> None:
-    """The flags every shell of the flight core shares (`covey agent`, one vehicle or many, and
-    `covey fleet-sim`): start position, fleet origin, guidance, geofence, the ground-station
-    failsafe (unless `gcs_failsafe` is False: fleet-sim flies without one), run time, logging."""
+    """The flags every run of the shell shares (`covey agent`, one vehicle or many, and `covey
+    fleet-sim`): start position, fleet origin, guidance, geofence, the ground-station failsafe
+    (unless `gcs_failsafe` is False: fleet-sim flies without one), state rates, run time."""
     p.add_argument(
         "--vehicle-model",
         choices=("ideal", "realistic"),
@@ -150,43 +150,16 @@ def add_flight_args(
         metavar="LAT,LON,ALT",
         help="fleet origin in degrees, degrees, metres (default: covey's)",
     )
-    p.add_argument(
-        "--separation-m",
-        type=float,
-        default=3.0,
-        help="minimum distance kept from other vehicles (default 3)",
-    )
-    p.add_argument(
-        "--cruise-speed-m-s", type=float, default=1.0, help="speed the policy flies at (default 1)"
-    )
-    p.add_argument(
-        "--no-safety-filter",
-        action="store_true",
-        help="fly the pure learned policy (sim and mavsdk: a relay vehicle runs its own)",
-    )
-    p.add_argument(
-        "--decision-period-s",
-        type=float,
-        default=None,
-        help="seconds between policy decisions, held in between (default: the policy's "
-        "trained period, 1 s x separation/3 / cruise speed; 0: every tick)",
-    )
-    p.add_argument("--policy", default=None, help="policy weights (.npz); default: shipped weights")
+    add_config_flags(p, GuidanceConfig, only=GUIDANCE_FIELDS, flags={"policy_path": "--policy"})
     add_config_flags(
         p,
-        GuidanceConfig,
+        FailsafeConfig,
         only=(
-            "policy_separation_m",
-            "sparse_rule",
-            "non_cooperative_separation_m",
-            "manned_separation_m",
+            "geofence_radius_m",
+            *(("require_gcs", "gcs_lost_hold_s", "gcs_lost_land_s") if gcs_failsafe else ()),
         ),
-    )
-    p.add_argument(
-        "--geofence-radius-m",
-        type=float,
-        default=geofence_radius_m,
-        help=f"0 = no fence (default {geofence_radius_m:g})",
+        flags={"require_gcs": "--gcs-failsafe"},
+        defaults={"geofence_radius_m": geofence_radius_m},
     )
     add_config_flags(p, ReturnConfig)  # return layers and landing order (agent/returning.py)
     p.add_argument(
@@ -195,29 +168,7 @@ def add_flight_args(
         help="return home at its own altitude and land as it arrives (--return-layer-m 0 "
         "--land-radius-m 0); default: on its layer, landing one at a time",
     )
-    if gcs_failsafe:
-        p.add_argument(
-            "--gcs-lost-hold-s",
-            type=float,
-            default=5.0,
-            help="no ground station this long: hold (default 5)",
-        )
-        p.add_argument(
-            "--gcs-lost-land-s",
-            type=float,
-            default=30.0,
-            help="no ground station this long: land (default 30)",
-        )
-        p.add_argument(
-            "--no-gcs-failsafe", action="store_true", help="keep flying without a ground station"
-        )
-    p.add_argument(
-        "--idle-state-hz",
-        type=float,
-        default=IDLE_STATE_HZ,
-        help=f"state rate while landed, disarmed and idle (default {IDLE_STATE_HZ:g}, at least "
-        f"{1 / MAX_IDLE_PERIOD_S:g}; full rate again from the tick after a command)",
-    )
+    add_config_flags(p, ShellConfig, only=("idle_state_hz",))
     p.add_argument(
         "--steady-state-hz",
         type=float,
@@ -231,33 +182,83 @@ def add_flight_args(
 
 
 def add_host_args(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """The flags of a host of many simulated vehicles (`covey agent --ids`, `covey fleet-sim`)."""
+    """The flags of several simulated vehicles (`covey agent --ids`, `covey fleet-sim`)."""
+    add_config_flags(p, ShellConfig, only=("spacing_m", "see_others"))
+    add_config_flags(p, GuidanceConfig, only=("max_neighbours",), defaults={"max_neighbours": 10})
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey agent",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    who = p.add_mutually_exclusive_group(required=True)
+    who.add_argument("--id", type=int, help="vehicle id, 1..65000 (the same as --ids ID)")
+    who.add_argument(
+        "--ids",
+        type=vehicle_ids,
+        metavar="IDS",
+        help="host these simulated vehicles in one process: ids and ranges, e.g. 1-100 or "
+        "1-50,60,70-79",
+    )
+    add_config_flags(p, ShellConfig, only=("vehicle",))
+    add_flight_args(p)
+    add_config_flags(p, ShellConfig, only=("link", "tick_hz", "state_hz", "trace_guidance"))
     p.add_argument(
-        "--spacing-m", type=float, default=8.0, help="start grid spacing in metres (default 8)"
+        "--plan",
+        default=None,
+        metavar="FILE",
+        help="a signed fleet plan to hold from start (covey plan load writes plan.bin): fence "
+        "and keep-out zones apply before any station is reachable; a newer one on the mesh "
+        "replaces it",
+    )
+    add_host_args(p.add_argument_group("multi-vehicle host (--ids only)"))
+    # --key-file: this vehicle's (covey keygen add vehicle N); --key-dir: vehicle-<id>.key each
+    add_mesh_args(p, key_dir=True)
+    return p
+
+
+def fleet_sim_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="covey fleet-sim",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "--max-neighbours",
-        type=int,
-        default=10,
-        help="nearest neighbours per policy call (default 10)",
+        "--vehicles", type=int, default=500, help="vehicles in this process (default 500)"
     )
-    p.add_argument(
-        "--no-see-others", action="store_true", help="ignore vehicles of other processes"
-    )
+    p.add_argument("--first-id", type=int, default=1, help="id of the first vehicle (default 1)")
+    p.add_argument("--rate-hz", type=float, default=10.0, help="tick and state rate (default 10)")
+    add_flight_args(p, geofence_radius_m=2000.0, gcs_failsafe=False)
+    add_host_args(p)
+    add_mesh_args(p, key_file=False)
+    refuse(p, "--key-file", NO_KEY_REASON, show=True)
+    refuse(p, "--key-dir", NO_KEY_REASON)
+    return p
+
+
+# -- flags to config ---------------------------------------------------------------------------------
+def sim_config(vehicle_model: str, **kw: object) -> SimConfig:
+    """The simulator's config for --vehicle-model: ideal = the simulator as it always was (it
+    flies the setpoint with SimConfig's acceleration limit and knows where it is), realistic =
+    policy.pointmass.VehicleModel.realistic() (0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift)."""
+    from policy.pointmass import VehicleModel
+
+    model = None if vehicle_model == "ideal" else VehicleModel.named(vehicle_model)
+    return SimConfig(vehicle=model, **kw)  # type: ignore[arg-type]
 
 
 def guidance_from_args(args: argparse.Namespace) -> GuidanceConfig:
-    return GuidanceConfig(
-        separation_m=args.separation_m,
-        cruise_speed_m_s=args.cruise_speed_m_s,
-        safety_filter=not args.no_safety_filter,
-        policy_path=args.policy,
-        decision_period_s=args.decision_period_s,
-        policy_separation_m=args.policy_separation_m,
-        sparse_rule=args.sparse_rule,
-        non_cooperative_separation_m=args.non_cooperative_separation_m,
-        manned_separation_m=args.manned_separation_m,
-    )
+    """The guidance the flags ask for (with several vehicles: each call's nearest
+    --max-neighbours)."""
+    extra = {"max_neighbours": args.max_neighbours} if _hosting(args) else {}
+    return config_from_flags(GuidanceConfig, args, only=GUIDANCE_FIELDS, **extra)
+
+
+def _hosting(args: argparse.Namespace) -> bool:
+    """Several simulated vehicles (--ids, fleet-sim), not a single agent (--id)."""
+    return getattr(args, "id", None) is None
 
 
 def steady_from_args(args: argparse.Namespace) -> SteadyConfig | None:
@@ -282,85 +283,15 @@ def failsafe_from_args(args: argparse.Namespace) -> FailsafeConfig:
                 "drop --return-layer-m / --land-radius-m"
             )
         returning = dataclasses.replace(returning, return_layer_m=0.0, land_radius_m=0.0)
-    if not hasattr(args, "no_gcs_failsafe"):
+    if not hasattr(args, "require_gcs"):
         return FailsafeConfig(
             require_gcs=False, geofence_radius_m=args.geofence_radius_m, returning=returning
         )
-    return FailsafeConfig(
-        require_gcs=not args.no_gcs_failsafe,
-        gcs_lost_hold_s=args.gcs_lost_hold_s,
-        gcs_lost_land_s=args.gcs_lost_land_s,
-        geofence_radius_m=args.geofence_radius_m,
-        returning=returning,
-    )
+    only = ("require_gcs", "gcs_lost_hold_s", "gcs_lost_land_s", "geofence_radius_m")
+    return config_from_flags(FailsafeConfig, args, only=only, returning=returning)
 
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="covey agent",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    who = p.add_mutually_exclusive_group(required=True)
-    who.add_argument("--id", type=int, help="vehicle id, 1..65000")
-    who.add_argument(
-        "--ids",
-        type=vehicle_ids,
-        metavar="IDS",
-        help="host these simulated vehicles in one process: ids and ranges, e.g. 1-100 or "
-        "1-50,60,70-79",
-    )
-    p.add_argument("--vehicle", default="sim", help="sim (default) | mavsdk:<url> | relay:<url>")
-    add_flight_args(p)
-    p.add_argument(
-        "--link",
-        default="perfect",
-        help="emulated radio link: perfect | xbee | wifi | rate=3,loss=0.2,...",
-    )
-    p.add_argument("--tick-hz", type=float, default=10.0, help="guidance loop rate (default 10)")
-    p.add_argument(
-        "--state-hz", type=float, default=10.0, help="state broadcast rate on the mesh (default 10)"
-    )
-    p.add_argument(
-        "--plan",
-        default=None,
-        metavar="FILE",
-        help="a signed fleet plan to hold from start (covey plan load writes plan.bin): fence "
-        "and keep-out zones apply before any station is reachable; a newer one on the mesh "
-        "replaces it",
-    )
-    p.add_argument(
-        "--trace-guidance",
-        action="store_true",
-        help="publish guidance traces so `covey replay --policy` can replay the flight exactly",
-    )
-    add_host_args(p.add_argument_group("multi-vehicle host (--ids only)"))
-    # --key-file: this vehicle's (covey keygen add vehicle N); --key-dir: vehicle-<id>.key each
-    add_mesh_args(p, key_dir=True)
-    return p
-
-
-def config_from_args(
-    args: argparse.Namespace, p: argparse.ArgumentParser | None = None
-) -> AgentConfig:
-    """The agent's config; a bad value raises ValueError (or, given the parser, exits 2)."""
-    return AgentConfig(
-        vehicle_id=args.id,
-        mesh=mesh_config(args, p),
-        tick_hz=args.tick_hz,
-        state_hz=args.state_hz,
-        idle_state_hz=args.idle_state_hz,
-        steady=steady_from_args(args),
-        origin=args.origin or GeoOrigin(),
-        guidance=guidance_from_args(args),
-        failsafe=failsafe_from_args(args),
-        link=args.link,
-        trace_guidance=args.trace_guidance,
-        plan=signed_plan(args.plan),
-    )
-
-
-def signed_plan(path: str | None):
+def signed_plan(path: str | None) -> FleetPlan | None:
     """The signed fleet plan in `path` (comms/plan_io.py; shapely is imported only then), or
     None; BadPlanError (a ValueError, one line) if it cannot be used."""
     if path is None:
@@ -370,8 +301,71 @@ def signed_plan(path: str | None):
     return read_signed_plan(path)
 
 
-def make_link(spec: str, vehicle_id: int, receiver_pos=None):
-    """The emulated radio between this agent and its neighbours, or None for a perfect link."""
+def config_from_args(
+    args: argparse.Namespace,
+    p: argparse.ArgumentParser | None = None,
+    ids: tuple[int, ...] | None = None,
+) -> ShellConfig:
+    """The shell's config from `covey agent`'s flags (or fleet-sim's, given its `ids`); a bad
+    value raises ValueError (or, given the parser, exits 2)."""
+    if ids is None:
+        ids = args.ids if args.ids is not None else (args.id,)
+    rate_hz = getattr(args, "rate_hz", None) or args.tick_hz
+    one = not _hosting(args)
+    return ShellConfig(
+        ids=ids,
+        mesh=mesh_config(args, p),
+        vehicle=getattr(args, "vehicle", "sim"),
+        tick_hz=rate_hz,
+        state_hz=args.state_hz if one else rate_hz,
+        idle_state_hz=args.idle_state_hz,
+        steady=steady_from_args(args),
+        origin=args.origin or GeoOrigin(),
+        guidance=guidance_from_args(args),
+        failsafe=failsafe_from_args(args),
+        see_others=getattr(args, "see_others", True),
+        link=args.link if one else "perfect",
+        trace_guidance=args.trace_guidance if one else False,
+        plan=signed_plan(args.plan) if one else None,
+        sim=sim_config(args.vehicle_model),
+        start_ne_m=args.start_ne_m,
+        spacing_m=args.spacing_m,
+    )
+
+
+def host_config(
+    p: argparse.ArgumentParser, args: argparse.Namespace, ids: tuple[int, ...], rate_hz: float
+) -> ShellConfig:
+    """Several vehicles' config from the shared flags; a bad value exits 2 with the reason."""
+    try:
+        cfg = dataclasses.replace(config_from_args(args, p, ids), tick_hz=rate_hz, state_hz=rate_hz)
+        cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
+    except ValueError as exc:
+        die(p, str(exc))
+    return cfg
+
+
+# -- running ---------------------------------------------------------------------------------------
+def make_backend(cfg: ShellConfig, clock_s: Callable[[], float]) -> VehicleBackend:
+    """The one real autopilot `cfg.vehicle` names: mavsdk:<url> | relay:<url>."""
+    kind, _, url = cfg.vehicle.partition(":")
+    if kind == "mavsdk":
+        from agent.backends.mavsdk_backend import MavsdkBackend
+
+        return MavsdkBackend(url or "udpin://0.0.0.0:14540", origin=cfg.origin)
+    if kind == "relay":
+        from agent.backends.relay import RelayBackend
+
+        return RelayBackend(url or "udpin:0.0.0.0:14550", origin=cfg.origin)
+    raise ValueError(f"unknown vehicle {cfg.vehicle!r}: use sim, mavsdk:<url> or relay:<url>")
+
+
+def make_link(
+    spec: str,
+    vehicle_id: int,
+    receiver_pos: Callable[[], tuple[float, float, float] | None] | None = None,
+) -> LinkEmulator | None:
+    """The emulated radio between one vehicle and its neighbours, or None for a perfect link."""
     if spec in ("", "perfect"):
         return None
     from comms import link
@@ -382,37 +376,67 @@ def make_link(spec: str, vehicle_id: int, receiver_pos=None):
 
 
 def main(
-    cfg: AgentConfig,
-    vehicle: str = "sim",
-    start_ne_m=(0.0, 0.0),
+    cfg: ShellConfig,
+    *,
+    auths: Mapping[int, FleetAuth] | None = None,
     stop: threading.Event | None = None,
     duration_s: float | None = None,
-    auth: FleetAuth | None = None,
-    vehicle_model: str = "ideal",
-) -> int:
+    ready: Callable[[VehicleShell], None] | None = None,
+) -> dict[str, float]:
+    """Run the shell of `cfg`'s vehicles until `stop` (or `duration_s`); returns the tick
+    statistics. `auths`: one FleetAuth per vehicle (keyed mode), the first of which keys the
+    mesh."""
     stop = stop or threading.Event()
     clock_s = time.monotonic
+    vid = cfg.ids[0]
     # The duration bounds the whole run, waiting for a router included.
     with contextlib.ExitStack() as stack, stop_after(duration_s, stop):
-        backend = stack.enter_context(
-            make_backend(vehicle, cfg, (start_ne_m[0], start_ne_m[1], 0.0), clock_s, vehicle_model)
-        )
-        mesh = stack.enter_context(Mesh(cfg.mesh, auth=auth, stop=stop))
-        own_pos: list = [None]  # filled once the agent exists; range-dependent loss needs it
-        link = make_link(cfg.link, cfg.vehicle_id, receiver_pos=lambda: own_pos[0])
+        backend = None
+        if cfg.vehicle.partition(":")[0] != "sim":  # the autopilot link first: it is slow
+            backend = stack.enter_context(make_backend(cfg, clock_s))
+        mesh = stack.enter_context(Mesh(cfg.mesh, auth=auths[vid] if auths else None, stop=stop))
+        own_pos: list[tuple[float, float, float] | None] = [None]  # range-dependent loss
+        link = make_link(cfg.link, vid, receiver_pos=lambda: own_pos[0])
         if link is not None:
             link = stack.enter_context(link)
-        agent = stack.enter_context(Agent(cfg, backend, mesh, clock_s=clock_s, link=link))
-        own_pos[0] = None
-        agent.on_position = lambda p: own_pos.__setitem__(0, p)
+        shell: VehicleShell
+        if backend is None:
+            shell = stack.enter_context(Fleet(cfg, mesh, auths=auths, clock_s=clock_s, link=link))
+        else:
+            shell = stack.enter_context(Agent(cfg, backend, mesh, clock_s=clock_s, link=link))
+        shell.on_position = lambda pos: own_pos.__setitem__(0, (pos[0, 0], pos[0, 1], pos[0, 2]))
         log.info(
-            "vehicle %d up: fleet %s, %s, link %s",
-            cfg.vehicle_id,
+            "vehicles %s up: fleet %s, %s, link %s",
+            id_ranges(cfg.ids),
             cfg.mesh.fleet,
-            vehicle,
+            cfg.vehicle,
             cfg.link,
         )
-        agent.run(stop)
+        if ready is not None:
+            ready(shell)
+        shell.run(stop)
+        return shell.stats.summary()
+
+
+def run(
+    p: argparse.ArgumentParser,
+    cfg: ShellConfig,
+    duration_s: float | None,
+    auths: Mapping[int, FleetAuth] | None = None,
+) -> int:
+    """Run the shell until a signal or `duration_s`: READY once every vehicle answers commands
+    and is present, STATS (tick statistics, JSON) at the end."""
+
+    def ready(_shell: VehicleShell) -> None:
+        mode = "keyed, one key each" if auths else "OPEN MODE"
+        print(f"READY {cfg.vehicles} vehicles {id_ranges(cfg.ids)} ({mode})", flush=True)
+
+    with stop_on_signals() as stop, contextlib.suppress(KeyboardInterrupt):
+        try:
+            stats = main(cfg, auths=auths, stop=stop, duration_s=duration_s, ready=ready)
+        except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad config, busy port
+            die(p, str(exc))
+        print("STATS " + json.dumps(stats), flush=True)
     return 0
 
 
@@ -422,47 +446,59 @@ def check_duration(p: argparse.ArgumentParser, args: argparse.Namespace) -> None
 
 
 def cli(argv: list[str]) -> int:
+    """`covey agent`."""
     p = parser()
     args = p.parse_args(argv)
     setup_logging(args.verbose)
     check_duration(p, args)
-    if args.ids is not None:
-        from agent.host_cli import run_agent_host
-
-        return run_agent_host(p, args)
-    if flags := given(p, args, *HOST_FLAGS):
-        p.error(f"{', '.join(flags)}: a multi-vehicle host's (--ids), not a single agent's")
     kind = args.vehicle.partition(":")[0]
-    if kind != "sim" and given(p, args, "start_ne_m"):
-        p.error(f"--start-ne-m places a simulated vehicle; a {kind} vehicle is where it is")
-    if kind != "sim" and given(p, args, "vehicle_model"):
-        p.error(f"--vehicle-model is how a simulated vehicle flies; a {kind} vehicle flies itself")
-    if kind == "relay" and (flags := given(p, args, *GUIDANCE_FLAGS)):
-        p.error(
-            f"{', '.join(flags)}: a relay vehicle runs the policy onboard (covey sitl "
-            "--onboard --weights), not in the agent"
-        )
+    if args.ids is not None:
+        if kind != "sim":
+            p.error(
+                f"--vehicle {args.vehicle}: --ids hosts simulated vehicles only; a real "
+                "autopilot is one per process (covey agent --id N --vehicle ...)"
+            )
+        for dest, why in SINGLE_FLAGS.items():
+            if flags := given(p, args, dest):
+                p.error(f"{flags[0]} is refused with --ids: {why}")
+    else:
+        if flags := given(p, args, *HOST_FLAGS):
+            p.error(f"{', '.join(flags)}: a multi-vehicle host's (--ids), not a single agent's")
+        if kind != "sim" and given(p, args, "start_ne_m"):
+            p.error(f"--start-ne-m places a simulated vehicle; a {kind} vehicle is where it is")
+        if kind != "sim" and given(p, args, "vehicle_model"):
+            p.error(
+                f"--vehicle-model is how a simulated vehicle flies; a {kind} vehicle flies itself"
+            )
+        if kind == "relay" and (flags := given(p, args, *GUIDANCE_FLAGS)):
+            p.error(
+                f"{', '.join(flags)}: a relay vehicle runs the policy onboard (covey sitl "
+                "--onboard --weights), not in the agent"
+            )
     try:
         cfg = config_from_args(args, p)
         cfg.mesh.zenoh_config()  # a bad --zenoh-config is refused before anything starts
     except ValueError as exc:
         die(p, str(exc))
-    auths = load_keys(p, args, (cfg.vehicle_id,), cfg.mesh.fleet)
-    auth = auths[cfg.vehicle_id] if auths is not None else None
-    cfg = dataclasses.replace(cfg, open_mode=auth is None)
-    with stop_on_signals() as stop:
-        try:
-            return main(
-                cfg,
-                vehicle=args.vehicle,
-                start_ne_m=args.start_ne_m,
-                stop=stop,
-                duration_s=args.duration_s,
-                auth=auth,
-                vehicle_model=args.vehicle_model,
-            )
-        except (ValueError, FileNotFoundError) as exc:  # MeshConfigError: bad config, busy port
-            die(p, str(exc))
+    auths = load_keys(p, args, cfg.ids, cfg.mesh.fleet)
+    cfg = dataclasses.replace(cfg, open_mode=auths is None)
+    return run(p, cfg, args.duration_s, auths)
+
+
+def fleet_sim_cli(argv: list[str]) -> int:
+    """`covey fleet-sim`: `covey agent --ids` in open mode, ids from --vehicles, --first-id."""
+    p = fleet_sim_parser()
+    args = p.parse_args(argv)
+    setup_logging(args.verbose)
+    check_duration(p, args)
+    key_env_note(p, NO_KEY_REASON)
+    from agent.shell_config import FleetSimConfig
+
+    try:
+        ids = FleetSimConfig(vehicles=args.vehicles, first_id=args.first_id).ids
+    except ValueError as exc:
+        die(p, str(exc))
+    return run(p, host_config(p, args, ids, args.rate_hz), args.duration_s)
 
 
 def load_keys(

@@ -11,8 +11,9 @@ from typing import Any
 
 import numpy as np
 
+from agent.backends.base import Traffic
 from agent.neighbours import NeighbourSnapshot
-from comms.traffic import TrafficTable, TrafficTrack
+from comms.traffic import TrafficTable, TrafficTrack, is_traffic_id
 
 
 def merge_traffic(
@@ -65,3 +66,24 @@ def merge_tracks(
         seqs=tuple(nbrs.seqs) + (0,) * k if nbrs.seqs else (),
         **extra,
     )
+
+
+def autopilot_traffic(nbrs: NeighbourSnapshot, table: TrafficTable, now_s: float) -> list[Traffic]:
+    """`nbrs` (merged with `merge_traffic`) as the traffic an autopilot that flies around its
+    neighbours itself is told of (onboard mode): covey vehicles cooperate, traffic does not,
+    and the table's manned tracks are marked manned."""
+    manned = {t.neighbour_id for t in table.tracks(now_s) if t.manned}
+    return [
+        Traffic(
+            vid,
+            tuple(p),
+            tuple(v),
+            float(h),
+            float(a),
+            cooperative=not is_traffic_id(vid),
+            manned=vid in manned,
+        )
+        for vid, p, v, h, a in zip(
+            nbrs.ids, nbrs.pos_ned_m, nbrs.vel_ned_m_s, nbrs.heading_rad, nbrs.age_s, strict=True
+        )
+    ]

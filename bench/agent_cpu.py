@@ -133,7 +133,8 @@ def measure(pid: int, log: StateLog, window_s: float) -> dict:
 def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
     """Wall time of one `covey fleet-sim` tick for `vehicles` in one process (in-process, with
     a real mesh session and injected time): landed, holding at altitude, flying a goto."""
-    from agent.fleet_sim import Fleet, FleetSimConfig
+    from agent.hosts import Fleet
+    from agent.shell_config import FleetSimConfig
     from comms.mesh import Mesh
     from comms.schema import Command, CommandKind
 

@@ -21,8 +21,9 @@ import time
 import numpy as np
 
 from agent.failsafe import FailsafeConfig
-from agent.fleet_sim import Fleet, FleetSimConfig
 from agent.guidance import GuidanceConfig
+from agent.hosts import Fleet
+from agent.shell_config import FleetSimConfig
 from bench import common
 from comms.commands import new_nonce
 from comms.mesh import Mesh

@@ -132,7 +132,8 @@ def tick_cpu(quick: bool, keyed: bool) -> dict:
     """CPU microseconds per vehicle per tick of the host's tick alone (physics, core, guidance,
     signing and publishing every state), in this process with injected time: steadier than the
     whole process's on a busy machine."""
-    from agent.fleet_sim import Fleet, FleetSimConfig
+    from agent.hosts import Fleet
+    from agent.shell_config import FleetSimConfig
     from comms.mesh import Mesh
     from comms.schema import Command, CommandKind
     from trust.auth import load_vehicle_auths

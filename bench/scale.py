@@ -3,7 +3,7 @@
     python -m bench.scale [--quick] [--sizes 100,300,1000]   # writes scale.json and scale.png
 
 For each fleet size n: three router processes (`covey router`, a full mesh on loopback), P
-multi-vehicle host processes (the agent's multi-vehicle shell, agent/fleet_sim.py `Fleet`,
+multi-vehicle host processes (the vehicle shell, agent/shell.py, as agent/hosts.py `Fleet`,
 n / P vehicles each; P = max(10, n / 100), so at least 10), their vehicle blocks tiled side by
 side at one vehicle per SPACING_M² (the density is the same at every size), and a ground
 station (the real `GroundStation`, headless: no browser) that is a client of router 1.
@@ -78,7 +78,8 @@ def role_host(
 ) -> None:
     """One multi-vehicle host, a client of the router at `connect`. SIGUSR1 starts the
     measurement window (`--window-s`); prints RESULT {json} after it."""
-    from agent.fleet_sim import Fleet, FleetSimConfig
+    from agent.hosts import Fleet
+    from agent.shell_config import FleetSimConfig
     from comms.mesh import Mesh
     from comms.schema import VehicleState
     from comms.scope import ScopeConfig

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import logging
 import math
 import os
@@ -267,8 +268,12 @@ def given(parser: argparse.ArgumentParser, args: argparse.Namespace, *dests: str
     """The flags among `dests` whose value differs from their default (were given)."""
     out = []
     for action in parser._actions:
-        if action.dest in dests and getattr(args, action.dest, action.default) != action.default:
-            out.append(action.option_strings[-1] if action.option_strings else action.dest)
+        value = getattr(args, action.dest, action.default)
+        if action.dest in dests and value != action.default:
+            if isinstance(action, argparse.BooleanOptionalAction):  # the form given: --x, --no-x
+                out.append(action.option_strings[0 if value else -1])
+            else:
+                out.append(action.option_strings[-1] if action.option_strings else action.dest)
     return out
 
 
@@ -440,6 +445,7 @@ def stop_after(duration_s: float | None, stop: threading.Event) -> Iterator[thre
 
 
 # -- flags from a config dataclass ------------------------------------------------------------------
+@functools.cache  # parsing the class's source is most of building a parser
 def field_docs(cls: type) -> dict[str, str]:
     """The docstring under each field of a dataclass (the --help text of its flag)."""
     import ast
@@ -491,13 +497,16 @@ def add_config_flags(
     only: Iterable[str] | None = None,
     skip: Iterable[str] = (),
     types: Mapping[str, Callable[[str], Any]] | None = None,
+    flags: Mapping[str, str] | None = None,
+    defaults: Mapping[str, Any] | None = None,
 ) -> None:
     """One flag per field of the config dataclass `cls` (those in `only`, less `skip`):
     `--field-name`, its default the field's, its help the docstring under the field.
 
     bool -> --name / --no-name; int, str; float -> a finite number named by the field's unit
     suffix; tuple -> a comma-separated list; `X | None` -> X, default None. `types` overrides
-    the value type of a field (a range check, a unit)."""
+    the value type of a field (a range check, a unit); `flags` its flag's name (the field
+    `policy_path` as `--policy`); `defaults` its default (one command's own: a wider fence)."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     for f in _selected(cls, only, skip):
@@ -506,7 +515,7 @@ def add_config_flags(
         if args and type(None) in typing.get_args(hint):
             hint = args[0]  # X | None
         base = typing.get_origin(hint) or hint
-        default = _default(f)
+        default = defaults[f.name] if defaults and f.name in defaults else _default(f)
         text = docs.get(f.name, "").replace("%", "%%")
         kw: dict[str, Any] = {"dest": f.name, "default": default}
         if base is bool:
@@ -526,7 +535,8 @@ def add_config_flags(
             kw["type"] = types[f.name]
         if base is not tuple:
             text += " (default: %(default)s)"
-        parser.add_argument(flag_name(f.name), help=text.strip(), **kw)
+        name = flags[f.name] if flags and f.name in flags else flag_name(f.name)
+        parser.add_argument(name, help=text.strip(), **kw)
 
 
 def config_from_flags(

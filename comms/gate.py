@@ -30,7 +30,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from comms.schema import Command, Event, Role, Roster, VehicleState
+from comms.schema import Command, Event, Mission, Role, Roster, VehicleState
 
 
 class Refusal(enum.Enum):
@@ -96,14 +96,14 @@ class Summaries:
 
 def command_refusals(
     emit: Callable[[str], None], clock_ns: Callable[[], int], period_s: float = 1.0
-) -> Callable[[Command, int, str], None]:
+) -> Callable[[Command | Mission, int, str], None]:
     """A `FleetAuth.on_reject(command, vehicle_id, reason)` listener that emits at most one line
     per refusal cause (the reason up to its colon) per `period_s`: the first refusal whole, then
     a count. The agent and the multi-vehicle host publish the lines as SECURITY events, so that
     a flood of forged commands becomes a few events, not a flood of them."""
     summaries = Summaries(emit, period_s)
 
-    def on_reject(cmd: Command, _vehicle_id: int, reason: str) -> None:
+    def on_reject(cmd: Command | Mission, _vehicle_id: int, reason: str) -> None:
         cause = reason.split(":", 1)[0]
         kind = getattr(cmd.kind, "name", str(cmd.kind)).lower()
         summaries.note(

@@ -3,7 +3,7 @@
 A vehicle that is idle (landed or killed, disarmed, on the ground, no autopilot action under way)
 has nothing new to say, and nobody steers around it (agent/neighbours.py skips landed, disarmed
 vehicles). It publishes its state at `idle_state_hz` (1 Hz by default) instead of `state_hz`
-(10 Hz), and hears no neighbour states (agent/app.py). The rule:
+(10 Hz), and hears no neighbour states (agent/shell.py). The rule:
 
     period_s = 1 / idle_state_hz   if idle, else 1 / state_hz
     due      = now_s - last_s >= period_s - tick_period_s / 2   (jitter must not skip a state)

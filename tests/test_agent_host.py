@@ -24,7 +24,8 @@ import pytest
 from conftest import REPO, keyed_agent_argv, views_by_id
 
 from agent import agent_cli
-from agent.fleet_sim import Fleet, FleetSimConfig
+from agent.hosts import Fleet
+from agent.shell_config import FleetSimConfig
 from cli.options import id_ranges, vehicle_ids
 from comms import keys
 from comms.commands import OutcomeStatus, new_nonce
@@ -121,7 +122,7 @@ def test_a_key_file_in_the_environment_is_refused_for_a_host(capsys, monkeypatch
 
 
 def test_fleet_sim_is_the_open_mode_alias_and_refuses_keys(capsys) -> None:
-    from agent import host_cli
+    from agent import agent_cli as host_cli
 
     for flag in ("--key-file", "--key-dir"):
         with pytest.raises(SystemExit):

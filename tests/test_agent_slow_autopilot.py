@@ -9,10 +9,11 @@ import time
 import pytest
 from conftest import wait_until
 
-from agent.app import Agent, AgentConfig
 from agent.backends.base import BackendError
 from agent.backends.sim import SimBackend, SimConfig
 from agent.failsafe import FailsafeConfig
+from agent.hosts import Agent
+from agent.shell_config import AgentConfig
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, Mode, VehicleState

@@ -13,10 +13,11 @@ import re
 
 import numpy as np
 
-from agent.app import Agent, AgentConfig
 from agent.backends.sim import SimBackend, SimConfig
 from agent.failsafe import FailsafeConfig, Failsafes
+from agent.hosts import Agent
 from agent.modes import Trigger
+from agent.shell_config import AgentConfig
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, EventKind, Mode
 from comms.session import MeshConfig

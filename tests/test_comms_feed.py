@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from agent.fleet_sim import start_grid
+from agent.shell_config import start_grid
 from comms import keys
 from comms.feed import DUE_SLACK, FeedBuffer
 from comms.gate import Refusal

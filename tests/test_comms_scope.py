@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from agent.app import Agent, AgentConfig
 from agent.backends.sim import SimBackend, SimConfig
 from agent.failsafe import FailsafeConfig
 from agent.guidance import GuidanceConfig
+from agent.hosts import Agent
+from agent.shell_config import AgentConfig
 from comms import keys
 from comms.keys import CELL_M
 from comms.schema import Command, Mode, VehicleState

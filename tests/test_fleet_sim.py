@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from conftest import holds, wait_until
 
-from agent.fleet_sim import Fleet, FleetSimConfig, start_grid
+from agent.agent_cli import fleet_sim_parser as parser
 from agent.guidance import GuidanceConfig
-from agent.host_cli import fleet_sim_parser as parser
+from agent.hosts import Fleet
+from agent.shell_config import FleetSimConfig, start_grid
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode, VehicleState

@@ -13,13 +13,13 @@ import math
 import numpy as np
 import pytest
 
-from agent.app import Agent, AgentConfig
 from agent.backends.sim import SimBackend, SimConfig
 from agent.failsafe import FailsafeConfig
-from agent.fleet_sim import Fleet, FleetSimConfig
 from agent.flight_core import FLYING, ActionKind, CoreConfig, FlightCore, Observed, mode_mask
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
+from agent.hosts import Agent, Fleet
 from agent.modes import AIRBORNE
+from agent.shell_config import AgentConfig, FleetSimConfig
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode
 from comms.session import MeshConfig

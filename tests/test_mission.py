@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from agent.failsafe import FailsafeConfig
-from agent.fleet_sim import Fleet, FleetSimConfig
+from agent.hosts import Fleet
 from agent.mission import Ending, LocalItem, MissionRun, RunStatus
+from agent.shell_config import FleetSimConfig
 from comms.mesh import Mesh
 from comms.plan import Fence, FleetPlan, Zone
 from comms.schema import (

@@ -13,8 +13,9 @@ import pytest
 from conftest import keyed_agent_argv
 
 from agent.failsafe import FailsafeConfig
-from agent.fleet_sim import Fleet, FleetSimConfig
 from agent.flight_core import CoreConfig, FlightCore
+from agent.hosts import Fleet
+from agent.shell_config import FleetSimConfig
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
 from comms.plan import Fence, FleetPlan, Zone

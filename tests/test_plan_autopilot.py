@@ -10,8 +10,9 @@ import random
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from agent.app import Agent, AgentConfig
 from agent.backends.mavsdk_backend import MavsdkBackend, MavsdkConfig
+from agent.hosts import Agent
+from agent.shell_config import AgentConfig
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.plan import FleetPlan

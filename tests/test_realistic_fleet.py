@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from agent.backends.sim import SimConfig
-from agent.fleet_sim import Fleet, FleetSimConfig
+from agent.hosts import Fleet
+from agent.shell_config import FleetSimConfig
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from agent.failsafe import FailsafeConfig
-from agent.fleet_sim import Fleet, FleetSimConfig
 from agent.guidance import GuidanceConfig
+from agent.hosts import Fleet
 from agent.returning import CLIMB, CRUISE, ReturnConfig, Returns
+from agent.shell_config import FleetSimConfig
 from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, CommandKind, Mode
@@ -60,7 +61,8 @@ def test_the_coordinated_return_is_on_by_default_and_can_be_turned_off() -> None
     """The real parsers of covey agent, covey agent --ids (the host), covey fleet-sim and
     covey demo: layers 4 m apart from 10 m and a landing order within 8 m unless
     --no-coordinated-return; that flag with a layer flag is refused, not half-used."""
-    from agent import agent_cli, host_cli
+    from agent import agent_cli
+    from agent import agent_cli as host_cli
     from groundstation import demo
 
     assert ReturnConfig().coordinated

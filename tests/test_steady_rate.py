@@ -14,8 +14,9 @@ import pytest
 from conftest import views_by_id, wait_until
 from test_agent_idle import NO_GCS, Seqs
 
-from agent.app import Agent, AgentConfig
 from agent.backends.sim import SimBackend, SimConfig
+from agent.hosts import Agent
+from agent.shell_config import AgentConfig
 from comms.commands import new_nonce
 from comms.schema import AckResult, Command, Mode
 from comms.state_rate import MIN_STEADY_STATE_HZ, StatePacer, SteadyConfig

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from conftest import wait_until
 
-from agent.fleet_sim import Fleet, FleetSimConfig
+from agent.hosts import Fleet
+from agent.shell_config import FleetSimConfig
 from agent.traffic import merge_traffic
 from comms.commands import new_nonce
 from comms.mesh import Mesh

@@ -370,8 +370,9 @@ def test_a_vehicle_whose_clock_is_10_s_off_refuses_take_off_and_the_station_show
 ) -> None:
     """Two in-process agents on real Zenoh sessions, vehicle 3's clock (its mesh and its key's)
     10 s ahead; a real keyed GroundStation (station 1) on the same router."""
-    from agent.app import Agent, AgentConfig
     from agent.backends.sim import SimBackend, SimConfig
+    from agent.hosts import Agent
+    from agent.shell_config import AgentConfig
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command

@@ -175,7 +175,7 @@ def test_the_emulator_reports_its_estimate_and_sigma():
 
 def test_vehicle_model_flags(capsys):
     from agent import agent_cli
-    from agent.host_cli import fleet_sim_parser
+    from agent.agent_cli import fleet_sim_parser
     from groundstation.demo import parser as demo_parser
 
     assert fleet_sim_parser().parse_args(["--vehicle-model", "realistic"]).vehicle_model == (

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import shapely
 
-from agent.fleet_sim import Fleet, FleetSimConfig
+from agent.hosts import Fleet
+from agent.shell_config import FleetSimConfig
 from comms.mesh import Mesh
 from comms.plan import FleetPlan, Zone
 from comms.schema import AckResult, Command, CommandKind

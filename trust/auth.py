@@ -37,7 +37,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
@@ -45,6 +45,9 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from comms.doc_sync import RosterSyncConfig
 from comms.member import command_digest
 from comms.plan import FleetPlan
+
+if TYPE_CHECKING:
+    from comms.mesh import Mesh
 from comms.schema import (
     TAG_BYTES,
     Command,
@@ -538,6 +541,15 @@ def load_auth(
         auth.key_id,
         key.roster.version,
     )
+    return auth
+
+
+def fleet_auth_of(mesh: Mesh) -> FleetAuth | None:
+    """The FleetAuth a keyed mesh holds (its `auth`, typed by comms as a MemberAuth), or None in
+    open mode; a TypeError for any other signer, which covey's vehicles never hand a mesh."""
+    auth = mesh.auth
+    if auth is not None and not isinstance(auth, FleetAuth):
+        raise TypeError(f"a vehicle's mesh must sign with a FleetAuth, got {type(auth).__name__}")
     return auth
 
 

@@ -1,0 +1,113 @@
+"""A shell's vehicles as arrays: N vehicle backends read, stepped and steered as N rows.
+
+The shell (agent/shell.py) works on rows; this module is the one place that turns backends into
+rows and rows back into calls. One or a few real autopilots (MAVSDK, a relay) are read one
+`telemetry()` call each. The rows of one simulated fleet (agent/backends/sim.py: `SimBackend`s
+of one `SimFleet`, in row order) are read straight from its arrays: the fast path, which
+`read_each` (the reference path) must equal (tests/test_shell.py).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+
+from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
+from agent.backends.sim import SimBackend, SimFleet
+from agent.flight_core import Observed
+
+log = logging.getLogger(__name__)
+
+
+class Autopilots:
+    """N vehicle backends, one row each."""
+
+    def __init__(self, backends: Sequence[VehicleBackend]) -> None:
+        if not backends:
+            raise ValueError("a shell needs at least one vehicle backend")
+        self.backends = list(backends)
+        self.n = len(self.backends)
+        self.capabilities: frozenset[Capability] = frozenset.intersection(
+            *(frozenset(b.capabilities) for b in self.backends)
+        )
+        """What every vehicle can do (a shell flies all of its vehicles one way)."""
+        self.sim: SimFleet | None = _one_sim_fleet(self.backends)
+        """The simulated fleet whose rows these are, in order, or None (the fast path's)."""
+        self.pos_sigma_m = np.zeros(self.n)
+        """(n,) each vehicle's position 1-sigma, from the last `read`."""
+
+    def capable(self, capability: Capability) -> list[int]:
+        """The rows whose backend has `capability` (a receiver, a geofence...)."""
+        return [i for i, b in enumerate(self.backends) if capability in b.capabilities]
+
+    def step(self, now_s: float) -> None:
+        """Let simulated vehicles move up to `now_s` (real ones move by themselves)."""
+        if self.sim is not None:
+            self.sim.step(now_s)
+            return
+        for b in self.backends:
+            b.step(now_s)
+
+    def read(self) -> Observed | None:
+        """This tick's telemetry of every row, or None while a vehicle has none yet (an
+        autopilot not yet heard)."""
+        sim = self.sim
+        if sim is None:
+            return self.read_each()
+        with sim.lock:
+            self.pos_sigma_m = np.full(self.n, float(sim.pos_sigma_m))
+            return Observed(
+                sim.pos_m,
+                sim.vel_m_s,
+                sim.armed,
+                sim.pos_m[:, 2] < -0.05,  # SimFleet.in_air, every row
+                sim.battery_pct,
+                ~sim.closed,
+            )
+
+    def read_each(self) -> Observed | None:
+        """`read` by one `telemetry()` call per backend (the reference path)."""
+        tels: list[Telemetry] = []
+        for b in self.backends:
+            tel = b.telemetry()
+            if tel is None:
+                return None
+            tels.append(tel)
+        self.pos_sigma_m = np.array([t.pos_sigma_m for t in tels], float)
+        return Observed(
+            np.array([t.pos_ned_m for t in tels], float).reshape(self.n, 3),
+            np.array([t.vel_ned_m_s for t in tels], float).reshape(self.n, 3),
+            np.array([t.armed for t in tels], bool),
+            np.array([t.in_air for t in tels], bool),
+            np.array([t.battery_pct for t in tels], float),
+            np.array([t.link_ok for t in tels], bool),
+        )
+
+    def set_velocities(self, rows: np.ndarray, vel_ned_m_s: np.ndarray, heading_rad: np.ndarray):
+        """Velocity setpoints for `rows` (guided: armed, linked, finite). A refused setpoint is
+        logged; the next tick sends another."""
+        if self.sim is not None:
+            self.sim.set_velocities(rows, vel_ned_m_s, heading_rad)
+            return
+        for r, v, h in zip(rows.tolist(), vel_ned_m_s, heading_rad.tolist(), strict=True):
+            try:
+                self.backends[r].set_velocity_ned(v, h)
+            except BackendError as exc:
+                log.warning("setpoint refused: %s", exc)
+
+
+def _one_sim_fleet(backends: list[VehicleBackend]) -> SimFleet | None:
+    """The SimFleet whose rows 0..n-1 `backends` are, in order (plain SimBackends only: a
+    subclass may change what a row does), or None."""
+    first = backends[0]
+    if type(first) is not SimBackend:
+        return None
+    fleet = first.fleet
+    if fleet.n != len(backends):
+        return None
+    for i, b in enumerate(backends):
+        if type(b) is not SimBackend or b.fleet is not fleet or b.index != i:
+            return None
+    return fleet

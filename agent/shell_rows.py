@@ -1,0 +1,140 @@
+"""The vehicle shell's rows, vectorised: what each guided row sees of its neighbours, and the
+VehicleStates of the rows that are due (agent/shell.py). Pure functions of the core, this
+tick's telemetry and the neighbour snapshot: one copy for one vehicle and for many.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from agent.flight_core import AIRBORNE_MODES, FlightCore, Observed
+from agent.guidance import NeighbourViews
+from agent.neighbours import NeighbourSnapshot
+from comms.schema import POS_SIGMA_LIMIT_M, Mode, StateFlag, VehicleState
+
+_MODES = {m.value: m for m in Mode}
+
+
+@functools.cache
+def _state_flag(bits: int) -> StateFlag:
+    return StateFlag(bits)
+
+
+def neighbour_views(
+    core: FlightCore,
+    obs: Observed,
+    pos_sigma_m: np.ndarray,
+    ids: np.ndarray,
+    ext: NeighbourSnapshot,
+    rows: np.ndarray,
+    max_neighbours: int | None,
+) -> NeighbourViews:
+    """What each guided row sees: the nearest `max_neighbours` airborne vehicles, the shell's
+    own (`obs`, position 1-sigmas `pos_sigma_m`) and the others in `ext` (dead-reckoned from
+    their last state, traffic included, stale as `ext.stale_ids` says)."""
+    n = len(ids)
+    airborne = np.isin(core.mode, AIRBORNE_MODES) & obs.armed
+    sigma = np.concatenate([pos_sigma_m, ext.column("pos_sigma_m", 0.0)])
+    coop = np.concatenate([np.ones(n, bool), ext.column("cooperative", True)])
+    manned = np.concatenate([np.zeros(n, bool), ext.column("manned", False)])
+    # none of them when every position is exact and everyone cooperates (the plain views)
+    sky: dict[str, np.ndarray] = {}
+    if sigma.any():
+        sky["world_pos_sigma_m"] = sigma
+        sky["rows_pos_sigma_m"] = sigma[rows]
+    if not coop.all():
+        sky["world_cooperative"] = coop
+    if manned.any():
+        sky["world_manned"] = manned
+    return NeighbourViews.nearest(
+        obs.pos_m[rows],
+        rows,
+        np.concatenate([obs.pos_m, ext.pos_ned_m]),
+        np.concatenate([obs.vel_m_s, ext.vel_ned_m_s]),
+        np.concatenate([core.heading_rad, ext.heading_rad]),
+        np.concatenate([airborne, np.ones(len(ext), bool)]),
+        np.concatenate([np.zeros(n, bool), _stale(ext)]),
+        max_neighbours,
+        np.concatenate([ids, np.array(ext.ids, np.int64)]),
+        ids[rows],
+        **sky,
+    )
+
+
+def _stale(ext: NeighbourSnapshot) -> np.ndarray:
+    """(len(ext),) which entries are stale."""
+    if not ext.stale_ids:
+        return np.zeros(len(ext), bool)
+    return np.isin(np.asarray(ext.ids, np.int64), np.asarray(ext.stale_ids, np.int64))
+
+
+def stale_rows(
+    slowed: np.ndarray, pos_m: np.ndarray, ext: NeighbourSnapshot, vertical_band_m: float
+) -> np.ndarray:
+    """(n,) the rows that guidance slowed for a stale neighbour, or that have one within
+    `vertical_band_m` of their altitude (flying or not)."""
+    stale = np.array(slowed, bool)
+    if ext.stale_ids:
+        at = ext.pos_ned_m[_stale(ext)]
+        dz = np.abs(pos_m[:, None, 2] - at[None, :, 2])
+        stale |= (dz <= vertical_band_m).any(axis=1)
+    return stale
+
+
+def vehicle_states(
+    core: FlightCore,
+    obs: Observed,
+    pos_sigma_m: np.ndarray,
+    ids: np.ndarray,
+    seq: np.ndarray,
+    rows: np.ndarray,
+    bits: np.ndarray,
+    stamp_ns: int,
+) -> list[VehicleState]:
+    """The states of `rows`, stamped `stamp_ns`, with each row's `seq` and its flags: `bits`
+    (n,) (the shell's: open mode, filter, stale) with the core's failsafes, a goal, a lost
+    autopilot link. Battery and position 1-sigma are clamped to what a state carries, the
+    heading wrapped to [-pi, pi)."""
+    # whole arrays to Python floats once: per-row numpy access costs more than the rest
+    pos, vel = obs.pos_m[rows].tolist(), obs.vel_m_s[rows].tolist()
+    targets = core.targets()[rows]
+    has = ~np.isnan(targets[:, 0])
+    goal = np.where(has[:, None], targets, 0.0).tolist()
+    hdg = (np.remainder(core.heading_rad[rows] + math.pi, 2 * math.pi) - math.pi).tolist()
+    # flags as ints, one enum per distinct value (enum arithmetic per row cost more than the
+    # rest of the state)
+    bits = (
+        np.asarray(bits, np.int64)[rows]
+        | np.array([int(core.failsafes[r].flags) for r in rows.tolist()], np.int64)
+        | np.where(has, int(StateFlag.HAS_GOAL), 0)
+        | np.where(obs.link_ok[rows], 0, int(StateFlag.FAILSAFE_LINK_LOST))
+    )
+    flags = [_state_flag(b) for b in bits.tolist()]
+    modes = [_MODES[m] for m in core.mode[rows].tolist()]
+    vids, seqs = ids[rows].tolist(), seq[rows].tolist()
+    armed = obs.armed[rows].tolist()
+    battery = np.clip(obs.battery_pct[rows], 0.0, 100.0).tolist()
+    sigma = np.clip(pos_sigma_m[rows], 0.0, POS_SIGMA_LIMIT_M).tolist()
+    item, items = (x.tolist() for x in core.mission_progress(rows))
+    return [
+        VehicleState(
+            vehicle_id=vids[i],
+            seq=seqs[i],
+            stamp_ns=stamp_ns,
+            pos_ned_m=tuple(pos[i]),
+            vel_ned_m_s=tuple(vel[i]),
+            heading_rad=hdg[i],
+            mode=modes[i],
+            armed=armed[i],
+            battery_pct=battery[i],
+            flags=flags[i],
+            goal_ned_m=tuple(goal[i]),
+            mission_item=item[i],
+            mission_items=items[i],
+            pos_sigma_m=sigma[i],
+        )
+        for i in range(len(vids))
+    ]
