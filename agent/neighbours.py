@@ -4,10 +4,18 @@ Each entry keeps its receive time. While fresh, a neighbour is dead-reckoned at 
 velocity (p(t) = p + v (t - t_rx)), which hides a 3 Hz link's staleness; past `stale_s` it is
 flagged stale (guidance slows down); past `drop_s` it is forgotten.
 Times are on the agent's clock (receive time), so clock skew between vehicles does not matter.
+
+With a reach (`reach_m`, the scope's: comms/scope.py), the table keeps only the neighbours
+within it: the states that the cells within reach bring from beyond it (a 3 x 3 block of 30 m
+cells holds several times the reach's disc) are dropped before their signatures are checked
+(`worth_checking`, comms/gate.py step 4b), and a neighbour whose verified state says it left
+is forgotten. The reach is centred where the vehicle last looked from (`snapshot` with its own
+position, every tick).
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
@@ -72,16 +80,50 @@ class NeighbourSnapshot:
 class NeighbourTable:
     """Thread-safe: the mesh callback writes, the guidance loop reads."""
 
-    def __init__(self, own_id: int | None, cfg: NeighbourConfig = NeighbourConfig()) -> None:
+    def __init__(
+        self,
+        own_id: int | None,
+        cfg: NeighbourConfig = NeighbourConfig(),
+        reach_m: float | None = None,
+    ) -> None:
         """`own_id`: the vehicle whose table this is (its own states are ignored); None for a
-        host of several vehicles, which keeps its own vehicles out itself."""
+        host of several vehicles, which keeps its own vehicles out itself. `reach_m`: keep only
+        the neighbours within this horizontal distance (module docstring); None: all."""
+        if reach_m is not None and not (math.isfinite(reach_m) and reach_m > 0):
+            raise ValueError(f"reach_m must be a positive distance in metres, got {reach_m}")
         self.own_id = own_id
         self.cfg = cfg
+        self.reach_m = reach_m
+        self._centre_ne_m: tuple[float, float] | None = None  # where the reach is centred
         self._lock = threading.Lock()
         self._latest: dict[int, tuple[VehicleState, float]] = {}
+        self._version = 0  # bumped by every change of _latest: the snapshot cache's key
+        self._cache: tuple | None = None
+
+    def _within_reach(self, pos_ned_m) -> bool:
+        centre = self._centre_ne_m
+        return (
+            self.reach_m is None
+            or centre is None
+            or math.hypot(pos_ned_m[0] - centre[0], pos_ned_m[1] - centre[1]) <= self.reach_m
+        )
+
+    def worth_checking(self, state: VehicleState) -> bool:
+        """Whether a state that arrived is worth its signature check: it claims a position within
+        reach, or it is from a neighbour the table holds within reach (so that its leaving is
+        heard). Judged on the state's own claims and on verified entries only, so a forger can
+        get its own states dropped, never another vehicle's (comms/gate.py step 4b)."""
+        if self._within_reach(state.pos_ned_m):
+            return True
+        with self._lock:
+            held = self._latest.get(state.vehicle_id)
+        return held is not None and self._within_reach(held[0].pos_ned_m)
 
     def update(self, state: VehicleState, recv_s: float) -> None:
         if state.vehicle_id == self.own_id:
+            return
+        if not self._within_reach(state.pos_ned_m):  # a verified state: it has left our reach
+            self.forget(state.vehicle_id)
             return
         with self._lock:
             prev = self._latest.get(state.vehicle_id)
@@ -93,20 +135,83 @@ class NeighbourTable:
             ):
                 return
             self._latest[state.vehicle_id] = (state, recv_s)
+            self._version += 1
 
     def forget(self, vehicle_id: int) -> None:
         with self._lock:
-            self._latest.pop(vehicle_id, None)
+            if self._latest.pop(vehicle_id, None) is not None:
+                self._version += 1
 
     def expire(self, now_s: float) -> None:
         """Forget the neighbours unheard for `drop_s` (`snapshot` does it too)."""
         with self._lock:
             for vid in [v for v, (_, t) in self._latest.items() if now_s - t > self.cfg.drop_s]:
                 del self._latest[vid]
+                self._version += 1
 
     def snapshot(self, now_s: float, own_pos_ned_m: np.ndarray | None = None) -> NeighbourSnapshot:
         """Neighbours that are flying, fresh enough and in our vertical band (with
-        `own_pos_ned_m`), dead-reckoned to now."""
+        `own_pos_ned_m`), dead-reckoned to now: p(t) = p + v (t - t_rx).
+
+        One pass of array maths over the table, kept until the table or `now_s` changes, so that
+        the tick's two snapshots (guidance's, band-limited, and the landing order's) cost one
+        (`snapshot_loop` is the plain reference; tests compare them). With `own_pos_ned_m`, the
+        reach is centred there from now on."""
+        if own_pos_ned_m is not None:
+            self._centre_ne_m = (float(own_pos_ned_m[0]), float(own_pos_ned_m[1]))
+        self.expire(now_s)
+        with self._lock:
+            cached = self._cache
+            if cached is None or cached[0] != now_s or cached[1] != self._version:
+                cached = self._cache = (now_s, self._version, self._arrays(now_s))
+        ids, seqs, pos, vel, hdg, sigma, age = cached[2]
+        keep = None
+        if own_pos_ned_m is not None and len(ids):
+            keep = np.abs(pos[:, 2] - float(own_pos_ned_m[2])) <= self.cfg.vertical_band_m
+            if keep.all():
+                keep = None
+        if keep is not None:
+            idx = np.flatnonzero(keep)
+            ids = tuple(ids[i] for i in idx)
+            seqs = tuple(seqs[i] for i in idx)
+            pos, vel, hdg, sigma, age = pos[keep], vel[keep], hdg[keep], sigma[keep], age[keep]
+        stale = tuple(v for v, a in zip(ids, age.tolist(), strict=True) if a > self.cfg.stale_s)
+        return NeighbourSnapshot(
+            pos_ned_m=pos.copy() if keep is None else pos,
+            vel_ned_m_s=vel.copy() if keep is None else vel,
+            heading_rad=hdg.copy() if keep is None else hdg,
+            ids=ids,
+            age_s=age.copy() if keep is None else age,
+            stale_ids=stale,
+            seqs=seqs,
+            pos_sigma_m=sigma.copy() if keep is None else sigma,
+        )
+
+    def _arrays(self, now_s: float) -> tuple:
+        """(ids, seqs, pos, vel, heading, sigma, age) of the flying neighbours, dead-reckoned to
+        `now_s` (lock held)."""
+        rows = [
+            (s, t)
+            for s, t in self._latest.values()
+            if not (s.mode in (Mode.LANDED, Mode.KILLED) and not s.armed)
+        ]
+        k = len(rows)
+        if k == 0:  # an idle vehicle's table (it hears no cells): no array maths at all
+            return (), (), _EMPTY3, _EMPTY3, _EMPTY, _EMPTY, _EMPTY
+        ids = tuple(s.vehicle_id for s, _ in rows)
+        seqs = tuple(s.seq for s, _ in rows)
+        pos = np.array([s.pos_ned_m for s, _ in rows], dtype=float).reshape(k, 3)
+        vel = np.array([s.vel_ned_m_s for s, _ in rows], dtype=float).reshape(k, 3)
+        hdg = np.array([s.heading_rad for s, _ in rows], dtype=float).reshape(k)
+        sigma = np.array([s.pos_sigma_m for s, _ in rows], dtype=float).reshape(k)
+        age = np.maximum(0.0, now_s - np.array([t for _, t in rows], dtype=float).reshape(k))
+        pos += vel * age[:, None]
+        return ids, seqs, pos, vel, hdg, sigma, age
+
+    def snapshot_loop(
+        self, now_s: float, own_pos_ned_m: np.ndarray | None = None
+    ) -> NeighbourSnapshot:
+        """The reference for `snapshot`: the same result, one neighbour at a time."""
         self.expire(now_s)
         with self._lock:
             items = list(self._latest.values())
@@ -145,6 +250,12 @@ class NeighbourTable:
     def latest(self) -> dict[int, VehicleState]:
         with self._lock:
             return {vid: s for vid, (s, _) in self._latest.items()}
+
+
+_EMPTY = np.zeros(0)
+_EMPTY3 = np.zeros((0, 3))
+for _a in (_EMPTY, _EMPTY3):
+    _a.flags.writeable = False  # shared by every empty snapshot (which copies them anyway)
 
 
 def _seq_older(a: int, b: int) -> bool:

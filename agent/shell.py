@@ -163,7 +163,12 @@ class VehicleShell:
         self.pacer = StatePacer(cfg.state_hz, cfg.idle_state_hz, cfg.tick_hz, n, cfg.steady)
         """Which ticks publish a state (comms/state_rate.py: the idle rate while idle)."""
         self.stats = TickStats()
-        self.table = NeighbourTable(None, cfg.neighbours)
+        # One vehicle with scoping keeps (and signature-checks) only the others within the scope's
+        # reach: its subscribed cells hold several times the reach's disc (agent/neighbours.py).
+        reach_m = None
+        if len(cfg.ids) == 1 and cfg.see_others and cfg.scope.enabled:
+            reach_m = cfg.guidance.scope(cfg.scope).reach_m
+        self.table = NeighbourTable(None, cfg.neighbours, reach_m=reach_m)
         """Other processes' vehicles (ours are kept out by `_on_state`)."""
         self.traffic = TrafficTable(cfg.traffic)
         """Traffic that does not cooperate, from the mesh and our receivers (agent/traffic.py)."""
@@ -247,6 +252,7 @@ class VehicleShell:
                 gate=gate,
                 ignore_id=self.cfg.ids[0] if one else None,
                 remote_only=not one,
+                worth_checking=self.table.worth_checking if self.table.reach_m else None,
             )
         else:
             self.states = mesh.subscribe_states(

@@ -30,7 +30,8 @@ from pathlib import Path
 BENCH = Path(__file__).resolve().parent
 RESULTS = BENCH / "results"
 OWN_ORDER = ("inference", "training", "mesh", "agent_cpu")
-NOT_SECTIONS = {"__init__", "__main__", "common", "report"}
+NOT_SECTIONS = {"__init__", "__main__", "common", "report", "agent_profile"}
+"""Not sections: shared code, and agent_profile (a profiling aid that needs py-spy, no dependency)."""
 
 
 @dataclass(frozen=True)

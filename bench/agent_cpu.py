@@ -19,6 +19,7 @@ import argparse
 import math
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -31,12 +32,14 @@ AGENT_ID = 1
 TICK_HZ = 10.0
 
 
-def neighbour_ids() -> list[int]:
-    return [100 + k for k in range(NEIGHBOURS)]
+def neighbour_ids(count: int = NEIGHBOURS) -> list[int]:
+    return [100 + k for k in range(count)]
 
 
-def role_neighbours(port: int, keys_dir: str | None = None) -> None:
-    """Publish NEIGHBOURS vehicles on a ring around the agent's latest state, at 10 Hz; with
+def role_neighbours(
+    port: int, keys_dir: str | None = None, count: int = NEIGHBOURS, rate_hz: float = TICK_HZ
+) -> None:
+    """Publish `count` vehicles on a ring around the agent's latest state, at `rate_hz`; with
     `keys_dir` (a bench fleet, bench/trust.py) each state is signed with its vehicle's key."""
     from comms import keys
     from comms.mesh import Mesh
@@ -48,20 +51,22 @@ def role_neighbours(port: int, keys_dir: str | None = None) -> None:
         from trust.authority import Authority
 
         fleet = Authority(keys_dir)
-        signers = {v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in neighbour_ids()}
+        signers = {
+            v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in neighbour_ids(count)
+        }
     latest: list[VehicleState | None] = [None]
     auth = load_auth(str(Authority(keys_dir).member_path(Role.STATION, 1))) if keys_dir else None
     with Mesh(embedded_peer(port, fleet=FLEET), auth=auth) as mesh:
         mesh.subscribe_states(lambda s, _t: latest.__setitem__(0, s), vehicle_id=AGENT_ID)
         print("READY", flush=True)
-        period_s, next_s, seq = 1.0 / TICK_HZ, time.monotonic(), 0
+        period_s, next_s, seq = 1.0 / rate_hz, time.monotonic(), 0
         while True:
             seq += 1
             me = latest[0]
             c = np.array(me.pos_ned_m) if me is not None else np.array([0.0, 0.0, -10.0])
             v = me.vel_ned_m_s if me is not None else (0.0, 0.0, 0.0)
-            for k in range(NEIGHBOURS):
-                r_m, th = 6.0 + 8.0 * k / NEIGHBOURS, 2 * math.pi * k / NEIGHBOURS + 0.3
+            for k in range(count):
+                r_m, th = 6.0 + 8.0 * k / count, 2 * math.pi * k / count + 0.3
                 pos = (c[0] + r_m * math.cos(th), c[1] + r_m * math.sin(th), c[2])
                 st = VehicleState(
                     100 + k, seq, time.time_ns(), pos, tuple(v), 0.0, mode=Mode.GOTO, armed=True
@@ -173,11 +178,17 @@ def fleet_sim_ticks(quick: bool, vehicles: int = 500) -> dict:
 
 
 def agent_flight(
-    quick: bool, decision_period_s: float | None = None, keys_dir: str | None = None
+    quick: bool,
+    decision_period_s: float | None = None,
+    keys_dir: str | None = None,
+    neighbours: int = NEIGHBOURS,
+    neighbour_hz: float = TICK_HZ,
+    while_flying: Callable[[int, float], None] | None = None,
 ) -> dict:
     """One real `covey agent` with 10 neighbours: CPU and tick jitter landed, then flying a goto.
     `decision_period_s` None: the policy's trained period (the default); 0: every tick.
-    `keys_dir`: a keyed fleet (bench/trust.py): every state signed and verified."""
+    `keys_dir`: a keyed fleet (bench/trust.py): every state signed and verified.
+    `while_flying(pid, window_s)`: called as the flying window starts (a profiler, bench/agent_profile.py)."""
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, Mode, Role
@@ -195,6 +206,7 @@ def agent_flight(
         auth = load_auth(str(fleet.member_path(Role.STATION, 1)))
         extra += ["--key-file", str(fleet.member_path(Role.VEHICLE, AGENT_ID))]
         nb_extra = ["--keys-dir", keys_dir]
+    nb_extra += ["--neighbours", str(neighbours), "--neighbour-hz", str(neighbour_hz)]
     with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
         nb = kids.start(
@@ -244,6 +256,8 @@ def agent_flight(
             raise RuntimeError(f"goto refused: {res.summary()}")
         log.wait(lambda s: s.mode is Mode.GOTO, 10, "flying the goto")
         time.sleep(1.0)
+        if while_flying is not None:
+            threading.Thread(target=while_flying, args=(agent.pid, window_s), daemon=True).start()
         flying = measure(agent.pid, log, window_s)
         still_goto = log.latest.mode is Mode.GOTO
     return {"landed": landed, "flying": flying, "stayed_in_goto": still_goto}
@@ -289,8 +303,12 @@ if __name__ == "__main__":
     ap.add_argument(
         "--keys-dir", default=None, help="neighbours: sign with this bench fleet's keys"
     )
+    ap.add_argument("--neighbours", type=int, default=NEIGHBOURS, help="neighbours: how many")
+    ap.add_argument(
+        "--neighbour-hz", type=float, default=TICK_HZ, help="neighbours: their state rate"
+    )
     a = ap.parse_args()
     if a.role == "neighbours":
-        role_neighbours(a.port, a.keys_dir)
+        role_neighbours(a.port, a.keys_dir, a.neighbours, a.neighbour_hz)
     else:
         main(a.quick)

@@ -8,6 +8,10 @@ Per state, cheapest check first, so that junk costs no signature verification:
     4. [thinning] at least min_interval_s since the last accepted state of that vehicle, else
        skipped unverified (not a refusal: an agent does not need every 10 Hz state; the neighbour
        table dead-reckons in between)
+    4b. [reach] `worth_checking(state)`, if given, else skipped unverified: a state whose own
+       position is beyond the receiver's reach (agent/neighbours.py `NeighbourTable.worth_checking`)
+       could change nothing it does. The verdict rests on that state's own claims only, so a
+       forged state can get itself skipped but never another one, nor a real one refused.
     5. signer in the roster, signature verifies    else UNKNOWN / FORGED
 
 Only a state that passed 5 moves the vehicle's "last accepted" stamp and time, so a forger can
@@ -138,8 +142,11 @@ class Gate:
         cfg: GateConfig = GateConfig(),
         on_summary: Callable[[str], None] | None = None,
         what: str = "state",
+        worth_checking: Callable[[VehicleState], bool] | None = None,
     ) -> None:
         self.auth = auth
+        self.worth_checking = worth_checking
+        """Step 4b (module docstring); None: every state that gets that far is checked."""
         self.cfg = cfg
         self.what = what
         self.on_summary = on_summary
@@ -150,6 +157,8 @@ class Gate:
         self._last: dict[int, tuple[int, int]] = {}  # vehicle -> (stamp_ns, recv_ns) accepted
         self.accepted = 0
         self.skipped = 0
+        self.out_of_reach = 0
+        """Of `skipped`, those that step 4b skipped."""
         self.refused: dict[Refusal, int] = dict.fromkeys(Refusal, 0)
         """Refusals per cause since start (read only)."""
 
@@ -175,6 +184,11 @@ class Gate:
                 with self._lock:
                     self.skipped += 1
                 return SKIPPED
+        if self.worth_checking is not None and not self.worth_checking(state):
+            with self._lock:
+                self.skipped += 1
+                self.out_of_reach += 1
+            return SKIPPED
         problem = self.auth.check_state(state)
         if problem:
             cause = Refusal.UNKNOWN if problem.startswith("unknown") else Refusal.FORGED

@@ -81,6 +81,8 @@ class MeshStats:
     states_refused: int = 0
     """States dropped by the keyed-mode gate (unsigned, forged, stale, replayed, unknown)."""
     events_refused: int = 0
+    states_beyond_reach: int = 0
+    """States dropped unchecked as beyond the receiver's reach (comms/gate.py step 4b)."""
     states_misplaced: int = 0
     """States refused because their key's grid cell is not their position's (also decode_errors)."""
     rosters_applied: int = 0
@@ -202,10 +204,17 @@ class Mesh:
         else:
             log.warning("SECURITY: %s", line)
 
-    def new_gate(self, cfg: GateConfig = GateConfig(), what: str = "state") -> Gate:
+    def new_gate(
+        self,
+        cfg: GateConfig = GateConfig(),
+        what: str = "state",
+        worth_checking: Callable[[VehicleState], bool] | None = None,
+    ) -> Gate:
         if self.auth is None:
             raise RuntimeError("an open-mode mesh has no keys to gate with")
-        gate = Gate(self.auth, cfg, on_summary=self._summary, what=what)
+        gate = Gate(
+            self.auth, cfg, on_summary=self._summary, what=what, worth_checking=worth_checking
+        )
         self.gates.append(gate)
         return gate
 
@@ -296,12 +305,15 @@ class Mesh:
         gate: GateConfig = GateConfig(),
         ignore_id: int | None = None,
         remote_only: bool = False,
+        worth_checking: Callable[[VehicleState], bool] | None = None,
     ) -> CellSubscription:
         """As `subscribe_states`, but only the states of the grid cells `cells`; move the
         subscription with `.set_cells(cells)` (comms/scope.py says which cells). One gate and one
         handler serve every cell, so a state replayed into another cell is still a replay.
-        `remote_only`: never deliver this session's own states (a process of many vehicles)."""
-        on_sample = self._state_handler(callback, link, on_refused, gate, ignore_id)
+        `remote_only`: never deliver this session's own states (a process of many vehicles).
+        `worth_checking(state)`: False drops a state before its signature check (or, in open
+        mode, before the callback): comms/gate.py step 4b, e.g. `NeighbourTable.worth_checking`."""
+        on_sample = self._state_handler(callback, link, on_refused, gate, ignore_id, worth_checking)
         sub = CellSubscription(self, on_sample, remote_only)
         sub.set_cells(cells)
         return self._keep(sub)
@@ -350,9 +362,10 @@ class Mesh:
         on_refused: RefusedCallback | None,
         gate: GateConfig,
         ignore_id: int | None,
+        worth_checking: Callable[[VehicleState], bool] | None = None,
     ) -> Callable[[zenoh.Sample], None]:
         """A state key's sample: decoded, on its own vehicle's key and cell, then admitted."""
-        admit = self._admitter(callback, link, on_refused, gate, ignore_id)
+        admit = self._admitter(callback, link, on_refused, gate, ignore_id, worth_checking)
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
@@ -386,15 +399,22 @@ class Mesh:
         on_refused: RefusedCallback | None,
         gate: GateConfig,
         ignore_id: int | None,
+        worth_checking: Callable[[VehicleState], bool] | None = None,
     ) -> Callable[[VehicleState, int, tuple], None]:
         """What every decoded state passes, whichever way it came (its own key or a feed entry):
         the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
         the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""
-        checker = self.new_gate(gate) if self.auth is not None else None
+        if worth_checking is not None:
+            worth_checking = self._counted(worth_checking)
+        checker = (
+            self.new_gate(gate, worth_checking=worth_checking) if self.auth is not None else None
+        )
 
         def admit(state: VehicleState, recv_ns: int, extra: tuple) -> None:
             if state.vehicle_id == ignore_id:
                 return
+            if checker is None and worth_checking is not None and not worth_checking(state):
+                return  # open mode: nothing to verify, but no use for it either
             if checker is not None:
                 verdict = checker.admit_state(state, recv_ns)
                 if verdict is SKIPPED:
@@ -411,6 +431,19 @@ class Mesh:
                 link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t, *extra))
 
         return admit
+
+    def _counted(
+        self, worth_checking: Callable[[VehicleState], bool]
+    ) -> Callable[[VehicleState], bool]:
+        """`worth_checking`, its refusals counted in `stats.states_beyond_reach`."""
+
+        def counted(state: VehicleState) -> bool:
+            if worth_checking(state):
+                return True
+            self.stats.bump("states_beyond_reach")
+            return False
+
+        return counted
 
     # -- events ----------------------------------------------------------------------------
     def publish_event(self, event: Event, *, auth: MemberAuth | None = None) -> None:

@@ -24,6 +24,7 @@ from cli.options import port as tcp_port
 from comms.mesh import Mesh
 from comms.schema import Role
 from comms.session import DEFAULT_PORT, embedded_router, free_tcp_port, port_free
+from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
 from groundstation.station import GcsConfig, GroundStation
 from kit.procs import ChildGroup
 from trust.auth import FleetAuth, load_auth
@@ -66,11 +67,18 @@ class DemoConfig:
     work (docs/scaling.md, "Idle vehicles")."""
     stop_timeout_s: float = 5.0
     """How long children get to exit after SIGTERM before SIGKILL."""
+    steady_state_hz: float = MIN_STEADY_STATE_HZ
+    """State rate of an agent in the air while its last state still predicts it (hovering,
+    flying straight: `covey agent --steady-state-hz`, comms/state_rate.py); 0: off, every agent
+    at its full 10 Hz. A hovering fleet then sends, signs and verifies a third of the states,
+    which was most of its CPU (docs/companion.md)."""
     keyed: bool = True
     """Run keyed: a throwaway fleet authority and one key per vehicle and for the station, in a
     temporary directory deleted on exit. False (--open-mode): nothing is authenticated."""
 
     def __post_init__(self) -> None:
+        if self.steady_state_hz:
+            SteadyConfig(state_hz=self.steady_state_hz)  # raises with the reason if out of range
         if self.agent_mesh_mode not in AGENT_MESH_MODES:
             raise ValueError(
                 f"agent_mesh_mode must be peer or client, got {self.agent_mesh_mode!r}"
@@ -179,6 +187,11 @@ def _run(
                     f"{cfg.geofence_radius_m:g}",
                     *key_args(vid),
                     *(() if cfg.coordinated_return else ("--no-coordinated-return",)),
+                    *(
+                        ("--steady-state-hz", f"{cfg.steady_state_hz:g}")
+                        if cfg.steady_state_hz
+                        else ()
+                    ),
                     *cfg.agent_extra,
                 ]
             )
@@ -222,6 +235,7 @@ DEMO_FLAGS = (
     "geofence_radius_m",
     "coordinated_return",
     "agent_mesh_mode",
+    "steady_state_hz",
 )
 AGENT_MESH_MODES = ("client", "peer")
 
