@@ -602,7 +602,7 @@ class Mesh:
             query.reply(reply_key, payload)
         except Exception as exc:  # noqa: BLE001 - the querier may be gone
             log.warning("could not reply to a command: %s", exc)
-        try:  # a copy for recorders: replies are seen only by the querier
+        try:  # the copy for recorders and other stations (comms/keys.py says why both)
             self.session.put(ack_key, payload)
         except Exception as exc:  # noqa: BLE001
             log.warning("could not publish the ack copy: %s", exc)
