@@ -621,8 +621,8 @@ def test_acks_name_the_vehicles_commanded(flight):
             accepted.setdefault(cmd["kind"], set()).add(ack["vehicle_id"])
     assert accepted["TAKEOFF"] == accepted["GOTO_LOCAL"] == set(VEHICLES)
     assert joined >= len(std["/acks"]) // 2
-    raw_events = [
-        schema.Event.decode(m.data)
+    raw_events = [  # events and autopilot outcomes share the event key
+        schema.decode_event_message(m.data)
         for m in read_recording(flight["path"]).messages
         if m.topic.endswith("/event")
     ]
