@@ -12,7 +12,7 @@ import struct
 import time
 
 import pytest
-from conftest import wait_until
+from conftest import keyed_agent_argv, wait_until
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -236,25 +236,28 @@ def test_the_station_counts_each_ack_and_outcome_once() -> None:
 # -- a real agent process --------------------------------------------------------------------
 @pytest.mark.e2e
 @pytest.mark.slow
-def test_a_takeoffs_outcome_reaches_the_station_log_once_as_done(procs) -> None:
+@pytest.mark.parametrize("keyed", [False, True], ids=["open", "keyed"])
+def test_a_takeoffs_outcome_reaches_the_station_log_once_as_done(procs, tmp_path, keyed) -> None:
     """A `covey agent` process and a ground station on one Zenoh router: the station sends a
     take-off itself, so its ack reaches the station twice (the query's reply and the copy on
     msg/<id>/ack); its command log holds one answer, one outcome (done), and shows the
-    take-off done once the vehicle holds at altitude."""
+    take-off done once the vehicle holds at altitude. Keyed: the agent signs the outcome with
+    its key file and the station's gate checks it."""
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.session import embedded_peer, embedded_router, free_tcp_port
     from groundstation.station import GcsConfig, GroundStation
 
-    vid = 5
+    vid = 3
     port = free_tcp_port()
+    authority = throwaway_fleet(tmp_path / "keys", "covey", vehicles=[vid], stations=[1])
+    argv = keyed_agent_argv(authority, vid) if keyed else ["-m", "covey_cli", "agent", "--id", "3"]
+    key_file = str(authority.member_path(Role.STATION, 1)) if keyed else None
     with Mesh(embedded_router(port)) as hub:
         presence = hub.presence()
-        procs.start(
-            "-m", "covey_cli", "agent", "--id", str(vid), "--connect", f"tcp/127.0.0.1:{port}"
-        )
+        procs.start(*argv, "--connect", f"tcp/127.0.0.1:{port}")
         assert presence.wait_for(lambda v, _g: vid in v, timeout_s=60), "the agent never came"
-        with GroundStation(GcsConfig(mesh=embedded_peer(port), port=0)) as gcs:
+        with GroundStation(GcsConfig(mesh=embedded_peer(port), port=0, key_file=key_file)) as gcs:
             assert gcs.mesh is not None
             cmd = Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=0, targets=(vid,))
             assert wait_until(lambda: vid in gcs.fleet.ids(), 30), "no state reached the station"
@@ -277,5 +280,7 @@ def test_a_takeoffs_outcome_reaches_the_station_log_once_as_done(procs) -> None:
             assert done.done[vid].ok and "takeoff" in done.done[vid].detail
             assert done.done[vid].nonce == cmd.nonce
             assert gcs.commands.duplicate_acks == 0 and gcs.commands.duplicate_outcomes == 0
+            assert (gcs.mesh.auth is not None) is keyed
+            assert any(done.done[vid].sig) is keyed  # keyed: signed, and the gate let it in
             outcomes = [ev for _, ev in gcs.events.latest(EventKind.ACTION, n=50)]
             assert [o for o in outcomes if isinstance(o, ActionOutcome)] == [done.done[vid]]
