@@ -154,12 +154,17 @@ def perform(action: Action, backend: VehicleBackend) -> None:
 
 
 def outcome_of(
-    action: Action, vehicle_id: int, error: str | None, back_to: Mode | None = None
+    action: Action,
+    vehicle_id: int,
+    error: str | None,
+    back_to: Mode | None = None,
+    stamp_ns: int = 0,
 ) -> ActionOutcome:
-    """What the station is told when `action` (asked for by a command) has ended."""
+    """What the station is told when `action` (asked for by a command) has ended, at
+    `stamp_ns` (the vehicle's clock)."""
     detail = action.describe()
     if error is not None:
         detail = f"{detail}: {error}" + (
             f"; back to {back_to.name.lower()}" if back_to is not None else ""
         )
-    return ActionOutcome(vehicle_id, action.nonce or 0, error is None, detail)
+    return ActionOutcome(vehicle_id, action.nonce or 0, error is None, detail, stamp_ns)

@@ -9,7 +9,8 @@ its vehicles (agent/autopilots.py), lets the core see the telemetry, flies what 
 (velocity setpoints in companion mode, traffic reports in onboard mode) and publishes the states
 that are due. A command's ack says whether the mode machine accepted it, with the reason for a
 refusal; the autopilot's part runs on the vehicle's action queue (agent/actions.py) and its
-outcome follows as an ACTION event bound to the command's nonce; a failure rolls the mode back.
+outcome follows as an ActionOutcome message (on its event key) bound to the command's nonce; a
+failure rolls the mode back.
 
 Each vehicle is its own citizen of the mesh: its own state key, command queryable, liveliness
 token and events, and in keyed mode its own key (one FleetAuth per vehicle sharing one roster:
@@ -391,8 +392,11 @@ class VehicleShell:
             self._notes(notes)
         if action.nonce is None:
             return
-        outcome = outcome_of(action, int(self.ids[i]), error, back_to)
-        self._publish_event(outcome.to_event(self.mesh.clock_ns()), i)
+        outcome = outcome_of(action, int(self.ids[i]), error, back_to, self.mesh.clock_ns())
+        try:
+            self.mesh.publish_outcome(outcome, auth=self.auths[i])
+        except Exception as exc:  # noqa: BLE001 - an outcome that cannot be sent must not stop flying
+            log.warning("could not publish an action outcome: %s", exc)
 
     # -- the loop ------------------------------------------------------------------------------
     def tick(self, now_s: float) -> None:

@@ -30,7 +30,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from comms.schema import Command, Event, Mission, Role, Roster, VehicleState
+from comms.schema import (
+    ActionOutcome,
+    Command,
+    Event,
+    EventMessage,
+    Mission,
+    Role,
+    Roster,
+    VehicleState,
+)
 
 
 class Refusal(enum.Enum):
@@ -132,6 +141,8 @@ class SignatureChecker(Protocol):
 
     def check_event(self, event: Event) -> str | None: ...
 
+    def check_outcome(self, outcome: ActionOutcome) -> str | None: ...
+
 
 class Gate:
     """One subscription's gate (each keeps its own 'last accepted' per vehicle). Thread-safe."""
@@ -206,8 +217,9 @@ class Gate:
                     del self._last[gone]
         return None
 
-    def admit_event(self, event: Event, recv_ns: int) -> Refusal | None:
-        """Events: signed by their vehicle and fresh (no ordering: events are not latest-wins)."""
+    def admit_event(self, event: EventMessage, recv_ns: int) -> Refusal | None:
+        """Events and autopilot outcomes: signed by their vehicle and fresh (no ordering: events
+        are not latest-wins)."""
         vid = event.vehicle_id
         if not event.sig:
             return self._refuse(Refusal.UNSIGNED, vid, "no signature", recv_ns)
@@ -216,7 +228,10 @@ class Gate:
             return self._refuse(
                 Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns
             )
-        problem = self.auth.check_event(event)
+        if isinstance(event, ActionOutcome):
+            problem = self.auth.check_outcome(event)
+        else:
+            problem = self.auth.check_event(event)
         if problem:
             cause = Refusal.UNKNOWN if problem.startswith("unknown") else Refusal.FORGED
             return self._refuse(cause, vid, problem, recv_ns)

@@ -5,8 +5,9 @@
                                   its position (see below)
     covey/<fleet>/v/<id>/cmd      queryable: Command -> CommandAck
     covey/<fleet>/v/<id>/alive    liveliness token of a vehicle's agent
-    covey/<fleet>/msg/<id>/ack    pub/sub: a copy of every CommandAck the vehicle sent (recorders)
-    covey/<fleet>/msg/<id>/event  pub/sub Event
+    covey/<fleet>/msg/<id>/ack    pub/sub: a copy of every CommandAck the vehicle sent (below)
+    covey/<fleet>/msg/<id>/event  pub/sub Event, and ActionOutcome (the autopilot's outcome of
+                                  a command; the first byte tells them apart)
     covey/<fleet>/msg/<id>/trace  pub/sub GuidanceTrace (agents with --trace-guidance; recorders)
     covey/<fleet>/msg/<id>/feed   pub/sub FeedBatch: the latest states of the vehicles of one
                                   process, batched at a bounded rate (ground stations); <id> is
@@ -48,6 +49,12 @@ any other cell, so a vehicle cannot hide from its neighbours by publishing in a 
 A feed lives under its process's first vehicle so that a one-vehicle process (every keyed
 agent) publishes only under its own keys, as the routers' access-control rules allow;
 its entries may name any vehicle, and each is checked as a state is (signature, order).
+
+Every ack goes two ways, and both are needed: the reply to the command's query reaches only
+the querier (the station that sent it, whose `send_command` waits on it), and the copy on
+`msg/<id>/ack` reaches everyone else: recorders, and every other station, whose command logs
+show every station's commands with each vehicle's answer. The sending station hears its acks
+both ways; only the copy feeds its command log, which keeps one answer per (vehicle, nonce).
 
 Ground-station tokens carry the station id so that two stations can come and go independently
 (a shared key would make one station's leave look like all of them leaving).

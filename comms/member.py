@@ -20,6 +20,7 @@ from comms.doc_sync import DocSync, RosterSyncConfig
 from comms.gate import SignatureChecker
 from comms.link import Deliver
 from comms.schema import (
+    ActionOutcome,
     Command,
     CommandAck,
     Event,
@@ -81,6 +82,8 @@ class MemberAuth(SignatureChecker, Protocol):
     def sign_state(self, state: VehicleState) -> VehicleState: ...
 
     def sign_event(self, event: Event) -> Event: ...
+
+    def sign_outcome(self, outcome: ActionOutcome) -> ActionOutcome: ...
 
     def sign_trace(self, trace: GuidanceTrace) -> GuidanceTrace: ...
 

@@ -35,6 +35,7 @@ from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
 from comms.schema import (
     AckResult,
+    ActionOutcome,
     Command,
     CommandAck,
     DecodeError,
@@ -47,6 +48,7 @@ from comms.schema import (
     Roster,
     RosterHead,
     VehicleState,
+    decode_event_message,
 )
 from comms.session import MeshConfig, open_session
 
@@ -57,6 +59,7 @@ StateCallback = Callable[[VehicleState, int], None]
 FeedCallback = Callable[[VehicleState, int, int], None]
 """Called with (state, receive stamp in ns, its entry number in its feed) on a Zenoh thread."""
 EventCallback = Callable[[Event, int], None]
+OutcomeCallback = Callable[[ActionOutcome, int], None]
 CommandHandler = Callable[[Command], CommandAck]
 MissionHandler = Callable[[Mission], CommandAck]
 """Answers a mission upload that passed the command checks (agent/mission.py loads it)."""
@@ -460,21 +463,37 @@ class Mesh:
         event = Event(vehicle_id=vehicle_id, stamp_ns=self.clock_ns(), text=text, **kw)
         self.publish_event(event, auth=auth)
 
-    def subscribe_events(self, callback: EventCallback) -> Any:
+    def publish_outcome(self, outcome: ActionOutcome, *, auth: MemberAuth | None = None) -> None:
+        """Publish how a command's autopilot part ended, signed as `publish_event` signs, on
+        the vehicle's event key (its subscribers get it through `subscribe_events`)."""
+        auth = auth if auth is not None else self.auth
+        if auth is not None:
+            outcome = auth.sign_outcome(outcome)
+        self.session.put(keys.event(self.fleet, outcome.vehicle_id), outcome.encode())
+
+    def subscribe_events(
+        self, callback: EventCallback, on_outcome: OutcomeCallback | None = None
+    ) -> Any:
+        """Call `callback(event, recv_ns)` for every valid event of the fleet, and
+        `on_outcome(outcome, recv_ns)` for every autopilot outcome (None: outcomes are
+        dropped unread). Keyed mode: both pass one Gate (signed by their vehicle, fresh)."""
         checker = self.new_gate(what="event") if self.auth is not None else None
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
             try:
-                ev = Event.decode(sample.payload.to_bytes())
+                ev = decode_event_message(sample.payload.to_bytes())
             except DecodeError as exc:
                 self._bad(str(sample.key_expr), exc)
+                return
+            deliver = callback if isinstance(ev, Event) else on_outcome
+            if deliver is None:
                 return
             if checker is not None and checker.admit_event(ev, recv_ns) is not None:
                 self.stats.bump("events_refused")
                 return
             self.stats.bump("events_received")
-            _guarded(callback, ev, recv_ns)
+            _guarded(deliver, ev, recv_ns)
 
         return self._keep(self.session.declare_subscriber(keys.all_events(self.fleet), on_sample))
 
@@ -616,7 +635,7 @@ class Mesh:
             query.reply(reply_key, payload)
         except Exception as exc:  # noqa: BLE001 - the querier may be gone
             log.warning("could not reply to a command: %s", exc)
-        try:  # a copy for recorders: replies are seen only by the querier
+        try:  # the copy for recorders and other stations (comms/keys.py says why both)
             self.session.put(ack_key, payload)
         except Exception as exc:  # noqa: BLE001
             log.warning("could not publish the ack copy: %s", exc)

@@ -21,6 +21,10 @@ Layouts (all little-endian, packed; `<` struct codes):
         tag (Ed25519 of vehicle_id over these bytes AND the SHA-256 of the command answered)
     Event         type 4 v1  <BBHQBB120s [+ 64s]      134 bytes, 198 signed
         type, version, vehicle_id, stamp_ns, severity, kind, text (utf-8, zero padded), [sig]
+    ActionOutcome type 12 v1 <BBHQQBB + n + [64s]     22 + n bytes (n <= 96), 86 + n signed
+        type, version, vehicle_id, nonce (of the command), stamp_ns, ok (0 failed, 1 done),
+        n (detail length), detail (n bytes of utf-8), [sig: Ed25519 of vehicle_id]; on the
+        vehicle's event key, next to its Events
     Roster        type 5 v1  <BB32sIQH + n*<BH32s + 64s  48 bytes + 35 per member + 64 sig
         type, version, fleet (ascii, zero padded), roster version, stamp_ns, n_members,
         members[n] (role, id, Ed25519 public key), sig (the fleet authority's Ed25519);
@@ -96,6 +100,8 @@ MAX_VEHICLE_ID = 65000
 MAX_TARGETS = 1024
 REASON_BYTES = 96
 EVENT_TEXT_BYTES = 120
+OUTCOME_DETAIL_BYTES = 96
+"""The longest detail of an ActionOutcome, in UTF-8 bytes (a longer one is cut)."""
 TAG_BYTES = 64
 """An Ed25519 signature."""
 PUBLIC_KEY_BYTES = 32
@@ -141,6 +147,7 @@ class MsgType(enum.IntEnum):
     TRAFFIC_REPORT = 9
     MISSION = 10
     PLAN = 11
+    ACTION_OUTCOME = 12
 
 
 class Role(enum.IntEnum):
@@ -223,7 +230,9 @@ class EventKind(enum.IntEnum):
     LINK_STATS = 4
     SECURITY = 5
     ACTION = 6
-    """The autopilot's outcome of an accepted command (`ActionOutcome` in the text)."""
+    """The autopilot's outcome of an accepted command: an `ActionOutcome` message shows as this
+    kind. Events of this kind exist only in recordings made before that message (their text was
+    `<nonce as 16 hex> done|failed: <detail>`); they are shown as plain text."""
     CLOCK = 7
     """The vehicle's clock against the stations' (`ClockReport` in the text)."""
 
@@ -713,35 +722,105 @@ class ActionOutcome:
     """How the autopilot's part of an accepted command ended: done, or failed with the reason.
 
     A command is acked when the vehicle's mode machine accepts it; the autopilot's part runs
-    after (agent/actions.py) and its outcome follows as an Event of kind ACTION whose text is
-    `<nonce as 16 hex digits> done|failed: <detail>`, signed like every event."""
+    after (agent/actions.py) and its outcome follows as this message, on the vehicle's event
+    key, signed by the vehicle like its events (trust/auth.py `sign_outcome`). Recordings made
+    before it existed carry outcomes as Events of kind ACTION: those are read and shown as
+    plain events, and no command log takes them."""
 
     vehicle_id: int
     nonce: int
+    """The nonce of the command whose autopilot part ended."""
     ok: bool
     detail: str = ""
+    """What was done, or why it failed; at most OUTCOME_DETAIL_BYTES of UTF-8 on the wire (cut
+    at a character boundary)."""
+    stamp_ns: int = 0
+    """The vehicle's clock when the part ended."""
+    sig: bytes = b""
+    """Ed25519 signature of vehicle `vehicle_id` over `signed_bytes()`; empty: unsigned."""
 
-    def to_event(self, stamp_ns: int) -> Event:
-        text = f"{self.nonce:016x} {'done' if self.ok else 'failed'}: {self.detail}"
-        severity = Severity.INFO if self.ok else Severity.ERROR
-        return Event(self.vehicle_id, stamp_ns, text, severity, EventKind.ACTION)
+    TYPE: ClassVar[MsgType] = MsgType.ACTION_OUTCOME
+    VERSION: ClassVar[int] = 1
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<BBHQQBB")
+
+    @property
+    def kind(self) -> EventKind:
+        """Shown with the events of kind ACTION (the station's events panel)."""
+        return EventKind.ACTION
+
+    @property
+    def severity(self) -> Severity:
+        return Severity.INFO if self.ok else Severity.ERROR
+
+    def validate(self) -> None:
+        _check_vehicle_id("vehicle_id", self.vehicle_id)
+        if not 0 <= self.nonce < 2**64 or not 0 <= self.stamp_ns < 2**64:
+            raise DecodeError("nonce and stamp_ns must fit 64 bits")
+        if not isinstance(self.ok, bool):
+            raise DecodeError(f"ok must be a bool, got {self.ok!r}")
+        _check_sig(self.sig)
+
+    def signed_bytes(self) -> bytes:
+        detail = _fit_text(self.detail, OUTCOME_DETAIL_BYTES)
+        head = self._FMT.pack(
+            self.TYPE,
+            self.VERSION,
+            self.vehicle_id,
+            self.nonce,
+            self.stamp_ns,
+            int(self.ok),
+            len(detail),
+        )
+        return head + detail
+
+    def encode(self) -> bytes:
+        self.validate()
+        return self.signed_bytes() + self.sig
 
     @classmethod
-    def from_event(cls, event: Event) -> ActionOutcome:
-        """The outcome an ACTION event carries; DecodeError says what is wrong with it."""
-        if event.kind is not EventKind.ACTION:
-            raise DecodeError(f"an action outcome needs an ACTION event, got {event.kind.name}")
-        head, sep, detail = event.text.partition(": ")
-        nonce_hex, _, word = head.partition(" ")
-        if not sep or word not in ("done", "failed") or len(nonce_hex) != 16:
+    def decode(cls, data: bytes) -> ActionOutcome:
+        _header(data, cls.TYPE, cls.VERSION)
+        size = cls._FMT.size
+        if len(data) < size:
+            raise DecodeError(f"ActionOutcome needs at least {size} bytes, got {len(data)}")
+        f = cls._FMT.unpack_from(data)
+        if f[5] not in (0, 1):
+            raise DecodeError(f"ok={f[5]} must be 0 or 1")
+        n = f[6]
+        if n > OUTCOME_DETAIL_BYTES:
+            raise DecodeError(f"detail length {n} is over {OUTCOME_DETAIL_BYTES} bytes")
+        if len(data) not in (size + n, size + n + TAG_BYTES):
             raise DecodeError(
-                f"action outcome text must be '<16 hex> done|failed: ...', got {event.text[:40]!r}"
+                f"ActionOutcome with {n} detail bytes must be {size + n} bytes "
+                f"(+{TAG_BYTES} signed), got {len(data)}"
             )
+        raw = data[size : size + n]
+        if b"\0" in raw:
+            raise DecodeError("detail holds a NUL byte")
         try:
-            nonce = int(nonce_hex, 16)
-        except ValueError:
-            raise DecodeError(f"action outcome nonce is not hex: {nonce_hex!r}") from None
-        return cls(event.vehicle_id, nonce, word == "done", detail)
+            detail = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise DecodeError(f"detail is not valid UTF-8: {exc}") from None
+        msg = cls(f[2], f[3], f[5] == 1, detail, f[4], data[size + n :])
+        msg.validate()
+        return msg
+
+
+EventMessage = Event | ActionOutcome
+"""What travels on a vehicle's event key (keys.event)."""
+
+
+def decode_event_message(data: bytes | bytearray | memoryview) -> EventMessage:
+    """An Event or an ActionOutcome, by its type byte; DecodeError for anything else."""
+    data = bytes(data)
+    if data[:1] == bytes([MsgType.ACTION_OUTCOME]):
+        return ActionOutcome.decode(data)
+    if data[:1] != bytes([MsgType.EVENT]):
+        raise DecodeError(
+            f"expected an Event or an ActionOutcome, got message type "
+            f"{data[0] if data else 'none (empty)'}"
+        )
+    return Event.decode(data)
 
 
 @dataclass(frozen=True)
@@ -1751,6 +1830,7 @@ Message = (
     | TrafficReport
     | Mission
     | PlanMessage
+    | ActionOutcome
 )
 _DECODERS: dict[int, type[Message]] = {
     MsgType.VEHICLE_STATE: VehicleState,
@@ -1764,6 +1844,7 @@ _DECODERS: dict[int, type[Message]] = {
     MsgType.TRAFFIC_REPORT: TrafficReport,
     MsgType.MISSION: Mission,
     MsgType.PLAN: PlanMessage,
+    MsgType.ACTION_OUTCOME: ActionOutcome,
 }
 
 
@@ -1785,6 +1866,7 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
 
 __all__ = [
     "AckResult",
+    "ActionOutcome",
     "ClockReport",
     "Command",
     "CommandAck",
@@ -1792,6 +1874,7 @@ __all__ = [
     "DecodeError",
     "Event",
     "EventKind",
+    "EventMessage",
     "FeedBatch",
     "FeedEntry",
     "GuidanceTrace",
@@ -1817,4 +1900,5 @@ __all__ = [
     "TrafficSource",
     "VehicleState",
     "decode",
+    "decode_event_message",
 ]

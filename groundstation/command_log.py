@@ -22,7 +22,14 @@ what they changed (an uploaded file, or edits made in the browser: `mark_own_pla
 
 "Done" is the vehicle's own report: its signed state shows the mode the command ends in (a
 take-off ends HOLDING at altitude, a goto HOLDING at its goal, a land LANDED), stamped after the
-vehicle's ack. The autopilot's outcome (an ACTION event, `ActionOutcome`) marks a failure.
+vehicle's ack. The autopilot's outcome (an `ActionOutcome` message) marks a failure.
+
+Each ack and each outcome counts once per (vehicle, command nonce): the first verified one
+stands, and a later copy is only counted (`duplicate_acks`, `duplicate_outcomes`). A vehicle
+answers the querier with the query reply and everyone else with a copy on `msg/<id>/ack`
+(comms/keys.py says why both exist); a station that sees the same answer twice (the copy
+through two routers, or the vehicle's "replayed command" refusal of a command sent again with
+its nonce) must not let it flip the first answer or count it twice.
 
 Pure and thread-safe: no viser, no Zenoh, no clock. Bounded: at most `max_commands` commands,
 each with at most `max_answers` answers; a vehicle id only stays while a kept command refers to it.
@@ -361,6 +368,10 @@ class CommandLog:
         """Bumped on every change (a renderer redraws only when it moved)."""
         self.refused_acks = 0
         """Acks that failed the check, or whose command never arrived (counted, not shown)."""
+        self.duplicate_acks = 0
+        """Verified acks from a vehicle that had already answered that command (ignored)."""
+        self.duplicate_outcomes = 0
+        """Outcomes of a command a vehicle had already reported on (ignored)."""
 
     @property
     def refused_commands(self) -> int:
@@ -464,7 +475,10 @@ class CommandLog:
                 self.refused_acks += 1
                 return
             vid = ack.vehicle_id
-            if vid not in entry.answers and len(entry.answers) >= self.cfg.max_answers:
+            if vid in entry.answers:  # one answer per (vehicle, nonce): the first stands
+                self.duplicate_acks += 1
+                return
+            if len(entry.answers) >= self.cfg.max_answers:
                 entry.dropped_answers += 1
                 return
             entry.answers[vid] = Answer(ack.result, ack.reason, ack.stamp_ns, ack.mode)
@@ -492,9 +506,9 @@ class CommandLog:
             self.on_superseded(*notify)
 
     def on_outcome(self, outcome: ActionOutcome) -> bool:
-        """The autopilot's outcome of a command a vehicle accepted (an ACTION event, already
-        verified like every event). False: no such command kept, or that vehicle did not accept
-        it (ignored)."""
+        """The autopilot's outcome of a command a vehicle accepted (an `ActionOutcome`, already
+        verified like every event). False: no such command kept, that vehicle did not accept
+        it, or it already reported this command's outcome (ignored)."""
         with self._lock:
             entry = self._entries.get(outcome.nonce)
             answer = entry.answers.get(outcome.vehicle_id) if entry is not None else None
@@ -504,6 +518,9 @@ class CommandLog:
                     self._early_outcomes.popitem(last=False)
                 return False
             if answer.result is not AckResult.ACCEPTED or entry is None:
+                return False
+            if outcome.vehicle_id in entry.done:
+                self.duplicate_outcomes += 1
                 return False
             entry.done[outcome.vehicle_id] = outcome
             self.version += 1

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import viser
 
-from comms.schema import Event, EventKind, Severity
+from comms.schema import EventKind, EventMessage, Severity
 from groundstation.tables import event_log
 
 ALL_KINDS = "all kinds"
@@ -48,14 +48,15 @@ class EventBuffer:
         self.cfg = cfg or EventsConfig()
         self._clock_text = clock_text
         self._lock = threading.Lock()
-        self._by_kind: dict[EventKind, deque[tuple[int, str, Event]]] = {
+        self._by_kind: dict[EventKind, deque[tuple[int, str, EventMessage]]] = {
             kind: deque(maxlen=self.cfg.per_kind) for kind in EventKind
         }
         self._n = 0
         self.version = 0
         """Bumped on every event (a view redraws only when it moved)."""
 
-    def add(self, event: Event, _recv_ns: int = 0) -> None:
+    def add(self, event: EventMessage, _recv_ns: int = 0) -> None:
+        """An event, or an autopilot outcome (kept and shown with the ACTION kind)."""
         with self._lock:
             self._n += 1
             self._by_kind[event.kind].append((self._n, self._clock_text(), event))
@@ -66,7 +67,7 @@ class EventBuffer:
         kind: EventKind | None = None,
         min_severity: Severity = Severity.DEBUG,
         n: int | None = None,
-    ) -> list[tuple[str, Event]]:
+    ) -> list[tuple[str, EventMessage]]:
         """The newest `n` events of `kind` (None: any) at `min_severity` or above, oldest first.
         Across all kinds, each kind fills at most a third of the lines, so a flood of one kind
         cannot push a rarer one (a mode change, a failsafe) off the panel."""

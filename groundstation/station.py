@@ -251,7 +251,7 @@ class GroundStation:
         subscribe = self.mesh.subscribe_states if cfg.every_state else self.mesh.subscribe_feed
         subscribe(self._on_state, link=self._link, on_refused=self.fleet.on_state_refused)
         self.mesh.on_security = self._on_security
-        self.mesh.subscribe_events(self._on_event)
+        self.mesh.subscribe_events(self._on_event, on_outcome=self._on_outcome)
         self._traffic_listener = TrafficListener(self.mesh, self.traffic, time.monotonic)
         self.mesh.observe_commands(self._on_command, self._on_ack)
         self.presence = self.mesh.presence(self._on_presence)
@@ -456,13 +456,12 @@ class GroundStation:
             )
         )
 
+    def _on_outcome(self, outcome: ActionOutcome, recv_ns: int) -> None:
+        self.commands.on_outcome(outcome)
+        self.events.add(outcome, recv_ns)
+
     def _on_event(self, event: Event, recv_ns: int) -> None:
-        if event.kind is EventKind.ACTION:
-            try:
-                self.commands.on_outcome(ActionOutcome.from_event(event))
-            except DecodeError as exc:
-                log.warning("vehicle %d sent a malformed action outcome: %s", event.vehicle_id, exc)
-        elif event.kind is EventKind.CLOCK:
+        if event.kind is EventKind.CLOCK:
             try:
                 self.fleet.on_clock(ClockReport.from_event(event), recv_ns)
             except DecodeError as exc:

@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterable
 
 from comms.commands import OutcomeStatus
 from comms.geo import GeoOrigin
-from comms.schema import ActionOutcome, DecodeError, Event, EventKind
+from comms.schema import ActionOutcome, EventMessage
 from groundstation.command_log import LoggedCommand, PlanChange, Status, progress_all
 from groundstation.dispatch import Dispatched
 from groundstation.fleet import FleetSnapshot, VehicleView
@@ -298,15 +298,12 @@ def plan_change_html(change: PlanChange) -> str:
 _SEVERITY_COLOR = {0: "#777", 1: "#333", 2: "#b06000", 3: "#c5221f", 4: "#c5221f"}
 
 
-def event_text(event: Event, name_command: Callable[[int], str | None] | None = None) -> str:
-    """What an event says, for the operator. An autopilot outcome (ACTION) names its command
+def event_text(event: EventMessage, name_command: Callable[[int], str | None] | None = None) -> str:
+    """What an event says, for the operator. An autopilot outcome names its command
     (`name_command`: nonce -> the command as the log shows it), never the raw nonce."""
-    if event.kind is not EventKind.ACTION:
+    if not isinstance(event, ActionOutcome):
         return event.text
-    try:
-        outcome = ActionOutcome.from_event(event)
-    except DecodeError:
-        return event.text
+    outcome = event
     name = name_command(outcome.nonce) if name_command is not None else None
     word = "autopilot done" if outcome.ok else "autopilot FAILED"
     if name is None:
@@ -315,7 +312,7 @@ def event_text(event: Event, name_command: Callable[[int], str | None] | None = 
 
 
 def event_log(
-    events: list[tuple[str, Event]], name_command: Callable[[int], str | None] | None = None
+    events: list[tuple[str, EventMessage]], name_command: Callable[[int], str | None] | None = None
 ) -> str:
     """The latest events, newest first: (local time text, event)."""
     if not events:

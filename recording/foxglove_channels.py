@@ -16,7 +16,8 @@ Standard channels (schemas and encoders from foxglove-sdk; protobuf unless marke
                                               per vehicle that accepted a mission upload an
                                               entity "route/<id>": its waypoints as a line in
                                               the MISSION colour, labelled "mission N"
-    /events                   Log             every Event, level from its severity
+    /events                   Log             every Event and ActionOutcome, level from its
+                                              severity
     /commands                 JSON            who sent which command (or mission) to whom
     /acks                     JSON            each vehicle's answer to a command
 
@@ -333,7 +334,7 @@ class Converter:
             return []
         if isinstance(msg, schema.VehicleState):
             return self.state(msg, recv_ns)
-        if isinstance(msg, schema.Event):
+        if isinstance(msg, schema.Event | schema.ActionOutcome):
             return [self.event(msg, recv_ns)]
         if isinstance(msg, schema.Command):
             return [self.command(msg, recv_ns)]
@@ -625,11 +626,18 @@ class Converter:
     def scene_update(self, states: list[schema.VehicleState]) -> fm.SceneUpdate:
         return fm.SceneUpdate(entities=[self.scene_entity(s) for s in states])
 
-    def event(self, ev: schema.Event, recv_ns: int) -> Out:
+    def event(self, ev: schema.EventMessage, recv_ns: int) -> Out:
+        """An event, or an autopilot outcome ("[ACTION] <nonce> done|failed: <detail>", as
+        outcomes read when they travelled as events)."""
+        if isinstance(ev, schema.ActionOutcome):
+            word = "done" if ev.ok else "failed"
+            text = f"{ev.nonce:016x} {word}: {ev.detail}"
+        else:
+            text = ev.text
         log = fm.Log(
             timestamp=_ts(ev.stamp_ns),
             level=_LOG_LEVEL[ev.severity],
-            message=f"[{ev.kind.name}] {ev.text}",
+            message=f"[{ev.kind.name}] {text}",
             name=vehicle_frame(ev.vehicle_id),
         )
         return Out(EVENTS_TOPIC, LOG, log.encode(), recv_ns)

@@ -66,7 +66,11 @@ SCHEMA_ENCODING = "covey-struct"
 """Schema data is the struct layout text below: not a standard MCAP encoding, read by covey."""
 _LAYOUTS = {
     "state": ("covey.VehicleState", "<BBHIQ3f3ff3fBBHf (comms/schema.py)"),
-    "event": ("covey.Event", "<BBHQBB120s (comms/schema.py)"),
+    "event": (
+        "covey.Event",
+        "<BBHQBB120s, or an ActionOutcome <BBHQQBB + detail; the first byte is the type "
+        "(comms/schema.py)",
+    ),
     "trace": ("covey.GuidanceTrace", "<BBHIQd3dBH + n*<HId (comms/schema.py)"),
     "cmd": ("covey.Command", "<BBQQHB3dIH + n*H + 32s (comms/schema.py); query payload"),
     "alive": ("covey.Presence", "1 byte: 1 = liveliness token appeared, 0 = it disappeared"),

@@ -21,7 +21,15 @@ from dataclasses import dataclass, field, replace
 
 from comms import keys
 from comms.mesh import Mesh
-from comms.schema import DecodeError, Event, StateFlag, VehicleState
+from comms.schema import (
+    ActionOutcome,
+    DecodeError,
+    Event,
+    EventMessage,
+    StateFlag,
+    VehicleState,
+    decode_event_message,
+)
 from comms.session import MeshConfig, expects_answer, unreachable, wait_linked
 from recording.record import Recorded, Recording, read_recording
 
@@ -80,7 +88,7 @@ class Playable:
     """A recorded message ready to publish: its offset into the recording and the message."""
 
     offset_ns: int
-    message: VehicleState | Event | None
+    message: VehicleState | EventMessage | None
     """None for a recorded command (counted, never sent) or something skipped."""
     kind: str
 
@@ -108,7 +116,7 @@ def _playable(m: Recorded, offset_ns: int) -> Playable:
             s = VehicleState.decode(m.data)
             return Playable(offset_ns, replace(s, flags=s.flags | StateFlag.REPLAY), "state")
         if leaf == "event":
-            return Playable(offset_ns, Event.decode(m.data), "event")
+            return Playable(offset_ns, decode_event_message(m.data), "event")
     except DecodeError:
         return Playable(offset_ns, None, "malformed")
     return Playable(offset_ns, None, leaf)
@@ -170,6 +178,9 @@ def play(
             result.states += 1
         elif isinstance(p.message, Event):
             mesh.publish_event(p.message)
+            result.events += 1
+        elif isinstance(p.message, ActionOutcome):
+            mesh.publish_outcome(p.message)
             result.events += 1
         elif p.kind == "cmd":
             result.commands_skipped += 1

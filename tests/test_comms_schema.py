@@ -158,8 +158,19 @@ def feed_batches(draw) -> FeedBatch:
     )
 
 
+outcomes = st.builds(
+    schema.ActionOutcome,
+    vehicle_id=vid,
+    nonce=u64,
+    ok=st.booleans(),
+    detail=st.text(st.characters(blacklist_characters="\0"), max_size=24),
+    stamp_ns=u64,
+    sig=st.sampled_from([b""]) | st.binary(min_size=64, max_size=64),
+)
+
+
 @settings(max_examples=300, deadline=None)
-@given(st.one_of(states(), commands(), acks, events, rosters(), traces(), feed_batches()))
+@given(st.one_of(states(), commands(), acks, events, rosters(), traces(), feed_batches(), outcomes))
 def test_every_message_round_trips(msg) -> None:
     data = msg.encode()
     assert data[0] == msg.TYPE and data[1] == getattr(msg, "VERSION", schema.SCHEMA_VERSION)

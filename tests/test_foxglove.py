@@ -160,6 +160,16 @@ def test_event_becomes_a_log_with_its_level(severity, level):
     assert log.level == level and log.name == "vehicle/4" and "geofence" in log.message
 
 
+@pytest.mark.parametrize(("ok", "level"), [(True, 2), (False, 4)])
+def test_an_action_outcome_becomes_an_action_log_line(ok, level):
+    msg = schema.ActionOutcome(4, 0x5FBFE957, ok, "takeoff to 5 m", stamp_ns=123)
+    (out,) = fc.Converter().convert(keys.event("f", 4), msg.encode(), 9)
+    log = proto_class("foxglove.Log", fc.LOG.data).FromString(out.data)
+    word = "done" if ok else "failed"
+    assert out.topic == fc.EVENTS_TOPIC and log.level == level and log.name == "vehicle/4"
+    assert log.message == f"[ACTION] 000000005fbfe957 {word}: takeoff to 5 m"
+
+
 def _scene_entities(outs) -> list:
     cls = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data)
     return [e for o in outs if o.topic == "/scene" for e in cls.FromString(o.data).entities]
@@ -611,8 +621,8 @@ def test_acks_name_the_vehicles_commanded(flight):
             accepted.setdefault(cmd["kind"], set()).add(ack["vehicle_id"])
     assert accepted["TAKEOFF"] == accepted["GOTO_LOCAL"] == set(VEHICLES)
     assert joined >= len(std["/acks"]) // 2
-    raw_events = [
-        schema.Event.decode(m.data)
+    raw_events = [  # events and autopilot outcomes share the event key
+        schema.decode_event_message(m.data)
         for m in read_recording(flight["path"]).messages
         if m.topic.endswith("/event")
     ]

@@ -286,9 +286,9 @@ def test_a_command_is_done_in_the_mode_it_ends_in(kind, ack_mode, later, text):
 def test_autopilot_events_name_their_command_not_the_nonce():
     log = CommandLog()
     log.on_command(Command(CommandKind.TAKEOFF, nonce=0x5FBFE957, stamp_ns=1, params=(5, 0, 0)), 1)
-    ok = ActionOutcome(1, 0x5FBFE957, True, "takeoff to 5 m").to_event(2)
+    ok = ActionOutcome(1, 0x5FBFE957, True, "takeoff to 5 m", stamp_ns=2)
     assert event_text(ok, log.name_of) == "autopilot done: takeoff to 5.0 m above origin → all"
-    bad = ActionOutcome(1, 0x1234, False, "land: link lost").to_event(2)
+    bad = ActionOutcome(1, 0x1234, False, "land: link lost", stamp_ns=2)
     assert event_text(bad, log.name_of) == "autopilot FAILED: land: link lost"
     assert "5fbfe957" not in event_text(ok, log.name_of)
 

@@ -23,7 +23,7 @@ import zenoh
 from comms import keys
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
-from comms.schema import Command, CommandKind, VehicleState
+from comms.schema import ActionOutcome, Command, CommandKind, VehicleState
 from comms.session import MeshConfig, free_tcp_port
 
 pytestmark = [pytest.mark.e2e]
@@ -221,6 +221,13 @@ def test_secured_fleet_works_and_strangers_cannot_join_or_inject(secured) -> Non
         Command(CommandKind.HOLD, new_nonce(), time.time_ns(), targets=(1,)), timeout_s=5
     )
     assert set(ack.outcomes) == {1} and ack.outcomes[1].ack is not None, ack.summary()
+    # The autopilot's outcome (its own message, on the vehicle's event key) passes the ACL.
+    outcomes: list[ActionOutcome] = []
+    gcs.subscribe_events(lambda e, _t: None, on_outcome=lambda o, _t: outcomes.append(o))
+    takeoff = Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=time.time_ns(), targets=(1,))
+    res = gcs.send_command(takeoff, timeout_s=5)
+    assert res.outcomes[1].status is OutcomeStatus.ACCEPTED, res.summary()
+    assert wait(lambda: any(o.nonce == takeoff.nonce and o.ok for o in outcomes), 10), outcomes
 
     def attempt(cfg: MeshConfig, seq: int, kind: CommandKind) -> tuple[bool, bool] | None:
         """Open a session with `cfg`, publish a state of vehicle 1 and send it a command:

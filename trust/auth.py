@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from comms.mesh import Mesh
 from comms.schema import (
     TAG_BYTES,
+    ActionOutcome,
     Command,
     CommandAck,
     Event,
@@ -352,6 +353,15 @@ class FleetAuth:
     def check_event(self, event: Event) -> str | None:
         return self.check_signature(
             Role.VEHICLE, event.vehicle_id, "event", event.signed_bytes(), event.sig
+        )
+
+    def sign_outcome(self, outcome: ActionOutcome) -> ActionOutcome:
+        """Sign an autopilot outcome as its vehicle (under its own label: never an event's)."""
+        return dataclasses.replace(outcome, sig=self._sign("outcome", outcome.signed_bytes()))
+
+    def check_outcome(self, outcome: ActionOutcome) -> str | None:
+        return self.check_signature(
+            Role.VEHICLE, outcome.vehicle_id, "outcome", outcome.signed_bytes(), outcome.sig
         )
 
     def sign_trace(self, trace: GuidanceTrace) -> GuidanceTrace:
