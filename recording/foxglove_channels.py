@@ -251,6 +251,27 @@ def _kind_name(c: schema.Command | schema.Mission) -> str:
     return c.kind if isinstance(c, schema.Mission) else c.kind.name
 
 
+def _velocity_arrows(
+    position: fm.Vector3, vel_ned_m_s, colour: fm.Color, sizes_m: tuple[float, float, float]
+) -> list[fm.ArrowPrimitive]:
+    """The velocity as one arrow its length in m/s long (none below 0.05 m/s); `sizes_m`:
+    shaft diameter, head length and head diameter."""
+    speed = math.sqrt(sum(v * v for v in vel_ned_m_s))
+    if speed <= 0.05:
+        return []
+    shaft_d, head_l, head_d = sizes_m
+    return [
+        fm.ArrowPrimitive(
+            pose=fm.Pose(position=position, orientation=_q(*x_to(vel_ned_m_s))),
+            shaft_length=speed,
+            shaft_diameter=shaft_d,
+            head_length=head_l,
+            head_diameter=head_d,
+            color=colour,
+        )
+    ]
+
+
 @dataclass
 class _Link:
     first_seq: int
@@ -455,19 +476,7 @@ class Converter:
             top_scale=1.0,
             color=self._ring_colour,
         )
-        speed = math.sqrt(sum(v * v for v in s.vel_ned_m_s))
-        arrows = []
-        if speed > 0.05:
-            arrows.append(
-                fm.ArrowPrimitive(
-                    pose=fm.Pose(position=position, orientation=_q(*x_to(s.vel_ned_m_s))),
-                    shaft_length=speed,
-                    shaft_diameter=0.08,
-                    head_length=0.3,
-                    head_diameter=0.2,
-                    color=colour,
-                )
-            )
+        arrows = _velocity_arrows(position, s.vel_ned_m_s, colour, (0.08, 0.3, 0.2))
         spheres, lines = [], []
         if s.flags & schema.StateFlag.HAS_GOAL:
             goal = _v3(*s.goal_ned_m)
@@ -522,19 +531,7 @@ class Converter:
         separation, its velocity and a label; it fades with the vehicles' entity lifetime."""
         position = _v3(*r.pos_ned_m)
         colour = _colour(TRAFFIC_RGB)
-        speed = math.sqrt(sum(v * v for v in r.vel_ned_m_s))
-        arrows = []
-        if speed > 0.05:
-            arrows.append(
-                fm.ArrowPrimitive(
-                    pose=fm.Pose(position=position, orientation=_q(*x_to(r.vel_ned_m_s))),
-                    shaft_length=speed,
-                    shaft_diameter=0.1,
-                    head_length=0.4,
-                    head_diameter=0.3,
-                    color=colour,
-                )
-            )
+        arrows = _velocity_arrows(position, r.vel_ned_m_s, colour, (0.1, 0.4, 0.3))
         n, e, d = r.pos_ned_m
         kind = "manned" if r.manned else "unmanned"
         entity = fm.SceneEntity(
