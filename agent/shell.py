@@ -42,7 +42,7 @@ from agent.shell_config import ShellConfig
 from agent.shell_rows import neighbour_views, stale_rows, vehicle_states
 from agent.traffic import autopilot_traffic, merge_traffic
 from comms.gate import GateConfig, command_refusals
-from comms.mesh import Mesh
+from comms.mesh import CellSubscription, Mesh
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
@@ -254,6 +254,7 @@ class VehicleShell:
                 ignore_id=self.cfg.ids[0] if one else None,
                 remote_only=not one,
                 worth_checking=self.table.worth_checking if self.table.reach_m else None,
+                polled=True,  # taken at each tick's start (`tick`): no Python call per state
             )
         else:
             self.states = mesh.subscribe_states(
@@ -288,9 +289,11 @@ class VehicleShell:
         return self.core.modes
 
     # -- events ------------------------------------------------------------------------------
-    def _on_state(self, state: VehicleState, _recv_ns: int) -> None:
+    def _on_state(self, state: VehicleState, recv_ns: int) -> None:
         if state.vehicle_id not in self._own:
-            self.table.update(state, self.clock_s())
+            # the mesh's receive stamp on this clock (a polled state arrived before the tick)
+            lag_s = max(0.0, (self.mesh.clock_ns() - recv_ns) / 1e9)
+            self.table.update(state, self.clock_s() - lag_s)
 
     def _on_plan(self, plan: FleetPlan) -> None:
         with self._lock:
@@ -403,6 +406,8 @@ class VehicleShell:
         """The commands that came since the last tick, the vehicles' telemetry, the core's
         events and failsafes, batched guidance, then the states that are due."""
         t0 = time.perf_counter()
+        if isinstance(self.states, CellSubscription):
+            self.states.drain()  # the states that came since the last tick, checked at once
         for commands in self.commands:
             commands.poll()
         self.vehicles.step(now_s)

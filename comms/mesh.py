@@ -26,6 +26,7 @@ from typing import Any
 import zenoh
 
 from comms import keys
+from comms.arrival import ArrivalEstimate
 from comms.commands import CommandResult, Outcome, OutcomeStatus
 from comms.doc_sync import DocSync, RosterSyncConfig
 from comms.doc_sync import publish as publish_roster
@@ -87,6 +88,8 @@ class MeshStats:
     states_beyond_reach: int = 0
     """States dropped unchecked as beyond the receiver's reach (comms/gate.py step 4b)."""
     states_misplaced: int = 0
+    states_superseded: int = 0
+    """States a polled subscription dropped unverified: a newer one of their vehicle passed."""
     """States refused because their key's grid cell is not their position's (also decode_errors)."""
     rosters_applied: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -309,15 +312,23 @@ class Mesh:
         ignore_id: int | None = None,
         remote_only: bool = False,
         worth_checking: Callable[[VehicleState], bool] | None = None,
+        polled: bool = False,
     ) -> CellSubscription:
         """As `subscribe_states`, but only the states of the grid cells `cells`; move the
         subscription with `.set_cells(cells)` (comms/scope.py says which cells). One gate and one
         handler serve every cell, so a state replayed into another cell is still a replay.
         `remote_only`: never deliver this session's own states (a process of many vehicles).
         `worth_checking(state)`: False drops a state before its signature check (or, in open
-        mode, before the callback): comms/gate.py step 4b, e.g. `NeighbourTable.worth_checking`."""
-        on_sample = self._state_handler(callback, link, on_refused, gate, ignore_id, worth_checking)
-        sub = CellSubscription(self, on_sample, remote_only)
+        mode, before the callback): comms/gate.py step 4b, e.g. `NeighbourTable.worth_checking`.
+        `polled`: nothing runs on Zenoh's threads; the states wait in a ring per cell until the
+        owner's `drain()` (an agent's tick) takes them all at once (`_state_batch_handler`)."""
+        args = (callback, link, on_refused, gate, ignore_id, worth_checking)
+        sub = CellSubscription(
+            self,
+            self._state_handler(*args) if not polled else None,
+            remote_only,
+            self._state_batch_handler(*args) if polled else None,
+        )
         sub.set_cells(cells)
         return self._keep(sub)
 
@@ -372,28 +383,82 @@ class Mesh:
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
-            try:
-                state = VehicleState.decode(sample.payload.to_bytes())
-                parsed = keys.parse_state_key(str(sample.key_expr))
-                if parsed is None or parsed[1] != state.vehicle_id:
-                    raise DecodeError(
-                        f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}"
-                    )
-                if parsed[2] is not None and parsed[2] != keys.cell_of(state.pos_ned_m):
-                    # A state outside its position's cell would be hidden from the neighbours
-                    # that must hear it: refused, whatever its signature says.
-                    self.stats.bump("states_misplaced")
-                    raise DecodeError(
-                        f"state of vehicle {state.vehicle_id} at N {state.pos_ned_m[0]:.1f} "
-                        f"E {state.pos_ned_m[1]:.1f} m is in cell "
-                        f"{keys.cell_of(state.pos_ned_m)}, not in cell {parsed[2]} of its key"
-                    )
-            except DecodeError as exc:
-                self._bad(str(sample.key_expr), exc)
-                return
-            admit(state, recv_ns, ())
+            state = self._decode_state(sample)
+            if state is not None:
+                admit(state, recv_ns, ())
 
         return on_sample
+
+    def _state_batch_handler(
+        self,
+        callback: StateCallback,
+        link: StateLink | None,
+        on_refused: RefusedCallback | None,
+        gate: GateConfig,
+        ignore_id: int | None,
+        worth_checking: Callable[[VehicleState], bool] | None = None,
+    ) -> Callable[[list[zenoh.Sample], int, int], None]:
+        """`_state_handler` for the samples a polled subscription took at once
+        (`CellSubscription.drain`): each decoded and checked as one would be, its receive time
+        estimated (comms/arrival.py). Without a link, only the newest state of each vehicle that
+        passes the gate goes on: its candidates are tried newest first, and the older ones of a
+        vehicle once one passed are dropped unverified (`states_superseded`); a forged newer
+        state therefore costs its check but cannot hide a real one. With a link (which judges
+        every state it hears) every state goes on, in order."""
+        admit = self._admitter(callback, link, on_refused, gate, ignore_id, worth_checking)
+        arrival = ArrivalEstimate()
+
+        def on_samples(samples: list[zenoh.Sample], taken_ns: int, since_ns: int) -> None:
+            got: list[tuple[VehicleState, int]] = []
+            for sample in samples:
+                state = self._decode_state(sample)
+                if state is not None:
+                    recv_ns = arrival.arrived_ns(
+                        state.vehicle_id, state.stamp_ns, taken_ns, since_ns
+                    )
+                    got.append((state, recv_ns))
+            if link is not None:
+                for state, recv_ns in got:
+                    admit(state, recv_ns, ())
+                return
+            by_vehicle: dict[int, list[tuple[VehicleState, int]]] = {}
+            for state, recv_ns in got:
+                by_vehicle.setdefault(state.vehicle_id, []).append((state, recv_ns))
+            superseded = 0
+            for candidates in by_vehicle.values():
+                candidates.sort(key=lambda c: c[0].stamp_ns, reverse=True)
+                for k, (state, recv_ns) in enumerate(candidates):
+                    if admit(state, recv_ns, ()):
+                        superseded += len(candidates) - k - 1
+                        break
+            if superseded:
+                self.stats.bump("states_superseded", superseded)
+
+        return on_samples
+
+    def _decode_state(self, sample: zenoh.Sample) -> VehicleState | None:
+        """A state key's sample decoded, on its own vehicle's key and cell; None (counted and
+        reported) if not."""
+        try:
+            state = VehicleState.decode(sample.payload.to_bytes())
+            parsed = keys.parse_state_key(str(sample.key_expr))
+            if parsed is None or parsed[1] != state.vehicle_id:
+                raise DecodeError(
+                    f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}"
+                )
+            if parsed[2] is not None and parsed[2] != keys.cell_of(state.pos_ned_m):
+                # A state outside its position's cell would be hidden from the neighbours
+                # that must hear it: refused, whatever its signature says.
+                self.stats.bump("states_misplaced")
+                raise DecodeError(
+                    f"state of vehicle {state.vehicle_id} at N {state.pos_ned_m[0]:.1f} "
+                    f"E {state.pos_ned_m[1]:.1f} m is in cell "
+                    f"{keys.cell_of(state.pos_ned_m)}, not in cell {parsed[2]} of its key"
+                )
+        except DecodeError as exc:
+            self._bad(str(sample.key_expr), exc)
+            return None
+        return state
 
     def _admitter(
         self,
@@ -403,7 +468,7 @@ class Mesh:
         gate: GateConfig,
         ignore_id: int | None,
         worth_checking: Callable[[VehicleState], bool] | None = None,
-    ) -> Callable[[VehicleState, int, tuple], None]:
+    ) -> Callable[[VehicleState, int, tuple], bool]:
         """What every decoded state passes, whichever way it came (its own key or a feed entry):
         the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
         the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""
@@ -413,25 +478,27 @@ class Mesh:
             self.new_gate(gate, worth_checking=worth_checking) if self.auth is not None else None
         )
 
-        def admit(state: VehicleState, recv_ns: int, extra: tuple) -> None:
+        def admit(state: VehicleState, recv_ns: int, extra: tuple) -> bool:
+            """True: `state` went on; False: dropped (an echo, beyond reach, thinned, refused)."""
             if state.vehicle_id == ignore_id:
-                return
+                return False
             if checker is None and worth_checking is not None and not worth_checking(state):
-                return  # open mode: nothing to verify, but no use for it either
+                return False  # open mode: nothing to verify, but no use for it either
             if checker is not None:
                 verdict = checker.admit_state(state, recv_ns)
                 if verdict is SKIPPED:
-                    return
+                    return False
                 if isinstance(verdict, Refusal):
                     self.stats.bump("states_refused")
                     if on_refused is not None:
                         _guarded(on_refused, state.vehicle_id, verdict.value, recv_ns)
-                    return
+                    return False
             self.stats.bump("states_received")
             if link is None:
                 _guarded(callback, state, recv_ns, *extra)
             else:
                 link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t, *extra))
+            return True
 
         return admit
 
@@ -780,23 +847,43 @@ class PolledCommands:
 
 class CellSubscription:
     """The state subscribers of a set of grid cells, one Zenoh subscriber per cell, that share
-    one handler, plus one for unplaced states. Thread-safe; undeclared with the mesh."""
+    one handler, plus one for unplaced states. Thread-safe; undeclared with the mesh.
+
+    Called back (`on_sample`, on Zenoh's threads) or polled (`on_samples`: each subscriber keeps
+    what came in a ring of `POLL_RING` samples, the oldest dropped when full, never blocking
+    Zenoh; `drain()` hands them all over at once)."""
+
+    POLL_RING = 4096
+    """Samples kept per polled cell between two drains: 4 s of 100 vehicles at 10 Hz."""
 
     def __init__(
-        self, mesh: Mesh, on_sample: Callable[[zenoh.Sample], None], remote_only: bool
+        self,
+        mesh: Mesh,
+        on_sample: Callable[[zenoh.Sample], None] | None,
+        remote_only: bool,
+        on_samples: Callable[[list[zenoh.Sample], int, int], None] | None = None,
     ) -> None:
+        if (on_sample is None) == (on_samples is None):
+            raise ValueError("a cell subscription is either called back or polled")
         self._mesh = mesh
         self._on_sample = on_sample
+        self._on_samples = on_samples
+        self._drained_ns = mesh.clock_ns()  # when the rings were last emptied
         self._origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
         self._lock = threading.Lock()
         self._subs: dict[keys.Cell, Any] = {}
+        self._retired: list[Any] = []  # polled: left cells' subscribers, until the next drain
         self.changes = 0
         """Cell subscribers declared plus undeclared since start (read only)."""
         # States put without a cell (tools, an older member) are heard everywhere, as before
         # scoping, so that nothing can hide by leaving its cell out; covey publishers place theirs.
-        self._unplaced = mesh.session.declare_subscriber(
-            keys.unplaced_states(mesh.fleet), on_sample, allowed_origin=self._origin
-        )
+        self._unplaced = self._declare(keys.unplaced_states(mesh.fleet))
+
+    def _declare(self, key: str) -> Any:
+        handler: Any = self._on_sample
+        if handler is None:
+            handler = zenoh.handlers.RingChannel(self.POLL_RING)
+        return self._mesh.session.declare_subscriber(key, handler, allowed_origin=self._origin)
 
     @property
     def cells(self) -> frozenset[keys.Cell]:
@@ -804,25 +891,49 @@ class CellSubscription:
             return frozenset(self._subs)
 
     def set_cells(self, cells: Iterable[keys.Cell]) -> None:
-        """Hear exactly `cells`: new cells are declared before old ones go (make before break)."""
+        """Hear exactly `cells`: new cells are declared before old ones go (make before break).
+        Polled: an old cell's subscriber goes at the next drain, which takes what it still holds."""
         want = {keys.check_cell(tuple(c)) for c in cells}
+        gone = []
         with self._lock:
-            session = self._mesh.session
             for cell in sorted(want - self._subs.keys()):
-                self._subs[cell] = session.declare_subscriber(
-                    keys.cell_states(self._mesh.fleet, cell),
-                    self._on_sample,
-                    allowed_origin=self._origin,
-                )
+                self._subs[cell] = self._declare(keys.cell_states(self._mesh.fleet, cell))
                 self.changes += 1
             for cell in [c for c in self._subs if c not in want]:
-                with contextlib.suppress(Exception):
-                    self._subs.pop(cell).undeclare()
+                gone.append(self._subs.pop(cell))
                 self.changes += 1
+            if self._on_samples is not None:
+                self._retired.extend(gone)
+                return
+        for sub in gone:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+    def drain(self) -> int:
+        """Polled: hand every sample that came since the last drain to the handler, at once;
+        returns how many. Called back: 0."""
+        if self._on_samples is None:
+            return 0
+        with self._lock:
+            retired, self._retired = self._retired, []
+            subs = [*retired, self._unplaced, *self._subs.values()]
+        samples = []
+        for sub in subs:
+            while (sample := sub.try_recv()) is not None:
+                samples.append(sample)
+        now_ns = self._mesh.clock_ns()
+        since_ns, self._drained_ns = self._drained_ns, now_ns
+        for sub in retired:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        if samples:
+            self._on_samples(samples, now_ns, since_ns)
+        return len(samples)
 
     def undeclare(self) -> None:
         with self._lock:
-            subs, self._subs = [self._unplaced, *self._subs.values()], {}
+            subs, self._subs = [*self._retired, self._unplaced, *self._subs.values()], {}
+            self._retired = []
         for sub in subs:
             with contextlib.suppress(Exception):
                 sub.undeclare()

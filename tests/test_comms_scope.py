@@ -228,7 +228,8 @@ def test_a_state_on_a_wrong_cell_is_refused_with_the_reason(mesh_trio) -> None:
 
 def heard(ag: Agent, other: Agent, now_s: float) -> bool:
     """Whether `ag` hears `other`'s states, re-sent at `now_s` until they arrive (or 10 s): into
-    its table, or, from beyond its reach, dropped there unchecked (agent/neighbours.py)."""
+    its table, or, from beyond its reach, dropped there unchecked (agent/neighbours.py). The
+    agent's subscription is polled: what came is taken as its tick would (`drain`)."""
     for _ in range(100):
         beyond = ag.mesh.stats.states_beyond_reach
         other.pacer.again()  # publish again at the same instant
@@ -236,7 +237,8 @@ def heard(ag: Agent, other: Agent, now_s: float) -> bool:
         seq = other.seq
         if wait_until(
             lambda s=seq, b=beyond: (
-                (other.vid in ag.table._latest and ag.table._latest[other.vid][0].seq >= s)
+                ag.states.drain() >= 0
+                and (other.vid in ag.table._latest and ag.table._latest[other.vid][0].seq >= s)
                 or ag.mesh.stats.states_beyond_reach > b
             ),
             0.1,
