@@ -203,6 +203,7 @@ def parser() -> argparse.ArgumentParser:
         "1-50,60,70-79",
     )
     add_config_flags(p, ShellConfig, only=("vehicle",))
+    add_config_flags(p, ShellConfig, only=("assumed_pos_sigma_m",))
     add_flight_args(p)
     add_config_flags(p, ShellConfig, only=("link", "tick_hz", "state_hz", "trace_guidance"))
     p.add_argument(
@@ -330,7 +331,13 @@ def config_from_args(
         sim=sim_config(args.vehicle_model),
         start_ne_m=args.start_ne_m,
         spacing_m=args.spacing_m,
+        **given_fields(args, "assumed_pos_sigma_m"),
     )
+
+
+def given_fields(args: argparse.Namespace, *names: str) -> dict:
+    """The fields among `names` that this command's parser has (fleet-sim has fewer flags)."""
+    return {n: getattr(args, n) for n in names if hasattr(args, n)}
 
 
 def host_config(

@@ -10,6 +10,7 @@ of one `SimFleet`, in row order) are read straight from its arrays: the fast pat
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -24,7 +25,14 @@ log = logging.getLogger(__name__)
 class Autopilots:
     """N vehicle backends, one row each."""
 
-    def __init__(self, backends: Sequence[VehicleBackend]) -> None:
+    def __init__(
+        self, backends: Sequence[VehicleBackend], assumed_pos_sigma_m: float = 0.0
+    ) -> None:
+        """`assumed_pos_sigma_m`: the position 1-sigma of a vehicle whose autopilot reports no
+        horizontal accuracy (ShellConfig.assumed_pos_sigma_m); a simulated vehicle reports its
+        model's (0: exact)."""
+        if not (math.isfinite(assumed_pos_sigma_m) and assumed_pos_sigma_m >= 0.0):
+            raise ValueError(f"assumed_pos_sigma_m must be >= 0, got {assumed_pos_sigma_m}")
         if not backends:
             raise ValueError("a shell needs at least one vehicle backend")
         self.backends = list(backends)
@@ -37,6 +45,9 @@ class Autopilots:
         """The simulated fleet whose rows these are, in order, or None (the fast path's)."""
         self.pos_sigma_m = np.zeros(self.n)
         """(n,) each vehicle's position 1-sigma, from the last `read`."""
+        self._assumed_m = np.array(
+            [0.0 if isinstance(b, SimBackend) else assumed_pos_sigma_m for b in self.backends]
+        )
 
     def capable(self, capability: Capability) -> list[int]:
         """The rows whose backend has `capability` (a receiver, a geofence...)."""
@@ -65,6 +76,7 @@ class Autopilots:
                 sim.pos_m[:, 2] < -0.05,  # SimFleet.in_air, every row
                 sim.battery_pct,
                 ~sim.closed,
+                self.pos_sigma_m,
             )
 
     def read_each(self) -> Observed | None:
@@ -75,7 +87,9 @@ class Autopilots:
             if tel is None:
                 return None
             tels.append(tel)
-        self.pos_sigma_m = np.array([t.pos_sigma_m for t in tels], float)
+        reported = np.array([t.pos_sigma_m for t in tels], float)
+        # 0: the autopilot reports no accuracy (backends.base.pos_sigma_of); not taken as exact
+        self.pos_sigma_m = np.where(reported > 0.0, reported, self._assumed_m)
         return Observed(
             np.array([t.pos_ned_m for t in tels], float).reshape(self.n, 3),
             np.array([t.vel_ned_m_s for t in tels], float).reshape(self.n, 3),
@@ -83,6 +97,7 @@ class Autopilots:
             np.array([t.in_air for t in tels], bool),
             np.array([t.battery_pct for t in tels], float),
             np.array([t.link_ok for t in tels], bool),
+            self.pos_sigma_m,
         )
 
     def set_velocities(self, rows: np.ndarray, vel_ned_m_s: np.ndarray, heading_rad: np.ndarray):

@@ -184,6 +184,9 @@ class Observed:
     battery_pct: np.ndarray
     link_ok: np.ndarray
     """(N,) bool each (battery (N,) float)."""
+    pos_sigma_m: np.ndarray | None = None
+    """(N,) each position estimate's 1-sigma (m), the assumed one where the autopilot reports
+    none (ShellConfig.assumed_pos_sigma_m); None: unchanged (0 until given)."""
 
 
 def _nan3(n: int) -> np.ndarray:
@@ -229,6 +232,9 @@ class FlightCore:
         self.failsafes = [Failsafes(cfg.failsafe, now_s) for _ in range(n)]
         self.battery_pct = np.full(n, np.nan)
         """(N,) the battery as last observed (NaN: not yet); commands are checked against it."""
+        self.pos_sigma_m = np.zeros(n)
+        """(N,) the position 1-sigma as last observed: a goto's goal keeps the filter's zone
+        clearance, 1.8 m + sigma_k x it (`_clear_goal`)."""
         self.notes: list[Note] = []
         """Events for the shell to publish (it drains the list)."""
         self.missions: list[MissionRun | None] = [None] * n
@@ -301,6 +307,7 @@ class FlightCore:
         trigger = COMMAND_TRIGGERS[cmd.kind]
         fs = self.cfg.failsafe
         target = target_global = None
+        moved = ""  # a goto's goal moved out of a zone's clearance (`_clear_goal`)
         if trigger is Trigger.GOTO:
             if cmd.kind is CommandKind.GOTO_GLOBAL:
                 target_global = _xyz(cmd.params)
@@ -308,6 +315,9 @@ class FlightCore:
             else:
                 target = np.array(cmd.params[:3], dtype=float)
             problem = self.target_problem(target)
+            if problem:
+                return Decision(AckResult.REJECTED, problem, mode)
+            target, moved, problem = self._clear_goal(i, target)
             if problem:
                 return Decision(AckResult.REJECTED, problem, mode)
         alt_m = None
@@ -344,7 +354,41 @@ class FlightCore:
             )
             for a in actions
         )
-        return Decision(AckResult.ACCEPTED, "", self.mode_of(i), decided)
+        return Decision(AckResult.ACCEPTED, moved, self.mode_of(i), decided)
+
+    def _clear_goal(self, i: int, target: np.ndarray) -> tuple[np.ndarray, str, str]:
+        """(target, what was moved, why refused) for a goto of vehicle i: a goal nearer a zone
+        (or the fence) than the clearance its filter keeps, 1.8 m + sigma_k x its position
+        1-sigma, is flown to the nearest point outside that clearance, where the vehicle can
+        arrive, if that point is within the arrival radius of it; else the goto is refused,
+        naming the zone and the distances (policy.routes `Router.check_goal`). Without zones,
+        or when the autopilot guides itself, the target as it is."""
+        router = None if self.guidance is None else self.guidance.router
+        if router is None:
+            return target, "", ""
+        pad_m = self.guidance.safety_cfg.sigma_k * float(self.pos_sigma_m[i])
+        check = router.check_goal(target[:2], pad_m)
+        plan = self.mission_plan
+        what = "the fence"
+        if check.zone >= 0:
+            known = plan is not None and check.zone < len(plan.keep_out)
+            name = plan.keep_out[check.zone].name if known else ""
+            what = f"keep-out zone {name!r}" if name else "a keep-out zone"
+        problem = check.problem(self.cfg.guidance.arrive_radius_m, what)
+        if problem:
+            return target, "", f"target: {problem}"
+        if check.shift_m == 0.0:
+            return target, "", ""
+        out = target.copy()
+        out[:2] = check.goal_m
+        return (
+            out,
+            (
+                f"goal moved {check.shift_m:.1f} m, to {check.clearance_m:.1f} m from {what} (the "
+                f"filter's clearance at a {self.pos_sigma_m[i]:g} m position sigma)"
+            ),
+            "",
+        )
 
     def _enter(
         self,
@@ -525,6 +569,8 @@ class FlightCore:
         pos, vel = obs.pos_m, obs.vel_m_s
         self.now_s = now_s
         self.battery_pct[:] = obs.battery_pct
+        if obs.pos_sigma_m is not None:
+            self.pos_sigma_m[:] = obs.pos_sigma_m
         cruise = self.cfg.guidance.cruise_speed_m_s
         speed = np.hypot(vel[:, 0], vel[:, 1])
         moving = speed > SPEED_FOR_HEADING * cruise

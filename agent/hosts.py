@@ -45,7 +45,7 @@ class Agent(VehicleShell):
         super().__init__(
             cfg,
             mesh,
-            Autopilots([backend]),
+            Autopilots([backend], cfg.assumed_pos_sigma_m),
             [fleet_auth_of(mesh)],
             policy=guidance.policy if guidance is not None else None,
             clock_s=clock_s,
@@ -89,7 +89,7 @@ class Fleet(VehicleShell):
         super().__init__(
             cfg,
             mesh,
-            Autopilots(backends),
+            Autopilots(backends, cfg.assumed_pos_sigma_m),
             signers,
             policy=policy or cfg.guidance.load_policy(),
             clock_s=clock_s,

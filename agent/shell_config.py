@@ -71,6 +71,12 @@ class ShellConfig:
     (comms/scope.py, docs/scaling.md)."""
     failsafe: FailsafeConfig = FailsafeConfig()
     """Target checks (geofence, altitude limits) and failsafes."""
+    assumed_pos_sigma_m: float = 0.5
+    """Position 1-sigma (m, per horizontal axis) taken for a vehicle whose autopilot reports
+    no horizontal accuracy (no GPS_RAW_INT h_acc, no MAVSDK horizontal uncertainty): standard
+    GNSS, so that the separation filter pads its pairs and zones (1.8 m + sigma_k x sigma from
+    a zone) instead of taking the estimate as exact; 0: as exact (before). Simulated vehicles
+    report their model's own."""
     link: str = "perfect"
     """Radio link emulated between this process's one vehicle and the others (comms.link
     spec); one vehicle only."""
@@ -103,6 +109,10 @@ class ShellConfig:
         if not (math.isfinite(self.tick_hz) and 0 < self.tick_hz <= 100):
             raise ValueError(f"tick_hz must be within (0, 100], got {self.tick_hz}")
         check_rates(self.state_hz, self.idle_state_hz)
+        if not (math.isfinite(self.assumed_pos_sigma_m) and self.assumed_pos_sigma_m >= 0):
+            raise ValueError(
+                f"assumed_pos_sigma_m must be finite and >= 0, got {self.assumed_pos_sigma_m}"
+            )
         if not (math.isfinite(self.spacing_m) and self.spacing_m > 0):
             raise ValueError(f"spacing_m must be positive, got {self.spacing_m}")
         far_ne_m = start_grid(len(ids), self.spacing_m, self.start_ne_m)[-1, :2]

@@ -16,8 +16,8 @@ typedef covey_real_t real_t;
 #define R_SQRT sqrtf
 #endif
 #define ZONES_EPS R(1.0e-9) /* policy/zone_lines.py EPS */
-#define ZONE_RECOVER_S R(1.0)     /* policy/zone_lines.py ZONE_RECOVER_S */
-#define ZONE_MAX_PUSH_SHARE R(0.5) /* ZONE_MAX_PUSH_SHARE */
+#define ZONE_RECOVER_S R(0.5)      /* policy/zone_lines.py ZONE_RECOVER_S */
+#define ZONE_MAX_PUSH_SHARE R(1.0) /* ZONE_MAX_PUSH_SHARE */
 
 /* det(a, b) = a_x b_y - a_y b_x */
 static real_t det2(real_t ax, real_t ay, real_t bx, real_t by)

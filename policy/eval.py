@@ -346,6 +346,8 @@ def summarise(rows: list) -> list:
                 **(
                     {
                         "zone_entries": int(sum(r["zone_entries"] for r in rs)),
+                        "arrived": int(sum(r["arrived"] for r in rs)),
+                        "refused": int(sum(r.get("refused", 0) for r in rs)),
                         "min_zone_m": float(min(r["min_zone_m"] for r in rs)),
                         "route_time": mean("route_time"),
                     }
@@ -375,7 +377,7 @@ def markdown(summary: list) -> str:
         "mean_acc",
     ]
     if any("zone_entries" in s for s in summary):  # the zones suite's counts
-        cols += ["zone_entries", "min_zone_m", "route_time"]
+        cols += ["zone_entries", "arrived", "refused", "min_zone_m", "route_time"]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for s in sorted(summary, key=lambda s: (s["suite"], s["link"], s["controller"])):
         cells = []

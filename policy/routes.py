@@ -20,7 +20,10 @@ inflation (traffic, lag) still sees its way on instead of being led back out eve
   the nearest point of the route's free space (projected out);
 - a goal inside a keep-out zone or outside the fence is refused with the reason; a goal next to
   a zone (within the inflation, outside the zone) is approached through the nearest free point,
-  and the separation filter stops the vehicle at its radius (policy.zone_lines, 1.8 m at 3 m);
+  and the separation filter stops the vehicle at its radius (policy.zone_lines, 1.8 m at 3 m,
+  plus sigma_k x the position 1-sigma); `check_goal` moves a goal nearer than that to the
+  nearest point outside it, where the vehicle can arrive (the flight core and `covey eval`
+  fly there, or refuse the goto when that point lies beyond the arrival radius);
 - no path (the goal walled off): `Route.reason` says so, and `next_waypoint` gives the goal
   itself (the filter still keeps the vehicle out of every zone).
 """
@@ -92,6 +95,38 @@ class RouteConfig:
 
 
 @dataclass(frozen=True)
+class GoalCheck:
+    """A goal against the zone clearance the filter keeps (`Router.check_goal`)."""
+
+    asked_m: np.ndarray
+    """(2,) the goal asked for."""
+    goal_m: np.ndarray
+    """(2,) where to fly: the goal, or the nearest point at the clearance when it is nearer."""
+    distance_m: float
+    """From the goal to the nearest keep-out zone or the fence."""
+    clearance_m: float
+    """What the filter keeps from a zone: reach_m + sigma_k x the position 1-sigma."""
+    zone: int
+    """The nearest keep-out polygon (its index), -1 the fence."""
+
+    @property
+    def shift_m(self) -> float:
+        """How far `goal_m` is from the goal asked for (0: unchanged)."""
+        return float(np.hypot(*(self.goal_m - self.asked_m)))
+
+    def problem(self, tol_m: float, what: str = "a keep-out zone") -> str:
+        """Why the goal is refused ("" when not): the nearest point at the clearance lies
+        farther than tol_m (the arrival radius) from it. `what` names the zone."""
+        if self.shift_m <= tol_m:
+            return ""
+        return (
+            f"the goal is {self.distance_m:.1f} m from {what}, nearer than the "
+            f"{self.clearance_m:.1f} m the filter keeps from it; the nearest point outside that "
+            f"is {self.shift_m:.1f} m away, beyond the {tol_m:g} m arrival radius"
+        )
+
+
+@dataclass(frozen=True)
 class Route:
     """A planned route."""
 
@@ -152,6 +187,7 @@ class Router:
         self._graph = self._visibility(self.nodes_m)
         self._goals: OrderedDict = OrderedDict()
         self._inner = None  # the free space PROJECT_IN_M in (`_project`), made when first needed
+        self._clear: dict = {}  # the free space at a goal clearance (`check_goal`), by clearance
 
     def _free(self, dist_m: float):
         keep = _inflate(self.keep_out_m, dist_m, self.cfg) if self.keep_out_m else None
@@ -309,6 +345,41 @@ class Router:
         if self._fence is not None and not self._fence.covers(p):
             return "the goal is outside the fence"
         return ""
+
+    def check_goal(self, goal, pad_m: float = 0.0) -> GoalCheck:
+        """`goal` against the clearance the filter keeps from every zone and the fence,
+        reach_m + pad_m (pad_m: sigma_k x the position 1-sigma, as policy.safety pads zones):
+        a goal nearer than that is moved to the nearest point outside it (PROJECT_IN_M in), so
+        that the vehicle can arrive; the caller refuses it when that point lies beyond its
+        arrival radius (`GoalCheck.problem`). A goal inside a zone or outside the fence is left
+        as it is (`refusal`)."""
+        g = np.asarray(goal, dtype=np.float64).reshape(2)
+        pad = float(pad_m) if math.isfinite(pad_m) and pad_m > 0.0 else 0.0
+        clearance = self.cfg.reach_m + pad
+        p = shapely.Point(float(g[0]), float(g[1]))
+        dists = [shapely.Polygon(z).distance(p) for z in self.keep_out_m]
+        if self._fence is not None:
+            dists.append(self._fence.exterior.distance(p))
+        if not dists or self.refusal(g):
+            return GoalCheck(g, g, math.inf if not dists else 0.0, clearance, -1)
+        k = int(np.argmin(dists))
+        d = float(dists[k])
+        zone = k if k < len(self.keep_out_m) else -1
+        if d >= clearance:
+            return GoalCheck(g, g, d, clearance, zone)
+        key = round(clearance, 3)
+        free = self._clear.get(key)
+        if free is None:
+            free = self._free(clearance)
+            inner = free.buffer(-PROJECT_IN_M)
+            free = free if inner.is_empty else inner
+            if len(self._clear) >= 8:  # a few sigmas at a time
+                self._clear.clear()
+            self._clear[key] = free
+        if free.is_empty:
+            return GoalCheck(g, g, d, clearance, zone)
+        q = shapely.shortest_line(free, p).coords[0]
+        return GoalCheck(g, np.array([q[0], q[1]]), d, clearance, zone)
 
     def next_waypoint(self, pos, goal) -> np.ndarray:
         """Where to fly now (2,): see the module docstring. The goal itself when there is no

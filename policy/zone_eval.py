@@ -8,6 +8,10 @@ routes alone do. Counted on the true positions (the recorded tracks):
 - `zone_entries`: vehicles that came within ZONE_ENTRY_SHARE x the separation (1.5 m at 3 m)
   of a zone, inside it included;
 - `min_zone_m`: the closest any vehicle came to a zone;
+- `refused`: gotos refused as the flight core refuses them: a goal nearer a zone than the
+  filter's clearance (1.8 m + sigma_k x the position 1-sigma) whose nearest point outside it
+  lies beyond the arrival radius (policy.routes `Router.check_goal`); the others fly to that
+  point, and the refused ones are left out of the scene;
 - `route_time`: mean arrival time over the route's length at cruise speed (1.0 = flying the
   planned route at full speed; `extra_time` stays relative to the straight line).
 """
@@ -104,9 +108,18 @@ def run(name, starts, goals, zones_m, controller, link, sim_cfg, rng, aware=True
         # firmware/, which sits above it.
         czones = controller.zone_filter(zones_m, zones.radius_m, zones.time_horizon_s)
     routed = Routed(controller, router if aware else None, zones, safety_cfg, kind, czones)
+    refused = np.zeros(len(goals), bool)
+    if aware:  # as the flight core takes a goto (agent/flight_core.py `_clear_goal`)
+        pad_m = safety_cfg.sigma_k * sim_cfg.vehicles.drift_m
+        checks = [router.check_goal(g, pad_m) for g in np.asarray(goals, float)]
+        refused = np.array([bool(c.problem(sim_cfg.arrive_m)) for c in checks])
+        goals = np.array([c.goal_m for c in checks])[~refused]
+        starts = np.asarray(starts, float)[~refused]
+        options = {k: np.asarray(v)[~refused] for k, v in options.items()}
     r = evalsim.run(
         starts, goals, routed, link, dataclasses.replace(sim_cfg, record=True), rng, **options
     )
+    r["refused"] = int(refused.sum())
     tracks = r["tracks"]
     union = shapely.union_all([shapely.Polygon(z) for z in zones_m])
     flat = tracks.reshape(-1, 2)

@@ -33,11 +33,15 @@ ZONE_ENTRY_SHARE = 0.5
 """A true position within this share of the separation (1.5 m at 3 m) of a zone is an entry."""
 MAX_ZONE_EDGES = 32
 """Nearest facing edges that get a line per call (COVEY_MAX_ZONE_EDGES in C): bounds the LP."""
-ZONE_RECOVER_S = 1.0
+ZONE_RECOVER_S = 0.5
 """A vehicle found within the radius of an edge (gusts, lag, a jump of its estimate) must move
 away from it at (radius - distance) / ZONE_RECOVER_S, at most ZONE_MAX_PUSH_SHARE of its speed
-limit (RVO2 only forbids moving closer: a gust the loop does not reject would carry it in)."""
-ZONE_MAX_PUSH_SHARE = 0.5
+limit (RVO2 only forbids moving closer: a gust the loop does not reject would carry it in). A
+steady gust g towards the zone holds the vehicle g x ZONE_RECOVER_S inside the radius while g is
+below the cap: with 1 s and half the speed (the first values) a 2-sigma gust of realistic
+vehicles (0.4-0.6 m/s) beat the cap and carried a vehicle 1.4 m into its 3.3 m padded radius
+(seed 11, docs/sky.md); 0.5 s and the whole speed hold it 0.2-0.3 m in."""
+ZONE_MAX_PUSH_SHARE = 1.0
 ZONE_TIME_HORIZON_S = 2.0
 """How far ahead zone edges are looked at (RVO2's timeHorizonObst): shorter than the neighbours'
 4 s, as an edge does not come towards the vehicle; a vehicle flying along an edge is not slowed,

@@ -357,3 +357,58 @@ def test_zones_fuzz_under_asan_and_ubsan():
             vn, ve = float(rest[0]), float(rest[1])
             assert np.hypot(vn, ve) <= 1.0 + 1e-6, got
     print(f"[zones fuzz] {len(lines)} inputs under ASan+UBSan: init statuses {seen}, clean")
+
+
+def test_c_and_numpy_keep_the_same_sigma_padded_clearance(lib):
+    """With a position 1-sigma the zone lines move out by sigma_k x sigma on both sides: a vehicle
+    inside the padded radius but outside the bare one is pushed out by both, alike within 1e-6
+    (and not at all with sigma 0: the padding is what pushes)."""
+    from firmware.czones import CZones
+    from policy.zone_lines import ZONE_MAX_PUSH_SHARE, ZONE_RECOVER_S
+
+    cfg = safety.SafetyConfig()
+    sq = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    zs, cz = ZoneSet.of([sq], RADIUS_M), CZones(lib, [sq], RADIUS_M)
+    none = np.zeros((0, 2))
+    pref = _f32([0.0, 1.0])  # along the west edge (north = 0 .. 10 at east = 0 .. 10)
+    for sigma in (0.25, 0.5, 0.8):
+        padded = RADIUS_M + cfg.sigma_k * sigma
+        for off in np.linspace(RADIUS_M + 0.05, padded - 0.05, 5):
+            pos, vel = _f32([-off, 5.0]), _f32([0.0, 0.5])
+            ref = safety.filter_one(pos, vel, pref, none, none, cfg, pos_sigma_m=sigma, zones=zs)
+            c = cz.evaluate(cfg, pos, vel, pref, none, none, pos_sigma_m=sigma)
+            assert c.status == "ok"
+            np.testing.assert_allclose(c.vel_m_s, ref, atol=PARITY_TOL)
+            want = min((padded - off) / ZONE_RECOVER_S, ZONE_MAX_PUSH_SHARE * cfg.max_speed_m_s)
+            assert -ref[0] >= want - 1e-5, (sigma, off, ref)  # away from the edge (north < 0)
+            bare = safety.filter_one(pos, vel, pref, none, none, cfg, pos_sigma_m=0.0, zones=zs)
+            c0 = cz.evaluate(cfg, pos, vel, pref, none, none, pos_sigma_m=0.0).vel_m_s
+            np.testing.assert_allclose(c0, bare, atol=PARITY_TOL)
+            assert abs(bare[0]) < 1e-6  # outside the bare radius: flies along the edge
+
+
+def test_a_deep_vehicle_beats_a_two_sigma_gust(lib):
+    """A realistic vehicle's gust (0.2 m/s 1-sigma) at 3 sigma, towards the zone, never
+    rejected: the recovery push still holds the vehicle within gust x ZONE_RECOVER_S of the
+    radius (numpy and C); the first push (1 s, at most half the speed) let it sink on (seed 11:
+    1.4 m into the padded radius)."""
+    from firmware.czones import CZones
+    from policy.zone_lines import ZONE_RECOVER_S
+
+    cfg = safety.SafetyConfig()
+    sq = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    zs, cz = ZoneSet.of([sq], RADIUS_M), CZones(lib, [sq], RADIUS_M)
+    none = np.zeros((0, 2))
+    pref = np.array([0.0, 1.0])  # along the south edge (north 0, east 0 .. 10) at full speed
+    gust = np.array([0.6, 0.0])  # north: into the zone
+    for name, step in (
+        ("numpy", lambda p, v: safety.filter_one(p, v, pref, none, none, cfg, zones=zs)),
+        ("c", lambda p, v: cz.filter(cfg, p, v, pref, none, none)),
+    ):
+        pos, v = np.array([-RADIUS_M, 0.5]), np.zeros(2)
+        worst = np.inf
+        for _ in range(90):  # 9 s: along the 10 m edge
+            v = step(_f32(pos), _f32(v + gust))
+            pos = pos + 0.1 * (v + gust)
+            worst = min(worst, shapely.Polygon(sq).distance(shapely.Point(pos)))
+        assert worst >= RADIUS_M - gust[0] * ZONE_RECOVER_S - 0.1, (name, worst)
