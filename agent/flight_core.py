@@ -45,6 +45,7 @@ from comms.schema import (
     Severity,
     StateFlag,
 )
+from kit.masks import mode_mask
 
 FLYING = (Mode.GOTO, Mode.RETURNING, Mode.MISSION)
 AIRBORNE_MODES = [int(m) for m in AIRBORNE]
@@ -54,15 +55,6 @@ AIRBORNE_MODES = [int(m) for m in AIRBORNE]
 def _xyz(values) -> tuple[float, float, float]:
     """The first three of `values` (a point: north, east, down or lat, lon, alt) as floats."""
     return (float(values[0]), float(values[1]), float(values[2]))
-
-
-def mode_mask(modes) -> np.ndarray:
-    """A lookup table over mode values: `mode_mask(ms)[core.mode]` equals
-    `np.isin(core.mode, ms)`, for the price of one gather (no sort per call; it matters at N = 1,
-    the agent's every tick)."""
-    table = np.zeros(256, bool)
-    table[[int(m) for m in modes]] = True
-    return table
 
 
 _FLYING = mode_mask(FLYING)

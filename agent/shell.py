@@ -252,7 +252,8 @@ class VehicleShell:
                 self.link,
                 gate=gate,
                 ignore_id=self.cfg.ids[0] if one else None,
-                remote_only=not one,
+                # never this session's own states: its vehicles' echoes (one or several)
+                remote_only=True,
                 worth_checking=self.table.worth_checking if self.table.reach_m else None,
                 polled=True,  # taken at each tick's start (`tick`): no Python call per state
             )

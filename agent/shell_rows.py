@@ -14,6 +14,9 @@ from agent.flight_core import AIRBORNE_MODES, FlightCore, Observed
 from agent.guidance import NeighbourViews
 from agent.neighbours import NeighbourSnapshot
 from comms.schema import POS_SIGMA_LIMIT_M, Mode, StateFlag, VehicleState
+from kit.masks import mode_mask
+
+_AIRBORNE = mode_mask(AIRBORNE_MODES)
 
 _MODES = {m.value: m for m in Mode}
 
@@ -36,7 +39,7 @@ def neighbour_views(
     own (`obs`, position 1-sigmas `pos_sigma_m`) and the others in `ext` (dead-reckoned from
     their last state, traffic included, stale as `ext.stale_ids` says)."""
     n = len(ids)
-    airborne = np.isin(core.mode, AIRBORNE_MODES) & obs.armed
+    airborne = _AIRBORNE[core.mode] & obs.armed
     sigma = np.concatenate([pos_sigma_m, ext.column("pos_sigma_m", 0.0)])
     coop = np.concatenate([np.ones(n, bool), ext.column("cooperative", True)])
     manned = np.concatenate([np.zeros(n, bool), ext.column("manned", False)])

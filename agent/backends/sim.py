@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
+from kit.masks import mode_mask
 from policy.pointmass import VehicleModel, Vehicles
 
 
@@ -81,6 +82,8 @@ class SimMode(enum.IntEnum):
 
 
 _IDLE = int(SimMode.IDLE)  # an enum member's attribute lookup costs more than the test
+_POSITIONAL = mode_mask((SimMode.HOLD, SimMode.TAKEOFF, SimMode.LAND))
+_COMING_DOWN = mode_mask((SimMode.LAND, SimMode.FALLING))
 
 
 class SimFleet:
@@ -239,7 +242,7 @@ class SimFleet:
         want = np.zeros_like(self.vel_m_s)
         vel = mode == SimMode.VELOCITY
         want[vel] = self.sp_vel_m_s[vel]
-        positional = np.isin(mode, (SimMode.HOLD, SimMode.TAKEOFF, SimMode.LAND))
+        positional = _POSITIONAL[mode]
         want[positional] = cfg.hold_gain_1_s * (self.hold_m[positional] - pos[positional])
         up = mode == SimMode.TAKEOFF
         below = -pos[:, 2] < self.target_alt_m - 0.05
@@ -259,7 +262,7 @@ class SimFleet:
         if self.pos_m is not self.true_pos_m:  # the estimate follows the truth, off by the drift
             self.pos_m[:] = self.true_pos_m
             self.pos_m[:, :2] += self.body.drift_m
-        down = hit & np.isin(self.mode, (SimMode.LAND, SimMode.FALLING))
+        down = hit & _COMING_DOWN[self.mode]
         self.armed[down] = False
         self.mode[down] = SimMode.IDLE
         vel = self.mode == SimMode.VELOCITY
