@@ -97,7 +97,7 @@ class PlanEditor:
         gui = client.gui
         with gui.add_folder("Edit fleet plan", order=order, expand_by_default=False):
             self.message = gui.add_html("")
-            self.draft_html = gui.add_html(_draft_html(None))
+            self.draft_html = gui.add_html(draft_html(None))
             self.ground = gui.add_dropdown(
                 GROUND_CLICK, (CLICK_OFF, CLICK_ADD, CLICK_MOVE), initial_value=CLICK_OFF
             )
@@ -322,7 +322,7 @@ class PlanEditor:
 
     def _show(self, draft: pe.Draft | None) -> None:
         """The draft in the folder and in this tab's view (lock held)."""
-        self.draft_html.content = _draft_html(draft)
+        self.draft_html.content = draft_html(draft)
         for handle in reversed(self._drawn):
             handle.remove()
         self._drawn = []
@@ -384,16 +384,19 @@ def _corners(no: int, vertices_ne_m: tuple[tuple[float, float], ...]) -> str:
     return f"{len(vertices_ne_m)} corners ({no}.1 to {no}.{len(vertices_ne_m)})"
 
 
-def _draft_html(draft: pe.Draft | None) -> str:
+def draft_html(draft: pe.Draft | None) -> str:
+    """What the folder says of the draft: its base, the fence and each zone with its corners'
+    numbers as the view labels them, the corners being drawn."""
     if draft is None:
         return "<i>not editing: a ground click or a button below starts a draft of the plan</i>"
     g = draft.geometry
     fence = "no fence"
     if g.fence is not None:
         f = g.fence
-        band = [f"{w} {v:g} m" for w, v in (("floor", f.floor_alt_m), ("ceiling", f.ceiling_alt_m))]
         band = [
-            b for b, v in zip(band, (f.floor_alt_m, f.ceiling_alt_m), strict=True) if v is not None
+            f"{w} {v:g} m"
+            for w, v in (("floor", f.floor_alt_m), ("ceiling", f.ceiling_alt_m))
+            if v is not None
         ]
         fence = f"zone {pe.FENCE_NO}: the fence, {_corners(pe.FENCE_NO, f.vertices_ne_m)}" + (
             f" ({', '.join(band)})" if band else ""

@@ -14,7 +14,7 @@ from comms.plan import Fence, FleetPlan, RallyPoint, Zone
 from comms.schema import Mode, StateFlag, VehicleState
 from groundstation import plan_edit as pe
 from groundstation.command_log import CommandLog
-from groundstation.plan_editor import vehicle_points
+from groundstation.plan_editor import draft_html, vehicle_points
 from groundstation.plan_routes import RouteLayer, planned_routes, router_for
 from groundstation.tables import command_log_html
 
@@ -271,3 +271,15 @@ def test_the_fence_is_deleted_and_a_missing_fence_is_named() -> None:
             step()
     with pytest.raises(pe.EditRefused, match="zone 0 does not exist"):
         pe.delete_zone(d, pe.FENCE_NO)  # the fence goes with delete_fence only
+
+
+def test_the_draft_summary_numbers_the_fence_and_zone_corners_as_the_view_does() -> None:
+    d = fenced(((-50, -50), (-50, 50), (0, 70), (50, 50), (50, -50)), pe.draft_of(None))
+    d = drawn([(30, 30), (30, 40), (40, 40)], draft=d)
+    text = draft_html(d)
+    assert "on no plan, 2 edit(s) not pushed" in text
+    assert "zone 0: the fence, 5 corners (0.1 to 0.5)<br>" in text  # no band: none shown
+    assert "zone 1: pond, 3 corners (1.1 to 1.3)" in text
+    text = draft_html(pe.add_corner(pe.set_fence_band(d, None, 60.0), 1, 1))
+    assert "zone 0: the fence, 5 corners (0.1 to 0.5) (ceiling 60 m)" in text
+    assert "drawing a zone or fence: 1 corner(s)" in text
