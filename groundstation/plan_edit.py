@@ -1,14 +1,17 @@
 """Editing the fleet plan in the station, pure: a draft of the plan's geometry that an operator
-changes one step at a time (add a keep-out zone corner by corner, move or delete a corner, delete
-a zone, set the fence's floor and ceiling), each step checked before it is taken.
+changes one step at a time (add a keep-out zone or the fence corner by corner, move or delete a
+corner, delete a zone or the fence, set the fence's floor and ceiling), each step checked before
+it is taken. Polygons are numbered as the panel shows them: the fence 0 (`FENCE_NO`), the zones
+from 1, each corner zone.corner from 1.
 
 A step that would make the plan invalid is refused with the reason, and the draft stays as it
 was (`EditRefused`): the geometry through comms/plan_io.py `check_geometry` (shapely: a
 self-crossing or degenerate polygon, fewer than 3 corners, home or a rally point inside a zone),
 then every vehicle's target as comms/plan.py `plan_refusal` words it (the check the flight core
-makes) and every vehicle's position against the keep-out zones: a zone is never drawn over a
-vehicle or over where one is flying to (what the plan already ruled out, e.g. a vehicle that
-drifted into a zone, blocks no edit elsewhere). The station signs and pushes a draft through the same
+makes) and every vehicle's position against the keep-out zones and the fence's polygon: a zone is
+never drawn over a vehicle or over where one is flying to, a fence never leaves one outside (what
+the plan already ruled out, e.g. a vehicle that drifted into a zone, blocks no edit elsewhere).
+The plan's own limits (vertices and zones in all) are comms/plan.py `FleetPlan`'s. The station signs and pushes a draft through the same
 path as an uploaded file (groundstation/plan_view.py `PlanView.push_geometry`).
 
 No viser, no Zenoh, no clock (groundstation/plan_editor.py is the panel around it).
@@ -25,6 +28,7 @@ from comms.plan import (
     MAX_ZONES,
     Fence,
     FleetPlan,
+    PolygonNE,
     Zone,
     plan_refusal,
     point_in_polygon,
@@ -33,6 +37,8 @@ from comms.plan_io import PlanGeometry, check_geometry
 
 MAX_EDITS_LISTED = 16
 """Edits a draft remembers for the command log line (more are counted)."""
+FENCE_NO = 0
+"""The fence's number where a step takes a zone number (the zones are numbered from 1)."""
 
 
 class EditRefused(ValueError):
@@ -52,7 +58,8 @@ class VehiclePoint:
     """Altitude above the origin, metres (up)."""
     is_target: bool
     """True: where it is flying to (checked as the flight core checks a goto); False: where it
-    is now (checked against the keep-out zones only: a landed vehicle is below any floor)."""
+    is now (checked against the keep-out zones and the fence's polygon only: a landed vehicle is
+    below any floor)."""
 
     def __str__(self) -> str:
         what = "target" if self.is_target else "position"
@@ -68,7 +75,7 @@ class Draft:
     geometry: PlanGeometry
     """The plan's geometry with the edits taken so far."""
     corners_ne_m: tuple[tuple[float, float], ...] = ()
-    """Corners of the zone being drawn, (north_m, east_m), in click order."""
+    """Corners of the zone or fence being drawn, (north_m, east_m), in click order."""
     edits: tuple[str, ...] = ()
     """What was changed, in order, as the command log lists it."""
 
@@ -96,18 +103,22 @@ def draft_of(plan: FleetPlan | None) -> Draft:
 
 
 def vehicle_refusals(geometry: PlanGeometry, v: VehiclePoint) -> list[str]:
-    """Every reason `geometry` rules out where vehicle `v` is (its keep-out zones) or flies to
-    (its zones and its fence, as comms/plan.py `plan_refusal` words them)."""
+    """Every reason `geometry` rules out where vehicle `v` is (its keep-out zones, its fence's
+    polygon) or flies to (its zones and its fence, as comms/plan.py `plan_refusal` words them)."""
     out = [
         f"inside keep-out zone {z.name!r}" if z.name else "inside a keep-out zone"
         for z in geometry.keep_out
         if z.covers_alt(v.alt_m) and point_in_polygon(v.n_m, v.e_m, z.vertices_ne_m)
     ]
-    if v.is_target and geometry.fence is not None:
+    if geometry.fence is None:
+        return out
+    if v.is_target:
         fence_only = FleetPlan("draft", 1, 0, geometry.fence)
         why = plan_refusal(fence_only, (v.n_m, v.e_m), v.alt_m)
         if why is not None:
             out.append(why)
+    elif not point_in_polygon(v.n_m, v.e_m, geometry.fence.vertices_ne_m):
+        out.append("outside the fence")  # plan_refusal's words; the band is for targets only
     return out
 
 
@@ -121,6 +132,7 @@ def checked(
     into a zone) blocks no edit elsewhere, only one that rules it out anew."""
     try:
         out = check_geometry(geometry)
+        out.plan("draft", 1, 0)  # FleetPlan's own limits: vertices and zones in all
     except ValueError as exc:
         raise EditRefused(" ".join(str(exc).split())) from None
     for v in vehicles:
@@ -141,10 +153,22 @@ def _zone_no(draft: Draft, zone_no: int) -> int:
     return zone_no - 1
 
 
-def _corner_no(zone: Zone, zone_no: int, corner_no: int) -> int:
-    k = len(zone.vertices_ne_m)
+def _polygon_no(draft: Draft, zone_no: int) -> tuple[str, str, PolygonNE]:
+    """(kind, label, corners) of polygon `zone_no`: FENCE_NO the fence, else zone `zone_no`."""
+    if zone_no == FENCE_NO:
+        fence = draft.geometry.fence
+        if fence is None:
+            raise EditRefused("the plan has no fence (click its corners, then 'Close fence')")
+        return "fence", "fence", fence.vertices_ne_m
+    z = draft.geometry.keep_out[_zone_no(draft, zone_no)]
+    return "zone", _label(z, zone_no), z.vertices_ne_m
+
+
+def _corner_no(zone_no: int, vertices_ne_m: PolygonNE, corner_no: int) -> int:
+    k = len(vertices_ne_m)
     if not 1 <= corner_no <= k:
-        raise EditRefused(f"zone {zone_no} has no corner {corner_no} (corners 1 to {k})")
+        what = "fence" if zone_no == FENCE_NO else f"zone {zone_no}"
+        raise EditRefused(f"{what} has no corner {corner_no} (corners 1 to {k})")
     return corner_no - 1
 
 
@@ -158,18 +182,43 @@ def _label(zone: Zone, zone_no: int) -> str:
     return f"zone {zone_no} ({zone.name!r})" if zone.name else f"zone {zone_no}"
 
 
-def _with_zones(
-    draft: Draft, zones: list[Zone], edit: str, vehicles: tuple[VehiclePoint, ...]
+def _take(
+    draft: Draft, geometry: PlanGeometry, edit: str, vehicles: tuple[VehiclePoint, ...]
 ) -> Draft:
+    """`draft` with `geometry`, checked against the draft's own (EditRefused otherwise)."""
+    out = checked(geometry, vehicles, draft.geometry)
+    return replace(draft, geometry=out, edits=(*draft.edits, edit))
+
+
+def _with_polygon(
+    draft: Draft,
+    zone_no: int,
+    vertices_ne_m: PolygonNE,
+    edit: str,
+    vehicles: tuple[VehiclePoint, ...],
+) -> Draft:
+    """Polygon `zone_no` (FENCE_NO: the fence, its band kept) with these corners."""
     g = draft.geometry
-    geometry = checked(PlanGeometry(g.fence, tuple(zones), g.rally), vehicles, g)
-    return replace(draft, geometry=geometry, edits=(*draft.edits, edit))
+    try:
+        if zone_no == FENCE_NO and g.fence is not None:
+            fence = replace(g.fence, vertices_ne_m=vertices_ne_m)
+            geometry = PlanGeometry(fence, g.keep_out, g.rally)
+        else:
+            zones = list(g.keep_out)
+            i = _zone_no(draft, zone_no)
+            zones[i] = replace(zones[i], vertices_ne_m=vertices_ne_m)
+            geometry = PlanGeometry(g.fence, tuple(zones), g.rally)
+    except ValueError as exc:
+        if isinstance(exc, EditRefused):
+            raise
+        raise EditRefused(str(exc)) from None
+    return _take(draft, geometry, edit, vehicles)
 
 
 def add_corner(draft: Draft, n_m: float, e_m: float) -> Draft:
-    """One more corner of the zone being drawn."""
+    """One more corner of the zone or fence being drawn."""
     if len(draft.corners_ne_m) >= MAX_POLYGON_VERTICES:
-        raise EditRefused(f"a zone has at most {MAX_POLYGON_VERTICES} corners")
+        raise EditRefused(f"a zone or fence has at most {MAX_POLYGON_VERTICES} corners")
     return replace(draft, corners_ne_m=(*draft.corners_ne_m, _point(n_m, e_m)))
 
 
@@ -189,8 +238,31 @@ def close_zone(draft: Draft, name: str, vehicles: tuple[VehiclePoint, ...] = ())
         zone = Zone(draft.corners_ne_m, name)
     except ValueError as exc:
         raise EditRefused(str(exc)) from None
-    zones = [*draft.geometry.keep_out, zone]
-    out = _with_zones(draft, zones, f"{_label(zone, len(zones))} added ({k} corners)", vehicles)
+    g = draft.geometry
+    zones = (*g.keep_out, zone)
+    edit = f"{_label(zone, len(zones))} added ({k} corners)"
+    out = _take(draft, PlanGeometry(g.fence, zones, g.rally), edit, vehicles)
+    return replace(out, corners_ne_m=())
+
+
+def close_fence(draft: Draft, vehicles: tuple[VehiclePoint, ...] = ()) -> Draft:
+    """The corners drawn so far become the fence, replacing the plan's (its floor and ceiling
+    kept) or the first one (none: set them after)."""
+    k = len(draft.corners_ne_m)
+    if k < 3:
+        raise EditRefused(f"a fence needs at least 3 corners; {k} clicked")
+    g = draft.geometry
+    old = g.fence
+    try:
+        fence = (
+            Fence(draft.corners_ne_m)
+            if old is None
+            else replace(old, vertices_ne_m=draft.corners_ne_m)
+        )
+    except ValueError as exc:
+        raise EditRefused(str(exc)) from None
+    edit = f"fence {'drawn' if old is None else 'replaced'} ({k} corners)"
+    out = _take(draft, PlanGeometry(fence, g.keep_out, g.rally), edit, vehicles)
     return replace(out, corners_ne_m=())
 
 
@@ -202,39 +274,44 @@ def move_corner(
     e_m: float,
     vehicles: tuple[VehiclePoint, ...] = (),
 ) -> Draft:
-    """Corner `corner_no` of zone `zone_no` (both 1-based) moved to (n_m, e_m)."""
-    i = _zone_no(draft, zone_no)
-    zones = list(draft.geometry.keep_out)
-    z = zones[i]
-    j = _corner_no(z, zone_no, corner_no)
+    """Corner `corner_no` (1-based) of zone `zone_no` (1-based; FENCE_NO: the fence) moved to
+    (n_m, e_m)."""
+    _, label, verts = _polygon_no(draft, zone_no)
+    j = _corner_no(zone_no, verts, corner_no)
     p = _point(n_m, e_m)
-    verts = list(z.vertices_ne_m)
-    verts[j] = p
-    zones[i] = replace(z, vertices_ne_m=tuple(verts))
-    edit = f"{_label(z, zone_no)} corner {corner_no} moved to N {p[0]:g}, E {p[1]:g}"
-    return _with_zones(draft, zones, edit, vehicles)
+    moved = (*verts[:j], p, *verts[j + 1 :])
+    edit = f"{label} corner {corner_no} moved to N {p[0]:g}, E {p[1]:g}"
+    return _with_polygon(draft, zone_no, moved, edit, vehicles)
 
 
 def delete_corner(
     draft: Draft, zone_no: int, corner_no: int, vehicles: tuple[VehiclePoint, ...] = ()
 ) -> Draft:
-    """Corner `corner_no` of zone `zone_no` removed (a zone keeps at least 3)."""
-    i = _zone_no(draft, zone_no)
-    zones = list(draft.geometry.keep_out)
-    z = zones[i]
-    j = _corner_no(z, zone_no, corner_no)
-    if len(z.vertices_ne_m) <= 3:
-        raise EditRefused(f"{_label(z, zone_no)} has 3 corners, the fewest a zone can have")
-    zones[i] = replace(z, vertices_ne_m=z.vertices_ne_m[:j] + z.vertices_ne_m[j + 1 :])
-    return _with_zones(draft, zones, f"{_label(z, zone_no)} corner {corner_no} deleted", vehicles)
+    """Corner `corner_no` of zone `zone_no` (FENCE_NO: the fence) removed (a zone or the fence
+    keeps at least 3)."""
+    kind, label, verts = _polygon_no(draft, zone_no)
+    j = _corner_no(zone_no, verts, corner_no)
+    if len(verts) <= 3:
+        raise EditRefused(f"{label} has 3 corners, the fewest a {kind} can have")
+    edit = f"{label} corner {corner_no} deleted"
+    return _with_polygon(draft, zone_no, verts[:j] + verts[j + 1 :], edit, vehicles)
 
 
 def delete_zone(draft: Draft, zone_no: int) -> Draft:
     """Zone `zone_no` removed (nothing a vehicle does can rule that out)."""
     i = _zone_no(draft, zone_no)
-    zones = list(draft.geometry.keep_out)
-    z = zones.pop(i)
-    return _with_zones(draft, zones, f"{_label(z, zone_no)} deleted", ())
+    g = draft.geometry
+    z = g.keep_out[i]
+    zones = g.keep_out[:i] + g.keep_out[i + 1 :]
+    return _take(draft, PlanGeometry(g.fence, zones, g.rally), f"{_label(z, zone_no)} deleted", ())
+
+
+def delete_fence(draft: Draft) -> Draft:
+    """The fence removed (the agents' circular geofence, agent/failsafe.py, holds again)."""
+    g = draft.geometry
+    if g.fence is None:
+        raise EditRefused("the plan has no fence to delete")
+    return _take(draft, PlanGeometry(None, g.keep_out, g.rally), "fence deleted", ())
 
 
 def set_fence_band(
@@ -246,14 +323,13 @@ def set_fence_band(
     """The fence's floor and ceiling (metres above the origin; None: none)."""
     g = draft.geometry
     if g.fence is None:
-        raise EditRefused("the plan has no fence to set a floor or ceiling on (load one first)")
+        raise EditRefused("the plan has no fence to set a floor or ceiling on (draw one first)")
     try:
         fence = Fence(g.fence.vertices_ne_m, floor_alt_m, ceiling_alt_m)
     except ValueError as exc:
         raise EditRefused(str(exc)) from None
-    geometry = checked(PlanGeometry(fence, g.keep_out, g.rally), vehicles, g)
     band = ", ".join(
         f"{what} {'none' if v is None else f'{v:g} m'}"
         for what, v in (("floor", floor_alt_m), ("ceiling", ceiling_alt_m))
     )
-    return replace(draft, geometry=geometry, edits=(*draft.edits, f"fence {band}"))
+    return _take(draft, PlanGeometry(fence, g.keep_out, g.rally), f"fence {band}", vehicles)

@@ -1,12 +1,14 @@
 """Editing the fleet plan in the browser: one tab's "Edit fleet plan" folder and its draft.
 
-The operator clicks a keep-out zone's corners on the ground (Ground click: 'adds a zone
-corner'), names it and presses 'Close zone'; moves a corner by typing its place or by clicking
-the ground ('moves the corner'), deletes a corner or a zone by number, sets the fence's floor and
-ceiling, then presses 'Sign and push plan'. Each step is checked as it is taken
-(groundstation/plan_edit.py) and a refusal is shown with its reason, the draft unchanged. The
-draft is drawn in this tab's own 3D view (violet, each corner numbered zone.corner); the shared
-scene keeps showing the plan the fleet holds until the push.
+The operator clicks a keep-out zone's or the fence's corners on the ground (Ground click: 'adds a
+corner'), names a zone and presses 'Close zone', or presses 'Close fence' (the drawn fence
+replaces the plan's); moves a corner by typing its place or by clicking the ground ('moves the
+corner'), deletes a corner or a zone by number (zone number 0 is the fence), deletes the fence,
+sets the fence's floor and ceiling, then presses 'Sign and push plan'. Each step is checked as
+it is taken (groundstation/plan_edit.py) and a refusal is shown with its reason, the draft
+unchanged. The draft is drawn in this tab's own 3D view (violet, each corner numbered
+zone.corner, the fence's 0.corner); the shared scene keeps showing the plan the fleet holds
+until the push.
 
 A push signs the draft with the station's key and pushes it as the next version through the path
 an uploaded file takes (`PlanView.push_geometry`), listed in the command log with the operator's
@@ -35,15 +37,15 @@ from groundstation.plan_view import PlanView
 from groundstation.scene import polygon_segments
 
 GROUND_CLICK = "Ground click"
-CLICK_OFF, CLICK_ADD, CLICK_MOVE = "does nothing", "adds a zone corner", "moves the corner"
+CLICK_OFF, CLICK_ADD, CLICK_MOVE = "does nothing", "adds a corner", "moves the corner"
 ZONE_NAME = "New zone name"
-ZONE_NO, CORNER_NO = "Zone number", "Corner number"
+ZONE_NO, CORNER_NO = "Zone number (0: fence)", "Corner number"
 CORNER_N, CORNER_E = "Corner north (m)", "Corner east (m)"
 FLOOR, CEILING = "Fence floor above origin (m)", "Fence ceiling above origin (m)"
 LABELS = (ZONE_NAME, ZONE_NO, CORNER_NO, CORNER_N, CORNER_E, FLOOR, CEILING)
 """The labelled inputs the editor's buttons read from the tab (groundstation/browser_form.py)."""
-ZONE_BUTTONS = ("Close zone", "Discard corners")
-CORNER_BUTTONS = ("Move corner", "Delete corner", "Delete zone")
+ZONE_BUTTONS = ("Close zone", "Close fence", "Discard corners")
+CORNER_BUTTONS = ("Move corner", "Delete corner", "Delete zone", "Delete fence")
 SET_BAND, PUSH, RESET = "Set fence floor/ceiling", "Sign and push plan", "Reset draft"
 DRAFT_PATH = "/plan_draft"
 DRAFT_RGB = (140, 60, 200)
@@ -95,13 +97,13 @@ class PlanEditor:
         gui = client.gui
         with gui.add_folder("Edit fleet plan", order=order, expand_by_default=False):
             self.message = gui.add_html("")
-            self.draft_html = gui.add_html(_draft_html(None))
+            self.draft_html = gui.add_html(draft_html(None))
             self.ground = gui.add_dropdown(
                 GROUND_CLICK, (CLICK_OFF, CLICK_ADD, CLICK_MOVE), initial_value=CLICK_OFF
             )
             self.zone_name = gui.add_text(ZONE_NAME, "", hint="What the operators call it.")
-            self.zone_buttons = gui.add_button_group("Zone corners", ZONE_BUTTONS)
-            self.zone_no = gui.add_number(ZONE_NO, 1, min=1, step=1)
+            self.zone_buttons = gui.add_button_group("Drawn corners", ZONE_BUTTONS)
+            self.zone_no = gui.add_number(ZONE_NO, 1, min=pe.FENCE_NO, step=1)
             self.corner_no = gui.add_number(CORNER_NO, 1, min=1, step=1)
             self.corner_n = gui.add_number(CORNER_N, 0.0, step=0.5)
             self.corner_e = gui.add_number(CORNER_E, 0.0, step=0.5)
@@ -142,12 +144,15 @@ class PlanEditor:
             k = len(self.draft.corners_ne_m)
             self._say(
                 f"corner {k} at N {n_m:.1f}, E {e_m:.1f}"
-                + ("; press 'Close zone' when the zone is drawn" if k >= 3 else "")
+                + ("; press 'Close zone' or 'Close fence' when it is drawn" if k >= 3 else "")
             )
         return ok
 
     def close_zone(self, name: str) -> bool:
         return self._edit(lambda d: pe.close_zone(d, name, self._vehicles()))
+
+    def close_fence(self) -> bool:
+        return self._edit(lambda d: pe.close_fence(d, self._vehicles()))
 
     def discard_corners(self) -> bool:
         return self._edit(pe.discard_corners)
@@ -162,6 +167,9 @@ class PlanEditor:
 
     def delete_zone(self, zone_no: int) -> bool:
         return self._edit(lambda d: pe.delete_zone(d, zone_no))
+
+    def delete_fence(self) -> bool:
+        return self._edit(pe.delete_fence)
 
     def set_fence_band(self, floor_alt_m: float | None, ceiling_alt_m: float | None) -> bool:
         return self._edit(
@@ -180,7 +188,10 @@ class PlanEditor:
             draft = self.draft
             held = self.view.sync.plan
             if draft is not None and draft.corners_ne_m:
-                line = "refused: a zone is half drawn (press 'Close zone' or 'Discard corners')"
+                line = (
+                    "refused: a zone or fence is half drawn (press 'Close zone', 'Close fence' "
+                    "or 'Discard corners')"
+                )
             elif draft is None or not draft.changed:
                 line = "refused: nothing to push (edit the plan first)"
             elif (held.version if held else None) != draft.base_version:
@@ -230,12 +241,18 @@ class PlanEditor:
         if button == "Discard corners":
             self.discard_corners()
             return
+        if button == "Close fence":
+            self.close_fence()
+            return
         form = self._form(event, button)
         if form is not None:
             self.close_zone(form.get(ZONE_NAME) or "")
 
     def _corner_pressed(self, event: viser.GuiEvent) -> None:
         button = event.target.value
+        if button == "Delete fence":
+            self.delete_fence()
+            return
         form = self._form(event, button)
         if form is None:
             return
@@ -305,7 +322,7 @@ class PlanEditor:
 
     def _show(self, draft: pe.Draft | None) -> None:
         """The draft in the folder and in this tab's view (lock held)."""
-        self.draft_html.content = _draft_html(draft)
+        self.draft_html.content = draft_html(draft)
         for handle in reversed(self._drawn):
             handle.remove()
         self._drawn = []
@@ -314,23 +331,23 @@ class PlanEditor:
         scene, add = self.client.scene, self._drawn.append
         colour = np.array(DRAFT_RGB, np.uint8)
         labels = 0
-        for i, z in enumerate(draft.geometry.keep_out):
+        for no, vertices_ne_m in _numbered_polygons(draft):
             add(
                 scene.add_line_segments(
-                    f"{DRAFT_PATH}/zones/{i}",
-                    polygon_segments(z.vertices_ne_m, 0.08),
+                    f"{DRAFT_PATH}/polygons/{no}",
+                    polygon_segments(vertices_ne_m, 0.08),
                     colour,
                     thickness=3.0,
                     thickness_units="screen",
                 )
             )
-            for j, (n, e) in enumerate(z.vertices_ne_m):
+            for j, (n, e) in enumerate(vertices_ne_m):
                 if labels < MAX_CORNER_LABELS:
                     labels += 1
                     add(
                         scene.add_label(
-                            f"{DRAFT_PATH}/corners/{i}_{j}",
-                            f"{i + 1}.{j + 1}",
+                            f"{DRAFT_PATH}/corners/{no}_{j + 1}",
+                            f"{no}.{j + 1}",
                             position=(e, n, 0.3),
                             font_screen_scale=0.8,
                         )
@@ -355,23 +372,44 @@ class PlanEditor:
                 )
 
 
-def _draft_html(draft: pe.Draft | None) -> str:
+def _numbered_polygons(draft: pe.Draft) -> list[tuple[int, tuple[tuple[float, float], ...]]]:
+    """(number, corners) of the fence (pe.FENCE_NO) and of each zone (1 on), as steps take them."""
+    g = draft.geometry
+    fence = [] if g.fence is None else [(pe.FENCE_NO, g.fence.vertices_ne_m)]
+    return fence + [(i + 1, z.vertices_ne_m) for i, z in enumerate(g.keep_out)]
+
+
+def _corners(no: int, vertices_ne_m: tuple[tuple[float, float], ...]) -> str:
+    """'4 corners (1.1 to 1.4)': how many, and their numbers as the view labels them."""
+    return f"{len(vertices_ne_m)} corners ({no}.1 to {no}.{len(vertices_ne_m)})"
+
+
+def draft_html(draft: pe.Draft | None) -> str:
+    """What the folder says of the draft: its base, the fence and each zone with its corners'
+    numbers as the view labels them, the corners being drawn."""
     if draft is None:
         return "<i>not editing: a ground click or a button below starts a draft of the plan</i>"
     g = draft.geometry
     fence = "no fence"
     if g.fence is not None:
         f = g.fence
-        band = [f"{w} {v:g} m" for w, v in (("floor", f.floor_alt_m), ("ceiling", f.ceiling_alt_m))]
         band = [
-            b for b, v in zip(band, (f.floor_alt_m, f.ceiling_alt_m), strict=True) if v is not None
+            f"{w} {v:g} m"
+            for w, v in (("floor", f.floor_alt_m), ("ceiling", f.ceiling_alt_m))
+            if v is not None
         ]
-        fence = f"fence: {len(f.vertices_ne_m)} corners" + (f" ({', '.join(band)})" if band else "")
+        fence = f"zone {pe.FENCE_NO}: the fence, {_corners(pe.FENCE_NO, f.vertices_ne_m)}" + (
+            f" ({', '.join(band)})" if band else ""
+        )
     zones = "".join(
-        f"<br>zone {i + 1}: {html.escape(z.name or 'unnamed')}, {len(z.vertices_ne_m)} corners"
+        f"<br>zone {i + 1}: {html.escape(z.name or 'unnamed')}, {_corners(i + 1, z.vertices_ne_m)}"
         for i, z in enumerate(g.keep_out)
     )
     base = f"v{draft.base_version}" if draft.base_version is not None else "no plan"
     head = f"<b>draft</b> on {base}, {len(draft.edits)} edit(s) not pushed"
-    drawing = f"<br>new zone: {len(draft.corners_ne_m)} corner(s)" if draft.corners_ne_m else ""
+    drawing = (
+        f"<br>drawing a zone or fence: {len(draft.corners_ne_m)} corner(s)"
+        if draft.corners_ne_m
+        else ""
+    )
     return f"<div data-draft='{len(draft.edits)}'>{head}<br>{fence}{zones}{drawing}</div>"

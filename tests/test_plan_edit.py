@@ -10,11 +10,11 @@ import pytest
 import shapely
 import viser
 
-from comms.plan import Fence, FleetPlan, Zone
+from comms.plan import Fence, FleetPlan, RallyPoint, Zone
 from comms.schema import Mode, StateFlag, VehicleState
 from groundstation import plan_edit as pe
 from groundstation.command_log import CommandLog
-from groundstation.plan_editor import vehicle_points
+from groundstation.plan_editor import draft_html, vehicle_points
 from groundstation.plan_routes import RouteLayer, planned_routes, router_for
 from groundstation.tables import command_log_html
 
@@ -159,3 +159,127 @@ def test_the_command_log_lists_plan_versions_with_who_pushed_them() -> None:
     assert "this station (alice): plan v9: zone 2 (&#x27;pond&#x27;) added (4 corners)" in text
     assert "station 2: plan v8 (fence of 4 vertices, 1 keep-out zone)" in text
     assert text.index('data-plan="9"') < text.index('data-plan="8"')  # newest first
+
+
+def fenced(corners, draft=None, vehicles=()) -> pe.Draft:
+    d = draft or pe.draft_of(base_plan())
+    for n, e in corners:
+        d = pe.add_corner(d, n, e)
+    return pe.close_fence(d, vehicles)
+
+
+BIG = ((-150, -150), (-150, 150), (150, 150), (150, -150))
+
+
+def test_a_fence_is_drawn_where_there_was_none_and_replaces_one_keeping_its_band() -> None:
+    plan = FleetPlan("f", 3, 0, None, (Zone(SQUARE, "depot"),), (RallyPoint(20, 20, 0, "home"),))
+    d = fenced(BIG, pe.draft_of(plan))
+    assert d.geometry.fence == Fence(BIG) and d.corners_ne_m == ()
+    d = pe.set_fence_band(d, 2.0, 50.0)
+    d = fenced(((-50, -50), (-50, 60), (60, 60), (60, -50)), d)
+    assert d.geometry.fence == Fence(((-50, -50), (-50, 60), (60, 60), (60, -50)), 2.0, 50.0)
+    assert d.describe_edits().split("; ") == [
+        "fence drawn (4 corners)",
+        "fence floor 2 m, ceiling 50 m",
+        "fence replaced (4 corners)",
+    ]
+    assert [z.name for z in d.geometry.keep_out] == ["depot"]  # the zones stay
+
+
+@pytest.mark.parametrize(
+    ("corners", "reason"),
+    [
+        ([(-50, -50), (-50, 50)], "a fence needs at least 3 corners; 2 clicked"),
+        (
+            [(-50, -50), (50, 50), (-50, 50), (50, -50)],
+            "the fence is not a valid polygon: Self-intersection",
+        ),
+        ([(-50, -50), (50, 50), (0, 0.01)], "the fence has an area of .* degenerate"),
+        ([(-50, -50), (-50, 50), (50, 50)], r"home \(30.0, -30.0\) m is outside the fence"),
+        (
+            [(-30, -60), (-30, 60), (60, 60), (60, -60)],
+            r"rally point 'pad' \(-40.0, -40.0\) m is outside the fence",
+        ),
+        (
+            [(-60, -60), (-60, 0), (60, 0), (60, -60)],
+            r"vehicle 4's position \(N 50.0, E 50.0 m\) would be outside the fence",
+        ),
+        (
+            [(-60, -60), (-60, 60), (60, 60), (60, -60)],
+            r"vehicle 3's target \(N -80.0, E 80.0 m\) would be outside the fence",
+        ),
+    ],
+)
+def test_a_bad_fence_is_refused_with_its_reason_and_the_draft_is_kept(corners, reason) -> None:
+    rally = (RallyPoint(30, -30, 0, "home"), RallyPoint(-40, -40, 0, "pad"))
+    d = pe.draft_of(FleetPlan("f", 7, 0, FENCE, (Zone(SQUARE, "depot"),), rally))
+    vehicles = vehicle_points([state(4, (50, 50)), state(3, (-5, -5), (-80, 80))])
+    for n, e in corners:
+        d = pe.add_corner(d, n, e)
+    with pytest.raises(pe.EditRefused, match=reason):
+        pe.close_fence(d, vehicles)
+    assert len(d.corners_ne_m) == len(corners) and d.geometry.fence == FENCE
+
+
+def test_a_fence_corner_moves_and_goes_as_a_zone_corner_does_numbered_zero() -> None:
+    d = fenced(((-50, -50), (-50, 50), (0, 70), (50, 50), (50, -50)))
+    d = pe.move_corner(d, pe.FENCE_NO, 3, 0, 80)
+    assert d.geometry.fence.vertices_ne_m[2] == (0, 80)
+    assert (d.geometry.fence.floor_alt_m, d.geometry.fence.ceiling_alt_m) == (2.0, 80.0)  # kept
+    d = pe.delete_corner(d, pe.FENCE_NO, 3)
+    assert d.geometry.fence.vertices_ne_m == ((-50, -50), (-50, 50), (50, 50), (50, -50))
+    assert d.describe_edits().split("; ")[1:] == [
+        "fence corner 3 moved to N 0, E 80",
+        "fence corner 3 deleted",
+    ]
+    vehicles = vehicle_points([state(3, (-5, -5), (40, 40), alt_m=5.0), state(4, (-40, 40))])
+    with pytest.raises(pe.EditRefused, match="fence is not a valid polygon: Self-intersection"):
+        pe.move_corner(d, pe.FENCE_NO, 2, 60, -40)  # across the opposite edge: a bow tie
+    with pytest.raises(pe.EditRefused, match=r"vehicle 3's target \(N 40.0, E 40.0 m\) would be"):
+        pe.move_corner(d, pe.FENCE_NO, 3, 30, 30, vehicles)
+    with pytest.raises(pe.EditRefused, match="vehicle 4's position .* outside the fence"):
+        pe.delete_corner(d, pe.FENCE_NO, 2, vehicles)
+    with pytest.raises(pe.EditRefused, match=r"fence has no corner 5 \(corners 1 to 4\)"):
+        pe.move_corner(d, pe.FENCE_NO, 5, 0, 0)
+    three = pe.delete_corner(d, pe.FENCE_NO, 4)
+    with pytest.raises(pe.EditRefused, match="fence has 3 corners, the fewest a fence can have"):
+        pe.delete_corner(three, pe.FENCE_NO, 1)
+    # A keep-out zone wholly outside the fence is a note, as for files (check_geometry).
+    out = pe.move_corner(d, 1, 1, 60, 60)
+    out = pe.move_corner(out, 1, 2, 60, 70)
+    out = pe.move_corner(out, 1, 3, 70, 70)
+    out = pe.move_corner(out, 1, 4, 70, 60)
+    assert out.geometry.notes == ("keep-out zone 'depot' lies wholly outside the fence",)
+    # A vehicle already outside the fence blocks no edit that keeps it out, only one that
+    # puts it out anew.
+    outside = vehicle_points([state(6, (90, 0))])
+    assert pe.move_corner(d, pe.FENCE_NO, 1, -55, -55, outside).geometry.fence is not None
+    with pytest.raises(pe.EditRefused, match="vehicle 6's position"):
+        pe.checked(d.geometry, outside)
+
+
+def test_the_fence_is_deleted_and_a_missing_fence_is_named() -> None:
+    d = pe.delete_fence(pe.draft_of(base_plan()))
+    assert d.geometry.fence is None and d.edits == ("fence deleted",)
+    assert [z.name for z in d.geometry.keep_out] == ["depot"]
+    for step in (
+        lambda: pe.delete_fence(d),
+        lambda: pe.move_corner(d, pe.FENCE_NO, 1, 0, 0),
+        lambda: pe.delete_corner(d, pe.FENCE_NO, 1),
+    ):
+        with pytest.raises(pe.EditRefused, match="the plan has no fence"):
+            step()
+    with pytest.raises(pe.EditRefused, match="zone 0 does not exist"):
+        pe.delete_zone(d, pe.FENCE_NO)  # the fence goes with delete_fence only
+
+
+def test_the_draft_summary_numbers_the_fence_and_zone_corners_as_the_view_does() -> None:
+    d = fenced(((-50, -50), (-50, 50), (0, 70), (50, 50), (50, -50)), pe.draft_of(None))
+    d = drawn([(30, 30), (30, 40), (40, 40)], draft=d)
+    text = draft_html(d)
+    assert "on no plan, 2 edit(s) not pushed" in text
+    assert "zone 0: the fence, 5 corners (0.1 to 0.5)<br>" in text  # no band: none shown
+    assert "zone 1: pond, 3 corners (1.1 to 1.3)" in text
+    text = draft_html(pe.add_corner(pe.set_fence_band(d, None, 60.0), 1, 1))
+    assert "zone 0: the fence, 5 corners (0.1 to 0.5) (ceiling 60 m)" in text
+    assert "drawing a zone or fence: 1 corner(s)" in text

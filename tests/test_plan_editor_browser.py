@@ -2,13 +2,15 @@
 `covey agent` process: a keep-out zone clicked corner by corner on the ground, closed and pushed
 from the 'Edit fleet plan' folder reaches the agent, which refuses a goto inside it; the station
 draws the agent's route around it and lists the push in its command log; a self-crossing zone is
-refused in the panel with its reason and nothing is pushed."""
+refused in the panel with its reason and nothing is pushed; a fence clicked around the fleet, a
+corner of it moved by number (zone 0) and pushed bounds the agent's gotos."""
 
 from __future__ import annotations
 
 import sys
 import time
 
+import numpy as np
 import pytest
 import shapely
 from conftest import REPO, keyed_agent_argv, wait_until
@@ -24,6 +26,7 @@ from groundstation.plan_editor import (
     CORNER_E,
     CORNER_N,
     CORNER_NO,
+    DRAFT_PATH,
     GROUND_CLICK,
     ZONE_NAME,
     ZONE_NO,
@@ -41,6 +44,10 @@ ZONE_NE_M = ((0.0, 0.0), (0.0, 12.0), (12.0, 12.0), (12.0, 0.0))
 """The zone clicked (north, east); the agent starts at N 20, E 20, beyond its corner."""
 BOW_TIE_NE_M = ((20.0, -8.0), (28.0, 0.0), (20.0, 0.0), (28.0, -8.0))
 """Clear of the kill window (bottom left) and of the agent's route."""
+FENCE_NE_M = ((-15.0, -15.0), (-15.0, 30.0), (30.0, 30.0), (30.0, -15.0))
+"""The fence clicked around the zone and the agent, which has flown to N -8, E -8."""
+MOVED_NE_M = (-15.0, 10.0)
+"""Where the fence's corner 2 moves: N -10, E 20 was inside the clicked fence, is outside it."""
 
 
 @pytest.fixture(scope="module")
@@ -163,7 +170,7 @@ def test_a_self_crossing_zone_is_refused_with_its_reason_and_a_corner_moves(page
     page.get_by_text("is not a valid polygon: Self-intersection", exact=False).first.wait_for()
     assert page.locator("[data-plan-edit='error']").count() == 1
     _press(page, "Sign and push plan")
-    page.get_by_text("refused: a zone is half drawn", exact=False).first.wait_for()
+    page.get_by_text("refused: a zone or fence is half drawn", exact=False).first.wait_for()
     assert gcs.plan_view.sync.plan == held
     # A corner moved by number from the form, pushed: listed with the operator of the tab.
     _press(page, "Discard corners")
@@ -188,3 +195,47 @@ def test_a_self_crossing_zone_is_refused_with_its_reason_and_a_corner_moves(page
     page.get_by_text("zone 1 ('depot') corner 3 moved to N 1", exact=False).first.wait_for()
     _press(page, "Reset draft")
     assert wait_until(lambda: editor.draft is None, 10)
+
+
+def test_a_fence_drawn_and_a_corner_moved_in_the_browser_bounds_the_agents_gotos(page, gcs):
+    editor = gcs.plan_editors[page.client.client_id]
+    held = gcs.plan_view.sync.plan
+    assert held.fence is None
+    # The agent arrived where the first test sent it, well inside the fence to come.
+    assert wait_until(lambda: max(abs(c + 8.0) for c in gcs.fleet.positions()[1][:2]) < 2.0, 60)
+    page.get_by_label(GROUND_CLICK, exact=True).click(force=True)
+    page.get_by_role("option", name=CLICK_ADD).click(force=True)
+    assert wait_until(lambda: editor.ground.value == CLICK_ADD, 10)
+    page.client.camera.position = (7.5, -30.0, 70.0)
+    page.client.camera.look_at = (7.5, 7.5, 0.0)
+    assert wait_until(lambda: abs(page.client.camera.position[2] - 70.0) < 0.1, 10)
+    time.sleep(1.0)  # a rendered frame at the new pose
+    _click_corners(page, gcs, FENCE_NE_M)
+    clicked = shapely.Polygon(editor.draft.corners_ne_m)
+    assert clicked.symmetric_difference(shapely.Polygon(FENCE_NE_M)).area < 30.0, clicked
+    _press(page, "Close fence")
+    page.get_by_text("fence drawn (4 corners)", exact=False).first.wait_for()
+    assert "zone 0: the fence, 4 corners (0.1 to 0.4)" in editor.draft_html.content
+    for label, value in ((ZONE_NO, "0"), (CORNER_NO, "2"), (CORNER_N, "-15"), (CORNER_E, "10")):
+        page.get_by_label(label, exact=True).fill(value)
+    _press(page, "Move corner")
+    page.get_by_text("fence corner 2 moved to N -15, E 10", exact=False).first.wait_for()
+    labels = {h.name: h for h in editor._drawn if h.name.startswith(f"{DRAFT_PATH}/corners/0_")}
+    assert labels[f"{DRAFT_PATH}/corners/0_2"].text == "0.2"  # numbered in the tab's view
+    assert np.allclose(labels[f"{DRAFT_PATH}/corners/0_2"].position[:2], (10.0, -15.0))  # E, N
+    _press(page, "Sign and push plan")
+    assert wait_until(lambda: gcs.plan_view.sync.plan.version > held.version, 10)
+    fence = gcs.plan_view.sync.plan.fence
+    assert fence is not None and fence.vertices_ne_m[1] == MOVED_NE_M, fence
+    # The agent holds it once its polygon replaces the 500 m circle for a far goto.
+    deadline = time.monotonic() + 15
+    while "fence" not in (out := _goto(gcs, 0, 600, 5)).reason or "500" in out.reason:
+        assert time.monotonic() < deadline, out
+        time.sleep(0.2)
+    assert out.reason == "target outside the fence"
+    # Inside the fence as clicked, outside it with the corner moved: refused, with the reason.
+    out = _goto(gcs, -10, 20, 5)
+    assert out.status is OutcomeStatus.REJECTED and out.reason == "target outside the fence", out
+    version = gcs.plan_view.sync.plan.version
+    line = f"plan v{version}: fence drawn (4 corners); fence corner 2 moved to N -15, E 10"
+    assert wait_until(lambda: line in gcs.command_log_html.content, 10)
