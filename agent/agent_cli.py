@@ -168,7 +168,7 @@ def add_flight_args(
         help="return home at its own altitude and land as it arrives (--return-layer-m 0 "
         "--land-radius-m 0); default: on its layer, landing one at a time",
     )
-    add_config_flags(p, ShellConfig, only=("idle_state_hz",))
+    add_config_flags(p, ShellConfig, only=("idle_state_hz", "idle_tick_hz"))
     p.add_argument(
         "--steady-state-hz",
         type=float,
@@ -320,6 +320,7 @@ def config_from_args(
         tick_hz=rate_hz,
         state_hz=args.state_hz if one else rate_hz,
         idle_state_hz=args.idle_state_hz,
+        idle_tick_hz=args.idle_tick_hz,
         steady=steady_from_args(args),
         origin=args.origin or GeoOrigin(),
         guidance=guidance_from_args(args),

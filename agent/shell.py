@@ -157,6 +157,8 @@ class VehicleShell:
             ]
             self._threaded = True
         self._idle_q = np.zeros(n, bool)  # an action queue that runs at once is never busy
+        self._wake = threading.Event()  # a command came: tick now (`run`, kit/ticks.py)
+        self._resting = False  # every vehicle idle after the last tick: tick at the idle rate
         self.filtered = np.zeros(n, bool)
         self.slowed = np.zeros(n, bool)
         self.seq = np.zeros(n, np.int64)
@@ -204,6 +206,7 @@ class VehicleShell:
                 auth=self.auths[i],
                 polled=True,
                 on_mission=functools.partial(self.mission, i),
+                wake=self._wake,
             )
             for i, vid in enumerate(cfg.ids)
         ]
@@ -441,6 +444,7 @@ class VehicleShell:
                 self._queues[action.index].submit(action)
                 busy[action.index] = True
             idle = idle_rows(core.mode, obs.armed, obs.in_air, busy)
+            self._resting = bool(idle.all())
             due = self.pacer.due(
                 now_s, idle, obs.pos_m, obs.vel_m_s, core.heading_rad, core.mode, obs.armed
             )
@@ -610,4 +614,18 @@ class VehicleShell:
         def overrun() -> None:
             self.stats.overruns += 1
 
-        run_ticks(self.tick, self.cfg.tick_hz, self.clock_s, stop, overrun)
+        def ring_on_stop() -> None:  # the loop waits on the doorbell alone
+            stop.wait()
+            self._wake.set()
+
+        threading.Thread(target=ring_on_stop, name="tick-stop", daemon=True).start()
+        run_ticks(
+            self.tick,
+            self.cfg.tick_hz,
+            self.clock_s,
+            stop,
+            overrun,
+            idle_hz=self.cfg.resting_tick_hz,
+            idle=lambda: self._resting,
+            wake=self._wake,
+        )

@@ -46,6 +46,10 @@ class ShellConfig:
     """State publishing rate while a vehicle is idle: landed (or killed), disarmed, on the
     ground, no autopilot action under way. At least 1 Hz (comms/state_rate.py); back to
     `state_hz` from the tick after a command or arming ends it."""
+    idle_tick_hz: float = 2.0
+    """Tick rate while every vehicle of the process is idle (as for `idle_state_hz`): a landed
+    vehicle waiting costs a fifth of its 10 Hz ticks. A command wakes the loop at once and the
+    ticks are back at `tick_hz` from there; never below `idle_state_hz`. `tick_hz`: no resting."""
     steady: SteadyConfig | None = None
     """Publish at the steady rate while receivers can predict the state (hovering, flying
     straight): comms/state_rate.py; None: always at `state_hz` in the air."""
@@ -109,6 +113,8 @@ class ShellConfig:
         if not (math.isfinite(self.tick_hz) and 0 < self.tick_hz <= 100):
             raise ValueError(f"tick_hz must be within (0, 100], got {self.tick_hz}")
         check_rates(self.state_hz, self.idle_state_hz)
+        if not (math.isfinite(self.idle_tick_hz) and 0 < self.idle_tick_hz <= 100):
+            raise ValueError(f"idle_tick_hz must be within (0, 100], got {self.idle_tick_hz}")
         if not (math.isfinite(self.assumed_pos_sigma_m) and self.assumed_pos_sigma_m >= 0):
             raise ValueError(
                 f"assumed_pos_sigma_m must be finite and >= 0, got {self.assumed_pos_sigma_m}"
@@ -138,6 +144,12 @@ class ShellConfig:
             raise ValueError("per-vehicle radio links are emulated for one vehicle only")
         if len(ids) > 1 and self.trace_guidance:
             raise ValueError("guidance traces come from one vehicle only")
+
+    @property
+    def resting_tick_hz(self) -> float:
+        """The tick rate while every vehicle is idle: `idle_tick_hz`, at least `idle_state_hz`,
+        at most `tick_hz`."""
+        return min(self.tick_hz, max(self.idle_tick_hz, self.idle_state_hz))
 
     @property
     def vehicles(self) -> int:

@@ -15,6 +15,7 @@ start, on every new link and periodically; members that are behind answered).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import threading
@@ -612,6 +613,7 @@ class Mesh:
         auth: MemberAuth | None = None,
         polled: bool = False,
         on_mission: MissionHandler | None = None,
+        wake: threading.Event | None = None,
     ) -> Any:
         """Answer commands for `vehicle_id`; `handler` returns the ack (never raise from it:
         an exception becomes a FAILED ack with the exception text). `auth`: that vehicle's own
@@ -622,7 +624,8 @@ class Mesh:
         on the caller's own thread. A process of many vehicles answers from its tick loop: a
         command to all then costs no thread wake-ups, where a callback queryable is one Zenoh
         handler thread per vehicle, all woken at once (docs/scaling.md). Otherwise the answer
-        is given at once, on that handler thread.
+        is given at once, on that handler thread. `wake` (polled only): set as each query comes,
+        so that a loop resting between slow ticks answers at once (kit/ticks.py).
 
         A Mission uploaded on the same key passes the same checks (`auth.check_mission`) and
         goes to `on_mission`; without one it is refused ("does not fly missions")."""
@@ -679,6 +682,16 @@ class Mesh:
                         answer = ack(command.nonce, AckResult.FAILED, f"internal error: {exc}")
             self._answer(query, reply_key, ack_key, answer, payload, auth)
 
+        if polled and wake is not None:
+            inbox: collections.deque[zenoh.Query] = collections.deque(maxlen=COMMAND_RING)
+
+            def ring_bell(query: zenoh.Query) -> None:  # on Zenoh's thread: keep it, wake the loop
+                inbox.append(query)  # the oldest dropped when full, as the ring does
+                wake.set()
+
+            bell = zenoh.handlers.Callback(ring_bell, indirect=False)
+            qbl = self._keep(self.session.declare_queryable(reply_key, bell))
+            return PolledCommands(qbl, on_query, inbox)
         if polled:
             ring: zenoh.handlers.RingChannel[zenoh.Query] = zenoh.handlers.RingChannel(COMMAND_RING)
             return PolledCommands(
@@ -831,15 +844,29 @@ senders see no ack) rather than Zenoh's network thread waiting for room."""
 
 
 class PolledCommands:
-    """One vehicle's command queryable whose queries wait until `poll()` answers them."""
+    """One vehicle's command queryable whose queries wait until `poll()` answers them: in
+    Zenoh's ring, or, with a doorbell (`serve_commands(wake=...)`), in `inbox`."""
 
-    def __init__(self, queryable: Any, answer: Callable[[zenoh.Query], None]) -> None:
-        self._queryable, self._answer = queryable, answer
+    def __init__(
+        self,
+        queryable: Any,
+        answer: Callable[[zenoh.Query], None],
+        inbox: collections.deque | None = None,
+    ) -> None:
+        self._queryable, self._answer, self._inbox = queryable, answer, inbox
+
+    def _next(self) -> zenoh.Query | None:
+        if self._inbox is None:
+            return self._queryable.try_recv()
+        try:
+            return self._inbox.popleft()
+        except IndexError:
+            return None
 
     def poll(self) -> int:
         """Answer every query that came since the last poll, in order; returns how many."""
         n = 0
-        while (query := self._queryable.try_recv()) is not None:
+        while (query := self._next()) is not None:
             self._answer(query)
             n += 1
         return n

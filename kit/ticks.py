@@ -29,11 +29,21 @@ def run_ticks(
     stop: threading.Event,
     on_overrun: Callable[[], None] | None = None,
     what: str = "tick",
+    *,
+    idle_hz: float | None = None,
+    idle: Callable[[], bool] | None = None,
+    wake: threading.Event | None = None,
 ) -> None:
     """Call `tick(now_s)` at `rate_hz` until `stop` is set, on the schedule of `next_due_s`;
     `on_overrun` is called for each tick that ended after the next one was due. A failing tick
-    is logged (as `what` failed) and the loop goes on: keep flying, keep showing."""
+    is logged (as `what` failed) and the loop goes on: keep flying, keep showing.
+
+    While `idle()` says so after a tick, the next one is due at `idle_hz` instead (a landed
+    vehicle waiting), unless `wake` is set first (a command came): then it runs at once. The
+    caller sets `wake` when `stop` is set too (the loop waits on `wake` alone)."""
     period_s = 1.0 / rate_hz
+    idle_period_s = 1.0 / idle_hz if idle_hz else period_s
+    bell = wake if wake is not None else stop
     due_s = clock_s()
     while not stop.is_set():
         try:
@@ -43,5 +53,8 @@ def run_ticks(
         now_s = clock_s()
         if on_overrun is not None and now_s > due_s + period_s:
             on_overrun()
-        due_s = next_due_s(due_s, now_s, period_s)
-        stop.wait(max(0.0, due_s - now_s))
+        resting = idle is not None and idle_period_s > period_s and idle()
+        due_s = next_due_s(due_s, now_s, idle_period_s if resting else period_s)
+        if bell.wait(max(0.0, due_s - now_s)) and wake is not None:
+            wake.clear()
+            due_s = min(due_s, clock_s())  # rung: tick now

@@ -209,3 +209,44 @@ def test_a_landed_covey_agent_is_never_stale_at_the_station(procs) -> None:
         assert not any(stale), "the station called a landed, idle vehicle stale"
         assert 2 <= len(got) - first <= 7  # about 1 Hz, not 10
         assert view.loss_pct == 0.0 and view.mode is Mode.LANDED
+
+
+def test_an_idle_agent_rests_between_ticks_and_a_command_wakes_it(mesh_trio) -> None:
+    """The agent's own loop (`run`, real clock, real Zenoh): landed, it ticks at its idle rate
+    (2 Hz, not 10); a takeoff sent by the station is answered from a tick run at once, and the
+    ticks are back at full rate while it climbs."""
+    hub, a, _b = mesh_trio
+    cfg = AgentConfig(vehicle_id=1, failsafe=NO_GCS)
+    assert cfg.resting_tick_hz == 2.0
+    stop = threading.Event()
+    with Agent(cfg, SimBackend(SimConfig(), now_s=time.monotonic()), a) as agent:
+        loop = threading.Thread(target=agent.run, args=(stop,), daemon=True)
+        loop.start()
+        try:
+            time.sleep(0.5)
+            t0, ticks0 = time.monotonic(), agent.stats.ticks
+            time.sleep(3.0)
+            idle_ticks = agent.stats.ticks - ticks0
+            idle_s = time.monotonic() - t0
+            # resting: at most 2 Hz (+1 for the window's edges); a loaded machine ticks fewer
+            assert 1 <= idle_ticks <= 2.0 * idle_s + 1, (idle_ticks, idle_s)
+            for _ in range(50):  # the route from the station to the agent's queryable
+                res = hub.send_command(
+                    Command.takeoff(10.0, nonce=new_nonce(), stamp_ns=time.time_ns()),
+                    expect=(1,),
+                    timeout_s=2.0,
+                )
+                if res.ok:
+                    break
+            assert res.ok, res.summary()
+            assert wait_until(lambda: agent.mode is not Mode.LANDED, 5.0)
+            t1, ticks1 = time.monotonic(), agent.stats.ticks
+            time.sleep(2.0)
+            busy_ticks = agent.stats.ticks - ticks1
+            busy_s = time.monotonic() - t1
+            # flying: more than the idle rate allows (10 Hz, less on a loaded machine)
+            assert busy_ticks > 2.0 * busy_s + 1, (busy_ticks, busy_s)
+        finally:
+            stop.set()
+            loop.join(5.0)
+        assert not loop.is_alive(), "the loop did not stop when asked"

@@ -76,3 +76,60 @@ def test_a_failing_tick_is_logged_and_the_loop_goes_on(caplog) -> None:
         starts, _ = _run(lambda k: 0.01, 10, fail=lambda k: k == 3)
     assert len(starts) == 10
     assert "tick failed" in caplog.text and "tick 3 broke" in caplog.text
+
+
+class Doorbell:
+    """A wake event on the fake clock: rings (returns True, time moved to the ring) when a
+    ring is due before the timeout; `clear` as threading.Event."""
+
+    def __init__(self, t: FakeTime, rings_s: list[float]) -> None:
+        self.t, self.rings_s, self.rung = t, sorted(rings_s), False
+
+    def wait(self, timeout_s: float) -> bool:
+        end_s = self.t.now_s + timeout_s
+        if self.rings_s and self.rings_s[0] <= end_s:
+            self.t.now_s = max(self.t.now_s, self.rings_s.pop(0))
+            self.rung = True
+            return True
+        self.t.now_s = end_s
+        return self.t.is_set()
+
+    def clear(self) -> None:
+        self.rung = False
+
+
+def _run_resting(ticks: int, idle_until_s: float, rings_s: list[float]):
+    """Ticks at 10 Hz, resting at 2 Hz while the clock is before `idle_until_s`."""
+    t = FakeTime(ticks)
+    starts: list[float] = []
+    bell = Doorbell(t, rings_s)
+
+    def tick(now_s: float) -> None:
+        starts.append(now_s)
+        t.left -= 1
+        t.now_s += 0.005
+
+    run_ticks(
+        tick,
+        10.0,
+        t.clock_s,
+        t,
+        idle_hz=2.0,
+        idle=lambda: t.now_s < idle_until_s,
+        wake=bell,  # type: ignore[arg-type]
+    )
+    return np.array(starts)
+
+
+def test_an_idle_loop_rests_at_the_idle_rate_and_comes_back() -> None:
+    starts = _run_resting(30, idle_until_s=5.0, rings_s=[])
+    gaps = np.diff(starts)
+    assert np.allclose(gaps[starts[:-1] < 4.5], 0.5)  # resting: 2 Hz
+    assert np.allclose(gaps[starts[:-1] > 5.0], 0.1)  # busy again: 10 Hz
+
+
+def test_a_ring_ticks_at_once_while_resting() -> None:
+    # idle throughout; a command at 1.23 s: its tick runs then, not at the next 0.5 s slot
+    starts = _run_resting(6, idle_until_s=100.0, rings_s=[1.23])
+    assert 1.23 in [round(s, 6) for s in starts], starts
+    assert np.diff(starts).min() > 0.2  # no burst after the ring: resting again
