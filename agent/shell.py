@@ -158,6 +158,7 @@ class VehicleShell:
             self._threaded = True
         self._idle_q = np.zeros(n, bool)  # an action queue that runs at once is never busy
         self._wake = threading.Event()  # a command came: tick now (`run`, kit/ticks.py)
+        self._drained: tuple[int, float] | None = None  # (mesh ns, tick s) while draining
         self._resting = False  # every vehicle idle after the last tick: tick at the idle rate
         self.filtered = np.zeros(n, bool)
         self.slowed = np.zeros(n, bool)
@@ -294,10 +295,12 @@ class VehicleShell:
 
     # -- events ------------------------------------------------------------------------------
     def _on_state(self, state: VehicleState, recv_ns: int) -> None:
-        if state.vehicle_id not in self._own:
-            # the mesh's receive stamp on this clock (a polled state arrived before the tick)
-            lag_s = max(0.0, (self.mesh.clock_ns() - recv_ns) / 1e9)
-            self.table.update(state, self.clock_s() - lag_s)
+        if state.vehicle_id in self._own:
+            return
+        # the mesh's receive stamp on this clock: a polled state, taken at the tick's start
+        # (`_drained`: the mesh clock then and the tick's time), arrived before it
+        taken_ns, taken_s = self._drained or (self.mesh.clock_ns(), self.clock_s())
+        self.table.update(state, taken_s - max(0, taken_ns - recv_ns) / 1e9)
 
     def _on_plan(self, plan: FleetPlan) -> None:
         with self._lock:
@@ -411,7 +414,10 @@ class VehicleShell:
         events and failsafes, batched guidance, then the states that are due."""
         t0 = time.perf_counter()
         if isinstance(self.states, CellSubscription):
-            self.states.drain()  # the states that came since the last tick, checked at once
+            # the states that came since the last tick, checked at once, received by `now_s`
+            self._drained = (self.mesh.clock_ns(), now_s)
+            self.states.drain(self._drained[0])
+            self._drained = None
         for commands in self.commands:
             commands.poll()
         self.vehicles.step(now_s)

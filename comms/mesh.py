@@ -936,9 +936,10 @@ class CellSubscription:
             with contextlib.suppress(Exception):
                 sub.undeclare()
 
-    def drain(self) -> int:
-        """Polled: hand every sample that came since the last drain to the handler, at once;
-        returns how many. Called back: 0."""
+    def drain(self, taken_ns: int | None = None) -> int:
+        """Polled: hand every sample that came since the last drain to the handler, at once,
+        as taken at `taken_ns` (default now, the mesh's clock); returns how many. Called
+        back: 0."""
         if self._on_samples is None:
             return 0
         with self._lock:
@@ -948,7 +949,7 @@ class CellSubscription:
         for sub in subs:
             while (sample := sub.try_recv()) is not None:
                 samples.append(sample)
-        now_ns = self._mesh.clock_ns()
+        now_ns = self._mesh.clock_ns() if taken_ns is None else taken_ns
         since_ns, self._drained_ns = self._drained_ns, now_ns
         for sub in retired:
             with contextlib.suppress(Exception):

@@ -40,10 +40,11 @@ def run_ticks(
 
     While `idle()` says so after a tick, the next one is due at `idle_hz` instead (a landed
     vehicle waiting), unless `wake` is set first (a command came): then it runs at once. The
-    caller sets `wake` when `stop` is set too (the loop waits on `wake` alone)."""
+    caller sets `wake` when `stop` is set too (a resting loop waits on `wake` alone). A busy
+    loop keeps its period whatever rings (its ticks stay evenly spaced: guidance traces
+    replay them)."""
     period_s = 1.0 / rate_hz
     idle_period_s = 1.0 / idle_hz if idle_hz else period_s
-    bell = wake if wake is not None else stop
     due_s = clock_s()
     while not stop.is_set():
         try:
@@ -53,8 +54,12 @@ def run_ticks(
         now_s = clock_s()
         if on_overrun is not None and now_s > due_s + period_s:
             on_overrun()
-        resting = idle is not None and idle_period_s > period_s and idle()
+        resting = wake is not None and idle is not None and idle_period_s > period_s and idle()
         due_s = next_due_s(due_s, now_s, idle_period_s if resting else period_s)
-        if bell.wait(max(0.0, due_s - now_s)) and wake is not None:
+        if not resting:
+            if wake is not None:
+                wake.clear()  # what rang is answered by the next tick, due anyway
+            stop.wait(max(0.0, due_s - now_s))
+        elif wake is not None and wake.wait(max(0.0, due_s - now_s)):
             wake.clear()
             due_s = min(due_s, clock_s())  # rung: tick now
