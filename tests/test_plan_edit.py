@@ -14,7 +14,8 @@ from comms.plan import MAX_RALLY_POINTS, Fence, FleetPlan, RallyPoint, Zone
 from comms.schema import Mode, StateFlag, VehicleState
 from groundstation import plan_edit as pe
 from groundstation.command_log import CommandLog
-from groundstation.plan_editor import draft_html, vehicle_points
+from groundstation.plan_draft_view import draft_html
+from groundstation.plan_editor import vehicle_points
 from groundstation.plan_routes import RouteLayer, planned_routes, router_for
 from groundstation.scene import FleetScene, SceneConfig
 from groundstation.tables import command_log_html
