@@ -29,6 +29,8 @@ MAX_NAME_BYTES = 64
 """Longest zone or rally point name, in UTF-8 bytes."""
 MAX_COORD_M = 1.0e6
 """No plan coordinate is further than this from the fleet origin (a swarm's plan spans km)."""
+HOME = "home"
+"""The name of the rally point that is the fleet's home (a plan holds at most one)."""
 
 PolygonNE = tuple[tuple[float, float], ...]
 """A polygon as (north_m, east_m) vertices, not closed (the last vertex is not the first)."""
@@ -175,7 +177,7 @@ class FleetPlan:
     @property
     def home(self) -> RallyPoint | None:
         """The rally point named 'home', if any."""
-        return next((r for r in self.rally if r.name == "home"), None)
+        return next((r for r in self.rally if r.name == HOME), None)
 
     def polygons_ne_m(self) -> list[PolygonNE]:
         """The fence's polygon (first, if any) and every keep-out polygon."""
@@ -185,6 +187,12 @@ class FleetPlan:
     def keep_out_polygons_ne_m(self) -> list[PolygonNE]:
         """Every keep-out polygon's vertices (what the route planner and the filter inflate)."""
         return [z.vertices_ne_m for z in self.keep_out]
+
+
+def rally_numbers(rally: tuple[RallyPoint, ...]) -> list[tuple[int, int]]:
+    """(number, index into `rally`) of each rally point other than home, numbered from 1 in
+    the plan's order: the numbers the station shows and edits them by."""
+    return list(enumerate((i for i, r in enumerate(rally) if r.name != HOME), start=1))
 
 
 def point_in_polygon(n_m: float, e_m: float, vertices_ne_m: PolygonNE) -> bool:

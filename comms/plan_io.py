@@ -28,7 +28,7 @@ import shapely
 from shapely.validation import explain_validity
 
 from comms.geo import GeoOrigin
-from comms.plan import Fence, FleetPlan, RallyPoint, Zone
+from comms.plan import HOME, Fence, FleetPlan, RallyPoint, Zone
 from comms.schema import MAX_PLAN_BYTES, DecodeError, PlanMessage
 from kit.safe_load import BadFileError, decode_utf8, parse_json, read_bounded
 
@@ -140,20 +140,20 @@ def check_geometry(g: PlanGeometry) -> PlanGeometry:
     for z in g.keep_out:
         what = f"keep-out zone {z.name!r}" if z.name else "a keep-out zone"
         poly = _valid(z.vertices_ne_m, what)
-        zones.append((z, poly))
+        zones.append((z, poly, what))
         if fence is not None and not fence.intersects(poly):
             notes.append(f"{what} lies wholly outside the fence")
     for r in g.rally:
         point = shapely.Point(r.n_m, r.e_m)
-        what = "home" if r.name == "home" else f"rally point {r.name!r}"
+        what = (
+            "home" if r.name == HOME else f"rally point {r.name!r}" if r.name else "a rally point"
+        )
         if fence is not None and not fence.covers(point):
             raise ValueError(f"{what} ({r.n_m:.1f}, {r.e_m:.1f}) m is outside the fence")
-        for z, poly in zones:
+        for z, poly, zone in zones:
             if z.covers_alt(r.alt_m) and poly.covers(point):
-                raise ValueError(
-                    f"keep-out zone {z.name!r} covers {what} ({r.n_m:.1f}, {r.e_m:.1f}) m"
-                )
-    if sum(r.name == "home" for r in g.rally) > 1:
+                raise ValueError(f"{zone} covers {what} ({r.n_m:.1f}, {r.e_m:.1f}) m")
+    if sum(r.name == HOME for r in g.rally) > 1:
         raise ValueError("more than one home point")
     return PlanGeometry(g.fence, g.keep_out, g.rally, tuple(notes))
 

@@ -1,18 +1,21 @@
 """Editing the fleet plan in the station, pure: a draft of the plan's geometry that an operator
 changes one step at a time (add a keep-out zone or the fence corner by corner, move or delete a
-corner, delete a zone or the fence, set the fence's floor and ceiling), each step checked before
-it is taken. Polygons are numbered as the panel shows them: the fence 0 (`FENCE_NO`), the zones
-from 1, each corner zone.corner from 1.
+corner, delete a zone or the fence, set the fence's floor and ceiling, set home, add, move or
+delete a rally point), each step checked before it is taken. Polygons are numbered as the panel
+shows them: the fence 0 (`FENCE_NO`), the zones from 1, each corner zone.corner from 1; rally
+points from 1, home not counted (comms/plan.py `rally_numbers`).
 
 A step that would make the plan invalid is refused with the reason, and the draft stays as it
 was (`EditRefused`): the geometry through comms/plan_io.py `check_geometry` (shapely: a
-self-crossing or degenerate polygon, fewer than 3 corners, home or a rally point inside a zone),
+self-crossing or degenerate polygon, fewer than 3 corners, home or a rally point inside a zone
+or outside the fence, a second home),
 then every vehicle's target as comms/plan.py `plan_refusal` words it (the check the flight core
 makes) and every vehicle's position against the keep-out zones and the fence's polygon: a zone is
 never drawn over a vehicle or over where one is flying to, a fence never leaves one outside (what
 the plan already ruled out, e.g. a vehicle that drifted into a zone, blocks no edit elsewhere).
-The plan's own limits (vertices and zones in all) are comms/plan.py `FleetPlan`'s. The station signs and pushes a draft through the same
-path as an uploaded file (groundstation/plan_view.py `PlanView.push_geometry`).
+The plan's own limits (vertices, zones and rally points in all) are comms/plan.py `FleetPlan`'s.
+The station signs and pushes a draft through the same path as an uploaded file
+(groundstation/plan_view.py `PlanView.push_geometry`).
 
 No viser, no Zenoh, no clock (groundstation/plan_editor.py is the panel around it).
 """
@@ -23,15 +26,18 @@ import math
 from dataclasses import dataclass, replace
 
 from comms.plan import (
+    HOME,
     MAX_COORD_M,
     MAX_POLYGON_VERTICES,
     MAX_ZONES,
     Fence,
     FleetPlan,
     PolygonNE,
+    RallyPoint,
     Zone,
     plan_refusal,
     point_in_polygon,
+    rally_numbers,
 )
 from comms.plan_io import PlanGeometry, check_geometry
 
@@ -172,9 +178,9 @@ def _corner_no(zone_no: int, vertices_ne_m: PolygonNE, corner_no: int) -> int:
     return corner_no - 1
 
 
-def _point(n_m: float, e_m: float) -> tuple[float, float]:
+def _point(n_m: float, e_m: float, what: str = "corner") -> tuple[float, float]:
     if not all(math.isfinite(c) and abs(c) <= MAX_COORD_M for c in (n_m, e_m)):
-        raise EditRefused(f"corner (N {n_m}, E {e_m}) must be finite metres within {MAX_COORD_M:g}")
+        raise EditRefused(f"{what} (N {n_m}, E {e_m}) must be finite metres within {MAX_COORD_M:g}")
     return round(float(n_m), 2), round(float(e_m), 2)
 
 
@@ -333,3 +339,92 @@ def set_fence_band(
         for what, v in (("floor", floor_alt_m), ("ceiling", ceiling_alt_m))
     )
     return _take(draft, PlanGeometry(fence, g.keep_out, g.rally), f"fence {band}", vehicles)
+
+
+# -- home and rally points -------------------------------------------------------------------------
+def _rally_index(draft: Draft, rally_no: int) -> int:
+    """The index in the plan's rally tuple of rally point `rally_no` (1-based, home not counted:
+    comms/plan.py `rally_numbers`)."""
+    numbers = rally_numbers(draft.geometry.rally)
+    if not numbers:
+        raise EditRefused("the plan has no rally point")
+    if not 1 <= rally_no <= len(numbers):
+        raise EditRefused(
+            f"rally point {rally_no} does not exist (rally points 1 to {len(numbers)})"
+        )
+    return numbers[rally_no - 1][1]
+
+
+def _rally_label(r: RallyPoint, rally_no: int) -> str:
+    return f"rally point {rally_no} ({r.name!r})" if r.name else f"rally point {rally_no}"
+
+
+def _placed(
+    n_m: float, e_m: float, alt_m: float | None, old: RallyPoint | None, name: str, what: str
+) -> RallyPoint:
+    """A rally point (home: name HOME) at (n_m, e_m); `alt_m` None keeps `old`'s altitude (a
+    new point: 0, the origin's)."""
+    n, e = _point(n_m, e_m, what)
+    alt = (old.alt_m if old is not None else 0.0) if alt_m is None else alt_m
+    try:
+        return RallyPoint(n, e, round(float(alt), 2), name)
+    except ValueError as exc:
+        raise EditRefused(str(exc)) from None
+
+
+def where(r: RallyPoint) -> str:
+    """Where home or a rally point is, as the edits and the draft summary say it."""
+    return f"N {r.n_m:g}, E {r.e_m:g}" + (f", {r.alt_m:g} m up" if r.alt_m else "")
+
+
+def _with_rally(draft: Draft, rally: tuple[RallyPoint, ...], edit: str) -> Draft:
+    """`draft` with these home and rally points, checked as a file's are (inside the fence,
+    outside every zone that covers their altitude, one home) and against FleetPlan's limits."""
+    g = draft.geometry
+    return _take(draft, PlanGeometry(g.fence, g.keep_out, rally), edit, ())
+
+
+def set_home(draft: Draft, n_m: float, e_m: float, alt_m: float | None = None) -> Draft:
+    """The fleet's home at (n_m, e_m), `alt_m` above the origin (None: the home's altitude
+    kept, 0 for a first home); it replaces the plan's home where it stood in the list."""
+    rally = draft.geometry.rally
+    i = next((k for k, r in enumerate(rally) if r.name == HOME), None)
+    old = None if i is None else rally[i]
+    home = _placed(n_m, e_m, alt_m, old, HOME, "home")
+    if i is None:
+        return _with_rally(draft, (home, *rally), f"home set at {where(home)}")
+    return _with_rally(draft, (*rally[:i], home, *rally[i + 1 :]), f"home moved to {where(home)}")
+
+
+def add_rally(
+    draft: Draft, n_m: float, e_m: float, alt_m: float | None = None, name: str = ""
+) -> Draft:
+    """One more rally point at (n_m, e_m), `alt_m` above the origin (None: 0), numbered after
+    the plan's; `name` may be empty, never 'home' (that is `set_home`)."""
+    name = name.strip()
+    if name == HOME:
+        raise EditRefused(f"{HOME!r} names the fleet's home: set it with 'Set home'")
+    r = _placed(n_m, e_m, alt_m, None, name, "rally point")
+    rally = (*draft.geometry.rally, r)
+    no = len(rally_numbers(rally))
+    return _with_rally(draft, rally, f"{_rally_label(r, no)} added at {where(r)}")
+
+
+def move_rally(
+    draft: Draft, rally_no: int, n_m: float, e_m: float, alt_m: float | None = None
+) -> Draft:
+    """Rally point `rally_no` (1-based, home not counted) moved to (n_m, e_m), `alt_m` above the
+    origin (None: its altitude kept), its name kept."""
+    i = _rally_index(draft, rally_no)
+    rally = draft.geometry.rally
+    r = _placed(n_m, e_m, alt_m, rally[i], rally[i].name, "rally point")
+    edit = f"{_rally_label(r, rally_no)} moved to {where(r)}"
+    return _with_rally(draft, (*rally[:i], r, *rally[i + 1 :]), edit)
+
+
+def delete_rally(draft: Draft, rally_no: int) -> Draft:
+    """Rally point `rally_no` removed (those after it move up one number)."""
+    i = _rally_index(draft, rally_no)
+    rally = draft.geometry.rally
+    edit = f"{_rally_label(rally[i], rally_no)} deleted"
+    return _with_rally(draft, rally[:i] + rally[i + 1 :], edit)

@@ -4,11 +4,14 @@ The operator clicks a keep-out zone's or the fence's corners on the ground (Grou
 corner'), names a zone and presses 'Close zone', or presses 'Close fence' (the drawn fence
 replaces the plan's); moves a corner by typing its place or by clicking the ground ('moves the
 corner'), deletes a corner or a zone by number (zone number 0 is the fence), deletes the fence,
-sets the fence's floor and ceiling, then presses 'Sign and push plan'. Each step is checked as
-it is taken (groundstation/plan_edit.py) and a refusal is shown with its reason, the draft
-unchanged. The draft is drawn in this tab's own 3D view (violet, each corner numbered
-zone.corner, the fence's 0.corner); the shared scene keeps showing the plan the fleet holds
-until the push.
+sets the fence's floor and ceiling; sets home ('Set home' at the typed north/east, or Ground
+click: 'sets home'), adds a rally point ('Add rally point', or 'adds a rally point'), moves one
+by its number ('Move rally point', or 'moves the rally point') or deletes it; then presses 'Sign
+and push plan'. Each step is checked as it is taken (groundstation/plan_edit.py) and a refusal
+is shown with its reason, the draft unchanged. The draft is drawn in this tab's own 3D view
+(violet, each corner numbered zone.corner, the fence's 0.corner, home and 'rally k':
+groundstation/plan_draft_view.py); the shared scene keeps showing the plan the fleet holds until
+the push.
 
 A push signs the draft with the station's key and pushes it as the next version through the path
 an uploaded file takes (`PlanView.push_geometry`), listed in the command log with the operator's
@@ -25,7 +28,6 @@ import html
 import threading
 from collections.abc import Callable, Iterable
 
-import numpy as np
 import viser
 
 from comms.schema import StateFlag, VehicleState
@@ -33,24 +35,34 @@ from groundstation import plan_edit as pe
 from groundstation.browser_form import BrowserForms, FormSnapshot
 from groundstation.frames import ground_hit_ned
 from groundstation.inputs import InputError, number
+from groundstation.plan_draft_view import draft_html, draw_draft
 from groundstation.plan_view import PlanView
-from groundstation.scene import polygon_segments
 
 GROUND_CLICK = "Ground click"
 CLICK_OFF, CLICK_ADD, CLICK_MOVE = "does nothing", "adds a corner", "moves the corner"
+CLICK_HOME, CLICK_RALLY = "sets home", "adds a rally point"
+CLICK_MOVE_RALLY = "moves the rally point"
+CLICK_MODES = (CLICK_OFF, CLICK_ADD, CLICK_MOVE, CLICK_HOME, CLICK_RALLY, CLICK_MOVE_RALLY)
 ZONE_NAME = "New zone name"
 ZONE_NO, CORNER_NO = "Zone number (0: fence)", "Corner number"
-CORNER_N, CORNER_E = "Corner north (m)", "Corner east (m)"
+CORNER_N, CORNER_E = "North of origin (m)", "East of origin (m)"
+"""Where a corner moves, or home or a rally point goes (typed)."""
 FLOOR, CEILING = "Fence floor above origin (m)", "Fence ceiling above origin (m)"
-LABELS = (ZONE_NAME, ZONE_NO, CORNER_NO, CORNER_N, CORNER_E, FLOOR, CEILING)
+RALLY_NAME, RALLY_NO = "New rally point name", "Rally point number"
+POINT_ALT = "Home or rally point altitude above origin (m)"
+LABELS = (
+    ZONE_NAME, ZONE_NO, CORNER_NO, CORNER_N, CORNER_E, FLOOR, CEILING, RALLY_NAME, RALLY_NO,
+    POINT_ALT,
+)  # fmt: skip
 """The labelled inputs the editor's buttons read from the tab (groundstation/browser_form.py)."""
+WHOLE = (ZONE_NO, CORNER_NO, RALLY_NO)
+"""The fields that take a whole number."""
 ZONE_BUTTONS = ("Close zone", "Close fence", "Discard corners")
 CORNER_BUTTONS = ("Move corner", "Delete corner", "Delete zone", "Delete fence")
+SET_HOME, ADD_RALLY = "Set home", "Add rally point"
+MOVE_RALLY, DELETE_RALLY = "Move rally point", "Delete rally point"
+RALLY_BUTTONS = (SET_HOME, ADD_RALLY, MOVE_RALLY, DELETE_RALLY)
 SET_BAND, PUSH, RESET = "Set fence floor/ceiling", "Sign and push plan", "Reset draft"
-DRAFT_PATH = "/plan_draft"
-DRAFT_RGB = (140, 60, 200)
-MAX_CORNER_LABELS = 200
-"""Corners numbered in the view at most (each is a label)."""
 MAX_COORD_INPUT_M = 100_000.0
 
 
@@ -98,9 +110,7 @@ class PlanEditor:
         with gui.add_folder("Edit fleet plan", order=order, expand_by_default=False):
             self.message = gui.add_html("")
             self.draft_html = gui.add_html(draft_html(None))
-            self.ground = gui.add_dropdown(
-                GROUND_CLICK, (CLICK_OFF, CLICK_ADD, CLICK_MOVE), initial_value=CLICK_OFF
-            )
+            self.ground = gui.add_dropdown(GROUND_CLICK, CLICK_MODES, initial_value=CLICK_OFF)
             self.zone_name = gui.add_text(ZONE_NAME, "", hint="What the operators call it.")
             self.zone_buttons = gui.add_button_group("Drawn corners", ZONE_BUTTONS)
             self.zone_no = gui.add_number(ZONE_NO, 1, min=pe.FENCE_NO, step=1)
@@ -111,12 +121,19 @@ class PlanEditor:
             self.floor = gui.add_text(FLOOR, "", hint="Metres, up; empty: no floor.")
             self.ceiling = gui.add_text(CEILING, "", hint="Metres, up; empty: no ceiling.")
             self.band_button = gui.add_button(SET_BAND)
+            self.rally_name = gui.add_text(RALLY_NAME, "", hint="Optional; never 'home'.")
+            self.rally_no = gui.add_number(RALLY_NO, 1, min=1, step=1)
+            self.point_alt = gui.add_text(
+                POINT_ALT, "", hint="Metres, up; empty: kept (0 for a new point)."
+            )
+            self.rally_buttons = gui.add_button_group("Home and rally points", RALLY_BUTTONS)
             self.push_button = gui.add_button(PUSH, color="green", icon=viser.Icon.SEND)
             self.reset_button = gui.add_button(RESET, icon=viser.Icon.TRASH)
         self.ground.on_update(lambda _e: self._click_mode(self.ground.value))
         self.zone_buttons.on_click(self._zone_pressed)
         self.corner_buttons.on_click(self._corner_pressed)
         self.band_button.on_click(self._band_pressed)
+        self.rally_buttons.on_click(self._rally_pressed)
         self.push_button.on_click(self._push_pressed)
         self.reset_button.on_click(lambda _e: self.reset())
 
@@ -176,6 +193,18 @@ class PlanEditor:
             lambda d: pe.set_fence_band(d, floor_alt_m, ceiling_alt_m, self._vehicles())
         )
 
+    def set_home(self, n_m: float, e_m: float, alt_m: float | None = None) -> bool:
+        return self._edit(lambda d: pe.set_home(d, n_m, e_m, alt_m))
+
+    def add_rally(self, n_m: float, e_m: float, alt_m: float | None = None, name: str = "") -> bool:
+        return self._edit(lambda d: pe.add_rally(d, n_m, e_m, alt_m, name))
+
+    def move_rally(self, rally_no: int, n_m: float, e_m: float, alt_m: float | None = None) -> bool:
+        return self._edit(lambda d: pe.move_rally(d, rally_no, n_m, e_m, alt_m))
+
+    def delete_rally(self, rally_no: int) -> bool:
+        return self._edit(lambda d: pe.delete_rally(d, rally_no))
+
     def reset(self) -> None:
         with self._lock:
             self.draft = None
@@ -222,14 +251,14 @@ class PlanEditor:
             return None
 
     def _numbers(self, form: FormSnapshot, *labels: str) -> list[float] | None:
-        """The labelled fields' values; zone and corner numbers must be whole."""
+        """The labelled fields' values; zone, corner and rally point numbers must be whole."""
         try:
             out = [
                 number(label, form.get(label), -MAX_COORD_INPUT_M, MAX_COORD_INPUT_M)
                 for label in labels
             ]
             for label, value in zip(labels, out, strict=True):
-                if label in (ZONE_NO, CORNER_NO) and value != int(value):
+                if label in WHOLE and value != int(value):
                     raise InputError(f"{label}: enter a whole number, got {value:g}")
         except InputError as exc:
             self._say(str(exc), error=True)
@@ -281,6 +310,34 @@ class PlanEditor:
             return
         self.set_fence_band(floor, ceiling)
 
+    def _rally_pressed(self, event: viser.GuiEvent) -> None:
+        button = event.target.value
+        form = self._form(event, button)
+        if form is None:
+            return
+        if button == DELETE_RALLY:
+            got = self._numbers(form, RALLY_NO)
+            if got is not None:
+                self.delete_rally(int(got[0]))
+            return
+        try:
+            alt = _optional_alt("Point altitude", form.get(POINT_ALT))
+        except InputError as exc:
+            self._say(str(exc), error=True)
+            return
+        if button == MOVE_RALLY:
+            got = self._numbers(form, RALLY_NO, CORNER_N, CORNER_E)
+            if got is not None:
+                self.move_rally(int(got[0]), got[1], got[2], alt)
+            return
+        got = self._numbers(form, CORNER_N, CORNER_E)
+        if got is None:
+            return
+        if button == SET_HOME:
+            self.set_home(got[0], got[1], alt)
+        else:
+            self.add_rally(got[0], got[1], alt, form.get(RALLY_NAME) or "")
+
     def _push_pressed(self, _event: viser.GuiEvent) -> None:
         self.push(self._operator())
 
@@ -295,22 +352,43 @@ class PlanEditor:
         @scene.on_click()
         def clicked(event: viser.SceneClickEvent) -> None:
             hit = ground_hit_ned(event.ray_origin, event.ray_direction)
+            mode = self.ground.value
             if hit is None:
                 self._say("that click does not hit the ground; aim below the horizon", error=True)
-            elif self.ground.value == CLICK_MOVE:
-                # A click is no button: the corner is the one the tab's fields name, and the
-                # draft drawn in the view shows which one moved before anything is pushed.
-                zone_no, corner_no = self.zone_no.value, self.corner_no.value
-                if not all(
-                    isinstance(v, int | float) and v == int(v) for v in (zone_no, corner_no)
-                ):
-                    self._say("set a whole zone and corner number to move", error=True)
-                    return
-                self.move_corner(int(zone_no), int(corner_no), *hit)
-            else:
+            elif mode == CLICK_ADD:
                 self.add_corner(*hit)
+            else:
+                self._point_clicked(mode, *hit)
 
         self._click = clicked
+
+    def _point_clicked(self, mode: str, n_m: float, e_m: float) -> None:
+        """A ground click that moves a corner, sets home or adds or moves a rally point. A click
+        is no button: the corner or rally point is the one the tab's fields name, the altitude
+        the one its field holds, and the draft drawn in the view shows what changed before
+        anything is pushed."""
+        if mode == CLICK_MOVE:
+            zone_no, corner_no = self.zone_no.value, self.corner_no.value
+            if not all(isinstance(v, int | float) and v == int(v) for v in (zone_no, corner_no)):
+                self._say("set a whole zone and corner number to move", error=True)
+                return
+            self.move_corner(int(zone_no), int(corner_no), n_m, e_m)
+            return
+        try:
+            alt = _optional_alt("Point altitude", self.point_alt.value)
+        except InputError as exc:
+            self._say(str(exc), error=True)
+            return
+        if mode == CLICK_HOME:
+            self.set_home(n_m, e_m, alt)
+        elif mode == CLICK_RALLY:
+            self.add_rally(n_m, e_m, alt, self.rally_name.value)
+        else:
+            rally_no = self.rally_no.value
+            if not (isinstance(rally_no, int | float) and rally_no == int(rally_no)):
+                self._say("set a whole rally point number to move", error=True)
+                return
+            self.move_rally(int(rally_no), n_m, e_m, alt)
 
     # -- showing -------------------------------------------------------------------------------
     def _say(self, text: str, error: bool = False) -> None:
@@ -325,91 +403,4 @@ class PlanEditor:
         self.draft_html.content = draft_html(draft)
         for handle in reversed(self._drawn):
             handle.remove()
-        self._drawn = []
-        if draft is None:
-            return
-        scene, add = self.client.scene, self._drawn.append
-        colour = np.array(DRAFT_RGB, np.uint8)
-        labels = 0
-        for no, vertices_ne_m in _numbered_polygons(draft):
-            add(
-                scene.add_line_segments(
-                    f"{DRAFT_PATH}/polygons/{no}",
-                    polygon_segments(vertices_ne_m, 0.08),
-                    colour,
-                    thickness=3.0,
-                    thickness_units="screen",
-                )
-            )
-            for j, (n, e) in enumerate(vertices_ne_m):
-                if labels < MAX_CORNER_LABELS:
-                    labels += 1
-                    add(
-                        scene.add_label(
-                            f"{DRAFT_PATH}/corners/{no}_{j + 1}",
-                            f"{no}.{j + 1}",
-                            position=(e, n, 0.3),
-                            font_screen_scale=0.8,
-                        )
-                    )
-        if draft.corners_ne_m:
-            ne = np.asarray(draft.corners_ne_m, np.float32)
-            pts = np.stack([ne[:, 1], ne[:, 0], np.full(len(ne), 0.08, np.float32)], axis=-1)
-            add(
-                scene.add_point_cloud(
-                    f"{DRAFT_PATH}/new/corners", pts, colour, point_size=0.6, point_shape="circle"
-                )
-            )
-            if len(pts) >= 2:
-                add(
-                    scene.add_line_segments(
-                        f"{DRAFT_PATH}/new/edges",
-                        np.stack([pts[:-1], pts[1:]], axis=1),
-                        colour,
-                        thickness=2.0,
-                        thickness_units="screen",
-                    )
-                )
-
-
-def _numbered_polygons(draft: pe.Draft) -> list[tuple[int, tuple[tuple[float, float], ...]]]:
-    """(number, corners) of the fence (pe.FENCE_NO) and of each zone (1 on), as steps take them."""
-    g = draft.geometry
-    fence = [] if g.fence is None else [(pe.FENCE_NO, g.fence.vertices_ne_m)]
-    return fence + [(i + 1, z.vertices_ne_m) for i, z in enumerate(g.keep_out)]
-
-
-def _corners(no: int, vertices_ne_m: tuple[tuple[float, float], ...]) -> str:
-    """'4 corners (1.1 to 1.4)': how many, and their numbers as the view labels them."""
-    return f"{len(vertices_ne_m)} corners ({no}.1 to {no}.{len(vertices_ne_m)})"
-
-
-def draft_html(draft: pe.Draft | None) -> str:
-    """What the folder says of the draft: its base, the fence and each zone with its corners'
-    numbers as the view labels them, the corners being drawn."""
-    if draft is None:
-        return "<i>not editing: a ground click or a button below starts a draft of the plan</i>"
-    g = draft.geometry
-    fence = "no fence"
-    if g.fence is not None:
-        f = g.fence
-        band = [
-            f"{w} {v:g} m"
-            for w, v in (("floor", f.floor_alt_m), ("ceiling", f.ceiling_alt_m))
-            if v is not None
-        ]
-        fence = f"zone {pe.FENCE_NO}: the fence, {_corners(pe.FENCE_NO, f.vertices_ne_m)}" + (
-            f" ({', '.join(band)})" if band else ""
-        )
-    zones = "".join(
-        f"<br>zone {i + 1}: {html.escape(z.name or 'unnamed')}, {_corners(i + 1, z.vertices_ne_m)}"
-        for i, z in enumerate(g.keep_out)
-    )
-    base = f"v{draft.base_version}" if draft.base_version is not None else "no plan"
-    head = f"<b>draft</b> on {base}, {len(draft.edits)} edit(s) not pushed"
-    drawing = (
-        f"<br>drawing a zone or fence: {len(draft.corners_ne_m)} corner(s)"
-        if draft.corners_ne_m
-        else ""
-    )
-    return f"<div data-draft='{len(draft.edits)}'>{head}<br>{fence}{zones}{drawing}</div>"
+        self._drawn = [] if draft is None else draw_draft(self.client.scene, draft)

@@ -27,7 +27,7 @@ from typing import Any, Literal, TypedDict
 import numpy as np
 import viser
 
-from comms.plan import FleetPlan
+from comms.plan import FleetPlan, rally_numbers
 from comms.schema import Mode, VehicleState
 from groundstation import scene_geometry as geo
 from groundstation.fleet import FleetSnapshot, VehicleView
@@ -526,6 +526,7 @@ class FleetScene:
                     font_screen_scale=0.9,
                 )
             )
+        numbers = {i: no for no, i in rally_numbers(plan.rally)}  # as the plan editor's
         for k, r in enumerate(plan.rally):
             path = f"/plan/rally/{k}"
             add(
@@ -540,7 +541,7 @@ class FleetScene:
             add(
                 scene.add_label(
                     f"{path}/label",
-                    r.name or f"rally {k + 1}",
+                    r.name or f"rally {numbers[k]}",
                     position=(0.0, 0.0, 0.8),
                     anchor="bottom-center",
                     font_screen_scale=0.9,

@@ -1,5 +1,5 @@
 """Editing the fleet plan, without a browser: each step of a draft (groundstation/plan_edit.py)
-is taken or refused with its reason; the station's routes around the zones (plan_routes.py) keep
+is taken or refused with its reason (zones, the fence, home and rally points); the station's routes around the zones (plan_routes.py) keep
 out of them and are drawn in a real viser scene; the command log lists plan versions with who
 pushed them and what changed."""
 
@@ -10,12 +10,14 @@ import pytest
 import shapely
 import viser
 
-from comms.plan import Fence, FleetPlan, RallyPoint, Zone
+from comms.plan import MAX_RALLY_POINTS, Fence, FleetPlan, RallyPoint, Zone
 from comms.schema import Mode, StateFlag, VehicleState
 from groundstation import plan_edit as pe
 from groundstation.command_log import CommandLog
-from groundstation.plan_editor import draft_html, vehicle_points
+from groundstation.plan_draft_view import draft_html
+from groundstation.plan_editor import vehicle_points
 from groundstation.plan_routes import RouteLayer, planned_routes, router_for
+from groundstation.scene import FleetScene, SceneConfig
 from groundstation.tables import command_log_html
 
 SQUARE = ((0.0, 0.0), (0.0, 10.0), (10.0, 10.0), (10.0, 0.0))
@@ -283,3 +285,116 @@ def test_the_draft_summary_numbers_the_fence_and_zone_corners_as_the_view_does()
     text = draft_html(pe.add_corner(pe.set_fence_band(d, None, 60.0), 1, 1))
     assert "zone 0: the fence, 5 corners (0.1 to 0.5) (ceiling 60 m)" in text
     assert "drawing a zone or fence: 1 corner(s)" in text
+
+
+def with_points() -> pe.Draft:
+    """base_plan with home and two rally points (home second in the plan's list: numbers skip it)."""
+    rally = (RallyPoint(-40, -40, 0, "pad"), RallyPoint(30, -30, 4.0, "home"), RallyPoint(50, 0))
+    return pe.draft_of(FleetPlan("f", 7, 0, FENCE, (Zone(SQUARE, "depot"),), rally))
+
+
+def test_home_is_set_where_there_was_none_and_moved_keeping_its_altitude() -> None:
+    d = pe.set_home(pe.draft_of(base_plan()), 20, 30.004)
+    assert d.geometry.rally == (RallyPoint(20, 30, 0.0, "home"),)
+    d = pe.set_home(d, 25, 35, 6.0)
+    d = pe.set_home(d, -20, -30)
+    assert d.geometry.rally == (RallyPoint(-20, -30, 6.0, "home"),)
+    moved = pe.set_home(with_points(), 60, 60)
+    assert [r.name for r in moved.geometry.rally] == ["pad", "home", ""]  # in its place
+    assert moved.geometry.rally[1] == RallyPoint(60, 60, 4.0, "home")
+    assert d.describe_edits().split("; ") == [
+        "home set at N 20, E 30",
+        "home moved to N 25, E 35, 6 m up",
+        "home moved to N -20, E -30, 6 m up",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("step", "reason"),
+    [
+        (lambda d: pe.set_home(d, 5, 5), r"keep-out zone 'depot' covers home \(5.0, 5.0\) m"),
+        (lambda d: pe.set_home(d, 150, 0), r"home \(150.0, 0.0\) m is outside the fence"),
+        (lambda d: pe.set_home(d, float("nan"), 0), r"home \(N nan, E 0\) must be finite"),
+        (lambda d: pe.set_home(d, 0, 20, float("inf")), "rally point 'home' needs finite metres"),
+        (
+            lambda d: pe.add_rally(d, 5, 5, name="pond"),
+            r"keep-out zone 'depot' covers rally point 'pond' \(5.0, 5.0\) m",
+        ),
+        (lambda d: pe.add_rally(d, 5, 5), r"keep-out zone 'depot' covers a rally point \(5.0,"),
+        (lambda d: pe.add_rally(d, 0, 150), r"a rally point \(0.0, 150.0\) m is outside the fence"),
+        (lambda d: pe.add_rally(d, 0, 20, name=" home"), "'home' names the fleet's home"),
+        (lambda d: pe.add_rally(d, 0, 20, name="x" * 65), "name must be printable text of at"),
+        (lambda d: pe.add_rally(d, 0, 1e7), r"rally point \(N 0, E 10000000.0\) must be finite"),
+        (
+            lambda d: pe.move_rally(d, 1, 120, 0),
+            r"rally point 'pad' \(120.0, 0.0\) m is outside the fence",
+        ),
+        (lambda d: pe.move_rally(d, 2, 9, 9), r"'depot' covers a rally point \(9.0, 9.0\) m"),
+        (lambda d: pe.move_rally(d, 3, 0, 20), r"rally point 3 does not exist \(rally points 1 to"),
+        (lambda d: pe.delete_rally(d, 0), r"rally point 0 does not exist \(rally points 1 to 2\)"),
+    ],
+)
+def test_home_and_rally_points_are_refused_as_a_file_is_with_the_reason(step, reason) -> None:
+    d = with_points()
+    with pytest.raises(pe.EditRefused, match=reason):
+        step(d)
+    assert d.geometry.rally == with_points().geometry.rally and not d.edits
+
+
+def test_a_rally_point_under_a_zone_with_a_floor_is_refused_only_if_the_zone_covers_it() -> None:
+    high = Zone(((20, 20), (20, 40), (40, 40), (40, 20)), "wires", floor_alt_m=5.0)
+    d = pe.draft_of(FleetPlan("f", 7, 0, FENCE, (high,)))
+    assert pe.add_rally(d, 30, 30, 2.0).geometry.rally == (RallyPoint(30, 30, 2.0),)
+    with pytest.raises(pe.EditRefused, match="keep-out zone 'wires' covers a rally point"):
+        pe.add_rally(d, 30, 30, 6.0)
+    with pytest.raises(pe.EditRefused, match="keep-out zone 'wires' covers home"):
+        pe.set_home(d, 30, 30, 5.0)
+
+
+def test_rally_points_are_added_moved_and_deleted_by_number_home_not_counted() -> None:
+    d = pe.add_rally(with_points(), 60, -60, name="field")
+    assert [r.name for r in d.geometry.rally] == ["pad", "home", "", "field"]
+    d = pe.move_rally(d, 2, 55, 5)  # the unnamed one, its altitude kept
+    assert d.geometry.rally[2] == RallyPoint(55, 5, 0.0, "")
+    d = pe.move_rally(d, 1, -45, -45, 3.0)
+    assert d.geometry.rally[0] == RallyPoint(-45, -45, 3.0, "pad")
+    d = pe.delete_rally(d, 1)
+    assert [r.name for r in d.geometry.rally] == ["home", "", "field"]
+    d = pe.delete_rally(d, 2)
+    assert d.describe_edits().split("; ") == [
+        "rally point 3 ('field') added at N 60, E -60",
+        "rally point 2 moved to N 55, E 5",
+        "rally point 1 ('pad') moved to N -45, E -45, 3 m up",
+        "rally point 1 ('pad') deleted",
+        "rally point 2 ('field') deleted",
+    ]
+    d = pe.delete_rally(d, 1)
+    assert [r.name for r in d.geometry.rally] == ["home"]
+    for step in (lambda: pe.delete_rally(d, 1), lambda: pe.move_rally(d, 1, 0, 20)):
+        with pytest.raises(pe.EditRefused, match="the plan has no rally point"):
+            step()
+
+
+def test_a_plan_holds_at_most_max_rally_points_home_included() -> None:
+    d = pe.set_home(pe.draft_of(base_plan()), 20, 20)
+    for k in range(MAX_RALLY_POINTS - 1):
+        d = pe.add_rally(d, 30 + k, 30)
+    with pytest.raises(pe.EditRefused, match=f"a plan holds at most {MAX_RALLY_POINTS} rally"):
+        pe.add_rally(d, 0, 20)
+    moved = pe.delete_rally(d, 1)
+    assert len(pe.set_home(pe.add_rally(moved, 0, 20), 21, 21).geometry.rally) == MAX_RALLY_POINTS
+
+
+def test_the_draft_summary_and_the_shared_scene_number_rally_points_home_apart() -> None:
+    text = draft_html(with_points())
+    assert "no home" not in text
+    assert "<br>home at N 30, E -30, 4 m up<br>rally 1: pad at N -40, E -40<br>rally 2 at" in text
+    assert "<br>no home" in draft_html(pe.draft_of(base_plan()))
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        scene = FleetScene(server, SceneConfig())
+        scene.update_plan(with_points().geometry.plan("f", 7, 0))
+        labels = [server.scene.get_handle_by_name(f"/plan/rally/{k}/label").text for k in range(3)]
+        assert labels == ["pad", "home", "rally 2"]  # the number the editor moves it by
+    finally:
+        server.stop()

@@ -3,7 +3,9 @@
 from the 'Edit fleet plan' folder reaches the agent, which refuses a goto inside it; the station
 draws the agent's route around it and lists the push in its command log; a self-crossing zone is
 refused in the panel with its reason and nothing is pushed; a fence clicked around the fleet, a
-corner of it moved by number (zone 0) and pushed bounds the agent's gotos."""
+corner of it moved by number (zone 0) and pushed bounds the agent's gotos; a rally point clicked
+on the ground (one clicked inside the zone refused), moved by number and pushed is where the
+agent returns to."""
 
 from __future__ import annotations
 
@@ -17,17 +19,21 @@ from conftest import REPO, keyed_agent_argv, wait_until
 from test_gcs_browser import CHROMIUM, CHROMIUM_ARGS
 from test_gcs_layout import screen_xy
 
+from agent.returning import ReturnConfig
 from comms.commands import OutcomeStatus, new_nonce
-from comms.schema import Command, Role
+from comms.schema import Command, CommandKind, Role
 from comms.session import MeshConfig, free_tcp_port
+from groundstation.plan_draft_view import DRAFT_PATH
 from groundstation.plan_editor import (
     CLICK_ADD,
     CLICK_MOVE,
+    CLICK_RALLY,
     CORNER_E,
     CORNER_N,
     CORNER_NO,
-    DRAFT_PATH,
     GROUND_CLICK,
+    MOVE_RALLY,
+    RALLY_NO,
     ZONE_NAME,
     ZONE_NO,
 )
@@ -48,6 +54,9 @@ FENCE_NE_M = ((-15.0, -15.0), (-15.0, 30.0), (30.0, 30.0), (30.0, -15.0))
 """The fence clicked around the zone and the agent, which has flown to N -8, E -8."""
 MOVED_NE_M = (-15.0, 10.0)
 """Where the fence's corner 2 moves: N -10, E 20 was inside the clicked fence, is outside it."""
+RALLY_NE_M = (20.0, 0.0)
+"""The rally point (inside the fence, clear of the zone): nearer the agent at N -8, E -8 than
+where it took off (N 20, E 20), so it returns to its pad there."""
 
 
 @pytest.fixture(scope="module")
@@ -238,4 +247,43 @@ def test_a_fence_drawn_and_a_corner_moved_in_the_browser_bounds_the_agents_gotos
     assert out.status is OutcomeStatus.REJECTED and out.reason == "target outside the fence", out
     version = gcs.plan_view.sync.plan.version
     line = f"plan v{version}: fence drawn (4 corners); fence corner 2 moved to N -15, E 10"
+    assert wait_until(lambda: line in gcs.command_log_html.content, 10)
+
+
+def test_a_rally_point_clicked_and_moved_in_the_browser_is_where_the_agent_returns(page, gcs):
+    editor = gcs.plan_editors[page.client.client_id]
+    held = gcs.plan_view.sync.plan
+    assert held.rally == ()
+    page.get_by_label(GROUND_CLICK, exact=True).click(force=True)
+    page.get_by_role("option", name=CLICK_RALLY).click(force=True)
+    assert wait_until(lambda: editor.ground.value == CLICK_RALLY, 10)
+    # Inside the zone: refused with check_geometry's words, the draft without it.
+    page.mouse.click(*screen_xy(page, page.client, (6.0, 6.0, 0.0)))
+    page.get_by_text("keep-out zone 'depot' covers a rally point", exact=False).first.wait_for()
+    assert editor.draft is None or editor.draft.geometry.rally == ()
+    page.mouse.click(*screen_xy(page, page.client, (21.0, 1.0, 0.0)))
+    page.get_by_text("rally point 1 added at N 2", exact=False).first.wait_for()
+    (clicked,) = editor.draft.geometry.rally
+    assert abs(clicked.n_m - 21.0) < 0.5 and abs(clicked.e_m - 1.0) < 0.5, clicked
+    for label, value in ((RALLY_NO, "1"), (CORNER_N, "20"), (CORNER_E, "0")):
+        page.get_by_label(label, exact=True).fill(value)
+    _press(page, MOVE_RALLY)
+    page.get_by_text("rally point 1 moved to N 20, E 0", exact=False).first.wait_for()
+    assert "rally 1 at N 20, E 0" in editor.draft_html.content
+    label = next(h for h in editor._drawn if h.name == f"{DRAFT_PATH}/rally/1/label")
+    assert label.text == "rally 1"  # numbered in the tab's view
+    _press(page, "Sign and push plan")
+    assert wait_until(lambda: gcs.plan_view.sync.plan.version > held.version, 10)
+    plan = gcs.plan_view.sync.plan
+    assert [(r.n_m, r.e_m, r.name) for r in plan.rally] == [(*RALLY_NE_M, "")]
+    assert plan.fence == held.fence and plan.keep_out == held.keep_out
+    # The agent holds it: told to return, it heads for its pad at the rally point, not for
+    # where it took off (its goal, as the station draws its route to it).
+    spot = np.add(RALLY_NE_M, ReturnConfig().pad_ne_m(1))
+    ret = Command(CommandKind.RETURN, nonce=new_nonce(), stamp_ns=0, targets=(1,))
+    out = gcs.mesh.send_command(ret, timeout_s=5).outcomes[1]
+    assert out.status is OutcomeStatus.ACCEPTED, out
+    goal = lambda: gcs.plan_view.routes.drawn.get(1, np.zeros((1, 3)))[-1, :2]  # noqa: E731
+    assert wait_until(lambda: np.hypot(*(goal() - spot)) < 0.5, 30), (goal(), spot)
+    line = f"plan v{plan.version}: rally point 1 added at N 2"
     assert wait_until(lambda: line in gcs.command_log_html.content, 10)
