@@ -30,7 +30,7 @@ def _agent_ticks(ticks: int, sleep_s: float) -> float:
     from agent.hosts import Agent
     from agent.shell_config import AgentConfig
     from comms.mesh import Mesh
-    from comms.schema import Command, Mode
+    from comms.schema import AckResult, Command, Mode
     from comms.session import embedded_router, free_tcp_port
 
     t = [0.0]
@@ -43,7 +43,10 @@ def _agent_ticks(ticks: int, sleep_s: float) -> float:
                 ag.tick(t[0])
                 if ag.mode is Mode.HOLDING:
                     break
-            ag.handle_command(Command.goto_local(5000.0, 0.0, -10.0, nonce=2, stamp_ns=0))
+            # far enough to fly the whole run (1 m/s), within the agent's 500 m geofence
+            ack = ag.handle_command(Command.goto_local(400.0, 0.0, -10.0, nonce=2, stamp_ns=0))
+            if ack.result is not AckResult.ACCEPTED:
+                raise RuntimeError(f"goto refused: {ack.reason}")
             cpu_s = 0.0
             for _ in range(ticks):
                 if sleep_s:
