@@ -128,12 +128,14 @@ def receive_cost(
             now = [0]
             mesh.clock_ns = lambda: now[0]
             handler = mesh._state_handler(
-                lambda s, t: table.update(s, t / 1e9),
-                None,
-                None,
-                GateConfig(min_interval_s=NeighbourConfig().verify_min_interval_s),
-                me,
-                **extra,
+                mesh._admitter(
+                    lambda s, t: table.update(s, t / 1e9),
+                    None,
+                    None,
+                    GateConfig(min_interval_s=NeighbourConfig().verify_min_interval_s),
+                    me,
+                    **extra,
+                )
             )
             c0 = time.process_time()
             for stamp, key, payload in samples:

@@ -58,6 +58,9 @@ log = logging.getLogger(__name__)
 
 StateCallback = Callable[[VehicleState, int], None]
 """Called with (state, receive stamp in ns) on a Zenoh thread."""
+Admit = Callable[[VehicleState, int, tuple], bool]
+"""A subscription's checks and delivery of one decoded state (Mesh._admitter): (state, receive
+stamp in ns, extra callback arguments) -> whether it went on."""
 FeedCallback = Callable[[VehicleState, int, int], None]
 """Called with (state, receive stamp in ns, its entry number in its feed) on a Zenoh thread."""
 EventCallback = Callable[[Event, int], None]
@@ -299,8 +302,8 @@ class Mesh:
             if vehicle_id is None
             else keys.vehicle_states(self.fleet, vehicle_id)
         )
-        on_sample = self._state_handler(callback, link, on_refused, gate, ignore_id)
-        return self._keep(self.session.declare_subscriber(key, on_sample))
+        admit = self._admitter(callback, link, on_refused, gate, ignore_id)
+        return self._keep(self.session.declare_subscriber(key, self._state_handler(admit)))
 
     def subscribe_cells(
         self,
@@ -323,12 +326,12 @@ class Mesh:
         mode, before the callback): comms/gate.py step 4b, e.g. `NeighbourTable.worth_checking`.
         `polled`: nothing runs on Zenoh's threads; the states wait in a ring per cell until the
         owner's `drain()` (an agent's tick) takes them all at once (`_state_batch_handler`)."""
-        args = (callback, link, on_refused, gate, ignore_id, worth_checking)
+        admit = self._admitter(callback, link, on_refused, gate, ignore_id, worth_checking)
         sub = CellSubscription(
             self,
-            self._state_handler(*args) if not polled else None,
+            self._state_handler(admit) if not polled else None,
             remote_only,
-            self._state_batch_handler(*args) if polled else None,
+            self._state_batch_handler(admit, link is not None) if polled else None,
         )
         sub.set_cells(cells)
         return self._keep(sub)
@@ -370,17 +373,8 @@ class Mesh:
 
         return self._keep(self.session.declare_subscriber(keys.all_feeds(self.fleet), on_sample))
 
-    def _state_handler(
-        self,
-        callback: StateCallback,
-        link: StateLink | None,
-        on_refused: RefusedCallback | None,
-        gate: GateConfig,
-        ignore_id: int | None,
-        worth_checking: Callable[[VehicleState], bool] | None = None,
-    ) -> Callable[[zenoh.Sample], None]:
+    def _state_handler(self, admit: Admit) -> Callable[[zenoh.Sample], None]:
         """A state key's sample: decoded, on its own vehicle's key and cell, then admitted."""
-        admit = self._admitter(callback, link, on_refused, gate, ignore_id, worth_checking)
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
@@ -391,22 +385,15 @@ class Mesh:
         return on_sample
 
     def _state_batch_handler(
-        self,
-        callback: StateCallback,
-        link: StateLink | None,
-        on_refused: RefusedCallback | None,
-        gate: GateConfig,
-        ignore_id: int | None,
-        worth_checking: Callable[[VehicleState], bool] | None = None,
+        self, admit: Admit, every_state: bool
     ) -> Callable[[list[zenoh.Sample], int, int], None]:
         """`_state_handler` for the samples a polled subscription took at once
         (`CellSubscription.drain`): each decoded and checked as one would be, its receive time
         estimated (comms/arrival.py). Without a link, only the newest state of each vehicle that
         passes the gate goes on: its candidates are tried newest first, and the older ones of a
         vehicle once one passed are dropped unverified (`states_superseded`); a forged newer
-        state therefore costs its check but cannot hide a real one. With a link (which judges
-        every state it hears) every state goes on, in order."""
-        admit = self._admitter(callback, link, on_refused, gate, ignore_id, worth_checking)
+        state therefore costs its check but cannot hide a real one. `every_state` (a link,
+        which judges every state it hears): every state goes on, in order."""
         arrival = ArrivalEstimate()
 
         def on_samples(samples: list[zenoh.Sample], taken_ns: int, since_ns: int) -> None:
@@ -418,7 +405,7 @@ class Mesh:
                         state.vehicle_id, state.stamp_ns, taken_ns, since_ns
                     )
                     got.append((state, recv_ns))
-            if link is not None:
+            if every_state:
                 for state, recv_ns in got:
                     admit(state, recv_ns, ())
                 return
@@ -469,7 +456,7 @@ class Mesh:
         gate: GateConfig,
         ignore_id: int | None,
         worth_checking: Callable[[VehicleState], bool] | None = None,
-    ) -> Callable[[VehicleState, int, tuple], bool]:
+    ) -> Admit:
         """What every decoded state passes, whichever way it came (its own key or a feed entry):
         the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
         the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""

@@ -15,7 +15,7 @@ import viser
 
 from comms.plan import HOME, RallyPoint, rally_numbers
 from groundstation import plan_edit as pe
-from groundstation.scene import NO_SHADOW, polygon_segments
+from groundstation.scene import add_rally_point, polygon_segments
 
 DRAFT_PATH = "/plan_draft"
 DRAFT_RGB = (140, 60, 200)
@@ -55,24 +55,7 @@ def draw_draft(scene: viser.SceneApi, draft: pe.Draft) -> list:
                 )
     for no, r in _numbered_rally(draft):
         path = f"{DRAFT_PATH}/rally/{no or HOME}"
-        add(
-            scene.add_icosphere(
-                path,
-                radius=0.5,
-                color=DRAFT_RGB,
-                position=(r.e_m, r.n_m, r.alt_m + 0.5),
-                **NO_SHADOW,
-            )
-        )
-        add(
-            scene.add_label(
-                f"{path}/label",
-                _rally_name(no, r),
-                position=(0.0, 0.0, 0.8),
-                anchor="bottom-center",
-                font_screen_scale=0.8,
-            )
-        )
+        add_rally_point(scene, path, r, _rally_name(no, r), DRAFT_RGB, add, 0.8)
     if draft.corners_ne_m:
         ne = np.asarray(draft.corners_ne_m, np.float32)
         pts = np.stack([ne[:, 1], ne[:, 0], np.full(len(ne), 0.08, np.float32)], axis=-1)

@@ -27,7 +27,7 @@ from typing import Any, Literal, TypedDict
 import numpy as np
 import viser
 
-from comms.plan import FleetPlan, rally_numbers
+from comms.plan import FleetPlan, RallyPoint, rally_numbers
 from comms.schema import Mode, VehicleState
 from groundstation import scene_geometry as geo
 from groundstation.fleet import FleetSnapshot, VehicleView
@@ -528,25 +528,8 @@ class FleetScene:
             )
         numbers = {i: no for no, i in rally_numbers(plan.rally)}  # as the plan editor's
         for k, r in enumerate(plan.rally):
-            path = f"/plan/rally/{k}"
-            add(
-                scene.add_icosphere(
-                    path,
-                    radius=0.5,
-                    color=GEOFENCE_RGB,
-                    position=(r.e_m, r.n_m, r.alt_m + 0.5),
-                    **NO_SHADOW,
-                )
-            )
-            add(
-                scene.add_label(
-                    f"{path}/label",
-                    r.name or f"rally {numbers[k]}",
-                    position=(0.0, 0.0, 0.8),
-                    anchor="bottom-center",
-                    font_screen_scale=0.9,
-                )
-            )
+            label = r.name or f"rally {numbers[k]}"
+            add_rally_point(scene, f"/plan/rally/{k}", r, label, GEOFENCE_RGB, add, 0.9)
 
     # -- missions ------------------------------------------------------------------------------
     def update_routes(self, routes: dict[int, list[tuple[float, float, float]]]) -> None:
@@ -571,6 +554,36 @@ def route_segments(points_ned_m) -> np.ndarray:
     if len(p) < 2:
         return np.zeros((0, 2, 3), np.float32)
     return np.stack([p[:-1], p[1:]], axis=1).astype(np.float32)
+
+
+def add_rally_point(
+    scene: viser.SceneApi,
+    path: str,
+    point: RallyPoint,
+    label: str,
+    rgb: tuple[int, int, int],
+    add: Callable[[Any], None],
+    font_scale: float,
+) -> None:
+    """A home or rally point: a sphere at its altitude, `label` above it; each handle to `add`."""
+    add(
+        scene.add_icosphere(
+            path,
+            radius=0.5,
+            color=rgb,
+            position=(point.e_m, point.n_m, point.alt_m + 0.5),
+            **NO_SHADOW,
+        )
+    )
+    add(
+        scene.add_label(
+            f"{path}/label",
+            label,
+            position=(0.0, 0.0, 0.8),
+            anchor="bottom-center",
+            font_screen_scale=font_scale,
+        )
+    )
 
 
 def polygon_segments(vertices_ne_m, z_m: float) -> np.ndarray:
