@@ -28,13 +28,22 @@ class ArrivalEstimate:
     def arrived_ns(self, sender: int, stamp_ns: int, taken_ns: int, since_ns: int) -> int:
         """When the state of `sender` stamped `stamp_ns`, taken at `taken_ns` from a queue last
         emptied at `since_ns`, most likely arrived."""
-        lag_ns = taken_ns - stamp_ns
+        least_ns = self.note(sender, taken_ns - stamp_ns, taken_ns)
+        return max(since_ns, min(taken_ns, stamp_ns + least_ns))
+
+    def note(self, sender: int, lag_ns: int, taken_ns: int) -> int:
+        """Count a lag of `sender`'s seen at `taken_ns`; returns its least lag now."""
         least = self._least.get(sender)
         if least is None or lag_ns <= least[0] or taken_ns - least[1] > self._window_ns:
             if least is None and len(self._least) >= self._max_senders:
                 self._forget_old(taken_ns)
             least = self._least[sender] = (lag_ns, taken_ns)
-        return max(since_ns, min(taken_ns, stamp_ns + least[0]))
+        return least[0]
+
+    def least_ns(self, sender: int) -> int | None:
+        """`sender`'s least lag in the window, None if none was counted."""
+        least = self._least.get(sender)
+        return None if least is None else least[0]
 
     def _forget_old(self, now_ns: int) -> None:
         old = [s for s, (_, seen) in self._least.items() if now_ns - seen > self._window_ns]

@@ -67,9 +67,14 @@ class GateConfig:
     accepted one. 0: verify every state (the ground station); agents use 0.15 (about 5 Hz)."""
     summary_period_s: float = 1.0
     """At most one summary line per refusal cause per this many seconds."""
+    batch_budget_s: float = 0.03
+    """A polled subscription (an agent's tick takes its states at once, comms/mesh.py) tries
+    each vehicle's most plausible state, then the others only while it has spent less than this
+    on them; what is left is dropped unchecked (`states_unchecked`), so that a flood of forged
+    states cannot stall the tick."""
 
     def __post_init__(self) -> None:
-        for name in ("max_skew_s", "min_interval_s", "summary_period_s"):
+        for name in ("max_skew_s", "min_interval_s", "summary_period_s", "batch_budget_s"):
             value = getattr(self, name)
             if not 0.0 <= value <= 3600.0:
                 raise ValueError(f"{name}={value} must be within [0, 3600]")

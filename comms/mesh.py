@@ -32,7 +32,7 @@ from comms.commands import CommandResult, Outcome, OutcomeStatus
 from comms.doc_sync import DocSync, RosterSyncConfig
 from comms.doc_sync import publish as publish_roster
 from comms.feed import FeedBuffer
-from comms.gate import SKIPPED, Gate, GateConfig, Refusal
+from comms.gate import SKIPPED, Gate, GateConfig, Refusal, Summaries
 from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
 from comms.schema import (
@@ -94,6 +94,8 @@ class MeshStats:
     states_misplaced: int = 0
     states_superseded: int = 0
     """States a polled subscription dropped unverified: a newer one of their vehicle passed."""
+    states_unchecked: int = 0
+    """States a polled subscription dropped unchecked: its check budget was spent (a flood)."""
     """States refused because their key's grid cell is not their position's (also decode_errors)."""
     rosters_applied: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -135,6 +137,7 @@ class Mesh:
         self.on_security: Callable[[str], None] | None = None
         """Gets one-line summaries of refused states/events (rate-limited per cause); the agent
         publishes them as SECURITY events. Default: a log warning."""
+        self._unchecked = Summaries(self._summary)  # polled states left unchecked (a flood)
         self._session: zenoh.Session | None = open_session(cfg, stop, wait_s=wait_s)
         self._publishers: dict[int, tuple[keys.Cell, zenoh.Publisher]] = {}
         """Each vehicle's state publisher, on the key of the cell it was last in."""
@@ -331,7 +334,9 @@ class Mesh:
             self,
             self._state_handler(admit) if not polled else None,
             remote_only,
-            self._state_batch_handler(admit, link is not None) if polled else None,
+            self._state_batch_handler(admit, link is not None, gate.batch_budget_s)
+            if polled
+            else None,
         )
         sub.set_cells(cells)
         return self._keep(sub)
@@ -385,16 +390,21 @@ class Mesh:
         return on_sample
 
     def _state_batch_handler(
-        self, admit: Admit, every_state: bool
+        self, admit: Admit, every_state: bool, budget_s: float
     ) -> Callable[[list[zenoh.Sample], int, int], None]:
         """`_state_handler` for the samples a polled subscription took at once
         (`CellSubscription.drain`): each decoded and checked as one would be, its receive time
-        estimated (comms/arrival.py). Without a link, only the newest state of each vehicle that
-        passes the gate goes on: its candidates are tried newest first, and the older ones of a
-        vehicle once one passed are dropped unverified (`states_superseded`); a forged newer
-        state therefore costs its check but cannot hide a real one. `every_state` (a link,
-        which judges every state it hears): every state goes on, in order."""
+        estimated (comms/arrival.py). `every_state` (a link, which judges every state it
+        hears): every state goes on, in order. Otherwise only the newest state of each vehicle
+        that passes the gate goes on, the older ones of that vehicle dropped unverified
+        (`states_superseded`), and the candidates are tried in rounds: first each vehicle's most
+        plausible (newest first among those not stamped later than its verified states ever
+        arrived, `PLAUSIBLE_LAG_SLACK_NS`: a forger's future stamps go last), then each one's
+        next, and so on while less than `budget_s` was spent; what is left is dropped unchecked
+        (`states_unchecked`). A forged state thus costs its check but cannot hide a real one
+        unless it floods past the budget, and a flood cannot stall the tick."""
         arrival = ArrivalEstimate()
+        verified = ArrivalEstimate()  # the least lag of each sender's states that passed
 
         def on_samples(samples: list[zenoh.Sample], taken_ns: int, since_ns: int) -> None:
             got: list[tuple[VehicleState, int]] = []
@@ -412,15 +422,43 @@ class Mesh:
             by_vehicle: dict[int, list[tuple[VehicleState, int]]] = {}
             for state, recv_ns in got:
                 by_vehicle.setdefault(state.vehicle_id, []).append((state, recv_ns))
-            superseded = 0
-            for candidates in by_vehicle.values():
-                candidates.sort(key=lambda c: c[0].stamp_ns, reverse=True)
-                for k, (state, recv_ns) in enumerate(candidates):
+            for vid, candidates in by_vehicle.items():
+                least_ns = verified.least_ns(vid)
+                floor_ns = None if least_ns is None else least_ns - PLAUSIBLE_LAG_SLACK_NS
+                candidates.sort(
+                    key=lambda c: (
+                        floor_ns is not None and taken_ns - c[0].stamp_ns < floor_ns,
+                        -c[0].stamp_ns,
+                    )
+                )
+            t0_s = time.perf_counter()
+            superseded = unchecked = 0
+            rounds, k = list(by_vehicle.values()), 0
+            while rounds:
+                left = []
+                for candidates in rounds:
+                    if k and time.perf_counter() - t0_s > budget_s:
+                        unchecked += len(candidates) - k
+                        continue
+                    state, recv_ns = candidates[k]
                     if admit(state, recv_ns, ()):
+                        verified.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
                         superseded += len(candidates) - k - 1
-                        break
+                    elif k + 1 < len(candidates):
+                        left.append(candidates)
+                rounds, k = left, k + 1
             if superseded:
                 self.stats.bump("states_superseded", superseded)
+            if unchecked:
+                self.stats.bump("states_unchecked", unchecked)
+                self._unchecked.note(
+                    "unchecked",
+                    taken_ns,
+                    lambda n: (
+                        f"{n} time(s) states were left unchecked: their checks took more than "
+                        f"{budget_s * 1e3:.0f} ms of a tick (a flood of forged states?)"
+                    ),
+                )
 
         return on_samples
 
@@ -825,6 +863,9 @@ class Mesh:
 
 
 COMMAND_RING = 64
+PLAUSIBLE_LAG_SLACK_NS = 50_000_000
+"""A polled state stamped more than this later than its sender's verified states ever arrived
+is tried after its vehicle's others (a forger's future stamps; real ones jitter less)."""
 """Queries a polled command queryable holds between two polls (`Mesh.serve_commands`): a
 vehicle gets a few commands a second, so only a flood fills it, and then the oldest go (their
 senders see no ack) rather than Zenoh's network thread waiting for room."""

@@ -11,6 +11,7 @@ import pytest
 
 from comms import keys
 from comms.arrival import ArrivalEstimate
+from comms.gate import GateConfig
 from comms.mesh import Mesh
 from comms.schema import Role, VehicleState
 from comms.scope import ScopeConfig
@@ -153,3 +154,54 @@ def test_a_called_back_subscription_has_nothing_to_drain(mesh_trio) -> None:
     _hub, a, _b = mesh_trio
     sub = a.subscribe_cells(Got().on_state, [keys.cell_of((0.0, 0.0, 0.0))])
     assert sub.drain() == 0
+
+
+def test_a_flood_of_forged_future_states_neither_hides_a_real_one_nor_costs_past_the_budget(
+    tmp_path,
+) -> None:
+    """Vehicle 3 floods states claiming to be vehicle 2, stamped 1 s ahead (within the clock
+    skew allowed), with a check budget of 0: each vehicle's most plausible state is still tried
+    (the real one: stamped as vehicle 2's verified states arrive), and without a real one the
+    flood costs one check a drain, the rest dropped unchecked and reported."""
+    fleet = throwaway_fleet(tmp_path, FLEET, vehicles=[1, 2, 3], stations=[1])
+    auth = {v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in (1, 2, 3)}
+    port = free_tcp_port()
+    got = Got()
+    lines: list[str] = []
+    with (
+        Mesh(embedded_router(port, fleet=FLEET)) as _hub,
+        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[1]) as a,
+        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[3]) as b,
+    ):
+        a.on_security = lines.append
+        sub = a.subscribe_cells(
+            got.on_state,
+            ScopeConfig().cells_around((0, 0)),
+            gate=GateConfig(batch_budget_s=0.0),
+            polled=True,
+        )
+        seq = iter(range(1, 10_000))
+        warm_up(
+            sub, got, lambda k: b.publish_state(state(2, next(seq), time.time_ns()), auth=auth[2])
+        )
+
+        def flood(real: bool) -> int:
+            now = time.time_ns()
+            for k in range(100):
+                b.publish_state(state(2, next(seq), now + 1_000_000_000 + k * MS), auth=auth[3])
+            if real:
+                b.publish_state(state(2, next(seq), now), auth=auth[2])
+            time.sleep(0.5)  # all arrived: one drain takes them
+            return sub.drain()
+
+        with got.lock:
+            got.states.clear()
+        refused0, unchecked0 = a.stats.states_refused, a.stats.states_unchecked
+        assert flood(real=True) == 101
+        assert len(got.states) == 1, got.states  # the real one, tried first
+        assert a.stats.states_refused == refused0  # no forged one was even checked
+        assert flood(real=False) == 100
+        assert len(got.states) == 1  # nothing new went on
+        assert a.stats.states_refused - refused0 == 1  # one check: the budget is spent
+        assert a.stats.states_unchecked - unchecked0 == 99
+        assert any("left unchecked" in line for line in lines), lines
