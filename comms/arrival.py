@@ -6,8 +6,8 @@ since the previous take. Its receive time feeds the neighbour table's dead recko
 than it is. The lag `taken - stamp` of each state is transit, the two clocks' offset and its
 wait in the queue; its minimum over the last `window_s` from one sender is transit plus offset
 (some state is taken just after it came), so `stamp + min lag` estimates its arrival. The
-estimate is clamped into [the previous take, this take], so a forged stamp (checked only later)
-moves a state's receive time by at most one tick.
+estimate is clamped into [the previous take, this take]; a caller that counts only the states it
+trusts (`note` after the checks, `estimate_ns` before) is not misled by forged stamps at all.
 """
 
 from __future__ import annotations
@@ -28,7 +28,15 @@ class ArrivalEstimate:
     def arrived_ns(self, sender: int, stamp_ns: int, taken_ns: int, since_ns: int) -> int:
         """When the state of `sender` stamped `stamp_ns`, taken at `taken_ns` from a queue last
         emptied at `since_ns`, most likely arrived."""
-        least_ns = self.note(sender, taken_ns - stamp_ns, taken_ns)
+        self.note(sender, taken_ns - stamp_ns, taken_ns)
+        return self.estimate_ns(sender, stamp_ns, taken_ns, since_ns)
+
+    def estimate_ns(self, sender: int, stamp_ns: int, taken_ns: int, since_ns: int) -> int:
+        """As `arrived_ns`, from the lags counted so far only (this one not counted: a caller
+        that counts only the states it trusts, `note`, is not misled by the others)."""
+        least_ns = self.least_ns(sender)
+        if least_ns is None:
+            return taken_ns
         return max(since_ns, min(taken_ns, stamp_ns + least_ns))
 
     def note(self, sender: int, lag_ns: int, taken_ns: int) -> int:

@@ -394,7 +394,8 @@ class Mesh:
     ) -> Callable[[list[zenoh.Sample], int, int], None]:
         """`_state_handler` for the samples a polled subscription took at once
         (`CellSubscription.drain`): each decoded and checked as one would be, its receive time
-        estimated (comms/arrival.py). `every_state` (a link, which judges every state it
+        estimated from the lags of its sender's states that went on (comms/arrival.py; a forged
+        stamp cannot move it). `every_state` (a link, which judges every state it
         hears): every state goes on, in order. Otherwise only the newest state of each vehicle
         that passes the gate goes on, the older ones of that vehicle dropped unverified
         (`states_superseded`), and the candidates are tried in rounds: first each vehicle's most
@@ -403,27 +404,27 @@ class Mesh:
         next, and so on while less than `budget_s` was spent; what is left is dropped unchecked
         (`states_unchecked`). A forged state thus costs its check but cannot hide a real one
         unless it floods past the budget, and a flood cannot stall the tick."""
-        arrival = ArrivalEstimate()
-        verified = ArrivalEstimate()  # the least lag of each sender's states that passed
+        arrival = ArrivalEstimate()  # the least lag of each sender's states that went on
 
         def on_samples(samples: list[zenoh.Sample], taken_ns: int, since_ns: int) -> None:
             got: list[tuple[VehicleState, int]] = []
             for sample in samples:
                 state = self._decode_state(sample)
                 if state is not None:
-                    recv_ns = arrival.arrived_ns(
+                    recv_ns = arrival.estimate_ns(
                         state.vehicle_id, state.stamp_ns, taken_ns, since_ns
                     )
                     got.append((state, recv_ns))
             if every_state:
                 for state, recv_ns in got:
-                    admit(state, recv_ns, ())
+                    if admit(state, recv_ns, ()):
+                        arrival.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
                 return
             by_vehicle: dict[int, list[tuple[VehicleState, int]]] = {}
             for state, recv_ns in got:
                 by_vehicle.setdefault(state.vehicle_id, []).append((state, recv_ns))
             for vid, candidates in by_vehicle.items():
-                least_ns = verified.least_ns(vid)
+                least_ns = arrival.least_ns(vid)
                 floor_ns = None if least_ns is None else least_ns - PLAUSIBLE_LAG_SLACK_NS
                 candidates.sort(
                     key=lambda c: (
@@ -442,7 +443,7 @@ class Mesh:
                         continue
                     state, recv_ns = candidates[k]
                     if admit(state, recv_ns, ()):
-                        verified.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
+                        arrival.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
                         superseded += len(candidates) - k - 1
                     elif k + 1 < len(candidates):
                         left.append(candidates)

@@ -56,6 +56,16 @@ def test_arrival_least_lag_is_forgotten_after_its_window() -> None:
     assert est.arrived_ns(1, 1_600 * MS, 2_150 * MS, 2_000 * MS) == 2_100 * MS
 
 
+def test_an_estimate_before_the_checks_counts_nothing() -> None:
+    est = ArrivalEstimate()
+    assert est.estimate_ns(4, 1_000 * MS, 1_080 * MS, 1_000 * MS) == 1_080 * MS  # none: taken
+    est.note(4, 30 * MS, 1_080 * MS)  # a state that passed its checks
+    assert est.estimate_ns(4, 1_100 * MS, 1_200 * MS, 1_120 * MS) == 1_130 * MS
+    # a (forged) state stamped 10 ms before its take: estimated, but its lag is not counted
+    assert est.estimate_ns(4, 1_190 * MS, 1_200 * MS, 1_120 * MS) == 1_200 * MS
+    assert est.least_ns(4) == 30 * MS
+
+
 def test_arrival_keeps_a_bounded_number_of_senders() -> None:
     est = ArrivalEstimate(window_s=1.0, max_senders=4)
     for vid in range(10):
