@@ -7,7 +7,8 @@ same state gives the same result in both (tests/test_flight_core.py).
 The core owns, per vehicle:
 - the mode machine (agent/modes.py) and the one mode-entry table (`_enter`): what entering a
   mode sets (goal, hold point, home, take-off altitude) and which autopilot action it needs;
-- command checks (geofence, altitude limits, take-off altitude) and the goto-global conversion;
+- command checks (geofence, altitude limits, take-off altitude, the zone goal rule for gotos and
+  mission waypoints, whoever guides) and the goto-global conversion;
 - vehicle events found from telemetry (reached altitude, arrived, touched down, disarmed);
 - failsafes (agent/failsafe.py: ground station lost, battery, geofence);
 - guidance (agent/guidance.py: the policy decides, its decision is held, the filter runs).
@@ -24,12 +25,13 @@ import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from agent.failsafe import FailsafeConfig, Failsafes
 from agent.guidance import BatchGuidance, GuidanceConfig, GuidanceStep, NeighbourViews
-from agent.mission import Ending, MissionRun, RunStatus, resolve
+from agent.mission import Ending, LocalItem, MissionRun, RunStatus, resolve
 from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
 from agent.neighbours import NeighbourSnapshot
 from agent.returning import Returns
@@ -46,6 +48,10 @@ from comms.schema import (
     StateFlag,
 )
 from kit.masks import mode_mask
+from policy.safety import SafetyConfig
+
+if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_plan`)
+    from policy.routes import Router
 
 FLYING = (Mode.GOTO, Mode.RETURNING, Mode.MISSION)
 AIRBORNE_MODES = [int(m) for m in AIRBORNE]
@@ -236,6 +242,12 @@ class FlightCore:
         self.mission_plan: FleetPlan | None = None
         """The fleet plan mission items are checked against (fence, keep-out zones, ceiling);
         None: the circular geofence and altitude limits alone."""
+        self._own_router: Router | None = None
+        """Without guidance (the autopilot guides itself): the plan's router, for the goal rule
+        alone (`set_plan`, `router`)."""
+        self._own_router_key: tuple | None = None
+        """What `_own_router` was built from: the plan's polygons and the filter's radius and
+        margin (a plan applied again with the same zones is not built again)."""
         self.now_s = now_s
         """The latest time the shell gave the core (`observe`): a pause keeps the rest of a
         wait from it."""
@@ -265,6 +277,23 @@ class FlightCore:
         out[flying] = self.goal_m[flying]
         out[holding] = self.hold_m[holding]
         return out
+
+    @property
+    def safety_cfg(self) -> SafetyConfig:
+        """The separation filter's settings: guidance's own, or without guidance (the autopilot
+        runs the filter: relay) what the configuration flies (`GuidanceConfig.safety_config`)."""
+        if self.guidance is not None:
+            return self.guidance.safety_cfg
+        return self.cfg.guidance.safety_config()
+
+    @property
+    def router(self) -> Router | None:
+        """Routes around the plan's keep-out zones and fence (policy.routes.Router), None
+        without any: guidance's own, or without guidance one built the same way (`set_plan`)
+        for the goal rule (`_clear_goal`)."""
+        if self.guidance is not None:
+            return self.guidance.router
+        return self._own_router
 
     def flags_of(self, i: int) -> StateFlag:
         return self.failsafes[i].flags
@@ -306,12 +335,9 @@ class FlightCore:
                 target = np.array(self.cfg.origin.to_local(*target_global))
             else:
                 target = np.array(cmd.params[:3], dtype=float)
-            problem = self.target_problem(target)
-            if problem:
-                return Decision(AckResult.REJECTED, problem, mode)
-            target, moved, problem = self._clear_goal(i, target)
-            if problem:
-                return Decision(AckResult.REJECTED, problem, mode)
+            target, moved, refused = self.check_target(i, target)
+            if refused:
+                return Decision(AckResult.REJECTED, refused, mode)
         alt_m = None
         if cmd.kind is CommandKind.TAKEOFF:
             alt_m = float(cmd.params[0])
@@ -348,23 +374,33 @@ class FlightCore:
         )
         return Decision(AckResult.ACCEPTED, moved, self.mode_of(i), decided)
 
+    def check_target(self, i: int, target: np.ndarray) -> tuple[np.ndarray, str, str]:
+        """(target to fly, what was moved, why refused) for vehicle i sent to `target` (a goto,
+        a mission waypoint): the limits and the plan (`target_problem`), then the goal rule
+        (`_clear_goal`)."""
+        problem = self.target_problem(target)
+        if problem:
+            return target, "", problem
+        return self._clear_goal(i, target)
+
     def _clear_goal(self, i: int, target: np.ndarray) -> tuple[np.ndarray, str, str]:
         """(target, what was moved, why refused) for a goto of vehicle i: a goal nearer a zone
         (or the fence) than the clearance its filter keeps, 1.8 m + sigma_k x its position
         1-sigma, is flown to the nearest point outside that clearance, where the vehicle can
         arrive, if that point is within the arrival radius of it; else the goto is refused,
-        naming the zone and the distances (policy.routes `Router.check_goal`). Without zones,
-        or when the autopilot guides itself, the target as it is."""
-        router = None if self.guidance is None else self.guidance.router
+        naming the zone and the distances (policy.routes `Router.check_goal`). The same whether
+        guidance or the autopilot flies (`router`, `safety_cfg`); without zones, the target as
+        it is."""
+        router = self.router
         if router is None:
             return target, "", ""
-        pad_m = self.guidance.safety_cfg.sigma_k * float(self.pos_sigma_m[i])
+        pad_m = self.safety_cfg.sigma_k * float(self.pos_sigma_m[i])
         check = router.check_goal(target[:2], pad_m)
         plan = self.mission_plan
         what = "the fence"
         if check.zone >= 0:
-            known = plan is not None and check.zone < len(plan.keep_out)
-            name = plan.keep_out[check.zone].name if known else ""
+            zones = () if plan is None else plan.keep_out
+            name = zones[check.zone].name if check.zone < len(zones) else ""
             what = f"keep-out zone {name!r}" if name else "a keep-out zone"
         problem = check.problem(self.cfg.guidance.arrive_radius_m, what)
         if problem:
@@ -494,12 +530,24 @@ class FlightCore:
         """Check every goto, take-off and mission target against `plan` from now on (the shell
         calls it when comms/plan_sync.py applies a newer plan); None: no plan. Guidance then
         routes every goto around the plan's keep-out zones and its filter keeps their edges
-        (and the fence's) as hard lines (agent/guidance.py set_zones, policy/routes.py)."""
+        (and the fence's) as hard lines (agent/guidance.py set_zones, policy/routes.py).
+        Without guidance (relay: the autopilot's own filter keeps the zones) the core builds the
+        router guidance would, with the same function and filter settings, for the goal rule
+        alone (`_clear_goal`): a goal the autopilot's filter keeps it from is moved or refused
+        here, not flown at for ever."""
         self.mission_plan = plan
+        fence = None if plan is None or plan.fence is None else plan.fence.vertices_ne_m
+        zones = [] if plan is None else plan.keep_out_polygons_ne_m()
         if self.guidance is not None:
-            fence = None if plan is None or plan.fence is None else plan.fence.vertices_ne_m
-            zones = [] if plan is None else plan.keep_out_polygons_ne_m()
             self.guidance.set_zones(zones, fence)
+            return
+        cfg = self.safety_cfg
+        key = (tuple(zones), fence, cfg.radius_m, cfg.margin)
+        if key != self._own_router_key:
+            from policy.routes import zones_for  # shapely and scipy: only with zones
+
+            self._own_router = zones_for(cfg, zones, fence)[1]
+            self._own_router_key = key
 
     def target_problem(self, target_ned_m: np.ndarray) -> str | None:
         """Why a goto target is refused, or None: the altitude limits (agent/failsafe.py), then
@@ -674,27 +722,49 @@ class FlightCore:
                 f"flying mission {run.mission_id} (item {k}/{n}): pause or abort it first",
                 mode,
             )
-        items, problem = resolve(
+        asked, problem = resolve(
             mission, self.cfg.origin, self.target_problem, self.mission_alt_problem
         )
         if problem:
             return Decision(AckResult.REJECTED, problem, mode)
         cruise = self.cfg.guidance.cruise_speed_m_s
-        for k, item in enumerate(items, 1):
+        for k, item in enumerate(asked, 1):
             if item.speed_m_s > cruise:
                 problem = (
                     f"item {k}: speed {item.speed_m_s:g} m/s is above the {cruise:g} m/s cruise "
                     "speed (guidance flies at most that)"
                 )
                 return Decision(AckResult.REJECTED, problem, mode)
-        self.missions[i] = MissionRun(mission.mission_id, mission.mission_version, items)
+        items, moved, problem = self._clear_items(i, asked)
+        if problem:
+            return Decision(AckResult.REJECTED, problem, mode)
+        self.missions[i] = MissionRun(mission.mission_id, mission.mission_version, items, asked)
         self.notes.append(
             Note(
                 i,
                 f"mission {mission.mission_id} v{mission.mission_version} loaded: {len(items)} items",
             )
         )
-        return Decision(AckResult.ACCEPTED, f"{len(items)} items", mode)
+        return Decision(AckResult.ACCEPTED, "; ".join([f"{len(items)} items", *moved]), mode)
+
+    def _clear_items(
+        self, i: int, asked: tuple[LocalItem, ...]
+    ) -> tuple[tuple[LocalItem, ...], list[str], str]:
+        """(items to fly, what was moved, why refused) for vehicle i's mission items as uploaded:
+        every waypoint checked as a goto's target (`check_target`: the limits, the plan, the goal
+        rule), each move and the first refusal named by the item's number."""
+        out, moved = [], []
+        for k, item in enumerate(asked, 1):
+            if item.target_ned_m is None:
+                out.append(item)
+                continue
+            target, what, problem = self.check_target(i, np.array(item.target_ned_m, float))
+            if problem:
+                return (), [], f"item {k} ({item.kind.name.lower()}): {problem}"
+            if what:
+                moved.append(f"item {k}: {what}")
+            out.append(replace(item, target_ned_m=_xyz(target)))
+        return tuple(out), moved, ""
 
     def mission_progress(self, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(k, n) per row (`MissionRun.progress`): k the item flown, n the items; 0, 0 for no
@@ -744,17 +814,22 @@ class FlightCore:
             run.resume(self.now_s)
             self.notes.append(Note(i, f"mission {run.mission_id} resumed", EventKind.COMMAND))
             return self._decided(i, cmd, self._enter(i, Mode.MISSION, trigger, pos_m))
-        # MISSION_START: from item 1, whatever the progress
+        # MISSION_START: from item 1, whatever the progress; the items as uploaded are checked
+        # again, against the plan and the position sigma of now (either may have changed)
+        items, moved, problem = self._clear_items(i, run.asked)
+        if problem:
+            return Decision(AckResult.REJECTED, problem, mode)
+        run.items = items
         tick = run.start(pos_m)
         self.mission_waiting[i] = False
         self.notes.append(
             Note(i, f"mission {run.mission_id} started: {run.n} items", EventKind.COMMAND)
         )
-        return self._decided(i, cmd, self._mission_begun(i, tick, pos_m, trigger))
+        return self._decided(i, cmd, self._mission_begun(i, tick, pos_m, trigger), "; ".join(moved))
 
-    def _decided(self, i: int, cmd: Command, actions: list[Action]) -> Decision:
+    def _decided(self, i: int, cmd: Command, actions: list[Action], reason: str = "") -> Decision:
         actions = [replace(a, nonce=cmd.nonce) for a in actions]
-        return Decision(AckResult.ACCEPTED, "", self.mode_of(i), tuple(actions))
+        return Decision(AckResult.ACCEPTED, reason, self.mode_of(i), tuple(actions))
 
     def _mission_begun(self, i: int, tick, pos_m: np.ndarray, trigger: Trigger) -> list[Action]:
         """Enter what the item just begun asks: fly to its target (MISSION), or the mission's

@@ -132,10 +132,20 @@ class GuidanceConfig:
             safety_filter=False,
             max_neighbours=self.max_neighbours,
             sparse_rule=SparseConfig() if self.safety_filter and self.sparse_rule else None,
-            safety_cfg=safety.SafetyConfig(
-                non_cooperative_radius_m=self.non_cooperative_separation_m,
-                manned_radius_m=self.manned_separation_m,
-            ),
+            safety_cfg=self.safety_config(),
+        )
+
+    def safety_config(self) -> safety.SafetyConfig:
+        """The separation filter's settings this configuration flies: separation_m kept
+        (radius_m), cruise speed, the traffic berths, the default margin and sigma_k. The
+        policy it loads filters with exactly these (`GuidancePolicy.safety_cfg`); where the
+        autopilot runs the filter itself (relay mode: the PX4 module, CVY_SEP_M and friends set
+        to the fleet's values), the flight core's goal rule reads its zone clearance from them."""
+        return safety.SafetyConfig(
+            radius_m=self.separation_m,
+            max_speed_m_s=self.cruise_speed_m_s,
+            non_cooperative_radius_m=self.non_cooperative_separation_m,
+            manned_radius_m=self.manned_separation_m,
         )
 
 

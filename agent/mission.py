@@ -3,8 +3,9 @@
 Pure and per vehicle: no clock (every call takes `now_s`), no I/O, no modes. The flight core
 (agent/flight_core.py) owns one `MissionRun` per vehicle that has a mission, resolves the
 uploaded items to local targets once (`resolve`: global items through the fleet origin, every
-target checked as a goto's), points guidance at `MissionRun.target` while the vehicle is in
-MISSION mode, and calls `step` each tick with whether guidance has arrived; `step` says which
+target checked as a goto's), moves a waypoint out of a zone's clearance as a goto's goal is moved
+(at upload and again at each start), points guidance at `MissionRun.target` while the vehicle is
+in MISSION mode, and calls `step` each tick with whether guidance has arrived; `step` says which
 item was reached, which one is next and how the mission ends (hold, land or return).
 
     item k:  fly to its target (guidance, avoidance on)  ->  arrived  ->  wait hold_s  ->  k+1
@@ -113,12 +114,25 @@ def resolve(
 class MissionRun:
     """One vehicle's mission and its progress."""
 
-    def __init__(self, mission_id: int, version: int, items: tuple[LocalItem, ...]) -> None:
+    def __init__(
+        self,
+        mission_id: int,
+        version: int,
+        items: tuple[LocalItem, ...],
+        asked: tuple[LocalItem, ...] | None = None,
+    ) -> None:
+        """`items`: as flown; `asked`: as uploaded (default: the same)."""
         if not items:
             raise ValueError("a mission needs at least one item")
+        if asked is not None and len(asked) != len(items):
+            raise ValueError(f"{len(items)} items flown for {len(asked)} uploaded")
         self.mission_id = mission_id
         self.version = version
         self.items = items
+        """The items as flown: the flight core may have moved a waypoint out of a zone's
+        clearance (agent/flight_core.py `_clear_items`), within the arrival radius."""
+        self.asked = items if asked is None else asked
+        """The items as uploaded; each start checks them again (the plan, the position sigma)."""
         self.status = RunStatus.LOADED
         self.index = 0
         """0-based current item (meaningful while ACTIVE or PAUSED)."""
