@@ -35,11 +35,12 @@ import numpy as np
 from agent.actions import ActionQueue, outcome_of, perform
 from agent.autopilots import Autopilots
 from agent.backends.base import BackendError, Capability, NotSupported
+from agent.calm import calm
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import BatchGuidance, GuidanceStep
 from agent.neighbours import NeighbourSnapshot, NeighbourTable
 from agent.shell_config import ShellConfig
-from agent.shell_rows import neighbour_views, stale_rows, vehicle_states
+from agent.shell_rows import link_receivers, neighbour_views, stale_rows, vehicle_states
 from agent.traffic import autopilot_traffic, merge_traffic
 from comms.gate import GateConfig, command_refusals
 from comms.mesh import CellSubscription, Mesh
@@ -160,6 +161,9 @@ class VehicleShell:
         self._wake = threading.Event()  # a command came: tick now (`run`, kit/ticks.py)
         self._drained: tuple[int, float] | None = None  # (mesh ns, tick s) while draining
         self._resting = False  # every vehicle idle after the last tick: tick at the idle rate
+        self._calm = False  # nothing near any vehicle after the last tick: tick at the calm rate
+        self._calm_every = cfg.calm_every
+        self._calm_horizon_s = 2.0 * self._calm_every / cfg.tick_hz  # agent/calm.py's H
         self.filtered = np.zeros(n, bool)
         self.slowed = np.zeros(n, bool)
         self.seq = np.zeros(n, np.int64)
@@ -451,6 +455,7 @@ class VehicleShell:
                 busy[action.index] = True
             idle = idle_rows(core.mode, obs.armed, obs.in_air, busy)
             self._resting = bool(idle.all())
+            self._calm = False
             due = self.pacer.due(
                 now_s, idle, obs.pos_m, obs.vel_m_s, core.heading_rad, core.mode, obs.armed
             )
@@ -476,6 +481,10 @@ class VehicleShell:
                 out = core.guide(now_s, rows, obs.pos_m[rows], obs.vel_m_s[rows], views, decide)
                 self.filtered[rows] = out.filtered
                 self.slowed[rows] = out.slowed_for_stale
+            if out is not None and self._calm_every > 1 and not self.cfg.trace_guidance:
+                self._calm = calm(
+                    core, obs, busy, self.filtered | self.slowed, ext, self._calm_horizon_s
+                )
             notes = core.drain_notes()
             rows_due = np.flatnonzero(due)
             states = self._states(rows_due, obs, ext)  # stamped now: only their puts from here on
@@ -483,9 +492,14 @@ class VehicleShell:
             self.vehicles.set_velocities(rows, out.vel_ned_m_s, out.heading_rad)
         elif not self.velocity_mode:
             self._forward_traffic(now_s, obs, ext)
+        tags = self.cfg.link_tags
         for s, row in zip(states, rows_due.tolist(), strict=True):
+            auth = self.auths[row]
+            receivers = (
+                link_receivers(ext, obs.pos_m[row], tags) if auth is not None and tags else []
+            )
             try:
-                self.mesh.publish_state(s, auth=self.auths[row])
+                self.mesh.publish_state(s, auth=auth, receivers=receivers)
             except Exception as exc:  # noqa: BLE001 - a full network buffer must not stop flying
                 log.warning("state publish failed: %s", exc)
         if out is not None and self.cfg.trace_guidance and rows_due.size:
@@ -634,4 +648,6 @@ class VehicleShell:
             idle_hz=self.cfg.resting_tick_hz,
             idle=lambda: self._resting,
             wake=self._wake,
+            calm_every=self._calm_every,
+            calm=lambda: self._calm,
         )

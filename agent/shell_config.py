@@ -20,7 +20,7 @@ from cli.options import MAX_HOSTED_VEHICLES
 from comms.geo import GeoOrigin
 from comms.keys import check_vehicle_id
 from comms.plan import FleetPlan
-from comms.schema import POSITION_LIMIT_M
+from comms.schema import MAX_LINK_TAGS, POSITION_LIMIT_M
 from comms.scope import ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, SteadyConfig, check_rates
@@ -50,6 +50,11 @@ class ShellConfig:
     """Tick rate while every vehicle of the process is idle (as for `idle_state_hz`): a landed
     vehicle waiting costs a fifth of its 10 Hz ticks. A command wakes the loop at once and the
     ticks are back at `tick_hz` from there; never below `idle_state_hz`. `tick_hz`: no resting."""
+    calm_tick_hz: float = 3.3
+    """Tick rate while every vehicle of the process is calm: flown by the shell, in the air,
+    with no neighbour, traffic, zone, fence or goal within what it could reach before a later
+    tick (agent/calm.py). On the `tick_hz` grid (every 3rd of 10 Hz), never below the steady
+    state rate; `tick_hz`: never calm."""
     steady: SteadyConfig | None = None
     """Publish at the steady rate while receivers can predict the state (hovering, flying
     straight): comms/state_rate.py; None: always at `state_hz` in the air."""
@@ -84,6 +89,11 @@ class ShellConfig:
     link: str = "perfect"
     """Radio link emulated between this process's one vehicle and the others (comms.link
     spec); one vehicle only."""
+    link_tags: int = MAX_LINK_TAGS
+    """Keyed mode: tag each state for this many of the vehicle's nearest neighbours, so that
+    they check a 64-bit link tag instead of its signature (trust/links.py, docs/security.md);
+    0: none (receivers then verify every signature; for a fleet mixing older agents, which
+    refuse a tagged state)."""
     open_mode: bool = True
     """False: the shell must sign (it refuses to start on an unkeyed mesh). The published
     OPEN_MODE flag follows the signers the shell really has."""
@@ -113,6 +123,10 @@ class ShellConfig:
         if not (math.isfinite(self.tick_hz) and 0 < self.tick_hz <= 100):
             raise ValueError(f"tick_hz must be within (0, 100], got {self.tick_hz}")
         check_rates(self.state_hz, self.idle_state_hz)
+        if not (math.isfinite(self.calm_tick_hz) and 0 < self.calm_tick_hz <= 100):
+            raise ValueError(f"calm_tick_hz must be within (0, 100], got {self.calm_tick_hz}")
+        if not 0 <= self.link_tags <= MAX_LINK_TAGS:
+            raise ValueError(f"link_tags must be within 0..{MAX_LINK_TAGS}, got {self.link_tags}")
         if not (math.isfinite(self.idle_tick_hz) and 0 < self.idle_tick_hz <= 100):
             raise ValueError(f"idle_tick_hz must be within (0, 100], got {self.idle_tick_hz}")
         if not (math.isfinite(self.assumed_pos_sigma_m) and self.assumed_pos_sigma_m >= 0):
@@ -144,6 +158,13 @@ class ShellConfig:
             raise ValueError("per-vehicle radio links are emulated for one vehicle only")
         if len(ids) > 1 and self.trace_guidance:
             raise ValueError("guidance traces come from one vehicle only")
+
+    @property
+    def calm_every(self) -> int:
+        """Ticks of the `tick_hz` grid per calm tick: as many as keep at least `calm_tick_hz`
+        and the steady state rate (1: never calm)."""
+        floor_hz = max(self.calm_tick_hz, self.steady.state_hz if self.steady else 0.0)
+        return max(1, int(self.tick_hz / floor_hz + 1e-9))
 
     @property
     def resting_tick_hz(self) -> float:

@@ -26,6 +26,19 @@ def _state_flag(bits: int) -> StateFlag:
     return StateFlag(bits)
 
 
+def link_receivers(ext: NeighbourSnapshot, pos_ned_m: np.ndarray, limit: int) -> list[int]:
+    """The ids of the (at most `limit`) vehicles of `ext` nearest `pos_ned_m` horizontally,
+    traffic left out: whom a state is tagged for (trust/links.py)."""
+    if limit <= 0 or not len(ext):
+        return []
+    idx = np.flatnonzero(ext.column("cooperative", True))
+    if idx.size > limit:
+        d2 = np.sum((ext.pos_ned_m[idx, :2] - pos_ned_m[:2]) ** 2, axis=1)
+        idx = idx[np.argsort(d2, kind="stable")[:limit]]
+    ids = ext.ids
+    return [ids[i] for i in idx.tolist()]
+
+
 def neighbour_views(
     core: FlightCore,
     obs: Observed,

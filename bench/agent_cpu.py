@@ -37,10 +37,15 @@ def neighbour_ids(count: int = NEIGHBOURS) -> list[int]:
 
 
 def role_neighbours(
-    port: int, keys_dir: str | None = None, count: int = NEIGHBOURS, rate_hz: float = TICK_HZ
+    port: int,
+    keys_dir: str | None = None,
+    count: int = NEIGHBOURS,
+    rate_hz: float = TICK_HZ,
+    link_tags: bool = True,
 ) -> None:
     """Publish `count` vehicles on a ring around the agent's latest state, at `rate_hz`; with
-    `keys_dir` (a bench fleet, bench/trust.py) each state is signed with its vehicle's key."""
+    `keys_dir` (a bench fleet, bench/trust.py) each state is signed with its vehicle's key and,
+    with `link_tags`, tagged for the agent, as neighbours that hear it do (trust/links.py)."""
     from comms import keys
     from comms.mesh import Mesh
     from comms.schema import Mode, Role, VehicleState
@@ -55,6 +60,7 @@ def role_neighbours(
             v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in neighbour_ids(count)
         }
     latest: list[VehicleState | None] = [None]
+    tag_for = [AGENT_ID] if link_tags else []
     auth = load_auth(str(Authority(keys_dir).member_path(Role.STATION, 1))) if keys_dir else None
     with Mesh(embedded_peer(port, fleet=FLEET), auth=auth) as mesh:
         mesh.subscribe_states(lambda s, _t: latest.__setitem__(0, s), vehicle_id=AGENT_ID)
@@ -74,7 +80,7 @@ def role_neighbours(
                 if signers:
                     mesh.session.put(
                         keys.state(FLEET, st.vehicle_id, keys.cell_of(pos)),
-                        signers[st.vehicle_id].sign_state(st).encode(),
+                        signers[st.vehicle_id].sign_state(st, tag_for).encode(),
                     )
                 else:
                     mesh.publish_state(st)
@@ -184,11 +190,13 @@ def agent_flight(
     neighbours: int = NEIGHBOURS,
     neighbour_hz: float = TICK_HZ,
     while_flying: Callable[[int, float], None] | None = None,
+    link_tags: bool = True,
 ) -> dict:
     """One real `covey agent` with 10 neighbours: CPU and tick jitter landed, then flying a goto.
     `decision_period_s` None: the policy's trained period (the default); 0: every tick.
     `keys_dir`: a keyed fleet (bench/trust.py): every state signed and verified.
-    `while_flying(pid, window_s)`: called as the flying window starts (a profiler, bench/agent_profile.py)."""
+    `while_flying(pid, window_s)`: called as the flying window starts (a profiler, bench/agent_profile.py).
+    `link_tags` False: nobody tags states for anyone (trust/links.py): every one is verified."""
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, Mode, Role
@@ -205,7 +213,8 @@ def agent_flight(
         fleet = Authority(keys_dir)
         auth = load_auth(str(fleet.member_path(Role.STATION, 1)))
         extra += ["--key-file", str(fleet.member_path(Role.VEHICLE, AGENT_ID))]
-        nb_extra = ["--keys-dir", keys_dir]
+        nb_extra = ["--keys-dir", keys_dir, "--link-tags", str(int(link_tags))]
+        extra += ["--link-tags", "32" if link_tags else "0"]
     nb_extra += ["--neighbours", str(neighbours), "--neighbour-hz", str(neighbour_hz)]
     with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
@@ -305,10 +314,13 @@ if __name__ == "__main__":
     )
     ap.add_argument("--neighbours", type=int, default=NEIGHBOURS, help="neighbours: how many")
     ap.add_argument(
+        "--link-tags", type=int, default=1, choices=(0, 1), help="neighbours: tag for the agent"
+    )
+    ap.add_argument(
         "--neighbour-hz", type=float, default=TICK_HZ, help="neighbours: their state rate"
     )
     a = ap.parse_args()
     if a.role == "neighbours":
-        role_neighbours(a.port, a.keys_dir, a.neighbours, a.neighbour_hz)
+        role_neighbours(a.port, a.keys_dir, a.neighbours, a.neighbour_hz, bool(a.link_tags))
     else:
         main(a.quick)

@@ -158,7 +158,9 @@ def fleet_ids(vehicles: int) -> range:
     return range(1, vehicles + 1)
 
 
-def main(neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200) -> None:
+def main(
+    neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200, link_tags: bool = True
+) -> None:
     from trust.authority import throwaway_fleet
 
     pyspy = shutil.which("py-spy") or str(common.REPO / ".venv/bin/py-spy")
@@ -197,12 +199,18 @@ def main(neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200) -> 
         ids = [agent_cpu.AGENT_ID, *agent_cpu.neighbour_ids(neighbours)]
         throwaway_fleet(d, agent_cpu.FLEET, vehicles=ids, stations=[1])
         r = agent_cpu.agent_flight(
-            False, keys_dir=d, neighbours=neighbours, neighbour_hz=neighbour_hz, while_flying=spy
+            False,
+            keys_dir=d,
+            neighbours=neighbours,
+            neighbour_hz=neighbour_hz,
+            while_flying=spy,
+            link_tags=link_tags,
         )
     f = r["flying"]
     total, own, cum = top(Path(folded).read_text(), 40)
     lines = [
-        f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz, flying: {f['cpu_ms_per_tick']:.2f} ms CPU per tick "
+        f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz, link tags "
+        f"{'on' if link_tags else 'off'}, flying: {f['cpu_ms_per_tick']:.2f} ms CPU per tick "
         f"({100 * f['cpu_share_of_one_core']:.1f} % of a core), {total} samples at {rate_hz} Hz",
         "CPU ms per tick by thread name (/proc, over py-spy's window):",
         *(f"  {ms:6.3f}  {name}" for name, ms in sorted(by_thread.items(), key=lambda kv: -kv[1])),
@@ -221,6 +229,11 @@ if __name__ == "__main__":
     ap.add_argument("--neighbour-hz", type=float, default=10.0)
     ap.add_argument("--out", default="/tmp/agent_profile.txt")
     ap.add_argument(
+        "--no-link-tags",
+        action="store_true",
+        help="nobody tags states (trust/links.py): the agent verifies every signature",
+    )
+    ap.add_argument(
         "--receive-model",
         default=None,
         metavar="N",
@@ -235,4 +248,4 @@ if __name__ == "__main__":
         for hz, reach in ((10.0, False), (3.0, False), (3.0, True)):
             print(json.dumps(receive_cost(a.receive_model, 8.0, hz, reach)))
     else:
-        main(a.neighbours, a.neighbour_hz, a.out)
+        main(a.neighbours, a.neighbour_hz, a.out, link_tags=not a.no_link_tags)

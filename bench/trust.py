@@ -33,7 +33,7 @@ def crypto(n: int) -> dict:
     from trust.authority import throwaway_fleet
 
     with tempfile.TemporaryDirectory() as d:
-        fleet = throwaway_fleet(d, FLEET, vehicles=[1, 2], stations=[1])
+        fleet = throwaway_fleet(d, FLEET, vehicles=[1, 2, *range(10, 29)], stations=[1])
         v1 = load_auth(str(fleet.member_path(Role.VEHICLE, 1)))
         receiver = load_auth(str(fleet.member_path(Role.VEHICLE, 2)))
     now = time.time_ns()
@@ -58,6 +58,21 @@ def crypto(n: int) -> dict:
         gate.admit_state(VehicleState.decode(b), now + n)
     t5 = time.process_time()
     assert gate.accepted == n, gate.refused
+    # the same states tagged for 20 receivers, the receiver among them (trust/links.py)
+    receivers = [2, *range(10, 29)]
+    t6 = time.process_time()
+    tagged = [v1.sign_state(s, receivers) for s in states]
+    t7 = time.process_time()
+    for s in tagged:
+        assert receiver.check_state(s) is None
+    t8 = time.process_time()
+    tagged_bytes = [s.encode() for s in tagged]
+    gate = Gate(receiver)
+    t9 = time.process_time()
+    for b in tagged_bytes:
+        gate.admit_state(VehicleState.decode(b), now + n)
+    t10 = time.process_time()
+    assert gate.accepted == n, gate.refused
     us = lambda dt: dt * 1e6 / n  # noqa: E731
     return {
         "states": n,
@@ -67,6 +82,10 @@ def crypto(n: int) -> dict:
         "keyed_receive_us": us(t5 - t4),
         "state_bytes_open": len(open_bytes[0]),
         "state_bytes_keyed": len(keyed_bytes[0]),
+        "sign_and_tag_20_us": us(t7 - t6),
+        "link_check_us": us(t8 - t7),
+        "tagged_receive_us": us(t10 - t9),
+        "state_bytes_tagged_20": len(tagged_bytes[0]),
     }
 
 

@@ -11,7 +11,7 @@ comms/link.py `LinkEmulator`).
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Protocol
 
 import zenoh
@@ -79,7 +79,7 @@ class MemberAuth(SignatureChecker, Protocol):
         """None if `sig` is `role member_id`'s signature under the roster, else why not."""
         ...
 
-    def sign_state(self, state: VehicleState) -> VehicleState: ...
+    def sign_state(self, state: VehicleState, receivers: Iterable[int] = ()) -> VehicleState: ...
 
     def sign_event(self, event: Event) -> Event: ...
 

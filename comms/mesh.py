@@ -20,7 +20,7 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -236,14 +236,25 @@ class Mesh:
         publish_roster(self.session, self.fleet, roster.encode())
 
     # -- states ----------------------------------------------------------------------------
-    def publish_state(self, state: VehicleState, *, auth: MemberAuth | None = None) -> None:
+    def publish_state(
+        self,
+        state: VehicleState,
+        *,
+        auth: MemberAuth | None = None,
+        receivers: Sequence[int] = (),
+    ) -> None:
         """Publish on the key of the state's own grid cell (comms/keys.py); a vehicle that
         crosses into another cell gets a publisher there, and its old one goes. `auth`: the
-        vehicle's own FleetAuth when one process hosts several vehicles; default the mesh's."""
+        vehicle's own FleetAuth when one process hosts several vehicles; default the mesh's.
+        `receivers`: the neighbours (nearest first) to tag the state for in keyed mode, so that
+        they need not check its signature (trust/links.py); the station's feed gets it untagged."""
         auth = auth if auth is not None else self.auth
         if auth is not None:
-            state = auth.sign_state(state)
+            state = auth.sign_state(state, receivers)
         payload = state.encode()
+        feed_payload = payload
+        if state.links:
+            feed_payload = payload[: len(payload) - 1 - len(state.links)]
         cell = keys.cell_of(state.pos_ned_m)
         held = self._publishers.get(state.vehicle_id)
         if held is None or held[0] != cell:
@@ -262,7 +273,7 @@ class Mesh:
         pub.put(payload)
         self.stats.bump("states_sent")
         self._send_feed(
-            state.vehicle_id, self._feed.offer(state.vehicle_id, payload, self.clock_ns())
+            state.vehicle_id, self._feed.offer(state.vehicle_id, feed_payload, self.clock_ns())
         )
 
     def _send_feed(self, vehicle_id: int, batches: list[bytes]) -> None:

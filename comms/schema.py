@@ -104,6 +104,12 @@ OUTCOME_DETAIL_BYTES = 96
 """The longest detail of an ActionOutcome, in UTF-8 bytes (a longer one is cut)."""
 TAG_BYTES = 64
 """An Ed25519 signature."""
+LINK_TAG_BYTES = 8
+"""A pairwise link tag on a state (trust/links.py): keyed BLAKE2b truncated to 64 bits."""
+LINK_ENTRY_BYTES = 2 + LINK_TAG_BYTES
+"""One entry of a state's link trailer: the receiving vehicle's id (u16), then its tag."""
+MAX_LINK_TAGS = 32
+"""A state carries link tags for at most this many receivers (its nearest neighbours)."""
 PUBLIC_KEY_BYTES = 32
 MAX_ROSTER_MEMBERS = 4096
 MAX_ROSTER_BYTES = 48 + 35 * MAX_ROSTER_MEMBERS + TAG_BYTES
@@ -311,6 +317,39 @@ def _check_sig(sig: bytes) -> None:
         raise DecodeError(f"signature must be empty or {TAG_BYTES} bytes, got {len(sig)}")
 
 
+def link_receivers(links: bytes) -> list[int]:
+    """The receiving vehicles' ids of a state's link trailer, in order."""
+    return [
+        int.from_bytes(links[k : k + 2], "little") for k in range(0, len(links), LINK_ENTRY_BYTES)
+    ]
+
+
+def _links_ok(links: bytes, sig: bytes) -> bool:
+    """The fast test of a state's link trailer (`_check_links` says why not)."""
+    n, rest = divmod(len(links), LINK_ENTRY_BYTES)
+    return (
+        not rest
+        and n <= MAX_LINK_TAGS
+        and len(sig) == TAG_BYTES
+        and all(1 <= rid <= MAX_VEHICLE_ID for rid in link_receivers(links))
+    )
+
+
+def _check_links(links: bytes, sig: bytes) -> None:
+    if not links:
+        return
+    n, rest = divmod(len(links), LINK_ENTRY_BYTES)
+    if rest or n > MAX_LINK_TAGS:
+        raise DecodeError(
+            f"link tags must be at most {MAX_LINK_TAGS} entries of {LINK_ENTRY_BYTES} bytes, "
+            f"got {len(links)} bytes"
+        )
+    if len(sig) != TAG_BYTES:
+        raise DecodeError("link tags come only on a signed state")
+    for rid in link_receivers(links):
+        _check_vehicle_id("link tag receiver", rid)
+
+
 @dataclass(frozen=True)
 class VehicleState:
     """One vehicle's state, as it publishes it (latest wins)."""
@@ -338,6 +377,11 @@ class VehicleState:
     """1-sigma of the horizontal position estimate, per axis, metres (PX4's eph, the GNSS
     receiver's accuracy, the simulator's drift); 0: exact or not reported. The separation
     filter keeps each pair this much further apart, scaled (policy.safety.pair_radius_m)."""
+    links: bytes = b""
+    """Pairwise link tags for the sender's nearest neighbours (trust/links.py): entries of
+    LINK_ENTRY_BYTES (receiver id u16, tag), at most MAX_LINK_TAGS, only on a signed state. On
+    the wire after the signature, as a count byte and the entries; covered by no signature (a
+    receiver whose tag is missing or wrong checks the signature instead)."""
 
     TYPE: ClassVar[MsgType] = MsgType.VEHICLE_STATE
     VERSION: ClassVar[int] = 3
@@ -377,6 +421,7 @@ class VehicleState:
             and 0 <= self.mission_items <= MAX_MISSION_ITEMS
             and 0 <= self.mission_item <= self.mission_items + 1
             and 0.0 <= self.pos_sigma_m <= POS_SIGMA_LIMIT_M
+            and (not self.links or _links_ok(self.links, self.sig))
         ):
             return
         self._validate_reasoned()
@@ -413,6 +458,7 @@ class VehicleState:
         _check_finite("pos_sigma_m", self.pos_sigma_m)
         _check_range("pos_sigma_m", self.pos_sigma_m, 0.0, POS_SIGMA_LIMIT_M)
         _check_sig(self.sig)
+        _check_links(self.links, self.sig)
 
     def signed_bytes(self) -> bytes:
         """Every byte that the signature covers (the whole state but the signature)."""
@@ -437,12 +483,28 @@ class VehicleState:
 
     def encode(self) -> bytes:
         self.validate()
+        if self.links:
+            count = len(self.links) // LINK_ENTRY_BYTES
+            return self.signed_bytes() + self.sig + bytes((count,)) + self.links
         return self.signed_bytes() + self.sig
 
     @classmethod
     def decode(cls, data: bytes) -> VehicleState:
         _header(data, cls.TYPE, cls.VERSION)
-        if len(data) not in (cls._FMT.size, cls._FMT.size + TAG_BYTES):
+        signed_end = cls._FMT.size + TAG_BYTES
+        links = b""
+        if len(data) > signed_end:
+            count = data[signed_end]
+            if not 1 <= count <= MAX_LINK_TAGS or len(data) != (
+                signed_end + 1 + count * LINK_ENTRY_BYTES
+            ):
+                raise DecodeError(
+                    f"VehicleState must be {cls._FMT.size} bytes (+{TAG_BYTES} signed, + a count "
+                    f"byte of 1..{MAX_LINK_TAGS} and that many {LINK_ENTRY_BYTES}-byte link "
+                    f"tags), got {len(data)} with a count byte of {count}"
+                )
+            links = bytes(data[signed_end + 1 :])
+        elif len(data) not in (cls._FMT.size, signed_end):
             raise DecodeError(
                 f"VehicleState must be {cls._FMT.size} bytes (+{TAG_BYTES} signed), got {len(data)}"
             )
@@ -464,10 +526,11 @@ class VehicleState:
             armed=bool(f[16]),
             flags=StateFlag(f[17]),
             battery_pct=f[18],
-            sig=data[cls._FMT.size :],
+            sig=data[cls._FMT.size : signed_end],
             mission_item=f[19],
             mission_items=f[20],
             pos_sigma_m=f[21],
+            links=links,
         )
         msg.validate()
         return msg

@@ -9,6 +9,7 @@ loop keeps its rate. One that ends more than a whole period behind drops the tic
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections.abc import Callable
 
@@ -33,6 +34,8 @@ def run_ticks(
     idle_hz: float | None = None,
     idle: Callable[[], bool] | None = None,
     wake: threading.Event | None = None,
+    calm_every: int = 1,
+    calm: Callable[[], bool] | None = None,
 ) -> None:
     """Call `tick(now_s)` at `rate_hz` until `stop` is set, on the schedule of `next_due_s`;
     `on_overrun` is called for each tick that ended after the next one was due. A failing tick
@@ -42,7 +45,11 @@ def run_ticks(
     vehicle waiting), unless `wake` is set first (a command came): then it runs at once. The
     caller sets `wake` when `stop` is set too (a resting loop waits on `wake` alone). A busy
     loop keeps its period whatever rings (its ticks stay evenly spaced: guidance traces
-    replay them)."""
+    replay them).
+
+    While `calm()` says so after a tick (and the loop does not rest), the next one is due
+    `calm_every` periods later, on the same grid (a vehicle with nothing near: agent/calm.py);
+    `wake` rung meanwhile brings the next tick of the grid."""
     period_s = 1.0 / rate_hz
     idle_period_s = 1.0 / idle_hz if idle_hz else period_s
     due_s = clock_s()
@@ -55,8 +62,21 @@ def run_ticks(
         if on_overrun is not None and now_s > due_s + period_s:
             on_overrun()
         resting = wake is not None and idle is not None and idle_period_s > period_s and idle()
-        due_s = next_due_s(due_s, now_s, idle_period_s if resting else period_s)
-        if not resting:
+        calm_now = (
+            not resting and wake is not None and calm is not None and calm_every > 1 and calm()
+        )
+        last_due_s = due_s
+        step_s = idle_period_s if resting else period_s * (calm_every if calm_now else 1)
+        due_s = next_due_s(due_s, now_s, step_s)
+        if calm_now:
+            assert wake is not None
+            if wake.wait(max(0.0, due_s - now_s)):
+                wake.clear()
+                rung_s = clock_s()  # rung: the next tick of the grid
+                periods = max(1, math.ceil((rung_s - last_due_s) / period_s))
+                due_s = min(due_s, last_due_s + periods * period_s)
+                stop.wait(max(0.0, due_s - rung_s))
+        elif not resting:
             if wake is not None:
                 wake.clear()  # what rang is answered by the next tick, due anyway
             stop.wait(max(0.0, due_s - now_s))

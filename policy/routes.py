@@ -290,6 +290,20 @@ class Router:
         g[j[ok], i[ok]] = d[ok]
         return g
 
+    def edge_distance_m(self, pts_m) -> np.ndarray:
+        """(N,) each (N, 2) point's distance to the nearest keep-out zone or the fence's edge:
+        0 inside a zone or outside the fence (the calm-tick rule, agent/calm.py)."""
+        pts = shapely.points(np.asarray(pts_m, np.float64).reshape(-1, 2))
+        out = np.full(len(pts), np.inf)
+        if not self._zones.is_empty:
+            out = np.minimum(out, shapely.distance(self._zones, pts))
+        if self._fence is not None:
+            inside = shapely.covers(self._fence, pts)
+            out = np.minimum(
+                out, np.where(inside, shapely.distance(self._fence.exterior, pts), 0.0)
+            )
+        return out
+
     def inside_zone(self, pt) -> bool:
         """Whether a point is inside a keep-out zone or outside the fence."""
         p = shapely.Point(float(pt[0]), float(pt[1]))

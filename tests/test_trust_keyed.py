@@ -35,6 +35,7 @@ from comms.mesh import Mesh
 from comms.schema import (
     Command,
     CommandKind,
+    DecodeError,
     Event,
     EventKind,
     FeedBatch,
@@ -146,9 +147,20 @@ def keyed(tmp_path_factory):
         group.stop()
 
 
+def untagged(payload: bytes) -> bytes:
+    """A state payload without its link trailer (anything else as it is)."""
+    try:
+        state = VehicleState.decode(payload)
+    except DecodeError:
+        return payload
+    return dataclasses.replace(state, links=b"").encode() if state.links else payload
+
+
 def put_in_feed(session: zenoh.Session, states: list[bytes], feed_seq: int = 1) -> int:
     """Put state payloads into feed batches, as a process's feed would carry them (the station's
-    path); returns the batches put."""
+    path); returns the batches put. A state heard on a cell key loses its link tags first
+    (trust/links.py): a feed carries states untagged, as any forger can strip them."""
+    states = [untagged(s) for s in states]
     runs = split([FeedEntry(feed_seq, s) for s in states])
     for k, run in enumerate(runs):
         session.put(keys.feed(FLEET, 3), FeedBatch(feed_seq + k, run).encode())

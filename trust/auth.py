@@ -72,6 +72,7 @@ from trust.identity import (
     signed_message,
     verify,
 )
+from trust.links import LinkKeys
 from trust.roster_sync import RosterSync
 
 log = logging.getLogger(__name__)
@@ -127,6 +128,7 @@ class FleetAuth:
         self._by_stamp: list[tuple[int, int, int]] = []  # heap of (stamp_ns, vehicle, nonce)
         self._floor_ns = -1
         self._book = book if book is not None else _RosterBook(key)
+        self._links: LinkKeys | None = None
         self.rejected = 0
         """How many commands this instance refused (read only)."""
         self.on_reject: Callable[[Command | Mission, int, str], None] | None = None
@@ -339,13 +341,35 @@ class FleetAuth:
         return None
 
     # -- states and events -----------------------------------------------------------------------
-    def sign_state(self, state: VehicleState) -> VehicleState:
-        return dataclasses.replace(state, sig=self._sign("state", state.signed_bytes()))
+    @property
+    def links(self) -> LinkKeys | None:
+        """This vehicle's pairwise link keys (trust/links.py); None for a station."""
+        if self._links is None and self.role is Role.VEHICLE:
+            book = self._book
+            self._links = LinkKeys(
+                self.key.private_key,
+                self.member_id,
+                self.fleet,
+                lambda vid: book.keys.get((Role.VEHICLE, vid)),
+            )
+        return self._links
+
+    def sign_state(self, state: VehicleState, receivers: Iterable[int] = ()) -> VehicleState:
+        """The state signed, and tagged for `receivers` (the sender's nearest neighbours' ids:
+        trust/links.py) when this is a vehicle's key."""
+        signed = state.signed_bytes()
+        links = self.links
+        tags = links.tags(signed, receivers) if links is not None else b""
+        return dataclasses.replace(state, sig=self._sign("state", signed), links=tags)
 
     def check_state(self, state: VehicleState) -> str | None:
-        return self.check_signature(
-            Role.VEHICLE, state.vehicle_id, "state", state.signed_bytes(), state.sig
-        )
+        """None if `state` is its vehicle's: by its link tag for this vehicle where it has a
+        right one, else by its signature."""
+        signed = state.signed_bytes()
+        links = self.links if state.links else None
+        if links is not None and links.check(signed, state.vehicle_id, state.links):
+            return None
+        return self.check_signature(Role.VEHICLE, state.vehicle_id, "state", signed, state.sig)
 
     def sign_event(self, event: Event) -> Event:
         return dataclasses.replace(event, sig=self._sign("event", event.signed_bytes()))

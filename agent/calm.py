@@ -1,0 +1,109 @@
+"""Calm ticks: a vehicle with nothing near ticks at `calm_tick_hz` (3.3 Hz) instead of 10 Hz.
+
+Most of a flying agent's CPU is the tick itself (docs/companion.md, "The floor under one
+agent"), and a vehicle in transit or holding with no neighbour, traffic, zone or goal near has
+nothing for a 10 Hz tick to do that a 3.3 Hz one would not: the policy decides once a second,
+and the separation filter leaves its command alone. So after each tick the shell asks `calm`;
+while it holds, the next tick is due a calm period later, on the same 10 Hz grid (kit/ticks.py),
+and a command still wakes the loop at once.
+
+A process is calm when every one of its vehicles:
+
+- is flown by the shell (velocity setpoints; never in relay mode, where the autopilot guides),
+  armed, in the air, its autopilot link up, HOLDING, in a GOTO, RETURNING or on a MISSION, with
+  no autopilot action under way, and the filter neither corrected nor slowed it this tick;
+- is further from its goal than the arrival radius plus what it flies in the horizon (it
+  arrives on a 10 Hz tick) and, with a circular geofence, further inside it than that;
+- has every neighbour, covey vehicle or traffic, further than the filter's reach for that pair,
+  r_ij (policy.safety.pair_radius_m: separation, margin and both position uncertainties)
+  + (v_i + v_j) (time_horizon_s + H) + 1 m, and every keep-out zone and fence edge further than
+  the zone filter's clearance + sigma_k sigma + v_i (time_horizon_s + H) + 1 m,
+
+where H is two calm periods (the calm interval, plus a state that came just after the last
+tick) and the speeds are bounded from above: max(speed, cruise speed) for the vehicle itself
+and for covey neighbours (guidance never flies faster), the reported speed for traffic plus
+what it gains in H at the fleet's acceleration limit. So within H no pair can come within the
+distance at which the filter looks at it (its velocity-obstacle horizon included), and the
+ticks are back at 10 Hz before any neighbour or zone is in the filter's view.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.flight_core import FlightCore, Observed
+from agent.neighbours import NeighbourSnapshot
+from comms.schema import Mode
+from kit.masks import mode_mask
+from policy.safety import pair_radius_m
+
+BUFFER_M = 1.0
+"""Added to every calm distance."""
+TRAFFIC_ACCEL_M_S2 = 2.5
+"""What traffic is assumed to gain in speed per second within the horizon."""
+
+_CALM_MODES = mode_mask((Mode.HOLDING, Mode.GOTO, Mode.RETURNING, Mode.MISSION))
+_ARRIVING = mode_mask((Mode.GOTO, Mode.RETURNING, Mode.MISSION))
+
+
+def calm(
+    core: FlightCore,
+    obs: Observed,
+    busy: np.ndarray,
+    corrected: np.ndarray,
+    ext: NeighbourSnapshot,
+    horizon_s: float,
+) -> bool:
+    """Whether every vehicle of the process may tick at the calm rate (the module's rules).
+    `busy`: (N,) an autopilot action is under way; `corrected`: (N,) the filter changed or
+    slowed the vehicle's command this tick; `ext`: the others, dead-reckoned to now."""
+    if not core.velocity_mode or busy.any() or corrected.any():
+        return False
+    mode = core.mode
+    if not (_CALM_MODES[mode].all() and obs.armed.all() and obs.in_air.all()):
+        return False
+    if not obs.link_ok.all():
+        return False
+    g, s = core.cfg.guidance, core.safety_cfg
+    pos, vel = obs.pos_m, obs.vel_m_s
+    speed = np.maximum(np.hypot(vel[:, 0], vel[:, 1]), g.cruise_speed_m_s)
+    travel = speed * horizon_s + BUFFER_M
+    targets = core.targets()
+    if np.isnan(targets[:, 0]).any():
+        return False
+    arriving = _ARRIVING[mode] & ~core.mission_waiting
+    to_goal = np.hypot(targets[:, 0] - pos[:, 0], targets[:, 1] - pos[:, 1])
+    if (arriving & (to_goal < g.arrive_radius_m + travel)).any():
+        return False
+    fence_r = core.cfg.failsafe.geofence_radius_m
+    if fence_r and (np.hypot(pos[:, 0], pos[:, 1]) > fence_r - travel).any():
+        return False
+    look_s = s.time_horizon_s + horizon_s
+    if len(ext):
+        coop = ext.column("cooperative", True)
+        nbr_speed = np.hypot(ext.vel_ned_m_s[:, 0], ext.vel_ned_m_s[:, 1])
+        nbr_speed = np.where(
+            coop,
+            np.maximum(nbr_speed, g.cruise_speed_m_s),
+            nbr_speed + TRAFFIC_ACCEL_M_S2 * horizon_s,
+        )
+        r, _share = pair_radius_m(
+            s,
+            core.pos_sigma_m[:, None],
+            ext.column("pos_sigma_m", 0.0)[None, :],
+            coop[None, :],
+            ext.column("manned", False)[None, :],
+        )
+        need = r + (speed[:, None] + nbr_speed[None, :]) * look_s + BUFFER_M
+        gap = np.hypot(
+            ext.pos_ned_m[None, :, 0] - pos[:, None, 0],
+            ext.pos_ned_m[None, :, 1] - pos[:, None, 1],
+        )
+        if (gap <= need).any():
+            return False
+    router = core.router
+    if router is not None:
+        clear = router.cfg.reach_m + s.sigma_k * core.pos_sigma_m
+        if (router.edge_distance_m(pos[:, :2]) <= clear + speed * look_s + BUFFER_M).any():
+            return False
+    return True
