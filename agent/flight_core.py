@@ -48,6 +48,7 @@ from comms.schema import (
     StateFlag,
 )
 from kit.masks import mode_mask
+from policy.goal_rule import goal_rule
 from policy.safety import SafetyConfig
 
 if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_plan`)
@@ -388,35 +389,28 @@ class FlightCore:
         (or the fence) than the clearance its filter keeps, 1.8 m + sigma_k x its position
         1-sigma, is flown to the nearest point outside that clearance, where the vehicle can
         arrive, if that point is within the arrival radius of it; else the goto is refused,
-        naming the zone and the distances (policy.routes `Router.check_goal`). The same whether
-        guidance or the autopilot flies (`router`, `safety_cfg`); without zones, the target as
-        it is."""
+        naming the zone and the distances (policy/goal_rule.py; the station's pre-checks word it
+        alike). The same whether guidance or the autopilot flies (`router`, `safety_cfg`);
+        without zones, the target as it is."""
         router = self.router
         if router is None:
             return target, "", ""
-        pad_m = self.safety_cfg.sigma_k * float(self.pos_sigma_m[i])
-        check = router.check_goal(target[:2], pad_m)
         plan = self.mission_plan
-        what = "the fence"
-        if check.zone >= 0:
-            zones = () if plan is None else plan.keep_out
-            name = zones[check.zone].name if check.zone < len(zones) else ""
-            what = f"keep-out zone {name!r}" if name else "a keep-out zone"
-        problem = check.problem(self.cfg.guidance.arrive_radius_m, what)
-        if problem:
-            return target, "", f"target: {problem}"
-        if check.shift_m == 0.0:
+        rule = goal_rule(
+            router,
+            target[:2],
+            float(self.pos_sigma_m[i]),
+            self.safety_cfg.sigma_k,
+            self.cfg.guidance.arrive_radius_m,
+            [] if plan is None else [z.name for z in plan.keep_out],
+        )
+        if rule.refused:
+            return target, "", f"target: {rule.refused}"
+        if not rule.moved:
             return target, "", ""
         out = target.copy()
-        out[:2] = check.goal_m
-        return (
-            out,
-            (
-                f"goal moved {check.shift_m:.1f} m, to {check.clearance_m:.1f} m from {what} (the "
-                f"filter's clearance at a {self.pos_sigma_m[i]:g} m position sigma)"
-            ),
-            "",
-        )
+        out[:2] = rule.goal_ne_m
+        return out, rule.moved, ""
 
     def _enter(
         self,

@@ -25,6 +25,7 @@ import numpy as np
 from agent.neighbours import NeighbourSnapshot
 from comms.scope import ScopeConfig
 from policy import safety
+from policy.goal_rule import ARRIVE_RADIUS_M
 from policy.observation import Observations
 from policy.runtime import GuidancePolicy, told_separation_m
 from policy.sparse import SparseConfig
@@ -42,7 +43,7 @@ class GuidanceConfig:
     """Minimum distance between two vehicles; the policy's 3 m scales to this."""
     cruise_speed_m_s: float = 1.0
     """Speed the policy flies at (its unit speed)."""
-    arrive_radius_m: float = 1.0
+    arrive_radius_m: float = ARRIVE_RADIUS_M
     """Horizontal distance at which a goto counts as arrived (then the vehicle holds there)."""
     arrive_alt_tol_m: float = 0.5
     vertical_gain_1_s: float = 1.0

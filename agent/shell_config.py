@@ -25,6 +25,7 @@ from comms.scope import ScopeConfig
 from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, SteadyConfig, check_rates
 from comms.traffic import TrafficConfig
+from policy.goal_rule import ASSUMED_POS_SIGMA_M
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,7 @@ class ShellConfig:
     (comms/scope.py, docs/scaling.md)."""
     failsafe: FailsafeConfig = FailsafeConfig()
     """Target checks (geofence, altitude limits) and failsafes."""
-    assumed_pos_sigma_m: float = 0.5
+    assumed_pos_sigma_m: float = ASSUMED_POS_SIGMA_M
     """Position 1-sigma (m, per horizontal axis) taken for a vehicle whose autopilot reports
     no horizontal accuracy (no GPS_RAW_INT h_acc, no MAVSDK horizontal uncertainty): standard
     GNSS, so that the separation filter pads its pairs and zones (1.8 m + sigma_k x sigma from

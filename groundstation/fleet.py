@@ -392,6 +392,14 @@ class FleetModel:
                 vid: t.state.pos_ned_m for vid, t in self._tracks.items() if t.state is not None
             }
 
+    def pos_sigmas(self) -> dict[int, float]:
+        """Latest reported position 1-sigma (m) of every vehicle with a state (0: exact or not
+        reported; the assumed one where its autopilot reports none)."""
+        with self._lock:
+            return {
+                vid: t.state.pos_sigma_m for vid, t in self._tracks.items() if t.state is not None
+            }
+
     def snapshot(self, now_ns: int, trails: bool | Collection[int] = True) -> FleetSnapshot:
         """The fleet at `now_ns`. Trails are the costly part: `trails` is True (all), False
         (none: every trail empty), or the ids whose trails to include.

@@ -185,17 +185,21 @@ class FormationPlan:
     """(n, 3) where each vehicle was when the plan was made, NED."""
     kept: bool
     """The slots of a remembered formation were kept (it was moved), not assigned anew."""
+    moved: tuple[str, ...] = ()
+    """moved[i]: how vehicle_ids[i]'s slot was moved out of a zone's clearance, as its ack will
+    say it ("" or (): not moved); `targets_ned_m` holds the moved slot."""
 
     def lines(self) -> list[str]:
         """The assignment as an operator reads it (altitude up, above the origin)."""
         out = []
-        for vid, slot, t, p in zip(
-            self.vehicle_ids, self.slot_of, self.targets_ned_m, self.from_ned_m, strict=True
+        moved = self.moved or ("",) * len(self.vehicle_ids)
+        for vid, slot, t, p, why in zip(
+            self.vehicle_ids, self.slot_of, self.targets_ned_m, self.from_ned_m, moved, strict=True
         ):
             dist = float(np.linalg.norm(t - p))
             out.append(
                 f"vehicle {vid:>5} -> slot {slot:>3}: N {t[0]:.1f} E {t[1]:.1f} "
-                f"alt {-t[2]:.1f} m ({dist:.1f} m away)"
+                f"alt {-t[2]:.1f} m ({dist:.1f} m away)" + (f"; {why}" if why else "")
             )
         return out
 
@@ -248,12 +252,17 @@ def plan_formation(
     plan: FleetPlan | None = None,
     memory: FormationMemory | None = None,
     reassign: bool = False,
+    pos_sigma_m: Mapping[int, float] | None = None,
 ) -> FormationPlan:
     """Slots for the vehicles of `positions_ned_m` (id -> NED position, None: not heard yet),
     and which vehicle takes which. Raises FormationError with the reason for: no vehicles, a
     vehicle without a position, as many slots as vehicles not given (a slot file), two slots
     closer than `separation_m`, a slot refused by the fleet plan (fence, keep-out zone,
-    ceiling or floor). With `memory`, a formation that was flown before keeps its assignment
+    ceiling or floor), a slot its vehicle would refuse (nearer a zone than its filter keeps, as
+    `groundstation.target_check` finds at the vehicle's `pos_sigma_m`, id -> its reported
+    position 1-sigma, 0 where missing; `separation_m` is the fleet's separation the filter
+    keeps), and slots moved out of a zone's clearance that end nearer each other than the
+    formation's spacing. With `memory`, a formation that was flown before keeps its assignment
     (unless `reassign`); the new assignment is remembered."""
     ids = tuple(sorted(positions_ned_m))
     if not ids:
@@ -297,9 +306,59 @@ def plan_formation(
     else:
         kept = None
         slot_of = assign(pos, slots)
+    targets, moved = _as_flown(
+        plan, separation_m, ids, slot_of, slots[slot_of], pos_sigma_m or {}, spacing_m=d_m
+    )
     if memory is not None:
         memory.remember(key, dict(zip(ids, slot_of.tolist(), strict=True)))
-    return FormationPlan(ids, tuple(slot_of.tolist()), slots[slot_of], pos, kept is not None)
+    return FormationPlan(ids, tuple(slot_of.tolist()), targets, pos, kept is not None, moved)
+
+
+def _as_flown(
+    plan: FleetPlan | None,
+    separation_m: float,
+    ids: tuple[int, ...],
+    slot_of: np.ndarray,
+    targets_ned_m: np.ndarray,
+    pos_sigma_m: Mapping[int, float],
+    *,
+    spacing_m: float,
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(targets, moved) as each vehicle would fly its slot (groundstation/target_check.py): a
+    slot it would refuse refuses the formation, naming the vehicle and why; moved slots must
+    keep `spacing_m` (the planned slots' closest pair: the spacing, at least the separation)
+    from every other slot, or the formation is refused. Nothing is sent either way."""
+    if plan is None or (not plan.keep_out and plan.fence is None):
+        return targets_ned_m, ("",) * len(ids)
+    from groundstation.target_check import TargetCheck  # shapely and scipy: only with a plan
+
+    check = TargetCheck(plan, separation_m)
+    out = targets_ned_m.copy()
+    moved = []
+    for i, (vid, t) in enumerate(zip(ids, targets_ned_m.tolist(), strict=True)):
+        sigma_m = float(pos_sigma_m.get(vid, 0.0))
+        verdict = check.check(t, sigma_m)
+        if verdict.refused:
+            raise FormationError(
+                f"vehicle {vid} would refuse slot {int(slot_of[i])} (N {t[0]:.1f} E {t[1]:.1f} "
+                f"alt {-t[2]:g} m, position sigma {sigma_m:g} m): {verdict.refused}; nothing sent"
+            )
+        out[i] = verdict.target_ned_m
+        moved.append(verdict.moved)
+    if not any(moved):
+        return out, tuple(moved)
+    for i in (k for k, why in enumerate(moved) if why):
+        d = np.linalg.norm(out - out[i], axis=1)
+        d[i] = np.inf
+        j = int(np.argmin(d))
+        if d[j] < spacing_m - 1e-6:
+            raise FormationError(
+                f"vehicle {ids[i]}'s slot {int(slot_of[i])} would be moved ({moved[i]}) to "
+                f"{d[j]:.2f} m from vehicle {ids[j]}'s slot {int(slot_of[j])}, closer than the "
+                f"formation's {spacing_m:.2f} m spacing (move the formation off the zone); "
+                "nothing sent"
+            )
+    return out, tuple(moved)
 
 
 def load_slots(path: str) -> tuple[tuple[float, float], ...]:

@@ -7,8 +7,11 @@
 It listens to the fleet's feed for the vehicles' positions, computes the slots and the
 assignment (groundstation/formation.py), prints the assignment, then sends one goto per vehicle
 through the ordinary command path (groundstation/dispatch.py) and prints every ack. Refusals
-(slots too close, more slots than vehicles, a slot outside the fence, a vehicle not heard) are
-one line, exit 2, and nothing is sent. The assignment is remembered in a small state file, so
+(slots too close, more slots than vehicles, a slot outside the fence, a vehicle not heard, a
+slot its vehicle would refuse as nearer a keep-out zone than its filter keeps at the position
+sigma it reports, slots moved off a zone that end nearer each other than the spacing) are one
+line, exit 2, and nothing is sent. A slot its vehicle would move (within the arrival radius) is
+sent moved, and the assignment says so. The assignment is remembered in a small state file, so
 that the same formation moved (a new centre, heading or altitude) keeps each vehicle's slot.
 """
 
@@ -61,7 +64,8 @@ class FormationCmdConfig:
     targets: tuple[int, ...]
     """Vehicle ids; () = every vehicle present."""
     separation_m: float = FleetConfig().separation_m
-    """Slots closer than this are refused (the fleet's separation)."""
+    """Slots closer than this are refused (the fleet's separation); the zone clearance the
+    vehicles' filters keep is checked at it too (groundstation/target_check.py)."""
     plan: FleetPlan | None = None
     """The fleet plan whose fence and keep-out zones refuse slots; None: the fleet's, pulled
     from the mesh (none there: the vehicles' own checks alone)."""
@@ -151,7 +155,7 @@ def formation_main(
             pres.wait_for(lambda v, _g: False, timeout_s=cfg.discover_s)
         present = set(pres.vehicles)
         ids = wanted or dispatch.expected_for_all(present, auth)
-        positions = _positions(fleet, ids, cfg.discover_s, stop)
+        positions, sigmas = _positions(fleet, ids, cfg.discover_s, stop)
         memory = _load_memory(cfg.state_file)
         plan = cfg.plan
         if plan is None:  # the fleet's plan, as the vehicles hold it (comms/plan_sync.py)
@@ -165,6 +169,7 @@ def formation_main(
             plan=plan,
             memory=memory,
             reassign=cfg.reassign,
+            pos_sigma_m=sigmas,
         )
         s = cfg.spec
         out(
@@ -197,14 +202,18 @@ def formation_main(
 
 def _positions(
     fleet: FleetModel, ids: set[int], wait_s: float, stop: threading.Event | None
-) -> dict[int, tuple[float, float, float] | None]:
-    """Each vehicle's latest position from the feed, waiting (bounded) until all are heard."""
+) -> tuple[dict[int, tuple[float, float, float] | None], dict[int, float]]:
+    """Each vehicle's latest position from the feed, waiting (bounded) until all are heard, and
+    the position 1-sigma those states report (the goal rule pads zones by it)."""
     end_s = time.monotonic() + wait_s
     while True:
         snap = fleet.snapshot(time.time_ns(), trails=False)
-        seen = {v.vehicle_id: v.state.pos_ned_m for v in snap.vehicles if v.state is not None}
+        seen = {v.vehicle_id: v.state for v in snap.vehicles if v.state is not None}
         if ids <= set(seen) or time.monotonic() > end_s or (stop is not None and stop.is_set()):
-            return {vid: seen.get(vid) for vid in ids}
+            return (
+                {vid: seen[vid].pos_ned_m if vid in seen else None for vid in ids},
+                {vid: seen[vid].pos_sigma_m for vid in ids if vid in seen},
+            )
         time.sleep(0.05)
 
 

@@ -2,7 +2,9 @@
 
 The operator sets spacing, centre, altitude and heading, and presses a shape: the station
 computes the slots and the optimal assignment (groundstation/formation.py) from the vehicles'
-latest positions and draws it in this tab's 3D view, one line from each vehicle to its slot.
+latest positions, checks every slot as its vehicle would (a slot it would refuse, nearer a
+keep-out zone than its filter keeps at its reported position sigma, refuses the whole formation
+with the reason; a slot it would move is shown and sent moved) and draws it in this tab's 3D view, one line from each vehicle to its slot.
 "Send formation" then sends exactly that previewed assignment (one goto per vehicle, acked in
 the tab's ack matrix like any command), and only if the form still shows what was previewed:
 a changed field or Targets refuses with the reason, and nothing is sent. A formation sent
@@ -60,6 +62,7 @@ class FormationSection:
         read_form: Callable[[viser.GuiEvent, str], FormSnapshot],
         targets: Callable[[FormSnapshot], tuple[int, ...]],
         positions: Callable[[], Mapping[int, tuple[float, float, float]]],
+        pos_sigmas: Callable[[], Mapping[int, float]] = dict,
         memory: FormationMemory,
         separation_m: float,
         plan_of_fleet: Callable[[], FleetPlan | None],
@@ -70,6 +73,7 @@ class FormationSection:
     ) -> None:
         self.client = client
         self._read_form, self._targets, self._positions = read_form, targets, positions
+        self._pos_sigmas = pos_sigmas
         self._memory, self._separation_m, self._plan_of_fleet = memory, separation_m, plan_of_fleet
         self._send, self._say = send, say
         self._goto_limit_m, self._targets_label = goto_limit_m, targets_label
@@ -125,6 +129,7 @@ class FormationSection:
                 self._separation_m,
                 plan=self._plan_of_fleet(),
                 memory=FormationMemory.from_json(self._memory.to_json()),
+                pos_sigma_m=self._pos_sigmas(),
             )
             jobs = [  # each goto checked as the operator's own would be
                 (goto_local(t[0], t[1], -t[2], self._goto_limit_m), (vid,))
@@ -145,9 +150,16 @@ class FormationSection:
         )
         how = "slots kept from when it was sent" if fp.kept else "optimal assignment"
         far = max(np.linalg.norm(fp.targets_ned_m - fp.from_ned_m, axis=1))
+        moved = "".join(
+            f" Vehicle {vid}'s slot: {why}."
+            for vid, why in zip(
+                fp.vehicle_ids, fp.moved or ("",) * len(fp.vehicle_ids), strict=True
+            )
+            if why
+        )
         self._say(
             f"Formation {shape}, {len(fp.vehicle_ids)} vehicles ({how}, longest leg "
-            f"{far:.0f} m) drawn in the view; press 'Send formation' to send it."
+            f"{far:.0f} m) drawn in the view; press 'Send formation' to send it.{moved}"
         )
 
     def send(self, event: viser.GuiEvent) -> None:

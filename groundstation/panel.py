@@ -78,10 +78,14 @@ class PanelHooks:
     """Monotonic seconds (the kill window is measured with it)."""
     positions: Callable[[], Mapping[int, tuple[float, float, float]]] = dict
     """The vehicles' latest NED positions (formations are assigned from them)."""
+    pos_sigmas: Callable[[], Mapping[int, float]] = dict
+    """The vehicles' latest reported position 1-sigma (formation slots are checked against the
+    zone clearance their filters keep at it)."""
     formations: FormationMemory = field(default_factory=FormationMemory)
     """The station's remembered formation assignments (a moved formation keeps its slots)."""
     separation_m: float = 3.0
-    """Formation slots closer than this are refused."""
+    """Formation slots closer than this are refused; the fleet's separation the vehicles'
+    filters keep (their zone clearance follows from it)."""
     fleet_plan: Callable[[], FleetPlan | None] = lambda: None
     """The fleet plan whose fence and keep-out zones refuse formation slots."""
 
@@ -160,6 +164,7 @@ class CommandPanel:
                 read_form=self._form,
                 targets=self._targets,
                 positions=hooks.positions,
+                pos_sigmas=hooks.pos_sigmas,
                 memory=hooks.formations,
                 separation_m=hooks.separation_m,
                 plan_of_fleet=hooks.fleet_plan,

@@ -2,9 +2,10 @@
 points) from a file to every vehicle.
 
     covey plan load FILE [--dir D | --key-file station-1.key] [--origin LAT,LON,ALT]
-                         [--floor-m X] [--ceiling-m Y] [--out PATH]
-        check a GeoJSON or QGC .plan file, sign it (the fleet authority in --dir, or a roster
-        station's key) and write the signed plan (default: D/plan.bin)
+                         [--floor-m X] [--ceiling-m Y] [--separation-m S] [--out PATH]
+        check a GeoJSON or QGC .plan file (home and rally points keep the zone clearance the
+        vehicles' filters keep at separation S), sign it (the fleet authority in --dir, or a
+        roster station's key) and write the signed plan (default: D/plan.bin)
     covey plan show [FILE] [--dir D] [--origin ...]
         print a signed plan (default D/plan.bin, its signature checked against D's roster) or
         what a GeoJSON / QGC file holds
@@ -27,6 +28,7 @@ from pathlib import Path
 from cli.options import (
     add_mesh_args,
     die,
+    finite,
     geo_origin,
     mesh_config,
     nobody_answered,
@@ -43,6 +45,7 @@ from comms.plan_io import (
     write_signed_plan,
 )
 from comms.schema import PlanMessage, Role
+from groundstation.plan_edit import SEPARATION_M, EditRefused, check_landing
 from trust.authority import DEFAULT_DIR, Authority
 from trust.identity import FleetKeyError, public_bytes, verify
 
@@ -102,6 +105,14 @@ def plan_parser() -> argparse.ArgumentParser:
             sp.add_argument(
                 "--out", default=None, metavar="PATH", help="where to write (default DIR/plan.bin)"
             )
+            sp.add_argument(
+                "--separation-m",
+                type=finite("metres"),
+                default=SEPARATION_M,
+                help="the fleet's separation (the agents' --separation-m): home and rally points "
+                "must keep the zone clearance their filters keep at it and a 0.5 m position "
+                f"sigma (default {SEPARATION_M:g}: 3.3 m from a zone or the fence)",
+            )
         if verb == "push":
             sp.add_argument(
                 "--plan",
@@ -154,6 +165,10 @@ def _load(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     geometry = read_plan_file(
         args.file, _origin(args), floor_alt_m=args.floor_m, ceiling_alt_m=args.ceiling_m
     )
+    try:  # home and rally points keep the vehicles' zone clearance (the station's editor too)
+        check_landing(geometry, args.separation_m)
+    except EditRefused as exc:
+        raise BadPlanError(f"plan file {Path(args.file).expanduser()}: {exc}") from None
     out = Path(args.out).expanduser() if args.out else Path(args.dir).expanduser() / PLAN_FILE
     previous = read_signed_plan(out) if out.exists() else None
     if args.key_file is not None:

@@ -12,7 +12,11 @@ or outside the fence, a second home),
 then every vehicle's target as comms/plan.py `plan_refusal` words it (the check the flight core
 makes) and every vehicle's position against the keep-out zones and the fence's polygon: a zone is
 never drawn over a vehicle or over where one is flying to, a fence never leaves one outside (what
-the plan already ruled out, e.g. a vehicle that drifted into a zone, blocks no edit elsewhere).
+the plan already ruled out, e.g. a vehicle that drifted into a zone, blocks no edit elsewhere);
+then home and every rally point against the clearance the vehicles' filters keep from the zones
+and the fence (`check_landing`: 3.3 m at 3 m separation and the assumed 0.5 m position sigma,
+groundstation/target_check.py), so that a return can arrive there. `check_landing` is also what
+`covey plan load` and the station's plan upload check a file with.
 The plan's own limits (vertices, zones and rally points in all) are comms/plan.py `FleetPlan`'s.
 The station signs and pushes a draft through the same path as an uploaded file
 (groundstation/plan_view.py `PlanView.push_geometry`).
@@ -40,11 +44,15 @@ from comms.plan import (
     rally_numbers,
 )
 from comms.plan_io import PlanGeometry, check_geometry
+from groundstation.fleet import FleetConfig
+from groundstation.target_check import landing_problems
 
 MAX_EDITS_LISTED = 16
 """Edits a draft remembers for the command log line (more are counted)."""
 FENCE_NO = 0
 """The fence's number where a step takes a zone number (the zones are numbered from 1)."""
+SEPARATION_M = FleetConfig().separation_m
+"""The fleet's separation a draft is checked at unless told (the station's `separation_m`)."""
 
 
 class EditRefused(ValueError):
@@ -84,6 +92,9 @@ class Draft:
     """Corners of the zone or fence being drawn, (north_m, east_m), in click order."""
     edits: tuple[str, ...] = ()
     """What was changed, in order, as the command log lists it."""
+    separation_m: float = SEPARATION_M
+    """The fleet's separation (the vehicles' filter radius): home and rally points keep the zone
+    clearance that follows from it (`check_landing`)."""
 
     @property
     def changed(self) -> bool:
@@ -103,9 +114,12 @@ def geometry_of(plan: FleetPlan | None) -> PlanGeometry:
     return PlanGeometry(plan.fence, plan.keep_out, plan.rally)
 
 
-def draft_of(plan: FleetPlan | None) -> Draft:
-    """A draft of `plan` (None: an empty plan) with nothing changed."""
-    return Draft(None if plan is None else plan.version, geometry_of(plan))
+def draft_of(plan: FleetPlan | None, separation_m: float = SEPARATION_M) -> Draft:
+    """A draft of `plan` (None: an empty plan) with nothing changed, checked at the fleet's
+    `separation_m`."""
+    return Draft(
+        None if plan is None else plan.version, geometry_of(plan), separation_m=separation_m
+    )
 
 
 def vehicle_refusals(geometry: PlanGeometry, v: VehiclePoint) -> list[str]:
@@ -128,14 +142,33 @@ def vehicle_refusals(geometry: PlanGeometry, v: VehiclePoint) -> list[str]:
     return out
 
 
+def check_landing(
+    geometry: PlanGeometry, separation_m: float, before: PlanGeometry | None = None
+) -> None:
+    """EditRefused when home or a rally point of `geometry` lies nearer a keep-out zone or the
+    fence than the vehicles' filters keep at the fleet's `separation_m` and the assumed position
+    sigma (groundstation/target_check.py `landing_problems`): a return could not arrive there.
+    `before`: the geometry it replaces; a point that one already had too near blocks no edit
+    elsewhere."""
+    new = landing_problems(geometry, separation_m)
+    if new and before is not None:
+        kept = [r for r, _ in new if r in before.rally]  # the same point, unmoved
+        old = {r for r, _ in landing_problems(before, separation_m, only=kept)} if kept else set()
+        new = [(r, why) for r, why in new if r not in old]
+    if new:
+        raise EditRefused(new[0][1])
+
+
 def checked(
     geometry: PlanGeometry,
     vehicles: tuple[VehiclePoint, ...] = (),
     before: PlanGeometry | None = None,
+    separation_m: float = SEPARATION_M,
 ) -> PlanGeometry:
     """`geometry` if it may be pushed with these vehicles where they are, else EditRefused.
     `before`: the geometry it replaces; what that one already ruled out (a vehicle that drifted
-    into a zone) blocks no edit elsewhere, only one that rules it out anew."""
+    into a zone, home too near a zone) blocks no edit elsewhere, only one that rules it out
+    anew. `separation_m`: the fleet's, for home's and the rally points' zone clearance."""
     try:
         out = check_geometry(geometry)
         out.plan("draft", 1, 0)  # FleetPlan's own limits: vertices and zones in all
@@ -146,6 +179,7 @@ def checked(
         new = [why for why in vehicle_refusals(out, v) if why not in old]
         if new:
             raise EditRefused(f"{v} would be {new[0]}")
+    check_landing(out, separation_m, before)
     return out
 
 
@@ -192,7 +226,7 @@ def _take(
     draft: Draft, geometry: PlanGeometry, edit: str, vehicles: tuple[VehiclePoint, ...]
 ) -> Draft:
     """`draft` with `geometry`, checked against the draft's own (EditRefused otherwise)."""
-    out = checked(geometry, vehicles, draft.geometry)
+    out = checked(geometry, vehicles, draft.geometry, draft.separation_m)
     return replace(draft, geometry=out, edits=(*draft.edits, edit))
 
 

@@ -144,7 +144,11 @@ class PlanEditor:
     def _edit(self, step: Callable[[pe.Draft], pe.Draft]) -> bool:
         """Apply one step to the draft (begun from the fleet's plan); show it or why not."""
         with self._lock:
-            base = self.draft if self.draft is not None else pe.draft_of(self.view.sync.plan)
+            base = (
+                self.draft
+                if self.draft is not None
+                else pe.draft_of(self.view.sync.plan, self.view.separation_m)
+            )
             try:
                 new = step(base)
             except pe.EditRefused as exc:
@@ -231,7 +235,9 @@ class PlanEditor:
             else:
                 try:
                     before = pe.geometry_of(held)
-                    geometry = pe.checked(draft.geometry, self._vehicles(), before)
+                    geometry = pe.checked(
+                        draft.geometry, self._vehicles(), before, draft.separation_m
+                    )
                 except pe.EditRefused as exc:
                     line = f"refused: {exc}"
                 else:

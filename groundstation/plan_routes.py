@@ -17,6 +17,7 @@ colour, from the vehicle through each waypoint to its goal.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import viser
@@ -25,6 +26,10 @@ from comms.plan import FleetPlan
 from comms.schema import Mode, StateFlag, VehicleState
 from groundstation.palette import mode_rgb
 from groundstation.scene import route_segments
+from groundstation.target_check import router_for
+
+if TYPE_CHECKING:  # shapely and scipy load only with a plan
+    from policy.routes import Router
 
 ROUTED_MODES = (Mode.GOTO, Mode.RETURNING, Mode.MISSION)
 """Modes whose goal the agents route around the zones (agent/flight_core.py: the guided rows
@@ -32,19 +37,6 @@ that do not hold; a mission's goal is its current item)."""
 MAX_ROUTES = 64
 """Vehicles whose routes are drawn at most (the lowest ids): a route costs a planner query."""
 ROUTE_PATH = "/plan_routes"
-
-
-def router_for(plan: FleetPlan | None, separation_m: float):
-    """The route planner the agents use for `plan` (policy.routes.Router), None without zones
-    or a fence."""
-    if plan is None or (not plan.keep_out and plan.fence is None):
-        return None
-    from policy.routes import zones_for  # shapely and scipy: only with a plan
-    from policy.safety import SafetyConfig
-
-    fence = plan.fence.vertices_ne_m if plan.fence is not None else None
-    _, router = zones_for(SafetyConfig(radius_m=separation_m), plan.keep_out_polygons_ne_m(), fence)
-    return router
 
 
 def planned_routes(router, states: Iterable[VehicleState]) -> dict[int, np.ndarray]:
@@ -79,7 +71,7 @@ class RouteLayer:
 
     def __init__(self, server: viser.ViserServer, separation_m: float) -> None:
         self.server, self.separation_m = server, separation_m
-        self.router = None
+        self.router: Router | None = None
         self.nodes: dict[int, viser.LineSegmentsHandle] = {}
         """Vehicle id -> its drawn route (read by tests)."""
         self.drawn: dict[int, np.ndarray] = {}

@@ -24,6 +24,7 @@ from comms.plan import FleetPlan
 from comms.plan_io import BadPlanError, PlanGeometry, next_version, parse_plan
 from comms.plan_sync import PlanSync, describe
 from groundstation.command_log import CommandLog
+from groundstation.plan_edit import EditRefused, check_landing
 from groundstation.plan_routes import RouteLayer
 from groundstation.scene import FleetScene
 from groundstation.web_viser import operator_of
@@ -52,6 +53,8 @@ class PlanView:
         self.server, self.mesh, self.scene, self.origin = server, mesh, scene, origin
         self.log, self._states = log, states
         self._clock_ns = clock_ns
+        self.separation_m = separation_m
+        """The fleet's separation: routes are drawn and home and rally points checked at it."""
         self.routes = RouteLayer(server, separation_m)
         self._route_period_ns = int(route_period_s * 1e9)
         self._routes_ns = 0
@@ -100,11 +103,17 @@ class PlanView:
                 self.routes.draw(self._states())
 
     def load(self, raw: bytes, name: str, operator: str | None = None) -> str:
-        """Check an uploaded file, sign it as this station, push it; the line to show."""
+        """Check an uploaded file (as `covey plan load` does: comms/plan_io.py, then home and the
+        rally points' zone clearance, plan_edit.py `check_landing`), sign it as this station,
+        push it; the line to show."""
+        where = f"uploaded {name!r}"
         try:
-            geometry = parse_plan(raw, f"uploaded {name!r}", self.origin)
+            geometry = parse_plan(raw, where, self.origin)
+            check_landing(geometry, self.separation_m)
         except BadPlanError as exc:
             return f"refused: {exc}"
+        except EditRefused as exc:
+            return f"refused: {where}: {exc}"
         return self.push_geometry(geometry, f"from {name!r}", operator)
 
     def push_geometry(self, geometry: PlanGeometry, what: str, operator: str | None) -> str:

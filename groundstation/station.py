@@ -321,6 +321,7 @@ class GroundStation:
             scenario=self.scenario_jobs,
             now_s=time.monotonic,
             positions=self.fleet.positions,
+            pos_sigmas=self.fleet.pos_sigmas,
             formations=FormationMemory(),
             separation_m=self.cfg.separation_m,
             fleet_plan=self._fleet_plan,
