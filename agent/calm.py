@@ -14,17 +14,25 @@ A process is calm when every one of its vehicles:
   no autopilot action under way, and the filter neither corrected nor slowed it this tick;
 - is further from its goal than the arrival radius plus what it flies in the horizon (it
   arrives on a 10 Hz tick) and, with a circular geofence, further inside it than that;
-- has every neighbour, covey vehicle or traffic, further than the filter's reach for that pair,
-  r_ij (policy.safety.pair_radius_m: separation, margin and both position uncertainties)
-  + (v_i + v_j) (time_horizon_s + H) + 1 m, and every keep-out zone and fence edge further than
-  the zone filter's clearance + sigma_k sigma + v_i (time_horizon_s + H) + 1 m,
+- has every neighbour, covey vehicle or traffic, further than
+
+      r_ij + (v_i + v_j) time_horizon_s + (v_i + V_j) H + 1 m
+
+  (r_ij: policy.safety.pair_radius_m, separation, margin and both position uncertainties), and
+  every keep-out zone and fence edge further than the zone filter's clearance + sigma_k sigma +
+  V_i (time_horizon_s + H) + 1 m,
 
 where H is two calm periods (the calm interval, plus a state that came just after the last
-tick) and the speeds are bounded from above: max(speed, cruise speed) for the vehicle itself
-and for covey neighbours (guidance never flies faster), the reported speed for traffic plus
-what it gains in H at the fleet's acceleration limit. So within H no pair can come within the
-distance at which the filter looks at it (its velocity-obstacle horizon included), and the
-ticks are back at 10 Hz before any neighbour or zone is in the filter's view.
+tick). v are the speeds now, as the filter's velocity obstacles take them: the vehicle's own is
+at least the cruise speed unless it holds; a covey neighbour's as it reports it; traffic's plus
+what it gains in H at 2.5 m/s^2. V bound them over H: a covey neighbour flies at most the
+cruise speed unless it reports more (guidance never commands more). So no pair comes within
+the distance at which the filter acts on it during the calm interval while both keep their
+speeds, and where a neighbour at rest starts towards the vehicle (a holding neighbour given a
+goto), the vehicle sees it at its next tick: its filter acts at most one calm period (0.3 s)
+later than at 10 Hz, from at least r_ij + 1 m, with the moving vehicle's own filter at 10 Hz
+(it is not calm: it is near). That is the delay the fleet already flies with on a 3 Hz radio
+link, where decisions use neighbour states up to a third of a second old (docs/policy.md).
 """
 
 from __future__ import annotations
@@ -78,15 +86,15 @@ def calm(
     fence_r = core.cfg.failsafe.geofence_radius_m
     if fence_r and (np.hypot(pos[:, 0], pos[:, 1]) > fence_r - travel).any():
         return False
-    look_s = s.time_horizon_s + horizon_s
+    tau_s = s.time_horizon_s
+    holding = mode == int(Mode.HOLDING)
+    own_now = np.where(holding, np.hypot(vel[:, 0], vel[:, 1]), speed)
     if len(ext):
         coop = ext.column("cooperative", True)
-        nbr_speed = np.hypot(ext.vel_ned_m_s[:, 0], ext.vel_ned_m_s[:, 1])
-        nbr_speed = np.where(
-            coop,
-            np.maximum(nbr_speed, g.cruise_speed_m_s),
-            nbr_speed + TRAFFIC_ACCEL_M_S2 * horizon_s,
-        )
+        nbr_now = np.hypot(ext.vel_ned_m_s[:, 0], ext.vel_ned_m_s[:, 1])
+        traffic = nbr_now + TRAFFIC_ACCEL_M_S2 * horizon_s
+        nbr_now = np.where(coop, nbr_now, traffic)
+        nbr_bound = np.where(coop, np.maximum(nbr_now, g.cruise_speed_m_s), traffic)
         r, _share = pair_radius_m(
             s,
             core.pos_sigma_m[:, None],
@@ -94,7 +102,12 @@ def calm(
             coop[None, :],
             ext.column("manned", False)[None, :],
         )
-        need = r + (speed[:, None] + nbr_speed[None, :]) * look_s + BUFFER_M
+        need = (
+            r
+            + (own_now[:, None] + nbr_now[None, :]) * tau_s
+            + (own_now[:, None] + nbr_bound[None, :]) * horizon_s
+            + BUFFER_M
+        )
         gap = np.hypot(
             ext.pos_ned_m[None, :, 0] - pos[:, None, 0],
             ext.pos_ned_m[None, :, 1] - pos[:, None, 1],
@@ -104,6 +117,7 @@ def calm(
     router = core.router
     if router is not None:
         clear = router.cfg.reach_m + s.sigma_k * core.pos_sigma_m
-        if (router.edge_distance_m(pos[:, :2]) <= clear + speed * look_s + BUFFER_M).any():
+        look_m = speed * (tau_s + horizon_s) + BUFFER_M
+        if (router.edge_distance_m(pos[:, :2]) <= clear + look_m).any():
             return False
     return True

@@ -158,6 +158,26 @@ def fleet_ids(vehicles: int) -> range:
     return range(1, vehicles + 1)
 
 
+def cpu_only(neighbours: int, neighbour_hz: float, link_tags: bool = True) -> dict:
+    """The same flight without the profiler (py-spy costs CPU and perturbs what it samples):
+    the agent's CPU per tick and its state rate."""
+    from trust.authority import throwaway_fleet
+
+    with tempfile.TemporaryDirectory() as d:
+        ids = [agent_cpu.AGENT_ID, *agent_cpu.neighbour_ids(neighbours)]
+        throwaway_fleet(d, agent_cpu.FLEET, vehicles=ids, stations=[1])
+        kw = {} if link_tags else {"link_tags": False}  # a tree from before tags runs too
+        f = agent_cpu.agent_flight(
+            False, keys_dir=d, neighbours=neighbours, neighbour_hz=neighbour_hz, **kw
+        )["flying"]
+    print(
+        f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz, link tags "
+        f"{'on' if link_tags else 'off'}, flying, no profiler: {f['cpu_ms_per_tick']:.2f} ms CPU "
+        f"per 100 ms, states {f['states'] / f['window_s']:.1f} Hz"
+    )
+    return f
+
+
 def main(
     neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200, link_tags: bool = True
 ) -> None:
@@ -229,6 +249,9 @@ if __name__ == "__main__":
     ap.add_argument("--neighbour-hz", type=float, default=10.0)
     ap.add_argument("--out", default="/tmp/agent_profile.txt")
     ap.add_argument(
+        "--cpu-only", action="store_true", help="no profiler: only the agent's CPU per tick"
+    )
+    ap.add_argument(
         "--no-link-tags",
         action="store_true",
         help="nobody tags states (trust/links.py): the agent verifies every signature",
@@ -247,5 +270,7 @@ if __name__ == "__main__":
 
         for hz, reach in ((10.0, False), (3.0, False), (3.0, True)):
             print(json.dumps(receive_cost(a.receive_model, 8.0, hz, reach)))
+    elif a.cpu_only:
+        cpu_only(a.neighbours, a.neighbour_hz, link_tags=not a.no_link_tags)
     else:
         main(a.neighbours, a.neighbour_hz, a.out, link_tags=not a.no_link_tags)

@@ -92,16 +92,39 @@ def test_a_vehicle_flying_alone_is_calm_and_a_holding_one_too(agent) -> None:
 def test_a_neighbour_within_the_filter_s_reach_ends_calm(agent) -> None:
     ag, t = agent
     fly(ag, t)
-    # the filter's reach at 1 m/s each: 3.6 + 2 x (4 + 0.6) + 1 = 13.8 m
-    neighbour(ag, t, 0.0, 13.0)
+    # flying at 1 m/s, a neighbour at rest: 3.6 + 1 x 4 + (1 + 1) x 0.6 + 1 = 9.8 m
+    neighbour(ag, t, 0.0, 9.0)
     tick(ag, t)
     assert not ag._calm
-    neighbour(ag, t, 0.0, 15.0)
+    neighbour(ag, t, 0.0, 11.0)
     tick(ag, t)
     assert ag._calm
-    # a fast neighbour further out is within reach too (5 m/s: 3.6 + 6 x 4.6 + 1 = 32.2 m; the
-    # agent hears 21 m around it: comms/scope.py)
+    # the same neighbour flying at 1 m/s: 3.6 + 2 x 4 + 2 x 0.6 + 1 = 13.8 m
+    neighbour(ag, t, 0.0, 13.0, vel=(0.0, 1.0, 0.0))
+    tick(ag, t)
+    assert not ag._calm
+    # a fast one further out (5 m/s: 3.6 + 6 x 4 + 6 x 0.6 + 1 = 32.2 m; the agent hears 21 m
+    # around it, comms/scope.py)
     neighbour(ag, t, 0.0, 18.0, vel=(0.0, -5.0, 0.0))
+    tick(ag, t)
+    assert not ag._calm
+
+
+def test_holding_beside_holding_neighbours_is_calm_until_one_moves(agent) -> None:
+    """A hovering grid 8 m apart (covey demo): 3.6 + 0 + (0 + 1) x 0.6 + 1 = 5.2 m at rest."""
+    ag, t = agent
+    fly(ag, t)
+    ag.handle_command(Command(kind=CommandKind.HOLD, nonce=new_nonce(), stamp_ns=0))
+    tick(ag, t, 30)
+    assert ag.mode is Mode.HOLDING
+    for dn_m, de_m in ((8.0, 0.0), (0.0, 8.0), (-8.0, 0.0), (0.0, -8.0)):
+        neighbour(ag, t, dn_m, de_m)
+    tick(ag, t)
+    assert ag._calm
+    neighbour(ag, t, 0.0, 8.0, vel=(0.0, -1.0, 0.0))  # one starts towards it
+    tick(ag, t)
+    assert not ag._calm
+    neighbour(ag, t, 0.0, 5.0)  # at rest, but within 5.2 m
     tick(ag, t)
     assert not ag._calm
 
