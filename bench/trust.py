@@ -210,7 +210,9 @@ def main(quick: bool = False) -> dict:
     common.say(
         f"Ed25519 per state: sign {c['sign_us']:.0f} us, verify {c['verify_us']:.0f} us; receive path "
         f"open {c['open_receive_us']:.0f} us vs keyed {c['keyed_receive_us']:.0f} us; state "
-        f"{c['state_bytes_open']} -> {c['state_bytes_keyed']} bytes"
+        f"{c['state_bytes_open']} -> {c['state_bytes_keyed']} bytes; link tags: a check "
+        f"{c['link_check_us']:.1f} us, tagged receive path {c['tagged_receive_us']:.0f} us, sign "
+        f"and tag for 20 {c['sign_and_tag_20_us']:.0f} us, {c['state_bytes_tagged_20']} bytes"
     )
     a = agent(quick, pairs=1 if quick else 2)
     common.say(

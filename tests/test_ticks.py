@@ -98,8 +98,9 @@ class Doorbell:
         self.rung = False
 
 
-def _run_resting(ticks: int, idle_until_s: float, rings_s: list[float]):
-    """Ticks at 10 Hz, resting at 2 Hz while the clock is before `idle_until_s`."""
+def _run_resting(ticks: int, idle_until_s: float, rings_s: list[float], calm_until_s: float = 0.0):
+    """Ticks at 10 Hz, resting at 2 Hz while the clock is before `idle_until_s`, calm (every
+    3rd tick) while it is before `calm_until_s`."""
     t = FakeTime(ticks)
     starts: list[float] = []
     bell = Doorbell(t, rings_s)
@@ -117,6 +118,8 @@ def _run_resting(ticks: int, idle_until_s: float, rings_s: list[float]):
         idle_hz=2.0,
         idle=lambda: t.now_s < idle_until_s,
         wake=bell,  # type: ignore[arg-type]
+        calm_every=3,
+        calm=lambda: t.now_s < calm_until_s,
     )
     return np.array(starts)
 
@@ -135,33 +138,8 @@ def test_a_ring_ticks_at_once_while_resting() -> None:
     assert np.diff(starts).min() > 0.2  # no burst after the ring: resting again
 
 
-def _run_calm(ticks: int, calm_until_s: float, rings_s: list[float]):
-    """Ticks at 10 Hz, every 3rd while the clock is before `calm_until_s`."""
-    t = FakeTime(ticks)
-    starts: list[float] = []
-    bell = Doorbell(t, rings_s)
-
-    def tick(now_s: float) -> None:
-        starts.append(now_s)
-        t.left -= 1
-        t.now_s += 0.005
-
-    run_ticks(
-        tick,
-        10.0,
-        t.clock_s,
-        t,
-        idle_hz=2.0,
-        idle=lambda: False,
-        wake=bell,  # type: ignore[arg-type]
-        calm_every=3,
-        calm=lambda: t.now_s < calm_until_s,
-    )
-    return np.array(starts)
-
-
 def test_a_calm_loop_ticks_every_third_period_on_the_grid_and_comes_back() -> None:
-    starts = _run_calm(30, calm_until_s=3.0, rings_s=[])
+    starts = _run_resting(30, idle_until_s=0.0, rings_s=[], calm_until_s=3.0)
     gaps = np.diff(starts)
     assert np.allclose(gaps[starts[:-1] < 2.9], 0.3)  # calm: 3.3 Hz
     assert np.allclose(gaps[starts[:-1] > 3.0], 0.1)  # busy again: 10 Hz
@@ -171,5 +149,5 @@ def test_a_calm_loop_ticks_every_third_period_on_the_grid_and_comes_back() -> No
 
 def test_a_ring_while_calm_brings_the_next_tick_of_the_grid() -> None:
     # calm throughout; a command at 0.63 s: its tick runs at 0.7 s (the grid), not at 0.9 s
-    starts = _run_calm(6, calm_until_s=100.0, rings_s=[0.63])
+    starts = _run_resting(6, idle_until_s=0.0, rings_s=[0.63], calm_until_s=100.0)
     assert np.allclose(starts, [0.0, 0.3, 0.6, 0.7, 1.0, 1.3]), starts  # calm again from there
