@@ -324,7 +324,7 @@ def link_receivers(links: bytes) -> list[int]:
     ]
 
 
-def _links_ok(links: bytes, sig: bytes) -> bool:
+def links_ok(links: bytes, sig: bytes) -> bool:
     """The fast test of a state's link trailer (`_check_links` says why not)."""
     n, rest = divmod(len(links), LINK_ENTRY_BYTES)
     return (
@@ -421,7 +421,7 @@ class VehicleState:
             and 0 <= self.mission_items <= MAX_MISSION_ITEMS
             and 0 <= self.mission_item <= self.mission_items + 1
             and 0.0 <= self.pos_sigma_m <= POS_SIGMA_LIMIT_M
-            and (not self.links or _links_ok(self.links, self.sig))
+            and (not self.links or links_ok(self.links, self.sig))
         ):
             return
         self._validate_reasoned()

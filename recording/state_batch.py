@@ -111,10 +111,28 @@ def _checks(a: np.ndarray) -> np.ndarray:
     return ok
 
 
+_SIGNED_END = _SIZE + schema.TAG_BYTES
+
+
+def _fits(p: bytes) -> bool:
+    """The payload has a state's size: unsigned, signed, or signed with a well-formed link
+    trailer (schema.links_ok: count byte, entries, receiver ids), which the arrays then skip."""
+    if len(p) in _SIZES:
+        return True
+    if len(p) <= _SIGNED_END:
+        return False
+    count, links = p[_SIGNED_END], p[_SIGNED_END + 1 :]
+    return (
+        count >= 1
+        and len(links) == count * schema.LINK_ENTRY_BYTES
+        and schema.links_ok(links, p[_SIZE:_SIGNED_END])
+    )
+
+
 def decode_states(payloads: Sequence[bytes]) -> list[StateRow | None]:
     """One entry per payload: its StateRow, or None where schema.decode refuses it."""
     out: list[StateRow | None] = [None] * len(payloads)
-    fits = [i for i, p in enumerate(payloads) if len(p) in _SIZES]
+    fits = [i for i, p in enumerate(payloads) if _fits(p)]
     if fits:
         a = np.frombuffer(b"".join(payloads[i][:_SIZE] for i in fits), dtype=_DTYPE)
         ok = _valid(a)

@@ -68,6 +68,13 @@ def _payloads(n: int = 3000, seed: int = 11) -> list[bytes]:
                 data[rng.randrange(len(data))] = rng.getrandbits(8)
         if k % 17 == 0:
             data += bytes(rng.choice([schema.TAG_BYTES, 1, 63]))  # signed, or a bad length
+        if k % 13 == 0:  # signed with a link trailer: well formed, or not (trust/links.py)
+            count = rng.choice([1, 2, schema.MAX_LINK_TAGS, 0, schema.MAX_LINK_TAGS + 1])
+            ids = [rng.choice([1, 7, schema.MAX_VEHICLE_ID, 0, 0xFFFF]) for _ in range(count)]
+            entries = b"".join(i.to_bytes(2, "little") + rng.randbytes(8) for i in ids)
+            cut = rng.choice([0, 0, 0, 1, schema.LINK_ENTRY_BYTES])
+            data += rng.randbytes(schema.TAG_BYTES) + bytes((count % 256,)) + entries
+            data = data[: len(data) - cut]
         if k % 29 == 0:
             data = data[: rng.randrange(len(data))]
         out.append(bytes(data))
