@@ -16,23 +16,26 @@ A process is calm when every one of its vehicles:
   arrives on a 10 Hz tick) and, with a circular geofence, further inside it than that;
 - has every neighbour, covey vehicle or traffic, further than
 
-      r_ij + (v_i + v_j) time_horizon_s + (v_i + V_j) H + 1 m
+      r_ij + |v_i - v_j| time_horizon_s + (V_i + V_j) H + 1 m
 
   (r_ij: policy.safety.pair_radius_m, separation, margin and both position uncertainties), and
   every keep-out zone and fence edge further than the zone filter's clearance + sigma_k sigma +
   V_i (time_horizon_s + H) + 1 m,
 
 where H is two calm periods (the calm interval, plus a state that came just after the last
-tick). v are the speeds now, as the filter's velocity obstacles take them: the vehicle's own is
-at least the cruise speed unless it holds; a covey neighbour's as it reports it; traffic's plus
-what it gains in H at 2.5 m/s^2. V bound them over H: a covey neighbour flies at most the
-cruise speed unless it reports more (guidance never commands more). So no pair comes within
-the distance at which the filter acts on it during the calm interval while both keep their
-speeds, and where a neighbour at rest starts towards the vehicle (a holding neighbour given a
-goto), the vehicle sees it at its next tick: its filter acts at most one calm period (0.3 s)
-later than at 10 Hz, from at least r_ij + 1 m, with the moving vehicle's own filter at 10 Hz
-(it is not calm: it is near). That is the delay the fleet already flies with on a 3 Hz radio
-link, where decisions use neighbour states up to a third of a second old (docs/policy.md).
+tick). The first two terms are where the filter's velocity obstacle for the pair begins, at
+the velocities now (the vehicle's measured one, the neighbour's as reported and dead-reckoned;
+traffic's relative speed plus what it gains in H at 2.5 m/s^2). The third bounds what both fly
+in H: V is at least the cruise speed for a covey vehicle (guidance never commands more; the
+vehicle's own is its speed while it holds), traffic's speed plus that gain. So no pair comes
+within the distance at which the filter acts on it during the calm interval while both keep
+their velocities. Where one changes its velocity towards the other (a holding neighbour given
+a goto, one of two vehicles flying side by side turning in), the calm vehicle sees it at its
+next tick: its filter acts at most one calm period (0.3 s) later than at 10 Hz, from at least
+r_ij + 1 m, while the vehicle that turned is not calm (its relative velocity puts the pair
+within its own bound) and runs its filter at 10 Hz. That is the delay the fleet already flies
+with on a 3 Hz radio link, where decisions use neighbour states up to a third of a second old
+(docs/policy.md).
 """
 
 from __future__ import annotations
@@ -88,13 +91,16 @@ def calm(
         return False
     tau_s = s.time_horizon_s
     holding = mode == int(Mode.HOLDING)
-    own_now = np.where(holding, np.hypot(vel[:, 0], vel[:, 1]), speed)
+    own_bound = np.where(holding, np.hypot(vel[:, 0], vel[:, 1]), speed)
     if len(ext):
         coop = ext.column("cooperative", True)
-        nbr_now = np.hypot(ext.vel_ned_m_s[:, 0], ext.vel_ned_m_s[:, 1])
-        traffic = nbr_now + TRAFFIC_ACCEL_M_S2 * horizon_s
-        nbr_now = np.where(coop, nbr_now, traffic)
-        nbr_bound = np.where(coop, np.maximum(nbr_now, g.cruise_speed_m_s), traffic)
+        nbr_speed = np.hypot(ext.vel_ned_m_s[:, 0], ext.vel_ned_m_s[:, 1])
+        gain = np.where(coop, 0.0, TRAFFIC_ACCEL_M_S2 * horizon_s)  # traffic may speed up
+        nbr_bound = np.where(coop, np.maximum(nbr_speed, g.cruise_speed_m_s), nbr_speed + gain)
+        rel = np.hypot(
+            vel[:, None, 0] - ext.vel_ned_m_s[None, :, 0],
+            vel[:, None, 1] - ext.vel_ned_m_s[None, :, 1],
+        )
         r, _share = pair_radius_m(
             s,
             core.pos_sigma_m[:, None],
@@ -104,8 +110,8 @@ def calm(
         )
         need = (
             r
-            + (own_now[:, None] + nbr_now[None, :]) * tau_s
-            + (own_now[:, None] + nbr_bound[None, :]) * horizon_s
+            + (rel + gain[None, :]) * tau_s
+            + (own_bound[:, None] + nbr_bound[None, :]) * horizon_s
             + BUFFER_M
         )
         gap = np.hypot(

@@ -91,21 +91,35 @@ def test_a_vehicle_flying_alone_is_calm_and_a_holding_one_too(agent) -> None:
 
 def test_a_neighbour_within_the_filter_s_reach_ends_calm(agent) -> None:
     ag, t = agent
-    fly(ag, t)
-    # flying at 1 m/s, a neighbour at rest: 3.6 + 1 x 4 + (1 + 1) x 0.6 + 1 = 9.8 m
+    fly(ag, t)  # north at 1 m/s
+    # a neighbour at rest: 3.6 + |1| x 4 + (1 + 1) x 0.6 + 1 = 9.8 m
     neighbour(ag, t, 0.0, 9.0)
     tick(ag, t)
     assert not ag._calm
     neighbour(ag, t, 0.0, 11.0)
     tick(ag, t)
     assert ag._calm
-    # the same neighbour flying at 1 m/s: 3.6 + 2 x 4 + 2 x 0.6 + 1 = 13.8 m
-    neighbour(ag, t, 0.0, 13.0, vel=(0.0, 1.0, 0.0))
+    # one flying south, head-on in velocity: 3.6 + 2 x 4 + 2 x 0.6 + 1 = 13.8 m
+    neighbour(ag, t, 0.0, 13.0, vel=(-1.0, 0.0, 0.0))
     tick(ag, t)
     assert not ag._calm
-    # a fast one further out (5 m/s: 3.6 + 6 x 4 + 6 x 0.6 + 1 = 32.2 m; the agent hears 21 m
-    # around it, comms/scope.py)
+    # a fast one further out (5 m/s west: |v_rel| 5.1, 3.6 + 20.4 + 6 x 0.6 + 1 = 28.6 m; the
+    # agent hears 21 m around it, comms/scope.py)
     neighbour(ag, t, 0.0, 18.0, vel=(0.0, -5.0, 0.0))
+    tick(ag, t)
+    assert not ag._calm
+
+
+def test_a_neighbour_flying_alongside_is_calm_beyond_the_pair_s_own_berth(agent) -> None:
+    """Side by side at the same velocity (a formation in transit): no relative velocity, so
+    only what either can fly in H: 3.6 + 0 + (1 + 1) x 0.6 + 1 = 5.8 m."""
+    ag, t = agent
+    fly(ag, t)
+    v = tuple(float(x) for x in ag.vehicles.read().vel_m_s[0])
+    neighbour(ag, t, 0.0, 7.0, vel=v)
+    tick(ag, t)
+    assert ag._calm
+    neighbour(ag, t, 0.0, 5.0, vel=v)
     tick(ag, t)
     assert not ag._calm
 
@@ -179,8 +193,8 @@ def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_anothe
     mesh_trio,
 ) -> None:
     """The agent's own loop (real clock, real Zenoh): flying alone it ticks about 3.3 times a
-    second; with a neighbour 8 m off it ticks at 10 Hz (fewer on a loaded machine, but more than
-    the calm rate allows)."""
+    second; with a neighbour 8 m off flying the other way it ticks at 10 Hz (fewer on a loaded
+    machine, but more than the calm rate allows)."""
     hub, a, b = mesh_trio
     stop = threading.Event()
     cfg = AgentConfig(vehicle_id=1, failsafe=NO_GCS)
@@ -204,7 +218,7 @@ def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_anothe
             time.sleep(2.0)
             calm_hz = (ag.stats.ticks - n0) / (time.monotonic() - t0)
             assert calm_hz <= 10.0 / 3 + 0.6, calm_hz
-            # a neighbour flying beside it, 8 m east, on the mesh
+            # a neighbour 8 m east flying south, on the mesh (calm needs 13.8 m)
             stop_nb = threading.Event()
 
             def beside() -> None:
@@ -218,7 +232,7 @@ def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_anothe
                             seq,
                             time.time_ns(),
                             (float(p[0]), float(p[1]) + 8.0, float(p[2])),
-                            (1.0, 0.0, 0.0),
+                            (-1.0, 0.0, 0.0),
                             0.0,
                             mode=Mode.GOTO,
                             armed=True,
