@@ -92,32 +92,31 @@ def calm(
     tau_s = s.time_horizon_s
     holding = mode == int(Mode.HOLDING)
     own_bound = np.where(holding, np.hypot(vel[:, 0], vel[:, 1]), speed)
-    if len(ext):
-        coop = ext.column("cooperative", True)
-        nbr_speed = np.hypot(ext.vel_ned_m_s[:, 0], ext.vel_ned_m_s[:, 1])
+    n = len(pos)
+    if n > 1 or len(ext):  # the process's other vehicles are neighbours too (a host's rows)
+        coop = np.concatenate([np.ones(n, bool), ext.column("cooperative", True)])
+        o_pos = np.concatenate([pos, ext.pos_ned_m]) if len(ext) else pos
+        o_vel = np.concatenate([vel, ext.vel_ned_m_s]) if len(ext) else vel
+        o_speed = np.hypot(o_vel[:, 0], o_vel[:, 1])
         gain = np.where(coop, 0.0, TRAFFIC_ACCEL_M_S2 * horizon_s)  # traffic may speed up
-        nbr_bound = np.where(coop, np.maximum(nbr_speed, g.cruise_speed_m_s), nbr_speed + gain)
-        rel = np.hypot(
-            vel[:, None, 0] - ext.vel_ned_m_s[None, :, 0],
-            vel[:, None, 1] - ext.vel_ned_m_s[None, :, 1],
-        )
+        o_bound = np.where(coop, np.maximum(o_speed, g.cruise_speed_m_s), o_speed + gain)
+        o_bound[:n] = own_bound
+        rel = np.hypot(vel[:, None, 0] - o_vel[None, :, 0], vel[:, None, 1] - o_vel[None, :, 1])
         r, _share = pair_radius_m(
             s,
             core.pos_sigma_m[:, None],
-            ext.column("pos_sigma_m", 0.0)[None, :],
+            np.concatenate([core.pos_sigma_m, ext.column("pos_sigma_m", 0.0)])[None, :],
             coop[None, :],
-            ext.column("manned", False)[None, :],
+            np.concatenate([np.zeros(n, bool), ext.column("manned", False)])[None, :],
         )
         need = (
             r
             + (rel + gain[None, :]) * tau_s
-            + (own_bound[:, None] + nbr_bound[None, :]) * horizon_s
+            + (own_bound[:, None] + o_bound[None, :]) * horizon_s
             + BUFFER_M
         )
-        gap = np.hypot(
-            ext.pos_ned_m[None, :, 0] - pos[:, None, 0],
-            ext.pos_ned_m[None, :, 1] - pos[:, None, 1],
-        )
+        gap = np.hypot(o_pos[None, :, 0] - pos[:, None, 0], o_pos[None, :, 1] - pos[:, None, 1])
+        gap[np.arange(n), np.arange(n)] = np.inf  # not itself
         if (gap <= need).any():
             return False
     router = core.router

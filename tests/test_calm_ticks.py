@@ -14,11 +14,13 @@ from conftest import wait_until
 
 from agent.backends.sim import SimBackend, SimConfig
 from agent.failsafe import FailsafeConfig
-from agent.hosts import Agent
-from agent.shell_config import AgentConfig
+from agent.hosts import Agent, Fleet
+from agent.shell_config import AgentConfig, FleetSimConfig
 from comms.commands import new_nonce
+from comms.mesh import Mesh
 from comms.plan import FleetPlan, Zone
 from comms.schema import AckResult, Command, CommandKind, Mode, TrafficSource, VehicleState
+from comms.session import embedded_router, free_tcp_port
 from comms.traffic import TrafficTrack
 
 FLEET = "calm"
@@ -254,3 +256,32 @@ def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_anothe
         finally:
             stop.set()
             loop.join(5.0)
+
+
+@pytest.mark.parametrize(("spacing_m", "calm_expected"), [(4.0, False), (20.0, True)])
+def test_a_host_s_own_vehicles_are_each_other_s_neighbours(spacing_m, calm_expected) -> None:
+    """`covey fleet-sim` / `--ids`: two holding vehicles of one process 4 m apart keep it at
+    10 Hz (within 5.2 m of each other); 20 m apart it is calm."""
+    t = [0.0]
+    cfg = FleetSimConfig(
+        vehicles=2, mesh=embedded_router(free_tcp_port(), fleet=FLEET), spacing_m=spacing_m
+    )
+    with Mesh(cfg.mesh) as mesh:
+        fleet = Fleet(cfg, mesh, clock_s=lambda: t[0])
+        for i in range(2):
+            ack = fleet.handle_command(
+                i,
+                Command(
+                    kind=CommandKind.TAKEOFF, params=(5.0, 0.0, 0.0), nonce=new_nonce(), stamp_ns=0
+                ),
+            )
+            assert ack.result is AckResult.ACCEPTED, ack.reason
+        for _ in range(300):
+            t[0] += 0.1
+            fleet.tick(t[0])
+            if fleet.modes == [Mode.HOLDING] * 2:
+                break
+        assert fleet.modes == [Mode.HOLDING] * 2
+        t[0] += 0.1
+        fleet.tick(t[0])
+        assert fleet._calm is calm_expected
