@@ -1,0 +1,173 @@
+"""Calm ticks against encounters, as the agents fly: the closest approach with calm ticks on
+(3.3 Hz while nothing is near, agent/calm.py) and off (`--calm-tick-hz 10`), same scenes.
+
+    python -m bench.calm_encounters [--repeats 2] [--vehicle-model realistic]
+    # bench/results/calm_encounters_<model>.json
+
+Real agent loops (`VehicleShell.run`, the real clock, kit/ticks.py's calm schedule), one
+`Agent` per vehicle, each on its own Zenoh session to one router, simulated vehicles (ideal,
+or realistic: 0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift), judged on true positions. The scenes are the ones the calm rule's reaction delay is about
+(agent/calm.py): a vehicle holding when another, holding 9 m away, is sent straight through it;
+two flying side by side 6.5 m apart (calm) when one turns across the other's path; and a
+head-on pair from 60 m. Each scene is flown with calm ticks on and off, alternating; the
+closest horizontal distance between the vehicles is sampled every 20 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import statistics
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from bench import common
+
+ALT_M = 10.0
+SCENES = ("rest_start", "turn_in", "head_on")
+"""The scenes; `--scenes` runs some."""
+
+
+def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
+    from agent.agent_cli import sim_config
+    from agent.backends.sim import SimBackend
+    from agent.failsafe import FailsafeConfig
+    from agent.hosts import Agent
+    from agent.shell_config import AgentConfig
+    from comms.commands import new_nonce
+    from comms.mesh import Mesh
+    from comms.schema import AckResult, Command, Mode
+    from comms.session import embedded_peer, embedded_router, free_tcp_port
+
+    starts = {
+        "rest_start": ((0.0, 0.0), (0.0, 9.0)),
+        "turn_in": ((0.0, 0.0), (0.0, 6.5)),
+        "head_on": ((0.0, 0.0), (60.0, 0.0)),
+    }[scene]
+    port, fleet = free_tcp_port(), f"calm-{scene}"
+    stop = threading.Event()
+
+    def cmd(ag: Agent, make: Callable[..., Command], *args: float) -> None:
+        ack = ag.handle_command(make(*args, nonce=new_nonce(), stamp_ns=time.time_ns()))
+        if ack.result is not AckResult.ACCEPTED:
+            raise RuntimeError(f"{scene}: {ack.reason}")
+
+    with (
+        Mesh(embedded_router(port, fleet=fleet)) as _hub,
+        Mesh(embedded_peer(port, fleet=fleet)) as m1,
+        Mesh(embedded_peer(port, fleet=fleet)) as m2,
+        contextlib.ExitStack() as held,
+    ):
+        agents = []
+        for vid, (mesh, ne) in enumerate(zip((m1, m2), starts, strict=True), start=1):
+            cfg = AgentConfig(
+                vehicle_id=vid,
+                failsafe=FailsafeConfig(require_gcs=False),
+                calm_tick_hz=calm_hz,
+            )
+            sim = sim_config(vehicle_model, start_ned_m=(ne[0], ne[1], 0.0))
+            agents.append(
+                held.enter_context(Agent(cfg, SimBackend(sim, now_s=time.monotonic()), mesh))
+            )
+        a, b = agents
+        loops = [threading.Thread(target=ag.run, args=(stop,), daemon=True) for ag in agents]
+        try:
+            for loop in loops:
+                loop.start()
+            for ag in agents:
+                cmd(ag, Command.takeoff, ALT_M)
+            deadline = time.monotonic() + 30.0
+            while not all(ag.mode is Mode.HOLDING for ag in agents):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{scene}: never both holding")
+                time.sleep(0.05)
+            time.sleep(2.0)  # both calm by now where the scene is calm
+            calm_before = (a._calm, b._calm)
+            if scene == "rest_start":  # b straight through a, 20 m beyond
+                cmd(b, Command.goto_local, 0.0, -20.0, -ALT_M)
+                fly_s = 35.0
+            elif scene == "turn_in":  # side by side north, then b cuts across a's line
+                cmd(a, Command.goto_local, 80.0, 0.0, -ALT_M)
+                cmd(b, Command.goto_local, 80.0, 6.5, -ALT_M)
+                time.sleep(8.0)
+                calm_before = (a._calm, b._calm)
+                here = b.vehicles.read().pos_m[0]
+                cmd(b, Command.goto_local, float(here[0]) + 8.0, -12.0, -ALT_M)
+                fly_s = 25.0
+            else:  # head-on
+                cmd(a, Command.goto_local, 60.0, 0.0, -ALT_M)
+                cmd(b, Command.goto_local, 0.0, 0.0, -ALT_M)
+                fly_s = 75.0
+            closest = closest_est = np.inf
+            end = time.monotonic() + fly_s
+            fleets = [ag.vehicles.backends[0].fleet for ag in agents]  # type: ignore[attr-defined]
+            while time.monotonic() < end:
+                pa, pb = fleets[0].true_pos_m[0], fleets[1].true_pos_m[0]
+                closest = min(closest, float(np.hypot(*(pa[:2] - pb[:2]))))
+                ea, eb = fleets[0].pos_m[0], fleets[1].pos_m[0]
+                closest_est = min(closest_est, float(np.hypot(*(ea[:2] - eb[:2]))))
+                time.sleep(0.02)
+        finally:
+            stop.set()
+            for loop in loops:
+                loop.join(5.0)
+    return {
+        "scene": scene,
+        "vehicle_model": vehicle_model,
+        "calm_tick_hz": calm_hz,
+        "closest_m": closest,
+        "closest_estimated_m": closest_est,
+        "calm_before": calm_before,
+    }
+
+
+def main(repeats: int = 2, vehicle_model: str = "ideal", scenes=SCENES) -> dict:
+    runs = []
+    for scene in scenes:
+        for _ in range(repeats):
+            for calm_hz in (10.0 / 3, 10.0):
+                r = _fly(scene, calm_hz, vehicle_model)
+                runs.append(r)
+                common.say(
+                    f"{vehicle_model} {scene:10s} calm ticks {'on ' if calm_hz < 10 else 'off'}: "
+                    f"closest {r['closest_m']:.2f} m true, {r['closest_estimated_m']:.2f} m "
+                    f"estimated (calm before the change: {r['calm_before']})"
+                )
+    summary = {
+        scene: {
+            on: statistics.median(
+                r["closest_m"]
+                for r in runs
+                if r["scene"] == scene and (r["calm_tick_hz"] < 10) == (on == "calm_on")
+            )
+            for on in ("calm_on", "calm_off")
+        }
+        for scene in scenes
+    }
+    result = {
+        "vehicle_model": vehicle_model,
+        "runs": runs,
+        "closest_m_median": summary,
+        "machine": common.machine(),
+    }
+    common.write_json(f"calm_encounters_{vehicle_model}", result)
+    return result
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--vehicle-model", default="ideal", choices=("ideal", "realistic"))
+    ap.add_argument(
+        "--scenes", default=",".join(SCENES), help="comma-separated, of " + ", ".join(SCENES)
+    )
+    a = ap.parse_args()
+    if a.repeats < 1:
+        ap.error("--repeats must be at least 1")
+    scenes = tuple(a.scenes.split(","))
+    if not scenes or any(x not in SCENES for x in scenes):
+        ap.error(f"--scenes {a.scenes!r}: comma-separated, of {', '.join(SCENES)}")
+    main(a.repeats, a.vehicle_model, scenes)
