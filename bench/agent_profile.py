@@ -158,18 +158,31 @@ def fleet_ids(vehicles: int) -> range:
     return range(1, vehicles + 1)
 
 
-def cpu_only(neighbours: int, neighbour_hz: float, link_tags: bool = True) -> dict:
-    """The same flight without the profiler (py-spy costs CPU and perturbs what it samples):
-    the agent's CPU per tick and its state rate."""
+def keyed_flight(
+    neighbours: int, neighbour_hz: float, link_tags: bool = True, while_flying=None
+) -> dict:
+    """bench/agent_cpu.py's flight in a throwaway keyed fleet of the agent and its neighbours;
+    `link_tags` False: nobody tags (a tree from before the tags runs with the default)."""
     from trust.authority import throwaway_fleet
 
     with tempfile.TemporaryDirectory() as d:
         ids = [agent_cpu.AGENT_ID, *agent_cpu.neighbour_ids(neighbours)]
         throwaway_fleet(d, agent_cpu.FLEET, vehicles=ids, stations=[1])
-        kw = {} if link_tags else {"link_tags": False}  # a tree from before tags runs too
-        f = agent_cpu.agent_flight(
-            False, keys_dir=d, neighbours=neighbours, neighbour_hz=neighbour_hz, **kw
-        )["flying"]
+        kw = {} if link_tags else {"link_tags": False}
+        return agent_cpu.agent_flight(
+            False,
+            keys_dir=d,
+            neighbours=neighbours,
+            neighbour_hz=neighbour_hz,
+            while_flying=while_flying,
+            **kw,
+        )
+
+
+def cpu_only(neighbours: int, neighbour_hz: float, link_tags: bool = True) -> dict:
+    """The same flight without the profiler (py-spy costs CPU and perturbs what it samples):
+    the agent's CPU per tick and its state rate."""
+    f = keyed_flight(neighbours, neighbour_hz, link_tags)["flying"]
     print(
         f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz, link tags "
         f"{'on' if link_tags else 'off'}, flying, no profiler: {f['cpu_ms_per_tick']:.2f} ms CPU "
@@ -181,7 +194,6 @@ def cpu_only(neighbours: int, neighbour_hz: float, link_tags: bool = True) -> di
 def main(
     neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200, link_tags: bool = True
 ) -> None:
-    from trust.authority import throwaway_fleet
 
     pyspy = shutil.which("py-spy") or str(common.REPO / ".venv/bin/py-spy")
     folded = out + ".folded"
@@ -215,17 +227,7 @@ def main(
         ticks = seconds * agent_cpu.TICK_HZ
         by_thread.update({k: (v - t0.get(k, 0.0)) * 1e3 / ticks for k, v in t1.items()})
 
-    with tempfile.TemporaryDirectory() as d:
-        ids = [agent_cpu.AGENT_ID, *agent_cpu.neighbour_ids(neighbours)]
-        throwaway_fleet(d, agent_cpu.FLEET, vehicles=ids, stations=[1])
-        r = agent_cpu.agent_flight(
-            False,
-            keys_dir=d,
-            neighbours=neighbours,
-            neighbour_hz=neighbour_hz,
-            while_flying=spy,
-            link_tags=link_tags,
-        )
+    r = keyed_flight(neighbours, neighbour_hz, link_tags, while_flying=spy)
     f = r["flying"]
     total, own, cum = top(Path(folded).read_text(), 40)
     lines = [
