@@ -63,6 +63,7 @@ from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.schema import POSITION_LIMIT_M
 from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
+from policy.pointmass import vehicle_model_arg
 from trust.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
 
 if TYPE_CHECKING:  # the link emulator is imported only when one is asked for
@@ -128,11 +129,14 @@ def add_flight_args(
     (unless `gcs_failsafe` is False: fleet-sim flies without one), state rates, run time."""
     p.add_argument(
         "--vehicle-model",
-        choices=("ideal", "realistic"),
+        type=vehicle_model_arg,
         default="ideal",
+        metavar="MODEL",
         help="how simulated vehicles fly: ideal (exactly the setpoint within the acceleration "
         "limit, exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, "
-        "GNSS estimate drifting 0.5 m: they report the estimate and its sigma); sim only",
+        "GNSS estimate drifting 0.5 m: they report the estimate and its sigma), optionally "
+        "with fields changed (realistic:drift_m=1.0,gust_m_s=0.4: policy.pointmass."
+        "VehicleModel); sim only",
     )
     p.add_argument(
         "--start-ne-m",
@@ -248,7 +252,9 @@ def sim_config(vehicle_model: str, **kw: object) -> SimConfig:
     policy.pointmass.VehicleModel.realistic() (0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift)."""
     from policy.pointmass import VehicleModel
 
-    model = None if vehicle_model == "ideal" else VehicleModel.named(vehicle_model)
+    model: VehicleModel | None = VehicleModel.named(vehicle_model)
+    if model == VehicleModel.ideal():
+        model = None
     return SimConfig(vehicle=model, **kw)  # type: ignore[arg-type]
 
 

@@ -336,20 +336,25 @@ class BatchGuidance:
         self.zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
         self.waypoint_m[:] = np.nan
 
-    def route(self, pos_m, goal_m):
-        """The whole route (policy.routes.Route) from pos_m to goal_m (north/east), for the
-        station and Foxglove to draw; None without zones."""
+    def route(self, pos_m, goal_m, pos_sigma_m: float = 0.0):
+        """The whole route (policy.routes.Route) from pos_m to goal_m (north/east) of a
+        vehicle whose position 1-sigma is pos_sigma_m, for the station and Foxglove to draw;
+        None without zones."""
         if self.router is None:
             return None
-        return self.router.plan(np.asarray(pos_m, float)[:2], np.asarray(goal_m, float)[:2])
+        pad = self.safety_cfg.sigma_k * pos_sigma_m
+        return self.router.plan(np.asarray(pos_m, float)[:2], np.asarray(goal_m, float)[:2], pad)
 
-    def _routed(self, rows, pos_m, target_m, goto) -> np.ndarray:
-        """target_m with each goto row's horizontal target replaced by its next waypoint."""
+    def _routed(self, rows, pos_m, target_m, goto, own_sigma_m=None) -> np.ndarray:
+        """target_m with each goto row's horizontal target replaced by its next waypoint, on
+        routes that keep the filter's padding for each row's position 1-sigma (own_sigma_m
+        (k,), None: 0) more from the zones (policy.routes `Router.widened`)."""
         self.waypoint_m[rows] = np.nan
         if self.router is None or not goto.any():
             return target_m
         out = target_m.copy()
-        out[goto, :2] = self.router.next_waypoints(pos_m[goto, :2], target_m[goto, :2])
+        pad = None if own_sigma_m is None else self.safety_cfg.sigma_k * own_sigma_m[goto]
+        out[goto, :2] = self.router.next_waypoints(pos_m[goto, :2], target_m[goto, :2], pad)
         self.waypoint_m[rows[goto]] = out[goto, :2]
         return out
 
@@ -392,7 +397,7 @@ class BatchGuidance:
         k = len(rows)
         goto = ~holding
         self.forget(rows[holding])
-        target_m = self._routed(rows, pos_m, target_m, goto)
+        target_m = self._routed(rows, pos_m, target_m, goto, views.own_pos_sigma_m)
         want = self.due(now_s, rows, target_m) if decide is None else np.asarray(decide, bool)
         deciding = goto & (want | np.isnan(self.held_m_s[rows, 0]))
         d = np.flatnonzero(deciding)

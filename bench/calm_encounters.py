@@ -25,6 +25,7 @@ from collections.abc import Callable
 import numpy as np
 
 from bench import common
+from policy.pointmass import vehicle_model_arg
 
 ALT_M = 10.0
 SCENES = ("rest_start", "turn_in", "head_on")
@@ -160,7 +161,7 @@ def main(repeats: int = 2, vehicle_model: str = "ideal", scenes=SCENES) -> dict:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--vehicle-model", default="ideal", choices=("ideal", "realistic"))
+    ap.add_argument("--vehicle-model", default="ideal", type=vehicle_model_arg)
     ap.add_argument(
         "--scenes", default=",".join(SCENES), help="comma-separated, of " + ", ".join(SCENES)
     )

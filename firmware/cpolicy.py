@@ -324,7 +324,8 @@ class CPolicy:
     def _command(self, obs: Observation, now_s, stamp_s, nbr_stamp_s, filtered: bool):
         if self.router is not None:
             try:
-                obs = obs.with_goal(self.router.next_waypoint(obs.pos_m, obs.goal_m))
+                pad = self.safety_cfg.sigma_k * obs.sky.pos_sigma_m  # as GuidancePolicy
+                obs = obs.with_goal(self.router.next_waypoint(obs.pos_m, obs.goal_m, pad))
             except (TypeError, ValueError):
                 pass  # the core names the bad input
         r = self.evaluate(obs, now_s, stamp_s, nbr_stamp_s)

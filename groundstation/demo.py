@@ -27,6 +27,7 @@ from comms.session import DEFAULT_PORT, embedded_router, free_tcp_port, port_fre
 from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
 from groundstation.station import GcsConfig, GroundStation
 from kit.procs import ChildGroup
+from policy.pointmass import vehicle_model_arg
 from trust.auth import FleetAuth, load_auth
 from trust.authority import Authority
 
@@ -265,10 +266,12 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--vehicle-model",
-        choices=("ideal", "realistic"),
+        type=vehicle_model_arg,
         default="ideal",
+        metavar="MODEL",
         help="how the simulated vehicles fly: ideal, or realistic (0.3 s lag, 2.5 m/s^2, "
-        "0.2 m/s gusts, GNSS drifting 0.5 m)",
+        "0.2 m/s gusts, GNSS drifting 0.5 m), optionally with fields changed "
+        "(realistic:drift_m=1.0: policy.pointmass.VehicleModel)",
     )
     p.add_argument(
         "--open-mode",

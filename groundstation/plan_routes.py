@@ -27,6 +27,7 @@ from comms.schema import Mode, StateFlag, VehicleState
 from groundstation.palette import mode_rgb
 from groundstation.scene import route_segments
 from groundstation.target_check import router_for
+from policy.safety import SIGMA_K
 
 if TYPE_CHECKING:  # shapely and scipy load only with a plan
     from policy.routes import Router
@@ -42,7 +43,9 @@ ROUTE_PATH = "/plan_routes"
 def planned_routes(router, states: Iterable[VehicleState]) -> dict[int, np.ndarray]:
     """Vehicle id -> (M+1, 3) NED points of its route (its position first, then each waypoint,
     the goal last, at the goal's altitude), for routed vehicles with a goal; none where the
-    planner refuses the goal or finds no way (the vehicle's own refusal is in its ack)."""
+    planner refuses the goal or finds no way (the vehicle's own refusal is in its ack). Each
+    route keeps sigma_k x the vehicle's reported position 1-sigma more from the zones, as its
+    agent's (policy/routes.py `Router.widened`; the filter's default sigma_k)."""
     out: dict[int, np.ndarray] = {}
     if router is None:
         return out
@@ -54,7 +57,9 @@ def planned_routes(router, states: Iterable[VehicleState]) -> dict[int, np.ndarr
         pos, goal = np.asarray(s.pos_ned_m, float), np.asarray(s.goal_ned_m, float)
         if not (np.isfinite(pos).all() and np.isfinite(goal).all()):
             continue
-        route = router.plan(pos[:2], goal[:2])
+        # the routes each agent flies keep its filter's padding for its position 1-sigma more
+        sigma = float(s.pos_sigma_m) if np.isfinite(s.pos_sigma_m) else 0.0
+        route = router.plan(pos[:2], goal[:2], SIGMA_K * sigma)
         if route.reason or not np.isfinite(route.length_m):
             continue
         way = np.asarray(route.waypoints_m, float).reshape(-1, 2)

@@ -28,7 +28,7 @@ import numpy as np
 from policy import evalsim, scenarios
 from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
 from policy.observation import Observations
-from policy.pointmass import VEHICLE_MODELS, VehicleModel
+from policy.pointmass import VehicleModel
 
 
 def flops(n: int, h: int = 63, x: int = 3, layers=(64, 64), a: int = 2) -> int:
@@ -88,7 +88,8 @@ class EvalConfig:
     vehicles: str = "ideal"
     """How the vehicles fly (policy.pointmass.VehicleModel): ideal (exactly what is commanded,
     exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, GNSS estimate
-    drifting 0.5 m); collisions and min_sep are judged on true positions, est_* on estimates."""
+    drifting 0.5 m), optionally with fields changed (realistic:drift_m=1.0,gust_m_s=0.4);
+    collisions and min_sep are judged on true positions, est_* on estimates."""
     sigma_k: float | None = None
     """Confidence factor of the filter's uncertainty inflation (policy.safety.SafetyConfig.sigma_k,
     None = its default); 0: the filter takes the estimates as the truth."""
@@ -524,8 +525,10 @@ def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = N
         return result
     if not set(a.links) <= {"perfect", "degraded"}:
         ap.error(f"--links takes perfect and/or degraded, got {','.join(a.links)!r}")
-    if a.vehicles not in VEHICLE_MODELS:
-        ap.error(f"--vehicles takes {' or '.join(VEHICLE_MODELS)}, got {a.vehicles!r}")
+    try:
+        VehicleModel.named(a.vehicles)
+    except ValueError as e:
+        ap.error(f"--vehicles: {e}")
     if not set(a.suites) <= {"circle", "conflict", "large", "intruder", "zones"}:
         ap.error(
             f"--suites takes circle, conflict, large, intruder, zones, got {','.join(a.suites)!r}"

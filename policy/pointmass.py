@@ -21,6 +21,8 @@ estimate, which is what a vehicle knows of itself and publishes.
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -138,17 +140,53 @@ class VehicleModel:
         )
 
     @classmethod
-    def named(cls, name: str) -> VehicleModel:
-        """`ideal` or `realistic` (the --vehicle-model / --vehicles flags)."""
+    def named(cls, spec: str) -> VehicleModel:
+        """A preset, `ideal` or `realistic`, optionally with fields changed after a colon:
+        `realistic:drift_m=1.0,gust_m_s=0.4` (the --vehicle-model / --vehicles flags). A bad
+        preset, field or value is a ValueError that says which."""
+        name, _, rest = str(spec).partition(":")
+        name = name.strip()
         if name not in VEHICLE_MODELS:
             raise ValueError(
-                f"vehicle model must be one of {', '.join(VEHICLE_MODELS)}, got {name!r}"
+                f"vehicle model must be one of {', '.join(VEHICLE_MODELS)} (optionally "
+                f"followed by :field=value,...), got {spec!r}"
             )
-        return getattr(cls, name)()
+        model = getattr(cls, name)()
+        if not rest.strip():
+            return model
+        fields = [f.name for f in dataclasses.fields(cls)]
+        changes: dict[str, float] = {}
+        for item in rest.split(","):
+            key, eq, value = (x.strip() for x in item.partition("="))
+            if key not in fields or not eq:
+                raise ValueError(
+                    f"vehicle model {spec!r}: {item.strip()!r} is not field=value with a field "
+                    f"of {', '.join(fields)}"
+                )
+            try:
+                changes[key] = float(value)
+            except ValueError:
+                raise ValueError(
+                    f"vehicle model {spec!r}: {key} must be a number, got {value!r}"
+                ) from None
+        try:
+            return dataclasses.replace(model, **changes)
+        except ValueError as e:
+            raise ValueError(f"vehicle model {spec!r}: {e}") from None
 
 
 VEHICLE_MODELS = ("ideal", "realistic")
 """The named presets of `VehicleModel`."""
+
+
+def vehicle_model_arg(spec: str) -> str:
+    """argparse `type` of the --vehicle-model / --vehicles flags: the spec as given, once
+    `VehicleModel.named` takes it (argparse shows its reason otherwise)."""
+    try:
+        VehicleModel.named(spec)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return spec
 
 
 def gauss_markov(x: np.ndarray, sigma: float, corr_s: float, dt_s: float, rng) -> None:

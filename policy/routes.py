@@ -45,6 +45,11 @@ BOUNDARY_TOL_M = 1e-6
 """Segments along the free space's boundary count as inside (numerical slack of the checks)."""
 PROJECT_IN_M = 0.01
 """A point projected out of a zone's band is put this far inside the free space."""
+PAD_STEP_M = 0.25
+"""A widened router's padding is rounded up to this step (`Router.widened`): one router per
+step of position uncertainty, not one per reported sigma."""
+MAX_WIDENED = 8
+"""Widened routers kept per plan (a fleet's sigmas fall in a few steps)."""
 MAX_CACHED_GOALS = 2048
 """Goals whose Dijkstra distances are kept (each vehicle of a fleet-sim host has its own: a
 thrashing cache re-runs Dijkstra every tick; 2048 x 434 corners is 14 MB at most)."""
@@ -67,13 +72,17 @@ class RouteConfig:
     simplify_m: float = 0.05
     """The inflated polygons are simplified to this tolerance (after inflating by as much more,
     so no simplified edge comes nearer than the inflation)."""
+    pad_m: float = 0.0
+    """Routes keep this much more again: the filter's padding for the position uncertainty,
+    sigma_k x the 1-sigma (policy.safety), so a route on plain GNSS runs outside the padded
+    radius the filter holds instead of along it (`Router.widened`)."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "simplify_m", "mitre_limit"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
-        for name in ("margin", "route_margin_m"):
+        for name in ("margin", "route_margin_m", "pad_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
@@ -86,12 +95,12 @@ class RouteConfig:
     @property
     def inflate_m(self) -> float:
         """How far route legs keep from a zone."""
-        return self.reach_m + self.route_margin_m
+        return self.reach_m + self.pad_m + self.route_margin_m
 
     @property
     def sight_m(self) -> float:
         """How far the legs from the vehicle's own position keep (the hysteresis)."""
-        return self.reach_m + 0.5 * self.route_margin_m
+        return self.reach_m + self.pad_m + 0.5 * self.route_margin_m
 
 
 @dataclass(frozen=True)
@@ -188,6 +197,31 @@ class Router:
         self._goals: OrderedDict = OrderedDict()
         self._inner = None  # the free space PROJECT_IN_M in (`_project`), made when first needed
         self._clear: dict = {}  # the free space at a goal clearance (`check_goal`), by clearance
+        self._widened: OrderedDict = OrderedDict()  # routers padded more (`widened`), by pad
+        self._fallback: Router | None = None
+        """The unpadded router a widened one falls back to where its own routes are walled off
+        (a gap the padding closed that the filter still lets through)."""
+
+    def widened(self, pad_m) -> Router:
+        """The router whose routes keep `pad_m` more from every zone (the filter's padding for
+        the position uncertainty, sigma_k x the 1-sigma), rounded up to PAD_STEP_M: this one
+        at 0, else one built and kept per step. Where its routes are walled off (the padding
+        closed a gap), it routes as this one does."""
+        pad = float(pad_m) if math.isfinite(pad_m) and pad_m > 0.0 else 0.0
+        step = math.ceil(pad / PAD_STEP_M - 1e-9) * PAD_STEP_M
+        if step <= 0.0:
+            return self
+        hit = self._widened.get(step)
+        if hit is not None:
+            self._widened.move_to_end(step)
+            return hit
+        cfg = RouteConfig(**{**self.cfg.__dict__, "pad_m": self.cfg.pad_m + step})
+        hit = Router(self.keep_out_m, cfg, self.fence_m)
+        hit._fallback = self
+        self._widened[step] = hit
+        if len(self._widened) > MAX_WIDENED:
+            self._widened.popitem(last=False)
+        return hit
 
     def _free(self, dist_m: float):
         keep = _inflate(self.keep_out_m, dist_m, self.cfg) if self.keep_out_m else None
@@ -395,9 +429,13 @@ class Router:
         q = shapely.shortest_line(free, p).coords[0]
         return GoalCheck(g, np.array([q[0], q[1]]), d, clearance, zone)
 
-    def next_waypoint(self, pos, goal) -> np.ndarray:
-        """Where to fly now (2,): see the module docstring. The goal itself when there is no
-        route (refused or walled off)."""
+    def next_waypoint(self, pos, goal, pad_m: float = 0.0) -> np.ndarray:
+        """Where to fly now (2,): see the module docstring; pad_m: the routes keep that much
+        more (`widened`). The goal itself when there is no route (refused or walled off)."""
+        if pad_m:
+            wide = self.widened(pad_m)
+            if wide is not self:
+                return wide.next_waypoint(pos, goal)
         pos = np.asarray(pos, dtype=np.float64).reshape(2)
         goal = np.asarray(goal, dtype=np.float64).reshape(2)
         if self.refusal(goal):
@@ -409,14 +447,29 @@ class Router:
         if self._visible(self._reach_ok, pos[None], entry[None])[0]:
             return goal if entry is goal else entry
         k = self._nearest_seen(pos, dist)
-        return self.nodes_m[k].copy() if k >= 0 else goal
+        if k >= 0:
+            return self.nodes_m[k].copy()
+        return goal if self._fallback is None else self._fallback.next_waypoint(pos, goal)
 
-    def next_waypoints(self, pos_m, goal_m) -> np.ndarray:
+    def next_waypoints(self, pos_m, goal_m, pad_m=None) -> np.ndarray:
         """`next_waypoint` of N rows (N, 2), the common case at once: a row whose position is
         clear, whose goal is clear of the route's inflation and in sight flies at its goal (one
-        vectorised check for all of them); the others one by one."""
+        vectorised check for all of them); the others one by one. pad_m: None, one pad or (N,)
+        pads (`widened`): rows are routed by the router of their pad's step."""
         pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
         goal = np.asarray(goal_m, dtype=np.float64).reshape(-1, 2)
+        if pad_m is not None:
+            pads = np.broadcast_to(np.asarray(pad_m, dtype=np.float64), (len(pos),))
+            bad = ~np.isfinite(pads) | (pads <= 0.0)
+            steps = np.where(bad, 0.0, np.ceil(np.where(bad, 0.0, pads) / PAD_STEP_M - 1e-9))
+            if steps.any():
+                out = np.empty_like(goal)
+                for step in np.unique(steps):
+                    rows = steps == step
+                    out[rows] = self.widened(step * PAD_STEP_M).next_waypoints(
+                        pos[rows], goal[rows]
+                    )
+                return out
         out = goal.copy()
         if not len(pos):
             return out
@@ -434,6 +487,8 @@ class Router:
         blocked = np.flatnonzero(clear & ~seen)
         if len(blocked) and len(self.nodes_m):
             out[blocked] = self._corners_for(pos[blocked], goal[blocked])
+        elif len(blocked) and self._fallback is not None:
+            out[blocked] = self._fallback.next_waypoints(pos[blocked], goal[blocked])
         for i in np.flatnonzero(finite & ~clear):  # led out, refused, goal near a zone: rare
             out[i] = self.next_waypoint(pos[i], goal[i])
         return out
@@ -460,10 +515,17 @@ class Router:
             todo = todo[~ok]
             if not len(todo):
                 break
+        if len(todo) and self._fallback is not None:  # walled off here: route unpadded
+            out[todo] = self._fallback.next_waypoints(pos[todo], goal[todo])
         return out
 
-    def plan(self, start, goal) -> Route:
-        """The whole route from `start` to `goal`: what `next_waypoint` leads through."""
+    def plan(self, start, goal, pad_m: float = 0.0) -> Route:
+        """The whole route from `start` to `goal`: what `next_waypoint` leads through (with
+        the same `pad_m`)."""
+        if pad_m:
+            wide = self.widened(pad_m)
+            if wide is not self:
+                return wide.plan(start, goal)
         start = np.asarray(start, dtype=np.float64).reshape(2)
         goal = np.asarray(goal, dtype=np.float64).reshape(2)
         why = self.refusal(goal)
@@ -479,6 +541,8 @@ class Router:
             tail = [entry]
         else:
             k = self._nearest_seen(here, dist)
+            if k < 0 and self._fallback is not None:
+                return self._fallback.plan(start, goal)
             if k < 0:
                 return Route(np.zeros((0, 2)), math.inf, "no route: the goal is walled off")
             tail = []

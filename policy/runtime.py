@@ -149,22 +149,25 @@ class GuidancePolicy:
 
         self.zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
 
-    def _waypoint(self, pos_m, goal_m):
-        """Where to fly now for `goal_m` (2,): the route's next waypoint with zones, else
+    def _waypoint(self, pos_m, goal_m, pos_sigma_m: float = 0.0):
+        """Where to fly now for `goal_m` (2,): the route's next waypoint with zones, on routes
+        that keep the filter's padding for pos_sigma_m (sigma_k x it) more from them, else
         the goal. Inputs that are not two finite numbers come back as they are (the checked
         path names them)."""
         if self.router is None:
             return goal_m
         try:
-            return self.router.next_waypoint(pos_m, goal_m)
+            pad = self.safety_cfg.sigma_k * float(pos_sigma_m)
+            return self.router.next_waypoint(pos_m, goal_m, pad)
         except (TypeError, ValueError):
             return goal_m
 
-    def _waypoints(self, pos_m, goal_m) -> np.ndarray:
-        """`waypoint` of N rows (N, 2)."""
+    def _waypoints(self, pos_m, goal_m, pos_sigma_m=None) -> np.ndarray:
+        """`waypoint` of N rows (N, 2), pos_sigma_m (N,) or None (0)."""
         if self.router is None:
             return goal_m
-        return self.router.next_waypoints(pos_m, goal_m)
+        pad = None if pos_sigma_m is None else self.safety_cfg.sigma_k * np.asarray(pos_sigma_m)
+        return self.router.next_waypoints(pos_m, goal_m, pad)
 
     @classmethod
     def load(
@@ -322,7 +325,7 @@ class GuidancePolicy:
             return self._command_swarm(obs)
         if not isinstance(obs, Observations):
             raise TypeError(f"command_batch takes Observations or a Swarm, got {type(obs)}")
-        obs = replace(obs, goal_m=self._waypoints(obs.pos_m, obs.goal_m))
+        obs = replace(obs, goal_m=self._waypoints(obs.pos_m, obs.goal_m, obs.pos_sigma_m))
         a, _ = self.actor.action_batch(obs)
         v = features.action_to_velocity(a, obs.heading_rad) * self.cruise_speed_m_s
         views = (obs.pos_m, obs.vel_m_s)
@@ -340,7 +343,7 @@ class GuidancePolicy:
     def _command(self, obs: Observation, filtered: bool) -> np.ndarray:
         """The action of `obs` (towards the route's waypoint with zones) as a velocity."""
         if self.router is not None:
-            obs = obs.with_goal(self._waypoint(obs.pos_m, obs.goal_m))
+            obs = obs.with_goal(self._waypoint(obs.pos_m, obs.goal_m, obs.sky.pos_sigma_m))
         return self._velocity(self.actor.pair(obs), obs, filtered)
 
     def _velocity(self, a: tuple, obs: Observation, filtered: bool = True) -> np.ndarray:

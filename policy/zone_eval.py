@@ -47,8 +47,10 @@ class Routed:
         from policy.safety import filter_padded
 
         way = goal
-        if self.router is not None:
-            way = self.router.next_waypoints(pos, goal)
+        if self.router is not None:  # routes widened by the filter's padding, as the agents'
+            sig = kw.get("pos_sigma_m")
+            pad = None if sig is None else self.safety_cfg.sigma_k * np.asarray(sig, float)
+            way = self.router.next_waypoints(pos, goal, pad)
         v = self.inner(ids, t_s, pos, vel, heading, way, nbr_pos, nbr_vel, nbr_heading, valid, **kw)
         if self.kind == "numpy":
             sky = {

@@ -183,3 +183,29 @@ def test_nearest_matches_a_plain_search(max_neighbours: int | None) -> None:
         idx = np.array(got, dtype=int)
         assert np.array_equal(v[order], vel[idx]) and np.array_equal(h[order], heading[idx])
         assert np.array_equal(st[order], stale[idx])
+
+
+def test_goto_rows_route_around_zones_widened_by_their_own_position_sigma():
+    """A row on plain GNSS flies a route that keeps the filter's padding for its sigma more from
+    the zone (policy/routes.py `Router.widened`); an exact row flies the base route."""
+    from agent.guidance import BatchGuidance
+
+    square = np.array([[5.0, -5.0], [5.0, 5.0], [15.0, 5.0], [15.0, -5.0]])
+    g = BatchGuidance(GuidanceConfig(), 2)
+    g.set_zones([square])
+    pos = np.array([[-5.0, 0.0, -5.0], [-5.0, 0.0, -5.0]])
+    target = np.array([[25.0, 0.0, -5.0], [25.0, 0.0, -5.0]])
+    none = np.zeros((2, 0))
+    views = NeighbourViews(
+        np.zeros((2, 0, 3)), np.zeros((2, 0, 3)), none, none.astype(bool), none.astype(bool),
+        own_pos_sigma_m=np.array([0.0, 0.5]),
+    )  # fmt: skip
+    rows = np.arange(2)
+    g.step(0.0, rows, pos, np.zeros((2, 3)), np.zeros(2), target, np.zeros(2, bool), views)
+    pad = g.safety_cfg.sigma_k * 0.5
+    router = g.router
+    np.testing.assert_allclose(g.waypoint_m[0], router.next_waypoint(pos[0, :2], target[0, :2]))
+    np.testing.assert_allclose(
+        g.waypoint_m[1], router.next_waypoint(pos[1, :2], target[1, :2], pad)
+    )
+    assert np.abs(g.waypoint_m[1, 1]) > np.abs(g.waypoint_m[0, 1]) + 1.0  # wider round

@@ -140,3 +140,49 @@ def test_next_waypoints_equals_the_one_by_one_answer():
             np.testing.assert_array_equal(got[i], goal[i])
             continue
         np.testing.assert_allclose(got[i], r.next_waypoint(pos[i], goal[i]), err_msg=str(i))
+
+
+def test_widened_routes_keep_the_filters_padding_more_and_are_kept_per_step():
+    r = Router([SQ])
+    assert r.widened(0.0) is r and r.widened(float("nan")) is r and r.widened(-1.0) is r
+    wide = r.widened(1.5)
+    assert wide is r.widened(1.3) and wide is not r.widened(1.51)  # one per 0.25 m step
+    assert wide.cfg.inflate_m == pytest.approx(r.cfg.inflate_m + 1.5)
+    rt = r.plan([-10, 5], [20, 5], pad_m=1.5)
+    assert rt.reason == ""
+    pts = np.vstack([[-10, 5], rt.waypoints_m])
+    assert _clear_of(pts, [SQ], r.cfg.inflate_m + 1.5)
+    assert not _clear_of(np.vstack([[-10, 5], r.plan([-10, 5], [20, 5]).waypoints_m]), [SQ], 3.0)
+    np.testing.assert_allclose(
+        r.next_waypoint([-10, 5], [20, 5], 1.5), wide.next_waypoint([-10, 5], [20, 5])
+    )
+
+
+def test_widened_router_falls_back_where_its_padding_walls_the_goal_off():
+    # two rooms joined by a corridor 9 m wide: open at the base inflation (2.3 m a side),
+    # closed at 3 m more; the widened router routes as the base one there
+    fence = np.array(
+        [[0, 0], [30, 0], [30, 10.5], [60, 10.5], [60, 0], [90, 0], [90, 30], [60, 30],
+         [60, 19.5], [30, 19.5], [30, 30], [0, 30]],
+        float,
+    )  # fmt: skip
+    r = Router([], fence_m=fence)
+    start, goal = np.array([15.0, 8.0]), np.array([75.0, 22.0])
+    assert r.plan(start, goal).reason == ""
+    assert r.widened(3.0).plan(start, goal).reason == ""  # the fallback's route
+    np.testing.assert_allclose(r.next_waypoint(start, goal, 3.0), r.next_waypoint(start, goal))
+    np.testing.assert_allclose(
+        r.next_waypoints(start[None], goal[None], 3.0)[0], r.next_waypoint(start, goal)
+    )
+
+
+def test_next_waypoints_with_pads_equals_the_one_by_one_answer():
+    rng = np.random.default_rng(12)
+    r = Router([SQ, C_SHAPE + [30, 0]])
+    pos = rng.uniform(-20, 60, (200, 2))
+    goal = rng.uniform(-20, 60, (200, 2))
+    pad = rng.choice([0.0, 0.6, 1.5, 2.1, np.nan], 200)
+    got = r.next_waypoints(pos, goal, pad)
+    for i in range(200):
+        want = r.next_waypoint(pos[i], goal[i], 0.0 if np.isnan(pad[i]) else pad[i])
+        np.testing.assert_allclose(got[i], want, err_msg=str(i))

@@ -5,6 +5,7 @@ seeded fleet, and the vectorised fleet equal to a plain per-vehicle reference lo
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -28,6 +29,30 @@ def test_presets_and_bad_values():
     for bad in ({"lag_s": -1.0}, {"drift_m": math.nan}, {"gust_corr_s": 0.0}):
         with pytest.raises(ValueError):
             VehicleModel(**bad)
+
+
+def test_presets_with_fields_changed_and_their_refusals():
+    import argparse
+
+    from policy.pointmass import vehicle_model_arg
+
+    m = VehicleModel.named("realistic:drift_m=1.0, gust_m_s=0.4")
+    assert m == replace(VehicleModel.realistic(), drift_m=1.0, gust_m_s=0.4)
+    assert VehicleModel.named("ideal:lag_s=0.5") == VehicleModel(lag_s=0.5)
+    assert VehicleModel.named("realistic:") == VehicleModel.realistic()
+    for bad, why in (
+        ("realistic:drift=1", "not field=value"),
+        ("realistic:drift_m", "not field=value"),
+        ("realistic:drift_m=x", "drift_m must be a number"),
+        ("realistic:drift_m=-1", "drift_m must be finite and >= 0"),
+        ("realistic:drift_corr_s=0", "drift_corr_s must be > 0"),
+        ("wobbly:drift_m=1", "must be one of ideal, realistic"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            VehicleModel.named(bad)
+        with pytest.raises(argparse.ArgumentTypeError, match=why):
+            vehicle_model_arg(bad)
+    assert vehicle_model_arg("realistic:drift_m=1.0") == "realistic:drift_m=1.0"
 
 
 def test_ideal_vehicles_fly_the_command_exactly_and_draw_nothing():
@@ -184,8 +209,10 @@ def test_vehicle_model_flags(capsys):
     assert demo_parser().parse_args([]).vehicle_model == "ideal"
     assert agent_cli.sim_config("realistic").vehicle == VehicleModel.realistic()
     assert agent_cli.sim_config("ideal").vehicle is None
+    assert agent_cli.sim_config("realistic:drift_m=1").vehicle.drift_m == 1.0
     for argv, why in (
-        (["--vehicle-model", "real"], "invalid choice: 'real'"),
+        (["--vehicle-model", "real"], "must be one of ideal, realistic"),
+        (["--vehicle-model", "realistic:drift_m=x"], "drift_m must be a number"),
         (
             ["--id", "1", "--vehicle", "mavsdk:udpin://0.0.0.0:1", "--vehicle-model", "realistic"],
             "--vehicle-model is how a simulated vehicle flies; a mavsdk vehicle flies itself",

@@ -63,10 +63,9 @@ class SitlConfig:
             )
         if not self.links:
             raise ValueError("at least one MAVLink link is needed")
-        if self.vehicle_model not in ("ideal", "realistic"):
-            raise ValueError(
-                f"vehicle_model must be ideal or realistic, got {self.vehicle_model!r}"
-            )
+        from policy.pointmass import VehicleModel
+
+        VehicleModel.named(self.vehicle_model)  # a ValueError that says what is wrong
         for name in (
             "physics_hz",
             "position_hz",

@@ -51,7 +51,9 @@ class Emulator:
                 cfg.home,
                 cfg.policy_hz,
             )
-        model = None if cfg.vehicle_model == "ideal" else VehicleModel.named(cfg.vehicle_model)
+        model: VehicleModel | None = VehicleModel.named(cfg.vehicle_model)
+        if model == VehicleModel.ideal():
+            model = None
         self.vehicle = Vehicle(
             params=cfg.params, healthy=cfg.healthy, guidance=guidance, now_s=now_s, model=model
         )

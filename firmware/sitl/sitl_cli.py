@@ -20,6 +20,7 @@ from cli.options import (
 from comms.geo import GeoOrigin
 from firmware.sitl.config import SitlConfig
 from firmware.sitl.params import VehicleParams
+from policy.pointmass import vehicle_model_arg
 
 PARAM_FLAGS = (
     "cruise_speed_m_s",
@@ -97,10 +98,12 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--vehicle-model",
-        choices=("ideal", "realistic"),
+        type=vehicle_model_arg,
         default="ideal",
+        metavar="MODEL",
         help="ideal: the setpoint within MPC_ACC_HOR, exact positions; realistic: 0.3 s lag, "
-        "0.2 m/s gusts, GNSS drifting 0.5 m (reported, with its sigma as GPS_RAW_INT h_acc)",
+        "0.2 m/s gusts, GNSS drifting 0.5 m (reported, with its sigma as GPS_RAW_INT h_acc); "
+        "fields changed after a colon: realistic:drift_m=1.0 (policy.pointmass.VehicleModel)",
     )
     add_config_flags(
         p,
