@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from comms.plan import RALLY_PAD_SPACING_M, RALLY_PADS, PadLayout
+
 NONE, CLIMB, CRUISE, WAIT = 0, 1, 2, 3
 """Return phases: not returning on layers, to the layer, level to the spot, over it waiting."""
 AIRBORNE_ALT_M = 0.3
@@ -58,9 +60,10 @@ class ReturnConfig:
     land_radius_m: float = 8.0
     """Vehicles whose landing spots are within this horizontal distance land one at a time,
     lowest first; 0: each lands as it arrives."""
-    rally_pad_spacing_m: float = 5.0
-    """Distance between landing pads around a rally point."""
-    rally_pads: int = 25
+    rally_pad_spacing_m: float = RALLY_PAD_SPACING_M
+    """Distance between landing pads around a rally point (comms/plan.py `PadLayout`: the layout
+    the station checks against the zones and the fence, `GcsConfig.landing_pads`)."""
+    rally_pads: int = RALLY_PADS
     """Pads around a rally point (a square grid); vehicle id v takes pad (v - 1) mod rally_pads."""
 
     def __post_init__(self) -> None:
@@ -87,13 +90,12 @@ class ReturnConfig:
 
     def pad_ne_m(self, vehicle_id: int) -> tuple[float, float]:
         """Offset of the vehicle's pad from a rally point (a centred square grid)."""
-        side = math.ceil(math.sqrt(self.rally_pads))
-        k = (vehicle_id - 1) % self.rally_pads
-        half = (side - 1) / 2.0
-        return (
-            (k // side - half) * self.rally_pad_spacing_m,
-            (k % side - half) * self.rally_pad_spacing_m,
-        )
+        return self.pad_layout.offset_ne_m((vehicle_id - 1) % self.rally_pads + 1)
+
+    @property
+    def pad_layout(self) -> PadLayout:
+        """The pads around a rally point (what the station checks a plan's points against)."""
+        return PadLayout(self.rally_pads, self.rally_pad_spacing_m)
 
 
 class Returns:

@@ -31,6 +31,11 @@ MAX_COORD_M = 1.0e6
 """No plan coordinate is further than this from the fleet origin (a swarm's plan spans km)."""
 HOME = "home"
 """The name of the rally point that is the fleet's home (a plan holds at most one)."""
+RALLY_PADS = 25
+"""Landing pads around home or a rally point by default, a square grid (agent/returning.py
+`ReturnConfig.rally_pads`): vehicle id v lands on pad (v - 1) mod pads + 1."""
+RALLY_PAD_SPACING_M = 5.0
+"""Distance between neighbouring landing pads by default (`ReturnConfig.rally_pad_spacing_m`)."""
 
 PolygonNE = tuple[tuple[float, float], ...]
 """A polygon as (north_m, east_m) vertices, not closed (the last vertex is not the first)."""
@@ -193,6 +198,37 @@ def rally_numbers(rally: tuple[RallyPoint, ...]) -> list[tuple[int, int]]:
     """(number, index into `rally`) of each rally point other than home, numbered from 1 in
     the plan's order: the numbers the station shows and edits them by."""
     return list(enumerate((i for i, r in enumerate(rally) if r.name != HOME), start=1))
+
+
+@dataclass(frozen=True)
+class PadLayout:
+    """The landing pads a return lays around home or a rally point: a square grid centred on
+    the point, ceil(sqrt(pads)) pads a side, `spacing_m` apart, numbered from the south-west
+    corner eastwards, row by row northwards. The one layout: the returning vehicles land on it
+    (agent/returning.py `ReturnConfig.pad_layout`) and the station checks every pad of it
+    against the zones and the fence (groundstation/target_check.py `landing_problems`)."""
+
+    pads: int = RALLY_PADS
+    """Pads around a point; vehicle id v lands on pad (v - 1) mod pads + 1 (1 pad: the point)."""
+    spacing_m: float = RALLY_PAD_SPACING_M
+    """Distance between neighbouring pads, metres."""
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.pads <= 10_000:
+            raise ValueError(f"pads must be within 1..10000, got {self.pads}")
+        if not (math.isfinite(self.spacing_m) and 0 < self.spacing_m <= MAX_COORD_M):
+            raise ValueError(f"the pad spacing must be positive metres, got {self.spacing_m}")
+
+    def offset_ne_m(self, pad_no: int) -> tuple[float, float]:
+        """Offset (north_m, east_m) of pad `pad_no` (1..pads) from its point:
+
+        side = ceil(sqrt(pads)), k = pad_no - 1
+        offset = (k // side - (side - 1) / 2, k % side - (side - 1) / 2) x spacing_m
+        """
+        side = math.ceil(math.sqrt(self.pads))
+        k = pad_no - 1
+        half = (side - 1) / 2.0
+        return (k // side - half) * self.spacing_m, (k % side - half) * self.spacing_m
 
 
 def point_in_polygon(n_m: float, e_m: float, vertices_ne_m: PolygonNE) -> bool:

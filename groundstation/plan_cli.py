@@ -3,14 +3,18 @@ points) from a file to every vehicle.
 
     covey plan load FILE [--dir D | --key-file station-1.key] [--origin LAT,LON,ALT]
                          [--floor-m X] [--ceiling-m Y] [--separation-m S] [--out PATH]
-        check a GeoJSON or QGC .plan file (home and rally points keep the zone clearance the
-        vehicles' filters keep at separation S), sign it (the fleet authority in --dir, or a
-        roster station's key) and write the signed plan (default: D/plan.bin)
+                         [--rally-pads N] [--rally-pad-spacing-m M]
+        check a GeoJSON or QGC .plan file (home, rally points and the N landing pads M apart a
+        return lays around each keep the zone clearance the vehicles' filters keep at
+        separation S, inside the fence), sign it (the fleet authority in --dir, or a roster
+        station's key) and write the signed plan (default: D/plan.bin)
     covey plan show [FILE] [--dir D] [--origin ...]
         print a signed plan (default D/plan.bin, its signature checked against D's roster) or
         what a GeoJSON / QGC file holds
-    covey plan push [--plan PATH] [--dir D] [mesh options] [--duration-s S]
-        publish the signed plan to a running fleet and say how many members confirmed it
+    covey plan push [--plan PATH] [--dir D] [--separation-m S] [--rally-pads N]
+                    [--rally-pad-spacing-m M] [mesh options] [--duration-s S]
+        check the signed plan again as load does (a plan signed before a check existed is not
+        sent unchecked), publish it to a running fleet and say how many members confirmed it
 
 Give --origin the fleet origin your agents use (`covey agent --origin`): the file's WGS-84
 coordinates become local metres around it. Altitudes (floor, ceiling, rally) are metres above
@@ -34,18 +38,19 @@ from cli.options import (
     nobody_answered,
 )
 from comms.geo import GeoOrigin
-from comms.plan import FleetPlan
+from comms.plan import RALLY_PAD_SPACING_M, RALLY_PADS, FleetPlan, PadLayout
 from comms.plan_io import (
     PLAN_FILE,
     BadPlanError,
     PlanGeometry,
+    check_geometry,
     next_version,
     read_plan_file,
     read_signed_plan,
     write_signed_plan,
 )
 from comms.schema import PlanMessage, Role
-from groundstation.plan_edit import SEPARATION_M, EditRefused, check_landing
+from groundstation.plan_edit import SEPARATION_M, check_landing
 from trust.authority import DEFAULT_DIR, Authority
 from trust.identity import FleetKeyError, public_bytes, verify
 
@@ -105,13 +110,30 @@ def plan_parser() -> argparse.ArgumentParser:
             sp.add_argument(
                 "--out", default=None, metavar="PATH", help="where to write (default DIR/plan.bin)"
             )
+        if verb in ("load", "push"):
             sp.add_argument(
                 "--separation-m",
                 type=finite("metres"),
                 default=SEPARATION_M,
-                help="the fleet's separation (the agents' --separation-m): home and rally points "
-                "must keep the zone clearance their filters keep at it and a 0.5 m position "
-                f"sigma (default {SEPARATION_M:g}: 3.3 m from a zone or the fence)",
+                help="the fleet's separation (the agents' --separation-m): home, rally points "
+                "and the landing pads around them must keep the zone clearance their filters "
+                f"keep at it and a 0.5 m position sigma (default {SEPARATION_M:g}: 3.3 m from a "
+                "zone or the fence)",
+            )
+            sp.add_argument(
+                "--rally-pads",
+                type=int,
+                default=RALLY_PADS,
+                help="landing pads a return lays around home and each rally point, a square grid "
+                f"(the agents' --rally-pads; default {RALLY_PADS}): each must be inside the "
+                "fence and keep that clearance",
+            )
+            sp.add_argument(
+                "--rally-pad-spacing-m",
+                type=finite("metres"),
+                default=RALLY_PAD_SPACING_M,
+                help="distance between those pads (the agents' --rally-pad-spacing-m; default "
+                f"{RALLY_PAD_SPACING_M:g})",
             )
         if verb == "push":
             sp.add_argument(
@@ -161,14 +183,29 @@ def _origin(args: argparse.Namespace) -> GeoOrigin:
     return args.origin or GeoOrigin()
 
 
+def check_plan(geometry: PlanGeometry, args: argparse.Namespace, where: str) -> None:
+    """The checks a plan passes before `load` signs it and again before `push` sends it
+    (BadPlanError naming `where` otherwise): its geometry (comms/plan_io.py `check_geometry`:
+    valid polygons, home and rally points inside the fence and outside every zone), then home,
+    the rally points and their landing pads (`--rally-pads`, `--rally-pad-spacing-m`) against
+    the zones, the fence and the clearance the vehicles' filters keep at `--separation-m`
+    (plan_edit.py `check_landing`, the station's editor's)."""
+    try:
+        pads = PadLayout(args.rally_pads, args.rally_pad_spacing_m)
+    except ValueError as exc:
+        raise BadPlanError(f"--rally-pads/--rally-pad-spacing-m: {exc}") from None
+    try:
+        check_geometry(PlanGeometry(geometry.fence, geometry.keep_out, geometry.rally))
+        check_landing(geometry, args.separation_m, pads=pads)
+    except ValueError as exc:  # EditRefused is one
+        raise BadPlanError(f"{where}: {' '.join(str(exc).split())}") from None
+
+
 def _load(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     geometry = read_plan_file(
         args.file, _origin(args), floor_alt_m=args.floor_m, ceiling_alt_m=args.ceiling_m
     )
-    try:  # home and rally points keep the vehicles' zone clearance (the station's editor too)
-        check_landing(geometry, args.separation_m)
-    except EditRefused as exc:
-        raise BadPlanError(f"plan file {Path(args.file).expanduser()}: {exc}") from None
+    check_plan(geometry, args, f"plan file {Path(args.file).expanduser()}")
     out = Path(args.out).expanduser() if args.out else Path(args.dir).expanduser() / PLAN_FILE
     previous = read_signed_plan(out) if out.exists() else None
     if args.key_file is not None:
@@ -276,6 +313,12 @@ def _push(args: argparse.Namespace, p: argparse.ArgumentParser) -> int:
         p.error("--duration-s must be within 0.5..60")
     path = Path(args.plan).expanduser() if args.plan else Path(args.dir).expanduser() / PLAN_FILE
     plan = read_signed_plan(path)
+    # signed is not checked: it may predate a check (the pads), or come from another tool
+    check_plan(
+        PlanGeometry(plan.fence, plan.keep_out, plan.rally),
+        args,
+        f"{path} (plan v{plan.version}, nothing sent)",
+    )
     if args.fleet is not None and args.fleet != plan.fleet:
         die(p, f"--fleet {args.fleet} but {path} is fleet {plan.fleet!r}'s plan")
     args.fleet = plan.fleet

@@ -13,8 +13,9 @@ then every vehicle's target as comms/plan.py `plan_refusal` words it (the check 
 makes) and every vehicle's position against the keep-out zones and the fence's polygon: a zone is
 never drawn over a vehicle or over where one is flying to, a fence never leaves one outside (what
 the plan already ruled out, e.g. a vehicle that drifted into a zone, blocks no edit elsewhere);
-then home and every rally point against the clearance the vehicles' filters keep from the zones
-and the fence (`check_landing`: 3.3 m at 3 m separation and the assumed 0.5 m position sigma,
+then home, every rally point and every landing pad a return lays around them (comms/plan.py
+`PadLayout`) against the zones, the fence and the clearance the vehicles' filters keep from
+them (`check_landing`: 3.3 m at 3 m separation and the assumed 0.5 m position sigma,
 groundstation/target_check.py), so that a return can arrive there. `check_landing` is also what
 `covey plan load` and the station's plan upload check a file with.
 The plan's own limits (vertices, zones and rally points in all) are comms/plan.py `FleetPlan`'s.
@@ -36,6 +37,7 @@ from comms.plan import (
     MAX_ZONES,
     Fence,
     FleetPlan,
+    PadLayout,
     PolygonNE,
     RallyPoint,
     Zone,
@@ -95,6 +97,9 @@ class Draft:
     separation_m: float = SEPARATION_M
     """The fleet's separation (the vehicles' filter radius): home and rally points keep the zone
     clearance that follows from it (`check_landing`)."""
+    pads: PadLayout = PadLayout()
+    """The landing pads the fleet's returns lay around home and each rally point (the agents'
+    `--rally-pads`, `--rally-pad-spacing-m`): each keeps that clearance too."""
 
     @property
     def changed(self) -> bool:
@@ -114,12 +119,13 @@ def geometry_of(plan: FleetPlan | None) -> PlanGeometry:
     return PlanGeometry(plan.fence, plan.keep_out, plan.rally)
 
 
-def draft_of(plan: FleetPlan | None, separation_m: float = SEPARATION_M) -> Draft:
+def draft_of(
+    plan: FleetPlan | None, separation_m: float = SEPARATION_M, pads: PadLayout = PadLayout()
+) -> Draft:
     """A draft of `plan` (None: an empty plan) with nothing changed, checked at the fleet's
-    `separation_m`."""
-    return Draft(
-        None if plan is None else plan.version, geometry_of(plan), separation_m=separation_m
-    )
+    `separation_m` and landing `pads`."""
+    version = None if plan is None else plan.version
+    return Draft(version, geometry_of(plan), separation_m=separation_m, pads=pads)
 
 
 def vehicle_refusals(geometry: PlanGeometry, v: VehiclePoint) -> list[str]:
@@ -143,20 +149,28 @@ def vehicle_refusals(geometry: PlanGeometry, v: VehiclePoint) -> list[str]:
 
 
 def check_landing(
-    geometry: PlanGeometry, separation_m: float, before: PlanGeometry | None = None
+    geometry: PlanGeometry,
+    separation_m: float,
+    before: PlanGeometry | None = None,
+    pads: PadLayout = PadLayout(),
 ) -> None:
-    """EditRefused when home or a rally point of `geometry` lies nearer a keep-out zone or the
-    fence than the vehicles' filters keep at the fleet's `separation_m` and the assumed position
-    sigma (groundstation/target_check.py `landing_problems`): a return could not arrive there.
-    `before`: the geometry it replaces; a point that one already had too near blocks no edit
-    elsewhere."""
-    new = landing_problems(geometry, separation_m)
+    """EditRefused when home or a rally point of `geometry`, or one of the landing `pads` a
+    return lays around it (comms/plan.py `PadLayout`, by default the agents' 5 x 5 grid 5 m
+    apart), lies inside a keep-out zone, outside the fence, or nearer either than the vehicles'
+    filters keep at the fleet's `separation_m` and the assumed position sigma
+    (groundstation/target_check.py `landing_problems`): a return could not arrive there. A
+    point whose pads partly fail is refused, not trimmed to the pads that pass: the vehicles
+    land on every pad of the grid (vehicle v on pad (v - 1) mod pads + 1), so the operator
+    moves the point. `before`: the geometry it replaces; a point or pad that one already had
+    too near blocks no edit elsewhere."""
+    new = landing_problems(geometry, separation_m, pads=pads)
     if new and before is not None:
-        kept = [r for r, _ in new if r in before.rally]  # the same point, unmoved
-        old = {r for r, _ in landing_problems(before, separation_m, only=kept)} if kept else set()
-        new = [(r, why) for r, why in new if r not in old]
+        kept = list(dict.fromkeys(p.point for p in new if p.point in before.rally))  # unmoved
+        was = landing_problems(before, separation_m, only=kept, pads=pads) if kept else []
+        old = {(p.point, p.pad_no) for p in was}
+        new = [p for p in new if (p.point, p.pad_no) not in old]
     if new:
-        raise EditRefused(new[0][1])
+        raise EditRefused(new[0].why)
 
 
 def checked(
@@ -164,11 +178,13 @@ def checked(
     vehicles: tuple[VehiclePoint, ...] = (),
     before: PlanGeometry | None = None,
     separation_m: float = SEPARATION_M,
+    pads: PadLayout = PadLayout(),
 ) -> PlanGeometry:
     """`geometry` if it may be pushed with these vehicles where they are, else EditRefused.
     `before`: the geometry it replaces; what that one already ruled out (a vehicle that drifted
     into a zone, home too near a zone) blocks no edit elsewhere, only one that rules it out
-    anew. `separation_m`: the fleet's, for home's and the rally points' zone clearance."""
+    anew. `separation_m`, `pads`: the fleet's, for the zone clearance of home, the rally points
+    and their landing pads."""
     try:
         out = check_geometry(geometry)
         out.plan("draft", 1, 0)  # FleetPlan's own limits: vertices and zones in all
@@ -179,7 +195,7 @@ def checked(
         new = [why for why in vehicle_refusals(out, v) if why not in old]
         if new:
             raise EditRefused(f"{v} would be {new[0]}")
-    check_landing(out, separation_m, before)
+    check_landing(out, separation_m, before, pads)
     return out
 
 
@@ -226,7 +242,7 @@ def _take(
     draft: Draft, geometry: PlanGeometry, edit: str, vehicles: tuple[VehiclePoint, ...]
 ) -> Draft:
     """`draft` with `geometry`, checked against the draft's own (EditRefused otherwise)."""
-    out = checked(geometry, vehicles, draft.geometry, draft.separation_m)
+    out = checked(geometry, vehicles, draft.geometry, draft.separation_m, draft.pads)
     return replace(draft, geometry=out, edits=(*draft.edits, edit))
 
 

@@ -147,7 +147,7 @@ class PlanEditor:
             base = (
                 self.draft
                 if self.draft is not None
-                else pe.draft_of(self.view.sync.plan, self.view.separation_m)
+                else pe.draft_of(self.view.sync.plan, self.view.separation_m, self.view.pads)
             )
             try:
                 new = step(base)
@@ -236,7 +236,7 @@ class PlanEditor:
                 try:
                     before = pe.geometry_of(held)
                     geometry = pe.checked(
-                        draft.geometry, self._vehicles(), before, draft.separation_m
+                        draft.geometry, self._vehicles(), before, draft.separation_m, draft.pads
                     )
                 except pe.EditRefused as exc:
                     line = f"refused: {exc}"

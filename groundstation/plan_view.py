@@ -20,7 +20,7 @@ import viser
 
 from comms.doc_sync import Offer
 from comms.geo import GeoOrigin
-from comms.plan import FleetPlan
+from comms.plan import FleetPlan, PadLayout
 from comms.plan_io import BadPlanError, PlanGeometry, next_version, parse_plan
 from comms.plan_sync import PlanSync, describe
 from groundstation.command_log import CommandLog
@@ -44,6 +44,7 @@ class PlanView:
         log: CommandLog | None = None,
         states=None,
         separation_m: float = 3.0,
+        pads: PadLayout = PadLayout(),
         route_period_s: float = 0.5,
         clock_ns=time.time_ns,
     ) -> None:
@@ -55,6 +56,8 @@ class PlanView:
         self._clock_ns = clock_ns
         self.separation_m = separation_m
         """The fleet's separation: routes are drawn and home and rally points checked at it."""
+        self.pads = pads
+        """The landing pads around home and each rally point, checked with them."""
         self.routes = RouteLayer(server, separation_m)
         self._route_period_ns = int(route_period_s * 1e9)
         self._routes_ns = 0
@@ -109,7 +112,7 @@ class PlanView:
         where = f"uploaded {name!r}"
         try:
             geometry = parse_plan(raw, where, self.origin)
-            check_landing(geometry, self.separation_m)
+            check_landing(geometry, self.separation_m, pads=self.pads)
         except BadPlanError as exc:
             return f"refused: {exc}"
         except EditRefused as exc:

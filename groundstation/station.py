@@ -27,7 +27,7 @@ from comms.commands import OutcomeStatus
 from comms.geo import GeoOrigin
 from comms.link import LinkEmulator
 from comms.mesh import Mesh
-from comms.plan import FleetPlan
+from comms.plan import FleetPlan, PadLayout
 from comms.presence import Presence
 from comms.schema import (
     ActionOutcome,
@@ -103,6 +103,10 @@ class GcsConfig:
     """Geofence drawn around the origin, in metres; also bounds goto targets."""
     separation_m: float = 3.0
     """Vehicles closer than this are flagged red."""
+    landing_pads: PadLayout = PadLayout()
+    """The landing pads the agents' returns lay around home and each rally point (their
+    `--rally-pads`, `--rally-pad-spacing-m`): a plan is pushed only if every pad keeps the
+    zones' clearance inside the fence (groundstation/plan_edit.py `check_landing`)."""
     scene_rate_hz: float = 10.0
     """Scene updates per second."""
     table_rate_hz: float = 5.0
@@ -343,6 +347,7 @@ class GroundStation:
             log=self.commands,
             states=self._vehicle_states,
             separation_m=self.cfg.separation_m,
+            pads=self.cfg.landing_pads,
         )
 
     # -- browser tabs: each has its own events filter and command panel ------------------

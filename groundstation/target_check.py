@@ -14,7 +14,10 @@ position sigma its states report (`VehicleState.pos_sigma_m`: the one its core u
 
 Home and rally points (`landing_problems`) are checked against the same clearance at
 ASSUMED_POS_SIGMA_M: a plan is not made for one vehicle, and a vehicle on plain GNSS cannot
-arrive nearer a zone than that. What the station cannot know, a vehicle configured with another
+arrive nearer a zone than that. So is every landing pad a return puts around them (comms/plan.py
+`PadLayout`, by default the 5 x 5 grid 5 m apart that agent/returning.py flies): inside the
+fence, in no keep-out zone at any altitude (the vehicle comes down through all of them, and
+guidance keeps every zone closed), and as far from both as the point itself. What the station cannot know, a vehicle configured with another
 separation, arrival radius or margin than the station's, its own ack still says.
 """
 
@@ -22,11 +25,18 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from comms.plan import HOME, FleetPlan, RallyPoint, plan_refusal
+from comms.plan import (
+    HOME,
+    FleetPlan,
+    PadLayout,
+    RallyPoint,
+    plan_refusal,
+    point_in_polygon,
+)
 from policy.goal_rule import ARRIVE_RADIUS_M, ASSUMED_POS_SIGMA_M, goal_rule
 
 if TYPE_CHECKING:  # shapely and scipy load only with a plan
@@ -110,44 +120,85 @@ def landing_what(r: RallyPoint) -> str:
     return "home" if r.name == HOME else f"rally point {r.name!r}" if r.name else "a rally point"
 
 
+class LandingProblem(NamedTuple):
+    """Why a return could not come down at home or a rally point, or on one of its pads."""
+
+    point: RallyPoint
+    """Home or the rally point."""
+    pad_no: int
+    """0: the point itself; else its landing pad's number (comms/plan.py `PadLayout`)."""
+    why: str
+    """One line, naming the point, the pad and the zone."""
+
+
 def landing_problems(
     geometry: PlanGeometry,
     separation_m: float,
     pos_sigma_m: float = ASSUMED_POS_SIGMA_M,
     only: Iterable[RallyPoint] | None = None,
-) -> list[tuple[RallyPoint, str]]:
-    """(point, why) for each home or rally point of `geometry` (of `only`, when given) nearer a
-    keep-out zone or the fence than the filter keeps at `pos_sigma_m`: a vehicle returning there
-    could not arrive. A point inside a zone or outside the fence is comms/plan_io.py
+    pads: PadLayout = PadLayout(),
+) -> list[LandingProblem]:
+    """Each home or rally point of `geometry` (of `only`, when given) nearer a keep-out zone or
+    the fence than the filter keeps at `pos_sigma_m`, and each of its landing `pads` (as
+    agent/returning.py lays them out) that is inside a zone, outside the fence or nearer either
+    than that: a vehicle returning there could not arrive. The point
+    comes before its pads. A point inside a zone or outside the fence is comms/plan_io.py
     `check_geometry`'s to refuse (a zone with a floor may lie above one)."""
     points = list(geometry.rally if only is None else only)
     if not points:
         return []
     plan = FleetPlan("check", 1, 0, geometry.fence, geometry.keep_out, geometry.rally)
     check = TargetCheck(plan, separation_m)
-    if check.router is None:
+    router = check.router
+    if router is None:
         return []
     out = []
     for r in points:
-        rule = goal_rule(
-            check.router, (r.n_m, r.e_m), pos_sigma_m, check.sigma_k, zone_names=check.names
-        )
-        inside = check.router.refusal(np.array([r.n_m, r.e_m]))
-        if inside or rule.distance_m >= rule.clearance_m:
-            continue
-        out.append(
-            (
-                r,
-                f"{landing_what(r)} ({r.n_m:.1f}, {r.e_m:.1f}) m is {rule.distance_m:.1f} m from "
-                f"{rule.zone}, nearer than the {rule.clearance_m:.1f} m the vehicles' filter keeps "
-                f"from it at a {pos_sigma_m:g} m position sigma: a vehicle returning there could "
-                "not arrive",
+        what = landing_what(r)
+        rule = goal_rule(router, (r.n_m, r.e_m), pos_sigma_m, check.sigma_k, zone_names=check.names)
+        inside = router.refusal(np.array([r.n_m, r.e_m]))
+        if not inside and rule.distance_m < rule.clearance_m:
+            out.append(
+                LandingProblem(
+                    r,
+                    0,
+                    f"{what} ({r.n_m:.1f}, {r.e_m:.1f}) m is {rule.distance_m:.1f} m from "
+                    f"{rule.zone}, nearer than the {rule.clearance_m:.1f} m the vehicles' filter "
+                    f"keeps from it at a {pos_sigma_m:g} m position sigma: a vehicle returning "
+                    "there could not arrive",
+                )
             )
-        )
+        for pad_no in range(1, pads.pads + 1):
+            dn, de = pads.offset_ne_m(pad_no)
+            n_m, e_m = r.n_m + dn, r.e_m + de
+            why = _pad_problem(check, n_m, e_m, pos_sigma_m)
+            if why:
+                where = f"landing pad {pad_no} (N {n_m:.1f}, E {e_m:.1f} m)"
+                out.append(LandingProblem(r, pad_no, f"{what}: {where} {why}"))
     return out
 
 
+def _pad_problem(check: TargetCheck, n_m: float, e_m: float, pos_sigma_m: float) -> str:
+    """Why a vehicle could not land on a pad at (n_m, e_m) ("" when it could)."""
+    assert check.plan is not None and check.router is not None
+    for z in check.plan.keep_out:  # at every altitude: it comes down through them all
+        if point_in_polygon(n_m, e_m, z.vertices_ne_m):
+            return f"is inside keep-out zone {z.name!r}" if z.name else "is inside a keep-out zone"
+    fence = check.plan.fence
+    if fence is not None and not point_in_polygon(n_m, e_m, fence.vertices_ne_m):
+        return "is outside the fence"
+    rule = goal_rule(check.router, (n_m, e_m), pos_sigma_m, check.sigma_k, zone_names=check.names)
+    if rule.distance_m >= rule.clearance_m:
+        return ""
+    return (
+        f"is {rule.distance_m:.1f} m from {rule.zone}, nearer than the {rule.clearance_m:.1f} m "
+        f"clearance the vehicles' filter keeps from it at a {pos_sigma_m:g} m position sigma: a "
+        "vehicle sent to that pad could not arrive"
+    )
+
+
 __all__ = [
+    "LandingProblem",
     "TargetCheck",
     "TargetVerdict",
     "landing_problems",

@@ -145,7 +145,8 @@ def add_foxglove_args(p: argparse.ArgumentParser) -> None:
         "--separation-m",
         type=finite("metres"),
         default=3.0,
-        help="radius of the ring drawn around each vehicle (default 3)",
+        help="the fleet's separation: radius of the ring drawn around each vehicle, and what "
+        "the planned routes around the plan's zones are computed for (default 3)",
     )
 
 

@@ -15,7 +15,13 @@ Standard channels (schemas and encoders from foxglove-sdk; protobuf unless marke
                                               (orange loop), keep-out zones (red loops, named);
                                               per vehicle that accepted a mission upload an
                                               entity "route/<id>": its waypoints as a line in
-                                              the MISSION colour, labelled "mission N"
+                                              the MISSION colour, labelled "mission N";
+                                              per vehicle flying a goto, a return or a mission
+                                              item while the plan has zones or a fence, an
+                                              entity "plan_route/<id>": its planned route
+                                              around the zones (groundstation/state_routes.py,
+                                              the station's), recomputed every
+                                              route_interval_s, deleted when it stops
     /events                   Log             every Event and ActionOutcome, level from its
                                               severity
     /commands                 JSON            who sent which command (or mission) to whom
@@ -38,7 +44,7 @@ from foxglove import messages as fm
 
 from comms import keys, schema
 from comms.geo import GeoOrigin, mission_route_ned_m
-from comms.plan import FleetPlan
+from comms.plan import Fence, FleetPlan, Zone
 from groundstation.palette import (
     GEOFENCE_RGB,
     GOAL_RGB,
@@ -47,6 +53,8 @@ from groundstation.palette import (
     TRAFFIC_RGB,
     mode_rgb,
 )
+from groundstation.state_routes import ReportedState, is_routed, planned_routes
+from groundstation.target_check import router_for
 from recording.state_batch import StateRow, decode_states
 
 _STATE_TYPE = bytes([schema.MsgType.VEHICLE_STATE])
@@ -74,6 +82,11 @@ def vehicle_frame(vehicle_id: int) -> str:
 
 def route_entity_id(vehicle_id: int) -> str:
     return f"route/{vehicle_id}"
+
+
+def plan_route_entity_id(vehicle_id: int) -> str:
+    """The entity of a vehicle's planned route around the zones ("route/<id>" is its mission)."""
+    return f"plan_route/{vehicle_id}"
 
 
 def pose_topic(vehicle_id: int) -> str:
@@ -193,7 +206,8 @@ class FoxgloveConfig:
     origin: GeoOrigin = field(default_factory=GeoOrigin)
     """Fleet origin: local NED (0, 0, 0) on WGS-84, for the LocationFix channels."""
     separation_m: float = 3.0
-    """Radius of the separation ring drawn around each vehicle."""
+    """The fleet's separation: radius of the ring drawn around each vehicle, and what the
+    planned routes around the plan's zones are computed for (the agents' --separation-m)."""
     link_interval_s: float = 1.0
     """Publish each vehicle's link health this often (by receive time)."""
     scene_interval_s: float = 0.2
@@ -202,10 +216,21 @@ class FoxgloveConfig:
     body_size_m: float = 0.6
     """Edge of the cube drawn for a vehicle's body."""
     entity_lifetime_s: float = 5.0
-    """A vehicle's 3D entity fades after this long without a state (0 = forever)."""
+    """A vehicle's 3D entity fades after this long without a state (0 = forever); so does its
+    planned route."""
+    route_interval_s: float = 1.0
+    """Recompute the vehicles' planned routes around the plan's zones at most this often (by
+    receive time): each costs a planner query (at most MAX_ROUTES vehicles, the lowest ids).
+    The planner is built for the fleet's `separation_m`, as the station builds it."""
 
     def __post_init__(self) -> None:
-        for name in ("separation_m", "link_interval_s", "scene_interval_s", "body_size_m"):
+        for name in (
+            "separation_m",
+            "link_interval_s",
+            "scene_interval_s",
+            "body_size_m",
+            "route_interval_s",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}={v} must be a finite number > 0")
@@ -293,6 +318,9 @@ class Converter:
     MAX_TOPICS = 100_000
     MAX_EARLY_ACCEPTS = 4096
     """Accepted acks kept per nonce until their mission arrives (an ack can overtake it)."""
+    MAX_ROUTED = 4096
+    """Vehicles flying a routed goal whose latest state is kept for the routes (ids come from
+    the network; a vehicle silent past entity_lifetime_s is forgotten)."""
 
     def __init__(self, cfg: FoxgloveConfig = FoxgloveConfig()) -> None:
         self.cfg = cfg
@@ -321,6 +349,16 @@ class Converter:
         self._lifetime = fm.Duration.from_secs(lifetime) if lifetime > 0 else None
         self._world_tf_rotation = _q(*_ENU_TO_NED_Q)
         self._zero = _v3(0, 0, 0)
+        # The planned routes: the latest plan's zones, the router built for them (only when
+        # they change, at a route tick: a flood of plans builds at most one per interval), the
+        # routed vehicles' latest states, and which routes are drawn (to delete them).
+        self._plan_zones: tuple[Fence | None, tuple[Zone, ...]] | None = None
+        self._router_zones: tuple[Fence | None, tuple[Zone, ...]] | None = None
+        self._router: Any = None
+        self._routed: dict[int, tuple[ReportedState, int]] = {}  # vehicle -> (state, recv_ns)
+        self._routes_due_ns = 0
+        self._routes_drawn: set[int] = set()
+        self._route_colour = _colour(mode_rgb(schema.Mode.GOTO))
 
     def _vehicle_names(self, vid: int) -> tuple[str, str, str, str]:
         """(frame, pose topic, fix topic, link topic) of a vehicle."""
@@ -366,6 +404,7 @@ class Converter:
         if isinstance(msg, schema.TrafficReport):
             return [self.traffic(msg, recv_ns)]
         if isinstance(msg, schema.PlanMessage):
+            self._plan_zones = (msg.plan.fence, msg.plan.keep_out)
             return [self.plan(msg.plan, recv_ns)]
         return []
 
@@ -438,7 +477,68 @@ class Converter:
         link = self._link(s, recv_ns)
         if link is not None:
             out.append(Out(link_t, LINK_JSON, json.dumps(link).encode(), recv_ns))
+        if is_routed(s):
+            if vid in self._routed or len(self._routed) < self.MAX_ROUTED:
+                self._routed[vid] = (s, recv_ns)
+        else:
+            self._routed.pop(vid, None)
+        if recv_ns >= self._routes_due_ns and (self._plan_zones or self._routes_drawn):
+            out += self.routes(recv_ns)
         return out
+
+    def routes(self, recv_ns: int) -> list[Out]:
+        """The routed vehicles' planned routes around the latest plan's zones (the station's
+        computation, groundstation/state_routes.py `planned_routes`), one entity each, and a
+        deletion for each drawn route whose vehicle no longer flies one (it holds, lands, left
+        or went silent); at most every route_interval_s."""
+        self._routes_due_ns = recv_ns + int(self.cfg.route_interval_s * 1e9)
+        if self._plan_zones != self._router_zones:
+            self._router_zones = self._plan_zones
+            fence, zones = self._plan_zones or (None, ())
+            plan = FleetPlan("routes", 1, 0, fence, zones)
+            self._router = router_for(plan, self.cfg.separation_m)
+        if self._lifetime is not None:
+            old_ns = recv_ns - int(self.cfg.entity_lifetime_s * 1e9)
+            for vid in [v for v, (_, t) in self._routed.items() if t < old_ns]:
+                del self._routed[vid]
+        routes = planned_routes(self._router, [s for s, _ in self._routed.values()])
+        gone = sorted(self._routes_drawn - routes.keys())
+        self._routes_drawn = set(routes)
+        if not routes and not gone:
+            return []
+        stamp = _ts(recv_ns)
+        update = fm.SceneUpdate(
+            deletions=[
+                fm.SceneEntityDeletion(
+                    timestamp=stamp,
+                    type=fm.SceneEntityDeletionType.MatchingId,
+                    id=plan_route_entity_id(vid),
+                )
+                for vid in gone
+            ],
+            entities=[self._route_entity(vid, pts, stamp) for vid, pts in routes.items()],
+        )
+        return [Out(SCENE_TOPIC, SCENE_UPDATE, update.encode(), recv_ns)]
+
+    def _route_entity(self, vid: int, points_ned_m, stamp: fm.Timestamp) -> fm.SceneEntity:
+        """A planned route (frame ned): a line from the vehicle through its waypoints to its
+        goal, in the goto colour, as the station draws it."""
+        line = fm.LinePrimitive(
+            type=fm.LinePrimitiveLineType.LineStrip,
+            pose=fm.Pose(position=self._zero, orientation=self._identity),
+            thickness=2.5,
+            scale_invariant=True,
+            points=[fm.Point3(x=float(n), y=float(e), z=float(d)) for n, e, d in points_ned_m],
+            color=self._route_colour,
+        )
+        return fm.SceneEntity(
+            timestamp=stamp,
+            frame_id=NED_FRAME,
+            id=plan_route_entity_id(vid),
+            lifetime=self._lifetime,
+            metadata=[fm.KeyValuePair(key="waypoints", value=str(len(points_ned_m) - 2))],
+            lines=[line],
+        )
 
     def _mode_colour(self, mode: schema.Mode) -> fm.Color:
         colour = self._mode_colours.get(mode)
@@ -757,6 +857,11 @@ class Converter:
         self._names.pop(vid, None)
         self._scene_due_ns.pop(vid, None)
         self._scene_mode.pop(vid, None)
+        self._routed.pop(vid, None)
+        entity_ids = [vehicle_frame(vid), route_entity_id(vid)]
+        if vid in self._routes_drawn:
+            self._routes_drawn.discard(vid)
+            entity_ids.append(plan_route_entity_id(vid))
         gone = fm.SceneUpdate(
             deletions=[
                 fm.SceneEntityDeletion(
@@ -764,7 +869,7 @@ class Converter:
                     type=fm.SceneEntityDeletionType.MatchingId,
                     id=entity_id,
                 )
-                for entity_id in (vehicle_frame(vid), route_entity_id(vid))
+                for entity_id in entity_ids
             ]
         )
         log = fm.Log(

@@ -63,6 +63,7 @@ class StateRow(NamedTuple):
     battery_pct: float
     flags: int
     goal_ned_m: tuple[float, float, float]
+    pos_sigma_m: float = 0.0
 
     @classmethod
     def of(cls, s: schema.VehicleState) -> StateRow:
@@ -78,6 +79,7 @@ class StateRow(NamedTuple):
             s.battery_pct,
             int(s.flags),
             s.goal_ned_m,
+            s.pos_sigma_m,
         )
 
 
@@ -149,14 +151,15 @@ def decode_states(payloads: Sequence[bytes]) -> list[StateRow | None]:
             good["battery"].tolist(),
             good["flags"].tolist(),
             map(tuple, good["goal"].tolist()),
+            good["pos_sigma"].tolist(),
             strict=True,
         )
         kept = [i for i, k in zip(fits, ok.tolist(), strict=True) if k]
-        for i, (vid, seq, stamp, pos, vel, hdg, mode, armed, batt, flags, goal) in zip(
+        for i, (vid, seq, stamp, pos, vel, hdg, mode, armed, batt, flags, goal, sig) in zip(
             kept, rows, strict=True
         ):
             out[i] = StateRow(
-                vid, seq, stamp, pos, vel, hdg, _MODES[mode], armed == 1, batt, flags, goal
+                vid, seq, stamp, pos, vel, hdg, _MODES[mode], armed == 1, batt, flags, goal, sig
             )
     for i, row in enumerate(out):
         if row is None:  # refused above, or not a state's size: the reference decides

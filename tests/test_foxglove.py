@@ -20,7 +20,9 @@ import threading
 import time
 import uuid
 
+import numpy as np
 import pytest
+import shapely
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 from mcap.records import Channel
@@ -30,7 +32,10 @@ from comms import keys, schema
 from comms.commands import new_nonce
 from comms.geo import GeoOrigin
 from comms.mesh import Mesh
+from comms.plan import FleetPlan, Zone
 from comms.session import embedded_peer, embedded_router, free_tcp_port
+from groundstation.state_routes import planned_routes
+from groundstation.target_check import router_for
 from kit.procs import ChildGroup
 from recording import foxglove_channels as fc
 from recording.foxglove_bridge import BridgeConfig, FoxgloveBridge
@@ -244,6 +249,86 @@ def test_convert_all_equals_convert_one_by_one():
     want = [one.convert(*item) for item in items]
     got = list(many.convert_all(items))
     assert got == want and sum(map(len, got)) > len(items)
+
+
+WALL = ((-10.0, 8.0), (10.0, 8.0), (10.0, 12.0), (-10.0, 12.0))
+"""A keep-out zone across the way of a vehicle at N 0, E 0 told to go to N 0, E 20."""
+
+
+def _route_traffic(t0: int) -> list[tuple[str, bytes, int]]:
+    """A plan with the wall, then vehicle 1 flying a goto across it at 10 Hz for 2.5 s, then
+    holding for 1.5 s; vehicle 2 holds throughout."""
+    plan = FleetPlan("w", 3, 0, keep_out=(Zone(WALL, "wall"),))
+    out = [(keys.plan("w"), schema.PlanMessage(plan).encode(), t0)]
+    for k in range(40):
+        t = t0 + (k + 1) * 100_000_000
+        for vid, mode in ((1, schema.Mode.GOTO if k < 25 else schema.Mode.HOLDING),
+                          (2, schema.Mode.HOLDING)):  # fmt: skip
+            s = schema.VehicleState(
+                vid, k, t, (0.0, -0.1 * k if vid == 1 else 30.0, -5.0), (0.0, 0.0, 0.0), 0.0,
+                mode=mode, flags=schema.StateFlag.HAS_GOAL, goal_ned_m=(0.0, 20.0, -5.0),
+            )  # fmt: skip
+            out.append((keys.state("w", vid), s.encode(), t))
+    return out
+
+
+def test_the_planned_route_goes_round_the_zone_and_is_deleted_when_the_vehicle_holds(tmp_path):
+    """The station's route computation (planned_routes with router_for's planner) drawn in
+    Foxglove: an entity "plan_route/1" in frame ned from the vehicle round the wall to its goal
+    (the station's very points; every leg clear of the zone), at most once per route interval,
+    deleted when the vehicle holds; none for a vehicle that holds; the planner built once for
+    a plan put again. The recording (worker process, MCAP) carries the same."""
+    t0 = 1_700_000_000_000_000_000
+    traffic = _route_traffic(t0)
+    conv = fc.Converter(fc.FoxgloveConfig(origin=ORIGIN))
+    routes: list[tuple[int, object]] = []  # (recv_ns, route entity)
+    deleted: list[tuple[int, str]] = []
+    for topic, data, recv_ns in traffic:
+        for o in conv.convert(topic, data, recv_ns):
+            if o.topic != "/scene":
+                continue
+            update = proto_class("foxglove.SceneUpdate", fc.SCENE_UPDATE.data).FromString(o.data)
+            routes += [(recv_ns, e) for e in update.entities if e.id.startswith("plan_route/")]
+            deleted += [(recv_ns, d.id) for d in update.deletions]
+    assert {e.id for _, e in routes} == {"plan_route/1"}
+    times = [t for t, _ in routes]
+    assert times[0] == t0 + 100_000_000 and len(times) == 3  # 0, 1 and 2 s into the goto
+    assert all(b - a >= 1_000_000_000 for a, b in zip(times, times[1:], strict=False))
+    assert deleted == [(t0 + 3_100_000_000, "plan_route/1")]  # the first tick it holds
+    wall = shapely.Polygon(WALL)
+    router = router_for(FleetPlan("w", 3, 0, keep_out=(Zone(WALL, "wall"),)), 3.0)
+    for recv_ns, e in routes:
+        assert e.frame_id == fc.NED_FRAME and e.lifetime.seconds == 5
+        (line,) = e.lines
+        pts = np.array([(p.x, p.y, p.z) for p in line.points])
+        k = round((recv_ns - t0) / 100_000_000) - 1
+        here = schema.VehicleState(
+            1, k, 0, (0.0, -0.1 * k, -5.0), (0.0, 0.0, 0.0), 0.0, mode=schema.Mode.GOTO,
+            flags=schema.StateFlag.HAS_GOAL, goal_ned_m=(0.0, 20.0, -5.0),
+        )  # fmt: skip
+        np.testing.assert_allclose(pts, planned_routes(router, [here])[1], atol=1e-6)
+        assert pts[0] == pytest.approx((0.0, -0.1 * k, -5.0)) and len(pts) >= 3
+        assert pts[-1] == pytest.approx((0.0, 20.0, -5.0))
+        assert shapely.LineString(pts[:, :2]).distance(wall) > 1.8  # round it, not through
+        assert shapely.LineString([(0.0, -0.1 * k), (0.0, 20.0)]).intersects(wall)
+    # the same plan put again builds no new planner; a changed one does
+    built = conv._router
+    t = t0 + 5_000_000_000
+    conv.convert(keys.plan("w"), traffic[0][1], t)
+    conv.convert(*traffic[1][:2], t + 1)
+    assert conv._router is built
+    moved = FleetPlan("w", 4, 0, keep_out=(Zone(((-10, 28), (10, 28), (10, 32), (-10, 32))),))
+    conv.convert(keys.plan("w"), schema.PlanMessage(moved).encode(), t + 2_000_000_000)
+    conv.convert(*traffic[1][:2], t + 3_000_000_000)
+    assert conv._router is not built and conv._router is not None
+    # a recording (the worker process) draws the same routes
+    _record_sink(tmp_path / "r.mcap", traffic, foxglove=fc.FoxgloveConfig(origin=ORIGIN))
+    scene = read_standard(tmp_path / "r.mcap")["/scene"]
+    recorded = [e for u in scene for e in u.entities if e.id == "plan_route/1"]
+    assert [[(p.x, p.y) for p in e.lines[0].points] for e in recorded] == [
+        [(p.x, p.y) for p in e.lines[0].points] for _, e in routes
+    ]
+    assert [d.id for u in scene for d in u.deletions] == ["plan_route/1"]
 
 
 # -- the worker process ------------------------------------------------------------------------

@@ -16,9 +16,11 @@ from groundstation import plan_edit as pe
 from groundstation.command_log import CommandLog
 from groundstation.plan_draft_view import draft_html
 from groundstation.plan_editor import vehicle_points
-from groundstation.plan_routes import RouteLayer, planned_routes, router_for
+from groundstation.plan_routes import RouteLayer
 from groundstation.scene import FleetScene, SceneConfig
+from groundstation.state_routes import planned_routes
 from groundstation.tables import command_log_html
+from groundstation.target_check import router_for
 
 SQUARE = ((0.0, 0.0), (0.0, 10.0), (10.0, 10.0), (10.0, 0.0))
 FENCE = Fence(((-100, -100), (-100, 100), (100, 100), (100, -100)), 2.0, 80.0)
@@ -341,14 +343,44 @@ def test_home_and_rally_points_are_refused_as_a_file_is_with_the_reason(step, re
     assert d.geometry.rally == with_points().geometry.rally and not d.edits
 
 
-def test_a_rally_point_under_a_zone_with_a_floor_is_refused_only_if_the_zone_covers_it() -> None:
+def test_a_rally_point_under_a_zone_with_a_floor_is_refused_for_its_pads_or_the_zone() -> None:
+    """Below the floor the point itself is no file error (check_geometry), but the pads under
+    the zone are: a vehicle comes down through it, and guidance keeps every zone closed."""
     high = Zone(((20, 20), (20, 40), (40, 40), (40, 20)), "wires", floor_alt_m=5.0)
     d = pe.draft_of(FleetPlan("f", 7, 0, FENCE, (high,)))
-    assert pe.add_rally(d, 30, 30, 2.0).geometry.rally == (RallyPoint(30, 30, 2.0),)
+    with pytest.raises(pe.EditRefused, match=r"^a rally point: landing pad 1 \(N 20.0, E 20.0 m\) "
+                       "is inside keep-out zone 'wires'$"):  # fmt: skip
+        pe.add_rally(d, 30, 30, 2.0)
     with pytest.raises(pe.EditRefused, match="keep-out zone 'wires' covers a rally point"):
         pe.add_rally(d, 30, 30, 6.0)
     with pytest.raises(pe.EditRefused, match="keep-out zone 'wires' covers home"):
         pe.set_home(d, 30, 30, 5.0)
+
+
+def test_every_landing_pad_of_a_rally_point_is_checked_and_the_draft_kept() -> None:
+    """The 5 x 5 pads 5 m apart around a point keep the 3.3 m clearance from the depot (N and E
+    0..10) and stay inside the fence (N and E -100..100); one that does not refuses the point,
+    named with the pad, and the draft is kept."""
+    d = pe.draft_of(base_plan())
+    assert pe.add_rally(d, 23.4, 5, name="north").geometry.rally == (
+        RallyPoint(23.4, 5, 0.0, "north"),
+    )  # its southern pads at N 13.4: 3.4 m off the depot
+    for step, reason in (
+        (lambda: pe.add_rally(d, 23, 5, name="north"),
+         r"^rally point 'north': landing pad 2 \(N 13.0, E 0.0 m\) is 3.0 m from keep-out zone "
+         r"'depot', nearer than the 3.3 m clearance the vehicles' filter keeps from it at a 0.5 m "
+         r"position sigma: a vehicle sent to that pad could not arrive$"),
+        (lambda: pe.add_rally(d, 20, 5, name="north"),
+         r"^rally point 'north': landing pad 2 \(N 10.0, E 0.0 m\) is inside keep-out zone "
+         r"'depot'$"),
+        (lambda: pe.set_home(d, 0, -92), r"^home: landing pad 1 \(N -10.0, E -102.0 m\) is "
+         r"outside the fence$"),
+        (lambda: pe.move_rally(pe.add_rally(d, 40, 40), 1, 40, 88),
+         r"^a rally point: landing pad 5 \(N 30.0, E 98.0 m\) is 2.0 m from the fence"),
+    ):  # fmt: skip
+        with pytest.raises(pe.EditRefused, match=reason):
+            step()
+    assert d.geometry.rally == () and not d.edits
 
 
 def test_rally_points_are_added_moved_and_deleted_by_number_home_not_counted() -> None:
@@ -376,13 +408,13 @@ def test_rally_points_are_added_moved_and_deleted_by_number_home_not_counted() -
 
 
 def test_a_plan_holds_at_most_max_rally_points_home_included() -> None:
-    d = pe.set_home(pe.draft_of(base_plan()), 20, 20)
+    d = pe.set_home(pe.draft_of(base_plan()), 30, 20)  # its pads 10 m and more off the depot
     for k in range(MAX_RALLY_POINTS - 1):
         d = pe.add_rally(d, 30 + k, 30)
     with pytest.raises(pe.EditRefused, match=f"a plan holds at most {MAX_RALLY_POINTS} rally"):
-        pe.add_rally(d, 0, 20)
+        pe.add_rally(d, -20, 40)
     moved = pe.delete_rally(d, 1)
-    assert len(pe.set_home(pe.add_rally(moved, 0, 20), 21, 21).geometry.rally) == MAX_RALLY_POINTS
+    assert len(pe.set_home(pe.add_rally(moved, -20, 40), 31, 21).geometry.rally) == MAX_RALLY_POINTS
 
 
 def test_the_draft_summary_and_the_shared_scene_number_rally_points_home_apart() -> None:

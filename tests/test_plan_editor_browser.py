@@ -57,6 +57,10 @@ MOVED_NE_M = (-15.0, 10.0)
 RALLY_NE_M = (20.0, 0.0)
 """The rally point (inside the fence, clear of the zone): nearer the agent at N -8, E -8 than
 where it took off (N 20, E 20), so it returns to its pad there."""
+RETURNS = ReturnConfig(rally_pads=4, rally_pad_spacing_m=2.0)
+"""The agent's pads around a rally point, and the station's check of them: the default 5 x 5
+grid 5 m apart would not fit between this small fence and the zone (the station refuses it)."""
+PADS_ARGV = ["--rally-pads=4", "--rally-pad-spacing-m=2"]
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +76,7 @@ def gcs(fleet):
         port=0,
         key_file=str(fleet.member_path(Role.STATION, 1)),
         origin=ORIGIN,
+        landing_pads=RETURNS.pad_layout,
     )
     with GroundStation(cfg) as station:
         station.endpoint = ep
@@ -81,7 +86,7 @@ def gcs(fleet):
 @pytest.fixture(scope="module")
 def agent(fleet, gcs):
     argv = [*keyed_agent_argv(fleet, 1), "--fleet", FLEET, "--connect", gcs.endpoint]
-    argv += ["--start-ne-m=20,20", "--no-gcs-failsafe"]
+    argv += ["--start-ne-m=20,20", "--no-gcs-failsafe", *PADS_ARGV]
     with ChildGroup(prefix=[sys.executable], cwd=REPO, env=python_env(REPO), grace_s=0.0) as procs:
         proc = procs.start(*argv)
         assert wait_until(lambda: 1 in gcs.fleet.positions(), 60), proc.output()
@@ -279,7 +284,7 @@ def test_a_rally_point_clicked_and_moved_in_the_browser_is_where_the_agent_retur
     assert plan.fence == held.fence and plan.keep_out == held.keep_out
     # The agent holds it: told to return, it heads for its pad at the rally point, not for
     # where it took off (its goal, as the station draws its route to it).
-    spot = np.add(RALLY_NE_M, ReturnConfig().pad_ne_m(1))
+    spot = np.add(RALLY_NE_M, RETURNS.pad_ne_m(1))
     ret = Command(CommandKind.RETURN, nonce=new_nonce(), stamp_ns=0, targets=(1,))
     out = gcs.mesh.send_command(ret, timeout_s=5).outcomes[1]
     assert out.status is OutcomeStatus.ACCEPTED, out

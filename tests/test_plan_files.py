@@ -260,3 +260,54 @@ def test_load_signs_show_verifies_push_reaches_a_member(tmp_path, capsys) -> Non
         assert f"pushed fleet {FLEET} plan v{second.version}: 1 member(s) confirmed" in push.stdout
         assert wait_until(lambda: follower.plan is not None, 5)
         assert follower.plan.version == second.version
+
+
+def test_load_and_push_refuse_a_landing_pad_too_near_a_zone(tmp_path, capsys) -> None:
+    """'north field' 12 m off the school, but its south-west pad (of 5 x 5, 5 m apart) 2 m off:
+    load refuses it naming the point, the pad and the zone; a plan signed without that check
+    (before it existed) is refused by push with the same reason, exit 2, and nothing reaches a
+    member listening on the mesh."""
+    from comms.plan_io import write_signed_plan
+    from trust.auth import sign_plan
+
+    rally = {"type": "Feature", "properties": {"role": "rally", "name": "north field"},
+             "geometry": {"type": "Point", "coordinates": list(reversed(ll(92, 65)))}}  # fmt: skip
+    path = write(tmp_path, geojson(feature4=rally))
+    why = (
+        "rally point 'north field': landing pad 1 (N 82.0, E 55.0 m) is 2.0 m from keep-out "
+        "zone 'school', nearer than the 3.3 m clearance"
+    )
+    origin = f"--origin={ORIGIN.lat_deg},{ORIGIN.lon_deg},{ORIGIN.alt_m}"
+    with pytest.raises(SystemExit) as exit_:
+        plan_cli(["load", str(path), "--dir", str(tmp_path / "nowhere"), origin])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_.value.code == 2 and len(err) == 1 and why in err[0], err
+    authority = throwaway_fleet(tmp_path / "keys", FLEET, vehicles=[1])
+    unchecked = sign_plan(authority.key, read_plan_file(path, ORIGIN).plan(FLEET, 5, 0))
+    write_signed_plan(authority.dir / "plan.bin", unchecked)
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    vehicle = load_auth(str(authority.member_path(Role.VEHICLE, 1)))
+    with (
+        Mesh(MeshConfig(fleet=FLEET, mode="router", connect=(), listen=(ep,))),
+        Mesh(MeshConfig(fleet=FLEET, mode="client", connect=(ep,)), auth=vehicle) as v,
+        PlanSync(v.session, FLEET, vehicle) as follower,
+    ):
+        with pytest.raises(SystemExit) as exit_:
+            plan_cli(["push", "--dir", str(authority.dir), "--connect", ep, "--duration-s", "1"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exit_.value.code == 2 and len(err) == 1, err
+        assert "plan.bin (plan v5, nothing sent): " + why in err[0], err
+        assert not wait_until(lambda: follower.plan is not None, 1.0)
+        # at a 2 m separation the filter keeps 2.7 m: the pad 2 m off is still refused
+        with pytest.raises(SystemExit):
+            plan_cli(["push", "--dir", str(authority.dir), "--separation-m", "2", "--connect", ep])
+        err = capsys.readouterr().err
+        assert "is 2.0 m from keep-out zone 'school', nearer than the 2.7 m" in err
+        with pytest.raises(SystemExit):
+            plan_cli(["push", "--dir", str(authority.dir), "--rally-pads", "0", "--connect", ep])
+        assert "pads must be within 1..10000, got 0" in capsys.readouterr().err
+        # a fleet whose returns lay 4 pads 2 m apart (the agents' --rally-pads 4
+        # --rally-pad-spacing-m 2) lands 11 m off the school: sent, and held
+        pads = ["--rally-pads", "4", "--rally-pad-spacing-m", "2"]
+        assert plan_cli(["push", "--dir", str(authority.dir), *pads, "--connect", ep]) == 0
+        assert wait_until(lambda: follower.plan is not None and follower.plan.version == 5, 5)

@@ -14,6 +14,7 @@ from test_plan_files import ORIGIN, geojson, ll, write
 
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import CoreConfig, FlightCore, Observed
+from agent.returning import ReturnConfig, Returns
 from comms.plan import Fence, FleetPlan, RallyPoint, Zone
 from groundstation import plan_edit as pe
 from groundstation.formation import FormationError, FormationSpec, plan_formation
@@ -133,7 +134,8 @@ def test_home_and_rally_points_keep_the_zone_clearance(step, reason) -> None:
     d = _draft()
     with pytest.raises(pe.EditRefused, match=reason):
         step(d)
-    assert pe.set_home(d, 0, 6.6).geometry.rally == (RallyPoint(0, 6.6, 0.0, "home"),)  # 3.4 m
+    # its eastern pads (E +10 m) 3.4 m off the zone
+    assert pe.set_home(d, 0, -3.4).geometry.rally == (RallyPoint(0, -3.4, 0.0, "home"),)
 
 
 def test_a_home_already_too_near_blocks_no_edit_elsewhere_and_separation_counts() -> None:
@@ -144,10 +146,33 @@ def test_a_home_already_too_near_blocks_no_edit_elsewhere_and_separation_counts(
         pe.set_home(near, 0, 7)
     # at 2 m separation the filter keeps 1.2 m + 1.5 m: 2.7 m, so 3 m off is fine there
     small = pe.draft_of(FleetPlan("f", 3, 0, keep_out=(Zone(WALL, "pad"),)), 2.0)
-    home = pe.set_home(small, 0, 7).geometry
-    assert home.rally[0].e_m == 7 and landing_problems(home, 2.0, ASSUMED_POS_SIGMA_M) == []
-    assert [r for r, _ in landing_problems(home, 3.0, ASSUMED_POS_SIGMA_M)] == list(home.rally)
+    home = pe.set_home(small, 0, -3).geometry  # its eastern pads 3 m off
+    assert home.rally[0].e_m == -3 and landing_problems(home, 2.0, ASSUMED_POS_SIGMA_M) == []
+    problems = landing_problems(home, 3.0, ASSUMED_POS_SIGMA_M)
+    assert {p.point for p in problems} == set(home.rally)
+    assert [p.pad_no for p in problems] == [5, 10, 15, 20, 25]  # the eastern column
     assert landing_problems(home, 3.0, pos_sigma_m=0.3) == []  # 1.8 + 0.9 m
+
+
+def test_the_pads_checked_are_where_returning_vehicles_land() -> None:
+    """The station's pads are agent/returning.py's: a vehicle returning to the point lands on
+    the pad its refusal names for its id (pad (id - 1) mod 25 + 1; 30 lands on pad 5)."""
+    small = pe.draft_of(FleetPlan("f", 3, 0, keep_out=(Zone(WALL, "pad"),)), 2.0)
+    home = pe.set_home(small, 0, -3).geometry
+    problems = landing_problems(home, 3.0)
+    assert [p.pad_no for p in problems] == [5, 10, 15, 20, 25]
+    assert problems[0].why.startswith(
+        "home: landing pad 5 (N -10.0, E 7.0 m) is 3.0 m from keep-out zone 'pad', nearer than "
+        "the 3.3 m clearance"
+    )
+    ids = [p.pad_no for p in problems] + [30]
+    returns = Returns(ReturnConfig(), np.array(ids))
+    for i, p in enumerate([*problems, problems[0]]):
+        took_off_at = np.array([500.0, 500.0, 0.0])  # farther than the point: it lands there
+        returns.enter(i, np.array([0.0, -3.0, -10.0]), took_off_at, [(0.0, -3.0)], 1.0, 0.5)
+        found = re.search(r"\(N (\S+), E (\S+) m\)", p.why)
+        assert found is not None
+        assert returns.spot_ne_m[i] == pytest.approx([float(c) for c in found.groups()])
 
 
 def test_covey_plan_load_refuses_home_near_a_zone(tmp_path, capsys) -> None:
