@@ -201,6 +201,20 @@ class SimFleet:
     def set_velocities(self, rows: np.ndarray, vel_ned_m_s: np.ndarray, heading_rad: np.ndarray):
         """Velocity setpoints for `rows` (armed, open, finite: the caller checked)."""
         with self.lock:
+            if self.n == 1 and len(rows) == 1:  # an agent's every tick: on Python floats
+                (vn, ve, vd), top = (
+                    np.asarray(vel_ned_m_s, float)[0].tolist(),
+                    self.cfg.max_speed_m_s,
+                )
+                speed = math.sqrt(vn * vn + ve * ve + vd * vd)
+                if speed > top:
+                    k = top / speed
+                    vn, ve, vd = vn * k, ve * k, vd * k
+                self.sp_vel_m_s[0] = (vn, ve, vd)
+                self.sp_heading_rad[0] = np.asarray(heading_rad, float).reshape(-1)[0]
+                self.sp_stamp_s[0] = self.now_s
+                self.mode[0] = SimMode.VELOCITY
+                return
             v = np.array(vel_ned_m_s, dtype=float)
             speed = np.linalg.norm(v, axis=1)
             fast = speed > self.cfg.max_speed_m_s
