@@ -108,9 +108,18 @@ class Scope:
     def update(self, pos_ned_m: np.ndarray) -> frozenset[Cell] | None:
         """Give the vehicles' positions, (N, 2+) or one (2+,) row; returns the new cell set when
         it changed, else None (the common case: a few comparisons)."""
-        p = np.asarray(pos_ned_m, np.float64).reshape(len(self.anchor), -1)[:, :2]
-        ok = np.isfinite(p).all(axis=1)
         h = self.cfg.hysteresis_m
+        p = np.asarray(pos_ned_m, np.float64).reshape(len(self.anchor), -1)[:, :2]
+        if len(p) == 1 and self.placed[0]:
+            # an agent's every tick: still within its anchor's margin, on Python floats (the
+            # test below on one row; a move, a NaN or a first fix take the array path)
+            (n_m, e_m), (an, ae) = p[0].tolist(), self.anchor[0].tolist()
+            if (
+                an * CELL_M - h <= n_m < (an + 1) * CELL_M + h
+                and ae * CELL_M - h <= e_m < (ae + 1) * CELL_M + h
+            ):
+                return None
+        ok = np.isfinite(p).all(axis=1)
         lo = self.anchor * CELL_M - h
         hi = (self.anchor + 1) * CELL_M + h
         strayed = ((p < lo) | (p >= hi)).any(axis=1)

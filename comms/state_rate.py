@@ -171,6 +171,8 @@ class StatePacer:
         """(N,) bool: the rows to publish at `now_s`, given which are `idle` now; they count as
         published. With a SteadyConfig, also each row's (N, 3) position and velocity, (N,)
         heading, mode (ints) and arming; without them no row is steady."""
+        if len(self._rows) == 1:
+            return self._due_one(now_s, idle, pos_m, vel_m_s, heading_rad, mode, armed)
         idle = np.asarray(idle, bool)
         period_s = np.where(idle, self.idle_period_s, self.period_s)
         track = self.steady is not None and pos_m is not None
@@ -202,6 +204,50 @@ class StatePacer:
             self.last_pos[due], self.last_vel[due] = pos_m[due], vel_m_s[due]
             self.last_hdg[due], self.last_sig[due] = heading_rad[due], sig[due]
         return due
+
+    def _due_one(self, now_s, idle, pos_m, vel_m_s, heading_rad, mode, armed) -> np.ndarray:
+        """`due` and `_steady` for one row (an agent's every tick) on Python floats: the same
+        rule, equal to the array path (tests/test_state_rate.py)."""
+        (idle_now,) = np.asarray(idle, bool).reshape(-1).tolist()
+        last_s = float(self.last_s[0])
+        period_s = self.idle_period_s if idle_now else self.period_s
+        track = self.steady is not None and pos_m is not None
+        if track:
+            cfg = self.steady
+            assert cfg is not None
+            p = np.asarray(pos_m, float).reshape(-1).tolist()
+            v = np.asarray(vel_m_s, float).reshape(-1).tolist()
+            (hdg,) = np.asarray(heading_rad, float).reshape(-1).tolist()
+            (m,) = np.asarray(mode, np.int64).reshape(-1).tolist()
+            (a,) = np.asarray(armed, bool).reshape(-1).tolist()
+            sig = m * 2 + a
+            age_s = now_s - last_s
+            if not idle_now and math.isfinite(age_s) and sig == int(self.last_sig[0]):
+                lp, lv = self.last_pos[0].tolist(), self.last_vel[0].tolist()
+                dn = p[0] - (lp[0] + lv[0] * age_s)
+                de = p[1] - (lp[1] + lv[1] * age_s)
+                dd = p[2] - (lp[2] + lv[2] * age_s)
+                wn, we, wd = v[0] - lv[0], v[1] - lv[1], v[2] - lv[2]
+                turn = abs((hdg - float(self.last_hdg[0]) + math.pi) % (2 * math.pi) - math.pi)
+                if (
+                    dn * dn + de * de + dd * dd <= cfg.tol_m**2
+                    and wn * wn + we * we + wd * wd <= cfg.tol_m_s**2
+                    and turn <= cfg.tol_rad
+                ):
+                    period_s = self.steady_period_s
+        gap_s = now_s - last_s
+        due = gap_s >= period_s - self.slack_s or idle_now != bool(self.last_idle[0])
+        ticks = max(math.floor(period_s * self.tick_hz + 1e-6), 1)
+        if ticks >= 2 and self.calls % ticks == 0:  # its turn (row 0)
+            due = due or gap_s >= period_s - self.slack_s - (ticks - 1) / self.tick_hz
+        self.calls += 1
+        if due:
+            self.last_s[0] = now_s
+            self.last_idle[0] = idle_now
+            if track:
+                self.last_pos[0], self.last_vel[0] = p, v
+                self.last_hdg[0], self.last_sig[0] = hdg, sig
+        return np.array([due])
 
     def _steady(self, now_s, pos_m, vel_m_s, heading_rad, sig) -> np.ndarray:
         """(N,) bool: rows whose last published state still predicts them (module docstring)."""

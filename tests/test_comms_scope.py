@@ -150,6 +150,30 @@ def test_scope_of_many_is_the_union_and_ignores_unplaced_rows() -> None:
     assert scope.update(np.array([[6.0, 5.0, 0.0], [201.0, 5.0, 0.0], [np.nan, 0.0, 0.0]])) is None
 
 
+def test_one_vehicle_s_fast_path_equals_a_row_of_the_array_path() -> None:
+    """`Scope.update` of one vehicle (its no-move test on Python floats) answers as the same
+    vehicle beside an unplaced row (the array path), on random walks across cell borders,
+    near the hysteresis margin and through NaN fixes."""
+    cfg = ScopeConfig()
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        one, two = Scope(cfg), Scope(cfg, 2)
+        pos = rng.uniform(-100.0, 100.0, 3)
+        for _ in range(300):
+            pos = pos + rng.normal(0.0, rng.choice([0.5, 3.0, 20.0]), 3)
+            if rng.random() < 0.3:  # onto a border or the margin exactly
+                c = rng.integers(-4, 4)
+                pos[rng.integers(0, 2)] = c * keys.CELL_M + rng.choice([0.0, cfg.hysteresis_m])
+            fix = pos.copy()
+            if rng.random() < 0.03:
+                fix[rng.integers(0, 2)] = rng.choice([np.nan, np.inf])
+            got = one.update(fix.reshape(1, 3) if rng.random() < 0.5 else fix)
+            want = two.update(np.array([fix, [np.nan, 0.0, 0.0]]))
+            assert got == want
+            assert one.cells == two.cells and one.moves == two.moves
+            np.testing.assert_array_equal(one.anchor[0], two.anchor[0])
+
+
 # -- on a real mesh ----------------------------------------------------------------------------
 class Heard:
     def __init__(self) -> None:

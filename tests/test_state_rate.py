@@ -9,6 +9,7 @@ from comms.schema import Mode
 from comms.state_rate import (
     MAX_IDLE_PERIOD_S,
     StatePacer,
+    SteadyConfig,
     announces_idle,
     check_rates,
     idle_rows,
@@ -87,3 +88,55 @@ def test_the_idle_rate_is_capped_to_the_state_rate_and_the_floor_is_refused() ->
         check_rates(0.0, 1.0)
     with pytest.raises(ValueError, match="tick_hz"):
         StatePacer(10.0, 1.0, 0.0)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_one_row_equals_row_0_of_the_array_path(seed: int) -> None:
+    """`StatePacer.due` of one vehicle (on Python floats) says what row 0 of two says, with
+    and without the steady rule, over random ticks: idleness coming and going, hovering and
+    manoeuvring (near and past the tolerances), mode and arming changes, jitter, repeats."""
+    rng = np.random.default_rng(seed)
+    steady = None if seed % 4 == 0 else SteadyConfig(state_hz=float(rng.choice([3.0, 5.0])))
+    state_hz, tick_hz = float(rng.choice([10.0, 5.0, 3.3])), float(rng.choice([10.0, 20.0]))
+    idle_hz = float(rng.choice([1.0, 2.0]))
+    one = StatePacer(state_hz, idle_hz, tick_hz, 1, steady)
+    two = StatePacer(state_hz, idle_hz, tick_hz, 2, steady)
+    now, idle = float(rng.uniform(0.0, 5.0)), bool(rng.random() < 0.5)
+    pos, vel, hdg = rng.normal(0.0, 50.0, 3), rng.normal(0.0, 1.0, 3), float(rng.uniform(-4, 4))
+    mode, armed = int(Mode.HOLDING), True
+    saw = set()
+    for _ in range(1500):
+        now += float(rng.choice([0.0, 1.0 / tick_hz, rng.uniform(0.0, 0.3)], p=[0.05, 0.8, 0.15]))
+        if rng.random() < 0.02:
+            idle = not idle
+        if rng.random() < 0.02:
+            mode = int(rng.choice([Mode.HOLDING, Mode.GOTO, Mode.LANDED]))
+        if rng.random() < 0.02:
+            armed = not armed
+        scale = float(rng.choice([0.0, 0.01, 0.05, 0.3]))  # within the tolerances, or not
+        vel = vel + rng.normal(0.0, scale, 3)
+        pos = pos + vel / tick_hz + rng.normal(0.0, scale, 3)
+        hdg += float(rng.normal(0.0, scale)) + float(rng.choice([0.0, 2 * np.pi]))
+        other = rng.normal(0.0, 5.0, (2, 3))
+        args = (
+            np.array([pos, other[0]]),
+            np.array([vel, other[1]]),
+            np.array([hdg, 0.3]),
+            np.array([mode, int(Mode.GOTO)]),
+            np.array([armed, True]),
+        )
+        if rng.random() < 0.1:
+            got = one.due(now, np.array([idle]))
+            want = two.due(now, np.array([idle, False]))
+        else:
+            got = one.due(now, np.array([idle]), *(a[:1] for a in args))
+            want = two.due(now, np.array([idle, False]), *args)
+        assert got.shape == (1,) and got.dtype == bool
+        assert bool(got[0]) == bool(want[0])
+        saw.add(bool(got[0]))
+        for name in ("last_s", "last_idle", "last_pos", "last_vel", "last_hdg", "last_sig"):
+            np.testing.assert_array_equal(getattr(one, name)[0], getattr(two, name)[0])
+        if rng.random() < 0.01:
+            one.again()
+            two.again()
+    assert saw == {True, False}

@@ -35,6 +35,7 @@ import hmac
 import struct
 import threading
 from collections.abc import Callable, Iterable
+from hashlib import blake2b
 
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
@@ -81,11 +82,19 @@ def link_key(
     return HKDF(hashes.SHA256(), 32, _SALT, info).derive(shared)
 
 
-def tag(key: bytes, sender_id: int, receiver_id: int, signed: bytes) -> bytes:
-    """The link tag of a state's signed bytes from `sender_id` to `receiver_id`."""
+def tag_mac(key: bytes, sender_id: int, receiver_id: int) -> blake2b:
+    """The MAC of the link from `sender_id` to `receiver_id`, fed all but the state: a copy of
+    it, fed a state's signed bytes, gives its tag (`LinkKeys` keeps one per neighbour: keying
+    BLAKE2b costs more than the copy)."""
     mac = hashlib.blake2b(key=key, digest_size=LINK_TAG_BYTES)
     mac.update(_TAG_HEAD)
     mac.update(_IDS.pack(sender_id, receiver_id))
+    return mac
+
+
+def tag(key: bytes, sender_id: int, receiver_id: int, signed: bytes) -> bytes:
+    """The link tag of a state's signed bytes from `sender_id` to `receiver_id`."""
+    mac = tag_mac(key, sender_id, receiver_id)
     mac.update(signed)
     return mac.digest()
 
@@ -107,6 +116,8 @@ class LinkKeys:
         self._own = x25519_private(private_key)
         self._public_key = public_key
         self._keys: dict[int, tuple[Ed25519PublicKey, bytes | None]] = {}
+        # by peer: its public key, and `tag_mac` to it and from it (None: no link key)
+        self._macs: dict[int, tuple[Ed25519PublicKey, tuple[blake2b, blake2b] | None]] = {}
         self._lock = threading.Lock()
         self.tags_made = 0
         self.tags_good = 0
@@ -132,18 +143,39 @@ class LinkKeys:
             self._keys[peer_id] = (pub, key)
         return key
 
+    def _macs_with(self, peer_id: int) -> tuple[blake2b, blake2b] | None:
+        """`tag_mac` both ways with `peer_id`, kept while the roster keeps its public key (as
+        `key`), or None (no link key)."""
+        pub = self._public_key(peer_id)
+        held = self._macs.get(peer_id)
+        if held is not None and held[0] is pub:
+            return held[1]
+        key = self.key(peer_id)
+        macs = (
+            None
+            if key is None
+            else (tag_mac(key, self.own_id, peer_id), tag_mac(key, peer_id, self.own_id))
+        )
+        if pub is not None:
+            with self._lock:
+                self._macs[peer_id] = (pub, macs)
+        return macs
+
     def tags(self, signed: bytes, receivers: Iterable[int]) -> bytes:
         """The link trailer of a state (its `signed_bytes()`) from this vehicle: an entry for
-        each of the first MAX_LINK_TAGS `receivers` that has a link key."""
+        each of the first MAX_LINK_TAGS `receivers` that has a link key (each `tag`, from the
+        link's kept `tag_mac`)."""
         out = bytearray()
         made = 0
         for rid in receivers:
             if made == MAX_LINK_TAGS:
                 break
-            key = self.key(rid)
-            if key is None:
+            macs = self._macs_with(rid)
+            if macs is None:
                 continue
-            out += rid.to_bytes(2, "little") + tag(key, self.own_id, rid, signed)
+            mac = macs[0].copy()
+            mac.update(signed)
+            out += rid.to_bytes(2, "little") + mac.digest()
             made += 1
         self.tags_made += made
         return bytes(out)
@@ -155,13 +187,14 @@ class LinkKeys:
         for k in range(0, len(links), LINK_ENTRY_BYTES):
             if links[k : k + 2] != me:
                 continue
-            key = self.key(sender_id)
+            macs = self._macs_with(sender_id)
             got = links[k + 2 : k + LINK_ENTRY_BYTES]
-            if key is not None and hmac.compare_digest(
-                got, tag(key, sender_id, self.own_id, signed)
-            ):
-                self.tags_good += 1
-                return True
+            if macs is not None:
+                mac = macs[1].copy()  # tag(key, sender_id, own_id, signed)
+                mac.update(signed)
+                if hmac.compare_digest(got, mac.digest()):
+                    self.tags_good += 1
+                    return True
             self.tags_bad += 1
             return False
         return None
