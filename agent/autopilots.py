@@ -98,6 +98,13 @@ class Autopilots:
             np.array([t.battery_pct for t in tels], float),
             np.array([t.link_ok for t in tels], bool),
             self.pos_sigma_m,
+            np.array(
+                [
+                    math.nan if t.onboard_separation_m is None else t.onboard_separation_m
+                    for t in tels
+                ],
+                float,
+            ),
         )
 
     def set_velocities(self, rows: np.ndarray, vel_ned_m_s: np.ndarray, heading_rad: np.ndarray):

@@ -186,6 +186,9 @@ class Observed:
     pos_sigma_m: np.ndarray | None = None
     """(N,) each position estimate's 1-sigma (m), the assumed one where the autopilot reports
     none (ShellConfig.assumed_pos_sigma_m); None: unchanged (0 until given)."""
+    onboard_separation_m: np.ndarray | None = None
+    """(N,) the separation each autopilot's own filter keeps (relay: the PX4 module's
+    CVY_SEP_M), NaN where not known; None: none reported."""
 
 
 def _nan3(n: int) -> np.ndarray:
@@ -246,6 +249,9 @@ class FlightCore:
         self._own_router: Router | None = None
         """Without guidance (the autopilot guides itself): the plan's router, for the goal rule
         alone (`set_plan`, `router`)."""
+        self.onboard_separation_m: float | None = None
+        """The separation the autopilot's own filter keeps, once reported (relay: CVY_SEP_M);
+        None: the configured one is assumed."""
         self._own_router_key: tuple | None = None
         """What `_own_router` was built from: the plan's polygons and the filter's radius and
         margin (a plan applied again with the same zones is not built again)."""
@@ -282,10 +288,14 @@ class FlightCore:
     @property
     def safety_cfg(self) -> SafetyConfig:
         """The separation filter's settings: guidance's own, or without guidance (the autopilot
-        runs the filter: relay) what the configuration flies (`GuidanceConfig.safety_config`)."""
+        runs the filter: relay) what the configuration flies (`GuidanceConfig.safety_config`),
+        at the separation the autopilot reports its filter keeps once it has (`observe`)."""
         if self.guidance is not None:
             return self.guidance.safety_cfg
-        return self.cfg.guidance.safety_config()
+        cfg = self.cfg.guidance.safety_config()
+        if self.onboard_separation_m is not None:
+            cfg = replace(cfg, radius_m=self.onboard_separation_m)
+        return cfg
 
     @property
     def router(self) -> Router | None:
@@ -519,6 +529,26 @@ class FlightCore:
             self.notes.append(Note(i, why, EventKind.FAILSAFE, Severity.WARNING))
         return actions
 
+    def _take_onboard_separation(self, reported_m: np.ndarray) -> None:
+        """The separation the autopilots' own filters keep (relay: CVY_SEP_M), the largest
+        reported: the goal rule's clearance follows it (`safety_cfg`, the router rebuilt), and
+        the operator hears when it differs from the configured --separation-m."""
+        known = reported_m[np.isfinite(reported_m)]
+        if not known.size:
+            return
+        sep = float(known.max())
+        if sep == self.onboard_separation_m:
+            return
+        self.onboard_separation_m = sep
+        configured = self.cfg.guidance.separation_m
+        if not math.isclose(sep, configured, rel_tol=1e-6):
+            text = (
+                f"the autopilot's filter keeps {sep:g} m (CVY_SEP_M), not the configured "
+                f"--separation-m {configured:g} m: goals keep the clearance of {sep:g} m"
+            )
+            self.notes.append(Note(0, text, EventKind.STATUS, Severity.WARNING))
+        self.set_plan(self.mission_plan)  # the router at the new separation
+
     # -- the fleet plan -------------------------------------------------------------------------
     def set_plan(self, plan: FleetPlan | None) -> None:
         """Check every goto, take-off and mission target against `plan` from now on (the shell
@@ -605,6 +635,8 @@ class FlightCore:
         self.battery_pct[:] = obs.battery_pct
         if obs.pos_sigma_m is not None:
             self.pos_sigma_m[:] = obs.pos_sigma_m
+        if obs.onboard_separation_m is not None and self.guidance is None:
+            self._take_onboard_separation(obs.onboard_separation_m)
         cruise = self.cfg.guidance.cruise_speed_m_s
         speed = np.hypot(vel[:, 0], vel[:, 1])
         moving = speed > SPEED_FOR_HEADING * cruise

@@ -238,6 +238,26 @@ def test_params_read_set_and_refuse() -> None:
     assert sorted(p.param_index for p in listed) == list(range(len(listed)))
 
 
+def test_the_onboard_modules_separation_is_read_only_and_only_with_the_module() -> None:
+    """CVY_SEP_M (the covey PX4 module's separation) is answered when the policy runs onboard,
+    so a relay can read it; setting it is refused (the old value comes back, with a reason);
+    an autopilot without the module stays silent about it, as PX4 does."""
+    plain = autopilot()
+    read = wire(mavlink.MAVLink_param_request_read_message(1, 1, b"CVY_SEP_M", -1))
+    assert plain.handle(read, 0.0) == []
+    vehicle = Vehicle(params=VehicleParams(pos_gain_1_s=2.0))
+    ap = Autopilot(vehicle, HOME, 1, TrafficStore(5.0, own_icao=1), {"CVY_SEP_M": 4.0})
+    (value,) = ap.handle(read, 0.0)
+    assert value.param_id == "CVY_SEP_M" and value.param_value == pytest.approx(4.0)
+    (value,) = ap.handle(wire(mavlink.MAVLink_param_set_message(1, 1, b"CVY_SEP_M", 9.0, 9)), 0.0)
+    assert value.param_value == pytest.approx(4.0)
+    assert any("CVY_SEP_M is read-only" in e for e in vehicle.events)
+    listed = ap.handle(wire(mavlink.MAVLink_param_request_list_message(1, 1)), 0.0)
+    assert "CVY_SEP_M" in {p.param_id for p in listed}
+    assert sorted(p.param_index for p in listed) == list(range(len(listed)))
+    assert {p.param_count for p in listed} == {len(listed)}
+
+
 def test_request_message_answers_autopilot_version_and_home() -> None:
     ap = autopilot()
     replies = ap.handle(

@@ -225,6 +225,11 @@ def test_onboard_emulator_behind_the_relay_flies_around_traffic() -> None:
     stop = threading.Event()
     with SitlProcess(args) as proc, RelayBackend(cfg, HOME) as relay:
         assert relay.wait_connected(), proc.output()
+        deadline = time.monotonic() + 10.0  # the relay reads the module's CVY_SEP_M
+        while (t := relay.telemetry()) is None or t.onboard_separation_m is None:
+            assert time.monotonic() < deadline, f"no CVY_SEP_M: {t}"
+            time.sleep(0.05)
+        assert t.onboard_separation_m == pytest.approx(4.0)
         relay.takeoff(5.0)
         deadline = time.monotonic() + 15.0
         while (t := relay.telemetry()) is None or t.pos_ned_m[2] > -4.7:

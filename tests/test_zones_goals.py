@@ -181,6 +181,28 @@ def test_a_relay_core_builds_its_router_once_per_plan_and_drops_it_with_the_zone
     assert _goto(core, 8.3).result is AckResult.ACCEPTED  # no zones: no rule (and no zone)
 
 
+def test_a_relay_core_keeps_the_clearance_of_the_separation_its_autopilot_reports() -> None:
+    """The relay reads the PX4 module's CVY_SEP_M (agent/backends/relay.py); the goal rule then
+    keeps the clearance of that separation, not of the configured one, and says so once."""
+    core = _core(velocity_mode=False)
+    n_m = 8.0 + CLEARANCE_M + 0.5  # clear at 3 m: 3.8 m from the edge
+    assert _goto(core, n_m, 1).reason == ""
+    obs = Observed(
+        HERE[None], np.zeros((1, 3)), np.ones(1, bool), np.ones(1, bool), np.full(1, 90.0),
+        np.ones(1, bool), np.full(1, SIGMA_M), np.full(1, 5.0),
+    )  # fmt: skip
+    core.observe(0.1, obs, gcs_alive=True)
+    assert core.safety_cfg.radius_m == 5.0 and core.onboard_separation_m == 5.0
+    (note,) = [n for n in core.drain_notes() if "CVY_SEP_M" in n.text]
+    assert "keeps 5 m (CVY_SEP_M), not the configured --separation-m 3 m" in note.text
+    wide = REACH_M * 5.0 / 3.0 + SIGMA_K * SIGMA_M  # the zone clearance at 5 m: 4.5 m
+    moved = _goto(core, n_m, 2)
+    assert moved.result is AckResult.ACCEPTED and moved.reason.startswith("goal moved")
+    assert f"to {wide:.1f} m from keep-out zone 'pad'" in moved.reason
+    core.observe(0.2, obs, gcs_alive=True)  # the same again: no second note
+    assert not [n for n in core.drain_notes() if "CVY_SEP_M" in n.text]
+
+
 def _upload(core: FlightCore, *n_m: float):
     items = tuple(MissionItem(MissionItemKind.WAYPOINT, x=n, y=1.0, alt_m=10.0) for n in n_m)
     return core.load_mission(0, Mission(5, 1, items, mission_id=4))

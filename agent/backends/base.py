@@ -65,6 +65,10 @@ class Telemetry:
     pos_sigma_m: float = 0.0
     """1-sigma of the horizontal position estimate, per axis, metres (PX4's eph, GPS h_acc, the
     simulator's drift); 0: exact or not reported."""
+    onboard_separation_m: float | None = None
+    """The separation the autopilot's own filter keeps, where the policy runs onboard (relay:
+    the covey PX4 module's CVY_SEP_M, read from the autopilot); None: not known (or no
+    onboard filter)."""
 
 
 @dataclass(frozen=True)

@@ -129,6 +129,17 @@ class RelayConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
 
+SEPARATION_PARAM = "CVY_SEP_M"
+"""The covey PX4 module's separation (firmware/px4/covey_guidance): the relay reads it, so that
+the flight core's goal rule keeps the clearance the autopilot's filter keeps."""
+SEPARATION_ASKS = 5
+"""PARAM_REQUEST_READs of SEPARATION_PARAM once the autopilot is heard (an autopilot without
+the module stays silent: the configured --separation-m is then assumed)."""
+SEPARATION_ASK_PERIOD_S = 2.0
+MAX_SEPARATION_M = 1000.0
+"""A CVY_SEP_M above this (or not finite, or not positive) is refused as implausible."""
+
+
 @dataclass
 class _State:
     """Latest autopilot state (written by the receive thread, read under the lock)."""
@@ -143,6 +154,8 @@ class _State:
     battery_pct: float = math.nan
     pos_sigma_m: float = 0.0
     """GPS_RAW_INT h_acc in metres (PX4 sends its eph there); 0 until one is reported."""
+    onboard_separation_m: float | None = None
+    """The PX4 module's CVY_SEP_M once the autopilot answered for it (`SEPARATION_PARAM`)."""
     custom_mode: int = 0
     heartbeat_s: float = -math.inf
 
@@ -191,11 +204,24 @@ class RelayBackend(VehicleBackend):
 
     def _receive_loop(self) -> None:
         next_hb_s = 0.0
+        next_ask_s, asked = 0.0, 0
         while not self._closed:
             now = self.clock()
             if now >= next_hb_s:
                 next_hb_s = now + 1.0 / self.cfg.heartbeat_hz
                 self._send(HEARTBEAT)
+            if (  # ask for the onboard separation until the autopilot answers
+                now >= next_ask_s
+                and asked < SEPARATION_ASKS
+                and self._target is not None
+                and self._state.onboard_separation_m is None
+            ):
+                next_ask_s, asked = now + SEPARATION_ASK_PERIOD_S, asked + 1
+                self._send(
+                    mavlink.MAVLink_param_request_read_message(
+                        self._target, 1, SEPARATION_PARAM.encode(), -1
+                    )
+                )
             try:
                 select.select([self._link], [], [], 0.05)
             except (OSError, ValueError):  # closed under us
@@ -266,6 +292,12 @@ class RelayBackend(VehicleBackend):
                 self._texts = [*self._texts[-19:], (self.clock(), msg.text.rstrip("\x00"))]
             elif kind == "PARAM_VALUE":
                 self._param = (msg.param_id.rstrip("\x00"), msg.param_value)
+                if self._param[0] == SEPARATION_PARAM:
+                    value = float(msg.param_value)
+                    if math.isfinite(value) and 0.0 < value <= MAX_SEPARATION_M:
+                        s.onboard_separation_m = value
+                    else:
+                        log.warning("ignored %s = %r from the autopilot", SEPARATION_PARAM, value)
                 self._cond.notify_all()
             elif kind == "ADSB_VEHICLE":
                 self._on_adsb(msg)
@@ -450,6 +482,7 @@ class RelayBackend(VehicleBackend):
                 battery_pct=s.battery_pct,
                 link_ok=self.link_ok,
                 pos_sigma_m=s.pos_sigma_m,
+                onboard_separation_m=s.onboard_separation_m,
             )
 
     def takeoff(self, alt_m: float) -> None:

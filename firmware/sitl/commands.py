@@ -47,9 +47,17 @@ class Autopilot:
     """The MAVLink face of one vehicle: commands, parameters, setpoints, traffic."""
 
     def __init__(
-        self, vehicle: Vehicle, home: GeoOrigin, system_id: int, traffic: TrafficStore
+        self,
+        vehicle: Vehicle,
+        home: GeoOrigin,
+        system_id: int,
+        traffic: TrafficStore,
+        onboard_params: dict[str, float] | None = None,
     ) -> None:
         self.vehicle, self.home, self.system_id, self.traffic = vehicle, home, system_id, traffic
+        self.onboard_params = dict(onboard_params or {})
+        """The covey PX4 module's parameters when the policy runs onboard (CVY_SEP_M: the
+        separation its filter keeps), read-only here: `covey sitl --separation-m` sets them."""
         self.boot_ms = 0
         self.fence = FenceStore(system_id)
         """The geofence uploaded over the mission protocol (firmware/sitl/fence.py)."""
@@ -234,17 +242,17 @@ class Autopilot:
     # ---- parameters ----------------------------------------------------------------------------
 
     def _param_value(self, name: str) -> Any:
-        field, _, _ = PARAMS[name]
+        names = [*PARAMS, *self.onboard_params]
+        if name in PARAMS:
+            value = float(getattr(self.vehicle.params, PARAMS[name][0]))
+        else:
+            value = float(self.onboard_params[name])
         return mavlink.MAVLink_param_value_message(
-            name.encode(),
-            float(getattr(self.vehicle.params, field)),
-            mavlink.MAV_PARAM_TYPE_REAL32,
-            len(PARAMS),
-            list(PARAMS).index(name),
+            name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32, len(names), names.index(name)
         )
 
     def _param(self, msg: Any) -> list[Any]:
-        kind, names = msg.get_type(), list(PARAMS)
+        kind, names = msg.get_type(), [*PARAMS, *self.onboard_params]
         if kind == "PARAM_REQUEST_LIST":
             return [self._param_value(n) for n in names]
         name = (
@@ -259,6 +267,12 @@ class Autopilot:
             and 0 <= msg.param_index < len(names)
         ):
             name = names[msg.param_index]
+        if name in self.onboard_params:
+            if kind == "PARAM_SET":  # echo the value kept: the setter sees it was not taken
+                self.vehicle.events.append(
+                    f"Parameter {name} is read-only in the emulator (covey sitl --separation-m)"
+                )
+            return [self._param_value(name)]
         if name not in PARAMS:
             return []  # PX4 stays silent about unknown parameters
         if kind == "PARAM_SET":

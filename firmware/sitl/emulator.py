@@ -57,7 +57,10 @@ class Emulator:
         self.vehicle = Vehicle(
             params=cfg.params, healthy=cfg.healthy, guidance=guidance, now_s=now_s, model=model
         )
-        self.autopilot = Autopilot(self.vehicle, cfg.home, cfg.vehicle_id, self.traffic)
+        onboard = {"CVY_SEP_M": cfg.separation_m} if cfg.onboard else None
+        self.autopilot = Autopilot(
+            self.vehicle, cfg.home, cfg.vehicle_id, self.traffic, onboard_params=onboard
+        )
         self._stack = ExitStack()
         self.links = [
             self._stack.enter_context(UdpLink(url, cfg.vehicle_id, AUTOPILOT_COMPONENT))
