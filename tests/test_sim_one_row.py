@@ -1,4 +1,4 @@
-"""The simulator's one-row fast path (`SimFleet._integrate_one`, an agent's vehicle) equals the
+"""The simulator's one-row fast path (agent/backends/sim_one.py `integrate_one`, an agent's vehicle) equals the
 array path (`SimFleet._integrate`) step for step, on random command sequences: take-off, land,
 hold, velocity setpoints (some too fast, some left to lapse), kills, long and zero steps, with
 the ideal model and the realistic one (lag, gusts, GNSS drift)."""

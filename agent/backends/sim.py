@@ -15,7 +15,6 @@ separation is judged on), and telemetry carries the estimate's 1-sigma (`pos_sig
 
 from __future__ import annotations
 
-import enum
 import math
 import threading
 from collections.abc import Sequence
@@ -24,8 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
-from kit.masks import mode_mask
-from policy.pointmass import FALL_DRAG_1_S, GRAVITY_M_S2, VehicleModel, Vehicles, gauss_markov
+from agent.backends.sim_modes import _COMING_DOWN, _IDLE, _POSITIONAL, SimMode
+from agent.backends.sim_one import integrate_one
+from policy.pointmass import VehicleModel, Vehicles
 
 
 @dataclass(frozen=True)
@@ -68,24 +68,6 @@ class SimConfig:
                 raise ValueError(f"{name} must be a positive number, got {value}")
         if not all(math.isfinite(v) for v in self.start_ned_m):
             raise ValueError(f"start_ned_m must be finite, got {self.start_ned_m}")
-
-
-class SimMode(enum.IntEnum):
-    """What a simulated autopilot is doing (its own modes, not the agent's)."""
-
-    IDLE = 0
-    TAKEOFF = 1
-    HOLD = 2
-    VELOCITY = 3
-    LAND = 4
-    FALLING = 5
-
-
-_IDLE = int(SimMode.IDLE)  # an enum member's attribute lookup costs more than the test
-_TAKEOFF, _HOLD, _VELOCITY = int(SimMode.TAKEOFF), int(SimMode.HOLD), int(SimMode.VELOCITY)
-_LAND, _FALLING = int(SimMode.LAND), int(SimMode.FALLING)
-_POSITIONAL = mode_mask((SimMode.HOLD, SimMode.TAKEOFF, SimMode.LAND))
-_COMING_DOWN = mode_mask((SimMode.LAND, SimMode.FALLING))
 
 
 class SimFleet:
@@ -237,7 +219,7 @@ class SimFleet:
             if dt_s <= 0:
                 return
             if self.n == 1:  # an agent's one vehicle: the same maths on Python floats
-                self._integrate_one(min(dt_s, self.cfg.max_step_s))
+                integrate_one(self, min(dt_s, self.cfg.max_step_s))
             elif not self.at_rest():
                 self._integrate(min(dt_s, self.cfg.max_step_s))
 
@@ -276,7 +258,7 @@ class SimFleet:
         return want
 
     def _integrate(self, dt_s: float) -> None:
-        """Every row at once (the reference for `_integrate_one`)."""
+        """Every row at once (the reference for agent/backends/sim_one.py `integrate_one`)."""
         cfg = self.cfg
         powered = (self.mode != SimMode.IDLE) & (self.mode != SimMode.FALLING)
         hit = self.body.step(self._wanted_velocity(), dt_s, powered)
@@ -294,91 +276,6 @@ class SimFleet:
         self.battery_pct[flying] = np.maximum(
             0.0, self.battery_pct[flying] - cfg.battery_drain_pct_s * dt_s
         )
-
-    def _integrate_one(self, dt_s: float) -> None:
-        """`_wanted_velocity` and `_integrate` (with policy.pointmass.integrate) for a fleet of
-        one, on Python floats: the array path costs a one-row fleet ~60 small numpy calls (~0.18
-        ms a step, an agent's every tick; this ~5 us). Equal to it (tests/test_sim_one_row.py),
-        the at-rest skip (`at_rest`) included."""
-        cfg, body, model = self.cfg, self.body, self.body.model
-        mode = int(self.mode[0])
-        armed = bool(self.armed[0])
-        tn, te, td = self.true_pos_m[0].tolist()
-        vn, ve, vd = self.vel_m_s[0].tolist()
-        if mode == _IDLE and not armed and td >= 0.0 and vn == 0.0 and ve == 0.0 and vd == 0.0:
-            return  # at rest: a fixed point
-        pn, pe, pd = self.pos_m[0].tolist()
-        # -- _wanted_velocity
-        if mode == _VELOCITY and self.now_s - float(self.sp_stamp_s[0]) > cfg.setpoint_timeout_s:
-            self.hold_m[0] = (pn, pe, pd)  # setpoints stopped: hold, as PX4 does
-            mode = _HOLD
-        wn = we = wd = 0.0
-        if mode == _VELOCITY:
-            wn, we, wd = self.sp_vel_m_s[0].tolist()
-        elif _POSITIONAL[mode]:
-            hn, he, hd = self.hold_m[0].tolist()
-            k = cfg.hold_gain_1_s
-            wn, we, wd = k * (hn - pn), k * (he - pe), k * (hd - pd)
-        if mode == _TAKEOFF:
-            alt = float(self.target_alt_m[0])
-            if -pd < alt - 0.05:
-                wd = -cfg.climb_rate_m_s
-            else:  # at the take-off altitude: hold there
-                wd = 0.0
-                self.hold_m[0] = (pn, pe, -alt)
-                mode = _HOLD
-        elif mode == _LAND:
-            wd = (1.0 if -pd > 2.0 else 0.5) * cfg.descent_rate_m_s
-        # -- policy.pointmass.integrate, one row
-        powered = mode != _IDLE and mode != _FALLING
-        if powered:
-            dn, de, dd = wn - vn, we - ve, wd - vd
-            if model.lag_s > 0.0:
-                f = -math.expm1(-dt_s / model.lag_s)
-                dn, de, dd = dn * f, de * f, dd * f
-            limit = float(model.max_accel_m_s2) * dt_s
-            if model.lag_s <= 0.0 and math.isinf(limit):
-                vn, ve, vd = wn, we, wd
-            else:
-                norm = math.sqrt(dn * dn + de * de + dd * dd)
-                scale = limit / norm if norm > limit else 1.0
-                vn, ve, vd = vn + dn * scale, ve + de * scale, vd + dd * scale
-        elif td < 0.0:  # falling
-            drag = max(0.0, 1.0 - FALL_DRAG_1_S * dt_s)
-            vn, ve, vd = vn * drag, ve * drag, vd + GRAVITY_M_S2 * dt_s
-        else:
-            vn = ve = vd = 0.0
-        tn, te, td = tn + vn * dt_s, te + ve * dt_s, td + vd * dt_s
-        if model.gust_m_s > 0 and td < 0.0:
-            gn, ge = body.gust_m_s[0].tolist()
-            tn, te = tn + gn * dt_s, te + ge * dt_s
-        hit = False
-        if td >= 0.0:
-            td = 0.0
-            if vd > 0.0:
-                hit = True
-                vn = ve = vd = 0.0
-        self.true_pos_m[0] = (tn, te, td)
-        self.vel_m_s[0] = (vn, ve, vd)
-        gauss_markov(body.gust_m_s, model.gust_m_s, model.gust_corr_s, dt_s, body.rng)
-        gauss_markov(body.drift_m, model.drift_m, model.drift_corr_s, dt_s, body.rng)
-        pd = td
-        if self.pos_m is not self.true_pos_m:  # the estimate follows the truth, off by the drift
-            rn, re = body.drift_m[0].tolist()
-            self.pos_m[0] = (tn + rn, te + re, td)
-        # -- the rest of _integrate
-        if hit and _COMING_DOWN[mode]:
-            armed = False
-            self.armed[0] = False
-            mode = _IDLE
-        self.mode[0] = mode
-        if mode == _VELOCITY:
-            self.heading_rad[0] = self.sp_heading_rad[0]
-        elif armed and math.hypot(vn, ve) > 0.2:
-            self.heading_rad[0] = math.atan2(ve, vn)
-        if pd < -0.05 and armed:
-            b = float(self.battery_pct[0])
-            self.battery_pct[0] = max(0.0, b - cfg.battery_drain_pct_s * dt_s)
 
 
 class SimBackend(VehicleBackend):
