@@ -42,4 +42,7 @@ def test_realistic_eval_has_no_true_collisions(tmp_path, capsys):
 def test_vehicles_flag_is_checked(capsys):
     with pytest.raises(SystemExit) as exc:
         policy_eval.cli(["--vehicles", "real", "--quick"])
-    assert exc.value.code == 2 and "--vehicles takes ideal or realistic" in capsys.readouterr().err
+    assert exc.value.code == 2 and "must be one of ideal, realistic" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        policy_eval.cli(["--vehicles", "realistic:drift_m=-1", "--quick"])
+    assert exc.value.code == 2 and "drift_m must be finite and >= 0" in capsys.readouterr().err

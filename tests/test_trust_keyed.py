@@ -343,7 +343,11 @@ def swap(station: Station, a_ne, b_ne, forger_port: int | None) -> float:
 
 def test_a_forger_does_not_squeeze_a_swap(keyed) -> None:
     """The issue's squeezed swap: the same swap with and without a forger showing both vehicles
-    LANDED elsewhere; the closest approaches agree within 0.5 m."""
+    LANDED elsewhere. A squeeze would bring them well inside the filter's berth (3.6 m at 3 m
+    and margin 0.2: believing the other landed, neither would avoid it); both swaps keep that
+    berth, less 0.2 m of tick and dead-reckoning slack. How much more than the berth the
+    policy keeps depends on when it decides relative to the other's turn (measured: 3.6 to 4.1
+    m, with and without a forger alike), so the two are not compared more tightly."""
     station: Station = keyed["station"]
     a_ne, b_ne = (0.0, 0.0), V2_AT
     swap(station, b_ne, a_ne, None)  # back to the start: vehicle 1 at a, vehicle 2 at b
@@ -351,7 +355,8 @@ def test_a_forger_does_not_squeeze_a_swap(keyed) -> None:
     swap(station, b_ne, a_ne, None)  # and back again, to fly the very same swap
     attacked_m = swap(station, a_ne, b_ne, keyed["port"])
     print(f"swap closest approach: {clean_m:.2f} m without a forger, {attacked_m:.2f} m with one")
-    assert abs(attacked_m - clean_m) <= 0.5 and attacked_m >= 3.0
+    berth_m = 3.0 * 1.2 - 0.2
+    assert clean_m >= berth_m and attacked_m >= berth_m, (clean_m, attacked_m)
 
 
 def test_recorded_states_resent_later_are_refused(keyed) -> None:
