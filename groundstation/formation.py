@@ -309,6 +309,7 @@ def plan_formation(
     targets, moved = _as_flown(
         plan, separation_m, ids, slot_of, slots[slot_of], pos_sigma_m or {}, spacing_m=d_m
     )
+    _check_berths(ids, targets, separation_m, pos_sigma_m or {}, spec.spacing_m)
     if memory is not None:
         memory.remember(key, dict(zip(ids, slot_of.tolist(), strict=True)))
     return FormationPlan(ids, tuple(slot_of.tolist()), targets, pos, kept is not None, moved)
@@ -359,6 +360,45 @@ def _as_flown(
                 "nothing sent"
             )
     return out, tuple(moved)
+
+
+def _check_berths(
+    ids: tuple[int, ...],
+    targets_ned_m: np.ndarray,
+    separation_m: float,
+    pos_sigma_m: Mapping[int, float],
+    spacing_m: float,
+) -> None:
+    """Refuse a formation whose vehicles could not hold their slots: two slots nearer than
+    the berth the two vehicles' filters keep between their estimates at the position sigmas
+    they report (policy.safety.pair_radius_m: the separation with its margin plus sigma_k
+    sqrt(sigma_i^2 + sigma_j^2), the filter's defaults; 5.7 m at 3 m on plain 0.5 m GNSS).
+    They would push each other off their slots for as long as they hover there, and a crowd
+    held inside its berth is where true positions come within the separation (docs/sky.md,
+    "Beyond the preset"). The message says the spacing that would hold."""
+    sig = np.array([max(0.0, float(pos_sigma_m.get(vid, 0.0))) for vid in ids])
+    if len(ids) < 2 or not sig.any():
+        return  # exact positions: the separation check of the slots is the berth's
+    from policy.safety import SafetyConfig, pair_radius_m
+
+    cfg = SafetyConfig(radius_m=separation_m)
+    d = np.linalg.norm(targets_ned_m[:, None, :2] - targets_ned_m[None, :, :2], axis=2)
+    berth, _ = pair_radius_m(cfg, sig, np.broadcast_to(sig, (len(ids), len(ids))))
+    berth = np.asarray(berth, float)
+    np.fill_diagonal(d, np.inf)
+    short = d < berth - 1e-6
+    if not short.any():
+        return
+    ratio = np.where(short, berth / np.maximum(d, 1e-9), 0.0)
+    i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+    need_m = spacing_m * float(ratio[i, j]) if spacing_m > 0 else float(berth[i, j])
+    raise FormationError(
+        f"vehicles {ids[i]} and {ids[j]} would hover {d[i, j]:.1f} m apart, inside the "
+        f"{berth[i, j]:.1f} m their filters keep between estimates at the position sigmas they "
+        f"report ({sig[i]:g} m, {sig[j]:g} m): they could not hold their slots; widen "
+        f"--spacing-m to {math.ceil(need_m * 10) / 10:g} m or fly with a better position fix; "
+        "nothing sent"
+    )
 
 
 def load_slots(path: str) -> tuple[tuple[float, float], ...]:

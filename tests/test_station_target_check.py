@@ -79,14 +79,15 @@ def test_a_slot_its_vehicle_would_refuse_refuses_the_formation_naming_it() -> No
 
 
 def test_moved_slots_that_keep_the_spacing_are_sent_moved() -> None:
-    # heading 90: the line stands north-south at E 7.4, every slot 2.6 m off the zone's edge
-    spec = _line(center_e_m=7.4, heading_deg=90.0)
-    pos = {1: (-4.0, 0.0, -2.0), 2: (0.0, 0.0, -2.0), 3: (4.0, 0.0, -2.0)}
+    # heading 90: the line stands north-south at E 7.4, every slot 2.6 m off the zone's edge,
+    # 6 m apart (outside the 5.7 m berth of two vehicles at 0.5 m)
+    spec = _line(center_e_m=7.4, spacing_m=6.0, heading_deg=90.0)
+    pos = {1: (-6.0, 0.0, -2.0), 2: (0.0, 0.0, -2.0), 3: (6.0, 0.0, -2.0)}
     fp = plan_formation(spec, pos, 3.0, plan=PLAN, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
     assert all(why.startswith("goal moved 0.") for why in fp.moved), fp.moved
     assert all("to 3.3 m from keep-out zone 'pad'" in why for why in fp.moved)
     np.testing.assert_allclose(fp.targets_ned_m[:, 1], 10.0 - 3.3, atol=0.1)
-    np.testing.assert_allclose(fp.targets_ned_m[:, 0], [-4.0, 0.0, 4.0], atol=1e-6)
+    np.testing.assert_allclose(fp.targets_ned_m[:, 0], [-6.0, 0.0, 6.0], atol=1e-6)
     assert "; goal moved 0." in fp.lines()[0]
     # nothing moves without a plan, or for vehicles reporting exact positions
     assert not any(plan_formation(spec, pos, 3.0, pos_sigma_m={1: 0.5}).moved)
@@ -104,9 +105,28 @@ def test_moved_slots_nearer_each_other_than_the_spacing_refuse_the_formation() -
         r" to 3\.[23]\d m from vehicle 2's slot 1, closer than the formation's 4\.00 m", text
     )
     assert text.endswith("; nothing sent")
-    # the same line with the end vehicle reporting exact positions: nothing moves, sent as is
-    fp = plan_formation(spec, POS, 3.0, plan=PLAN, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.0})
+    # the same line with the vehicles reporting exact positions: nothing moves, sent as is (at
+    # 0.5 m the 4 m spacing is inside their 5.7 m berth: `test_slots_inside_the_berth...`)
+    fp = plan_formation(spec, POS, 3.0, plan=PLAN, pos_sigma_m={1: 0.0, 2: 0.0, 3: 0.0})
     assert not any(fp.moved) and fp.targets_ned_m[2, 1] == pytest.approx(7.4)
+
+
+def test_slots_inside_the_berth_at_the_reported_sigmas_refuse_the_formation() -> None:
+    """Vehicles on plain GNSS keep 3.6 m + 3 sqrt(sigma_i^2 + sigma_j^2) between estimates: a
+    formation tighter than that for the sigmas they report is refused, naming the pair and the
+    spacing that would hold; exact positions (sigma 0) fly the same slots."""
+    spec = _line(center_e_m=-20.0, spacing_m=5.0)  # no zone near: only the berth matters
+    with pytest.raises(FormationError) as exc:
+        plan_formation(spec, POS, 3.0, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
+    text = str(exc.value)
+    assert text.startswith("vehicles 1 and 2 would hover 5.0 m apart, inside the 5.7 m")
+    assert "(0.5 m, 0.5 m)" in text and "widen --spacing-m to 5.8 m" in text
+    assert text.endswith("; nothing sent")
+    # one vehicle at 1 m among exact ones: its pairs need 3.6 + 3 x 1 = 6.6 m
+    with pytest.raises(FormationError, match=r"vehicles 2 and 3 .* inside the 6\.6 m .* to 6\.6 m"):
+        plan_formation(spec, POS, 3.0, pos_sigma_m={1: 0.0, 2: 0.0, 3: 1.0})
+    assert plan_formation(spec, POS, 3.0, pos_sigma_m={1: 0.0, 2: 0.0, 3: 0.0}).targets_ned_m.size
+    assert plan_formation(_line(-20.0, 5.8), POS, 3.0, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
 
 
 # -- home and rally points ----------------------------------------------------------------------
