@@ -4,6 +4,7 @@ member over Zenoh and counts it."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import subprocess
@@ -109,6 +110,20 @@ def write(tmp_path, doc, name="plan.geojson"):
     path = tmp_path / name
     path.write_text(doc if isinstance(doc, str) else json.dumps(doc))
     return path
+
+
+@contextlib.contextmanager
+def _plan_follower(authority):
+    """A router on a free loopback port and vehicle 1 of `authority` following the fleet plan
+    behind it: (the router's endpoint, the vehicle's PlanSync)."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    vehicle = load_auth(str(authority.member_path(Role.VEHICLE, 1)))
+    with (
+        Mesh(MeshConfig(fleet=FLEET, mode="router", connect=(), listen=(ep,))),
+        Mesh(MeshConfig(fleet=FLEET, mode="client", connect=(ep,)), auth=vehicle) as v,
+        PlanSync(v.session, FLEET, vehicle) as follower,
+    ):
+        yield ep, follower
 
 
 def test_geojson_becomes_local_metres() -> None:
@@ -241,14 +256,7 @@ def test_load_signs_show_verifies_push_reaches_a_member(tmp_path, capsys) -> Non
     assert plan_cli(["show", "--dir", keys_dir]) == 0
     assert "signed by station 1, signature verified" in capsys.readouterr().out
     # Push (a real `covey plan push` process) to a keyed vehicle's follower behind a router.
-    port = free_tcp_port()
-    ep = f"tcp/127.0.0.1:{port}"
-    vehicle = load_auth(str(authority.member_path(Role.VEHICLE, 1)))
-    with (
-        Mesh(MeshConfig(fleet=FLEET, mode="router", connect=(), listen=(ep,))),
-        Mesh(MeshConfig(fleet=FLEET, mode="client", connect=(ep,)), auth=vehicle) as v,
-        PlanSync(v.session, FLEET, vehicle) as follower,
-    ):
+    with _plan_follower(authority) as (ep, follower):
         push = subprocess.run(
             [sys.executable, "-m", "covey_cli", "plan", "push", "--dir", keys_dir, "--connect", ep],
             cwd=REPO,
@@ -285,13 +293,7 @@ def test_load_and_push_refuse_a_landing_pad_too_near_a_zone(tmp_path, capsys) ->
     authority = throwaway_fleet(tmp_path / "keys", FLEET, vehicles=[1])
     unchecked = sign_plan(authority.key, read_plan_file(path, ORIGIN).plan(FLEET, 5, 0))
     write_signed_plan(authority.dir / "plan.bin", unchecked)
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    vehicle = load_auth(str(authority.member_path(Role.VEHICLE, 1)))
-    with (
-        Mesh(MeshConfig(fleet=FLEET, mode="router", connect=(), listen=(ep,))),
-        Mesh(MeshConfig(fleet=FLEET, mode="client", connect=(ep,)), auth=vehicle) as v,
-        PlanSync(v.session, FLEET, vehicle) as follower,
-    ):
+    with _plan_follower(authority) as (ep, follower):
         with pytest.raises(SystemExit) as exit_:
             plan_cli(["push", "--dir", str(authority.dir), "--connect", ep, "--duration-s", "1"])
         err = capsys.readouterr().err.strip().splitlines()
