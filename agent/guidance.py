@@ -7,6 +7,9 @@ eval`; the stale-data slowdown and the safety filter run on the held velocity ev
 the latest neighbours. In hold, a position-hold controller whose output also goes through the
 safety filter, so a holding vehicle still steps aside for a neighbour that comes too close.
 Vertical: a proportional altitude controller (the policy is planar, as in the paper).
+Keep-out zones (`set_zones`): goto rows fly routed waypoints and the filter keeps zone edges; a
+zone with a floor or ceiling counts only for rows whose altitudes reach it, and a row over or
+under one is kept on its side until horizontally clear (agent/zone_bands.py).
 
 `BatchGuidance` is the one decide-and-hold loop, for any number of vehicles; each row sees its
 own neighbours (`NeighbourViews`). `Guidance` is one vehicle's view of it (the N = 1 case) with
@@ -359,7 +362,8 @@ class BatchGuidance:
     def route(self, pos_m, goal_m, pos_sigma_m: float = 0.0):
         """The whole route (policy.routes.Route) from pos_m to goal_m (north/east) of a
         vehicle whose position 1-sigma is pos_sigma_m, for the station and Foxglove to draw;
-        None without zones."""
+        None without zones. Around every zone at every altitude (as the station draws it), not
+        only the zones the vehicle's altitudes reach (`set_zones` bands_m)."""
         if self.router is None:
             return None
         pad = self.safety_cfg.sigma_k * pos_sigma_m
