@@ -184,3 +184,21 @@ def test_neighbour_views_take_is_row_slicing() -> None:
         np.testing.assert_array_equal(getattr(cut, f.name), getattr(views, f.name)[rows])
     bare = _views(4).take(np.array([1]))
     assert bare.ids is None and bare.pos_m.shape == (1, 0, 3)
+
+
+def test_each_subset_of_zones_is_built_once_and_the_cache_is_bounded() -> None:
+    from agent.zone_bands import MAX_BAND_SUBSETS
+
+    g = BatchGuidance(GuidanceConfig(), 1)
+    squares = [SQUARE + [0.0, 20.0 * j] for j in range(5)]
+    g.set_zones(squares, None, [(None, 30.0)] * 5)
+    bands = g.bands
+    assert bands is not None
+    assert bands.subset(tuple(range(5))) == (g.zones, g.router)  # the full set: the one built
+    assert bands.subset((1, 3)) is bands.subset((1, 3))
+    assert bands.subset(()) == (None, None)  # no zone, no fence
+    for mask in range(1, 2**5 - 1):  # every proper subset but the empty one: 30 > the bound
+        bands.subset(tuple(j for j in range(5) if mask >> j & 1))
+    assert len(bands._subsets) == MAX_BAND_SUBSETS
+    key, router = bands.at_alt(50.0)  # above every ceiling (+3 m): none counts
+    assert key == () and router is None
