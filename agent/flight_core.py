@@ -401,18 +401,26 @@ class FlightCore:
         arrive, if that point is within the arrival radius of it; else the goto is refused,
         naming the zone and the distances (policy/goal_rule.py; the station's pre-checks word it
         alike). The same whether guidance or the autopilot flies (`router`, `safety_cfg`);
-        without zones, the target as it is."""
+        without zones, the target as it is. Guided with zones that have a floor or ceiling: the
+        zones active at the target's altitude alone (agent/zone_bands.py `at_alt`: a goal
+        under an overhang is flown, as guidance flies it there); relay mode (the autopilot's
+        filter knows no altitudes): every zone, at every altitude (the conservative reading)."""
         router = self.router
+        plan = self.mission_plan
+        names = [] if plan is None else [z.name for z in plan.keep_out]
+        bands = None if self.guidance is None else self.guidance.bands
+        if bands is not None:
+            key, router = bands.at_alt(-float(target[2]))
+            names = [names[j] for j in key] if names else []
         if router is None:
             return target, "", ""
-        plan = self.mission_plan
         rule = goal_rule(
             router,
             target[:2],
             float(self.pos_sigma_m[i]),
             self.safety_cfg.sigma_k,
             self.cfg.guidance.arrive_radius_m,
-            [] if plan is None else [z.name for z in plan.keep_out],
+            names,
         )
         if rule.refused:
             return target, "", f"target: {rule.refused}"
@@ -554,16 +562,21 @@ class FlightCore:
         """Check every goto, take-off and mission target against `plan` from now on (the shell
         calls it when comms/plan_sync.py applies a newer plan); None: no plan. Guidance then
         routes every goto around the plan's keep-out zones and its filter keeps their edges
-        (and the fence's) as hard lines (agent/guidance.py set_zones, policy/routes.py).
-        Without guidance (relay: the autopilot's own filter keeps the zones) the core builds the
-        router guidance would, with the same function and filter settings, for the goal rule
-        alone (`_clear_goal`): a goal the autopilot's filter keeps it from is moved or refused
-        here, not flown at for ever."""
+        (and the fence's) as hard lines (agent/guidance.py set_zones, policy/routes.py), a zone
+        with a floor or ceiling only for vehicles whose altitudes reach it (agent/zone_bands.py).
+        Without guidance (relay: the autopilot's own filter keeps the zones, knowing no
+        altitudes) the core builds the router guidance would for every zone at every altitude,
+        with the same function and filter settings, for the goal rule alone (`_clear_goal`): a
+        goal the autopilot's filter keeps it from is moved or refused here, not flown at for
+        ever."""
         self.mission_plan = plan
         fence = None if plan is None or plan.fence is None else plan.fence.vertices_ne_m
         zones = [] if plan is None else plan.keep_out_polygons_ne_m()
         if self.guidance is not None:
-            self.guidance.set_zones(zones, fence)
+            bands = (
+                [] if plan is None else [(z.floor_alt_m, z.ceiling_alt_m) for z in plan.keep_out]
+            )
+            self.guidance.set_zones(zones, fence, bands)
             return
         cfg = self.safety_cfg
         key = (tuple(zones), fence, cfg.radius_m, cfg.margin)

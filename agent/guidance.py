@@ -7,6 +7,9 @@ eval`; the stale-data slowdown and the safety filter run on the held velocity ev
 the latest neighbours. In hold, a position-hold controller whose output also goes through the
 safety filter, so a holding vehicle still steps aside for a neighbour that comes too close.
 Vertical: a proportional altitude controller (the policy is planar, as in the paper).
+Keep-out zones (`set_zones`): goto rows fly routed waypoints and the filter keeps zone edges; a
+zone with a floor or ceiling counts only for rows whose altitudes reach it, and a row over or
+under one is kept on its side until horizontally clear (agent/zone_bands.py).
 
 `BatchGuidance` is the one decide-and-hold loop, for any number of vehicles; each row sees its
 own neighbours (`NeighbourViews`). `Guidance` is one vehicle's view of it (the N = 1 case) with
@@ -18,7 +21,8 @@ tests/test_flight_core.py).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +33,9 @@ from policy.goal_rule import ARRIVE_RADIUS_M
 from policy.observation import Observations
 from policy.runtime import GuidancePolicy, told_separation_m
 from policy.sparse import SparseConfig
+
+if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_zones`)
+    from agent.zone_bands import ZoneBands
 
 DECISION_DUE_SHARE = 0.95
 """A decision is due once this share of the decision period has passed (tick jitter must not
@@ -254,6 +261,14 @@ class NeighbourViews:
             None if world_manned is None else np.asarray(world_manned, bool)[cols],
         )
 
+    def take(self, rows: np.ndarray) -> NeighbourViews:
+        """The views of `rows` (an index array) alone: every per-row field sliced by them."""
+        cut: dict = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            cut[f.name] = None if value is None else value[rows]
+        return NeighbourViews(**cut)
+
     def row(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Row r's valid neighbours: positions (K', 3), velocities, headings, stale flags."""
         v = self.valid[r]
@@ -322,41 +337,82 @@ class BatchGuidance:
         """Keep-out edges the filter keeps clear of (policy.zone_lines.ZoneSet), None: none."""
         self.router = None
         """Routes around them (policy.routes.Router): a goto row flies to its next waypoint."""
+        self.bands: ZoneBands | None = None
+        """The zones' floors and ceilings (agent.zone_bands.ZoneBands), None: every zone closed
+        at every altitude (no zone has a band)."""
         self.waypoint_m = np.full((n, 2), np.nan)
         """Each row's current waypoint (north, east) while it flies a routed goto, else NaN."""
 
-    def set_zones(self, keep_out_m, fence_m=None) -> None:
+    def set_zones(self, keep_out_m, fence_m=None, bands_m=None) -> None:
         """Keep out of these polygons [(K, 2) north/east metres] and inside the fence from
         now on: goto rows fly the route planner's next waypoint (policy.routes), and the filter
         keeps the zone edges as hard lines (policy.zone_lines), holding rows included. Empty
-        and no fence: no zones. Zones are closed at every altitude (a floor or ceiling is not
-        used here: the conservative reading)."""
-        from policy.routes import zones_for  # shapely and scipy: only with zones
+        and no fence: no zones. bands_m: (floor_alt_m, ceiling_alt_m) per polygon (None: no
+        floor / no ceiling): a banded zone counts only for rows whose altitudes reach its band,
+        and rows over or under it are kept on their side (agent/zone_bands.py). None or no band
+        at all: every zone closed at every altitude. `zones` and `router` are every zone's."""
+        from agent.zone_bands import ZoneBands  # shapely and scipy: only with zones
+        from policy.routes import zones_for
 
         self.zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
+        full = (self.zones, self.router)
+        self.bands = ZoneBands.of(self.safety_cfg, keep_out_m, fence_m, bands_m, full)
         self.waypoint_m[:] = np.nan
 
     def route(self, pos_m, goal_m, pos_sigma_m: float = 0.0):
         """The whole route (policy.routes.Route) from pos_m to goal_m (north/east) of a
         vehicle whose position 1-sigma is pos_sigma_m, for the station and Foxglove to draw;
-        None without zones."""
+        None without zones. Around every zone at every altitude (as the station draws it), not
+        only the zones the vehicle's altitudes reach (`set_zones` bands_m)."""
         if self.router is None:
             return None
         pad = self.safety_cfg.sigma_k * pos_sigma_m
         return self.router.plan(np.asarray(pos_m, float)[:2], np.asarray(goal_m, float)[:2], pad)
 
-    def _routed(self, rows, pos_m, target_m, goto, own_sigma_m=None) -> np.ndarray:
-        """target_m with each goto row's horizontal target replaced by its next waypoint, on
-        routes that keep the filter's padding for each row's position 1-sigma (own_sigma_m
-        (k,), None: 0) more from the zones (policy.routes `Router.widened`)."""
+    def _routed(self, router, rows, pos_m, target_m, goto, own_sigma_m=None) -> np.ndarray:
+        """target_m with each goto row's horizontal target replaced by its next waypoint of
+        `router` (None: no zones), on routes that keep the filter's padding for each row's
+        position 1-sigma (own_sigma_m (k,), None: 0) more from the zones (policy.routes
+        `Router.widened`)."""
         self.waypoint_m[rows] = np.nan
-        if self.router is None or not goto.any():
+        if router is None or not goto.any():
             return target_m
         out = target_m.copy()
         pad = None if own_sigma_m is None else self.safety_cfg.sigma_k * own_sigma_m[goto]
-        out[goto, :2] = self.router.next_waypoints(pos_m[goto, :2], target_m[goto, :2], pad)
+        out[goto, :2] = router.next_waypoints(pos_m[goto, :2], target_m[goto, :2], pad)
         self.waypoint_m[rows[goto]] = out[goto, :2]
         return out
+
+    def _band_groups(self, pos_m, target_m, views: NeighbourViews):
+        """(target, groups) with banded zones (agent.zone_bands): the target under the vertical
+        guard, and [(row indices, ZoneSet, Router)] per subset of zones the rows reach."""
+        assert self.bands is not None
+        sigma = views.own_pos_sigma_m
+        pad = np.zeros(len(pos_m)) if sigma is None else self.safety_cfg.sigma_k * sigma
+        return self.bands.groups(pos_m, target_m, pad)
+
+    def _routed_groups(self, groups, rows, pos_m, target_m, goto, own_sigma_m):
+        """`_routed` of each group with its own router; a goto row that no zone (and no
+        fence) counts for flies at its goal, its waypoint (as a row in sight of it)."""
+        out = target_m.copy()
+        for g, _, router in groups:
+            sigma = None if own_sigma_m is None else own_sigma_m[g]
+            out[g] = self._routed(router, rows[g], pos_m[g], target_m[g], goto[g], sigma)
+            if router is None:
+                free = g[goto[g]]
+                self.waypoint_m[rows[free]] = target_m[free, :2]
+        return out
+
+    def _filter_groups(self, groups, pos_m, vel_m_s, pref_m_s, views: NeighbourViews):
+        """`_filter` of each group with its own zones."""
+        if len(groups) == 1:
+            return self._filter(pos_m, vel_m_s, pref_m_s, views, groups[0][1])
+        out, filtered = np.empty_like(pref_m_s), np.zeros(len(pos_m), bool)
+        for g, zones, _ in groups:
+            out[g], filtered[g] = self._filter(
+                pos_m[g], vel_m_s[g], pref_m_s[g], views.take(g), zones
+            )
+        return out, filtered
 
     def due(self, now_s: float | None, rows: np.ndarray, goal_m: np.ndarray) -> np.ndarray:
         """Whether each row's policy should decide now: nothing held (first tick, after a hold),
@@ -397,7 +453,12 @@ class BatchGuidance:
         k = len(rows)
         goto = ~holding
         self.forget(rows[holding])
-        target_m = self._routed(rows, pos_m, target_m, goto, views.own_pos_sigma_m)
+        sigma = views.own_pos_sigma_m
+        if self.bands is None:
+            target_m = self._routed(self.router, rows, pos_m, target_m, goto, sigma)
+        else:  # each group of rows flies against the zones its altitudes reach
+            target_m, groups = self._band_groups(pos_m, target_m, views)
+            target_m = self._routed_groups(groups, rows, pos_m, target_m, goto, sigma)
         want = self.due(now_s, rows, target_m) if decide is None else np.asarray(decide, bool)
         deciding = goto & (want | np.isnan(self.held_m_s[rows, 0]))
         d = np.flatnonzero(deciding)
@@ -419,7 +480,10 @@ class BatchGuidance:
         speed = np.hypot(hold[:, 0], hold[:, 1])
         hold *= (cfg.cruise_speed_m_s / np.maximum(speed, cfg.cruise_speed_m_s))[:, None]
         pref[holding] = hold
-        v_h, filtered = self._filter(pos_m, vel_m_s, pref, views)
+        if self.bands is None:
+            v_h, filtered = self._filter(pos_m, vel_m_s, pref, views, self.zones)
+        else:
+            v_h, filtered = self._filter_groups(groups, pos_m, vel_m_s, pref, views)
         vz = np.clip(
             cfg.vertical_gain_1_s * (target_m[:, 2] - pos_m[:, 2]),
             -cfg.max_vertical_speed_m_s,
@@ -473,9 +537,11 @@ class BatchGuidance:
         near = (views.stale & views.valid & (d < cfg.stale_caution_radius_m)).any(axis=1)
         return np.where(near, cfg.stale_slowdown, 1.0)
 
-    def _filter(self, pos_m, vel_m_s, pref_m_s, views: NeighbourViews):
+    def _filter(self, pos_m, vel_m_s, pref_m_s, views: NeighbourViews, zones):
+        """(velocities (k, 2), changed (k,)): the separation filter on pref_m_s, keeping the
+        edges of `zones` (policy.zone_lines.ZoneSet, None: none)."""
         k = len(pos_m)
-        if not self.cfg.safety_filter or (not views.valid.any() and self.zones is None):
+        if not self.cfg.safety_filter or (not views.valid.any() and zones is None):
             return pref_m_s, np.zeros(k, bool)
         ids = views.ids is not None and views.own_ids is not None
         if k == 1:  # the single-vehicle fast path
@@ -490,7 +556,7 @@ class BatchGuidance:
                 int(views.own_ids[0]) if views.own_ids is not None and ids else None,
                 views.ids[0, views.valid[0]] if views.ids is not None and ids else None,
                 **views.sky(0, manned=True),
-                zones=self.zones,
+                zones=zones,
             )
             out = np.asarray(out, float)[None]
         else:
@@ -505,9 +571,9 @@ class BatchGuidance:
                 views.own_ids if ids else None,
                 views.ids if ids else None,
                 **views.sky(manned=True),
-                zones=self.zones,
+                zones=zones,
             )
-            if self.zones is None:
+            if zones is None:
                 none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
                 out[none] = pref_m_s[none]
         return out, np.linalg.norm(out - pref_m_s, axis=1) > 1e-6
