@@ -36,6 +36,7 @@ from comms.schema import (
 from groundstation.command_log import CommandLog, Status
 from trust.auth import FleetAuth, load_auth
 from trust.authority import Authority, throwaway_fleet
+from trust.heartbeat import NO_STATION
 
 S = 1_000_000_000
 
@@ -261,10 +262,18 @@ def test_a_takeoffs_outcome_reaches_the_station_log_once_as_done(procs, tmp_path
         assert presence.wait_for(lambda v, _g: vid in v, timeout_s=60), "the agent never came"
         with GroundStation(GcsConfig(mesh=embedded_peer(port), port=0, key_file=key_file)) as gcs:
             assert gcs.mesh is not None
-            cmd = Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=0, targets=(vid,))
             assert wait_until(lambda: vid in gcs.fleet.ids(), 30), "no state reached the station"
-            res = gcs.mesh.send_command(cmd, expect=(vid,), timeout_s=10)
-            reply = res.outcomes[vid].ack
+            # the agent refuses a take-off until it has heard this station's first heartbeat
+            # (trust/heartbeat.py NO_STATION); on a busy machine that can come after its state
+            deadline = time.monotonic() + 20.0
+            while True:
+                cmd = Command.takeoff(3.0, nonce=new_nonce(), stamp_ns=0, targets=(vid,))
+                res = gcs.mesh.send_command(cmd, expect=(vid,), timeout_s=10)
+                reply = res.outcomes[vid].ack
+                if reply is None or NO_STATION not in reply.reason:
+                    break
+                assert time.monotonic() < deadline, reply.reason
+                time.sleep(0.5)
             assert reply is not None and reply.result is AckResult.ACCEPTED  # the reply path
 
             def entry():
