@@ -402,7 +402,7 @@ class FlightCore:
         naming the zone and the distances (policy/goal_rule.py; the station's pre-checks word it
         alike). The same whether guidance or the autopilot flies (`router`, `safety_cfg`);
         without zones, the target as it is. Guided with zones that have a floor or ceiling: the
-        zones active at the target's altitude alone (agent/zone_bands.py `at_alt`: a goal
+        zones active at the target's altitude alone (policy/zone_bands.py `at_alt`: a goal
         under an overhang is flown, as guidance flies it there); relay mode (the autopilot's
         filter knows no altitudes): every zone, at every altitude (the conservative reading)."""
         router = self.router
@@ -563,7 +563,7 @@ class FlightCore:
         calls it when comms/plan_sync.py applies a newer plan); None: no plan. Guidance then
         routes every goto around the plan's keep-out zones and its filter keeps their edges
         (and the fence's) as hard lines (agent/guidance.py set_zones, policy/routes.py), a zone
-        with a floor or ceiling only for vehicles whose altitudes reach it (agent/zone_bands.py).
+        with a floor or ceiling only for vehicles whose altitudes reach it (policy/zone_bands.py).
         Without guidance (relay: the autopilot's own filter keeps the zones, knowing no
         altitudes) the core builds the router guidance would for every zone at every altitude,
         with the same function and filter settings, for the goal rule alone (`_clear_goal`): a

@@ -9,7 +9,7 @@ safety filter, so a holding vehicle still steps aside for a neighbour that comes
 Vertical: a proportional altitude controller (the policy is planar, as in the paper).
 Keep-out zones (`set_zones`): goto rows fly routed waypoints and the filter keeps zone edges; a
 zone with a floor or ceiling counts only for rows whose altitudes reach it, and a row over or
-under one is kept on its side until horizontally clear (agent/zone_bands.py).
+under one is kept on its side until horizontally clear (policy/zone_bands.py).
 
 `BatchGuidance` is the one decide-and-hold loop, for any number of vehicles; each row sees its
 own neighbours (`NeighbourViews`). `Guidance` is one vehicle's view of it (the N = 1 case) with
@@ -35,7 +35,7 @@ from policy.runtime import GuidancePolicy, told_separation_m
 from policy.sparse import SparseConfig
 
 if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_zones`)
-    from agent.zone_bands import ZoneBands
+    from policy.zone_bands import ZoneBands
 
 DECISION_DUE_SHARE = 0.95
 """A decision is due once this share of the decision period has passed (tick jitter must not
@@ -338,7 +338,7 @@ class BatchGuidance:
         self.router = None
         """Routes around them (policy.routes.Router): a goto row flies to its next waypoint."""
         self.bands: ZoneBands | None = None
-        """The zones' floors and ceilings (agent.zone_bands.ZoneBands), None: every zone closed
+        """The zones' floors and ceilings (policy.zone_bands.ZoneBands), None: every zone closed
         at every altitude (no zone has a band)."""
         self.waypoint_m = np.full((n, 2), np.nan)
         """Each row's current waypoint (north, east) while it flies a routed goto, else NaN."""
@@ -349,10 +349,10 @@ class BatchGuidance:
         keeps the zone edges as hard lines (policy.zone_lines), holding rows included. Empty
         and no fence: no zones. bands_m: (floor_alt_m, ceiling_alt_m) per polygon (None: no
         floor / no ceiling): a banded zone counts only for rows whose altitudes reach its band,
-        and rows over or under it are kept on their side (agent/zone_bands.py). None or no band
+        and rows over or under it are kept on their side (policy/zone_bands.py). None or no band
         at all: every zone closed at every altitude. `zones` and `router` are every zone's."""
-        from agent.zone_bands import ZoneBands  # shapely and scipy: only with zones
         from policy.routes import zones_for
+        from policy.zone_bands import ZoneBands  # shapely and scipy: only with zones
 
         self.zones, self.router = zones_for(self.safety_cfg, keep_out_m, fence_m)
         full = (self.zones, self.router)
@@ -384,7 +384,7 @@ class BatchGuidance:
         return out
 
     def _band_groups(self, pos_m, target_m, views: NeighbourViews):
-        """(target, groups) with banded zones (agent.zone_bands): the target under the vertical
+        """(target, groups) with banded zones (policy.zone_bands): the target under the vertical
         guard, and [(row indices, ZoneSet, Router)] per subset of zones the rows reach."""
         assert self.bands is not None
         sigma = views.own_pos_sigma_m

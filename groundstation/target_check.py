@@ -90,6 +90,21 @@ class TargetCheck:
         self.router = router_for(plan, separation_m)
         self.names = [] if plan is None else [z.name for z in plan.keep_out]
         """The plan's keep-out zones' names, as refusals name them."""
+        self.bands = None
+        """The zones' floors and ceilings (policy.zone_bands.ZoneBands), None when no zone has
+        one: a guided vehicle's goal rule takes the zones active at the target's altitude, so
+        the station does too (`check`)."""
+        if self.router is not None and plan is not None:
+            from policy.safety import SafetyConfig
+            from policy.zone_bands import ZoneBands
+
+            self.bands = ZoneBands.of(
+                SafetyConfig(radius_m=separation_m),
+                plan.keep_out_polygons_ne_m(),
+                None if plan.fence is None else plan.fence.vertices_ne_m,
+                [(z.floor_alt_m, z.ceiling_alt_m) for z in plan.keep_out],
+                (None, self.router),
+            )
 
     def check(self, target_ned_m, pos_sigma_m: float) -> TargetVerdict:
         """A goto to `target_ned_m` (NED, m) of a vehicle whose position 1-sigma is
@@ -99,15 +114,19 @@ class TargetCheck:
         why = plan_refusal(self.plan, (n_m, e_m), -down_m)
         if why:
             return TargetVerdict((n_m, e_m, down_m), "", f"target {why}")
-        if self.router is None:
+        router, names = self.router, self.names
+        if self.bands is not None:  # the zones active at the target's altitude, as a vehicle's
+            key, router = self.bands.at_alt(-down_m)
+            names = [self.names[j] for j in key]
+        if router is None:
             return TargetVerdict((n_m, e_m, down_m), "", "")
         rule = goal_rule(
-            self.router,
+            router,
             (n_m, e_m),
             pos_sigma_m,
             self.sigma_k,
             self.arrive_radius_m,
-            self.names,
+            names,
         )
         if rule.refused:
             return TargetVerdict((n_m, e_m, down_m), "", f"target: {rule.refused}")

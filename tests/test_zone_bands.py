@@ -1,4 +1,4 @@
-"""Keep-out zones with a floor or ceiling in guidance (agent/zone_bands.py): a row counts a zone
+"""Keep-out zones with a floor or ceiling in guidance (policy/zone_bands.py): a row counts a zone
 only where its altitudes reach the zone's band, a row over a zone is kept over it until it is
 clear, and a guided core's goal rule reads the zones at the target's altitude."""
 
@@ -7,15 +7,16 @@ from __future__ import annotations
 from dataclasses import fields
 
 import numpy as np
+import pytest
 import shapely
 
 from agent.failsafe import FailsafeConfig
 from agent.flight_core import CoreConfig, FlightCore, Observed
 from agent.guidance import BatchGuidance, GuidanceConfig, NeighbourViews
 from agent.modes import Mode
-from agent.zone_bands import ZONE_VERTICAL_CLEARANCE_M
 from comms.plan import FleetPlan, Zone
 from comms.schema import AckResult, Command, CommandKind
+from policy.zone_bands import ZONE_VERTICAL_CLEARANCE_M
 
 SQUARE_NE = ((5.0, -5.0), (5.0, 5.0), (15.0, 5.0), (15.0, -5.0))
 SQUARE = np.array(SQUARE_NE)
@@ -168,6 +169,24 @@ def test_a_guided_core_flies_a_goal_under_an_overhang_and_refuses_it_beside_a_cl
     assert near_pad.result is AckResult.REJECTED and "'pad'" in near_pad.reason
 
 
+@pytest.mark.parametrize("floor_alt_m", [30.0, None])
+@pytest.mark.parametrize(
+    "goal_ne_m", [NEAR, (10.0, 0.0), (NEAR[0], 30.0), (17.0, 0.0), (40.0, 40.0)]
+)
+def test_the_stations_pre_check_says_what_a_guided_core_would(floor_alt_m, goal_ne_m) -> None:
+    """groundstation/target_check.py takes the zones at the target's altitude, as a guided
+    vehicle's goal rule does: the same verdict, moved target and words, overhang or not."""
+    from groundstation.target_check import TargetCheck
+
+    roof = Zone(SQUARE_NE, "roof", floor_alt_m=floor_alt_m)
+    plan = FleetPlan("f", 1, 0, keep_out=(roof, Zone(PAD_NE, "pad")))
+    target = np.array([goal_ne_m[0], goal_ne_m[1], -10.0])
+    want_target, want_moved, want_refused = _guided(roof).check_target(0, target.copy())
+    got = TargetCheck(plan, 3.0).check(target, 0.0)
+    assert (got.refused, got.moved) == (want_refused, want_moved)
+    np.testing.assert_allclose(got.target_ned_m, want_target, atol=1e-9)
+
+
 def test_a_relay_core_keeps_every_zone_closed_at_every_altitude() -> None:
     core = _guided(Zone(SQUARE_NE, "roof", floor_alt_m=30.0), velocity_mode=False)
     assert core.guidance is None
@@ -187,7 +206,7 @@ def test_neighbour_views_take_is_row_slicing() -> None:
 
 
 def test_each_subset_of_zones_is_built_once_and_the_cache_is_bounded() -> None:
-    from agent.zone_bands import MAX_BAND_SUBSETS
+    from policy.zone_bands import MAX_BAND_SUBSETS
 
     g = BatchGuidance(GuidanceConfig(), 1)
     squares = [SQUARE + [0.0, 20.0 * j] for j in range(5)]
