@@ -20,10 +20,11 @@ from comms.schema import Mode, VehicleState
 from groundstation.palette import mode_rgb
 from groundstation.scene import route_segments
 from groundstation.state_routes import planned_routes
-from groundstation.target_check import router_for
+from groundstation.target_check import bands_for, router_for
 
 if TYPE_CHECKING:  # shapely and scipy load only with a plan
     from policy.routes import Router
+    from policy.zone_bands import ZoneBands
 
 ROUTE_PATH = "/plan_routes"
 
@@ -34,6 +35,7 @@ class RouteLayer:
     def __init__(self, server: viser.ViserServer, separation_m: float) -> None:
         self.server, self.separation_m = server, separation_m
         self.router: Router | None = None
+        self.bands: ZoneBands | None = None
         self.nodes: dict[int, viser.LineSegmentsHandle] = {}
         """Vehicle id -> its drawn route (read by tests)."""
         self.drawn: dict[int, np.ndarray] = {}
@@ -41,9 +43,10 @@ class RouteLayer:
 
     def set_plan(self, plan: FleetPlan | None) -> None:
         self.router = router_for(plan, self.separation_m)
+        self.bands = bands_for(plan, self.separation_m, self.router)
 
     def draw(self, states: Iterable[VehicleState]) -> None:
-        routes = planned_routes(self.router, states)
+        routes = planned_routes(self.router, states, self.bands)
         for vid in [v for v in self.nodes if v not in routes]:
             self.nodes.pop(vid).remove()
         colour = np.array(mode_rgb(Mode.GOTO), np.uint8)

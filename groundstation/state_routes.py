@@ -56,11 +56,13 @@ def is_routed(s: ReportedState) -> bool:
     return s.mode in ROUTED_MODES and bool(s.flags & StateFlag.HAS_GOAL)
 
 
-def planned_routes(router, states: Iterable[ReportedState]) -> dict[int, np.ndarray]:
+def planned_routes(router, states: Iterable[ReportedState], bands=None) -> dict[int, np.ndarray]:
     """Vehicle id -> (M+1, 3) NED points of its route (its position first, then each waypoint,
     the goal last, at the goal's altitude), for routed vehicles with a goal (`is_routed`), the
     MAX_ROUTES lowest ids; none where the planner refuses the goal or finds no way (the
-    vehicle's own refusal is in its ack). `router`: `router_for`'s (None: no routes)."""
+    vehicle's own refusal is in its ack). `router`: `router_for`'s (None: no routes); `bands`:
+    `bands_for`'s (policy.zone_bands.ZoneBands, None: every zone at every altitude): each
+    vehicle's route then goes round the zones its altitudes reach, as its guidance groups it."""
     out: dict[int, np.ndarray] = {}
     if router is None:
         return out
@@ -74,7 +76,12 @@ def planned_routes(router, states: Iterable[ReportedState]) -> dict[int, np.ndar
             continue
         # the routes each agent flies keep its filter's padding for its position 1-sigma more
         sigma = float(s.pos_sigma_m) if np.isfinite(s.pos_sigma_m) else 0.0
-        route = router.plan(pos[:2], goal[:2], SIGMA_K * sigma)
+        own = router
+        if bands is not None:  # the zones this vehicle's altitudes reach (one group of one)
+            _, ((_, _, own),) = bands.groups(pos[None], goal[None], np.array([SIGMA_K * sigma]))
+            if own is None:
+                continue  # no zone in its way: it flies straight at its goal
+        route = own.plan(pos[:2], goal[:2], SIGMA_K * sigma)
         if route.reason or not np.isfinite(route.length_m):
             continue
         way = np.asarray(route.waypoints_m, float).reshape(-1, 2)

@@ -42,6 +42,7 @@ from policy.goal_rule import ARRIVE_RADIUS_M, ASSUMED_POS_SIGMA_M, goal_rule
 if TYPE_CHECKING:  # shapely and scipy load only with a plan
     from comms.plan_io import PlanGeometry
     from policy.routes import Router
+    from policy.zone_bands import ZoneBands
 
 
 def router_for(plan: FleetPlan | None, separation_m: float) -> Router | None:
@@ -55,6 +56,27 @@ def router_for(plan: FleetPlan | None, separation_m: float) -> Router | None:
     fence = plan.fence.vertices_ne_m if plan.fence is not None else None
     _, router = zones_for(SafetyConfig(radius_m=separation_m), plan.keep_out_polygons_ne_m(), fence)
     return router
+
+
+def bands_for(
+    plan: FleetPlan | None, separation_m: float, router: Router | None
+) -> ZoneBands | None:
+    """The plan's zones with their floors and ceilings as guidance reads them
+    (policy/zone_bands.py), over `router` (`router_for`'s, the full set), or None when no zone
+    has a floor or ceiling (or there is no router): the one construction of the station's
+    (targets checked, routes drawn)."""
+    if router is None or plan is None:
+        return None
+    from policy.safety import SafetyConfig
+    from policy.zone_bands import ZoneBands
+
+    return ZoneBands.of(
+        SafetyConfig(radius_m=separation_m),
+        plan.keep_out_polygons_ne_m(),
+        None if plan.fence is None else plan.fence.vertices_ne_m,
+        [(z.floor_alt_m, z.ceiling_alt_m) for z in plan.keep_out],
+        (None, router),  # only routers are asked of the full set here (`at_alt`, `routers_for`)
+    )
 
 
 @dataclass(frozen=True)
@@ -90,21 +112,9 @@ class TargetCheck:
         self.router = router_for(plan, separation_m)
         self.names = [] if plan is None else [z.name for z in plan.keep_out]
         """The plan's keep-out zones' names, as refusals name them."""
-        self.bands = None
-        """The zones' floors and ceilings (policy.zone_bands.ZoneBands), None when no zone has
-        one: a guided vehicle's goal rule takes the zones active at the target's altitude, so
-        the station does too (`check`)."""
-        if self.router is not None and plan is not None:
-            from policy.safety import SafetyConfig
-            from policy.zone_bands import ZoneBands
-
-            self.bands = ZoneBands.of(
-                SafetyConfig(radius_m=separation_m),
-                plan.keep_out_polygons_ne_m(),
-                None if plan.fence is None else plan.fence.vertices_ne_m,
-                [(z.floor_alt_m, z.ceiling_alt_m) for z in plan.keep_out],
-                (None, self.router),
-            )
+        self.bands = bands_for(plan, separation_m, self.router)
+        """The zones' floors and ceilings, None when no zone has one: a guided vehicle's goal
+        rule takes the zones active at the target's altitude, so the station does too."""
 
     def check(self, target_ned_m, pos_sigma_m: float) -> TargetVerdict:
         """A goto to `target_ned_m` (NED, m) of a vehicle whose position 1-sigma is

@@ -54,7 +54,7 @@ from groundstation.palette import (
     mode_rgb,
 )
 from groundstation.state_routes import ReportedState, is_routed, planned_routes
-from groundstation.target_check import router_for
+from groundstation.target_check import bands_for, router_for
 from recording.state_batch import StateRow, decode_states
 
 _STATE_TYPE = bytes([schema.MsgType.VEHICLE_STATE])
@@ -355,6 +355,7 @@ class Converter:
         self._plan_zones: tuple[Fence | None, tuple[Zone, ...]] | None = None
         self._router_zones: tuple[Fence | None, tuple[Zone, ...]] | None = None
         self._router: Any = None
+        self._bands: Any = None
         self._routed: dict[int, tuple[ReportedState, int]] = {}  # vehicle -> (state, recv_ns)
         self._routes_due_ns = 0
         self._routes_drawn: set[int] = set()
@@ -497,11 +498,12 @@ class Converter:
             fence, zones = self._plan_zones or (None, ())
             plan = FleetPlan("routes", 1, 0, fence, zones)
             self._router = router_for(plan, self.cfg.separation_m)
+            self._bands = bands_for(plan, self.cfg.separation_m, self._router)
         if self._lifetime is not None:
             old_ns = recv_ns - int(self.cfg.entity_lifetime_s * 1e9)
             for vid in [v for v, (_, t) in self._routed.items() if t < old_ns]:
                 del self._routed[vid]
-        routes = planned_routes(self._router, [s for s, _ in self._routed.values()])
+        routes = planned_routes(self._router, [s for s, _ in self._routed.values()], self._bands)
         gone = sorted(self._routes_drawn - routes.keys())
         self._routes_drawn = set(routes)
         if not routes and not gone:

@@ -152,6 +152,26 @@ def test_the_station_routes_a_goto_around_a_zone_and_draws_it() -> None:
         server.stop()
 
 
+def test_drawn_routes_go_round_only_the_zones_a_vehicles_altitudes_reach() -> None:
+    """With a zone band (a floor or ceiling) the station draws what guidance flies
+    (policy/zone_bands.py): over a zone that ends below the vehicle, straight; round it when the
+    vehicle's altitudes reach it; and the fence still counts."""
+    from groundstation.target_check import bands_for
+
+    plan = FleetPlan("f", 7, 0, FENCE, (Zone(SQUARE, "depot", ceiling_alt_m=30.0),))
+    router = router_for(plan, 3.0)
+    bands = bands_for(plan, 3.0, router)
+    assert bands is not None and bands_for(base_plan(), 3.0, router_for(base_plan(), 3.0)) is None
+    high = state(1, (-5.0, 5.0), (15.0, 5.0), alt_m=50.0)  # 50 m over a zone up to 30 m
+    low = state(2, (-5.0, 5.0), (15.0, 5.0), alt_m=10.0)
+    routes = planned_routes(router, [high, low], bands)
+    assert len(routes[1]) == 2 and np.allclose(routes[1][1], (15.0, 5.0, -50.0))  # straight
+    assert len(routes[2]) >= 4  # round the zone
+    np.testing.assert_allclose(routes[2], planned_routes(router, [low])[2])
+    # without the bands every zone counts at every altitude: the high one goes round too
+    assert len(planned_routes(router, [high])[1]) >= 4
+
+
 def test_the_command_log_lists_plan_versions_with_who_pushed_them() -> None:
     log = CommandLog()
     log.mark_own_plan(9, "alice", "zone 2 ('pond') added (4 corners)")
