@@ -351,11 +351,17 @@ def test_cli_only_take_off_is_refused_and_a_fake_station_token_cannot_stop_the_f
             gone = time.monotonic()
             assert wait_until(lambda: views()[1].mode.name == "HOLDING", hold_s + 10), views()
             held_after_s = time.monotonic() - gone
-            holding = [
-                t - gone
-                for t, e in events
-                if e.vehicle_id == 1 and e.kind is EventKind.FAILSAFE and "holding" in e.text
-            ]
+
+            def holding_events() -> list[float]:
+                return [
+                    t - gone
+                    for t, e in events
+                    if e.vehicle_id == 1 and e.kind is EventKind.FAILSAFE and "holding" in e.text
+                ]
+
+            # the event and the state that shows the hold travel apart: either may come first
+            wait_until(lambda: bool(holding_events()), 5)
+            holding = holding_events()
             print(
                 f"vehicle 1 held {held_after_s:.2f} s after the station went (event at {holding})"
             )
