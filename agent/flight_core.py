@@ -410,8 +410,7 @@ class FlightCore:
         names = [] if plan is None else [z.name for z in plan.keep_out]
         bands = None if self.guidance is None else self.guidance.bands
         if bands is not None:
-            key, router = bands.at_alt(-float(target[2]))
-            names = [names[j] for j in key] if names else []
+            router, names = bands.goal_router(-float(target[2]), names)
         if router is None:
             return target, "", ""
         rule = goal_rule(

@@ -75,7 +75,7 @@ def bands_for(
         plan.keep_out_polygons_ne_m(),
         None if plan.fence is None else plan.fence.vertices_ne_m,
         [(z.floor_alt_m, z.ceiling_alt_m) for z in plan.keep_out],
-        (None, router),  # only routers are asked of the full set here (`at_alt`, `routers_for`)
+        (None, router),  # only routers are asked of the full set here (`goal_router`, `groups`)
     )
 
 
@@ -126,8 +126,7 @@ class TargetCheck:
             return TargetVerdict((n_m, e_m, down_m), "", f"target {why}")
         router, names = self.router, self.names
         if self.bands is not None:  # the zones active at the target's altitude, as a vehicle's
-            key, router = self.bands.at_alt(-down_m)
-            names = [self.names[j] for j in key]
+            router, names = self.bands.goal_router(-down_m, self.names)
         if router is None:
             return TargetVerdict((n_m, e_m, down_m), "", "")
         rule = goal_rule(

@@ -105,6 +105,13 @@ class ZoneBands:
         key = tuple(int(j) for j in np.flatnonzero(self.active([alt_m], [alt_m])[0]))
         return key, self.subset(key)[1]
 
+    def goal_router(self, alt_m: float, names: Sequence[str]):
+        """(Router, names) for the goal rule at a target's altitude: `at_alt`'s router and the
+        plan's zone `names` of its zones, in its order (the flight core and the station's
+        pre-checks both ask this)."""
+        key, router = self.at_alt(alt_m)
+        return router, [names[j] for j in key] if names else []
+
     def guard(self, pos_ned_m, target_ned_m, active, pad_m) -> np.ndarray:
         """The vertical guard, in place on target_ned_m: rows above an active (`active` (k, Z))
         banded zone's ceiling (below its floor) and horizontally within reach_m + pad_m (k,) of
