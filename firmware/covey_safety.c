@@ -64,7 +64,7 @@ covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_
     c.dt_s = 0.1f;
     c.max_speed_m_s = max_speed_m_s;
     c.responsibility = 0.5f;
-    c.sigma_k = 3.0f; /* policy/safety.py SIGMA_K */
+    c.sigma_k = 4.0f; /* policy/safety.py SIGMA_K */
     c.non_cooperative_radius_m = 0.0f;
     c.manned_radius_m = COVEY_SAFETY_MANNED_SEPARATION_M;
     return c;

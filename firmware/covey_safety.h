@@ -42,7 +42,7 @@ typedef struct {
     float max_speed_m_s;   /* [0.01, 100]: speed limit of the output, 1 */
     float responsibility;  /* (0, 1]: share of the avoidance this vehicle takes, 0.5 */
     float sigma_k;         /* [0, 10]: each pair keeps sigma_k sqrt(sigma_i^2 + sigma_j^2) more
-                              between estimated centres (policy/safety.py SIGMA_K), 3; 0 (as a
+                              between estimated centres (policy/safety.py SIGMA_K), 4; 0 (as a
                               zero-initialised config has it): estimates taken as the truth */
     float non_cooperative_radius_m; /* 0 = radius_m, else [0.01, 1000]: the separation kept
                                        from a non-cooperative track (before margin/sigma) */

@@ -372,7 +372,7 @@ def _check_berths(
     """Refuse a formation whose vehicles could not hold their slots: two slots nearer than
     the berth the two vehicles' filters keep between their estimates at the position sigmas
     they report (policy.safety.pair_radius_m: the separation with its margin plus sigma_k
-    sqrt(sigma_i^2 + sigma_j^2), the filter's defaults; 5.7 m at 3 m on plain 0.5 m GNSS).
+    sqrt(sigma_i^2 + sigma_j^2), the filter's defaults; 6.4 m at 3 m on plain 0.5 m GNSS).
     They would push each other off their slots for as long as they hover there, and a crowd
     held inside its berth is where true positions come within the separation (docs/sky.md,
     "Beyond the preset"). The message says the spacing that would hold."""

@@ -117,7 +117,7 @@ def plan_parser() -> argparse.ArgumentParser:
                 default=SEPARATION_M,
                 help="the fleet's separation (the agents' --separation-m): home, rally points "
                 "and the landing pads around them must keep the zone clearance their filters "
-                f"keep at it and a 0.5 m position sigma (default {SEPARATION_M:g}: 3.3 m from a "
+                f"keep at it and a 0.5 m position sigma (default {SEPARATION_M:g}: 3.8 m from a "
                 "zone or the fence)",
             )
             sp.add_argument(

@@ -15,7 +15,7 @@ never drawn over a vehicle or over where one is flying to, a fence never leaves 
 the plan already ruled out, e.g. a vehicle that drifted into a zone, blocks no edit elsewhere);
 then home, every rally point and every landing pad a return lays around them (comms/plan.py
 `PadLayout`) against the zones, the fence and the clearance the vehicles' filters keep from
-them (`check_landing`: 3.3 m at 3 m separation and the assumed 0.5 m position sigma,
+them (`check_landing`: 3.8 m at 3 m separation and the assumed 0.5 m position sigma,
 groundstation/target_check.py), so that a return can arrive there. `check_landing` is also what
 `covey plan load` and the station's plan upload check a file with.
 The plan's own limits (vertices, zones and rally points in all) are comms/plan.py `FleetPlan`'s.

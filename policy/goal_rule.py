@@ -5,7 +5,7 @@ pre-checks (groundstation/target_check.py: formations, home and rally points), s
 station refuses or moves a target in the words the vehicle's ack would use.
 
 The geometry is policy/routes.py `Router.check_goal`: the clearance is the filter's distance
-from a zone plus sigma_k x the position 1-sigma (1.8 m + 3 x 0.5 m = 3.3 m at 3 m separation);
+from a zone plus sigma_k x the position 1-sigma (1.8 m + 4 x 0.5 m = 3.8 m at 3 m separation);
 a goal nearer than that is moved to the nearest point outside it when that point is within the
 arrival radius, else refused. Pure: no shapely here (the router brings it), so the defaults below
 load with the agent's config.

@@ -141,10 +141,10 @@ def zone_scenes(rng: np.random.Generator, quick: bool = False):
     - concave: a C whose pocket faces three of the six, the other three flying into its back;
     - gap: two blocks 9 m apart (3 separations), three vehicles one way through the gap and two
       the other;
-    - edge goals: four vehicles bound for points 2 m (north, east) and 2.6 m (south, west) off
+    - edge goals: four vehicles bound for points 2 m (north, east) and 3.1 m (south, west) off
       the sides of a square (within the route's inflation, outside the filter's 1.8 m), from
-      beyond the opposite side: with a 0.5 m position sigma the filter keeps 3.3 m, so the 2.6 m
-      ones are reached at 3.3 m and the 2 m ones refused (policy.routes `Router.check_goal`);
+      beyond the opposite side: with a 0.5 m position sigma the filter keeps 3.8 m, so the 3.1 m
+      ones are reached at 3.8 m and the 2 m ones refused (policy.routes `Router.check_goal`);
     - random: two to three random convex or concave zones, 6 vehicles with random ends clear
       of them (a seed per scene)."""
     out = []
@@ -161,7 +161,7 @@ def zone_scenes(rng: np.random.Generator, quick: bool = False):
     goals = np.array([[10, 25], [0, 30], [-10, 35], [6, -28], [-6, -33]], float)
     out.append(("gap-9m", starts, goals, gap))
     sq = _box(-8, -8, 8, 8)
-    goals = np.array([[10, 0], [-10.6, 0], [0, 10], [0, -10.6]], float)
+    goals = np.array([[10, 0], [-11.1, 0], [0, 10], [0, -11.1]], float)
     starts = np.array([[-30, 2], [30, -2], [2, -30], [-2, 30]], float)
     out.append(("edge-goals", starts, goals, [sq]))
     for s in range(1 if quick else 3):

@@ -378,17 +378,17 @@ def test_a_rally_point_under_a_zone_with_a_floor_is_refused_for_its_pads_or_the_
 
 
 def test_every_landing_pad_of_a_rally_point_is_checked_and_the_draft_kept() -> None:
-    """The 5 x 5 pads 5 m apart around a point keep the 3.3 m clearance from the depot (N and E
+    """The 5 x 5 pads 5 m apart around a point keep the 3.8 m clearance from the depot (N and E
     0..10) and stay inside the fence (N and E -100..100); one that does not refuses the point,
     named with the pad, and the draft is kept."""
     d = pe.draft_of(base_plan())
-    assert pe.add_rally(d, 23.4, 5, name="north").geometry.rally == (
-        RallyPoint(23.4, 5, 0.0, "north"),
-    )  # its southern pads at N 13.4: 3.4 m off the depot
+    assert pe.add_rally(d, 23.9, 5, name="north").geometry.rally == (
+        RallyPoint(23.9, 5, 0.0, "north"),
+    )  # its southern pads at N 13.9: 3.9 m off the depot
     for step, reason in (
         (lambda: pe.add_rally(d, 23, 5, name="north"),
          r"^rally point 'north': landing pad 2 \(N 13.0, E 0.0 m\) is 3.0 m from keep-out zone "
-         r"'depot', nearer than the 3.3 m clearance the vehicles' filter keeps from it at a 0.5 m "
+         r"'depot', nearer than the 3.8 m clearance the vehicles' filter keeps from it at a 0.5 m "
          r"position sigma: a vehicle sent to that pad could not arrive$"),
         (lambda: pe.add_rally(d, 20, 5, name="north"),
          r"^rally point 'north': landing pad 2 \(N 10.0, E 0.0 m\) is inside keep-out zone "

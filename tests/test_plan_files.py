@@ -283,7 +283,7 @@ def test_load_and_push_refuse_a_landing_pad_too_near_a_zone(tmp_path, capsys) ->
     path = write(tmp_path, geojson(feature4=rally))
     why = (
         "rally point 'north field': landing pad 1 (N 82.0, E 55.0 m) is 2.0 m from keep-out "
-        "zone 'school', nearer than the 3.3 m clearance"
+        "zone 'school', nearer than the 3.8 m clearance"
     )
     origin = f"--origin={ORIGIN.lat_deg},{ORIGIN.lon_deg},{ORIGIN.alt_m}"
     with pytest.raises(SystemExit) as exit_:
@@ -300,11 +300,11 @@ def test_load_and_push_refuse_a_landing_pad_too_near_a_zone(tmp_path, capsys) ->
         assert exit_.value.code == 2 and len(err) == 1, err
         assert "plan.bin (plan v5, nothing sent): " + why in err[0], err
         assert not wait_until(lambda: follower.plan is not None, 1.0)
-        # at a 2 m separation the filter keeps 2.7 m: the pad 2 m off is still refused
+        # at a 2 m separation the filter keeps 3.2 m: the pad 2 m off is still refused
         with pytest.raises(SystemExit):
             plan_cli(["push", "--dir", str(authority.dir), "--separation-m", "2", "--connect", ep])
         err = capsys.readouterr().err
-        assert "is 2.0 m from keep-out zone 'school', nearer than the 2.7 m" in err
+        assert "is 2.0 m from keep-out zone 'school', nearer than the 3.2 m" in err
         with pytest.raises(SystemExit):
             plan_cli(["push", "--dir", str(authority.dir), "--rally-pads", "0", "--connect", ep])
         assert "pads must be within 1..10000, got 0" in capsys.readouterr().err

@@ -71,7 +71,7 @@ def test_a_slot_its_vehicle_would_refuse_refuses_the_formation_naming_it() -> No
         plan_formation(spec, POS, 3.0, plan=PLAN, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
     text = str(exc.value)
     assert text.startswith("vehicle 3 would refuse slot 2 (N 0.0 E 8.0 alt 8 m")
-    assert "the goal is 2.0 m from keep-out zone 'pad', nearer than the 3.3 m" in text
+    assert "the goal is 2.0 m from keep-out zone 'pad', nearer than the 3.8 m" in text
     assert text.endswith("; nothing sent") and "\n" not in text
     # the same slots at the sigma 0 a vehicle reports for exact positions: 1.8 m, flown as is
     fp = plan_formation(spec, POS, 3.0, plan=PLAN, pos_sigma_m={1: 0.0, 2: 0.0, 3: 0.0})
@@ -79,15 +79,15 @@ def test_a_slot_its_vehicle_would_refuse_refuses_the_formation_naming_it() -> No
 
 
 def test_moved_slots_that_keep_the_spacing_are_sent_moved() -> None:
-    # heading 90: the line stands north-south at E 7.4, every slot 2.6 m off the zone's edge,
-    # 6 m apart (outside the 5.7 m berth of two vehicles at 0.5 m)
-    spec = _line(center_e_m=7.4, spacing_m=6.0, heading_deg=90.0)
-    pos = {1: (-6.0, 0.0, -2.0), 2: (0.0, 0.0, -2.0), 3: (6.0, 0.0, -2.0)}
+    # heading 90: the line stands north-south at E 6.9, every slot 3.1 m off the zone's edge,
+    # 7 m apart (outside the 6.4 m berth of two vehicles at 0.5 m)
+    spec = _line(center_e_m=6.9, spacing_m=7.0, heading_deg=90.0)
+    pos = {1: (-7.0, 0.0, -2.0), 2: (0.0, 0.0, -2.0), 3: (7.0, 0.0, -2.0)}
     fp = plan_formation(spec, pos, 3.0, plan=PLAN, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
     assert all(why.startswith("goal moved 0.") for why in fp.moved), fp.moved
-    assert all("to 3.3 m from keep-out zone 'pad'" in why for why in fp.moved)
-    np.testing.assert_allclose(fp.targets_ned_m[:, 1], 10.0 - 3.3, atol=0.1)
-    np.testing.assert_allclose(fp.targets_ned_m[:, 0], [-6.0, 0.0, 6.0], atol=1e-6)
+    assert all("to 3.8 m from keep-out zone 'pad'" in why for why in fp.moved)
+    np.testing.assert_allclose(fp.targets_ned_m[:, 1], 10.0 - 3.8, atol=0.1)
+    np.testing.assert_allclose(fp.targets_ned_m[:, 0], [-7.0, 0.0, 7.0], atol=1e-6)
     assert "; goal moved 0." in fp.lines()[0]
     # nothing moves without a plan, or for vehicles reporting exact positions
     assert not any(plan_formation(spec, pos, 3.0, pos_sigma_m={1: 0.5}).moved)
@@ -95,8 +95,8 @@ def test_moved_slots_that_keep_the_spacing_are_sent_moved() -> None:
 
 
 def test_moved_slots_nearer_each_other_than_the_spacing_refuse_the_formation() -> None:
-    # the line's east end 2.6 m off the zone: moved 0.7-0.8 m west, 3.2-3.3 m from its neighbour
-    spec = _line(center_e_m=3.4)
+    # the line's east end 3.1 m off the zone: moved 0.7-0.8 m west, 3.2-3.3 m from its neighbour
+    spec = _line(center_e_m=2.9)
     with pytest.raises(FormationError) as exc:
         plan_formation(spec, POS, 3.0, plan=PLAN, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
     text = str(exc.value)
@@ -106,27 +106,27 @@ def test_moved_slots_nearer_each_other_than_the_spacing_refuse_the_formation() -
     )
     assert text.endswith("; nothing sent")
     # the same line with the vehicles reporting exact positions: nothing moves, sent as is (at
-    # 0.5 m the 4 m spacing is inside their 5.7 m berth: `test_slots_inside_the_berth...`)
+    # 0.5 m the 4 m spacing is inside their 6.4 m berth: `test_slots_inside_the_berth...`)
     fp = plan_formation(spec, POS, 3.0, plan=PLAN, pos_sigma_m={1: 0.0, 2: 0.0, 3: 0.0})
-    assert not any(fp.moved) and fp.targets_ned_m[2, 1] == pytest.approx(7.4)
+    assert not any(fp.moved) and fp.targets_ned_m[2, 1] == pytest.approx(6.9)
 
 
 def test_slots_inside_the_berth_at_the_reported_sigmas_refuse_the_formation() -> None:
-    """Vehicles on plain GNSS keep 3.6 m + 3 sqrt(sigma_i^2 + sigma_j^2) between estimates: a
+    """Vehicles on plain GNSS keep 3.6 m + 4 sqrt(sigma_i^2 + sigma_j^2) between estimates: a
     formation tighter than that for the sigmas they report is refused, naming the pair and the
     spacing that would hold; exact positions (sigma 0) fly the same slots."""
     spec = _line(center_e_m=-20.0, spacing_m=5.0)  # no zone near: only the berth matters
     with pytest.raises(FormationError) as exc:
         plan_formation(spec, POS, 3.0, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
     text = str(exc.value)
-    assert text.startswith("vehicles 1 and 2 would hover 5.0 m apart, inside the 5.7 m")
-    assert "(0.5 m, 0.5 m)" in text and "widen --spacing-m to 5.8 m" in text
+    assert text.startswith("vehicles 1 and 2 would hover 5.0 m apart, inside the 6.4 m")
+    assert "(0.5 m, 0.5 m)" in text and "widen --spacing-m to 6.5 m" in text
     assert text.endswith("; nothing sent")
-    # one vehicle at 1 m among exact ones: its pairs need 3.6 + 3 x 1 = 6.6 m
-    with pytest.raises(FormationError, match=r"vehicles 2 and 3 .* inside the 6\.6 m .* to 6\.6 m"):
+    # one vehicle at 1 m among exact ones: its pairs need 3.6 + 4 x 1 = 7.6 m
+    with pytest.raises(FormationError, match=r"vehicles 2 and 3 .* inside the 7\.6 m .* to 7\.6 m"):
         plan_formation(spec, POS, 3.0, pos_sigma_m={1: 0.0, 2: 0.0, 3: 1.0})
     assert plan_formation(spec, POS, 3.0, pos_sigma_m={1: 0.0, 2: 0.0, 3: 0.0}).targets_ned_m.size
-    assert plan_formation(_line(-20.0, 5.8), POS, 3.0, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
+    assert plan_formation(_line(-20.0, 6.5), POS, 3.0, pos_sigma_m={1: 0.5, 2: 0.5, 3: 0.5})
 
 
 # -- home and rally points ----------------------------------------------------------------------
@@ -139,9 +139,9 @@ def _draft(**over) -> pe.Draft:
     ("step", "reason"),
     [
         (lambda d: pe.set_home(d, 0, 8), r"^home \(0.0, 8.0\) m is 2.0 m from keep-out zone 'pad', "
-         r"nearer than the 3.3 m the vehicles' filter keeps from it at a 0.5 m position sigma"),
+         r"nearer than the 3.8 m the vehicles' filter keeps from it at a 0.5 m position sigma"),
         (lambda d: pe.add_rally(d, 0, 98, name="edge"),
-         r"^rally point 'edge' \(0.0, 98.0\) m is 2.0 m from the fence, nearer than the 3.3 m"),
+         r"^rally point 'edge' \(0.0, 98.0\) m is 2.0 m from the fence, nearer than the 3.8 m"),
         (lambda d: pe.add_rally(d, 22, 20), r"^a rally point \(22.0, 20.0\) m is 2.0 m from "),
         (lambda d: pe.move_rally(pe.add_rally(d, 0, -20), 1, 0, 7.5), r"is 2.5 m from keep-out"),
         (lambda d: pe.close_zone(
@@ -154,8 +154,8 @@ def test_home_and_rally_points_keep_the_zone_clearance(step, reason) -> None:
     d = _draft()
     with pytest.raises(pe.EditRefused, match=reason):
         step(d)
-    # its eastern pads (E +10 m) 3.4 m off the zone
-    assert pe.set_home(d, 0, -3.4).geometry.rally == (RallyPoint(0, -3.4, 0.0, "home"),)
+    # its eastern pads (E +10 m) 3.9 m off the zone
+    assert pe.set_home(d, 0, -3.9).geometry.rally == (RallyPoint(0, -3.9, 0.0, "home"),)
 
 
 def test_a_home_already_too_near_blocks_no_edit_elsewhere_and_separation_counts() -> None:
@@ -164,32 +164,32 @@ def test_a_home_already_too_near_blocks_no_edit_elsewhere_and_separation_counts(
     assert len(d.geometry.rally) == 2
     with pytest.raises(pe.EditRefused, match=r"^home \(0.0, 7.0\) m is 3.0 m"):
         pe.set_home(near, 0, 7)
-    # at 2 m separation the filter keeps 1.2 m + 1.5 m: 2.7 m, so 3 m off is fine there
+    # at 2 m separation the filter keeps 1.2 m + 2 m: 3.2 m, so 3.5 m off is fine there
     small = pe.draft_of(FleetPlan("f", 3, 0, keep_out=(Zone(WALL, "pad"),)), 2.0)
-    home = pe.set_home(small, 0, -3).geometry  # its eastern pads 3 m off
-    assert home.rally[0].e_m == -3 and landing_problems(home, 2.0, ASSUMED_POS_SIGMA_M) == []
+    home = pe.set_home(small, 0, -3.5).geometry  # its eastern pads 3.5 m off
+    assert home.rally[0].e_m == -3.5 and landing_problems(home, 2.0, ASSUMED_POS_SIGMA_M) == []
     problems = landing_problems(home, 3.0, ASSUMED_POS_SIGMA_M)
     assert {p.point for p in problems} == set(home.rally)
     assert [p.pad_no for p in problems] == [5, 10, 15, 20, 25]  # the eastern column
-    assert landing_problems(home, 3.0, pos_sigma_m=0.3) == []  # 1.8 + 0.9 m
+    assert landing_problems(home, 3.0, pos_sigma_m=0.3) == []  # 1.8 + 1.2 m
 
 
 def test_the_pads_checked_are_where_returning_vehicles_land() -> None:
     """The station's pads are agent/returning.py's: a vehicle returning to the point lands on
     the pad its refusal names for its id (pad (id - 1) mod 25 + 1; 30 lands on pad 5)."""
     small = pe.draft_of(FleetPlan("f", 3, 0, keep_out=(Zone(WALL, "pad"),)), 2.0)
-    home = pe.set_home(small, 0, -3).geometry
+    home = pe.set_home(small, 0, -3.5).geometry
     problems = landing_problems(home, 3.0)
     assert [p.pad_no for p in problems] == [5, 10, 15, 20, 25]
     assert problems[0].why.startswith(
-        "home: landing pad 5 (N -10.0, E 7.0 m) is 3.0 m from keep-out zone 'pad', nearer than "
-        "the 3.3 m clearance"
+        "home: landing pad 5 (N -10.0, E 6.5 m) is 3.5 m from keep-out zone 'pad', nearer than "
+        "the 3.8 m clearance"
     )
     ids = [p.pad_no for p in problems] + [30]
     returns = Returns(ReturnConfig(), np.array(ids))
     for i, p in enumerate([*problems, problems[0]]):
         took_off_at = np.array([500.0, 500.0, 0.0])  # farther than the point: it lands there
-        returns.enter(i, np.array([0.0, -3.0, -10.0]), took_off_at, [(0.0, -3.0)], 1.0, 0.5)
+        returns.enter(i, np.array([0.0, -3.5, -10.0]), took_off_at, [(0.0, -3.5)], 1.0, 0.5)
         found = re.search(r"\(N (\S+), E (\S+) m\)", p.why)
         assert found is not None
         assert returns.spot_ne_m[i] == pytest.approx([float(c) for c in found.groups()])
@@ -205,11 +205,11 @@ def test_covey_plan_load_refuses_home_near_a_zone(tmp_path, capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert exit_.value.code == 2 and len(err) == 1, err
     assert "home (48.0, 60.0) m is 2.0 m from keep-out zone 'school'" in err[0], err
-    # 3 m off: too near at the default 3 m separation (3.3 m), not at --separation-m 2 (2.7 m)
-    home["geometry"]["coordinates"] = list(reversed(ll(47, 60)))
+    # 3.5 m off: too near at the default 3 m separation (3.8 m), not at --separation-m 2 (3.2 m)
+    home["geometry"]["coordinates"] = list(reversed(ll(46.5, 60)))
     path = write(tmp_path, geojson(feature3=home))
     for extra, near in (([], True), (["--separation-m", "2"], False)):
         with pytest.raises(SystemExit):
             plan_cli(["load", str(path), "--dir", str(tmp_path / "nowhere"), origin, *extra])
         err = capsys.readouterr().err
-        assert ("home (47.0, 60.0) m is 3.0 m" in err) == near, err  # else: no authority there
+        assert ("home (46.5, 60.0) m is 3.5 m" in err) == near, err  # else: no authority there

@@ -33,7 +33,7 @@ def _dist(pt) -> float:
 
 @pytest.mark.parametrize(
     ("off_m", "sigma_m", "moved"),
-    [(2.0, 0.0, False), (2.6, 0.5, True), (2.0, 0.5, True), (5.0, 0.5, False)],
+    [(2.0, 0.0, False), (3.1, 0.5, True), (2.0, 0.5, True), (5.0, 0.5, False)],
 )
 def test_a_goal_inside_the_clearance_moves_to_its_edge(off_m, sigma_m, moved) -> None:
     router = Router([np.array(SQUARE)])
@@ -112,7 +112,7 @@ def test_an_autopilot_without_accuracy_is_assumed_standard_gnss_from_the_flag() 
 # -- where the autopilot guides itself (relay: the PX4 module's filter keeps the zones) -----------
 SIGMA_M = 0.5
 CLEARANCE_M = REACH_M + SIGMA_K * SIGMA_M
-"""What the filter keeps from the square's edges at SIGMA_M (3.3 m)."""
+"""What the filter keeps from the square's edges at SIGMA_M (3.8 m)."""
 PLAN = FleetPlan("f", 1, 0, keep_out=(Zone(SQUARE, "pad"),))
 HERE = np.array([30.0, 0.0, -10.0])
 
@@ -145,14 +145,14 @@ def _goto(core: FlightCore, n_m: float, nonce: int = 1):
 def test_a_relay_core_refuses_moves_and_accepts_goals_as_a_guided_one_does() -> None:
     relay, guided = _core(velocity_mode=False), _core(velocity_mode=True)
     assert relay.guidance is None and relay.router is not None
-    near = _goto(relay, 8.0 + 0.3)  # 0.3 m off the edge: 3.0 m to the clearance
+    near = _goto(relay, 8.0 + 0.3)  # 0.3 m off the edge: 3.5 m to the clearance
     assert near.result is AckResult.REJECTED and not near.actions
     assert near.reason.startswith("target: ") and "keep-out zone 'pad'" in near.reason
     assert f"{CLEARANCE_M:.1f} m" in near.reason and "1 m arrival radius" in near.reason
     edge = _goto(relay, 8.0 + 1.9 + SIGMA_K * SIGMA_M - 0.4)  # 0.3 m inside the clearance
     assert edge.result is AckResult.ACCEPTED, edge.reason
     assert edge.reason.startswith("goal moved 0.")
-    assert "to 3.3 m from keep-out zone 'pad'" in edge.reason
+    assert f"to {CLEARANCE_M:.1f} m from keep-out zone 'pad'" in edge.reason
     (action,) = edge.actions  # the autopilot is sent the moved goal, not the one asked
     assert action.target_ned_m is not None
     assert CLEARANCE_M <= _dist(action.target_ned_m[:2]) <= CLEARANCE_M + 0.1
@@ -185,7 +185,7 @@ def test_a_relay_core_keeps_the_clearance_of_the_separation_its_autopilot_report
     """The relay reads the PX4 module's CVY_SEP_M (agent/backends/relay.py); the goal rule then
     keeps the clearance of that separation, not of the configured one, and says so once."""
     core = _core(velocity_mode=False)
-    n_m = 8.0 + CLEARANCE_M + 0.5  # clear at 3 m: 3.8 m from the edge
+    n_m = 8.0 + CLEARANCE_M + 0.5  # clear at 3 m: 4.3 m from the edge
     assert _goto(core, n_m, 1).reason == ""
     obs = Observed(
         HERE[None], np.zeros((1, 3)), np.ones(1, bool), np.ones(1, bool), np.full(1, 90.0),
@@ -195,7 +195,7 @@ def test_a_relay_core_keeps_the_clearance_of_the_separation_its_autopilot_report
     assert core.safety_cfg.radius_m == 5.0 and core.onboard_separation_m == 5.0
     (note,) = [n for n in core.drain_notes() if "CVY_SEP_M" in n.text]
     assert "keeps 5 m (CVY_SEP_M), not the configured --separation-m 3 m" in note.text
-    wide = REACH_M * 5.0 / 3.0 + SIGMA_K * SIGMA_M  # the zone clearance at 5 m: 4.5 m
+    wide = REACH_M * 5.0 / 3.0 + SIGMA_K * SIGMA_M  # the zone clearance at 5 m: 5.0 m
     moved = _goto(core, n_m, 2)
     assert moved.result is AckResult.ACCEPTED and moved.reason.startswith("goal moved")
     assert f"to {wide:.1f} m from keep-out zone 'pad'" in moved.reason
@@ -223,7 +223,7 @@ def test_a_mission_waypoint_within_the_clearance_is_moved_or_refused(velocity_mo
     loaded = _upload(core, 20.0, moved_n_m)
     assert loaded.result is AckResult.ACCEPTED, loaded.reason
     assert loaded.reason.startswith("2 items; item 2: goal moved 0.")
-    assert "to 3.3 m from keep-out zone 'pad'" in loaded.reason
+    assert f"to {CLEARANCE_M:.1f} m from keep-out zone 'pad'" in loaded.reason
     run = core.missions[0]
     assert run is not None and run.asked[1].target_ned_m == (moved_n_m, 1.0, -10.0)
     flown = run.items[1].target_ned_m
@@ -237,8 +237,8 @@ def test_a_mission_waypoint_within_the_clearance_is_moved_or_refused(velocity_mo
 
 
 def test_a_mission_start_checks_its_items_again_at_the_sigma_of_now() -> None:
-    """Uploaded on a 0 sigma, a waypoint 2 m off the zone is clear (1.8 m); at 0.5 m it is 1.3 m
-    inside the 3.3 m clearance, beyond the arrival radius: the start is refused naming it."""
+    """Uploaded on a 0 sigma, a waypoint 2 m off the zone is clear (1.8 m); at 0.5 m it is 1.8 m
+    inside the 3.8 m clearance, beyond the arrival radius: the start is refused naming it."""
     core = _core(velocity_mode=False, sigma_m=0.0)
     loaded = _upload(core, 20.0, 8.0 + 2.0)
     assert loaded.result is AckResult.ACCEPTED and loaded.reason == "2 items"
