@@ -193,3 +193,20 @@ def test_call_patterns_bench_smoke(tmp_path: Path, monkeypatch) -> None:
         call_patterns.PublicCaller(None, "sometimes")
     with pytest.raises(ValueError, match="links must be some of"):
         call_patterns.main(quick=True, links=("lossy",))
+
+
+def test_crowd_sigma_bench_smoke(tmp_path: Path, monkeypatch) -> None:
+    """bench/crowd_sigma.py flies its quick circle at k 3 and 4 with realistic vehicles and the
+    ideal baseline: every k has its cases and a ratio to ideal above 1 (the berth costs time),
+    the larger k keeps at least as much between estimates, and the plot is written."""
+    from bench import common, crowd_sigma
+
+    monkeypatch.setenv(common.OUT_ENV, str(tmp_path))
+    res = crowd_sigma.main(quick=True)
+    assert (tmp_path / "crowd_sigma.png").is_file()
+    assert json.loads((tmp_path / "crowd_sigma.json").read_text())["sigma_ks"] == [3.0, 4.0]
+    s3, s4 = res["summary"]["3.0"], res["summary"]["4.0"]
+    assert s3["cases"] == s4["cases"] == 4  # circle of 16, 2 seeds, 2 links
+    assert s3["median_over_ideal"] > 1.0 and s4["median_over_ideal"] > 1.0
+    assert s4["median_closest_estimated_m"] >= s3["median_closest_estimated_m"] - 0.05
+    assert all(r["vehicles"] == "ideal" for r in res["runs"][:4])

@@ -1,0 +1,185 @@
+"""Dense crowds on plain GNSS: true-position collisions and extra time against the filter's
+confidence factor sigma_k (policy.safety.SafetyConfig.sigma_k).
+
+    python -m bench.crowd_sigma [--quick] [--seeds 12] [--sigma-k 3,3.5,4,5]
+    # bench/results/crowd_sigma.json, bench/results/crowd_sigma.png (docs/bench_crowd_sigma.png)
+
+Antipodal circles of 16, 32 and 50 (policy.scenarios.antipodal_circle: every vehicle through
+the centre), policy + filter as `covey eval` flies it, on the perfect and the 3 Hz lossy link,
+with realistic vehicles (`--vehicles realistic`: 0.3 s lag, 2.5 m/s^2, 0.2 m/s gusts, GNSS
+estimates drifting 0.5 m), judged on true positions; the same cases with ideal vehicles give
+the extra time the realistic figures are compared with. Each seed draws its own noise and
+losses; every k flies the same seeds. A circle's centre is where a crowd cannot hold the
+inflated berth (3.6 m + k sqrt(2) sigma between estimates): it compresses, and how much berth
+is left above 3 m between true positions is what k buys.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from bench import common
+
+CIRCLES = (16, 32, 50)
+LINKS = ("perfect", "degraded")
+
+
+def _fly(vehicles: str, sigma_k: float, seed: int, circles, links) -> list[dict]:
+    from policy import eval as ev
+    from policy import evalsim, scenarios
+    from policy.pointmass import VehicleModel
+
+    cfg = ev.EvalConfig(
+        vehicles=vehicles,
+        seed=seed,
+        sigma_k=sigma_k,
+        controllers=("policy+filter",),
+        figures=False,
+        progress=False,
+        suites=("circle",),
+    )
+    ctrl = ev.controllers(cfg)["policy+filter"]
+    model = VehicleModel.named(vehicles)
+    link_cfg = {"perfect": evalsim.PERFECT, "degraded": evalsim.DEGRADED}
+    rows = []
+    for n in circles:
+        starts, goals = scenarios.antipodal_circle(n)
+        for li, link in enumerate(links):
+            ctrl.reset()
+            rng = np.random.default_rng([seed, n, li])
+            r = evalsim.run(
+                starts, goals, ctrl, link_cfg[link], evalsim.EvalSimConfig(vehicles=model), rng
+            )
+            rows.append(
+                {
+                    "vehicles": vehicles,
+                    "sigma_k": sigma_k,
+                    "seed": seed,
+                    "n": n,
+                    "link": link,
+                    **{k: r[k] for k in ("collisions", "timeouts", "min_sep", "est_min_sep")},
+                    "extra_time": r["extra_time"],
+                }
+            )
+    return rows
+
+
+def summarise(rows: list[dict], ideal: dict) -> dict:
+    """One k's runs: collision cases, closest true approach, timeouts, extra time and its ratio
+    to the ideal vehicles' in the same case (median over cases)."""
+    ratios = [
+        r["extra_time"] / ideal[(r["seed"], r["n"], r["link"])]
+        for r in rows
+        if r["extra_time"] and ideal.get((r["seed"], r["n"], r["link"]))
+    ]
+    seps = [r["min_sep"] for r in rows]
+    return {
+        "cases": len(rows),
+        "collision_cases": sum(r["collisions"] > 0 for r in rows),
+        "timeouts_vehicles": sum(r["timeouts"] for r in rows),
+        "closest_true_m": min(seps),
+        "median_closest_true_m": statistics.median(seps),
+        "median_closest_estimated_m": statistics.median(r["est_min_sep"] for r in rows),
+        "median_extra_time": statistics.median(r["extra_time"] for r in rows if r["extra_time"]),
+        "median_over_ideal": statistics.median(ratios) if ratios else None,
+    }
+
+
+def plot(ks, summary: dict) -> None:
+    plt = common.pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    cases = [summary[str(k)]["collision_cases"] for k in ks]
+    bars = a.bar([str(k) for k in ks], cases, color="tab:red")
+    for bar, k in zip(bars, ks, strict=True):
+        a.annotate(
+            f"{summary[str(k)]['timeouts_vehicles']} timed out",
+            (bar.get_x() + bar.get_width() / 2, bar.get_height()),
+            ha="center",
+            va="bottom",
+            fontsize=8,
+        )
+    a.set_xlabel("sigma_k")
+    a.set_ylabel(f"collision cases (of {summary[str(ks[0])]['cases']})")
+    a.set_title("true positions < 3 m, circles of 16/32/50")
+    b.plot(
+        ks,
+        [summary[str(k)]["median_over_ideal"] for k in ks],
+        "o-",
+        label="extra time / ideal (median)",
+    )
+    b.plot(
+        ks,
+        [summary[str(k)]["closest_true_m"] / 3.0 for k in ks],
+        "s--",
+        label="closest true / 3 m (min)",
+    )
+    b.axhline(1.0, color="grey", lw=0.8)
+    b.set_xlabel("sigma_k")
+    b.legend()
+    b.set_title("what k costs and buys")
+    fig.tight_layout()
+    common.save_figure(fig, "crowd_sigma")
+
+
+def main(quick: bool = False, seeds: int = 12, sigma_ks=(3.0, 3.5, 4.0, 5.0)) -> dict:
+    circles = (16,) if quick else CIRCLES
+    if quick:
+        seeds, sigma_ks = 2, (3.0, 4.0)
+    t0 = time.monotonic()
+    ideal_rows = [r for s in range(1, seeds + 1) for r in _fly("ideal", 3.0, s, circles, LINKS)]
+    ideal = {(r["seed"], r["n"], r["link"]): r["extra_time"] for r in ideal_rows}
+    runs, summary = list(ideal_rows), {}
+    for k in sigma_ks:
+        rows = []
+        for s in range(1, seeds + 1):
+            rows += _fly("realistic", k, s, circles, LINKS)
+            common.say(f"sigma_k {k:g}: seed {s}/{seeds} ({time.monotonic() - t0:.0f} s)")
+        runs += rows
+        summary[str(k)] = summarise(rows, ideal)
+        common.say(f"sigma_k {k:g}: {summary[str(k)]}")
+    result = {
+        "circles": list(circles),
+        "links": list(LINKS),
+        "seeds": seeds,
+        "sigma_ks": list(sigma_ks),
+        "ideal_median_extra_time": statistics.median(v for v in ideal.values() if v),
+        "summary": summary,
+        "runs": runs,
+        "wall_s": round(time.monotonic() - t0, 1),
+    }
+    common.write_json("crowd_sigma", result)
+    plot(list(sigma_ks), summary)
+    for k in sigma_ks:
+        s = summary[str(k)]
+        print(
+            f"sigma_k {k:g}: {s['collision_cases']}/{s['cases']} collision cases, closest "
+            f"{s['closest_true_m']:.2f} m true (median {s['median_closest_true_m']:.2f}), "
+            f"{s['timeouts_vehicles']} vehicles timed out, extra time {s['median_extra_time']:.2f} "
+            f"({s['median_over_ideal']:.2f}x ideal)"
+        )
+    return result
+
+
+if __name__ == "__main__":
+    from cli.options import finite
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="one circle, 2 seeds, k 3 and 4")
+    ap.add_argument("--seeds", type=int, default=12, help="seeds 1..N (default 12)")
+    ap.add_argument(
+        "--sigma-k",
+        default="3,3.5,4,5",
+        help="comma list of confidence factors to compare (default 3,3.5,4,5)",
+    )
+    a = ap.parse_args()
+    try:
+        ks = tuple(finite("standard deviations", inclusive=True)(x) for x in a.sigma_k.split(","))
+    except argparse.ArgumentTypeError as e:
+        ap.error(f"--sigma-k: {e}")
+    if a.seeds < 1:
+        ap.error(f"--seeds must be at least 1, got {a.seeds}")
+    main(quick=a.quick, seeds=a.seeds, sigma_ks=ks)
