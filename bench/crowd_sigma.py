@@ -12,6 +12,11 @@ the extra time the realistic figures are compared with. Each seed draws its own 
 losses; every k flies the same seeds. A circle's centre is where a crowd cannot hold the
 inflated berth (3.6 m + k sqrt(2) sigma between estimates): it compresses, and how much berth
 is left above 3 m between true positions is what k buys.
+
+What it costs beyond time: the 9 m gap of `covey eval --suites zones` (policy.scenarios
+`zone_scenes`, three vehicles one way through a gap of three separations and two the other),
+flown the same way over the same seeds: a wider berth and zone clearance leave less room at the
+gap's mouth, and runs where a vehicle did not arrive in time are counted.
 """
 
 from __future__ import annotations
@@ -68,6 +73,55 @@ def _fly(vehicles: str, sigma_k: float, seed: int, circles, links) -> list[dict]
     return rows
 
 
+def _fly_gap(sigma_k: float, seed: int, links) -> list[dict]:
+    from policy import eval as ev
+    from policy import evalsim, scenarios, zone_eval
+    from policy.pointmass import VehicleModel
+
+    cfg = ev.EvalConfig(
+        vehicles="realistic",
+        seed=seed,
+        sigma_k=sigma_k,
+        controllers=("policy+filter",),
+        figures=False,
+        progress=False,
+        suites=("zones",),
+    )
+    ctrl = ev.controllers(cfg)["policy+filter"]
+    scenes = {name: rest for name, *rest in scenarios.zone_scenes(np.random.default_rng(0))}
+    starts, goals, zones_m = scenes["gap-9m"]
+    link_cfg = {"perfect": evalsim.PERFECT, "degraded": evalsim.DEGRADED}
+    sim_cfg = evalsim.EvalSimConfig(vehicles=VehicleModel.named("realistic"))
+    rows = []
+    for li, link in enumerate(links):
+        ctrl.reset()
+        rng = np.random.default_rng([seed, 9, li])
+        r = zone_eval.run(
+            "policy+filter", starts, goals, zones_m, ctrl, link_cfg[link], sim_cfg, rng
+        )
+        rows.append(
+            {
+                "sigma_k": sigma_k,
+                "seed": seed,
+                "link": link,
+                **{k: r[k] for k in ("timeouts", "arrived", "zone_entries", "min_zone_m")},
+                "min_sep": r["min_sep"],
+            }
+        )
+    return rows
+
+
+def summarise_gap(rows: list[dict]) -> dict:
+    return {
+        "runs": len(rows),
+        "runs_with_a_late_vehicle": sum(r["timeouts"] > 0 for r in rows),
+        "late_vehicles": sum(r["timeouts"] for r in rows),
+        "zone_entries": sum(r["zone_entries"] for r in rows),
+        "closest_to_a_zone_m": min(r["min_zone_m"] for r in rows),
+        "closest_true_m": min(r["min_sep"] for r in rows if r["min_sep"] is not None),
+    }
+
+
 def summarise(rows: list[dict], ideal: dict) -> dict:
     """One k's runs: collision cases, closest true approach, timeouts, extra time and its ratio
     to the ideal vehicles' in the same case (median over cases)."""
@@ -89,9 +143,26 @@ def summarise(rows: list[dict], ideal: dict) -> dict:
     }
 
 
+def by_k(summary: dict) -> list[dict]:
+    """One flat row per k (what SUMMARY.md's table shows)."""
+    return [
+        {
+            "sigma_k": float(k),
+            "collision_cases": s["collision_cases"],
+            "cases": s["cases"],
+            "closest_true_m": s["closest_true_m"],
+            "vehicles_late": s["timeouts_vehicles"],
+            "extra_time_over_ideal": s["median_over_ideal"],
+            "gap_runs_late": s["gap"]["runs_with_a_late_vehicle"] if "gap" in s else None,
+            "gap_runs": s["gap"]["runs"] if "gap" in s else None,
+        }
+        for k, s in summary.items()
+    ]
+
+
 def plot(ks, summary: dict) -> None:
     plt = common.pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, (a, b, c) = plt.subplots(1, 3, figsize=(14, 3.8))
     cases = [summary[str(k)]["collision_cases"] for k in ks]
     bars = a.bar([str(k) for k in ks], cases, color="tab:red")
     for bar, k in zip(bars, ks, strict=True):
@@ -121,6 +192,12 @@ def plot(ks, summary: dict) -> None:
     b.set_xlabel("sigma_k")
     b.legend()
     b.set_title("what k costs and buys")
+    if all("gap" in summary[str(k)] for k in ks):
+        late = [summary[str(k)]["gap"]["runs_with_a_late_vehicle"] for k in ks]
+        c.bar([str(k) for k in ks], late, color="tab:orange")
+        c.set_ylabel(f"runs with a vehicle late (of {summary[str(ks[0])]['gap']['runs']})")
+        c.set_title("the 9 m gap, two ways (zones suite)")
+        c.set_xlabel("sigma_k")
     fig.tight_layout()
     common.save_figure(fig, "crowd_sigma")
 
@@ -132,7 +209,7 @@ def main(quick: bool = False, seeds: int = 12, sigma_ks=(3.0, 3.5, 4.0, 5.0)) ->
     t0 = time.monotonic()
     ideal_rows = [r for s in range(1, seeds + 1) for r in _fly("ideal", 3.0, s, circles, LINKS)]
     ideal = {(r["seed"], r["n"], r["link"]): r["extra_time"] for r in ideal_rows}
-    runs, summary = list(ideal_rows), {}
+    runs, gaps, summary = list(ideal_rows), [], {}
     for k in sigma_ks:
         rows = []
         for s in range(1, seeds + 1):
@@ -140,8 +217,12 @@ def main(quick: bool = False, seeds: int = 12, sigma_ks=(3.0, 3.5, 4.0, 5.0)) ->
             common.say(f"sigma_k {k:g}: seed {s}/{seeds} ({time.monotonic() - t0:.0f} s)")
         runs += rows
         summary[str(k)] = summarise(rows, ideal)
+        gap = [r for s in range(1, seeds + 1) for r in _fly_gap(k, s, LINKS)]
+        gaps += gap
+        summary[str(k)]["gap"] = summarise_gap(gap)
         common.say(f"sigma_k {k:g}: {summary[str(k)]}")
     result = {
+        "by_k": by_k(summary),
         "circles": list(circles),
         "links": list(LINKS),
         "seeds": seeds,
@@ -149,6 +230,7 @@ def main(quick: bool = False, seeds: int = 12, sigma_ks=(3.0, 3.5, 4.0, 5.0)) ->
         "ideal_median_extra_time": statistics.median(v for v in ideal.values() if v),
         "summary": summary,
         "runs": runs,
+        "gap_runs": gaps,
         "wall_s": round(time.monotonic() - t0, 1),
     }
     common.write_json("crowd_sigma", result)
@@ -159,7 +241,8 @@ def main(quick: bool = False, seeds: int = 12, sigma_ks=(3.0, 3.5, 4.0, 5.0)) ->
             f"sigma_k {k:g}: {s['collision_cases']}/{s['cases']} collision cases, closest "
             f"{s['closest_true_m']:.2f} m true (median {s['median_closest_true_m']:.2f}), "
             f"{s['timeouts_vehicles']} vehicles timed out, extra time {s['median_extra_time']:.2f} "
-            f"({s['median_over_ideal']:.2f}x ideal)"
+            f"({s['median_over_ideal']:.2f}x ideal); 9 m gap: {s['gap']['runs_with_a_late_vehicle']}"
+            f"/{s['gap']['runs']} runs with a vehicle late, {s['gap']['zone_entries']} zone entries"
         )
     return result
 

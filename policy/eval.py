@@ -177,6 +177,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             safety_filter=False,
             max_neighbours=cfg.max_neighbours,
             sparse_rule=SparseConfig() if filt and cfg.sparse_rule else None,
+            safety_cfg=safety_cfg,  # the sparse rule's filter: --sigma-k reaches it too
         )
         out[name] = Held(_decide_views(pol), cfg.policy_period_s, safety_cfg if filt else None)
     if cfg.occupancy:

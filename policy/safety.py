@@ -53,8 +53,8 @@ worst violation): in the centre of a circle swap on plain 0.5 m GNSS the estimat
 inside the berth, and what is left above 3 m between true positions is what k buys. Measured
 with realistic vehicles on antipodal circles of 16, 32 and 50, 12 seeds, both links
 (`python -m bench.crowd_sigma`, docs/sky.md "Dense crowds"): k = 3 left true-position
-collisions in 6 of 72 cases (2.93 m), 3.5 in 1, 4 in none (closest 3.2-3.3 m) at about 15 %
-more time in those circles, 5 timed vehicles out. k = 1.5 and 2 were worse still (docs/policy.md,
+collisions in 6 of 72 cases (2.93 m), 3.5 in 1, 4 in none (closest 3.33 m) at about 13 %
+more time in those circles, and a vehicle late in more two-way gaps; 5 jammed the circles. k = 1.5 and 2 were worse still (docs/policy.md,
 "Real vehicles"). Zones are padded with the same k (sigma_k x the own 1-sigma)."""
 
 

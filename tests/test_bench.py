@@ -195,6 +195,7 @@ def test_call_patterns_bench_smoke(tmp_path: Path, monkeypatch) -> None:
         call_patterns.main(quick=True, links=("lossy",))
 
 
+@pytest.mark.slow
 def test_crowd_sigma_bench_smoke(tmp_path: Path, monkeypatch) -> None:
     """bench/crowd_sigma.py flies its quick circle at k 3 and 4 with realistic vehicles and the
     ideal baseline: every k has its cases and a ratio to ideal above 1 (the berth costs time),
@@ -207,6 +208,9 @@ def test_crowd_sigma_bench_smoke(tmp_path: Path, monkeypatch) -> None:
     assert json.loads((tmp_path / "crowd_sigma.json").read_text())["sigma_ks"] == [3.0, 4.0]
     s3, s4 = res["summary"]["3.0"], res["summary"]["4.0"]
     assert s3["cases"] == s4["cases"] == 4  # circle of 16, 2 seeds, 2 links
+    assert [r["sigma_k"] for r in res["by_k"]] == [3.0, 4.0]
     assert s3["median_over_ideal"] > 1.0 and s4["median_over_ideal"] > 1.0
     assert s4["median_closest_estimated_m"] >= s3["median_closest_estimated_m"] - 0.05
     assert all(r["vehicles"] == "ideal" for r in res["runs"][:4])
+    for s in (s3, s4):  # the 9 m gap, 2 seeds, both links
+        assert s["gap"]["runs"] == 4 and s["gap"]["closest_to_a_zone_m"] > 0.0
