@@ -33,10 +33,9 @@ CIRCLES = (16, 32, 50)
 LINKS = ("perfect", "degraded")
 
 
-def _fly(vehicles: str, sigma_k: float, seed: int, circles, links) -> list[dict]:
+def _controller(vehicles: str, sigma_k: float, seed: int, suite: str):
+    """policy+filter as `covey eval --vehicles V --sigma-k K --suites S` flies it."""
     from policy import eval as ev
-    from policy import evalsim, scenarios
-    from policy.pointmass import VehicleModel
 
     cfg = ev.EvalConfig(
         vehicles=vehicles,
@@ -45,9 +44,16 @@ def _fly(vehicles: str, sigma_k: float, seed: int, circles, links) -> list[dict]
         controllers=("policy+filter",),
         figures=False,
         progress=False,
-        suites=("circle",),
+        suites=(suite,),
     )
-    ctrl = ev.controllers(cfg)["policy+filter"]
+    return ev.controllers(cfg)["policy+filter"]
+
+
+def _fly(vehicles: str, sigma_k: float, seed: int, circles, links) -> list[dict]:
+    from policy import evalsim, scenarios
+    from policy.pointmass import VehicleModel
+
+    ctrl = _controller(vehicles, sigma_k, seed, "circle")
     model = VehicleModel.named(vehicles)
     link_cfg = {"perfect": evalsim.PERFECT, "degraded": evalsim.DEGRADED}
     rows = []
@@ -74,20 +80,10 @@ def _fly(vehicles: str, sigma_k: float, seed: int, circles, links) -> list[dict]
 
 
 def _fly_gap(sigma_k: float, seed: int, links) -> list[dict]:
-    from policy import eval as ev
     from policy import evalsim, scenarios, zone_eval
     from policy.pointmass import VehicleModel
 
-    cfg = ev.EvalConfig(
-        vehicles="realistic",
-        seed=seed,
-        sigma_k=sigma_k,
-        controllers=("policy+filter",),
-        figures=False,
-        progress=False,
-        suites=("zones",),
-    )
-    ctrl = ev.controllers(cfg)["policy+filter"]
+    ctrl = _controller("realistic", sigma_k, seed, "zones")
     scenes = {name: rest for name, *rest in scenarios.zone_scenes(np.random.default_rng(0))}
     starts, goals, zones_m = scenes["gap-9m"]
     link_cfg = {"perfect": evalsim.PERFECT, "degraded": evalsim.DEGRADED}
