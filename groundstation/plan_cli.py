@@ -51,6 +51,7 @@ from comms.plan_io import (
 )
 from comms.schema import PlanMessage, Role
 from groundstation.plan_edit import SEPARATION_M, check_landing
+from policy.goal_rule import ASSUMED_POS_SIGMA_M
 from trust.authority import DEFAULT_DIR, Authority
 from trust.identity import FleetKeyError, public_bytes, verify
 
@@ -59,6 +60,17 @@ VERBS = {
     "show": "print a signed plan or what a plan file holds",
     "push": "publish the signed plan to a running fleet",
 }
+
+
+def _default_clearance_m() -> float:
+    """The zone clearance at the default separation and the assumed position sigma (for --help):
+    policy.zone_lines' share of the padded separation plus sigma_k x the sigma."""
+    from policy.safety import SafetyConfig
+    from policy.zone_lines import ZONE_CLEARANCE_SHARE
+
+    cfg = SafetyConfig(radius_m=SEPARATION_M)
+    pad_m = cfg.sigma_k * ASSUMED_POS_SIGMA_M
+    return ZONE_CLEARANCE_SHARE * cfg.radius_m * (1.0 + cfg.margin) + pad_m
 
 
 def plan_parser() -> argparse.ArgumentParser:
@@ -117,7 +129,8 @@ def plan_parser() -> argparse.ArgumentParser:
                 default=SEPARATION_M,
                 help="the fleet's separation (the agents' --separation-m): home, rally points "
                 "and the landing pads around them must keep the zone clearance their filters "
-                f"keep at it and a 0.5 m position sigma (default {SEPARATION_M:g}: 3.8 m from a "
+                f"keep at it and a {ASSUMED_POS_SIGMA_M:g} m position sigma (default {SEPARATION_M:g}: "
+                f"{_default_clearance_m():.1f} m from a "
                 "zone or the fence)",
             )
             sp.add_argument(
