@@ -198,6 +198,33 @@ def plot(ks, summary: dict) -> None:
     common.save_figure(fig, "crowd_sigma")
 
 
+def regap(sigma_ks=None) -> dict:
+    """Re-fly the 9 m gap only, keeping the circles of the last full run (bench/results/
+    crowd_sigma.json; circles fly no zones, so a change of the routes leaves them as they
+    were): its seeds and factors, or `sigma_ks` of them."""
+    import json
+
+    path = common.out_dir() / "crowd_sigma.json"
+    if not path.exists():
+        raise SystemExit(f"--only-gap needs a full run's {path}; run without it first")
+    result = json.loads(path.read_text())
+    for key in ("section", "machine"):  # written afresh
+        result.pop(key, None)
+    ks = [k for k in result["sigma_ks"] if sigma_ks is None or k in sigma_ks]
+    seeds, summary = result["seeds"], result["summary"]
+    t0 = time.monotonic()
+    gaps = [r for r in result["gap_runs"] if r["sigma_k"] not in ks]
+    for k in ks:
+        gap = [r for s in range(1, seeds + 1) for r in _fly_gap(k, s, LINKS)]
+        gaps += gap
+        summary[str(k)]["gap"] = summarise_gap(gap)
+        common.say(f"sigma_k {k:g}: 9 m gap {summary[str(k)]['gap']}")
+    result.update(by_k=by_k(summary), gap_runs=gaps, gap_wall_s=round(time.monotonic() - t0, 1))
+    common.write_json("crowd_sigma", result)
+    plot(result["sigma_ks"], summary)
+    return result
+
+
 def main(quick: bool = False, seeds: int = 12, sigma_ks=(3.0, 3.5, 4.0, 5.0)) -> dict:
     circles = (16,) if quick else CIRCLES
     if quick:
@@ -250,6 +277,11 @@ if __name__ == "__main__":
     ap.add_argument("--quick", action="store_true", help="one circle, 2 seeds, k 3 and 4")
     ap.add_argument("--seeds", type=int, default=12, help="seeds 1..N (default 12)")
     ap.add_argument(
+        "--only-gap",
+        action="store_true",
+        help="re-fly the 9 m gap alone, keeping the last full run's circles (after a routing change)",
+    )
+    ap.add_argument(
         "--sigma-k",
         default="3,3.5,4,5",
         help="comma list of confidence factors to compare (default 3,3.5,4,5)",
@@ -261,4 +293,7 @@ if __name__ == "__main__":
         ap.error(f"--sigma-k: {e}")
     if a.seeds < 1:
         ap.error(f"--seeds must be at least 1, got {a.seeds}")
-    main(quick=a.quick, seeds=a.seeds, sigma_ks=ks)
+    if a.only_gap:
+        regap(ks)
+    else:
+        main(quick=a.quick, seeds=a.seeds, sigma_ks=ks)

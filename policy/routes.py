@@ -25,7 +25,17 @@ inflation (traffic, lag) still sees its way on instead of being led back out eve
   nearest point outside it, where the vehicle can arrive (the flight core and `covey eval`
   fly there, or refuse the goto when that point lies beyond the arrival radius);
 - no path (the goal walled off): `Route.reason` says so, and `next_waypoint` gives the goal
-  itself (the filter still keeps the vehicle out of every zone).
+  itself (the filter still keeps the vehicle out of every zone);
+- two-way ways first (`RouteConfig.two_way`): a gap that two vehicles cannot pass each other in
+  (narrower than twice the zone clearance plus the pair's berth: 14 m on plain GNSS) jams when
+  two streams meet in it, each waiting for the other. So the zones are also closed over such
+  gaps (`Router.two_way`: grown and shrunk by half that width, which fills the narrow gaps and
+  pockets and keeps every outline), and a vehicle flies that router's route where it is at most
+  `two_way_detour_max` (1.5) times the one-lane route from where it is; else, or where its
+  position or goal lies in a filled gap, the one-lane route. Decided from the position each
+  tick, without flip-flop: along the one-lane route its length falls as fast as the vehicle
+  flies and the two-way route's at most as fast, so their ratio (>= 1) never falls there, and
+  a vehicle once past the bound stays on the one-lane route.
 """
 
 from __future__ import annotations
@@ -50,6 +60,9 @@ PAD_STEP_M = 0.25
 step of position uncertainty, not one per reported sigma."""
 MAX_WIDENED = 8
 """Widened routers kept per plan (a fleet's sigmas fall in a few steps)."""
+CLOSED_MIN_M2 = 0.5
+"""A two-way router (`Router.two_way`) is built only where the closing filled at least this
+much (a gap or pocket), not for the slivers of rounding around a lone convex zone."""
 MAX_CACHED_GOALS = 2048
 """Goals whose Dijkstra distances are kept (each vehicle of a fleet-sim host has its own: a
 thrashing cache re-runs Dijkstra every tick; 2048 x 434 corners is 14 MB at most)."""
@@ -76,6 +89,14 @@ class RouteConfig:
     """Routes keep this much more again: the filter's padding for the position uncertainty,
     sigma_k x the 1-sigma (policy.safety), so a route on plain GNSS runs outside the padded
     radius the filter holds instead of along it (`Router.widened`)."""
+    two_way: bool = True
+    """Routes prefer ways wide enough for two vehicles to pass each other (`lane_m`): a gap
+    between zones that only one vehicle fits through at a time jams when two streams meet in
+    it (each waits for the other), so a route around it is taken where one exists within
+    `two_way_detour_max` (`Router.next_waypoints`)."""
+    two_way_detour_max: float = 1.5
+    """A two-way route is flown when it is at most this many times the one-lane route's length
+    (from where the vehicle is now); otherwise the one-lane route."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "simplify_m", "mitre_limit"):
@@ -86,6 +107,10 @@ class RouteConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        if not (math.isfinite(self.two_way_detour_max) and self.two_way_detour_max >= 1.0):
+            raise ValueError(
+                f"two_way_detour_max must be finite and >= 1, got {self.two_way_detour_max}"
+            )
 
     @property
     def reach_m(self) -> float:
@@ -96,6 +121,15 @@ class RouteConfig:
     def inflate_m(self) -> float:
         """How far route legs keep from a zone."""
         return self.reach_m + self.pad_m + self.route_margin_m
+
+    @property
+    def lane_m(self) -> float:
+        """Half the berth two passing vehicles keep, (separation (1 + margin) + sqrt(2) pad_m)
+        / 2 (policy.safety.pair_radius_m for two equal sigmas). Two passing vehicles each keep
+        the zone clearance (reach_m + pad_m) from their side of a gap and the berth from each
+        other, so a gap is two-way when at least 2 (reach_m + pad_m + lane_m) wide: 7.2 m at
+        3 m separation and sigma 0, 14 m at sigma 0.5 and sigma_k 4 (`Router.two_way`)."""
+        return 0.5 * (self.separation_m * (1.0 + self.margin) + math.sqrt(2.0) * self.pad_m)
 
     @property
     def sight_m(self) -> float:
@@ -201,6 +235,74 @@ class Router:
         self._fallback: Router | None = None
         """The unpadded router a widened one falls back to where its own routes are walled off
         (a gap the padding closed that the filter still lets through)."""
+        self._lane: Router | None = None
+        """The two-way router (`two_way`), built when first asked; None: none."""
+        self._lane_asked = False
+
+    def two_way(self) -> Router | None:
+        """The router whose zones are this one's closed over every gap narrower than two
+        passing vehicles need (a morphological closing by `RouteConfig.lane_m`: grown by it,
+        then shrunk by it, so the zones keep their outline and only the narrow gaps and
+        pockets between or in them are filled), or None (`two_way` off, no zones, nothing
+        closed). Its routes are preferred where at most `two_way_detour_max` times as long."""
+        if not self._lane_asked:
+            self._lane_asked = True
+            if self.cfg.two_way and self.keep_out_m:
+                c = self.cfg
+                lane_m = c.reach_m + c.pad_m + c.lane_m  # half the two-way width
+                joins = {"join_style": "mitre", "mitre_limit": c.mitre_limit}
+                closed = self._zones.buffer(lane_m, **joins).buffer(-lane_m, **joins)
+                closed = closed.simplify(c.simplify_m, preserve_topology=True)
+                polys = [
+                    np.asarray(g.exterior.coords)[:-1]
+                    for g in _polygons(closed)
+                    if g.area > 0 and len(g.exterior.coords) > 3
+                ]
+                if polys and closed.difference(self._zones).area > CLOSED_MIN_M2:
+                    cfg = RouteConfig(**{**c.__dict__, "two_way": False})
+                    self._lane = Router(polys, cfg, self.fence_m)
+        return self._lane
+
+    def _clear_rows(self, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """(R,) the position outside the sight band and the goal outside the route's inflation."""
+        return shapely.covers(self._reach_ok, shapely.points(pos)) & shapely.covers(
+            self._route_ok, shapely.points(goal)
+        )
+
+    def _ways(self, pos: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(waypoints (R, 2), route length (R,)) of rows clear here (`_clear_rows`): the goal
+        when in sight, else the first corner of the shortest route; length inf (and the goal)
+        where the goal is walled off here."""
+        seen = self._visible(self._reach_ok, pos, goal)
+        way = goal.copy()
+        length = np.hypot(goal[:, 0] - pos[:, 0], goal[:, 1] - pos[:, 1])
+        blocked = np.flatnonzero(~seen)
+        if len(blocked):
+            length[blocked] = np.inf
+            if len(self.nodes_m):
+                way[blocked], length[blocked] = self._corners_for(
+                    pos[blocked], goal[blocked], fallback=False
+                )
+        return way, length
+
+    def _prefer_two_way(self, pos: np.ndarray, goal: np.ndarray):
+        """(rows, waypoints) decided by the two-way rule for finite rows clear of the two-way
+        router: its waypoint where its route is at most two_way_detour_max times the one-lane
+        route, else the one-lane waypoint; rows walled off in both are left out."""
+        lane = self.two_way()
+        rows = np.zeros(0, np.intp)
+        if lane is None or not len(pos):
+            return rows, np.zeros((0, 2))
+        rows = np.flatnonzero(np.isfinite(pos).all(axis=1) & np.isfinite(goal).all(axis=1))
+        if len(rows):
+            rows = rows[lane._clear_rows(pos[rows], goal[rows])]
+        if not len(rows):
+            return rows, np.zeros((0, 2))
+        lw, ll = lane._ways(pos[rows], goal[rows])
+        nw, nl = self._ways(pos[rows], goal[rows])
+        pick = np.isfinite(ll) & (ll <= self.cfg.two_way_detour_max * nl + 1e-9)
+        keep = pick | np.isfinite(nl)
+        return rows[keep], np.where(pick[:, None], lw, nw)[keep]
 
     def widened(self, pad_m) -> Router:
         """The router whose routes keep `pad_m` more from every zone (the filter's padding for
@@ -440,6 +542,9 @@ class Router:
         goal = np.asarray(goal, dtype=np.float64).reshape(2)
         if self.refusal(goal):
             return goal
+        rows, ways = self._prefer_two_way(pos[None], goal[None])
+        if len(rows):
+            return ways[0]
         start = self._project(pos, self._reach_ok)
         if start is not pos:
             return start
@@ -473,7 +578,11 @@ class Router:
         out = goal.copy()
         if not len(pos):
             return out
-        finite = np.isfinite(pos).all(axis=1) & np.isfinite(goal).all(axis=1)
+        finite = np.array(np.isfinite(pos).all(axis=1) & np.isfinite(goal).all(axis=1))
+        rows, ways = self._prefer_two_way(pos, goal)
+        if len(rows):
+            out[rows] = ways
+            finite[rows] = False  # decided
         clear = np.array(finite)  # position clear, goal clear of the inflation (its own entry)
         if clear.any():
             f = np.flatnonzero(clear)
@@ -493,16 +602,19 @@ class Router:
             out[i] = self.next_waypoint(pos[i], goal[i])
         return out
 
-    def _corners_for(self, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    def _corners_for(self, pos: np.ndarray, goal: np.ndarray, fallback: bool = True):
         """`_nearest_seen` of R rows whose goal is out of sight, at once: every row's corners in
         order of route length, the k-th candidates of the unresolved rows checked together,
-        k = 0, 1, ... (most rows resolve at the first or second). Unresolved: the goal."""
+        k = 0, 1, ... (most rows resolve at the first or second). Unresolved: the goal, or the
+        fallback router's waypoint. `fallback` False: (waypoints, route lengths), inf for the
+        unresolved."""
         nodes = self.nodes_m
         dist = np.stack([self._to_goal(g)[0] for g in goal])  # (R, V), cached per goal
         d = nodes[None] - pos[:, None]
         cost = np.hypot(d[..., 0], d[..., 1]) + dist
         order = np.argsort(cost, axis=1, kind="stable")
         out = goal.copy()
+        length = np.full(len(pos), np.inf)
         todo = np.arange(len(pos))
         for rank in range(nodes.shape[0]):
             cand = order[todo, rank]
@@ -512,9 +624,12 @@ class Router:
                 break
             ok = self._visible(self._reach_ok, pos[todo], nodes[cand])
             out[todo[ok]] = nodes[cand[ok]]
+            length[todo[ok]] = cost[todo[ok], cand[ok]]
             todo = todo[~ok]
             if not len(todo):
                 break
+        if not fallback:
+            return out, length
         if len(todo) and self._fallback is not None:  # walled off here: route unpadded
             out[todo] = self._fallback.next_waypoints(pos[todo], goal[todo])
         return out
@@ -531,6 +646,16 @@ class Router:
         why = self.refusal(goal)
         if why:
             return Route(np.zeros((0, 2)), math.inf, why)
+        route = self._plan_one_lane(start, goal)
+        lane = self.two_way()
+        if lane is not None and lane._clear_rows(start[None], goal[None])[0]:
+            two_way = lane.plan(start, goal)
+            if two_way.length_m <= self.cfg.two_way_detour_max * route.length_m + 1e-9:
+                return two_way
+        return route
+
+    def _plan_one_lane(self, start: np.ndarray, goal: np.ndarray) -> Route:
+        """`plan` on this router's own routes (no two-way preference)."""
         pts = [start]
         first = self._project(start, self._reach_ok)
         if first is not start:

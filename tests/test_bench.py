@@ -214,3 +214,8 @@ def test_crowd_sigma_bench_smoke(tmp_path: Path, monkeypatch) -> None:
     assert all(r["vehicles"] == "ideal" for r in res["runs"][:4])
     for s in (s3, s4):  # the 9 m gap, 2 seeds, both links
         assert s["gap"]["runs"] == 4 and s["gap"]["closest_to_a_zone_m"] > 0.0
+    # --only-gap re-flies the gap at one k and keeps the circles and the other k's gap runs
+    again = crowd_sigma.regap((4.0,))
+    assert again["runs"] == res["runs"] and again["summary"]["3.0"] == s3
+    assert sorted(r["sigma_k"] for r in again["gap_runs"]) == [3.0] * 4 + [4.0] * 4
+    assert again["summary"]["4.0"]["gap"]["runs"] == 4

@@ -186,3 +186,72 @@ def test_next_waypoints_with_pads_equals_the_one_by_one_answer():
     for i in range(200):
         want = r.next_waypoint(pos[i], goal[i], 0.0 if np.isnan(pad[i]) else pad[i])
         np.testing.assert_allclose(got[i], want, err_msg=str(i))
+
+
+# --- two-way ways first (RouteConfig.two_way) ---
+
+GAP_BLOCKS = [
+    np.array([[-14.5, -4], [-4.5, -4], [-4.5, 4], [-14.5, 4]], float),
+    np.array([[4.5, -4], [14.5, -4], [14.5, 4], [4.5, 4]], float),
+]  # 9 m apart along north = 0, as covey eval's gap scene
+
+
+def _through_gap(start, route) -> bool:
+    pts = np.vstack([start, route.waypoints_m])
+    return shapely.LineString(pts).intersects(shapely.box(-4.5, -4, 4.5, 4))
+
+
+def test_a_one_lane_gap_is_flown_round_where_the_detour_is_short():
+    r = Router(GAP_BLOCKS)
+    # sigma 0: two-way needs 2 (1.8 + 1.8) = 7.2 m, the 9 m gap is two-way: straight through
+    assert r.two_way() is None
+    rt = r.plan([-10, -25], [10, 25])
+    assert _through_gap([-10, -25], rt) and rt.length_m < 54.0
+    # sigma 0.5 at k 4 (pad 2 m): two-way needs 14 m; round the blocks, 1.38x the one-lane way
+    assert r.widened(2.0).two_way() is not None
+    rt = r.plan([-10, -25], [10, 25], pad_m=2.0)
+    assert rt.reason == "" and not _through_gap([-10, -25], rt)
+    one_lane = r.widened(2.0)._plan_one_lane(np.array([-10.0, -25]), np.array([10.0, 25]))
+    assert _through_gap([-10, -25], one_lane)
+    assert one_lane.length_m < rt.length_m <= 1.5 * one_lane.length_m
+    # every route leg keeps the zone clearance plus the route margin, as one-lane legs do
+    pts = np.vstack([[-10, -25], rt.waypoints_m])
+    assert _clear_of(pts, GAP_BLOCKS, r.widened(2.0).cfg.inflate_m)
+    # the waypoint flown now is the plan's first, one row or many
+    way = r.next_waypoint([-10, -25], [10, 25], 2.0)
+    np.testing.assert_allclose(way, rt.waypoints_m[0])
+    ways = r.next_waypoints([[-10, -25], [0, -30]], [[10, 25], [0, 30]], [2.0, 2.0])
+    np.testing.assert_allclose(ways[0], way)
+    np.testing.assert_allclose(ways[1], r.next_waypoint([0, -30], [0, 30], 2.0))
+
+
+def test_a_long_detour_keeps_the_one_lane_gap():
+    # two walls 200 m long with the 9 m gap between: round them is far more than 1.5x
+    walls = [
+        np.array([[-204.5, -4], [-4.5, -4], [-4.5, 4], [-204.5, 4]], float),
+        np.array([[4.5, -4], [204.5, -4], [204.5, 4], [4.5, 4]], float),
+    ]
+    r = Router(walls)
+    rt = r.plan([-10, -25], [10, 25], pad_m=2.0)
+    assert rt.reason == "" and _through_gap([-10, -25], rt)
+    assert rt.length_m < 1.5 * 54.0
+    # off: the one-lane route whatever the gap
+    off = Router(GAP_BLOCKS, RouteConfig(two_way=False))
+    assert off.widened(2.0).two_way() is None
+    assert _through_gap([-10, -25], off.plan([-10, -25], [10, 25], pad_m=2.0))
+
+
+def test_two_way_keeps_a_lone_zone_and_goals_in_a_filled_gap_as_they_were():
+    r = Router([SQ])
+    assert r.widened(2.0).two_way() is None  # nothing to close: no second router
+    # a goal inside the gap the two-way router fills is routed one-lane, to the goal
+    r = Router(GAP_BLOCKS)
+    rt = r.plan([0, -30], [0, 0], pad_m=2.0)
+    assert rt.reason == "" and _through_gap([0, -30], rt)
+    np.testing.assert_allclose(rt.waypoints_m[-1], [0, 0])
+
+
+@pytest.mark.parametrize("bad", [0.99, float("nan"), float("inf")])
+def test_two_way_detour_bound_is_checked(bad):
+    with pytest.raises(ValueError, match="two_way_detour_max must be finite and >= 1"):
+        RouteConfig(two_way_detour_max=bad)
