@@ -62,7 +62,12 @@ from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.schema import POSITION_LIMIT_M
-from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
+from comms.state_rate import (
+    HOLD_REST_M_S,
+    MAX_HOLD_PERIOD_S,
+    MIN_STEADY_STATE_HZ,
+    SteadyConfig,
+)
 from policy.pointmass import vehicle_model_arg
 from trust.auth import ENV_KEY_FILE, FleetAuth, load_auth, load_vehicle_auths
 
@@ -183,6 +188,14 @@ def add_flight_args(
         f"0.1 m, 0.1 m/s, 0.05 rad; hovering, flying straight), at least "
         f"{MIN_STEADY_STATE_HZ:g}; default: off, always the full rate (comms/state_rate.py)",
     )
+    p.add_argument(
+        "--hold-state-hz",
+        type=float,
+        default=SteadyConfig.hold_state_hz,
+        help="with --steady-state-hz: the state rate while holding at rest (mode HOLDING, at "
+        f"most {HOLD_REST_M_S:g} m/s), at least {1 / MAX_HOLD_PERIOD_S:g}; neighbours and the "
+        "station wait longer for a holder (comms/state_rate.py)",
+    )
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
 
@@ -271,9 +284,12 @@ def _hosting(args: argparse.Namespace) -> bool:
 
 
 def steady_from_args(args: argparse.Namespace) -> SteadyConfig | None:
-    """The steady-rate rule from --steady-state-hz (None: off); a bad rate raises ValueError."""
+    """The steady-rate rule from --steady-state-hz and --hold-state-hz (None: off); a bad rate
+    raises ValueError."""
     hz = args.steady_state_hz
-    return None if hz is None else SteadyConfig(state_hz=hz)
+    if hz is None:
+        return None
+    return SteadyConfig(state_hz=hz, hold_state_hz=getattr(args, "hold_state_hz", 1.0))
 
 
 def failsafe_from_args(args: argparse.Namespace) -> FailsafeConfig:

@@ -2,7 +2,10 @@
 
 Each entry keeps its receive time. While fresh, a neighbour is dead-reckoned at constant
 velocity (p(t) = p + v (t - t_rx)), which hides a 3 Hz link's staleness; past `stale_s` it is
-flagged stale (guidance slows down); past `drop_s` it is forgotten.
+flagged stale (guidance slows down); past `drop_s` it is forgotten. A neighbour whose last
+state announces that it holds at rest (comms/state_rate.py `announces_hold`: it publishes only
+every MAX_HOLD_PERIOD_S, and at once when it moves) is stale past `hold_stale_s` and forgotten
+past `hold_drop_s` instead.
 Times are on the agent's clock (receive time), so clock skew between vehicles does not matter.
 
 With a reach (`reach_m`, the scope's: comms/scope.py), the table keeps only the neighbours
@@ -22,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from comms.schema import Mode, VehicleState
+from comms.state_rate import HOLD_REST_M_S, MAX_HOLD_PERIOD_S, announces_hold
 
 
 @dataclass(frozen=True)
@@ -32,6 +36,23 @@ class NeighbourConfig:
     """Older than this, a neighbour is stale: guidance slows down near it."""
     drop_s: float = 3.0
     """Older than this, a neighbour is forgotten."""
+    hold_stale_s: float = 2.5 * MAX_HOLD_PERIOD_S
+    """`stale_s` of a neighbour whose last state announces that it holds at rest (it publishes
+    every MAX_HOLD_PERIOD_S): stale after two missed states and half a period for the jitter."""
+    hold_drop_s: float = 5.0 * MAX_HOLD_PERIOD_S
+    """`drop_s` of a neighbour holding at rest."""
+
+    def __post_init__(self) -> None:
+        for name in ("stale_s", "drop_s", "hold_stale_s", "hold_drop_s", "vertical_band_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {v}")
+        if self.hold_stale_s < MAX_HOLD_PERIOD_S:
+            raise ValueError(
+                f"hold_stale_s must be at least {MAX_HOLD_PERIOD_S:g} s (a holder publishes that "
+                f"often), got {self.hold_stale_s}"
+            )
+
     vertical_band_m: float = 5.0
     """Neighbours more than this far above or below are not traffic (e.g. landed vehicles)."""
     verify_min_interval_s: float = 0.15
@@ -144,8 +165,14 @@ class NeighbourTable:
 
     def expire(self, now_s: float) -> None:
         """Forget the neighbours unheard for `drop_s` (`snapshot` does it too)."""
+        drop_s, hold_drop_s = self.cfg.drop_s, self.cfg.hold_drop_s
         with self._lock:
-            for vid in [v for v, (_, t) in self._latest.items() if now_s - t > self.cfg.drop_s]:
+            for vid in [
+                v
+                for v, (s, t) in self._latest.items()
+                if now_s - t > drop_s
+                and (now_s - t > hold_drop_s or not announces_hold(s.mode, s.vel_ned_m_s))
+            ]:
                 del self._latest[vid]
                 self._version += 1
 
@@ -164,7 +191,7 @@ class NeighbourTable:
             cached = self._cache
             if cached is None or cached[0] != now_s or cached[1] != self._version:
                 cached = self._cache = (now_s, self._version, self._arrays(now_s))
-        ids, seqs, pos, vel, hdg, sigma, age = cached[2]
+        ids, seqs, pos, vel, hdg, sigma, age, limit = cached[2]
         keep = None
         if own_pos_ned_m is not None and len(ids):
             keep = np.abs(pos[:, 2] - float(own_pos_ned_m[2])) <= self.cfg.vertical_band_m
@@ -175,7 +202,10 @@ class NeighbourTable:
             ids = tuple(ids[i] for i in idx)
             seqs = tuple(seqs[i] for i in idx)
             pos, vel, hdg, sigma, age = pos[keep], vel[keep], hdg[keep], sigma[keep], age[keep]
-        stale = tuple(v for v, a in zip(ids, age.tolist(), strict=True) if a > self.cfg.stale_s)
+            limit = limit[keep]
+        stale = tuple(
+            v for v, a, lim in zip(ids, age.tolist(), limit.tolist(), strict=True) if a > lim
+        )
         return NeighbourSnapshot(
             pos_ned_m=pos.copy() if keep is None else pos,
             vel_ned_m_s=vel.copy() if keep is None else vel,
@@ -188,8 +218,8 @@ class NeighbourTable:
         )
 
     def _arrays(self, now_s: float) -> tuple:
-        """(ids, seqs, pos, vel, heading, sigma, age) of the flying neighbours, dead-reckoned to
-        `now_s` (lock held)."""
+        """(ids, seqs, pos, vel, heading, sigma, age, stale limit) of the flying neighbours,
+        dead-reckoned to `now_s` (lock held)."""
         rows = [
             (s, t)
             for s, t in self._latest.values()
@@ -197,7 +227,7 @@ class NeighbourTable:
         ]
         k = len(rows)
         if k == 0:  # an idle vehicle's table (it hears no cells): no array maths at all
-            return (), (), _EMPTY3, _EMPTY3, _EMPTY, _EMPTY, _EMPTY
+            return (), (), _EMPTY3, _EMPTY3, _EMPTY, _EMPTY, _EMPTY, _EMPTY
         ids = tuple(s.vehicle_id for s, _ in rows)
         seqs = tuple(s.seq for s, _ in rows)
         pos = np.array([s.pos_ned_m for s, _ in rows], dtype=float).reshape(k, 3)
@@ -205,8 +235,13 @@ class NeighbourTable:
         hdg = np.array([s.heading_rad for s, _ in rows], dtype=float).reshape(k)
         sigma = np.array([s.pos_sigma_m for s, _ in rows], dtype=float).reshape(k)
         age = np.maximum(0.0, now_s - np.array([t for _, t in rows], dtype=float).reshape(k))
+        rest = HOLD_REST_M_S * HOLD_REST_M_S
+        hold = (np.array([int(s.mode) for s, _ in rows]) == int(Mode.HOLDING)) & (
+            np.einsum("ij,ij->i", vel, vel) <= rest
+        )
+        limit = np.where(hold, self.cfg.hold_stale_s, self.cfg.stale_s)
         pos += vel * age[:, None]
-        return ids, seqs, pos, vel, hdg, sigma, age
+        return ids, seqs, pos, vel, hdg, sigma, age, limit
 
     def snapshot_loop(
         self, now_s: float, own_pos_ned_m: np.ndarray | None = None
@@ -233,7 +268,8 @@ class NeighbourTable:
             seqs.append(state.seq)
             sigma.append(state.pos_sigma_m)
             ages.append(age_s)
-            if age_s > self.cfg.stale_s:
+            hold = announces_hold(state.mode, state.vel_ned_m_s)
+            if age_s > (self.cfg.hold_stale_s if hold else self.cfg.stale_s):
                 stale.append(state.vehicle_id)
         k = len(ids)
         return NeighbourSnapshot(

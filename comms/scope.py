@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from comms.keys import CELL_M, Cell
+from comms.state_rate import MAX_HOLD_PERIOD_S
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,16 @@ class ScopeConfig:
     def handover_s(self) -> float:
         """Worst delay from a subscription change to a new cell's first state."""
         return self.resubscribe_s + self.state_period_s + self.link_latency_s
+
+    @property
+    def hold_reach_m(self) -> float:
+        """What a holder at rest needs heard: it publishes only every MAX_HOLD_PERIOD_S
+        (comms/state_rate.py) but does not move between its states (the first state of a move
+        goes out at once), so one vehicle closes on it at max speed over the longer hand-over:
+        sense range + separation + max speed * (resubscribe + hold period + latency). At most
+        `reach_m` with the defaults (20.8 m against 21.0 m; tests/test_comms_scope.py)."""
+        hand_over_s = self.resubscribe_s + MAX_HOLD_PERIOD_S + self.link_latency_s
+        return self.sense_range_m + self.separation_m + self.max_speed_m_s * hand_over_s
 
     @property
     def reach_m(self) -> float:

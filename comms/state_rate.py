@@ -41,6 +41,17 @@ so what a receiver extrapolates is never further than tol_m from the truth at a 
 a steady vehicle is heard at least every 1 / steady_state_hz (>= 3 Hz: the slowest link covey
 flies on and the state period in the scoping reach, docs/scaling.md). A hovering or straight-
 flying fleet thus sends a third of the states.
+
+A steady vehicle holding at rest (`announces_hold`: mode HOLDING, speed at most HOLD_REST_M_S,
+in the state it published and now) publishes at `SteadyConfig.hold_state_hz` (1 Hz) instead:
+nothing it says changes until it moves, and the first state after it moves (a goto, a push by
+the filter, a gust or a drift of its estimate past tol_m) goes out on the next tick, as any
+unsteady state does. Receivers tell a holder from its state alone, like an idle vehicle, and
+wait longer before calling it stale (agent/neighbours.py `hold_stale_s`, the station's
+`hold_stale_after_s`). The scoping reach still holds: a holder does not move between its
+states, so a vehicle entering its cells closes on it at one vehicle's speed over the longer
+hand-over (comms/scope.py `ScopeConfig.hold_reach_m` <= `reach_m`). A hovering fleet thus
+sends a tenth of the states of 10 Hz, a third of the steady rate's.
 """
 
 from __future__ import annotations
@@ -60,6 +71,13 @@ count on when they judge an idle vehicle's silence."""
 IDLE_MODES = frozenset({Mode.LANDED, Mode.KILLED})
 """Modes of a vehicle that can be idle (with its motors disarmed and on the ground)."""
 
+MAX_HOLD_PERIOD_S = 1.0
+"""A vehicle holding at rest publishes at least this often (hold_state_hz >= 1 / this): what
+receivers count on when they judge a holder's silence."""
+HOLD_REST_M_S = 0.1
+"""A HOLDING vehicle whose speed (3D, the state's velocity) is at most this is at rest
+(`announces_hold`)."""
+
 MIN_STEADY_STATE_HZ = 3.0
 """A steady vehicle publishes at least this often: the slowest link covey flies on, which the
 scoping reach (comms/scope.py `state_period_s`) and the neighbours' stale limit count on."""
@@ -77,6 +95,9 @@ class SteadyConfig:
     """Largest change of velocity (norm of the difference) since the last published state."""
     tol_rad: float = 0.05
     """Largest change of heading since the last published state."""
+    hold_state_hz: float = 1.0
+    """State rate while steady and holding at rest (`announces_hold`, in what was published
+    and now); at least 1 / MAX_HOLD_PERIOD_S, capped to state_hz (and the full rate)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.state_hz) and MIN_STEADY_STATE_HZ <= self.state_hz <= 100):
@@ -84,6 +105,12 @@ class SteadyConfig:
                 f"steady state_hz must be within [{MIN_STEADY_STATE_HZ:g}, 100] (receivers and "
                 f"the scoping reach count on a state at least every "
                 f"{1 / MIN_STEADY_STATE_HZ:.2f} s), got {self.state_hz}"
+            )
+        low = 1.0 / MAX_HOLD_PERIOD_S
+        if not (math.isfinite(self.hold_state_hz) and low <= self.hold_state_hz <= 100):
+            raise ValueError(
+                f"steady hold_state_hz must be within [{low:g}, 100] (receivers count on a "
+                f"holding vehicle every {MAX_HOLD_PERIOD_S:g} s), got {self.hold_state_hz}"
             )
         for name, hi in (("tol_m", 1.0), ("tol_m_s", 1.0), ("tol_rad", 0.5)):
             v = getattr(self, name)
@@ -98,6 +125,18 @@ _IDLE_MODE[[int(m) for m in IDLE_MODES]] = True
 def announces_idle(mode: Mode, armed: bool) -> bool:
     """What a receiver reads from a state: the vehicle may publish at its idle rate only."""
     return mode in IDLE_MODES and not armed
+
+
+_HOLDING = int(Mode.HOLDING)
+
+
+def announces_hold(mode: Mode | int, vel_ned_m_s) -> bool:
+    """What a receiver reads from a state: the vehicle holds at rest and may publish at its
+    hold rate only (MAX_HOLD_PERIOD_S)."""
+    if int(mode) != _HOLDING:
+        return False
+    vn, ve, vd = vel_ned_m_s
+    return vn * vn + ve * ve + vd * vd <= HOLD_REST_M_S * HOLD_REST_M_S
 
 
 def idle_rows(mode, armed, in_air, busy=False) -> np.ndarray:
@@ -152,6 +191,11 @@ class StatePacer:
         """Whether each row was idle when it last published."""
         self.steady = steady
         self.steady_period_s = 1.0 / min(steady.state_hz, state_hz) if steady else self.period_s
+        self.hold_period_s = (
+            1.0 / min(steady.hold_state_hz, steady.state_hz, state_hz)
+            if steady
+            else self.steady_period_s
+        )
         self.last_pos = np.zeros((n, 3))
         self.last_vel = np.zeros((n, 3))
         self.last_hdg = np.zeros(n)
@@ -182,10 +226,16 @@ class StatePacer:
             heading_rad = np.asarray(heading_rad, float).reshape(-1)
             # what must go out at once, as one int per row: mode and arming
             sig = np.asarray(mode, np.int64).reshape(-1) * 2 + np.asarray(armed, bool).reshape(-1)
+            steady = ~idle & self._steady(now_s, pos_m, vel_m_s, heading_rad, sig)
+            rest = HOLD_REST_M_S * HOLD_REST_M_S
+            hold = (
+                steady
+                & (sig // 2 == _HOLDING)
+                & (np.einsum("ij,ij->i", vel_m_s, vel_m_s) <= rest)
+                & (np.einsum("ij,ij->i", self.last_vel, self.last_vel) <= rest)
+            )
             period_s = np.where(
-                ~idle & self._steady(now_s, pos_m, vel_m_s, heading_rad, sig),
-                self.steady_period_s,
-                period_s,
+                hold, self.hold_period_s, np.where(steady, self.steady_period_s, period_s)
             )
         gap_s = now_s - self.last_s
         due = (gap_s >= period_s - self.slack_s) | (idle != self.last_idle)
@@ -234,7 +284,13 @@ class StatePacer:
                     and wn * wn + we * we + wd * wd <= cfg.tol_m_s**2
                     and turn <= cfg.tol_rad
                 ):
-                    period_s = self.steady_period_s
+                    rest = HOLD_REST_M_S * HOLD_REST_M_S
+                    hold = (
+                        m == _HOLDING
+                        and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] <= rest
+                        and lv[0] * lv[0] + lv[1] * lv[1] + lv[2] * lv[2] <= rest
+                    )
+                    period_s = self.hold_period_s if hold else self.steady_period_s
         gap_s = now_s - last_s
         due = gap_s >= period_s - self.slack_s or idle_now != bool(self.last_idle[0])
         ticks = max(math.floor(period_s * self.tick_hz + 1e-6), 1)

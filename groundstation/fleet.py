@@ -36,8 +36,9 @@ rate is then the updates reaching the station, at most the publisher's feed rate
 counts feed entries lost on the way), or VehicleState.seq for a station that hears every state.
 A vehicle's seq grows by one per state it publishes, so an idle vehicle's lower rate (1 Hz,
 comms/state_rate.py) is a lower rate, not loss. Staleness follows what the latest state announces:
-an idle vehicle (landed or killed, disarmed) is stale after `idle_stale_after_s`, any other after
-`stale_after_s`.
+an idle vehicle (landed or killed, disarmed) is stale after `idle_stale_after_s`, one holding at
+rest (`announces_hold`: it publishes every MAX_HOLD_PERIOD_S) after `hold_stale_after_s`, any
+other after `stale_after_s`.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from comms.schema import ClockReport, Mode, StateFlag, VehicleState
-from comms.state_rate import MAX_IDLE_PERIOD_S, announces_idle
+from comms.state_rate import MAX_HOLD_PERIOD_S, MAX_IDLE_PERIOD_S, announces_hold, announces_idle
 
 _HAS_GOAL = StateFlag.HAS_GOAL.value
 
@@ -77,6 +78,9 @@ class FleetConfig:
     """... unless that state announces an idle vehicle (landed or killed, disarmed), which
     publishes only every MAX_IDLE_PERIOD_S (comms/state_rate.py): stale after three missed idle
     states, and half a period for the jitter."""
+    hold_stale_after_s: float = 3.5 * MAX_HOLD_PERIOD_S
+    """... or one holding at rest (mode HOLDING, at rest: comms/state_rate.py `announces_hold`),
+    which publishes every MAX_HOLD_PERIOD_S: likewise three missed states and half a period."""
     unconfirmed_expire_s: float = 10.0
     """A vehicle that never held a liveliness token is forgotten this long after its first state."""
     lost_expire_s: float = 60.0
@@ -107,6 +111,7 @@ class FleetConfig:
             "separation_m",
             "stale_after_s",
             "idle_stale_after_s",
+            "hold_stale_after_s",
             "unconfirmed_expire_s",
             "lost_expire_s",
             "unverified_window_s",
@@ -119,8 +124,13 @@ class FleetConfig:
     def stale_after(self, state: VehicleState | None) -> float:
         """How long the station waits after `state` before it calls the vehicle stale: what the
         state announces says how soon the next one is due."""
-        idle = state is not None and announces_idle(state.mode, state.armed)
-        return self.idle_stale_after_s if idle else self.stale_after_s
+        if state is None:
+            return self.stale_after_s
+        if announces_idle(state.mode, state.armed):
+            return self.idle_stale_after_s
+        if announces_hold(state.mode, state.vel_ned_m_s):
+            return self.hold_stale_after_s
+        return self.stale_after_s
 
 
 @dataclass

@@ -20,7 +20,7 @@ from comms.commands import new_nonce
 from comms.mesh import Mesh
 from comms.schema import AckResult, Command, Mode, VehicleState
 from comms.session import embedded_router, free_tcp_port
-from comms.state_rate import MAX_IDLE_PERIOD_S
+from comms.state_rate import MAX_HOLD_PERIOD_S, MAX_IDLE_PERIOD_S
 from groundstation.fleet import FleetConfig, FleetModel
 
 FLEET = "idle"
@@ -147,24 +147,29 @@ def test_an_idle_agent_hears_nobody_and_after_a_takeoff_hears_its_neighbour_in_t
         agent.close()
 
 
-def test_the_station_waits_longer_for_an_idle_vehicle_only() -> None:
+def test_the_station_waits_longer_for_an_idle_vehicle_and_a_holder_at_rest_only() -> None:
     cfg = FleetConfig()
     assert cfg.idle_stale_after_s >= 3 * MAX_IDLE_PERIOD_S
+    assert cfg.hold_stale_after_s >= 3 * MAX_HOLD_PERIOD_S
     model = FleetModel(cfg)
     ns = 1_000_000_000
     landed = VehicleState(1, 1, 1, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, mode=Mode.LANDED)
     armed = VehicleState(2, 1, 1, (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, armed=True)
     flying = VehicleState(
-        3, 1, 1, (9.0, 0.0, -5.0), (0.0, 0.0, 0.0), 0.0, mode=Mode.HOLDING, armed=True
-    )
-    for s in (landed, armed, flying):
+        3, 1, 1, (9.0, 0.0, -5.0), (0.5, 0.0, 0.0), 0.0, mode=Mode.HOLDING, armed=True
+    )  # holding but not at rest (pushed): the steady rate at most
+    holder = VehicleState(
+        4, 1, 1, (14.0, 0.0, -5.0), (0.0, 0.05, 0.0), 0.0, mode=Mode.HOLDING, armed=True
+    )  # at rest: every MAX_HOLD_PERIOD_S (comms/state_rate.py)
+    for s in (landed, armed, flying, holder):
         model.on_state(s, 0)
     quiet_s = (cfg.stale_after_s + cfg.idle_stale_after_s) / 2  # between the two thresholds
     views = views_by_id(model.snapshot(int(quiet_s * ns)))
     assert not views[1].stale, "an idle vehicle was stale between two of its idle states"
     assert views[2].stale and views[3].stale  # armed on the ground, flying: the short threshold
+    assert not views[4].stale, "a holder at rest was stale between two of its states"
     views = views_by_id(model.snapshot(int((cfg.idle_stale_after_s + 0.1) * ns)))
-    assert views[1].stale
+    assert views[1].stale and views[4].stale
     # 1 Hz idle states with consecutive seqs are no loss, and the rate says 1 Hz
     model = FleetModel(cfg)
     for k in range(4):

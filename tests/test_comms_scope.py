@@ -339,3 +339,14 @@ def test_head_on_across_a_cell_corner_each_sees_the_other_in_time(mesh_trio) -> 
     finally:
         for ag in agents.values():
             ag.close()
+
+
+def test_a_holder_at_rest_is_heard_within_the_reach() -> None:
+    """A holder publishes every MAX_HOLD_PERIOD_S (comms/state_rate.py) and does not move
+    between its states: what a vehicle entering its cells needs heard is within the reach the
+    cells are chosen for, with the defaults and for faster fleets alike."""
+    from comms.scope import ScopeConfig
+
+    for cfg in (ScopeConfig(), ScopeConfig(max_speed_m_s=5.0), ScopeConfig(sense_range_m=30.0)):
+        assert cfg.hold_reach_m <= cfg.reach_m
+    assert ScopeConfig().hold_reach_m == pytest.approx(20.8)

@@ -17,13 +17,13 @@ def fill(table: NeighbourTable, rng: np.random.Generator, n: int, now_s: float) 
             int(rng.integers(1, 1000)),
             int(rng.integers(1, 10**9)),
             tuple(rng.uniform(-50, 50, 3) + (0, 0, -10)),
-            tuple(rng.uniform(-5, 5, 3)),
+            tuple(rng.uniform(-5, 5, 3) * (rng.random() < 0.7)),  # some at rest
             float(rng.uniform(-3, 3)),
             modes[int(rng.integers(0, 4))],
             bool(rng.integers(0, 2)),
             pos_sigma_m=float(rng.uniform(0, 2)),
         )
-        table.update(state, now_s - float(rng.uniform(0, 4)))
+        table.update(state, now_s - float(rng.uniform(0, 6)))
 
 
 def same(a, b) -> None:
@@ -60,3 +60,37 @@ def test_cache_follows_updates_and_callers_cannot_spoil_it() -> None:
     assert table.snapshot(10.5).pos_ned_m[0, 0] == pytest.approx(5.0)
     table.forget(2)
     assert len(table.snapshot(10.5)) == 0
+
+
+def _holder(vid: int, vel=(0.0, 0.0, 0.0), mode=Mode.HOLDING) -> VehicleState:
+    return VehicleState(vid, 1, 1, (5.0 * vid, 0.0, -10.0), vel, 0.0, mode, True)
+
+
+def test_a_holder_at_rest_is_waited_for_longer_than_a_mover() -> None:
+    """A neighbour whose last state announces that it holds at rest publishes every second
+    (comms/state_rate.py): stale after hold_stale_s (2.5 s), forgotten after hold_drop_s (5 s);
+    a holder drifting faster than rest, or a vehicle at rest in a goto, after stale_s and
+    drop_s as before."""
+    table = NeighbourTable(1)
+    table.update(_holder(2), 0.0)
+    table.update(_holder(3, vel=(0.2, 0.0, 0.0)), 0.0)
+    table.update(_holder(4, mode=Mode.GOTO), 0.0)
+    snap = table.snapshot(2.0)
+    assert snap.stale_ids == (3, 4)
+    same(snap, table.snapshot_loop(2.0))
+    assert table.snapshot(2.6).stale_ids == (2, 3, 4)
+    assert table.snapshot(3.5).ids == (2,)  # the movers forgotten after 3 s, the holder kept
+    assert table.snapshot(5.1).ids == ()
+
+
+@pytest.mark.parametrize(
+    ("kw", "why"),
+    [
+        ({"stale_s": 0.0}, "stale_s must be a positive"),
+        ({"hold_drop_s": float("nan")}, "hold_drop_s"),
+        ({"hold_stale_s": 0.5}, "hold_stale_s must be at least 1 s"),
+    ],
+)
+def test_bad_neighbour_settings_are_refused_with_the_reason(kw, why) -> None:
+    with pytest.raises(ValueError, match=why):
+        NeighbourConfig(**kw)

@@ -141,6 +141,7 @@ AGENT_FLAGS = [
     "--no-gcs-failsafe",
     "--idle-state-hz",
     "--steady-state-hz",
+    "--hold-state-hz",
     "--duration-s",
     "--verbose",
     "--link",
@@ -193,3 +194,16 @@ def test_the_flags_generated_from_the_configs_keep_their_names_and_defaults() ->
     assert not off.guidance.safety_filter
     nogcs = agent_cli.config_from_args(p.parse_args(["--id", "3", "--no-gcs-failsafe"]))
     assert not nogcs.failsafe.require_gcs
+
+
+def test_the_hold_rate_flag_reaches_the_steady_rule_and_a_bad_one_is_refused() -> None:
+    from agent import agent_cli
+
+    p = agent_cli.parser()
+    cfg = agent_cli.config_from_args(p.parse_args(["--id", "3", "--steady-state-hz", "3"]))
+    assert cfg.steady is not None and cfg.steady.hold_state_hz == 1.0
+    args = p.parse_args(["--id", "3", "--steady-state-hz", "3", "--hold-state-hz", "2"])
+    assert agent_cli.config_from_args(args).steady.hold_state_hz == 2.0
+    args = p.parse_args(["--id", "3", "--steady-state-hz", "3", "--hold-state-hz", "0.5"])
+    with pytest.raises(ValueError, match="hold_state_hz must be within"):
+        agent_cli.config_from_args(args)

@@ -90,11 +90,12 @@ def test_the_idle_rate_is_capped_to_the_state_rate_and_the_floor_is_refused() ->
         StatePacer(10.0, 1.0, 0.0)
 
 
-@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("seed", range(12))
 def test_one_row_equals_row_0_of_the_array_path(seed: int) -> None:
     """`StatePacer.due` of one vehicle (on Python floats) says what row 0 of two says, with
     and without the steady rule, over random ticks: idleness coming and going, hovering and
-    manoeuvring (near and past the tolerances), mode and arming changes, jitter, repeats."""
+    manoeuvring (near and past the tolerances), mode and arming changes, jitter, repeats;
+    seeds 8-11 hover near rest (the hold rate, in and out of HOLD_REST_M_S)."""
     rng = np.random.default_rng(seed)
     steady = None if seed % 4 == 0 else SteadyConfig(state_hz=float(rng.choice([3.0, 5.0])))
     state_hz, tick_hz = float(rng.choice([10.0, 5.0, 3.3])), float(rng.choice([10.0, 20.0]))
@@ -115,6 +116,8 @@ def test_one_row_equals_row_0_of_the_array_path(seed: int) -> None:
             armed = not armed
         scale = float(rng.choice([0.0, 0.01, 0.05, 0.3]))  # within the tolerances, or not
         vel = vel + rng.normal(0.0, scale, 3)
+        if seed >= 8:  # hovering: pulled back to rest
+            vel *= 0.3
         pos = pos + vel / tick_hz + rng.normal(0.0, scale, 3)
         hdg += float(rng.normal(0.0, scale)) + float(rng.choice([0.0, 2 * np.pi]))
         other = rng.normal(0.0, 5.0, (2, 3))
@@ -140,3 +143,21 @@ def test_one_row_equals_row_0_of_the_array_path(seed: int) -> None:
             one.again()
             two.again()
     assert saw == {True, False}
+
+
+def test_the_array_path_holds_at_rest_like_the_one_row_path() -> None:
+    """Two rows at rest, one HOLDING and one in a GOTO: the holder at the hold rate (1 Hz), the
+    other at the steady rate; row 0 of two equals a pacer of one."""
+    two = StatePacer(10.0, 1.0, 10.0, 2, SteadyConfig())
+    one = StatePacer(10.0, 1.0, 10.0, 1, SteadyConfig())
+    z = np.zeros((2, 3))
+    modes = np.array([int(Mode.HOLDING), int(Mode.GOTO)])
+    sent = []
+    for k in range(40):
+        due = two.due(k * 0.1, np.array([False, False]), z, z, np.zeros(2), modes, np.ones(2, bool))
+        got = one.due(k * 0.1, np.array([False]), z[:1], z[:1], np.zeros(1), modes[:1], [True])
+        assert bool(got[0]) == bool(due[0])
+        sent.append(due)
+    sent = np.array(sent)
+    assert set(np.diff(np.flatnonzero(sent[:, 0])).tolist()) == {10}
+    assert set(np.diff(np.flatnonzero(sent[:, 1]))[1:].tolist()) == {3}

@@ -1,8 +1,9 @@
 """The steady-state rule (comms/state_rate.py SteadyConfig): a vehicle whose last state still
 predicts it publishes at the steady rate, anything its receivers could not extrapolate goes out on
 the next tick, and what a receiver extrapolates is never further than tol_m from the truth.
-Then a real agent on a real Zenoh mesh: hovering at 3 Hz, a goto sent at once and its
-acceleration faster than the steady rate, no gap in the seqs and no loss at the station."""
+A vehicle holding at rest publishes at the hold rate (1 Hz) and any motion at once. Then a real
+agent on a real Zenoh mesh: hovering at 1 Hz, a goto sent at once and its acceleration faster
+than the steady rate, no gap in the seqs and no loss at the station."""
 
 from __future__ import annotations
 
@@ -19,7 +20,13 @@ from agent.hosts import Agent
 from agent.shell_config import AgentConfig
 from comms.commands import new_nonce
 from comms.schema import AckResult, Command, Mode
-from comms.state_rate import MIN_STEADY_STATE_HZ, StatePacer, SteadyConfig
+from comms.state_rate import (
+    MAX_HOLD_PERIOD_S,
+    MIN_STEADY_STATE_HZ,
+    StatePacer,
+    SteadyConfig,
+    announces_hold,
+)
 from groundstation.fleet import FleetModel
 
 FLEET = "steady"
@@ -102,6 +109,49 @@ def test_what_receivers_extrapolate_stays_within_tol_m_on_random_tracks() -> Non
     assert published < 0.8 * ticks, "the rule never saved a state"
 
 
+HOLD = int(Mode.HOLDING)  # `_fly`'s sig is the mode
+
+
+def test_a_holder_at_rest_publishes_at_the_hold_rate_and_any_motion_at_once() -> None:
+    pos, vel = _straight(80, (0.0, 0.0, 0.0))
+    sig = np.full(80, HOLD, np.int64)
+    sent = _fly(StatePacer(10.0, 1.0, 10.0, steady=SteadyConfig()), pos, vel, sig=sig)
+    assert sent[0] and set(np.diff(np.flatnonzero(sent)).tolist()) == {10}, "not 1 Hz"
+    # a push of 0.15 m/s at tick 45 (past the 0.1 m/s of rest): out at once, then 3 Hz
+    v, p = vel.copy(), pos.copy()
+    v[45:] = (0.15, 0.0, 0.0)
+    p[46:] += np.cumsum(np.tile((0.15 * TICK_S, 0.0, 0.0), (34, 1)), axis=0)
+    sent = _fly(StatePacer(10.0, 1.0, 10.0, steady=SteadyConfig()), p, v, sig=sig)
+    assert sent[45], "the first state off rest waited"
+    assert set(np.diff(np.flatnonzero(sent[45:])).tolist()) == {3}
+    # a goto (a new mode) at tick 45: at once
+    sig2 = sig.copy()
+    sig2[45:] = int(Mode.GOTO)
+    sent = _fly(StatePacer(10.0, 1.0, 10.0, steady=SteadyConfig()), pos, vel, sig=sig2)
+    assert sent[45] and set(np.diff(np.flatnonzero(sent[45:])).tolist()) == {3}
+    # at rest in another mode (a goto's vehicle waiting), or holding while moving: steady 3 Hz
+    for s_, v_ in ((int(Mode.GOTO), (0.0, 0.0, 0.0)), (HOLD, (0.5, 0.0, 0.0))):
+        pos, vel = _straight(40, v_)
+        sent = _fly(
+            StatePacer(10.0, 1.0, 10.0, steady=SteadyConfig()), pos, vel, sig=np.full(40, s_)
+        )
+        assert set(np.diff(np.flatnonzero(sent)).tolist()) == {3}, (s_, v_)
+    # the hold rate is capped to the steady rate, and 2 Hz is taken
+    pos, vel = _straight(40)
+    pos[:], vel[:] = 0.0, 0.0
+    for hz, gap in ((5.0, 3), (2.0, 5)):
+        pacer = StatePacer(10.0, 1.0, 10.0, steady=SteadyConfig(hold_state_hz=hz))
+        assert set(np.diff(np.flatnonzero(_fly(pacer, pos, vel, sig=sig[:40]))).tolist()) == {gap}
+
+
+def test_a_receiver_tells_a_holder_at_rest_from_its_state() -> None:
+    assert announces_hold(Mode.HOLDING, (0.0, 0.05, -0.05))
+    assert not announces_hold(Mode.HOLDING, (0.0, 0.1, 0.05))  # faster than rest
+    assert not announces_hold(Mode.GOTO, (0.0, 0.0, 0.0))
+    assert not announces_hold(Mode.HOLDING, (math.nan, 0.0, 0.0))
+    assert MAX_HOLD_PERIOD_S == 1.0
+
+
 def test_an_idle_row_keeps_the_idle_rate_and_the_steady_rate_is_capped_to_the_full_one() -> None:
     pacer = StatePacer(10.0, 1.0, 10.0, n=2, steady=SteadyConfig())
     sent = np.zeros(2, int)
@@ -124,6 +174,8 @@ def test_an_idle_row_keeps_the_idle_rate_and_the_steady_rate_is_capped_to_the_fu
         ({"tol_m": 0.0}, "tol_m"),
         ({"tol_m_s": 2.0}, "tol_m_s"),
         ({"tol_rad": -1.0}, "tol_rad"),
+        ({"hold_state_hz": 0.5}, "hold_state_hz must be within \\[1, 100\\]"),
+        ({"hold_state_hz": math.inf}, "hold_state_hz"),
     ],
 )
 def test_bad_steady_settings_are_refused_with_the_reason(kw, why) -> None:
@@ -131,7 +183,7 @@ def test_bad_steady_settings_are_refused_with_the_reason(kw, why) -> None:
         SteadyConfig(**kw)
 
 
-def test_a_hovering_agent_publishes_at_3_hz_and_a_goto_at_once(mesh_trio) -> None:
+def test_a_hovering_agent_publishes_at_the_hold_rate_and_a_goto_at_once(mesh_trio) -> None:
     hub, a, _b = mesh_trio
     heard, station = Seqs(), FleetModel()
     hub.subscribe_states(heard.on_state, vehicle_id=1)
@@ -151,8 +203,10 @@ def test_a_hovering_agent_publishes_at_3_hz_and_a_goto_at_once(mesh_trio) -> Non
         assert ack.result is AckResult.ACCEPTED
         climb = ticks(150)  # 15 s: climbs to 10 m and holds there
         assert agent.core.mode_of(0) is Mode.HOLDING
-        hover = ticks(30)  # 3 s hovering
-        assert 9 <= hover <= 11, f"{hover} states in 3 s of hover (3 Hz: 10)"
+        hover = ticks(30)  # 3 s hovering at rest
+        assert 2 <= hover <= 4, f"{hover} states in 3 s of hover (the 1 Hz hold rate: 3)"
+        view = views_by_id(station.snapshot(time.time_ns()))[1]
+        assert not view.stale, "the station waits for a holder's next state"
         ack = agent.handle_command(
             Command.goto_local(30.0, 0.0, -10.0, nonce=new_nonce(), stamp_ns=0)
         )
