@@ -178,7 +178,9 @@ def add_flight_args(
         "--land-radius-m 0); default: on its layer, landing one at a time",
     )
     add_config_flags(
-        p, ShellConfig, only=("idle_state_hz", "idle_tick_hz", "calm_tick_hz", "link_tags")
+        p,
+        ShellConfig,
+        only=("idle_state_hz", "idle_tick_hz", "calm_tick_hz", "hold_tick_hz", "link_tags"),
     )
     p.add_argument(
         "--steady-state-hz",
@@ -356,7 +358,7 @@ def config_from_args(
         sim=sim_config(args.vehicle_model),
         start_ne_m=args.start_ne_m,
         spacing_m=args.spacing_m,
-        **given_fields(args, "assumed_pos_sigma_m", "link_tags", "calm_tick_hz"),
+        **given_fields(args, "assumed_pos_sigma_m", "link_tags", "calm_tick_hz", "hold_tick_hz"),
     )
 
 

@@ -36,6 +36,16 @@ r_ij + 1 m, while the vehicle that turned is not calm (its relative velocity put
 within its own bound) and runs its filter at 10 Hz. That is the delay the fleet already flies
 with on a 3 Hz radio link, where decisions use neighbour states up to a third of a second old
 (docs/policy.md).
+
+The hold tier (`holding_at_rest`, ShellConfig.hold_tick_hz: 1 Hz): where every vehicle of the
+process holds at rest and the rule above holds with H two hold periods (2 s), the next tick is
+due a hold period later. A holder's own bound is its speed (about 0), so a neighbour must be
+further than r_ij + |v_i - v_j| tau + V_j 2 s + 1 m: 6.6 m from a holding covey neighbour at
+3 m separation and sigma 0 (the demo's 8 m grid is calm at 1 Hz; realistic vehicles, whose
+pair distance is 6.4 m at 0.5 m GNSS, are not). A neighbour that sets off towards the holder
+at cruise speed is seen at the holder's next tick, at most a second later, from at least r_ij
++ 1 m, while it runs its own filter at 10 Hz from the start (the pair is within its bound); a
+command to the holder wakes its loop at once.
 """
 
 from __future__ import annotations
@@ -45,6 +55,7 @@ import numpy as np
 from agent.flight_core import FlightCore, Observed
 from agent.neighbours import NeighbourSnapshot
 from comms.schema import Mode
+from comms.state_rate import HOLD_REST_M_S
 from kit.masks import mode_mask
 from policy.safety import pair_radius_m
 
@@ -55,6 +66,17 @@ TRAFFIC_ACCEL_M_S2 = 2.5
 
 _CALM_MODES = mode_mask((Mode.HOLDING, Mode.GOTO, Mode.RETURNING, Mode.MISSION))
 _ARRIVING = mode_mask((Mode.GOTO, Mode.RETURNING, Mode.MISSION))
+
+
+def holding_at_rest(core: FlightCore, obs: Observed) -> bool:
+    """Whether every vehicle of the process holds at rest (HOLDING, its measured speed at most
+    HOLD_REST_M_S): the hold tier's condition (ShellConfig.hold_tick_hz), checked with `calm`
+    over the hold tier's longer horizon. A holder's own bound in `calm` is its speed, so only
+    its neighbours' reach grows with the horizon: a command wakes the loop at once."""
+    if not (core.mode == int(Mode.HOLDING)).all():
+        return False
+    vel = obs.vel_m_s
+    return bool((np.einsum("ij,ij->i", vel, vel) <= HOLD_REST_M_S * HOLD_REST_M_S).all())
 
 
 def calm(

@@ -35,7 +35,7 @@ import numpy as np
 from agent.actions import ActionQueue, outcome_of, perform
 from agent.autopilots import Autopilots
 from agent.backends.base import BackendError, Capability, NotSupported
-from agent.calm import calm
+from agent.calm import calm, holding_at_rest
 from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import BatchGuidance, GuidanceStep
 from agent.neighbours import NeighbourSnapshot, NeighbourTable
@@ -164,6 +164,9 @@ class VehicleShell:
         self._calm = False  # nothing near any vehicle after the last tick: tick at the calm rate
         self._calm_every = cfg.calm_every
         self._calm_horizon_s = 2.0 * self._calm_every / cfg.tick_hz  # agent/calm.py's H
+        self._hold_every = cfg.hold_every
+        self._hold_horizon_s = 2.0 * self._hold_every / cfg.tick_hz
+        self._calm_periods = 1  # grid periods to the next tick while calm (calm or hold tier)
         self.filtered = np.zeros(n, bool)
         self.slowed = np.zeros(n, bool)
         self.seq = np.zeros(n, np.int64)
@@ -482,9 +485,16 @@ class VehicleShell:
                 self.filtered[rows] = out.filtered
                 self.slowed[rows] = out.slowed_for_stale
             if out is not None and self._calm_every > 1 and not self.cfg.trace_guidance:
-                self._calm = calm(
-                    core, obs, busy, self.filtered | self.slowed, ext, self._calm_horizon_s
-                )
+                corrected = self.filtered | self.slowed
+                if (
+                    self._hold_every > self._calm_every
+                    and holding_at_rest(core, obs)
+                    and calm(core, obs, busy, corrected, ext, self._hold_horizon_s)
+                ):
+                    self._calm, self._calm_periods = True, self._hold_every
+                else:
+                    self._calm = calm(core, obs, busy, corrected, ext, self._calm_horizon_s)
+                    self._calm_periods = self._calm_every
             notes = core.drain_notes()
             rows_due = np.flatnonzero(due)
             states = self._states(rows_due, obs, ext)  # stamped now: only their puts from here on
@@ -650,4 +660,5 @@ class VehicleShell:
             wake=self._wake,
             calm_every=self._calm_every,
             calm=lambda: self._calm,
+            calm_periods=lambda: self._calm_periods,
         )

@@ -23,7 +23,7 @@ from comms.plan import FleetPlan
 from comms.schema import MAX_LINK_TAGS, POSITION_LIMIT_M
 from comms.scope import ScopeConfig
 from comms.session import MeshConfig
-from comms.state_rate import IDLE_STATE_HZ, SteadyConfig, check_rates
+from comms.state_rate import IDLE_STATE_HZ, MAX_HOLD_PERIOD_S, SteadyConfig, check_rates
 from comms.traffic import TrafficConfig
 from policy.goal_rule import ASSUMED_POS_SIGMA_M
 
@@ -56,6 +56,12 @@ class ShellConfig:
     with no neighbour, traffic, zone, fence or goal within what it could reach before a later
     tick (agent/calm.py). On the `tick_hz` grid (every 3rd of 10 Hz), never below the steady
     state rate; `tick_hz`: never calm."""
+    hold_tick_hz: float = 1.0
+    """Tick rate while every vehicle of the process holds at rest (HOLDING, at most
+    comms/state_rate.py HOLD_REST_M_S) and is calm over that longer period's horizon
+    (agent/calm.py `holding_at_rest`): a hovering vehicle with nobody near ticks (and
+    publishes) once a second. On the `tick_hz` grid, never below the hold state rate nor
+    above `calm_tick_hz`; `calm_tick_hz` or more: no hold tier."""
     steady: SteadyConfig | None = None
     """Publish at the steady rate while receivers can predict the state (hovering, flying
     straight): comms/state_rate.py; None: always at `state_hz` in the air."""
@@ -126,6 +132,12 @@ class ShellConfig:
         check_rates(self.state_hz, self.idle_state_hz)
         if not (math.isfinite(self.calm_tick_hz) and 0 < self.calm_tick_hz <= 100):
             raise ValueError(f"calm_tick_hz must be within (0, 100], got {self.calm_tick_hz}")
+        low = 1.0 / MAX_HOLD_PERIOD_S
+        if not (math.isfinite(self.hold_tick_hz) and low <= self.hold_tick_hz <= 100):
+            raise ValueError(
+                f"hold_tick_hz must be within [{low:g}, 100] (a holder is heard at least every "
+                f"{MAX_HOLD_PERIOD_S:g} s), got {self.hold_tick_hz}"
+            )
         if not 0 <= self.link_tags <= MAX_LINK_TAGS:
             raise ValueError(f"link_tags must be within 0..{MAX_LINK_TAGS}, got {self.link_tags}")
         if not (math.isfinite(self.idle_tick_hz) and 0 < self.idle_tick_hz <= 100):
@@ -166,6 +178,13 @@ class ShellConfig:
         and the steady state rate (1: never calm)."""
         floor_hz = max(self.calm_tick_hz, self.steady.state_hz if self.steady else 0.0)
         return max(1, int(self.tick_hz / floor_hz + 1e-9))
+
+    @property
+    def hold_every(self) -> int:
+        """Ticks of the `tick_hz` grid per hold tick (`hold_tick_hz`): at least the hold state
+        rate, at least `calm_every` (equal: no hold tier)."""
+        floor_hz = max(self.hold_tick_hz, self.steady.hold_state_hz if self.steady else 0.0)
+        return max(self.calm_every, int(self.tick_hz / floor_hz + 1e-9))
 
     @property
     def resting_tick_hz(self) -> float:

@@ -36,6 +36,7 @@ def run_ticks(
     wake: threading.Event | None = None,
     calm_every: int = 1,
     calm: Callable[[], bool] | None = None,
+    calm_periods: Callable[[], int] | None = None,
 ) -> None:
     """Call `tick(now_s)` at `rate_hz` until `stop` is set, on the schedule of `next_due_s`;
     `on_overrun` is called for each tick that ended after the next one was due. A failing tick
@@ -48,8 +49,9 @@ def run_ticks(
     replay them).
 
     While `calm()` says so after a tick (and the loop does not rest), the next one is due
-    `calm_every` periods later, on the same grid (a vehicle with nothing near: agent/calm.py);
-    `wake` rung meanwhile brings the next tick of the grid."""
+    `calm_every` periods later (or `calm_periods()`, when given: a longer tier, a vehicle
+    holding at rest), on the same grid (a vehicle with nothing near: agent/calm.py); `wake`
+    rung meanwhile brings the next tick of the grid."""
     period_s = 1.0 / rate_hz
     idle_period_s = 1.0 / idle_hz if idle_hz else period_s
     due_s = clock_s()
@@ -66,7 +68,8 @@ def run_ticks(
             not resting and wake is not None and calm is not None and calm_every > 1 and calm()
         )
         last_due_s = due_s
-        step_s = idle_period_s if resting else period_s * (calm_every if calm_now else 1)
+        every = max(1, calm_periods()) if calm_now and calm_periods is not None else calm_every
+        step_s = idle_period_s if resting else period_s * (every if calm_now else 1)
         due_s = next_due_s(due_s, now_s, step_s)
         if calm_now:
             assert wake is not None

@@ -145,6 +145,42 @@ def test_holding_beside_holding_neighbours_is_calm_until_one_moves(agent) -> Non
     assert not ag._calm
 
 
+def test_a_holder_at_rest_with_nobody_near_ticks_at_the_hold_rate(agent) -> None:
+    """The hold tier (agent/calm.py `holding_at_rest`, 1 Hz): holding at rest with neighbours
+    at rest beyond 3.6 + 0 + (0 + 1) x 2 + 1 = 6.6 m (8 m: the demo's grid), a hold tick is
+    ten grid periods; a neighbour at 6 m keeps the calm tier (3 periods; 5.2 m), one setting
+    off towards it ends calm, and flying (not at rest) is the calm tier only."""
+    ag, t = agent
+    assert (ag.cfg.calm_every, ag.cfg.hold_every) == (3, 10)
+    fly(ag, t)
+    assert ag._calm and ag._calm_periods == 3  # in a goto: never the hold tier
+    ag.handle_command(Command(kind=CommandKind.HOLD, nonce=new_nonce(), stamp_ns=0))
+    tick(ag, t, 30)
+    assert ag.mode is Mode.HOLDING and ag._calm and ag._calm_periods == 10
+    for dn_m, de_m in ((8.0, 0.0), (0.0, 8.0), (-8.0, 0.0), (0.0, -8.0)):
+        neighbour(ag, t, dn_m, de_m)
+    tick(ag, t)
+    assert ag._calm and ag._calm_periods == 10
+    neighbour(ag, t, 0.0, 6.0)  # at rest within 6.6 m, beyond 5.2 m: the calm tier
+    tick(ag, t)
+    assert ag._calm and ag._calm_periods == 3
+    neighbour(ag, t, 0.0, 8.0, vel=(0.0, -1.0, 0.0))  # sets off towards it
+    tick(ag, t)
+    assert not ag._calm
+
+
+def test_the_hold_tier_follows_its_settings() -> None:
+    from agent.shell_config import AgentConfig as Cfg
+    from comms.state_rate import SteadyConfig
+
+    assert Cfg(vehicle_id=1, hold_tick_hz=2.0).hold_every == 5
+    assert Cfg(vehicle_id=1, hold_tick_hz=5.0).hold_every == 3  # never above the calm rate
+    steady = SteadyConfig(hold_state_hz=2.0)  # never below the hold state rate
+    assert Cfg(vehicle_id=1, steady=steady).hold_every == 5
+    with pytest.raises(ValueError, match="hold_tick_hz must be within \\[1, 100\\]"):
+        Cfg(vehicle_id=1, hold_tick_hz=0.5)
+
+
 def test_traffic_that_does_not_cooperate_is_taken_at_its_speed(agent) -> None:
     ag, t = agent
     fly(ag, t)
@@ -194,8 +230,9 @@ def test_its_goal_a_keep_out_zone_and_an_action_end_calm(agent) -> None:
 def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_another(
     mesh_trio,
 ) -> None:
-    """The agent's own loop (real clock, real Zenoh): flying alone it ticks about 3.3 times a
-    second; with a neighbour 8 m off flying the other way it ticks at 10 Hz (fewer on a loaded
+    """The agent's own loop (real clock, real Zenoh): hovering alone at rest it ticks about once
+    a second (the hold tier) and a goto is taken at once; flying alone it ticks about 3.3 times
+    a second; with a neighbour 8 m off flying the other way it ticks at 10 Hz (fewer on a loaded
     machine, but more than the calm rate allows)."""
     hub, a, b = mesh_trio
     stop = threading.Event()
@@ -209,6 +246,12 @@ def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_anothe
                 Command.goto_local(300.0, 0.0, -6.0, nonce=new_nonce(), stamp_ns=time.time_ns()),
             ):
                 wait_until(lambda: ag.mode in (Mode.LANDED, Mode.HOLDING), 20.0)
+                if ag.mode is Mode.HOLDING:  # hovering alone at rest: the 1 Hz hold tier
+                    assert wait_until(lambda: ag._calm_periods == 10, 10.0)
+                    t0, n0 = time.monotonic(), ag.stats.ticks
+                    time.sleep(3.0)
+                    hold_hz = (ag.stats.ticks - n0) / (time.monotonic() - t0)
+                    assert hold_hz <= 1.0 + 0.5, hold_hz
                 for _ in range(50):
                     res = hub.send_command(cmd, expect=(1,), timeout_s=2.0)
                     if res.ok:
