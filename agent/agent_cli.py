@@ -62,6 +62,7 @@ from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.schema import POSITION_LIMIT_M
+from comms.session import use_one_thread_runtime
 from comms.state_rate import (
     HOLD_REST_M_S,
     MAX_HOLD_PERIOD_S,
@@ -483,6 +484,8 @@ def cli(argv: list[str]) -> int:
     """`covey agent`."""
     p = parser()
     args = p.parse_args(argv)
+    if args.ids is None:  # one vehicle: a few hundred messages a second (a host has its pools)
+        use_one_thread_runtime()  # before anything opens Zenoh (comms/session.py)
     setup_logging(args.verbose)
     check_duration(p, args)
     kind = args.vehicle.partition(":")[0]

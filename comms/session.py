@@ -38,6 +38,25 @@ MAX_CONFIG_BYTES = 1 << 20
 """The largest --zenoh-config accepted (1 MiB; the shipped ones are under 4 KiB)."""
 
 
+RUNTIME_ENV = "ZENOH_RUNTIME"
+"""Zenoh reads its thread pools' settings from this variable once, when it first runs."""
+ONE_THREAD_RUNTIME = (
+    "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), "
+    "app: (worker_threads: 1))"
+)
+"""Every Zenoh pool of a process on one worker thread (zenoh-runtime's RON syntax). An agent
+process moves a few hundred small messages a second; on the 2 (receive), 1 + 1 (send, links)
+and 1 (application) threads of Zenoh's default each message woke a thread and handed the work
+on to another, which cost more than the work (docs/companion.md, "Round six")."""
+
+
+def use_one_thread_runtime() -> str:
+    """Run this process's Zenoh on one worker thread (ONE_THREAD_RUNTIME), unless the user's
+    environment already says how (RUNTIME_ENV wins). Call before the first session opens: Zenoh
+    reads the variable once. Returns the setting in force."""
+    return os.environ.setdefault(RUNTIME_ENV, ONE_THREAD_RUNTIME)
+
+
 class MeshConfigError(ValueError):
     """The mesh cannot be set up as configured (bad Zenoh config file, endpoint, busy port); the
     message is one line that says why. CLIs turn it into exit status 2."""
