@@ -199,6 +199,13 @@ def add_flight_args(
         f"most {HOLD_REST_M_S:g} m/s), at least {1 / MAX_HOLD_PERIOD_S:g}; neighbours and the "
         "station wait longer for a holder (comms/state_rate.py)",
     )
+    p.add_argument(
+        "--one-zenoh-thread",
+        action="store_true",
+        help="run this process's Zenoh on one worker thread instead of its six (ZENOH_RUNTIME; "
+        "a value already in the environment wins): about a tenth less CPU for 40 agents on 2 "
+        "cores, measured; off by default (docs/companion.md)",
+    )
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
 
@@ -484,7 +491,7 @@ def cli(argv: list[str]) -> int:
     """`covey agent`."""
     p = parser()
     args = p.parse_args(argv)
-    if args.ids is None:  # one vehicle: a few hundred messages a second (a host has its pools)
+    if args.one_zenoh_thread:
         use_one_thread_runtime()  # before anything opens Zenoh (comms/session.py)
     setup_logging(args.verbose)
     check_duration(p, args)

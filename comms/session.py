@@ -44,10 +44,12 @@ ONE_THREAD_RUNTIME = (
     "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), "
     "app: (worker_threads: 1))"
 )
-"""Every Zenoh pool of a process on one worker thread (zenoh-runtime's RON syntax). An agent
-process moves a few hundred small messages a second; on the 2 (receive), 1 + 1 (send, links)
-and 1 (application) threads of Zenoh's default each message woke a thread and handed the work
-on to another, which cost more than the work (docs/companion.md, "Round six")."""
+"""Every Zenoh pool of a process on one worker thread (zenoh-runtime's RON syntax), for
+`covey agent --one-zenoh-thread`. An agent process moves a few hundred small messages a second;
+on the 2 (receive), 1 + 1 (send, links) and 1 (application) threads of Zenoh's default each
+message wakes a thread and hands the work on to another, which costs more than the work
+(docs/companion.md, "Round six"). Off by default: under a loaded machine one e2e test
+(tests/test_record_e2e.py closed loop) missed more traced ticks with it."""
 
 
 def use_one_thread_runtime() -> str:

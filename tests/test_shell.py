@@ -142,6 +142,7 @@ AGENT_FLAGS = [
     "--idle-state-hz",
     "--steady-state-hz",
     "--hold-state-hz",
+    "--one-zenoh-thread",
     "--duration-s",
     "--verbose",
     "--link",
@@ -207,3 +208,13 @@ def test_the_hold_rate_flag_reaches_the_steady_rule_and_a_bad_one_is_refused() -
     args = p.parse_args(["--id", "3", "--steady-state-hz", "3", "--hold-state-hz", "0.5"])
     with pytest.raises(ValueError, match="hold_state_hz must be within"):
         agent_cli.config_from_args(args)
+
+
+def test_one_zenoh_thread_is_asked_for_and_the_users_setting_wins(monkeypatch) -> None:
+    from comms.session import ONE_THREAD_RUNTIME, RUNTIME_ENV, use_one_thread_runtime
+
+    monkeypatch.delenv(RUNTIME_ENV, raising=False)
+    assert use_one_thread_runtime() == ONE_THREAD_RUNTIME
+    assert "handover: app" in ONE_THREAD_RUNTIME and "worker_threads: 1" in ONE_THREAD_RUNTIME
+    monkeypatch.setenv(RUNTIME_ENV, "(rx: (worker_threads: 4))")
+    assert use_one_thread_runtime() == "(rx: (worker_threads: 4))"
