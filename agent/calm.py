@@ -55,7 +55,7 @@ import numpy as np
 from agent.flight_core import FlightCore, Observed
 from agent.neighbours import NeighbourSnapshot
 from comms.schema import Mode
-from comms.state_rate import HOLD_REST_M_S
+from comms.state_rate import hold_rows
 from kit.masks import mode_mask
 from policy.safety import pair_radius_m
 
@@ -73,10 +73,7 @@ def holding_at_rest(core: FlightCore, obs: Observed) -> bool:
     HOLD_REST_M_S): the hold tier's condition (ShellConfig.hold_tick_hz), checked with `calm`
     over the hold tier's longer horizon. A holder's own bound in `calm` is its speed, so only
     its neighbours' reach grows with the horizon: a command wakes the loop at once."""
-    if not (core.mode == int(Mode.HOLDING)).all():
-        return False
-    vel = obs.vel_m_s
-    return bool((np.einsum("ij,ij->i", vel, vel) <= HOLD_REST_M_S * HOLD_REST_M_S).all())
+    return bool(hold_rows(core.mode, obs.vel_m_s).all())
 
 
 def calm(

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from comms.schema import Mode, VehicleState
-from comms.state_rate import HOLD_REST_M_S, MAX_HOLD_PERIOD_S, announces_hold
+from comms.state_rate import MAX_HOLD_PERIOD_S, announces_hold, hold_rows
 
 
 @dataclass(frozen=True)
@@ -235,10 +235,7 @@ class NeighbourTable:
         hdg = np.array([s.heading_rad for s, _ in rows], dtype=float).reshape(k)
         sigma = np.array([s.pos_sigma_m for s, _ in rows], dtype=float).reshape(k)
         age = np.maximum(0.0, now_s - np.array([t for _, t in rows], dtype=float).reshape(k))
-        rest = HOLD_REST_M_S * HOLD_REST_M_S
-        hold = (np.array([int(s.mode) for s, _ in rows]) == int(Mode.HOLDING)) & (
-            np.einsum("ij,ij->i", vel, vel) <= rest
-        )
+        hold = hold_rows([int(s.mode) for s, _ in rows], vel)
         limit = np.where(hold, self.cfg.hold_stale_s, self.cfg.stale_s)
         pos += vel * age[:, None]
         return ids, seqs, pos, vel, hdg, sigma, age, limit

@@ -139,6 +139,14 @@ def announces_hold(mode: Mode | int, vel_ned_m_s) -> bool:
     return vn * vn + ve * ve + vd * vd <= HOLD_REST_M_S * HOLD_REST_M_S
 
 
+def hold_rows(mode, vel_ned_m_s) -> np.ndarray:
+    """(N,) bool: `announces_hold` of N rows, (N,) modes (ints) and (N, 3) velocities."""
+    vel = np.asarray(vel_ned_m_s, float).reshape(-1, 3)
+    return (np.asarray(mode, np.int64).reshape(-1) == _HOLDING) & (
+        np.einsum("ij,ij->i", vel, vel) <= HOLD_REST_M_S * HOLD_REST_M_S
+    )
+
+
 def idle_rows(mode, armed, in_air, busy=False) -> np.ndarray:
     """(N,) bool: the vehicles that are idle (mode in IDLE_MODES, disarmed, on the ground, no
     autopilot action waiting or running). Arguments are (N,) arrays or scalars."""
@@ -227,13 +235,8 @@ class StatePacer:
             # what must go out at once, as one int per row: mode and arming
             sig = np.asarray(mode, np.int64).reshape(-1) * 2 + np.asarray(armed, bool).reshape(-1)
             steady = ~idle & self._steady(now_s, pos_m, vel_m_s, heading_rad, sig)
-            rest = HOLD_REST_M_S * HOLD_REST_M_S
-            hold = (
-                steady
-                & (sig // 2 == _HOLDING)
-                & (np.einsum("ij,ij->i", vel_m_s, vel_m_s) <= rest)
-                & (np.einsum("ij,ij->i", self.last_vel, self.last_vel) <= rest)
-            )
+            # holding at rest now and in what it published (steady: the same mode)
+            hold = steady & hold_rows(sig // 2, vel_m_s) & hold_rows(sig // 2, self.last_vel)
             period_s = np.where(
                 hold, self.hold_period_s, np.where(steady, self.steady_period_s, period_s)
             )
