@@ -30,7 +30,8 @@ inflation (traffic, lag) still sees its way on instead of being led back out eve
   (narrower than twice the zone clearance plus the pair's berth: 14 m on plain GNSS) jams when
   two streams meet in it, each waiting for the other. So the zones are also closed over such
   gaps (`Router.two_way`: grown and shrunk by half that width, which fills the narrow gaps and
-  pockets and keeps every outline), and a vehicle flies that router's route where it is at most
+  pockets and keeps every outline; the fence's outside is closed with them, so a gap between a
+  zone and the fence counts as one between two zones), and a vehicle flies that router's route where it is at most
   `two_way_detour_max` (1.5) times the one-lane route from where it is; else, or where its
   position or goal lies in a filled gap, the one-lane route. Decided from the position each
   tick, without flip-flop: along the one-lane route its length falls as fast as the vehicle
@@ -251,12 +252,25 @@ class Router:
                 c = self.cfg
                 lane_m = c.reach_m + c.pad_m + c.lane_m  # half the two-way width
                 joins = {"join_style": "mitre", "mitre_limit": c.mitre_limit}
-                closed = self._zones.buffer(lane_m, **joins).buffer(-lane_m, **joins)
+                walls = self._zones
+                if self._fence is not None:
+                    # the fence's outside closes too: a gap between a zone and the fence is
+                    # a lane like a gap between two zones
+                    x0, y0, x1, y1 = self._fence.bounds
+                    pad = 4.0 * lane_m + 1.0
+                    box = shapely.box(x0 - pad, y0 - pad, x1 + pad, y1 + pad)
+                    walls = shapely.union(walls, box.difference(self._fence))
+                closed = walls.buffer(lane_m, **joins).buffer(-lane_m, **joins)
+                if self._fence is not None:
+                    closed = closed.intersection(self._fence)
                 closed = closed.simplify(c.simplify_m, preserve_topology=True)
                 polys = [
                     np.asarray(g.exterior.coords)[:-1]
                     for g in _polygons(closed)
-                    if g.area > 0 and len(g.exterior.coords) > 3
+                    if g.geom_type == "Polygon"
+                    and len(g.exterior.coords) > 3
+                    # a sliver the closing left along the fence's edge is no wall
+                    and (g.area > CLOSED_MIN_M2 or g.intersects(self._zones))
                 ]
                 if polys and closed.difference(self._zones).area > CLOSED_MIN_M2:
                     cfg = RouteConfig(**{**c.__dict__, "two_way": False})

@@ -255,3 +255,39 @@ def test_two_way_keeps_a_lone_zone_and_goals_in_a_filled_gap_as_they_were():
 def test_two_way_detour_bound_is_checked(bad):
     with pytest.raises(ValueError, match="two_way_detour_max must be finite and >= 1"):
         RouteConfig(two_way_detour_max=bad)
+
+
+FENCE = np.array([[-40, -40], [40, -40], [40, 40], [-40, 40]], float)
+NEAR_FENCE = np.array([[-6, 21], [6, 21], [6, 31], [-6, 31]], float)  # 9 m from the y = 40 edge
+
+
+def test_a_one_lane_gap_between_a_zone_and_the_fence_is_flown_round_too():
+    r = Router([NEAR_FENCE], fence_m=FENCE)
+    # without the fence the block stands alone: nothing to close
+    assert Router([NEAR_FENCE]).widened(2.0).two_way() is None
+    lane = r.widened(2.0).two_way()
+    assert lane is not None
+    filled = shapely.union_all([shapely.Polygon(p) for p in lane.keep_out_m])
+    assert filled.covers(shapely.box(-6, 31, 6, 40))  # the gap to the fence is filled
+    assert not filled.intersects(shapely.box(-39, -39, 39, 20))  # and nothing else
+    gap = shapely.box(-6, 31, 6, 40)
+    # sigma 0: 9 m is two-way (7.2 m needed), straight through the gap
+    rt = r.plan([-25, 33], [25, 33])
+    assert rt.reason == "" and shapely.LineString(
+        np.vstack([[-25, 33], rt.waypoints_m])
+    ).intersects(gap)
+    # sigma 0.5 at k 4: round the block's far side, within 1.5x of the one-lane way
+    rt = r.plan([-25, 33], [25, 33], pad_m=2.0)
+    pts = np.vstack([[-25, 33], rt.waypoints_m])
+    assert rt.reason == "" and not shapely.LineString(pts).intersects(gap)
+    assert rt.length_m <= 1.5 * 50.5
+    assert _clear_of(pts, [NEAR_FENCE], r.widened(2.0).cfg.inflate_m)
+    assert (
+        shapely.Polygon(FENCE)
+        .buffer(-r.widened(2.0).cfg.inflate_m + 1e-3)
+        .covers(shapely.LineString(pts))
+    )
+    # a goal inside the filled gap is still routed to, one-lane
+    rt = r.plan([-25, 33], [0, 36], pad_m=2.0)
+    assert rt.reason == ""
+    np.testing.assert_allclose(rt.waypoints_m[-1], [0, 36], atol=0.5)
