@@ -21,7 +21,7 @@ tests/test_flight_core.py).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -30,6 +30,7 @@ from agent.neighbours import NeighbourSnapshot
 from comms.scope import ScopeConfig
 from policy import safety
 from policy.goal_rule import ARRIVE_RADIUS_M
+from policy.lanes import LaneConfig, hold_short
 from policy.observation import Observations
 from policy.runtime import GuidancePolicy, told_separation_m
 from policy.sparse import SparseConfig
@@ -85,6 +86,8 @@ class GuidanceConfig:
     """Separation the filter keeps from a manned aircraft (traffic whose ADS-B emitter category
     is manned, comms/adsb.py; policy.safety.SafetyConfig.manned_radius_m). None: as other
     traffic (non_cooperative_separation_m)."""
+    lanes: LaneConfig = field(default_factory=LaneConfig)
+    """Who waits at a gap only one vehicle fits through (policy.lanes)."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "cruise_speed_m_s", "arrive_radius_m"):
@@ -369,17 +372,39 @@ class BatchGuidance:
         pad = self.safety_cfg.sigma_k * pos_sigma_m
         return self.router.plan(np.asarray(pos_m, float)[:2], np.asarray(goal_m, float)[:2], pad)
 
-    def _routed(self, router, rows, pos_m, target_m, goto, own_sigma_m=None) -> np.ndarray:
+    def _routed(
+        self, router, rows, pos_m, target_m, goto, own_sigma_m=None, views=None
+    ) -> np.ndarray:
         """target_m with each goto row's horizontal target replaced by its next waypoint of
         `router` (None: no zones), on routes that keep the filter's padding for each row's
         position 1-sigma (own_sigma_m (k,), None: 0) more from the zones (policy.routes
-        `Router.widened`)."""
+        `Router.widened`); a row that must wait for a one-lane gap gets its hold point
+        (policy.lanes, from `views`, NeighbourViews of the rows; None: nobody waits)."""
         self.waypoint_m[rows] = np.nan
         if router is None or not goto.any():
             return target_m
         out = target_m.copy()
         pad = None if own_sigma_m is None else self.safety_cfg.sigma_k * own_sigma_m[goto]
-        out[goto, :2] = router.next_waypoints(pos_m[goto, :2], target_m[goto, :2], pad)
+        way = router.next_waypoints(pos_m[goto, :2], target_m[goto, :2], pad)
+        if views is not None and views.valid[goto].any():
+            g = np.flatnonzero(goto)
+            mates = views.valid[g]
+            if views.cooperative is not None:
+                mates = mates & views.cooperative[g]
+            way = hold_short(
+                router,
+                pos_m[goto, :2],
+                target_m[goto, :2],
+                way,
+                pad,
+                views.pos_m[g],
+                views.vel_m_s[g],
+                mates,
+                None if views.own_ids is None else views.own_ids[g],
+                None if views.ids is None else views.ids[g],
+                self.cfg.lanes,
+            )
+        out[goto, :2] = way
         self.waypoint_m[rows[goto]] = out[goto, :2]
         return out
 
@@ -391,13 +416,15 @@ class BatchGuidance:
         pad = np.zeros(len(pos_m)) if sigma is None else self.safety_cfg.sigma_k * sigma
         return self.bands.groups(pos_m, target_m, pad)
 
-    def _routed_groups(self, groups, rows, pos_m, target_m, goto, own_sigma_m):
+    def _routed_groups(self, groups, rows, pos_m, target_m, goto, own_sigma_m, views):
         """`_routed` of each group with its own router; a goto row that no zone (and no
         fence) counts for flies at its goal, its waypoint (as a row in sight of it)."""
         out = target_m.copy()
         for g, _, router in groups:
             sigma = None if own_sigma_m is None else own_sigma_m[g]
-            out[g] = self._routed(router, rows[g], pos_m[g], target_m[g], goto[g], sigma)
+            out[g] = self._routed(
+                router, rows[g], pos_m[g], target_m[g], goto[g], sigma, views.take(g)
+            )
             if router is None:
                 free = g[goto[g]]
                 self.waypoint_m[rows[free]] = target_m[free, :2]
@@ -455,10 +482,10 @@ class BatchGuidance:
         self.forget(rows[holding])
         sigma = views.own_pos_sigma_m
         if self.bands is None:
-            target_m = self._routed(self.router, rows, pos_m, target_m, goto, sigma)
+            target_m = self._routed(self.router, rows, pos_m, target_m, goto, sigma, views)
         else:  # each group of rows flies against the zones its altitudes reach
             target_m, groups = self._band_groups(pos_m, target_m, views)
-            target_m = self._routed_groups(groups, rows, pos_m, target_m, goto, sigma)
+            target_m = self._routed_groups(groups, rows, pos_m, target_m, goto, sigma, views)
         want = self.due(now_s, rows, target_m) if decide is None else np.asarray(decide, bool)
         deciding = goto & (want | np.isnan(self.held_m_s[rows, 0]))
         d = np.flatnonzero(deciding)

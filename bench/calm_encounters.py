@@ -8,9 +8,13 @@ Real agent loops (`VehicleShell.run`, the real clock, kit/ticks.py's calm schedu
 `Agent` per vehicle, each on its own Zenoh session to one router, simulated vehicles (ideal,
 or realistic: 0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift), judged on true positions. The scenes are the ones the calm rule's reaction delay is about
 (agent/calm.py): a vehicle holding when another, holding 9 m away, is sent straight through it;
-two flying side by side 6.5 m apart (calm) when one turns across the other's path; and a
-head-on pair from 60 m. Each scene is flown with calm ticks on and off, alternating; the
-closest horizontal distance between the vehicles is sampled every 20 ms.
+two flying side by side 6.5 m apart (calm) when one turns across the other's path; a
+head-on pair from 60 m; and `shuffle`: nine vehicles holding on an 8 m grid (ideal vehicles
+hold there at the 1 Hz hold tier) each sent at once to another's place, a random
+derangement drawn from `--seed` and the run's number, so holders at 1 Hz see neighbours set off
+towards them. Each scene is flown with calm ticks on and off (`--calm-tick-hz 10`: no calm or
+hold tier), alternating; the closest horizontal distance between any two vehicles is sampled
+every 20 ms, and whether every vehicle reached its goal.
 """
 
 from __future__ import annotations
@@ -28,11 +32,24 @@ from bench import common
 from policy.pointmass import vehicle_model_arg
 
 ALT_M = 10.0
-SCENES = ("rest_start", "turn_in", "head_on")
+SCENES = ("rest_start", "turn_in", "head_on", "shuffle")
+GRID_M = 8.0
+"""The shuffle scene's grid spacing (the demo's)."""
+ARRIVED_M = 1.0
+"""A vehicle this near its goal at the end of the scene arrived."""
 """The scenes; `--scenes` runs some."""
 
 
-def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
+def _shuffle(rng: np.random.Generator) -> tuple[list, list]:
+    """(starts, goals) of the shuffle scene: a 3 x 3 grid, each vehicle to another's place."""
+    grid = [(GRID_M * i, GRID_M * j) for i in range(3) for j in range(3)]
+    while True:
+        perm = rng.permutation(len(grid))
+        if (perm != np.arange(len(grid))).all():
+            return grid, [grid[k] for k in perm]
+
+
+def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal", seed: int = 0) -> dict:
     from agent.agent_cli import sim_config
     from agent.backends.sim import SimBackend
     from agent.failsafe import FailsafeConfig
@@ -43,11 +60,15 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
     from comms.schema import AckResult, Command, Mode
     from comms.session import embedded_peer, embedded_router, free_tcp_port
 
-    starts = {
-        "rest_start": ((0.0, 0.0), (0.0, 9.0)),
-        "turn_in": ((0.0, 0.0), (0.0, 6.5)),
-        "head_on": ((0.0, 0.0), (60.0, 0.0)),
-    }[scene]
+    goals: list = []
+    if scene == "shuffle":
+        starts, goals = _shuffle(np.random.default_rng(seed))
+    else:
+        starts = {
+            "rest_start": [(0.0, 0.0), (0.0, 9.0)],
+            "turn_in": [(0.0, 0.0), (0.0, 6.5)],
+            "head_on": [(0.0, 0.0), (60.0, 0.0)],
+        }[scene]
     port, fleet = free_tcp_port(), f"calm-{scene}"
     stop = threading.Event()
 
@@ -58,12 +79,11 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
 
     with (
         Mesh(embedded_router(port, fleet=fleet)) as _hub,
-        Mesh(embedded_peer(port, fleet=fleet)) as m1,
-        Mesh(embedded_peer(port, fleet=fleet)) as m2,
         contextlib.ExitStack() as held,
     ):
+        meshes = [held.enter_context(Mesh(embedded_peer(port, fleet=fleet))) for _ in starts]
         agents = []
-        for vid, (mesh, ne) in enumerate(zip((m1, m2), starts, strict=True), start=1):
+        for vid, (mesh, ne) in enumerate(zip(meshes, starts, strict=True), start=1):
             cfg = AgentConfig(
                 vehicle_id=vid,
                 failsafe=FailsafeConfig(require_gcs=False),
@@ -73,7 +93,7 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
             agents.append(
                 held.enter_context(Agent(cfg, SimBackend(sim, now_s=time.monotonic()), mesh))
             )
-        a, b = agents
+        a, b = agents[:2]
         loops = [threading.Thread(target=ag.run, args=(stop,), daemon=True) for ag in agents]
         try:
             for loop in loops:
@@ -85,16 +105,20 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"{scene}: never both holding")
                 time.sleep(0.05)
-            time.sleep(2.0)  # both calm by now where the scene is calm
-            calm_before = (a._calm, b._calm)
-            if scene == "rest_start":  # b straight through a, 20 m beyond
+            time.sleep(2.0)  # calm by now where the scene is calm
+            calm_before = tuple(ag._calm for ag in agents)
+            if scene == "shuffle":  # everyone at once to another's place
+                for ag, goal in zip(agents, goals, strict=True):
+                    cmd(ag, Command.goto_local, goal[0], goal[1], -ALT_M)
+                fly_s = 50.0
+            elif scene == "rest_start":  # b straight through a, 20 m beyond
                 cmd(b, Command.goto_local, 0.0, -20.0, -ALT_M)
                 fly_s = 35.0
             elif scene == "turn_in":  # side by side north, then b cuts across a's line
                 cmd(a, Command.goto_local, 80.0, 0.0, -ALT_M)
                 cmd(b, Command.goto_local, 80.0, 6.5, -ALT_M)
                 time.sleep(8.0)
-                calm_before = (a._calm, b._calm)
+                calm_before = tuple(ag._calm for ag in agents)
                 here = b.vehicles.read().pos_m[0]
                 cmd(b, Command.goto_local, float(here[0]) + 8.0, -12.0, -ALT_M)
                 fly_s = 25.0
@@ -103,20 +127,25 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
                 cmd(b, Command.goto_local, 0.0, 0.0, -ALT_M)
                 fly_s = 75.0
             closest = closest_est = np.inf
+            arrived = 0
             end = time.monotonic() + fly_s
             fleets = [ag.vehicles.backends[0].fleet for ag in agents]  # type: ignore[attr-defined]
             while time.monotonic() < end:
-                pa, pb = fleets[0].true_pos_m[0], fleets[1].true_pos_m[0]
-                closest = min(closest, float(np.hypot(*(pa[:2] - pb[:2]))))
-                ea, eb = fleets[0].pos_m[0], fleets[1].pos_m[0]
-                closest_est = min(closest_est, float(np.hypot(*(ea[:2] - eb[:2]))))
+                closest = min(closest, _closest_pair_m([f.true_pos_m[0] for f in fleets]))
+                closest_est = min(closest_est, _closest_pair_m([f.pos_m[0] for f in fleets]))
                 time.sleep(0.02)
+            if goals:
+                last = np.array([f.pos_m[0][:2] for f in fleets])
+                arrived = int((np.hypot(*(last - np.array(goals)).T) <= ARRIVED_M).sum())
         finally:
             stop.set()
             for loop in loops:
                 loop.join(5.0)
     return {
         "scene": scene,
+        "vehicles": len(starts),
+        "seed": seed,
+        "arrived": arrived if goals else None,
         "vehicle_model": vehicle_model,
         "calm_tick_hz": calm_hz,
         "closest_m": closest,
@@ -125,17 +154,25 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal") -> dict:
     }
 
 
-def main(repeats: int = 2, vehicle_model: str = "ideal", scenes=SCENES) -> dict:
+def _closest_pair_m(pos: list) -> float:
+    """The least horizontal distance between any two of the (3,) positions."""
+    p = np.array([q[:2] for q in pos])
+    d = np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+    return float(d[np.triu_indices(len(p), 1)].min())
+
+
+def main(repeats: int = 2, vehicle_model: str = "ideal", scenes=SCENES, seed: int = 0) -> dict:
     runs = []
     for scene in scenes:
-        for _ in range(repeats):
+        for k in range(repeats):
             for calm_hz in (10.0 / 3, 10.0):
-                r = _fly(scene, calm_hz, vehicle_model)
+                r = _fly(scene, calm_hz, vehicle_model, seed + k)
                 runs.append(r)
+                got = "" if r["arrived"] is None else f", {r['arrived']}/{r['vehicles']} arrived"
                 common.say(
                     f"{vehicle_model} {scene:10s} calm ticks {'on ' if calm_hz < 10 else 'off'}: "
                     f"closest {r['closest_m']:.2f} m true, {r['closest_estimated_m']:.2f} m "
-                    f"estimated (calm before the change: {r['calm_before']})"
+                    f"estimated{got} (calm before the change: {r['calm_before']})"
                 )
     summary = {
         scene: {
@@ -154,7 +191,8 @@ def main(repeats: int = 2, vehicle_model: str = "ideal", scenes=SCENES) -> dict:
         "closest_m_median": summary,
         "machine": common.machine(),
     }
-    common.write_json(f"calm_encounters_{vehicle_model}", result)
+    tail = "" if tuple(scenes) == SCENES else "_" + "_".join(scenes)
+    common.write_json(f"calm_encounters_{vehicle_model}{tail}", result)
     return result
 
 
@@ -165,10 +203,11 @@ if __name__ == "__main__":
     ap.add_argument(
         "--scenes", default=",".join(SCENES), help="comma-separated, of " + ", ".join(SCENES)
     )
+    ap.add_argument("--seed", type=int, default=0, help="the shuffle's first derangement")
     a = ap.parse_args()
     if a.repeats < 1:
         ap.error("--repeats must be at least 1")
     scenes = tuple(a.scenes.split(","))
     if not scenes or any(x not in SCENES for x in scenes):
         ap.error(f"--scenes {a.scenes!r}: comma-separated, of {', '.join(SCENES)}")
-    main(a.repeats, a.vehicle_model, scenes)
+    main(a.repeats, a.vehicle_model, scenes, a.seed)

@@ -239,6 +239,7 @@ class Router:
         self._lane: Router | None = None
         """The two-way router (`two_way`), built when first asked; None: none."""
         self._lane_asked = False
+        self._one_lane: tuple = ()
 
     def two_way(self) -> Router | None:
         """The router whose zones are this one's closed over every gap narrower than two
@@ -272,10 +273,21 @@ class Router:
                     # a sliver the closing left along the fence's edge is no wall
                     and (g.area > CLOSED_MIN_M2 or g.intersects(self._zones))
                 ]
-                if polys and closed.difference(self._zones).area > CLOSED_MIN_M2:
+                filled = closed.difference(self._zones)
+                if polys and filled.area > CLOSED_MIN_M2:
                     cfg = RouteConfig(**{**c.__dict__, "two_way": False})
                     self._lane = Router(polys, cfg, self.fence_m)
+                    gaps = [g for g in _polygons(filled) if g.area > CLOSED_MIN_M2]
+                    for g in gaps:
+                        shapely.prepare(g)
+                    self._one_lane = tuple(gaps)
         return self._lane
+
+    def one_lane_gaps(self) -> tuple:
+        """The gaps and pockets (shapely polygons) two passing vehicles do not fit in, as
+        `two_way` fills them: one vehicle at a time (policy.lanes decides who goes first)."""
+        self.two_way()
+        return self._one_lane
 
     def _clear_rows(self, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """(R,) the position outside the sight band and the goal outside the route's inflation."""
@@ -453,6 +465,11 @@ class Router:
                 out, np.where(inside, shapely.distance(self._fence.exterior, pts), 0.0)
             )
         return out
+
+    def in_sight_space(self, pt) -> bool:
+        """Whether a point lies where route legs may start: outside every zone's sight band
+        (`RouteConfig.sight_m`) and inside the fence deflated by it."""
+        return bool(self._reach_ok.covers(shapely.Point(np.asarray(pt, np.float64)[:2])))
 
     def inside_zone(self, pt) -> bool:
         """Whether a point is inside a keep-out zone or outside the fence."""

@@ -141,6 +141,8 @@ def zone_scenes(rng: np.random.Generator, quick: bool = False):
     - concave: a C whose pocket faces three of the six, the other three flying into its back;
     - gap: two blocks 9 m apart (3 separations), three vehicles one way through the gap and two
       the other;
+    - gate: the same streams through a 9 m gate in a 120 m wall, which no route goes round: on
+      plain GNSS one vehicle at a time (policy.lanes decides who goes first);
     - edge goals: four vehicles bound for points 2 m (north, east) and 3.1 m (south, west) off
       the sides of a square (within the route's inflation, outside the filter's 1.8 m), from
       beyond the opposite side: with a 0.5 m position sigma the filter keeps 3.8 m, so the 3.1 m
@@ -164,6 +166,11 @@ def zone_scenes(rng: np.random.Generator, quick: bool = False):
     goals = np.array([[10, 0], [-11.1, 0], [0, 10], [0, -11.1]], float)
     starts = np.array([[-30, 2], [30, -2], [2, -30], [-2, 30]], float)
     out.append(("edge-goals", starts, goals, [sq]))
+    # the gap's streams through a gate in a 120 m wall: no way round within 1.5x the way through
+    gate = [_box(-64.5, -4, -4.5, 4), _box(4.5, -4, 64.5, 4)]
+    starts = np.array([[-10, -25], [0, -30], [10, -35], [-6, 28], [6, 33]], float)
+    goals = np.array([[10, 25], [0, 30], [-10, 35], [6, -28], [-6, -33]], float)
+    out.append(("gate-9m", starts, goals, gate))
     for s in range(1 if quick else 3):
         zones = _random_zones(rng)
         starts, goals = _clear_ends(rng, zones, 6)

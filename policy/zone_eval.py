@@ -44,6 +44,7 @@ class Routed:
     def __call__(
         self, ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, valid, **kw
     ):
+        from policy.lanes import hold_short
         from policy.safety import filter_padded
 
         way = goal
@@ -51,6 +52,21 @@ class Routed:
             sig = kw.get("pos_sigma_m")
             pad = None if sig is None else self.safety_cfg.sigma_k * np.asarray(sig, float)
             way = self.router.next_waypoints(pos, goal, pad)
+            coop = kw.get("nbr_cooperative")
+            mates = valid if coop is None else valid & coop
+            n = valid.shape[1]  # neighbour columns are vehicle numbers, as `ids` are
+            way = hold_short(
+                self.router,
+                pos,
+                goal,
+                way,
+                pad,
+                nbr_pos,
+                nbr_vel,
+                mates,
+                ids,
+                np.broadcast_to(np.arange(n), valid.shape),
+            )
         v = self.inner(ids, t_s, pos, vel, heading, way, nbr_pos, nbr_vel, nbr_heading, valid, **kw)
         if self.kind == "numpy":
             sky = {

@@ -11,10 +11,16 @@ from policy import evalsim, scenarios, zone_eval
 from policy.evalsim import PERFECT, EvalSimConfig
 
 
-def test_the_suite_has_convex_concave_gap_and_edge_goal_scenes():
+def test_the_suite_has_convex_concave_gap_gate_and_edge_goal_scenes():
     cfg = policy_eval.EvalConfig(suites=("zones",))
     names = [c[1] for c in policy_eval.cases(cfg)]
-    for want in ("zones-convex", "zones-concave", "zones-gap-9m", "zones-edge-goals"):
+    for want in (
+        "zones-convex",
+        "zones-concave",
+        "zones-gap-9m",
+        "zones-gate-9m",
+        "zones-edge-goals",
+    ):
         assert want in names
     assert all(c[0] == "zones" and "zones_m" in c[4] for c in policy_eval.cases(cfg))
 
