@@ -10,15 +10,20 @@ its cooperative neighbours first:
 
 - one inside the gap flying against it (its velocity against the vehicle's way through by more
   than `oncoming_m_s`): the vehicle holds short, its waypoint a point `hold_m` before the gap
-  on its own route (the two-way width: room for the other to come out and pass it);
+  and pulled over to the right of its way in (`pull_over_share`; the two-way width: room for
+  the other to come out and pass it);
+- one with a lower vehicle id in the gap or at its mouths (`mouth_share` of hold_m) that is
+  not going the vehicle's way (stopped, or just come out and held up there): it holds short;
 - one outside the gap on its far side, within `gate_m` of it, closing on it and flying against
-  the vehicle, with a lower vehicle id, while the vehicle itself is within `gate_m`: the
-  vehicle holds short too (the lower id goes first; both sides apply the same rule);
-- inside the gap, a vehicle meeting one that flies against it with a lower id backs out (its
-  waypoint `hold_m` back along its way); the lower id goes on.
+  the vehicle, with a lower id, while the vehicle itself is within `gate_m`: it holds short
+  too (the lower id goes first; both sides apply the same rule);
+- inside the gap, a vehicle with one in it that is not going its way and has a lower id backs
+  out (its waypoint `hold_m` back along its way); the lower id goes on.
 
-Only moving vehicles are waited for: one that holds short itself is not closing on the gap, so
-two that wait for each other both set off, and the first inside goes first. Traffic that does
+Vehicles at their hold points are further out than the mouths and are not waited for, nor is
+one going the vehicle's way (a queue through the gap), so two that wait for each other both
+set off, and the lower id goes first. A vehicle stopped in a gap for good (its goal there)
+keeps higher ids out of it until it moves: the operator sees them hold. Traffic that does
 not cooperate is not waited for (the filter keeps clear of it). Decided from the positions each
 tick (stateless), the same in the agents' guidance (agent/guidance.py) and `covey eval`
 (policy/zone_eval.py).
@@ -47,12 +52,16 @@ class LaneConfig:
     the gap is below minus this, and closes on the gap when it nears it this fast."""
     look_m: float = 5.0
     """A vehicle starts to look this far beyond its hold point: gate_m = hold_m + look_m."""
+    mouth_share: float = 0.5
+    """A neighbour within this share of hold_m of the gap is at its mouth: one there that is
+    not going the vehicle's way (stopped, or come out and held up) and has a lower id is waited
+    for, so that nobody enters while the last one out still blocks the way."""
     pull_over_share: float = 0.5
     """A waiting vehicle holds this share of hold_m to the right of its way in (north-east
     frame: right of a way heading north is east), out of the way of those coming out."""
 
     def __post_init__(self) -> None:
-        for name in ("oncoming_m_s", "look_m", "pull_over_share"):
+        for name in ("oncoming_m_s", "look_m", "mouth_share", "pull_over_share"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
@@ -164,23 +173,27 @@ def hold_short(
         gap, s_in, entry, u = hit
         m = valid[i]
         q, w = nbr_pos[i, m, :2], nbr_vel[i, m, :2]
-        against = (w @ u) < -cfg.oncoming_m_s
-        if not against.any():
+        along = w @ u
+        against = along < -cfg.oncoming_m_s
+        with_it = along > cfg.oncoming_m_s
+        if with_it.all():
             continue
         ids = None if own_ids is None or nbr_ids is None else np.asarray(nbr_ids)[i, m]
         lower = np.zeros(len(q), bool) if ids is None else ids < int(np.asarray(own_ids)[i])
         d_now = shapely.distance(gap, shapely.points(q))
         in_gap = d_now <= IN_GAP_TOL_M
-        if s_in <= 0.0:  # inside: back out for a lower id coming the other way
-            if (in_gap & against & lower).any():
+        if s_in <= 0.0:  # inside: back out for a lower id in it not going its way
+            if (in_gap & ~with_it & lower).any():
                 out[i] = _back_from(r, pos[i], u, wait_m, pos[i])
             continue
-        wait = bool((in_gap & against).any())
+        # one in the gap coming the other way, or stopped in it or at its mouths with a lower id
+        at_mouth = d_now <= cfg.mouth_share * wait_m
+        wait = bool((in_gap & against).any() or (at_mouth & ~with_it & lower).any())
         if not wait and ids is not None:
             d_soon = shapely.distance(gap, shapely.points(q + w))  # a second on
             closing = (d_now - d_soon) > cfg.oncoming_m_s
             far = ((q - entry) @ u) > 0.0
-            wait = bool((~in_gap & far & closing & against & lower & (d_now <= gate_m)).any())
+            wait = bool((far & closing & against & lower & (d_now <= gate_m)).any())
         if wait:
             # pulled over to the right of the way in: the ones coming out pass on its left
             side = np.array([-u[1], u[0]]) * (cfg.pull_over_share * wait_m)

@@ -30,9 +30,11 @@ ZONE_FILTER = {"policy+filter": "numpy", "orca": "numpy", "c+filter": "c"}
 class Routed:
     """A controller flying routed gotos, its output through the zone filter (`ZONE_FILTER`)."""
 
-    def __init__(self, inner, router, zones, safety_cfg, kind: str | None, czones=None):
+    def __init__(self, inner, router, zones, safety_cfg, kind: str | None, czones=None, lanes=None):
         self.inner, self.router, self.zones = inner, router, zones
         self.safety_cfg, self.kind, self.czones = safety_cfg, kind, czones
+        self.lanes = lanes
+        """policy.lanes.LaneConfig: who waits at a one-lane gap (None: the default)."""
         for attr in ("uses_sigma", "uses_cooperative"):
             if getattr(inner, attr, False):
                 setattr(self, attr, True)
@@ -66,6 +68,7 @@ class Routed:
                 mates,
                 ids,
                 np.broadcast_to(np.arange(n), valid.shape),
+                self.lanes,
             )
         v = self.inner(ids, t_s, pos, vel, heading, way, nbr_pos, nbr_vel, nbr_heading, valid, **kw)
         if self.kind == "numpy":
@@ -100,11 +103,14 @@ class Routed:
         return v
 
 
-def run(name, starts, goals, zones_m, controller, link, sim_cfg, rng, aware=True, **options):
+def run(
+    name, starts, goals, zones_m, controller, link, sim_cfg, rng, aware=True, lanes=None, **options
+):
     """One zone scene with one controller: evalsim.run's metrics plus the zone counts (module
     docstring); the tracks stay in the result (`tracks`, `goals`) for figures. The filter's
     config is the controller's own (Held.safety_cfg, orca's, CPolicy's), else the default.
-    `aware` False: the controller as it is, told nothing of the zones (the "before" numbers)."""
+    `aware` False: the controller as it is, told nothing of the zones (the "before" numbers).
+    `lanes`: policy.lanes.LaneConfig (None: the default, as the agents fly)."""
     import dataclasses
 
     import shapely
@@ -125,7 +131,7 @@ def run(name, starts, goals, zones_m, controller, link, sim_cfg, rng, aware=True
         # The C controller brings its own zone filter (firmware/ceval.py): policy/ never imports
         # firmware/, which sits above it.
         czones = controller.zone_filter(zones_m, zones.radius_m, zones.time_horizon_s)
-    routed = Routed(controller, router if aware else None, zones, safety_cfg, kind, czones)
+    routed = Routed(controller, router if aware else None, zones, safety_cfg, kind, czones, lanes)
     refused = np.zeros(len(goals), bool)
     if aware:  # as the flight core takes a goto (agent/flight_core.py `_clear_goal`)
         pad_m = safety_cfg.sigma_k * sim_cfg.vehicles.drift_m

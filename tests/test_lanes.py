@@ -61,10 +61,20 @@ def test_a_vehicle_holds_short_of_one_coming_through_the_other_way():
     assert held[1] < -4.0 and gap.distance(spot) >= 0.9 * hold_m(wide.cfg)
     assert held[0] < -1.0  # heading east, its right is south
     assert wide.in_sight_space(held)
-    # the same neighbour flying with it, or still, or not a neighbour: it goes on
-    for vel, valid in (([0.0, 1.0], True), ([0.0, 0.0], True), ([0.0, -1.0], False)):
+    # the same neighbour flying with it, or not a neighbour: it goes on
+    for vel, valid in (([0.0, 1.0], True), ([0.0, -1.0], False)):
         way, out = _way(r, WEST, EAST, nbr_pos=[0.0, 1.0], nbr_vel=vel, valid=valid)
         np.testing.assert_allclose(out, way)
+    # stopped in the gap, or just out of it on this side and held up there: a lower id is
+    # waited for, a higher one is not
+    for nbr_pos in ([0.0, 1.0], [0.0, -8.0]):
+        way, out = _way(r, WEST, EAST, nbr_pos=nbr_pos, nbr_vel=[0.0, 0.0], nbr_id=3)
+        np.testing.assert_allclose(out, held)
+        way, out = _way(r, WEST, EAST, nbr_pos=nbr_pos, nbr_vel=[0.0, 0.0], nbr_id=7)
+        np.testing.assert_allclose(out, way)
+    # one at its hold point on the far side (beyond the mouth) is not waited for
+    way, out = _way(r, WEST, EAST, nbr_pos=[7.0, 18.0], nbr_vel=[0.0, 0.0], nbr_id=3)
+    np.testing.assert_allclose(out, way)
 
 
 def test_both_sides_of_the_gate_agree_on_who_goes_first():
@@ -135,7 +145,7 @@ def test_off_without_gaps_or_without_neighbours_nothing_changes():
     ).shape == (1, 2)
 
 
-@pytest.mark.parametrize("field", ["oncoming_m_s", "look_m", "pull_over_share"])
+@pytest.mark.parametrize("field", ["oncoming_m_s", "look_m", "mouth_share", "pull_over_share"])
 def test_lane_config_is_checked(field):
     with pytest.raises(ValueError, match=f"{field} must be finite and >= 0"):
         LaneConfig(**{field: -1.0})
