@@ -23,19 +23,23 @@ PAD_M = 2.0  # sigma 0.5 m at sigma_k 4: the gate is one lane (14 m needed)
 WEST, EAST = np.array([0.0, -20.0]), np.array([0.0, 20.0])
 
 
-def _way(router, pos, goal, nbr_pos, nbr_vel, own_id=5, nbr_id=3, valid=True):
-    way = router.next_waypoints([pos], [goal], PAD_M)
+def _way(
+    router, pos, goal, nbr_pos, nbr_vel, own_id=5, nbr_id=3, valid=True, pad_m=PAD_M, cfg=None
+):
+    """(the routed waypoint, hold_short's) of one vehicle with one neighbour."""
+    way = router.next_waypoints([pos], [goal], pad_m)
     out = hold_short(
         router,
         [pos],
         [goal],
         way,
-        PAD_M,
+        pad_m,
         np.array([[nbr_pos]], float),
         np.array([[nbr_vel]], float),
         np.array([[valid]]),
         np.array([own_id]),
         np.array([[nbr_id]]),
+        cfg,
     )
     return way[0], out[0]
 
@@ -106,43 +110,25 @@ def test_inside_the_gate_the_higher_id_backs_out():
 
 def test_off_without_gaps_or_without_neighbours_nothing_changes():
     r = Router(WALL)
-    nbr = dict(nbr_pos=[0.0, 1.0], nbr_vel=[0.0, -1.0])
-    way = r.next_waypoints([WEST], [EAST], PAD_M)
-    off = hold_short(
-        r,
+    oncoming = dict(nbr_pos=[0.0, 1.0], nbr_vel=[0.0, -1.0])
+    way, off = _way(r, WEST, EAST, **oncoming, cfg=LaneConfig(enabled=False))
+    np.testing.assert_allclose(off, way)
+    # sigma 0: the gate is two-way, nobody waits
+    way, out = _way(r, WEST, EAST, **oncoming, pad_m=None)
+    np.testing.assert_allclose(out, way)
+    # no router (no zones), no neighbours: the waypoints as given
+    way = r.next_waypoints([WEST], [EAST])
+    none = hold_short(
+        None,
         [WEST],
         [EAST],
         way,
-        PAD_M,
-        np.array([[nbr["nbr_pos"]]]),
-        np.array([[nbr["nbr_vel"]]]),
-        np.array([[True]]),
-        cfg=LaneConfig(enabled=False),
-    )
-    np.testing.assert_allclose(off, way)
-    # sigma 0: the gate is two-way, nobody waits
-    way0 = r.next_waypoints([WEST], [EAST])
-    out = hold_short(
-        r,
-        [WEST],
-        [EAST],
-        way0,
-        None,
-        np.array([[nbr["nbr_pos"]]]),
-        np.array([[nbr["nbr_vel"]]]),
-        np.array([[True]]),
-    )
-    np.testing.assert_allclose(out, way0)
-    assert hold_short(
-        None,
-        [WEST],
-        [EAST],
-        way0,
         None,
         np.zeros((1, 0, 2)),
         np.zeros((1, 0, 2)),
         np.zeros((1, 0), bool),
-    ).shape == (1, 2)
+    )
+    np.testing.assert_allclose(none, way)
 
 
 @pytest.mark.parametrize("field", ["oncoming_m_s", "look_m", "mouth_share", "pull_over_share"])
