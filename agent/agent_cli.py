@@ -299,7 +299,9 @@ def steady_from_args(args: argparse.Namespace) -> SteadyConfig | None:
     hz = args.steady_state_hz
     if hz is None:
         return None
-    return SteadyConfig(state_hz=hz, hold_state_hz=getattr(args, "hold_state_hz", 1.0))
+    return SteadyConfig(
+        state_hz=hz, hold_state_hz=getattr(args, "hold_state_hz", SteadyConfig.hold_state_hz)
+    )
 
 
 def failsafe_from_args(args: argparse.Namespace) -> FailsafeConfig:

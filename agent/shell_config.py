@@ -59,8 +59,8 @@ class ShellConfig:
     hold_tick_hz: float = 1.0
     """Tick rate while every vehicle of the process holds at rest (HOLDING, at most
     comms/state_rate.py HOLD_REST_M_S) and is calm over that longer period's horizon
-    (agent/calm.py `holding_at_rest`): a hovering vehicle with nobody near ticks (and
-    publishes) once a second. On the `tick_hz` grid, never below the hold state rate nor
+    (agent/calm.py `holding_at_rest`): a hovering vehicle with nobody near ticks once a
+    second (and publishes every other tick, SteadyConfig.hold_state_hz). On the `tick_hz` grid, never below the hold state rate nor
     above `calm_tick_hz`; `calm_tick_hz` or more: no hold tier."""
     steady: SteadyConfig | None = None
     """Publish at the steady rate while receivers can predict the state (hovering, flying

@@ -83,15 +83,17 @@ class ScopeConfig:
         """What a holder at rest needs heard: it publishes only every MAX_HOLD_PERIOD_S
         (comms/state_rate.py) but does not move between its states (the first state of a move
         goes out at once), so one vehicle closes on it at max speed over the longer hand-over:
-        sense range + separation + max speed * (resubscribe + hold period + latency). At most
-        `reach_m` with the defaults (20.8 m against 21.0 m; tests/test_comms_scope.py)."""
+        sense range + separation + max speed * (resubscribe + hold period + latency): 22.8 m
+        with the defaults, which `reach_m` covers (tests/test_comms_scope.py)."""
         hand_over_s = self.resubscribe_s + MAX_HOLD_PERIOD_S + self.link_latency_s
         return self.sense_range_m + self.separation_m + self.max_speed_m_s * hand_over_s
 
     @property
     def reach_m(self) -> float:
-        """reach = sense range + separation + closing speed * hand-over delay."""
-        return self.sense_range_m + self.separation_m + self.closing_speed_m_s * self.handover_s
+        """reach = sense range + separation + closing speed * hand-over delay, or a holder's
+        longer reach (`hold_reach_m`) where that is further: 22.8 m with the defaults."""
+        moving = self.sense_range_m + self.separation_m + self.closing_speed_m_s * self.handover_s
+        return max(moving, self.hold_reach_m)
 
     @property
     def rings(self) -> int:

@@ -43,15 +43,15 @@ flies on and the state period in the scoping reach, docs/scaling.md). A hovering
 flying fleet thus sends a third of the states.
 
 A steady vehicle holding at rest (`announces_hold`: mode HOLDING, speed at most HOLD_REST_M_S,
-in the state it published and now) publishes at `SteadyConfig.hold_state_hz` (1 Hz) instead:
+in the state it published and now) publishes at `SteadyConfig.hold_state_hz` (0.5 Hz) instead:
 nothing it says changes until it moves, and the first state after it moves (a goto, a push by
 the filter, a gust or a drift of its estimate past tol_m) goes out on the next tick, as any
 unsteady state does. Receivers tell a holder from its state alone, like an idle vehicle, and
 wait longer before calling it stale (agent/neighbours.py `hold_stale_s`, the station's
 `hold_stale_after_s`). The scoping reach still holds: a holder does not move between its
 states, so a vehicle entering its cells closes on it at one vehicle's speed over the longer
-hand-over (comms/scope.py `ScopeConfig.hold_reach_m` <= `reach_m`). A hovering fleet thus
-sends a tenth of the states of 10 Hz, a third of the steady rate's.
+hand-over (comms/scope.py `ScopeConfig.hold_reach_m`, within `reach_m`). A hovering fleet thus
+sends a twentieth of the states of 10 Hz, a sixth of the steady rate's.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ count on when they judge an idle vehicle's silence."""
 IDLE_MODES = frozenset({Mode.LANDED, Mode.KILLED})
 """Modes of a vehicle that can be idle (with its motors disarmed and on the ground)."""
 
-MAX_HOLD_PERIOD_S = 1.0
+MAX_HOLD_PERIOD_S = 2.0
 """A vehicle holding at rest publishes at least this often (hold_state_hz >= 1 / this): what
 receivers count on when they judge a holder's silence."""
 HOLD_REST_M_S = 0.1
@@ -95,7 +95,7 @@ class SteadyConfig:
     """Largest change of velocity (norm of the difference) since the last published state."""
     tol_rad: float = 0.05
     """Largest change of heading since the last published state."""
-    hold_state_hz: float = 1.0
+    hold_state_hz: float = 0.5
     """State rate while steady and holding at rest (`announces_hold`, in what was published
     and now); at least 1 / MAX_HOLD_PERIOD_S, capped to state_hz (and the full rate)."""
 

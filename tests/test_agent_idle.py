@@ -169,7 +169,11 @@ def test_the_station_waits_longer_for_an_idle_vehicle_and_a_holder_at_rest_only(
     assert views[2].stale and views[3].stale  # armed on the ground, flying: the short threshold
     assert not views[4].stale, "a holder at rest was stale between two of its states"
     views = views_by_id(model.snapshot(int((cfg.idle_stale_after_s + 0.1) * ns)))
-    assert views[1].stale and views[4].stale
+    assert views[1].stale
+    assert cfg.hold_stale_after_s > cfg.idle_stale_after_s  # a holder speaks every 2 s
+    assert not views[4].stale
+    views = views_by_id(model.snapshot(int((cfg.hold_stale_after_s + 0.1) * ns)))
+    assert views[4].stale
     # 1 Hz idle states with consecutive seqs are no loss, and the rate says 1 Hz
     model = FleetModel(cfg)
     for k in range(4):

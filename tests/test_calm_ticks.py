@@ -177,8 +177,8 @@ def test_the_hold_tier_follows_its_settings() -> None:
     assert Cfg(vehicle_id=1, hold_tick_hz=5.0).hold_every == 3  # never above the calm rate
     steady = SteadyConfig(hold_state_hz=2.0)  # never below the hold state rate
     assert Cfg(vehicle_id=1, steady=steady).hold_every == 5
-    with pytest.raises(ValueError, match="hold_tick_hz must be within \\[1, 100\\]"):
-        Cfg(vehicle_id=1, hold_tick_hz=0.5)
+    with pytest.raises(ValueError, match="hold_tick_hz must be within \\[0.5, 100\\]"):
+        Cfg(vehicle_id=1, hold_tick_hz=0.4)
 
 
 def test_traffic_that_does_not_cooperate_is_taken_at_its_speed(agent) -> None:

@@ -202,10 +202,10 @@ def test_the_hold_rate_flag_reaches_the_steady_rule_and_a_bad_one_is_refused() -
 
     p = agent_cli.parser()
     cfg = agent_cli.config_from_args(p.parse_args(["--id", "3", "--steady-state-hz", "3"]))
-    assert cfg.steady is not None and cfg.steady.hold_state_hz == 1.0
+    assert cfg.steady is not None and cfg.steady.hold_state_hz == 0.5
     args = p.parse_args(["--id", "3", "--steady-state-hz", "3", "--hold-state-hz", "2"])
     assert agent_cli.config_from_args(args).steady.hold_state_hz == 2.0
-    args = p.parse_args(["--id", "3", "--steady-state-hz", "3", "--hold-state-hz", "0.5"])
+    args = p.parse_args(["--id", "3", "--steady-state-hz", "3", "--hold-state-hz", "0.4"])
     with pytest.raises(ValueError, match="hold_state_hz must be within"):
         agent_cli.config_from_args(args)
 

@@ -146,18 +146,18 @@ def test_one_row_equals_row_0_of_the_array_path(seed: int) -> None:
 
 
 def test_the_array_path_holds_at_rest_like_the_one_row_path() -> None:
-    """Two rows at rest, one HOLDING and one in a GOTO: the holder at the hold rate (1 Hz), the
+    """Two rows at rest, one HOLDING and one in a GOTO: the holder at the hold rate (0.5 Hz), the
     other at the steady rate; row 0 of two equals a pacer of one."""
     two = StatePacer(10.0, 1.0, 10.0, 2, SteadyConfig())
     one = StatePacer(10.0, 1.0, 10.0, 1, SteadyConfig())
     z = np.zeros((2, 3))
     modes = np.array([int(Mode.HOLDING), int(Mode.GOTO)])
     sent = []
-    for k in range(40):
+    for k in range(60):
         due = two.due(k * 0.1, np.array([False, False]), z, z, np.zeros(2), modes, np.ones(2, bool))
         got = one.due(k * 0.1, np.array([False]), z[:1], z[:1], np.zeros(1), modes[:1], [True])
         assert bool(got[0]) == bool(due[0])
         sent.append(due)
     sent = np.array(sent)
-    assert set(np.diff(np.flatnonzero(sent[:, 0])).tolist()) == {10}
+    assert set(np.diff(np.flatnonzero(sent[:, 0])).tolist()) == {20}
     assert set(np.diff(np.flatnonzero(sent[:, 1]))[1:].tolist()) == {3}
