@@ -196,8 +196,9 @@ def add_flight_args(
         type=float,
         default=SteadyConfig.hold_state_hz,
         help="with --steady-state-hz: the state rate while holding at rest (mode HOLDING, at "
-        f"most {HOLD_REST_M_S:g} m/s), at least {1 / MAX_HOLD_PERIOD_S:g}; neighbours and the "
-        "station wait longer for a holder (comms/state_rate.py)",
+        f"most {HOLD_REST_M_S:g} m/s), at least {1 / MAX_HOLD_PERIOD_S:g} (default "
+        f"{SteadyConfig.hold_state_hz:g}); neighbours and the station wait longer for a holder "
+        "(comms/state_rate.py)",
     )
     p.add_argument(
         "--one-zenoh-thread",
