@@ -181,7 +181,15 @@ def add_flight_args(
     add_config_flags(
         p,
         ShellConfig,
-        only=("idle_state_hz", "idle_tick_hz", "calm_tick_hz", "hold_tick_hz", "link_tags"),
+        only=(
+            "idle_state_hz",
+            "idle_tick_hz",
+            "calm_tick_hz",
+            "hold_tick_hz",
+            "link_tags",
+            "tracking",
+            "tracking_lag_s",
+        ),
     )
     p.add_argument(
         "--steady-state-hz",
@@ -369,7 +377,15 @@ def config_from_args(
         sim=sim_config(args.vehicle_model),
         start_ne_m=args.start_ne_m,
         spacing_m=args.spacing_m,
-        **given_fields(args, "assumed_pos_sigma_m", "link_tags", "calm_tick_hz", "hold_tick_hz"),
+        **given_fields(
+            args,
+            "assumed_pos_sigma_m",
+            "link_tags",
+            "calm_tick_hz",
+            "hold_tick_hz",
+            "tracking",
+            "tracking_lag_s",
+        ),
     )
 
 

@@ -71,7 +71,7 @@ class Autopilots:
             self.pos_sigma_m = np.full(self.n, float(sim.pos_sigma_m))
             return Observed(
                 sim.pos_m,
-                sim.vel_m_s,
+                sim.ground_vel_m_s,
                 sim.armed,
                 sim.pos_m[:, 2] < -0.05,  # SimFleet.in_air, every row
                 sim.battery_pct,

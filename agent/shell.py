@@ -66,6 +66,7 @@ from comms.state_rate import StatePacer, idle_rows
 from comms.traffic import TrafficListener, TrafficTable, TrafficTrack, publish_report
 from kit.ticks import run_ticks
 from policy.runtime import GuidancePolicy
+from policy.tracking import Tracking
 from trust.auth import FleetAuth
 from trust.heartbeat import HeartbeatConfig, StationHeartbeats
 
@@ -169,6 +170,9 @@ class VehicleShell:
         self._calm_periods = 1  # grid periods to the next tick while calm (calm or hold tier)
         self.filtered = np.zeros(n, bool)
         self.slowed = np.zeros(n, bool)
+        sim = autopilots.sim
+        self.tracking = Tracking(cfg.tracking_config(sim.body.model if sim else None), n)
+        """What each row's velocity loop did not fly, taken off its next setpoint."""
         self.seq = np.zeros(n, np.int64)
         """Each vehicle's last published seq (one per state it published: idle is not loss)."""
         self.pacer = StatePacer(cfg.state_hz, cfg.idle_state_hz, cfg.tick_hz, n, cfg.steady)
@@ -499,7 +503,11 @@ class VehicleShell:
             rows_due = np.flatnonzero(due)
             states = self._states(rows_due, obs, ext)  # stamped now: only their puts from here on
         if out is not None:
-            self.vehicles.set_velocities(rows, out.vel_ned_m_s, out.heading_rad)
+            vel = out.vel_ned_m_s
+            if self.tracking.cfg.enabled:
+                vel = vel.copy()
+                vel[:, :2] = self.tracking.correct(rows, now_s, vel[:, :2], obs.vel_m_s[rows, :2])
+            self.vehicles.set_velocities(rows, vel, out.heading_rad)
         elif not self.velocity_mode:
             self._forward_traffic(now_s, obs, ext)
         tags = self.cfg.link_tags

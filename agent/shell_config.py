@@ -26,6 +26,8 @@ from comms.session import MeshConfig
 from comms.state_rate import IDLE_STATE_HZ, MAX_HOLD_PERIOD_S, SteadyConfig, check_rates
 from comms.traffic import TrafficConfig
 from policy.goal_rule import ASSUMED_POS_SIGMA_M
+from policy.pointmass import VehicleModel
+from policy.tracking import TrackingConfig
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,13 @@ class ShellConfig:
     GNSS, so that the separation filter pads its pairs and zones (1.8 m + sigma_k x sigma from
     a zone) instead of taking the estimate as exact; 0: as exact (before). Simulated vehicles
     report their model's own."""
+    tracking: bool = True
+    """Take what the velocity loop did not fly (gusts it does not reject, a loop slower than
+    assumed) off the next velocity setpoint (policy/tracking.py); off: setpoints as guidance
+    made them."""
+    tracking_lag_s: float | None = None
+    """The velocity-loop time constant the tracking compensation assumes; None: a simulated
+    vehicle's own, 0.3 s for an autopilot (PX4's velocity loop, roughly)."""
     link: str = "perfect"
     """Radio link emulated between this process's one vehicle and the others (comms.link
     spec); one vehicle only."""
@@ -118,6 +127,14 @@ class ShellConfig:
     spacing_m: float = 8.0
     """Simulated vehicles: the start grid's spacing."""
 
+    def tracking_config(self, model: VehicleModel | None) -> TrackingConfig:
+        """The tracking compensation for vehicles flown through `model` (a simulator's), or
+        behind a real autopilot (None)."""
+        base = TrackingConfig() if model is None else TrackingConfig.for_model(model)
+        if self.tracking_lag_s is not None:
+            base = replace(base, lag_s=self.tracking_lag_s)
+        return replace(base, enabled=self.tracking)
+
     def __post_init__(self) -> None:
         ids = tuple(self.ids)
         object.__setattr__(self, "ids", ids)  # frozen: a list given is kept as a tuple
@@ -127,6 +144,9 @@ class ShellConfig:
             check_vehicle_id(vid)
         if len(set(ids)) != len(ids):
             raise ValueError("ids must not repeat a vehicle id")
+        lag = self.tracking_lag_s
+        if lag is not None and not (math.isfinite(lag) and lag >= 0):
+            raise ValueError(f"tracking_lag_s must be finite and >= 0 (or None), got {lag}")
         if not (math.isfinite(self.tick_hz) and 0 < self.tick_hz <= 100):
             raise ValueError(f"tick_hz must be within (0, 100], got {self.tick_hz}")
         check_rates(self.state_hz, self.idle_state_hz)

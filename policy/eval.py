@@ -29,6 +29,7 @@ from policy import evalsim, scenarios
 from policy.evalsim import DEGRADED, PERFECT, EvalSimConfig
 from policy.observation import Observations
 from policy.pointmass import VehicleModel
+from policy.tracking import TrackingConfig
 
 
 def flops(n: int, h: int = 63, x: int = 3, layers=(64, 64), a: int = 2) -> int:
@@ -90,6 +91,13 @@ class EvalConfig:
     exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, GNSS estimate
     drifting 0.5 m), optionally with fields changed (realistic:drift_m=1.0,gust_m_s=0.4);
     collisions and min_sep are judged on true positions, est_* on estimates."""
+    tracking: bool = True
+    """Take each vehicle's tracking error (gusts its loop does not reject, a loop slower than
+    assumed) off its next command, as the agents do (policy/tracking.py); off: commands go as
+    the controller made them (before). Intruders are never corrected."""
+    tracking_lag_s: float | None = None
+    """The velocity-loop lag the tracking compensation assumes; None: the vehicles' own (as an
+    agent on a simulated vehicle does). Another value measures a model that is wrong."""
     sigma_k: float | None = None
     """Confidence factor of the filter's uncertainty inflation (policy.safety.SafetyConfig.sigma_k,
     None = its default); 0: the filter takes the estimates as the truth."""
@@ -407,6 +415,9 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
         ctrls = {k: v for k, v in ctrls.items() if k in cfg.controllers}
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     vehicles = VehicleModel.named(cfg.vehicles)
+    tracking = TrackingConfig.for_model(vehicles, enabled=cfg.tracking)
+    if cfg.tracking_lag_s is not None:
+        tracking = dataclasses.replace(tracking, lag_s=cfg.tracking_lag_s)
     all_cases = cases(cfg)
     rows: list[dict] = []
     tracks: dict = {}
@@ -419,7 +430,11 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
             cfg.figures and link == "perfect" and case in ("circle-16", "circle-8", "large-35-s0")
         )
         sim_cfg = EvalSimConfig(
-            dt_s=cfg.dt_s, record=record, dead_reckon=cfg.dead_reckon, vehicles=vehicles
+            dt_s=cfg.dt_s,
+            record=record,
+            dead_reckon=cfg.dead_reckon,
+            vehicles=vehicles,
+            tracking=tracking,
         )
         rng = np.random.default_rng([cfg.seed, len(rows)])
         if hasattr(ctrls[name], "reset"):
@@ -496,6 +511,7 @@ def parser() -> argparse.ArgumentParser:
             "policy_period_s": finite("seconds", inclusive=True),
             "policy_separation_m": finite("metres"),
             "sigma_k": finite("standard deviations", inclusive=True),
+            "tracking_lag_s": finite("seconds", inclusive=True),
         },
     )
     ap.add_argument("--merge", default="", help="comma list of results.json to combine into --out")

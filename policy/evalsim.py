@@ -25,6 +25,7 @@ import numpy as np
 from comms.link import PROFILES, LinkProfile
 from policy.pointmass import VehicleModel, Vehicles
 from policy.sparse import straight_velocity
+from policy.tracking import Tracking, TrackingConfig
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,10 @@ class EvalSimConfig:
     """How the vehicles fly and how well they know where they are (VehicleModel.ideal() or
     .realistic()); arrival is judged on the estimate (what the vehicle knows), collisions on
     the truth."""
+    tracking: TrackingConfig | None = None
+    """The tracking compensation of the covey vehicles' commands (policy/tracking.py), as the
+    agents fly it; None: on, with the vehicles' own loop (`TrackingConfig.for_model`);
+    `TrackingConfig(enabled=False)`: off. Intruders are never corrected."""
     dead_reckon: bool = True
     """Receivers extrapolate each neighbour's last delivered state to now, p + v (t - t_rx), as
     the agents do (agent/neighbours.py); False: they use it as it came (staler on a slow link)."""
@@ -149,6 +154,9 @@ def run(
     pending: list = []  # (deliver_at, sender, receivers mask, pos, vel, heading, sigma)
     eye = np.eye(n, dtype=bool)
     tracks = [pos.copy()] if cfg.record else None
+    track = Tracking(
+        cfg.tracking if cfg.tracking is not None else TrackingConfig.for_model(cfg.vehicles), n
+    )
     t = 0.0
     steps = 0
     while active.any():
@@ -209,6 +217,7 @@ def run(
                 valid[ctl],
                 **extra,
             )
+            v[ctl] = track.correct(ctl, t, v[ctl], gvel[ctl])
         straight = idx[nc[idx]]
         for i in straight:  # each at its own speed, on the truth (it knows where it goes)
             v[i] = straight_velocity(pos[i], goals[i], float(own_speed[i]), cfg.dt_s)

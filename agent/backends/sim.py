@@ -123,7 +123,7 @@ class SimFleet:
 
     def telemetry(self, i: int) -> Telemetry:
         with self.lock:
-            p, v = self.pos_m[i].tolist(), self.vel_m_s[i].tolist()
+            p, v = self.pos_m[i].tolist(), self.ground_vel_m_s[i].tolist()
             return Telemetry(
                 stamp_s=self.now_s,
                 pos_ned_m=(p[0], p[1], p[2]),
@@ -222,6 +222,17 @@ class SimFleet:
                 integrate_one(self, min(dt_s, self.cfg.max_step_s))
             elif not self.at_rest():
                 self._integrate(min(dt_s, self.cfg.max_step_s))
+
+    @property
+    def ground_vel_m_s(self) -> np.ndarray:
+        """What each autopilot measures of its velocity (N, 3): the loop's plus the gust on
+        airborne rows, as GNSS sees it (the loop's own array where there are no gusts)."""
+        if self.body.model.gust_m_s <= 0:
+            return self.vel_m_s
+        v = self.vel_m_s.copy()
+        air = self.true_pos_m[:, 2] < 0.0
+        v[air, :2] += self.body.gust_m_s[air]
+        return v
 
     def at_rest(self) -> bool:
         """Every vehicle stands still on the ground, motors off: a fixed point of `_integrate`

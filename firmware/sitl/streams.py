@@ -101,7 +101,7 @@ def sys_status(v: Vehicle, healthy: bool) -> Any:
 
 def global_position_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
     lat, lon, alt = home.to_global(*map(float, v.est_pos_ned_m))
-    vel = np.clip(np.round(v.vel_ned_m_s * 100.0), -32767, 32767).astype(int)
+    vel = np.clip(np.round(v.ground_vel_ned_m_s * 100.0), -32767, 32767).astype(int)
     hdg_cdeg = int(round(math.degrees(v.heading_rad) * 100.0)) % 36000
     return mavlink.MAVLink_global_position_int_message(
         boot_ms,
@@ -117,7 +117,7 @@ def global_position_int(v: Vehicle, home: GeoOrigin, boot_ms: int) -> Any:
 
 
 def local_position_ned(v: Vehicle, boot_ms: int) -> Any:
-    p, u = v.est_pos_ned_m, v.vel_ned_m_s
+    p, u = v.est_pos_ned_m, v.ground_vel_ned_m_s
     return mavlink.MAVLink_local_position_ned_message(
         boot_ms, float(p[0]), float(p[1]), float(p[2]), float(u[0]), float(u[1]), float(u[2])
     )

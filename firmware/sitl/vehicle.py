@@ -105,6 +105,14 @@ class Vehicle:
         return est
 
     @property
+    def ground_vel_ned_m_s(self) -> np.ndarray:
+        """The velocity it reports: the loop's plus the gust while airborne (what GNSS sees)."""
+        v = self.vel_ned_m_s.copy()
+        if self.pos_ned_m[2] < 0.0:
+            v[:2] += self.gust_m_s
+        return v
+
+    @property
     def pos_sigma_m(self) -> float:
         """The 1-sigma of the horizontal estimate it simulates (and reports)."""
         return 0.0 if self.model is None else self.model.drift_m
