@@ -100,6 +100,15 @@ class Tracking:
         if not self.cfg.enabled or want.shape[0] == 0:
             return want.copy()
         rows = np.asarray(rows)
+        if want.shape[0] == 1:  # an agent's one vehicle: the same on Python floats
+            return self._correct_one(int(rows.reshape(-1)[0]), now_s, want, measured_m_s)
+        return self.correct_rows(rows, now_s, want, measured_m_s)
+
+    def correct_rows(
+        self, rows: np.ndarray, now_s: float, want: np.ndarray, measured_m_s: np.ndarray
+    ) -> np.ndarray:
+        """`correct` on arrays, any number of rows (the reference for `_correct_one`)."""
+        rows = np.asarray(rows)
         meas = np.asarray(measured_m_s, dtype=float).reshape(-1, 2)
         cfg = self.cfg
         dt = now_s - self.t_s[rows]
@@ -131,3 +140,48 @@ class Tracking:
         self.loop_m_s[rows], self.error_m_s[rows], self.cmd_m_s[rows] = loop, err, cmd
         self.t_s[rows] = now_s
         return cmd
+
+    def _correct_one(
+        self, i: int, now_s: float, want: np.ndarray, measured_m_s: np.ndarray
+    ) -> np.ndarray:
+        """`correct_rows` for the one row `i`, on Python floats (~10x fewer numpy calls; equal
+        to it: tests/test_tracking.py)."""
+        cfg = self.cfg
+        wn, we = want[0].tolist()
+        mn, me = np.asarray(measured_m_s, dtype=float).reshape(2).tolist()
+        dt = now_s - float(self.t_s[i])
+        fresh = not (0 < dt <= cfg.max_gap_s) or not (math.isfinite(mn) and math.isfinite(me))
+        if fresh:
+            ln, le = (mn if math.isfinite(mn) else 0.0), (me if math.isfinite(me) else 0.0)
+            en = ee = 0.0
+        else:
+            ln, le = self.loop_m_s[i].tolist()
+            cn, ce = self.cmd_m_s[i].tolist()
+            dn, de = cn - ln, ce - le
+            if cfg.lag_s > 0:
+                f = -math.expm1(-dt / cfg.lag_s)
+                dn, de = dn * f, de * f
+            over = False
+            if math.isfinite(cfg.max_accel_m_s2):
+                limit = cfg.max_accel_m_s2 * dt
+                norm = math.hypot(dn, de)
+                if norm > limit:
+                    over = True
+                    dn, de = dn * (limit / norm), de * (limit / norm)
+            if cfg.lag_s == 0 and not over:
+                ln, le = cn, ce
+            else:
+                ln, le = ln + dn, le + de
+            en, ee = self.error_m_s[i].tolist()
+            g = -math.expm1(-dt / cfg.window_s)
+            en += g * (mn - ln - en)
+            ee += g * (me - le - ee)
+            size = math.hypot(en, ee)
+            if size > cfg.max_correction_m_s:
+                en, ee = en * (cfg.max_correction_m_s / size), ee * (cfg.max_correction_m_s / size)
+        cn, ce = wn - en, we - ee
+        self.loop_m_s[i] = (ln, le)
+        self.error_m_s[i] = (en, ee)
+        self.cmd_m_s[i] = (cn, ce)
+        self.t_s[i] = now_s
+        return np.array([[cn, ce]])

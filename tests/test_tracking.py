@@ -218,3 +218,36 @@ def test_the_shell_corrects_its_setpoints_in_gusts():
 
     on, off = stray(True), stray(False)
     assert on < 0.7 * off, (on, off)
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        TrackingConfig(),
+        TrackingConfig(lag_s=0.0, max_accel_m_s2=math.inf),
+        TrackingConfig(lag_s=0.0, max_accel_m_s2=2.0, max_correction_m_s=0.2),
+        TrackingConfig(lag_s=0.5, window_s=0.3, max_gap_s=0.5),
+    ],
+)
+def test_one_row_on_floats_equals_the_array_path(cfg):
+    """The agent's one-vehicle fast path against `correct_rows`, step for step: random wanted
+    and measured velocities, calm (0.3 s) and held (1 s) ticks, gaps that restart the row,
+    NaN measurements, forgetting."""
+    rng = np.random.default_rng(11)
+    fast, ref = Tracking(cfg, 3), Tracking(cfg, 3)
+    t = 0.0
+    for k in range(600):
+        t += float(rng.choice([0.1, 0.1, 0.3, 1.0, 3.0]))
+        row = int(rng.integers(3))
+        want = rng.uniform(-2, 2, (1, 2))
+        meas = rng.uniform(-2, 2, (1, 2))
+        if k % 37 == 0:
+            meas[0, int(rng.integers(2))] = np.nan
+        if k % 53 == 0:
+            fast.forget(np.array([row]))
+            ref.forget(np.array([row]))
+        got = fast.correct(np.array([row]), t, want, meas)
+        exp = ref.correct_rows(np.array([row]), t, want, meas)
+        np.testing.assert_allclose(got, exp, rtol=0, atol=1e-12)
+        for a in ("loop_m_s", "error_m_s", "cmd_m_s", "t_s"):
+            np.testing.assert_allclose(getattr(fast, a), getattr(ref, a), rtol=0, atol=1e-12)
