@@ -133,7 +133,7 @@ class ShellConfig:
         base = TrackingConfig() if model is None else TrackingConfig.for_model(model)
         if self.tracking_lag_s is not None:
             base = replace(base, lag_s=self.tracking_lag_s)
-        return replace(base, enabled=self.tracking)
+        return replace(base, enabled=self.tracking and base.enabled)
 
     def __post_init__(self) -> None:
         ids = tuple(self.ids)

@@ -66,8 +66,12 @@ class TrackingConfig:
     @classmethod
     def for_model(cls, model: VehicleModel, **changes: object) -> TrackingConfig:
         """The loop of a simulated vehicle as the simulator flies it (its lag and acceleration
-        limit): what the agent on a simulated vehicle and `covey eval` assume."""
+        limit): what the agent on a simulated vehicle and `covey eval` assume. Off for a model
+        with neither lag nor gusts: such a vehicle flies its setpoint (the simulator limits the
+        3-D acceleration, which a horizontal model would only mistake for an error)."""
         fields: dict = {"lag_s": model.lag_s, "max_accel_m_s2": model.max_accel_m_s2, **changes}
+        if model.lag_s == 0 and model.gust_m_s == 0:
+            fields["enabled"] = False
         return cls(**fields)
 
 

@@ -41,10 +41,19 @@ def fly(
     return np.array(out)
 
 
+def test_a_simulated_vehicle_without_lag_or_gusts_is_not_corrected():
+    """The agent's default simulator (no lag, no gusts, a 4 m/s^2 3-D limit) and ideal eval
+    vehicles fly their setpoints: the compensation is off for them, whatever is asked."""
+    assert not TrackingConfig.for_model(VehicleModel(max_accel_m_s2=4.0)).enabled
+    assert not TrackingConfig.for_model(VehicleModel.ideal(), enabled=True).enabled
+    assert TrackingConfig.for_model(VehicleModel.realistic()).enabled
+    assert TrackingConfig.for_model(VehicleModel(gust_m_s=0.3)).enabled
+
+
 def test_a_loop_that_flies_the_command_is_left_alone():
     """Ideal vehicles (no lag, no limit, no wind): every command goes out exactly as wanted."""
     rng = np.random.default_rng(3)
-    cfg = TrackingConfig.for_model(VehicleModel.ideal())
+    cfg = TrackingConfig(lag_s=0.0, max_accel_m_s2=math.inf)  # on: the maths itself gives 0
     track = Tracking(cfg, 4)
     rows = np.arange(4)
     last = np.zeros((4, 2))
