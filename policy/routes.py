@@ -59,6 +59,11 @@ PROJECT_IN_M = 0.01
 PAD_STEP_M = 0.25
 """A widened router's padding is rounded up to this step (`Router.widened`): one router per
 step of position uncertainty, not one per reported sigma."""
+CORNER_PASSED_M = 0.3
+"""A vehicle this near the corner it flies to has reached it: it flies on to the corner's
+successor on the route. Without it, a vehicle that arrives a hair off the corner, on the side
+from which the next leg clips the inflation, keeps choosing the corner, slows onto it (straight
+flight stops on its waypoint) and never arrives (seed 59's zones-random-s2, ideal vehicles)."""
 MAX_WIDENED = 8
 """Widened routers kept per plan (a fleet's sigmas fall in a few steps)."""
 CLOSED_MIN_M2 = 0.5
@@ -584,8 +589,21 @@ class Router:
             return goal if entry is goal else entry
         k = self._nearest_seen(pos, dist)
         if k >= 0:
-            return self.nodes_m[k].copy()
+            return self._past_corner(np.array([k]), pos[None], goal)[0]
         return goal if self._fallback is None else self._fallback.next_waypoint(pos, goal)
+
+    def _past_corner(self, ks: np.ndarray, pos: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """The waypoints (R, 2) of R rows at `pos` (R, 2) that chose corners `ks` (R,) on the
+        way to one `goal`: the corner, or its successor on the route (the goal's entry after
+        the last) where the row is within CORNER_PASSED_M of it."""
+        nodes = self.nodes_m
+        out = nodes[ks].copy()
+        near = np.hypot(*(out - pos).T) <= CORNER_PASSED_M
+        if near.any():
+            _, nxt, entry = self._to_goal(goal)
+            after = nxt[ks[near]]
+            out[near] = np.where((after >= 0)[:, None], nodes[np.maximum(after, 0)], entry)
+        return out
 
     def next_waypoints(self, pos_m, goal_m, pad_m=None) -> np.ndarray:
         """`next_waypoint` of N rows (N, 2), the common case at once: a row whose position is
@@ -646,6 +664,7 @@ class Router:
         order = np.argsort(cost, axis=1, kind="stable")
         out = goal.copy()
         length = np.full(len(pos), np.inf)
+        chosen = np.full(len(pos), -1)
         todo = np.arange(len(pos))
         for rank in range(nodes.shape[0]):
             cand = order[todo, rank]
@@ -655,12 +674,16 @@ class Router:
                 break
             ok = self._visible(self._reach_ok, pos[todo], nodes[cand])
             out[todo[ok]] = nodes[cand[ok]]
+            chosen[todo[ok]] = cand[ok]
             length[todo[ok]] = cost[todo[ok], cand[ok]]
             todo = todo[~ok]
             if not len(todo):
                 break
         if not fallback:
             return out, length
+        near = np.flatnonzero((chosen >= 0) & (np.hypot(*(out - pos).T) <= CORNER_PASSED_M))
+        for i in near:  # reached its corner: on to the next (`_past_corner`)
+            out[i] = self._past_corner(chosen[i : i + 1], pos[i : i + 1], goal[i])[0]
         if len(todo) and self._fallback is not None:  # walled off here: route unpadded
             out[todo] = self._fallback.next_waypoints(pos[todo], goal[todo])
         return out

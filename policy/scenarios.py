@@ -116,7 +116,7 @@ def intruder_cases(rng: np.random.Generator, speed_ratio: float, quick: bool = F
         # its start and goal clear of the fleet's (>= 8 m): no conflict at t=0; where no
         # direction tried is, the clearest one (not the last tried: that once started the
         # intruder 2.2 m from a vehicle, seed 59)
-        best_u, best_m = None, -1.0
+        best_u, best_m = np.array([1.0, 0.0]), -1.0
         for _ in range(1000):
             a = rng.uniform(0, 2 * math.pi)
             u = np.array([math.cos(a), math.sin(a)])

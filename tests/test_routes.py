@@ -291,3 +291,46 @@ def test_a_one_lane_gap_between_a_zone_and_the_fence_is_flown_round_too():
     rt = r.plan([-25, 33], [0, 36], pad_m=2.0)
     assert rt.reason == ""
     np.testing.assert_allclose(rt.waypoints_m[-1], [0, 36], atol=0.5)
+
+
+def test_a_vehicle_a_hair_off_its_corner_flies_on_to_the_next() -> None:
+    """Seed 59's zones-random-s2 (every suite): vehicle 4 reached its first corner a hair off
+    it, on the side from which the next leg clips the inflation; the corner kept being chosen,
+    straight flight slowed onto it and the vehicle sat there until timed out (ideal vehicles,
+    both links). Within CORNER_PASSED_M of the corner it chooses, a vehicle flies to the
+    corner's successor, in the one-row and the batch path alike, and the scene's vehicles all
+    arrive."""
+    from policy import eval as ev
+    from policy import evalsim, zone_eval
+    from policy.routes import CORNER_PASSED_M, zones_for
+
+    cfg = ev.EvalConfig(
+        seed=59,
+        suites=("circle", "conflict", "large", "intruder", "zones"),
+        controllers=("policy+filter",),
+    )
+    case = next(c for c in ev.cases(cfg) if c[1] == "zones-random-s2")
+    _, _, starts, goals, opts = case
+    ctrl = ev.controllers(cfg)["policy+filter"]
+    _, router = zones_for(ctrl.safety_cfg, opts["zones_m"])
+    plan = router.plan(starts[4], goals[4]).waypoints_m
+    corner, after = plan[0], plan[1]
+    rng = np.random.default_rng(2)
+    for _ in range(20):  # anywhere within the passed radius: the successor
+        off = rng.normal(size=2)
+        here = corner + off / np.linalg.norm(off) * rng.uniform(0, 0.9 * CORNER_PASSED_M)
+        if not router._reach_ok.covers(shapely.Point(*here)):
+            continue
+        np.testing.assert_allclose(router.next_waypoint(here, goals[4]), after)
+        np.testing.assert_allclose(router.next_waypoints(here[None], goals[4][None])[0], after)
+    r = zone_eval.run(
+        "policy+filter",
+        starts,
+        goals,
+        opts["zones_m"],
+        ctrl,
+        evalsim.PERFECT,
+        evalsim.EvalSimConfig(),
+        np.random.default_rng(0),
+    )
+    assert r["timeouts"] == 0 and r["arrived"] == len(goals) and r["zone_entries"] == 0
