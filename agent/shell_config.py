@@ -130,10 +130,7 @@ class ShellConfig:
     def tracking_config(self, model: VehicleModel | None) -> TrackingConfig:
         """The tracking compensation for vehicles flown through `model` (a simulator's), or
         behind a real autopilot (None)."""
-        base = TrackingConfig() if model is None else TrackingConfig.for_model(model)
-        if self.tracking_lag_s is not None:
-            base = replace(base, lag_s=self.tracking_lag_s)
-        return replace(base, enabled=self.tracking and base.enabled)
+        return TrackingConfig.assumed(model, self.tracking, self.tracking_lag_s)
 
     def __post_init__(self) -> None:
         ids = tuple(self.ids)

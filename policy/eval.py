@@ -415,9 +415,7 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
         ctrls = {k: v for k, v in ctrls.items() if k in cfg.controllers}
     links = {"perfect": PERFECT, "degraded": DEGRADED}
     vehicles = VehicleModel.named(cfg.vehicles)
-    tracking = TrackingConfig.for_model(vehicles, enabled=cfg.tracking)
-    if cfg.tracking_lag_s is not None:
-        tracking = dataclasses.replace(tracking, lag_s=cfg.tracking_lag_s)
+    tracking = TrackingConfig.assumed(vehicles, cfg.tracking, cfg.tracking_lag_s)
     all_cases = cases(cfg)
     rows: list[dict] = []
     tracks: dict = {}

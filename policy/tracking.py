@@ -64,6 +64,18 @@ class TrackingConfig:
             raise ValueError(f"tracking max_accel_m_s2 must be > 0, got {self.max_accel_m_s2}")
 
     @classmethod
+    def assumed(
+        cls, model: VehicleModel | None, enabled: bool = True, lag_s: float | None = None
+    ) -> TrackingConfig:
+        """What a vehicle's shell (or `covey eval`) assumes: `for_model` of a simulated
+        vehicle's `model`, the defaults behind a real autopilot (None); `lag_s` (None: that
+        one's) replaces the loop's lag, `enabled` False turns it off."""
+        changes: dict = {} if lag_s is None else {"lag_s": lag_s}
+        if model is None:
+            return cls(enabled=enabled, **changes)
+        return cls.for_model(model, enabled=enabled, **changes)
+
+    @classmethod
     def for_model(cls, model: VehicleModel, **changes: object) -> TrackingConfig:
         """The loop of a simulated vehicle as the simulator flies it (its lag and acceleration
         limit): what the agent on a simulated vehicle and `covey eval` assume. Off for a model

@@ -48,6 +48,13 @@ def test_a_simulated_vehicle_without_lag_or_gusts_is_not_corrected():
     assert not TrackingConfig.for_model(VehicleModel.ideal(), enabled=True).enabled
     assert TrackingConfig.for_model(VehicleModel.realistic()).enabled
     assert TrackingConfig.for_model(VehicleModel(gust_m_s=0.3)).enabled
+    # what the shell and covey eval assume: an autopilot gets the defaults, a lag given wins
+    assert TrackingConfig.assumed(None) == TrackingConfig()
+    assert TrackingConfig.assumed(None, lag_s=0.5).lag_s == 0.5
+    assert not TrackingConfig.assumed(None, enabled=False).enabled
+    real = TrackingConfig.assumed(VehicleModel.realistic(), lag_s=0.5)
+    assert real.enabled and real.lag_s == 0.5 and real.max_accel_m_s2 == 2.5
+    assert not TrackingConfig.assumed(VehicleModel.ideal(), lag_s=0.3).enabled
 
 
 def test_a_loop_that_flies_the_command_is_left_alone():
