@@ -463,8 +463,20 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
      * that leaves no velocity meeting every line relaxes the covey neighbours', who avoid too,
      * never the line of traffic that will not: policy/safety.py _solve_nc_hard), then the rest */
     int32_t n_hard_all = n_hard;
+    /* the fastest non-cooperative track with a line: its speed and unit velocity */
+    real_t nc_speed = R(0.0), nc_tn = R(0.0), nc_te = R(0.0);
     for (int32_t pass = 1; pass >= 0; --pass) {
         if (pass == 0) {
+            if (nc_speed > vmax) {
+                /* hard too: no faster than vmax along its track (v . t <= vmax), so that the
+                 * escape speed takes the vehicle off the track, never races it along it
+                 * (policy/traffic_rules.py escape_lines) */
+                line_t *l = &scratch->lines[n_lines++];
+                l->point[0] = vmax * nc_tn;
+                l->point[1] = vmax * nc_te;
+                l->dir[0] = -nc_te;
+                l->dir[1] = nc_tn;
+            }
             n_hard_all = n_lines;
         }
         for (int32_t i = 0; i < n_nbrs; ++i) {
@@ -505,25 +517,51 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
                 px = dn * R(COINCIDENT_M);
                 py = de * R(COINCIDENT_M);
             }
+            if (nc) {
+                const real_t nvn = R(nbrs[i].vel_n_m_s), nve = R(nbrs[i].vel_e_m_s);
+                const real_t speed = R_SQRT(nvn * nvn + nve * nve);
+                if (speed > nc_speed) {
+                    nc_speed = speed;
+                    nc_tn = nvn / speed;
+                    nc_te = nve / speed;
+                }
+            }
             orca_line(cfg, r, share, tau_j, nc, px, py, vx, vy, own, &scratch->lines[n_lines++]);
         }
     }
 
     const real_t pref[2] = {R(pref_vel_m_s[0]), R(pref_vel_m_s[1])};
+    /* a faster non-cooperative track's line: the speed disc grows to its speed, at most
+     * NC_ESCAPE_SPEED_FACTOR vmax, to let the vehicle out of its way (policy/traffic_rules.py
+     * escape_speed_m_s) */
+    const real_t disc =
+        R_FMIN(R(COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR) * vmax, R_FMAX(vmax, nc_speed));
     real_t v[2];
-    const int32_t failed = lp2(scratch->lines, n_lines, vmax, pref, 0, v);
+    int32_t failed = lp2(scratch->lines, n_lines, disc, pref, 0, v);
+    int32_t track = nc_speed > vmax ? 1 : 0; /* the track line is among the lines */
+    if (failed < n_hard_all && track) {
+        /* the hard lines cannot all be met: the track line goes first (orca_lp.py solve_lines
+         * n_optional); it is the last hard line */
+        for (int32_t i = n_hard_all; i < n_lines; ++i) {
+            scratch->lines[i - 1] = scratch->lines[i];
+        }
+        --n_hard_all;
+        --n_lines;
+        track = 0;
+        failed = lp2(scratch->lines, n_lines, disc, pref, 0, v);
+    }
     if (failed < n_lines) {
-        lp3(scratch->lines, n_lines, failed, vmax, scratch->proj, v,
+        lp3(scratch->lines, n_lines, failed, disc, scratch->proj, v,
             failed >= n_hard_all ? n_hard_all : 0);
         out->infeasible = 1;
     }
     real_t start[2]; /* what lp2 starts from: the preference clipped to the speed disc */
-    clip_to_disc(pref, vmax, start);
+    clip_to_disc(pref, disc, start);
     out->changed = (v[0] != start[0] || v[1] != start[1]) ? 1 : 0;
-    out->n_lines = n_lines;
+    out->n_lines = n_lines - track; /* the zones' and the neighbours' */
     /* a net under rounding: the output never leaves the speed disc, never non-finite */
     real_t clipped[2];
-    clip_to_disc(v, vmax, clipped);
+    clip_to_disc(v, disc, clipped);
     const float v_n = (float)clipped[0];
     const float v_e = (float)clipped[1];
     if (!isfinite(v_n) || !isfinite(v_e)) {

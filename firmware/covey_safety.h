@@ -73,6 +73,11 @@ typedef struct {
 /* Within r of a non-cooperative track at least as fast as us and closing: move off its track at
  * this share of max_speed_m_s or more (policy/safety.py NC_ESCAPE_SHARE). */
 #define COVEY_SAFETY_NC_ESCAPE_SHARE 0.8
+/* While non-cooperative tracks add lines, the output may be as fast as the fastest of them, up to
+ * this many max_speed_m_s, but no faster than max_speed_m_s along that one's track: at the cruise
+ * speed alone a vehicle cannot get out of the way of traffic up to twice as fast that crosses or
+ * overtakes it (policy/traffic_rules.py NC_ESCAPE_SPEED_FACTOR, escape_lines). */
+#define COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR 2.0
 
 /* A vehicle for the filter: position and velocity in the local frame (north, east). */
 typedef struct {
@@ -134,14 +139,17 @@ typedef struct {
 
 /* Caller-owned working memory (7 KB at COVEY_MAX_INPUTS = 64 in double). */
 typedef struct {
-    covey_halfplane_t lines[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES];
-    covey_halfplane_t proj[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES]; /* the fallback's */
+    /* + 1: the escape speed's track line (NC_ESCAPE_SPEED_FACTOR) */
+    covey_halfplane_t lines[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES + 1];
+    covey_halfplane_t proj[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES + 1]; /* the fallback's */
     covey_halfplane_t hard[COVEY_SAFETY_MAX_HARD_LINES]; /* covey_safety_filter_hard's input */
 } covey_safety_scratch_t;
 
 /* Result of one filter call. */
 typedef struct {
-    float vel_n_m_s;     /* filtered velocity, |v| <= max_speed_m_s; zero on a fault */
+    float vel_n_m_s;     /* filtered velocity, |v| <= max_speed_m_s (up to NC_ESCAPE_SPEED_FACTOR
+                          * times that while a faster non-cooperative track adds a line); zero on
+                          * a fault */
     float vel_e_m_s;
     int32_t n_lines;     /* neighbours within reach: r (1 + margin) + 2 max_speed time_horizon */
     int32_t changed;     /* 1: the preferred velocity (speed-clipped) broke a half-plane */

@@ -95,29 +95,40 @@ def _lp3(lines, begin, radius, result, n_hard=0):
     return result
 
 
-def solve(point, direction, pref_vel, max_speed, hard=()):
+def solve(point, direction, pref_vel, max_speed, hard=(), n_optional=0):
     """Velocity closest to pref_vel inside all half-planes and |v| <= max_speed.
 
     When infeasible, minimises the largest violation (ORCA's fallback). `hard` lines
-    [((px, py), (dx, dy))] (keep-out zones) go first and are never relaxed (`solve_lines`).
+    [((px, py), (dx, dy))] (keep-out zones) go first and are never relaxed (`solve_lines`;
+    n_optional: its last lines that are dropped first).
     """
     lines = [
         ((float(p[0]), float(p[1])), (float(d[0]), float(d[1])))
         for p, d in zip(point, direction, strict=True)
     ]
     return solve_lines(
-        list(hard) + lines, (float(pref_vel[0]), float(pref_vel[1])), max_speed, len(hard)
+        list(hard) + lines,
+        (float(pref_vel[0]), float(pref_vel[1])),
+        max_speed,
+        len(hard),
+        n_optional,
     )
 
 
-def solve_lines(lines, pref, max_speed, n_hard=0):
+def solve_lines(lines, pref, max_speed, n_hard=0, n_optional=0):
     """`solve` on lines [((px, py), (dx, dy))], the first n_hard of them hard: when the rest
     cannot all be met, the worst violation of the rest is minimised inside the hard ones. Hard
     lines that cannot be met together (never for zone lines outside their radius: v = 0 meets
-    them) are relaxed with the rest. The C twin is covey_safety.c covey_safety_solve."""
+    them) are relaxed with the rest, after the last n_optional of them are dropped (the escape
+    speed's track line, policy.traffic_rules.escape_lines). The C twin is covey_safety.c
+    covey_safety_solve."""
     if not lines:
         return _clip_speed(np.array(pref, dtype=np.float64), max_speed)
     fail, result = _lp2(lines, max_speed, pref, False)
+    if fail < n_hard and n_optional:
+        lines = list(lines[: n_hard - n_optional]) + list(lines[n_hard:])
+        n_hard -= n_optional
+        fail, result = _lp2(lines, max_speed, pref, False)
     if fail < len(lines):
         result = _lp3(lines, fail, max_speed, result, n_hard if fail >= n_hard else 0)
     return np.array(result)

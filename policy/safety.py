@@ -26,6 +26,7 @@ from policy.traffic_rules import NC_SIDE_BIAS as NC_SIDE_BIAS
 from policy.traffic_rules import (
     effective_cooperative,
     escape,
+    escape_lines,
     escape_one,
     pair_horizon_one_s,
     pair_horizon_s,
@@ -308,13 +309,15 @@ def filter_velocity(
     )
     if coop is None:
         return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
-    return _solve_nc_hard(point, direction, coop[near], pref_vel_m_s, cfg.max_speed_m_s, ())
+    nc_vel = nbr_vel_m_s[near][~coop[near]]
+    return _solve_nc_hard(point, direction, coop[near], pref_vel_m_s, cfg.max_speed_m_s, (), nc_vel)
 
 
-def _solve_nc_hard(point, direction, coop, pref, max_speed, hard):
+def _solve_nc_hard(point, direction, coop, pref, max_speed, hard, nc_vel=()):
     """`solve` with the non-cooperative neighbours' lines hard after `hard` (the zones'): in a
     crowd that leaves no velocity meeting every line, the covey neighbours' lines are relaxed
-    (each of them also avoids), never the line of traffic that will not."""
+    (each of them also avoids), never the line of traffic that will not. nc_vel (M, 2): the
+    velocities of those neighbours, for the escape speed and its track line (`escape_lines`)."""
     nc = ~np.asarray(coop, bool)
     if not nc.any():
         return solve(point, direction, pref, max_speed, hard)
@@ -322,7 +325,8 @@ def _solve_nc_hard(point, direction, coop, pref, max_speed, hard):
         ((float(p[0]), float(p[1])), (float(d[0]), float(d[1])))
         for p, d in zip(point[nc], direction[nc], strict=True)
     ]
-    return solve(point[~nc], direction[~nc], pref, max_speed, list(hard) + extra)
+    vmax, track = escape_lines(max_speed, np.asarray(nc_vel, np.float64).tolist())
+    return solve(point[~nc], direction[~nc], pref, vmax, list(hard) + extra + track, len(track))
 
 
 def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
@@ -425,6 +429,7 @@ def filter_one(
     own_vx, own_vy = float(vel_m_s[0]), float(vel_m_s[1])
     lines: list = []
     nc_lines: list = []  # hard after the zones' (`_solve_nc_hard`)
+    nc_vel: list = []  # their velocities (`escape_lines`)
     consts = None
     for k, ((nx, ny), (nvx, nvy)) in enumerate(
         zip(np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True)
@@ -456,15 +461,20 @@ def filter_one(
             elif consts is None:
                 consts = _line_constants(base, cfg)
             line = _orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts)
-            (lines if tau_nc is None else nc_lines).append(line)
+            if tau_nc is None:
+                lines.append(line)
+            else:
+                nc_lines.append(line)
+                nc_vel.append((nvx, nvy))
     pref = (float(pref_vel_m_s[0]), float(pref_vel_m_s[1]))
     hard = (
         []
         if zones is None
         else zones.lines(pos_m, vel_m_s, cfg.max_speed_m_s, cfg.sigma_k * float(pos_sigma_m or 0))
     )
-    hard = hard + nc_lines
-    return solve_lines(hard + lines, pref, cfg.max_speed_m_s, len(hard))
+    vmax, track = escape_lines(cfg.max_speed_m_s, nc_vel)
+    hard = hard + nc_lines + track
+    return solve_lines(hard + lines, pref, vmax, len(hard), len(track))
 
 
 def filter_batch(
@@ -564,6 +574,12 @@ def filter_padded(
             out[i] = solve(point[i, m], direction[i, m], pref[i], cfg.max_speed_m_s, hard[i])
         else:
             out[i] = _solve_nc_hard(
-                point[i, m], direction[i, m], coop[i, m], pref[i], cfg.max_speed_m_s, hard[i]
+                point[i, m],
+                direction[i, m],
+                coop[i, m],
+                pref[i],
+                cfg.max_speed_m_s,
+                hard[i],
+                nbr_vel_m_s[i, m & ~coop[i]],
             )
     return out

@@ -34,6 +34,12 @@ categories light to ultralight, comms/adsb.py MANNED_EMITTERS), whose pilot may 
 drone and whose wake and rotor downwash reach further than a multicopter's. The C twin is
 COVEY_SAFETY_MANNED_SEPARATION_M."""
 
+NC_ESCAPE_SPEED_FACTOR = 2.0
+"""While non-cooperative neighbours add lines, the filter may fly as fast as the fastest of them,
+up to this many max_speed_m_s (`escape_speed_m_s`): at the cruise speed alone a vehicle cannot
+get out of the way of traffic up to twice as fast that crosses or overtakes it (docs/sky.md).
+The C twin is COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR."""
+
 NC_ESCAPE_SHARE = 0.8
 """Already within a non-cooperative neighbour's distance r, closing, and it at least as fast as
 us: fleeing along the line cannot work, so the line becomes "move off its track at this share of
@@ -49,6 +55,30 @@ def effective_cooperative(nbr_cooperative=None, nbr_manned=None):
     manned = np.asarray(nbr_manned, dtype=bool)
     coop = np.asarray(True if nbr_cooperative is None else nbr_cooperative, dtype=bool)
     return coop & ~manned
+
+
+def escape_speed_m_s(vmax: float, nc_speed_m_s: float = 0.0) -> float:
+    """The filter's speed limit: vmax, or the speed of the fastest non-cooperative neighbour
+    that adds a line (`nc_speed_m_s`, 0 for none) up to NC_ESCAPE_SPEED_FACTOR vmax."""
+    return min(NC_ESCAPE_SPEED_FACTOR * vmax, max(vmax, nc_speed_m_s))
+
+
+def escape_lines(vmax: float, nc_vel_m_s) -> tuple[float, list]:
+    """The speed limit and the extra hard line while non-cooperative neighbours add lines
+    (nc_vel_m_s: their velocities, (M, 2), in the order their lines were added): the limit is
+    `escape_speed_m_s` of the fastest; when that one is faster than vmax, the line "no faster
+    than vmax along its track", v . t <= vmax (t its unit velocity), so that the escape speed
+    takes the vehicle off its track and never races it along the track. Returns (limit,
+    [((px, py), (dx, dy))]), the line as policy.orca_lp.solve_lines takes it."""
+    best, fast = 0.0, None
+    for vx, vy in nc_vel_m_s:
+        speed = math.hypot(vx, vy)
+        if speed > best:
+            best, fast = speed, (vx, vy)
+    if fast is None or best <= vmax:
+        return vmax, []
+    tx, ty = fast[0] / best, fast[1] / best
+    return escape_speed_m_s(vmax, best), [((vmax * tx, vmax * ty), (-ty, tx))]
 
 
 def pair_horizon_s(cfg, r, rel_speed_m_s, nbr_cooperative=None):
