@@ -444,13 +444,17 @@ class VehicleShell:
         # without the station-lost failsafe nobody asks (and the core skips its checks)
         gcs_alive = not self.cfg.failsafe.require_gcs or self.stations.alive(now_s)
         self._hear_traffic(now_s)
-        landing = (
-            self.table.snapshot(now_s) if self.cfg.failsafe.returning.land_radius_m > 0 else None
-        )
         out: GuidanceStep | None = None
         heading_in_rad = 0.0
         with self._lock:
             core = self.core
+            # the others, for a returning vehicle's landing order (only then: a snapshot a tick)
+            landing = (
+                self.table.snapshot(now_s)
+                if self.cfg.failsafe.returning.land_radius_m > 0
+                and bool((core.mode == int(Mode.RETURNING)).any())
+                else None
+            )
             actions = core.observe(now_s, obs, gcs_alive, landing)
             busy = (
                 np.array([q.busy for q in self._queues], bool) if self._threaded else self._idle_q
