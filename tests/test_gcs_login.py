@@ -251,7 +251,12 @@ def test_https_and_wss_with_a_certificate(mesh, tmp_path):
         with pytest.raises(ConnectionError):  # plain HTTP to the TLS port gets nothing
             get(gs.port, "/", {"Cookie": cookie})
         own = f"https://127.0.0.1:{gs.port}"
-        wss = attack(f"wss://127.0.0.1:{gs.port}/", [], cookie=cookie, origin=own, tls=trust)
+        # up to three tries: once, on a loaded 2-core CI machine, the upgrade's connection was
+        # closed before any response (InvalidMessage); a refusal would answer with a status
+        for _ in range(3):
+            wss = attack(f"wss://127.0.0.1:{gs.port}/", [], cookie=cookie, origin=own, tls=trust)
+            if wss.status or not wss.error.startswith("InvalidMessage"):
+                break
         assert not wss.refused and wss.token, wss
 
 
