@@ -183,16 +183,25 @@ def test_a_qgc_plan_flies_on_three_vehicles_with_pause_resume_abort(procs, tmp_p
         publish_plan(mesh.session, geometry.plan(FLEET, 1))
         # Refused with the reason, and nothing kept: a waypoint outside the fence (inside the
         # circle), one in the keep-out zone, an altitude above the 120 m limit.
-        far = tmp_path / "far.json"
-        far.write_text(
-            json.dumps({"items": [{"kind": "waypoint", "north_m": 80, "east_m": 0, "alt_m": 6}]})
+        # Waiting for the plan: a waypoint 150 m out is refused before it (the 100 m circle)
+        # and after it (its fence), so the wait itself never loads a mission.
+        beyond = tmp_path / "beyond.json"
+        beyond.write_text(
+            json.dumps({"items": [{"kind": "waypoint", "north_m": 150, "east_m": 0, "alt_m": 6}]})
         )
 
         def refused_outside_fence() -> bool:
-            rc, out = _cli(capsys, "upload", str(far), "--to", "1", *mesh_args)
-            return rc == 1 and "item 1 (waypoint): target outside the fence" in out
+            rc, out = _cli(capsys, "upload", str(beyond), "--to", "1", *mesh_args)
+            assert rc == 1, out  # refused either way
+            return "item 1 (waypoint): target outside the fence" in out
 
         assert wait_until(refused_outside_fence, 20), "the plan's fence never applied"
+        far = tmp_path / "far.json"  # inside the 100 m circle, outside the plan's fence
+        far.write_text(
+            json.dumps({"items": [{"kind": "waypoint", "north_m": 80, "east_m": 0, "alt_m": 6}]})
+        )
+        rc, out = _cli(capsys, "upload", str(far), "--to", "1", *mesh_args)
+        assert rc == 1 and "item 1 (waypoint): target outside the fence" in out, out
         zone = tmp_path / "zone.json"
         zone.write_text(json.dumps({"items": [
             {"kind": "waypoint", "north_m": 10, "east_m": -10, "alt_m": 6},
