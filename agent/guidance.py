@@ -50,7 +50,9 @@ class GuidanceConfig:
     separation_m: float = 3.0
     """Minimum distance between two vehicles; the policy's 3 m scales to this."""
     cruise_speed_m_s: float = 1.0
-    """Speed the policy flies at (its unit speed)."""
+    """Speed the policy flies at (its unit speed). To get out of the way of faster traffic that
+    does not cooperate, the separation filter may fly up to twice this (docs/sky.md "The escape
+    speed")."""
     arrive_radius_m: float = ARRIVE_RADIUS_M
     """Horizontal distance at which a goto counts as arrived (then the vehicle holds there)."""
     arrive_alt_tol_m: float = 0.5
