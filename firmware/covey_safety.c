@@ -465,6 +465,10 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
     int32_t n_hard_all = n_hard;
     /* the fastest non-cooperative track with a line: its speed and unit velocity */
     real_t nc_speed = R(0.0), nc_tn = R(0.0), nc_te = R(0.0);
+    /* the ahead rule: the nearest escaping track this vehicle is ahead of (policy/traffic_rules.py
+     * ahead_track): its distance squared (-1: none) and unit velocity */
+    real_t ahead_d = R(-1.0), ahead_tn = R(0.0), ahead_te = R(0.0);
+    int32_t n_opt = 0; /* the optional lines: the track line, the ahead line */
     for (int32_t pass = 1; pass >= 0; --pass) {
         if (pass == 0) {
             if (nc_speed > vmax) {
@@ -476,6 +480,17 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
                 l->point[1] = vmax * nc_te;
                 l->dir[0] = -nc_te;
                 l->dir[1] = nc_tn;
+                ++n_opt;
+            }
+            if (ahead_d >= R(0.0)) {
+                /* no motion back along the track of the neighbour it escapes while ahead of it
+                 * (v . t >= 0): the closing speed stays the neighbour's own */
+                line_t *l = &scratch->lines[n_lines++];
+                l->point[0] = R(0.0);
+                l->point[1] = R(0.0);
+                l->dir[0] = ahead_te;
+                l->dir[1] = -ahead_tn;
+                ++n_opt;
             }
             n_hard_all = n_lines;
         }
@@ -525,6 +540,16 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
                     nc_tn = nvn / speed;
                     nc_te = nve / speed;
                 }
+                const real_t d_sq = px * px + py * py;
+                const real_t jx = R(own->vel_n_m_s) - vx, jy = R(own->vel_e_m_s) - vy;
+                const real_t j_len = R_SQRT(jx * jx + jy * jy);
+                if (d_sq <= r * r && px * vx + py * vy > R(0.0) && j_len >= vmax &&
+                    px * jx + py * jy < R(0.0) && (ahead_d < R(0.0) || d_sq < ahead_d)) {
+                    const real_t jn = R_FMAX(j_len, COVEY_SAFETY_EPS);
+                    ahead_d = d_sq;
+                    ahead_tn = jx / jn;
+                    ahead_te = jy / jn;
+                }
             }
             orca_line(cfg, r, share, tau_j, nc, px, py, vx, vy, own, &scratch->lines[n_lines++]);
         }
@@ -538,16 +563,15 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
         R_FMIN(R(COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR) * vmax, R_FMAX(vmax, nc_speed));
     real_t v[2];
     int32_t failed = lp2(scratch->lines, n_lines, disc, pref, 0, v);
-    int32_t track = nc_speed > vmax ? 1 : 0; /* the track line is among the lines */
-    if (failed < n_hard_all && track) {
-        /* the hard lines cannot all be met: the track line goes first (orca_lp.py solve_lines
-         * n_optional); it is the last hard line */
+    if (failed < n_hard_all && n_opt > 0) {
+        /* the hard lines cannot all be met: the optional lines go first (orca_lp.py
+         * solve_lines n_optional); they are the last hard lines */
         for (int32_t i = n_hard_all; i < n_lines; ++i) {
-            scratch->lines[i - 1] = scratch->lines[i];
+            scratch->lines[i - n_opt] = scratch->lines[i];
         }
-        --n_hard_all;
-        --n_lines;
-        track = 0;
+        n_hard_all -= n_opt;
+        n_lines -= n_opt;
+        n_opt = 0;
         failed = lp2(scratch->lines, n_lines, disc, pref, 0, v);
     }
     if (failed < n_lines) {
@@ -558,7 +582,7 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
     real_t start[2]; /* what lp2 starts from: the preference clipped to the speed disc */
     clip_to_disc(pref, disc, start);
     out->changed = (v[0] != start[0] || v[1] != start[1]) ? 1 : 0;
-    out->n_lines = n_lines - track; /* the zones' and the neighbours' */
+    out->n_lines = n_lines - n_opt; /* the zones' and the neighbours' */
     /* a net under rounding: the output never leaves the speed disc, never non-finite */
     real_t clipped[2];
     clip_to_disc(v, disc, clipped);

@@ -139,9 +139,9 @@ typedef struct {
 
 /* Caller-owned working memory (7 KB at COVEY_MAX_INPUTS = 64 in double). */
 typedef struct {
-    /* + 1: the escape speed's track line (NC_ESCAPE_SPEED_FACTOR) */
-    covey_halfplane_t lines[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES + 1];
-    covey_halfplane_t proj[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES + 1]; /* the fallback's */
+    /* + 2: the escape speed's track line (NC_ESCAPE_SPEED_FACTOR) and the ahead line */
+    covey_halfplane_t lines[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES + 2];
+    covey_halfplane_t proj[COVEY_MAX_INPUTS + COVEY_SAFETY_MAX_HARD_LINES + 2]; /* the fallback's */
     covey_halfplane_t hard[COVEY_SAFETY_MAX_HARD_LINES]; /* covey_safety_filter_hard's input */
 } covey_safety_scratch_t;
 

@@ -24,6 +24,8 @@ from policy.traffic_rules import NC_ESCAPE_SHARE as NC_ESCAPE_SHARE
 from policy.traffic_rules import NC_MAX_HORIZON_FACTOR as NC_MAX_HORIZON_FACTOR
 from policy.traffic_rules import NC_SIDE_BIAS as NC_SIDE_BIAS
 from policy.traffic_rules import (
+    ahead_one,
+    ahead_track,
     effective_cooperative,
     escape,
     escape_lines,
@@ -310,14 +312,28 @@ def filter_velocity(
     if coop is None:
         return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
     nc_vel = nbr_vel_m_s[near][~coop[near]]
-    return _solve_nc_hard(point, direction, coop[near], pref_vel_m_s, cfg.max_speed_m_s, (), nc_vel)
+    ahead = _ahead(rel_pos[near], rel_vel[near], vel_m_s, r, cfg, ~coop[near])
+    return _solve_nc_hard(
+        point, direction, coop[near], pref_vel_m_s, cfg.max_speed_m_s, (), nc_vel, ahead
+    )
 
 
-def _solve_nc_hard(point, direction, coop, pref, max_speed, hard, nc_vel=()):
+def _ahead(rel_pos, rel_vel, own_vel, r, cfg: SafetyConfig, nc, valid=True):
+    """`ahead_track` of the pairs (..., K) as `orca_lines` builds them: the escaping ones are
+    non-cooperative (nc), valid, within r and closing."""
+    px, py = rel_pos[..., 0], rel_pos[..., 1]
+    vx, vy = rel_vel[..., 0], rel_vel[..., 1]
+    active = nc & valid & (px * px + py * py <= r * r) & (px * vx + py * vy > 0)
+    own = np.asarray(own_vel, np.float64)
+    return ahead_track(px, py, vx, vy, own, cfg.max_speed_m_s, active)
+
+
+def _solve_nc_hard(point, direction, coop, pref, max_speed, hard, nc_vel=(), ahead=None):
     """`solve` with the non-cooperative neighbours' lines hard after `hard` (the zones'): in a
     crowd that leaves no velocity meeting every line, the covey neighbours' lines are relaxed
     (each of them also avoids), never the line of traffic that will not. nc_vel (M, 2): the
-    velocities of those neighbours, for the escape speed and its track line (`escape_lines`)."""
+    velocities of those neighbours, for the escape speed and its track line; ahead (2,): the
+    ahead rule's track, NaN or None for none (`escape_lines`)."""
     nc = ~np.asarray(coop, bool)
     if not nc.any():
         return solve(point, direction, pref, max_speed, hard)
@@ -325,8 +341,10 @@ def _solve_nc_hard(point, direction, coop, pref, max_speed, hard, nc_vel=()):
         ((float(p[0]), float(p[1])), (float(d[0]), float(d[1])))
         for p, d in zip(point[nc], direction[nc], strict=True)
     ]
-    vmax, track = escape_lines(max_speed, np.asarray(nc_vel, np.float64).tolist())
-    return solve(point[~nc], direction[~nc], pref, vmax, list(hard) + extra + track, len(track))
+    if ahead is not None and np.isnan(ahead).any():
+        ahead = None
+    vmax, opt = escape_lines(max_speed, np.asarray(nc_vel, np.float64).tolist(), ahead)
+    return solve(point[~nc], direction[~nc], pref, vmax, list(hard) + extra + opt, len(opt))
 
 
 def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
@@ -430,6 +448,7 @@ def filter_one(
     lines: list = []
     nc_lines: list = []  # hard after the zones' (`_solve_nc_hard`)
     nc_vel: list = []  # their velocities (`escape_lines`)
+    ahead = None  # (dist_sq, track) of the ahead rule (`ahead_one`)
     consts = None
     for k, ((nx, ny), (nvx, nvy)) in enumerate(
         zip(np.asarray(nbr_pos_m).tolist(), np.asarray(nbr_vel_m_s).tolist(), strict=True)
@@ -460,21 +479,26 @@ def filter_one(
                 consts = _line_constants(radii[k], cfg, shares[k], tau_nc)
             elif consts is None:
                 consts = _line_constants(base, cfg)
-            line = _orca_line_k(px, py, own_vx - nvx, own_vy - nvy, own_vx, own_vy, consts)
+            vx, vy = own_vx - nvx, own_vy - nvy
+            line = _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts)
             if tau_nc is None:
                 lines.append(line)
             else:
                 nc_lines.append(line)
                 nc_vel.append((nvx, nvy))
+                if px * px + py * py <= radii[k] * radii[k] and px * vx + py * vy > 0:
+                    found = ahead_one(px, py, vx, vy, own_vx, own_vy, cfg.max_speed_m_s)
+                    if found is not None and (ahead is None or found[0] < ahead[0]):
+                        ahead = found
     pref = (float(pref_vel_m_s[0]), float(pref_vel_m_s[1]))
     hard = (
         []
         if zones is None
         else zones.lines(pos_m, vel_m_s, cfg.max_speed_m_s, cfg.sigma_k * float(pos_sigma_m or 0))
     )
-    vmax, track = escape_lines(cfg.max_speed_m_s, nc_vel)
-    hard = hard + nc_lines + track
-    return solve_lines(hard + lines, pref, vmax, len(hard), len(track))
+    vmax, opt = escape_lines(cfg.max_speed_m_s, nc_vel, None if ahead is None else ahead[1])
+    hard = hard + nc_lines + opt
+    return solve_lines(hard + lines, pref, vmax, len(hard), len(opt))
 
 
 def filter_batch(
@@ -556,6 +580,10 @@ def filter_padded(
     )
     out = pref.copy()
     need = ((viol > 0) & ok).any(axis=1)
+    ahead = None
+    if coop is not None:
+        ahead = _ahead(rel_pos, rel_vel, vel_m_s, r, cfg, ~coop, ok)
+        need |= (ahead * pref).sum(-1) < 0  # the ahead line (NaN: none, False)
     hard = (
         [()] * len(pref)
         if zones is None
@@ -581,5 +609,6 @@ def filter_padded(
                 cfg.max_speed_m_s,
                 hard[i],
                 nbr_vel_m_s[i, m & ~coop[i]],
+                None if ahead is None else ahead[i],
             )
     return out

@@ -1,5 +1,6 @@
 """How the separation filter treats traffic that does not cooperate (issue 35): its berth, its
-horizon and reach, the step aside on a collision course and the escape off a faster one's track.
+horizon and reach, the step aside on a collision course, the escape off a faster one's track
+and the ahead rule.
 
 policy.safety builds the ORCA half-planes; for a non-cooperative neighbour (manned aircraft,
 another operator's drone, an intruder: one that does not avoid) it asks this module which leg
@@ -63,22 +64,62 @@ def escape_speed_m_s(vmax: float, nc_speed_m_s: float = 0.0) -> float:
     return min(NC_ESCAPE_SPEED_FACTOR * vmax, max(vmax, nc_speed_m_s))
 
 
-def escape_lines(vmax: float, nc_vel_m_s) -> tuple[float, list]:
-    """The speed limit and the extra hard line while non-cooperative neighbours add lines
+def escape_lines(vmax: float, nc_vel_m_s, ahead=None) -> tuple[float, list]:
+    """The speed limit and the extra hard lines while non-cooperative neighbours add lines
     (nc_vel_m_s: their velocities, (M, 2), in the order their lines were added): the limit is
     `escape_speed_m_s` of the fastest; when that one is faster than vmax, the line "no faster
     than vmax along its track", v . t <= vmax (t its unit velocity), so that the escape speed
-    takes the vehicle off its track and never races it along the track. Returns (limit,
-    [((px, py), (dx, dy))]), the line as policy.orca_lp.solve_lines takes it."""
+    takes the vehicle off its track and never races it along the track. `ahead` (a unit track
+    (tx, ty) from `ahead_track`, or None) adds the ahead line, v . t >= 0. Returns (limit,
+    [((px, py), (dx, dy))]), the lines as policy.orca_lp.solve_lines takes them, both
+    optional (dropped first when the hard lines cannot all be met)."""
     best, fast = 0.0, None
     for vx, vy in nc_vel_m_s:
         speed = math.hypot(vx, vy)
         if speed > best:
             best, fast = speed, (vx, vy)
-    if fast is None or best <= vmax:
-        return vmax, []
-    tx, ty = fast[0] / best, fast[1] / best
-    return escape_speed_m_s(vmax, best), [((vmax * tx, vmax * ty), (-ty, tx))]
+    lines = []
+    limit = vmax
+    if fast is not None and best > vmax:
+        tx, ty = fast[0] / best, fast[1] / best
+        limit = escape_speed_m_s(vmax, best)
+        lines.append(((vmax * tx, vmax * ty), (-ty, tx)))
+    if ahead is not None:
+        lines.append(((0.0, 0.0), (float(ahead[1]), -float(ahead[0]))))
+    return limit, lines
+
+
+def ahead_track(px, py, vx, vy, own_vel, vmax: float, active):
+    """The ahead rule, for arrays (..., K) of pairs (own_vel (..., 2)): among the pairs that
+    escape (`active`: non-cooperative, within r, closing; `escape` then needs the neighbour at
+    least as fast as vmax) and that this vehicle is ahead of (p . v_j < 0), the nearest one's
+    unit velocity t, (..., 2), NaN where there is none. The escape line alone lets the vehicle
+    come back along the track towards the neighbour it flees; the ahead line v . t >= 0
+    (`escape_lines`) keeps the closing speed at the neighbour's own. The C twin is in
+    firmware/covey_safety.c (the ahead line)."""
+    jx = own_vel[..., None, 0] - vx
+    jy = own_vel[..., None, 1] - vy
+    j_len = np.sqrt(jx * jx + jy * jy)
+    ok = active & (j_len >= vmax) & (px * jx + py * jy < 0)
+    d = np.where(ok, px * px + py * py, np.inf)
+    k = np.argmin(d, axis=-1)[..., None]
+    jn = np.maximum(np.take_along_axis(j_len, k, -1), EPS)
+    t = np.concatenate(
+        [np.take_along_axis(jx, k, -1) / jn, np.take_along_axis(jy, k, -1) / jn], axis=-1
+    )
+    return np.where(np.take_along_axis(ok, k, -1), t, np.nan)
+
+
+def ahead_one(px, py, vx, vy, own_vx, own_vy, vmax: float):
+    """`ahead_track` for one escaping pair (within r and closing) in Python floats: (dist_sq,
+    (tx, ty)) when the neighbour is at least as fast as vmax and this vehicle is ahead of it,
+    else None."""
+    jx, jy = own_vx - vx, own_vy - vy
+    j_len = math.sqrt(jx * jx + jy * jy)
+    if j_len < vmax or px * jx + py * jy >= 0:
+        return None
+    jn = EPS if j_len < EPS else j_len
+    return px * px + py * py, (jx / jn, jy / jn)
 
 
 def pair_horizon_s(cfg, r, rel_speed_m_s, nbr_cooperative=None):

@@ -1,0 +1,172 @@
+"""The ahead rule (issue 35): a vehicle already within r of traffic that does not cooperate,
+closing, and ahead of it on its track escapes sideways (the escape rule) and never comes back
+along that track towards it, v . t >= 0 (policy/traffic_rules.py ahead_track, escape_lines;
+firmware/covey_safety.c). Without it, fresh seed 42's `intruder-1x-conflict-8-s2` (realistic
+vehicles, 3 Hz link, policy+filter) ended 2.97 m from a 1x intruder on true positions: the
+escape line's velocity nearest the goal also flew back along the intruder's track. numpy's
+three paths and C agree."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from policy import safety, traffic_rules
+
+needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
+CFG = safety.SafetyConfig()  # 3 m, 1 m/s
+SKY = {"pos_sigma_m": 0.5}
+
+
+def _inside_ahead(rng: np.random.Generator, k: int):
+    """A vehicle 4-6 m ahead of an intruder (1-2x cruise, so within its 6.4 m berth) and a
+    little to one side, wanting to fly back past it (its goal behind the intruder), among `k`
+    covey neighbours."""
+    speed = rng.uniform(1.0, 2.0)
+    ang = rng.uniform(0.0, 2.0 * np.pi)
+    t = np.array([np.cos(ang), np.sin(ang)])
+    n = np.array([-t[1], t[0]])
+    pos = np.zeros(2)
+    ip = pos - rng.uniform(4.0, 6.0) * t + rng.uniform(-2.0, 2.0) * n
+    iv = speed * t
+    vel = rng.uniform(0.3, 1.0) * t + rng.normal(0.0, 0.2, 2)
+    pref = -t + rng.uniform(-0.5, 0.5) * n
+    pref = pref / np.hypot(*pref)
+    nbr_p = rng.uniform(-9.0, 9.0, (k, 2))
+    nbr_p = nbr_p[np.hypot(*(nbr_p - pos).T) > 4.0]
+    nbr_v = rng.normal(0.0, 0.5, (len(nbr_p), 2))
+    nbr_p, nbr_v = np.vstack([nbr_p, ip]), np.vstack([nbr_v, iv])
+    coop = np.ones(len(nbr_p), bool)
+    coop[-1] = False
+    return pos, vel, pref, nbr_p, nbr_v, coop, t
+
+
+def _three_paths(pos, vel, pref, nbr_p, nbr_v, coop):
+    sig = np.full(len(nbr_p), 0.5)
+    a = safety.filter_one(pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, **SKY,
+                          nbr_pos_sigma_m=sig)  # fmt: skip
+    b = safety.filter_velocity(
+        pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, nbr_pos_sigma_m=sig, **SKY
+    )
+    c = safety.filter_padded(
+        pos[None],
+        vel[None],
+        pref[None],
+        nbr_p[None],
+        nbr_v[None],
+        np.ones((1, len(nbr_p)), bool),
+        CFG,
+        pos_sigma_m=np.array([0.5]),
+        nbr_pos_sigma_m=sig[None],
+        nbr_cooperative=coop[None],
+    )[0]
+    return a, b, c
+
+
+def test_ahead_track_picks_the_nearest_escaping_one_ahead() -> None:
+    own = np.array([0.0, 0.0])
+    # p = p_j - p_i; v = v_i - v_j. Three intruders at 1x: behind us (we are ahead), nearer
+    # and behind us, and ahead of us (we are behind it, it flies away)
+    p = np.array([[-5.0, 0.0], [-4.0, 0.5], [4.0, 0.0]])
+    vj = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
+    v = own - vj
+    active = np.array([True, True, True])
+    t = traffic_rules.ahead_track(p[:, 0], p[:, 1], v[:, 0], v[:, 1], own, 1.0, active)
+    # the second: nearest, but we are beside its track (p . v_j = 0.5 > 0); the third: we are
+    # behind it
+    assert np.allclose(t, [1.0, 0.0])
+    # none escaping (the caller's test: within r and closing), or slower than cruise: NaN
+    none = np.zeros(3, bool)
+    assert np.isnan(
+        traffic_rules.ahead_track(p[:, 0], p[:, 1], v[:, 0], v[:, 1], own, 1.0, none)
+    ).all()
+    slow = own - 0.5 * vj
+    assert np.isnan(
+        traffic_rules.ahead_track(p[:, 0], p[:, 1], slow[:, 0], slow[:, 1], own, 1.0, active)
+    ).all()
+    one = traffic_rules.ahead_one(-5.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0)
+    assert one is not None and np.allclose(one[1], [1.0, 0.0]) and one[0] == 25.0
+    assert traffic_rules.ahead_one(5.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0) is None  # behind it
+
+
+def test_the_vehicle_never_flies_back_along_the_track_and_the_paths_agree(monkeypatch) -> None:
+    rng = np.random.default_rng(3511)
+    held = 0
+    for _ in range(200):
+        pos, vel, pref, nbr_p, nbr_v, coop, t = _inside_ahead(rng, int(rng.integers(0, 5)))
+        a, b, c = _three_paths(pos, vel, pref, nbr_p, nbr_v, coop)
+        assert np.allclose(a, b, atol=1e-12) and np.allclose(a, c, atol=1e-12)
+        assert float(a @ t) >= -1e-9, (a, t)
+        held += 1
+    assert held == 200
+    # the rule is what holds it: without the ahead line the same encounters fly back
+    monkeypatch.setattr(safety, "ahead_one", lambda *a: None)
+    rng = np.random.default_rng(3511)
+    back = 0
+    for _ in range(200):
+        pos, vel, pref, nbr_p, nbr_v, coop, t = _inside_ahead(rng, int(rng.integers(0, 5)))
+        v = safety.filter_one(
+            pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, **SKY,
+            nbr_pos_sigma_m=np.full(len(nbr_p), 0.5),
+        )  # fmt: skip
+        back += bool(float(v @ t) < -0.05)
+    assert back > 50
+
+
+@needs_cc
+def test_c_keeps_the_ahead_line_as_numpy_does() -> None:
+    from firmware.cpolicy import load_library
+    from firmware.csafety import CSafetyFilter
+
+    f = CSafetyFilter(load_library(), CFG)
+    rng = np.random.default_rng(3512)
+    for _ in range(200):
+        pos, vel, pref, nbr_p, nbr_v, coop, t = _inside_ahead(rng, int(rng.integers(0, 5)))
+        sig = np.full(len(nbr_p), 0.5)
+        r = f.evaluate(pos, vel, pref, nbr_p, nbr_v, nbr_cooperative=coop, nbr_pos_sigma_m=sig,
+                       **SKY)  # fmt: skip
+        ref = safety.filter_velocity(
+            pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, nbr_pos_sigma_m=sig, **SKY
+        )
+        assert r.status == "ok" and np.abs(r.vel_m_s - ref).max() <= 1e-4, (r.vel_m_s, ref)
+        assert float(r.vel_m_s @ t) >= -1e-4
+
+
+def test_seed_42_keeps_3_m_from_a_1x_intruder(monkeypatch) -> None:
+    """The case that came within 2.97 m on fresh seed 42 (3 Hz link, policy+filter, realistic
+    vehicles): with the ahead rule it keeps 3 m on true positions; without it, it does not."""
+    from policy import eval as ev
+    from policy import evalsim
+    from policy.pointmass import VehicleModel
+    from policy.tracking import TrackingConfig
+
+    cfg = ev.EvalConfig(
+        seed=42,
+        suites=("intruder",),
+        vehicles="realistic",
+        progress=False,
+        controllers=("policy+filter", "c+filter"),
+    )
+    index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
+    i, (_, _, starts, goals, opts) = index["intruder-1x-conflict-8-s2"]
+    ctrl = ev.controllers(cfg)["policy+filter"]
+    vehicles = VehicleModel.named("realistic")
+    sim = evalsim.EvalSimConfig(vehicles=vehicles, tracking=TrackingConfig.assumed(vehicles, True))
+
+    def closest() -> float:
+        ctrl.reset()
+        # the run's random draws as `covey eval --controllers policy+filter,c+filter` makes
+        # them for the case's 3 Hz policy+filter run
+        rng = np.random.default_rng([42, 4 * i + 2])
+        r = evalsim.run(starts, goals, ctrl, evalsim.DEGRADED, sim, rng, **opts)
+        return float(r["intruder_min_sep"])
+
+    kept = closest()
+    nan2 = np.full(2, np.nan)
+    monkeypatch.setattr(
+        safety, "ahead_track", lambda *a, **k: np.broadcast_to(nan2, a[4].shape).copy()
+    )
+    without = closest()
+    assert kept >= 3.0 > without, (kept, without)
