@@ -508,8 +508,13 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
             const real_t r =
                 base * one_margin + R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
             const real_t share = nc ? R(1.0) : R(cfg->responsibility);
-            const real_t vx = R(own->vel_n_m_s) - R(nbrs[i].vel_n_m_s);
-            const real_t vy = R(own->vel_e_m_s) - R(nbrs[i].vel_e_m_s);
+            /* a non-cooperative track as planned against: NC_SPEED_MARGIN faster than reported
+             * (policy/traffic_rules.py planned_velocity) */
+            const real_t vscale = nc ? R(1.0) + R(COVEY_SAFETY_NC_SPEED_MARGIN) : R(1.0);
+            const real_t nvn = vscale * R(nbrs[i].vel_n_m_s);
+            const real_t nve = vscale * R(nbrs[i].vel_e_m_s);
+            const real_t vx = R(own->vel_n_m_s) - nvn;
+            const real_t vy = R(own->vel_e_m_s) - nve;
             real_t reach = r + R(2.0) * vmax * tau;
             real_t tau_j = tau;
             if (nc) {
@@ -518,7 +523,6 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
                  * pair closes than we move */
                 tau_j = r / vmax * (R_SQRT(vx * vx + vy * vy) / vmax);
                 tau_j = R_FMIN(R_FMAX(tau_j, tau), R(COVEY_SAFETY_NC_MAX_HORIZON_FACTOR) * tau);
-                const real_t nvn = R(nbrs[i].vel_n_m_s), nve = R(nbrs[i].vel_e_m_s);
                 reach = r + (vmax + R_FMAX(vmax, R_SQRT(nvn * nvn + nve * nve))) * tau_j;
             }
             if (px * px + py * py >= reach * reach) {
@@ -533,7 +537,6 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
                 py = de * R(COINCIDENT_M);
             }
             if (nc) {
-                const real_t nvn = R(nbrs[i].vel_n_m_s), nve = R(nbrs[i].vel_e_m_s);
                 const real_t speed = R_SQRT(nvn * nvn + nve * nve);
                 if (speed > nc_speed) {
                     nc_speed = speed;

@@ -73,6 +73,10 @@ typedef struct {
 /* Within r of a non-cooperative track at least as fast as us and closing: move off its track at
  * this share of max_speed_m_s or more (policy/safety.py NC_ESCAPE_SHARE). */
 #define COVEY_SAFETY_NC_ESCAPE_SHARE 0.8
+/* The filter plans against a non-cooperative track as if it flew this share faster than it
+ * reports (policy/traffic_rules.py NC_SPEED_MARGIN): traffic that does not coordinate speeds up
+ * with gusts, throttle or a new leg. */
+#define COVEY_SAFETY_NC_SPEED_MARGIN 0.25
 /* While non-cooperative tracks add lines, the output may be as fast as the fastest of them, up to
  * this many max_speed_m_s, but no faster than max_speed_m_s along that one's track: at the cruise
  * speed alone a vehicle cannot get out of the way of traffic up to twice as fast that crosses or

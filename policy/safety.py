@@ -33,6 +33,7 @@ from policy.traffic_rules import (
     pair_horizon_one_s,
     pair_horizon_s,
     pair_reach_m,
+    planned_velocity,
     step_aside,
     step_aside_one,
 )
@@ -285,7 +286,9 @@ def filter_velocity(
     nbr_pos_m = np.asarray(nbr_pos_m, dtype=np.float64).reshape(-1, 2)
     if nbr_pos_m.shape[0] == 0:
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
-    nbr_vel_m_s = np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2)
+    nbr_vel_m_s = planned_velocity(
+        np.asarray(nbr_vel_m_s, dtype=np.float64).reshape(-1, 2), nbr_cooperative
+    )
     rel_pos = untie(nbr_pos_m - pos_m, own_id, nbr_ids)
     rel_vel = np.asarray(vel_m_s) - nbr_vel_m_s
     r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
@@ -427,6 +430,7 @@ def filter_one(
     ids = None if own_id is None or nbr_ids is None else np.asarray(nbr_ids).tolist()
     base = cfg.radius_m * (1 + cfg.margin)
     nbr_cooperative = effective_cooperative(nbr_cooperative, nbr_manned)
+    nbr_vel_m_s = planned_velocity(np.asarray(nbr_vel_m_s).reshape(-1, 2), nbr_cooperative)
     per_nbr = nbr_pos_sigma_m is not None or nbr_cooperative is not None or bool(pos_sigma_m)
     if per_nbr:
         radii, shares = pair_radius_m(
@@ -560,8 +564,9 @@ def filter_padded(
         return pref
     nbr_vel_m_s = np.asarray(nbr_vel_m_s, dtype=np.float64)
     rel_pos = untie(np.asarray(nbr_pos_m, dtype=np.float64) - pos_m[:, None], own_ids, nbr_ids)
-    rel_vel = vel_m_s[:, None] - nbr_vel_m_s
     nbr_cooperative = effective_cooperative(nbr_cooperative, nbr_manned)
+    nbr_vel_m_s = planned_velocity(nbr_vel_m_s, nbr_cooperative)
+    rel_vel = vel_m_s[:, None] - nbr_vel_m_s
     r, share = pair_radius_m(cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
     coop = None
     if nbr_cooperative is not None:

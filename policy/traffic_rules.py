@@ -1,6 +1,6 @@
-"""How the separation filter treats traffic that does not cooperate (issue 35): its berth, its
-horizon and reach, the step aside on a collision course, the escape off a faster one's track
-and the ahead rule.
+"""How the separation filter treats traffic that does not cooperate (issue 35): its berth, the
+speed margin it is planned with, its horizon and reach, the step aside on a collision course,
+the escape off a faster one's track and the ahead rule.
 
 policy.safety builds the ORCA half-planes; for a non-cooperative neighbour (manned aircraft,
 another operator's drone, an intruder: one that does not avoid) it asks this module which leg
@@ -41,6 +41,14 @@ up to this many max_speed_m_s (`escape_speed_m_s`): at the cruise speed alone a 
 get out of the way of traffic up to twice as fast that crosses or overtakes it (docs/sky.md).
 The C twin is COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR."""
 
+NC_SPEED_MARGIN = 0.25
+"""The filter plans against traffic that does not cooperate as if it flew this share faster
+than it reports (`planned_velocity`): a reported velocity is a snapshot, and traffic that does
+not coordinate speeds up with gusts, throttle or a new leg. A "1x" intruder in 0.2 m/s gusts
+went from 0.4 to 1.3 m/s within 5 s on fresh seed 103 and caught a vehicle that flew on ahead
+of it on its track (docs/sky.md, "Traffic's speed margin"). The C twin is
+COVEY_SAFETY_NC_SPEED_MARGIN."""
+
 NC_ESCAPE_SHARE = 0.8
 """Already within a non-cooperative neighbour's distance r, closing, and it at least as fast as
 us: fleeing along the line cannot work, so the line becomes "move off its track at this share of
@@ -56,6 +64,19 @@ def effective_cooperative(nbr_cooperative=None, nbr_manned=None):
     manned = np.asarray(nbr_manned, dtype=bool)
     coop = np.asarray(True if nbr_cooperative is None else nbr_cooperative, dtype=bool)
     return coop & ~manned
+
+
+def planned_velocity(nbr_vel_m_s, nbr_cooperative=None):
+    """Neighbours' velocities (..., K, 2) as the filter plans against them: traffic's
+    (nbr_cooperative False, broadcast to (..., K)) times 1 + NC_SPEED_MARGIN, covey vehicles'
+    as reported; all as reported when nbr_cooperative is None."""
+    v = np.asarray(nbr_vel_m_s, dtype=np.float64)
+    if nbr_cooperative is None:
+        return v
+    nc = ~np.broadcast_to(np.asarray(nbr_cooperative, bool), v.shape[:-1])
+    if not nc.any():
+        return v
+    return np.where(nc[..., None], v * (1.0 + NC_SPEED_MARGIN), v)
 
 
 def escape_speed_m_s(vmax: float, nc_speed_m_s: float = 0.0) -> float:
