@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from policy import safety, traffic_rules
+from tests.traffic_scenes import c_and_reference, c_filter, three_paths
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 CFG = safety.SafetyConfig()  # 3 m, 1 m/s
@@ -41,28 +42,6 @@ def _inside_ahead(rng: np.random.Generator, k: int):
     coop = np.ones(len(nbr_p), bool)
     coop[-1] = False
     return pos, vel, pref, nbr_p, nbr_v, coop, t
-
-
-def _three_paths(pos, vel, pref, nbr_p, nbr_v, coop):
-    sig = np.full(len(nbr_p), 0.5)
-    a = safety.filter_one(pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, **SKY,
-                          nbr_pos_sigma_m=sig)  # fmt: skip
-    b = safety.filter_velocity(
-        pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, nbr_pos_sigma_m=sig, **SKY
-    )
-    c = safety.filter_padded(
-        pos[None],
-        vel[None],
-        pref[None],
-        nbr_p[None],
-        nbr_v[None],
-        np.ones((1, len(nbr_p)), bool),
-        CFG,
-        pos_sigma_m=np.array([0.5]),
-        nbr_pos_sigma_m=sig[None],
-        nbr_cooperative=coop[None],
-    )[0]
-    return a, b, c
 
 
 def test_ahead_track_picks_the_nearest_escaping_one_ahead() -> None:
@@ -96,7 +75,7 @@ def test_the_vehicle_never_flies_back_along_the_track_and_the_paths_agree(monkey
     held = 0
     for _ in range(200):
         pos, vel, pref, nbr_p, nbr_v, coop, t = _inside_ahead(rng, int(rng.integers(0, 5)))
-        a, b, c = _three_paths(pos, vel, pref, nbr_p, nbr_v, coop)
+        a, b, c = three_paths(CFG, pos, vel, pref, nbr_p, nbr_v, coop)
         assert np.allclose(a, b, atol=1e-12) and np.allclose(a, c, atol=1e-12)
         assert float(a @ t) >= -1e-9, (a, t)
         held += 1
@@ -117,19 +96,11 @@ def test_the_vehicle_never_flies_back_along_the_track_and_the_paths_agree(monkey
 
 @needs_cc
 def test_c_keeps_the_ahead_line_as_numpy_does() -> None:
-    from firmware.cpolicy import load_library
-    from firmware.csafety import CSafetyFilter
-
-    f = CSafetyFilter(load_library(), CFG)
+    f = c_filter(CFG)
     rng = np.random.default_rng(3512)
     for _ in range(200):
         pos, vel, pref, nbr_p, nbr_v, coop, t = _inside_ahead(rng, int(rng.integers(0, 5)))
-        sig = np.full(len(nbr_p), 0.5)
-        r = f.evaluate(pos, vel, pref, nbr_p, nbr_v, nbr_cooperative=coop, nbr_pos_sigma_m=sig,
-                       **SKY)  # fmt: skip
-        ref = safety.filter_velocity(
-            pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, nbr_pos_sigma_m=sig, **SKY
-        )
+        r, ref = c_and_reference(f, CFG, pos, vel, pref, nbr_p, nbr_v, coop)
         assert r.status == "ok" and np.abs(r.vel_m_s - ref).max() <= 1e-4, (r.vel_m_s, ref)
         assert float(r.vel_m_s @ t) >= -1e-4
 

@@ -16,6 +16,7 @@ import pytest
 
 from policy import safety, traffic_rules
 from policy.traffic_rules import NC_ESCAPE_SPEED_FACTOR, NC_SPEED_MARGIN, escape_speed_m_s
+from tests.traffic_scenes import c_and_reference, c_filter, three_paths
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 CFG = safety.SafetyConfig()  # 3 m, 1 m/s
@@ -51,27 +52,14 @@ def test_only_faster_traffic_lifts_the_limit_and_the_numpy_paths_agree() -> None
     faster = 0
     for _ in range(300):
         pos, vel, pref, nbr_p, nbr_v, coop = _crossing_from_behind(rng, int(rng.integers(0, 6)))
-        sky = {"pos_sigma_m": 0.5, "nbr_pos_sigma_m": np.full(len(nbr_p), 0.5)}
-        a = safety.filter_one(pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, **sky)
-        b = safety.filter_velocity(pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, **sky)
-        c = safety.filter_padded(
-            pos[None],
-            vel[None],
-            pref[None],
-            nbr_p[None],
-            nbr_v[None],
-            np.ones((1, len(nbr_p)), bool),
-            CFG,
-            pos_sigma_m=np.array([0.5]),
-            nbr_pos_sigma_m=sky["nbr_pos_sigma_m"][None],
-            nbr_cooperative=coop[None],
-        )[0]
+        a, b, c = three_paths(CFG, pos, vel, pref, nbr_p, nbr_v, coop)
         assert np.allclose(a, b, atol=1e-12) and np.allclose(a, c, atol=1e-12)
         # traffic is planned against NC_SPEED_MARGIN faster than it reports
         speed = float(np.hypot(*nbr_v[-1])) * (1.0 + NC_SPEED_MARGIN)
         assert np.hypot(*a) <= escape_speed_m_s(CFG.max_speed_m_s, speed) + 1e-9
         faster += bool(np.hypot(*a) > CFG.max_speed_m_s + 1e-6)
         # the same neighbours all covey vehicles: never above the cruise limit
+        sky = {"pos_sigma_m": 0.5, "nbr_pos_sigma_m": np.full(len(nbr_p), 0.5)}
         every = safety.filter_one(pos, vel, pref, nbr_p, nbr_v, CFG, **sky)
         assert np.hypot(*every) <= CFG.max_speed_m_s + 1e-9
     assert faster > 30  # the escape speed is used, not only allowed
@@ -79,17 +67,12 @@ def test_only_faster_traffic_lifts_the_limit_and_the_numpy_paths_agree() -> None
 
 @needs_cc
 def test_c_lifts_the_limit_as_numpy_does() -> None:
-    from firmware.cpolicy import load_library
-    from firmware.csafety import CSafetyFilter
-
-    f = CSafetyFilter(load_library(), CFG)
+    f = c_filter(CFG)
     rng = np.random.default_rng(3502)
     faster = 0
     for _ in range(300):
         pos, vel, pref, nbr_p, nbr_v, coop = _crossing_from_behind(rng, int(rng.integers(0, 6)))
-        sky = {"pos_sigma_m": 0.5, "nbr_pos_sigma_m": np.full(len(nbr_p), 0.5)}
-        r = f.evaluate(pos, vel, pref, nbr_p, nbr_v, nbr_cooperative=coop, **sky)
-        ref = safety.filter_velocity(pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, **sky)
+        r, ref = c_and_reference(f, CFG, pos, vel, pref, nbr_p, nbr_v, coop)
         assert r.status == "ok" and np.abs(r.vel_m_s - ref).max() <= 1e-4
         faster += bool(np.hypot(*r.vel_m_s) > CFG.max_speed_m_s + 1e-4)
     assert faster > 30

@@ -13,6 +13,7 @@ import pytest
 
 from policy import safety, traffic_rules
 from policy.traffic_rules import NC_SPEED_MARGIN, planned_velocity
+from tests.traffic_scenes import c_and_reference, c_filter
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 CFG = safety.SafetyConfig()  # 3 m, 1 m/s
@@ -80,16 +81,11 @@ def test_the_filter_flies_as_against_the_faster_intruder(monkeypatch) -> None:
 
 @needs_cc
 def test_c_plans_with_the_same_margin() -> None:
-    from firmware.cpolicy import load_library
-    from firmware.csafety import CSafetyFilter
-
-    f = CSafetyFilter(load_library(), CFG)
+    f = c_filter(CFG)
     rng = np.random.default_rng(3522)
     for _ in range(200):
         pos, vel, pref, nbr_p, nbr_v, coop = _scene(rng)
-        sky = {"pos_sigma_m": 0.5, "nbr_pos_sigma_m": np.full(len(nbr_p), 0.5)}
-        r = f.evaluate(pos, vel, pref, nbr_p, nbr_v, nbr_cooperative=coop, **sky)
-        ref = safety.filter_velocity(pos, vel, pref, nbr_p, nbr_v, CFG, nbr_cooperative=coop, **sky)
+        r, ref = c_and_reference(f, CFG, pos, vel, pref, nbr_p, nbr_v, coop)
         assert r.status == "ok" and np.abs(r.vel_m_s - ref).max() <= 1e-4, (r.vel_m_s, ref)
 
 
