@@ -314,8 +314,11 @@ def filter_velocity(
     )
     if coop is None:
         return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
-    nc_vel = nbr_vel_m_s[near][~coop[near]]
-    ahead = _ahead(rel_pos[near], rel_vel[near], vel_m_s, r, cfg, ~coop[near])
+    nc_near = ~coop[near]
+    nc_vel = nbr_vel_m_s[near][nc_near]
+    ahead = (
+        _ahead(rel_pos[near], rel_vel[near], vel_m_s, r, cfg, nc_near) if nc_near.any() else None
+    )
     return _solve_nc_hard(
         point, direction, coop[near], pref_vel_m_s, cfg.max_speed_m_s, (), nc_vel, ahead
     )
@@ -586,7 +589,7 @@ def filter_padded(
     out = pref.copy()
     need = ((viol > 0) & ok).any(axis=1)
     ahead = None
-    if coop is not None:
+    if coop is not None and not coop.all():
         ahead = _ahead(rel_pos, rel_vel, vel_m_s, r, cfg, ~coop, ok)
         need |= (ahead * pref).sum(-1) < 0  # the ahead line (NaN: none, False)
     hard = (
