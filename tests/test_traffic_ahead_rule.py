@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from policy import safety, traffic_rules
-from tests.traffic_scenes import c_and_reference, c_filter, three_paths
+from tests.traffic_scenes import c_and_reference, c_filter, intruder_run, three_paths
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 CFG = safety.SafetyConfig()  # 3 m, 1 m/s
@@ -110,30 +110,9 @@ def test_seed_42_keeps_3_m_from_a_1x_intruder(monkeypatch) -> None:
     vehicles): with the ahead rule it keeps 3 m on true positions; without it, it does not.
     Traffic's speed margin (NC_SPEED_MARGIN, which alone also keeps this case clear) is off
     here, so that the ahead rule is what is measured."""
-    from policy import eval as ev
-    from policy import evalsim
-    from policy.pointmass import VehicleModel
-    from policy.tracking import TrackingConfig
-
-    cfg = ev.EvalConfig(
-        seed=42,
-        suites=("intruder",),
-        vehicles="realistic",
-        progress=False,
-        controllers=("policy+filter", "c+filter"),
-    )
-    index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
-    i, (_, _, starts, goals, opts) = index["intruder-1x-conflict-8-s2"]
-    ctrl = ev.controllers(cfg)["policy+filter"]
-    vehicles = VehicleModel.named("realistic")
-    sim = evalsim.EvalSimConfig(vehicles=vehicles, tracking=TrackingConfig.assumed(vehicles, True))
 
     def closest() -> float:
-        ctrl.reset()
-        # the run's random draws as `covey eval --controllers policy+filter,c+filter` makes
-        # them for the case's 3 Hz policy+filter run
-        rng = np.random.default_rng([42, 4 * i + 2])
-        r = evalsim.run(starts, goals, ctrl, evalsim.DEGRADED, sim, rng, **opts)
+        r = intruder_run(42, "intruder-1x-conflict-8-s2", "policy+filter", "degraded")
         return float(r["intruder_min_sep"])
 
     monkeypatch.setattr(traffic_rules, "NC_SPEED_MARGIN", 0.0)

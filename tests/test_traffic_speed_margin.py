@@ -13,7 +13,7 @@ import pytest
 
 from policy import safety, traffic_rules
 from policy.traffic_rules import NC_SPEED_MARGIN, planned_velocity
-from tests.traffic_scenes import c_and_reference, c_filter
+from tests.traffic_scenes import c_and_reference, c_filter, intruder_run
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 CFG = safety.SafetyConfig()  # 3 m, 1 m/s
@@ -93,27 +93,5 @@ def test_c_plans_with_the_same_margin() -> None:
 def test_seed_103_keeps_3_m_from_a_gusting_1x_intruder() -> None:
     """The case that came within 2.92 m on fresh seed 103 (perfect link, c+filter, realistic
     vehicles), flown by the C core as `covey eval` flies it: now at least 3 m."""
-    from firmware.ceval import CONTROLLERS
-    from policy import eval as ev
-    from policy import evalsim
-    from policy.pointmass import VehicleModel
-    from policy.tracking import TrackingConfig
-
-    cfg = ev.EvalConfig(
-        seed=103,
-        suites=("intruder",),
-        vehicles="realistic",
-        progress=False,
-        controllers=("policy+filter", "c+filter"),
-    )
-    index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
-    i, (_, _, starts, goals, opts) = index["intruder-1x-conflict-4-s0"]
-    ctrl = ev.controllers(cfg, CONTROLLERS)["c+filter"]
-    vehicles = VehicleModel.named("realistic")
-    sim = evalsim.EvalSimConfig(vehicles=vehicles, tracking=TrackingConfig.assumed(vehicles, True))
-    ctrl.reset()
-    # the run's random draws as `covey eval --controllers policy+filter,c+filter` makes them
-    # for the case's perfect-link c+filter run
-    rng = np.random.default_rng([103, 4 * i + 1])
-    r = evalsim.run(starts, goals, ctrl, evalsim.PERFECT, sim, rng, **opts)
+    r = intruder_run(103, "intruder-1x-conflict-4-s0", "c+filter", "perfect")
     assert r["intruder_min_sep"] >= 3.0 and r["collisions"] == 0, r

@@ -3,6 +3,8 @@ three filter paths, and through C beside numpy's reference, every position 1-sig
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from policy import safety
@@ -12,27 +14,10 @@ def three_paths(cfg, pos, vel, pref, nbr_p, nbr_v, coop, sigma_m: float = 0.5):
     """(filter_one, filter_velocity, filter_padded) of the scene: the vehicle at pos with
     velocity vel wanting pref, neighbours nbr_p / nbr_v (K, 2), cooperative flags coop (K,)."""
     sig = np.full(len(nbr_p), sigma_m)
-    a = safety.filter_one(
-        pos,
-        vel,
-        pref,
-        nbr_p,
-        nbr_v,
-        cfg,
-        pos_sigma_m=sigma_m,
-        nbr_pos_sigma_m=sig,
-        nbr_cooperative=coop,
-    )
-    b = safety.filter_velocity(
-        pos,
-        vel,
-        pref,
-        nbr_p,
-        nbr_v,
-        cfg,
-        pos_sigma_m=sigma_m,
-        nbr_pos_sigma_m=sig,
-        nbr_cooperative=coop,
+    sky: dict[str, Any] = {"pos_sigma_m": sigma_m, "nbr_pos_sigma_m": sig, "nbr_cooperative": coop}
+    a, b = (
+        f(pos, vel, pref, nbr_p, nbr_v, cfg, **sky)
+        for f in (safety.filter_one, safety.filter_velocity)
     )
     c = safety.filter_padded(
         pos[None],
@@ -52,21 +37,13 @@ def three_paths(cfg, pos, vel, pref, nbr_p, nbr_v, coop, sigma_m: float = 0.5):
 def c_and_reference(c_filter, cfg, pos, vel, pref, nbr_p, nbr_v, coop, sigma_m: float = 0.5):
     """(C's result (firmware.csafety.CSafetyFilter.evaluate), numpy's filter_velocity) of the
     scene as `three_paths` takes it."""
-    sig = np.full(len(nbr_p), sigma_m)
-    r = c_filter.evaluate(
-        pos, vel, pref, nbr_p, nbr_v, nbr_cooperative=coop, pos_sigma_m=sigma_m, nbr_pos_sigma_m=sig
-    )
-    ref = safety.filter_velocity(
-        pos,
-        vel,
-        pref,
-        nbr_p,
-        nbr_v,
-        cfg,
-        nbr_cooperative=coop,
-        pos_sigma_m=sigma_m,
-        nbr_pos_sigma_m=sig,
-    )
+    sky: dict[str, Any] = {
+        "pos_sigma_m": sigma_m,
+        "nbr_pos_sigma_m": np.full(len(nbr_p), sigma_m),
+        "nbr_cooperative": coop,
+    }
+    r = c_filter.evaluate(pos, vel, pref, nbr_p, nbr_v, **sky)
+    ref = safety.filter_velocity(pos, vel, pref, nbr_p, nbr_v, cfg, **sky)
     return r, ref
 
 
@@ -76,3 +53,32 @@ def c_filter(cfg):
     from firmware.csafety import CSafetyFilter
 
     return CSafetyFilter(load_library(), cfg)
+
+
+def intruder_run(seed: int, case: str, controller: str, link: str):
+    """One run of `covey eval --suites intruder --vehicles realistic --controllers
+    policy+filter,c+filter --seed <seed>`, with that command's random draws: the intruder case
+    `case` flown by `controller` ("policy+filter" or "c+filter", which needs a C compiler) on
+    `link` ("perfect" or "degraded"). Module constants are read as the run flies, so a test may
+    monkeypatch them first. Returns evalsim.run's metrics."""
+    from firmware.ceval import CONTROLLERS
+    from policy import eval as ev
+    from policy import evalsim
+    from policy.pointmass import VehicleModel
+    from policy.tracking import TrackingConfig
+
+    ctrls = ("policy+filter", "c+filter")
+    links = ("perfect", "degraded")
+    cfg = ev.EvalConfig(
+        seed=seed, suites=("intruder",), vehicles="realistic", progress=False, controllers=ctrls
+    )
+    index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
+    i, (_, _, starts, goals, opts) = index[case]
+    ctrl = ev.controllers(cfg, CONTROLLERS if controller == "c+filter" else None)[controller]
+    vehicles = VehicleModel.named("realistic")
+    sim = evalsim.EvalSimConfig(vehicles=vehicles, tracking=TrackingConfig.assumed(vehicles, True))
+    ctrl.reset()
+    # covey eval's run index: cases x links x controllers, in that order
+    run = (i * len(links) + links.index(link)) * len(ctrls) + ctrls.index(controller)
+    model = evalsim.PERFECT if link == "perfect" else evalsim.DEGRADED
+    return evalsim.run(starts, goals, ctrl, model, sim, np.random.default_rng([seed, run]), **opts)
