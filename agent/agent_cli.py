@@ -62,7 +62,7 @@ from comms.geo import GeoOrigin
 from comms.mesh import Mesh
 from comms.plan import FleetPlan
 from comms.schema import POSITION_LIMIT_M
-from comms.session import use_one_thread_runtime
+from comms.session import AGENT_RUNTIME, ONE_THREAD_RUNTIME, use_zenoh_runtime
 from comms.state_rate import (
     HOLD_REST_M_S,
     MAX_HOLD_PERIOD_S,
@@ -87,6 +87,7 @@ GUIDANCE_FIELDS = (
     "sparse_rule",
     "non_cooperative_separation_m",
     "manned_separation_m",
+    "c_core",
 )
 """GuidanceConfig's fields that are flags (the others are tuning for code, not for users)."""
 GUIDANCE_FLAGS = (
@@ -96,6 +97,7 @@ GUIDANCE_FLAGS = (
     "trace_guidance",
     "policy_separation_m",
     "sparse_rule",
+    "c_core",
 )
 """Flags for the shell's own guidance, which a relay vehicle (the policy runs onboard) lacks."""
 HOST_FLAGS = ("spacing_m", "max_neighbours", "see_others")
@@ -160,7 +162,13 @@ def add_flight_args(
         metavar="LAT,LON,ALT",
         help="fleet origin in degrees, degrees, metres (default: covey's)",
     )
-    add_config_flags(p, GuidanceConfig, only=GUIDANCE_FIELDS, flags={"policy_path": "--policy"})
+    add_config_flags(
+        p,
+        GuidanceConfig,
+        only=GUIDANCE_FIELDS,
+        flags={"policy_path": "--policy"},
+        defaults={"c_core": True},  # an agent flies one vehicle: the C core's case
+    )
     add_config_flags(
         p,
         FailsafeConfig,
@@ -214,6 +222,13 @@ def add_flight_args(
         help="run this process's Zenoh on one worker thread instead of its six (ZENOH_RUNTIME; "
         "a value already in the environment wins): about a tenth less CPU for 40 agents on 2 "
         "cores, measured; off by default (docs/companion.md)",
+    )
+    p.add_argument(
+        "--zenoh-default-pools",
+        action="store_true",
+        help="keep Zenoh's own thread pools; by default an agent's receive pool hands its work "
+        "to the application thread (one wake-up per state heard instead of two; "
+        "ZENOH_RUNTIME, a value already in the environment wins; docs/companion.md)",
     )
     p.add_argument("--duration-s", type=float, default=None, help="exit after this long (tests)")
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -510,8 +525,10 @@ def cli(argv: list[str]) -> int:
     """`covey agent`."""
     p = parser()
     args = p.parse_args(argv)
-    if args.one_zenoh_thread:
-        use_one_thread_runtime()  # before anything opens Zenoh (comms/session.py)
+    if args.one_zenoh_thread and args.zenoh_default_pools:
+        p.error("--one-zenoh-thread and --zenoh-default-pools ask for different pools: pick one")
+    if not args.zenoh_default_pools:  # before anything opens Zenoh (comms/session.py)
+        use_zenoh_runtime(ONE_THREAD_RUNTIME if args.one_zenoh_thread else AGENT_RUNTIME)
     setup_logging(args.verbose)
     check_duration(p, args)
     kind = args.vehicle.partition(":")[0]

@@ -36,6 +36,7 @@ from policy.runtime import GuidancePolicy, told_separation_m
 from policy.sparse import SparseConfig
 
 if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_zones`)
+    from agent.guidance_c import CCore
     from policy.zone_bands import ZoneBands
 
 DECISION_DUE_SHARE = 0.95
@@ -90,6 +91,11 @@ class GuidanceConfig:
     traffic (non_cooperative_separation_m)."""
     lanes: LaneConfig = field(default_factory=LaneConfig)
     """Who waits at a gap only one vehicle fits through (policy.lanes)."""
+    c_core: bool = False
+    """One vehicle's policy decision and separation filter run in the compiled C core
+    (firmware/, built on first use with the system C compiler; equal to numpy's within float32,
+    and numpy where the core does not cover a call: zones, a fault, no compiler). `covey agent`
+    turns it on; numpy is the reference (agent/guidance_c.py)."""
 
     def __post_init__(self) -> None:
         for name in ("separation_m", "cruise_speed_m_s", "arrive_radius_m"):
@@ -347,6 +353,12 @@ class BatchGuidance:
         at every altitude (no zone has a band)."""
         self.waypoint_m = np.full((n, 2), np.nan)
         """Each row's current waypoint (north, east) while it flies a routed goto, else NaN."""
+        self.c_core: CCore | None = None
+        """The C twin of the single-vehicle paths (agent/guidance_c.py), None: numpy."""
+        if cfg.c_core and n == 1:
+            from agent.guidance_c import CCore
+
+            self.c_core = CCore.maybe(cfg, self.safety_cfg)
 
     def set_zones(self, keep_out_m, fence_m=None, bands_m=None) -> None:
         """Keep out of these polygons [(K, 2) north/east metres] and inside the fence from
@@ -534,6 +546,19 @@ class BatchGuidance:
         pol = self.policy
         if len(idx) == 1:  # one vehicle (an agent): the single-vehicle fast path
             p, v, h, _ = views.row(int(idx[0]))
+            if self.c_core is not None:
+                got = self.c_core.decide(
+                    pos_m[0, :2],
+                    vel_m_s[0, :2],
+                    heading_rad[0],
+                    goal_m[0, :2],
+                    p[:, :2],
+                    v[:, :2],
+                    h,
+                    **views.sky(int(idx[0])),
+                )
+                if got is not None:
+                    return np.asarray(got, float)[None]
             out = pol.command(
                 pos_m[0, :2],
                 vel_m_s[0, :2],
@@ -575,19 +600,35 @@ class BatchGuidance:
         ids = views.ids is not None and views.own_ids is not None
         if k == 1:  # the single-vehicle fast path
             p, v, _, _ = views.row(0)
-            out = safety.filter_one(
-                pos_m[0, :2],
-                vel_m_s[0, :2],
-                pref_m_s[0],
-                p[:, :2],
-                v[:, :2],
-                self.safety_cfg,
-                int(views.own_ids[0]) if views.own_ids is not None and ids else None,
-                views.ids[0, views.valid[0]] if views.ids is not None and ids else None,
-                **views.sky(0, manned=True),
-                zones=zones,
-            )
-            out = np.asarray(out, float)[None]
+            own_id = int(views.own_ids[0]) if views.own_ids is not None and ids else None
+            nbr_ids = views.ids[0, views.valid[0]] if views.ids is not None and ids else None
+            sky = views.sky(0, manned=True)
+            got = None
+            if self.c_core is not None and zones is None:
+                got = self.c_core.filter(
+                    pos_m[0, :2],
+                    vel_m_s[0, :2],
+                    pref_m_s[0],
+                    p[:, :2],
+                    v[:, :2],
+                    own_id,
+                    nbr_ids,
+                    **sky,
+                )
+            if got is None:
+                got = safety.filter_one(
+                    pos_m[0, :2],
+                    vel_m_s[0, :2],
+                    pref_m_s[0],
+                    p[:, :2],
+                    v[:, :2],
+                    self.safety_cfg,
+                    own_id,
+                    nbr_ids,
+                    **sky,
+                    zones=zones,
+                )
+            out = np.asarray(got, float)[None]
         else:
             out = safety.filter_padded(
                 pos_m[:, :2],

@@ -42,10 +42,14 @@ def role_neighbours(
     count: int = NEIGHBOURS,
     rate_hz: float = TICK_HZ,
     link_tags: bool = True,
+    spread: bool = False,
 ) -> None:
     """Publish `count` vehicles on a ring around the agent's latest state, at `rate_hz`; with
     `keys_dir` (a bench fleet, bench/trust.py) each state is signed with its vehicle's key and,
-    with `link_tags`, tagged for the agent, as neighbours that hear it do (trust/links.py)."""
+    with `link_tags`, tagged for the agent, as neighbours that hear it do (trust/links.py).
+    `spread`: each vehicle at its own phase, evenly over the period, as vehicles of their own
+    tick (every state then reaches the agent alone); else all of a period's at once (they
+    reach it in a few batches)."""
     from comms import keys
     from comms.mesh import Mesh
     from comms.schema import Mode, Role, VehicleState
@@ -72,6 +76,8 @@ def role_neighbours(
             c = np.array(me.pos_ned_m) if me is not None else np.array([0.0, 0.0, -10.0])
             v = me.vel_ned_m_s if me is not None else (0.0, 0.0, 0.0)
             for k in range(count):
+                if spread:
+                    time.sleep(max(0.0, next_s + k * period_s / count - time.monotonic()))
                 r_m, th = 6.0 + 8.0 * k / count, 2 * math.pi * k / count + 0.3
                 pos = (c[0] + r_m * math.cos(th), c[1] + r_m * math.sin(th), c[2])
                 st = VehicleState(
@@ -191,12 +197,16 @@ def agent_flight(
     neighbour_hz: float = TICK_HZ,
     while_flying: Callable[[int, float], None] | None = None,
     link_tags: bool = True,
+    spread: bool = False,
+    agent_args: tuple[str, ...] = (),
 ) -> dict:
     """One real `covey agent` with 10 neighbours: CPU and tick jitter landed, then flying a goto.
     `decision_period_s` None: the policy's trained period (the default); 0: every tick.
     `keys_dir`: a keyed fleet (bench/trust.py): every state signed and verified.
     `while_flying(pid, window_s)`: called as the flying window starts (a profiler, bench/agent_profile.py).
-    `link_tags` False: nobody tags states for anyone (trust/links.py): every one is verified."""
+    `link_tags` False: nobody tags states for anyone (trust/links.py): every one is verified.
+    `spread`: the neighbours publish at phases of their own (role_neighbours).
+    `agent_args`: more `covey agent` flags."""
     from comms.commands import new_nonce
     from comms.mesh import Mesh
     from comms.schema import Command, Mode, Role
@@ -216,6 +226,7 @@ def agent_flight(
         nb_extra = ["--keys-dir", keys_dir, "--link-tags", str(int(link_tags))]
         extra += ["--link-tags", "32" if link_tags else "0"]
     nb_extra += ["--neighbours", str(neighbours), "--neighbour-hz", str(neighbour_hz)]
+    nb_extra += ["--spread"] if spread else []
     with Mesh(embedded_router(port, fleet=FLEET), auth=auth) as mesh, common.children() as kids:
         mesh.subscribe_states(log.on_state, vehicle_id=AGENT_ID)
         nb = kids.start(
@@ -244,6 +255,7 @@ def agent_flight(
             "--idle-state-hz",
             str(TICK_HZ),
             *extra,
+            *agent_args,
         )
         log.wait(lambda s: True, 60, "its first state")
         time.sleep(1.0)
@@ -319,8 +331,11 @@ if __name__ == "__main__":
     ap.add_argument(
         "--neighbour-hz", type=float, default=TICK_HZ, help="neighbours: their state rate"
     )
+    ap.add_argument("--spread", action="store_true", help="neighbours: each at a phase of its own")
     a = ap.parse_args()
     if a.role == "neighbours":
-        role_neighbours(a.port, a.keys_dir, a.neighbours, a.neighbour_hz, bool(a.link_tags))
+        role_neighbours(
+            a.port, a.keys_dir, a.neighbours, a.neighbour_hz, bool(a.link_tags), a.spread
+        )
     else:
         main(a.quick)

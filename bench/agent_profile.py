@@ -20,6 +20,7 @@ import math
 import os
 import re
 import shutil
+import statistics
 import subprocess
 import tempfile
 import time
@@ -159,10 +160,17 @@ def fleet_ids(vehicles: int) -> range:
 
 
 def keyed_flight(
-    neighbours: int, neighbour_hz: float, link_tags: bool = True, while_flying=None
+    neighbours: int,
+    neighbour_hz: float,
+    link_tags: bool = True,
+    while_flying=None,
+    spread: bool = True,
+    agent_args: tuple[str, ...] = (),
 ) -> dict:
     """bench/agent_cpu.py's flight in a throwaway keyed fleet of the agent and its neighbours;
-    `link_tags` False: nobody tags (a tree from before the tags runs with the default)."""
+    `link_tags` False: nobody tags (a tree from before the tags runs with the default).
+    `spread`: each neighbour publishes at a phase of its own, as separate vehicles do (False:
+    all at once, as before round nine); `agent_args`: more `covey agent` flags."""
     from trust.authority import throwaway_fleet
 
     with tempfile.TemporaryDirectory() as d:
@@ -175,24 +183,56 @@ def keyed_flight(
             neighbours=neighbours,
             neighbour_hz=neighbour_hz,
             while_flying=while_flying,
+            spread=spread,
+            agent_args=agent_args,
             **kw,
         )
 
 
-def cpu_only(neighbours: int, neighbour_hz: float, link_tags: bool = True) -> dict:
+def cpu_only(
+    neighbours: int,
+    neighbour_hz: float,
+    link_tags: bool = True,
+    spread: bool = True,
+    agent_args: tuple[str, ...] = (),
+) -> dict:
     """The same flight without the profiler (py-spy costs CPU and perturbs what it samples):
     the agent's CPU per tick and its state rate."""
-    f = keyed_flight(neighbours, neighbour_hz, link_tags)["flying"]
+    f = keyed_flight(neighbours, neighbour_hz, link_tags, None, spread, agent_args)["flying"]
     print(
-        f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz, link tags "
-        f"{'on' if link_tags else 'off'}, flying, no profiler: {f['cpu_ms_per_tick']:.2f} ms CPU "
-        f"per 100 ms, states {f['states'] / f['window_s']:.1f} Hz"
+        f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz "
+        f"({'each at its own phase' if spread else 'all at once'}), link tags "
+        f"{'on' if link_tags else 'off'}, {' '.join(agent_args) or 'as shipped'}, flying, no "
+        f"profiler: {f['cpu_ms_per_tick']:.2f} ms CPU per 100 ms, states "
+        f"{f['states'] / f['window_s']:.1f} Hz",
+        flush=True,
     )
     return f
 
 
+def compare(neighbours: int, neighbour_hz: float, spread: bool, args: str, repeats: int) -> None:
+    """`cpu_only` as shipped and with the agent flags `args`, alternating, `repeats` each:
+    the medians and their ratio (one machine, one run)."""
+    other = tuple(args.split())
+    got: dict[tuple[str, ...], list[float]] = {(): [], other: []}
+    for _ in range(repeats):
+        for agent_args in ((), other):
+            f = cpu_only(neighbours, neighbour_hz, True, spread, agent_args)
+            got[agent_args].append(f["cpu_ms_per_tick"])
+    shipped, alt = (statistics.median(got[k]) for k in ((), other))
+    print(
+        f"median of {repeats}: as shipped {shipped:.2f} ms, with {args} {alt:.2f} ms per 100 ms "
+        f"(shipped / other {shipped / alt:.2f})"
+    )
+
+
 def main(
-    neighbours: int, neighbour_hz: float, out: str, rate_hz: int = 200, link_tags: bool = True
+    neighbours: int,
+    neighbour_hz: float,
+    out: str,
+    rate_hz: int = 200,
+    link_tags: bool = True,
+    spread: bool = True,
 ) -> None:
 
     pyspy = shutil.which("py-spy") or str(common.REPO / ".venv/bin/py-spy")
@@ -227,7 +267,7 @@ def main(
         ticks = seconds * agent_cpu.TICK_HZ
         by_thread.update({k: (v - t0.get(k, 0.0)) * 1e3 / ticks for k, v in t1.items()})
 
-    r = keyed_flight(neighbours, neighbour_hz, link_tags, while_flying=spy)
+    r = keyed_flight(neighbours, neighbour_hz, link_tags, while_flying=spy, spread=spread)
     f = r["flying"]
     total, own, cum = top(Path(folded).read_text(), 40)
     lines = [
@@ -259,6 +299,20 @@ if __name__ == "__main__":
         help="nobody tags states (trust/links.py): the agent verifies every signature",
     )
     ap.add_argument(
+        "--burst",
+        action="store_true",
+        help="the neighbours publish all at once each period (before round nine: each at a "
+        "phase of its own, as separate vehicles do)",
+    )
+    ap.add_argument(
+        "--compare-args",
+        default=None,
+        metavar="FLAGS",
+        help="with --cpu-only: alternate the agent as shipped and with these flags "
+        "(e.g. '--zenoh-default-pools'), --repeats each",
+    )
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument(
         "--receive-model",
         default=None,
         metavar="N",
@@ -272,7 +326,9 @@ if __name__ == "__main__":
 
         for hz, reach in ((10.0, False), (3.0, False), (3.0, True)):
             print(json.dumps(receive_cost(a.receive_model, 8.0, hz, reach)))
+    elif a.cpu_only and a.compare_args:
+        compare(a.neighbours, a.neighbour_hz, not a.burst, a.compare_args, a.repeats)
     elif a.cpu_only:
-        cpu_only(a.neighbours, a.neighbour_hz, link_tags=not a.no_link_tags)
+        cpu_only(a.neighbours, a.neighbour_hz, not a.no_link_tags, not a.burst)
     else:
-        main(a.neighbours, a.neighbour_hz, a.out, link_tags=not a.no_link_tags)
+        main(a.neighbours, a.neighbour_hz, a.out, link_tags=not a.no_link_tags, spread=not a.burst)

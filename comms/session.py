@@ -40,6 +40,14 @@ MAX_CONFIG_BYTES = 1 << 20
 
 RUNTIME_ENV = "ZENOH_RUNTIME"
 """Zenoh reads its thread pools' settings from this variable once, when it first runs."""
+AGENT_RUNTIME = "(rx: (handover: app))"
+"""An agent's Zenoh pools by default (`covey agent`): the receive pool hands its work over to
+the application worker, so that a state heard wakes one thread, not two. An agent hears its
+neighbours' states one by one, each from its own process at its own phase; at 230 states a
+second from 20 publishers spread over each 100 ms, a polled subscriber's process used 22.0 ms
+of CPU a second with Zenoh's default pools and 13.3 ms with this (5.1 ms when the same states
+came in one burst a tick; docs/companion.md, "Round nine"). The send, link and accept pools
+stay Zenoh's."""
 ONE_THREAD_RUNTIME = (
     "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app), "
     "app: (worker_threads: 1))"
@@ -48,15 +56,15 @@ ONE_THREAD_RUNTIME = (
 `covey agent --one-zenoh-thread`. An agent process moves a few hundred small messages a second;
 on the 2 (receive), 1 + 1 (send, links) and 1 (application) threads of Zenoh's default each
 message wakes a thread and hands the work on to another, which costs more than the work
-(docs/companion.md, "Round six"). Off by default: under a loaded machine one e2e test
+(docs/companion.md, "Round six"). Not the default: under a loaded machine one e2e test
 (tests/test_record_e2e.py closed loop) missed more traced ticks with it."""
 
 
-def use_one_thread_runtime() -> str:
-    """Run this process's Zenoh on one worker thread (ONE_THREAD_RUNTIME), unless the user's
-    environment already says how (RUNTIME_ENV wins). Call before the first session opens: Zenoh
-    reads the variable once. Returns the setting in force."""
-    return os.environ.setdefault(RUNTIME_ENV, ONE_THREAD_RUNTIME)
+def use_zenoh_runtime(setting: str = ONE_THREAD_RUNTIME) -> str:
+    """Run this process's Zenoh pools as `setting` says (AGENT_RUNTIME, ONE_THREAD_RUNTIME),
+    unless the user's environment already says how (RUNTIME_ENV wins). Call before the first
+    session opens: Zenoh reads the variable once. Returns the setting in force."""
+    return os.environ.setdefault(RUNTIME_ENV, setting)
 
 
 class MeshConfigError(ValueError):

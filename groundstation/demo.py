@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from agent import guidance_c as c_core
 from cli.options import add_config_flags, config_from_flags, finite, stop_on_signals
 from cli.options import port as tcp_port
 from comms.mesh import Mesh
@@ -165,6 +166,7 @@ def _run(
             grace_s=cfg.stop_timeout_s,
         ) as children,
     ):
+        c_core.build()  # once here, not in each agent at once (they load what it built)
         for vid, (n, e) in enumerate(grid_starts(cfg.vehicles, cfg.spacing_m), start=1):
             proc = children.start(
                 *[

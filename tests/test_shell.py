@@ -210,11 +210,13 @@ def test_the_hold_rate_flag_reaches_the_steady_rule_and_a_bad_one_is_refused() -
         agent_cli.config_from_args(args)
 
 
-def test_one_zenoh_thread_is_asked_for_and_the_users_setting_wins(monkeypatch) -> None:
-    from comms.session import ONE_THREAD_RUNTIME, RUNTIME_ENV, use_one_thread_runtime
+def test_zenoh_pools_are_asked_for_and_the_users_setting_wins(monkeypatch) -> None:
+    from comms.session import AGENT_RUNTIME, ONE_THREAD_RUNTIME, RUNTIME_ENV, use_zenoh_runtime
 
     monkeypatch.delenv(RUNTIME_ENV, raising=False)
-    assert use_one_thread_runtime() == ONE_THREAD_RUNTIME
+    assert use_zenoh_runtime() == ONE_THREAD_RUNTIME
     assert "handover: app" in ONE_THREAD_RUNTIME and "worker_threads: 1" in ONE_THREAD_RUNTIME
+    monkeypatch.delenv(RUNTIME_ENV)
+    assert use_zenoh_runtime(AGENT_RUNTIME) == AGENT_RUNTIME == "(rx: (handover: app))"
     monkeypatch.setenv(RUNTIME_ENV, "(rx: (worker_threads: 4))")
-    assert use_one_thread_runtime() == "(rx: (worker_threads: 4))"
+    assert use_zenoh_runtime(AGENT_RUNTIME) == "(rx: (worker_threads: 4))"
