@@ -546,29 +546,11 @@ class BatchGuidance:
         pol = self.policy
         if len(idx) == 1:  # one vehicle (an agent): the single-vehicle fast path
             p, v, h, _ = views.row(int(idx[0]))
-            if self.c_core is not None:
-                got = self.c_core.decide(
-                    pos_m[0, :2],
-                    vel_m_s[0, :2],
-                    heading_rad[0],
-                    goal_m[0, :2],
-                    p[:, :2],
-                    v[:, :2],
-                    h,
-                    **views.sky(int(idx[0])),
-                )
-                if got is not None:
-                    return np.asarray(got, float)[None]
-            out = pol.command(
-                pos_m[0, :2],
-                vel_m_s[0, :2],
-                heading_rad[0],
-                goal_m[0, :2],
-                p[:, :2],
-                v[:, :2],
-                h,
-                **views.sky(int(idx[0])),
-            )
+            args = (pos_m[0, :2], vel_m_s[0, :2], heading_rad[0], goal_m[0, :2])
+            nbrs, sky = (p[:, :2], v[:, :2], h), views.sky(int(idx[0]))
+            out = None if self.c_core is None else self.c_core.decide(*args, *nbrs, **sky)
+            if out is None:  # numpy: the reference, and what the C core leaves to it
+                out = pol.command(*args, *nbrs, **sky)
             return np.asarray(out, float)[None]
         obs = Observations(
             pos_m[:, :2],

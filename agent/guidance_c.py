@@ -23,6 +23,11 @@ from policy import safety
 
 log = logging.getLogger(__name__)
 
+UNAVAILABLE = (
+    "the C guidance core is not available (%s): guidance runs in numpy, a little slower "
+    "(install a C compiler, e.g. apt install gcc, or pass --no-c-core to say so)"
+)
+
 
 def build(policy_path: str | None = None) -> bool:
     """Build the C core's library for these weights now (None: the shipped ones), so that the
@@ -33,7 +38,7 @@ def build(policy_path: str | None = None) -> bool:
     try:
         load_library(policy_path)
     except (OSError, subprocess.CalledProcessError) as exc:
-        log.warning("the C guidance core is not available (%s): guidance runs in numpy", exc)
+        log.warning(UNAVAILABLE, exc)
         return False
     return True
 
@@ -74,7 +79,7 @@ class CCore:
         try:
             return cls(cfg, safety_cfg)
         except (OSError, subprocess.CalledProcessError) as exc:
-            log.warning("the C guidance core is not available (%s): guidance runs in numpy", exc)
+            log.warning(UNAVAILABLE, exc)
             return None
 
     def decide(

@@ -166,7 +166,8 @@ def _run(
             grace_s=cfg.stop_timeout_s,
         ) as children,
     ):
-        c_core.build()  # once here, not in each agent at once (they load what it built)
+        # once here, not in each agent at once (they load what it built); none: they fly numpy
+        no_c = () if c_core.build() else ("--no-c-core",)
         for vid, (n, e) in enumerate(grid_starts(cfg.vehicles, cfg.spacing_m), start=1):
             proc = children.start(
                 *[
@@ -195,6 +196,7 @@ def _run(
                         if cfg.steady_state_hz
                         else ()
                     ),
+                    *no_c,
                     *cfg.agent_extra,
                 ]
             )

@@ -108,14 +108,28 @@ def test_numpy_answers_what_the_core_does_not_cover() -> None:
 
 
 def test_without_a_compiler_the_agent_says_so_and_flies_numpy(monkeypatch, caplog) -> None:
+    from agent import guidance_c
+
     monkeypatch.setenv("CC", "no-such-compiler-here")
     with caplog.at_level(logging.WARNING, logger="agent.guidance_c"):
         g = BatchGuidance(GuidanceConfig(c_core=True), 1)
+        assert not guidance_c.build()  # what covey demo asks before it starts its agents
     assert g.c_core is None
     assert "C guidance core is not available" in caplog.text and "no-such-compiler" in caplog.text
+    assert "--no-c-core" in caplog.text
     got, _, _ = _fly(g, 1, 5, ticks=3)
     assert np.isfinite(got).all()
 
 
 def test_many_rows_stay_on_numpy_batches() -> None:
     assert BatchGuidance(GuidanceConfig(c_core=True), 3).c_core is None
+
+
+def test_covey_agent_flies_the_c_core_unless_told_not_to() -> None:
+    from agent import agent_cli
+
+    p = agent_cli.parser()
+    assert not GuidanceConfig().c_core  # library callers and evaluations: numpy, the reference
+    assert agent_cli.config_from_args(p.parse_args(["--id", "3"])).guidance.c_core
+    off = agent_cli.config_from_args(p.parse_args(["--id", "3", "--no-c-core"]))
+    assert not off.guidance.c_core

@@ -220,3 +220,12 @@ def test_zenoh_pools_are_asked_for_and_the_users_setting_wins(monkeypatch) -> No
     assert use_zenoh_runtime(AGENT_RUNTIME) == AGENT_RUNTIME == "(rx: (handover: app))"
     monkeypatch.setenv(RUNTIME_ENV, "(rx: (worker_threads: 4))")
     assert use_zenoh_runtime(AGENT_RUNTIME) == "(rx: (worker_threads: 4))"
+
+
+def test_an_agent_asked_for_two_kinds_of_zenoh_pools_says_which_clash(capsys) -> None:
+    from agent import agent_cli
+
+    with pytest.raises(SystemExit) as exit_:
+        agent_cli.cli(["--id", "3", "--one-zenoh-thread", "--zenoh-default-pools"])
+    assert exit_.value.code == 2
+    assert "--one-zenoh-thread and --zenoh-default-pools" in capsys.readouterr().err
