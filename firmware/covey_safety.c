@@ -518,11 +518,15 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
             real_t reach = r + R(2.0) * vmax * tau;
             real_t tau_j = tau;
             if (nc) {
-                /* tau_j = clip((r / vmax) (|v| / vmax), tau, factor tau) (policy/safety.py
+                /* tau_j = clip((r / vmax) (|v| / vmax), tau, cap) (policy/traffic_rules.py
                  * pair_horizon_s): time to step one pair distance aside, times how much faster the
-                 * pair closes than we move */
+                 * pair closes than we move; cap = max(factor tau, r / (escape vmax) + tau), the
+                 * time to leave a wide berth (a manned aircraft's) at the escape speed */
+                const real_t cap =
+                    R_FMAX(R(COVEY_SAFETY_NC_MAX_HORIZON_FACTOR) * tau,
+                           r / (R(COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR) * vmax) + tau);
                 tau_j = r / vmax * (R_SQRT(vx * vx + vy * vy) / vmax);
-                tau_j = R_FMIN(R_FMAX(tau_j, tau), R(COVEY_SAFETY_NC_MAX_HORIZON_FACTOR) * tau);
+                tau_j = R_FMIN(R_FMAX(tau_j, tau), cap);
                 reach = r + (vmax + R_FMAX(vmax, R_SQRT(nvn * nvn + nve * nve))) * tau_j;
             }
             if (px * px + py * py >= reach * reach) {

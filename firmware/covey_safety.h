@@ -65,7 +65,8 @@ typedef struct {
  * to push apart, so the ordered pair of ids gives one (policy/safety.py COINCIDENT_M). */
 #define COVEY_SAFETY_COINCIDENT_M 0.01f
 
-/* A non-cooperative pair's time horizon is at most this many time_horizon_s, and a vehicle steps
+/* A non-cooperative pair's time horizon is at most this many time_horizon_s (or the time to
+ * leave its berth at the escape speed and a horizon, if longer), and a vehicle steps
  * aside to the left only when already off the neighbour's track to the left by more than this
  * share of the pair distance (policy/safety.py NC_MAX_HORIZON_FACTOR, NC_SIDE_BIAS). */
 #define COVEY_SAFETY_NC_MAX_HORIZON_FACTOR 3.0
@@ -110,7 +111,8 @@ typedef struct {
  *   share = responsibility, or 1 for a non-cooperative track (it will not take its half).
  * Reach (no line beyond): r + 2 max_speed tau, or r + (max_speed + max(max_speed, |v_nbr|)) tau_j
  * for a non-cooperative track (it may be faster than us), whose own horizon is
- *   tau_j = clip((r / max_speed) (|v_own - v_nbr| / max_speed), tau, NC_MAX_HORIZON_FACTOR tau)
+ *   tau_j = clip((r / max_speed) (|v_own - v_nbr| / max_speed), tau, cap),
+ *   cap = max(NC_MAX_HORIZON_FACTOR tau, r / (NC_ESCAPE_SPEED_FACTOR max_speed) + tau)
  * and which is passed on a leg of its cone (step aside), never fled along the line.
  */
 

@@ -18,8 +18,10 @@ import numpy as np
 EPS = 1e-9
 
 NC_MAX_HORIZON_FACTOR = 3.0
-"""A non-cooperative pair's time horizon is at most this many time_horizon_s (`pair_horizon_s`).
-The C twin is COVEY_SAFETY_NC_MAX_HORIZON_FACTOR."""
+"""A non-cooperative pair's time horizon is at most this many time_horizon_s (`pair_horizon_s`),
+or the time to move its whole distance r sideways at the escape speed and then a horizon, if
+that is longer (a manned aircraft's 36 m: 22 s). The C twin is
+COVEY_SAFETY_NC_MAX_HORIZON_FACTOR."""
 NC_SIDE_BIAS = 0.25
 """Step-aside tie-break (`step_aside`): against a non-cooperative neighbour on a collision course
 this vehicle passes it on the right-hand leg of the cone (north/east frame: the rules of the air
@@ -147,25 +149,32 @@ def pair_horizon_s(cfg, r, rel_speed_m_s, nbr_cooperative=None):
     """Each pair's time horizon: time_horizon_s for a cooperative neighbour; for one that does
     not cooperate, long enough to step aside in time,
 
-        tau_j = clip((r / v_max) (|v_i - v_j| / v_max), tau, NC_MAX_HORIZON_FACTOR tau),
+        tau_j = clip((r / v_max) (|v_i - v_j| / v_max), tau, cap),
+        cap   = max(NC_MAX_HORIZON_FACTOR tau, r / (NC_ESCAPE_SPEED_FACTOR v_max) + tau),
 
     r / v_max being the time to move one pair distance sideways and |v_i - v_j| / v_max how
     many times faster the pair closes than this vehicle can move (a 2x intruder head-on: 10.8
-    s at 3.6 m and 1 m/s). Scalar tau when nbr_cooperative is None, else an array.
-    cfg: policy.safety.SafetyConfig."""
+    s at 3.6 m and 1 m/s). The cap is 3 tau unless the berth is wide: a manned aircraft's 36 m
+    takes 18 s to leave at the escape speed, so it is seen 22 s ahead (at 60 m/s, 1.3 km);
+    with 12 s a vehicle that had flown towards its track could not get out of the berth in
+    time (docs/sky.md, "A manned aircraft's horizon"). Scalar tau when nbr_cooperative is
+    None, else an array. cfg: policy.safety.SafetyConfig."""
     tau = cfg.time_horizon_s
     if nbr_cooperative is None:
         return tau
     vmax = cfg.max_speed_m_s
-    want = np.asarray(r, np.float64) / vmax * (np.asarray(rel_speed_m_s, np.float64) / vmax)
-    nc = np.clip(want, tau, NC_MAX_HORIZON_FACTOR * tau)
+    r = np.asarray(r, np.float64)
+    want = r / vmax * (np.asarray(rel_speed_m_s, np.float64) / vmax)
+    cap = np.maximum(NC_MAX_HORIZON_FACTOR * tau, r / (NC_ESCAPE_SPEED_FACTOR * vmax) + tau)
+    nc = np.minimum(np.maximum(want, tau), cap)
     return np.where(nbr_cooperative, tau, nc)
 
 
 def pair_horizon_one_s(cfg, r: float, rel_speed_m_s: float) -> float:
     """`pair_horizon_s` of one non-cooperative pair, in Python floats."""
     vmax, tau = cfg.max_speed_m_s, cfg.time_horizon_s
-    return min(max(r / vmax * (rel_speed_m_s / vmax), tau), NC_MAX_HORIZON_FACTOR * tau)
+    cap = max(NC_MAX_HORIZON_FACTOR * tau, r / (NC_ESCAPE_SPEED_FACTOR * vmax) + tau)
+    return min(max(r / vmax * (rel_speed_m_s / vmax), tau), cap)
 
 
 def pair_reach_m(cfg, r, nbr_speed_m_s=None, nbr_cooperative=None, tau=None):
