@@ -585,31 +585,12 @@ class BatchGuidance:
             own_id = int(views.own_ids[0]) if views.own_ids is not None and ids else None
             nbr_ids = views.ids[0, views.valid[0]] if views.ids is not None and ids else None
             sky = views.sky(0, manned=True)
+            args = (pos_m[0, :2], vel_m_s[0, :2], pref_m_s[0], p[:, :2], v[:, :2])
             got = None
-            if self.c_core is not None and zones is None:
-                got = self.c_core.filter(
-                    pos_m[0, :2],
-                    vel_m_s[0, :2],
-                    pref_m_s[0],
-                    p[:, :2],
-                    v[:, :2],
-                    own_id,
-                    nbr_ids,
-                    **sky,
-                )
-            if got is None:
-                got = safety.filter_one(
-                    pos_m[0, :2],
-                    vel_m_s[0, :2],
-                    pref_m_s[0],
-                    p[:, :2],
-                    v[:, :2],
-                    self.safety_cfg,
-                    own_id,
-                    nbr_ids,
-                    **sky,
-                    zones=zones,
-                )
+            if self.c_core is not None and zones is None:  # the core has no zone lines here
+                got = self.c_core.filter(*args, own_id, nbr_ids, **sky)
+            if got is None:  # numpy: the reference, and what the C core leaves to it
+                got = safety.filter_one(*args, self.safety_cfg, own_id, nbr_ids, **sky, zones=zones)
             out = np.asarray(got, float)[None]
         else:
             out = safety.filter_padded(
