@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import subprocess
 import sys
 import tempfile
 import threading
@@ -19,7 +20,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from agent import guidance_c as c_core
 from cli.options import add_config_flags, config_from_flags, finite, stop_on_signals
 from cli.options import port as tcp_port
 from comms.mesh import Mesh
@@ -27,7 +27,7 @@ from comms.schema import Role
 from comms.session import DEFAULT_PORT, embedded_router, free_tcp_port, port_free
 from comms.state_rate import MIN_STEADY_STATE_HZ, SteadyConfig
 from groundstation.station import GcsConfig, GroundStation
-from kit.procs import ChildGroup
+from kit.procs import Child, ChildGroup
 from policy.pointmass import vehicle_model_arg
 from trust.auth import FleetAuth, load_auth
 from trust.authority import Authority
@@ -143,6 +143,29 @@ def main(cfg: DemoConfig, stop: threading.Event | None = None) -> int:
         return _run(cfg, stop, mesh_port, endpoint, gcs_cfg, auth, key_args, cli_key)
 
 
+C_CORE_BUILD: tuple[str, ...] = (sys.executable, "-m", "agent.guidance_c")
+"""Builds the agents' C guidance core (agent/guidance_c.py; a process: the station does not
+import the agent)."""
+
+
+def c_core_flags(argv: tuple[str, ...] = C_CORE_BUILD, timeout_s: float = 120.0) -> tuple[str, ...]:
+    """Build the agents' C guidance core once, before they start, instead of in each of them at
+    once: () when it is built (they load it), ("--no-c-core",) when it cannot be, said once
+    here (they fly numpy, without each saying so)."""
+    child = Child(argv, die_with_parent=True)
+    with child:
+        try:
+            code: int | None = child.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            code = None
+    said = child.output().strip().splitlines()  # all of it: stopping read it to the end
+    if code == 0:
+        return ()
+    why = said[0] if said else f"{' '.join(argv)} exited with {code}"
+    print(f"covey demo: {why}; the agents fly numpy (--no-c-core)", flush=True)
+    return ("--no-c-core",)
+
+
 def _run(
     cfg: DemoConfig,
     stop: threading.Event,
@@ -166,8 +189,7 @@ def _run(
             grace_s=cfg.stop_timeout_s,
         ) as children,
     ):
-        # once here, not in each agent at once (they load what it built); none: they fly numpy
-        no_c = () if c_core.build() else ("--no-c-core",)
+        no_c = c_core_flags()
         for vid, (n, e) in enumerate(grid_starts(cfg.vehicles, cfg.spacing_m), start=1):
             proc = children.start(
                 *[

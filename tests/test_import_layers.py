@@ -1,10 +1,11 @@
 """Imports run one way, floor by floor, and never in a circle:
 
-    kit <- comms <- trust <- cli <- policy <- firmware, agent <- groundstation <- recording <- tools
+    kit <- comms <- trust <- cli <- policy <- firmware <- agent <- groundstation <- recording <- tools
 
 `kit` (helpers that import nothing of covey) is the ground floor and `comms` (the wire) the
 first; a package imports only from the floors below it, and not even all of those
-(`policy` never needs `trust`, `groundstation` never imports `agent`). Every import counts,
+(`policy` never needs `trust`, `groundstation` never imports `agent` or `firmware`; `agent`
+imports `firmware` for its C guidance core alone). Every import counts,
 also one inside a function or under TYPE_CHECKING. docs/architecture.md draws the imports seen
 here (tests/test_architecture_doc.py checks it)."""
 
@@ -25,7 +26,7 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     "cli": frozenset({"kit", "comms", "trust", "cli"}),
     "policy": frozenset({"kit", "comms", "cli", "policy"}),
     "firmware": frozenset({"kit", "comms", "cli", "policy", "firmware"}),
-    "agent": frozenset({"kit", "comms", "trust", "cli", "policy", "agent"}),
+    "agent": frozenset({"kit", "comms", "trust", "cli", "policy", "firmware", "agent"}),
     "groundstation": frozenset({"kit", "comms", "trust", "cli", "policy", "groundstation"}),
     "recording": frozenset({"kit", "comms", "trust", "cli", "groundstation", "recording"}),
     "tools": frozenset(

@@ -66,8 +66,8 @@ def test_numpy_keeps_the_manned_berth():
     assert _fly(_numpy, True) >= 30.0
 
 
-@needs_cc
-def test_c_keeps_the_manned_berth_and_equals_numpy():
+def _c_step():
+    """(the C filter, a `_fly` step through it: a manned or plain non-cooperative neighbour)."""
     from firmware.cpolicy import load_library
     from firmware.csafety import CSafetyFilter
 
@@ -84,8 +84,14 @@ def test_c_keeps_the_manned_berth_and_equals_numpy():
             nbr_manned=np.array([manned]),
         )
         assert r.status == "ok"
-        return r.vel_m_s  # float32 inputs: compared with numpy on float32 vectors below
+        return r.vel_m_s
 
+    return f, step
+
+
+@needs_cc
+def test_c_keeps_the_manned_berth_and_equals_numpy():
+    f, step = _c_step()
     assert _fly(step, True) >= 30.0
     rng = np.random.default_rng(36)
     cfg = safety.SafetyConfig()
@@ -173,24 +179,7 @@ def test_a_vehicle_crossing_a_fast_aircrafts_track_keeps_the_berth():
 
 @needs_cc
 def test_c_crosses_a_fast_aircrafts_track_as_numpy_does():
-    from firmware.cpolicy import load_library
-    from firmware.csafety import CSafetyFilter
-
-    f = CSafetyFilter(load_library(), safety.SafetyConfig())
-
-    def step(pos, vel, pref, nbr_p, nbr_v, manned):
-        r = f.evaluate(
-            pos,
-            vel,
-            pref,
-            nbr_p,
-            nbr_v,
-            nbr_cooperative=np.array([False]),
-            nbr_manned=np.array([manned]),
-        )
-        assert r.status == "ok"
-        return r.vel_m_s
-
+    _, step = _c_step()
     assert _encounter(step, 60.0, np.pi, np.pi / 2, 33.3, -25.0) >= 30.0
     closest = [_encounter(step, *e) for e in _fast_encounters(10, 8)]
     assert min(closest) >= 30.0, closest
