@@ -312,6 +312,7 @@ if __name__ == "__main__":
         "(e.g. '--zenoh-default-pools'), --repeats each",
     )
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--rate-hz", type=int, default=200, help="py-spy's samples a second")
     ap.add_argument(
         "--receive-model",
         default=None,
@@ -331,4 +332,11 @@ if __name__ == "__main__":
     elif a.cpu_only:
         cpu_only(a.neighbours, a.neighbour_hz, not a.no_link_tags, not a.burst)
     else:
-        main(a.neighbours, a.neighbour_hz, a.out, link_tags=not a.no_link_tags, spread=not a.burst)
+        main(
+            a.neighbours,
+            a.neighbour_hz,
+            a.out,
+            a.rate_hz,
+            link_tags=not a.no_link_tags,
+            spread=not a.burst,
+        )
