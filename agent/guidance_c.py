@@ -72,6 +72,7 @@ class CCore:
         self._most_filtered = MAX_INPUTS
         self.calls = {"decide": 0, "filter": 0, "numpy": 0}
         """How many calls the C core answered, and how many it left to numpy (read only)."""
+        self._said: set[tuple[str, str]] = set()
 
     @classmethod
     def maybe(cls, cfg, safety_cfg: safety.SafetyConfig) -> CCore | None:
@@ -81,6 +82,14 @@ class CCore:
         except (OSError, subprocess.CalledProcessError) as exc:
             log.warning(UNAVAILABLE, exc)
             return None
+
+    def _refused(self, what: str, why: str) -> None:
+        """numpy answers a call the core refused; each kind of refusal is logged once (a vehicle
+        far from the origin would otherwise log it ten times a second)."""
+        self.calls["numpy"] += 1
+        if (what, why) not in self._said:
+            self._said.add((what, why))
+            log.warning("the C core refused %s (%s): numpy answers it, and the like", what, why)
 
     def decide(
         self, pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, **sky
@@ -96,8 +105,7 @@ class CCore:
                 pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, **sky
             )
         except ValueError as exc:
-            log.warning("the C core refused a decision (%s): numpy decides", exc)
-            self.calls["numpy"] += 1
+            self._refused("a decision", str(exc))
             return None
         self.calls["decide"] += 1
         return out
@@ -121,8 +129,7 @@ class CCore:
             **sky,
         )
         if r.status != "ok":
-            log.warning("the C filter refused (%s): numpy filters", r.status)
-            self.calls["numpy"] += 1
+            self._refused("the filter", r.status)
             return None
         self.calls["filter"] += 1
         return r.vel_m_s

@@ -133,3 +133,39 @@ def test_covey_agent_flies_the_c_core_unless_told_not_to() -> None:
     assert agent_cli.config_from_args(p.parse_args(["--id", "3"])).guidance.c_core
     off = agent_cli.config_from_args(p.parse_args(["--id", "3", "--no-c-core"]))
     assert not off.guidance.c_core
+
+
+def test_beyond_the_cores_range_numpy_answers_and_it_is_said_once(caplog) -> None:
+    """200 km from the fleet origin (the C core takes 100 km; the wire 1,000 km): every call
+    goes to numpy, which answers as it always does, and the log says so once per kind."""
+    numpy_g = BatchGuidance(GuidanceConfig(), 1)
+    c_g = BatchGuidance(GuidanceConfig(c_core=True), 1, numpy_g.policy)
+    far = np.array([2e5, 0.0, 0.0])
+
+    def fly(g):
+        rng = np.random.default_rng(4)
+        rows, out = np.zeros(1, int), []
+        for t in range(6):
+            v = _views(rng, 5, sky=False)
+            v.pos_m[...] += far
+            step = g.step(
+                0.1 * t,
+                rows,
+                np.array([[2e5, 0.0, -10.0]]),
+                np.array([[0.8, 0.2, 0.0]]),
+                np.array([0.2]),
+                np.array([[2e5 + 60.0, 10.0, -10.0]]),
+                np.array([False]),
+                v,
+            )
+            out.append(step.vel_ned_m_s[0])
+        return np.array(out)
+
+    want = fly(numpy_g)
+    with caplog.at_level(logging.WARNING, logger="agent.guidance_c"):
+        got = fly(c_g)
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    assert c_g.c_core.calls["decide"] == c_g.c_core.calls["filter"] == 0
+    assert c_g.c_core.calls["numpy"] >= 7
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and all("numpy answers it" in m for m in said), said
