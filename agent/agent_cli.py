@@ -195,6 +195,7 @@ def add_flight_args(
             "calm_tick_hz",
             "hold_tick_hz",
             "link_tags",
+            "relay",
             "tracking",
             "tracking_lag_s",
         ),

@@ -21,6 +21,12 @@
                                   pub/sub TrafficReport: vehicles that do not cooperate, as station
                                   <id> (an intruder, a hand-flown vehicle) or vehicle <id>'s
                                   ADS-B receiver sees them, signed by <id> (agent/traffic.py)
+    covey/<fleet>/relay/<rid>/<k>/<cn>/<ce>
+                                  pub/sub RelayBatch: the states router <rid> (its Zenoh id) heard
+                                  in the cells within k of cell (cn, ce), once a relay period
+                                  (comms/relay.py)
+    covey/<fleet>/v/<id>/want/<rid>/<k>/<cn>/<ce>
+                                  liveliness token: vehicle <id> wants that block from relay <rid>
     covey/<fleet>/roster          pub/sub and queryable: the authority-signed Roster (keyed mode)
     covey/<fleet>/plan            pub/sub and queryable: the signed fleet plan (fence, keep-out
                                   zones, rally points), followed like the roster (comms/plan_sync.py)
@@ -98,6 +104,17 @@ _LEGACY_CELL_STATE_KEY_RE = re.compile(
 """The layout of recordings made before the cell came first: parsed, never published."""
 _FEED_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/(?:msg|v)/([0-9]{1,5})/feed$")
 _F32 = struct.Struct("<2f")
+_RELAY_ID_RE = re.compile(r"^[0-9a-f]{1,32}$")
+_CELL_TAIL = r"(?P<k>[0-9])/(?P<cn>-?[0-9]{1,6})/(?P<ce>-?[0-9]{1,6})$"
+_RELAY_BLOCK_KEY_RE = re.compile(
+    r"^covey/(?P<fleet>[A-Za-z0-9_-]{1,32})/relay/(?P<rid>[0-9a-f]{1,32})/" + _CELL_TAIL
+)
+_RELAY_WANT_KEY_RE = re.compile(
+    r"^covey/(?P<fleet>[A-Za-z0-9_-]{1,32})/v/(?P<vid>[0-9]{1,5})/want/(?P<rid>[0-9a-f]{1,32})/"
+    + _CELL_TAIL
+)
+MAX_RELAY_REACH_CELLS = 3
+"""A relay block spans at most the (2k + 1)^2 cells within k <= this of its anchor cell."""
 _GCS_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/alive$")
 _HEARTBEAT_KEY_RE = re.compile(r"^covey/([A-Za-z0-9_-]{1,32})/gcs/([0-9]{1,5})/heartbeat$")
 
@@ -171,6 +188,93 @@ def cell_states(fleet: str, cell: Cell) -> str:
     """The states of every vehicle in one grid cell."""
     cn, ce = check_cell(cell)
     return f"{ROOT}/{check_fleet(fleet)}/c/{cn}/{ce}/v/*/state"
+
+
+def check_relay_id(relay_id: str) -> str:
+    """A relay's id: its router's Zenoh id, lower-case hex."""
+    if not isinstance(relay_id, str) or not _RELAY_ID_RE.match(relay_id):
+        raise ValueError(f"relay id {relay_id!r} must be 1-32 lower-case hex digits")
+    return relay_id
+
+
+def check_reach_cells(reach_cells: int) -> int:
+    if not isinstance(reach_cells, int) or not 1 <= reach_cells <= MAX_RELAY_REACH_CELLS:
+        raise ValueError(f"reach {reach_cells!r} must be 1..{MAX_RELAY_REACH_CELLS} cells")
+    return reach_cells
+
+
+def relay_block(fleet: str, relay_id: str, reach_cells: int, anchor: Cell) -> str:
+    """Where relay `relay_id` puts the states of the cells within `reach_cells` of `anchor`."""
+    cn, ce = check_cell(anchor)
+    k = check_reach_cells(reach_cells)
+    return f"{ROOT}/{check_fleet(fleet)}/relay/{check_relay_id(relay_id)}/{k}/{cn}/{ce}"
+
+
+def relay_want(fleet: str, vehicle_id: int, relay_id: str, reach_cells: int, anchor: Cell) -> str:
+    """Vehicle `vehicle_id`'s token asking relay `relay_id` for that block (under its own v/<id>/,
+    which access control lets it declare)."""
+    cn, ce = check_cell(anchor)
+    k = check_reach_cells(reach_cells)
+    rid = check_relay_id(relay_id)
+    return f"{_vehicle(fleet, vehicle_id, 'want')}/{rid}/{k}/{cn}/{ce}"
+
+
+def all_relay_wants(relay_id: str) -> str:
+    """Every vehicle's wants of relay `relay_id`, in every fleet (a router serves them all)."""
+    return f"{ROOT}/*/v/*/want/{check_relay_id(relay_id)}/**"
+
+
+def _relay_tail(m: re.Match) -> tuple[int, Cell] | None:
+    k, cn, ce = int(m["k"]), int(m["cn"]), int(m["ce"])
+    if not 1 <= k <= MAX_RELAY_REACH_CELLS or max(abs(cn), abs(ce)) > MAX_CELL:
+        return None
+    return k, (cn, ce)
+
+
+def parse_relay_block(key: str) -> tuple[str, str, int, Cell] | None:
+    """(fleet, relay id, reach in cells, anchor) of a relay block key, or None if not one."""
+    m = _RELAY_BLOCK_KEY_RE.match(str(key))
+    tail = None if m is None else _relay_tail(m)
+    if m is None or tail is None:
+        return None
+    return m["fleet"], m["rid"], tail[0], tail[1]
+
+
+def parse_relay_want(key: str) -> tuple[str, int, str, int, Cell] | None:
+    """(fleet, vehicle id, relay id, reach in cells, anchor) of a want token, or None."""
+    m = _RELAY_WANT_KEY_RE.match(str(key))
+    tail = None if m is None else _relay_tail(m)
+    if m is None or tail is None or not 1 <= int(m["vid"]) <= MAX_VEHICLE_ID:
+        return None
+    return m["fleet"], int(m["vid"]), m["rid"], tail[0], tail[1]
+
+
+def block_cells(reach_cells: int, anchor: Cell) -> list[Cell]:
+    """The cells of a relay block, row by row."""
+    k = check_reach_cells(reach_cells)
+    cn, ce = check_cell(anchor)
+    return [
+        (n, e)
+        for n in range(cn - k, cn + k + 1)
+        for e in range(ce - k, ce + k + 1)
+        if max(abs(n), abs(e)) <= MAX_CELL
+    ]
+
+
+def block_of(cells: frozenset[Cell] | set[Cell]) -> tuple[int, Cell] | None:
+    """(k, anchor) if `cells` are exactly a relay block's (a square of side 2k + 1 within the
+    grid), else None."""
+    if not cells:
+        return None
+    ns = [c[0] for c in cells]
+    es = [c[1] for c in cells]
+    side = max(ns) - min(ns) + 1
+    if side != max(es) - min(es) + 1 or side % 2 == 0 or len(cells) != side * side:
+        return None
+    k = side // 2
+    if not 1 <= k <= MAX_RELAY_REACH_CELLS:
+        return None
+    return k, (min(ns) + k, min(es) + k)
 
 
 def cmd(fleet: str, vehicle_id: int) -> str:

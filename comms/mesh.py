@@ -35,6 +35,7 @@ from comms.feed import FeedBuffer
 from comms.gate import SKIPPED, Gate, GateConfig, Refusal, Summaries
 from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
+from comms.relay import RELAY_SILENT_S, CellRelay, MisplacedState, RelayConfig, decode_placed
 from comms.schema import (
     AckResult,
     ActionOutcome,
@@ -47,6 +48,7 @@ from comms.schema import (
     Mission,
     Mode,
     MsgType,
+    RelayBatch,
     Roster,
     RosterHead,
     VehicleState,
@@ -92,11 +94,14 @@ class MeshStats:
     states_beyond_reach: int = 0
     """States dropped unchecked as beyond the receiver's reach (comms/gate.py step 4b)."""
     states_misplaced: int = 0
+    """States refused because their key's grid cell is not their position's, or (relayed) their
+    cell is not in the relay block they came in (also decode_errors)."""
     states_superseded: int = 0
     """States a polled subscription dropped unverified: a newer one of their vehicle passed."""
     states_unchecked: int = 0
     """States a polled subscription dropped unchecked: its check budget was spent (a flood)."""
-    """States refused because their key's grid cell is not their position's (also decode_errors)."""
+    relay_batches_received: int = 0
+    """Batches from the router's cell relay that decoded (comms/relay.py)."""
     rosters_applied: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -148,6 +153,14 @@ class Mesh:
         self._error_log_ns = 0
         self.roster_sync: DocSync[RosterHead, Roster] | None = None
         """Keyed mode: the roster follower (trust/roster_sync.py), for its counts."""
+        self.relay: CellRelay | None = None
+        """Router mode: this router's cell relay (comms/relay.py), unless MeshConfig says none."""
+        if cfg.mode == "router" and cfg.relay_period_s is not None:
+            try:
+                self.relay = self._keep(CellRelay(self.session, RelayConfig(cfg.relay_period_s)))
+            except BaseException:
+                self.close()
+                raise
         if auth is not None:
             try:
                 self.roster_sync = self._keep(
@@ -331,6 +344,7 @@ class Mesh:
         remote_only: bool = False,
         worth_checking: Callable[[VehicleState], bool] | None = None,
         polled: bool = False,
+        relay_for: int | None = None,
     ) -> CellSubscription:
         """As `subscribe_states`, but only the states of the grid cells `cells`; move the
         subscription with `.set_cells(cells)` (comms/scope.py says which cells). One gate and one
@@ -339,7 +353,9 @@ class Mesh:
         `worth_checking(state)`: False drops a state before its signature check (or, in open
         mode, before the callback): comms/gate.py step 4b, e.g. `NeighbourTable.worth_checking`.
         `polled`: nothing runs on Zenoh's threads; the states wait in a ring per cell until the
-        owner's `drain()` (an agent's tick) takes them all at once (`_state_batch_handler`)."""
+        owner's `drain()` (an agent's tick) takes them all at once (`_state_batch_handler`).
+        `relay_for` (polled, one vehicle's id): hear the cells through the router's cell relay
+        while it has one (comms/relay.py), one message a relay period instead of one per state."""
         admit = self._admitter(callback, link, on_refused, gate, ignore_id, worth_checking)
         sub = CellSubscription(
             self,
@@ -348,6 +364,7 @@ class Mesh:
             self._state_batch_handler(admit, link is not None, gate.batch_budget_s)
             if polled
             else None,
+            relay_for,
         )
         sub.set_cells(cells)
         return self._keep(sub)
@@ -394,7 +411,7 @@ class Mesh:
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
-            state = self._decode_state(sample)
+            state = self._decode_state(str(sample.key_expr), sample.payload.to_bytes())
             if state is not None:
                 admit(state, recv_ns, ())
 
@@ -402,9 +419,9 @@ class Mesh:
 
     def _state_batch_handler(
         self, admit: Admit, every_state: bool, budget_s: float
-    ) -> Callable[[list[zenoh.Sample], int, int], None]:
-        """`_state_handler` for the samples a polled subscription took at once
-        (`CellSubscription.drain`): each decoded and checked as one would be, its receive time
+    ) -> Callable[[list[VehicleState], int, int], None]:
+        """`_state_handler` for the states a polled subscription took at once
+        (`CellSubscription.drain`, which decodes them): each checked as one would be, its receive time
         estimated from the lags of its sender's states that went on (comms/arrival.py; a forged
         stamp cannot move it). `every_state` (a link, which judges every state it
         hears): every state goes on, in order. Otherwise only the newest state of each vehicle
@@ -417,15 +434,11 @@ class Mesh:
         unless it floods past the budget, and a flood cannot stall the tick."""
         arrival = ArrivalEstimate()  # the least lag of each sender's states that went on
 
-        def on_samples(samples: list[zenoh.Sample], taken_ns: int, since_ns: int) -> None:
+        def on_states(states: list[VehicleState], taken_ns: int, since_ns: int) -> None:
             got: list[tuple[VehicleState, int]] = []
-            for sample in samples:
-                state = self._decode_state(sample)
-                if state is not None:
-                    recv_ns = arrival.estimate_ns(
-                        state.vehicle_id, state.stamp_ns, taken_ns, since_ns
-                    )
-                    got.append((state, recv_ns))
+            for state in states:
+                recv_ns = arrival.estimate_ns(state.vehicle_id, state.stamp_ns, taken_ns, since_ns)
+                got.append((state, recv_ns))
             if every_state:
                 for state, recv_ns in got:
                     if admit(state, recv_ns, ()):
@@ -472,31 +485,39 @@ class Mesh:
                     ),
                 )
 
-        return on_samples
+        return on_states
 
-    def _decode_state(self, sample: zenoh.Sample) -> VehicleState | None:
-        """A state key's sample decoded, on its own vehicle's key and cell; None (counted and
-        reported) if not."""
+    def _decode_state(
+        self, key: str, payload: bytes, block: tuple[int, keys.Cell] | None = None
+    ) -> VehicleState | None:
+        """A state's payload decoded, on its own vehicle's key and cell (or, relayed, in its
+        relay block: comms/relay.py `decode_placed`); None (counted and reported) if not."""
         try:
-            state = VehicleState.decode(sample.payload.to_bytes())
-            parsed = keys.parse_state_key(str(sample.key_expr))
-            if parsed is None or parsed[1] != state.vehicle_id:
-                raise DecodeError(
-                    f"state of vehicle {state.vehicle_id} arrived on {sample.key_expr}"
-                )
-            if parsed[2] is not None and parsed[2] != keys.cell_of(state.pos_ned_m):
-                # A state outside its position's cell would be hidden from the neighbours
-                # that must hear it: refused, whatever its signature says.
-                self.stats.bump("states_misplaced")
-                raise DecodeError(
-                    f"state of vehicle {state.vehicle_id} at N {state.pos_ned_m[0]:.1f} "
-                    f"E {state.pos_ned_m[1]:.1f} m is in cell "
-                    f"{keys.cell_of(state.pos_ned_m)}, not in cell {parsed[2]} of its key"
-                )
+            return decode_placed(key, payload, block)
         except DecodeError as exc:
-            self._bad(str(sample.key_expr), exc)
+            if isinstance(exc, MisplacedState):
+                self.stats.bump("states_misplaced")
+            self._bad(key, exc)
             return None
-        return state
+
+    def _decode_relayed(
+        self, sample: zenoh.Sample, block: tuple[int, keys.Cell]
+    ) -> list[VehicleState]:
+        """The states of a relay batch (comms/relay.py), each decoded and placed on its own: a
+        bad one costs only itself; a malformed batch is refused whole."""
+        key = str(sample.key_expr)
+        try:
+            batch = RelayBatch.decode(sample.payload.to_bytes())
+        except DecodeError as exc:
+            self._bad(key, exc)
+            return []
+        self.stats.bump("relay_batches_received")
+        got = []
+        for i, payload in enumerate(batch.states):
+            state = self._decode_state(f"{key} state {i}", payload, block)
+            if state is not None:
+                got.append(state)
+        return got
 
     def _admitter(
         self,
@@ -916,35 +937,64 @@ class CellSubscription:
     """The state subscribers of a set of grid cells, one Zenoh subscriber per cell, that share
     one handler, plus one for unplaced states. Thread-safe; undeclared with the mesh.
 
-    Called back (`on_sample`, on Zenoh's threads) or polled (`on_samples`: each subscriber keeps
+    Called back (`on_sample`, on Zenoh's threads) or polled (`on_states`: each subscriber keeps
     what came in a ring of `POLL_RING` samples, the oldest dropped when full, never blocking
-    Zenoh; `drain()` hands them all over at once)."""
+    Zenoh; `drain()` decodes them all and hands them over at once).
+
+    Polled, for one vehicle (`relay_for`, its id) that is a client or peer of a router with a
+    cell relay (comms/relay.py): when the cells are a relay block (the square comms/scope.py
+    gives one vehicle), it wants that block from the relay and hears it as one message a relay
+    period instead of one per state. Its own cell subscribers stay until two batches have come
+    (make before break), and come back while the relay is silent for RELAY_SILENT_S (it went,
+    or the router has none)."""
 
     POLL_RING = 4096
     """Samples kept per polled cell between two drains: 4 s of 100 vehicles at 10 Hz."""
+    RELAY_RING = 256
+    """Relay batches kept between two drains."""
+    RELAY_SETTLE_BATCHES = 2
+    """Batches heard on a block before its own cell subscribers go: the relay had subscribed
+    to the block's cells for a whole period."""
 
     def __init__(
         self,
         mesh: Mesh,
         on_sample: Callable[[zenoh.Sample], None] | None,
         remote_only: bool,
-        on_samples: Callable[[list[zenoh.Sample], int, int], None] | None = None,
+        on_states: Callable[[list[VehicleState], int, int], None] | None = None,
+        relay_for: int | None = None,
     ) -> None:
-        if (on_sample is None) == (on_samples is None):
+        if (on_sample is None) == (on_states is None):
             raise ValueError("a cell subscription is either called back or polled")
+        if relay_for is not None and on_states is None:
+            raise ValueError("only a polled cell subscription hears a relay")
         self._mesh = mesh
         self._on_sample = on_sample
-        self._on_samples = on_samples
+        self._on_states = on_states
         self._drained_ns = mesh.clock_ns()  # when the rings were last emptied
         self._origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
         self._lock = threading.Lock()
+        self._want: frozenset[keys.Cell] = frozenset()
         self._subs: dict[keys.Cell, Any] = {}
         self._retired: list[Any] = []  # polled: left cells' subscribers, until the next drain
         self.changes = 0
         """Cell subscribers declared plus undeclared since start (read only)."""
+        # The relay of this session's router, if it has one (comms/relay.py).
+        self._relay_for = relay_for
+        self._relay_id: str | None = None
+        self._block: tuple[int, keys.Cell] | None = None  # the block wanted from it
+        self._block_sub: Any = None
+        self._want_token: Any = None
+        self._block_batches = 0  # batches heard on this block since it was wanted or silent
+        self._block_heard_ns = 0
+        self._said_relayed = False
+        self._retired_blocks: list[tuple[tuple[int, keys.Cell], Any]] = []
         # States put without a cell (tools, an older member) are heard everywhere, as before
         # scoping, so that nothing can hide by leaving its cell out; covey publishers place theirs.
         self._unplaced = self._declare(keys.unplaced_states(mesh.fleet))
+        if relay_for is not None:
+            routers = [str(z) for z in mesh.session.info.routers_zid()]
+            self._relay_id = routers[0] if routers else None
 
     def _declare(self, key: str) -> Any:
         handler: Any = self._on_sample
@@ -955,53 +1005,130 @@ class CellSubscription:
     @property
     def cells(self) -> frozenset[keys.Cell]:
         with self._lock:
-            return frozenset(self._subs)
+            return self._want
+
+    @property
+    def relayed(self) -> bool:
+        """The relay delivers these cells now (this subscription's own cell subscribers went)."""
+        with self._lock:
+            return self._block is not None and not self._subs and bool(self._want)
 
     def set_cells(self, cells: Iterable[keys.Cell]) -> None:
         """Hear exactly `cells`: new cells are declared before old ones go (make before break).
         Polled: an old cell's subscriber goes at the next drain, which takes what it still holds."""
-        want = {keys.check_cell(tuple(c)) for c in cells}
-        gone = []
+        want = frozenset(keys.check_cell(tuple(c)) for c in cells)
         with self._lock:
-            for cell in sorted(want - self._subs.keys()):
-                self._subs[cell] = self._declare(keys.cell_states(self._mesh.fleet, cell))
-                self.changes += 1
-            for cell in [c for c in self._subs if c not in want]:
-                gone.append(self._subs.pop(cell))
-                self.changes += 1
-            if self._on_samples is not None:
-                self._retired.extend(gone)
-                return
+            self._want = want
+            gone = self._apply(self._mesh.clock_ns())
         for sub in gone:
             with contextlib.suppress(Exception):
                 sub.undeclare()
 
+    def _apply(self, now_ns: int) -> list[Any]:
+        """Declare what `_want` needs now: the relay's block and/or this subscription's own cell
+        subscribers. Lock held; returns the entities to undeclare now (the rest retire)."""
+        gone: list[Any] = []
+        block = keys.block_of(self._want) if self._relay_id is not None else None
+        if block != self._block:
+            if self._want_token is not None:
+                gone.append(self._want_token)
+            if self._block_sub is not None:  # what it still holds is taken at the next drain
+                assert self._block is not None
+                self._retired_blocks.append((self._block, self._block_sub))
+            self._block_sub = self._want_token = None
+            self._block, self._block_batches = block, 0
+            if block is not None:
+                assert self._relay_for is not None and self._relay_id is not None
+                session, fleet = self._mesh.session, self._mesh.fleet
+                self._block_sub = session.declare_subscriber(
+                    keys.relay_block(fleet, self._relay_id, *block),
+                    zenoh.handlers.RingChannel(self.RELAY_RING),
+                )
+                self._want_token = session.liveliness().declare_token(
+                    keys.relay_want(fleet, self._relay_for, self._relay_id, *block)
+                )
+                self._block_heard_ns = now_ns
+        silent = block is not None and now_ns - self._block_heard_ns > RELAY_SILENT_S * 1e9
+        if silent:
+            self._block_batches = 0  # hear the cells ourselves until it settles again
+        relayed = block is not None and self._block_batches >= self.RELAY_SETTLE_BATCHES
+        if relayed and not self._said_relayed:
+            self._said_relayed = True
+            log.info("hearing its cells through router %s's cell relay", self._relay_id)
+        elif silent and self._said_relayed:
+            self._said_relayed = False
+            log.warning(
+                "router %s's cell relay was silent for %.1f s: hearing the cells directly",
+                self._relay_id,
+                RELAY_SILENT_S,
+            )
+        own = set() if relayed else self._want
+        left = []
+        for cell in sorted(own - self._subs.keys()):
+            self._subs[cell] = self._declare(keys.cell_states(self._mesh.fleet, cell))
+            self.changes += 1
+        for cell in [c for c in self._subs if c not in own]:
+            left.append(self._subs.pop(cell))
+            self.changes += 1
+        if self._on_states is not None:
+            self._retired.extend(left)
+            return gone
+        return gone + left
+
     def drain(self, taken_ns: int | None = None) -> int:
-        """Polled: hand every sample that came since the last drain to the handler, at once,
-        as taken at `taken_ns` (default now, the mesh's clock); returns how many. Called
-        back: 0."""
-        if self._on_samples is None:
+        """Polled: decode every sample that came since the last drain and hand the states to the
+        handler, at once, as taken at `taken_ns` (default now, the mesh's clock); returns how many
+        samples (a relay batch is one). Called back: 0."""
+        if self._on_states is None:
             return 0
+        now_ns = self._mesh.clock_ns() if taken_ns is None else taken_ns
         with self._lock:
+            gone = self._apply(now_ns)
             retired, self._retired = self._retired, []
             subs = [*retired, self._unplaced, *self._subs.values()]
+            old_blocks, self._retired_blocks = self._retired_blocks, []
+            block, block_sub = self._block, self._block_sub
         samples = []
         for sub in subs:
             while (sample := sub.try_recv()) is not None:
                 samples.append(sample)
-        now_ns = self._mesh.clock_ns() if taken_ns is None else taken_ns
+        batches = []
+        for old, old_sub in old_blocks:
+            while (sample := old_sub.try_recv()) is not None:
+                batches.append((old, sample))
+        heard = 0
+        if block is not None and block_sub is not None:
+            while (sample := block_sub.try_recv()) is not None:
+                batches.append((block, sample))
+                heard += 1
         since_ns, self._drained_ns = self._drained_ns, now_ns
-        for sub in retired:
+        for sub in [*retired, *gone, *(b[1] for b in old_blocks)]:
             with contextlib.suppress(Exception):
                 sub.undeclare()
-        if samples:
-            self._on_samples(samples, now_ns, since_ns)
-        return len(samples)
+        states = []
+        for sample in samples:
+            state = self._mesh._decode_state(str(sample.key_expr), sample.payload.to_bytes())
+            if state is not None:
+                states.append(state)
+        for where, sample in batches:
+            states += self._mesh._decode_relayed(sample, where)
+        if heard:
+            with self._lock:
+                if self._block_sub is block_sub:
+                    self._block_batches += heard
+                    self._block_heard_ns = now_ns
+        if states:
+            self._on_states(states, now_ns, since_ns)
+        return len(samples) + len(batches)
 
     def undeclare(self) -> None:
         with self._lock:
-            subs, self._subs = [*self._retired, self._unplaced, *self._subs.values()], {}
-            self._retired = []
+            subs = [*self._retired, self._unplaced, *self._subs.values()]
+            subs += [e for e in (self._block_sub, self._want_token) if e]
+            subs += [b[1] for b in self._retired_blocks]
+            self._subs, self._retired, self._retired_blocks = {}, [], []
+            self._block_sub = self._want_token = None
+            self._block = None
         for sub in subs:
             with contextlib.suppress(Exception):
                 sub.undeclare()

@@ -154,6 +154,7 @@ class MsgType(enum.IntEnum):
     MISSION = 10
     PLAN = 11
     ACTION_OUTCOME = 12
+    RELAY_BATCH = 13
 
 
 class Role(enum.IntEnum):
@@ -1121,6 +1122,71 @@ class FeedBatch:
         return cls(feed_seq, tuple(entries))
 
 
+MAX_STATE_BYTES = VehicleState._FMT.size + TAG_BYTES + 1 + MAX_LINK_TAGS * LINK_ENTRY_BYTES
+"""The longest VehicleState on the wire: signed, with the most link tags."""
+
+
+@dataclass(frozen=True)
+class RelayBatch:
+    """The states a router's cell relay heard in one block of cells since its last batch, exactly
+    as their vehicles published them (comms/relay.py). Sent every relay period to each vehicle
+    that wants the block, with no states too: a relay that still answers is one that still
+    relays. Each state is decoded and checked by the receiver as one on its own key would be."""
+
+    relay_seq: int
+    """This batch's number on its block (wrapping at 2**32)."""
+    states: tuple[bytes, ...]
+    """At most as many as fit MAX_FEED_BYTES; none: the relay is there, the block was quiet."""
+
+    TYPE: ClassVar[MsgType] = MsgType.RELAY_BATCH
+    _HEAD: ClassVar[struct.Struct] = struct.Struct("<BBIH")
+    _LEN: ClassVar[struct.Struct] = struct.Struct("<H")
+
+    @classmethod
+    def size(cls, state_sizes: list[int] | tuple[int, ...]) -> int:
+        return cls._HEAD.size + cls._LEN.size * len(state_sizes) + sum(state_sizes)
+
+    def validate(self) -> None:
+        if not 0 <= self.relay_seq < 2**32:
+            raise DecodeError(f"relay_seq={self.relay_seq} does not fit 32 bits")
+        for i, state in enumerate(self.states):
+            if not 2 <= len(state) <= MAX_STATE_BYTES:
+                raise DecodeError(f"state {i}: {len(state)} bytes, must be 2..{MAX_STATE_BYTES}")
+        size = self.size([len(s) for s in self.states])
+        if size > MAX_FEED_BYTES:
+            raise DecodeError(f"RelayBatch of {size} bytes, at most {MAX_FEED_BYTES}")
+
+    def encode(self) -> bytes:
+        self.validate()
+        head = self._HEAD.pack(self.TYPE, SCHEMA_VERSION, self.relay_seq, len(self.states))
+        return head + b"".join(self._LEN.pack(len(s)) + s for s in self.states)
+
+    @classmethod
+    def decode(cls, data: bytes) -> RelayBatch:
+        _header(data, cls.TYPE)
+        if not cls._HEAD.size <= len(data) <= MAX_FEED_BYTES:
+            raise DecodeError(
+                f"RelayBatch must be {cls._HEAD.size}..{MAX_FEED_BYTES} bytes, got {len(data)}"
+            )
+        _, _, relay_seq, n = cls._HEAD.unpack_from(data)
+        states, at = [], cls._HEAD.size
+        for i in range(n):
+            if at + cls._LEN.size > len(data):
+                raise DecodeError(f"RelayBatch of {len(data)} bytes ends inside state {i} of {n}")
+            (length,) = cls._LEN.unpack_from(data, at)
+            at += cls._LEN.size
+            if not 2 <= length <= MAX_STATE_BYTES or at + length > len(data):
+                raise DecodeError(
+                    f"RelayBatch state {i} of {n}: {length} bytes, must be 2..{MAX_STATE_BYTES} "
+                    f"and within the batch's {len(data)}"
+                )
+            states.append(data[at : at + length])
+            at += length
+        if at != len(data):
+            raise DecodeError(f"RelayBatch has {len(data) - at} bytes after its {n} states")
+        return cls(relay_seq, tuple(states))
+
+
 @dataclass(frozen=True)
 class StationHeartbeat:
     """A ground station's sign of life, a few times a second (trust/heartbeat.py). Signed by the
@@ -1894,6 +1960,7 @@ Message = (
     | Mission
     | PlanMessage
     | ActionOutcome
+    | RelayBatch
 )
 _DECODERS: dict[int, type[Message]] = {
     MsgType.VEHICLE_STATE: VehicleState,
@@ -1908,6 +1975,7 @@ _DECODERS: dict[int, type[Message]] = {
     MsgType.MISSION: Mission,
     MsgType.PLAN: PlanMessage,
     MsgType.ACTION_OUTCOME: ActionOutcome,
+    MsgType.RELAY_BATCH: RelayBatch,
 }
 
 
@@ -1940,6 +2008,7 @@ __all__ = [
     "EventMessage",
     "FeedBatch",
     "FeedEntry",
+    "RelayBatch",
     "GuidanceTrace",
     "Member",
     "Message",

@@ -4,7 +4,7 @@ A vehicle hears the states of the cells within its reach, not the whole fleet (d
 
     reach_m = sense_range_m + separation_m + closing_speed_m_s * handover_s
     closing_speed_m_s = 2 * max_speed_m_s       (two vehicles flying at each other)
-    handover_s = resubscribe_s + state_period_s + link_latency_s
+    handover_s = resubscribe_s + state_period_s + link_latency_s + relay_period_s
 
 A neighbour outside the reach when the subscriptions change cannot come within sense range plus
 separation before its first state through the new subscription arrives.
@@ -51,6 +51,9 @@ class ScopeConfig:
     """Worst time between two states of one vehicle (the slowest link: 3 Hz)."""
     link_latency_s: float = 0.1
     """Worst one-way delay of a state on the link."""
+    relay_period_s: float = 0.1
+    """Worst wait of a state in a router's cell relay (comms/relay.py; `covey router
+    --relay-period-s`, whose default this is)."""
     hysteresis_m: float = 5.0
     """How far past its anchor cell a vehicle may stray before its subscriptions move."""
 
@@ -62,6 +65,7 @@ class ScopeConfig:
             "resubscribe_s",
             "state_period_s",
             "link_latency_s",
+            "relay_period_s",
             "hysteresis_m",
         ):
             value = getattr(self, name)
@@ -76,22 +80,24 @@ class ScopeConfig:
     @property
     def handover_s(self) -> float:
         """Worst delay from a subscription change to a new cell's first state."""
-        return self.resubscribe_s + self.state_period_s + self.link_latency_s
+        return self.resubscribe_s + self.state_period_s + self.link_latency_s + self.relay_period_s
 
     @property
     def hold_reach_m(self) -> float:
         """What a holder at rest needs heard: it publishes only every MAX_HOLD_PERIOD_S
         (comms/state_rate.py) but does not move between its states (the first state of a move
         goes out at once), so one vehicle closes on it at max speed over the longer hand-over:
-        sense range + separation + max speed * (resubscribe + hold period + latency): 22.8 m
+        sense range + separation + max speed * (resubscribe + hold period + latency + relay): 23 m
         with the defaults, which `reach_m` covers (tests/test_comms_scope.py)."""
-        hand_over_s = self.resubscribe_s + MAX_HOLD_PERIOD_S + self.link_latency_s
+        hand_over_s = (
+            self.resubscribe_s + MAX_HOLD_PERIOD_S + self.link_latency_s + self.relay_period_s
+        )
         return self.sense_range_m + self.separation_m + self.max_speed_m_s * hand_over_s
 
     @property
     def reach_m(self) -> float:
         """reach = sense range + separation + closing speed * hand-over delay, or a holder's
-        longer reach (`hold_reach_m`) where that is further: 22.8 m with the defaults."""
+        longer reach (`hold_reach_m`) where that is further: 23 m with the defaults."""
         moving = self.sense_range_m + self.separation_m + self.closing_speed_m_s * self.handover_s
         return max(moving, self.hold_reach_m)
 

@@ -6,6 +6,7 @@ import os
 import sys
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -56,14 +57,15 @@ def procs() -> Iterator[ChildGroup]:
 @pytest.fixture
 def mesh_trio(request: pytest.FixtureRequest):
     """A router (the station's side) and two peers on a free loopback port (multicast scouting
-    off), in the test module's FLEET."""
+    off), in the test module's FLEET. The router has no cell relay: its tests step simulated
+    time faster than the wall clock, by which a relay sends (tests/test_comms_relay.py)."""
     from comms.mesh import Mesh
     from comms.session import embedded_peer, embedded_router, free_tcp_port
 
     fleet = getattr(request.module, "FLEET", "covey")
     port = free_tcp_port()
     with (
-        Mesh(embedded_router(port, fleet=fleet)) as hub,
+        Mesh(replace(embedded_router(port, fleet=fleet), relay_period_s=None)) as hub,
         Mesh(embedded_peer(port, fleet=fleet)) as a,
         Mesh(embedded_peer(port, fleet=fleet)) as b,
     ):

@@ -431,7 +431,7 @@ def test_single_agents_and_a_host_fly_as_one_keyed_fleet(tmp_path) -> None:
         station.wait(lambda v: all(v[i].mode is Mode.HOLDING for i in ALL_IDS), 90, "all holding")
 
         # Each side hears the other. Agent 1's guidance lists the host's vehicles near it: 3, 8
-        # and 4 (12, 15.6 and 22 m away); 9, 24.2 m away, is beyond its scope's reach (22.8 m at
+        # and 4 (12, 15.6 and 22 m away); 9, 24.2 m away, is beyond its scope's reach (23 m at
         # the defaults: agent/neighbours.py keeps only the neighbours within it, unverified beyond).
         near = {3, 4, 8}
         assert station.wait(lambda _v: near <= traced, 10, "host vehicles in agent 1's traces")

@@ -33,13 +33,13 @@ def state(vid: int, n_m: float, e_m: float, seq: int = 1) -> VehicleState:
 # -- the formula and the grid ------------------------------------------------------------------
 def test_reach_is_sense_plus_separation_plus_closing_speed_times_handover() -> None:
     cfg = ScopeConfig()
-    # 15 m sense + 3 m separation + (2 x 2 m/s) x (0.3 + 0.34 + 0.1) s = 20.96 m for movers;
-    # a holder heard every 2 s: 15 + 3 + 2 m/s x (0.3 + 2 + 0.1) s = 22.8 m, the larger
-    assert cfg.handover_s == pytest.approx(0.74)
-    assert cfg.reach_m == pytest.approx(max(15.0 + 3.0 + 4.0 * 0.74, 15.0 + 3.0 + 2.0 * 2.4))
-    assert cfg.rings == 1  # (22.8 + 5) m fits one 30 m cell: a 3 x 3 block
-    fast = ScopeConfig(max_speed_m_s=20.0)  # a holder's 2 s at 20 m/s: 18 + 20 x 2.4 = 66 m
-    assert fast.reach_m == pytest.approx(max(18.0 + 40.0 * 0.74, 18.0 + 20.0 * 2.4))
+    # 15 m sense + 3 m separation + (2 x 2 m/s) x (0.3 + 0.34 + 0.1 + 0.1 relay) s = 21.36 m for
+    # movers; a holder heard every 2 s: 15 + 3 + 2 m/s x (0.3 + 2 + 0.1 + 0.1) s = 23 m, the larger
+    assert cfg.handover_s == pytest.approx(0.84)
+    assert cfg.reach_m == pytest.approx(max(15.0 + 3.0 + 4.0 * 0.84, 15.0 + 3.0 + 2.0 * 2.5))
+    assert cfg.rings == 1  # (23 + 5) m fits one 30 m cell: a 3 x 3 block
+    fast = ScopeConfig(max_speed_m_s=20.0)  # a holder's 2 s at 20 m/s: 18 + 20 x 2.5 = 68 m
+    assert fast.reach_m == pytest.approx(max(18.0 + 40.0 * 0.84, 18.0 + 20.0 * 2.5))
     assert fast.rings == math.ceil((fast.reach_m + 5.0) / CELL_M) == 3
     assert len(fast.cells_around((0, 0))) == 49
     with pytest.raises(ValueError, match="max_speed_m_s"):
@@ -350,7 +350,7 @@ def test_a_holder_at_rest_is_heard_within_the_reach() -> None:
 
     for cfg in (ScopeConfig(), ScopeConfig(max_speed_m_s=5.0), ScopeConfig(sense_range_m=30.0)):
         assert cfg.hold_reach_m <= cfg.reach_m
-    assert ScopeConfig().hold_reach_m == pytest.approx(22.8)
+    assert ScopeConfig().hold_reach_m == pytest.approx(23.0)  # 15 + 3 + 2 x (0.3 + 2 + 0.1 + 0.1)
     # a wider sense range adds to both alike: the holder's is still the larger
     wide = ScopeConfig(sense_range_m=30.0)
-    assert wide.reach_m == pytest.approx(wide.hold_reach_m) == pytest.approx(30.0 + 3.0 + 4.8)
+    assert wide.reach_m == pytest.approx(wide.hold_reach_m) == pytest.approx(30.0 + 3.0 + 5.0)

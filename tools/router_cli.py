@@ -20,6 +20,7 @@ is one line and exit status 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import threading
 from collections.abc import Callable
@@ -36,6 +37,7 @@ from cli.options import (
     refuse,
     stop_on_signals,
 )
+from comms.relay import CellRelay, RelayConfig
 from comms.session import MeshConfig, MeshConfigError, open_session, with_free_port
 
 ROLES = ("router", "peer", "client")
@@ -131,11 +133,19 @@ def main(
         emit(f"covey router: {line}")
 
     mesh = replace(cfg.mesh, listen=tuple(with_free_port(ep) for ep in cfg.mesh.listen))
-    with open_session(mesh) as session:
+    with contextlib.ExitStack() as stack:
+        session = stack.enter_context(open_session(mesh))
+        if mesh.relay_period_s is not None:
+            stack.enter_context(CellRelay(session, RelayConfig(mesh.relay_period_s)))
         links = Links(say, lambda zid: peer_name(session, zid))
         emit(f"READY {','.join(mesh.listen)}")
         to = ", ".join(mesh.connect) or "no other router"
         say(f"listening on {', '.join(mesh.listen)}; linking to {to} (Ctrl-C to stop)")
+        if mesh.relay_period_s is not None:
+            say(
+                f"relaying cells to the vehicles that want them every {mesh.relay_period_s:g} s "
+                "(--no-relay: off)"
+            )
         listener = session.info.declare_transport_events_listener(links.on_event, history=True)
         try:
             said: dict[str, int] = {}
@@ -167,6 +177,20 @@ def parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how often the number of clients and peers is looked at (default: 2)",
     )
+    p.add_argument(
+        "--relay-period-s",
+        type=finite("seconds"),
+        default=RelayConfig.period_s,
+        metavar="SECONDS",
+        help="how often the cell relay sends each vehicle its block of cells, within [0.01, 1] "
+        f"(default: {RelayConfig.period_s:g}); a state waits half of it on average "
+        "(comms/relay.py)",
+    )
+    p.add_argument(
+        "--no-relay",
+        action="store_true",
+        help="no cell relay: each vehicle hears each neighbour state as a message of its own",
+    )
     return p
 
 
@@ -175,7 +199,9 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     key_env_note(p, "a router holds no member key")
     try:
-        cfg = RouterConfig(mesh_config(args, p), count_period_s=args.count_period_s)
+        relay_period_s = None if args.no_relay else args.relay_period_s
+        mesh = replace(mesh_config(args, p), relay_period_s=relay_period_s)
+        cfg = RouterConfig(mesh, count_period_s=args.count_period_s)
     except ValueError as exc:
         die(p, str(exc))
     with stop_on_signals() as stop:
