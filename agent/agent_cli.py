@@ -397,6 +397,7 @@ def config_from_args(
             args,
             "assumed_pos_sigma_m",
             "link_tags",
+            "relay",
             "calm_tick_hz",
             "hold_tick_hz",
             "tracking",

@@ -4,7 +4,8 @@ emulated 3 Hz / 20 %-loss / 0.1 s XBee link, swap places through a corner where 
 cells meet. Every vehicle crosses two cell borders and re-subscribes on the way; the pairs meet
 in the middle, so a neighbour missed at a hand-over would show as a pair closer than the
 separation, and every guidance trace (what each agent's policy saw, --trace-guidance) must list
-every airborne vehicle within HEARD_WITHIN_M of it."""
+every airborne vehicle within HEARD_WITHIN_M of it. The agents hear their cells through the
+router's cell relay (comms/relay.py), as they do by default."""
 
 from __future__ import annotations
 
@@ -110,4 +111,10 @@ def test_scoped_swap_through_a_cell_corner_on_a_lossy_3hz_link(procs) -> None:
         print(f"{checked[0]} neighbours within {HEARD_WITHIN_M} m checked in the traces")
         assert checked[0] > 50  # the pairs did come close while the traces were watched
         assert not missed, f"guidance did not hear (vehicle, neighbour): {sorted(set(missed))}"
+        # They heard each other through the router's cell relay (comms/relay.py), one batch a
+        # period, and re-wanted blocks as they crossed cells: the relay is what was tested.
+        relay = mesh.relay
+        assert relay is not None
+        print(f"cell relay: {relay.stats}")
+        assert relay.stats.states_out > 200 and relay.stats.states_refused == 0
         send(mesh, Command(CommandKind.LAND, new_nonce(), 0), expect=IDS)
