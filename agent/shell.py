@@ -271,7 +271,7 @@ class VehicleShell:
                 remote_only=True,
                 worth_checking=self.table.worth_checking if self.table.reach_m else None,
                 polled=True,  # taken at each tick's start (`tick`): no Python call per state
-                relay_for=self.cfg.ids[0] if one and self.cfg.relay else None,
+                relay_for=self.cfg.ids[0] if one and self.cfg.cell_relay else None,
             )
         else:
             self.states = mesh.subscribe_states(

@@ -87,7 +87,7 @@ class ShellConfig:
     """Which of them to hear: the grid cells within reach of this process's flying vehicles
     (widened to what `guidance` needs), or the whole fleet with `enabled=False`
     (comms/scope.py, docs/scaling.md)."""
-    relay: bool = True
+    cell_relay: bool = True
     """One vehicle hears its cells through its router's cell relay when the router has one
     (comms/relay.py): one message a relay period instead of one per neighbour state, a few
     tens of ms later on average. Its own cell subscriptions come back when the relay goes."""

@@ -155,9 +155,11 @@ class Mesh:
         """Keyed mode: the roster follower (trust/roster_sync.py), for its counts."""
         self.relay: CellRelay | None = None
         """Router mode: this router's cell relay (comms/relay.py), unless MeshConfig says none."""
-        if cfg.mode == "router" and cfg.relay_period_s is not None:
+        if cfg.mode == "router" and cfg.cell_relay_period_s is not None:
             try:
-                self.relay = self._keep(CellRelay(self.session, RelayConfig(cfg.relay_period_s)))
+                self.relay = self._keep(
+                    CellRelay(self.session, RelayConfig(cfg.cell_relay_period_s))
+                )
             except BaseException:
                 self.close()
                 raise

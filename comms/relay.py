@@ -21,8 +21,9 @@ tag, order, the cell its position is in: `decode_placed`). The relay itself refu
 whose key names another vehicle or another cell than the state's (counted, never forwarded),
 as the mesh does. A relay can withhold states, as its router can; it cannot forge one.
 
-A relay puts a batch on every wanted block every period, empty if the block was quiet, so that
-a vehicle can tell a quiet block from a relay that is not there or stopped: comms/mesh.py
+A relay puts a batch on every wanted block every period it heard states there, and an empty one
+at least every `keepalive_s` while the block is quiet, so that a vehicle can tell a quiet block
+from a relay that is not there or stopped: comms/mesh.py
 CellSubscription keeps its own cell subscriptions until it has heard the relay, and takes them
 up again when the relay is silent for `RELAY_SILENT_S`. A router without a relay costs a vehicle
 one token and one subscriber that hear nothing. One relay serves every fleet its router routes.
@@ -48,9 +49,9 @@ from comms.schema import MAX_FEED_BYTES, DecodeError, RelayBatch, VehicleState
 
 log = logging.getLogger(__name__)
 
-RELAY_SILENT_S = 0.5
-"""A vehicle that heard no batch from its relay for this long (5 periods at the default) hears
-its cells itself again."""
+RELAY_SILENT_S = 1.0
+"""A vehicle that heard no batch from its relay for this long hears its cells itself again: more
+than three of a quiet block's keep-alives (`RelayConfig.keepalive_s`)."""
 
 
 class MisplacedState(DecodeError):
@@ -106,16 +107,24 @@ def batches(states: list[bytes], seq: int) -> list[bytes]:
 
 @dataclass(frozen=True)
 class RelayConfig:
-    """A cell relay's settings (`covey router --relay-period-s`)."""
+    """A cell relay's settings (`covey router --cell-relay-period-s`)."""
 
     period_s: float = 0.1
     """How often each wanted block gets its batch: a state waits half of it on average."""
+    keepalive_s: float = 0.3
+    """A quiet block gets an empty batch this often (a block with states gets them every
+    period): how a vehicle tells a quiet block from a relay that went (`RELAY_SILENT_S`)."""
     ring: int = 4096
     """States kept per cell between two periods (the oldest dropped when full)."""
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.period_s) and 0.01 <= self.period_s <= 1.0):
-            raise ValueError(f"period_s={self.period_s} must be within [0.01, 1] s")
+        if not (math.isfinite(self.period_s) and 0.01 <= self.period_s <= 0.3):
+            raise ValueError(f"period_s={self.period_s} must be within [0.01, 0.3] s")
+        if not (math.isfinite(self.keepalive_s) and self.period_s <= self.keepalive_s <= 0.3):
+            raise ValueError(
+                f"keepalive_s={self.keepalive_s} must be within [period_s, 0.3] s: a vehicle "
+                f"waits {RELAY_SILENT_S:g} s before it calls its relay gone"
+            )
         if not 16 <= self.ring <= 1 << 20:
             raise ValueError(f"ring={self.ring} must be within 16..{1 << 20}")
 
@@ -163,6 +172,7 @@ class CellRelay:
         self._wants: dict[str, Block] = {}  # want token key -> block
         self._cells: dict[tuple[str, keys.Cell], Any] = {}  # (fleet, cell) -> its subscriber
         self._pubs: dict[Block, tuple[Any, int]] = {}  # block -> (publisher, next seq)
+        self._sent_s: dict[Block, float] = {}  # block -> when it last got a batch
         self._stop = threading.Event()
         self._entities: list[Any] = [
             session.liveliness().declare_subscriber(
@@ -237,11 +247,15 @@ class CellRelay:
             got = heard.setdefault(where, [])
             while (sample := sub.try_recv()) is not None:
                 self._take(sample, got)
-        put = 0
+        put, now_s = 0, self._clock_s()
         for block in sorted(blocks):
             pub, seq = self._pubs[block]
             fleet, k, anchor = block
             states = [s for c in keys.block_cells(k, anchor) for s in heard.get((fleet, c), ())]
+            quiet_s = now_s - self._sent_s.get(block, -math.inf)
+            if not states and quiet_s < self.cfg.keepalive_s - self.cfg.period_s / 2:
+                continue  # quiet, and kept alive recently enough (half a period: timer jitter)
+            self._sent_s[block] = now_s
             out = batches(states, seq)
             for batch in out:
                 pub.put(batch)
@@ -281,6 +295,7 @@ class CellRelay:
             self._pubs[block] = (pub, 1)
         for block in self._pubs.keys() - blocks:
             gone.append(self._pubs.pop(block)[0])
+            self._sent_s.pop(block, None)
         for ent in gone:
             with contextlib.suppress(Exception):
                 ent.undeclare()

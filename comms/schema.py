@@ -1129,9 +1129,10 @@ MAX_STATE_BYTES = VehicleState._FMT.size + TAG_BYTES + 1 + MAX_LINK_TAGS * LINK_
 @dataclass(frozen=True)
 class RelayBatch:
     """The states a router's cell relay heard in one block of cells since its last batch, exactly
-    as their vehicles published them (comms/relay.py). Sent every relay period to each vehicle
-    that wants the block, with no states too: a relay that still answers is one that still
-    relays. Each state is decoded and checked by the receiver as one on its own key would be."""
+    as their vehicles published them (comms/relay.py). Sent each relay period to each vehicle
+    that wants the block, and empty now and then while the block is quiet: a relay that still
+    sends is one that still relays. Each state is decoded and checked by the receiver as one on
+    its own key would be."""
 
     relay_seq: int
     """This batch's number on its block (wrapping at 2**32)."""

@@ -4,7 +4,7 @@ A vehicle hears the states of the cells within its reach, not the whole fleet (d
 
     reach_m = sense_range_m + separation_m + closing_speed_m_s * handover_s
     closing_speed_m_s = 2 * max_speed_m_s       (two vehicles flying at each other)
-    handover_s = resubscribe_s + state_period_s + link_latency_s + relay_period_s
+    handover_s = resubscribe_s + state_period_s + link_latency_s + cell_relay_period_s
 
 A neighbour outside the reach when the subscriptions change cannot come within sense range plus
 separation before its first state through the new subscription arrives.
@@ -51,9 +51,9 @@ class ScopeConfig:
     """Worst time between two states of one vehicle (the slowest link: 3 Hz)."""
     link_latency_s: float = 0.1
     """Worst one-way delay of a state on the link."""
-    relay_period_s: float = 0.1
+    cell_relay_period_s: float = 0.1
     """Worst wait of a state in a router's cell relay (comms/relay.py; `covey router
-    --relay-period-s`, whose default this is)."""
+    --cell-relay-period-s`, whose default this is)."""
     hysteresis_m: float = 5.0
     """How far past its anchor cell a vehicle may stray before its subscriptions move."""
 
@@ -65,7 +65,7 @@ class ScopeConfig:
             "resubscribe_s",
             "state_period_s",
             "link_latency_s",
-            "relay_period_s",
+            "cell_relay_period_s",
             "hysteresis_m",
         ):
             value = getattr(self, name)
@@ -80,7 +80,12 @@ class ScopeConfig:
     @property
     def handover_s(self) -> float:
         """Worst delay from a subscription change to a new cell's first state."""
-        return self.resubscribe_s + self.state_period_s + self.link_latency_s + self.relay_period_s
+        return (
+            self.resubscribe_s
+            + self.state_period_s
+            + self.link_latency_s
+            + self.cell_relay_period_s
+        )
 
     @property
     def hold_reach_m(self) -> float:
@@ -90,7 +95,7 @@ class ScopeConfig:
         sense range + separation + max speed * (resubscribe + hold period + latency + relay): 23 m
         with the defaults, which `reach_m` covers (tests/test_comms_scope.py)."""
         hand_over_s = (
-            self.resubscribe_s + MAX_HOLD_PERIOD_S + self.link_latency_s + self.relay_period_s
+            self.resubscribe_s + MAX_HOLD_PERIOD_S + self.link_latency_s + self.cell_relay_period_s
         )
         return self.sense_range_m + self.separation_m + self.max_speed_m_s * hand_over_s
 

@@ -164,9 +164,9 @@ class MeshConfig:
     """A full Zenoh JSON5 config (TLS, user/password, access control). Fields above override it."""
     extra: tuple[tuple[str, str], ...] = field(default_factory=tuple)
     """Additional (path, json5 value) pairs inserted into the Zenoh config."""
-    relay_period_s: float | None = 0.1
+    cell_relay_period_s: float | None = 0.1
     """Router mode: relay the fleet's cells to the vehicles that want them from this router every
-    this many seconds, within [0.01, 1] (comms/relay.py); None: no relay."""
+    this many seconds, within [0.01, 0.3] (comms/relay.py); None: no relay."""
     feed_hz: float = 5.0
     """How often this process sends its vehicles' latest states to the ground stations, batched
     (comms/feed.py). Within 2..50: the station calls a vehicle stale after 1 s without news
@@ -186,9 +186,9 @@ class MeshConfig:
             raise ValueError(f"lease_ms={self.lease_ms} must be within 100..600000")
         if not (isinstance(self.feed_hz, int | float) and 2.0 <= self.feed_hz <= 50.0):
             raise ValueError(f"feed_hz={self.feed_hz} must be within 2..50")
-        period = self.relay_period_s
-        if period is not None and not (isinstance(period, int | float) and 0.01 <= period <= 1.0):
-            raise ValueError(f"relay_period_s={period} must be within [0.01, 1] s")
+        period = self.cell_relay_period_s
+        if period is not None and not (isinstance(period, int | float) and 0.01 <= period <= 0.3):
+            raise ValueError(f"cell_relay_period_s={period} must be within [0.01, 0.3] s")
 
     def zenoh_config(self) -> zenoh.Config:
         """The Zenoh config; raises MeshConfigError (one line) for a bad config file."""

@@ -65,7 +65,7 @@ def mesh_trio(request: pytest.FixtureRequest):
     fleet = getattr(request.module, "FLEET", "covey")
     port = free_tcp_port()
     with (
-        Mesh(replace(embedded_router(port, fleet=fleet), relay_period_s=None)) as hub,
+        Mesh(replace(embedded_router(port, fleet=fleet), cell_relay_period_s=None)) as hub,
         Mesh(embedded_peer(port, fleet=fleet)) as a,
         Mesh(embedded_peer(port, fleet=fleet)) as b,
     ):

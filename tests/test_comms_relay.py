@@ -14,7 +14,14 @@ import pytest
 
 from comms import keys
 from comms.mesh import Mesh
-from comms.relay import CellRelay, MisplacedState, RelayConfig, batches, decode_placed
+from comms.relay import (
+    RELAY_SILENT_S,
+    CellRelay,
+    MisplacedState,
+    RelayConfig,
+    batches,
+    decode_placed,
+)
 from comms.schema import MAX_FEED_BYTES, MAX_STATE_BYTES, DecodeError, RelayBatch, VehicleState
 from comms.session import MeshConfig, embedded_router, free_tcp_port
 from tests.conftest import wait_until
@@ -96,8 +103,8 @@ def test_placement_is_checked_against_the_key_or_the_block() -> None:
 def test_relay_config_and_mesh_config_refuse_bad_periods() -> None:
     with pytest.raises(ValueError, match="period_s"):
         RelayConfig(period_s=0.0)
-    with pytest.raises(ValueError, match="relay_period_s"):
-        MeshConfig(relay_period_s=5.0)
+    with pytest.raises(ValueError, match="cell_relay_period_s"):
+        MeshConfig(cell_relay_period_s=5.0)
 
 
 # -- on real Zenoh sessions --------------------------------------------------------------------
@@ -116,7 +123,7 @@ def _hear(sub, got: list, pub: Mesh, rounds: int, seq0: int = 1) -> None:
 
 def test_a_vehicle_hears_its_block_through_the_relay_and_falls_back_when_it_goes() -> None:
     port = free_tcp_port()
-    router_cfg = replace(embedded_router(port, fleet=FLEET), relay_period_s=0.05)
+    router_cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=0.05)
     with Mesh(router_cfg) as router, Mesh(_client(port)) as pub, Mesh(_client(port)) as me:
         assert router.relay is not None
         got: list[int] = []
@@ -150,7 +157,7 @@ def test_a_misplaced_state_is_neither_relayed_nor_heard() -> None:
     """A state put on a cell key that is not its position's: the relay refuses it (counted with
     the reason) and never forwards it; the vehicle never hears it."""
     port = free_tcp_port()
-    router_cfg = replace(embedded_router(port, fleet=FLEET), relay_period_s=0.05)
+    router_cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=0.05)
     with Mesh(router_cfg) as router, Mesh(_client(port)) as pub, Mesh(_client(port)) as me:
         got: list[int] = []
         sub = me.subscribe_cells(
@@ -174,7 +181,7 @@ def test_the_relay_of_a_covey_router_process_serves_its_clients() -> None:
     """`covey router` (a process of its own) relays; a client vehicle hears its block from it."""
     port = free_tcp_port()
     argv = [sys.executable, "-m", "covey_cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
-    argv += ["--relay-period-s", "0.05"]
+    argv += ["--cell-relay-period-s", "0.05"]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         assert proc.stdout is not None
@@ -202,19 +209,21 @@ def test_the_relay_of_a_covey_router_process_serves_its_clients() -> None:
 def test_covey_router_refuses_a_bad_relay_period() -> None:
     out = subprocess.run(
         [sys.executable, "-m", "covey_cli", "router", "--listen", "tcp/127.0.0.1:0"]
-        + ["--relay-period-s", "3"],
+        + ["--cell-relay-period-s", "3"],
         capture_output=True,
         text=True,
         timeout=60,
     )
-    assert out.returncode == 2 and "relay_period_s=3.0 must be within [0.01, 1]" in out.stderr
+    assert (
+        out.returncode == 2 and "cell_relay_period_s=3.0 must be within [0.01, 0.3]" in out.stderr
+    )
 
 
 def test_without_a_relay_a_vehicle_hears_its_cells_itself() -> None:
-    """A router with no relay (--no-relay, a plain zenohd): the vehicle's want is never answered,
+    """A router with no relay (--no-cell-relay, a plain zenohd): the vehicle's want is never answered,
     so it keeps its own cell subscribers and hears everything as before."""
     port = free_tcp_port()
-    cfg = replace(embedded_router(port, fleet=FLEET), relay_period_s=None)
+    cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=None)
     with Mesh(cfg) as router, Mesh(_client(port)) as pub, Mesh(_client(port)) as me:
         assert router.relay is None
         with CellRelay(router.session, start=False) as relay:
@@ -229,3 +238,33 @@ def test_without_a_relay_a_vehicle_hears_its_cells_itself() -> None:
         assert wait_until(lambda: (_hear(sub, got, pub, 1), {3, 4} <= set(got))[1], 8.0)
         _hear(sub, got, pub, 20, seq0=10)
         assert not sub.relayed and me.stats.relay_batches_received == 0 and 5 not in got
+
+
+def test_a_quiet_block_is_kept_alive_not_flooded() -> None:
+    """A block with states gets a batch every period; a quiet one an empty batch every
+    keepalive_s, fewer wake-ups for a hovering vehicle, but often enough for RELAY_SILENT_S."""
+    port = free_tcp_port()
+    cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=None)
+    now = [100.0]
+    with (
+        Mesh(cfg) as router,
+        Mesh(_client(port)) as me,
+        CellRelay(
+            router.session, RelayConfig(period_s=0.1), start=False, clock_s=lambda: now[0]
+        ) as relay,
+    ):
+        token = me.session.liveliness().declare_token(
+            keys.relay_want(FLEET, 7, relay.relay_id, 1, (0, 0))
+        )
+        assert wait_until(lambda: bool(relay._wants), 5.0)
+        put = []
+        for _ in range(10):  # 1 s of a quiet block at a 0.1 s period: kept alive every 0.3 s
+            put.append(relay.flush())
+            now[0] += 0.1
+        assert put == [1, 0, 0, 1, 0, 0, 1, 0, 0, 1]
+        assert 0.3 <= RelayConfig().keepalive_s * 3 < RELAY_SILENT_S
+        token.undeclare()
+        assert wait_until(lambda: not relay._wants, 5.0)
+        assert relay.flush() == 0 and relay.stats.blocks == 0
+    with pytest.raises(ValueError, match="keepalive_s"):
+        RelayConfig(period_s=0.2, keepalive_s=0.1)

@@ -135,16 +135,16 @@ def main(
     mesh = replace(cfg.mesh, listen=tuple(with_free_port(ep) for ep in cfg.mesh.listen))
     with contextlib.ExitStack() as stack:
         session = stack.enter_context(open_session(mesh))
-        if mesh.relay_period_s is not None:
-            stack.enter_context(CellRelay(session, RelayConfig(mesh.relay_period_s)))
+        if mesh.cell_relay_period_s is not None:
+            stack.enter_context(CellRelay(session, RelayConfig(mesh.cell_relay_period_s)))
         links = Links(say, lambda zid: peer_name(session, zid))
         emit(f"READY {','.join(mesh.listen)}")
         to = ", ".join(mesh.connect) or "no other router"
         say(f"listening on {', '.join(mesh.listen)}; linking to {to} (Ctrl-C to stop)")
-        if mesh.relay_period_s is not None:
+        if mesh.cell_relay_period_s is not None:
             say(
-                f"relaying cells to the vehicles that want them every {mesh.relay_period_s:g} s "
-                "(--no-relay: off)"
+                f"relaying cells to the vehicles that want them every {mesh.cell_relay_period_s:g} s "
+                "(--no-cell-relay: off)"
             )
         listener = session.info.declare_transport_events_listener(links.on_event, history=True)
         try:
@@ -178,16 +178,16 @@ def parser() -> argparse.ArgumentParser:
         help="how often the number of clients and peers is looked at (default: 2)",
     )
     p.add_argument(
-        "--relay-period-s",
+        "--cell-relay-period-s",
         type=finite("seconds"),
         default=RelayConfig.period_s,
         metavar="SECONDS",
-        help="how often the cell relay sends each vehicle its block of cells, within [0.01, 1] "
+        help="how often the cell relay sends each vehicle its block of cells, within [0.01, 0.3] "
         f"(default: {RelayConfig.period_s:g}); a state waits half of it on average "
         "(comms/relay.py)",
     )
     p.add_argument(
-        "--no-relay",
+        "--no-cell-relay",
         action="store_true",
         help="no cell relay: each vehicle hears each neighbour state as a message of its own",
     )
@@ -199,8 +199,8 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     key_env_note(p, "a router holds no member key")
     try:
-        relay_period_s = None if args.no_relay else args.relay_period_s
-        mesh = replace(mesh_config(args, p), relay_period_s=relay_period_s)
+        relay_period_s = None if args.no_cell_relay else args.cell_relay_period_s
+        mesh = replace(mesh_config(args, p), cell_relay_period_s=relay_period_s)
         cfg = RouterConfig(mesh, count_period_s=args.count_period_s)
     except ValueError as exc:
         die(p, str(exc))
