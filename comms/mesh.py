@@ -1084,25 +1084,29 @@ class CellSubscription:
         if self._on_states is None:
             return 0
         now_ns = self._mesh.clock_ns() if taken_ns is None else taken_ns
+        # The relay's batches first: whether the relay is silent is judged on what came, not on
+        # how long since the last drain (a calm vehicle ticks at 1 Hz, its relay at 10).
         with self._lock:
+            block, block_sub = self._block, self._block_sub
+        batches = []
+        if block is not None and block_sub is not None:
+            while (sample := block_sub.try_recv()) is not None:
+                batches.append((block, sample))
+        with self._lock:
+            if batches and self._block_sub is block_sub:
+                self._block_batches += len(batches)
+                self._block_heard_ns = now_ns
             gone = self._apply(now_ns)
             retired, self._retired = self._retired, []
             subs = [*retired, self._unplaced, *self._subs.values()]
             old_blocks, self._retired_blocks = self._retired_blocks, []
-            block, block_sub = self._block, self._block_sub
         samples = []
         for sub in subs:
             while (sample := sub.try_recv()) is not None:
                 samples.append(sample)
-        batches = []
         for old, old_sub in old_blocks:
             while (sample := old_sub.try_recv()) is not None:
                 batches.append((old, sample))
-        heard = 0
-        if block is not None and block_sub is not None:
-            while (sample := block_sub.try_recv()) is not None:
-                batches.append((block, sample))
-                heard += 1
         since_ns, self._drained_ns = self._drained_ns, now_ns
         for sub in [*retired, *gone, *(b[1] for b in old_blocks)]:
             with contextlib.suppress(Exception):
@@ -1114,11 +1118,6 @@ class CellSubscription:
                 states.append(state)
         for where, sample in batches:
             states += self._mesh._decode_relayed(sample, where)
-        if heard:
-            with self._lock:
-                if self._block_sub is block_sub:
-                    self._block_batches += heard
-                    self._block_heard_ns = now_ns
         if states:
             self._on_states(states, now_ns, since_ns)
         return len(samples) + len(batches)

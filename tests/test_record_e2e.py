@@ -140,9 +140,13 @@ def test_info_summarises_the_flight(flight):
             seqs.setdefault(s.vehicle_id, []).append(s.seq)
     for vid in VEHICLES:
         assert info["state_rate_hz_by_vehicle"][vid] > 0
-        # Every state each agent published while recording is there once (seq has no gaps).
+        # Each state the recorder heard is there once, and nearly every one published while it
+        # recorded: states go out with congestion control DROP (a state is worth less than the
+        # next), so a loaded machine may drop a few on the way; the recorder loses none it got.
         got = seqs[vid]
-        assert sorted(got) == list(range(min(got), max(got) + 1))
+        assert len(got) == len(set(got)), "a state recorded twice"
+        span = max(got) - min(got) + 1
+        assert len(got) >= 0.97 * span, f"vehicle {vid}: {span - len(got)} of {span} states missing"
     assert record_cli(["--info", str(flight["clean"]), "--json"]) == 0
 
 

@@ -23,7 +23,7 @@ import zenoh
 from comms import keys
 from comms.commands import OutcomeStatus, new_nonce
 from comms.mesh import Mesh
-from comms.schema import ActionOutcome, Command, CommandKind, VehicleState
+from comms.schema import ActionOutcome, Command, CommandKind, RelayBatch, VehicleState
 from comms.session import MeshConfig, free_tcp_port
 
 pytestmark = [pytest.mark.e2e]
@@ -309,6 +309,35 @@ def test_an_insider_cannot_impersonate_a_vehicle_or_command(secured) -> None:
     assert result.outcomes[1].status in (OutcomeStatus.ACCEPTED, OutcomeStatus.REJECTED), (
         result.summary()
     )
+
+
+def test_the_cell_relay_works_through_the_shipped_acls_and_nobody_else_can_relay(secured) -> None:
+    """Behind the shipped access control, vehicle 2 wants its block from the router's cell relay
+    (a token under its own v/2/) and hears vehicle 1 through it; a member that puts a batch of
+    its own on the relay's key (a forged state of vehicle 9 inside) reaches nobody: only the
+    router's own relay puts there."""
+    setup, router, gcs, _received, _agent = secured
+    assert router.relay is not None
+    with Mesh(setup.client("vehicle-2")) as v2:
+        heard: list[int] = []
+        sub = v2.subscribe_cells(
+            lambda s, _t: heard.append(s.vehicle_id),
+            keys.block_cells(1, (0, 0)),  # vehicle 1 waits on the ground at (0, 0)
+            polled=True,
+            relay_for=2,
+        )
+        assert wait(lambda: (sub.drain(), sub.relayed and 1 in heard)[1], 20), (
+            f"not relayed: {router.relay.stats}, heard {sorted(set(heard))}"
+        )
+        inside = VehicleState(9, 1, time.time_ns(), (5.0, 5.0, -6.0), (0.0, 0.0, 0.0), 0.0)
+        forged = RelayBatch(1, (inside.encode(),)).encode()
+        block = keys.relay_block(FLEET, router.relay.relay_id, 1, (0, 0))
+        for _ in range(10):
+            gcs.session.put(block, forged)
+            time.sleep(0.05)
+            sub.drain()
+        assert 9 not in heard, "a member's own relay batch got through the router's ACL"
+        assert v2.stats.states_misplaced == 0 and v2.stats.decode_errors == 0
 
 
 def test_every_shipped_config_loads() -> None:
