@@ -235,54 +235,56 @@ def main(
     spread: bool = True,
 ) -> None:
 
-    pyspy = shutil.which("py-spy") or str(common.REPO / ".venv/bin/py-spy")
     folded = out + ".folded"
-
     by_thread: dict[str, float] = {}
 
     def spy(pid: int, seconds: float) -> None:
-        t0 = thread_cpu_s(pid)
-        subprocess.run(
-            [
-                pyspy,
-                "record",
-                "--pid",
-                str(pid),
-                "--duration",
-                str(int(seconds)),
-                "--rate",
-                str(rate_hz),
-                "--format",
-                "raw",
-                "--threads",
-                "--output",
-                folded,
-                "--nonblocking",
-            ],
-            check=False,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        t1 = thread_cpu_s(pid)
-        ticks = seconds * agent_cpu.TICK_HZ
-        by_thread.update({k: (v - t0.get(k, 0.0)) * 1e3 / ticks for k, v in t1.items()})
+        by_thread.update(py_spy(pid, seconds, folded, rate_hz))
 
     r = keyed_flight(neighbours, neighbour_hz, link_tags, while_flying=spy, spread=spread)
     f = r["flying"]
-    total, own, cum = top(Path(folded).read_text(), 40)
-    lines = [
+    head = (
         f"keyed agent, {neighbours} neighbours at {neighbour_hz:g} Hz, link tags "
         f"{'on' if link_tags else 'off'}, flying: {f['cpu_ms_per_tick']:.2f} ms CPU per tick "
-        f"({100 * f['cpu_share_of_one_core']:.1f} % of a core), {total} samples at {rate_hz} Hz",
+        f"({100 * f['cpu_share_of_one_core']:.1f} % of a core)"
+    )
+    lines = profile_lines(head, folded, by_thread, rate_hz)
+    Path(out).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def py_spy(pid: int, seconds: float, folded: str, rate_hz: int = 200) -> dict[str, float]:
+    """py-spy on the process `pid` for `seconds` (all threads, idle frames dropped, raw folded
+    stacks written to `folded`); returns each thread name's CPU ms per 10 Hz tick over the
+    window, from /proc."""
+    pyspy = shutil.which("py-spy") or str(common.REPO / ".venv/bin/py-spy")
+    t0 = thread_cpu_s(pid)
+    subprocess.run(
+        [pyspy, "record", "--pid", str(pid), "--duration", str(int(seconds))]
+        + ["--rate", str(rate_hz), "--format", "raw", "--threads", "--output", folded]
+        + ["--nonblocking"],
+        check=False,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    t1 = thread_cpu_s(pid)
+    ticks = seconds * agent_cpu.TICK_HZ
+    return {k: (v - t0.get(k, 0.0)) * 1e3 / ticks for k, v in t1.items()}
+
+
+def profile_lines(head: str, folded: str, by_thread: dict[str, float], rate_hz: int) -> list[str]:
+    """A profile as text: `head`, the CPU per tick by thread, the top frames by own and by
+    cumulative samples."""
+    total, own, cum = top(Path(folded).read_text(), 40)
+    return [
+        f"{head}, {total} samples at {rate_hz} Hz",
         "CPU ms per tick by thread name (/proc, over py-spy's window):",
         *(f"  {ms:6.3f}  {name}" for name, ms in sorted(by_thread.items(), key=lambda kv: -kv[1])),
         "own samples (tottime):",
-        *(f"  {100 * k / total:5.1f} %  {name}" for name, k in own),
+        *(f"  {100 * k / max(total, 1):5.1f} %  {name}" for name, k in own),
         "cumulative samples:",
-        *(f"  {100 * k / total:5.1f} %  {name}" for name, k in cum),
+        *(f"  {100 * k / max(total, 1):5.1f} %  {name}" for name, k in cum),
     ]
-    Path(out).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
 
 
 if __name__ == "__main__":

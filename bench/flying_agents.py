@@ -65,6 +65,9 @@ class FlyingBenchConfig:
     seed: int = 37
     start_timeout_s: float = 300.0
     """All vehicles present this soon (40 interpreters start slowly on 2 cores)."""
+    profile_out: str | None = None
+    """py-spy one agent (the middle of the grid) over the flying window, the profile written
+    here (a profiling aid: py-spy is no dependency, and it slows the agent it samples)."""
 
 
 class Watch:
@@ -238,13 +241,46 @@ def measure(cfg: FlyingBenchConfig) -> dict:
                 )
                 flying = set().union(*sent)
             time.sleep(1.0)
+            pid_of = {
+                int(ln.split()[3]): int(ln.split()[5])
+                for ln in demo.lines()
+                if ln.startswith("covey demo: vehicle ") and " pid " in ln
+            }
+            spied = _spy_while(cfg, pid_of, starts)
             out["flying"] = window(pids, demo.pid, watch, cfg.window_s, cfg.vehicles)
+            if spied is not None:
+                spied.join()
             out["flying"]["gotos_accepted"] = len(flying)
             with watch.lock:
                 out["flying"]["in_goto_at_end"] = sum(
                     s.mode is Mode.GOTO for s in watch.latest.values()
                 )
     return out
+
+
+def _spy_while(
+    cfg: FlyingBenchConfig, pid_of: dict[int, int], starts: dict
+) -> threading.Thread | None:
+    """With cfg.profile_out: py-spy the agent nearest the grid's middle over the next window."""
+    if cfg.profile_out is None:
+        return None
+    from bench.agent_profile import profile_lines, py_spy
+
+    ids = sorted(starts)
+    mid = np.mean([starts[v] for v in ids], axis=0)
+    vid = ids[int(np.argmin([np.hypot(*(np.array(starts[v]) - mid)) for v in ids]))]
+    pid, folded, out = pid_of[vid], cfg.profile_out + ".folded", cfg.profile_out
+
+    def run() -> None:
+        by_thread = py_spy(pid, cfg.window_s, folded)
+        head = f"agent {vid} of {cfg.vehicles} flying gotos (pid {pid})"
+        lines = profile_lines(head, folded, by_thread, 200)
+        Path(out).write_text("\n".join(lines) + "\n")
+        common.say("\n".join(lines[:12]))
+
+    t = threading.Thread(target=run, name="py-spy")
+    t.start()
+    return t
 
 
 def _row(r: dict, phase: str) -> str:
@@ -289,6 +325,7 @@ def main(
     quick: bool = False,
     compare_trees: tuple[Path, ...] = (),
     vehicles: tuple[int, ...] | None = None,
+    profile_out: str | None = None,
 ) -> dict:
     vehicles = vehicles or ((5,) if quick else (10, 20, 40))
     trees = (*(t.resolve() for t in compare_trees), common.REPO)
@@ -297,7 +334,7 @@ def main(
     for n in vehicles:
         for tree in trees:
             try:
-                r = measure(FlyingBenchConfig(n, tree, window_s, settle_s))
+                r = measure(FlyingBenchConfig(n, tree, window_s, settle_s, profile_out=profile_out))
             except RuntimeError as exc:  # a machine too loaded to take off all N: say so, go on
                 common.say(f"{n} agents from {tree}: {exc}")
                 failed.append({"vehicles": n, "tree": str(tree), "error": str(exc)})
@@ -342,6 +379,13 @@ if __name__ == "__main__":
     ap.add_argument(
         "--vehicles", default=None, help="comma-separated agent counts (default 10,20,40)"
     )
+    ap.add_argument(
+        "--profile-out",
+        default=None,
+        metavar="PATH",
+        help="py-spy one agent over the flying window and write its profile here (needs "
+        "py-spy; the profiled agent runs slower)",
+    )
     a = ap.parse_args()
     for tree in a.compare_tree:
         if not (tree / "covey_cli.py").is_file():
@@ -354,4 +398,4 @@ if __name__ == "__main__":
             ap.error(f"--vehicles {a.vehicles!r}: comma-separated whole numbers, e.g. 10,20,40")
         if not all(1 <= v <= 200 for v in counts):
             ap.error(f"--vehicles {a.vehicles!r}: each within 1..200 (covey demo's limit)")
-    main(a.quick, tuple(a.compare_tree), counts)
+    main(a.quick, tuple(a.compare_tree), counts, a.profile_out)
