@@ -116,6 +116,11 @@ class RelayConfig:
     period): how a vehicle tells a quiet block from a relay that went (`RELAY_SILENT_S`)."""
     ring: int = 4096
     """States kept per cell between two periods (the oldest dropped when full)."""
+    max_wants_per_vehicle: int = 4
+    """Blocks one vehicle id may want at once (an agent wants one; a second while it moves):
+    more are refused, so that one member cannot make the relay subscribe the whole grid."""
+    max_blocks: int = 4096
+    """Blocks the relay serves at once, all vehicles together; wants beyond it are refused."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.period_s) and 0.01 <= self.period_s <= 0.3):
@@ -127,12 +132,17 @@ class RelayConfig:
             )
         if not 16 <= self.ring <= 1 << 20:
             raise ValueError(f"ring={self.ring} must be within 16..{1 << 20}")
+        if not 1 <= self.max_wants_per_vehicle <= 64:
+            raise ValueError(f"max_wants_per_vehicle={self.max_wants_per_vehicle}: 1..64")
+        if not 1 <= self.max_blocks <= 1 << 20:
+            raise ValueError(f"max_blocks={self.max_blocks} must be within 1..{1 << 20}")
 
 
 @dataclass
 class RelayStats:
     states_in: int = 0
-    states_refused: int = 0
+    refused: int = 0
+    """States (on the wrong key or cell, malformed) and wants (too many) refused."""
     batches_out: int = 0
     states_out: int = 0
     blocks: int = 0
@@ -170,6 +180,7 @@ class CellRelay:
         self._clock_s = clock_s
         self._lock = threading.Lock()
         self._wants: dict[str, Block] = {}  # want token key -> block
+        self._owners: dict[str, tuple[str, int]] = {}  # want token key -> (fleet, vehicle id)
         self._cells: dict[tuple[str, keys.Cell], Any] = {}  # (fleet, cell) -> its subscriber
         self._pubs: dict[Block, tuple[Any, int]] = {}  # block -> (publisher, next seq)
         self._sent_s: dict[Block, float] = {}  # block -> when it last got a batch
@@ -211,14 +222,26 @@ class CellRelay:
         if parsed is None or parsed[2] != self.relay_id:
             self._refuse(f"a want token on {key}, which is none of this relay's")
             return
+        fleet, vid = parsed[0], parsed[1]
         with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._wants[key] = (parsed[0], parsed[3], parsed[4])
-            else:
+            if sample.kind != zenoh.SampleKind.PUT:
                 self._wants.pop(key, None)
+                self._owners.pop(key, None)
+                return
+            block = (fleet, parsed[3], parsed[4])
+            mine = sum(1 for owner in self._owners.values() if owner == (fleet, vid))
+            blocks = {*self._wants.values(), block}
+            if key not in self._wants and mine >= self.cfg.max_wants_per_vehicle:
+                why = f"vehicle {vid} of fleet {fleet!r} already wants {mine} blocks"
+            elif len(blocks) > self.cfg.max_blocks:
+                why = f"the relay serves {self.cfg.max_blocks} blocks already"
+            else:
+                self._wants[key], self._owners[key] = block, (fleet, vid)
+                return
+        self._refuse(f"a want on {key}: {why}")
 
     def _refuse(self, why: str) -> None:
-        self.stats.bump(states_refused=1)
+        self.stats.bump(refused=1)
         self.stats.last_refusal = why
 
     def _run(self) -> None:

@@ -138,7 +138,7 @@ def test_a_vehicle_hears_its_block_through_the_relay_and_falls_back_when_it_goes
         assert sub.relayed  # its own cell subscribers went: only the relay's block is heard
         assert me.stats.relay_batches_received >= 5
         assert {3, 4} <= set(got) and 5 not in got
-        assert router.relay.stats.states_refused == 0
+        assert router.relay.stats.refused == 0
         # What it heard came once: the newest state of each vehicle per drain, none twice.
         before = len(got)
         _hear(sub, got, pub, 20, seq0=100)
@@ -172,7 +172,7 @@ def test_a_misplaced_state_is_neither_relayed_nor_heard() -> None:
             pub.session.put(keys.state(FLEET, 9, (0, 0)), far)
             time.sleep(0.03)
             sub.drain()
-        assert wait_until(lambda: router.relay.stats.states_refused >= 5, 5.0)
+        assert wait_until(lambda: router.relay.stats.refused >= 5, 5.0)
         assert "not in cell" in router.relay.stats.last_refusal
         assert 9 not in got
 
@@ -268,3 +268,31 @@ def test_a_quiet_block_is_kept_alive_not_flooded() -> None:
         assert relay.flush() == 0 and relay.stats.blocks == 0
     with pytest.raises(ValueError, match="keepalive_s"):
         RelayConfig(period_s=0.2, keepalive_s=0.1)
+
+
+def test_one_vehicle_cannot_make_the_relay_subscribe_the_grid() -> None:
+    """Wants beyond max_wants_per_vehicle (a member declaring tokens for many blocks) are
+    refused with the reason; the vehicle whose want was refused hears its cells itself."""
+    port = free_tcp_port()
+    cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=None)
+    with (
+        Mesh(cfg) as router,
+        Mesh(_client(port)) as greedy,
+        CellRelay(router.session, RelayConfig(max_wants_per_vehicle=4), start=False) as relay,
+    ):
+        tokens = [
+            greedy.session.liveliness().declare_token(
+                keys.relay_want(FLEET, 9, relay.relay_id, 1, (10 * i, 0))
+            )
+            for i in range(6)
+        ]
+        assert wait_until(lambda: relay.stats.refused >= 2, 5.0)
+        time.sleep(0.2)
+        assert len(relay._wants) == 4 and relay.stats.refused == 2
+        assert "vehicle 9 of fleet 'relay' already wants 4 blocks" in relay.stats.last_refusal
+        relay.flush()
+        assert relay.stats.blocks == 4 and relay.stats.cells == 4 * 9
+        for t in tokens:
+            t.undeclare()
+    with pytest.raises(ValueError, match="max_wants_per_vehicle"):
+        RelayConfig(max_wants_per_vehicle=0)

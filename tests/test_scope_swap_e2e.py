@@ -116,5 +116,5 @@ def test_scoped_swap_through_a_cell_corner_on_a_lossy_3hz_link(procs) -> None:
         relay = mesh.relay
         assert relay is not None
         print(f"cell relay: {relay.stats}")
-        assert relay.stats.states_out > 200 and relay.stats.states_refused == 0
+        assert relay.stats.states_out > 200 and relay.stats.refused == 0
         send(mesh, Command(CommandKind.LAND, new_nonce(), 0), expect=IDS)
