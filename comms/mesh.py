@@ -984,6 +984,8 @@ class CellSubscription:
         # The relay of this session's router, if it has one (comms/relay.py).
         self._relay_for = relay_for
         self._relay_id: str | None = None
+        self._block_of: tuple[str | None, tuple[int, keys.Cell] | None] = (None, None)
+        self._looked_ns = mesh.clock_ns()  # when the session's routers were last looked at
         self._block: tuple[int, keys.Cell] | None = None  # the block wanted from it
         self._block_sub: Any = None
         self._want_token: Any = None
@@ -995,8 +997,24 @@ class CellSubscription:
         # scoping, so that nothing can hide by leaving its cell out; covey publishers place theirs.
         self._unplaced = self._declare(keys.unplaced_states(mesh.fleet))
         if relay_for is not None:
-            routers = [str(z) for z in mesh.session.info.routers_zid()]
-            self._relay_id = routers[0] if routers else None
+            self._relay_id = self._router()
+
+    def _router(self) -> str | None:
+        """The Zenoh id of this session's (first) router, whose relay it would hear."""
+        routers = [str(z) for z in self._mesh.session.info.routers_zid()]
+        return routers[0] if routers else None
+
+    def _find_relay(self, now_ns: int) -> None:
+        """While there is no router, or its relay is silent: every RELAY_SILENT_S, look again
+        which router this session is linked to (a router that restarted has a new id; a peer
+        may find one later)."""
+        if self._relay_for is None or now_ns - self._looked_ns < RELAY_SILENT_S * 1e9:
+            return
+        silent = self._block is not None and self._block_batches < self.RELAY_SETTLE_BATCHES
+        if self._relay_id is None or silent:
+            self._looked_ns = now_ns
+            with contextlib.suppress(Exception):  # a closing session: keep what we had
+                self._relay_id = self._router() or self._relay_id
 
     def _declare(self, key: str) -> Any:
         handler: Any = self._on_sample
@@ -1030,8 +1048,10 @@ class CellSubscription:
         """Declare what `_want` needs now: the relay's block and/or this subscription's own cell
         subscribers. Lock held; returns the entities to undeclare now (the rest retire)."""
         gone: list[Any] = []
+        self._find_relay(now_ns)
         block = keys.block_of(self._want) if self._relay_id is not None else None
-        if block != self._block:
+        if (self._relay_id, block) != self._block_of:
+            self._block_of = (self._relay_id, block)
             if self._want_token is not None:
                 gone.append(self._want_token)
             if self._block_sub is not None:  # what it still holds is taken at the next drain

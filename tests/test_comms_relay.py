@@ -296,3 +296,30 @@ def test_one_vehicle_cannot_make_the_relay_subscribe_the_grid() -> None:
             t.undeclare()
     with pytest.raises(ValueError, match="max_wants_per_vehicle"):
         RelayConfig(max_wants_per_vehicle=0)
+
+
+def test_after_its_router_restarts_a_vehicle_finds_the_new_relay() -> None:
+    """The router goes and comes back on the same endpoint with a new Zenoh id: the vehicle,
+    reconnected, falls back to its own cells, then wants its block from the new relay."""
+    port = free_tcp_port()
+    router_cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=0.05)
+    got: list[int] = []
+    with Mesh(router_cfg) as first, Mesh(_client(port)) as me:
+        old = first.relay.relay_id if first.relay else ""
+        sub = me.subscribe_cells(
+            lambda s, _t: got.append(s.vehicle_id),
+            keys.block_cells(1, (0, 0)),
+            polled=True,
+            relay_for=7,
+        )
+        with Mesh(_client(port)) as pub:
+            assert wait_until(lambda: (_hear(sub, got, pub, 1), sub.relayed)[1], 10.0)
+        first.close()
+        with Mesh(router_cfg) as second, Mesh(_client(port)) as pub:
+            assert second.relay is not None and second.relay.relay_id != old
+            assert wait_until(
+                lambda: (_hear(sub, got, pub, 1), sub.relayed and second.relay.stats.blocks == 1)[
+                    1
+                ],
+                30.0,
+            ), f"not relayed again: {second.relay.stats}"
