@@ -19,8 +19,12 @@ its gaps (link loss), which the vehicles' own state seq cannot tell once the fee
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 from comms.schema import MAX_FEED_BYTES, FeedBatch, FeedEntry
+
+T = TypeVar("T")
 
 DUE_SLACK = 0.1
 """A batch is due once (1 - DUE_SLACK) of a feed period has passed: a publisher ticking at a
@@ -75,16 +79,31 @@ class FeedBuffer:
 
 def split(entries: list[FeedEntry]) -> list[tuple[FeedEntry, ...]]:
     """`entries`, in order, cut into runs that each fit one FeedBatch (filled greedily)."""
-    runs: list[tuple[FeedEntry, ...]] = []
-    run: list[FeedEntry] = []
-    size = FeedBatch.size(())
-    for entry in entries:
-        grown = size + FeedBatch.size((len(entry.state),)) - FeedBatch.size(())
-        if run and (len(run) == FeedBatch.MAX_ENTRIES or grown > MAX_FEED_BYTES):
+    return runs_within(
+        entries, lambda e: len(e.state), FeedBatch.size, MAX_FEED_BYTES, FeedBatch.MAX_ENTRIES
+    )
+
+
+def runs_within(
+    items: Sequence[T],
+    length: Callable[[T], int],
+    size: Callable[[tuple[int, ...]], int],
+    max_bytes: int,
+    max_items: int | None = None,
+) -> list[tuple[T, ...]]:
+    """`items`, in order, cut greedily into runs whose message `size(lengths)` stays within
+    `max_bytes` (and `max_items`): the feed's batches and the cell relay's (comms/relay.py)."""
+    runs: list[tuple[T, ...]] = []
+    run: list[T] = []
+    lengths: list[int] = []
+    for item in items:
+        n = length(item)
+        full = max_items is not None and len(run) == max_items
+        if run and (full or size((*lengths, n)) > max_bytes):
             runs.append(tuple(run))
-            run, grown = [], FeedBatch.size((len(entry.state),))
-        run.append(entry)
-        size = grown
+            run, lengths = [], []
+        run.append(item)
+        lengths.append(n)
     if run:
         runs.append(tuple(run))
     return runs

@@ -45,6 +45,7 @@ from typing import Any
 import zenoh
 
 from comms import keys
+from comms.feed import runs_within
 from comms.schema import MAX_FEED_BYTES, DecodeError, RelayBatch, VehicleState
 
 log = logging.getLogger(__name__)
@@ -90,19 +91,8 @@ def decode_placed(
 def batches(states: list[bytes], seq: int) -> list[bytes]:
     """`states` in RelayBatch messages of at most MAX_FEED_BYTES, numbered from `seq`; one empty
     batch if there are none."""
-    out: list[bytes] = []
-    run: list[bytes] = []
-    size = RelayBatch.size(())
-    for s in states:
-        grown = size + RelayBatch.size((len(s),)) - RelayBatch.size(())
-        if run and grown > MAX_FEED_BYTES:
-            out.append(RelayBatch((seq + len(out)) & 0xFFFFFFFF, tuple(run)).encode())
-            run, grown = [], RelayBatch.size((len(s),))
-        run.append(s)
-        size = grown
-    if run or not out:
-        out.append(RelayBatch((seq + len(out)) & 0xFFFFFFFF, tuple(run)).encode())
-    return out
+    runs = runs_within(states, len, RelayBatch.size, MAX_FEED_BYTES) or [()]
+    return [RelayBatch((seq + i) & 0xFFFFFFFF, run).encode() for i, run in enumerate(runs)]
 
 
 @dataclass(frozen=True)

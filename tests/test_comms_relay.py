@@ -112,6 +112,17 @@ def _client(port: int) -> MeshConfig:
     return MeshConfig(fleet=FLEET, mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=())
 
 
+def _vehicle_7(me: Mesh, got: list[int]):
+    """Vehicle 7 at (0, 0): the block of cells around (0, 0), polled, through its router's relay;
+    the ids of the states it hears go to `got`."""
+    return me.subscribe_cells(
+        lambda s, _t: got.append(s.vehicle_id),
+        keys.block_cells(1, (0, 0)),
+        polled=True,
+        relay_for=7,
+    )
+
+
 def _hear(sub, got: list, pub: Mesh, rounds: int, seq0: int = 1) -> None:
     for i in range(rounds):
         pub.publish_state(state(3, 5.0, 5.0, seq0 + i))  # cell (0, 0)
@@ -127,12 +138,7 @@ def test_a_vehicle_hears_its_block_through_the_relay_and_falls_back_when_it_goes
     with Mesh(router_cfg) as router, Mesh(_client(port)) as pub, Mesh(_client(port)) as me:
         assert router.relay is not None
         got: list[int] = []
-        sub = me.subscribe_cells(
-            lambda s, _t: got.append(s.vehicle_id),
-            keys.block_cells(1, (0, 0)),
-            polled=True,
-            relay_for=7,
-        )
+        sub = _vehicle_7(me, got)
         assert wait_until(lambda: (sub.drain(), router.relay.stats.blocks == 1)[1], 5.0)
         _hear(sub, got, pub, 30)
         assert sub.relayed  # its own cell subscribers went: only the relay's block is heard
@@ -160,12 +166,7 @@ def test_a_misplaced_state_is_neither_relayed_nor_heard() -> None:
     router_cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=0.05)
     with Mesh(router_cfg) as router, Mesh(_client(port)) as pub, Mesh(_client(port)) as me:
         got: list[int] = []
-        sub = me.subscribe_cells(
-            lambda s, _t: got.append(s.vehicle_id),
-            keys.block_cells(1, (0, 0)),
-            polled=True,
-            relay_for=7,
-        )
+        sub = _vehicle_7(me, got)
         assert wait_until(lambda: (_hear(sub, got, pub, 1), sub.relayed)[1], 8.0)
         far = state(9, 500.0, 500.0).encode()  # really in cell (16, 16)
         for _ in range(10):
@@ -189,12 +190,7 @@ def test_the_relay_of_a_covey_router_process_serves_its_clients() -> None:
         assert any("relaying cells" in line for line in lines), lines
         with Mesh(_client(port)) as pub, Mesh(_client(port)) as me:
             got: list[int] = []
-            sub = me.subscribe_cells(
-                lambda s, _t: got.append(s.vehicle_id),
-                keys.block_cells(1, (0, 0)),
-                polled=True,
-                relay_for=7,
-            )
+            sub = _vehicle_7(me, got)
             ok = wait_until(lambda: (_hear(sub, got, pub, 3), sub.relayed)[1], 10.0)
             assert ok and me.stats.relay_batches_received > 0
             assert {3, 4} <= set(got) and 5 not in got
@@ -229,12 +225,7 @@ def test_without_a_relay_a_vehicle_hears_its_cells_itself() -> None:
         with CellRelay(router.session, start=False) as relay:
             assert relay.flush() == 0 and relay.stats.blocks == 0  # nobody wants a block yet
         got: list[int] = []
-        sub = me.subscribe_cells(
-            lambda s, _t: got.append(s.vehicle_id),
-            keys.block_cells(1, (0, 0)),
-            polled=True,
-            relay_for=7,
-        )
+        sub = _vehicle_7(me, got)
         assert wait_until(lambda: (_hear(sub, got, pub, 1), {3, 4} <= set(got))[1], 8.0)
         _hear(sub, got, pub, 20, seq0=10)
         assert not sub.relayed and me.stats.relay_batches_received == 0 and 5 not in got
@@ -306,12 +297,7 @@ def test_after_its_router_restarts_a_vehicle_finds_the_new_relay() -> None:
     got: list[int] = []
     with Mesh(router_cfg) as first, Mesh(_client(port)) as me:
         old = first.relay.relay_id if first.relay else ""
-        sub = me.subscribe_cells(
-            lambda s, _t: got.append(s.vehicle_id),
-            keys.block_cells(1, (0, 0)),
-            polled=True,
-            relay_for=7,
-        )
+        sub = _vehicle_7(me, got)
         with Mesh(_client(port)) as pub:
             assert wait_until(lambda: (_hear(sub, got, pub, 1), sub.relayed)[1], 10.0)
         first.close()
