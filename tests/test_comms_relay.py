@@ -182,7 +182,7 @@ def test_the_relay_of_a_covey_router_process_serves_its_clients() -> None:
     """`covey router` (a process of its own) relays; a client vehicle hears its block from it."""
     port = free_tcp_port()
     argv = [sys.executable, "-m", "covey_cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
-    argv += ["--cell-relay-period-s", "0.05"]
+    argv += ["--cell-relay-period-s", "0.05", "--count-period-s", "0.2"]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         assert proc.stdout is not None
@@ -194,6 +194,11 @@ def test_the_relay_of_a_covey_router_process_serves_its_clients() -> None:
             ok = wait_until(lambda: (_hear(sub, got, pub, 3), sub.relayed)[1], 10.0)
             assert ok and me.stats.relay_batches_received > 0
             assert {3, 4} <= set(got) and 5 not in got
+            time.sleep(0.5)  # a count period: the router says what its relay serves
+        proc.terminate()
+        rest = proc.communicate(timeout=20)[0]
+        # the operator's view: the block it served, its 9 cells (then none once the vehicle left)
+        assert "covey router: cell relay: 1 block(s) wanted, 9 cell(s) heard" in rest, rest
     finally:
         proc.terminate()
         with contextlib.suppress(subprocess.TimeoutExpired):

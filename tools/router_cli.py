@@ -106,6 +106,16 @@ class Links:
         return {role: roles.count(role) for role in ROLES}
 
 
+def relay_line(relay: CellRelay) -> str:
+    """What an operator watches of the cell relay: the blocks wanted, the cells heard, and the
+    refusals with the last reason (printed when it changed)."""
+    st = relay.stats
+    line = f"cell relay: {st.blocks} block(s) wanted, {st.cells} cell(s) heard"
+    if st.refused:
+        line += f"; {st.refused} refused, the last: {st.last_refusal}"
+    return line
+
+
 def peer_name(session: zenoh.Session, zid: str) -> str:
     """A linked node as an operator can place it: its Zenoh id, the remote address of its link,
     and the identity it authenticated with (TLS certificate name or user), where there is one:
@@ -135,8 +145,9 @@ def main(
     mesh = replace(cfg.mesh, listen=tuple(with_free_port(ep) for ep in cfg.mesh.listen))
     with contextlib.ExitStack() as stack:
         session = stack.enter_context(open_session(mesh))
+        relay = None
         if mesh.cell_relay_period_s is not None:
-            stack.enter_context(CellRelay(session, RelayConfig(mesh.cell_relay_period_s)))
+            relay = stack.enter_context(CellRelay(session, RelayConfig(mesh.cell_relay_period_s)))
         links = Links(say, lambda zid: peer_name(session, zid))
         emit(f"READY {','.join(mesh.listen)}")
         to = ", ".join(mesh.connect) or "no other router"
@@ -149,11 +160,15 @@ def main(
         listener = session.info.declare_transport_events_listener(links.on_event, history=True)
         try:
             said: dict[str, int] = {}
+            relay_said = ""
             while not stop.wait(cfg.count_period_s):
                 counts = links.counts()
                 if counts != said:
                     said = counts
                     say(", ".join(f"{n} {role}(s)" for role, n in counts.items()))
+                if relay is not None and (line := relay_line(relay)) != relay_said:
+                    relay_said = line
+                    say(line)
         finally:
             listener.undeclare()
     say("stopped")
