@@ -10,6 +10,11 @@ of routers. Every agent and station is a client of its own site's router. A link
 to connect: a router keeps trying an endpoint that is not up yet, and re-makes a link that drops.
 (`zenohd -l tcp/0.0.0.0:7447 -e tcp/site-b:7447 --no-multicast-scouting` does the same job.)
 
+Every router relays the cells its vehicles want (comms/relay.py): an agent flying one vehicle
+hears the states of its block of cells as one message every `--cell-relay-period-s` (0.1 s)
+instead of one per state; `--no-cell-relay` turns it off, and the agents then hear their cells
+themselves, as they do behind zenohd.
+
 It prints `READY <endpoints>` once it listens (port 0: a free port, picked and printed), then a
 line for each router that links or unlinks, named by its Zenoh id, the address its link comes
 from and, over TLS or user/password, who it authenticated as (`peer_name`), and the number of
