@@ -171,6 +171,7 @@ class CellRelay:
         self._lock = threading.Lock()
         self._wants: dict[str, Block] = {}  # want token key -> block
         self._owners: dict[str, tuple[str, int]] = {}  # want token key -> (fleet, vehicle id)
+        self._waiting: dict[str, tuple[Block, tuple[str, int]]] = {}  # refused, retried on room
         self._cells: dict[tuple[str, keys.Cell], Any] = {}  # (fleet, cell) -> its subscriber
         self._pubs: dict[Block, tuple[Any, int]] = {}  # block -> (publisher, next seq)
         self._sent_s: dict[Block, float] = {}  # block -> when it last got a batch
@@ -215,20 +216,32 @@ class CellRelay:
         fleet, vid = parsed[0], parsed[1]
         with self._lock:
             if sample.kind != zenoh.SampleKind.PUT:
-                self._wants.pop(key, None)
-                self._owners.pop(key, None)
+                self._waiting.pop(key, None)
+                if self._wants.pop(key, None) is not None:
+                    self._owners.pop(key, None)
+                    for waiting, (block, owner) in list(self._waiting.items()):  # room now?
+                        if self._admit(waiting, block, owner) is None:
+                            del self._waiting[waiting]
                 return
-            block = (fleet, parsed[3], parsed[4])
-            mine = sum(1 for owner in self._owners.values() if owner == (fleet, vid))
-            blocks = {*self._wants.values(), block}
-            if key not in self._wants and mine >= self.cfg.max_wants_per_vehicle:
-                why = f"vehicle {vid} of fleet {fleet!r} already wants {mine} blocks"
-            elif len(blocks) > self.cfg.max_blocks:
-                why = f"the relay serves {self.cfg.max_blocks} blocks already"
-            else:
-                self._wants[key], self._owners[key] = block, (fleet, vid)
+            block, owner = (fleet, parsed[3], parsed[4]), (fleet, vid)
+            why = self._admit(key, block, owner)
+            if why is None:
                 return
+            self._waiting[key] = (block, owner)
         self._refuse(f"a want on {key}: {why}")
+
+    def _admit(self, key: str, block: Block, owner: tuple[str, int]) -> str | None:
+        """Take the want `key` if the bounds allow (lock held); else why not."""
+        mine = sum(1 for o in self._owners.values() if o == owner)
+        if key not in self._wants and mine >= self.cfg.max_wants_per_vehicle:
+            return f"vehicle {owner[1]} of fleet {owner[0]!r} already wants {mine} blocks"
+        if (
+            block not in self._wants.values()
+            and len(set(self._wants.values())) >= self.cfg.max_blocks
+        ):
+            return f"the relay serves {self.cfg.max_blocks} blocks already"
+        self._wants[key], self._owners[key] = block, owner
+        return None
 
     def _refuse(self, why: str) -> None:
         self.stats.bump(refused=1)

@@ -268,7 +268,7 @@ def test_a_quiet_block_is_kept_alive_not_flooded() -> None:
 
 def test_one_vehicle_cannot_make_the_relay_subscribe_the_grid() -> None:
     """Wants beyond max_wants_per_vehicle (a member declaring tokens for many blocks) are
-    refused with the reason; the vehicle whose want was refused hears its cells itself."""
+    refused with the reason (the vehicle hears its cells itself), and taken when room is made."""
     port = free_tcp_port()
     cfg = replace(embedded_router(port, fleet=FLEET), cell_relay_period_s=None)
     with (
@@ -288,8 +288,16 @@ def test_one_vehicle_cannot_make_the_relay_subscribe_the_grid() -> None:
         assert "vehicle 9 of fleet 'relay' already wants 4 blocks" in relay.stats.last_refusal
         relay.flush()
         assert relay.stats.blocks == 4 and relay.stats.cells == 4 * 9
-        for t in tokens:
+        # One of its wants goes (its vehicle moved on): a refused one is taken in its place.
+        served = set(relay._wants.values())
+        tokens[0].undeclare()
+        assert wait_until(
+            lambda: len(relay._wants) == 4 and set(relay._wants.values()) != served, 5.0
+        )
+        assert (FLEET, 1, (0, 0)) not in relay._wants.values()
+        for t in tokens[1:]:
             t.undeclare()
+        assert wait_until(lambda: not relay._wants, 5.0)
     with pytest.raises(ValueError, match="max_wants_per_vehicle"):
         RelayConfig(max_wants_per_vehicle=0)
 
