@@ -49,7 +49,8 @@ class COnboardFleet:
     uses_sigma = True
     """policy.evalsim passes the position uncertainties (covey_guidance_step_sky)."""
     uses_cooperative = True
-    """... and which neighbours do not cooperate (intruders: the C filter's non_cooperative)."""
+    """... and which neighbours do not cooperate (intruders: the C filter's non_cooperative;
+    manned aircraft: COVEY_TRACK_MANNED)."""
 
     def __call__(
         self,
@@ -66,6 +67,7 @@ class COnboardFleet:
         pos_sigma_m=None,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ):
         out = np.zeros((len(ids), 2))
         for row, vid in enumerate(np.asarray(ids).tolist()):
@@ -85,6 +87,7 @@ class COnboardFleet:
                     0.0 if pos_sigma_m is None else float(pos_sigma_m[row]),
                     None if nbr_pos_sigma_m is None else nbr_pos_sigma_m[row, m],
                     None if nbr_cooperative is None else nbr_cooperative[row, m],
+                    None if nbr_manned is None else nbr_manned[row, m],
                 ),
             )
             r = self._tick(vid).step(obs, t_s)

@@ -201,10 +201,11 @@ class CPolicy:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ) -> np.ndarray:
         """The C safety filter alone (world units); raises ValueError on a fault.
-        Uncertainties and cooperative flags as `command` takes them; with zones, their edges
-        are hard lines (covey_safety_filter_zones)."""
+        Uncertainties, cooperative and manned flags as `command` takes them; with zones, their
+        edges are hard lines (covey_safety_filter_zones)."""
         sky = {"pos_sigma_m": pos_sigma_m, "nbr_pos_sigma_m": nbr_pos_sigma_m}
         r = self._filtered(
             pos_m,
@@ -213,6 +214,7 @@ class CPolicy:
             nbr_pos_m,
             nbr_vel_m_s,
             nbr_cooperative=nbr_cooperative,
+            nbr_manned=nbr_manned,
             **sky,
         )
         if r.status != "ok":
@@ -284,14 +286,17 @@ class CPolicy:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ) -> np.ndarray:
         """Velocity command (2,) in m/s (north, east); raises CPolicyError on a fault.
 
         With the filter on, it sees the neighbours the network kept fresh (stale ones dropped).
         For the decision hold, hold `preferred` and `filter` it every tick (`onboard()` does).
-        pos_sigma_m, nbr_pos_sigma_m (K,) and nbr_cooperative (K,): as
+        pos_sigma_m, nbr_pos_sigma_m (K,), nbr_cooperative (K,) and nbr_manned (K,): as
         GuidancePolicy.command takes them (the C filter's covey_track_t fields)."""
-        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)  # as GuidancePolicy
+        sky = Sky.checked(  # as GuidancePolicy
+            pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned=nbr_manned
+        )
         obs = Observation.shaped(
             pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )
@@ -312,10 +317,13 @@ class CPolicy:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ) -> np.ndarray:
         """GuidancePolicy.preferred in C: the velocity to hold for one decision period (the
         network's, or the sparse rule's straight line), not yet filtered."""
-        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)  # as GuidancePolicy
+        sky = Sky.checked(  # as GuidancePolicy
+            pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned=nbr_manned
+        )
         obs = Observation.shaped(
             pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )

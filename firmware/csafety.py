@@ -294,6 +294,18 @@ def pair_c(xy) -> ctypes.Array:
     return (ctypes.c_float * 2)(*np.asarray(xy, dtype=np.float64).reshape(2))
 
 
+def track_kinds(k: int, cooperative=None, manned=None) -> np.ndarray:
+    """(k,) uint8 COVEY_TRACK_* kinds: 0 a covey vehicle, 1 traffic (cooperative False), 2 a
+    manned aircraft (manned True; it never cooperates: policy.safety.effective_cooperative).
+    None: all cooperative, none manned; a scalar stands for all k."""
+    kind = np.zeros(k, np.uint8)
+    if cooperative is not None:
+        kind[~np.broadcast_to(np.asarray(cooperative, bool), (k,))] = 1
+    if manned is not None:
+        kind[np.broadcast_to(np.asarray(manned, bool), (k,))] = 2
+    return kind
+
+
 def tracks(pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None, manned=None) -> np.ndarray:
     """covey_track_t array of the neighbours (ids, 1-sigma, cooperative and manned flags as
     policy.safety.pair_radius_m takes them; None: 0, exact, all cooperative, none manned)."""
@@ -310,11 +322,8 @@ def tracks(pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None, manned=
         t["id"] = np.asarray(ids, dtype=np.int64).reshape(-1)
     if pos_sigma_m is not None:
         t["pos_sigma_m"] = np.broadcast_to(np.asarray(pos_sigma_m, np.float64), (pos.shape[0],))
-    if cooperative is not None:
-        t["non_cooperative"] = ~np.broadcast_to(np.asarray(cooperative, bool), (pos.shape[0],))
-    if manned is not None:  # manned aircraft never cooperate (policy.safety.effective_cooperative)
-        m = np.broadcast_to(np.asarray(manned, bool), (pos.shape[0],))
-        t["non_cooperative"] = np.where(m, 2, t["non_cooperative"])
+    if cooperative is not None or manned is not None:
+        t["non_cooperative"] = track_kinds(pos.shape[0], cooperative, manned)
     return t
 
 
@@ -405,10 +414,11 @@ class CSafetyFilter:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ):
         """covey_sparse_choose with this filter's config (policy.sparse.choose_one's twin);
         faults come back in `status`, never raised."""
-        t = tracks(nbr_pos_m, nbr_vel_m_s, None, nbr_pos_sigma_m, nbr_cooperative)
+        t = tracks(nbr_pos_m, nbr_vel_m_s, None, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
         out = SparseOutC()
         st = self._lib.covey_sparse_choose(
             ctypes.byref(self._ccfg),
@@ -431,7 +441,7 @@ class CSafetyFilter:
         self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id=0, nbr_ids=None, **sky
     ) -> np.ndarray:
         """Filtered velocity (2,); raises ValueError on a fault. `sky`: `evaluate`'s
-        pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative."""
+        pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned."""
         r = self.evaluate(
             pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id, nbr_ids, **sky
         )
@@ -493,8 +503,8 @@ class COnboard:
         zones=None,
     ) -> StepResult:
         """One tick at `now_s` (stamps default to now: fresh); obs.sky's uncertainties and
-        cooperative flags go to the filter. nbr_kind (K,) uint8: each neighbour's COVEY_TRACK_*
-        kind (0 covey, 1 traffic, 2 manned), in place of obs.sky's cooperative flags; zones:
+        cooperative and manned flags go to the filter. nbr_kind (K,) uint8: each neighbour's
+        COVEY_TRACK_* kind (0 covey, 1 traffic, 2 manned), in place of obs.sky's flags; zones:
         keep-out zones (firmware.czones.CZones or firmware.cfence.CFence), through
         covey_guidance_step_zones. Values are the core's to check: a bad one comes back as a
         fault in `status`."""
@@ -509,9 +519,9 @@ class COnboard:
         if sky.nbr_pos_sigma_m is not None:
             ns = np.zeros(max(k, 1), np.float32)
             ns[:k] = sky.nbr_pos_sigma_m
-        if sky.nbr_cooperative is not None:
+        if sky.nbr_cooperative is not None or sky.nbr_manned is not None:
             nc = np.zeros(max(k, 1), np.uint8)
-            nc[:k] = ~np.asarray(sky.nbr_cooperative, bool)
+            nc[:k] = track_kinds(k, sky.nbr_cooperative, sky.nbr_manned)
         if nbr_kind is not None:
             nc = np.zeros(max(k, 1), np.uint8)
             nc[:k] = np.broadcast_to(np.asarray(nbr_kind, np.uint8), (k,))

@@ -140,10 +140,11 @@ class CZones:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ) -> FilterResult:
         """covey_safety_filter_zones, as CSafetyFilter.evaluate takes its inputs; faults come
         back in `status`, never raised."""
-        t = tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative)
+        t = tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
         out = SafetyOutC()
         st = self._lib.covey_safety_filter_zones(
             ctypes.byref(SafetyConfigC.of(safety_cfg)),

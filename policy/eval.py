@@ -84,8 +84,9 @@ class EvalConfig:
     """Show a tqdm bar."""
     suites: tuple = field(default=("circle", "conflict", "large"))
     """Scenario suites to run: circle, conflict, large, intruder (a vehicle that does not
-    cooperate flies straight through at 1x, 1.5x and 2x the fleet's speed), zones (keep-out
-    zones, routed gotos: policy/zone_eval.py)."""
+    cooperate flies straight through at 1x, 1.5x and 2x the fleet's speed), manned (a manned
+    aircraft flies through at 20, 40 and 60 m/s, heard 30 s before: the fleet keeps its 30 m
+    berth), zones (keep-out zones, routed gotos: policy/zone_eval.py)."""
     vehicles: str = "ideal"
     """How the vehicles fly (policy.pointmass.VehicleModel): ideal (exactly what is commanded,
     exact positions) or realistic (0.3 s velocity lag, 2.5 m/s^2, 0.2 m/s gusts, GNSS estimate
@@ -142,6 +143,13 @@ def cases(cfg: EvalConfig):
             for name, starts, goals, nc, speeds in scenarios.intruder_cases(rng, ratio, cfg.quick):
                 options = {"non_cooperative": nc, "speed_m_s": speeds}
                 out.append(("intruder", f"intruder-{ratio:g}x-{name}", starts, goals, options))
+    if "manned" in cfg.suites:
+        for speed in scenarios.MANNED_SPEEDS_M_S:
+            for name, starts, goals, nc, speeds, manned in scenarios.manned_cases(
+                rng, speed, cfg.quick
+            ):
+                options = {"non_cooperative": nc, "speed_m_s": speeds, "manned": manned}
+                out.append(("manned", f"manned-{speed:g}m_s-{name}", starts, goals, options))
     return out
 
 
@@ -206,6 +214,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             pos_sigma_m=sig.get("pos_sigma_m"),
             nbr_pos_sigma_m=sig.get("nbr_pos_sigma_m"),
             nbr_cooperative=sig.get("nbr_cooperative"),
+            nbr_manned=sig.get("nbr_manned"),
         )
 
     # capability flags evalsim reads off a controller; the zone suite filters with the same config
@@ -265,6 +274,7 @@ class Held:
         pos_sigma_m=None,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ):
         from policy.safety import filter_padded
 
@@ -291,6 +301,7 @@ class Held:
                 pos_sigma_m=pos_sigma_m,
                 nbr_pos_sigma_m=nbr_pos_sigma_m,
                 nbr_cooperative=nbr_cooperative,
+                nbr_manned=nbr_manned,
             )
         return v
 
@@ -364,6 +375,17 @@ def summarise(rows: list) -> list:
                     if all("zone_entries" in r for r in rs)
                     else {}
                 ),
+                **(
+                    {
+                        "manned_entries": int(sum(r["manned_entries"] for r in rs)),
+                        "manned_min_sep": min(
+                            (r["manned_min_sep"] for r in rs if r["manned_min_sep"] is not None),
+                            default=None,
+                        ),
+                    }
+                    if suite == "manned"
+                    else {}
+                ),
             }
         )
     return out
@@ -388,6 +410,8 @@ def markdown(summary: list) -> str:
     ]
     if any("zone_entries" in s for s in summary):  # the zones suite's counts
         cols += ["zone_entries", "arrived", "refused", "min_zone_m", "route_time"]
+    if any("manned_entries" in s for s in summary):  # the manned suite's berth
+        cols += ["manned_entries", "manned_min_sep"]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for s in sorted(summary, key=lambda s: (s["suite"], s["link"], s["controller"])):
         cells = []
@@ -544,9 +568,10 @@ def cli(argv=None, extra_controllers: Mapping[str, ControllerFactory] | None = N
         VehicleModel.named(a.vehicles)
     except ValueError as e:
         ap.error(f"--vehicles: {e}")
-    if not set(a.suites) <= {"circle", "conflict", "large", "intruder", "zones"}:
+    if not set(a.suites) <= {"circle", "conflict", "large", "intruder", "manned", "zones"}:
         ap.error(
-            f"--suites takes circle, conflict, large, intruder, zones, got {','.join(a.suites)!r}"
+            "--suites takes circle, conflict, large, intruder, manned, zones, "
+            f"got {','.join(a.suites)!r}"
         )
     cfg = config_from_flags(EvalConfig, a)
     result = main(cfg, extra_controllers)

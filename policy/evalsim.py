@@ -83,6 +83,10 @@ class EvalSimConfig:
     """The tracking compensation of the covey vehicles' commands (policy/tracking.py), as the
     agents fly it; None: on, with the vehicles' own loop (`TrackingConfig.for_model`);
     `TrackingConfig(enabled=False)`: off. Intruders are never corrected."""
+    manned_berth_m: float = 30.0
+    """A covey vehicle closer than this to a manned aircraft (a `manned` intruder) entered its
+    berth (`manned_entries`; policy.safety's MANNED_SEPARATION_M, before margin and
+    uncertainty)."""
     dead_reckon: bool = True
     """Receivers extrapolate each neighbour's last delivered state to now, p + v (t - t_rx), as
     the agents do (agent/neighbours.py); False: they use it as it came (staler on a slow link)."""
@@ -93,7 +97,8 @@ class EvalSimConfig:
 # with `uses_sigma = True` also gets pos_sigma_m= (N,) and nbr_pos_sigma_m= (N, K): the
 # position 1-sigma each vehicle reports of itself and the ones its link delivered; with
 # `uses_cooperative = True`, nbr_cooperative= (N, K) bool when the case has traffic that does
-# not cooperate (False for those columns; a controller without it takes them for covey vehicles).
+# not cooperate (False for those columns; a controller without it takes them for covey vehicles)
+# and, when some of them are manned aircraft, nbr_manned= (N, K) bool (True for those columns).
 Controller = Callable[..., np.ndarray]
 
 
@@ -112,19 +117,31 @@ def run(
     rng: np.random.Generator,
     non_cooperative=None,
     speed_m_s=None,
+    manned=None,
 ) -> dict:
     """Flies one scenario to the end; returns its metrics (and tracks if cfg.record).
     `non_cooperative` (n,) bool marks intruders: they fly straight at their goal at their
     `speed_m_s` (n,) whatever happens (the controller never steers them), broadcast like the
-    others, and are told to controllers as not cooperating. Success, arrivals, timeouts, times
-    and paths count the covey vehicles only; a covey vehicle that hits an intruder collided."""
+    others, and are told to controllers as not cooperating. `manned` (n,) bool marks the
+    intruders that are manned aircraft (told as nbr_manned; `manned_min_sep` and
+    `manned_entries`, the covey vehicles that came within cfg.manned_berth_m of one). Success,
+    arrivals, timeouts, times and paths count the covey vehicles only; a covey vehicle that hits
+    an intruder collided."""
     starts = np.asarray(starts, dtype=np.float64)
     goals = np.asarray(goals, dtype=np.float64)
     n = starts.shape[0]
     nc = np.zeros(n, bool) if non_cooperative is None else np.asarray(non_cooperative, bool)
+    mn = np.zeros(n, bool) if manned is None else np.asarray(manned, bool)
+    if (mn & ~nc).any():
+        raise ValueError("a manned aircraft must be one of the non_cooperative vehicles")
     own_speed = np.full(n, cfg.speed) if speed_m_s is None else np.asarray(speed_m_s, float)
     uses_coop = nc.any() and bool(getattr(controller, "uses_cooperative", False))
-    fleet = Vehicles(starts, cfg.vehicles, rng)
+    # a manned aircraft is already flying when the scene starts (at the realistic 2.5 m/s^2 a
+    # 60 m/s one would take 24 s to speed up, and pass late); everyone else starts at rest
+    vel0 = np.zeros_like(starts)
+    if mn.any():
+        vel0[mn] = straight_velocity(starts[mn], goals[mn], own_speed[mn], cfg.dt_s)
+    fleet = Vehicles(starts, cfg.vehicles, rng, vel0)
     pos = fleet.pos_m  # the truth, flown in place
     est, gvel = fleet.est_pos_m, fleet.ground_vel_m_s
     sigma = np.full(n, fleet.pos_sigma_m)
@@ -139,7 +156,8 @@ def run(
     timed_out = np.zeros(n, bool)
     path = np.zeros(n)
     acc_sum, acc_n = 0.0, 0
-    min_sep = est_min_sep = intruder_min_sep = np.inf
+    min_sep = est_min_sep = intruder_min_sep = manned_min_sep = np.inf
+    in_berth = np.zeros(n, bool)  # covey vehicles that came within the manned berth
     t_limit = cfg.time_factor * trip / own_speed
     # what receiver i last got from sender j
     k_pos, k_vel, k_head = (
@@ -203,6 +221,8 @@ def run(
             extra = {"pos_sigma_m": sigma[ctl], "nbr_pos_sigma_m": nbr_sig[ctl]}
         if uses_coop:
             extra["nbr_cooperative"] = np.broadcast_to(~nc, (ctl.size, n))
+            if mn.any():
+                extra["nbr_manned"] = np.broadcast_to(mn, (ctl.size, n))
         if ctl.size:
             v[ctl] = controller(
                 ctl,
@@ -221,9 +241,9 @@ def run(
         straight = idx[nc[idx]]
         for i in straight:  # each at its own speed, on the truth (it knows where it goes)
             v[i] = straight_velocity(pos[i], goals[i], float(own_speed[i]), cfg.dt_s)
-        acc = np.hypot(*(v[idx] - gvel[idx]).T) / cfg.dt_s
+        acc = np.hypot(*(v[ctl] - gvel[ctl]).T) / cfg.dt_s  # the covey vehicles'
         acc_sum += float(acc.sum())
-        acc_n += idx.size
+        acc_n += ctl.size
         before = pos.copy()
         # the point mass flies the command (exactly, with ideal vehicles), only active ones
         powered = active.copy()
@@ -251,6 +271,11 @@ def run(
                 m = nc[idx]
                 if m.any() and (~m).any():
                     intruder_min_sep = min(intruder_min_sep, float(d[~m][:, m].min()))
+                    a = mn[idx]
+                    if a.any():
+                        to_manned = d[~m][:, a].min(axis=1)
+                        manned_min_sep = min(manned_min_sep, float(to_manned.min()))
+                        in_berth[idx[~m][to_manned < cfg.manned_berth_m]] = True
             est_collided[idx[(de < cfg.collide_m).any(axis=1)]] = True
         else:
             hit = np.zeros(idx.size, bool)
@@ -273,6 +298,8 @@ def run(
         "est_collisions": int(est_collided[coop].sum()),
         "est_min_sep": float(est_min_sep) if np.isfinite(est_min_sep) else None,
         "intruder_min_sep": float(intruder_min_sep) if np.isfinite(intruder_min_sep) else None,
+        "manned_min_sep": float(manned_min_sep) if np.isfinite(manned_min_sep) else None,
+        "manned_entries": int(in_berth[coop].sum()),
         "extra_time": float(np.mean(arrive_t[ok] * cfg.speed / trip[ok])) if ok.any() else None,
         "path_ratio": float(np.mean(path[ok] / trip[ok])) if ok.any() else None,
         "mean_acc": acc_sum / max(acc_n, 1),

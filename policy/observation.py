@@ -64,13 +64,29 @@ class Sky:
     """(K,) the neighbours' 1-sigma as they reported them; None: exact."""
     nbr_cooperative: np.ndarray | None = None
     """(K,) bool, False for a neighbour that does not avoid (traffic); None: all cooperate."""
+    nbr_manned: np.ndarray | None = None
+    """(K,) bool, True for a manned aircraft (traffic the filter keeps its own, wider berth
+    from: SafetyConfig.manned_radius_m; it never cooperates, whatever nbr_cooperative says);
+    None: none."""
 
     @classmethod
-    def checked(cls, pos_sigma_m=0.0, nbr_pos_sigma_m=None, nbr_cooperative=None, k: int = -1):
+    def checked(
+        cls,
+        pos_sigma_m=0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+        k: int = -1,
+        nbr_manned=None,
+    ):
         """pos_sigma_m a finite float >= 0, nbr_pos_sigma_m (k,) finite >= 0 or None,
-        nbr_cooperative (k,) bool or None (k = -1: any length, checked later against the
-        neighbours: `fit`); a ValueError naming the bad one. All defaults: EXACT."""
-        if not pos_sigma_m and nbr_pos_sigma_m is None and nbr_cooperative is None:
+        nbr_cooperative and nbr_manned (k,) bool or None (k = -1: any length, checked later
+        against the neighbours: `fit`); a ValueError naming the bad one. All defaults: EXACT."""
+        if (
+            not pos_sigma_m
+            and nbr_pos_sigma_m is None
+            and nbr_cooperative is None
+            and nbr_manned is None
+        ):
             return EXACT
         try:
             own = float(pos_sigma_m)
@@ -83,53 +99,72 @@ class Sky:
             sig = check_array("nbr_pos_sigma_m", nbr_pos_sigma_m, (k,))
             if (sig < 0).any():
                 raise ValueError(f"nbr_pos_sigma_m must be >= 0, got {sig!r}")
-        coop = None
-        if nbr_cooperative is not None:
-            coop = np.asarray(nbr_cooperative)
-            if coop.ndim != 1 or (k >= 0 and coop.shape != (k,)):
-                raise ValueError(f"nbr_cooperative must have shape (K,) = ({k},), got {coop.shape}")
-            if coop.dtype != bool and not np.isin(coop, (0, 1)).all():
-                raise ValueError("nbr_cooperative must be booleans")
-            coop = coop.astype(bool)
-        return cls(own, sig, coop)
+        coop = _flags("nbr_cooperative", nbr_cooperative, k)
+        manned = _flags("nbr_manned", nbr_manned, k)
+        return cls(own, sig, coop, manned)
 
     def fit(self, k: int) -> Sky:
         """This sky for k neighbours: a scalar sigma or flag stands for all of them (the C
         core's callers pass one); another length is a ValueError naming it."""
         if self is EXACT:
             return self
-        sig, coop = self.nbr_pos_sigma_m, self.nbr_cooperative
+        sig = self.nbr_pos_sigma_m
         if sig is not None:
             sig = np.asarray(sig, dtype=np.float64)
             if sig.ndim == 0:
                 sig = np.full(k, float(sig))
             elif sig.shape != (k,):
                 raise ValueError(f"nbr_pos_sigma_m must have shape ({k},), got {sig.shape}")
-        if coop is not None:
-            coop = np.asarray(coop)
-            if coop.ndim == 0:
-                coop = np.full(k, bool(coop))
-            elif coop.shape != (k,):
-                raise ValueError(f"nbr_cooperative must have shape ({k},), got {coop.shape}")
-            coop = coop.astype(bool)
-        return Sky(float(self.pos_sigma_m), sig, coop)
+        coop = _fit_flags("nbr_cooperative", self.nbr_cooperative, k)
+        manned = _fit_flags("nbr_manned", self.nbr_manned, k)
+        return Sky(float(self.pos_sigma_m), sig, coop, manned)
 
     def kwargs(self) -> dict:
-        """As policy.safety's and policy.sparse's keyword arguments."""
-        return {
+        """As policy.safety's and policy.sparse's keyword arguments (nbr_manned only when
+        some neighbour is flagged: the filters take it, and it is None in the common case)."""
+        out = {
             "pos_sigma_m": self.pos_sigma_m,
             "nbr_pos_sigma_m": self.nbr_pos_sigma_m,
             "nbr_cooperative": self.nbr_cooperative,
         }
+        if self.nbr_manned is not None:
+            out["nbr_manned"] = self.nbr_manned
+        return out
 
     def rows(self, keep) -> Sky:
         """These uncertainties for the neighbours `keep` selects (a mask or indices)."""
-        sig, coop = self.nbr_pos_sigma_m, self.nbr_cooperative
+        sig, coop, manned = self.nbr_pos_sigma_m, self.nbr_cooperative, self.nbr_manned
         return Sky(
             self.pos_sigma_m,
             None if sig is None else sig[keep],
             None if coop is None else coop[keep],
+            None if manned is None else manned[keep],
         )
+
+
+def _flags(name: str, x, k: int) -> np.ndarray | None:
+    """(k,) bool flags (k = -1: any length) from booleans or 0/1, or None; a ValueError naming
+    `name` otherwise."""
+    if x is None:
+        return None
+    a = np.asarray(x)
+    if a.ndim != 1 or (k >= 0 and a.shape != (k,)):
+        raise ValueError(f"{name} must have shape (K,) = ({k},), got {a.shape}")
+    if a.dtype != bool and not np.isin(a, (0, 1)).all():
+        raise ValueError(f"{name} must be booleans")
+    return a.astype(bool)
+
+
+def _fit_flags(name: str, x, k: int) -> np.ndarray | None:
+    """Flags for k neighbours: a scalar stands for all of them."""
+    if x is None:
+        return None
+    a = np.asarray(x)
+    if a.ndim == 0:
+        return np.full(k, bool(a))
+    if a.shape != (k,):
+        raise ValueError(f"{name} must have shape ({k},), got {a.shape}")
+    return a.astype(bool)
 
 
 EXACT = Sky()
@@ -332,14 +367,20 @@ class Observations:
     """(N, K) the neighbours' 1-sigma; None: exact."""
     nbr_cooperative: np.ndarray | None = None
     """(N, K) bool; None: all cooperate."""
+    nbr_manned: np.ndarray | None = None
+    """(N, K) bool, True for a manned aircraft (Sky.nbr_manned); None: none."""
 
     def sky(self) -> dict:
-        """The uncertainties as policy.safety's and policy.sparse's keyword arguments."""
-        return {
+        """The uncertainties as policy.safety's and policy.sparse's keyword arguments
+        (nbr_manned only when given, as Sky.kwargs)."""
+        out = {
             "pos_sigma_m": self.pos_sigma_m,
             "nbr_pos_sigma_m": self.nbr_pos_sigma_m,
             "nbr_cooperative": self.nbr_cooperative,
         }
+        if self.nbr_manned is not None:
+            out["nbr_manned"] = self.nbr_manned
+        return out
 
 
 @dataclass(frozen=True)

@@ -239,13 +239,14 @@ class GuidancePolicy:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ):
         """The safety filter alone (world units): pref_vel_m_s changed as little as possible.
-        Uncertainties and cooperative flags as `command` takes them."""
+        Uncertainties, cooperative and manned flags as `command` takes them."""
         pos_m = check_array("pos_m", pos_m, (2,))
         nbr_pos_m = check_array("nbr_pos_m", nbr_pos_m, (-1, 2))
         k = nbr_pos_m.shape[0]
-        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k)
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, k, nbr_manned)
         return safety.filter_velocity(
             pos_m,
             check_array("vel_m_s", vel_m_s, (2,)),
@@ -269,6 +270,7 @@ class GuidancePolicy:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ) -> np.ndarray:
         """Velocity command (2,) in m/s (north, east) for one vehicle.
 
@@ -276,8 +278,10 @@ class GuidancePolicy:
         PX4's eph), `nbr_pos_sigma_m` (K,) the neighbours' as they reported them, and
         `nbr_cooperative` (K,) bool False for a neighbour that does not avoid (traffic): the
         filter keeps each pair apart by separation_m (1 + margin) + sigma_k sqrt(si^2 + sj^2)
-        and takes the whole correction against traffic (policy.safety.pair_radius_m). The
-        defaults (0, None, None) fly as before.
+        and takes the whole correction against traffic (policy.safety.pair_radius_m);
+        `nbr_manned` (K,) bool True for a manned aircraft (ADS-B's manned emitter categories):
+        traffic kept `manned_radius_m` from (30 m before margin and uncertainty). The defaults
+        (0, None, None, None) fly as before.
 
         The inputs become one Observation (Observation.checked: a ValueError names a bad one;
         float64 arrays of the right shapes pass uncopied).
@@ -285,7 +289,7 @@ class GuidancePolicy:
         Called every tick, this is all a caller needs. For the decision hold (as the agents
         fly), hold `preferred` instead and `filter` it every tick: a held `command` keeps the
         filter's answer to the moment it decided, on top of the filter's answer to now."""
-        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned=nbr_manned)
         obs = Observation.checked(
             pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )
@@ -303,12 +307,13 @@ class GuidancePolicy:
         pos_sigma_m: float = 0.0,
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
+        nbr_manned=None,
     ) -> np.ndarray:
         """The velocity (2,) to hold for one decision period, as the agents do: the policy's,
         or the sparse rule's straight line, not yet filtered. Every tick, fly
         `filter(pos_m, vel_m_s, held, nbr_pos_m, nbr_vel_m_s)`; at the decision that is
         `command`. Same inputs and checks as `command`."""
-        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative)
+        sky = Sky.checked(pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned=nbr_manned)
         obs = Observation.checked(
             pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad, sky
         )

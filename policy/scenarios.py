@@ -135,6 +135,44 @@ def intruder_cases(rng: np.random.Generator, speed_ratio: float, quick: bool = F
     return out
 
 
+MANNED_SPEEDS_M_S = (20.0, 40.0, 60.0)
+"""Manned aircraft speeds the `manned` suite flies (m/s; the fleet cruises at 1 m/s): a
+helicopter or a light aircraft low and slow, up to a light aircraft's cruise."""
+
+MANNED_HEARD_S = 30.0
+"""The manned aircraft is on the link this long before it passes the scene's centre (the
+filter needs about 22 s to leave a manned berth: docs/sky.md "A manned aircraft's horizon")."""
+
+
+def manned_cases(rng: np.random.Generator, speed_m_s: float, quick: bool = False):
+    """A manned aircraft (ADS-B, a manned emitter category) flies straight through the fleet at
+    `speed_m_s`, passing the scene's centre MANNED_HEARD_S after the start, when the fleet is
+    there: [(name, starts, goals, non_cooperative, speeds, manned)]. Crossing one vehicle's
+    path, along it head-on and from behind, across a block of 10, through an 8-vehicle circle
+    swap and through a forced conflict of 6 on a random heading."""
+    t = MANNED_HEARD_S
+    out = []
+
+    def add(name, starts, goals, cross_from, cross_to):
+        st, gl, nc, speeds = _with_intruder(starts, goals, cross_from, cross_to, speed_m_s, t)
+        out.append((name, st, gl, nc, speeds, nc.copy()))
+
+    one_s, one_g = np.array([[0.0, -t]]), np.array([[0.0, t]])  # at the centre at t
+    add("crossing", one_s, one_g, (-1.0, 0.0), (1.0, 0.0))
+    block = np.array([(n, e) for n in (-3.0, 3.0) for e in (-12.0, -6.0, 0.0, 6.0, 12.0)])
+    add("block-10", block + (0.0, -t), block + (0.0, t), (-1.0, 0.0), (1.0, 0.0))
+    if quick:
+        return out
+    add("head-on", one_s, one_g, (0.0, 1.0), (0.0, -1.0))
+    add("overtake", one_s, one_g, (0.0, -1.0), (0.0, 1.0))
+    starts, goals = antipodal_circle(8)
+    add("circle-8", starts, goals, (-1.0, 0.3), (1.0, -0.3))
+    starts, goals = random_conflict(rng, 6)
+    a = rng.uniform(0, 2 * math.pi)
+    add("conflict-6", starts, goals, (-math.cos(a), -math.sin(a)), (math.cos(a), math.sin(a)))
+    return out
+
+
 def _box(n0: float, e0: float, n1: float, e1: float) -> np.ndarray:
     return np.array([[n0, e0], [n1, e0], [n1, e1], [n0, e1]], float)
 

@@ -146,11 +146,13 @@ def choose_padded(
     pos_sigma_m=None,
     nbr_pos_sigma_m=None,
     nbr_cooperative=None,
+    nbr_manned=None,
 ):
     """The velocities to hold (N, 2) and which rows fly straight (N,), for N vehicles with
     padded views (N, K, ...) of their neighbours; safety_cfg is the filter flight keeps
-    (its radius_m the separation, its max_speed_m_s the cruise speed). The uncertainties and
-    cooperative flags ((N,), (N, K), (N, K) or None) go to the filter's progress check."""
+    (its radius_m the separation, its max_speed_m_s the cruise speed). The uncertainties,
+    cooperative and manned flags ((N,), (N, K), (N, K), (N, K) or None) go to the filter's
+    progress check."""
     pos_m = np.asarray(pos_m, float)
     cruise = safety_cfg.max_speed_m_s
     v_s = straight_velocity(pos_m, goal_m, cruise, period_s)
@@ -189,6 +191,7 @@ def choose_padded(
             pos_sigma_m=None if pos_sigma_m is None else np.asarray(pos_sigma_m)[rows],
             nbr_pos_sigma_m=None if nbr_pos_sigma_m is None else np.asarray(nbr_pos_sigma_m)[rows],
             nbr_cooperative=None if nbr_cooperative is None else np.asarray(nbr_cooperative)[rows],
+            nbr_manned=None if nbr_manned is None else np.asarray(nbr_manned)[rows],
         )
         # (f . v_s / |v_s|) >= share |v_s|, without dividing: on the goal v_s = 0 passes
         s = v_s[rows]
@@ -211,7 +214,7 @@ def choose_one(
     """`choose_padded` for one vehicle and its k neighbours (k, 2): (velocity (2,), straight).
     In Python floats, with safety.filter_one: the runtime's hot path (equal to choose_padded,
     tests/test_policy_sparse.py). `sky`: safety.filter_one's pos_sigma_m, nbr_pos_sigma_m,
-    nbr_cooperative, for the progress check."""
+    nbr_cooperative, nbr_manned, for the progress check."""
     x, y = float(pos_m[0]), float(pos_m[1])
     gx, gy = float(goal_m[0]) - x, float(goal_m[1]) - y
     cruise = safety_cfg.max_speed_m_s
