@@ -43,7 +43,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     ),
     "train": ("policy.train_cli", "cli", "train the guidance policy with PPO (needs covey[train])"),
     "eval": (
-        "firmware.ceval",
+        "agent.eval_agents",
         "eval_cli",
         "evaluate policies against ORCA and straight-line baselines",
     ),

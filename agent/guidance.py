@@ -140,9 +140,10 @@ class GuidanceConfig:
             max_speed_m_s=max(base.max_speed_m_s, self.cruise_speed_m_s),
         )
 
-    def load_policy(self) -> GuidancePolicy:
+    def load_policy(self, safety_cfg: safety.SafetyConfig | None = None) -> GuidancePolicy:
         """The policy this configuration flies (unfiltered: guidance filters, to see when), told
-        `told_separation_m`; its filter settings keep separation_m."""
+        `told_separation_m`; its filter settings keep separation_m (`safety_config`, or
+        `safety_cfg` where an evaluation sets them: agent/eval_agents.py)."""
         return GuidancePolicy.load(
             self.policy_path,
             separation_m=self.separation_m,
@@ -151,7 +152,7 @@ class GuidanceConfig:
             safety_filter=False,
             max_neighbours=self.max_neighbours,
             sparse_rule=SparseConfig() if self.safety_filter and self.sparse_rule else None,
-            safety_cfg=self.safety_config(),
+            safety_cfg=safety_cfg or self.safety_config(),
         )
 
     def safety_config(self) -> safety.SafetyConfig:

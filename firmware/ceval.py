@@ -6,8 +6,8 @@ runs at every simulation step against what the link delivered. Nothing of the nu
 is in the loop, so `covey eval --controllers c+filter,policy+filter,orca` compares the onboard
 C core with the companion's numpy runtime on the same cases.
 
-`covey eval` enters here (`eval_cli`): policy/eval.py's command with `c+filter` added, since
-policy/ does not import the firmware built on it.
+`covey eval` (agent/eval_agents.py) adds `c+filter` to policy/eval.py's command, since policy/
+does not import the firmware built on it.
 """
 
 from __future__ import annotations
@@ -131,13 +131,3 @@ a C compiler)."""
 def main(cfg: policy_eval.EvalConfig) -> dict:
     """policy.eval.main with the C core's controllers available."""
     return policy_eval.main(cfg, CONTROLLERS)
-
-
-def eval_cli(argv=None) -> dict:
-    """`covey eval`: policy.eval.cli with the C core's controllers available."""
-    return policy_eval.cli(argv, CONTROLLERS)
-
-
-def eval_parser():
-    """`covey eval`'s parser (the same as policy.eval's)."""
-    return policy_eval.parser()

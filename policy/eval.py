@@ -113,7 +113,8 @@ class EvalConfig:
     correction for them); off: they take intruders for covey vehicles (before issue 35)."""
     controllers: tuple = ()
     """Run only these controllers, e.g. policy,orca (empty = all available but c+filter, the C
-    core as onboard, which runs only when named)."""
+    core as onboard, and agents, the agents' own guidance tick (agent/eval_agents.py), which
+    run only when named)."""
 
 
 def cases(cfg: EvalConfig):

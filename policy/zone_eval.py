@@ -24,7 +24,9 @@ from policy import evalsim
 from policy.zone_lines import ZONE_ENTRY_SHARE
 
 ZONE_FILTER = {"policy+filter": "numpy", "orca": "numpy", "c+filter": "c"}
-"""Controllers that keep the zone edges in their filter, and which filter does it."""
+"""Controllers that keep the zone edges in their filter, and which filter does it. A controller
+with `set_zones` (agent/eval_agents.py: the agents' own guidance) is given the zones and routes
+and filters itself."""
 
 
 class Routed:
@@ -131,7 +133,13 @@ def run(
         # The C controller brings its own zone filter (firmware/ceval.py): policy/ never imports
         # firmware/, which sits above it.
         czones = controller.zone_filter(zones_m, zones.radius_m, zones.time_horizon_s)
-    routed = Routed(controller, router if aware else None, zones, safety_cfg, kind, czones, lanes)
+    if aware and hasattr(controller, "set_zones"):  # it routes and keeps the edges itself
+        controller.set_zones(zones_m)
+        routed = controller
+    else:
+        routed = Routed(
+            controller, router if aware else None, zones, safety_cfg, kind, czones, lanes
+        )
     refused = np.zeros(len(goals), bool)
     if aware:  # as the flight core takes a goto (agent/flight_core.py `_clear_goal`)
         pad_m = safety_cfg.sigma_k * sim_cfg.vehicles.drift_m
