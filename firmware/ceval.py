@@ -74,6 +74,8 @@ class COnboardFleet:
             m = np.flatnonzero(nbr_valid[row])
             if m.size > MAX_INPUTS:  # the C core takes 64 reports: keep the nearest, in order
                 d = ((nbr_pos[row, m] - pos[row]) ** 2).sum(-1)
+                if nbr_cooperative is not None:  # traffic first, however far: it never avoids
+                    d = np.where(nbr_cooperative[row, m], d, -1.0)
                 m = np.sort(m[np.argsort(d, kind="stable")[:MAX_INPUTS]])
             obs = Observation.shaped(
                 pos[row],

@@ -186,3 +186,43 @@ def test_marked_the_fleet_keeps_the_berth_unmarked_it_does_not(vehicles: str) ->
         unmarked += u["manned_entries"]
     assert entries == 0 and collisions == 0 and closest >= 30.0, (entries, closest)
     assert unmarked > 0
+
+
+@needs_cc
+def test_c_filter_keeps_the_aircraft_among_more_than_64_reports() -> None:
+    """The C core takes 64 reports a call; `c+filter` keeps traffic first, so a manned aircraft
+    farther than 69 covey vehicles is still avoided."""
+    from firmware.ceval import c_filter
+    from policy.safety import SafetyConfig
+
+    rng = np.random.default_rng(64)
+    k = 70
+    ang = rng.uniform(0, 2 * np.pi, k - 1)
+    covey = np.column_stack([np.cos(ang), np.sin(ang)]) * rng.uniform(40, 60, k - 1)[:, None]
+    nbr_pos = np.vstack([covey, [[0.0, 200.0]]])[None]  # the aircraft 200 m east, closing
+    nbr_vel = np.vstack([np.zeros((k - 1, 2)), [[0.0, -40.0]]])[None]
+    coop = np.ones((1, k), bool)
+    coop[0, -1] = False
+    manned = ~coop
+
+    def fly(nbrs: int) -> np.ndarray:
+        ctrl = c_filter(EvalConfig(), SafetyConfig())
+        return ctrl(
+            np.array([0]),
+            0.0,
+            np.zeros((1, 2)),
+            np.zeros((1, 2)),
+            np.zeros(1),
+            np.array([[30.0, 0.0]]),
+            nbr_pos[:, :nbrs],
+            nbr_vel[:, :nbrs],
+            np.zeros((1, nbrs)),
+            np.ones((1, nbrs), bool),
+            nbr_cooperative=coop[:, :nbrs],
+            nbr_manned=manned[:, :nbrs],
+        )[0]
+
+    alone = fly(k - 1)  # the covey vehicles only: straight north
+    seen = fly(k)
+    assert alone[1] == pytest.approx(0.0, abs=1e-6)
+    assert np.abs(seen - alone).max() > 0.3, (alone, seen)  # it reacts to the aircraft
