@@ -73,38 +73,15 @@ class AgentFleet:
         return total
 
     def __call__(
-        self,
-        ids,
-        t_s,
-        pos,
-        vel,
-        heading,
-        goal,
-        nbr_pos,
-        nbr_vel,
-        nbr_heading,
-        nbr_valid,
-        pos_sigma_m=None,
-        nbr_pos_sigma_m=None,
-        nbr_cooperative=None,
-        nbr_manned=None,
+        self, ids, t_s, pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid, **sky
     ):
+        """`sky`: policy.evalsim's pos_sigma_m (N,), nbr_pos_sigma_m, nbr_cooperative and
+        nbr_manned (N, K), each only when the scenario has it."""
         out = np.zeros((len(ids), 2))
         here = np.array([0])
         for row, vid in enumerate(np.asarray(ids).tolist()):
             m = np.flatnonzero(nbr_valid[row])
-            views = _views(
-                row,
-                m,
-                vid,
-                nbr_pos,
-                nbr_vel,
-                nbr_heading,
-                pos_sigma_m,
-                nbr_pos_sigma_m,
-                nbr_cooperative,
-                nbr_manned,
-            )
+            views = _views(row, m, vid, nbr_pos, nbr_vel, nbr_heading, sky)
             step = self._guidance(vid).step(
                 float(t_s),
                 here,
@@ -125,25 +102,20 @@ def _ned(xy: np.ndarray, down_m: float = -ALT_M) -> np.ndarray:
     return np.column_stack([xy, np.full(len(xy), down_m)])
 
 
-def _views(
-    row,
-    m,
-    vid,
-    nbr_pos,
-    nbr_vel,
-    nbr_heading,
-    pos_sigma_m,
-    nbr_pos_sigma_m,
-    nbr_cooperative,
-    nbr_manned,
-) -> NeighbourViews:
+def _views(row, m, vid, nbr_pos, nbr_vel, nbr_heading, sky: dict) -> NeighbourViews:
     """One agent's view of the neighbours `m` its link delivered (evaluation rows are the ids:
     vehicle id = row + 1, so coincident vehicles are untied as the agents untie them)."""
     k = m.size
-    own_sigma = 0.0 if pos_sigma_m is None else float(pos_sigma_m[row])
-    sigma = None if nbr_pos_sigma_m is None else np.asarray(nbr_pos_sigma_m[row, m], float)
-    coop = None if nbr_cooperative is None else np.asarray(nbr_cooperative[row, m], bool)
-    manned = None if nbr_manned is None else np.asarray(nbr_manned[row, m], bool)
+
+    def column(name: str, dtype):
+        x = sky.get(name)
+        return None if x is None else np.asarray(x[row, m], dtype)
+
+    own = sky.get("pos_sigma_m")
+    own_sigma = 0.0 if own is None else float(own[row])
+    sigma = column("nbr_pos_sigma_m", float)
+    coop = column("nbr_cooperative", bool)
+    manned = column("nbr_manned", bool)
     return NeighbourViews(
         _ned(nbr_pos[row, m]).reshape(1, k, 3),
         _ned(nbr_vel[row, m], 0.0).reshape(1, k, 3),

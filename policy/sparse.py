@@ -78,8 +78,11 @@ class SparseConfig:
             raise ValueError(f"max_encounters must be >= 0, got {self.max_encounters}")
 
 
-def straight_velocity(pos_m, goal_m, cruise_speed_m_s: float, period_s: float) -> np.ndarray:
-    """(..., 2): at the goal at cruise speed, slowed to reach it in one period when nearer."""
+def straight_velocity(
+    pos_m, goal_m, cruise_speed_m_s: float | np.ndarray, period_s: float
+) -> np.ndarray:
+    """(..., 2): at the goal at cruise speed (one, or one per row (...,)), slowed to reach it in
+    one period when nearer."""
     d = np.asarray(goal_m, float) - np.asarray(pos_m, float)
     dist = np.hypot(d[..., 0], d[..., 1])
     # |v| = dist x gain = min(cruise, dist / period) exactly, down to 0 on the goal
