@@ -149,3 +149,8 @@ def main(cfg: policy_eval.EvalConfig) -> dict:
 def eval_cli(argv=None) -> dict:
     """`covey eval`: policy.eval.cli with the C core's and the agents' controllers available."""
     return policy_eval.cli(argv, CONTROLLERS)
+
+
+def eval_parser():
+    """`covey eval`'s parser (policy.eval's; covey_cli finds it beside `eval_cli`)."""
+    return policy_eval.parser()
