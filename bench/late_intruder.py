@@ -6,7 +6,8 @@ target: 0 collisions wherever the intruder is heard at least 2 s before the conf
 
     python -m bench.late_intruder [--quick]   # bench/results/late_intruder.json
 
-The intruder broadcasts from t = 0 (the moment it appears); on the 3 Hz lossy link the first
+Both are already flying their lines at their speeds when the intruder appears (evalsim's
+`flying_start`). It broadcasts from t = 0 (the moment it appears); on the 3 Hz lossy link the first
 state reaches the vehicle up to a period plus 100 ms later, or later still after losses, so
 `warn_s` there is the warning at best. Collisions and the closest approach are on true
 positions; ideal and realistic vehicles; policy+filter, c+filter (the C core) and agents (the
@@ -84,7 +85,17 @@ def main(quick: bool = False) -> dict:
                             for seed in seeds:
                                 ctrls[c].reset() if hasattr(ctrls[c], "reset") else None
                                 rng = np.random.default_rng([35, seed])
-                                r = evalsim.run(starts, goals, ctrls[c], link, sim, rng, nc, speeds)
+                                r = evalsim.run(
+                                    starts,
+                                    goals,
+                                    ctrls[c],
+                                    link,
+                                    sim,
+                                    rng,
+                                    nc,
+                                    speeds,
+                                    flying_start=True,
+                                )
                                 closest.append(r["intruder_min_sep"])
                             rows.append(
                                 {

@@ -174,7 +174,23 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
             const real_t sgn =
                 px * jy - py * jx < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len ? R(1.0) : R(-1.0);
             const real_t nx = sgn * jy / jn, ny = -sgn * jx / jn;
-            const real_t spd = R(COVEY_SAFETY_NC_ESCAPE_SHARE) * R(cfg->max_speed_m_s);
+            const real_t tx = jx / jn, ty = jy / jn;
+            const real_t vmax = R(cfg->max_speed_m_s);
+            real_t spd = R(COVEY_SAFETY_NC_ESCAPE_SHARE) * vmax;
+            /* or what clears the berth before it arrives: off its track by `off` on the escape
+             * side, `along` ahead of it on its track, it gaining `closing` (traffic_rules.py
+             * clear_speed), up to COVEY_SAFETY_NC_CLEAR_SHARE of the escape speed */
+            const real_t off = -(px * nx + py * ny);
+            const real_t along = -(px * tx + py * ty);
+            const real_t closing =
+                j_len - (R(own->vel_n_m_s) * tx + R(own->vel_e_m_s) * ty);
+            if (along > R(0.0) && closing > COVEY_SAFETY_EPS) {
+                const real_t t_s = R_FMAX(along / closing, COVEY_SAFETY_EPS);
+                const real_t cap =
+                    R(COVEY_SAFETY_NC_CLEAR_SHARE) *
+                    R_FMIN(R(COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR) * vmax, R_FMAX(vmax, j_len));
+                spd = R_FMAX(spd, R_FMIN((r - off) / t_s, cap));
+            }
             line->point[0] = spd * nx;
             line->point[1] = spd * ny;
             line->dir[0] = ny;

@@ -118,6 +118,7 @@ def run(
     non_cooperative=None,
     speed_m_s=None,
     manned=None,
+    flying_start: bool = False,
 ) -> dict:
     """Flies one scenario to the end; returns its metrics (and tracks if cfg.record).
     `non_cooperative` (n,) bool marks intruders: they fly straight at their goal at their
@@ -126,7 +127,9 @@ def run(
     intruders that are manned aircraft (told as nbr_manned; `manned_min_sep` and
     `manned_entries`, the covey vehicles that came within cfg.manned_berth_m of one). Success,
     arrivals, timeouts, times and paths count the covey vehicles only; a covey vehicle that hits
-    an intruder collided."""
+    an intruder collided. `flying_start`: every vehicle is already flying its straight line at
+    its speed when the scene starts (else the covey vehicles and unmanned intruders start at
+    rest: a realistic vehicle takes a moment to reach its speed)."""
     starts = np.asarray(starts, dtype=np.float64)
     goals = np.asarray(goals, dtype=np.float64)
     n = starts.shape[0]
@@ -139,8 +142,9 @@ def run(
     # a manned aircraft is already flying when the scene starts (at the realistic 2.5 m/s^2 a
     # 60 m/s one would take 24 s to speed up, and pass late); everyone else starts at rest
     vel0 = np.zeros_like(starts)
-    if mn.any():
-        vel0[mn] = straight_velocity(starts[mn], goals[mn], own_speed[mn], cfg.dt_s)
+    moving = np.ones(n, bool) if flying_start else mn
+    if moving.any():
+        vel0[moving] = straight_velocity(starts[moving], goals[moving], own_speed[moving], cfg.dt_s)
     fleet = Vehicles(starts, cfg.vehicles, rng, vel0)
     pos = fleet.pos_m  # the truth, flown in place
     est, gvel = fleet.est_pos_m, fleet.ground_vel_m_s

@@ -240,7 +240,7 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None,
         # within r of a faster one, closing: off its track at NC_ESCAPE_SHARE max speed or more
         active = nc & colliding & (px * vx + py * vy > 0)
         (pt_x, pt_y), (dir_x, dir_y) = escape(
-            active, side, r, cfg.max_speed_m_s, (pt_x, pt_y), (dir_x, dir_y)
+            active, side, r, cfg.max_speed_m_s, (pt_x, pt_y), (dir_x, dir_y), px, py, own_vel
         )
     return np.stack([pt_x, pt_y], axis=-1), np.stack([dir_x, dir_y], axis=-1)
 

@@ -55,7 +55,14 @@ NC_ESCAPE_SHARE = 0.8
 """Already within a non-cooperative neighbour's distance r, closing, and it at least as fast as
 us: fleeing along the line cannot work, so the line becomes "move off its track at this share of
 max_speed_m_s or more", v . n >= NC_ESCAPE_SHARE max_speed, n perpendicular to its velocity on
-the step-aside side (`escape`). The C twin is COVEY_SAFETY_NC_ESCAPE_SHARE."""
+the step-aside side (`escape`); more where that would not clear the berth before it arrives
+(`clear_speed`). The C twin is COVEY_SAFETY_NC_ESCAPE_SHARE."""
+
+
+NC_CLEAR_SHARE = 0.95
+"""The escape line's lateral speed (`clear_speed`) is at most this share of the escape speed,
+so that the escape line and the speed limit can both be met. The C twin is
+COVEY_SAFETY_NC_CLEAR_SHARE."""
 
 
 def effective_cooperative(nbr_cooperative=None, nbr_manned=None):
@@ -213,11 +220,25 @@ def step_aside(px, py, vx, vy, own_vel, r, vmax: float):
     return steer, left, (fast, m, j_len, jx, jy)
 
 
-def escape(active, side, r, vmax: float, point, direction):
+def clear_speed(off, along, closing, r, vmax: float, j_len):
+    """The escape line's lateral speed (arrays or floats): NC_ESCAPE_SHARE vmax, or what clears
+    the berth before the neighbour arrives when that is more, (r - off) / (along / closing), up
+    to NC_CLEAR_SHARE of the escape speed (`escape_speed_m_s` of the neighbour). off: this
+    vehicle's distance off the neighbour's track on the escape side; along: how far ahead of
+    the neighbour along its track (> 0: it comes up behind); closing: how fast it gains."""
+    base = NC_ESCAPE_SHARE * vmax
+    cap = NC_CLEAR_SHARE * np.minimum(NC_ESCAPE_SPEED_FACTOR * vmax, np.maximum(vmax, j_len))
+    t = np.where((along > 0) & (closing > EPS), along / np.maximum(closing, EPS), np.inf)
+    need = (r - off) / np.maximum(t, EPS)
+    return np.maximum(base, np.minimum(need, cap))
+
+
+def escape(active, side, r, vmax: float, point, direction, px=None, py=None, own_vel=None):
     """The escape rule for arrays: where `active` (non-cooperative, already within r, closing)
-    and the neighbour is fast (`step_aside`'s side), the line "v . n >= NC_ESCAPE_SHARE vmax",
-    n perpendicular to its velocity on the step-aside side, replaces (point, direction), each
-    a pair of (..., K) arrays. Returns the pair of pairs."""
+    and the neighbour is fast (`step_aside`'s side), the line "v . n >= s", n perpendicular to
+    its velocity on the step-aside side and s `clear_speed` (with the pair's p = (px, py) and
+    own_vel; without them NC_ESCAPE_SHARE vmax), replaces (point, direction), each a pair of
+    (..., K) arrays. Returns the pair of pairs."""
     fast, m, j_len, jx, jy = side
     esc = active & fast
     if not esc.any():
@@ -227,6 +248,11 @@ def escape(active, side, r, vmax: float, point, direction):
     sgn = np.where(m < NC_SIDE_BIAS * r * j_len, 1.0, -1.0)
     nx, ny = sgn * ty, -sgn * tx
     spd = NC_ESCAPE_SHARE * vmax
+    if px is not None and own_vel is not None:
+        off = -(px * nx + py * ny)
+        along = -(px * tx + py * ty)
+        closing = j_len - (own_vel[..., None, 0] * tx + own_vel[..., None, 1] * ty)
+        spd = clear_speed(off, along, closing, r, vmax, j_len)
     (pt_x, pt_y), (dir_x, dir_y) = point, direction
     return (
         (np.where(esc, spd * nx, pt_x), np.where(esc, spd * ny, pt_y)),
@@ -244,7 +270,17 @@ def escape_one(px, py, vx, vy, own_vx, own_vy, r: float, vmax: float):
     jn = EPS if j_len < EPS else j_len
     sgn = 1.0 if px * jy - py * jx < NC_SIDE_BIAS * r * j_len else -1.0
     nx, ny = sgn * jy / jn, -sgn * jx / jn
-    spd = NC_ESCAPE_SHARE * vmax
+    tx, ty = jx / jn, jy / jn
+    spd = float(
+        clear_speed(
+            -(px * nx + py * ny),
+            -(px * tx + py * ty),
+            j_len - (own_vx * tx + own_vy * ty),
+            r,
+            vmax,
+            j_len,
+        )
+    )
     return (spd * nx, spd * ny), (ny, -nx)
 
 
