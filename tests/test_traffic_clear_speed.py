@@ -13,7 +13,7 @@ import pytest
 
 from policy import traffic_rules
 from policy.traffic_rules import NC_CLEAR_SHARE, NC_ESCAPE_SHARE, clear_speed
-from tests.traffic_scenes import c_and_reference, c_filter
+from tests.traffic_scenes import c_and_reference, c_filter, three_paths
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 
@@ -59,6 +59,18 @@ def test_an_overtaken_vehicle_steps_off_faster_than_the_share() -> None:
         assert lateral >= NC_ESCAPE_SHARE * cfg.max_speed_m_s - 1e-6
         faster += lateral > NC_ESCAPE_SHARE * cfg.max_speed_m_s + 0.1
     assert faster > 50
+
+
+def test_numpys_three_paths_agree() -> None:
+    """filter_one (the agents' single-vehicle path, traffic_rules.escape_one), filter_velocity
+    and filter_padded (traffic_rules.escape) give the same escape."""
+    from policy import safety
+
+    cfg = safety.SafetyConfig()
+    rng = np.random.default_rng(39)
+    for _ in range(200):
+        one, many, padded = three_paths(cfg, *_overtaken(rng))
+        assert np.abs(one - many).max() <= 1e-9 and np.abs(padded - many).max() <= 1e-9
 
 
 @needs_cc
