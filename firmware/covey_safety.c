@@ -155,8 +155,34 @@ static real_t det2(real_t ax, real_t ay, real_t bx, real_t by)
  * leg of the cone: the half-plane's normal is lateral, so the vehicle steps aside instead of
  * fleeing along the line of a faster intruder (policy/safety.py orca_lines). The leg keeps us
  * on our side of the neighbour's track when it is at least as fast as max_speed_m_s (else the
- * side v leans to); within COVEY_SAFETY_NC_SIDE_BIAS r of it, the right-hand leg (north/east).
+ * side v leans to; `kept_offset`); within COVEY_SAFETY_NC_SIDE_BIAS r of it, the right-hand leg
+ * (north/east).
  */
+/*
+ * This vehicle's offset from a neighbour's track times its speed, m = det(p, v_j) (v_j = (jx, jy),
+ * |v_j| = j_len), or, on the side m > 0 that the bias band would make it leave, where it will be
+ * when the neighbour arrives alongside if that is further off: m - T det(v_own, v_j), T = along /
+ * closing (0 when the neighbour is behind us or not gaining). A vehicle already leaving the
+ * track on that side keeps it (policy/traffic_rules.py kept_offset).
+ */
+static real_t kept_offset(real_t px, real_t py, real_t jx, real_t jy, real_t j_len,
+                          const covey_track_t *own)
+{
+    const real_t m = px * jy - py * jx;
+    if (m <= R(0.0)) {
+        return m;
+    }
+    const real_t ox = R(own->vel_n_m_s), oy = R(own->vel_e_m_s);
+    const real_t jn = R_FMAX(j_len, COVEY_SAFETY_EPS);
+    const real_t tx = jx / jn, ty = jy / jn;
+    const real_t along = -(px * tx + py * ty);
+    const real_t closing = j_len - (ox * tx + oy * ty);
+    if (along <= R(0.0) || closing <= COVEY_SAFETY_EPS) {
+        return m;
+    }
+    return R_FMAX(m, m - along / closing * (ox * jy - oy * jx));
+}
+
 static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, real_t tau,
                       int nc, real_t px, real_t py, real_t vx, real_t vy,
                       const covey_track_t *own, line_t *line)
@@ -171,24 +197,32 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
         const real_t j_len = R_SQRT(jx * jx + jy * jy);
         if (j_len >= R(cfg->max_speed_m_s)) {
             const real_t jn = R_FMAX(j_len, COVEY_SAFETY_EPS);
-            const real_t sgn =
-                px * jy - py * jx < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len ? R(1.0) : R(-1.0);
+            const real_t sgn = kept_offset(px, py, jx, jy, j_len, own) <
+                                       R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len
+                                   ? R(1.0)
+                                   : R(-1.0);
             const real_t nx = sgn * jy / jn, ny = -sgn * jx / jn;
             const real_t tx = jx / jn, ty = jy / jn;
             const real_t vmax = R(cfg->max_speed_m_s);
             real_t spd = R(COVEY_SAFETY_NC_ESCAPE_SHARE) * vmax;
             /* or what clears the berth before it arrives: off its track by `off` on the escape
              * side, `along` ahead of it on its track, it gaining `closing` (traffic_rules.py
-             * clear_speed), up to COVEY_SAFETY_NC_CLEAR_SHARE of the escape speed */
+             * clear_speed) */
             const real_t off = -(px * nx + py * ny);
             const real_t along = -(px * tx + py * ty);
             const real_t closing =
                 j_len - (R(own->vel_n_m_s) * tx + R(own->vel_e_m_s) * ty);
             if (along > R(0.0) && closing > COVEY_SAFETY_EPS) {
                 const real_t t_s = R_FMAX(along / closing, COVEY_SAFETY_EPS);
-                const real_t cap =
-                    R(COVEY_SAFETY_NC_CLEAR_SHARE) *
+                /* up to COVEY_SAFETY_NC_CLEAR_SHARE of the lateral speed that, with the
+                 * speed kept along its track (our own now, 0 to vmax), gains the most room
+                 * before it arrives */
+                const real_t speed =
                     R_FMIN(R(COVEY_SAFETY_NC_ESCAPE_SPEED_FACTOR) * vmax, R_FMAX(vmax, j_len));
+                const real_t best = R_FMIN(vmax, speed * speed / R_FMAX(j_len, COVEY_SAFETY_EPS));
+                const real_t ahead = R_FMIN(R_FMAX(j_len - closing, R(0.0)), best);
+                const real_t cap = R(COVEY_SAFETY_NC_CLEAR_SHARE) *
+                                   R_SQRT(R_FMAX(speed * speed - ahead * ahead, R(0.0)));
                 spd = R_FMAX(spd, R_FMIN((r - off) / t_s, cap));
             }
             line->point[0] = spd * nx;
@@ -226,7 +260,8 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
                 const real_t jx = R(own->vel_n_m_s) - vx, jy = R(own->vel_e_m_s) - vy;
                 const real_t j_len = R_SQRT(jx * jx + jy * jy);
                 if (j_len >= R(cfg->max_speed_m_s)) {
-                    left = px * jy - py * jx < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len;
+                    left = kept_offset(px, py, jx, jy, j_len, own) <
+                           R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len;
                 } else {
                     left = -det_pv < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * v_len;
                 }

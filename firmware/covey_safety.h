@@ -75,7 +75,8 @@ typedef struct {
  * this share of max_speed_m_s or more (policy/safety.py NC_ESCAPE_SHARE). */
 #define COVEY_SAFETY_NC_ESCAPE_SHARE 0.8
 /* ... or faster, to clear the berth before the track arrives: (r - off) / (along / closing),
- * up to this share of the escape speed (policy/traffic_rules.py clear_speed, NC_CLEAR_SHARE). */
+ * up to this share of the lateral speed that gains the most room before it arrives
+ * (policy/traffic_rules.py clear_speed, NC_CLEAR_SHARE). */
 #define COVEY_SAFETY_NC_CLEAR_SHARE 0.95
 /* The filter plans against a non-cooperative track as if it flew this share faster than it
  * reports (policy/traffic_rules.py NC_SPEED_MARGIN): traffic that does not coordinate speeds up

@@ -171,6 +171,7 @@ def run(
     )
     k_sig = np.broadcast_to(sigma, (n, n)).copy()
     k_rx = np.zeros((n, n))  # when receiver i got sender j's state
+    first_rx = np.zeros((n, n)) if link.perfect else np.full((n, n), np.nan)  # ... the first
     phase = rng.uniform(0, 1.0 / link.rate_hz, n) if not link.perfect else np.zeros(n)
     next_tx = phase.copy()
     pending: list = []  # (deliver_at, sender, receivers mask, pos, vel, heading, sigma)
@@ -210,6 +211,7 @@ def run(
                     k_pos[recv, j], k_vel[recv, j], k_head[recv, j] = p, v, h
                     k_sig[recv, j] = sg
                     k_rx[recv, j] = t
+                    first_rx[recv, j] = np.where(np.isnan(first_rx[recv, j]), t, first_rx[recv, j])
                 else:
                     keep.append(msg)
             pending = keep
@@ -304,6 +306,7 @@ def run(
         "intruder_min_sep": float(intruder_min_sep) if np.isfinite(intruder_min_sep) else None,
         "manned_min_sep": float(manned_min_sep) if np.isfinite(manned_min_sep) else None,
         "manned_entries": int(in_berth[coop].sum()),
+        "intruder_heard_s": _heard_s(first_rx, coop, nc),
         "extra_time": float(np.mean(arrive_t[ok] * cfg.speed / trip[ok])) if ok.any() else None,
         "path_ratio": float(np.mean(path[ok] / trip[ok])) if ok.any() else None,
         "mean_acc": acc_sum / max(acc_n, 1),
@@ -313,6 +316,16 @@ def run(
         out["tracks"] = np.array(tracks)
         out["goals"] = goals
     return out
+
+
+def _heard_s(first_rx: np.ndarray, coop: np.ndarray, nc: np.ndarray) -> float | None:
+    """When the last covey vehicle first heard an intruder (the latest first reception over the
+    pairs; 0 on a perfect link); None without intruders, or where one was never heard (a
+    number only when every covey vehicle heard every intruder: results are written as JSON)."""
+    if not (nc.any() and coop.any()):
+        return None
+    got = first_rx[np.ix_(coop, nc)]
+    return None if np.isnan(got).any() else float(got.max())
 
 
 def _pair_dist(p: np.ndarray) -> np.ndarray:

@@ -60,8 +60,9 @@ the step-aside side (`escape`); more where that would not clear the berth before
 
 
 NC_CLEAR_SHARE = 0.95
-"""The escape line's lateral speed (`clear_speed`) is at most this share of the escape speed,
-so that the escape line and the speed limit can both be met. The C twin is
+"""The escape line's lateral speed (`clear_speed`) is at most this share of the most that gains
+room, so that the escape line, the track line and the speed limit can all be met with a margin
+(at the full value they meet in one point, and float32 and float64 round it apart). The C twin is
 COVEY_SAFETY_NC_CLEAR_SHARE."""
 
 
@@ -198,14 +199,49 @@ def pair_reach_m(cfg, r, nbr_speed_m_s=None, nbr_cooperative=None, tau=None):
     return r + (vmax + np.where(nbr_cooperative, vmax, fast)) * tau
 
 
+def kept_offset(px, py, jx, jy, j_len, own_x, own_y):
+    """This vehicle's offset from a neighbour's track times its speed, m = det(p, v_j) (arrays
+    or floats; p = p_j - p_i, v_j = (jx, jy), |v_j| = j_len, own velocity (own_x, own_y)), or,
+    on the side m > 0 that the band would make it leave (`step_aside`), where it will be when
+    the neighbour arrives alongside if that is further off: m - T det(v_own, v_j), T = along /
+    closing (0 when it is behind us or not gaining). A vehicle already leaving the track on
+    that side keeps it instead of turning back across the track: the offset measured at long
+    range swings with the neighbour's heading (0.2 m/s of gust on a 60 m/s aircraft 1.3 km out
+    moves its track line by 4 m), and a vehicle 8-14 m off a manned aircraft's track that crossed
+    it got to only 27-29 m of the 30 m berth (docs/sky.md, "Keeping a side"). Never used
+    to cross: moving towards the track, m is kept as it is."""
+    jn = np.maximum(j_len, EPS)
+    tx, ty = jx / jn, jy / jn
+    along = -(px * tx + py * ty)
+    closing = j_len - (own_x * tx + own_y * ty)
+    t = np.where((along > 0) & (closing > EPS), along / np.maximum(closing, EPS), 0.0)
+    m = px * jy - py * jx
+    return np.where(m > 0, np.maximum(m, m - t * (own_x * jy - own_y * jx)), m)
+
+
+def kept_offset_one(px, py, jx, jy, j_len, own_x, own_y) -> float:
+    """`kept_offset` in Python floats."""
+    m = px * jy - py * jx
+    if m <= 0:
+        return m
+    jn = EPS if j_len < EPS else j_len
+    tx, ty = jx / jn, jy / jn
+    along = -(px * tx + py * ty)
+    closing = j_len - (own_x * tx + own_y * ty)
+    if along <= 0 or closing <= EPS:
+        return m
+    return max(m, m - along / closing * (own_x * jy - own_y * jx))
+
+
 def step_aside(px, py, vx, vy, own_vel, r, vmax: float):
     """The step-aside rule for arrays (..., K) of pairs (own_vel (..., 2)):
 
     - steer: on a collision course (v inside the untruncated cone: v.p > 0 and |det(p, v)| <
       r |v|), where the velocity goes onto a leg of the cone, never the cut-off circle;
     - left: which leg. Off the neighbour's own track (p x v_j: this vehicle's offset from it,
-      times |v_j|) when it is at least as fast as vmax (crossing ahead of it would let it catch
-      us), else the side v leans to; within NC_SIDE_BIAS r of either, the right-hand leg;
+      times |v_j|, or where it will be if it is leaving the track: `kept_offset`) when it is at
+      least as fast as vmax (crossing ahead of it would let it catch us), else the side v leans
+      to; within NC_SIDE_BIAS r of either, the right-hand leg;
     - side: what `escape` needs of the same geometry (fast, m, |v_j|, v_j).
     """
     det_pv = px * vy - py * vx
@@ -215,7 +251,8 @@ def step_aside(px, py, vx, vy, own_vel, r, vmax: float):
     jy = own_vel[..., None, 1] - vy
     j_len = np.sqrt(jx * jx + jy * jy)
     fast = j_len >= vmax
-    m = np.where(fast, px * jy - py * jx, -det_pv)
+    kept = kept_offset(px, py, jx, jy, j_len, own_vel[..., None, 0], own_vel[..., None, 1])
+    m = np.where(fast, kept, -det_pv)
     left = m < NC_SIDE_BIAS * r * np.where(fast, j_len, v_len)
     return steer, left, (fast, m, j_len, jx, jy)
 
@@ -223,11 +260,22 @@ def step_aside(px, py, vx, vy, own_vel, r, vmax: float):
 def clear_speed(off, along, closing, r, vmax: float, j_len):
     """The escape line's lateral speed (arrays or floats): NC_ESCAPE_SHARE vmax, or what clears
     the berth before the neighbour arrives when that is more, (r - off) / (along / closing), up
-    to NC_CLEAR_SHARE of the escape speed (`escape_speed_m_s` of the neighbour). off: this
-    vehicle's distance off the neighbour's track on the escape side; along: how far ahead of
-    the neighbour along its track (> 0: it comes up behind); closing: how fast it gains."""
+    to NC_CLEAR_SHARE of sqrt(V^2 - b^2). V is the escape speed (`escape_speed_m_s` of the
+    neighbour, speed |v_j|); b is the speed the vehicle keeps along the neighbour's track, its
+    own now (|v_j| - closing), at least 0 (the ahead line) and at most min(vmax, V^2 / |v_j|):
+    with b(a) = min(b, sqrt(V^2 - a^2)) left along the track at lateral speed a, the room gained
+    per metre the neighbour closes, a / (|v_j| - b(a)), peaks at a = sqrt(V^2 - b^2). A vehicle
+    overtaken on its own track (b near vmax) thus keeps its speed along the track instead of
+    spending it all sideways, and the intruder arrives later; one met head-on (b 0: it does not
+    fly towards the intruder) steps aside at up to NC_CLEAR_SHARE V. The share keeps the escape
+    line, the track line and the speed limit from meeting in one point. off: this vehicle's
+    distance off the neighbour's track on the escape side; along: how far ahead of the neighbour
+    along its track (> 0: it comes up behind); closing: how fast it gains."""
     base = NC_ESCAPE_SHARE * vmax
-    cap = NC_CLEAR_SHARE * np.minimum(NC_ESCAPE_SPEED_FACTOR * vmax, np.maximum(vmax, j_len))
+    speed = np.minimum(NC_ESCAPE_SPEED_FACTOR * vmax, np.maximum(vmax, j_len))
+    best = np.minimum(vmax, speed * speed / np.maximum(j_len, EPS))
+    ahead = np.minimum(np.maximum(j_len - closing, 0.0), best)
+    cap = NC_CLEAR_SHARE * np.sqrt(np.maximum(speed * speed - ahead * ahead, 0.0))
     t = np.where((along > 0) & (closing > EPS), along / np.maximum(closing, EPS), np.inf)
     need = (r - off) / np.maximum(t, EPS)
     return np.maximum(base, np.minimum(need, cap))
@@ -268,7 +316,8 @@ def escape_one(px, py, vx, vy, own_vx, own_vy, r: float, vmax: float):
     if j_len < vmax:
         return None
     jn = EPS if j_len < EPS else j_len
-    sgn = 1.0 if px * jy - py * jx < NC_SIDE_BIAS * r * j_len else -1.0
+    m = kept_offset_one(px, py, jx, jy, j_len, own_vx, own_vy)
+    sgn = 1.0 if m < NC_SIDE_BIAS * r * j_len else -1.0
     nx, ny = sgn * jy / jn, -sgn * jx / jn
     tx, ty = jx / jn, jy / jn
     spd = float(
@@ -294,5 +343,7 @@ def step_aside_one(px, py, vx, vy, own_vx, own_vy, r: float, vmax: float):
     jx, jy = own_vx - vx, own_vy - vy
     j_len = math.sqrt(jx * jx + jy * jy)
     if j_len >= vmax:
-        return True, px * jy - py * jx < NC_SIDE_BIAS * r * j_len
+        return True, kept_offset_one(px, py, jx, jy, j_len, own_vx, own_vy) < (
+            NC_SIDE_BIAS * r * j_len
+        )
     return True, -det_pv < NC_SIDE_BIAS * r * v_len

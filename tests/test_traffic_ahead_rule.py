@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 
 from policy import safety, traffic_rules
-from tests.traffic_scenes import c_and_reference, c_filter, intruder_run, three_paths
+from tests.traffic_scenes import (
+    c_and_reference,
+    c_filter,
+    intruder_run,
+    three_paths,
+    without_kept_side,
+)
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 CFG = safety.SafetyConfig()  # 3 m, 1 m/s
@@ -108,9 +114,9 @@ def test_c_keeps_the_ahead_line_as_numpy_does() -> None:
 def test_seed_42_keeps_3_m_from_a_1x_intruder(monkeypatch) -> None:
     """The case that came within 2.97 m on fresh seed 42 (3 Hz link, policy+filter, realistic
     vehicles): with the ahead rule it keeps 3 m on true positions; without it, it does not.
-    Traffic's speed margin (NC_SPEED_MARGIN) and the escape's clear speed (`clear_speed`),
-    either of which alone also keeps this case clear, are off here, so that the ahead rule is
-    what is measured."""
+    Traffic's speed margin (NC_SPEED_MARGIN), the escape's clear speed (`clear_speed`) and the
+    kept side (`kept_offset`), each of which alone also keeps this case clear, are off here, so
+    that the ahead rule is what is measured."""
 
     def closest() -> float:
         r = intruder_run(42, "intruder-1x-conflict-8-s2", "policy+filter", "degraded")
@@ -120,6 +126,7 @@ def test_seed_42_keeps_3_m_from_a_1x_intruder(monkeypatch) -> None:
     monkeypatch.setattr(
         traffic_rules, "clear_speed", lambda *a: traffic_rules.NC_ESCAPE_SHARE * a[4]
     )
+    without_kept_side(monkeypatch)
     kept = closest()
     nan2 = np.full(2, np.nan)
     monkeypatch.setattr(

@@ -16,7 +16,7 @@ import pytest
 
 from policy import safety, traffic_rules
 from policy.traffic_rules import NC_ESCAPE_SPEED_FACTOR, NC_SPEED_MARGIN, escape_speed_m_s
-from tests.traffic_scenes import c_and_reference, c_filter, three_paths
+from tests.traffic_scenes import c_and_reference, c_filter, three_paths, without_kept_side
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 CFG = safety.SafetyConfig()  # 3 m, 1 m/s
@@ -82,8 +82,9 @@ def test_a_crowd_gets_out_of_the_way_of_a_2x_intruder_crossing_from_behind(monke
     """The case that collided on fresh seed 46 (`covey eval --suites intruder --vehicles
     realistic`): six vehicles in a random conflict, a 2x intruder through them. With the escape
     speed the closest true approach to it stays above 3 m; held to the cruise speed it did not.
-    Traffic's speed margin (NC_SPEED_MARGIN, which alone also keeps this case clear) is off
-    here, so that the escape speed is what is measured."""
+    Traffic's speed margin (NC_SPEED_MARGIN) and the kept side (`kept_offset`), each of which
+    alone also keeps this case clear, are off here, so that the escape speed is what is
+    measured."""
     from policy import eval as ev
     from policy import evalsim
     from policy.pointmass import VehicleModel
@@ -97,6 +98,7 @@ def test_a_crowd_gets_out_of_the_way_of_a_2x_intruder_crossing_from_behind(monke
     sim = evalsim.EvalSimConfig(vehicles=vehicles, tracking=TrackingConfig.assumed(vehicles, True))
 
     monkeypatch.setattr(traffic_rules, "NC_SPEED_MARGIN", 0.0)
+    without_kept_side(monkeypatch)
 
     def closest(factor: float) -> float:
         monkeypatch.setattr(traffic_rules, "NC_ESCAPE_SPEED_FACTOR", factor)

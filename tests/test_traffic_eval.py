@@ -73,3 +73,37 @@ def test_an_intruder_never_starts_on_top_of_the_fleet() -> None:
             for q in (starts[nc][0], goals[nc][0]):
                 worst = min(worst, float(np.hypot(*(ends - q).T).min()))
     assert worst >= 5.0, worst
+
+
+def test_the_run_says_when_the_intruder_was_first_heard() -> None:
+    """`intruder_heard_s`: 0 on a perfect link; on the 3 Hz link the first state that got
+    through, at least its latency after the start, within a period plus the latency on the step
+    grid unless states were lost (bench/late_intruder.py `lead_s`); None without an intruder."""
+    starts = np.array([[0.0, -10.0], [0.0, -20.0]])
+    goals = np.array([[0.0, 10.0], [0.0, 20.0]])
+    nc = np.array([False, True])
+    speeds = np.array([1.0, 2.0])
+    ctrl = evalsim.straight_line
+    perfect = evalsim.run(
+        starts, goals, ctrl, evalsim.PERFECT, evalsim.EvalSimConfig(),
+        np.random.default_rng(1), nc, speeds, flying_start=True,
+    )  # fmt: skip
+    assert perfect["intruder_heard_s"] == 0.0
+    link = evalsim.DEGRADED
+    heard = []
+    for seed in range(20):
+        r = evalsim.run(
+            starts, goals, ctrl, link, evalsim.EvalSimConfig(),
+            np.random.default_rng(seed), nc, speeds, flying_start=True,
+        )  # fmt: skip
+        heard.append(r["intruder_heard_s"])
+    assert min(heard) >= link.latency_s - 1e-9
+    from bench.late_intruder import lead_s
+
+    on_time = lead_s(link, evalsim.EvalSimConfig().dt_s) + 1e-9  # the latest without a loss
+    assert sum(h <= on_time for h in heard) >= 10  # 80 % of first states get through
+    assert max(heard) > on_time  # and some first states are lost
+    alone = evalsim.run(
+        starts, goals, ctrl, link, evalsim.EvalSimConfig(), np.random.default_rng(0)
+    )
+    assert alone["intruder_heard_s"] is None

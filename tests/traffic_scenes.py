@@ -55,12 +55,12 @@ def c_filter(cfg):
     return CSafetyFilter(load_library(), cfg)
 
 
-def intruder_run(seed: int, case: str, controller: str, link: str):
-    """One run of `covey eval --suites intruder --vehicles realistic --controllers
-    policy+filter,c+filter --seed <seed>`, with that command's random draws: the intruder case
-    `case` flown by `controller` ("policy+filter" or "c+filter", which needs a C compiler) on
-    `link` ("perfect" or "degraded"). Module constants are read as the run flies, so a test may
-    monkeypatch them first. Returns evalsim.run's metrics."""
+def intruder_run(seed: int, case: str, controller: str, link: str, suite: str = "intruder"):
+    """One run of `covey eval --suites <suite> --vehicles realistic --controllers
+    policy+filter,c+filter --seed <seed>`, with that command's random draws: the case `case` of
+    `suite` ("intruder" or "manned") flown by `controller` ("policy+filter" or "c+filter", which
+    needs a C compiler) on `link` ("perfect" or "degraded"). Module constants are read as the
+    run flies, so a test may monkeypatch them first. Returns evalsim.run's metrics."""
     from firmware.ceval import CONTROLLERS
     from policy import eval as ev
     from policy import evalsim
@@ -70,7 +70,7 @@ def intruder_run(seed: int, case: str, controller: str, link: str):
     ctrls = ("policy+filter", "c+filter")
     links = ("perfect", "degraded")
     cfg = ev.EvalConfig(
-        seed=seed, suites=("intruder",), vehicles="realistic", progress=False, controllers=ctrls
+        seed=seed, suites=(suite,), vehicles="realistic", progress=False, controllers=ctrls
     )
     index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
     i, (_, _, starts, goals, opts) = index[case]
@@ -82,3 +82,16 @@ def intruder_run(seed: int, case: str, controller: str, link: str):
     run = (i * len(links) + links.index(link)) * len(ctrls) + ctrls.index(controller)
     model = evalsim.PERFECT if link == "perfect" else evalsim.DEGRADED
     return evalsim.run(starts, goals, ctrl, model, sim, np.random.default_rng([seed, run]), **opts)
+
+
+def without_kept_side(monkeypatch) -> None:
+    """The side rule as it was before policy.traffic_rules.kept_offset: the offset from the
+    neighbour's track as it is now, wherever the vehicle is going (for closed-loop tests that
+    measure another rule, which the kept side alone also keeps clear)."""
+    from policy import traffic_rules
+
+    def now(px, py, jx, jy, *_):
+        return px * jy - py * jx
+
+    monkeypatch.setattr(traffic_rules, "kept_offset", now)
+    monkeypatch.setattr(traffic_rules, "kept_offset_one", now)

@@ -1,0 +1,117 @@
+"""The kept side (policy/traffic_rules.py `kept_offset`, covey_safety.c's twin): against traffic
+at least as fast as the vehicle, a vehicle inside the right-hand band on the other side of the
+track that is already leaving it keeps that side instead of turning back across the track. Far
+out, the track line swings with the traffic's heading, and vehicles 8-14 m off a manned
+aircraft's track crossed it and reached only 27-29 m of the 30 m berth on fresh seeds."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from policy import safety
+from policy.traffic_rules import kept_offset, kept_offset_one
+from tests.traffic_scenes import (
+    c_and_reference,
+    c_filter,
+    intruder_run,
+    three_paths,
+    without_kept_side,
+)
+
+needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
+CFG = safety.SafetyConfig()
+
+
+def test_the_offset_is_kept_only_when_leaving_the_track() -> None:
+    # traffic 100 m behind (west, p = (0.5, -100)), eastbound at 20 m/s: m = 0.5 x 20 = 10
+    p, j = (0.5, -100.0), (0.0, 20.0)
+    still = kept_offset_one(*p, *j, 20.0, 0.0, 1.0)
+    assert still == pytest.approx(10.0)
+    # leaving southwards (away from it: p_n > 0 grows) at 1 m/s: where it will be on arrival
+    away = kept_offset_one(*p, *j, 20.0, -1.0, 1.0)
+    assert away == pytest.approx(10.0 + 100.0 / 19.0 * 20.0)
+    # towards the track: as it is (the band may still send it across)
+    assert kept_offset_one(*p, *j, 20.0, 1.0, 1.0) == pytest.approx(10.0)
+    # on the other side (m < 0): as it is, whatever it does
+    assert kept_offset_one(-0.5, -100.0, *j, 20.0, 1.0, 1.0) == pytest.approx(-10.0)
+    # the traffic is ahead of us and going away (behind it): no arrival, as it is
+    assert kept_offset_one(0.5, 100.0, *j, 20.0, -1.0, 1.0) == pytest.approx(10.0)
+    # arrays equal floats
+    rng = np.random.default_rng(5)
+    a = rng.normal(0, 1, (6, 200)) * np.array([[2], [100], [20], [20], [1], [1]])
+    j_len = np.hypot(a[2], a[3])
+    got = kept_offset(a[0], a[1], a[2], a[3], j_len, a[4], a[5])
+    want = [kept_offset_one(*a[:4, k], j_len[k], *a[4:, k]) for k in range(200)]
+    assert np.allclose(got, want, rtol=1e-12, atol=1e-9)
+
+
+def _leaving(rng, away: bool):
+    """A vehicle 0.3-1.2 m off a 10-30 m/s eastbound track (inside the band on the side the
+    band would make it leave), the traffic 60-200 m behind; the vehicle flies east at 1 m/s and
+    south (away from the track) at 0.5-1 m/s, or (`away` False) not sideways at all, and wants
+    to go on that way at 1 m/s."""
+    gap = rng.uniform(60.0, 200.0)
+    off = rng.uniform(0.3, 1.2)
+    speed = rng.uniform(10.0, 30.0)
+    side = -rng.uniform(0.5, 1.0) if away else 0.0
+    vel = np.array([side, 1.0])
+    nbr_p = np.array([[off, -gap]])
+    nbr_v = np.array([[0.0, speed]])
+    pref = vel / np.hypot(*vel)  # at the cruise speed, as the policy asks
+    return np.zeros(2), vel, pref, nbr_p, nbr_v, np.array([False])
+
+
+def test_a_vehicle_leaving_the_track_keeps_its_side_a_still_one_takes_the_right() -> None:
+    rng = np.random.default_rng(35)
+    for _ in range(50):
+        sc = _leaving(rng, away=True)
+        a, b, c = three_paths(CFG, *sc)
+        assert np.abs(a - b).max() <= 1e-9 and np.abs(a - c).max() <= 1e-9
+        assert a[0] < 0.0, a  # on south, away from the track
+    rng = np.random.default_rng(36)
+    crossed = 0
+    for _ in range(50):
+        a, _, _ = three_paths(CFG, *_leaving(rng, away=False))
+        crossed += bool(a[0] > 0.0)  # the band's right-hand leg: north, across the track
+    assert crossed > 40
+
+
+def test_without_it_the_leaving_vehicle_turns_back(monkeypatch) -> None:
+    without_kept_side(monkeypatch)
+    rng = np.random.default_rng(35)
+    back = 0
+    for _ in range(50):
+        a, _, _ = three_paths(CFG, *_leaving(rng, away=True))
+        back += bool(a[0] > 0.0)
+    assert back > 10
+
+
+@needs_cc
+def test_c_keeps_the_side_as_numpy_does() -> None:
+    f = c_filter(CFG)
+    rng = np.random.default_rng(37)
+    for k in range(200):
+        r, ref = c_and_reference(f, CFG, *_leaving(rng, away=bool(k % 2)))
+        assert r.status == "ok" and np.abs(r.vel_m_s - ref).max() <= 1e-4, (r.vel_m_s, ref)
+
+
+# fresh seeds of `covey eval --suites manned --vehicles realistic` where a vehicle crossed the
+# aircraft's track and entered the 30 m berth (27.4-28.8 m) before the kept side
+ENTERED = (
+    (155, "manned-40m_s-overtake", "policy+filter", "perfect"),
+    (156, "manned-60m_s-circle-8", "policy+filter", "degraded"),
+)
+
+
+@pytest.mark.parametrize(("seed", "case", "controller", "link"), ENTERED)
+def test_the_manned_berth_is_kept_where_a_vehicle_crossed_the_track(
+    monkeypatch, seed: int, case: str, controller: str, link: str
+) -> None:
+    now = intruder_run(seed, case, controller, link, suite="manned")
+    assert now["manned_entries"] == 0 and now["manned_min_sep"] >= 30.0, now["manned_min_sep"]
+    without_kept_side(monkeypatch)
+    before = intruder_run(seed, case, controller, link, suite="manned")
+    assert before["manned_entries"] >= 1, before["manned_min_sep"]
