@@ -14,7 +14,7 @@ import pytest
 
 from policy import traffic_rules
 from policy.traffic_rules import NC_CLEAR_SHARE, NC_ESCAPE_SHARE, clear_speed
-from tests.traffic_scenes import c_and_reference, c_filter, three_paths
+from tests.traffic_scenes import assert_c_matches_numpy, three_paths
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C compiler (cc)")
 
@@ -104,13 +104,8 @@ def test_numpys_three_paths_agree() -> None:
 def test_c_steps_off_as_numpy_does() -> None:
     from policy import safety
 
-    cfg = safety.SafetyConfig()
-    f = c_filter(cfg)
     rng = np.random.default_rng(38)
-    for _ in range(200):
-        pos, vel, pref, nbr_p, nbr_v, coop = _overtaken(rng)
-        r, ref = c_and_reference(f, cfg, pos, vel, pref, nbr_p, nbr_v, coop)
-        assert r.status == "ok" and np.abs(r.vel_m_s - ref).max() <= 1e-4, (r.vel_m_s, ref)
+    assert_c_matches_numpy(safety.SafetyConfig(), (_overtaken(rng) for _ in range(200)))
 
 
 def _overtakes(warn_s: float, links: tuple[str, ...], heard: bool = False) -> list[float]:

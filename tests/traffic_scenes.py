@@ -95,3 +95,13 @@ def without_kept_side(monkeypatch) -> None:
 
     monkeypatch.setattr(traffic_rules, "kept_offset", now)
     monkeypatch.setattr(traffic_rules, "kept_offset_one", now)
+
+
+def assert_c_matches_numpy(cfg, scenes, tol_m_s: float = 1e-4) -> None:
+    """Every scene (pos, vel, pref, nbr_p, nbr_v, coop) through the C filter and numpy's
+    reference (`c_and_reference`): C says ok and equals numpy within `tol_m_s`. Needs a C
+    compiler."""
+    f = c_filter(cfg)
+    for scene in scenes:
+        r, ref = c_and_reference(f, cfg, *scene)
+        assert r.status == "ok" and np.abs(r.vel_m_s - ref).max() <= tol_m_s, (r.vel_m_s, ref)
