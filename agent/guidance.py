@@ -32,7 +32,7 @@ from policy import safety
 from policy.goal_rule import ARRIVE_RADIUS_M
 from policy.lanes import LaneConfig, hold_short
 from policy.observation import Observations
-from policy.runtime import GuidancePolicy, told_separation_m
+from policy.runtime import TOLD_SIGMA_FREE_M, GuidancePolicy, told_separation_m
 from policy.sparse import SparseConfig
 
 if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_zones`)
@@ -124,6 +124,13 @@ class GuidanceConfig:
         """The separation the policy is told (policy.runtime.told_separation_m)."""
         return told_separation_m(self.separation_m, self.safety_filter, self.policy_separation_m)
 
+    @property
+    def told_sigma_free_m(self) -> float | None:
+        """Beyond this position 1-sigma the policy is told a berth that grows with the
+        filter's inflation (policy.runtime.told_scale); None with a policy_separation_m asked
+        for: that one is told as it is."""
+        return TOLD_SIGMA_FREE_M if self.policy_separation_m is None else None
+
     def scope(self, base: ScopeConfig) -> ScopeConfig:
         """`base` widened to what this guidance needs to hear (comms/scope.py): its separation;
         the safety filter's reach, r (1 + margin) + 2 v tau, and the stale-caution radius
@@ -153,6 +160,7 @@ class GuidanceConfig:
             max_neighbours=self.max_neighbours,
             sparse_rule=SparseConfig() if self.safety_filter and self.sparse_rule else None,
             safety_cfg=safety_cfg or self.safety_config(),
+            told_sigma_free_m=self.told_sigma_free_m,
         )
 
     def safety_config(self) -> safety.SafetyConfig:

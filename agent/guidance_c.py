@@ -63,6 +63,7 @@ class CCore:
             safety_cfg=safety_cfg,
             policy_separation_m=cfg.told_separation_m,
             sparse_rule=cfg.sparse_rule,
+            told_sigma_free_m=cfg.told_sigma_free_m,
         )
         self._filter = self._policy._filter
         # numpy's network sees `wanted` neighbours (None: all), the core's at most MAX_NEIGHBOURS

@@ -121,6 +121,7 @@ def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
         max_neighbours=cfg.max_neighbours,
         safety_cfg=safety_cfg,
         sparse_rule=cfg.sparse_rule,
+        told_sigma_free_m=policy_eval.told_sigma_free_m(cfg),
     )
     return COnboardFleet(cpol, cfg.policy_period_s)
 

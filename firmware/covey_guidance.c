@@ -27,6 +27,21 @@ float covey_told_separation_m(float separation_m, int32_t safety_filter, float a
     return safety_filter ? separation_m * COVEY_FILTERED_BERTH_SHARE : separation_m;
 }
 
+float covey_told_scale(const covey_safety_config_t *safety, float free_m, float own_pos_sigma_m,
+                       const float *nbr_pos_sigma_m, int32_t n)
+{
+    if (safety == NULL || !(free_m >= 0.0f)) {
+        return 1.0f;
+    }
+    float worst = 0.0f;
+    for (int32_t i = 0; nbr_pos_sigma_m != NULL && i < n; ++i) {
+        worst = fmaxf(worst, nbr_pos_sigma_m[i]); /* fmaxf drops a NaN */
+    }
+    const float x_own = fmaxf(own_pos_sigma_m - free_m, 0.0f);
+    const float x_nbr = fmaxf(worst - free_m, 0.0f);
+    return 1.0f + safety->sigma_k * sqrtf(x_own * x_own + x_nbr * x_nbr) / safety->radius_m;
+}
+
 covey_guidance_config_t covey_guidance_defaults(const covey_config_t *policy)
 {
     covey_guidance_config_t g;
@@ -35,6 +50,7 @@ covey_guidance_config_t covey_guidance_defaults(const covey_config_t *policy)
     g.decision_period_s = covey_trained_period_s(policy);
     g.safety_filter = 1;
     g.sparse_rule = 1;
+    g.told_sigma_free_m = COVEY_TOLD_SIGMA_FREE_M;
     return g;
 }
 
@@ -256,7 +272,11 @@ covey_status_t covey_guidance_step_zones(const covey_guidance_config_t *cfg, cov
     }
 
     if (covey_hold_due(hold, goal, now_us, cfg->decision_period_s)) {
-        st = covey_command(&cfg->policy, own, goal, nbrs, n_nbrs, now_us, &scratch->policy,
+        /* GNSS worse than the preset: the policy is told the berth the filter keeps grow */
+        covey_config_t told = cfg->policy;
+        told.separation_m *= covey_told_scale(&cfg->safety, cfg->told_sigma_free_m,
+                                              own_pos_sigma_m, nbr_pos_sigma_m, n_nbrs);
+        st = covey_command(&told, own, goal, nbrs, n_nbrs, now_us, &scratch->policy,
                            &out->command);
         if (st != COVEY_OK) {
             return fail(hold, out, st);

@@ -30,6 +30,8 @@ typedef struct {
     float decision_period_s;        /* [0, 10]: seconds between decisions; 0 = every tick */
     int32_t safety_filter;          /* 1: filter every tick; 0: the policy alone (the paper) */
     int32_t sparse_rule;            /* 1 (with the filter): covey_sparse_choose at each decision */
+    float told_sigma_free_m;        /* >= 0: beyond this position 1-sigma the policy is told
+                                       covey_told_scale times policy.separation_m; < 0: never */
 } covey_guidance_config_t;
 
 /* The held decision, owned by the caller; zero-initialise or covey_hold_reset. */
@@ -104,6 +106,18 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
  * negative) is passed on for covey_config_check to refuse. The twin of
  * policy/runtime.py told_separation_m (None there = 0 here). */
 float covey_told_separation_m(float separation_m, int32_t safety_filter, float asked_m);
+
+/* covey_guidance_defaults' told_sigma_free_m: the realistic preset's GNSS 1-sigma
+ * (policy/runtime.py TOLD_SIGMA_FREE_M). */
+#define COVEY_TOLD_SIGMA_FREE_M 0.5f
+
+/* How many times its separation the policy is told at a decision (>= 1):
+ * 1 + sigma_k hypot(x_own, x_nbr) / radius_m, x = max(0, sigma - free_m), with
+ * own_pos_sigma_m and the largest of the n nbr_pos_sigma_m (NULL: 0); free_m < 0
+ * or NaN: 1. NaN sigmas count as 0 (the filter refuses them). The twin of
+ * policy/runtime.py told_scale. */
+float covey_told_scale(const covey_safety_config_t *safety, float free_m, float own_pos_sigma_m,
+                       const float *nbr_pos_sigma_m, int32_t n);
 
 /* The trained decision period in seconds: dt (1 policy unit of time, from the
  * weights header) times (separation / 3) / cruise speed. */

@@ -110,8 +110,10 @@ class CPolicy:
         sparse_rule: bool = True,
         keep_out_m=None,
         fence_m=None,
+        told_sigma_free_m: float | None = 0.5,
     ):
         """The defaults fly as the agents and the PX4 module do (GuidancePolicy's defaults).
+        `told_sigma_free_m`: as GuidancePolicy's (covey_told_scale; None: never).
         `policy_separation_m`: the separation the network is told (its distance scale, 3
         policy units = this); None: told_separation_m, as flight tells it (1.25 m per
         3 m with the filter on, the whole separation without it). The filter always keeps
@@ -138,6 +140,13 @@ class CPolicy:
             max_neighbours,
         )
         self.separation_m = float(separation_m)
+        if told_sigma_free_m is not None and not (
+            np.isfinite(told_sigma_free_m) and told_sigma_free_m >= 0
+        ):
+            raise ValueError(
+                f"told_sigma_free_m must be finite and >= 0 or None, got {told_sigma_free_m}"
+            )
+        self.told_sigma_free_m = told_sigma_free_m
         self.cruise_speed_m_s = float(cruise_speed_m_s)
         self.max_neighbours = max_neighbours
         self.safety_filter = bool(safety_filter)
@@ -234,7 +243,46 @@ class CPolicy:
         None = the trained period, 0 = decide every tick."""
         p = self.decision_period_s if decision_period_s is None else float(decision_period_s)
         return csafety.COnboard(
-            self._lib, self._cfg, self.safety_cfg, p, self.safety_filter, self.sparse_rule
+            self._lib,
+            self._cfg,
+            self.safety_cfg,
+            p,
+            self.safety_filter,
+            self.sparse_rule,
+            self.told_sigma_free_m,
+        )
+
+    def told_scale(self, pos_sigma_m: float, nbr_pos_sigma_m=None) -> float:
+        """covey_told_scale at these sigmas (the C twin of policy.runtime.told_scale)."""
+        nbr = np.ascontiguousarray(
+            np.zeros(0) if nbr_pos_sigma_m is None else nbr_pos_sigma_m, dtype=np.float32
+        ).reshape(-1)
+        free = -1.0 if self.told_sigma_free_m is None else self.told_sigma_free_m
+        return float(
+            self._lib.covey_told_scale(
+                ctypes.byref(self._filter._ccfg),
+                free,
+                float(pos_sigma_m),
+                nbr.ctypes.data_as(ctypes.POINTER(ctypes.c_float)),
+                nbr.size,
+            )
+        )
+
+    def _told_cfg(self, obs: Observation) -> _Config | None:
+        """The network's config at this decision: its told separation times `told_scale`
+        (None: as built), as covey_guidance_step tells it."""
+        if self.told_sigma_free_m is None or obs.sky.pos_sigma_m is None:
+            return None
+        scale = self.told_scale(obs.sky.pos_sigma_m, obs.sky.nbr_pos_sigma_m)
+        if scale == 1.0:
+            return None
+        c = self._cfg
+        return _Config(
+            c.separation_m * scale,
+            c.cruise_speed_m_s,
+            c.max_neighbour_age_us,
+            c.max_own_age_us,
+            c.max_neighbours,
         )
 
     def evaluate(
@@ -336,7 +384,7 @@ class CPolicy:
                 obs = obs.with_goal(self.router.next_waypoint(obs.pos_m, obs.goal_m, pad))
             except (TypeError, ValueError):
                 pass  # the core names the bad input
-        r = self.evaluate(obs, now_s, stamp_s, nbr_stamp_s)
+        r = self.evaluate(obs, now_s, stamp_s, nbr_stamp_s, self._told_cfg(obs))
         if r.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[r.status])
         if not self.safety_filter or (

@@ -145,6 +145,7 @@ class GuidanceConfigC(ctypes.Structure):
         ("decision_period_s", ctypes.c_float),
         ("safety_filter", ctypes.c_int32),
         ("sparse_rule", ctypes.c_int32),
+        ("told_sigma_free_m", ctypes.c_float),
     ]
 
 
@@ -194,6 +195,14 @@ def bind(lib: ctypes.CDLL) -> None:
     lib.covey_guidance_scratch_bytes.argtypes = []
     lib.covey_told_separation_m.restype = ctypes.c_float
     lib.covey_told_separation_m.argtypes = [ctypes.c_float, ctypes.c_int32, ctypes.c_float]
+    lib.covey_told_scale.restype = ctypes.c_float
+    lib.covey_told_scale.argtypes = [
+        ctypes.POINTER(SafetyConfigC),
+        ctypes.c_float,
+        ctypes.c_float,
+        fp,
+        ctypes.c_int32,
+    ]
     lib.covey_trained_period_s.restype = ctypes.c_float
     lib.covey_trained_period_s.argtypes = [ctypes.POINTER(ConfigC)]
     lib.covey_sparse_choose.restype = ctypes.c_int
@@ -476,7 +485,9 @@ class COnboard:
         decision_period_s: float,
         safety_filter=True,
         sparse_rule=False,
+        told_sigma_free_m: float | None = None,
     ):
+        """`told_sigma_free_m` None: the told separation never grows (covey_told_scale)."""
         self._lib = lib
         self._cfg = GuidanceConfigC(
             policy_cfg,
@@ -484,6 +495,7 @@ class COnboard:
             decision_period_s,
             int(bool(safety_filter)),
             int(bool(sparse_rule)),
+            -1.0 if told_sigma_free_m is None else float(told_sigma_free_m),
         )
         self._hold = HoldC()
         self._scratch = ctypes.create_string_buffer(lib.covey_guidance_scratch_bytes())

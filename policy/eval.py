@@ -195,6 +195,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             max_neighbours=cfg.max_neighbours,
             sparse_rule=SparseConfig() if filt and cfg.sparse_rule else None,
             safety_cfg=safety_cfg,  # the sparse rule's filter: --sigma-k reaches it too
+            told_sigma_free_m=told_sigma_free_m(cfg),
         )
         out[name] = Held(_decide_views(pol), cfg.policy_period_s, safety_cfg if filt else None)
     if cfg.occupancy:
@@ -226,6 +227,15 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
         if name in cfg.controllers:
             out[name] = make(cfg, safety_cfg)
     return out
+
+
+def told_sigma_free_m(cfg: EvalConfig) -> float | None:
+    """policy.runtime.TOLD_SIGMA_FREE_M, as the agents fly; None where the policy's berth is
+    asked for (--policy-separation-m, --tell-inflation): told as asked."""
+    from policy.runtime import TOLD_SIGMA_FREE_M
+
+    asked = cfg.policy_separation_m is not None or cfg.tell_inflation
+    return None if asked else TOLD_SIGMA_FREE_M
 
 
 def inflation_told_m(safety_cfg, sigma_m: float) -> float:

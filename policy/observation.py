@@ -15,7 +15,7 @@ World frame: x north, y east, metres; heading 0 = north, clockwise positive.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -325,6 +325,17 @@ class Observation(NamedTuple):
         """The same observation flying to `goal_m` (a route's waypoint)."""
         return self._replace(goal_m=goal_m)
 
+    def zoomed(self, factor: float) -> Observation:
+        """The network's view at `factor` times the distances: the neighbours and the goal
+        moved towards the own position (what a distance scale 1 / factor times as large
+        sees; policy.runtime.told_scale)."""
+        if factor == 1.0:
+            return self
+        p = self.pos_m
+        return self._replace(
+            goal_m=p + (self.goal_m - p) * factor, nbr_pos_m=p + (self.nbr_pos_m - p) * factor
+        )
+
     def neighbours(self, keep) -> Observation:
         """Only the neighbours `keep` selects (a mask or indices)."""
         return Observation(
@@ -369,6 +380,23 @@ class Observations:
     """(N, K) bool; None: all cooperate."""
     nbr_manned: np.ndarray | None = None
     """(N, K) bool, True for a manned aircraft (Sky.nbr_manned); None: none."""
+
+    def nbr_sigma_max_m(self) -> np.ndarray:
+        """(N,) each vehicle's largest neighbour 1-sigma (0: none, or exact)."""
+        if self.nbr_pos_sigma_m is None or not self.nbr_valid.shape[1]:
+            return np.zeros(self.pos_m.shape[0])
+        return np.where(self.nbr_valid, self.nbr_pos_sigma_m, 0.0).max(axis=1)
+
+    def zoomed(self, factor: np.ndarray) -> Observations:
+        """Observation.zoomed row by row, `factor` (N,)."""
+        if not (factor != 1.0).any():
+            return self
+        p, f = self.pos_m, np.asarray(factor, float)[:, None]
+        return replace(
+            self,
+            goal_m=p + (self.goal_m - p) * f,
+            nbr_pos_m=p[:, None, :] + (self.nbr_pos_m - p[:, None, :]) * f[:, :, None],
+        )
 
     def sky(self) -> dict:
         """The uncertainties as policy.safety's and policy.sparse's keyword arguments

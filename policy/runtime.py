@@ -43,6 +43,28 @@ leaves the separation itself to the filter. Chosen on seeds the repository had n
 1.13 -> 1.05, 0 collisions and 100 % success on both links; told 1 m, a circle of 16 deadlocked
 once on the degraded link."""
 
+TOLD_SIGMA_FREE_M = 0.5
+"""The position 1-sigma up to which the policy is told the separation as above, whatever the
+filter's inflation: the realistic preset's GNSS, where FILTERED_BERTH_SHARE and sigma_k were
+chosen. Beyond it the filter keeps a berth the network was never told (7.8 m between estimates
+at 1 m), and dense crowds jammed: the network's distance scale then grows with the inflation of
+the excess (`told_scale`; docs/sky.md, "GNSS worse than the preset")."""
+
+
+def told_scale(separation_m, sigma_k, free_m, pos_sigma_m, nbr_sigma_max_m):
+    """How many times the told separation the network is told now (>= 1; scalars or arrays
+    alike): 1 + sigma_k hypot(x_own, x_nbr) / separation_m, x = max(0, sigma - free_m), with
+    the own 1-sigma and the largest neighbour's; free_m None: 1 (off, a told separation asked
+    explicitly). NaN sigmas count as 0 here (the filter refuses them). firmware/
+    covey_guidance.c covey_told_scale is its C twin (parity tested)."""
+    if free_m is None:
+        return np.ones_like(np.asarray(pos_sigma_m, float))[()]
+    excess = np.hypot(
+        np.fmax(np.asarray(pos_sigma_m, float) - free_m, 0.0),
+        np.fmax(np.asarray(nbr_sigma_max_m, float) - free_m, 0.0),
+    )
+    return (1.0 + sigma_k * excess / separation_m)[()]
+
 
 def told_separation_m(
     separation_m: float,
@@ -80,8 +102,13 @@ class GuidancePolicy:
         sparse_rule: sparse.SparseConfig | bool | None = True,
         keep_out_m=None,
         fence_m=None,
+        told_sigma_free_m: float | None = TOLD_SIGMA_FREE_M,
     ):
         """The defaults fly as the agents do (agent.guidance.GuidanceConfig).
+
+        `told_sigma_free_m`: beyond this position 1-sigma (own or a neighbour's) the network's
+        distance scale grows with the filter's inflation of the excess (`told_scale`); None:
+        never (the told separation stays as given, e.g. one that already counts it).
 
         `keep_out_m` [(K, 2) polygon vertices, local north/east metres] and `fence_m` (K, 2):
         see `set_zones`; None: no zones (today's behaviour).
@@ -131,6 +158,13 @@ class GuidancePolicy:
         self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
         self.actor = Actor(net, obs_cfg, self.dist_scale_m, max_neighbours)
         """The network on observations (policy.actor): the action before it is flown."""
+        if told_sigma_free_m is not None and not (
+            np.isfinite(told_sigma_free_m) and told_sigma_free_m >= 0
+        ):
+            raise ValueError(
+                f"told_sigma_free_m must be finite and >= 0 or None, got {told_sigma_free_m}"
+            )
+        self.told_sigma_free_m = told_sigma_free_m
         self.zones: ZoneSet | None = None
         """Keep-out edges the filter keeps clear of (policy.zone_lines), None: none."""
         self.router = None
@@ -182,6 +216,7 @@ class GuidancePolicy:
         sparse_rule: sparse.SparseConfig | bool | None = True,
         keep_out_m=None,
         fence_m=None,
+        told_sigma_free_m: float | None = TOLD_SIGMA_FREE_M,
     ) -> GuidancePolicy:
         """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights. The other
         arguments are the constructor's: the defaults fly as the agents do."""
@@ -218,6 +253,7 @@ class GuidancePolicy:
             sparse_rule,
             keep_out_m,
             fence_m,
+            told_sigma_free_m,
         )
 
     @property
@@ -331,7 +367,7 @@ class GuidancePolicy:
         if not isinstance(obs, Observations):
             raise TypeError(f"command_batch takes Observations or a Swarm, got {type(obs)}")
         obs = replace(obs, goal_m=self._waypoints(obs.pos_m, obs.goal_m, obs.pos_sigma_m))
-        a, _ = self.actor.action_batch(obs)
+        a, _ = self.actor.action_batch(self._told_batch(obs))
         v = features.action_to_velocity(a, obs.heading_rad) * self.cruise_speed_m_s
         views = (obs.pos_m, obs.vel_m_s)
         nbrs = (obs.nbr_pos_m, obs.nbr_vel_m_s, obs.nbr_valid)
@@ -349,7 +385,37 @@ class GuidancePolicy:
         """The action of `obs` (towards the route's waypoint with zones) as a velocity."""
         if self.router is not None:
             obs = obs.with_goal(self._waypoint(obs.pos_m, obs.goal_m, obs.sky.pos_sigma_m))
-        return self._velocity(self.actor.pair(obs), obs, filtered)
+        return self._velocity(self.actor.pair(self._told(obs)), obs, filtered)
+
+    def _told(self, obs: Observation) -> Observation:
+        """What the network sees of `obs`: zoomed out by `told_scale` where the sigmas are
+        beyond told_sigma_free_m (the sparse rule and the filter see `obs` as it is)."""
+        sky = obs.sky
+        if self.told_sigma_free_m is None or sky is EXACT:
+            return obs
+        nbr = sky.nbr_pos_sigma_m
+        worst = float(np.max(nbr)) if nbr is not None and len(nbr) else 0.0
+        scale = told_scale(
+            self.separation_m,
+            self.safety_cfg.sigma_k,
+            self.told_sigma_free_m,
+            sky.pos_sigma_m,
+            worst,
+        )
+        return obs.zoomed(1.0 / float(scale))
+
+    def _told_batch(self, obs: Observations) -> Observations:
+        """`_told` row by row."""
+        if self.told_sigma_free_m is None or obs.pos_sigma_m is None:
+            return obs
+        scale = told_scale(
+            self.separation_m,
+            self.safety_cfg.sigma_k,
+            self.told_sigma_free_m,
+            obs.pos_sigma_m,
+            obs.nbr_sigma_max_m(),
+        )
+        return obs.zoomed(1.0 / np.asarray(scale, float).reshape(-1))
 
     def _velocity(self, a: tuple, obs: Observation, filtered: bool = True) -> np.ndarray:
         """Body (fwd, right) action a -> (north, east) velocity times the cruise speed, then

@@ -67,7 +67,7 @@ def load_c_policy(
         raise RuntimeError(
             f"onboard mode needs firmware.cpolicy (the C policy wrapper): {exc}"
         ) from exc
-    from policy.runtime import told_separation_m
+    from policy.runtime import TOLD_SIGMA_FREE_M, told_separation_m
 
     return CPolicy.load(
         weights,
@@ -75,6 +75,7 @@ def load_c_policy(
         cruise_speed_m_s=cruise_speed_m_s,
         policy_separation_m=told_separation_m(separation_m, True, policy_separation_m),
         sparse_rule=sparse_rule,
+        told_sigma_free_m=None if policy_separation_m is not None else TOLD_SIGMA_FREE_M,
     )
 
 
