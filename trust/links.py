@@ -184,9 +184,10 @@ class LinkKeys:
         """True: the trailer's tag for this vehicle is `sender_id`'s; False: it has one and it
         is wrong (or the sender has no link key); None: it has none for this vehicle."""
         me = self.own_id.to_bytes(2, "little")
-        for k in range(0, len(links), LINK_ENTRY_BYTES):
-            if links[k : k + 2] != me:
-                continue
+        k = links.find(me)
+        while k >= 0 and k % LINK_ENTRY_BYTES:  # inside a tag, not an entry's receiver id
+            k = links.find(me, k + 1)
+        if k >= 0:
             macs = self._macs_with(sender_id)
             got = links[k + 2 : k + LINK_ENTRY_BYTES]
             if macs is not None:

@@ -1,0 +1,141 @@
+"""GNSS worse than the preset: the policy told a berth that grows with sigma, against told 1.25 m.
+
+    python -m bench.gnss_beyond [--sigmas-m 0.7,1.0] [--seeds 781,782] [--jobs 2]
+    # table; bench/results/gnss_beyond.json, docs/bench_gnss_beyond.png
+
+`covey eval --vehicles realistic:drift_m=S` (0.3 s lag, 2.5 m/s^2, 0.2 m/s gusts, estimates
+drifting S m), the circle, conflict and large suites, both links, policy+filter and c+filter,
+flown two ways on the same seeds:
+  - graded (as shipped): beyond 0.5 m the network's told separation grows by told_scale
+    (policy/runtime.py TOLD_SIGMA_FREE_M);
+  - told 1.25 m: `--policy-separation-m 1.25`, the berth told before, whatever the sigma.
+At or below 0.5 m the two are the same flight (tests/test_told_scale.py). Collisions (a pair
+under 3 m) and the closest approach are on true positions; "late" counts vehicles that did not
+arrive in time (timeouts).
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+
+import numpy as np
+
+from bench import common
+
+WAYS = {"graded": None, "told 1.25 m": 1.25}
+CONTROLLERS = ("policy+filter", "c+filter")
+SUITES = ("circle", "conflict", "large")
+
+
+def fly(way: str, sigma_m: float, seed: int, out: str) -> dict:
+    """One `covey eval` run (with the C core); its summary rows."""
+    from firmware import ceval
+    from policy.eval import EvalConfig
+
+    cfg = EvalConfig(
+        out=out,
+        seed=seed,
+        figures=False,
+        progress=False,
+        controllers=CONTROLLERS,
+        suites=SUITES,
+        vehicles=f"realistic:drift_m={sigma_m}",
+        policy_separation_m=WAYS[way],
+    )
+    res = ceval.main(cfg)
+    return {"way": way, "sigma_m": sigma_m, "seed": seed, "summary": res["summary"]}
+
+
+def totals(runs: list[dict]) -> list[dict]:
+    """Per (way, sigma, controller): collision cases, cases, late vehicles, closest true
+    approach and the median extra time, over seeds, links and suites."""
+    out = []
+    keys = sorted({(r["way"], r["sigma_m"], s["controller"]) for r in runs for s in r["summary"]})
+    for way, sigma, ctrl in keys:
+        rows = [
+            s
+            for r in runs
+            if r["way"] == way and r["sigma_m"] == sigma
+            for s in r["summary"]
+            if s["controller"] == ctrl
+        ]
+        extra = [s["extra_time"] for s in rows if s["extra_time"]]
+        out.append(
+            {
+                "way": way,
+                "sigma_m": sigma,
+                "controller": ctrl,
+                "cases": sum(s["cases"] for s in rows),
+                "collision_cases": sum(s["collision_cases"] for s in rows),
+                "late_vehicles": sum(s["timeouts"] for s in rows),
+                "vehicles": sum(s["vehicles"] for s in rows),
+                "min_sep_true_m": min(s["min_sep"] for s in rows),
+                "extra_time_median": float(np.median(extra)) if extra else None,
+            }
+        )
+    return out
+
+
+def plot(rows: list[dict]) -> None:
+    """Late vehicles and collision cases against sigma, both ways."""
+    plt = common.pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    for (way, ctrl), style in zip(
+        [(w, c) for w in WAYS for c in CONTROLLERS], ["C0-o", "C0--s", "C3-o", "C3--s"], strict=True
+    ):
+        mine = sorted((r for r in rows if r["way"] == way and r["controller"] == ctrl),
+                      key=lambda r: r["sigma_m"])  # fmt: skip
+        if not mine:
+            continue
+        x = [r["sigma_m"] for r in mine]
+        axes[0].plot(x, [r["late_vehicles"] for r in mine], style, label=f"{way}, {ctrl}")
+        axes[1].plot(x, [r["collision_cases"] for r in mine], style, label=f"{way}, {ctrl}")
+    axes[0].set_ylabel(f"vehicles late (of {mine[0]['vehicles'] if mine else '?'})")
+    axes[1].set_ylabel("collision cases (true < 3 m)")
+    for ax in axes:
+        ax.set_xlabel("GNSS drift 1-sigma (m)")
+        ax.legend(fontsize=7)
+    fig.suptitle("covey eval beyond the 0.5 m preset: told berth graded vs fixed")
+    fig.tight_layout()
+    common.save_figure(fig, "gnss_beyond")
+
+
+def main(sigmas_m: list[float], seeds: list[int], jobs: int) -> dict:
+    work = common.REPO / "runs" / "gnss_beyond"  # gitignored: every run's results.json
+    tasks = [
+        (way, s, seed, str(work / f"{way.replace(' ', '_')}_{s}_{seed}"))
+        for s in sigmas_m
+        for seed in seeds
+        for way in WAYS
+    ]
+    runs = []
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs) as pool:
+        futures = {pool.submit(fly, *t): t for t in tasks}
+        for i, f in enumerate(concurrent.futures.as_completed(futures), 1):
+            runs.append(f.result())
+            way, s, seed, _ = futures[f]
+            common.say(f"[{i}/{len(tasks)}] {way}, sigma {s} m, seed {seed}: done")
+    rows = totals(runs)
+    plot(rows)
+    print("way           sigma  controller     coll.cases  late/vehicles  true min  extra (median)")
+    for r in rows:
+        print(
+            f"{r['way']:13s} {r['sigma_m']:<5g}  {r['controller']:14s} "
+            f"{r['collision_cases']}/{r['cases']:<9} {r['late_vehicles']}/{r['vehicles']:<10} "
+            f"{r['min_sep_true_m']:.2f}      {r['extra_time_median'] or 0:.3f}"
+        )
+    return {"sigmas_m": sigmas_m, "seeds": seeds, "ways": WAYS, "rows": rows, "runs": runs}
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sigmas-m", default="0.7,1.0", help="GNSS drift 1-sigmas (comma list)")
+    ap.add_argument("--seeds", default="781,782", help="scenario and noise seeds (comma list)")
+    ap.add_argument("--jobs", type=int, default=2, help="evaluations at once")
+    a = ap.parse_args()
+    sig = [float(x) for x in a.sigmas_m.split(",")]
+    seeds = [int(x) for x in a.seeds.split(",")]
+    if not sig or any(not (s > 0) for s in sig) or a.jobs < 1:
+        raise SystemExit("--sigmas-m must be positive numbers and --jobs at least 1")
+    common.write_json("gnss_beyond", main(sig, seeds, a.jobs))
