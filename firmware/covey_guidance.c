@@ -28,14 +28,17 @@ float covey_told_separation_m(float separation_m, int32_t safety_filter, float a
 }
 
 float covey_told_scale(const covey_safety_config_t *safety, float free_m, float own_pos_sigma_m,
-                       const float *nbr_pos_sigma_m, int32_t n)
+                       const float *nbr_pos_sigma_m, const uint8_t *nbr_non_cooperative,
+                       int32_t n)
 {
     if (safety == NULL || !(free_m >= 0.0f)) {
         return 1.0f;
     }
     float worst = 0.0f;
     for (int32_t i = 0; nbr_pos_sigma_m != NULL && i < n; ++i) {
-        worst = fmaxf(worst, nbr_pos_sigma_m[i]); /* fmaxf drops a NaN */
+        if (nbr_non_cooperative == NULL || nbr_non_cooperative[i] == 0u) {
+            worst = fmaxf(worst, nbr_pos_sigma_m[i]); /* fmaxf drops a NaN */
+        }
     }
     const float x_own = fmaxf(own_pos_sigma_m - free_m, 0.0f);
     const float x_nbr = fmaxf(worst - free_m, 0.0f);
@@ -275,7 +278,8 @@ covey_status_t covey_guidance_step_zones(const covey_guidance_config_t *cfg, cov
         /* GNSS worse than the preset: the policy is told the berth the filter keeps grow */
         covey_config_t told = cfg->policy;
         told.separation_m *= covey_told_scale(&cfg->safety, cfg->told_sigma_free_m,
-                                              own_pos_sigma_m, nbr_pos_sigma_m, n_nbrs);
+                                              own_pos_sigma_m, nbr_pos_sigma_m,
+                                              nbr_non_cooperative, n_nbrs);
         st = covey_command(&told, own, goal, nbrs, n_nbrs, now_us, &scratch->policy,
                            &out->command);
         if (st != COVEY_OK) {

@@ -113,11 +113,13 @@ float covey_told_separation_m(float separation_m, int32_t safety_filter, float a
 
 /* How many times its separation the policy is told at a decision (>= 1):
  * 1 + sigma_k hypot(x_own, x_nbr) / radius_m, x = max(0, sigma - free_m), with
- * own_pos_sigma_m and the largest of the n nbr_pos_sigma_m (NULL: 0); free_m < 0
- * or NaN: 1. NaN sigmas count as 0 (the filter refuses them). The twin of
- * policy/runtime.py told_scale. */
+ * own_pos_sigma_m and the largest of the n nbr_pos_sigma_m (NULL: 0) of the
+ * cooperative neighbours (nbr_non_cooperative[i] 0, or NULL: all); free_m < 0 or
+ * NaN: 1. NaN sigmas count as 0 (the filter refuses them). The twin of
+ * policy/runtime.py told_scale with Sky.nbr_sigma_max_m. */
 float covey_told_scale(const covey_safety_config_t *safety, float free_m, float own_pos_sigma_m,
-                       const float *nbr_pos_sigma_m, int32_t n);
+                       const float *nbr_pos_sigma_m, const uint8_t *nbr_non_cooperative,
+                       int32_t n);
 
 /* The trained decision period in seconds: dt (1 policy unit of time, from the
  * weights header) times (separation / 3) / cruise speed. */

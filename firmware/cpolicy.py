@@ -252,11 +252,15 @@ class CPolicy:
             self.told_sigma_free_m,
         )
 
-    def told_scale(self, pos_sigma_m: float, nbr_pos_sigma_m=None) -> float:
-        """covey_told_scale at these sigmas (the C twin of policy.runtime.told_scale)."""
+    def told_scale(
+        self, pos_sigma_m: float, nbr_pos_sigma_m=None, nbr_cooperative=None, nbr_manned=None
+    ) -> float:
+        """covey_told_scale at these sigmas and flags (the C twin of policy.runtime.told_scale
+        with Sky.nbr_sigma_max_m)."""
         nbr = np.ascontiguousarray(
             np.zeros(0) if nbr_pos_sigma_m is None else nbr_pos_sigma_m, dtype=np.float32
         ).reshape(-1)
+        kinds = np.ascontiguousarray(csafety.track_kinds(nbr.size, nbr_cooperative, nbr_manned))
         free = -1.0 if self.told_sigma_free_m is None else self.told_sigma_free_m
         return float(
             self._lib.covey_told_scale(
@@ -264,6 +268,7 @@ class CPolicy:
                 free,
                 float(pos_sigma_m),
                 nbr.ctypes.data_as(ctypes.POINTER(ctypes.c_float)),
+                kinds.ctypes.data,
                 nbr.size,
             )
         )
@@ -273,7 +278,10 @@ class CPolicy:
         (None: as built), as covey_guidance_step tells it."""
         if self.told_sigma_free_m is None or obs.sky.pos_sigma_m is None:
             return None
-        scale = self.told_scale(obs.sky.pos_sigma_m, obs.sky.nbr_pos_sigma_m)
+        sky = obs.sky
+        scale = self.told_scale(
+            sky.pos_sigma_m, sky.nbr_pos_sigma_m, sky.nbr_cooperative, sky.nbr_manned
+        )
         if scale == 1.0:
             return None
         c = self._cfg

@@ -201,6 +201,7 @@ def bind(lib: ctypes.CDLL) -> None:
         ctypes.c_float,
         ctypes.c_float,
         fp,
+        vp,
         ctypes.c_int32,
     ]
     lib.covey_trained_period_s.restype = ctypes.c_float

@@ -131,6 +131,15 @@ class Sky:
             out["nbr_manned"] = self.nbr_manned
         return out
 
+    def nbr_sigma_max_m(self) -> float:
+        """The largest 1-sigma of the cooperative neighbours (covey's vehicles: traffic and
+        manned aircraft left out), 0 without any (policy.runtime.told_scale)."""
+        sig = self.nbr_pos_sigma_m
+        if sig is None or not len(sig):
+            return 0.0
+        keep = _cooperative(len(sig), self.nbr_cooperative, self.nbr_manned)
+        return float(np.fmax.reduce(sig[keep], initial=0.0))  # fmax passes over a NaN
+
     def rows(self, keep) -> Sky:
         """These uncertainties for the neighbours `keep` selects (a mask or indices)."""
         sig, coop, manned = self.nbr_pos_sigma_m, self.nbr_cooperative, self.nbr_manned
@@ -140,6 +149,16 @@ class Sky:
             None if coop is None else coop[keep],
             None if manned is None else manned[keep],
         )
+
+
+def _cooperative(shape, cooperative, manned) -> np.ndarray:
+    """bool mask of the neighbours that cooperate and are not manned (None flags: all do)."""
+    keep = np.ones(shape, bool)
+    if cooperative is not None:
+        keep &= np.asarray(cooperative, bool)
+    if manned is not None:
+        keep &= ~np.asarray(manned, bool)
+    return keep
 
 
 def _flags(name: str, x, k: int) -> np.ndarray | None:
@@ -382,10 +401,14 @@ class Observations:
     """(N, K) bool, True for a manned aircraft (Sky.nbr_manned); None: none."""
 
     def nbr_sigma_max_m(self) -> np.ndarray:
-        """(N,) each vehicle's largest neighbour 1-sigma (0: none, or exact)."""
+        """(N,) each vehicle's largest cooperative neighbour 1-sigma (Sky.nbr_sigma_max_m;
+        0: none, or exact)."""
         if self.nbr_pos_sigma_m is None or not self.nbr_valid.shape[1]:
             return np.zeros(self.pos_m.shape[0])
-        return np.where(self.nbr_valid, self.nbr_pos_sigma_m, 0.0).max(axis=1)
+        keep = self.nbr_valid & _cooperative(
+            self.nbr_valid.shape, self.nbr_cooperative, self.nbr_manned
+        )
+        return np.fmax.reduce(np.where(keep, self.nbr_pos_sigma_m, 0.0), axis=1, initial=0.0)
 
     def zoomed(self, factor: np.ndarray) -> Observations:
         """Observation.zoomed row by row, `factor` (N,)."""

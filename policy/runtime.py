@@ -54,7 +54,8 @@ the excess (`told_scale`; docs/sky.md, "GNSS worse than the preset")."""
 def told_scale(separation_m, sigma_k, free_m, pos_sigma_m, nbr_sigma_max_m):
     """How many times the told separation the network is told now (>= 1; scalars or arrays
     alike): 1 + sigma_k hypot(x_own, x_nbr) / separation_m, x = max(0, sigma - free_m), with
-    the own 1-sigma and the largest neighbour's; free_m None: 1 (off, a told separation asked
+    the own 1-sigma and the largest cooperative neighbour's (traffic's own accuracy, an ADS-B
+    report's tens of metres, does not rescale the fleet's view); free_m None: 1 (off, a told separation asked
     explicitly). NaN sigmas count as 0 here (the filter refuses them). firmware/
     covey_guidance.c covey_told_scale is its C twin (parity tested)."""
     if free_m is None:
@@ -393,14 +394,12 @@ class GuidancePolicy:
         sky = obs.sky
         if self.told_sigma_free_m is None or sky is EXACT:
             return obs
-        nbr = sky.nbr_pos_sigma_m
-        worst = float(np.max(nbr)) if nbr is not None and len(nbr) else 0.0
         scale = told_scale(
             self.separation_m,
             self.safety_cfg.sigma_k,
             self.told_sigma_free_m,
             sky.pos_sigma_m,
-            worst,
+            sky.nbr_sigma_max_m(),
         )
         return obs.zoomed(1.0 / float(scale))
 

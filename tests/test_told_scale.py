@@ -112,6 +112,25 @@ def test_bad_free_sigma_is_refused():
             GuidancePolicy.load(told_sigma_free_m=bad)
 
 
+def test_traffic_accuracy_does_not_rescale_the_view():
+    """An ADS-B report's tens of metres are traffic's: the filter pads its pair, but the
+    network's told berth grows only with covey's own vehicles' sigmas."""
+    sky = Sky(0.5, np.array([0.5, 30.0, 20.0]), np.array([True, False, True]))
+    assert sky.nbr_sigma_max_m() == 20.0
+    manned = Sky(0.5, np.array([0.5, 30.0, 20.0]), None, np.array([False, False, True]))
+    assert manned.nbr_sigma_max_m() == 30.0
+    only_traffic = Sky(0.5, np.array([30.0]), np.array([False]))
+    assert only_traffic.nbr_sigma_max_m() == 0.0
+    obs = Observations(
+        *(np.zeros(s) for s in ((2, 2), (2, 2), (2,), (2, 2), (2, 3, 2), (2, 3, 2), (2, 3))),
+        np.array([[True, True, False], [True, True, True]]),
+        pos_sigma_m=np.array([0.5, 0.5]),
+        nbr_pos_sigma_m=np.array([[0.5, 40.0, 9.0], [0.7, 0.2, 40.0]]),
+        nbr_cooperative=np.array([[True, False, True], [True, True, False]]),
+    )
+    assert obs.nbr_sigma_max_m().tolist() == [0.5, 0.7]  # row 0: the 9 m slot is not valid
+
+
 @needs_cc
 def test_c_told_scale_equals_numpy():
     from firmware.cpolicy import CPolicy
@@ -119,14 +138,18 @@ def test_c_told_scale_equals_numpy():
     rng = np.random.default_rng(354)
     for free in (TOLD_SIGMA_FREE_M, 0.0, 1.2, None):
         cpol = CPolicy.load(told_sigma_free_m=free)
-        for _ in range(60):
+        for _ in range(80):
             k = int(rng.integers(0, 6))
             own = float(np.float32(rng.uniform(0, 2)))
             nbr = rng.uniform(0, 2, k).astype(np.float32)
             if k and rng.random() < 0.2:
                 nbr[0] = np.nan
-            want = told_scale(3.0, cpol.safety_cfg.sigma_k, free, own, np.nanmax(nbr, initial=0))
-            assert cpol.told_scale(own, nbr) == pytest.approx(float(want), rel=1e-6)
+            coop = rng.random(k) > 0.3
+            manned = rng.random(k) < 0.2
+            sky = Sky(own, nbr.astype(float), coop, manned)
+            want = told_scale(3.0, cpol.safety_cfg.sigma_k, free, own, sky.nbr_sigma_max_m())
+            got = cpol.told_scale(own, nbr, coop, manned)
+            assert got == pytest.approx(float(want), rel=1e-6)
     with pytest.raises(ValueError, match="told_sigma_free_m must be finite and >= 0"):
         CPolicy.load(told_sigma_free_m=-1.0)
 
@@ -148,10 +171,11 @@ def test_c_decisions_equal_numpy_beyond_the_preset():
         args = _scene(rng, k)
         own = float(np.float32(rng.uniform(0.5, 1.5)))
         nbr = rng.uniform(0.0, 1.5, k).astype(np.float32).astype(float)
-        sky = {"pos_sigma_m": own, "nbr_pos_sigma_m": nbr}
+        coop = rng.random(k) > 0.2  # some traffic, with sigmas of its own
+        sky = {"pos_sigma_m": own, "nbr_pos_sigma_m": nbr, "nbr_cooperative": coop}
         held_c, held_n = cpol.preferred(*args, **sky), npol.preferred(*args, **sky)
         assert np.abs(held_c - held_n).max() < 1e-4
-        step = tick.step(Observation.shaped(*args, Sky(own, nbr)), 0.1 * t)
+        step = tick.step(Observation.shaped(*args, Sky(own, nbr, coop)), 0.1 * t)
         assert step.status == "ok"
         want = safety.filter_velocity(
             args[0], args[1], held_n, args[4], args[5], npol.safety_cfg, **sky
