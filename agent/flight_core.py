@@ -49,6 +49,7 @@ from comms.schema import (
 )
 from kit.masks import mode_mask
 from policy.goal_rule import goal_rule
+from policy.runtime import TOLD_SIGMA_FREE_M
 from policy.safety import SafetyConfig
 
 if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_plan`)
@@ -102,6 +103,11 @@ class CoreConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.takeoff_alt_m) and self.takeoff_alt_m > 0):
             raise ValueError(f"takeoff_alt_m must be positive, got {self.takeoff_alt_m}")
+
+
+GNSS_WARN_SHARE = 1.2
+"""A vehicle is told poor once its 1-sigma is this share of TOLD_SIGMA_FREE_M (0.6 m), and good
+again within it: GNSS accuracy wanders, and a warning a second is noise."""
 
 
 class ActionKind(enum.Enum):
@@ -237,6 +243,8 @@ class FlightCore:
         self.pos_sigma_m = np.zeros(n)
         """(N,) the position 1-sigma as last observed: a goto's goal keeps the filter's zone
         clearance, 1.8 m + sigma_k x it (`_clear_goal`)."""
+        self.gnss_poor = np.zeros(n, bool)
+        """(N,) the position 1-sigma is beyond what the separation is rated for (`_watch_gnss`)."""
         self.notes: list[Note] = []
         """Events for the shell to publish (it drains the list)."""
         self.missions: list[MissionRun | None] = [None] * n
@@ -308,6 +316,36 @@ class FlightCore:
 
     def flags_of(self, i: int) -> StateFlag:
         return self.failsafes[i].flags
+
+    def _watch_gnss(self) -> None:
+        """Tell the operator when a vehicle's position 1-sigma goes beyond the preset's 0.5 m
+        (policy.runtime.TOLD_SIGMA_FREE_M) by GNSS_WARN_SHARE, where the 3 m on true positions
+        is no longer measured to hold (docs/sky.md, "GNSS worse than the preset"), and when it
+        is back within 0.5 m: once each way, not every tick."""
+        sigma = self.pos_sigma_m
+        worse = ~self.gnss_poor & (sigma > TOLD_SIGMA_FREE_M * GNSS_WARN_SHARE)
+        better = self.gnss_poor & (sigma <= TOLD_SIGMA_FREE_M)
+        if not (worse.any() or better.any()):
+            return
+        cfg = self.safety_cfg
+        for i in np.flatnonzero(worse).tolist():
+            berth_m = cfg.radius_m * (1 + cfg.margin) + cfg.sigma_k * math.sqrt(2) * sigma[i]
+            self.notes.append(
+                Note(
+                    i,
+                    f"GNSS 1-sigma {sigma[i]:.2f} m is beyond the {TOLD_SIGMA_FREE_M:g} m the "
+                    f"{cfg.radius_m:g} m separation is rated for: the filter keeps {berth_m:.1f} m "
+                    "between estimates and dense groups slow down; fly RTK or a wider "
+                    "--separation-m",
+                    EventKind.STATUS,
+                    Severity.WARNING,
+                )
+            )
+        for i in np.flatnonzero(better).tolist():
+            self.notes.append(
+                Note(i, f"GNSS 1-sigma {sigma[i]:.2f} m: back within {TOLD_SIGMA_FREE_M:g} m")
+            )
+        self.gnss_poor = (self.gnss_poor | worse) & ~better
 
     def drain_notes(self) -> list[Note]:
         notes, self.notes = self.notes, []
@@ -647,6 +685,7 @@ class FlightCore:
         self.battery_pct[:] = obs.battery_pct
         if obs.pos_sigma_m is not None:
             self.pos_sigma_m[:] = obs.pos_sigma_m
+            self._watch_gnss()
         if obs.onboard_separation_m is not None and self.guidance is None:
             self._take_onboard_separation(obs.onboard_separation_m)
         cruise = self.cfg.guidance.cruise_speed_m_s

@@ -220,3 +220,32 @@ def test_mode_masks_equal_isin() -> None:
         np.testing.assert_array_equal(
             mode_mask(subset)[modes], np.isin(modes, [int(m) for m in subset])
         )
+
+
+def test_poor_gnss_is_told_once_each_way() -> None:
+    """A vehicle whose position 1-sigma goes beyond the preset's 0.5 m (by the warning share)
+    gets one warning naming the berth the filter then keeps, and one note when it is back
+    within 0.5 m; a sigma wandering between the two says nothing more."""
+    from dataclasses import replace
+
+    core = FlightCore(CoreConfig(failsafe=FENCE), 2, now_s=0.0)
+    ground = np.zeros((2, 3))
+
+    def tick(t: float, sigmas) -> list:
+        core.observe(
+            t, replace(_observed(ground, False, False), pos_sigma_m=np.array(sigmas)), True
+        )
+        return core.drain_notes()
+
+    assert tick(0.1, [0.5, 0.3]) == []
+    (warn,) = tick(0.2, [0.5, 1.0])
+    assert warn.index == 1 and warn.severity.name == "WARNING"
+    # 3.6 m + 4 sqrt(2) x 1 m between estimates
+    assert "GNSS 1-sigma 1.00 m" in warn.text and "9.3 m" in warn.text and "RTK" in warn.text
+    assert tick(0.3, [0.5, 1.2]) == []  # still poor: said already
+    assert tick(0.4, [0.58, 0.55]) == []  # row 0 below the warning share; row 1 not yet back
+    (back,) = tick(0.5, [0.5, 0.45])
+    assert back.index == 1 and "back within 0.5 m" in back.text
+    assert tick(0.6, [0.5, 0.55]) == []
+    (again,) = tick(0.7, [0.5, 0.61])
+    assert again.index == 1
