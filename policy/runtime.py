@@ -394,27 +394,24 @@ class GuidancePolicy:
         sky = obs.sky
         if self.told_sigma_free_m is None or sky is EXACT:
             return obs
-        scale = told_scale(
-            self.separation_m,
-            self.safety_cfg.sigma_k,
-            self.told_sigma_free_m,
-            sky.pos_sigma_m,
-            sky.nbr_sigma_max_m(),
-        )
-        return obs.zoomed(1.0 / float(scale))
+        return obs.zoomed(1.0 / float(self._told_scale(sky.pos_sigma_m, sky.nbr_sigma_max_m())))
 
     def _told_batch(self, obs: Observations) -> Observations:
         """`_told` row by row."""
         if self.told_sigma_free_m is None or obs.pos_sigma_m is None:
             return obs
-        scale = told_scale(
+        scale = self._told_scale(obs.pos_sigma_m, obs.nbr_sigma_max_m())
+        return obs.zoomed(1.0 / np.asarray(scale, float).reshape(-1))
+
+    def _told_scale(self, pos_sigma_m, nbr_sigma_max_m):
+        """`told_scale` with this policy's separation, sigma_k and told_sigma_free_m."""
+        return told_scale(
             self.separation_m,
             self.safety_cfg.sigma_k,
             self.told_sigma_free_m,
-            obs.pos_sigma_m,
-            obs.nbr_sigma_max_m(),
+            pos_sigma_m,
+            nbr_sigma_max_m,
         )
-        return obs.zoomed(1.0 / np.asarray(scale, float).reshape(-1))
 
     def _velocity(self, a: tuple, obs: Observation, filtered: bool = True) -> np.ndarray:
         """Body (fwd, right) action a -> (north, east) velocity times the cruise speed, then
