@@ -257,9 +257,9 @@ class CPolicy:
     ) -> float:
         """covey_told_scale at these sigmas and flags (the C twin of policy.runtime.told_scale
         with Sky.nbr_sigma_max_m)."""
-        nbr = np.ascontiguousarray(
-            np.zeros(0) if nbr_pos_sigma_m is None else nbr_pos_sigma_m, dtype=np.float32
-        ).reshape(-1)
+        if nbr_pos_sigma_m is None:  # exact neighbours: none counts, whatever their kinds
+            nbr_pos_sigma_m, nbr_cooperative, nbr_manned = (), None, None
+        nbr = np.ascontiguousarray(nbr_pos_sigma_m, dtype=np.float32).reshape(-1)
         kinds = np.ascontiguousarray(csafety.track_kinds(nbr.size, nbr_cooperative, nbr_manned))
         free = -1.0 if self.told_sigma_free_m is None else self.told_sigma_free_m
         return float(

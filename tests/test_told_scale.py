@@ -150,6 +150,11 @@ def test_c_told_scale_equals_numpy():
             want = told_scale(3.0, cpol.safety_cfg.sigma_k, free, own, sky.nbr_sigma_max_m())
             got = cpol.told_scale(own, nbr, coop, manned)
             assert got == pytest.approx(float(want), rel=1e-6)
+    cpol = CPolicy.load()
+    # exact neighbours with kinds (no sigmas given): only the own sigma counts
+    flags = np.array([True, False])
+    assert cpol.told_scale(0.4, None, flags, ~flags) == 1.0
+    assert cpol.told_scale(1.0, None, flags) == pytest.approx(1 + 4 * 0.5 / 3, rel=1e-6)
     with pytest.raises(ValueError, match="told_sigma_free_m must be finite and >= 0"):
         CPolicy.load(told_sigma_free_m=-1.0)
 
