@@ -380,7 +380,10 @@ def summarise(rows: list) -> list:
                         "zone_entries": int(sum(r["zone_entries"] for r in rs)),
                         "arrived": int(sum(r["arrived"] for r in rs)),
                         "refused": int(sum(r.get("refused", 0) for r in rs)),
-                        "min_zone_m": float(min(r["min_zone_m"] for r in rs)),
+                        "min_zone_m": min(
+                            (float(r["min_zone_m"]) for r in rs if r["min_zone_m"] is not None),
+                            default=None,
+                        ),
                         "route_time": mean("route_time"),
                     }
                     if all("zone_entries" in r for r in rs)
@@ -483,7 +486,8 @@ def main(cfg: EvalConfig, extra_controllers: Mapping[str, ControllerFactory] | N
                 name, starts, goals, zones_m, ctrls[name], links[link], sim_cfg, rng, **opts
             )
             tr, gl = r.pop("tracks"), r.pop("goals")
-            if cfg.figures and link == "perfect" and name in ("policy+filter", "c+filter"):
+            flew = tr.size > 0  # every goto refused: nothing to draw
+            if flew and cfg.figures and link == "perfect" and name in ("policy+filter", "c+filter"):
                 zone_tracks.setdefault(name, []).append((case, tr, gl, zones_m))
         else:
             r = evalsim.run(starts, goals, ctrls[name], links[link], sim_cfg, rng, **opts)

@@ -105,6 +105,35 @@ class Routed:
         return v
 
 
+def _nobody_flew(refused: int) -> dict:
+    """The metrics of a scene whose every goto was refused, as the flight core refuses them: no
+    flight, nothing arrived, nothing entered, no distances."""
+    return {
+        "n": 0,
+        "success": False,
+        "arrived": 0,
+        "collisions": 0,
+        "timeouts": 0,
+        "min_sep": None,
+        "est_collisions": 0,
+        "est_min_sep": None,
+        "intruder_min_sep": None,
+        "manned_min_sep": None,
+        "manned_entries": 0,
+        "intruder_heard_s": None,
+        "extra_time": None,
+        "path_ratio": None,
+        "mean_acc": None,
+        "steps": 0,
+        "refused": refused,
+        "zone_entries": 0,
+        "min_zone_m": None,
+        "route_time": None,
+        "tracks": np.zeros((0, 0, 2)),
+        "goals": np.zeros((0, 2)),
+    }
+
+
 def run(
     name, starts, goals, zones_m, controller, link, sim_cfg, rng, aware=True, lanes=None, **options
 ):
@@ -148,6 +177,8 @@ def run(
         goals = np.array([c.goal_m for c in checks])[~refused]
         starts = np.asarray(starts, float)[~refused]
         options = {k: np.asarray(v)[~refused] for k, v in options.items()}
+        if refused.all():  # every goal refused (a wide clearance at a poor sigma): none flies
+            return _nobody_flew(int(refused.sum()))
     r = evalsim.run(
         starts, goals, routed, link, dataclasses.replace(sim_cfg, record=True), rng, **options
     )

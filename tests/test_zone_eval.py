@@ -47,3 +47,22 @@ def test_entries_are_counted_and_routes_with_the_filter_keep_out():
     assert r["zone_entries"] == 0 and r["min_zone_m"] >= 1.8 - 1e-6
     assert r["success"] and r["collisions"] == 0
     assert 1.0 <= r["route_time"] < 2.0  # a swap of 6 meets at the corners
+
+
+def test_a_scene_whose_every_goto_is_refused_is_reported_not_a_crash():
+    """Goals nearer a keep-out zone than the clearance, too far from it to be moved within the
+    arrival radius, are refused as the flight core refuses them; where every one is (a poor
+    sigma's wide clearance can do it), nothing flies and the run says so (it crashed)."""
+    zone = [np.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]])]
+    starts = np.array([[-30.0, 0.0], [30.0, 0.0]])
+    # both 0.3 m off its edge: the clearance's nearest point is beyond the arrival radius
+    goals = np.array([[0.0, 5.3], [5.3, 0.0]])
+    cfg = policy_eval.EvalConfig(controllers=("orca",))
+    orca = policy_eval.controllers(cfg)["orca"]
+    r = zone_eval.run(
+        "orca", starts, goals, zone, orca, PERFECT, EvalSimConfig(), np.random.default_rng(2)
+    )
+    assert r["refused"] == 2 and r["n"] == 0 and r["min_zone_m"] is None and not r["success"]
+    rows = [{"suite": "zones", "case": "all-refused", "link": "perfect", "controller": "orca", **r}]
+    (s,) = policy_eval.summarise(rows)
+    assert s["refused"] == 2 and s["min_zone_m"] is None and s["vehicles"] == 0
