@@ -61,7 +61,8 @@ class EvalConfig:
     policy_separation_m: float | None = None
     """Separation the learned policies are told to keep (collisions are still counted below
     3 m). None: as flight tells them (policy.runtime.told_separation_m): 1.25 m with a filter
-    (policy+filter, c+filter), 3 m without."""
+    (policy+filter, c+filter), 3 m without, growing with GNSS worse than 0.5 m
+    (policy.runtime.told_scale). Given: told as given, whatever the GNSS."""
     sparse_rule: bool = True
     """Filtered learned policies (policy+filter, c+filter) fly straight where a vehicle meets at
     most one other and not dead-on, as the agents do (policy.sparse); off: the policy always."""
@@ -103,8 +104,9 @@ class EvalConfig:
     """Confidence factor of the filter's uncertainty inflation (policy.safety.SafetyConfig.sigma_k,
     None = its default); 0: the filter takes the estimates as the truth."""
     tell_inflation: bool = False
-    """Tell the learned policies the separation inflated by the uncertainty as well
-    (policy.runtime.told_separation_m's inflation_m); off: they are told what ideal vehicles are."""
+    """Tell the learned policies the separation inflated by the whole uncertainty, fixed at the
+    vehicles' sigma (policy.runtime.told_separation_m's inflation_m); off: as flight tells
+    them (beyond 0.5 m GNSS, the excess only: policy.runtime.told_scale)."""
     non_cooperative_separation_m: float | None = None
     """Separation the filter keeps from vehicles that do not cooperate (intruder suite;
     policy.safety.SafetyConfig.non_cooperative_radius_m); None: the separation."""
