@@ -26,6 +26,7 @@ import numpy as np
 
 from firmware import csafety, hostbuild
 from policy.observation import Observation, Sky
+from policy.runtime import TOLD_SIGMA_FREE_M
 
 MAX_NEIGHBOURS = 40
 """COVEY_MAX_NEIGHBOURS: most neighbours fed to the LSTM."""
@@ -110,7 +111,7 @@ class CPolicy:
         sparse_rule: bool = True,
         keep_out_m=None,
         fence_m=None,
-        told_sigma_free_m: float | None = 0.5,
+        told_sigma_free_m: float | None = TOLD_SIGMA_FREE_M,
     ):
         """The defaults fly as the agents and the PX4 module do (GuidancePolicy's defaults).
         `told_sigma_free_m`: as GuidancePolicy's (covey_told_scale; None: never).
@@ -276,7 +277,7 @@ class CPolicy:
     def _told_cfg(self, obs: Observation) -> _Config | None:
         """The network's config at this decision: its told separation times `told_scale`
         (None: as built), as covey_guidance_step tells it."""
-        if self.told_sigma_free_m is None or obs.sky.pos_sigma_m is None:
+        if self.told_sigma_free_m is None:
             return None
         sky = obs.sky
         scale = self.told_scale(
