@@ -102,13 +102,17 @@ def finite(
     minimum: float | None = 0.0,
     inclusive: bool = False,
     allow_inf: bool = False,
+    maximum: float | None = None,
 ) -> Callable[[str], float]:
     """A finite number of `unit` above `minimum` (or at least it, with `inclusive`; any finite
-    number with minimum=None); with `allow_inf`, also "inf" (for "as fast as possible")."""
+    number with minimum=None) and at most `maximum` (when given); with `allow_inf`, also "inf"
+    (for "as fast as possible")."""
     if minimum is None:
         bound = ""
     else:
         bound = f" {'>=' if inclusive else '>'} {minimum:g}"
+    if maximum is not None:
+        bound += f"{' and' if bound else ''} <= {maximum:g}"
 
     def parse(text: str) -> float:
         try:
@@ -118,6 +122,8 @@ def finite(
         ok = math.isfinite(v) or (allow_inf and v == math.inf)
         if ok and minimum is not None:
             ok = v >= minimum if inclusive else v > minimum
+        if ok and maximum is not None:
+            ok = v <= maximum
         if not ok:
             raise argparse.ArgumentTypeError(f"{text!r} must be a finite number of {unit}{bound}")
         return v

@@ -67,6 +67,7 @@ covey_safety_config_t covey_safety_defaults(float separation_m, float max_speed_
     c.sigma_k = 4.0f; /* policy/safety.py SIGMA_K */
     c.non_cooperative_radius_m = 0.0f;
     c.manned_radius_m = COVEY_SAFETY_MANNED_SEPARATION_M;
+    c.recover_speed_share = COVEY_SAFETY_RECOVER_SPEED_SHARE;
     return c;
 }
 
@@ -83,7 +84,7 @@ covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
     if (!isfinite(cfg->radius_m) || !isfinite(cfg->margin) || !isfinite(cfg->time_horizon_s) ||
         !isfinite(cfg->dt_s) || !isfinite(cfg->max_speed_m_s) || !isfinite(cfg->responsibility) ||
         !isfinite(cfg->sigma_k) || !isfinite(cfg->non_cooperative_radius_m) ||
-        !isfinite(cfg->manned_radius_m)) {
+        !isfinite(cfg->manned_radius_m) || !isfinite(cfg->recover_speed_share)) {
         return COVEY_ERR_NONFINITE;
     }
     if (!in_range(cfg->radius_m, COVEY_SAFETY_MIN_RADIUS_M, COVEY_SAFETY_MAX_RADIUS_M) ||
@@ -97,7 +98,8 @@ covey_status_t covey_safety_config_check(const covey_safety_config_t *cfg)
           in_range(cfg->non_cooperative_radius_m, COVEY_SAFETY_MIN_RADIUS_M,
                    COVEY_SAFETY_MAX_RADIUS_M)) ||
         !(cfg->manned_radius_m == 0.0f ||
-          in_range(cfg->manned_radius_m, COVEY_SAFETY_MIN_RADIUS_M, COVEY_SAFETY_MAX_RADIUS_M))) {
+          in_range(cfg->manned_radius_m, COVEY_SAFETY_MIN_RADIUS_M, COVEY_SAFETY_MAX_RADIUS_M)) ||
+        !in_range(cfg->recover_speed_share, 0.0f, COVEY_SAFETY_MAX_RECOVER_SHARE)) {
         return COVEY_ERR_RANGE;
     }
     return COVEY_OK;
@@ -233,7 +235,16 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
         }
     }
     if (dist_sq <= r * r) {
-        const real_t inv_dt = R(1.0) / R(cfg->dt_s);
+        real_t inv_dt = R(1.0) / R(cfg->dt_s);
+        if (cfg->recover_speed_share > 0.0f) {
+            /* part at what vehicles can, not within one dt (policy/safety.py
+             * RECOVER_SPEED_SHARE) */
+            const real_t gap = r - R_SQRT(dist_sq);
+            const real_t rec = R(cfg->recover_speed_share) * R(cfg->max_speed_m_s);
+            if (gap * inv_dt > rec) {
+                inv_dt = rec / gap;
+            }
+        }
         const real_t cx = vx - inv_dt * px;
         const real_t cy = vy - inv_dt * py;
         const real_t c_len = R_SQRT(R_FMAX(cx * cx + cy * cy, COVEY_SAFETY_EPS));

@@ -32,6 +32,7 @@ extern "C" {
 #define COVEY_SAFETY_MAX_TIME_S 1000.0f
 #define COVEY_SAFETY_MAX_SIGMA_K 10.0f        /* sigma_k in [0, this] */
 #define COVEY_SAFETY_MAX_SIGMA_M 1000.0f      /* a track's pos_sigma_m in [0, this] */
+#define COVEY_SAFETY_MAX_RECOVER_SHARE 10.0f  /* recover_speed_share in [0, this] */
 
 /* Filter parameters in world units (policy/safety.py SafetyConfig, same defaults). */
 typedef struct {
@@ -49,7 +50,14 @@ typedef struct {
     float manned_radius_m; /* 0 = as non_cooperative_radius_m, else [0.01, 1000]: the separation
                               kept from a manned track (COVEY_TRACK_MANNED), 30
                               (COVEY_SAFETY_MANNED_SEPARATION_M; policy/safety.py) */
+    float recover_speed_share; /* [0, 10]: a pair found inside its distance is asked to part at
+                                  up to this share of max_speed_m_s (relative), not within one
+                                  dt_s (policy/safety.py RECOVER_SPEED_SHARE), 2; 0 (as a
+                                  zero-initialised config has it): within one dt_s */
 } covey_safety_config_t;
+
+/* covey_safety_defaults' recover_speed_share (policy/safety.py RECOVER_SPEED_SHARE). */
+#define COVEY_SAFETY_RECOVER_SPEED_SHARE 2.0f
 
 /* covey_safety_defaults' manned_radius_m (policy/safety.py MANNED_SEPARATION_M). */
 #define COVEY_SAFETY_MANNED_SEPARATION_M 30.0f

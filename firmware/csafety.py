@@ -82,6 +82,7 @@ class SafetyConfigC(ctypes.Structure):
         ("sigma_k", ctypes.c_float),
         ("non_cooperative_radius_m", ctypes.c_float),
         ("manned_radius_m", ctypes.c_float),
+        ("recover_speed_share", ctypes.c_float),
     ]
 
     @classmethod
@@ -98,6 +99,7 @@ class SafetyConfigC(ctypes.Structure):
             cfg.sigma_k,
             cfg.non_cooperative_radius_m or 0.0,
             cfg.manned_radius_m or 0.0,
+            cfg.recover_speed_share,
         )
 
 

@@ -103,6 +103,10 @@ class EvalConfig:
     sigma_k: float | None = None
     """Confidence factor of the filter's uncertainty inflation (policy.safety.SafetyConfig.sigma_k,
     None = its default); 0: the filter takes the estimates as the truth."""
+    recover_speed_share: float | None = None
+    """How fast a pair found inside its distance is asked to part, as a share of the speed limit
+    (policy.safety.SafetyConfig.recover_speed_share, None = its default: 2, each vehicle at up
+    to its full speed); 0: within one control period, as RVO2 does (before)."""
     tell_inflation: bool = False
     """Tell the learned policies the separation inflated by the whole uncertainty, fixed at the
     vehicles' sigma (policy.runtime.told_separation_m's inflation_m); off: as flight tells
@@ -171,6 +175,8 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
     from policy.sparse import SparseConfig
 
     safety_cfg = SafetyConfig(dt_s=cfg.dt_s)
+    if cfg.recover_speed_share is not None:
+        safety_cfg = dataclasses.replace(safety_cfg, recover_speed_share=cfg.recover_speed_share)
     if cfg.sigma_k is not None:
         safety_cfg = dataclasses.replace(safety_cfg, sigma_k=cfg.sigma_k)
     if cfg.non_cooperative_separation_m is not None:
@@ -538,6 +544,7 @@ def merge(paths, out: str | Path) -> dict:
 def parser() -> argparse.ArgumentParser:
     """One flag per EvalConfig field (help: the docstring under it), plus --merge."""
     from cli.options import add_config_flags, finite, renamed
+    from policy.safety import MAX_RECOVER_SPEED_SHARE
 
     ap = argparse.ArgumentParser(
         prog="covey eval", description="Evaluate the guidance policy and baselines."
@@ -550,6 +557,9 @@ def parser() -> argparse.ArgumentParser:
             "policy_period_s": finite("seconds", inclusive=True),
             "policy_separation_m": finite("metres"),
             "sigma_k": finite("standard deviations", inclusive=True),
+            "recover_speed_share": finite(
+                "shares of the speed limit", inclusive=True, maximum=MAX_RECOVER_SPEED_SHARE
+            ),
             "tracking_lag_s": finite("seconds", inclusive=True),
         },
     )

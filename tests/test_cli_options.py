@@ -48,6 +48,9 @@ NO_UNIT_SUFFIX: dict[str, set[tuple[str, str]]] = {
         ("eval", "--sigma-k")
     },
     "a ratio of real time (2 = twice as fast), no unit": {("replay", "--speed")},
+    "a share of the speed limit (2 = twice max_speed_m_s), as SafetyConfig.recover_speed_share": {
+        ("eval", "--recover-speed-share")
+    },
     "LAT,LON,ALT: three numbers in degrees, degrees, metres, named by the metavar": {
         ("agent", "--origin"),
         ("fleet-sim", "--origin"),

@@ -141,6 +141,7 @@ static int run_safety_case(covey_safety_scratch_t *scratch, covey_track_t *track
     cfg.sigma_k = 0.0f; /* the "S" lines carry no uncertainty (tests/test_safety_sky.py: ctypes) */
     cfg.non_cooperative_radius_m = 0.0f;
     cfg.manned_radius_m = 0.0f;
+    cfg.recover_speed_share = COVEY_SAFETY_RECOVER_SPEED_SHARE; /* SafetyConfig's default */
     memset(tracks, 0, sizeof(covey_track_t) * COVEY_MAX_INPUTS);
     for (long long i = 0; i < n_rec; ++i) {
         if (!(read_f(&tracks[i].pos_n_m) && read_f(&tracks[i].pos_e_m) &&
