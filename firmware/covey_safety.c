@@ -185,8 +185,8 @@ static real_t kept_offset(real_t px, real_t py, real_t jx, real_t jy, real_t j_l
     return R_FMAX(m, m - along / closing * (ox * jy - oy * jx));
 }
 
-static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, real_t tau,
-                      int nc, real_t px, real_t py, real_t vx, real_t vy,
+static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t pad, real_t share,
+                      real_t tau, int nc, real_t px, real_t py, real_t vx, real_t vy,
                       const covey_track_t *own, line_t *line)
 {
     const real_t dist_sq = px * px + py * py;
@@ -236,10 +236,11 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t share, 
     }
     if (dist_sq <= r * r) {
         real_t inv_dt = R(1.0) / R(cfg->dt_s);
-        if (cfg->recover_speed_share > 0.0f) {
-            /* part at what vehicles can, not within one dt (policy/safety.py
-             * RECOVER_SPEED_SHARE) */
-            const real_t gap = r - R_SQRT(dist_sq);
+        const real_t d = R_SQRT(dist_sq);
+        if (cfg->recover_speed_share > 0.0f && pad > R(0.0) && d >= r - pad) {
+            /* inside the uncertainty padding only: part at what vehicles can, not within one
+             * dt (policy/safety.py RECOVER_SPEED_SHARE) */
+            const real_t gap = r - d;
             const real_t rec = R(cfg->recover_speed_share) * R(cfg->max_speed_m_s);
             if (gap * inv_dt > rec) {
                 inv_dt = rec / gap;
@@ -567,8 +568,8 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
             const real_t base = !nc ? R(cfg->radius_m)
                                 : nbrs[i].non_cooperative == COVEY_TRACK_MANNED ? manned_base
                                                                                  : nc_base;
-            const real_t r =
-                base * one_margin + R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
+            const real_t pad = R(cfg->sigma_k) * R_SQRT(s_own * s_own + s_nbr * s_nbr);
+            const real_t r = base * one_margin + pad;
             const real_t share = nc ? R(1.0) : R(cfg->responsibility);
             /* a non-cooperative track as planned against: NC_SPEED_MARGIN faster than reported
              * (policy/traffic_rules.py planned_velocity) */
@@ -620,7 +621,8 @@ covey_status_t covey_safety_filter_hard(const covey_safety_config_t *cfg, const 
                     ahead_te = jy / jn;
                 }
             }
-            orca_line(cfg, r, share, tau_j, nc, px, py, vx, vy, own, &scratch->lines[n_lines++]);
+            orca_line(cfg, r, pad, share, tau_j, nc, px, py, vx, vy, own,
+                      &scratch->lines[n_lines++]);
         }
     }
 

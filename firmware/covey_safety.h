@@ -50,9 +50,10 @@ typedef struct {
     float manned_radius_m; /* 0 = as non_cooperative_radius_m, else [0.01, 1000]: the separation
                               kept from a manned track (COVEY_TRACK_MANNED), 30
                               (COVEY_SAFETY_MANNED_SEPARATION_M; policy/safety.py) */
-    float recover_speed_share; /* [0, 10]: a pair found inside its distance is asked to part at
-                                  up to this share of max_speed_m_s (relative), not within one
-                                  dt_s (policy/safety.py RECOVER_SPEED_SHARE), 2; 0 (as a
+    float recover_speed_share; /* [0, 10]: a pair inside its sigma padding, not inside the
+                                  separation itself, is asked to part at up to this share of
+                                  max_speed_m_s (relative), not within one dt_s
+                                  (policy/safety.py RECOVER_SPEED_SHARE), 2; 0 (as a
                                   zero-initialised config has it): within one dt_s */
 } covey_safety_config_t;
 

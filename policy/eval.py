@@ -104,9 +104,10 @@ class EvalConfig:
     """Confidence factor of the filter's uncertainty inflation (policy.safety.SafetyConfig.sigma_k,
     None = its default); 0: the filter takes the estimates as the truth."""
     recover_speed_share: float | None = None
-    """How fast a pair found inside its distance is asked to part, as a share of the speed limit
-    (policy.safety.SafetyConfig.recover_speed_share, None = its default: 2, each vehicle at up
-    to its full speed); 0: within one control period, as RVO2 does (before)."""
+    """How fast a pair inside its uncertainty padding (not the separation itself) is asked to
+    part, as a share of the speed limit (policy.safety.SafetyConfig.recover_speed_share, None =
+    its default: 2, each vehicle at up to its full speed); 0: within one control period, as RVO2
+    does (before)."""
     tell_inflation: bool = False
     """Tell the learned policies the separation inflated by the whole uncertainty, fixed at the
     vehicles' sigma (policy.runtime.told_separation_m's inflation_m); off: as flight tells

@@ -68,13 +68,16 @@ within one control period: (r - d) / dt, 18 m/s for a pair 1.8 m inside its dist
 vehicle can, so the program is infeasible and its fallback minimises the worst violation, which
 that one pair then sets: every other neighbour, approaching or not, is ignored up to the same
 violation. With uncertain positions this is common, not an emergency: a pair is "inside" as
-soon as its estimates are within the sigma padding (7.8 m at 0.75 m GNSS and k = 4), and a
-dense crowd has many such pairs. Capped at 2 x max_speed_m_s relative (each vehicle of a
-reciprocal pair parts at up to its full speed, as it did alone), the demand of such a pair
-stays feasible beside the others, and the crowd parts without running into third vehicles.
-Measured (docs/sky.md, "Parting pairs"; `python -m bench.gnss_beyond`): realistic vehicles at
-0.75 and 1 m GNSS, 0 collision cases where the old rule left 1 and 3 (of 96), closest true
-3.63-4.51 m at 1 m; ideal vehicles unchanged; a cap of 1 left collisions in dense circles.
+soon as its estimates are within the sigma padding (`pair_pad_m`: 4.2 m of the 7.8 m at
+0.75 m GNSS and k = 4), and a dense crowd has many such pairs. So a pair inside the padding
+but not inside the separation itself (d >= r - pad) is asked to part at most at this share of
+max_speed_m_s, relative: 2 lets each vehicle of a reciprocal pair part at its full speed, as
+it did alone, and the demand stays feasible beside the others'. A pair inside the separation
+itself is an emergency and keeps RVO2's demand; with exact positions (no padding) nothing
+changes. Measured (docs/sky.md, "Parting pairs"; `python -m bench.gnss_beyond`): realistic
+vehicles at 0.75 and 1 m GNSS, 0 collision cases where the old rule left 1 and 3 (of 96);
+ideal vehicles the same flights. Capping inside the separation too, or capping at 1, left
+collisions in dense or gusty circles.
 The C twin is covey_safety_config_t.recover_speed_share (covey_safety_defaults)."""
 MAX_RECOVER_SPEED_SHARE = 10.0
 """The largest `SafetyConfig.recover_speed_share` (COVEY_SAFETY_MAX_RECOVER_SHARE in C)."""
@@ -112,9 +115,9 @@ class SafetyConfig:
     """Separation kept from a manned aircraft (a non-cooperative neighbour flagged manned:
     `nbr_manned`), before margin and uncertainty; None = as any non-cooperative neighbour."""
     recover_speed_share: float = RECOVER_SPEED_SHARE
-    """A pair found inside its distance is asked to part at up to this share of max_speed_m_s
-    (relative; each vehicle takes its share), not within one dt_s (`RECOVER_SPEED_SHARE`);
-    0: within one dt_s, as RVO2 does (before)."""
+    """A pair inside its uncertainty padding (not inside the separation itself) is asked to part
+    at up to this share of max_speed_m_s (relative; each vehicle takes its share), not within
+    one dt_s (`RECOVER_SPEED_SHARE`); 0: within one dt_s, as RVO2 does (before)."""
 
     def __post_init__(self) -> None:
         share = self.recover_speed_share
@@ -177,10 +180,20 @@ def pair_radius_m(
         manned = np.asarray(nbr_manned, dtype=bool)
         shape = np.broadcast_shapes(shape, manned.shape)
         base_j = np.where(manned, cfg.manned_radius_m, base_j)
-    r = base_j * (1.0 + cfg.margin)
-    r = r + cfg.sigma_k * np.sqrt(own[..., None] ** 2 + nbr**2)
+    r = base_j * (1.0 + cfg.margin) + pair_pad_m(cfg, own, nbr)
     share = np.where(coop, cfg.responsibility, 1.0)
     return np.broadcast_to(r, shape), np.broadcast_to(share, shape)
+
+
+def pair_pad_m(cfg: SafetyConfig, pos_sigma_m=None, nbr_pos_sigma_m=None):
+    """The part of each pair's distance (`pair_radius_m`) that is there for the position
+    uncertainty: sigma_k sqrt(sigma_i^2 + sigma_j^2); 0.0 when no sigma is given. pos_sigma_m
+    scalar or (...,), nbr_pos_sigma_m (..., K): an array of the neighbours' shape."""
+    if pos_sigma_m is None and nbr_pos_sigma_m is None:
+        return 0.0
+    own = np.asarray(0.0 if pos_sigma_m is None else pos_sigma_m, dtype=np.float64)
+    nbr = np.asarray(0.0 if nbr_pos_sigma_m is None else nbr_pos_sigma_m, dtype=np.float64)
+    return cfg.sigma_k * np.sqrt(own[..., None] ** 2 + nbr**2)
 
 
 def untie(rel_pos, own_ids, nbr_ids):
@@ -203,12 +216,14 @@ def untie(rel_pos, own_ids, nbr_ids):
     return out
 
 
-def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None, nc=None):
+def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None, nc=None, pad=None):
     """ORCA half-planes for one or many vehicles.
 
     rel_pos = p_j - p_i, rel_vel = v_i - v_j, shapes (..., K, 2); own_vel (..., 2).
     r and share (scalars or (..., K)): each pair's distance and this vehicle's share of the
     correction (`pair_radius_m`); None: radius_m (1 + margin) and responsibility.
+    pad (..., K) or None: the part of r there for position uncertainty (`pair_pad_m`); a pair
+    inside r but not inside r - pad parts at what vehicles can (`RECOVER_SPEED_SHARE`).
     nc (..., K) bool or None: non-cooperative neighbours, which get their own horizon
     (`pair_horizon_s`) and, on a collision course (v_rel inside the untruncated cone: v.p > 0
     and |det(p, v)| < r |v|), the projection onto a leg of the cone instead of the cut-off
@@ -257,9 +272,12 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None,
     # already colliding: resolve within one control period
     colliding = dist_sq <= r * r
     inv_dt = 1.0 / cfg.dt_s
-    if cfg.recover_speed_share > 0:  # part at what vehicles can (RECOVER_SPEED_SHARE)
+    if pad is not None and cfg.recover_speed_share > 0:
+        # inside the padding only: part at what vehicles can (RECOVER_SPEED_SHARE)
         rec = cfg.recover_speed_share * cfg.max_speed_m_s
-        inv_dt = np.minimum(inv_dt, rec / np.maximum(r - np.sqrt(dist_sq), EPS))
+        d = np.sqrt(dist_sq)
+        capped = np.minimum(inv_dt, rec / np.maximum(r - d, EPS))
+        inv_dt = np.where(d >= r - pad, capped, inv_dt)
     cx, cy = vx - inv_dt * px, vy - inv_dt * py
     c_len = np.sqrt(np.maximum(cx * cx + cy * cy, EPS))
     ucx, ucy = cx / c_len, cy / c_len
@@ -336,6 +354,7 @@ def filter_velocity(
         return _clip_speed(np.asarray(pref_vel_m_s, dtype=np.float64), cfg.max_speed_m_s)
     if np.ndim(r):
         r, share = r[near], share[near]
+    pad = pair_pad_m(cfg, pos_sigma_m, nbr_pos_sigma_m)
     point, direction = orca_lines(
         rel_pos[near],
         rel_vel[near],
@@ -344,6 +363,7 @@ def filter_velocity(
         r,
         share,
         None if coop is None else ~coop[near],
+        np.broadcast_to(pad, near.shape)[near],
     )
     if coop is None:
         return solve(point, direction, pref_vel_m_s, cfg.max_speed_m_s)
@@ -392,7 +412,11 @@ def _orca_line(px, py, vx, vy, own_vx, own_vy, r, cfg: SafetyConfig):
 
 
 def _line_constants(
-    r: float, cfg: SafetyConfig, share: float | None = None, tau: float | None = None
+    r: float,
+    cfg: SafetyConfig,
+    share: float | None = None,
+    tau: float | None = None,
+    pad: float = 0.0,
 ) -> tuple:
     """What `_orca_line_k` needs of the config, computed once per vehicle (per neighbour when
     the pairs differ: `pair_radius_m`; tau: a non-cooperative pair's `pair_horizon_s`, which
@@ -401,22 +425,23 @@ def _line_constants(
     tau = cfg.time_horizon_s if tau is None else tau
     inv_dt = 1.0 / cfg.dt_s
     k = cfg.responsibility if share is None else share
-    rec = cfg.recover_speed_share * cfg.max_speed_m_s
-    return r, r * r, tau, r / tau, inv_dt, r * inv_dt, k, nc, cfg.max_speed_m_s, rec
+    rec = cfg.recover_speed_share * cfg.max_speed_m_s if pad > 0 else 0.0
+    return r, r * r, tau, r / tau, inv_dt, r * inv_dt, k, nc, cfg.max_speed_m_s, rec, r - pad
 
 
 def _orca_line_k(px, py, vx, vy, own_vx, own_vy, consts):
     """`_orca_line` with the config's constants precomputed (`_line_constants`); max(x, EPS)
     as a comparison (the same value, NaN included)."""
-    r, r_sq, tau, r_tau, inv_dt, r_inv_dt, k, nc, vmax, rec = consts
+    r, r_sq, tau, r_tau, inv_dt, r_inv_dt, k, nc, vmax, rec, hard_r = consts
     dist_sq = px * px + py * py
     if nc and dist_sq <= r_sq and px * vx + py * vy > 0:  # the escape rule of `orca_lines`
         line = escape_one(px, py, vx, vy, own_vx, own_vy, r, vmax)
         if line is not None:
             return line
     if dist_sq <= r_sq:
-        if rec > 0:  # part at what vehicles can (RECOVER_SPEED_SHARE)
-            gap = r - math.sqrt(dist_sq)
+        d = math.sqrt(dist_sq)
+        if rec > 0 and d >= hard_r:  # inside the padding only: part at what vehicles can
+            gap = r - d
             if gap * inv_dt > rec:
                 inv_dt = rec / gap
                 r_inv_dt = r * inv_dt
@@ -479,6 +504,7 @@ def filter_one(
             cfg, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned
         )
         k_n = np.asarray(nbr_pos_m).reshape(-1, 2).shape[0]
+        pads = np.broadcast_to(pair_pad_m(cfg, pos_sigma_m, nbr_pos_sigma_m), (k_n,)).tolist()
         radii = np.broadcast_to(radii, (k_n,)).tolist()
         shares = np.broadcast_to(shares, (k_n,)).tolist()
         coops = (
@@ -522,7 +548,7 @@ def filter_one(
                 tx, ty = tie_direction(own_id, ids[k])
                 px, py = tx * COINCIDENT_M, ty * COINCIDENT_M
             if per_nbr:
-                consts = _line_constants(radii[k], cfg, shares[k], tau_nc)
+                consts = _line_constants(radii[k], cfg, shares[k], tau_nc, pads[k])
             elif consts is None:
                 consts = _line_constants(base, cfg)
             vx, vy = own_vx - nvx, own_vy - nvy
@@ -616,8 +642,9 @@ def filter_padded(
     tau = pair_horizon_s(cfg, r, np.hypot(rel_vel[..., 0], rel_vel[..., 1]), coop)
     reach = pair_reach_m(cfg, r, np.hypot(nbr_vel_m_s[..., 0], nbr_vel_m_s[..., 1]), coop, tau)
     ok = np.asarray(nbr_valid, dtype=bool) & ((rel_pos**2).sum(-1) < reach * reach)
+    pad = np.broadcast_to(pair_pad_m(cfg, pos_sigma_m, nbr_pos_sigma_m), rel_pos.shape[:-1])
     point, direction = orca_lines(
-        rel_pos, rel_vel, vel_m_s, cfg, r, share, None if coop is None else ~coop
+        rel_pos, rel_vel, vel_m_s, cfg, r, share, None if coop is None else ~coop, pad
     )
     viol = _det(
         direction[..., 0],

@@ -1,6 +1,7 @@
-"""A pair found inside its distance parts at what vehicles can (policy.safety.RECOVER_SPEED_SHARE),
-in numpy (both paths) and in C: the demand no longer makes the program infeasible, so the
-other neighbours still count."""
+"""A pair inside its uncertainty padding parts at what vehicles can
+(policy.safety.RECOVER_SPEED_SHARE), in numpy (both paths) and in C: the demand no longer makes
+the program infeasible, so the other neighbours still count. Inside the separation itself, and
+without sigmas, nothing changes."""
 
 from __future__ import annotations
 
@@ -46,6 +47,30 @@ def test_a_small_overlap_is_answered_as_before() -> None:
         cfg = SafetyConfig(recover_speed_share=share)
         v = filter_velocity(ZERO, ZERO, ZERO, [[-3.55, 0.0]], [[0.0, 0.0]], cfg)
         assert v == pytest.approx([0.5 * 0.05 / cfg.dt_s, 0.0], abs=1e-6)
+
+
+@pytest.mark.parametrize("fn", [filter_velocity, filter_one], ids=["vectorised", "scalar"])
+def test_inside_the_separation_itself_the_demand_is_rvo2s(fn) -> None:
+    """3 m from the hovering one, inside the 3.6 m separation and not only its padding: an
+    emergency, answered as before (flee it, whatever comes from the other side)."""
+    args = (ZERO, ZERO, ZERO, [[-3.0, 0.0], [7.0, 0.3]], [[0.0, 0.0], [-1.0, 0.0]])
+    kw = {"pos_sigma_m": SIGMA, "nbr_pos_sigma_m": np.array([SIGMA, SIGMA])}
+    before = fn(*args, SafetyConfig(recover_speed_share=0.0), **kw)
+    after = fn(*args, SafetyConfig(), **kw)
+    assert after == pytest.approx(before, abs=1e-9)
+    assert after[0] > 0.9
+
+
+def test_exact_positions_fly_as_before() -> None:
+    """No padding without sigmas: the rule changes nothing (ideal vehicles fly the same)."""
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        k = int(rng.integers(1, 8))
+        args = (ZERO, rng.uniform(-1, 1, 2), rng.uniform(-1.2, 1.2, 2))
+        nbrs = (rng.uniform(-6, 6, (k, 2)), rng.uniform(-1, 1, (k, 2)))
+        for fn in (filter_velocity, filter_one):
+            old = fn(*args, *nbrs, SafetyConfig(recover_speed_share=0.0))
+            assert fn(*args, *nbrs, SafetyConfig()) == pytest.approx(old, abs=1e-12)
 
 
 @pytest.mark.parametrize("fn", [filter_velocity, filter_one], ids=["vectorised", "scalar"])
