@@ -271,7 +271,7 @@ def orca_lines(rel_pos, rel_vel, own_vel, cfg: SafetyConfig, r=None, share=None,
     u_y = np.where(on_circle, (r / tau - w_len) * uy_c, dot2 * ly - vy)
     # already colliding: resolve within one control period
     colliding = dist_sq <= r * r
-    inv_dt = 1.0 / cfg.dt_s
+    inv_dt: float | np.ndarray = 1.0 / cfg.dt_s
     if pad is not None and cfg.recover_speed_share > 0:
         # inside the padding only: part at what vehicles can (RECOVER_SPEED_SHARE)
         rec = cfg.recover_speed_share * cfg.max_speed_m_s
