@@ -17,19 +17,13 @@ needs_cc = pytest.mark.skipif(shutil.which("cc") is None, reason="no system C co
 SIGMA = 0.75  # each; r = 3.6 + 4 sqrt(2) 0.75 = 7.84 m between estimates
 
 
+CROWD = ([[-6.0, 0.0], [7.0, 0.3]], [[0.0, 0.0], [-1.0, 0.0]])
+"""At rest 6 m from a hovering neighbour (1.84 m inside their 7.84 m), while another comes
+head-on from the other side at 1 m/s: the neighbours' positions and velocities."""
+
+
 def _crowded(cfg: SafetyConfig, fn=filter_velocity) -> np.ndarray:
-    """At rest 6 m from a hovering neighbour (1.84 m inside their 7.84 m), while another comes
-    head-on from the other side at 1 m/s."""
-    return fn(
-        ZERO,
-        ZERO,
-        ZERO,
-        [[-6.0, 0.0], [7.0, 0.3]],
-        [[0.0, 0.0], [-1.0, 0.0]],
-        cfg,
-        pos_sigma_m=SIGMA,
-        nbr_pos_sigma_m=np.array([SIGMA, SIGMA]),
-    )
+    return fn(ZERO, ZERO, ZERO, *CROWD, cfg, pos_sigma_m=SIGMA, nbr_pos_sigma_m=[SIGMA, SIGMA])
 
 
 def test_one_pair_inside_parts_at_full_speed_either_way() -> None:
@@ -136,14 +130,5 @@ def test_the_c_config_refuses_a_bad_share(lib) -> None:
 
 
 def _crowded_args() -> tuple:
-    return (
-        ZERO,
-        ZERO,
-        ZERO,
-        [[-6.0, 0.0], [7.0, 0.3]],
-        [[0.0, 0.0], [-1.0, 0.0]],
-        0,
-        None,
-        SIGMA,
-        np.array([SIGMA, SIGMA]),
-    )
+    """CROWD as CSafetyFilter.evaluate takes it (no ids)."""
+    return (ZERO, ZERO, ZERO, *CROWD, 0, None, SIGMA, np.array([SIGMA, SIGMA]))
