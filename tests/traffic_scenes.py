@@ -55,12 +55,21 @@ def c_filter(cfg):
     return CSafetyFilter(load_library(), cfg)
 
 
-def intruder_run(seed: int, case: str, controller: str, link: str, suite: str = "intruder"):
+def intruder_run(
+    seed: int,
+    case: str,
+    controller: str,
+    link: str,
+    suite: str = "intruder",
+    recover_speed_share: float | None = None,
+):
     """One run of `covey eval --suites <suite> --vehicles realistic --controllers
     policy+filter,c+filter --seed <seed>`, with that command's random draws: the case `case` of
     `suite` ("intruder" or "manned") flown by `controller` ("policy+filter" or "c+filter", which
     needs a C compiler) on `link` ("perfect" or "degraded"). Module constants are read as the
-    run flies, so a test may monkeypatch them first. Returns evalsim.run's metrics."""
+    run flies, so a test may monkeypatch them first. `recover_speed_share`: `covey eval
+    --recover-speed-share` (0: the parting rule before policy.safety.RECOVER_SPEED_SHARE).
+    Returns evalsim.run's metrics."""
     from firmware.ceval import CONTROLLERS
     from policy import eval as ev
     from policy import evalsim
@@ -70,7 +79,12 @@ def intruder_run(seed: int, case: str, controller: str, link: str, suite: str = 
     ctrls = ("policy+filter", "c+filter")
     links = ("perfect", "degraded")
     cfg = ev.EvalConfig(
-        seed=seed, suites=(suite,), vehicles="realistic", progress=False, controllers=ctrls
+        seed=seed,
+        suites=(suite,),
+        vehicles="realistic",
+        progress=False,
+        controllers=ctrls,
+        recover_speed_share=recover_speed_share,
     )
     index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
     i, (_, _, starts, goals, opts) = index[case]
