@@ -376,7 +376,8 @@ def config_from_args(
     one = not _hosting(args)
     return ShellConfig(
         ids=ids,
-        mesh=mesh_config(args, p),
+        # no shared memory: no watchdog thread in every agent (comms/session.py shared_memory)
+        mesh=dataclasses.replace(mesh_config(args, p), shared_memory=False),
         vehicle=getattr(args, "vehicle", "sim"),
         tick_hz=rate_hz,
         state_hz=args.state_hz if one else rate_hz,

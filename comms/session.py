@@ -167,12 +167,15 @@ class MeshConfig:
     cell_relay_period_s: float | None = 0.1
     """Router mode: relay the fleet's cells to the vehicles that want them from this router every
     this many seconds, within [0.01, 0.3] (comms/relay.py); None: no relay."""
-    shared_memory: bool = False
-    """Zenoh's shared-memory transport between processes on one host. covey's messages are a few
-    hundred bytes and its Python side allocates no shared buffers, so it carries nothing here,
-    but a link that negotiates it starts a watchdog thread in each process that wakes 20 times
-    a second (0.08 ms of CPU per 10 Hz tick of a flying agent; 40 agents beside their router:
-    800 wake-ups a second). Off, whatever a config file says, as the fields above."""
+    shared_memory: bool | None = None
+    """Zenoh's shared-memory transport between processes on one host; None: as Zenoh or the
+    config file has it (Zenoh 1.x: on, for messages above 3 KB). `covey agent` turns it off
+    (agent/agent_cli.py): the cell relay's batches (up to 4 KiB) would start a watchdog thread
+    in every agent beside its router that wakes 20 times a second (0.08 ms of CPU per 10 Hz
+    tick; 40 agents: 800 wake-ups a second), for messages that gain nothing from it. Between
+    hosts it never applies. On one host it carries floods of large messages (forged 41 KB
+    plans at 30-40 MB/s: the genuine plan through in 6-53 ms with it, 0.4-1.9 s behind the
+    backlog without, tests/test_plan_flood.py), so other processes keep Zenoh's default."""
     feed_hz: float = 5.0
     """How often this process sends its vehicles' latest states to the ground stations, batched
     (comms/feed.py). Within 2..50: the station calls a vehicle stale after 1 s without news
@@ -216,7 +219,8 @@ class MeshConfig:
         listen = [] if self.mode == "client" else list(self.listen)
         conf.insert_json5("listen/endpoints", json.dumps(listen))
         conf.insert_json5("transport/link/tx/lease", str(self.lease_ms))
-        conf.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
+        if self.shared_memory is not None:
+            conf.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         # Keep retrying to connect: agents may start before their router does, and a router
         # before the routers it links to (with 0, Zenoh tries each endpoint once, never again).
         # Without exit_on_failure, peers and routers retry in the background; a client waits.

@@ -1,6 +1,6 @@
-"""covey turns Zenoh's shared-memory transport off (comms/session.py MeshConfig.shared_memory):
-it carries nothing for covey, and a link between two processes on one host that negotiates it
-starts a watchdog thread in each, waking 20 times a second."""
+"""`covey agent` turns Zenoh's shared-memory transport off (comms/session.py
+MeshConfig.shared_memory): it carries nothing for an agent, and a link between two processes on
+one host that negotiates it starts a watchdog thread in each, waking 20 times a second."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ SHM = "transport/shared_memory/enabled"
 CHILD = """
 import os, sys, time, zenoh
 from comms.session import MeshConfig
-extra = (("{shm}", "true"),) if sys.argv[2] == "on" else ()
-cfg = MeshConfig(fleet="shm", mode="client", connect=(sys.argv[1],), extra=extra)
+on = sys.argv[2] == "on"
+cfg = MeshConfig(fleet="shm", mode="client", connect=(sys.argv[1],), shared_memory=on)
 with zenoh.open(cfg.zenoh_config()) as s:
     sub = s.declare_subscriber("shm/**")
     s.put("shm/hello", b"x")
@@ -28,12 +28,22 @@ with zenoh.open(cfg.zenoh_config()) as s:
 """
 
 
-def test_the_config_turns_it_off_whatever_a_file_says(tmp_path) -> None:
-    assert MeshConfig().zenoh_config().get_json(SHM) == "false"
+def test_the_config_sets_it_only_when_asked(tmp_path) -> None:
     path = tmp_path / "shm.json5"
     path.write_text("{ transport: { shared_memory: { enabled: true } } }")
-    assert MeshConfig(config_file=str(path)).zenoh_config().get_json(SHM) == "false"
+    assert MeshConfig(config_file=str(path)).zenoh_config().get_json(SHM) == "true"
+    off = MeshConfig(config_file=str(path), shared_memory=False)
+    assert off.zenoh_config().get_json(SHM) == "false", "the field wins over the file"
     assert MeshConfig(shared_memory=True).zenoh_config().get_json(SHM) == "true"
+
+
+def test_covey_agent_turns_it_off() -> None:
+    from agent.agent_cli import config_from_args, parser
+
+    p = parser()
+    cfg = config_from_args(p.parse_args(["--id", "3", "--fleet", "shm"]), p)
+    assert cfg.mesh.shared_memory is False
+    assert cfg.mesh.zenoh_config().get_json(SHM) == "false"
 
 
 def _threads(endpoint: str, shm: str) -> list[str]:
