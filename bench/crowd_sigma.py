@@ -33,14 +33,18 @@ CIRCLES = (16, 32, 50)
 LINKS = ("perfect", "degraded")
 
 
-def _controller(vehicles: str, sigma_k: float, seed: int, suite: str):
-    """policy+filter as `covey eval --vehicles V --sigma-k K --suites S` flies it."""
+def _controller(
+    vehicles: str, sigma_k: float, seed: int, suite: str, recover_speed_share: float | None = None
+):
+    """policy+filter as `covey eval --vehicles V --sigma-k K --suites S` flies it (with
+    `--recover-speed-share` when given)."""
     from policy import eval as ev
 
     cfg = ev.EvalConfig(
         vehicles=vehicles,
         seed=seed,
         sigma_k=sigma_k,
+        recover_speed_share=recover_speed_share,
         controllers=("policy+filter",),
         figures=False,
         progress=False,
@@ -49,11 +53,18 @@ def _controller(vehicles: str, sigma_k: float, seed: int, suite: str):
     return ev.controllers(cfg)["policy+filter"]
 
 
-def _fly(vehicles: str, sigma_k: float, seed: int, circles, links) -> list[dict]:
+def _fly(
+    vehicles: str,
+    sigma_k: float,
+    seed: int,
+    circles,
+    links,
+    recover_speed_share: float | None = None,
+) -> list[dict]:
     from policy import evalsim, scenarios
     from policy.pointmass import VehicleModel
 
-    ctrl = _controller(vehicles, sigma_k, seed, "circle")
+    ctrl = _controller(vehicles, sigma_k, seed, "circle", recover_speed_share)
     model = VehicleModel.named(vehicles)
     link_cfg = {"perfect": evalsim.PERFECT, "degraded": evalsim.DEGRADED}
     rows = []
