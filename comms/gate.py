@@ -180,26 +180,42 @@ class Gate:
 
     def admit_state(self, state: VehicleState, recv_ns: int) -> Refusal | str | None:
         """None: accept. A Refusal: drop and count. SKIPPED: drop silently (thinning)."""
-        vid = state.vehicle_id
-        if not state.sig:
+        head = self.admit_head(
+            state.vehicle_id, state.seq, state.stamp_ns, bool(state.sig), recv_ns
+        )
+        return head if head is not None else self.admit_decoded(state, recv_ns)
+
+    def admit_head(
+        self, vid: int, seq: int, stamp_ns: int, signed: bool, recv_ns: int
+    ) -> Refusal | str | None:
+        """Steps 1-4 of `admit_state`, on what a state's head says (`VehicleState.peek`): a
+        receiver need not decode a state these refuse or thin. None: go on with
+        `admit_decoded` on the decoded state (which must have this head)."""
+        if not signed:
             return self._refuse(Refusal.UNSIGNED, vid, "no signature", recv_ns)
-        age_ns = recv_ns - state.stamp_ns
+        age_ns = recv_ns - stamp_ns
         if abs(age_ns) > self._skew_ns:
             return self._refuse(
                 Refusal.STALE, vid, f"stamped {age_ns / 1e9:+.1f} s from now", recv_ns
             )
         last = self._last.get(vid)
         if last is not None:
-            if state.stamp_ns == last[0]:
-                return self._refuse(Refusal.REPLAYED, vid, f"seq {state.seq} again", recv_ns)
-            if state.stamp_ns < last[0]:
+            if stamp_ns == last[0]:
+                return self._refuse(Refusal.REPLAYED, vid, f"seq {seq} again", recv_ns)
+            if stamp_ns < last[0]:
                 return self._refuse(
-                    Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {state.seq})", recv_ns
+                    Refusal.OUT_OF_ORDER, vid, f"older than the last (seq {seq})", recv_ns
                 )
             if recv_ns - last[1] < self._min_ns:
                 with self._lock:
                     self.skipped += 1
                 return SKIPPED
+        return None
+
+    def admit_decoded(self, state: VehicleState, recv_ns: int) -> Refusal | str | None:
+        """The rest of `admit_state`, after `admit_head` passed `state`'s head: step 4b, the
+        signature, and the last accepted stamp (under the lock: a newer state may have won)."""
+        vid = state.vehicle_id
         if self.worth_checking is not None and not self.worth_checking(state):
             with self._lock:
                 self.skipped += 1

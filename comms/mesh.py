@@ -32,7 +32,8 @@ from comms.commands import CommandResult, Outcome, OutcomeStatus
 from comms.doc_sync import DocSync, RosterSyncConfig
 from comms.doc_sync import publish as publish_roster
 from comms.feed import FeedBuffer
-from comms.gate import SKIPPED, Gate, GateConfig, Refusal, Summaries
+from comms.gate import Gate, GateConfig, Refusal, Summaries
+from comms.heard import Heard
 from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
 from comms.relay import RELAY_SILENT_S, CellRelay, MisplacedState, RelayConfig, decode_placed
@@ -63,6 +64,9 @@ StateCallback = Callable[[VehicleState, int], None]
 Admit = Callable[[VehicleState, int, tuple], bool]
 """A subscription's checks and delivery of one decoded state (Mesh._admitter): (state, receive
 stamp in ns, extra callback arguments) -> whether it went on."""
+AdmitHeard = Callable[[Heard, int], bool]
+"""The same for a state heard by a polled subscription (comms/heard.py), decoded only if the
+gate's checks of its head pass: (heard, receive stamp in ns) -> whether it went on."""
 FeedCallback = Callable[[VehicleState, int, int], None]
 """Called with (state, receive stamp in ns, its entry number in its feed) on a Zenoh thread."""
 EventCallback = Callable[[Event, int], None]
@@ -358,12 +362,14 @@ class Mesh:
         owner's `drain()` (an agent's tick) takes them all at once (`_state_batch_handler`).
         `relay_for` (polled, one vehicle's id): hear the cells through the router's cell relay
         while it has one (comms/relay.py), one message a relay period instead of one per state."""
-        admit = self._admitter(callback, link, on_refused, gate, ignore_id, worth_checking)
+        admit, admit_heard = self._admitters(
+            callback, link, on_refused, gate, ignore_id, worth_checking
+        )
         sub = CellSubscription(
             self,
             self._state_handler(admit) if not polled else None,
             remote_only,
-            self._state_batch_handler(admit, link is not None, gate.batch_budget_s)
+            self._state_batch_handler(admit_heard, link is not None, gate.batch_budget_s)
             if polled
             else None,
             relay_for,
@@ -420,10 +426,11 @@ class Mesh:
         return on_sample
 
     def _state_batch_handler(
-        self, admit: Admit, every_state: bool, budget_s: float
-    ) -> Callable[[list[VehicleState], int, int], None]:
+        self, admit: AdmitHeard, every_state: bool, budget_s: float
+    ) -> Callable[[list[Heard], int, int], None]:
         """`_state_handler` for the states a polled subscription took at once
-        (`CellSubscription.drain`, which decodes them): each checked as one would be, its receive time
+        (`CellSubscription.drain`; each decoded only when tried: comms/heard.py): each checked
+        as one would be, its receive time
         estimated from the lags of its sender's states that went on (comms/arrival.py; a forged
         stamp cannot move it). `every_state` (a link, which judges every state it
         hears): every state goes on, in order. Otherwise only the newest state of each vehicle
@@ -436,17 +443,17 @@ class Mesh:
         unless it floods past the budget, and a flood cannot stall the tick."""
         arrival = ArrivalEstimate()  # the least lag of each sender's states that went on
 
-        def on_states(states: list[VehicleState], taken_ns: int, since_ns: int) -> None:
-            got: list[tuple[VehicleState, int]] = []
+        def on_states(states: list[Heard], taken_ns: int, since_ns: int) -> None:
+            got: list[tuple[Heard, int]] = []
             for state in states:
                 recv_ns = arrival.estimate_ns(state.vehicle_id, state.stamp_ns, taken_ns, since_ns)
                 got.append((state, recv_ns))
             if every_state:
                 for state, recv_ns in got:
-                    if admit(state, recv_ns, ()):
+                    if admit(state, recv_ns):
                         arrival.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
                 return
-            by_vehicle: dict[int, list[tuple[VehicleState, int]]] = {}
+            by_vehicle: dict[int, list[tuple[Heard, int]]] = {}
             for state, recv_ns in got:
                 by_vehicle.setdefault(state.vehicle_id, []).append((state, recv_ns))
             for vid, candidates in by_vehicle.items():
@@ -468,7 +475,7 @@ class Mesh:
                         unchecked += len(candidates) - k
                         continue
                     state, recv_ns = candidates[k]
-                    if admit(state, recv_ns, ()):
+                    if admit(state, recv_ns):
                         arrival.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
                         superseded += len(candidates) - k - 1
                     elif k + 1 < len(candidates):
@@ -502,11 +509,24 @@ class Mesh:
             self._bad(key, exc)
             return None
 
-    def _decode_relayed(
-        self, sample: zenoh.Sample, block: tuple[int, keys.Cell]
-    ) -> list[VehicleState]:
-        """The states of a relay batch (comms/relay.py), each decoded and placed on its own: a
-        bad one costs only itself; a malformed batch is refused whole."""
+    def _heard(
+        self, key: str, payload: bytes, block: tuple[int, keys.Cell] | None = None, index: int = 0
+    ) -> Heard | None:
+        """A polled state's payload with its head read (comms/heard.py), to be decoded when
+        tried; None (its decode's reason counted and reported) if its head is not a state's."""
+        heard = Heard.of(key, payload, block, index)
+        if heard is None:
+            where = key if block is None else f"{key} state {index}"
+            self._decode_state(where, payload, block)  # refuses it, saying why
+        return heard
+
+    def _decode_heard(self, heard: Heard) -> VehicleState | None:
+        """`heard` decoded and placed (`_decode_state`); None (counted and reported) if not."""
+        return self._decode_state(heard.where, heard.payload, heard.block)
+
+    def _hear_relayed(self, sample: zenoh.Sample, block: tuple[int, keys.Cell]) -> list[Heard]:
+        """The states of a relay batch (comms/relay.py), each heard on its own (decoded and
+        placed when tried): a bad one costs only itself; a malformed batch is refused whole."""
         key = str(sample.key_expr)
         try:
             batch = RelayBatch.decode(sample.payload.to_bytes())
@@ -516,9 +536,9 @@ class Mesh:
         self.stats.bump("relay_batches_received")
         got = []
         for i, payload in enumerate(batch.states):
-            state = self._decode_state(f"{key} state {i}", payload, block)
-            if state is not None:
-                got.append(state)
+            heard = self._heard(key, payload, block, i)
+            if heard is not None:
+                got.append(heard)
         return got
 
     def _admitter(
@@ -533,27 +553,45 @@ class Mesh:
         """What every decoded state passes, whichever way it came (its own key or a feed entry):
         the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
         the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""
+        return self._admitters(callback, link, on_refused, gate, ignore_id, worth_checking)[0]
+
+    def _admitters(
+        self,
+        callback: Callable[..., None],
+        link: StateLink | None,
+        on_refused: RefusedCallback | None,
+        gate: GateConfig,
+        ignore_id: int | None,
+        worth_checking: Callable[[VehicleState], bool] | None = None,
+    ) -> tuple[Admit, AdmitHeard]:
+        """`_admitter`'s admit, and the same checks for a polled subscription's heard states
+        (one gate for both): the echo filter and the gate's checks of the head first, then
+        the decode, then the rest."""
         if worth_checking is not None:
             worth_checking = self._counted(worth_checking)
         checker = (
             self.new_gate(gate, worth_checking=worth_checking) if self.auth is not None else None
         )
 
-        def admit(state: VehicleState, recv_ns: int, extra: tuple) -> bool:
-            """True: `state` went on; False: dropped (an echo, beyond reach, thinned, refused)."""
-            if state.vehicle_id == ignore_id:
-                return False
+        def dropped(vid: int, verdict: Refusal | str, recv_ns: int) -> bool:
+            if isinstance(verdict, Refusal):
+                self.stats.bump("states_refused")
+                if on_refused is not None:
+                    _guarded(on_refused, vid, verdict.value, recv_ns)
+            return False
+
+        def go_on(state: VehicleState, recv_ns: int, extra: tuple, head_passed: bool) -> bool:
+            """The rest of the checks (all of them unless the head passed), then delivery."""
             if checker is None and worth_checking is not None and not worth_checking(state):
                 return False  # open mode: nothing to verify, but no use for it either
             if checker is not None:
-                verdict = checker.admit_state(state, recv_ns)
-                if verdict is SKIPPED:
-                    return False
-                if isinstance(verdict, Refusal):
-                    self.stats.bump("states_refused")
-                    if on_refused is not None:
-                        _guarded(on_refused, state.vehicle_id, verdict.value, recv_ns)
-                    return False
+                verdict = (
+                    checker.admit_decoded(state, recv_ns)
+                    if head_passed
+                    else checker.admit_state(state, recv_ns)
+                )
+                if verdict is not None:
+                    return dropped(state.vehicle_id, verdict, recv_ns)
             self.stats.bump("states_received")
             if link is None:
                 _guarded(callback, state, recv_ns, *extra)
@@ -561,7 +599,26 @@ class Mesh:
                 link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t, *extra))
             return True
 
-        return admit
+        def admit(state: VehicleState, recv_ns: int, extra: tuple) -> bool:
+            """True: `state` went on; False: dropped (an echo, beyond reach, thinned, refused)."""
+            if state.vehicle_id == ignore_id:
+                return False
+            return go_on(state, recv_ns, extra, False)
+
+        def admit_heard(heard: Heard, recv_ns: int) -> bool:
+            """`admit` for a heard state, decoded only if its head passes the gate's checks."""
+            if heard.vehicle_id == ignore_id:
+                return False
+            if checker is not None:
+                verdict = checker.admit_head(
+                    heard.vehicle_id, heard.seq, heard.stamp_ns, heard.signed, recv_ns
+                )
+                if verdict is not None:
+                    return dropped(heard.vehicle_id, verdict, recv_ns)
+            state = self._decode_heard(heard)
+            return state is not None and go_on(state, recv_ns, (), True)
+
+        return admit, admit_heard
 
     def _counted(
         self, worth_checking: Callable[[VehicleState], bool]
@@ -941,7 +998,7 @@ class CellSubscription:
 
     Called back (`on_sample`, on Zenoh's threads) or polled (`on_states`: each subscriber keeps
     what came in a ring of `POLL_RING` samples, the oldest dropped when full, never blocking
-    Zenoh; `drain()` decodes them all and hands them over at once).
+    Zenoh; `drain()` takes them all and hands them over at once, each decoded when tried).
 
     Polled, for one vehicle (`relay_for`, its id) that is a client or peer of a router with a
     cell relay (comms/relay.py): when the cells are a relay block (the square comms/scope.py
@@ -963,7 +1020,7 @@ class CellSubscription:
         mesh: Mesh,
         on_sample: Callable[[zenoh.Sample], None] | None,
         remote_only: bool,
-        on_states: Callable[[list[VehicleState], int, int], None] | None = None,
+        on_states: Callable[[list[Heard], int, int], None] | None = None,
         relay_for: int | None = None,
     ) -> None:
         if (on_sample is None) == (on_states is None):
@@ -1098,8 +1155,9 @@ class CellSubscription:
         return gone + left
 
     def drain(self, taken_ns: int | None = None) -> int:
-        """Polled: decode every sample that came since the last drain and hand the states to the
-        handler, at once, as taken at `taken_ns` (default now, the mesh's clock); returns how many
+        """Polled: take every sample that came since the last drain and hand the states to the
+        handler, at once, as taken at `taken_ns` (default now, the mesh's clock), each with its
+        head read (comms/heard.py: the handler decodes those it tries); returns how many
         samples (a relay batch is one). Called back: 0."""
         if self._on_states is None:
             return 0
@@ -1133,11 +1191,11 @@ class CellSubscription:
                 sub.undeclare()
         states = []
         for sample in samples:
-            state = self._mesh._decode_state(str(sample.key_expr), sample.payload.to_bytes())
-            if state is not None:
-                states.append(state)
+            heard = self._mesh._heard(str(sample.key_expr), sample.payload.to_bytes())
+            if heard is not None:
+                states.append(heard)
         for where, sample in batches:
-            states += self._mesh._decode_relayed(sample, where)
+            states += self._mesh._hear_relayed(sample, where)
         if states:
             self._on_states(states, now_ns, since_ns)
         return len(samples) + len(batches)

@@ -365,6 +365,8 @@ def _check_links(links: bytes, sig: bytes) -> None:
         _check_vehicle_id("link tag receiver", rid)
 
 
+_STATE_HEAD = struct.Struct("<BBHIQ")
+"""A VehicleState's head: type, version, vehicle id, seq, stamp (`VehicleState.peek`)."""
 _MODES = {int(m): m for m in Mode}
 """Mode by wire value (a dict lookup instead of the enum's call, on the decode path)."""
 _STATE_FLAGS = tuple(StateFlag(i) for i in range(256))
@@ -508,6 +510,17 @@ class VehicleState:
             count = len(self.links) // LINK_ENTRY_BYTES
             return self.signed_bytes() + self.sig + bytes((count,)) + self.links
         return self.signed_bytes() + self.sig
+
+    @classmethod
+    def peek(cls, data: bytes) -> tuple[int, int, int, bool] | None:
+        """(vehicle_id, seq, stamp_ns, signed) read from a state's head without decoding the rest,
+        or None where `decode` would refuse the head (type, version, too short): a receiver
+        chooses which of many states to decode (comms/heard.py). Nothing else is checked: a
+        state is still decoded, whole, before anything trusts it."""
+        if len(data) < cls._FMT.size or data[0] != cls.TYPE or data[1] != cls.VERSION:
+            return None
+        _, _, vid, seq, stamp_ns = _STATE_HEAD.unpack_from(data)
+        return vid, seq, stamp_ns, len(data) > cls._FMT.size
 
     @classmethod
     def decode(cls, data: bytes) -> VehicleState:

@@ -1,0 +1,52 @@
+"""A state as a polled receiver heard it: its bytes and what its head says, decoded only when
+chosen.
+
+An agent's tick drains every state that came since the last one (comms/mesh.py
+`CellSubscription.drain`), several of the same vehicle when it ticks slower than its relay, and
+goes on with each vehicle's newest one that passes the gate. Which one that is, and whether the
+gate would thin or refuse it (comms/gate.py `Gate.admit_head`), needs only the vehicle id,
+seq, stamp and whether it is signed: `VehicleState.peek` reads them from the head, and the
+state is decoded (and placed: comms/relay.py `decode_placed`) only when it is tried. A
+superseded or thinned state is never decoded (round thirteen, docs/companion.md).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from comms import keys
+from comms.schema import VehicleState
+
+
+class Heard(NamedTuple):
+    """One state's payload as heard, with its head (`VehicleState.peek`) read (a named tuple:
+    a tick builds one per state it drains)."""
+
+    vehicle_id: int
+    seq: int
+    stamp_ns: int
+    signed: bool
+    payload: bytes
+    key: str
+    """The key it came on: its own state key, or the relay block's key."""
+    block: tuple[int, keys.Cell] | None = None
+    """The relay block (k, anchor cell) it came in (comms/relay.py); None: on its own key."""
+    place: int = 0
+    """Its place in the relay batch (for reports)."""
+
+    @classmethod
+    def of(
+        cls, key: str, payload: bytes, block: tuple[int, keys.Cell] | None = None, place: int = 0
+    ) -> Heard | None:
+        """`payload` as heard on `key`; None if its head is not a state's (decoding it says
+        why: comms/mesh.py reports it)."""
+        head = VehicleState.peek(payload)
+        if head is None:
+            return None
+        vid, seq, stamp_ns, signed = head
+        return cls(vid, seq, stamp_ns, signed, payload, key, block, place)
+
+    @property
+    def where(self) -> str:
+        """Where it came, as a report names it."""
+        return self.key if self.block is None else f"{self.key} state {self.place}"
