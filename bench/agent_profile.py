@@ -129,14 +129,14 @@ def receive_cost(
             now = [0]
             mesh.clock_ns = lambda: now[0]
             handler = mesh._state_handler(
-                mesh._admitter(
+                mesh._admitters(
                     lambda s, t: table.update(s, t / 1e9),
                     None,
                     None,
                     GateConfig(min_interval_s=NeighbourConfig().verify_min_interval_s),
                     me,
                     **extra,
-                )
+                )[0]
             )
             c0 = time.process_time()
             for stamp, key, payload in samples:

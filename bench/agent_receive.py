@@ -40,6 +40,7 @@ def receive_cost(
     import numpy as np
 
     from agent.neighbours import NeighbourConfig, NeighbourTable
+    from bench.agent_profile import _Sample
     from comms import keys, relay
     from comms.gate import GateConfig
     from comms.mesh import Mesh
@@ -112,7 +113,9 @@ def receive_cost(
                     admit = mesh._admitters(on_state, None, None, gate, me, table.worth_checking)[1]
                     hear = mesh._hear_relayed
                 else:  # before comms/heard.py: every state decoded as drained
-                    admit = mesh._admitter(on_state, None, None, gate, me, table.worth_checking)
+                    admit = mesh._admitter(  # type: ignore[attr-defined]
+                        on_state, None, None, gate, me, table.worth_checking
+                    )
                     hear = mesh._decode_relayed
                 handler = mesh._state_batch_handler(admit, False, gate.batch_budget_s)
                 drained, at, since = 0, 0, t0_ns
@@ -141,18 +144,6 @@ def receive_cost(
                 best = row
         assert best is not None
         return best
-
-
-class _Sample:
-    """What the relay handler reads of a zenoh.Sample: its key and its payload's bytes."""
-
-    def __init__(self, key: str, payload: bytes) -> None:
-        self.key_expr = key
-        self.payload = self
-        self._bytes = payload
-
-    def to_bytes(self) -> bytes:
-        return self._bytes
 
 
 def run(args: argparse.Namespace) -> list[dict]:

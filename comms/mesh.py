@@ -62,7 +62,7 @@ log = logging.getLogger(__name__)
 StateCallback = Callable[[VehicleState, int], None]
 """Called with (state, receive stamp in ns) on a Zenoh thread."""
 Admit = Callable[[VehicleState, int, tuple], bool]
-"""A subscription's checks and delivery of one decoded state (Mesh._admitter): (state, receive
+"""A subscription's checks and delivery of one decoded state (Mesh._admitters): (state, receive
 stamp in ns, extra callback arguments) -> whether it went on."""
 AdmitHeard = Callable[[Heard, int], bool]
 """The same for a state heard by a polled subscription (comms/heard.py), decoded only if the
@@ -335,7 +335,7 @@ class Mesh:
             if vehicle_id is None
             else keys.vehicle_states(self.fleet, vehicle_id)
         )
-        admit = self._admitter(callback, link, on_refused, gate, ignore_id)
+        admit = self._admitters(callback, link, on_refused, gate, ignore_id)[0]
         return self._keep(self.session.declare_subscriber(key, self._state_handler(admit)))
 
     def subscribe_cells(
@@ -391,7 +391,7 @@ class Mesh:
         entry passes exactly the checks a state on its own key passes (`subscribe_states`: the
         keyed-mode gate, `on_refused`, `link`), but for the cell: an entry may be in any cell.
         A malformed batch is refused whole with the reason; a bad entry costs only itself."""
-        admit = self._admitter(callback, link, on_refused, gate, None)
+        admit = self._admitters(callback, link, on_refused, gate, None)[0]
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock_ns()
@@ -541,20 +541,6 @@ class Mesh:
                 got.append(heard)
         return got
 
-    def _admitter(
-        self,
-        callback: Callable[..., None],
-        link: StateLink | None,
-        on_refused: RefusedCallback | None,
-        gate: GateConfig,
-        ignore_id: int | None,
-        worth_checking: Callable[[VehicleState], bool] | None = None,
-    ) -> Admit:
-        """What every decoded state passes, whichever way it came (its own key or a feed entry):
-        the echo filter, the keyed-mode gate (refusals counted and told to `on_refused`), then
-        the link and `callback(state, recv_ns, *extra)`. One gate per subscription."""
-        return self._admitters(callback, link, on_refused, gate, ignore_id, worth_checking)[0]
-
     def _admitters(
         self,
         callback: Callable[..., None],
@@ -564,9 +550,11 @@ class Mesh:
         ignore_id: int | None,
         worth_checking: Callable[[VehicleState], bool] | None = None,
     ) -> tuple[Admit, AdmitHeard]:
-        """`_admitter`'s admit, and the same checks for a polled subscription's heard states
-        (one gate for both): the echo filter and the gate's checks of the head first, then
-        the decode, then the rest."""
+        """What every state passes, whichever way it came (its own key, a feed entry, a polled
+        subscription's drain), one gate per subscription: `admit` takes a decoded state (the
+        echo filter, the keyed-mode gate with refusals counted and told to `on_refused`, then
+        the link and `callback(state, recv_ns, *extra)`); `admit_heard` the same for a heard
+        one (comms/heard.py), the gate's checks of its head before its decode."""
         if worth_checking is not None:
             worth_checking = self._counted(worth_checking)
         checker = (

@@ -1,8 +1,8 @@
 """A polled receiver decodes only the states it tries (comms/heard.py): the head a state's bytes
 say (`VehicleState.peek`) against the decoded state, the gate's checks of the head plus the rest
 against its whole check (`Gate.admit_head` + `admit_decoded` against `admit_state`), and on a
-real Zenoh mesh: superseded states are not decoded, and a malformed newest one (a good head, a
-bad body) neither hides the real one nor goes unreported."""
+real Zenoh mesh: a malformed newest state (a good head, a bad body) neither hides the real one
+nor goes unreported. That superseded states are not decoded: tests/test_polled_states.py."""
 
 from __future__ import annotations
 
@@ -17,11 +17,8 @@ from comms.heard import Heard
 from comms.mesh import Mesh
 from comms.schema import DecodeError, MsgType, Role, StateFlag, VehicleState
 from comms.scope import ScopeConfig
-from comms.session import embedded_peer, embedded_router, free_tcp_port
 from tests.conftest import wait_until
-from tests.test_polled_states import Got, state, warm_up
-from trust.auth import load_auth
-from trust.authority import throwaway_fleet
+from tests.test_polled_states import Got, keyed_peers, state, warm_up
 from trust.links import LINK_ENTRY_BYTES
 
 FLEET = "heard"
@@ -147,48 +144,11 @@ def test_the_head_and_the_rest_are_the_whole_gate() -> None:
         assert (whole.skipped, whole.out_of_reach) == (split.skipped, split.out_of_reach)
 
 
-def test_superseded_states_are_not_decoded(mesh_trio, monkeypatch) -> None:
-    hub, a, b = mesh_trio
-    got, station = Got(), Got()
-    hub.subscribe_states(station.on_state)
-    sub = a.subscribe_cells(got.on_state, ScopeConfig().cells_around((0, 0)), polled=True)
-    t0 = time.time_ns()
-    warm_up(sub, got, lambda k: b.publish_state(state(9, k + 1, t0 + k * MS)))
-    decoded: list[tuple[int, int]] = []
-    real = a._decode_state  # the receiver's own decodes (the hub's are its own)
-
-    def counting(key, payload, block=None):
-        s = real(key, payload, block)
-        if s is not None:
-            decoded.append((s.vehicle_id, s.seq))
-        return s
-
-    monkeypatch.setattr(a, "_decode_state", counting)
-    base = time.time_ns()
-    sent = [(2, q) for q in range(1, 6)] + [(3, q) for q in range(1, 4)]
-    for vid, seq in sent:
-        b.publish_state(state(vid, seq, base + seq * 10 * MS))
-    assert wait_until(
-        lambda: all(any(x[:2] == (v, q) for x in station.states) for v, q in sent), 5.0
-    )
-    time.sleep(0.3)  # the peer has them too by now
-    assert sub.drain() == len(sent)
-    assert sorted(x[:2] for x in got.states) == [(2, 5), (3, 3)]
-    assert sorted(decoded) == [(2, 5), (3, 3)]  # the six superseded ones never decoded
-
-
 def test_a_malformed_newest_state_neither_hides_the_real_one_nor_goes_unreported(
     tmp_path,
 ) -> None:
-    fleet = throwaway_fleet(tmp_path, FLEET, vehicles=[1, 2, 3], stations=[1])
-    auth = {v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in (1, 2, 3)}
-    port = free_tcp_port()
     got = Got()
-    with (
-        Mesh(embedded_router(port, fleet=FLEET)) as _hub,
-        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[1]) as a,
-        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[3]) as b,
-    ):
+    with keyed_peers(tmp_path, FLEET) as (auth, a, b):
         sub = a.subscribe_cells(got.on_state, ScopeConfig().cells_around((0, 0)), polled=True)
         t0 = time.time_ns()
         warm_up(sub, got, lambda k: b.publish_state(state(3, k + 1, t0 + k * MS), auth=auth[3]))

@@ -4,6 +4,7 @@ gate goes on (older ones dropped unverified), with its arrival estimated from it
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -105,13 +106,26 @@ def warm_up(sub, got: Got, send) -> None:
         got.states.clear()
 
 
-def test_polled_states_wait_for_the_drain_and_only_the_newest_goes_on(mesh_trio) -> None:
+def test_polled_states_wait_for_the_drain_and_only_the_newest_goes_on(
+    mesh_trio, monkeypatch
+) -> None:
+    """... and the older ones are never decoded (comms/heard.py)."""
     hub, a, b = mesh_trio
     got, station = Got(), Got()
     hub.subscribe_states(station.on_state)
     sub = a.subscribe_cells(got.on_state, ScopeConfig().cells_around((0, 0)), polled=True)
     t0 = time.time_ns()
     warm_up(sub, got, lambda k: b.publish_state(state(9, k + 1, t0 + k * MS)))
+    decoded: list[tuple[int, int]] = []
+    real = a._decode_state  # the receiver's own decodes (the hub's are its own)
+
+    def counting(key, payload, block=None):
+        s = real(key, payload, block)
+        if s is not None:
+            decoded.append((s.vehicle_id, s.seq))
+        return s
+
+    monkeypatch.setattr(a, "_decode_state", counting)
     base = time.time_ns()
     sent = [(2, seq) for seq in range(1, 6)] + [(3, seq) for seq in range(1, 4)]
     for vid, seq in sent:
@@ -125,6 +139,7 @@ def test_polled_states_wait_for_the_drain_and_only_the_newest_goes_on(mesh_trio)
     taken_ns = a.clock_ns()
     assert sub.drain() == len(sent)
     assert sorted(x[:2] for x in got.states) == [(2, 5), (3, 3)]
+    assert sorted(decoded) == [(2, 5), (3, 3)]  # the six superseded ones never decoded
     assert a.stats.states_superseded - before == len(sent) - 2
     assert got.threads == {threading.current_thread().name}  # the drain's caller, no Zenoh thread
     # the receive stamps are estimates of when they came: before the drain, not after it
@@ -132,16 +147,24 @@ def test_polled_states_wait_for_the_drain_and_only_the_newest_goes_on(mesh_trio)
     assert sub.drain() == 0
 
 
-def test_polled_forged_newer_state_does_not_hide_the_real_one(tmp_path) -> None:
-    fleet = throwaway_fleet(tmp_path, FLEET, vehicles=[1, 2, 3], stations=[1])
-    auth = {v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in (1, 2, 3)}
+@contextlib.contextmanager
+def keyed_peers(tmp_path, fleet: str = FLEET):
+    """A router and two keyed peers on a free loopback port, members of a throwaway fleet of
+    vehicles 1-3: yields (each vehicle's auth, the peer of vehicle 1, the peer of vehicle 3)."""
+    keys_of = throwaway_fleet(tmp_path, fleet, vehicles=[1, 2, 3], stations=[1])
+    auth = {v: load_auth(str(keys_of.member_path(Role.VEHICLE, v))) for v in (1, 2, 3)}
     port = free_tcp_port()
-    got = Got()
     with (
-        Mesh(embedded_router(port, fleet=FLEET)) as _hub,
-        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[1]) as a,
-        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[3]) as b,
+        Mesh(embedded_router(port, fleet=fleet)) as _hub,
+        Mesh(embedded_peer(port, fleet=fleet), auth=auth[1]) as a,
+        Mesh(embedded_peer(port, fleet=fleet), auth=auth[3]) as b,
     ):
+        yield auth, a, b
+
+
+def test_polled_forged_newer_state_does_not_hide_the_real_one(tmp_path) -> None:
+    got = Got()
+    with keyed_peers(tmp_path) as (auth, a, b):
         sub = a.subscribe_cells(got.on_state, ScopeConfig().cells_around((0, 0)), polled=True)
         t0 = time.time_ns()
         warm_up(sub, got, lambda k: b.publish_state(state(3, k + 1, t0 + k * MS)))
@@ -173,16 +196,9 @@ def test_a_flood_of_forged_future_states_neither_hides_a_real_one_nor_costs_past
     skew allowed), with a check budget of 0: each vehicle's most plausible state is still tried
     (the real one: stamped as vehicle 2's verified states arrive), and without a real one the
     flood costs one check a drain, the rest dropped unchecked and reported."""
-    fleet = throwaway_fleet(tmp_path, FLEET, vehicles=[1, 2, 3], stations=[1])
-    auth = {v: load_auth(str(fleet.member_path(Role.VEHICLE, v))) for v in (1, 2, 3)}
-    port = free_tcp_port()
     got = Got()
     lines: list[str] = []
-    with (
-        Mesh(embedded_router(port, fleet=FLEET)) as _hub,
-        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[1]) as a,
-        Mesh(embedded_peer(port, fleet=FLEET), auth=auth[3]) as b,
-    ):
+    with keyed_peers(tmp_path) as (auth, a, b):
         a.on_security = lines.append
         sub = a.subscribe_cells(
             got.on_state,
