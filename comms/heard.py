@@ -49,4 +49,9 @@ class Heard(NamedTuple):
     @property
     def where(self) -> str:
         """Where it came, as a report names it."""
-        return self.key if self.block is None else f"{self.key} state {self.place}"
+        return where(self.key, self.block, self.place)
+
+
+def where(key: str, block: tuple[int, keys.Cell] | None, place: int) -> str:
+    """Where a state came, as a report names it: its key, or its place in a relay batch."""
+    return key if block is None else f"{key} state {place}"

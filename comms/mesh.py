@@ -34,6 +34,7 @@ from comms.doc_sync import publish as publish_roster
 from comms.feed import FeedBuffer
 from comms.gate import Gate, GateConfig, Refusal, Summaries
 from comms.heard import Heard
+from comms.heard import where as heard_at
 from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
 from comms.relay import RELAY_SILENT_S, CellRelay, MisplacedState, RelayConfig, decode_placed
@@ -510,14 +511,13 @@ class Mesh:
             return None
 
     def _heard(
-        self, key: str, payload: bytes, block: tuple[int, keys.Cell] | None = None, index: int = 0
+        self, key: str, payload: bytes, block: tuple[int, keys.Cell] | None = None, place: int = 0
     ) -> Heard | None:
         """A polled state's payload with its head read (comms/heard.py), to be decoded when
         tried; None (its decode's reason counted and reported) if its head is not a state's."""
-        heard = Heard.of(key, payload, block, index)
+        heard = Heard.of(key, payload, block, place)
         if heard is None:
-            where = key if block is None else f"{key} state {index}"
-            self._decode_state(where, payload, block)  # refuses it, saying why
+            self._decode_state(heard_at(key, block, place), payload, block)  # says why not
         return heard
 
     def _decode_heard(self, heard: Heard) -> VehicleState | None:
