@@ -146,19 +146,44 @@ def receive_cost(
         return best
 
 
+def _say(rows: list[dict]) -> None:
+    for row in rows:
+        print(
+            f"  tick {row['tick_hz']:g} Hz: {row['cpu_us_per_tick']:.0f} us CPU a tick, "
+            f"{row['drained_per_tick']:.1f} states drained, {row['decoded_per_tick']:.1f} "
+            f"decoded, {row['went_on_per_tick']:.1f} went on",
+            flush=True,
+        )
+
+
 def run(args: argparse.Namespace) -> list[dict]:
-    rows = []
-    for hz in args.tick_hz:
-        row = receive_cost(args.neighbours, args.neighbour_hz, hz, args.seconds, args.repeats)
-        rows.append(row)
-        if not args.json:
-            print(
-                f"tick {hz:g} Hz: {row['cpu_us_per_tick']:.0f} us CPU a tick, "
-                f"{row['drained_per_tick']:.1f} states drained, {row['decoded_per_tick']:.1f} "
-                f"decoded, {row['went_on_per_tick']:.1f} went on",
-                flush=True,
-            )
-    return rows
+    return [
+        receive_cost(args.neighbours, args.neighbour_hz, hz, args.seconds, args.repeats)
+        for hz in args.tick_hz
+    ]
+
+
+def other_tree(tree: Path, args: argparse.Namespace) -> list[dict]:
+    """This bench's rows on `tree`'s packages: this file, copied out of bench/ (which would
+    shadow the packages) and run with that tree on PYTHONPATH."""
+    argv = [
+        *("--neighbours", str(args.neighbours), "--neighbour-hz", str(args.neighbour_hz)),
+        *("--tick-hz", ",".join(str(x) for x in args.tick_hz), "--seconds", str(args.seconds)),
+        *("--repeats", str(args.repeats), "--json"),
+    ]
+    env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
+    with tempfile.TemporaryDirectory() as d:
+        script = Path(d) / "agent_receive_bench.py"
+        shutil.copy(Path(__file__), script)
+        out = subprocess.run(
+            [sys.executable, str(script), *argv],
+            env=env,
+            cwd=tree,
+            check=True,
+            capture_output=True,
+            text=True,
+        )
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
@@ -173,27 +198,37 @@ def main() -> None:
     )
     ap.add_argument("--seconds", type=float, default=20.0, help="injected time a measurement")
     ap.add_argument("--repeats", type=int, default=5, help="the best of this many")
-    ap.add_argument("--compare-tree", type=Path, default=None, metavar="PATH")
-    ap.add_argument("--json", action="store_true", help="print the rows as JSON only")
+    ap.add_argument(
+        "--compare-tree",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="another checkout (e.g. main before a change), measured first in the same run",
+    )
+    ap.add_argument(
+        "--json", action="store_true", help="print this tree's rows as JSON only (no file)"
+    )
     a = ap.parse_args()
+    if a.json:
+        print(json.dumps(run(a)))
+        return
+    from bench import common
+
+    result: dict = {
+        "what": "a flying agent's receive path per tick, in-process (bench/agent_receive.py)"
+    }
     if a.compare_tree is not None:
         if not (a.compare_tree / "comms" / "mesh.py").exists():
             ap.error(f"--compare-tree {a.compare_tree}: no covey checkout there")
-        argv = [sys.argv[0], *[x for x in sys.argv[1:]]]
-        i = argv.index("--compare-tree")
-        del argv[i : i + 2]
-        env = {**os.environ, "PYTHONPATH": str(a.compare_tree.resolve())}
         print(f"{a.compare_tree}:", flush=True)
-        with tempfile.TemporaryDirectory() as d:  # run from there: bench/ would shadow packages
-            script = Path(d) / "agent_receive_bench.py"
-            shutil.copy(Path(__file__), script)
-            subprocess.run(
-                [sys.executable, str(script), *argv[1:]], env=env, cwd=a.compare_tree, check=True
-            )
-        print(f"{REPO} (this tree):", flush=True)
+        before = other_tree(a.compare_tree, a)
+        _say(before)
+        result["before"] = {"tree": str(a.compare_tree.resolve()), "rows": before}
+    print(f"{REPO} (this tree):", flush=True)
     rows = run(a)
-    if a.json:
-        print(json.dumps(rows))
+    _say(rows)
+    result["rows"] = rows
+    print(common.write_json("agent_receive", result))
 
 
 if __name__ == "__main__":
