@@ -107,6 +107,26 @@ def say(text: str) -> None:
     print(f"  {time.strftime('%H:%M:%S')} {text}", file=sys.stderr, flush=True)
 
 
+def covey_eval(out: str, seed: int, vehicles: str, suites, controllers, **fields) -> dict:
+    """One `covey eval` run, the C core's controllers available (firmware/ceval.py), without
+    figures or a progress bar: its results.json as a dict (summary and runs). `fields`: more
+    EvalConfig fields."""
+    from firmware import ceval
+    from policy.eval import EvalConfig
+
+    cfg = EvalConfig(
+        out=out,
+        seed=seed,
+        figures=False,
+        progress=False,
+        controllers=tuple(controllers),
+        suites=tuple(suites),
+        vehicles=vehicles,
+        **fields,
+    )
+    return ceval.main(cfg)
+
+
 def children() -> ChildGroup:
     """Python children of a benchmark (`kids.start("-m", "bench.mesh", ...)`), each in its own
     process group, stdout captured (`child.wait_for("READY")`), stderr discarded; all stopped

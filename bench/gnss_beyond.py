@@ -39,20 +39,8 @@ SUITES = ("circle", "conflict", "large")
 
 def fly(way: str, sigma_m: float, seed: int, out: str) -> dict:
     """One `covey eval` run (with the C core); its summary rows."""
-    from firmware import ceval
-    from policy.eval import EvalConfig
-
-    cfg = EvalConfig(
-        out=out,
-        seed=seed,
-        figures=False,
-        progress=False,
-        controllers=CONTROLLERS,
-        suites=SUITES,
-        vehicles=f"realistic:drift_m={sigma_m}",
-        **WAYS[way],
-    )
-    res = ceval.main(cfg)
+    vehicles = f"realistic:drift_m={sigma_m}"
+    res = common.covey_eval(out, seed, vehicles, SUITES, CONTROLLERS, **WAYS[way])
     return {"way": way, "sigma_m": sigma_m, "seed": seed, "summary": res["summary"]}
 
 

@@ -31,19 +31,8 @@ SUITES = ("circle", "conflict", "large", "intruder")
 
 def fly(spec: str, seed: int, suites: tuple[str, ...], out: str) -> dict:
     """One `covey eval` run (with the C core); its per-run rows."""
-    from firmware import ceval
-    from policy.eval import EvalConfig
-
-    cfg = EvalConfig(
-        out=out,
-        seed=seed,
-        figures=False,
-        progress=False,
-        controllers=CONTROLLERS,
-        suites=suites,
-        vehicles=spec,
-    )
-    return {"vehicles": spec, "seed": seed, "runs": ceval.main(cfg)["runs"]}
+    res = common.covey_eval(out, seed, spec, suites, CONTROLLERS)
+    return {"vehicles": spec, "seed": seed, "runs": res["runs"]}
 
 
 def total(flown: dict) -> dict:
