@@ -165,16 +165,21 @@ static real_t det2(real_t ax, real_t ay, real_t bx, real_t by)
  * |v_j| = j_len), or, on the side m > 0 that the bias band would make it leave, where it will be
  * when the neighbour arrives alongside if that is further off: m - T det(v_own, v_j), T = along /
  * closing (0 when the neighbour is behind us or not gaining). A vehicle already leaving the
- * track on that side keeps it (policy/traffic_rules.py kept_offset).
+ * track on that side keeps it, and so does one within the band on the other side (m > -bias r
+ * |v_j|) that escapes towards m > 0 faster than COVEY_SAFETY_NC_KEEP_SIDE_SPEED_FACTOR vmax: the
+ * track line swung across it (policy/traffic_rules.py kept_offset).
  */
 static real_t kept_offset(real_t px, real_t py, real_t jx, real_t jy, real_t j_len,
-                          const covey_track_t *own)
+                          const covey_track_t *own, real_t r, real_t vmax)
 {
     const real_t m = px * jy - py * jx;
-    if (m <= R(0.0)) {
+    const real_t ox = R(own->vel_n_m_s), oy = R(own->vel_e_m_s);
+    const real_t off_track = oy * jx - ox * jy; /* own speed towards m > 0, times |v_j| */
+    if (m <= R(0.0) &&
+        !(m > -R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len &&
+          off_track > R(COVEY_SAFETY_NC_KEEP_SIDE_SPEED_FACTOR) * vmax * j_len)) {
         return m;
     }
-    const real_t ox = R(own->vel_n_m_s), oy = R(own->vel_e_m_s);
     const real_t jn = R_FMAX(j_len, COVEY_SAFETY_EPS);
     const real_t tx = jx / jn, ty = jy / jn;
     const real_t along = -(px * tx + py * ty);
@@ -182,7 +187,7 @@ static real_t kept_offset(real_t px, real_t py, real_t jx, real_t jy, real_t j_l
     if (along <= R(0.0) || closing <= COVEY_SAFETY_EPS) {
         return m;
     }
-    return R_FMAX(m, m - along / closing * (ox * jy - oy * jx));
+    return R_FMAX(m, m + along / closing * off_track);
 }
 
 static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t pad, real_t share,
@@ -199,13 +204,13 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t pad, re
         const real_t j_len = R_SQRT(jx * jx + jy * jy);
         if (j_len >= R(cfg->max_speed_m_s)) {
             const real_t jn = R_FMAX(j_len, COVEY_SAFETY_EPS);
-            const real_t sgn = kept_offset(px, py, jx, jy, j_len, own) <
+            const real_t vmax = R(cfg->max_speed_m_s);
+            const real_t sgn = kept_offset(px, py, jx, jy, j_len, own, r, vmax) <
                                        R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len
                                    ? R(1.0)
                                    : R(-1.0);
             const real_t nx = sgn * jy / jn, ny = -sgn * jx / jn;
             const real_t tx = jx / jn, ty = jy / jn;
-            const real_t vmax = R(cfg->max_speed_m_s);
             real_t spd = R(COVEY_SAFETY_NC_ESCAPE_SHARE) * vmax;
             /* or what clears the berth before it arrives: off its track by `off` on the escape
              * side, `along` ahead of it on its track, it gaining `closing` (traffic_rules.py
@@ -272,7 +277,8 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t pad, re
                 const real_t jx = R(own->vel_n_m_s) - vx, jy = R(own->vel_e_m_s) - vy;
                 const real_t j_len = R_SQRT(jx * jx + jy * jy);
                 if (j_len >= R(cfg->max_speed_m_s)) {
-                    left = kept_offset(px, py, jx, jy, j_len, own) <
+                    left = kept_offset(px, py, jx, jy, j_len, own, r,
+                                       R(cfg->max_speed_m_s)) <
                            R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len;
                 } else {
                     left = -det_pv < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * v_len;

@@ -87,6 +87,10 @@ typedef struct {
  * up to this share of the lateral speed that gains the most room before it arrives
  * (policy/traffic_rules.py clear_speed, NC_CLEAR_SHARE). */
 #define COVEY_SAFETY_NC_CLEAR_SHARE 0.95
+/* Moving off a fast track faster than this many max_speed_m_s is an escape (guidance never flies
+ * faster): within the side band, the vehicle keeps the side it escapes to even where the track
+ * line swung across it (policy/traffic_rules.py NC_KEEP_SIDE_SPEED_FACTOR, kept_offset). */
+#define COVEY_SAFETY_NC_KEEP_SIDE_SPEED_FACTOR 1.5
 /* The filter plans against a non-cooperative track as if it flew this share faster than it
  * reports (policy/traffic_rules.py NC_SPEED_MARGIN): traffic that does not coordinate speeds up
  * with gusts, throttle or a new leg. */

@@ -59,6 +59,12 @@ the step-aside side (`escape`); more where that would not clear the berth before
 (`clear_speed`). The C twin is COVEY_SAFETY_NC_ESCAPE_SHARE."""
 
 
+NC_KEEP_SIDE_SPEED_FACTOR = 1.5
+"""A vehicle moving off a fast neighbour's track faster than this many max_speed_m_s is escaping
+(guidance never flies faster than max_speed_m_s; gusts add a few tenths): within the side band,
+it keeps the side it escapes to even where the track line swung across it (`kept_offset`). The
+C twin is COVEY_SAFETY_NC_KEEP_SIDE_SPEED_FACTOR."""
+
 NC_CLEAR_SHARE = 0.95
 """The escape line's lateral speed (`clear_speed`) is at most this share of the most that gains
 room, so that the escape line, the track line and the speed limit can all be met with a margin
@@ -199,7 +205,7 @@ def pair_reach_m(cfg, r, nbr_speed_m_s=None, nbr_cooperative=None, tau=None):
     return r + (vmax + np.where(nbr_cooperative, vmax, fast)) * tau
 
 
-def kept_offset(px, py, jx, jy, j_len, own_x, own_y):
+def kept_offset(px, py, jx, jy, j_len, own_x, own_y, r, vmax: float):
     """This vehicle's offset from a neighbour's track times its speed, m = det(p, v_j) (arrays
     or floats; p = p_j - p_i, v_j = (jx, jy), |v_j| = j_len, own velocity (own_x, own_y)), or,
     on the side m > 0 that the band would make it leave (`step_aside`), where it will be when
@@ -208,21 +214,31 @@ def kept_offset(px, py, jx, jy, j_len, own_x, own_y):
     that side keeps it instead of turning back across the track: the offset measured at long
     range swings with the neighbour's heading (0.2 m/s of gust on a 60 m/s aircraft 1.3 km out
     moves its track line by 4 m), and a vehicle 8-14 m off a manned aircraft's track that crossed
-    it got to only 27-29 m of the 30 m berth (docs/sky.md, "Keeping a side"). Never used
-    to cross: moving towards the track, m is kept as it is."""
+    it got to only 27-29 m of the 30 m berth (docs/sky.md, "Keeping a side"). Moving towards
+    the track, m is kept as it is, with one exception: a vehicle on the other side but within
+    the band (m > -NC_SIDE_BIAS r |v_j|, r the pair distance) that is escaping towards the side
+    m > 0 faster than any guidance flies (its speed off the track above
+    NC_KEEP_SIDE_SPEED_FACTOR vmax: only the escape speed does that) has had the track line
+    swing across it, not crossed it, and keeps that side too (docs/sky.md, "Keeping a side":
+    a 20 m/s aircraft's line swung 9 m at 440 m and turned a vehicle back across it)."""
     jn = np.maximum(j_len, EPS)
     tx, ty = jx / jn, jy / jn
     along = -(px * tx + py * ty)
     closing = j_len - (own_x * tx + own_y * ty)
     t = np.where((along > 0) & (closing > EPS), along / np.maximum(closing, EPS), 0.0)
     m = px * jy - py * jx
-    return np.where(m > 0, np.maximum(m, m - t * (own_x * jy - own_y * jx)), m)
+    off_track = own_y * jx - own_x * jy  # own speed towards m > 0, times |v_j|
+    swung = (m > -NC_SIDE_BIAS * r * j_len) & (off_track > NC_KEEP_SIDE_SPEED_FACTOR * vmax * j_len)
+    return np.where((m > 0) | swung, np.maximum(m, m + t * off_track), m)
 
 
-def kept_offset_one(px, py, jx, jy, j_len, own_x, own_y) -> float:
+def kept_offset_one(px, py, jx, jy, j_len, own_x, own_y, r: float, vmax: float) -> float:
     """`kept_offset` in Python floats."""
     m = px * jy - py * jx
-    if m <= 0:
+    off_track = own_y * jx - own_x * jy
+    if m <= 0 and not (
+        m > -NC_SIDE_BIAS * r * j_len and off_track > NC_KEEP_SIDE_SPEED_FACTOR * vmax * j_len
+    ):
         return m
     jn = EPS if j_len < EPS else j_len
     tx, ty = jx / jn, jy / jn
@@ -230,7 +246,7 @@ def kept_offset_one(px, py, jx, jy, j_len, own_x, own_y) -> float:
     closing = j_len - (own_x * tx + own_y * ty)
     if along <= 0 or closing <= EPS:
         return m
-    return max(m, m - along / closing * (own_x * jy - own_y * jx))
+    return max(m, m + along / closing * off_track)
 
 
 def step_aside(px, py, vx, vy, own_vel, r, vmax: float):
@@ -251,7 +267,7 @@ def step_aside(px, py, vx, vy, own_vel, r, vmax: float):
     jy = own_vel[..., None, 1] - vy
     j_len = np.sqrt(jx * jx + jy * jy)
     fast = j_len >= vmax
-    kept = kept_offset(px, py, jx, jy, j_len, own_vel[..., None, 0], own_vel[..., None, 1])
+    kept = kept_offset(px, py, jx, jy, j_len, own_vel[..., None, 0], own_vel[..., None, 1], r, vmax)
     m = np.where(fast, kept, -det_pv)
     left = m < NC_SIDE_BIAS * r * np.where(fast, j_len, v_len)
     return steer, left, (fast, m, j_len, jx, jy)
@@ -316,7 +332,7 @@ def escape_one(px, py, vx, vy, own_vx, own_vy, r: float, vmax: float):
     if j_len < vmax:
         return None
     jn = EPS if j_len < EPS else j_len
-    m = kept_offset_one(px, py, jx, jy, j_len, own_vx, own_vy)
+    m = kept_offset_one(px, py, jx, jy, j_len, own_vx, own_vy, r, vmax)
     sgn = 1.0 if m < NC_SIDE_BIAS * r * j_len else -1.0
     nx, ny = sgn * jy / jn, -sgn * jx / jn
     tx, ty = jx / jn, jy / jn
@@ -343,7 +359,7 @@ def step_aside_one(px, py, vx, vy, own_vx, own_vy, r: float, vmax: float):
     jx, jy = own_vx - vx, own_vy - vy
     j_len = math.sqrt(jx * jx + jy * jy)
     if j_len >= vmax:
-        return True, kept_offset_one(px, py, jx, jy, j_len, own_vx, own_vy) < (
+        return True, kept_offset_one(px, py, jx, jy, j_len, own_vx, own_vy, r, vmax) < (
             NC_SIDE_BIAS * r * j_len
         )
     return True, -det_pv < NC_SIDE_BIAS * r * v_len

@@ -62,14 +62,15 @@ def intruder_run(
     link: str,
     suite: str = "intruder",
     recover_speed_share: float | None = None,
+    vehicles: str = "realistic",
 ):
-    """One run of `covey eval --suites <suite> --vehicles realistic --controllers
+    """One run of `covey eval --suites <suite> --vehicles <vehicles> --controllers
     policy+filter,c+filter --seed <seed>`, with that command's random draws: the case `case` of
     `suite` ("intruder" or "manned") flown by `controller` ("policy+filter" or "c+filter", which
     needs a C compiler) on `link` ("perfect" or "degraded"). Module constants are read as the
     run flies, so a test may monkeypatch them first. `recover_speed_share`: `covey eval
-    --recover-speed-share` (0: the parting rule before policy.safety.RECOVER_SPEED_SHARE).
-    Returns evalsim.run's metrics."""
+    --recover-speed-share` (0: the parting rule before policy.safety.RECOVER_SPEED_SHARE);
+    `vehicles`: `covey eval --vehicles`. Returns evalsim.run's metrics."""
     from firmware.ceval import CONTROLLERS
     from policy import eval as ev
     from policy import evalsim
@@ -81,7 +82,7 @@ def intruder_run(
     cfg = ev.EvalConfig(
         seed=seed,
         suites=(suite,),
-        vehicles="realistic",
+        vehicles=vehicles,
         progress=False,
         controllers=ctrls,
         recover_speed_share=recover_speed_share,
@@ -89,13 +90,13 @@ def intruder_run(
     index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
     i, (_, _, starts, goals, opts) = index[case]
     ctrl = ev.controllers(cfg, CONTROLLERS if controller == "c+filter" else None)[controller]
-    vehicles = VehicleModel.named("realistic")
-    sim = evalsim.EvalSimConfig(vehicles=vehicles, tracking=TrackingConfig.assumed(vehicles, True))
+    model = VehicleModel.named(vehicles)
+    sim = evalsim.EvalSimConfig(vehicles=model, tracking=TrackingConfig.assumed(model, True))
     ctrl.reset()
     # covey eval's run index: cases x links x controllers, in that order
     run = (i * len(links) + links.index(link)) * len(ctrls) + ctrls.index(controller)
-    model = evalsim.PERFECT if link == "perfect" else evalsim.DEGRADED
-    return evalsim.run(starts, goals, ctrl, model, sim, np.random.default_rng([seed, run]), **opts)
+    net = evalsim.PERFECT if link == "perfect" else evalsim.DEGRADED
+    return evalsim.run(starts, goals, ctrl, net, sim, np.random.default_rng([seed, run]), **opts)
 
 
 def without_kept_side(monkeypatch) -> None:
