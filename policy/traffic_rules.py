@@ -219,8 +219,9 @@ def kept_offset(px, py, jx, jy, j_len, own_x, own_y, r, vmax: float):
     the band (m > -NC_SIDE_BIAS r |v_j|, r the pair distance) that is escaping towards the side
     m > 0 faster than any guidance flies (its speed off the track above
     NC_KEEP_SIDE_SPEED_FACTOR vmax: only the escape speed does that) has had the track line
-    swing across it, not crossed it, and keeps that side too (docs/sky.md, "Keeping a side":
-    a 20 m/s aircraft's line swung 9 m at 440 m and turned a vehicle back across it)."""
+    swing across it, not crossed it, and keeps that side too (docs/sky.md, "A track line that
+    swings across an escaping vehicle": a 20 m/s aircraft's line swung 9 m at 440 m and turned
+    a vehicle back across it)."""
     jn = np.maximum(j_len, EPS)
     tx, ty = jx / jn, jy / jn
     along = -(px * tx + py * ty)
