@@ -276,9 +276,9 @@ static void orca_line(const covey_safety_config_t *cfg, real_t r, real_t pad, re
                  * are, else the side v leans to; within the bias band, the right-hand leg */
                 const real_t jx = R(own->vel_n_m_s) - vx, jy = R(own->vel_e_m_s) - vy;
                 const real_t j_len = R_SQRT(jx * jx + jy * jy);
-                if (j_len >= R(cfg->max_speed_m_s)) {
-                    left = kept_offset(px, py, jx, jy, j_len, own, r,
-                                       R(cfg->max_speed_m_s)) <
+                const real_t vmax = R(cfg->max_speed_m_s);
+                if (j_len >= vmax) {
+                    left = kept_offset(px, py, jx, jy, j_len, own, r, vmax) <
                            R(COVEY_SAFETY_NC_SIDE_BIAS) * r * j_len;
                 } else {
                     left = -det_pv < R(COVEY_SAFETY_NC_SIDE_BIAS) * r * v_len;

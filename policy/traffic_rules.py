@@ -229,17 +229,21 @@ def kept_offset(px, py, jx, jy, j_len, own_x, own_y, r, vmax: float):
     t = np.where((along > 0) & (closing > EPS), along / np.maximum(closing, EPS), 0.0)
     m = px * jy - py * jx
     off_track = own_y * jx - own_x * jy  # own speed towards m > 0, times |v_j|
-    swung = (m > -NC_SIDE_BIAS * r * j_len) & (off_track > NC_KEEP_SIDE_SPEED_FACTOR * vmax * j_len)
-    return np.where((m > 0) | swung, np.maximum(m, m + t * off_track), m)
+    keep = (m > 0) | _swung(m, off_track, j_len, r, vmax)
+    return np.where(keep, np.maximum(m, m + t * off_track), m)
+
+
+def _swung(m, off_track, j_len, r, vmax: float):
+    """`kept_offset`'s exception (arrays or floats): within the band on the other side, and
+    escaping towards m > 0 faster than guidance flies."""
+    return (m > -NC_SIDE_BIAS * r * j_len) & (off_track > NC_KEEP_SIDE_SPEED_FACTOR * vmax * j_len)
 
 
 def kept_offset_one(px, py, jx, jy, j_len, own_x, own_y, r: float, vmax: float) -> float:
     """`kept_offset` in Python floats."""
     m = px * jy - py * jx
     off_track = own_y * jx - own_x * jy
-    if m <= 0 and not (
-        m > -NC_SIDE_BIAS * r * j_len and off_track > NC_KEEP_SIDE_SPEED_FACTOR * vmax * j_len
-    ):
+    if m <= 0 and not _swung(m, off_track, j_len, r, vmax):
         return m
     jn = EPS if j_len < EPS else j_len
     tx, ty = jx / jn, jy / jn

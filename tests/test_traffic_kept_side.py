@@ -108,9 +108,10 @@ def test_c_keeps_the_side_as_numpy_does() -> None:
 
 def _swung(rng):
     """A vehicle escaping south (towards m > 0) at 1.6-1.9 m/s from a 10-30 m/s eastbound track
-    3-10 s behind it (within the pair's horizon; nearer, where it will be still lies within the
-    band, and the band's right-hand leg holds), which a swing of the track line has put 0.1-0.8 m north of the line
-    (m < 0, inside the band); it wants to go on east at the cruise speed."""
+    3-10 s behind it, which a swing of the track line has put 0.1-0.8 m north of the line (m < 0,
+    inside the band); it wants to go on east at the cruise speed. The track is within the
+    pair's horizon; nearer, where the vehicle will be still lies within the band, and the band's
+    right-hand leg holds."""
     speed = rng.uniform(10.0, 30.0)
     gap = speed * rng.uniform(3.0, 10.0)
     off = rng.uniform(0.1, 0.8)
