@@ -6,6 +6,12 @@ Heading is the direction of the last displacement (at the start: the goal).
 Vehicles leave on arrival, on collision and at the step limit. Rewards follow the
 paper (PAPER.md): w_cav R_CAV + w_acc R_ACC + w_tme R_TME + w_arr R_ARR.
 `reference_step` is a plain per-agent loop that `SwarmEnv.step` must equal.
+
+Flight's conditions on request (issue 35, "trained with noisy positions"): `drift_m` gives each
+vehicle a drifting position estimate (the one Gauss-Markov process of policy.pointmass), which
+is all the network, the filter (inflated by sigma_k x the pair's combined sigma) and the
+arrival see, while collisions and the proximity penalty are judged on the truth; `told_scale`
+zooms the network's view as flight's told separation does (units are then metres).
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import numpy as np
 
 from policy import features, safety
 from policy.features import ObsConfig
-from policy.pointmass import integrate
+from policy.pointmass import gauss_markov, integrate
 
 
 @dataclass(frozen=True)
@@ -81,10 +87,33 @@ class EnvConfig:
     learns with the guarantee it will fly with (issue 16). Off in the paper."""
     filter_margin: float = safety.SafetyConfig.margin
     """That filter's relative padding on eps_cav_m (flight's SafetyConfig.margin by default)."""
+    drift_m: float = 0.0
+    """Each vehicle's position estimate drifts from the truth: 1-sigma per axis of a
+    Gauss-Markov offset (policy.pointmass.VehicleModel.drift_m; 0.5 for plain GNSS in metres).
+    The network, the filter and the arrival see the estimates; collisions and R_CAV the truth.
+    0: the estimates are the truth (the paper, and every stage of the shipped weights)."""
+    drift_corr_s: float = 10.0
+    """Correlation time of that drift."""
+    sigma_k: float = safety.SIGMA_K
+    """With drift_m and the filter: the filter keeps sigma_k sqrt(2) drift_m more between
+    estimates, as flight's does (SafetyConfig.sigma_k)."""
+    told_scale: float = 1.0
+    """The network sees positions and goals times this: flight tells the network its
+    separation as FILTERED_BERTH_SHARE of the real one (policy.runtime), i.e. it sees the
+    world 1 / FILTERED_BERTH_SHARE = 2.4 times larger than a world in metres. 1: it sees the
+    arena's own units (every stage of the shipped weights)."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.filter_margin <= 10.0:
             raise ValueError(f"filter_margin must be in [0, 10], got {self.filter_margin}")
+        for name in ("drift_m", "sigma_k"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        for name in ("drift_corr_s", "told_scale"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v}")
 
 
 def cav_reward(d, cfg: EnvConfig):
@@ -104,6 +133,7 @@ def safety_config(cfg: EnvConfig) -> safety.SafetyConfig:
         margin=cfg.filter_margin,
         dt_s=cfg.dt_s,
         max_speed_m_s=cfg.speed,
+        sigma_k=cfg.sigma_k,
     )
 
 
@@ -173,7 +203,14 @@ class SwarmEnv:
         self.ep_return = np.zeros((e, m))
         self.ep_arrived = np.zeros((e, m), dtype=bool)
         self.ep_collided = np.zeros((e, m), dtype=bool)
+        self.drift = np.zeros((e, m, 2))
+        """Estimate minus truth of each vehicle's position (0 without cfg.drift_m)."""
         self.rng = np.random.default_rng(0)
+
+    @property
+    def est(self) -> np.ndarray:
+        """What each vehicle believes its position is (E, M, 2): the truth plus its drift."""
+        return self.pos + self.drift
 
     def reset(self, seed: int | None = None):
         """Resets every arena; returns the observation."""
@@ -195,6 +232,9 @@ class SwarmEnv:
             self.goal[e] = 0.0
             self.pos[e, :n] = s
             self.goal[e, :n] = g
+            self.drift[e] = 0.0
+            if self.cfg.drift_m > 0:  # stationary from the start; no draw when off
+                self.drift[e, :n] = self.rng.standard_normal((n, 2)) * self.cfg.drift_m
             self.active[e] = False
             self.active[e, :n] = True
             rel = self.goal[e] - self.pos[e]
@@ -207,8 +247,14 @@ class SwarmEnv:
 
     def observe(self, max_neighbours=None):
         """(seq (E,M,K,X), lengths (E,M), goal features (E,M,G))."""
+        zoom = self.cfg.told_scale
         seq, lengths, goal_feat, _ = features.observe_batch(
-            self.pos, self.heading, self.goal, self.active, self.obs_cfg, max_neighbours
+            self.est * zoom,
+            self.heading,
+            self.goal * zoom,
+            self.active,
+            self.obs_cfg,
+            max_neighbours,
         )
         return seq, lengths, goal_feat
 
@@ -221,7 +267,7 @@ class SwarmEnv:
         """
         cfg = self.cfg
         act = self.active.copy()
-        gd0 = self.goal - self.pos
+        gd0 = self.goal - self.est
         a = features.clip_unit(actions)
         vel = features.action_to_velocity(a, self.heading) * cfg.speed * act[..., None]
         if cfg.safety_filter:
@@ -243,7 +289,8 @@ class SwarmEnv:
                 d, _closest_approach(rel - (disp[:, None, :, :] - disp[:, :, None, :]), rel)
             )
         collided = (pair & (d <= cfg.eps_cav_m)).any(-1)
-        gd = self.goal - self.pos
+        gauss_markov(self.drift, cfg.drift_m, cfg.drift_corr_s, cfg.dt_s, self.rng)
+        gd = self.goal - self.est
         arrived = act & (np.hypot(gd[..., 0], gd[..., 1]) <= cfg.eps_arr_m)
         r_arr = cfg.r_arr * arrived
         r_tme = -cfg.r_tme / self.trip_m
@@ -274,21 +321,30 @@ class SwarmEnv:
 
     def _filtered(self, vel, act):
         """vel (E, M, 2) through the separation filter; each active vehicle sees the other
-        active vehicles of its arena (their positions and last velocities)."""
+        active vehicles of its arena (their estimated positions, with the drift's sigma, and
+        last velocities)."""
         m = self.cfg.max_vehicles
         e_i, m_i = np.nonzero(act)
         if e_i.size == 0:
             return vel
         valid = act[e_i] & (np.arange(m)[None, :] != m_i[:, None])
         out = vel.copy()
+        est = self.est
+        sigma = {}
+        if self.cfg.drift_m > 0:
+            sigma = {
+                "pos_sigma_m": np.full(e_i.size, self.cfg.drift_m),
+                "nbr_pos_sigma_m": np.full(valid.shape, self.cfg.drift_m),
+            }
         out[e_i, m_i] = safety.filter_padded(
-            self.pos[e_i, m_i],
+            est[e_i, m_i],
             self.vel[e_i, m_i],
             vel[e_i, m_i],
-            self.pos[e_i],
+            est[e_i],
             self.vel[e_i],
             valid,
             safety_config(self.cfg),
+            **sigma,
         )
         return out
 
@@ -317,16 +373,32 @@ def _closest_approach(rel0, rel1):
     return np.hypot(p[..., 0], p[..., 1])
 
 
-def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfig, vel=None):
+def reference_step(
+    pos,
+    goal,
+    heading,
+    active,
+    trip_m,
+    t,
+    actions,
+    cfg: EnvConfig,
+    vel=None,
+    drift=None,
+    drift_after=None,
+):
     """Plain per-agent loop of SwarmEnv.step on copies; returns the same quantities.
-    `vel` (E, M, 2): the velocities flown in the last step (needed with cfg.safety_filter)."""
+    `vel` (E, M, 2): the velocities flown in the last step (needed with cfg.safety_filter).
+    `drift` / `drift_after` (E, M, 2): the estimates' drift before and after the step (the
+    env's draws; None: 0), which the filter, the progress and the arrival see."""
     e_n, m = active.shape
+    drift = np.zeros_like(pos) if drift is None else drift
+    drift_after = np.zeros_like(pos) if drift_after is None else drift_after
     pos0 = pos
     pos, heading, active = pos.copy(), heading.copy(), active.copy()
     if cfg.safety_filter:
         if vel is None:
             raise ValueError("reference_step with safety_filter needs vel")
-        new_vel = _reference_filtered(pos0, vel, heading, active, actions, cfg)
+        new_vel = _reference_filtered(pos0 + drift, vel, heading, active, actions, cfg)
     reward = np.zeros((e_n, m))
     done = np.zeros((e_n, m), dtype=bool)
     for e in range(e_n):
@@ -339,7 +411,7 @@ def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfi
             if norm > 1.0:
                 ax, ay = ax / norm, ay / norm
             h = heading[e, i]
-            d0 = math.hypot(*(goal[e, i] - pos[e, i]))
+            d0 = math.hypot(*(goal[e, i] - pos[e, i] - drift[e, i]))
             vn = (ax * math.cos(h) - ay * math.sin(h)) * cfg.speed * cfg.dt_s
             ve = (ax * math.sin(h) + ay * math.cos(h)) * cfg.speed * cfg.dt_s
             if cfg.safety_filter:
@@ -348,7 +420,9 @@ def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfi
             if math.hypot(vn, ve) > 1e-12:
                 heading[e, i] = math.atan2(ve, vn)
             reward[e, i] += cfg.w_acc * -abs(ay) + cfg.w_tme * -cfg.r_tme / trip_m[e, i]
-            reward[e, i] += cfg.w_prog * (d0 - math.hypot(*(goal[e, i] - pos[e, i])))
+            reward[e, i] += cfg.w_prog * (
+                d0 - math.hypot(*(goal[e, i] - pos[e, i] - drift_after[e, i]))
+            )
         for i in range(m):
             if not was[i]:
                 continue
@@ -369,7 +443,7 @@ def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfi
                     s = min(max(s, 0.0), 1.0)
                     dij = min(dij, math.hypot(ax0 + s * bx, ay0 + s * by))
                 hit |= dij <= cfg.eps_cav_m
-            arrived = math.hypot(*(goal[e, i] - pos[e, i])) <= cfg.eps_arr_m
+            arrived = math.hypot(*(goal[e, i] - pos[e, i] - drift_after[e, i])) <= cfg.eps_arr_m
             if arrived:
                 reward[e, i] += cfg.w_arr * cfg.r_arr
             done[e, i] = arrived or hit or t[e] + 1 >= cfg.max_steps
@@ -378,7 +452,8 @@ def reference_step(pos, goal, heading, active, trip_m, t, actions, cfg: EnvConfi
 
 
 def _reference_filtered(pos, vel, heading, active, actions, cfg: EnvConfig):
-    """The commanded velocities through safety.filter_one, one vehicle at a time."""
+    """The commanded velocities through safety.filter_one, one vehicle at a time (`pos`: what
+    the vehicles believe, with cfg.drift_m as every vehicle's sigma)."""
     e_n, m = active.shape
     out = np.zeros((e_n, m, 2))
     scfg = safety_config(cfg)
@@ -394,6 +469,13 @@ def _reference_filtered(pos, vel, heading, active, actions, cfg: EnvConfig):
             )
             others = [j for j in range(m) if j != i and active[e, j]]
             out[e, i] = safety.filter_one(
-                pos[e, i], vel[e, i], pref * cfg.speed, pos[e, others], vel[e, others], scfg
+                pos[e, i],
+                vel[e, i],
+                pref * cfg.speed,
+                pos[e, others],
+                vel[e, others],
+                scfg,
+                pos_sigma_m=cfg.drift_m,
+                nbr_pos_sigma_m=np.full(len(others), cfg.drift_m) if cfg.drift_m > 0 else None,
             )
     return out

@@ -84,6 +84,14 @@ class TrainConfig:
     """The proximity penalty R_CAV starts this close (the paper: 10 m; see EnvConfig)."""
     knee_cav_m: float = 6.0
     """R_CAV turns quadratic this close (the paper: 6 m)."""
+    drift_m: float = 0.0
+    """Each vehicle's position estimate drifts from the truth by this 1-sigma per axis
+    (EnvConfig.drift_m; 0.5 is plain GNSS in metres); collisions are judged on the truth."""
+    drift_corr_s: float = 10.0
+    """Correlation time of that drift (EnvConfig.drift_corr_s)."""
+    told_scale: float = 1.0
+    """The network sees the arena this many times larger (EnvConfig.told_scale; 2.4 is how
+    flight tells it 3 m with the filter on)."""
     lone_anchor: float = 0.0
     """Weight of a loss pulling the action of a vehicle with no neighbour in sense range to
     full speed straight at its goal (the closed-form optimum there); 0 = off. The target is
@@ -137,6 +145,9 @@ def main(cfg: TrainConfig) -> dict:
         conflict_share=cfg.conflict_share,
         delta_cav_m=cfg.delta_cav_m,
         knee_cav_m=cfg.knee_cav_m,
+        drift_m=cfg.drift_m,
+        drift_corr_s=cfg.drift_corr_s,
+        told_scale=cfg.told_scale,
     )
     env = SwarmEnv(env_cfg, model_cfg.obs)
     model = ActorCritic(model_cfg, cfg.init_log_std)

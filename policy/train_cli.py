@@ -56,10 +56,11 @@ def cli(argv=None) -> dict:
         ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
     from policy.env import EnvConfig
 
-    try:  # the environment's own check, said as the flag
-        EnvConfig(filter_margin=cfg.filter_margin)
-    except ValueError as exc:
-        ap.error(f"--filter-margin: {exc}")
+    for field in ("filter_margin", "drift_m", "drift_corr_s", "told_scale"):
+        try:  # the environment's own check, said as the flag
+            EnvConfig(**{field: getattr(cfg, field)})
+        except ValueError as exc:
+            ap.error(f"--{field.replace('_', '-')}: {exc}")
     if cfg.encoder not in ("lstm", "occupancy"):
         ap.error(f"--encoder must be lstm or occupancy, got {cfg.encoder!r}")
     last = main(cfg)

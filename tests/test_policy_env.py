@@ -194,3 +194,93 @@ def test_conflict_arenas_cross_near_the_centre():
     plain = SwarmEnv(EnvConfig(num_envs=200), ObsConfig())
     plain.reset(seed=1)
     assert (plain.active.sum(1) == 1).any()  # geometric counts: lone vehicles happen
+
+
+def test_drifting_estimates_step_matches_reference_loop():
+    """With drift_m the environment flies every vehicle on its estimate (the filter, inflated by
+    sigma_k x the pair's sigma, the progress and the arrival) and judges collisions on the
+    truth: the vectorised step equals the plain loop given the same drifts."""
+    cfg = EnvConfig(
+        num_envs=12,
+        max_vehicles=5,
+        w_prog=10.0,
+        max_steps=30,
+        ccd=True,
+        safety_filter=True,
+        drift_m=0.5,
+        conflict_share=0.5,
+    )
+    env = SwarmEnv(cfg, ObsConfig("sincos", "closest_last", 10.0, 20.0))
+    env.reset(seed=7)
+    rng = np.random.default_rng(8)
+    moved = 0
+    for _ in range(30):
+        actions = rng.normal(0.3, 0.8, (12, 5, 2))
+        before = tuple(
+            x.copy() for x in (env.pos, env.goal, env.heading, env.active, env.trip_m, env.t)
+        )
+        vel, drift = env.vel.copy(), env.drift.copy()
+        r, d, info = env.step(actions)
+        moved += int((np.abs(env.drift - drift) > 1e-6).any())
+        pos, heading, active, reward, done = reference_step(
+            *before, actions, cfg, vel=vel, drift=drift, drift_after=env.drift.copy()
+        )
+        np.testing.assert_allclose(env.pos, pos, atol=1e-12)
+        np.testing.assert_allclose(env.heading, heading, atol=1e-12)
+        np.testing.assert_array_equal(env.active, active)
+        np.testing.assert_allclose(r, reward, atol=1e-9)
+        np.testing.assert_array_equal(d, done)
+        env.reset_envs(info["env_done"])
+    assert moved == 30  # the drift is a process, not a constant
+
+
+def test_drift_is_the_stated_process_and_off_draws_nothing():
+    """The estimates' offsets keep drift_m per axis (stationary from the reset on) and are 0
+    without it, where the environment's random stream is what it was (ideal training unchanged)."""
+    cfg = EnvConfig(num_envs=64, max_vehicles=5, max_steps=400, drift_m=0.5, drift_corr_s=10.0)
+    env = SwarmEnv(cfg, ObsConfig())
+    env.reset(seed=1)
+    first = env.drift[env.active].std()
+    samples = []
+    for _ in range(60):
+        env.step(np.zeros((64, 5, 2)))  # hover: nobody arrives, the drift runs on
+        samples.append(env.drift[env.active])
+    assert 0.4 < first < 0.6
+    assert 0.4 < np.concatenate(samples).std() < 0.6
+    plain, off = SwarmEnv(EnvConfig(), ObsConfig()), SwarmEnv(EnvConfig(drift_m=0.0), ObsConfig())
+    plain.reset(seed=2)
+    off.reset(seed=2)
+    assert not off.drift.any()
+    np.testing.assert_array_equal(plain.pos, off.pos)
+    assert plain.rng.random() == off.rng.random()
+
+
+def test_collisions_are_judged_on_the_truth_and_the_network_sees_estimates():
+    """Two vehicles whose estimates are 8 m apart but whose true positions are 2 m apart
+    collide; the observation is of the estimates, zoomed by told_scale."""
+    from policy import features
+
+    cfg = EnvConfig(num_envs=1, max_vehicles=2, drift_m=0.5, told_scale=2.4)
+    env = SwarmEnv(cfg, ObsConfig())
+    env.reset(seed=0)
+    env.pos[0] = [[0.0, 0.0], [2.0, 0.0]]
+    env.drift[0] = [[-3.0, 0.0], [3.0, 0.0]]
+    env.goal[0] = [[0.0, 30.0], [2.0, 30.0]]
+    env.heading[0] = [np.pi / 2, np.pi / 2]
+    env.active[0] = True
+    seq, lengths, goal_feat = env.observe()
+    want = features.observe_batch(
+        env.est * 2.4, env.heading, env.goal * 2.4, env.active, env.obs_cfg
+    )
+    np.testing.assert_allclose(seq, want[0])
+    np.testing.assert_allclose(goal_feat, want[2])
+    _, _, info = env.step(np.array([[[1.0, 0.0], [1.0, 0.0]]]))
+    assert info["collided"][0].all()
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("drift_m", -0.1), ("drift_corr_s", 0.0), ("told_scale", float("nan"))]
+)
+def test_bad_drift_settings_are_refused(field, value):
+    with pytest.raises(ValueError, match=field):
+        EnvConfig(**{field: value})
