@@ -32,7 +32,12 @@ from policy import safety
 from policy.goal_rule import ARRIVE_RADIUS_M
 from policy.lanes import LaneConfig, hold_short
 from policy.observation import Observations
-from policy.runtime import TOLD_SIGMA_FREE_M, GuidancePolicy, told_separation_m
+from policy.runtime import (
+    TOLD_SIGMA_FREE_M,
+    GuidancePolicy,
+    filtered_told_share,
+    told_separation_m,
+)
 from policy.sparse import SparseConfig
 
 if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_zones`)
@@ -121,8 +126,14 @@ class GuidanceConfig:
 
     @property
     def told_separation_m(self) -> float:
-        """The separation the policy is told (policy.runtime.told_separation_m)."""
-        return told_separation_m(self.separation_m, self.safety_filter, self.policy_separation_m)
+        """The separation the policy is told (policy.runtime.told_separation_m, with the told
+        share of the weights at policy_path)."""
+        return told_separation_m(
+            self.separation_m,
+            self.safety_filter,
+            self.policy_separation_m,
+            share=filtered_told_share(self.policy_path),
+        )
 
     @property
     def told_sigma_free_m(self) -> float | None:

@@ -106,7 +106,7 @@ def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
     (`safety_cfg`, policy.safety.SafetyConfig: it keeps 3 m, as policy+filter does)."""
     from firmware.cpolicy import CPolicy
     from policy.pointmass import VehicleModel
-    from policy.runtime import told_separation_m
+    from policy.runtime import filtered_told_share, told_separation_m
 
     inflation_m = 0.0
     if cfg.tell_inflation:
@@ -116,7 +116,11 @@ def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
         cfg.weights,
         separation_m=safety_cfg.radius_m,
         policy_separation_m=told_separation_m(
-            safety_cfg.radius_m, True, cfg.policy_separation_m, inflation_m
+            safety_cfg.radius_m,
+            True,
+            cfg.policy_separation_m,
+            inflation_m,
+            filtered_told_share(cfg.weights),
         ),
         max_neighbours=cfg.max_neighbours,
         safety_cfg=safety_cfg,

@@ -95,9 +95,14 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
                                    covey_safety_scratch_t *scratch, covey_sparse_out_t *out);
 
 /* With the filter on and no berth asked for, the policy is told this share of
- * the separation: it keeps a narrower berth than the paper's and the filter
- * keeps the separation (policy/runtime.py FILTERED_BERTH_SHARE, docs/policy.md). */
+ * the separation, the one its weights were trained for (their config's
+ * filtered_told_share, exported into the weights header; policy/runtime.py
+ * filtered_told_share, docs/policy.md). A header from before it: 1.25 / 3. */
+#ifdef COVEY_W_FILTERED_TOLD_SHARE
+#define COVEY_FILTERED_BERTH_SHARE COVEY_W_FILTERED_TOLD_SHARE
+#else
 #define COVEY_FILTERED_BERTH_SHARE (1.25f / 3.0f)
+#endif
 
 /* The separation to tell the policy (covey_config_t.separation_m) while the
  * filter keeps separation_m: asked_m unless it is 0; for 0, separation_m x

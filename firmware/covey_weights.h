@@ -16,6 +16,7 @@
 #define COVEY_W_DIST_SCALE 10.0f
 #define COVEY_W_SENSE_RANGE 20.0f /* policy units; 0 = unlimited */
 #define COVEY_W_DT 1.0f /* policy units of time per decision */
+#define COVEY_W_FILTERED_TOLD_SHARE 0.416666657f /* share of the separation told with the filter on */
 
 #ifdef COVEY_WEIGHTS_IMPLEMENTATION
 static const float covey_w_lstm_ih_t[1260] = {

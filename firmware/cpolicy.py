@@ -116,8 +116,8 @@ class CPolicy:
         """The defaults fly as the agents and the PX4 module do (GuidancePolicy's defaults).
         `told_sigma_free_m`: as GuidancePolicy's (covey_told_scale; None: never).
         `policy_separation_m`: the separation the network is told (its distance scale, 3
-        policy units = this); None: told_separation_m, as flight tells it (1.25 m per
-        3 m with the filter on, the whole separation without it). The filter always keeps
+        policy units = this); None: told_separation_m, as flight tells it (the weights'
+        told share of the separation with the filter on, the whole separation without it). The filter always keeps
         separation_m. `sparse_rule` (with the filter only): covey_sparse_choose, policy.sparse's
         C twin, picks the straight line at the goal in sparse traffic."""
         if max_neighbours is None:
@@ -130,9 +130,14 @@ class CPolicy:
         self._lib = load_library(npz_path)
         self._scratch = ctypes.create_string_buffer(self._lib.covey_scratch_bytes())
         # numpy only, like policy.safety below: the rule's one definition (C twin parity tested)
-        from policy.runtime import told_separation_m
+        from policy.runtime import filtered_told_share, told_separation_m
 
-        told_m = told_separation_m(separation_m, bool(safety_filter), policy_separation_m)
+        told_m = told_separation_m(
+            separation_m,
+            bool(safety_filter),
+            policy_separation_m,
+            share=filtered_told_share(npz_path),
+        )
         self._cfg = _Config(
             told_m,
             cruise_speed_m_s,

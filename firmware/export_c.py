@@ -87,6 +87,8 @@ def _c_array(name: str, values: np.ndarray) -> str:
 
 def header_text(npz_path) -> str:
     """The header for one weights file, as a string (deterministic)."""
+    from policy.runtime import config_told_share
+
     cfg, w = load_weights(npz_path)
     digest = hashlib.sha256(Path(npz_path).read_bytes()).hexdigest()
     x_size, g_size = ENCODING_INPUT[cfg.get("encoding", "paper")]
@@ -116,6 +118,8 @@ def header_text(npz_path) -> str:
         f"#define COVEY_W_DIST_SCALE {c_float(cfg.get('dist_scale', 1.0))}",
         f"#define COVEY_W_SENSE_RANGE {c_float(sense)} /* policy units; 0 = unlimited */",
         f"#define COVEY_W_DT {c_float(cfg.get('dt_s', 1.0))} /* policy units of time per decision */",
+        f"#define COVEY_W_FILTERED_TOLD_SHARE {c_float(config_told_share(cfg, str(npz_path)))}"
+        " /* share of the separation told with the filter on */",
         "",
         "#ifdef COVEY_WEIGHTS_IMPLEMENTATION",
         # transposed (input-major, W^T row k = the weights of input k), so that

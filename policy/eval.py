@@ -171,7 +171,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
     """name -> controller(pos, vel, heading, goal, nbr_pos, nbr_vel, nbr_heading, nbr_valid).
     `extra` controllers are built only when cfg.controllers names them."""
     from policy.pointmass import VehicleModel
-    from policy.runtime import GuidancePolicy, told_separation_m
+    from policy.runtime import GuidancePolicy, filtered_told_share, told_separation_m
     from policy.safety import SafetyConfig, filter_padded
     from policy.sparse import SparseConfig
 
@@ -198,7 +198,11 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
             path,
             separation_m=safety_cfg.radius_m,
             policy_separation_m=told_separation_m(
-                safety_cfg.radius_m, filt, cfg.policy_separation_m, inflation_m if filt else 0.0
+                safety_cfg.radius_m,
+                filt,
+                cfg.policy_separation_m,
+                inflation_m if filt else 0.0,
+                filtered_told_share(path),
             ),
             safety_filter=False,
             max_neighbours=cfg.max_neighbours,

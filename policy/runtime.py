@@ -18,6 +18,7 @@ The contract is docs/POLICY_SPEC.md; observations come from policy.features.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -35,13 +36,51 @@ from policy.zone_lines import ZoneSet
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "policy.npz"
 
 
-FILTERED_BERTH_SHARE = 1.25 / 3.0
-"""With the separation filter on, flight tells the policy this share of the separation (3 m ->
-1.25 m), unless told otherwise: the network then keeps a narrower berth than the paper's and
-leaves the separation itself to the filter. Chosen on seeds the repository had not used
-(docs/policy.md, "The policy's berth"): conflicts 1.25 -> 1.09-1.11 extra time, large swarms
-1.13 -> 1.05, 0 collisions and 100 % success on both links; told 1 m, a circle of 16 deadlocked
-once on the degraded link."""
+LEGACY_FILTERED_TOLD_SHARE = 1.25 / 3.0
+"""The share of the separation flight tells weights whose config states none (3 m -> 1.25 m),
+with the separation filter on: the network then keeps a narrower berth than the paper's and
+leaves the separation itself to the filter. Chosen for the weights shipped before issue 35's
+fine-tune on drifting estimates, on seeds the repository had not used (docs/policy.md, "The
+policy's berth"): conflicts 1.25 -> 1.09-1.11 extra time, large swarms 1.13 -> 1.05, 0
+collisions and 100 % success on both links; told 1 m, a circle of 16 deadlocked once on the
+degraded link."""
+
+TOLD_SHARE_KEY = "filtered_told_share"
+"""The weights config's entry (docs/POLICY_SPEC.md): the share of the separation flight tells
+these weights with the filter on, the geometry they were trained in (`covey train
+--filtered-told-share`)."""
+
+
+def config_told_share(config: dict, where: str = "weights") -> float:
+    """The told share a weights config states (LEGACY_FILTERED_TOLD_SHARE when it states none);
+    one that is not a number in (0, 4] is refused with the reason."""
+    share = config.get(TOLD_SHARE_KEY, LEGACY_FILTERED_TOLD_SHARE)
+    if isinstance(share, bool) or not isinstance(share, (int, float)):
+        raise ValueError(f"{where}: {TOLD_SHARE_KEY} must be a number, got {share!r}")
+    if not (math.isfinite(share) and 0.0 < share <= 4.0):
+        raise ValueError(f"{where}: {TOLD_SHARE_KEY} must be in (0, 4], got {share}")
+    return float(share)
+
+
+@functools.lru_cache(maxsize=8)
+def filtered_told_share(path: str | Path | None = None) -> float:
+    """The share of the separation flight tells the weights at `path` (None: the shipped ones)
+    with the filter on: their config's `filtered_told_share`, else LEGACY_FILTERED_TOLD_SHARE.
+    A missing or unreadable file is refused as GuidancePolicy.load refuses it."""
+    path = Path(path) if path is not None else DEFAULT_WEIGHTS
+    if not path.is_file():
+        raise FileNotFoundError(f"no policy weights at {path}")
+    arrays = load_weight_arrays(path)
+    config = parse_json(str(arrays["config"]), f"{path} 'config'")
+    if not isinstance(config, dict):
+        raise ValueError(f"{path}: 'config' is not a JSON object")
+    return config_told_share(config, str(path))
+
+
+FILTERED_BERTH_SHARE = filtered_told_share(None)
+"""With the separation filter on, flight tells the shipped weights this share of the separation,
+unless told otherwise (their config's `filtered_told_share`: docs/policy.md, "Trained on
+drifting estimates")."""
 
 TOLD_SIGMA_FREE_M = 0.5
 """The position 1-sigma up to which the policy is told the separation as above, whatever the
@@ -72,9 +111,11 @@ def told_separation_m(
     safety_filter: bool,
     policy_separation_m: float | None = None,
     inflation_m: float = 0.0,
+    share: float | None = None,
 ) -> float:
     """The separation flight tells the policy (its distance scale): `policy_separation_m` when
-    given; else FILTERED_BERTH_SHARE x (separation_m + inflation_m) with the filter on, and
+    given; else `share` (None: FILTERED_BERTH_SHARE, the shipped weights'; other weights:
+    `filtered_told_share(path)`) x (separation_m + inflation_m) with the filter on, and
     separation_m + inflation_m without it (alone, the policy keeps the separation itself).
     The filter always keeps separation_m, plus its uncertainty inflation per pair
     (policy.safety.pair_radius_m); `inflation_m` tells the policy a typical one (0: none).
@@ -83,7 +124,9 @@ def told_separation_m(
     if policy_separation_m is not None:
         return float(policy_separation_m)
     told = float(separation_m) + float(inflation_m)
-    return told * (FILTERED_BERTH_SHARE if safety_filter else 1.0)
+    if not safety_filter:
+        return told
+    return told * (FILTERED_BERTH_SHARE if share is None else share)
 
 
 class GuidancePolicy:
@@ -115,8 +158,8 @@ class GuidancePolicy:
         see `set_zones`; None: no zones (today's behaviour).
 
         `policy_separation_m`: the separation the network is told, i.e. its distance scale (3
-        policy units = this many metres). None: as flight tells it, `told_separation_m` (1.25 m
-        per 3 m of separation with the filter on, the whole separation without it). Smaller
+        policy units = this many metres). None: as flight tells it, `told_separation_m` (the
+        weights' told share of the separation with the filter on, the whole separation without it). Smaller
         than separation_m makes the policy keep a narrower berth while the filter still keeps
         separation_m (docs/policy.md, "The policy's berth"). The decision period stays
         separation_m's.
@@ -135,7 +178,12 @@ class GuidancePolicy:
         self.net = net
         self.obs_cfg = obs_cfg
         self.config = config
-        policy_separation_m = told_separation_m(separation_m, safety_filter, policy_separation_m)
+        policy_separation_m = told_separation_m(
+            separation_m,
+            safety_filter,
+            policy_separation_m,
+            share=config_told_share(config),
+        )
         if not (np.isfinite(policy_separation_m) and policy_separation_m > 0):
             raise ValueError(
                 f"policy_separation_m must be finite and > 0, got {policy_separation_m}"

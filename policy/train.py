@@ -91,7 +91,12 @@ class TrainConfig:
     """Correlation time of that drift (EnvConfig.drift_corr_s)."""
     told_scale: float = 1.0
     """The network sees the arena this many times larger (EnvConfig.told_scale; 2.4 is how
-    flight tells it 3 m with the filter on)."""
+    flight tells the legacy weights 3 m with the filter on)."""
+    filtered_told_share: float | None = None
+    """Written into the weights' config: the share of the separation flight tells them with the
+    filter on (policy.runtime.filtered_told_share); state the geometry trained in, e.g. 1.0 for
+    an arena in metres told the whole separation. None: not written (flight then tells
+    LEGACY_FILTERED_TOLD_SHARE, 1.25 / 3)."""
     lone_anchor: float = 0.0
     """Weight of a loss pulling the action of a vehicle with no neighbour in sense range to
     full speed straight at its goal (the closed-form optimum there); 0 = off. The target is
@@ -127,6 +132,7 @@ def main(cfg: TrainConfig) -> dict:
     from policy.env import EnvConfig, SwarmEnv
     from policy.export import export_model
     from policy.model import PRESETS, ActorCritic, clip_unit, parameter
+    from policy.runtime import TOLD_SHARE_KEY, config_told_share
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -150,6 +156,9 @@ def main(cfg: TrainConfig) -> dict:
         told_scale=cfg.told_scale,
     )
     env = SwarmEnv(env_cfg, model_cfg.obs)
+    told = {}
+    if cfg.filtered_told_share is not None:
+        told = {TOLD_SHARE_KEY: config_told_share({TOLD_SHARE_KEY: cfg.filtered_told_share})}
     model = ActorCritic(model_cfg, cfg.init_log_std)
     with torch.no_grad():
         parameter(model.head[-1], "bias")[0] = cfg.fwd_bias
@@ -324,12 +333,12 @@ def main(cfg: TrainConfig) -> dict:
         if update % cfg.checkpoint_every == 0:
             _save(model, optim, cfg, episodes, out / "checkpoint.pt")
             if model_cfg.encoder == "lstm":
-                export_model(model, out / "checkpoint.npz", {"trained_episodes": episodes})
+                export_model(model, out / "checkpoint.npz", {"trained_episodes": episodes, **told})
     bar.close()
     log_f.close()
     _save(model, optim, cfg, episodes, out / "final.pt")
     if model_cfg.encoder == "lstm":
-        export_model(model, out / "final.npz", {"trained_episodes": episodes})
+        export_model(model, out / "final.npz", {"trained_episodes": episodes, **told})
     plot_curve(log_path, out / "curve.png")
     return row
 

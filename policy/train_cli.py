@@ -56,6 +56,13 @@ def cli(argv=None) -> dict:
         ap.error(f"--preset must be paper or improved, got {cfg.preset!r}")
     from policy.env import EnvConfig
 
+    if cfg.filtered_told_share is not None:
+        from policy.runtime import TOLD_SHARE_KEY, config_told_share
+
+        try:
+            config_told_share({TOLD_SHARE_KEY: cfg.filtered_told_share}, "--filtered-told-share")
+        except ValueError as exc:
+            ap.error(str(exc))
     for field in ("filter_margin", "drift_m", "drift_corr_s", "told_scale"):
         try:  # the environment's own check, said as the flag
             EnvConfig(**{field: getattr(cfg, field)})

@@ -67,13 +67,15 @@ def load_c_policy(
         raise RuntimeError(
             f"onboard mode needs firmware.cpolicy (the C policy wrapper): {exc}"
         ) from exc
-    from policy.runtime import TOLD_SIGMA_FREE_M, told_separation_m
+    from policy.runtime import TOLD_SIGMA_FREE_M, filtered_told_share, told_separation_m
 
     return CPolicy.load(
         weights,
         separation_m=separation_m,
         cruise_speed_m_s=cruise_speed_m_s,
-        policy_separation_m=told_separation_m(separation_m, True, policy_separation_m),
+        policy_separation_m=told_separation_m(
+            separation_m, True, policy_separation_m, share=filtered_told_share(weights)
+        ),
         sparse_rule=sparse_rule,
         told_sigma_free_m=None if policy_separation_m is not None else TOLD_SIGMA_FREE_M,
     )
