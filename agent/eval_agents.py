@@ -133,8 +133,12 @@ def _views(row, m, vid, nbr_pos, nbr_vel, nbr_heading, sky: dict) -> NeighbourVi
 
 def agents(cfg: policy_eval.EvalConfig, safety_cfg) -> AgentFleet:
     """The `agents` controller: `covey agent`'s guidance (the C core on, as the agents fly),
-    with the evaluation's filter settings."""
-    return AgentFleet(GuidanceConfig(c_core=True), safety_cfg)
+    with the evaluation's weights (`--weights`), told separation (`--policy-separation-m`) and
+    filter settings."""
+    guidance = GuidanceConfig(
+        c_core=True, policy_path=cfg.weights, policy_separation_m=cfg.policy_separation_m
+    )
+    return AgentFleet(guidance, safety_cfg)
 
 
 CONTROLLERS: dict[str, policy_eval.ControllerFactory] = {**C_CONTROLLERS, "agents": agents}

@@ -80,8 +80,9 @@ class GuidanceConfig:
     """Nearest neighbours each decision sees; None: every neighbour within the sense range."""
     policy_separation_m: float | None = None
     """Separation the policy is told to keep, its distance scale; the filter still keeps the
-    whole separation. None: 1.25 m per 3 m of separation with the filter on (a narrower berth,
-    measured in docs/policy.md), the whole separation with it off (policy.runtime.told_separation_m)."""
+    whole separation. None: with the filter on, the share of the separation the weights' config
+    states (the shipped weights: all of it; weights without one: 1.25 m per 3 m, a narrower
+    berth), the whole separation with it off (policy.runtime.told_separation_m)."""
     sparse_rule: bool = True
     """With the filter on: where a vehicle meets at most two others and not dead-on, fly straight
     at the goal and let the filter resolve it (policy.sparse; docs/policy.md "Sparse traffic").

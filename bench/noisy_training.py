@@ -1,18 +1,21 @@
-"""Weights trained on drifting estimates against the shipped ones, with realistic vehicles.
+"""Weights trained on drifting estimates against issue 16's, with realistic vehicles.
 
-    python -m bench.noisy_training --weights runs/noisy_a/final.npz [--seeds 301,302]
+    python -m bench.noisy_training [--weights label=path.npz[@told_m],...] [--seeds 301,302]
         [--suites circle,conflict,large] [--name noisy_training]
-    # table; bench/results/<name>.{json,png}
+    # table; bench/results/<name>.{json,png}, docs/bench_<name>.png
 
 Issue 35 asks for the policy to be told the filter's inflation *or trained with noisy
 positions*, and both measured (the first: docs/policy.md, `--tell-inflation`). `covey train
 --drift-m 0.5 --told-scale 2.4` fine-tunes on drifting estimates, with flight's told zoom and
-the inflated filter in the loop (policy/env.py). This flies each candidate's weights and the
-shipped ones through `covey eval --controllers policy+filter` on the same seeds, both links:
-realistic vehicles (the preset: 0.3 s lag, 2.5 m/s^2, 0.2 m/s gusts, 0.5 m GNSS drift) and
-ideal ones. Collisions and the closest approach are on true positions. "vs ideal" is a case's
-extra time over the shipped weights' ideal-vehicle run of that case and link (the issue's
-target: at most 1.15), as a median per suite.
+the inflated filter in the loop (policy/env.py); the shipped weights are such a fine-tune of
+issue 16's (policy/weights/policy_issue16.npz, kept as the baseline). This flies the baseline
+and each candidate (default: the shipped weights) through `covey eval --controllers
+policy+filter` on the same seeds, both links: realistic vehicles (the preset: 0.3 s lag, 2.5
+m/s^2, 0.2 m/s gusts, 0.5 m GNSS drift) and ideal ones, each told the separation its weights'
+config states unless `@told_m` says otherwise. Collisions and the closest approach are on true
+positions. "vs base ideal" is a case's extra time over the baseline's ideal-vehicle run of that
+case and link, "vs own ideal" over the same weights' ideal run (the issue's target: realistic
+at most 1.15 of ideal), each a median per suite.
 """
 
 from __future__ import annotations
@@ -24,7 +27,9 @@ from pathlib import Path
 
 from bench import common
 
-SHIPPED = "shipped"
+BASELINE = "issue16"
+BASELINE_WEIGHTS = common.REPO / "policy" / "weights" / "policy_issue16.npz"
+"""Issue 16's weights (shipped until issue 35's fine-tune on drifting estimates)."""
 MODELS = ("ideal", "realistic")
 
 
@@ -32,7 +37,7 @@ def fly(
     weights: str | None, told_m: float | None, vehicles: str, seed: int, suites: tuple, out: Path
 ) -> dict:
     """One `covey eval` of policy+filter with these weights (None: the shipped ones), the
-    network told `told_m` (None: as flight tells it, 1.25 m per 3 m)."""
+    network told `told_m` (None: as flight tells it, the weights' told share)."""
     from policy import eval as ev
 
     cfg = ev.EvalConfig(
@@ -52,22 +57,26 @@ def fly(
 def rows(runs: dict) -> list[dict]:
     """runs[(label, model, seed)] = results.json -> one row per (label, model, suite, link)."""
     ideal = {
-        (seed, r["case"], r["link"]): r["extra_time"]
+        (label, seed, r["case"], r["link"]): r["extra_time"]
         for (label, model, seed), res in runs.items()
-        if label == SHIPPED and model == "ideal"
+        if model == "ideal"
         for r in res["runs"]
     }
+
+    def median_over(items, label) -> float | None:
+        ratios = [
+            r["extra_time"] / ideal[(label, seed, r["case"], r["link"])]
+            for seed, r in items
+            if r["extra_time"] and ideal.get((label, seed, r["case"], r["link"]))
+        ]
+        return statistics.median(ratios) if ratios else None
+
     groups: dict[tuple, list] = {}
     for (label, model, seed), res in runs.items():
         for r in res["runs"]:
             groups.setdefault((label, model, r["suite"], r["link"]), []).append((seed, r))
     out = []
     for (label, model, suite, link), items in sorted(groups.items()):
-        ratios = [
-            r["extra_time"] / ideal[(seed, r["case"], r["link"])]
-            for seed, r in items
-            if r["extra_time"] and ideal.get((seed, r["case"], r["link"]))
-        ]
         seps = [r["min_sep"] for _, r in items if r["min_sep"] is not None]
         out.append(
             {
@@ -82,7 +91,8 @@ def rows(runs: dict) -> list[dict]:
                 "extra_time_median": statistics.median(
                     [r["extra_time"] for _, r in items if r["extra_time"]] or [float("nan")]
                 ),
-                "vs_shipped_ideal_median": statistics.median(ratios) if ratios else None,
+                "vs_base_ideal_median": median_over(items, BASELINE),
+                "vs_own_ideal_median": median_over(items, label),
             }
         )
     return out
@@ -103,15 +113,15 @@ def plot(table: list[dict], name: str) -> None:
                 for r in table
                 if (r["suite"], r["link"]) == k and (r["weights"], r["vehicles"]) == (w, m)
             ]
-            ys.append(hit[0]["vs_shipped_ideal_median"] or 0.0 if hit else 0.0)
+            ys.append(hit[0]["vs_base_ideal_median"] or 0.0 if hit else 0.0)
         ax.bar([j + i * width for j in range(len(keys))], ys, width, label=f"{w}, {m}")
     ax.axhline(1.15, color="k", lw=1, ls=":", label="target 1.15")
     ax.set_xticks([j + 0.4 - width / 2 for j in range(len(keys))])
     ax.set_xticklabels([f"{s}\n{ln}" for s, ln in keys], fontsize=8)
-    ax.set_ylabel("extra time / shipped weights' ideal (median)")
+    ax.set_ylabel(f"extra time / {BASELINE} weights' ideal (median)")
     ax.set_ylim(0.9, None)
     ax.legend(fontsize=7)
-    ax.set_title("policy+filter: weights trained on drifting estimates vs shipped")
+    ax.set_title(f"policy+filter: weights trained on drifting estimates vs {BASELINE}'s")
     fig.tight_layout()
     common.save_figure(fig, name)
 
@@ -121,7 +131,7 @@ def main(
 ) -> dict:
     work = common.REPO / "runs" / "bench" / name  # each eval's results.json (not committed)
     runs = {}
-    for label, (path, told_m) in {SHIPPED: (None, None), **weights}.items():
+    for label, (path, told_m) in {BASELINE: (str(BASELINE_WEIGHTS), None), **weights}.items():
         for model in MODELS:
             for seed in seeds:
                 common.say(f"{label}, {model} vehicles, seed {seed}")
@@ -168,8 +178,8 @@ def _weights(spec: str) -> dict[str, tuple[str, float | None]]:
                 raise argparse.ArgumentTypeError(f"{item!r}: told metres must be > 0")
         if not Path(path).is_file():
             raise argparse.ArgumentTypeError(f"weights {path!r}: no such file")
-        if label == SHIPPED:
-            raise argparse.ArgumentTypeError(f"the label {SHIPPED!r} is the shipped weights'")
+        if label == BASELINE:
+            raise argparse.ArgumentTypeError(f"the label {BASELINE!r} is the baseline's")
         out[label] = (path, told_m)
     if not out:
         raise argparse.ArgumentTypeError("give at least one weights file")
@@ -178,7 +188,12 @@ def _weights(spec: str) -> dict[str, tuple[str, float | None]]:
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--weights", type=_weights, required=True, help="label=path.npz,...")
+    ap.add_argument(
+        "--weights",
+        type=_weights,
+        default={"shipped": (str(common.REPO / "policy" / "weights" / "policy.npz"), None)},
+        help="label=path.npz[@told_m],... (default: the shipped weights)",
+    )
     ap.add_argument("--seeds", default="301", help="comma list of covey eval seeds")
     ap.add_argument("--suites", default="circle,conflict,large", help="covey eval suites")
     ap.add_argument("--name", default="noisy_training", help="results name")

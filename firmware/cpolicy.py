@@ -4,7 +4,8 @@
     v_m_s = pol.command(pos_m, vel_m_s, heading_rad, goal_m, nbr_pos_m, nbr_vel_m_s, nbr_heading_rad)
 
 `command` mirrors `policy.runtime.GuidancePolicy.command`, with the same defaults (as the
-agents fly): the network told 1.25 m per 3 m of separation, then (with `safety_filter=True`,
+agents fly): the network told its weights' share of the separation (the shipped weights: all
+of it), then (with `safety_filter=True`,
 the default) the sparse-traffic rule (covey_sparse_choose) and the C separation filter
 (covey_safety.c) on the neighbours' positions and velocities; `preferred` is the same before
 the filter. `onboard()` gives one vehicle's guidance tick as the PX4 module flies it

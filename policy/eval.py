@@ -60,8 +60,9 @@ class EvalConfig:
     """Nearest neighbours fed to the learned policies."""
     policy_separation_m: float | None = None
     """Separation the learned policies are told to keep (collisions are still counted below
-    3 m). None: as flight tells them (policy.runtime.told_separation_m): 1.25 m with a filter
-    (policy+filter, c+filter), 3 m without, growing with GNSS worse than 0.5 m
+    3 m). None: as flight tells them (policy.runtime.told_separation_m): the share of 3 m the
+    weights' config states with a filter (policy+filter, c+filter; the shipped weights: all of
+    it; weights without one: 1.25 m), 3 m without, growing with GNSS worse than 0.5 m
     (policy.runtime.told_scale). Given: told as given, whatever the GNSS."""
     sparse_rule: bool = True
     """Filtered learned policies (policy+filter, c+filter) fly straight where a vehicle meets at

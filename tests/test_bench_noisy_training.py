@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.noisy_training import SHIPPED, _weights, rows
+from bench.noisy_training import BASELINE, _weights, rows
 
 
 def run(case: str, suite: str, link: str, extra: float, min_sep: float, collided=0, ok=True):
@@ -23,15 +23,22 @@ def run(case: str, suite: str, link: str, extra: float, min_sep: float, collided
     }
 
 
-def test_ratios_are_against_the_shipped_ideal_run_of_the_same_case_link_and_seed() -> None:
+def test_ratios_are_against_the_ideal_run_of_the_same_case_link_and_seed() -> None:
     runs = {
-        (SHIPPED, "ideal", 1): {
+        ("cand", "ideal", 1): {
+            "runs": [
+                run("c8", "circle", "perfect", 1.0, 3.6),
+                run("c16", "circle", "perfect", 1.1, 3.6),
+            ]
+        },
+        ("cand", "ideal", 2): {"runs": [run("c8", "circle", "perfect", 2.2, 3.6)]},
+        (BASELINE, "ideal", 1): {
             "runs": [
                 run("c8", "circle", "perfect", 1.2, 3.6),
                 run("c16", "circle", "perfect", 1.0, 3.6),
             ]
         },
-        (SHIPPED, "ideal", 2): {"runs": [run("c8", "circle", "perfect", 2.0, 3.6)]},
+        (BASELINE, "ideal", 2): {"runs": [run("c8", "circle", "perfect", 2.0, 3.6)]},
         ("cand", "realistic", 1): {
             "runs": [
                 run("c8", "circle", "perfect", 1.8, 2.9, collided=2, ok=False),
@@ -44,8 +51,10 @@ def test_ratios_are_against_the_shipped_ideal_run_of_the_same_case_link_and_seed
     cand = table[("cand", "realistic")]
     assert cand["runs"] == 3 and cand["collision_cases"] == 1 and cand["failed_cases"] == 1
     assert cand["closest_true_m"] == 2.9
-    assert cand["vs_shipped_ideal_median"] == pytest.approx(1.1)  # of 1.5, 1.1 and 1.1
-    assert table[(SHIPPED, "ideal")]["vs_shipped_ideal_median"] == pytest.approx(1.0)
+    assert cand["vs_base_ideal_median"] == pytest.approx(1.1)  # of 1.5, 1.1 and 1.1
+    assert cand["vs_own_ideal_median"] == pytest.approx(1.0)  # of 1.8, 1.0 and 1.0
+    assert table[(BASELINE, "ideal")]["vs_base_ideal_median"] == pytest.approx(1.0)
+    assert table[("cand", "ideal")]["vs_own_ideal_median"] == pytest.approx(1.0)
 
 
 def test_weights_are_label_path_and_an_optional_told_separation(tmp_path: Path) -> None:
@@ -53,6 +62,6 @@ def test_weights_are_label_path_and_an_optional_told_separation(tmp_path: Path) 
     w.parent.mkdir()
     w.write_bytes(b"x")
     assert _weights(f"a={w}@3,{w}") == {"a": (str(w), 3.0), "run_a": (str(w), None)}
-    for bad in ("", f"a={tmp_path}/none.npz", f"a={w}@x", f"a={w}@-1", f"{SHIPPED}={w}"):
+    for bad in ("", f"a={tmp_path}/none.npz", f"a={w}@x", f"a={w}@-1", f"{BASELINE}={w}"):
         with pytest.raises(argparse.ArgumentTypeError):
             _weights(bad)

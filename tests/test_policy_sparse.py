@@ -185,7 +185,7 @@ def test_agent_guidance_flies_the_rule_only_with_the_filter():
 
 def test_runtime_defaults_fly_as_the_agents():
     """GuidancePolicy.load() with its defaults is what an agent flies (GuidanceConfig(): told
-    1.25 m per 3 m of separation, the sparse rule, then the filter), so that any caller of the
+    the weights' share of the separation, the sparse rule, then the filter), so that any caller of the
     runtime gets flight's behaviour; without the filter: the whole separation, no rule."""
     from agent.guidance import GuidanceConfig
     from policy.runtime import FILTERED_BERTH_SHARE

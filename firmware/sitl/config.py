@@ -29,8 +29,8 @@ class SitlConfig:
     """Separation the onboard guidance keeps (its C filter); the decision period scales with it."""
     policy_separation_m: float | None = None
     """Separation the onboard policy is told to keep (it was trained for 3 m; distances scale by
-    this / 3). None: 1.25 m per 3 m of separation_m, the filter keeps the rest, as the agents fly
-    (policy.runtime.told_separation_m)."""
+    this / 3). None: the weights' told share of separation_m (the shipped weights: all of it),
+    the filter keeps separation_m, as the agents fly (policy.runtime.told_separation_m)."""
     policy_speed_m_s: float = 1.0
     """Onboard policy cruise speed (the policy's unit speed)."""
     sparse_rule: bool = True
