@@ -26,7 +26,9 @@ TOL = 1e-5
 
 @pytest.fixture(scope="module")
 def pol():
-    return GuidancePolicy.load()  # as the agents fly: the weights' told share, the sparse rule, the filter
+    return (
+        GuidancePolicy.load()
+    )  # as the agents fly: the weights' told share, the sparse rule, the filter
 
 
 def _reference(pol, own, vel, h, goal, nbr, nv, hdg) -> np.ndarray:
