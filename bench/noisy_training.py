@@ -21,6 +21,7 @@ at most 1.15 of ideal), each a median per suite.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import statistics
 from pathlib import Path
@@ -127,29 +128,39 @@ def plot(table: list[dict], name: str) -> None:
 
 
 def main(
-    weights: dict[str, tuple[str, float | None]], seeds: list[int], suites: tuple, name: str
+    weights: dict[str, tuple[str, float | None]],
+    seeds: list[int],
+    suites: tuple,
+    name: str,
+    reuse: bool = False,
 ) -> dict:
+    """Flies (or with `reuse`, reads the results.json an earlier run left) every label, vehicle
+    model and seed; prints and plots the table."""
     work = common.REPO / "runs" / "bench" / name  # each eval's results.json (not committed)
     runs = {}
     for label, (path, told_m) in {BASELINE: (str(BASELINE_WEIGHTS), None), **weights}.items():
         for model in MODELS:
             for seed in seeds:
+                out = work / f"{label}_{model}_{seed}"
+                if reuse and (out / "results.json").is_file():
+                    runs[(label, model, seed)] = json.loads((out / "results.json").read_text())
+                    continue
                 common.say(f"{label}, {model} vehicles, seed {seed}")
-                runs[(label, model, seed)] = fly(
-                    path, told_m, model, seed, suites, work / f"{label}_{model}_{seed}"
-                )
+                runs[(label, model, seed)] = fly(path, told_m, model, seed, suites, out)
     table = rows(runs)
     plot(table, name)
     print(
-        "weights      vehicles   suite     link      runs  coll  failed  closest  extra  vs ideal"
+        "weights      vehicles   suite     link      runs  coll  failed  closest  extra  "
+        "vs base ideal  vs own ideal"
     )
     for r in table:
-        ratio = r["vs_shipped_ideal_median"]
+        base, own = r["vs_base_ideal_median"], r["vs_own_ideal_median"]
         print(
             f"{r['weights']:12s} {r['vehicles']:10s} {r['suite']:9s} {r['link']:9s} "
             f"{r['runs']:4d}  {r['collision_cases']:4d}  {r['failed_cases']:6d}  "
             f"{r['closest_true_m'] or 0:6.2f}  {r['extra_time_median']:.3f}  "
-            f"{'-' if ratio is None else f'{ratio:.3f}'}"
+            f"{'-' if base is None else f'{base:.3f}':>13s}  "
+            f"{'-' if own is None else f'{own:.3f}':>12s}"
         )
     return {
         "weights": {k: list(v) for k, v in weights.items()},
@@ -197,7 +208,12 @@ if __name__ == "__main__":
     ap.add_argument("--seeds", default="301", help="comma list of covey eval seeds")
     ap.add_argument("--suites", default="circle,conflict,large", help="covey eval suites")
     ap.add_argument("--name", default="noisy_training", help="results name")
+    ap.add_argument(
+        "--reuse",
+        action="store_true",
+        help="read the results.json an earlier run left under runs/bench/NAME instead of flying",
+    )
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     suites = tuple(s.strip() for s in args.suites.split(",") if s.strip())
-    common.write_json(args.name, main(args.weights, seeds, suites, args.name))
+    common.write_json(args.name, main(args.weights, seeds, suites, args.name, args.reuse))
