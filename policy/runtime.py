@@ -62,11 +62,9 @@ def config_told_share(config: dict, where: str = "weights") -> float:
     return float(share)
 
 
-@functools.lru_cache(maxsize=8)
-def filtered_told_share(path: str | Path | None = None) -> float:
-    """The share of the separation flight tells the weights at `path` (None: the shipped ones)
-    with the filter on: their config's `filtered_told_share`, else LEGACY_FILTERED_TOLD_SHARE.
-    A missing or unreadable file is refused as GuidancePolicy.load refuses it."""
+def read_weights(path: str | Path | None) -> tuple[Path, dict[str, np.ndarray], dict]:
+    """(path, checked arrays, config) of a weights file (None: the shipped ones); a missing
+    file, bad arrays or a config that is not a JSON object are refused with the reason."""
     path = Path(path) if path is not None else DEFAULT_WEIGHTS
     if not path.is_file():
         raise FileNotFoundError(f"no policy weights at {path}")
@@ -74,6 +72,14 @@ def filtered_told_share(path: str | Path | None = None) -> float:
     config = parse_json(str(arrays["config"]), f"{path} 'config'")
     if not isinstance(config, dict):
         raise ValueError(f"{path}: 'config' is not a JSON object")
+    return path, arrays, config
+
+
+@functools.lru_cache(maxsize=8)
+def filtered_told_share(path: str | Path | None = None) -> float:
+    """The share of the separation flight tells the weights at `path` (None: the shipped ones)
+    with the filter on: their config's `filtered_told_share`, else LEGACY_FILTERED_TOLD_SHARE."""
+    path, _, config = read_weights(path)
     return config_told_share(config, str(path))
 
 
@@ -269,13 +275,7 @@ class GuidancePolicy:
     ) -> GuidancePolicy:
         """Loads a weights file (docs/POLICY_SPEC.md); None = the shipped weights. The other
         arguments are the constructor's: the defaults fly as the agents do."""
-        path = Path(path) if path is not None else DEFAULT_WEIGHTS
-        if not path.is_file():
-            raise FileNotFoundError(f"no policy weights at {path}")
-        arrays = load_weight_arrays(path)
-        config = parse_json(str(arrays["config"]), f"{path} 'config'")
-        if not isinstance(config, dict):
-            raise ValueError(f"{path}: 'config' is not a JSON object")
+        path, arrays, config = read_weights(path)
         if config.get("encoder", "lstm") != "lstm":
             raise ValueError(
                 f"{path}: the runtime only runs encoder 'lstm', not {config['encoder']!r}"

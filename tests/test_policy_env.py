@@ -26,26 +26,27 @@ def test_step_matches_reference_loop(w_prog, ccd, safety_filter):
     env.reset(seed=3)
     rng = np.random.default_rng(4)
     for _ in range(40):
-        actions = rng.normal(0.3, 0.8, (16, 5, 2))
         # push pairs together now and then so that collisions happen
-        before = (
-            env.pos.copy(),
-            env.goal.copy(),
-            env.heading.copy(),
-            env.active.copy(),
-            env.trip_m.copy(),
-            env.t.copy(),
-        )
-        pos, heading, active, reward, done = reference_step(
-            *before, actions, cfg, vel=env.vel.copy()
-        )
-        r, d, info = env.step(actions)
-        np.testing.assert_allclose(env.pos, pos, atol=1e-12)
-        np.testing.assert_allclose(env.heading, heading, atol=1e-12)
-        np.testing.assert_array_equal(env.active, active)
-        np.testing.assert_allclose(r, reward, atol=1e-9)
-        np.testing.assert_array_equal(d, done)
-        env.reset_envs(info["env_done"])
+        _step_both(env, rng.normal(0.3, 0.8, (16, 5, 2)), cfg)
+
+
+def _step_both(env: SwarmEnv, actions, cfg: EnvConfig) -> None:
+    """One env.step, checked against reference_step on copies of the state before it (with the
+    drifts before and after the step), then the finished arenas reset."""
+    before = tuple(
+        x.copy() for x in (env.pos, env.goal, env.heading, env.active, env.trip_m, env.t)
+    )
+    vel, drift = env.vel.copy(), env.drift.copy()
+    r, d, info = env.step(actions)
+    pos, heading, active, reward, done = reference_step(
+        *before, actions, cfg, vel=vel, drift=drift, drift_after=env.drift.copy()
+    )
+    np.testing.assert_allclose(env.pos, pos, atol=1e-12)
+    np.testing.assert_allclose(env.heading, heading, atol=1e-12)
+    np.testing.assert_array_equal(env.active, active)
+    np.testing.assert_allclose(r, reward, atol=1e-9)
+    np.testing.assert_array_equal(d, done)
+    env.reset_envs(info["env_done"])
 
 
 def test_reset_is_seeded_and_respects_the_arena():
@@ -215,22 +216,9 @@ def test_drifting_estimates_step_matches_reference_loop():
     rng = np.random.default_rng(8)
     moved = 0
     for _ in range(30):
-        actions = rng.normal(0.3, 0.8, (12, 5, 2))
-        before = tuple(
-            x.copy() for x in (env.pos, env.goal, env.heading, env.active, env.trip_m, env.t)
-        )
-        vel, drift = env.vel.copy(), env.drift.copy()
-        r, d, info = env.step(actions)
+        drift = env.drift.copy()
+        _step_both(env, rng.normal(0.3, 0.8, (12, 5, 2)), cfg)
         moved += int((np.abs(env.drift - drift) > 1e-6).any())
-        pos, heading, active, reward, done = reference_step(
-            *before, actions, cfg, vel=vel, drift=drift, drift_after=env.drift.copy()
-        )
-        np.testing.assert_allclose(env.pos, pos, atol=1e-12)
-        np.testing.assert_allclose(env.heading, heading, atol=1e-12)
-        np.testing.assert_array_equal(env.active, active)
-        np.testing.assert_allclose(r, reward, atol=1e-9)
-        np.testing.assert_array_equal(d, done)
-        env.reset_envs(info["env_done"])
     assert moved == 30  # the drift is a process, not a constant
 
 
