@@ -162,7 +162,9 @@ class Returns:
                 goal_m[i] = (self.spot_ne_m[i, 0], self.spot_ne_m[i, 1], goal_m[i, 2])
                 out[i] = False
                 turned.append(i)
-            elif self.cfg.land_radius_m > 0 and self.blocker(i, pos_m, others_pos_m, others_ids):
+            elif self.cfg.land_radius_m > 0 and self.blocker(
+                i, pos_m, others_pos_m, others_ids, returning
+            ):
                 self.phase[i] = WAIT
                 out[i] = False
         return out, turned
@@ -173,9 +175,12 @@ class Returns:
         pos_m: np.ndarray,
         others_pos_m: np.ndarray | None,
         others_ids: np.ndarray | None,
+        returning: np.ndarray | None = None,
     ) -> int | None:
-        """The id of a vehicle that lands before row i (airborne, within land_radius_m of its
-        spot, lower or level with a lower id), or None: row i may come down."""
+        """The id of a vehicle that lands before row i (airborne, lower or level with a lower
+        id, and within land_radius_m of row i's spot, or one of these rows `returning` to a
+        spot within it: the filter may have pushed it off its way), or None: row i may come
+        down."""
         pts, ids = pos_m, self.ids
         if others_pos_m is not None and len(others_pos_m):
             pts = np.concatenate([pts, np.asarray(others_pos_m, float).reshape(-1, 3)])
@@ -184,6 +189,9 @@ class Returns:
         mine = -pos_m[i, 2]
         alt = -pts[:, 2]
         near = np.hypot(*(pts[:, :2] - self.spot_ne_m[i]).T) <= self.cfg.land_radius_m
+        if returning is not None:  # rows of this fleet bound for a spot near row i's
+            spots = np.hypot(*(self.spot_ne_m - self.spot_ne_m[i]).T) <= self.cfg.land_radius_m
+            near[: len(self.ids)] |= np.asarray(returning, bool) & spots
         below = (alt < mine - LEVEL_M) | ((np.abs(alt - mine) <= LEVEL_M) & (ids < ids[i]))
         hit = near & below & (alt > AIRBORNE_ALT_M)
         hit[i] = False

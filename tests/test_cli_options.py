@@ -43,6 +43,10 @@ NO_UNIT_SUFFIX: dict[str, set[tuple[str, str]]] = {
     "a relative padding on the separation (0.2 = 20 % more), as SafetyConfig.margin": {
         ("train", "--filter-margin")
     },
+    "ratios of distances: the network's zoom of the arena, the share of the separation told": {
+        ("train", "--told-scale"),
+        ("train", "--filtered-told-share"),
+    },
     "a count, in thousands (the -k is its scale)": {("train", "--episodes-k")},
     "a confidence factor in standard deviations (k of k sqrt(si^2 + sj^2)), no unit": {
         ("eval", "--sigma-k")

@@ -3,6 +3,7 @@ three filter paths, and through C beside numpy's reference, every position 1-sig
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,12 @@ def c_filter(cfg):
     return CSafetyFilter(load_library(), cfg)
 
 
+ISSUE16_WEIGHTS = (
+    Path(__file__).resolve().parent.parent / "policy" / "weights" / "policy_issue16.npz"
+)
+"""Issue 16's weights, with which the seeded regression scenes of this suite were found."""
+
+
 def intruder_run(
     seed: int,
     case: str,
@@ -63,6 +70,7 @@ def intruder_run(
     suite: str = "intruder",
     recover_speed_share: float | None = None,
     vehicles: str = "realistic",
+    weights: str | None = None,
 ):
     """One run of `covey eval --suites <suite> --vehicles <vehicles> --controllers
     policy+filter,c+filter --seed <seed>`, with that command's random draws: the case `case` of
@@ -70,7 +78,8 @@ def intruder_run(
     needs a C compiler) on `link` ("perfect" or "degraded"). Module constants are read as the
     run flies, so a test may monkeypatch them first. `recover_speed_share`: `covey eval
     --recover-speed-share` (0: the parting rule before policy.safety.RECOVER_SPEED_SHARE);
-    `vehicles`: `covey eval --vehicles`. Returns evalsim.run's metrics."""
+    `vehicles`: `covey eval --vehicles`; `weights`: `covey eval --weights` (None: the shipped
+    ones). Returns evalsim.run's metrics."""
     from firmware.ceval import CONTROLLERS
     from policy import eval as ev
     from policy import evalsim
@@ -86,6 +95,7 @@ def intruder_run(
         progress=False,
         controllers=ctrls,
         recover_speed_share=recover_speed_share,
+        weights=weights,
     )
     index = {c[1]: (i, c) for i, c in enumerate(ev.cases(cfg))}
     i, (_, _, starts, goals, opts) = index[case]
