@@ -98,10 +98,11 @@ class EnvConfig:
     """With drift_m and the filter: the filter keeps sigma_k sqrt(2) drift_m more between
     estimates, as flight's does (SafetyConfig.sigma_k)."""
     told_scale: float = 1.0
-    """The network sees positions and goals times this: flight tells the network its
-    separation as FILTERED_BERTH_SHARE of the real one (policy.runtime), i.e. it sees the
-    world 1 / FILTERED_BERTH_SHARE = 2.4 times larger than a world in metres. 1: it sees the
-    arena's own units (every stage of the shipped weights)."""
+    """The network sees positions and goals times this: flight tells weights their
+    `filtered_told_share` of the separation (policy.runtime), so in an arena in metres a
+    network told 1.25 m per 3 m sees the world 3 / 1.25 = 2.4 times larger. 1: it sees the
+    arena's own units (every stage of the shipped weights; the last, in metres on drifting
+    estimates, is told the whole separation)."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.filter_margin <= 10.0:
