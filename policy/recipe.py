@@ -2,7 +2,7 @@
 
     covey train --recipe shipped --max-minutes 45 --threads 1 --seed 11 --out runs/recipe
 
-Six stages of `policy.train.main`, each started from the weights the one before wrote
+Five stages of `policy.train.main`, each started from the weights the one before wrote
 (`<out>/<k>-<name>/final.npz`), the last copied to `<out>/final.npz`:
 
 1. from scratch: the improved preset with the continuous collision check (the 36-minute
@@ -13,8 +13,7 @@ Six stages of `policy.train.main`, each started from the weights the one before 
 4. the same with the turning penalty at 14 (issue 16's weights, policy/weights/policy_issue16.npz);
 5. the same on drifting position estimates (0.5 m, plain GNSS; collisions judged on the truth,
    the filter inflated as flight's), in metres and told the whole separation, which the
-   weights' config then states (`filtered_told_share` 1.0; issue 35);
-6. the same in denser arenas: up to 8 vehicles, 80 % forced conflicts (the shipped weights).
+   weights' config then states (`filtered_told_share` 1.0; issue 35, the shipped weights).
 
 Episodes stop each stage, as in the runs that made the shipped weights; `--max-minutes` is
 the whole recipe's wall-time budget, split between the stages by `Stage.budget_share`; what a
@@ -60,15 +59,12 @@ _FINE_TUNE = (
 _WACC14 = (*_FINE_TUNE, ("w_acc", 14.0), ("init_log_std", -1.3))
 _DRIFT = (("drift_m", 0.5), ("told_scale", 1.0), ("filtered_told_share", 1.0))
 
-_CROWDS = (("conflict_share", 0.8), ("max_vehicles", 8), ("init_log_std", -1.6))
-
 SHIPPED = (
-    Stage("scratch", 120_000, 0.5, (("ccd", True),)),
-    Stage("filter", 37_000, 0.1, (*_FINE_TUNE, ("init_log_std", -0.916))),
-    Stage("filter-wacc10", 30_000, 0.1, (*_FINE_TUNE, ("w_acc", 10.0), ("init_log_std", -1.2))),
-    Stage("filter-wacc14", 30_000, 0.1, _WACC14),
-    Stage("drift", 40_000, 0.1, (*_WACC14, *_DRIFT)),
-    Stage("drift-crowds", 20_000, 0.1, (*_WACC14, *_DRIFT, *_CROWDS)),
+    Stage("scratch", 120_000, 0.52, (("ccd", True),)),
+    Stage("filter", 37_000, 0.12, (*_FINE_TUNE, ("init_log_std", -0.916))),
+    Stage("filter-wacc10", 30_000, 0.12, (*_FINE_TUNE, ("w_acc", 10.0), ("init_log_std", -1.2))),
+    Stage("filter-wacc14", 30_000, 0.12, _WACC14),
+    Stage("drift", 40_000, 0.12, (*_WACC14, *_DRIFT)),
 )
 
 RECIPES = {"shipped": SHIPPED}
