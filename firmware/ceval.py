@@ -110,7 +110,7 @@ def c_filter(cfg: policy_eval.EvalConfig, safety_cfg) -> COnboardFleet:
 
     inflation_m = 0.0
     if cfg.tell_inflation:
-        sigma_m = VehicleModel.named(cfg.vehicles).drift_m
+        sigma_m = VehicleModel.named(cfg.vehicles).pos_sigma_m
         inflation_m = policy_eval.inflation_told_m(safety_cfg, sigma_m)
     cpol = CPolicy.load(
         cfg.weights,

@@ -185,7 +185,7 @@ def controllers(cfg: EvalConfig, extra: Mapping[str, ControllerFactory] | None =
         safety_cfg = dataclasses.replace(
             safety_cfg, non_cooperative_radius_m=cfg.non_cooperative_separation_m
         )
-    sigma_m = VehicleModel.named(cfg.vehicles).drift_m
+    sigma_m = VehicleModel.named(cfg.vehicles).pos_sigma_m
     inflation_m = inflation_told_m(safety_cfg, sigma_m) if cfg.tell_inflation else 0.0
     out: dict[str, Callable[..., Any]] = {}
     for name, path, filt in [

@@ -110,16 +110,31 @@ class VehicleModel:
     1-sigma the vehicle reports as its pos_sigma_m (PX4's eph)."""
     drift_corr_s: float = 10.0
     """Correlation time of the estimate's drift."""
+    reported_sigma_m: float | None = None
+    """The horizontal 1-sigma the vehicle reports (PX4's eph), where it is not its drift's
+    (None: `drift_m`, an honest estimator). An autopilot's accuracy figure is an estimate of
+    its own: a conservative one overstates the error (and a vehicle whose autopilot reports
+    none is taken at agent/shell_config.py `ShellConfig.assumed_pos_sigma_m`, 0.5 m). Set
+    with `drift_m=0` it separates what the filter's uncertainty padding costs from what the
+    drift does (bench/berth_floor.py)."""
 
     def __post_init__(self) -> None:
         for name in ("lag_s", "gust_m_s", "drift_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        r = self.reported_sigma_m
+        if r is not None and not (math.isfinite(r) and r >= 0):
+            raise ValueError(f"reported_sigma_m must be finite and >= 0 (or unset), got {r}")
         for name in ("gust_corr_s", "drift_corr_s", "max_accel_m_s2"):
             v = getattr(self, name)
             if not v > 0:  # NaN too
                 raise ValueError(f"{name} must be > 0, got {v}")
+
+    @property
+    def pos_sigma_m(self) -> float:
+        """The position 1-sigma these vehicles report: `reported_sigma_m`, else `drift_m`."""
+        return self.drift_m if self.reported_sigma_m is None else self.reported_sigma_m
 
     @classmethod
     def ideal(cls) -> VehicleModel:
@@ -221,7 +236,7 @@ class Vehicles:
 
     @property
     def pos_sigma_m(self) -> float:
-        return self.model.drift_m
+        return self.model.pos_sigma_m
 
     @property
     def est_pos_m(self) -> np.ndarray:

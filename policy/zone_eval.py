@@ -171,7 +171,7 @@ def run(
         )
     refused = np.zeros(len(goals), bool)
     if aware:  # as the flight core takes a goto (agent/flight_core.py `_clear_goal`)
-        pad_m = safety_cfg.sigma_k * sim_cfg.vehicles.drift_m
+        pad_m = safety_cfg.sigma_k * sim_cfg.vehicles.pos_sigma_m
         checks = [router.check_goal(g, pad_m) for g in np.asarray(goals, float)]
         refused = np.array([bool(c.problem(sim_cfg.arrive_m)) for c in checks])
         goals = np.array([c.goal_m for c in checks])[~refused]

@@ -221,3 +221,49 @@ def test_vehicle_model_flags(capsys):
         with pytest.raises(SystemExit) as exc:
             agent_cli.cli(argv)
         assert exc.value.code == 2 and why in capsys.readouterr().err
+
+
+def test_a_reported_sigma_apart_from_the_drift_reaches_every_simulator_and_the_zone_rule():
+    """`reported_sigma_m`: the 1-sigma a vehicle reports where it is not its drift's (a
+    conservative eph). Every simulator reports it, and the zone eval's goal rule pads for it
+    as the flight core does; the flight itself stays exact."""
+    from agent.backends.sim import SimConfig, SimFleet
+    from firmware.sitl.vehicle import Vehicle
+
+    assert VehicleModel.realistic().pos_sigma_m == 0.5  # unset: the drift's
+    m = VehicleModel.named("ideal:reported_sigma_m=0.5")
+    assert (m.drift_m, m.reported_sigma_m, m.pos_sigma_m) == (0.0, 0.5, 0.5)
+    assert VehicleModel.named("realistic:reported_sigma_m=0").pos_sigma_m == 0.0
+    for bad in ("ideal:reported_sigma_m=-0.1", "ideal:reported_sigma_m=inf"):
+        with pytest.raises(ValueError, match="reported_sigma_m must be finite and >= 0"):
+            VehicleModel.named(bad)
+    fleet = Vehicles(np.zeros((3, 2)), m, np.random.default_rng(1))
+    assert fleet.pos_sigma_m == 0.5 and np.array_equal(fleet.est_pos_m, fleet.pos_m)
+    sim = SimFleet(SimConfig(vehicle=m), np.zeros((1, 3)))
+    assert sim.pos_m is sim.true_pos_m and sim.telemetry(0).pos_sigma_m == 0.5
+    assert Vehicle(model=m).pos_sigma_m == 0.5
+
+
+def test_the_zone_eval_refuses_goals_at_the_reported_sigma():
+    """zones-edge-goals: goals 2 m off a square are refused at a 0.5 m sigma (the filter keeps
+    3.8 m) and flown at sigma 0, whether the sigma comes from the drift or is only reported
+    (it padded for the drift alone: ideal vehicles reporting 0.5 m never arrived)."""
+    from policy import eval as policy_eval
+    from policy import scenarios, zone_eval
+    from policy.evalsim import PERFECT, EvalSimConfig
+
+    scenes = {s[0]: s[1:] for s in scenarios.zone_scenes(np.random.default_rng(0))}
+    starts, goals, zones = scenes["edge-goals"]
+    name = "policy+filter"
+    guided = policy_eval.controllers(policy_eval.EvalConfig(controllers=(name,)))[name]
+
+    def fly(vehicles: str) -> dict:
+        sim = EvalSimConfig(vehicles=VehicleModel.named(vehicles))
+        rng = np.random.default_rng(1)
+        r = zone_eval.run(name, starts, goals, zones, guided, PERFECT, sim, rng)
+        assert r["zone_entries"] == 0 and r["success"], r
+        return r
+
+    assert fly("ideal")["refused"] == 0
+    assert fly("ideal:reported_sigma_m=0.5")["refused"] == 2
+    assert fly("realistic")["refused"] == 2

@@ -97,7 +97,7 @@ class SimFleet:
         """Where the vehicles really are (N, 3)."""
         self.pos_m = self.true_pos_m if model.drift_m == 0 else self.body.est_pos_m
         """Where each autopilot believes it is (N, 3): the truth with exact positions."""
-        self.pos_sigma_m = model.drift_m
+        self.pos_sigma_m = model.pos_sigma_m
         """The 1-sigma each reports of its horizontal position estimate."""
         self.vel_m_s = self.body.vel_m_s
         self.heading_rad = np.full(n, cfg.start_heading_rad)

@@ -115,7 +115,7 @@ class Vehicle:
     @property
     def pos_sigma_m(self) -> float:
         """The 1-sigma of the horizontal estimate it simulates (and reports)."""
-        return 0.0 if self.model is None else self.model.drift_m
+        return 0.0 if self.model is None else self.model.pos_sigma_m
 
     @property
     def alt_m(self) -> float:
