@@ -14,28 +14,40 @@ A process is calm when every one of its vehicles:
   no autopilot action under way, and the filter neither corrected nor slowed it this tick;
 - is further from its goal than the arrival radius plus what it flies in the horizon (it
   arrives on a 10 Hz tick) and, with a circular geofence, further inside it than that;
-- has every neighbour, covey vehicle or traffic, further than
+- has every neighbour, covey vehicle or traffic, whose closest approach within the filter's
+  time horizon, both flying on at their velocities now (`closest_approach_m`: the relative
+  position p and velocity v, |p + v t*| with t* = clip(-p.v / v.v, 0, time_horizon_s)), is
+  further than
 
-      r_ij + |v_i - v_j| time_horizon_s + (V_i + V_j) H + 1 m
+      r_ij + g time_horizon_s + (V_i + V_j) H + 1 m
 
-  (r_ij: policy.safety.pair_radius_m, separation, margin and both position uncertainties), and
-  every keep-out zone and fence edge further than the zone filter's clearance + sigma_k sigma +
+  (r_ij: policy.safety.pair_radius_m, separation, margin and both position uncertainties; g:
+  what traffic gains in speed in H at 2.5 m/s^2, 0 for a covey vehicle), and every keep-out
+  zone and fence edge further than the zone filter's clearance + sigma_k sigma +
   V_i (time_horizon_s + H) + 1 m,
 
 where H is two calm periods (the calm interval, plus a state that came just after the last
-tick). The first two terms are where the filter's velocity obstacle for the pair begins, at
-the velocities now (the vehicle's measured one, the neighbour's as reported and dead-reckoned;
-traffic's relative speed plus what it gains in H at 2.5 m/s^2). The third bounds what both fly
+tick). The filter's velocity obstacle for a pair is the cone truncated at its time horizon:
+it acts exactly when the closest approach within the horizon is under r_ij, at the velocities
+now (the vehicle's measured one, the neighbour's as reported and dead-reckoned); traffic that
+speeds up by g brings it at most g time_horizon_s nearer. The third term bounds what both fly
 in H: V is at least the cruise speed for a covey vehicle (guidance never commands more; the
-vehicle's own is its speed while it holds), traffic's speed plus that gain. So no pair comes
-within the distance at which the filter acts on it during the calm interval while both keep
-their velocities. Where one changes its velocity towards the other (a holding neighbour given
-a goto, one of two vehicles flying side by side turning in), the calm vehicle sees it at its
+vehicle's own is its speed while it holds), traffic's speed plus that gain. Since |v| <= V_i
++ V_j, the straight relative path stays r_ij + 1 m away over the horizon and H more, and the
+gap stays above r_ij + 1 m through H whatever either flies. So no pair comes within the
+distance at which the filter acts on it during the calm interval while both keep their
+velocities. Where one changes its velocity towards the other (a holding neighbour given a
+goto, one of two vehicles flying side by side turning in), the calm vehicle sees it at its
 next tick: its filter acts at most one calm period (0.3 s) later than at 10 Hz, from at least
 r_ij + 1 m, while the vehicle that turned is not calm (its relative velocity puts the pair
 within its own bound) and runs its filter at 10 Hz. That is the delay the fleet already flies
 with on a 3 Hz radio link, where decisions use neighbour states up to a third of a second old
 (docs/policy.md).
+
+Until issue 37's round fourteen the rule took the gap less |v_i - v_j| time_horizon_s, a
+bound on the closest approach that ignores direction: a vehicle flying past a neighbour or
+away from it (|v_i - v_j| 2 m/s: 8 m more) ticked at 10 Hz for as long as the pair was within
+about 14 m, though the filter would never act on it.
 
 The hold tier (`holding_at_rest`, ShellConfig.hold_tick_hz: 1 Hz): where every vehicle of the
 process holds at rest and the rule above holds with H two hold periods (2 s), the next tick is
@@ -120,7 +132,7 @@ def calm(
         gain = np.where(coop, 0.0, TRAFFIC_ACCEL_M_S2 * horizon_s)  # traffic may speed up
         o_bound = np.where(coop, np.maximum(o_speed, g.cruise_speed_m_s), o_speed + gain)
         o_bound[:n] = own_bound
-        rel = np.hypot(vel[:, None, 0] - o_vel[None, :, 0], vel[:, None, 1] - o_vel[None, :, 1])
+        closest = closest_approach_m(pos, vel, o_pos, o_vel, tau_s)
         r, _share = pair_radius_m(
             s,
             core.pos_sigma_m[:, None],
@@ -130,13 +142,12 @@ def calm(
         )
         need = (
             r
-            + (rel + gain[None, :]) * tau_s
+            + gain[None, :] * tau_s
             + (own_bound[:, None] + o_bound[None, :]) * horizon_s
             + BUFFER_M
         )
-        gap = np.hypot(o_pos[None, :, 0] - pos[:, None, 0], o_pos[None, :, 1] - pos[:, None, 1])
-        gap[np.arange(n), np.arange(n)] = np.inf  # not itself
-        if (gap <= need).any():
+        closest[np.arange(n), np.arange(n)] = np.inf  # not itself
+        if (closest <= need).any():
             return False
     router = core.router
     if router is not None:
@@ -145,3 +156,20 @@ def calm(
         if (router.edge_distance_m(pos[:, :2]) <= clear + look_m).any():
             return False
     return True
+
+
+def closest_approach_m(
+    pos_m: np.ndarray, vel_m_s: np.ndarray, o_pos_m: np.ndarray, o_vel_m_s: np.ndarray, tau_s: float
+) -> np.ndarray:
+    """(n, m) the closest horizontal distance of each pair (row i of pos/vel, entry j of
+    o_pos/o_vel) within the next `tau_s`, both flying on at their velocities: |p + v t*| with
+    p, v the pair's relative position and velocity and t* = clip(-p.v / v.v, 0, tau_s). The
+    filter's velocity obstacle holds the pair exactly when this is under its radius
+    (policy/safety.py: the cone truncated at the time horizon)."""
+    pn = o_pos_m[None, :, 0] - pos_m[:, None, 0]
+    pe = o_pos_m[None, :, 1] - pos_m[:, None, 1]
+    vn = o_vel_m_s[None, :, 0] - vel_m_s[:, None, 0]
+    ve = o_vel_m_s[None, :, 1] - vel_m_s[:, None, 1]
+    vv = vn * vn + ve * ve
+    t = np.clip(-(pn * vn + pe * ve) / np.where(vv > 0.0, vv, 1.0), 0.0, tau_s)
+    return np.hypot(pn + vn * t, pe + ve * t)

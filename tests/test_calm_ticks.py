@@ -92,24 +92,46 @@ def test_a_vehicle_flying_alone_is_calm_and_a_holding_one_too(agent) -> None:
 
 
 def test_a_neighbour_within_the_filter_s_reach_ends_calm(agent) -> None:
+    """The pair's closest approach within the 4 s horizon at the velocities now (agent/calm.py
+    `closest_approach_m`) against 3.6 + (1 + 1) x 0.6 + 1 = 5.8 m: a neighbour the vehicle
+    flies towards ends calm further out than one it passes or leaves behind."""
     ag, t = agent
     fly(ag, t)  # north at 1 m/s
-    # a neighbour at rest: 3.6 + |1| x 4 + (1 + 1) x 0.6 + 1 = 9.8 m
-    neighbour(ag, t, 0.0, 9.0)
-    tick(ag, t)
-    assert not ag._calm
-    neighbour(ag, t, 0.0, 11.0)
-    tick(ag, t)
-    assert ag._calm
-    # one flying south, head-on in velocity: 3.6 + 2 x 4 + 2 x 0.6 + 1 = 13.8 m
-    neighbour(ag, t, 0.0, 13.0, vel=(-1.0, 0.0, 0.0))
-    tick(ag, t)
-    assert not ag._calm
-    # a fast one further out (5 m/s west: |v_rel| 5.1, 3.6 + 20.4 + 6 x 0.6 + 1 = 28.6 m; the
-    # agent hears 21 m around it, comms/scope.py)
-    neighbour(ag, t, 0.0, 18.0, vel=(0.0, -5.0, 0.0))
-    tick(ag, t)
-    assert not ag._calm
+    for dn_m, de_m, vel, calm in (
+        (9.0, 0.0, (0.0, 0.0, 0.0), False),  # at rest ahead: 9 - 1 x 4 = 5 m
+        (11.0, 0.0, (0.0, 0.0, 0.0), True),  # 7 m
+        (0.0, 9.0, (0.0, 0.0, 0.0), True),  # abeam at rest: 9 m, and opening
+        (0.0, 5.5, (0.0, 0.0, 0.0), False),  # abeam, inside 5.8 m already
+        (-6.5, 0.0, (0.0, 0.0, 0.0), True),  # behind: left behind
+        (13.0, 0.0, (-1.0, 0.0, 0.0), False),  # head-on: 13 - 2 x 4 = 5 m
+        (15.0, 0.0, (-1.0, 0.0, 0.0), True),  # 7 m
+        (0.0, 18.0, (0.0, -5.0, 0.0), False),  # crossing fast: 3.5 m, within 3.6 + 6 x 0.6 + 1
+    ):
+        ag.table.forget(50)
+        neighbour(ag, t, dn_m, de_m, vel=vel)
+        tick(ag, t)
+        assert ag._calm is calm, (dn_m, de_m, vel)
+
+
+def test_closest_approach_equals_a_fine_walk_along_the_relative_path() -> None:
+    """`closest_approach_m` against the reference: the pair's distance sampled every ms."""
+    import numpy as np
+
+    from agent.calm import closest_approach_m
+
+    rng = np.random.default_rng(7)
+    pos, vel = rng.uniform(-20, 20, (4, 3)), rng.uniform(-3, 3, (4, 3))
+    o_pos, o_vel = rng.uniform(-20, 20, (6, 3)), rng.uniform(-3, 3, (6, 3))
+    o_vel[0] = vel[0]  # no relative velocity: the gap now
+    got = closest_approach_m(pos, vel, o_pos, o_vel, 4.0)
+    ts = np.linspace(0.0, 4.0, 4001)
+    for i in range(4):
+        for j in range(6):
+            p = o_pos[j, :2] - pos[i, :2]
+            v = o_vel[j, :2] - vel[i, :2]
+            want = np.hypot(p[0] + v[0] * ts, p[1] + v[1] * ts).min()
+            assert got[i, j] == pytest.approx(want, abs=1e-5)
+            assert got[i, j] <= np.hypot(*p) + 1e-12
 
 
 def test_a_neighbour_flying_alongside_is_calm_beyond_the_pair_s_own_berth(agent) -> None:
@@ -263,7 +285,8 @@ def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_anothe
             time.sleep(2.0)
             calm_hz = (ag.stats.ticks - n0) / (time.monotonic() - t0)
             assert calm_hz <= 10.0 / 3 + 0.6, calm_hz
-            # a neighbour 8 m east flying south, on the mesh (calm needs 13.8 m)
+            # a neighbour 12 m ahead, 2 m east, flying south, on the mesh: it would pass 4.5 m
+            # away within 4 s (calm needs 5.8 m)
             stop_nb = threading.Event()
 
             def beside() -> None:
@@ -276,7 +299,7 @@ def test_a_real_agent_loop_ticks_at_the_calm_rate_alone_and_at_10_hz_near_anothe
                             2,
                             seq,
                             time.time_ns(),
-                            (float(p[0]), float(p[1]) + 8.0, float(p[2])),
+                            (float(p[0]) + 12.0, float(p[1]) + 2.0, float(p[2])),
                             (-1.0, 0.0, 0.0),
                             0.0,
                             mode=Mode.GOTO,
