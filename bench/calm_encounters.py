@@ -9,7 +9,10 @@ Real agent loops (`VehicleShell.run`, the real clock, kit/ticks.py's calm schedu
 or realistic: 0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift), judged on true positions. The scenes are the ones the calm rule's reaction delay is about
 (agent/calm.py): a vehicle holding when another, holding 9 m away, is sent straight through it;
 two flying side by side 6.5 m apart (calm) when one turns across the other's path; a
-head-on pair from 60 m; and `shuffle`: nine vehicles holding on an 8 m grid (ideal vehicles
+head-on pair from 60 m; `pass_cross`: one flying past another that holds just beyond calm's
+reach off its line
+(calm while it passes, agent/calm.py's closest approach) when the holder is sent across its
+path; and `shuffle`: nine vehicles holding on an 8 m grid (ideal vehicles
 hold there at the 1 Hz hold tier) each sent at once to another's place, a random
 derangement drawn from `--seed` and the run's number, so holders at 1 Hz see neighbours set off
 towards them. Each scene is flown with calm ticks on and off (`--calm-tick-hz 10`: no calm or
@@ -32,7 +35,27 @@ from bench import common
 from policy.pointmass import vehicle_model_arg
 
 ALT_M = 10.0
-SCENES = ("rest_start", "turn_in", "head_on", "shuffle")
+SCENES = ("rest_start", "turn_in", "head_on", "pass_cross", "shuffle")
+PASS_NORTH_M = 20.0
+"""pass_cross: b holds this far north, `_pass_offset_m` east of a's line, and is sent west
+across it when a is 3 m short of abeam: a's closest approach at its velocity is the offset then
+(calm since round fourteen's closest-approach rule, agent/calm.py; the gap less |v_rel| tau was
+not), and b's turn brings the pair within the filter's berth in 4 s unless the filters act."""
+PASS_BEYOND_M = 2.9
+"""How far beyond the pair's berth b holds off a's line in pass_cross (ideal: 3.6 + 2.9 =
+6.5 m; calm needs the berth + 2.2 m there)."""
+
+
+def _pass_offset_m(vehicle_model: str) -> float:
+    """pass_cross's offset: the pair's berth at the model's reported sigma plus PASS_BEYOND_M."""
+    from policy.pointmass import VehicleModel
+    from policy.safety import SafetyConfig, pair_radius_m
+
+    sigma = VehicleModel.named(vehicle_model).pos_sigma_m
+    r, _ = pair_radius_m(SafetyConfig(), sigma, [sigma])
+    return float(r if np.isscalar(r) else np.asarray(r).reshape(-1)[0]) + PASS_BEYOND_M
+
+
 GRID_M = 8.0
 """The shuffle scene's grid spacing (the demo's)."""
 ARRIVED_M = 1.0
@@ -68,6 +91,7 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal", seed: int = 0
             "rest_start": [(0.0, 0.0), (0.0, 9.0)],
             "turn_in": [(0.0, 0.0), (0.0, 6.5)],
             "head_on": [(0.0, 0.0), (60.0, 0.0)],
+            "pass_cross": [(0.0, 0.0), (PASS_NORTH_M, _pass_offset_m(vehicle_model))],
         }[scene]
     port, fleet = free_tcp_port(), f"calm-{scene}"
     stop = threading.Event()
@@ -121,6 +145,16 @@ def _fly(scene: str, calm_hz: float, vehicle_model: str = "ideal", seed: int = 0
                 calm_before = tuple(ag._calm for ag in agents)
                 here = b.vehicles.read().pos_m[0]
                 cmd(b, Command.goto_local, float(here[0]) + 8.0, -12.0, -ALT_M)
+                fly_s = 25.0
+            elif scene == "pass_cross":  # a flies past b; b cuts across a's line just ahead
+                cmd(a, Command.goto_local, 80.0, 0.0, -ALT_M)
+                deadline = time.monotonic() + 40.0
+                while a.vehicles.read().pos_m[0][0] < PASS_NORTH_M - 3.0:
+                    if time.monotonic() > deadline:
+                        raise RuntimeError(f"{scene}: a never came near b")
+                    time.sleep(0.01)
+                calm_before = tuple(ag._calm for ag in agents)
+                cmd(b, Command.goto_local, PASS_NORTH_M, -18.0, -ALT_M)
                 fly_s = 25.0
             else:  # head-on
                 cmd(a, Command.goto_local, 60.0, 0.0, -ALT_M)
