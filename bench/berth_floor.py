@@ -25,10 +25,9 @@ is a case's extra time over the ideal run of the same case, link and seed, a med
 from __future__ import annotations
 
 import argparse
-import json
 
 from bench import common
-from bench.noisy_training import fly, rows
+from bench.noisy_training import fly_or_reuse, rows
 
 LABEL = "shipped"
 VARIANTS: dict[str, str] = {
@@ -75,12 +74,10 @@ def main(seeds: list[int], suites: tuple, variants: list[str], reuse: bool = Fal
     runs = {}
     for v in variants:
         for seed in seeds:
-            out = work / f"{v}_{seed}"
-            if reuse and (out / "results.json").is_file():
-                runs[(LABEL, v, seed)] = json.loads((out / "results.json").read_text())
-                continue
-            common.say(f"{v} vehicles ({VARIANTS[v]}), seed {seed}")
-            runs[(LABEL, v, seed)] = fly(None, None, VARIANTS[v], seed, suites, out)
+            what = f"{v} vehicles ({VARIANTS[v]}), seed {seed}"
+            runs[(LABEL, v, seed)] = fly_or_reuse(
+                work / f"{v}_{seed}", reuse, what, None, None, VARIANTS[v], seed, suites
+            )
     table = [{k: r[k] for k in r if k != "weights"} for r in rows(runs)]
     plot(table, variants)
     print("vehicles      suite     link      runs  coll  failed  closest  vs ideal")
@@ -112,20 +109,18 @@ def _variants(spec: str) -> list[str]:
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", default="321,322", help="comma list of covey eval seeds")
-    ap.add_argument("--suites", default="circle,conflict,zones", help="covey eval suites")
+    common.add_eval_flags(
+        ap,
+        "321,322",
+        "circle,conflict,zones",
+        "read the results.json an earlier run left under runs/bench/berth_floor",
+    )
     ap.add_argument(
         "--variants",
         type=_variants,
         default=["ideal", "padded", "realistic"],
         help=f"comma list of {', '.join(VARIANTS)} (ideal is always flown)",
     )
-    ap.add_argument(
-        "--reuse",
-        action="store_true",
-        help="read the results.json an earlier run left under runs/bench/berth_floor",
-    )
     args = ap.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    suites = tuple(s.strip() for s in args.suites.split(",") if s.strip())
+    seeds, suites = common.eval_flags(args)
     common.write_json("berth_floor", main(seeds, suites, args.variants, args.reuse))

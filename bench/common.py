@@ -107,6 +107,19 @@ def say(text: str) -> None:
     print(f"  {time.strftime('%H:%M:%S')} {text}", file=sys.stderr, flush=True)
 
 
+def add_eval_flags(ap, seeds: str, suites: str, reuse_help: str) -> None:
+    """--seeds, --suites and --reuse of a bench that flies `covey eval` runs (`eval_flags`)."""
+    ap.add_argument("--seeds", default=seeds, help="comma list of covey eval seeds")
+    ap.add_argument("--suites", default=suites, help="covey eval suites")
+    ap.add_argument("--reuse", action="store_true", help=reuse_help)
+
+
+def eval_flags(args) -> tuple[list[int], tuple[str, ...]]:
+    """(seeds, suites) from `add_eval_flags`'s flags."""
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    return seeds, tuple(s.strip() for s in args.suites.split(",") if s.strip())
+
+
 def covey_eval(out: str, seed: int, vehicles: str, suites, controllers, **fields) -> dict:
     """One `covey eval` run, the C core's controllers available (firmware/ceval.py), without
     figures or a progress bar: its results.json as a dict (summary and runs). `fields`: more

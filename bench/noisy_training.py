@@ -55,6 +55,17 @@ def fly(
     return ev.main(cfg)
 
 
+def fly_or_reuse(
+    out: Path, reuse: bool, what: str, weights, told_m, vehicles: str, seed: int, suites: tuple
+) -> dict:
+    """`fly` into `out` (saying `what`), or with `reuse` the results.json an earlier run left
+    there."""
+    if reuse and (out / "results.json").is_file():
+        return json.loads((out / "results.json").read_text())
+    common.say(what)
+    return fly(weights, told_m, vehicles, seed, suites, out)
+
+
 def rows(runs: dict) -> list[dict]:
     """runs[(label, model, seed)] = results.json -> one row per (label, model, suite, link)."""
     ideal = {
@@ -142,11 +153,10 @@ def main(
         for model in MODELS:
             for seed in seeds:
                 out = work / f"{label}_{model}_{seed}"
-                if reuse and (out / "results.json").is_file():
-                    runs[(label, model, seed)] = json.loads((out / "results.json").read_text())
-                    continue
-                common.say(f"{label}, {model} vehicles, seed {seed}")
-                runs[(label, model, seed)] = fly(path, told_m, model, seed, suites, out)
+                what = f"{label}, {model} vehicles, seed {seed}"
+                runs[(label, model, seed)] = fly_or_reuse(
+                    out, reuse, what, path, told_m, model, seed, suites
+                )
     table = rows(runs)
     plot(table, name)
     print(
@@ -205,15 +215,13 @@ if __name__ == "__main__":
         default={"shipped": (str(common.REPO / "policy" / "weights" / "policy.npz"), None)},
         help="label=path.npz[@told_m],... (default: the shipped weights)",
     )
-    ap.add_argument("--seeds", default="301", help="comma list of covey eval seeds")
-    ap.add_argument("--suites", default="circle,conflict,large", help="covey eval suites")
-    ap.add_argument("--name", default="noisy_training", help="results name")
-    ap.add_argument(
-        "--reuse",
-        action="store_true",
-        help="read the results.json an earlier run left under runs/bench/NAME instead of flying",
+    common.add_eval_flags(
+        ap,
+        "301",
+        "circle,conflict,large",
+        "read the results.json an earlier run left under runs/bench/NAME instead of flying",
     )
+    ap.add_argument("--name", default="noisy_training", help="results name")
     args = ap.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    suites = tuple(s.strip() for s in args.suites.split(",") if s.strip())
+    seeds, suites = common.eval_flags(args)
     common.write_json(args.name, main(args.weights, seeds, suites, args.name, args.reuse))
