@@ -51,8 +51,8 @@ about 14 m, though the filter would never act on it.
 
 The hold tier (`holding_at_rest`, ShellConfig.hold_tick_hz: 1 Hz): where every vehicle of the
 process holds at rest and the rule above holds with H two hold periods (2 s), the next tick is
-due a hold period later. A holder's own bound is its speed (about 0), so a neighbour must be
-further than r_ij + |v_i - v_j| tau + V_j 2 s + 1 m: 6.6 m from a holding covey neighbour at
+due a hold period later. A holder's own bound is its speed (about 0), so a neighbour's closest
+approach must be further than r_ij + V_j 2 s + 1 m: 6.6 m from a holding covey neighbour at
 3 m separation and sigma 0 (the demo's 8 m grid is calm at 1 Hz; realistic vehicles, whose
 pair distance is 6.4 m at 0.5 m GNSS, are not). A neighbour that sets off towards the holder
 at cruise speed is seen at the holder's next tick, at most a second later, from at least r_ij
