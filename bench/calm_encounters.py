@@ -10,9 +10,8 @@ or realistic: 0.3 s lag, 2.5 m/s^2, gusts, 0.5 m GNSS drift), judged on true pos
 (agent/calm.py): a vehicle holding when another, holding 9 m away, is sent straight through it;
 two flying side by side 6.5 m apart (calm) when one turns across the other's path; a
 head-on pair from 60 m; `pass_cross`: one flying past another that holds just beyond calm's
-reach off its line
-(calm while it passes, agent/calm.py's closest approach) when the holder is sent across its
-path; and `shuffle`: nine vehicles holding on an 8 m grid (ideal vehicles
+reach off its line (calm while it passes, agent/calm.py's closest approach) when the holder is
+sent across its path; and `shuffle`: nine vehicles holding on an 8 m grid (ideal vehicles
 hold there at the 1 Hz hold tier) each sent at once to another's place, a random
 derangement drawn from `--seed` and the run's number, so holders at 1 Hz see neighbours set off
 towards them. Each scene is flown with calm ticks on and off (`--calm-tick-hz 10`: no calm or
@@ -53,7 +52,7 @@ def _pass_offset_m(vehicle_model: str) -> float:
 
     sigma = VehicleModel.named(vehicle_model).pos_sigma_m
     r, _ = pair_radius_m(SafetyConfig(), sigma, [sigma])
-    return float(r if np.isscalar(r) else np.asarray(r).reshape(-1)[0]) + PASS_BEYOND_M
+    return float(np.asarray(r).reshape(-1)[0]) + PASS_BEYOND_M
 
 
 GRID_M = 8.0
