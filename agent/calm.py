@@ -62,6 +62,8 @@ command to the holder wakes its loop at once.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agent.flight_core import FlightCore, Observed
@@ -69,7 +71,7 @@ from agent.neighbours import NeighbourSnapshot
 from comms.schema import Mode
 from comms.state_rate import hold_rows
 from kit.masks import mode_mask
-from policy.safety import pair_radius_m
+from policy.safety import SafetyConfig, pair_radius_m, pair_radius_one_m
 
 BUFFER_M = 1.0
 """Added to every calm distance."""
@@ -78,13 +80,26 @@ TRAFFIC_ACCEL_M_S2 = 2.5
 
 _CALM_MODES = mode_mask((Mode.HOLDING, Mode.GOTO, Mode.RETURNING, Mode.MISSION))
 _ARRIVING = mode_mask((Mode.GOTO, Mode.RETURNING, Mode.MISSION))
+_HOLDING = int(Mode.HOLDING)
+_TIE = 1e-9
+"""`_calm_one` leaves a distance to the reference where it lies within this share of its terms'
+size of its bound: math.hypot and np.hypot each come within an ulp (2e-16) of the true value,
+so what they make of one distance differs by far less."""
+_DTYPES = {float: np.dtype(float), bool: np.dtype(bool)}
+"""The dtype `NeighbourSnapshot.column` gives a column of each fill's type."""
+_ORDINARY = 1e100
+"""`_calm_one` leaves to the reference a vehicle with values this large (or NaN): their
+products could overflow."""
 
 
 def holding_at_rest(core: FlightCore, obs: Observed) -> bool:
     """Whether every vehicle of the process holds at rest (HOLDING, its measured speed at most
     HOLD_REST_M_S): the hold tier's condition (ShellConfig.hold_tick_hz), checked with `calm`
     over the hold tier's longer horizon. A holder's own bound in `calm` is its speed, so only
-    its neighbours' reach grows with the horizon: a command wakes the loop at once."""
+    its neighbours' reach grows with the horizon: a command wakes the loop at once. One vehicle
+    that does not hold (the agent in flight: every tick) is answered without array maths."""
+    if len(core.mode) == 1 and core.mode[0] != _HOLDING:
+        return False
     return bool(hold_rows(core.mode, obs.vel_m_s).all())
 
 
@@ -98,7 +113,29 @@ def calm(
 ) -> bool:
     """Whether every vehicle of the process may tick at the calm rate (the module's rules).
     `busy`: (N,) an autopilot action is under way; `corrected`: (N,) the filter changed or
-    slowed the vehicle's command this tick; `ext`: the others, dead-reckoned to now."""
+    slowed the vehicle's command this tick; `ext`: the others, dead-reckoned to now.
+
+    One vehicle (an agent's process, every tick) is answered in plain floats (`_calm_one`: a
+    tenth of the arrays' cost where a neighbour is near, half with 30 far), several by
+    `calm_reference`, which also answers the rare case the plain floats leave open (a distance
+    on its bound to the last bits): the same answer either way (tests/test_calm_ticks.py)."""
+    if len(obs.pos_m) == 1:
+        one = _calm_one(core, obs, busy, corrected, ext, horizon_s)
+        if one is not None:
+            return one
+    return calm_reference(core, obs, busy, corrected, ext, horizon_s)
+
+
+def calm_reference(
+    core: FlightCore,
+    obs: Observed,
+    busy: np.ndarray,
+    corrected: np.ndarray,
+    ext: NeighbourSnapshot,
+    horizon_s: float,
+) -> bool:
+    """`calm` for any number of vehicles, as arrays: the reference its one-vehicle path
+    (`_calm_one`) is tested against."""
     if not core.velocity_mode or busy.any() or corrected.any():
         return False
     mode = core.mode
@@ -135,7 +172,7 @@ def calm(
         closest = closest_approach_m(pos, vel, o_pos, o_vel, tau_s)
         r, _share = pair_radius_m(
             s,
-            core.pos_sigma_m[:, None],
+            core.pos_sigma_m,  # (n,): each row its own (pair_radius_m adds the axis)
             np.concatenate([core.pos_sigma_m, ext.column("pos_sigma_m", 0.0)])[None, :],
             coop[None, :],
             np.concatenate([np.zeros(n, bool), ext.column("manned", False)])[None, :],
@@ -158,6 +195,158 @@ def calm(
     return True
 
 
+def _calm_one(
+    core: FlightCore,
+    obs: Observed,
+    busy: np.ndarray,
+    corrected: np.ndarray,
+    ext: NeighbourSnapshot,
+    horizon_s: float,
+) -> bool | None:
+    """`calm_reference` of a process with one vehicle, in plain floats and cheapest check first:
+    its flags, its goal and fence, each neighbour (the first one near ends it), the zones. None
+    where a distance lies within _TIE of its bound or is not finite: math.hypot and np.hypot
+    may differ in the last bit there (every other operation is the reference's, in its order),
+    and the reference decides."""
+    if not core.velocity_mode or busy[0] or corrected[0]:
+        return False
+    mode = int(core.mode[0])
+    if not (_CALM_MODES[mode] and obs.armed[0] and obs.in_air[0] and obs.link_ok[0]):
+        return False
+    target = core.hold_m[0] if mode == _HOLDING else core.goal_m[0]  # targets(), calm modes
+    tn_m, te_m = target[:2].tolist()
+    if tn_m != tn_m:  # NaN: none
+        return False
+    g, s = core.cfg.guidance, core.safety_cfg
+    pn_m, pe_m = obs.pos_m[0, :2].tolist()
+    vn_m_s, ve_m_s = obs.vel_m_s[0, :2].tolist()
+    tau_s = s.time_horizon_s
+    own_sigma_m = float(core.pos_sigma_m[0])
+    size = abs(pn_m) + abs(pe_m) + abs(vn_m_s) + abs(ve_m_s) + abs(own_sigma_m)
+    if not (
+        size + abs(g.cruise_speed_m_s) + horizon_s + tau_s < _ORDINARY
+        and min(horizon_s, tau_s) >= 0.0
+    ):
+        return None  # NaN, inf, near it or a negative time: the reference's comparisons
+    own_speed_m_s = math.hypot(vn_m_s, ve_m_s)
+    cruise_m_s = g.cruise_speed_m_s
+    speed_m_s = cruise_m_s if own_speed_m_s < cruise_m_s else own_speed_m_s  # np.maximum
+    reach_m = speed_m_s * horizon_s  # travel = reach + BUFFER_M
+    if _ARRIVING[mode] and not core.mission_waiting[0]:
+        to_goal_m = math.hypot(tn_m - pn_m, te_m - pe_m)
+        near = _below(
+            to_goal_m,
+            g.arrive_radius_m + (reach_m + BUFFER_M),
+            to_goal_m + abs(g.arrive_radius_m) + reach_m + BUFFER_M,
+        )
+        if near is not False:
+            return None if near is None else False
+    fence_r = core.cfg.failsafe.geofence_radius_m
+    if fence_r:
+        from_home_m = math.hypot(pn_m, pe_m)
+        inside = _below(
+            from_home_m,
+            fence_r - (reach_m + BUFFER_M),
+            from_home_m + fence_r + reach_m + BUFFER_M,
+        )
+        if inside is not True:
+            return inside
+    if len(ext):
+        clear = _neighbours_clear(
+            s,
+            ext,
+            (pn_m, pe_m),
+            (vn_m_s, ve_m_s),
+            own_speed_m_s if mode == _HOLDING else speed_m_s,
+            own_sigma_m,
+            cruise_m_s,
+            horizon_s,
+        )
+        if clear is not True:
+            return clear
+    router = core.router
+    if router is not None:
+        edge_m = float(router.edge_distance_m(obs.pos_m[:, :2])[0])
+        clear_m = router.cfg.reach_m + s.sigma_k * own_sigma_m
+        look_m = speed_m_s * (tau_s + horizon_s) + BUFFER_M
+        return _below(clear_m + look_m, edge_m, abs(clear_m) + look_m)
+    return True
+
+
+def _neighbours_clear(
+    s: SafetyConfig,
+    ext: NeighbourSnapshot,
+    pos_ne_m: tuple[float, float],
+    vel_ne_m_s: tuple[float, float],
+    own_bound_m_s: float,
+    own_sigma_m: float,
+    cruise_m_s: float,
+    horizon_s: float,
+) -> bool | None:
+    """`calm_reference`'s neighbour rule for one vehicle, one neighbour at a time: False at the
+    first whose closest approach (`closest_approach_m`) is surely within its calm distance, True
+    when all are surely beyond theirs, None at the first too close to call. The vehicle's
+    position, velocity, own bound (V_i) and position 1-sigma; finite, the times not negative."""
+    pn_m, pe_m = pos_ne_m
+    vn_m_s, ve_m_s = vel_ne_m_s
+    k = len(ext)
+    tau_s = s.time_horizon_s
+    traffic_gain_m_s = TRAFFIC_ACCEL_M_S2 * horizon_s
+    for (qn_m, qe_m, _), (un_m_s, ue_m_s, _), sigma_m, cooperative, manned in zip(
+        ext.pos_ned_m.tolist(),
+        ext.vel_ned_m_s.tolist(),
+        _column_list(ext, "pos_sigma_m", 0.0, k),
+        _column_list(ext, "cooperative", True, k),
+        _column_list(ext, "manned", False, k),
+        strict=True,
+    ):
+        closest_m = closest_approach_one_m(
+            qn_m - pn_m, qe_m - pe_m, un_m_s - vn_m_s, ue_m_s - ve_m_s, tau_s
+        )
+        o_speed_m_s = math.hypot(un_m_s, ue_m_s)
+        if cooperative:
+            gain_m_s = 0.0
+            o_bound_m_s = cruise_m_s if o_speed_m_s < cruise_m_s else o_speed_m_s  # NaN stays
+        else:
+            gain_m_s = traffic_gain_m_s
+            o_bound_m_s = o_speed_m_s + gain_m_s
+        gained_m = gain_m_s * tau_s
+        flown_m = (own_bound_m_s + o_bound_m_s) * horizon_s
+        r_m = pair_radius_one_m(s, own_sigma_m, sigma_m, cooperative, manned)
+        near = _below(
+            closest_m,
+            r_m + gained_m + flown_m + BUFFER_M,
+            closest_m + abs(r_m) + gained_m + flown_m + BUFFER_M,
+        )
+        if near is not False:
+            return None if near is None else False
+    return True
+
+
+def _column_list(ext: NeighbourSnapshot, name: str, fill, k: int) -> list:
+    """`ext.column(name, fill)` as a list of k Python values, without its array where it would
+    only copy one: the column absent, or already k values of the fill's type."""
+    got = getattr(ext, name)
+    if got is None:
+        return [fill] * k
+    if isinstance(got, np.ndarray) and got.shape == (k,) and got.dtype is _DTYPES[type(fill)]:
+        return got.tolist()
+    return ext.column(name, fill).tolist()
+
+
+def _below(a: float, b: float, scale: float) -> bool | None:
+    """a < b (and a <= b: the same wherever it is told), None where it cannot be told from the
+    reference's arrays: a and b within _TIE x `scale` (the size of the terms they are made of,
+    non-negative) of each other, or either not finite."""
+    gap = b - a
+    slack = _TIE * scale
+    if gap > slack:
+        return True
+    if gap < -slack:
+        return False
+    return None
+
+
 def closest_approach_m(
     pos_m: np.ndarray, vel_m_s: np.ndarray, o_pos_m: np.ndarray, o_vel_m_s: np.ndarray, tau_s: float
 ) -> np.ndarray:
@@ -173,3 +362,13 @@ def closest_approach_m(
     vv = vn * vn + ve * ve
     t = np.clip(-(pn * vn + pe * ve) / np.where(vv > 0.0, vv, 1.0), 0.0, tau_s)
     return np.hypot(pn + vn * t, pe + ve * t)
+
+
+def closest_approach_one_m(
+    pn_m: float, pe_m: float, vn_m_s: float, ve_m_s: float, tau_s: float
+) -> float:
+    """`closest_approach_m` of one pair in plain floats, from its relative position (m) and
+    velocity (m/s): the same operations, in the same order (math.hypot for np.hypot)."""
+    vv = vn_m_s * vn_m_s + ve_m_s * ve_m_s
+    t = min(max(-(pn_m * vn_m_s + pe_m * ve_m_s) / (vv if vv > 0.0 else 1.0), 0.0), tau_s)
+    return math.hypot(pn_m + vn_m_s * t, pe_m + ve_m_s * t)

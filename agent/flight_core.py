@@ -233,6 +233,8 @@ class FlightCore:
         self.epoch = np.zeros(n, np.int64)
         self.goal_m = _nan3(n)
         self.hold_m = _nan3(n)
+        self._targets: tuple[tuple[bytes, bytes, bytes], np.ndarray] | None = None
+        """`targets()`'s last answer and what it was made of."""
         self.home_m = _nan3(n)
         self.resume_goal_m = _nan3(n)
         self.takeoff_alt_m = np.full(n, cfg.takeoff_alt_m)
@@ -285,12 +287,18 @@ class FlightCore:
         return None
 
     def targets(self) -> np.ndarray:
-        """(N, 3) `target_of` for every vehicle, NaN rows for none."""
+        """(N, 3) `target_of` for every vehicle, NaN rows for none (read only: a tick asks
+        several times, and it is made again only when a mode, goal or hold point changed)."""
+        key = (self.mode.tobytes(), self.goal_m.tobytes(), self.hold_m.tobytes())
+        if self._targets is not None and self._targets[0] == key:
+            return self._targets[1]
         flying = _FLYING[self.mode]
         holding = self.mode == int(Mode.HOLDING)
         out = _nan3(self.n)
         out[flying] = self.goal_m[flying]
         out[holding] = self.hold_m[holding]
+        out.flags.writeable = False
+        self._targets = (key, out)
         return out
 
     @property

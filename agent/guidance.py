@@ -47,6 +47,8 @@ if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_zones`)
 DECISION_DUE_SHARE = 0.95
 """A decision is due once this share of the decision period has passed (tick jitter must not
 push a decision a whole tick late)."""
+_ROW0 = np.zeros(1, int)
+_ROW0.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -511,6 +513,47 @@ class BatchGuidance:
         (False) a decision; None: `due`. A goto row with nothing held decides regardless.
         `speed_cap_m_s` (k,): a horizontal speed limit per row (a mission item's speed), applied
         to the preference before the filter; 0 or None: none."""
+        if len(rows) == 1 and self.bands is None:  # one vehicle (an agent): in floats
+            return self._step_one(
+                now_s,
+                rows,
+                pos_m,
+                vel_m_s,
+                heading_rad,
+                target_m,
+                holding,
+                views,
+                decide,
+                speed_cap_m_s,
+            )
+        return self._step_rows(
+            now_s,
+            rows,
+            pos_m,
+            vel_m_s,
+            heading_rad,
+            target_m,
+            holding,
+            views,
+            decide,
+            speed_cap_m_s,
+        )
+
+    def _step_rows(
+        self,
+        now_s,
+        rows,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        target_m,
+        holding,
+        views,
+        decide,
+        speed_cap_m_s,
+    ) -> GuidanceStep:
+        """`step` in arrays, for any number of rows: the reference `_step_one` is tested
+        against."""
         cfg = self.cfg
         k = len(rows)
         goto = ~holding
@@ -559,6 +602,79 @@ class BatchGuidance:
         vel = np.column_stack([v_h, vz])
         way = None if self.router is None else self.waypoint_m[rows].copy()
         return GuidanceStep(vel, heading, filtered, factor < 1.0, deciding, way)
+
+    def _step_one(
+        self,
+        now_s,
+        rows,
+        pos_m,
+        vel_m_s,
+        heading_rad,
+        target_m,
+        holding,
+        views,
+        decide,
+        speed_cap_m_s,
+    ) -> GuidanceStep:
+        """`_step_rows` for one row without zone bands, in Python floats: an agent's tick pays
+        for each small numpy call, and most of its cost was theirs (docs/companion.md, round
+        fifteen). The policy, the route and the filter are the shared calls; tests compare
+        the two paths (tests/test_agent_guidance.py)."""
+        cfg = self.cfg
+        r = int(rows[0])
+        hold = bool(holding[0])
+        if hold:
+            self.forget(rows)
+        target_m = self._routed(
+            self.router, rows, pos_m, target_m, ~holding, views.own_pos_sigma_m, views
+        )
+        target = target_m[0].tolist()
+        nothing = math.isnan(float(self.held_m_s[r, 0]))
+        if decide is not None:
+            want = bool(decide[0])
+        elif now_s is None:
+            want = True
+        else:
+            want = (
+                nothing
+                or self.held_goal_m[r].tolist() != target
+                or now_s - float(self.decided_s[r]) >= DECISION_DUE_SHARE * self.decision_period_s
+            )
+        deciding = not hold and (want or nothing)
+        if deciding:
+            self.held_m_s[r] = self._decide(pos_m, vel_m_s, heading_rad, target_m, views, _ROW0)
+            self.held_goal_m[r] = target_m[0]
+            self.decided_s[r] = -np.inf if now_s is None else now_s
+        pn, pe, pd = pos_m[0].tolist()
+        factor = 1.0
+        if hold:
+            hn, he = cfg.hold_gain_1_s * (target[0] - pn), cfg.hold_gain_1_s * (target[1] - pe)
+            scale = cfg.cruise_speed_m_s / max(float(np.hypot(hn, he)), cfg.cruise_speed_m_s)
+            pref_n, pref_e = hn * scale, he * scale
+        else:
+            factor = float(self._stale_factor(pos_m, views)[0])
+            held_n, held_e = self.held_m_s[r].tolist()
+            pref_n, pref_e = held_n * factor, held_e * factor
+            cap = 0.0 if speed_cap_m_s is None else float(speed_cap_m_s[0])
+            if cap > 0.0:
+                clip = min(1.0, cap / max(float(np.hypot(pref_n, pref_e)), 1e-9))
+                pref_n, pref_e = pref_n * clip, pref_e * clip
+        pref = np.array([[pref_n, pref_e]])
+        v_h, filtered = self._filter(pos_m, vel_m_s, pref, views, self.zones)
+        vn, ve = v_h[0].tolist()
+        vz = cfg.vertical_gain_1_s * (target[2] - pd)
+        vz = min(max(vz, -cfg.max_vertical_speed_m_s), cfg.max_vertical_speed_m_s)
+        moving = float(np.hypot(vn, ve)) >= (0.5 if hold else 0.05)
+        heading = math.atan2(ve, vn) if moving else float(heading_rad[0])
+        way = None if self.router is None else self.waypoint_m[rows].copy()
+        return GuidanceStep(
+            np.array([[vn, ve, vz]]),
+            np.array([heading]),
+            filtered,
+            np.array([factor < 1.0]),
+            np.array([deciding]),
+            way,
+        )
 
     def _decide(
         self, pos_m, vel_m_s, heading_rad, goal_m, views: NeighbourViews, idx
@@ -612,7 +728,9 @@ class BatchGuidance:
                 got = self.c_core.filter(*args, own_id, nbr_ids, **sky)
             if got is None:  # numpy: the reference, and what the C core leaves to it
                 got = safety.filter_one(*args, self.safety_cfg, own_id, nbr_ids, **sky, zones=zones)
-            out = np.asarray(got, float)[None]
+            (vn, ve), (pn, pe) = np.asarray(got, float).tolist(), pref_m_s[0].tolist()
+            dn, de = vn - pn, ve - pe  # the norm below, in floats
+            return np.array([[vn, ve]]), np.array([math.sqrt(dn * dn + de * de) > 1e-6])
         else:
             out = safety.filter_padded(
                 pos_m[:, :2],

@@ -21,10 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -171,19 +167,9 @@ def other_tree(tree: Path, args: argparse.Namespace) -> list[dict]:
         *("--tick-hz", ",".join(str(x) for x in args.tick_hz), "--seconds", str(args.seconds)),
         *("--repeats", str(args.repeats), "--json"),
     ]
-    env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
-    with tempfile.TemporaryDirectory() as d:
-        script = Path(d) / "agent_receive_bench.py"
-        shutil.copy(Path(__file__), script)
-        out = subprocess.run(
-            [sys.executable, str(script), *argv],
-            env=env,
-            cwd=tree,
-            check=True,
-            capture_output=True,
-            text=True,
-        )
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    from bench import common
+
+    return common.run_in_tree(tree, Path(__file__), argv)
 
 
 def main() -> None:

@@ -10,10 +10,14 @@ import contextlib
 import json
 import os
 import platform
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -183,3 +187,23 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU time of process `pid` and its threads so far (from /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_in_tree(tree: Path, script: Path, argv: list[str]) -> Any:
+    """Run the bench file `script` on another checkout's packages (`tree`, e.g. main before a
+    change) and return what it printed last, as JSON: the file is copied out of bench/ (which
+    would shadow the packages) and run with `tree` on PYTHONPATH and as the working directory.
+    """
+    env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
+    with tempfile.TemporaryDirectory() as d:
+        copy = Path(d) / f"{script.stem}_bench.py"
+        shutil.copy(script, copy)
+        out = subprocess.run(
+            [sys.executable, str(copy), *argv],
+            env=env,
+            cwd=tree,
+            check=True,
+            capture_output=True,
+            text=True,
+        )
+    return json.loads(out.stdout.strip().splitlines()[-1])

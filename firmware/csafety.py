@@ -322,20 +322,32 @@ def tracks(pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None, manned=
     """covey_track_t array of the neighbours (ids, 1-sigma, cooperative and manned flags as
     policy.safety.pair_radius_m takes them; None: 0, exact, all cooperative, none manned)."""
     pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
-    vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
-    if vel.shape != pos.shape:
-        raise ValueError(f"{pos.shape[0]} neighbour positions but {vel.shape[0]} velocities")
-    if pos.shape[0] > MAX_INPUTS:
-        raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbours, got {pos.shape[0]}")
     t = np.zeros(max(pos.shape[0], 1), TRACK_DTYPE)[: pos.shape[0]]
+    fill_tracks(t, pos, vel_m_s, ids, pos_sigma_m, cooperative, manned)
+    return t
+
+
+def fill_tracks(
+    buf: np.ndarray, pos_m, vel_m_s, ids=None, pos_sigma_m=None, cooperative=None, manned=None
+) -> np.ndarray:
+    """`tracks` written into the first rows of `buf` (a TRACK_DTYPE array of at least
+    MAX_INPUTS rows, reused call after call: every field of those rows is written); returns
+    them."""
+    pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
+    vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
+    k = pos.shape[0]
+    if vel.shape != pos.shape:
+        raise ValueError(f"{k} neighbour positions but {vel.shape[0]} velocities")
+    if k > MAX_INPUTS:
+        raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbours, got {k}")
+    t = buf[:k]
     t["pos_n_m"], t["pos_e_m"] = pos[:, 0], pos[:, 1]
     t["vel_n_m_s"], t["vel_e_m_s"] = vel[:, 0], vel[:, 1]
-    if ids is not None:
-        t["id"] = np.asarray(ids, dtype=np.int64).reshape(-1)
-    if pos_sigma_m is not None:
-        t["pos_sigma_m"] = np.broadcast_to(np.asarray(pos_sigma_m, np.float64), (pos.shape[0],))
-    if cooperative is not None or manned is not None:
-        t["non_cooperative"] = track_kinds(pos.shape[0], cooperative, manned)
+    t["id"] = 0 if ids is None else np.asarray(ids, dtype=np.int64).reshape(-1)
+    t["pos_sigma_m"] = 0.0 if pos_sigma_m is None else np.asarray(pos_sigma_m, np.float64)
+    t["non_cooperative"] = (
+        0 if cooperative is None and manned is None else track_kinds(k, cooperative, manned)
+    )
     return t
 
 
@@ -377,13 +389,25 @@ class SparseResult:
 
 
 class CSafetyFilter:
-    """The C separation filter with a policy.safety.SafetyConfig."""
+    """The C separation filter with a policy.safety.SafetyConfig. One call at a time: its
+    scratch memory and `evaluate`'s arguments are reused from call to call."""
 
     def __init__(self, lib: ctypes.CDLL, cfg):
         self._lib = lib
         self.cfg = cfg
         self._ccfg = SafetyConfigC.of(cfg)
         self._scratch = ctypes.create_string_buffer(lib.covey_safety_scratch_bytes())
+        # `evaluate`'s arguments, made once: an agent calls it every tick, and building them
+        # anew (ctypes objects, a numpy array's .ctypes) cost it more than the filter itself
+        self._tracks = np.zeros(MAX_INPUTS, TRACK_DTYPE)
+        self._own, self._pref, self._out = TrackC(), (ctypes.c_float * 2)(), SafetyOutC()
+        self._args = (
+            ctypes.byref(self._ccfg),
+            ctypes.byref(self._own),
+            self._pref,
+            self._tracks.ctypes.data_as(ctypes.c_void_p),
+        )
+        self._out_ref = ctypes.byref(self._out)
 
     def evaluate(
         self,
@@ -402,18 +426,25 @@ class CSafetyFilter:
         """One call; faults come back in `status`, never raised. Ids (0: unknown) untie
         coincident neighbours as policy.safety.untie does; position uncertainties,
         cooperative and manned flags as policy.safety.pair_radius_m takes them."""
-        t = tracks(nbr_pos_m, nbr_vel_m_s, nbr_ids, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
-        out = SafetyOutC()
-        st = self._lib.covey_safety_filter(
-            ctypes.byref(self._ccfg),
-            ctypes.byref(own_track(pos_m, vel_m_s, own_id, pos_sigma_m)),
-            pair_c(pref_vel_m_s),
-            t.ctypes.data,
-            t.shape[0],
-            self._scratch,
-            ctypes.byref(out),
+        t = fill_tracks(
+            self._tracks,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            nbr_ids,
+            nbr_pos_sigma_m,
+            nbr_cooperative,
+            nbr_manned,
         )
-        return FilterResult.of(st, out)
+        own, pref = self._own, self._pref
+        own.pos_n_m, own.pos_e_m = np.asarray(pos_m, dtype=np.float64).reshape(2).tolist()
+        own.vel_n_m_s, own.vel_e_m_s = np.asarray(vel_m_s, dtype=np.float64).reshape(2).tolist()
+        own.id, own.pos_sigma_m, own.non_cooperative = int(own_id), float(pos_sigma_m), 0
+        pref[0], pref[1] = np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2).tolist()
+        cfg, own_ref, pref_c, tracks_p = self._args
+        st = self._lib.covey_safety_filter(
+            cfg, own_ref, pref_c, tracks_p, t.shape[0], self._scratch, self._out_ref
+        )
+        return FilterResult.of(st, self._out)
 
     def sparse(
         self,

@@ -185,6 +185,27 @@ def pair_radius_m(
     return np.broadcast_to(r, shape), np.broadcast_to(share, shape)
 
 
+def pair_radius_one_m(
+    cfg: SafetyConfig,
+    pos_sigma_m: float,
+    nbr_pos_sigma_m: float,
+    nbr_cooperative: bool,
+    nbr_manned: bool,
+) -> float:
+    """`pair_radius_m`'s r of one pair in Python floats (agent/calm.py's one-vehicle path, a
+    neighbour at a time), equal to it bit for bit: the same operations in the same order."""
+    if nbr_manned and cfg.manned_radius_m is not None:
+        base_j = cfg.manned_radius_m
+    elif nbr_cooperative and not nbr_manned:
+        base_j = cfg.radius_m
+    elif cfg.non_cooperative_radius_m is not None:
+        base_j = cfg.non_cooperative_radius_m
+    else:
+        base_j = cfg.radius_m
+    pad = math.sqrt(pos_sigma_m * pos_sigma_m + nbr_pos_sigma_m * nbr_pos_sigma_m)
+    return base_j * (1.0 + cfg.margin) + cfg.sigma_k * pad
+
+
 def pair_pad_m(cfg: SafetyConfig, pos_sigma_m=None, nbr_pos_sigma_m=None):
     """The part of each pair's distance (`pair_radius_m`) that is there for the position
     uncertainty: sigma_k sqrt(sigma_i^2 + sigma_j^2); 0.0 when no sigma is given. pos_sigma_m

@@ -351,3 +351,242 @@ def test_a_host_s_own_vehicles_are_each_other_s_neighbours(spacing_m, calm_expec
         t[0] += 0.1
         fleet.tick(t[0])
         assert fleet._calm is calm_expected
+
+
+def _random_snapshot(rng, k: int, own_pos, own_vel):
+    """k neighbours around the vehicle, 1 m to 200 m off, at rest, alongside or at random
+    velocities, with the sigma, cooperative and manned columns each absent, full, short or of
+    another dtype."""
+    import numpy as np
+
+    from agent.neighbours import NeighbourSnapshot
+
+    dist = np.exp(rng.uniform(0.0, np.log(200.0), k))
+    bearing = rng.uniform(0.0, 2.0 * np.pi, k)
+    pos = np.c_[
+        own_pos[0] + dist * np.cos(bearing),
+        own_pos[1] + dist * np.sin(bearing),
+        own_pos[2] + rng.uniform(-3.0, 3.0, k),
+    ]
+    vel = [np.zeros((k, 3)), np.tile(own_vel, (k, 1)), rng.uniform(-8.0, 8.0, (k, 3))][
+        rng.integers(3)
+    ]
+
+    def column(values):
+        other = values.astype(np.float32 if values.dtype == float else np.int8)
+        return [None, values, values[: rng.integers(0, k + 1)], other][rng.integers(4)]
+
+    return NeighbourSnapshot(
+        pos_ned_m=pos,
+        vel_ned_m_s=vel,
+        heading_rad=np.zeros(k),
+        ids=tuple(range(100, 100 + k)),
+        age_s=np.zeros(k),
+        stale_ids=(),
+        pos_sigma_m=column(rng.choice([0.0, 0.5, 3.0]) * rng.uniform(0.0, 1.0, k)),
+        cooperative=column(rng.uniform(size=k) < 0.7),
+        manned=column(rng.uniform(size=k) < 0.2),
+    )
+
+
+def test_calm_s_one_vehicle_path_answers_as_the_arrays_do() -> None:
+    """`calm` of one vehicle (`_calm_one`, plain floats, the rare near tie left to the arrays)
+    and `holding_at_rest` against `calm_reference` and `hold_rows` on random states: modes,
+    holding or flying, speeds, goals near and far, flags, geofence, a keep-out zone, neighbours
+    near and far (traffic, manned, sigmas), and ties placed exactly on a calm distance."""
+    import numpy as np
+
+    from agent.calm import BUFFER_M, _calm_one, calm, calm_reference, holding_at_rest
+    from agent.flight_core import CoreConfig, FlightCore, Observed
+    from agent.guidance import GuidanceConfig
+    from agent.neighbours import NeighbourSnapshot
+    from comms.state_rate import hold_rows
+    from policy.safety import pair_radius_m
+
+    cores = [
+        FlightCore(CoreConfig(failsafe=FailsafeConfig(geofence_radius_m=0.0)), 1, now_s=0.0),
+        FlightCore(
+            CoreConfig(
+                failsafe=FailsafeConfig(geofence_radius_m=150.0),
+                guidance=GuidanceConfig(cruise_speed_m_s=2.0, non_cooperative_separation_m=8.0),
+            ),
+            1,
+            now_s=0.0,
+        ),
+        FlightCore(CoreConfig(), 1, now_s=0.0),
+    ]
+    zone = Zone(((30.0, -20.0), (30.0, 20.0), (40.0, 20.0), (40.0, -20.0)), name="pad")
+    cores[2].set_plan(FleetPlan(FLEET, 1, 0, keep_out=(zone,)))
+    assert cores[2].router is not None
+    modes = [Mode.GOTO, Mode.HOLDING, Mode.MISSION, Mode.RETURNING, Mode.LANDING, Mode.LANDED]
+    rng = np.random.default_rng(37)
+    seen: dict = {True: 0, False: 0, None: 0, "calm with neighbours": 0}
+    for case in range(3000):
+        core = cores[case % 3]
+        core.mode[0] = int(modes[rng.choice(6, p=[0.4, 0.3, 0.1, 0.1, 0.05, 0.05])])
+        core.velocity_mode = bool(rng.uniform() > 0.03)
+        core.mission_waiting[0] = rng.uniform() < 0.2
+        core.pos_sigma_m[0] = rng.choice([0.0, 0.5, rng.uniform(0.0, 3.0)])
+        pos = np.r_[rng.uniform(-160.0, 160.0, 2), -10.0]
+        speed = rng.choice([0.0, 0.05, 1.0, 2.0, rng.uniform(0.0, 6.0)])
+        heading = rng.uniform(0.0, 2.0 * np.pi)
+        vel = np.array([speed * np.cos(heading), speed * np.sin(heading), 0.0])
+        goal = pos + np.r_[rng.normal(0.0, rng.choice([2.0, 20.0, 200.0]), 2), 0.0]
+        if rng.uniform() < 0.05:
+            goal[0] = np.nan
+        core.goal_m[0] = core.hold_m[0] = goal
+        flags = [np.array([rng.uniform() > 0.03]) for _ in range(3)]
+        obs = Observed(
+            pos_m=pos[None, :].copy(),
+            vel_m_s=vel[None, :].copy(),
+            armed=flags[0],
+            in_air=flags[1],
+            battery_pct=np.array([80.0]),
+            link_ok=flags[2],
+        )
+        odd = rng.uniform() < 0.02  # a NaN velocity, or a tie below: the arrays decide
+        if odd:
+            obs.vel_m_s[0, rng.integers(0, 2)] = np.nan
+        busy, corrected = (np.array([rng.uniform() < 0.03]) for _ in range(2))
+        horizon_s = float(rng.choice([0.6, 2.0, rng.uniform(0.0, 3.0)]))
+        k = int(rng.choice([0, 1, 3, 12, 30]))
+        ext = _random_snapshot(rng, k, pos, vel)
+        if k and not odd and rng.uniform() < 0.1:  # alongside, exactly at its calm distance
+            odd = True
+            r = pair_radius_m(
+                core.safety_cfg,
+                core.pos_sigma_m[:1],
+                ext.column("pos_sigma_m", 0.0)[:1],
+                np.array([True]),
+                np.array([False]),
+            )[0][0]
+            own_s = float(np.hypot(vel[0], vel[1]))
+            o_s = max(own_s, core.cfg.guidance.cruise_speed_m_s)
+            own_b = own_s if core.mode[0] == int(Mode.HOLDING) else o_s
+            need = r + 0.0 * core.safety_cfg.time_horizon_s + (own_b + o_s) * horizon_s + BUFFER_M
+            ext.pos_ned_m[0] = pos + np.r_[need, 0.0, 0.0]
+            ext.vel_ned_m_s[0] = vel
+            ext = NeighbourSnapshot(**{**ext.__dict__, "cooperative": None, "manned": None})
+        want = calm_reference(core, obs, busy, corrected, ext, horizon_s)
+        one = _calm_one(core, obs, busy, corrected, ext, horizon_s)
+        assert one in (None, want) and (one is not None or odd), case
+        assert calm(core, obs, busy, corrected, ext, horizon_s) is want, case
+        assert holding_at_rest(core, obs) is bool(hold_rows(core.mode, obs.vel_m_s).all())
+        seen[one] += 1
+        seen["calm with neighbours"] += bool(one and k)
+    assert min(seen.values()) > 50 and seen[True] > 300 and seen[False] > 1000, seen
+
+
+def test_the_scalar_pair_radius_and_closest_approach_equal_the_arrays() -> None:
+    """policy/safety.py `pair_radius_one_m` against `pair_radius_m` bit for bit (every berth,
+    cooperative, traffic, manned), and agent/calm.py `closest_approach_one_m` against
+    `closest_approach_m` (math.hypot for np.hypot: within an ulp or two)."""
+    import dataclasses
+
+    import numpy as np
+
+    from agent.calm import closest_approach_m, closest_approach_one_m
+    from policy.safety import SafetyConfig, pair_radius_m, pair_radius_one_m
+
+    rng = np.random.default_rng(38)
+    base = SafetyConfig()
+    for cfg in (
+        base,
+        dataclasses.replace(base, non_cooperative_radius_m=8.0, sigma_k=0.0),
+        dataclasses.replace(base, manned_radius_m=None, margin=0.15, radius_m=2.5),
+    ):
+        own = rng.choice([0.0, 0.5, 2.0])
+        nbr = np.r_[0.0, rng.uniform(0.0, 5.0, 63)]
+        coop, manned = rng.uniform(size=64) < 0.5, rng.uniform(size=64) < 0.3
+        r, _share = pair_radius_m(cfg, own, nbr, coop, manned)
+        for j in range(64):
+            one = pair_radius_one_m(cfg, own, float(nbr[j]), bool(coop[j]), bool(manned[j]))
+            assert one == r[j], (cfg, j)
+    pos, vel = rng.uniform(-50, 50, (1, 3)), rng.uniform(-5, 5, (1, 3))
+    o_pos, o_vel = rng.uniform(-50, 50, (200, 3)), rng.uniform(-5, 5, (200, 3))
+    o_vel[:20] = vel  # no relative velocity
+    want = closest_approach_m(pos, vel, o_pos, o_vel, 4.0)[0]
+    for j in range(200):
+        p, v = o_pos[j] - pos[0], o_vel[j] - vel[0]
+        got = closest_approach_one_m(p[0], p[1], v[0], v[1], 4.0)
+        assert abs(got - want[j]) <= 2 * math.ulp(want[j])
+
+
+def test_a_neighbour_on_its_calm_distance_to_the_last_bit_is_left_to_the_arrays() -> None:
+    """math.hypot and np.hypot may differ in the last bit: a neighbour placed where they
+    disagree on which side of its calm distance it is gets the arrays' answer (`_calm_one`
+    leaves it open)."""
+    import numpy as np
+
+    from agent.calm import BUFFER_M, _calm_one, calm, calm_reference
+    from agent.flight_core import CoreConfig, FlightCore, Observed
+    from agent.neighbours import NeighbourSnapshot
+    from policy.safety import pair_radius_m
+
+    core = FlightCore(CoreConfig(failsafe=FailsafeConfig(geofence_radius_m=0.0)), 1, now_s=0.0)
+    core.mode[0] = int(Mode.GOTO)
+    core.goal_m[0] = (1000.0, 0.0, -10.0)
+    horizon_s, cruise_m_s, s = 0.6, core.cfg.guidance.cruise_speed_m_s, core.safety_cfg
+    r = pair_radius_m(s, 0.0, np.zeros(1), np.ones(1, bool), np.zeros(1, bool))[0][0]
+    need_m = r + 0.0 * s.time_horizon_s + (cruise_m_s + cruise_m_s) * horizon_s + BUFFER_M
+    ys = np.random.default_rng(39).uniform(0.1, 0.9 * need_m, 20000)
+    xs = np.sqrt(need_m * need_m - ys * ys)
+    xs, ys = np.r_[xs, np.nextafter(xs, 0.0), np.nextafter(xs, np.inf)], np.r_[ys, ys, ys]
+    near = np.hypot(xs, ys) <= need_m
+    split = [
+        (x, y)
+        for x, y, n in zip(xs.tolist(), ys.tolist(), near.tolist(), strict=True)
+        if (math.hypot(x, y) <= need_m) != n
+    ]
+    if not split:
+        pytest.skip("math.hypot and np.hypot agree here")
+    for x, y in split[:20]:
+        obs = Observed(
+            pos_m=np.array([[0.0, 0.0, -10.0]]),
+            vel_m_s=np.zeros((1, 3)),
+            armed=np.ones(1, bool),
+            in_air=np.ones(1, bool),
+            battery_pct=np.array([80.0]),
+            link_ok=np.ones(1, bool),
+        )
+        ext = NeighbourSnapshot(
+            np.array([[x, y, -10.0]]), np.zeros((1, 3)), np.zeros(1), (7,), np.zeros(1), ()
+        )
+        args = (core, obs, np.zeros(1, bool), np.zeros(1, bool), ext, horizon_s)
+        assert _calm_one(*args) is None
+        assert calm(*args) is calm_reference(*args)
+
+
+@pytest.mark.parametrize("beyond_m", [0.5, -0.5])
+def test_a_host_s_rows_keep_each_their_own_position_sigma(beyond_m: float) -> None:
+    """Two vehicles of one process, sigma 0 and 3 m, 500 m apart; a neighbour alongside the
+    first, `beyond_m` beyond its calm distance at sigma 0: calm exactly when it is beyond. The
+    second vehicle's larger sigma is not the first one's (it would add 12 m)."""
+    import numpy as np
+
+    from agent.calm import BUFFER_M, calm_reference
+    from agent.flight_core import CoreConfig, FlightCore, Observed
+    from agent.neighbours import NeighbourSnapshot
+
+    core = FlightCore(CoreConfig(failsafe=FailsafeConfig(geofence_radius_m=0.0)), 2, now_s=0.0)
+    core.mode[:] = int(Mode.GOTO)
+    core.pos_sigma_m[:] = (0.0, 3.0)
+    pos = np.array([[0.0, 0.0, -10.0], [0.0, 500.0, -10.0]])
+    vel = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    core.goal_m[:] = pos + np.array([400.0, 0.0, 0.0])
+    horizon_s = 0.6
+    cruise = core.cfg.guidance.cruise_speed_m_s
+    s = core.safety_cfg
+    need = s.radius_m * (1.0 + s.margin) + 2 * max(1.0, cruise) * horizon_s + BUFFER_M
+    ext = NeighbourSnapshot(
+        pos_ned_m=np.array([[0.0, need + beyond_m, -10.0]]),
+        vel_ned_m_s=vel[:1].copy(),
+        heading_rad=np.zeros(1),
+        ids=(100,),
+        age_s=np.zeros(1),
+        stale_ids=(),
+        pos_sigma_m=np.zeros(1),
+    )
+    obs = Observed(pos, vel, np.ones(2, bool), np.ones(2, bool), np.full(2, 80.0), np.ones(2, bool))
+    quiet = np.zeros(2, bool)
+    assert calm_reference(core, obs, quiet, quiet, ext, horizon_s) is (beyond_m > 0)
