@@ -27,6 +27,9 @@ import numpy as np
 from comms.schema import Mode, VehicleState
 from comms.state_rate import MAX_HOLD_PERIOD_S, announces_hold, hold_rows
 
+_HOLDING = int(Mode.HOLDING)
+_GROUNDED = (Mode.LANDED, Mode.KILLED)
+
 
 @dataclass(frozen=True)
 class NeighbourConfig:
@@ -61,6 +64,10 @@ class NeighbourConfig:
     gap). Halves the Ed25519 cost; a forger cannot use it to suppress real states (comms/gate.py)."""
 
 
+_FILL_DTYPES = {bool: np.dtype(bool), float: np.dtype(float)}
+"""np.asarray(fill).dtype of the usual fills."""
+
+
 @dataclass(frozen=True)
 class NeighbourSnapshot:
     pos_ned_m: np.ndarray
@@ -91,7 +98,12 @@ class NeighbourSnapshot:
         missing or absent filled with `fill` (a snapshot merged with rows that carry none)."""
         k = len(self.ids)
         got = getattr(self, name)
-        out = np.full(k, fill, dtype=np.asarray(fill).dtype)
+        dtype = _FILL_DTYPES.get(type(fill))
+        if dtype is None:
+            dtype = np.asarray(fill).dtype
+        if type(got) is np.ndarray and got.shape == (k,) and got.dtype == dtype:
+            return got.copy()  # what filling and then overwriting every row leaves
+        out = np.full(k, fill, dtype=dtype)
         if got is not None:
             got = np.asarray(got).reshape(-1)[:k]
             out[: len(got)] = got
@@ -120,6 +132,9 @@ class NeighbourTable:
         self._latest: dict[int, tuple[VehicleState, float]] = {}
         self._version = 0  # bumped by every change of _latest: the snapshot cache's key
         self._cache: tuple | None = None
+        self._oldest_s = math.inf
+        """No entry was received before this (a lower bound; NaN times left out): `expire`
+        looks at the entries only once it is `drop_s` old."""
 
     def _within_reach(self, pos_ned_m) -> bool:
         centre = self._centre_ne_m
@@ -157,6 +172,8 @@ class NeighbourTable:
                 return
             self._latest[state.vehicle_id] = (state, recv_s)
             self._version += 1
+            if recv_s < self._oldest_s:
+                self._oldest_s = recv_s
 
     def forget(self, vehicle_id: int) -> None:
         with self._lock:
@@ -167,6 +184,8 @@ class NeighbourTable:
         """Forget the neighbours unheard for `drop_s` (`snapshot` does it too)."""
         drop_s, hold_drop_s = self.cfg.drop_s, self.cfg.hold_drop_s
         with self._lock:
+            if not now_s - self._oldest_s > drop_s:  # nobody is that old (the usual tick)
+                return
             for vid in [
                 v
                 for v, (s, t) in self._latest.items()
@@ -175,70 +194,100 @@ class NeighbourTable:
             ]:
                 del self._latest[vid]
                 self._version += 1
+            oldest = math.inf
+            for _, t in self._latest.values():
+                if t < oldest:
+                    oldest = t
+            self._oldest_s = oldest
 
     def snapshot(self, now_s: float, own_pos_ned_m: np.ndarray | None = None) -> NeighbourSnapshot:
         """Neighbours that are flying, fresh enough and in our vertical band (with
         `own_pos_ned_m`), dead-reckoned to now: p(t) = p + v (t - t_rx).
 
-        One pass of array maths over the table, kept until the table or `now_s` changes, so that
-        the tick's two snapshots (guidance's, band-limited, and the landing order's) cost one
-        (`snapshot_loop` is the plain reference; tests compare them). With `own_pos_ned_m`, the
-        reach is centred there from now on."""
+        A few array operations over one block of the table's rows (`_rows`), the block kept
+        until the table changes (`snapshot_loop` is the plain reference; tests compare them).
+        With `own_pos_ned_m`, the reach is centred there from now on."""
         if own_pos_ned_m is not None:
             self._centre_ne_m = (float(own_pos_ned_m[0]), float(own_pos_ned_m[1]))
         self.expire(now_s)
         with self._lock:
             cached = self._cache
-            if cached is None or cached[0] != now_s or cached[1] != self._version:
-                cached = self._cache = (now_s, self._version, self._arrays(now_s))
-        ids, seqs, pos, vel, hdg, sigma, age, limit = cached[2]
+            if cached is None or cached[0] != self._version:
+                cached = self._cache = (self._version, self._rows())
+        ids, seqs, block, hold = cached[1]
+        if not ids:  # an idle vehicle's table (it hears no cells): no array maths at all
+            return NeighbourSnapshot(
+                pos_ned_m=_EMPTY3.copy(),
+                vel_ned_m_s=_EMPTY3.copy(),
+                heading_rad=_EMPTY.copy(),
+                ids=(),
+                age_s=_EMPTY.copy(),
+                stale_ids=(),
+                seqs=(),
+                pos_sigma_m=_EMPTY.copy(),
+            )
+        # every array below is a new one: the cached block stays as it is
+        age = np.maximum(0.0, now_s - block[:, 8])
+        pos = block[:, 0:3] + block[:, 3:6] * age[:, None]
         keep = None
-        if own_pos_ned_m is not None and len(ids):
+        if own_pos_ned_m is not None:
             keep = np.abs(pos[:, 2] - float(own_pos_ned_m[2])) <= self.cfg.vertical_band_m
-            if keep.all():
+            if np.count_nonzero(keep) == len(ids):
                 keep = None
-        if keep is not None:
-            idx = np.flatnonzero(keep)
-            ids = tuple(ids[i] for i in idx)
-            seqs = tuple(seqs[i] for i in idx)
-            pos, vel, hdg, sigma, age = pos[keep], vel[keep], hdg[keep], sigma[keep], age[keep]
-            limit = limit[keep]
-        stale = tuple(
-            v for v, a, lim in zip(ids, age.tolist(), limit.tolist(), strict=True) if a > lim
+        if keep is None:
+            vel, hdg, sigma = block[:, 3:6].copy(), block[:, 6].copy(), block[:, 7].copy()
+        else:
+            idx = keep.nonzero()[0].tolist()
+            ids = tuple([ids[i] for i in idx])
+            seqs = tuple([seqs[i] for i in idx])
+            pos, age, vel, hdg, sigma = (
+                pos[keep],
+                age[keep],
+                block[keep, 3:6],
+                block[keep, 6],
+                block[keep, 7],
+            )
+            if hold is not None:
+                hold = hold[keep]
+        cfg = self.cfg
+        over = age > (
+            cfg.stale_s if hold is None else np.where(hold, cfg.hold_stale_s, cfg.stale_s)
+        )
+        stale = (
+            tuple([ids[i] for i in over.nonzero()[0].tolist()]) if np.count_nonzero(over) else ()
         )
         return NeighbourSnapshot(
-            pos_ned_m=pos.copy() if keep is None else pos,
-            vel_ned_m_s=vel.copy() if keep is None else vel,
-            heading_rad=hdg.copy() if keep is None else hdg,
+            pos_ned_m=pos,
+            vel_ned_m_s=vel,
+            heading_rad=hdg,
             ids=ids,
-            age_s=age.copy() if keep is None else age,
+            age_s=age,
             stale_ids=stale,
             seqs=seqs,
-            pos_sigma_m=sigma.copy() if keep is None else sigma,
+            pos_sigma_m=sigma,
         )
 
-    def _arrays(self, now_s: float) -> tuple:
-        """(ids, seqs, pos, vel, heading, sigma, age, stale limit) of the flying neighbours,
-        dead-reckoned to `now_s` (lock held)."""
-        rows = [
-            (s, t)
-            for s, t in self._latest.values()
-            if not (s.mode in (Mode.LANDED, Mode.KILLED) and not s.armed)
-        ]
-        k = len(rows)
-        if k == 0:  # an idle vehicle's table (it hears no cells): no array maths at all
-            return (), (), _EMPTY3, _EMPTY3, _EMPTY, _EMPTY, _EMPTY, _EMPTY
-        ids = tuple(s.vehicle_id for s, _ in rows)
-        seqs = tuple(s.seq for s, _ in rows)
-        pos = np.array([s.pos_ned_m for s, _ in rows], dtype=float).reshape(k, 3)
-        vel = np.array([s.vel_ned_m_s for s, _ in rows], dtype=float).reshape(k, 3)
-        hdg = np.array([s.heading_rad for s, _ in rows], dtype=float).reshape(k)
-        sigma = np.array([s.pos_sigma_m for s, _ in rows], dtype=float).reshape(k)
-        age = np.maximum(0.0, now_s - np.array([t for _, t in rows], dtype=float).reshape(k))
-        hold = hold_rows([int(s.mode) for s, _ in rows], vel)
-        limit = np.where(hold, self.cfg.hold_stale_s, self.cfg.stale_s)
-        pos += vel * age[:, None]
-        return ids, seqs, pos, vel, hdg, sigma, age, limit
+    def _rows(self) -> tuple:
+        """(ids, seqs, block, hold) of the flying neighbours (lock held): block (K, 9) holds
+        each one's position, velocity, heading, position 1-sigma and receive time; hold (K,)
+        which announce that they hold at rest, None: none does."""
+        flat: list = []  # the block's rows one after the other: one conversion for them all
+        meta: list = []  # (id, seq, mode) of each
+        for s, t in self._latest.values():
+            if s.mode in _GROUNDED and not s.armed:
+                continue
+            flat += (*s.pos_ned_m, *s.vel_ned_m_s, s.heading_rad, s.pos_sigma_m, t)
+            meta += (s.vehicle_id, s.seq, s.mode)
+        k = len(meta) // 3
+        if k == 0:
+            return (), (), None, None
+        block = np.fromiter(flat, float, 9 * k).reshape(k, 9)
+        block.flags.writeable = False  # shared by the snapshots: each takes new arrays of it
+        modes = meta[2::3]
+        hold = None
+        if _HOLDING in modes:  # the velocities as one contiguous (K, 3), as hold_rows sums them
+            hold = hold_rows([int(m) for m in modes], block[:, 3:6].copy())
+        return tuple(meta[0::3]), tuple(meta[1::3]), block, hold
 
     def snapshot_loop(
         self, now_s: float, own_pos_ned_m: np.ndarray | None = None
