@@ -582,13 +582,30 @@ class VehicleShell:
         """The states of `rows` (those due: comms/state_rate.py), each with its next seq."""
         if not rows.size:
             return []
-        self.seq[rows] = (self.seq[rows] + 1) & 0xFFFFFFFF
-        stale = stale_rows(self.slowed, obs.pos_m, ext, self.cfg.neighbours.vertical_band_m)
-        bits = (
-            int(self.flags)
-            | np.where(self.filtered, int(StateFlag.FILTER_ACTIVE), 0)
-            | np.where(stale, int(StateFlag.NEIGHBOURS_STALE), 0)
-        )
+        band_m = self.cfg.neighbours.vertical_band_m
+        bits: np.ndarray | int
+        if rows.size == 1:  # one row (an agent's every tick): its seq and bits in Python ints
+            r = rows.item(0)
+            self.seq[r] = (self.seq.item(r) + 1) & 0xFFFFFFFF
+            # stale_rows is the slowed rows themselves while no neighbour is stale
+            stale = (
+                stale_rows(self.slowed, obs.pos_m, ext, band_m).item(r)
+                if ext.stale_ids
+                else self.slowed.item(r)
+            )
+            bits = (
+                int(self.flags)
+                | (int(StateFlag.FILTER_ACTIVE) if self.filtered.item(r) else 0)
+                | (int(StateFlag.NEIGHBOURS_STALE) if stale else 0)
+            )
+        else:
+            self.seq[rows] = (self.seq[rows] + 1) & 0xFFFFFFFF
+            stale = stale_rows(self.slowed, obs.pos_m, ext, band_m)
+            bits = (
+                int(self.flags)
+                | np.where(self.filtered, int(StateFlag.FILTER_ACTIVE), 0)
+                | np.where(stale, int(StateFlag.NEIGHBOURS_STALE), 0)
+            )
         sigma = self.vehicles.pos_sigma_m
         return vehicle_states(
             self.core, obs, sigma, self.ids, self.seq, rows, bits, self.mesh.clock_ns()

@@ -233,13 +233,35 @@ def vehicle_states(
     ids: np.ndarray,
     seq: np.ndarray,
     rows: np.ndarray,
-    bits: np.ndarray,
+    bits: np.ndarray | int,
     stamp_ns: int,
 ) -> list[VehicleState]:
     """The states of `rows`, stamped `stamp_ns`, with each row's `seq` and its flags: `bits`
-    (n,) (the shell's: open mode, filter, stale) with the core's failsafes, a goal, a lost
-    autopilot link. Battery and position 1-sigma are clamped to what a state carries, the
-    heading wrapped to [-pi, pi)."""
+    (n,) (the shell's: open mode, filter, stale; one int: the same for every row) with the
+    core's failsafes, a goal, a lost autopilot link. Battery and position 1-sigma are clamped
+    to what a state carries, the heading wrapped to [-pi, pi).
+
+    One row (an agent's every tick) takes `_one_vehicle_state`, the same state in Python
+    floats without the small array calls; `vehicle_states_rows` is the general path and its
+    reference (tests compare them)."""
+    if len(rows) == 1:
+        state = _one_vehicle_state(core, obs, pos_sigma_m, ids, seq, rows, bits, stamp_ns)
+        if state is not None:
+            return [state]
+    return vehicle_states_rows(core, obs, pos_sigma_m, ids, seq, rows, bits, stamp_ns)
+
+
+def vehicle_states_rows(
+    core: FlightCore,
+    obs: Observed,
+    pos_sigma_m: np.ndarray,
+    ids: np.ndarray,
+    seq: np.ndarray,
+    rows: np.ndarray,
+    bits: np.ndarray | int,
+    stamp_ns: int,
+) -> list[VehicleState]:
+    """`vehicle_states` of any number of rows, as arrays."""
     # whole arrays to Python floats once: per-row numpy access costs more than the rest
     pos, vel = obs.pos_m[rows].tolist(), obs.vel_m_s[rows].tolist()
     targets = core.targets()[rows]
@@ -248,8 +270,9 @@ def vehicle_states(
     hdg = (np.remainder(core.heading_rad[rows] + math.pi, 2 * math.pi) - math.pi).tolist()
     # flags as ints, one enum per distinct value (enum arithmetic per row cost more than the
     # rest of the state)
+    shell_bits = np.asarray(bits, np.int64)
     bits = (
-        np.asarray(bits, np.int64)[rows]
+        (shell_bits[rows] if shell_bits.ndim else np.full(len(rows), shell_bits))
         | np.array([int(core.failsafes[r].flags) for r in rows.tolist()], np.int64)
         | np.where(has, int(StateFlag.HAS_GOAL), 0)
         | np.where(obs.link_ok[rows], 0, int(StateFlag.FAILSAFE_LINK_LOST))
@@ -280,3 +303,77 @@ def vehicle_states(
         )
         for i in range(len(vids))
     ]
+
+
+_TWO_PI = 2 * math.pi
+_HAS_GOAL = int(StateFlag.HAS_GOAL)
+_LINK_LOST = int(StateFlag.FAILSAFE_LINK_LOST)
+_NO_GOAL = (0.0, 0.0, 0.0)
+
+
+def _one_vehicle_state(
+    core: FlightCore,
+    obs: Observed,
+    pos_sigma_m: np.ndarray,
+    ids: np.ndarray,
+    seq: np.ndarray,
+    rows: np.ndarray,
+    bits: np.ndarray | int,
+    stamp_ns: int,
+) -> VehicleState | None:
+    """`vehicle_states_rows` of one row, in Python floats: each scalar read once with .item(),
+    the heading wrapped with Python's float %, the clamps with min and max (the same IEEE
+    operations as np.remainder and np.clip, NaN and -0.0 included: tests compare them). None
+    where the inputs are not the plain ones (a float64 heading, float battery and sigma, int
+    bits): the general path answers them."""
+    try:
+        r = rows.item(0)
+        plain = (
+            core.heading_rad.dtype == _F8
+            and obs.battery_pct.dtype.kind == "f"
+            and pos_sigma_m.dtype.kind == "f"
+        )
+    except (AttributeError, ValueError):  # not arrays
+        return None
+    if isinstance(bits, int):
+        shell_bits = int(bits)
+    elif isinstance(bits, np.ndarray) and bits.dtype.kind in "iub" and bits.ndim == 1:
+        shell_bits = int(bits.item(r))
+    else:
+        return None
+    if not plain:
+        return None
+    target = core.targets()[r].tolist()
+    has = target[0] == target[0]  # not NaN: a goal
+    run = core.missions[r]
+    item, items = (0, 0) if run is None else run.progress()
+    battery = min(max(obs.battery_pct.item(r), 0.0), 100.0)
+    sigma = min(max(pos_sigma_m.item(r), 0.0), POS_SIGMA_LIMIT_M)
+    flags = (
+        shell_bits
+        | int(core.failsafes[r].flags)
+        | (_HAS_GOAL if has else 0)
+        | (0 if obs.link_ok.item(r) else _LINK_LOST)
+    )
+    # built as VehicleState.decode builds one, without the frozen dataclass's __init__ (a
+    # setattr per field, half of this state's cost): every field set, equal to the rows' path
+    state = object.__new__(VehicleState)
+    state.__dict__.update(
+        vehicle_id=ids.item(r),
+        seq=seq.item(r),
+        stamp_ns=stamp_ns,
+        pos_ned_m=tuple(obs.pos_m[r].tolist()),
+        vel_ned_m_s=tuple(obs.vel_m_s[r].tolist()),
+        heading_rad=(core.heading_rad.item(r) + math.pi) % _TWO_PI - math.pi,
+        mode=_MODES[core.mode.item(r)],
+        armed=obs.armed.item(r),
+        battery_pct=battery,
+        flags=_state_flag(flags),
+        goal_ned_m=tuple(target) if has else _NO_GOAL,
+        sig=b"",
+        mission_item=int(item),
+        mission_items=int(items),
+        pos_sigma_m=sigma,
+        links=b"",
+    )
+    return state

@@ -34,10 +34,7 @@ class ArrivalEstimate:
     def estimate_ns(self, sender: int, stamp_ns: int, taken_ns: int, since_ns: int) -> int:
         """As `arrived_ns`, from the lags counted so far only (this one not counted: a caller
         that counts only the states it trusts, `note`, is not misled by the others)."""
-        least_ns = self.least_ns(sender)
-        if least_ns is None:
-            return taken_ns
-        return max(since_ns, min(taken_ns, stamp_ns + least_ns))
+        return estimated_ns(self.least_ns(sender), stamp_ns, taken_ns, since_ns)
 
     def note(self, sender: int, lag_ns: int, taken_ns: int) -> int:
         """Count a lag of `sender`'s seen at `taken_ns`; returns its least lag now."""
@@ -57,3 +54,11 @@ class ArrivalEstimate:
         old = [s for s, (_, seen) in self._least.items() if now_ns - seen > self._window_ns]
         for s in old or list(self._least)[: len(self._least) // 2]:
             del self._least[s]
+
+
+def estimated_ns(least_ns: int | None, stamp_ns: int, taken_ns: int, since_ns: int) -> int:
+    """`ArrivalEstimate.estimate_ns` from the sender's least lag `least_ns` (None: none counted),
+    for a caller that looked it up once for several of that sender's states."""
+    if least_ns is None:
+        return taken_ns
+    return max(since_ns, min(taken_ns, stamp_ns + least_ns))

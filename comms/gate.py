@@ -142,7 +142,10 @@ class SignatureChecker(Protocol):
 
     def is_member(self, role: Role, member_id: int) -> bool: ...
 
-    def check_state(self, state: VehicleState) -> str | None: ...
+    def check_state(self, state: VehicleState, signed: bytes | None = None) -> str | None:
+        """`signed`: `state.signed_bytes()`, where the caller has them (the bytes it decoded
+        `state` from); None: made from `state`."""
+        ...
 
     def check_event(self, event: Event) -> str | None: ...
 
@@ -212,16 +215,21 @@ class Gate:
                 return SKIPPED
         return None
 
-    def admit_decoded(self, state: VehicleState, recv_ns: int) -> Refusal | str | None:
+    def admit_decoded(
+        self, state: VehicleState, recv_ns: int, signed: bytes | None = None
+    ) -> Refusal | str | None:
         """The rest of `admit_state`, after `admit_head` passed `state`'s head: step 4b, the
-        signature, and the last accepted stamp (under the lock: a newer state may have won)."""
+        signature, and the last accepted stamp (under the lock: a newer state may have won).
+        `signed`: `state.signed_bytes()` where the caller has them (`SignatureChecker`)."""
         vid = state.vehicle_id
         if self.worth_checking is not None and not self.worth_checking(state):
             with self._lock:
                 self.skipped += 1
                 self.out_of_reach += 1
             return SKIPPED
-        problem = self.auth.check_state(state)
+        problem = (
+            self.auth.check_state(state) if signed is None else self.auth.check_state(state, signed)
+        )
         if problem:
             cause = Refusal.UNKNOWN if problem.startswith("unknown") else Refusal.FORGED
             return self._refuse(cause, vid, problem, recv_ns)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import logging
 import threading
 import time
@@ -27,13 +28,13 @@ from typing import Any
 import zenoh
 
 from comms import keys
-from comms.arrival import ArrivalEstimate
+from comms.arrival import ArrivalEstimate, estimated_ns
 from comms.commands import CommandResult, Outcome, OutcomeStatus
 from comms.doc_sync import DocSync, RosterSyncConfig
 from comms.doc_sync import publish as publish_roster
 from comms.feed import FeedBuffer
 from comms.gate import Gate, GateConfig, Refusal, Summaries
-from comms.heard import Heard
+from comms.heard import Heard, hear_all
 from comms.heard import where as heard_at
 from comms.member import FleetKeyError, MemberAuth, StateLink, command_digest
 from comms.presence import Presence
@@ -77,6 +78,31 @@ MissionHandler = Callable[[Mission], CommandAck]
 """Answers a mission upload that passed the command checks (agent/mission.py loads it)."""
 RefusedCallback = Callable[[int, str, int], None]
 """Called with (claimed vehicle id, refusal cause, receive stamp in ns) for a refused state."""
+
+_SIGNED_BYTES = VehicleState._FMT.size
+"""A state's bytes that its signature and link tags cover: `VehicleState.signed_bytes` of a
+state its payload decodes to is the payload's first this many bytes."""
+
+
+def _newest_first(heard: Heard) -> int:
+    """The order of one vehicle's polled states that are all plausible (`_state_batch_handler`)."""
+    return -heard.stamp_ns
+
+
+def _plausible_newest_first(late_ns: int, heard: Heard) -> tuple[bool, int]:
+    """The order of one vehicle's polled states, those stamped after `late_ns` last."""
+    return heard.stamp_ns > late_ns, -heard.stamp_ns
+
+
+def _rising(states: list[Heard]) -> bool:
+    """Whether `states` are stamped strictly later one after the other (then, all plausible,
+    `_newest_first` orders them exactly backwards: no two stamps tie)."""
+    prev_ns = -1
+    for state in states:
+        if state.stamp_ns <= prev_ns:
+            return False
+        prev_ns = state.stamp_ns
+    return True
 
 
 @dataclass
@@ -271,30 +297,31 @@ class Mesh:
         auth = auth if auth is not None else self.auth
         if auth is not None:
             state = auth.sign_state(state, receivers)
-        payload = state.encode()
-        feed_payload = payload
-        if state.links:
-            feed_payload = payload[: len(payload) - 1 - len(state.links)]
+        payload = state.encode()  # validated; a signed state's bytes packed once, as signed
+        vid, links = state.vehicle_id, state.links
+        feed_payload = payload[: len(payload) - 1 - len(links)] if links else payload
         cell = keys.cell_of(state.pos_ned_m)
-        held = self._publishers.get(state.vehicle_id)
+        held = self._publishers.get(vid)
         if held is None or held[0] != cell:
             pub = self.session.declare_publisher(
-                keys.state(self.fleet, state.vehicle_id, cell),
+                keys.state(self.fleet, vid, cell),
                 congestion_control=zenoh.CongestionControl.DROP,
                 express=False,
             )
             with self._lock:
-                self._publishers[state.vehicle_id] = (cell, pub)
+                self._publishers[vid] = (cell, pub)
             if held is not None:
                 with contextlib.suppress(Exception):
                     held[1].undeclare()
         else:
             pub = held[1]
         pub.put(payload)
-        self.stats.bump("states_sent")
-        self._send_feed(
-            state.vehicle_id, self._feed.offer(state.vehicle_id, feed_payload, self.clock_ns())
-        )
+        stats = self.stats
+        with stats._lock:  # stats.bump("states_sent"), a state at a time
+            stats.states_sent += 1
+        batches = self._feed.offer(vid, feed_payload, self.clock_ns())
+        if batches:
+            self._send_feed(vid, batches)
 
     def _send_feed(self, vehicle_id: int, batches: list[bytes]) -> None:
         """Put due feed batches on this process's feed key (that of its first vehicle)."""
@@ -443,44 +470,63 @@ class Mesh:
         (`states_unchecked`). A forged state thus costs its check but cannot hide a real one
         unless it floods past the budget, and a flood cannot stall the tick."""
         arrival = ArrivalEstimate()  # the least lag of each sender's states that went on
+        least_of, note = arrival.least_ns, arrival.note
 
         def on_states(states: list[Heard], taken_ns: int, since_ns: int) -> None:
-            got: list[tuple[Heard, int]] = []
-            for state in states:
-                recv_ns = arrival.estimate_ns(state.vehicle_id, state.stamp_ns, taken_ns, since_ns)
-                got.append((state, recv_ns))
             if every_state:
+                got: list[tuple[Heard, int]] = []
+                for state in states:
+                    recv_ns = arrival.estimate_ns(
+                        state.vehicle_id, state.stamp_ns, taken_ns, since_ns
+                    )
+                    got.append((state, recv_ns))
                 for state, recv_ns in got:
                     if admit(state, recv_ns):
-                        arrival.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
+                        note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
                 return
-            by_vehicle: dict[int, list[tuple[Heard, int]]] = {}
-            for state, recv_ns in got:
-                by_vehicle.setdefault(state.vehicle_id, []).append((state, recv_ns))
+            # Each vehicle's states in the order they came, and its least lag as it was before
+            # this batch (each receive time is estimated from it, `estimated_ns`, when tried)
+            by_vehicle: dict[int, list[Heard]] = {}
+            for state in states:
+                candidates = by_vehicle.get(state.vehicle_id)
+                if candidates is None:
+                    by_vehicle[state.vehicle_id] = [state]
+                else:
+                    candidates.append(state)
+            rounds: list[tuple[list[Heard], int | None]] = []
             for vid, candidates in by_vehicle.items():
-                least_ns = arrival.least_ns(vid)
-                floor_ns = None if least_ns is None else least_ns - PLAUSIBLE_LAG_SLACK_NS
-                candidates.sort(
-                    key=lambda c: (
-                        floor_ns is not None and taken_ns - c[0].stamp_ns < floor_ns,
-                        -c[0].stamp_ns,
+                least_ns = least_of(vid)
+                if len(candidates) > 1:
+                    # implausible: taken_ns - stamp < least_ns - PLAUSIBLE_LAG_SLACK_NS
+                    late_ns = (
+                        None if least_ns is None else taken_ns - least_ns + PLAUSIBLE_LAG_SLACK_NS
                     )
-                )
+                    if _rising(candidates) and (
+                        late_ns is None or candidates[-1].stamp_ns <= late_ns
+                    ):
+                        candidates.reverse()  # as they usually come: the sort's order, at once
+                    elif late_ns is None:
+                        candidates.sort(key=_newest_first)
+                    else:
+                        candidates.sort(key=functools.partial(_plausible_newest_first, late_ns))
+                rounds.append((candidates, least_ns))
             t0_s = time.perf_counter()
             superseded = unchecked = 0
-            rounds, k = list(by_vehicle.values()), 0
+            k = 0
             while rounds:
                 left = []
-                for candidates in rounds:
+                for entry in rounds:
+                    candidates, least_ns = entry
                     if k and time.perf_counter() - t0_s > budget_s:
                         unchecked += len(candidates) - k
                         continue
-                    state, recv_ns = candidates[k]
-                    if admit(state, recv_ns):
-                        arrival.note(state.vehicle_id, taken_ns - state.stamp_ns, taken_ns)
+                    state = candidates[k]
+                    stamp_ns = state.stamp_ns
+                    if admit(state, estimated_ns(least_ns, stamp_ns, taken_ns, since_ns)):
+                        note(state.vehicle_id, taken_ns - stamp_ns, taken_ns)
                         superseded += len(candidates) - k - 1
                     elif k + 1 < len(candidates):
-                        left.append(candidates)
+                        left.append(entry)
                 rounds, k = left, k + 1
             if superseded:
                 self.stats.bump("states_superseded", superseded)
@@ -534,11 +580,9 @@ class Mesh:
             self._bad(key, exc)
             return []
         self.stats.bump("relay_batches_received")
-        got = []
-        for i, payload in enumerate(batch.states):
-            heard = self._heard(key, payload, block, i)
-            if heard is not None:
-                got.append(heard)
+        got, bad = hear_all(key, batch.states, block)
+        for i in bad:  # its decode says why not (`_heard`)
+            self._decode_state(heard_at(key, block, i), batch.states[i], block)
         return got
 
     def _admitters(
@@ -561,52 +605,76 @@ class Mesh:
             self.new_gate(gate, worth_checking=worth_checking) if self.auth is not None else None
         )
 
+        stats = self.stats
+
         def dropped(vid: int, verdict: Refusal | str, recv_ns: int) -> bool:
             if isinstance(verdict, Refusal):
-                self.stats.bump("states_refused")
+                stats.bump("states_refused")
                 if on_refused is not None:
                     _guarded(on_refused, vid, verdict.value, recv_ns)
             return False
 
-        def go_on(state: VehicleState, recv_ns: int, extra: tuple, head_passed: bool) -> bool:
-            """The rest of the checks (all of them unless the head passed), then delivery."""
+        def deliver(state: VehicleState, recv_ns: int, extra: tuple) -> bool:
+            """A state that passed every check: counted, then to the link or the callback."""
+            with stats._lock:
+                stats.states_received += 1
+            if link is not None:
+                link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t, *extra))
+                return True
+            try:  # _guarded, inline: every state that goes on comes here
+                callback(state, recv_ns, *extra)
+            except Exception:  # noqa: BLE001 - a subscriber bug must not kill Zenoh's thread
+                log.exception("subscriber callback failed")
+            return True
+
+        def go_on(state: VehicleState, recv_ns: int, extra: tuple) -> bool:
+            """The checks of a decoded state, then delivery."""
             if checker is None and worth_checking is not None and not worth_checking(state):
                 return False  # open mode: nothing to verify, but no use for it either
             if checker is not None:
-                verdict = (
-                    checker.admit_decoded(state, recv_ns)
-                    if head_passed
-                    else checker.admit_state(state, recv_ns)
-                )
+                verdict = checker.admit_state(state, recv_ns)
                 if verdict is not None:
                     return dropped(state.vehicle_id, verdict, recv_ns)
-            self.stats.bump("states_received")
-            if link is None:
-                _guarded(callback, state, recv_ns, *extra)
-            else:
-                link.offer(state, recv_ns, lambda s, t: _guarded(callback, s, t, *extra))
-            return True
+            return deliver(state, recv_ns, extra)
 
         def admit(state: VehicleState, recv_ns: int, extra: tuple) -> bool:
             """True: `state` went on; False: dropped (an echo, beyond reach, thinned, refused)."""
             if state.vehicle_id == ignore_id:
                 return False
-            return go_on(state, recv_ns, extra, False)
+            return go_on(state, recv_ns, extra)
 
-        def admit_heard(heard: Heard, recv_ns: int) -> bool:
-            """`admit` for a heard state, decoded only if its head passes the gate's checks."""
-            if heard.vehicle_id == ignore_id:
+        if checker is None:
+
+            def admit_heard(heard: Heard, recv_ns: int) -> bool:
+                """`admit` for a heard state (open mode: decoded, then as `admit`)."""
+                if heard.vehicle_id == ignore_id:
+                    return False
+                state = self._decode_heard(heard)
+                return state is not None and go_on(state, recv_ns, ())
+
+            return admit, admit_heard
+
+        admit_head, admit_decoded = checker.admit_head, checker.admit_decoded
+
+        def admit_keyed(heard: Heard, recv_ns: int) -> bool:
+            """`admit` for a heard state, decoded only if its head passes the gate's checks
+            (`Gate.admit_head`), then the rest of them (`admit_decoded`, on the signed bytes
+            the state was decoded from: `VehicleState.signed_bytes` of it, without packing
+            them again)."""
+            vid, seq, stamp_ns, signed, payload, key, block, place = heard
+            if vid == ignore_id:
                 return False
-            if checker is not None:
-                verdict = checker.admit_head(
-                    heard.vehicle_id, heard.seq, heard.stamp_ns, heard.signed, recv_ns
-                )
-                if verdict is not None:
-                    return dropped(heard.vehicle_id, verdict, recv_ns)
-            state = self._decode_heard(heard)
-            return state is not None and go_on(state, recv_ns, (), True)
+            verdict = admit_head(vid, seq, stamp_ns, signed, recv_ns)
+            if verdict is None:
+                state = self._decode_state(heard_at(key, block, place), payload, block)
+                if state is None:
+                    return False
+                verdict = admit_decoded(state, recv_ns, payload[:_SIGNED_BYTES])
+                if verdict is None:
+                    return deliver(state, recv_ns, ())
+            return dropped(vid, verdict, recv_ns)
 
-        return admit, admit_heard
+        return admit, admit_keyed
 
     def _counted(
         self, worth_checking: Callable[[VehicleState], bool]
@@ -1022,6 +1090,11 @@ class CellSubscription:
         self._origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
         self._lock = threading.Lock()
         self._want: frozenset[keys.Cell] = frozenset()
+        self._want_block: tuple[frozenset[keys.Cell], tuple[int, keys.Cell] | None] = (
+            self._want,
+            None,
+        )
+        """`_want` and its `keys.block_of`, worked out once per `set_cells`, not per drain."""
         self._subs: dict[keys.Cell, Any] = {}
         self._retired: list[Any] = []  # polled: left cells' subscribers, until the next drain
         self.changes = 0
@@ -1094,7 +1167,9 @@ class CellSubscription:
         subscribers. Lock held; returns the entities to undeclare now (the rest retire)."""
         gone: list[Any] = []
         self._find_relay(now_ns)
-        block = keys.block_of(self._want) if self._relay_id is not None else None
+        if self._want_block[0] is not self._want:
+            self._want_block = (self._want, keys.block_of(self._want))
+        block = self._want_block[1] if self._relay_id is not None else None
         if (self._relay_id, block) != self._block_of:
             self._block_of = (self._relay_id, block)
             if self._want_token is not None:

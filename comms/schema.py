@@ -484,7 +484,13 @@ class VehicleState:
         _check_links(self.links, self.sig)
 
     def signed_bytes(self) -> bytes:
-        """Every byte that the signature covers (the whole state but the signature)."""
+        """Every byte that the signature covers (the whole state but the signature). A state
+        that FleetAuth.sign_state made keeps the bytes it signed (its fields cannot change:
+        the class is frozen) and gives them again rather than packing them twice. (getattr:
+        reading __dict__ would make it, and every field read after it slower.)"""
+        kept: bytes | None = getattr(self, "_signed", None)
+        if kept is not None:
+            return kept
         return self._FMT.pack(
             self.TYPE,
             self.VERSION,
@@ -506,9 +512,10 @@ class VehicleState:
 
     def encode(self) -> bytes:
         self.validate()
-        if self.links:
-            count = len(self.links) // LINK_ENTRY_BYTES
-            return self.signed_bytes() + self.sig + bytes((count,)) + self.links
+        links = self.links
+        if links:
+            count = len(links) // LINK_ENTRY_BYTES
+            return b"".join((self.signed_bytes(), self.sig, bytes((count,)), links))
         return self.signed_bytes() + self.sig
 
     @classmethod
@@ -524,7 +531,8 @@ class VehicleState:
 
     @classmethod
     def decode(cls, data: bytes) -> VehicleState:
-        _header(data, cls.TYPE, cls.VERSION)
+        if len(data) < 2 or data[0] != cls.TYPE or data[1] != cls.VERSION:
+            _header(data, cls.TYPE, cls.VERSION)  # raises, naming what is wrong
         signed_end = cls._FMT.size + TAG_BYTES
         links = b""
         if len(data) > signed_end:
@@ -554,6 +562,7 @@ class VehicleState:
         # Built without the frozen dataclass's __init__ (one setattr per field: a fleet host
         # decodes hundreds a tick); equal to cls(**fields) (tests/test_schema_fast.py), and
         # validated below as every state is.
+        lim, top = POSITION_LIMIT_M, SPEED_LIMIT_M_S
         msg = object.__new__(cls)
         msg.__dict__.update(
             vehicle_id=f[2],
@@ -573,7 +582,31 @@ class VehicleState:
             pos_sigma_m=f[21],
             links=links,
         )
-        msg.validate()
+        # `validate`'s fast test less what the wire format and the checks above already hold
+        # (the tuples' lengths; seq, stamp and the mission counts unsigned and in range; mode,
+        # flags, armed; the signature's length; the trailer's length and count, so `links_ok`
+        # but its receiver ids): what passes it passes `validate`; anything else gets
+        # `validate` itself, which says why (tests/test_receive_fast.py decodes random bytes
+        # both ways). NaN fails every comparison.
+        if not (
+            1 <= f[2] <= MAX_VEHICLE_ID
+            and -lim <= f[5] <= lim
+            and -lim <= f[6] <= lim
+            and -lim <= f[7] <= lim
+            and -top <= f[8] <= top
+            and -top <= f[9] <= top
+            and -top <= f[10] <= top
+            and -_TWO_PI <= f[11] <= _TWO_PI
+            and -lim <= f[12] <= lim
+            and -lim <= f[13] <= lim
+            and -lim <= f[14] <= lim
+            and 0.0 <= f[18] <= 100.0
+            and f[20] <= MAX_MISSION_ITEMS
+            and f[19] <= f[20] + 1
+            and 0.0 <= f[21] <= POS_SIGMA_LIMIT_M
+            and (not links or (min(ids := _link_ids(links)) >= 1 and max(ids) <= MAX_VEHICLE_ID))
+        ):
+            msg.validate()
         return msg
 
 
@@ -1211,19 +1244,20 @@ class RelayBatch:
             )
         _, _, relay_seq, n = cls._HEAD.unpack_from(data)
         states, at = [], cls._HEAD.size
+        end, len_size, read_len = len(data), cls._LEN.size, cls._LEN.unpack_from
         for i in range(n):
-            if at + cls._LEN.size > len(data):
+            if at + len_size > end:
                 raise DecodeError(f"RelayBatch of {len(data)} bytes ends inside state {i} of {n}")
-            (length,) = cls._LEN.unpack_from(data, at)
-            at += cls._LEN.size
-            if not 2 <= length <= MAX_STATE_BYTES or at + length > len(data):
+            (length,) = read_len(data, at)
+            at += len_size
+            if not 2 <= length <= MAX_STATE_BYTES or at + length > end:
                 raise DecodeError(
                     f"RelayBatch state {i} of {n}: {length} bytes, must be 2..{MAX_STATE_BYTES} "
                     f"and within the batch's {len(data)}"
                 )
             states.append(data[at : at + length])
             at += length
-        if at != len(data):
+        if at != end:
             raise DecodeError(f"RelayBatch has {len(data) - at} bytes after its {n} states")
         return cls(relay_seq, tuple(states))
 

@@ -360,12 +360,23 @@ class FleetAuth:
         signed = state.signed_bytes()
         links = self.links
         tags = links.tags(signed, receivers) if links is not None else b""
-        return dataclasses.replace(state, sig=self._sign("state", signed), links=tags)
+        sig = self._sign("state", signed)
+        if type(state) is not VehicleState:
+            return dataclasses.replace(state, sig=sig, links=tags)
+        # dataclasses.replace without its __init__ (a setattr per field: an agent signs every
+        # state it sends), the same fields; and the bytes just signed kept for its encode()
+        # (VehicleState.signed_bytes): what goes on the wire is what was signed, packed once
+        out = object.__new__(VehicleState)
+        out.__dict__.update(state.__dict__, sig=sig, links=tags, _signed=signed)
+        return out
 
-    def check_state(self, state: VehicleState) -> str | None:
+    def check_state(self, state: VehicleState, signed: bytes | None = None) -> str | None:
         """None if `state` is its vehicle's: by its link tag for this vehicle where it has a
-        right one, else by its signature."""
-        signed = state.signed_bytes()
+        right one, else by its signature. `signed`: `state.signed_bytes()`, where the caller
+        has them (a receiver: the first bytes of the payload it decoded `state` from; equal,
+        tests/test_receive_fast.py); None: packed from `state`."""
+        if signed is None:
+            signed = state.signed_bytes()
         links = self.links if state.links else None
         if links is not None and links.check(signed, state.vehicle_id, state.links):
             return None
