@@ -294,11 +294,15 @@ def vehicles(
     return own, nb
 
 
-def own_track(pos_m, vel_m_s, own_id=0, pos_sigma_m: float = 0.0) -> TrackC:
-    """The own covey_track_t."""
-    p = np.asarray(pos_m, dtype=np.float64).reshape(2)
-    v = np.asarray(vel_m_s, dtype=np.float64).reshape(2)
-    return TrackC(p[0], p[1], v[0], v[1], int(own_id), float(pos_sigma_m), 0)
+def own_track(
+    pos_m, vel_m_s, own_id=0, pos_sigma_m: float = 0.0, into: TrackC | None = None
+) -> TrackC:
+    """The own covey_track_t: a new one, or `into` (one kept from call to call) refilled."""
+    t = TrackC() if into is None else into
+    t.pos_n_m, t.pos_e_m = np.asarray(pos_m, dtype=np.float64).reshape(2).tolist()
+    t.vel_n_m_s, t.vel_e_m_s = np.asarray(vel_m_s, dtype=np.float64).reshape(2).tolist()
+    t.id, t.pos_sigma_m, t.non_cooperative = int(own_id), float(pos_sigma_m), 0
+    return t
 
 
 def pair_c(xy) -> ctypes.Array:
@@ -435,10 +439,8 @@ class CSafetyFilter:
             nbr_cooperative,
             nbr_manned,
         )
-        own, pref = self._own, self._pref
-        own.pos_n_m, own.pos_e_m = np.asarray(pos_m, dtype=np.float64).reshape(2).tolist()
-        own.vel_n_m_s, own.vel_e_m_s = np.asarray(vel_m_s, dtype=np.float64).reshape(2).tolist()
-        own.id, own.pos_sigma_m, own.non_cooperative = int(own_id), float(pos_sigma_m), 0
+        own_track(pos_m, vel_m_s, own_id, pos_sigma_m, into=self._own)
+        pref = self._pref
         pref[0], pref[1] = np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2).tolist()
         cfg, own_ref, pref_c, tracks_p = self._args
         st = self._lib.covey_safety_filter(
