@@ -45,6 +45,7 @@ class Autopilots:
         """The simulated fleet whose rows these are, in order, or None (the fast path's)."""
         self.pos_sigma_m = np.zeros(self.n)
         """(n,) each vehicle's position 1-sigma, from the last `read`."""
+        self._sigma_one = (math.nan, self.pos_sigma_m)  # a fleet of one: its sigma, as (1,)
         self._assumed_m = np.array(
             [0.0 if isinstance(b, SimBackend) else assumed_pos_sigma_m for b in self.backends]
         )
@@ -68,16 +69,40 @@ class Autopilots:
         if sim is None:
             return self.read_each()
         with sim.lock:
-            self.pos_sigma_m = np.full(self.n, float(sim.pos_sigma_m))
-            return Observed(
-                sim.pos_m,
-                sim.ground_vel_m_s,
-                sim.armed,
-                sim.pos_m[:, 2] < -0.05,  # SimFleet.in_air, every row
-                sim.battery_pct,
-                ~sim.closed,
-                self.pos_sigma_m,
-            )
+            return self._read_one(sim) if self.n == 1 else self._read_rows(sim)
+
+    def _read_rows(self, sim: SimFleet) -> Observed:
+        """`read` of a simulated fleet, straight from its arrays. Lock held."""
+        self.pos_sigma_m = np.full(self.n, float(sim.pos_sigma_m))
+        return Observed(
+            sim.pos_m,
+            sim.ground_vel_m_s,
+            sim.armed,
+            sim.pos_m[:, 2] < -0.05,  # SimFleet.in_air, every row
+            sim.battery_pct,
+            ~sim.closed,
+            self.pos_sigma_m,
+        )
+
+    def _read_one(self, sim: SimFleet) -> Observed:
+        """`read` of a fleet of one (an agent's every tick): its flags taken as Python bools
+        and given as shared read-only arrays, its sigma's array kept while the sigma is the
+        same, its velocity the fleet's one-row `ground_vel_m_s`; no array is computed (each
+        small numpy call costs a cold tick several microseconds, docs/companion.md). Equal to
+        the rows path and to `read_each` (tests/test_shell.py). Lock held."""
+        sigma = float(sim.pos_sigma_m)
+        if sigma != self._sigma_one[0]:  # kept from tick to tick: read-only
+            self._sigma_one = (sigma, _frozen(np.full(1, sigma)))
+        self.pos_sigma_m = self._sigma_one[1]
+        return Observed(
+            sim.pos_m,
+            sim.ground_vel_m_s,
+            sim.armed,
+            _ONE_BOOL[sim.in_air(0)],
+            sim.battery_pct,
+            _ONE_BOOL[not sim.closed.item(0)],
+            self.pos_sigma_m,
+        )
 
     def read_each(self) -> Observed | None:
         """`read` by one `telemetry()` call per backend (the reference path)."""
@@ -118,6 +143,15 @@ class Autopilots:
                 self.backends[r].set_velocity_ned(v, h)
             except BackendError as exc:
                 log.warning("setpoint refused: %s", exc)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+_ONE_BOOL = (_frozen(np.zeros(1, bool)), _frozen(np.ones(1, bool)))
+"""A one-row flag, False or True, shared by every read (read-only: no reader may write it)."""
 
 
 def _one_sim_fleet(backends: list[VehicleBackend]) -> SimFleet | None:

@@ -229,3 +229,39 @@ def test_an_agent_asked_for_two_kinds_of_zenoh_pools_says_which_clash(capsys) ->
         agent_cli.cli(["--id", "3", "--one-zenoh-thread", "--zenoh-default-pools"])
     assert exit_.value.code == 2
     assert "--one-zenoh-thread and --zenoh-default-pools" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("model", [None, VehicleModel.realistic()], ids=["ideal", "realistic"])
+def test_a_fleet_of_one_reads_as_its_rows_and_its_backend_do(model) -> None:
+    """An agent's one vehicle (`Autopilots._read_one`, its flags as Python bools) equals the
+    rows path and `read_each`: on the ground, climbing, flying in gusts, closed."""
+    cfg = SimConfig(vehicle=model)
+    fast_sim = SimFleet(cfg, now_s=0.0, rng=np.random.default_rng(3))
+    each_sim = SimFleet(cfg, now_s=0.0, rng=np.random.default_rng(3))
+    fast, each = Autopilots([SimBackend(fleet=fast_sim)]), Autopilots([_Row(fleet=each_sim)])
+    assert fast.sim is fast_sim and each.sim is None
+    seen = set()
+    for k in range(1, 80):
+        for sim, ap in ((fast_sim, fast), (each_sim, each)):
+            if k == 5:
+                sim.takeoff(0, 4.0)
+            if 40 <= k < 75:  # guided rows only: armed and linked (FlightCore.guided_rows)
+                vel = np.array([[1.5, -0.5, 0.1]]) * math.cos(k / 7)
+                ap.set_velocities(np.array([0]), vel, np.array([0.4]))
+            if k == 75:
+                sim.close(0)
+            ap.step(k * 0.1)
+        with fast_sim.lock:
+            one, rows = fast._read_one(fast_sim), fast._read_rows(fast_sim)
+        ref = each.read_each()
+        assert ref is not None
+        got = fast.read()
+        assert got is not None
+        for x, y, z, w in zip(_fields(one), _fields(rows), _fields(ref), _fields(got), strict=True):
+            np.testing.assert_array_equal(x, y)
+            np.testing.assert_array_equal(x, z)
+            np.testing.assert_array_equal(x, w)
+        np.testing.assert_array_equal(fast.pos_sigma_m, each.pos_sigma_m)
+        seen.add((bool(got.in_air[0]), bool(got.link_ok[0])))
+    assert seen == {(False, True), (True, True), (True, False)}
+    assert not got.in_air.flags.writeable and not fast.pos_sigma_m.flags.writeable

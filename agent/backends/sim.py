@@ -119,7 +119,7 @@ class SimFleet:
             raise BackendError("simulator is closed")
 
     def in_air(self, i: int) -> bool:
-        return bool(self.pos_m[i, 2] < -0.05)
+        return self.pos_m.item(i, 2) < -0.05
 
     def telemetry(self, i: int) -> Telemetry:
         with self.lock:
@@ -230,6 +230,10 @@ class SimFleet:
         if self.body.model.gust_m_s <= 0:
             return self.vel_m_s
         v = self.vel_m_s.copy()
+        if self.n == 1:  # an agent's one vehicle: no mask
+            if self.true_pos_m.item(2) < 0.0:
+                v[0, :2] += self.body.gust_m_s[0]
+            return v
         air = self.true_pos_m[:, 2] < 0.0
         v[air, :2] += self.body.gust_m_s[air]
         return v
