@@ -18,6 +18,7 @@ import numpy as np
 from agent.backends.base import BackendError, Capability, Telemetry, VehicleBackend
 from agent.backends.sim import SimBackend, SimFleet
 from agent.flight_core import Observed
+from comms.one_row import FLAG, frozen
 
 log = logging.getLogger(__name__)
 
@@ -92,15 +93,15 @@ class Autopilots:
         the rows path and to `read_each` (tests/test_shell.py). Lock held."""
         sigma = float(sim.pos_sigma_m)
         if sigma != self._sigma_one[0]:  # kept from tick to tick: read-only
-            self._sigma_one = (sigma, _frozen(np.full(1, sigma)))
+            self._sigma_one = (sigma, frozen(np.full(1, sigma)))
         self.pos_sigma_m = self._sigma_one[1]
         return Observed(
             sim.pos_m,
             sim.ground_vel_m_s,
             sim.armed,
-            _ONE_BOOL[sim.in_air(0)],
+            FLAG[sim.in_air(0)],
             sim.battery_pct,
-            _ONE_BOOL[not sim.closed.item(0)],
+            FLAG[not sim.closed.item(0)],
             self.pos_sigma_m,
         )
 
@@ -143,15 +144,6 @@ class Autopilots:
                 self.backends[r].set_velocity_ned(v, h)
             except BackendError as exc:
                 log.warning("setpoint refused: %s", exc)
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a.flags.writeable = False
-    return a
-
-
-_ONE_BOOL = (_frozen(np.zeros(1, bool)), _frozen(np.ones(1, bool)))
-"""A one-row flag, False or True, shared by every read (read-only: no reader may write it)."""
 
 
 def _one_sim_fleet(backends: list[VehicleBackend]) -> SimFleet | None:

@@ -44,6 +44,7 @@ from agent.shell_rows import link_receivers, neighbour_views, stale_rows, vehicl
 from agent.traffic import autopilot_traffic, merge_traffic
 from comms.gate import GateConfig, command_refusals
 from comms.mesh import CellSubscription, Mesh
+from comms.one_row import FLAG, NO_ROWS, ROW0
 from comms.plan import FleetPlan
 from comms.plan_sync import START_PULL_S, PlanSync, describe
 from comms.schema import (
@@ -62,7 +63,7 @@ from comms.schema import (
     VehicleState,
 )
 from comms.scope import Scope
-from comms.state_rate import StatePacer, idle_rows
+from comms.state_rate import StatePacer, idle_one, idle_rows
 from comms.traffic import TrafficListener, TrafficTable, TrafficTrack, publish_report
 from kit.ticks import run_ticks
 from policy.runtime import GuidancePolicy
@@ -159,6 +160,7 @@ class VehicleShell:
             ]
             self._threaded = True
         self._idle_q = np.zeros(n, bool)  # an action queue that runs at once is never busy
+        self._one = n == 1  # an agent: one vehicle's tick takes its one-row paths
         self._wake = threading.Event()  # a command came: tick now (`run`, kit/ticks.py)
         self._drained: tuple[int, float] | None = None  # (mesh ns, tick s) while draining
         self._resting = False  # every vehicle idle after the last tick: tick at the idle rate
@@ -457,15 +459,7 @@ class VehicleShell:
                 else None
             )
             actions = core.observe(now_s, obs, gcs_alive, landing)
-            busy = (
-                np.array([q.busy for q in self._queues], bool) if self._threaded else self._idle_q
-            )
-            if actions:
-                busy = busy.copy()
-            for action in actions:
-                self._queues[action.index].submit(action)
-                busy[action.index] = True
-            idle = idle_rows(core.mode, obs.armed, obs.in_air, busy)
+            busy, idle = self._submit(actions, obs)
             self._resting = bool(idle.all())
             self._calm = False
             due = self.pacer.due(
@@ -505,7 +499,7 @@ class VehicleShell:
                     self._calm = calm(core, obs, busy, corrected, ext, self._calm_horizon_s)
                     self._calm_periods = self._calm_every
             notes = core.drain_notes()
-            rows_due = np.flatnonzero(due)
+            rows_due = (ROW0 if due.item(0) else NO_ROWS) if self._one else np.flatnonzero(due)
             states = self._states(rows_due, obs, ext)  # stamped now: only their puts from here on
         if out is not None:
             vel = out.vel_ned_m_s
@@ -547,8 +541,31 @@ class VehicleShell:
         own = obs.pos_m[0] if len(self.ids) == 1 else None
         return merge_traffic(self.traffic, self.table.snapshot(now_s, own), now_s, own)
 
+    def _submit(self, actions: list[Action], obs: Observed) -> tuple[np.ndarray, np.ndarray]:
+        """Hand `actions` to their vehicles' queues; returns (busy, idle), (N,) each: an action
+        waits or runs, the vehicle is idle (comms/state_rate.py `idle_rows`). One vehicle (an
+        agent's every tick) on Python bools, `_submit_rows` the reference (tests/test_shell.py)."""
+        if not self._one:
+            return self._submit_rows(actions, obs)
+        busy = bool(actions) or (self._threaded and self._queues[0].busy)
+        for action in actions:
+            self._queues[0].submit(action)
+        idle = idle_one(self.core.mode.item(0), obs.armed.item(0), obs.in_air.item(0), busy)
+        return FLAG[busy], FLAG[idle]
+
+    def _submit_rows(self, actions: list[Action], obs: Observed) -> tuple[np.ndarray, np.ndarray]:
+        busy = np.array([q.busy for q in self._queues], bool) if self._threaded else self._idle_q
+        if actions:
+            busy = busy.copy()
+        for action in actions:
+            self._queues[action.index].submit(action)
+            busy[action.index] = True
+        return busy, idle_rows(self.core.mode, obs.armed, obs.in_air, busy)
+
     def _link_events(self, link_ok: np.ndarray) -> None:
         """Say when an autopilot link is lost or restored."""
+        if self._one and link_ok.item(0) == self._link_ok.item(0):
+            return  # an agent's every tick: nothing changed
         changed = np.flatnonzero(link_ok != self._link_ok)
         if not changed.size:
             return

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from comms.one_row import FLAG
 from comms.schema import Mode
 
 IDLE_STATE_HZ = 1.0
@@ -159,6 +160,11 @@ def idle_rows(mode, armed, in_air, busy=False) -> np.ndarray:
     ).reshape(-1)
 
 
+def idle_one(mode: int, armed: bool, in_air: bool, busy: bool = False) -> bool:
+    """`idle_rows` of one vehicle, on Python values (an agent's every tick)."""
+    return bool(_IDLE_MODE[mode]) and not (armed or in_air or busy)
+
+
 def check_rates(state_hz: float, idle_state_hz: float) -> None:
     """Raise ValueError with the reason if the two rates cannot be used."""
     if not (math.isfinite(state_hz) and 0 < state_hz <= 100):
@@ -169,6 +175,11 @@ def check_rates(state_hz: float, idle_state_hz: float) -> None:
             f"idle_state_hz must be within [{low:g}, 100] (receivers count on an idle vehicle "
             f"every {MAX_IDLE_PERIOD_S:g} s), got {idle_state_hz}"
         )
+
+
+def _one(x):
+    """The one value of a one-row argument: a (1,) array's item, or a scalar."""
+    return x.item(0) if type(x) is np.ndarray else np.asarray(x).reshape(-1).item(0)
 
 
 class StatePacer:
@@ -261,7 +272,7 @@ class StatePacer:
     def _due_one(self, now_s, idle, pos_m, vel_m_s, heading_rad, mode, armed) -> np.ndarray:
         """`due` and `_steady` for one row (an agent's every tick) on Python floats: the same
         rule, equal to the array path (tests/test_state_rate.py)."""
-        (idle_now,) = np.asarray(idle, bool).reshape(-1).tolist()
+        idle_now = bool(_one(idle))
         last_s = float(self.last_s[0])
         period_s = self.idle_period_s if idle_now else self.period_s
         track = self.steady is not None and pos_m is not None
@@ -270,9 +281,7 @@ class StatePacer:
             assert cfg is not None
             p = np.asarray(pos_m, float).reshape(-1).tolist()
             v = np.asarray(vel_m_s, float).reshape(-1).tolist()
-            (hdg,) = np.asarray(heading_rad, float).reshape(-1).tolist()
-            (m,) = np.asarray(mode, np.int64).reshape(-1).tolist()
-            (a,) = np.asarray(armed, bool).reshape(-1).tolist()
+            hdg, m, a = float(_one(heading_rad)), int(_one(mode)), bool(_one(armed))
             sig = m * 2 + a
             age_s = now_s - last_s
             if not idle_now and math.isfinite(age_s) and sig == int(self.last_sig[0]):
@@ -306,7 +315,7 @@ class StatePacer:
             if track:
                 self.last_pos[0], self.last_vel[0] = p, v
                 self.last_hdg[0], self.last_sig[0] = hdg, sig
-        return np.array([due])
+        return FLAG[due]
 
     def _steady(self, now_s, pos_m, vel_m_s, heading_rad, sig) -> np.ndarray:
         """(N,) bool: rows whose last published state still predicts them (module docstring)."""
