@@ -31,6 +31,8 @@ def link_receivers(ext: NeighbourSnapshot, pos_ned_m: np.ndarray, limit: int) ->
     traffic left out: whom a state is tagged for (trust/links.py)."""
     if limit <= 0 or not len(ext):
         return []
+    if ext.cooperative is None and len(ext) <= limit:  # no traffic, all in: no array maths
+        return list(ext.ids)
     idx = np.flatnonzero(ext.column("cooperative", True))
     if idx.size > limit:
         d2 = np.sum((ext.pos_ned_m[idx, :2] - pos_ned_m[:2]) ** 2, axis=1)

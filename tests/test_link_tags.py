@@ -244,6 +244,24 @@ def test_link_receivers_are_the_nearest_vehicles_without_traffic() -> None:
     assert link_receivers(snap, np.zeros(3), 0) == []
 
 
+def test_link_receivers_without_traffic_are_the_same_with_or_without_its_column() -> None:
+    """No traffic (`cooperative` None, an agent's usual tick: the shortcut) or every row marked
+    cooperative (the arrays): the same receivers, in the same order, within and over the limit."""
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        k = int(rng.integers(1, 12))
+        pos = rng.uniform(-30, 30, (k, 3))
+        ids = tuple(int(i) for i in rng.choice(np.arange(1, 200), k, replace=False))
+        args = (pos, np.zeros((k, 3)), np.zeros(k), ids, np.zeros(k), ())
+        plain = NeighbourSnapshot(*args)
+        marked = NeighbourSnapshot(*args, cooperative=np.ones(k, bool))
+        own = rng.uniform(-30, 30, 3)
+        for limit in (1, k - 1, k, k + 3):
+            got = link_receivers(plain, own, limit)
+            assert got == link_receivers(marked, own, limit)
+            assert len(got) == min(k, max(limit, 0))
+
+
 # -- on a real Zenoh mesh -----------------------------------------------------------------------
 def test_a_tagged_state_crosses_a_real_mesh_and_the_feed_carries_it_untagged(fleet) -> None:
     a, b = auths(fleet, 1, 2)
