@@ -29,6 +29,9 @@ from agent.modes import AIRBORNE, Trigger
 from agent.returning import ReturnConfig
 from comms.schema import CommandKind, Mode, StateFlag
 
+FENCE_TIE_M = 1e-9
+"""`FailsafeConfig.calm_one` is not calm this near inside the fence's edge (`calm_rows` may be)."""
+
 
 @dataclass(frozen=True)
 class FailsafeConfig:
@@ -64,12 +67,15 @@ class FailsafeConfig:
         if not 0 <= self.min_alt_m < self.max_alt_m:
             raise ValueError("need 0 <= min_alt_m < max_alt_m")
 
+    @property
+    def battery_acts_pct(self) -> float:
+        """At or below: a battery failsafe may act (the higher of its two thresholds)."""
+        return max(self.low_battery_return_pct, self.critical_battery_land_pct)
+
     def battery_refusal(self, kind: CommandKind, battery_pct: float) -> str | None:
         """Why a command is refused at this battery level (what the battery failsafe would
         undo at once), or None. An unknown battery (NaN) refuses nothing."""
-        if kind in (CommandKind.LAND, CommandKind.KILL) or not battery_pct <= max(
-            self.low_battery_return_pct, self.critical_battery_land_pct
-        ):
+        if kind in (CommandKind.LAND, CommandKind.KILL) or not battery_pct <= self.battery_acts_pct:
             return None
         if battery_pct <= self.critical_battery_land_pct:
             return (
@@ -110,10 +116,20 @@ class FailsafeConfig:
         against evaluate."""
         if not gcs_alive:
             return np.zeros(len(battery_pct), bool)
-        calm = battery_pct > max(self.low_battery_return_pct, self.critical_battery_land_pct)
+        calm = battery_pct > self.battery_acts_pct
         if self.geofence_radius_m:
             calm &= np.hypot(pos_ned_m[:, 0], pos_ned_m[:, 1]) <= self.geofence_radius_m
         return calm
+
+    def calm_one(self, gcs_alive: bool, battery_pct: float, n_m: float, e_m: float) -> bool:
+        """`calm_rows` for one vehicle at (`n_m`, `e_m`), in Python floats (an agent's every
+        tick). Not calm within FENCE_TIE_M inside the fence's edge, where math.hypot and
+        np.hypot may round apart (each within an ulp: 1e-13 m at 500 m): "not calm" only has
+        `evaluate` run. tests/test_observe_one_row.py checks it against `calm_rows`."""
+        if not (gcs_alive and battery_pct > self.battery_acts_pct):
+            return False
+        r_m = self.geofence_radius_m
+        return not r_m or math.hypot(n_m, e_m) <= r_m - FENCE_TIE_M
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ from agent.modes import AIRBORNE, COMMAND_TRIGGERS, Trigger, step
 from agent.neighbours import NeighbourSnapshot
 from agent.returning import Returns
 from comms.geo import GeoOrigin
+from comms.one_row import NO_ROWS, ROW0
 from comms.plan import FleetPlan, plan_refusal
 from comms.schema import (
     AckResult,
@@ -87,6 +88,14 @@ TAKEOFF_DONE_M = 0.3
 """Take-off is complete within this distance below the take-off altitude."""
 SPEED_FOR_HEADING = 0.2
 """Share of the cruise speed above which the heading follows the velocity."""
+# The masks as lists, for one vehicle's mode as a Python int (`_observe_one`, `guided_rows`).
+_ARRIVING_ONE = _ARRIVING.tolist()
+_GROUNDING_ONE = (_TOUCHING_DOWN | _DOWN_UNASKED).tolist()
+_GUIDED_ONE = _GUIDED.tolist()
+_TIE_M = 1e-9
+"""`_observe_one` leaves a tick to the rows' path where a distance or speed lies this near its
+bound: math.hypot and np.hypot each come within an ulp (1e-15 m at a few metres), so they may
+round apart only there."""
 
 
 @dataclass(frozen=True)
@@ -108,6 +117,8 @@ class CoreConfig:
 GNSS_WARN_SHARE = 1.2
 """A vehicle is told poor once its 1-sigma is this share of TOLD_SIGMA_FREE_M (0.6 m), and good
 again within it: GNSS accuracy wanders, and a warning a second is noise."""
+GNSS_POOR_M = TOLD_SIGMA_FREE_M * GNSS_WARN_SHARE
+"""Beyond this 1-sigma a vehicle is told poor (`FlightCore._watch_gnss`)."""
 
 
 class ActionKind(enum.Enum):
@@ -331,7 +342,7 @@ class FlightCore:
         is no longer measured to hold (docs/sky.md, "GNSS worse than the preset"), and when it
         is back within 0.5 m: once each way, not every tick."""
         sigma = self.pos_sigma_m
-        worse = ~self.gnss_poor & (sigma > TOLD_SIGMA_FREE_M * GNSS_WARN_SHARE)
+        worse = ~self.gnss_poor & (sigma > GNSS_POOR_M)
         better = self.gnss_poor & (sigma <= TOLD_SIGMA_FREE_M)
         if not (worse.any() or better.any()):
             return
@@ -686,7 +697,73 @@ class FlightCore:
     ) -> list[Action]:
         """Vehicle events and failsafes from this tick's telemetry; returns the actions they need.
         `others`: vehicles outside the core (the neighbour table), which a returning vehicle
-        lets land first when they are below it near its spot (agent/returning.py)."""
+        lets land first when they are below it near its spot (agent/returning.py).
+
+        One vehicle's quiet tick (an agent's every tick in flight) is taken in Python floats
+        (`_observe_one`), any other by the rows' path (`_observe_rows`, the reference): the same
+        either way (tests/test_observe_one_row.py)."""
+        if self.n == 1 and self._observe_one(now_s, obs, gcs_alive):
+            return []
+        return self._observe_rows(now_s, obs, gcs_alive, others)
+
+    def _observe_one(self, now_s: float, obs: Observed, gcs_alive: bool) -> bool:
+        """`_observe_rows` for one vehicle whose tick only takes in its telemetry: no vehicle
+        event, not returning or on a mission, no failsafe active or able to act
+        (`FailsafeConfig.calm_one`, `Failsafes.settled`). True once taken; False, with nothing
+        changed, for the rows' path to take the tick (also where a distance or speed lies on
+        its bound, `_TIE_M`). An agent's cold tick pays several microseconds for each small
+        numpy call, and most of this one's cost was theirs (docs/companion.md)."""
+        mode = self.mode.item(0)
+        fs = self.failsafes[0]
+        if mode in (_RETURNING, _MISSION) or not fs.settled:
+            return False
+        pn, pe, pd = obs.pos_m[0].tolist()
+        if not self.cfg.failsafe.calm_one(gcs_alive, obs.battery_pct.item(0), pn, pe):
+            return False
+        # the rows' four events, none near
+        if mode == _TAKING_OFF and -pd >= self.takeoff_alt_m.item(0) - TAKEOFF_DONE_M:
+            return False
+        if _GROUNDING_ONE[mode] and not (obs.in_air.item(0) or obs.armed.item(0)):
+            return False
+        g = self.cfg.guidance
+        if _ARRIVING_ONE[mode]:
+            gn, ge, gd = self.goal_m[0].tolist()
+            if (
+                math.hypot(gn - pn, ge - pe) <= g.arrive_radius_m + _TIE_M
+                and abs(gd - pd) <= g.arrive_alt_tol_m
+            ):
+                return False
+        vn, ve = obs.vel_m_s[0, :2].tolist()
+        speed, heading_above = math.hypot(vn, ve), SPEED_FOR_HEADING * g.cruise_speed_m_s
+        if abs(speed - heading_above) <= _TIE_M:
+            return False
+        # quiet: what the rows' path does on it, in its order
+        self.now_s = now_s
+        self.battery_pct[0] = obs.battery_pct.item(0)
+        if obs.pos_sigma_m is not None:
+            sigma = obs.pos_sigma_m.item(0)
+            self.pos_sigma_m[0] = sigma
+            poor = self.gnss_poor.item(0)
+            if (sigma <= TOLD_SIGMA_FREE_M) if poor else (sigma > GNSS_POOR_M):  # a note is due
+                self._watch_gnss()
+        if obs.onboard_separation_m is not None and self.guidance is None:
+            sep = obs.onboard_separation_m.item(0)
+            if math.isfinite(sep) and sep != self.onboard_separation_m:
+                self._take_onboard_separation(obs.onboard_separation_m)
+        if speed > heading_above:
+            self.heading_rad[0] = math.atan2(ve, vn)
+        fs.saw_gcs(now_s)
+        return True
+
+    def _observe_rows(
+        self,
+        now_s: float,
+        obs: Observed,
+        gcs_alive: bool,
+        others: NeighbourSnapshot | None = None,
+    ) -> list[Action]:
+        """`observe` for any number of vehicles, as arrays: the reference `_observe_one` is
+        tested against."""
         actions: list[Action] = []
         pos, vel = obs.pos_m, obs.vel_m_s
         self.now_s = now_s
@@ -960,9 +1037,23 @@ class FlightCore:
         return self._mission_begun(i, tick, pos_m, Trigger.MISSION_START)
 
     def guided_rows(self, armed: np.ndarray, link_ok: np.ndarray) -> np.ndarray:
-        """Rows the shell should fly with velocity setpoints this tick."""
+        """Rows the shell should fly with velocity setpoints this tick (read only). One
+        vehicle's (an agent's every tick) in Python bools, the same as `_guided_rows`'s
+        (tests/test_observe_one_row.py)."""
+        if self.n == 1 and self.velocity_mode:
+            ok = (
+                _GUIDED_ONE[self.mode.item(0)]
+                and armed.item(0)
+                and link_ok.item(0)
+                and not math.isnan(self.targets().item(0, 0))
+            )
+            return ROW0 if ok else NO_ROWS
+        return self._guided_rows(armed, link_ok)
+
+    def _guided_rows(self, armed: np.ndarray, link_ok: np.ndarray) -> np.ndarray:
+        """`guided_rows` for any number of rows, as arrays: the reference of its one-row path."""
         if not self.velocity_mode:
-            return np.zeros(0, int)
+            return NO_ROWS
         ok = _GUIDED[self.mode] & armed & link_ok
         if ok.any():  # targets() only when something may fly (not on a landed vehicle's tick)
             ok &= ~np.isnan(self.targets()[:, 0])
