@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from agent.neighbours import NeighbourSnapshot
+from comms.one_row import FLAG
 from comms.scope import ScopeConfig
 from policy import safety
 from policy.goal_rule import ARRIVE_RADIUS_M
@@ -47,8 +48,10 @@ if TYPE_CHECKING:  # shapely and scipy load only with zones (`set_zones`)
 DECISION_DUE_SHARE = 0.95
 """A decision is due once this share of the decision period has passed (tick jitter must not
 push a decision a whole tick late)."""
-_ROW0 = np.zeros(1, int)
-_ROW0.flags.writeable = False
+
+
+_INDEX = (int, np.integer)
+"""One row's index (`NeighbourViews.sky`), as isinstance takes it."""
 
 
 @dataclass(frozen=True)
@@ -303,24 +306,36 @@ class NeighbourViews:
             cut[f.name] = None if value is None else value[rows]
         return NeighbourViews(**cut)
 
-    def row(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Row r's valid neighbours: positions (K', 3), velocities, headings, stale flags."""
-        v = self.valid[r]
+    def select(self, r: int | np.integer) -> slice | np.ndarray:
+        """What picks row r's valid neighbours out of a row of a per-neighbour field: a slice
+        where they are one run (an agent's views: all but its own entry; the field's view, no
+        copy), else the row's mask."""
+        valid = self.valid[r]
+        flags = valid.tolist()
+        n = flags.count(True)
+        first = flags.index(True) if n else 0
+        if False in flags[first : first + n]:  # the n valid ones are not all in a row
+            return valid
+        return slice(first, first + n)
+
+    def row(self, r: int, sel=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Row r's valid neighbours: positions (K', 3), velocities, headings, stale flags
+        (views of the fields where `select` gives a slice: read them, do not write); `sel`:
+        the row's `select`, where the caller has it."""
+        v = self.select(r) if sel is None else sel
         return self.pos_m[r, v], self.vel_m_s[r, v], self.heading_rad[r, v], self.stale[r, v]
 
-    def sky(self, rows=None, manned: bool = False) -> dict:
+    def sky(self, rows=None, manned: bool = False, sel=None) -> dict:
         """The filter's real-vehicle inputs (policy.safety.pair_radius_m) for one row (an int:
-        its valid neighbours, as `row`) or view rows (an index array, None = all: padded), as
-        keyword arguments; empty when the views carry none (exact, all cooperative). `manned`:
-        with the manned flags (nbr_manned) for policy.safety's filters (the runtime's calls
-        take none)."""
+        its valid neighbours, as `row`; `sel`: its `select`, where the caller has it) or view
+        rows (an index array, None = all: padded), as keyword arguments; empty when the views
+        carry none (exact, all cooperative). `manned`: with the manned flags (nbr_manned) for
+        policy.safety's filters (the runtime's calls take none)."""
         out: dict = {}
-        if manned and self.manned is not None:
-            mask = self.valid[rows] if isinstance(rows, int | np.integer) else slice(None)
-            sel = rows if rows is not None else slice(None)
-            out["nbr_manned"] = self.manned[sel][mask]
-        if isinstance(rows, int | np.integer):
-            v = self.valid[rows]
+        if isinstance(rows, _INDEX):
+            v = self.select(rows) if sel is None else sel
+            if manned and self.manned is not None:
+                out["nbr_manned"] = self.manned[rows, v]
             if self.own_pos_sigma_m is not None:
                 out["pos_sigma_m"] = float(self.own_pos_sigma_m[rows])
             if self.pos_sigma_m is not None:
@@ -329,6 +344,8 @@ class NeighbourViews:
                 out["nbr_cooperative"] = self.cooperative[rows, v]
             return out
         sel = slice(None) if rows is None else rows
+        if manned and self.manned is not None:
+            out["nbr_manned"] = self.manned[sel]
         if self.own_pos_sigma_m is not None:
             out["pos_sigma_m"] = self.own_pos_sigma_m[sel]
         if self.pos_sigma_m is not None:
@@ -619,17 +636,21 @@ class BatchGuidance:
         """`_step_rows` for one row without zone bands, in Python floats: an agent's tick pays
         for each small numpy call, and most of its cost was theirs (docs/companion.md, round
         fifteen). The policy, the route and the filter are the shared calls; tests compare
-        the two paths (tests/test_agent_guidance.py)."""
+        the two paths (tests/test_guidance_one_row.py)."""
         cfg = self.cfg
-        r = int(rows[0])
-        hold = bool(holding[0])
+        r = rows.item(0)
+        hold = bool(holding.item(0))
         if hold:
             self.forget(rows)
-        target_m = self._routed(
-            self.router, rows, pos_m, target_m, ~holding, views.own_pos_sigma_m, views
-        )
-        target = target_m[0].tolist()
-        nothing = math.isnan(float(self.held_m_s[r, 0]))
+        if self.router is None:  # no zones: no waypoint (as `_routed` says without a router)
+            self.waypoint_m[r] = np.nan
+        else:
+            target_m = self._routed(
+                self.router, rows, pos_m, target_m, ~holding, views.own_pos_sigma_m, views
+            )
+        target = target_m.tolist()[0]
+        held_n, held_e = self.held_m_s[r].tolist()
+        nothing = math.isnan(held_n)
         if decide is not None:
             want = bool(decide[0])
         elif now_s is None:
@@ -638,41 +659,44 @@ class BatchGuidance:
             want = (
                 nothing
                 or self.held_goal_m[r].tolist() != target
-                or now_s - float(self.decided_s[r]) >= DECISION_DUE_SHARE * self.decision_period_s
+                or now_s - self.decided_s.item(r) >= DECISION_DUE_SHARE * self.decision_period_s
             )
         deciding = not hold and (want or nothing)
         if deciding:
-            self.held_m_s[r] = self._decide(pos_m, vel_m_s, heading_rad, target_m, views, _ROW0)
+            held = self._decide_one(
+                pos_m[0, :2], vel_m_s[0, :2], heading_rad[0], target_m[0, :2], views, 0
+            )
+            self.held_m_s[r] = held
             self.held_goal_m[r] = target_m[0]
             self.decided_s[r] = -np.inf if now_s is None else now_s
-        pn, pe, pd = pos_m[0].tolist()
+            held_n, held_e = held.tolist()
+        (pn, pe, pd), (own_vn, own_ve, _) = pos_m.tolist()[0], vel_m_s.tolist()[0]
         factor = 1.0
         if hold:
             hn, he = cfg.hold_gain_1_s * (target[0] - pn), cfg.hold_gain_1_s * (target[1] - pe)
-            scale = cfg.cruise_speed_m_s / max(float(np.hypot(hn, he)), cfg.cruise_speed_m_s)
+            scale = cfg.cruise_speed_m_s / max(math.hypot(hn, he), cfg.cruise_speed_m_s)
             pref_n, pref_e = hn * scale, he * scale
         else:
-            factor = float(self._stale_factor(pos_m, views)[0])
-            held_n, held_e = self.held_m_s[r].tolist()
+            factor = self._stale_factor_one(pn, pe, views)
             pref_n, pref_e = held_n * factor, held_e * factor
             cap = 0.0 if speed_cap_m_s is None else float(speed_cap_m_s[0])
             if cap > 0.0:
-                clip = min(1.0, cap / max(float(np.hypot(pref_n, pref_e)), 1e-9))
+                clip = min(1.0, cap / max(math.hypot(pref_n, pref_e), 1e-9))
                 pref_n, pref_e = pref_n * clip, pref_e * clip
-        pref = np.array([[pref_n, pref_e]])
-        v_h, filtered = self._filter(pos_m, vel_m_s, pref, views, self.zones)
-        vn, ve = v_h[0].tolist()
+        vn, ve, filtered = self._filter_one(
+            (pn, pe), (own_vn, own_ve), (pref_n, pref_e), views, self.zones
+        )
         vz = cfg.vertical_gain_1_s * (target[2] - pd)
         vz = min(max(vz, -cfg.max_vertical_speed_m_s), cfg.max_vertical_speed_m_s)
-        moving = float(np.hypot(vn, ve)) >= (0.5 if hold else 0.05)
-        heading = math.atan2(ve, vn) if moving else float(heading_rad[0])
+        moving = math.hypot(vn, ve) >= (0.5 if hold else 0.05)
+        heading = math.atan2(ve, vn) if moving else heading_rad.item(0)
         way = None if self.router is None else self.waypoint_m[rows].copy()
         return GuidanceStep(
             np.array([[vn, ve, vz]]),
             np.array([heading]),
-            filtered,
-            np.array([factor < 1.0]),
-            np.array([deciding]),
+            FLAG[filtered],
+            FLAG[factor < 1.0],
+            FLAG[deciding],
             way,
         )
 
@@ -680,15 +704,10 @@ class BatchGuidance:
         self, pos_m, vel_m_s, heading_rad, goal_m, views: NeighbourViews, idx
     ) -> np.ndarray:
         """Unfiltered policy velocities (len(idx), 2) for view rows `idx`."""
-        pol = self.policy
         if len(idx) == 1:  # one vehicle (an agent): the single-vehicle fast path
-            p, v, h, _ = views.row(int(idx[0]))
+            row = int(idx[0])
             args = (pos_m[0, :2], vel_m_s[0, :2], heading_rad[0], goal_m[0, :2])
-            nbrs, sky = (p[:, :2], v[:, :2], h), views.sky(int(idx[0]))
-            out = None if self.c_core is None else self.c_core.decide(*args, *nbrs, **sky)
-            if out is None:  # numpy: the reference, and what the C core leaves to it
-                out = pol.command(*args, *nbrs, **sky)
-            return np.asarray(out, float)[None]
+            return self._decide_one(*args, views, row)[None]
         obs = Observations(
             pos_m[:, :2],
             vel_m_s[:, :2],
@@ -700,7 +719,21 @@ class BatchGuidance:
             views.valid[idx],
             **views.sky(idx),
         )
-        return pol.command_batch(obs)
+        return self.policy.command_batch(obs)
+
+    def _decide_one(
+        self, pos_m, vel_m_s, heading_rad, goal_m, views: NeighbourViews, row: int
+    ) -> np.ndarray:
+        """The unfiltered policy velocity (2,) of one vehicle (north/east (2,) inputs) among
+        the valid neighbours of view row `row`: the policy's single-vehicle call."""
+        sel = views.select(row)
+        p, v, h, _ = views.row(row, sel)
+        args = (pos_m, vel_m_s, heading_rad, goal_m)
+        nbrs, sky = (p[:, :2], v[:, :2], h), views.sky(row, sel=sel)
+        out = None if self.c_core is None else self.c_core.decide(*args, *nbrs, **sky)
+        if out is None:  # numpy: the reference, and what the C core leaves to it
+            out = self.policy.command(*args, *nbrs, **sky)
+        return np.asarray(out, float)
 
     def _stale_factor(self, pos_m: np.ndarray, views: NeighbourViews) -> np.ndarray:
         cfg = self.cfg
@@ -710,45 +743,81 @@ class BatchGuidance:
         near = (views.stale & views.valid & (d < cfg.stale_caution_radius_m)).any(axis=1)
         return np.where(near, cfg.stale_slowdown, 1.0)
 
+    def _stale_factor_one(self, pos_n_m: float, pos_e_m: float, views: NeighbourViews) -> float:
+        """`_stale_factor` of views row 0 (the vehicle at pos_n_m, pos_e_m) in floats."""
+        stale = views.stale.tolist()[0]
+        if True not in stale:
+            return 1.0
+        cfg = self.cfg
+        for old, valid, (n, e, _) in zip(
+            stale, views.valid.tolist()[0], views.pos_m.tolist()[0], strict=True
+        ):
+            if old and valid and math.hypot(n - pos_n_m, e - pos_e_m) < cfg.stale_caution_radius_m:
+                return cfg.stale_slowdown
+        return 1.0
+
     def _filter(self, pos_m, vel_m_s, pref_m_s, views: NeighbourViews, zones):
         """(velocities (k, 2), changed (k,)): the separation filter on pref_m_s, keeping the
         edges of `zones` (policy.zone_lines.ZoneSet, None: none)."""
         k = len(pos_m)
+        if k == 1:  # the single-vehicle fast path
+            (pn, pe, *_), (vn, ve, *_) = pos_m.tolist()[0], vel_m_s.tolist()[0]
+            n, e, changed = self._filter_one(
+                (pn, pe), (vn, ve), tuple(pref_m_s.tolist()[0]), views, zones
+            )
+            return np.array([[n, e]]), np.array([changed])
         if not self.cfg.safety_filter or (not views.valid.any() and zones is None):
             return pref_m_s, np.zeros(k, bool)
         ids = views.ids is not None and views.own_ids is not None
-        if k == 1:  # the single-vehicle fast path
-            p, v, _, _ = views.row(0)
-            own_id = int(views.own_ids[0]) if views.own_ids is not None and ids else None
-            nbr_ids = views.ids[0, views.valid[0]] if views.ids is not None and ids else None
-            sky = views.sky(0, manned=True)
-            args = (pos_m[0, :2], vel_m_s[0, :2], pref_m_s[0], p[:, :2], v[:, :2])
-            got = None
-            if self.c_core is not None and zones is None:  # the core has no zone lines here
-                got = self.c_core.filter(*args, own_id, nbr_ids, **sky)
-            if got is None:  # numpy: the reference, and what the C core leaves to it
-                got = safety.filter_one(*args, self.safety_cfg, own_id, nbr_ids, **sky, zones=zones)
-            (vn, ve), (pn, pe) = np.asarray(got, float).tolist(), pref_m_s[0].tolist()
-            dn, de = vn - pn, ve - pe  # the norm below, in floats
-            return np.array([[vn, ve]]), np.array([math.sqrt(dn * dn + de * de) > 1e-6])
-        else:
-            out = safety.filter_padded(
-                pos_m[:, :2],
-                vel_m_s[:, :2],
-                pref_m_s,
-                views.pos_m[..., :2],
-                views.vel_m_s[..., :2],
-                views.valid,
-                self.safety_cfg,
-                views.own_ids if ids else None,
-                views.ids if ids else None,
-                **views.sky(manned=True),
-                zones=zones,
-            )
-            if zones is None:
-                none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
-                out[none] = pref_m_s[none]
+        out = safety.filter_padded(
+            pos_m[:, :2],
+            vel_m_s[:, :2],
+            pref_m_s,
+            views.pos_m[..., :2],
+            views.vel_m_s[..., :2],
+            views.valid,
+            self.safety_cfg,
+            views.own_ids if ids else None,
+            views.ids if ids else None,
+            **views.sky(manned=True),
+            zones=zones,
+        )
+        if zones is None:
+            none = ~views.valid.any(axis=1)  # no neighbour: the command is not touched
+            out[none] = pref_m_s[none]
         return out, np.linalg.norm(out - pref_m_s, axis=1) > 1e-6
+
+    def _filter_one(
+        self,
+        pos_m: tuple[float, float],
+        vel_m_s: tuple[float, float],
+        pref_m_s: tuple[float, float],
+        views: NeighbourViews,
+        zones,
+    ) -> tuple[float, float, bool]:
+        """`_filter` of one vehicle among the neighbours of views row 0, in Python floats:
+        (north, east, changed) of its own (north, east) position, velocity and preference."""
+        v = views.select(0)
+        nbr_pos_m, nbr_vel_m_s = views.pos_m[0, v, :2], views.vel_m_s[0, v, :2]
+        if not self.cfg.safety_filter or (not len(nbr_pos_m) and zones is None):
+            return pref_m_s[0], pref_m_s[1], False
+        own_id = nbr_ids = None  # without both, coincident vehicles are not untied
+        if views.ids is not None and views.own_ids is not None:
+            own_id, nbr_ids = views.own_ids.item(0), views.ids[0, v]
+        sky = views.sky(0, manned=True, sel=v)
+        nbrs = (nbr_pos_m, nbr_vel_m_s)
+        got = None
+        if self.c_core is not None and zones is None:  # the core has no zone lines here
+            got = self.c_core.filter(pos_m, vel_m_s, pref_m_s, *nbrs, own_id, nbr_ids, **sky)
+        if got is None:  # numpy: the reference, and what the C core leaves to it
+            own = (np.array(pos_m), np.array(vel_m_s), np.array(pref_m_s))
+            got = safety.filter_one(
+                *own, *nbrs, self.safety_cfg, own_id, nbr_ids, **sky, zones=zones
+            )
+            got = np.asarray(got, float).tolist()
+        (vn, ve), (pn, pe) = got, pref_m_s
+        dn, de = vn - pn, ve - pe  # the norm of `_filter`, in floats
+        return vn, ve, math.sqrt(dn * dn + de * de) > 1e-6
 
 
 @dataclass(frozen=True)

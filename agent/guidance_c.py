@@ -113,13 +113,14 @@ class CCore:
 
     def filter(
         self, pos_m, vel_m_s, pref_m_s, nbr_pos_m, nbr_vel_m_s, own_id, nbr_ids, **sky
-    ) -> np.ndarray | None:
-        """policy.safety.filter_one without zones, in C (2,); None: numpy must answer (more
-        neighbours than the core takes, or a fault)."""
+    ) -> tuple[float, float] | None:
+        """policy.safety.filter_one without zones, in C: the filtered (north, east) velocity
+        as Python floats (the own vectors may be tuples of two floats: no numpy call); None:
+        numpy must answer (more neighbours than the core takes, or a fault)."""
         if len(nbr_pos_m) > self._most_filtered:
             self.calls["numpy"] += 1
             return None
-        r = self._filter.evaluate(
+        status, vel_n, vel_e = self._filter.velocity(
             pos_m,
             vel_m_s,
             pref_m_s,
@@ -129,11 +130,11 @@ class CCore:
             nbr_ids,
             **sky,
         )
-        if r.status != "ok":
-            self._refused("the filter", r.status)
+        if status != "ok":
+            self._refused("the filter", status)
             return None
         self.calls["filter"] += 1
-        return r.vel_m_s
+        return vel_n, vel_e
 
 
 if __name__ == "__main__":  # an install step: build the library where the agent will load it

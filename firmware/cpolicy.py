@@ -22,12 +22,16 @@ from __future__ import annotations
 import ctypes
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from firmware import csafety, hostbuild
 from policy.observation import Observation, Sky
 from policy.runtime import TOLD_SIGMA_FREE_M
+
+if TYPE_CHECKING:  # the zone filter loads only with zones (`set_zones`)
+    from firmware.czones import CZones
 
 MAX_NEIGHBOURS = 40
 """COVEY_MAX_NEIGHBOURS: most neighbours fed to the LSTM."""
@@ -130,6 +134,16 @@ class CPolicy:
             )
         self._lib = load_library(npz_path)
         self._scratch = ctypes.create_string_buffer(self._lib.covey_scratch_bytes())
+        # `evaluate`'s arguments, made once (as CSafetyFilter's): refilled call after call
+        self._vehicles = csafety.VehicleRows()
+        self._goal = np.zeros(2, np.float32)
+        self._out = _Command()
+        self._args = (
+            self._vehicles.own.ctypes.data,
+            self._goal.ctypes.data,
+            self._vehicles.nbrs.ctypes.data,
+            ctypes.byref(self._out),
+        )
         # numpy only, like policy.safety below: the rule's one definition (C twin parity tested)
         from policy.runtime import filtered_told_share, told_separation_m
 
@@ -163,7 +177,7 @@ class CPolicy:
         base = safety_cfg or SafetyConfig()
         self.safety_cfg = replace(base, radius_m=separation_m, max_speed_m_s=cruise_speed_m_s)
         self._filter = csafety.CSafetyFilter(self._lib, self.safety_cfg)
-        self.zones = None
+        self.zones: CZones | None = None
         """The C keep-out zones (firmware.czones.CZones), None: none."""
         self.router = None
         """The route planner around them (policy.routes.Router, Python: the companion's)."""
@@ -310,20 +324,8 @@ class CPolicy:
     ) -> CPolicyResult:
         """One call of covey_command on `obs` (Observation.shaped: the core checks the
         values); faults come back in `status`, never raised."""
-        now_us = csafety.micros(now_s) if now_s is not None else 0
-        own, nbrs = csafety.vehicles(obs, now_us, stamp_s, nbr_stamp_s)
-        goal = np.asarray(obs.goal_m, dtype=np.float32)
-        out = _Command()
-        st = self._lib.covey_command(
-            ctypes.byref(cfg or self._cfg),
-            own.ctypes.data,
-            goal.ctypes.data,
-            nbrs.ctypes.data,
-            obs.nbr_pos_m.shape[0],
-            now_us,
-            self._scratch,
-            ctypes.byref(out),
-        )
+        st = self._run(obs, now_s, stamp_s, nbr_stamp_s, cfg)
+        out = self._out
         return CPolicyResult(
             STATUS_NAMES.get(st, str(st)),
             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
@@ -332,6 +334,17 @@ class CPolicy:
             out.n_stale,
             out.n_far,
             out.n_excess,
+        )
+
+    def _run(self, obs: Observation, now_s, stamp_s, nbr_stamp_s, cfg: _Config | None) -> int:
+        """One covey_command call on the kept arguments, refilled: its status; the output is
+        in self._out until the next call."""
+        now_us = csafety.micros(now_s) if now_s is not None else 0
+        k = self._vehicles.fill(obs, now_us, stamp_s, nbr_stamp_s)
+        self._goal[:] = obs.goal_m
+        own, goal, nbrs, out = self._args
+        return self._lib.covey_command(
+            ctypes.byref(cfg or self._cfg), own, goal, nbrs, k, now_us, self._scratch, out
         )
 
     def command(
@@ -399,27 +412,27 @@ class CPolicy:
                 obs = obs.with_goal(self.router.next_waypoint(obs.pos_m, obs.goal_m, pad))
             except (TypeError, ValueError):
                 pass  # the core names the bad input
-        r = self.evaluate(obs, now_s, stamp_s, nbr_stamp_s, self._told_cfg(obs))
-        if r.status != "ok":
-            raise CPolicyError(STATUS_NAMES_INV[r.status])
+        st = self._run(obs, now_s, stamp_s, nbr_stamp_s, self._told_cfg(obs))
+        if st != 0:
+            raise CPolicyError(st)
+        v = (self._out.vel_n_m_s, self._out.vel_e_m_s)  # Python floats, as the core gave them
         if not self.safety_filter or (
             obs.nbr_pos_m.shape[0] == 0 and not self.sparse_rule and self.zones is None
         ):
-            return r.vel_m_s
+            return np.array(v)
         if nbr_stamp_s is not None and now_s is not None:
             age_s = now_s - np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
             obs = obs.neighbours(age_s * 1e6 <= self._cfg.max_neighbour_age_us)
-        v = r.vel_m_s
         tracks = (obs.pos_m, obs.vel_m_s)
         nbrs = (obs.nbr_pos_m, obs.nbr_vel_m_s)
         sky = obs.sky.kwargs()
         if self.sparse_rule:
-            sp = self._filter.sparse(*tracks, obs.goal_m, v, *nbrs, **sky)
-            if sp.status != "ok":
-                raise CPolicyError(STATUS_NAMES_INV[sp.status])
-            v = sp.vel_m_s
+            status, vn, ve = self._filter.sparse_velocity(*tracks, obs.goal_m, v, *nbrs, **sky)
+            if status != "ok":
+                raise CPolicyError(STATUS_NAMES_INV[status])
+            v = (vn, ve)
         if not filtered:
-            return v
+            return np.array(v)
         f = self._filtered(*tracks, v, *nbrs, **sky)
         if f.status != "ok":
             raise CPolicyError(STATUS_NAMES_INV[f.status])

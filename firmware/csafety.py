@@ -20,6 +20,7 @@ import numpy as np
 from policy.observation import Observation
 
 STATUS_NAMES = {0: "ok", 1: "null", 2: "nonfinite", 3: "range", 4: "stale"}
+_F64, _I64 = np.dtype(np.float64), np.dtype(np.int64)
 MAX_INPUTS = 64
 """COVEY_MAX_INPUTS: most neighbours per call."""
 
@@ -106,7 +107,11 @@ class SafetyConfigC(ctypes.Structure):
 class TrackC(ctypes.Structure):
     """covey_track_t."""
 
-    _fields_ = [(n, ctypes.c_float) for n in TRACK_DTYPE.names[:4]] + [
+    _fields_ = [
+        ("pos_n_m", ctypes.c_float),
+        ("pos_e_m", ctypes.c_float),
+        ("vel_n_m_s", ctypes.c_float),
+        ("vel_e_m_s", ctypes.c_float),
         ("id", ctypes.c_uint32),
         ("pos_sigma_m", ctypes.c_float),
         ("non_cooperative", ctypes.c_uint32),
@@ -272,26 +277,64 @@ def vehicles(
 ) -> tuple[np.ndarray, np.ndarray]:
     """covey_vehicle_t arrays of the own state (1,) and the K neighbours (at least one row);
     stamps default to now (fresh)."""
-    k = obs.nbr_pos_m.shape[0]
-    if k > MAX_INPUTS:
-        raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbour reports, got {k}")
-    own = np.zeros(1, VEHICLE_DTYPE)
-    own["pos_n_m"], own["pos_e_m"] = obs.pos_m[0], obs.pos_m[1]
-    own["heading_rad"] = obs.heading_rad
-    own["stamp_us"] = now_us if stamp_s is None else micros(stamp_s)
-    nb = np.zeros(max(k, 1), VEHICLE_DTYPE)
-    nb["pos_n_m"][:k], nb["pos_e_m"][:k] = obs.nbr_pos_m[:, 0], obs.nbr_pos_m[:, 1]
-    nb["heading_rad"][:k] = obs.nbr_heading_rad
-    if nbr_stamp_s is None:
-        nb["stamp_us"][:k] = now_us
-    else:
-        t = np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
-        if t.shape[0] != k:
-            raise ValueError(f"nbr_stamp_s has {t.shape[0]} entries for {k} neighbours")
-        if not (np.isfinite(t).all() and (t >= 0).all()):
-            raise ValueError(f"times must be finite and >= 0 s, got {t}")
-        nb["stamp_us"][:k] = np.round(t * 1e6).astype(np.uint64)
-    return own, nb
+    rows = VehicleRows(obs.nbr_pos_m.shape[0])
+    rows.fill(obs, now_us, stamp_s, nbr_stamp_s)
+    return rows.own, rows.nbrs
+
+
+class VehicleRows:
+    """covey_vehicle_t arrays, the own state (1,) and room for k neighbours (at least one
+    row), that `fill` writes: kept from call to call where the calls are many (CPolicy).
+    Their float32 (n, 6) and uint64 (n, 3) views write a block of fields in one assignment:
+    pos_n_m, pos_e_m and heading_rad are float32 columns 0 to 2, 4 bytes of padding follow,
+    and stamp_us is uint64 column 2."""
+
+    def __init__(self, k: int = MAX_INPUTS) -> None:
+        self.own = np.zeros(1, VEHICLE_DTYPE)
+        self.nbrs = np.zeros(max(k, 1), VEHICLE_DTYPE)
+        self._own = (
+            self.own.view(np.float32).reshape(1, 6),
+            self.own.view(np.uint64).reshape(1, 3),
+        )
+        self._nbrs = (
+            self.nbrs.view(np.float32).reshape(-1, 6),
+            self.nbrs.view(np.uint64).reshape(-1, 3),
+        )
+
+    def fill(self, obs: Observation, now_us: int, stamp_s=None, nbr_stamp_s=None) -> int:
+        """The own state and obs's K neighbours written (every field the core reads); K.
+        Stamps default to now (fresh); a ValueError where they or K do not fit."""
+        k = obs.nbr_pos_m.shape[0]
+        if k > min(MAX_INPUTS, len(self.nbrs)):
+            raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbour reports, got {k}")
+        own_f32, own_u64 = self._own
+        own_f32[0, 0:2] = obs.pos_m
+        own_f32[0, 2] = obs.heading_rad
+        own_u64[0, 2] = now_us if stamp_s is None else micros(stamp_s)
+        nb_f32, nb_u64 = self._nbrs
+        nb_f32[:k, 0:2] = obs.nbr_pos_m
+        nb_f32[:k, 2] = obs.nbr_heading_rad
+        if nbr_stamp_s is None:
+            nb_u64[:k, 2] = now_us
+        else:
+            t = np.asarray(nbr_stamp_s, dtype=np.float64).reshape(-1)
+            if t.shape[0] != k:
+                raise ValueError(f"nbr_stamp_s has {t.shape[0]} entries for {k} neighbours")
+            if not (np.isfinite(t).all() and (t >= 0).all()):
+                raise ValueError(f"times must be finite and >= 0 s, got {t}")
+            nb_u64[:k, 2] = np.round(t * 1e6).astype(np.uint64)
+        return k
+
+
+def pair_floats(xy) -> tuple[float, float] | list[float]:
+    """A (2,) vector as two Python floats: a tuple of two floats as it is (one vehicle's tick
+    passes them: no numpy call), a (2,) float64 array in one call, anything else through
+    numpy (a ValueError unless 2 values)."""
+    if type(xy) is tuple and len(xy) == 2 and type(xy[0]) is float and type(xy[1]) is float:
+        return xy
+    if type(xy) is np.ndarray and xy.dtype is _F64 and xy.shape == (2,):
+        return xy.tolist()
+    return np.asarray(xy, dtype=np.float64).reshape(2).tolist()
 
 
 def own_track(
@@ -299,15 +342,15 @@ def own_track(
 ) -> TrackC:
     """The own covey_track_t: a new one, or `into` (one kept from call to call) refilled."""
     t = TrackC() if into is None else into
-    t.pos_n_m, t.pos_e_m = np.asarray(pos_m, dtype=np.float64).reshape(2).tolist()
-    t.vel_n_m_s, t.vel_e_m_s = np.asarray(vel_m_s, dtype=np.float64).reshape(2).tolist()
+    t.pos_n_m, t.pos_e_m = pair_floats(pos_m)
+    t.vel_n_m_s, t.vel_e_m_s = pair_floats(vel_m_s)
     t.id, t.pos_sigma_m, t.non_cooperative = int(own_id), float(pos_sigma_m), 0
     return t
 
 
 def pair_c(xy) -> ctypes.Array:
     """A (2,) vector as float[2]."""
-    return (ctypes.c_float * 2)(*np.asarray(xy, dtype=np.float64).reshape(2))
+    return (ctypes.c_float * 2)(*pair_floats(xy))
 
 
 def track_kinds(k: int, cooperative=None, manned=None) -> np.ndarray:
@@ -337,22 +380,53 @@ def fill_tracks(
     """`tracks` written into the first rows of `buf` (a TRACK_DTYPE array of at least
     MAX_INPUTS rows, reused call after call: every field of those rows is written); returns
     them."""
-    pos = np.asarray(pos_m, dtype=np.float64).reshape(-1, 2)
-    vel = np.asarray(vel_m_s, dtype=np.float64).reshape(-1, 2)
+    k = _fill_columns(*track_columns(buf), pos_m, vel_m_s, ids, pos_sigma_m, cooperative, manned)
+    return buf[:k]
+
+
+def track_columns(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A TRACK_DTYPE array's rows as (n, 7) float32 and uint32 views of the same memory (the
+    struct is seven 4-byte fields without padding): a block of columns is one assignment."""
+    return buf.view(np.float32).reshape(-1, 7), buf.view(np.uint32).reshape(-1, 7)
+
+
+def _rows2(x) -> np.ndarray:
+    """x as (n, 2) float64: a float64 (n, 2) array as it is (a view is fine: the values are
+    copied into the tracks), anything else through numpy."""
+    if type(x) is np.ndarray and x.dtype is _F64 and x.ndim == 2 and x.shape[1] == 2:
+        return x
+    return np.asarray(x, dtype=np.float64).reshape(-1, 2)
+
+
+def _fill_columns(
+    f32: np.ndarray, u32: np.ndarray, pos_m, vel_m_s, ids, pos_sigma_m, cooperative, manned
+) -> int:
+    """`fill_tracks` into `track_columns`' views; the number of rows written. float64 inputs
+    round to float32 and ids wrap to uint32 as the struct's fields take them."""
+    pos, vel = _rows2(pos_m), _rows2(vel_m_s)
     k = pos.shape[0]
     if vel.shape != pos.shape:
         raise ValueError(f"{k} neighbour positions but {vel.shape[0]} velocities")
     if k > MAX_INPUTS:
         raise ValueError(f"the C core takes at most {MAX_INPUTS} neighbours, got {k}")
-    t = buf[:k]
-    t["pos_n_m"], t["pos_e_m"] = pos[:, 0], pos[:, 1]
-    t["vel_n_m_s"], t["vel_e_m_s"] = vel[:, 0], vel[:, 1]
-    t["id"] = 0 if ids is None else np.asarray(ids, dtype=np.int64).reshape(-1)
-    t["pos_sigma_m"] = 0.0 if pos_sigma_m is None else np.asarray(pos_sigma_m, np.float64)
-    t["non_cooperative"] = (
+    f32[:k, 0:2] = pos
+    f32[:k, 2:4] = vel
+    if ids is None:
+        u32[:k, 4] = 0
+    elif type(ids) is np.ndarray and ids.dtype is _I64 and ids.ndim == 1:
+        u32[:k, 4] = ids
+    else:
+        u32[:k, 4] = np.asarray(ids, dtype=np.int64).reshape(-1)
+    if pos_sigma_m is None:
+        f32[:k, 5] = 0.0
+    elif type(pos_sigma_m) is np.ndarray and pos_sigma_m.dtype is _F64:
+        f32[:k, 5] = pos_sigma_m
+    else:
+        f32[:k, 5] = np.asarray(pos_sigma_m, np.float64)
+    u32[:k, 6] = (
         0 if cooperative is None and manned is None else track_kinds(k, cooperative, manned)
     )
-    return t
+    return k
 
 
 @dataclass(frozen=True)
@@ -394,7 +468,8 @@ class SparseResult:
 
 class CSafetyFilter:
     """The C separation filter with a policy.safety.SafetyConfig. One call at a time: its
-    scratch memory and `evaluate`'s arguments are reused from call to call."""
+    scratch memory and the arguments of `evaluate` and `sparse` are reused from call to call
+    (tests/test_csafety_kept_buffers.py holds them to arguments built anew)."""
 
     def __init__(self, lib: ctypes.CDLL, cfg):
         self._lib = lib
@@ -404,6 +479,7 @@ class CSafetyFilter:
         # `evaluate`'s arguments, made once: an agent calls it every tick, and building them
         # anew (ctypes objects, a numpy array's .ctypes) cost it more than the filter itself
         self._tracks = np.zeros(MAX_INPUTS, TRACK_DTYPE)
+        self._columns = track_columns(self._tracks)
         self._own, self._pref, self._out = TrackC(), (ctypes.c_float * 2)(), SafetyOutC()
         self._args = (
             ctypes.byref(self._ccfg),
@@ -412,6 +488,10 @@ class CSafetyFilter:
             self._tracks.ctypes.data_as(ctypes.c_void_p),
         )
         self._out_ref = ctypes.byref(self._out)
+        # `sparse`'s own: its goal and the policy's velocity, and its output
+        self._pairs = (ctypes.c_float * 2)(), (ctypes.c_float * 2)()
+        self._sparse_out = SparseOutC()
+        self._sparse_out_ref = ctypes.byref(self._sparse_out)
 
     def evaluate(
         self,
@@ -430,8 +510,49 @@ class CSafetyFilter:
         """One call; faults come back in `status`, never raised. Ids (0: unknown) untie
         coincident neighbours as policy.safety.untie does; position uncertainties,
         cooperative and manned flags as policy.safety.pair_radius_m takes them."""
-        t = fill_tracks(
-            self._tracks,
+        st = self._run(
+            pos_m,
+            vel_m_s,
+            pref_vel_m_s,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            own_id,
+            nbr_ids,
+            pos_sigma_m,
+            nbr_pos_sigma_m,
+            nbr_cooperative,
+            nbr_manned,
+        )
+        return FilterResult.of(st, self._out)
+
+    def velocity(
+        self, pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id=0, nbr_ids=None, **sky
+    ) -> tuple[str, float, float]:
+        """`evaluate`'s status and filtered (north, east) velocity as Python floats, without
+        building a result (one vehicle's tick: pass the own vectors as tuples of two floats).
+        `sky`: `evaluate`'s pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned."""
+        st = self._run(pos_m, vel_m_s, pref_vel_m_s, nbr_pos_m, nbr_vel_m_s, own_id, nbr_ids, **sky)
+        out = self._out
+        return STATUS_NAMES.get(st, str(st)), out.vel_n_m_s, out.vel_e_m_s
+
+    def _run(
+        self,
+        pos_m,
+        vel_m_s,
+        pref_vel_m_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        own_id=0,
+        nbr_ids=None,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+        nbr_manned=None,
+    ) -> int:
+        """One covey_safety_filter call on the kept arguments, refilled: its status; the
+        output is in self._out until the next call."""
+        k = _fill_columns(
+            *self._columns,
             nbr_pos_m,
             nbr_vel_m_s,
             nbr_ids,
@@ -441,12 +562,11 @@ class CSafetyFilter:
         )
         own_track(pos_m, vel_m_s, own_id, pos_sigma_m, into=self._own)
         pref = self._pref
-        pref[0], pref[1] = np.asarray(pref_vel_m_s, dtype=np.float64).reshape(2).tolist()
+        pref[0], pref[1] = pair_floats(pref_vel_m_s)
         cfg, own_ref, pref_c, tracks_p = self._args
-        st = self._lib.covey_safety_filter(
-            cfg, own_ref, pref_c, tracks_p, t.shape[0], self._scratch, self._out_ref
+        return self._lib.covey_safety_filter(
+            cfg, own_ref, pref_c, tracks_p, k, self._scratch, self._out_ref
         )
-        return FilterResult.of(st, self._out)
 
     def sparse(
         self,
@@ -460,26 +580,70 @@ class CSafetyFilter:
         nbr_pos_sigma_m=None,
         nbr_cooperative=None,
         nbr_manned=None,
-    ):
+    ) -> SparseResult:
         """covey_sparse_choose with this filter's config (policy.sparse.choose_one's twin);
         faults come back in `status`, never raised."""
-        t = tracks(nbr_pos_m, nbr_vel_m_s, None, nbr_pos_sigma_m, nbr_cooperative, nbr_manned)
-        out = SparseOutC()
-        st = self._lib.covey_sparse_choose(
-            ctypes.byref(self._ccfg),
-            ctypes.byref(own_track(pos_m, vel_m_s, 0, pos_sigma_m)),
-            pair_c(goal_m),
-            pair_c(policy_vel_m_s),
-            t.ctypes.data,
-            t.shape[0],
-            self._scratch,
-            ctypes.byref(out),
+        st = self._run_sparse(
+            pos_m,
+            vel_m_s,
+            goal_m,
+            policy_vel_m_s,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            pos_sigma_m,
+            nbr_pos_sigma_m,
+            nbr_cooperative,
+            nbr_manned,
         )
+        out = self._sparse_out
         return SparseResult(
             STATUS_NAMES.get(st, str(st)),
             np.array([out.vel_n_m_s, out.vel_e_m_s], dtype=np.float64),
             bool(out.straight),
             int(out.n_encounters),
+        )
+
+    def sparse_velocity(
+        self, pos_m, vel_m_s, goal_m, policy_vel_m_s, nbr_pos_m, nbr_vel_m_s, **sky
+    ) -> tuple[str, float, float]:
+        """`sparse`'s status and velocity to hold as Python floats, without building a result
+        (`velocity`'s twin). `sky`: `sparse`'s pos_sigma_m and neighbour flags."""
+        st = self._run_sparse(pos_m, vel_m_s, goal_m, policy_vel_m_s, nbr_pos_m, nbr_vel_m_s, **sky)
+        out = self._sparse_out
+        return STATUS_NAMES.get(st, str(st)), out.vel_n_m_s, out.vel_e_m_s
+
+    def _run_sparse(
+        self,
+        pos_m,
+        vel_m_s,
+        goal_m,
+        policy_vel_m_s,
+        nbr_pos_m,
+        nbr_vel_m_s,
+        pos_sigma_m: float = 0.0,
+        nbr_pos_sigma_m=None,
+        nbr_cooperative=None,
+        nbr_manned=None,
+    ) -> int:
+        """One covey_sparse_choose call on `evaluate`'s kept tracks and own track, refilled
+        (the neighbours without ids, as policy.sparse takes them): its status; the output is
+        in self._sparse_out until the next call."""
+        k = _fill_columns(
+            *self._columns,
+            nbr_pos_m,
+            nbr_vel_m_s,
+            None,
+            nbr_pos_sigma_m,
+            nbr_cooperative,
+            nbr_manned,
+        )
+        own_track(pos_m, vel_m_s, 0, pos_sigma_m, into=self._own)
+        goal, policy = self._pairs
+        goal[0], goal[1] = pair_floats(goal_m)
+        policy[0], policy[1] = pair_floats(policy_vel_m_s)
+        cfg, own_ref, _, tracks_p = self._args
+        return self._lib.covey_sparse_choose(
+            cfg, own_ref, goal, policy, tracks_p, k, self._scratch, self._sparse_out_ref
         )
 
     def __call__(
