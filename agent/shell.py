@@ -40,7 +40,8 @@ from agent.flight_core import Action, CoreConfig, FlightCore, Note, Observed
 from agent.guidance import BatchGuidance, GuidanceStep
 from agent.neighbours import NeighbourSnapshot, NeighbourTable
 from agent.shell_config import ShellConfig
-from agent.shell_rows import link_receivers, neighbour_views, stale_rows, vehicle_states
+from agent.shell_rows import link_receivers, stale_rows, vehicle_states
+from agent.shell_views import neighbour_views
 from agent.traffic import autopilot_traffic, merge_traffic
 from comms.gate import GateConfig, command_refusals
 from comms.mesh import CellSubscription, Mesh
@@ -537,7 +538,7 @@ class VehicleShell:
             self.table.expire(now_s)
             return _NOBODY
         # One vehicle hears only the others in its vertical band (agent/neighbours.py); several
-        # hear all of them, and each row's nearest are chosen (agent/shell_rows.py).
+        # hear all of them, and each row's nearest are chosen (agent/shell_views.py).
         own = obs.pos_m[0] if len(self.ids) == 1 else None
         return merge_traffic(self.traffic, self.table.snapshot(now_s, own), now_s, own)
 

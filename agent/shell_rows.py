@@ -1,6 +1,7 @@
-"""The vehicle shell's rows, vectorised: what each guided row sees of its neighbours, and the
-VehicleStates of the rows that are due (agent/shell.py). Pure functions of the core, this
-tick's telemetry and the neighbour snapshot: one copy for one vehicle and for many.
+"""The vehicle shell's rows, vectorised: whom a state is tagged for, and the VehicleStates of
+the rows that are due (agent/shell.py; what the rows see of their neighbours is in
+agent/shell_views.py). Pure functions of the core, this tick's telemetry and the neighbour
+snapshot: one copy for one vehicle and for many.
 """
 
 from __future__ import annotations
@@ -10,13 +11,9 @@ import math
 
 import numpy as np
 
-from agent.flight_core import AIRBORNE_MODES, FlightCore, Observed
-from agent.guidance import NeighbourViews
+from agent.flight_core import FlightCore, Observed
 from agent.neighbours import NeighbourSnapshot
 from comms.schema import POS_SIGMA_LIMIT_M, Mode, StateFlag, VehicleState
-from kit.masks import mode_mask
-
-_AIRBORNE = mode_mask(AIRBORNE_MODES)
 
 _MODES = {m.value: m for m in Mode}
 
@@ -41,173 +38,11 @@ def link_receivers(ext: NeighbourSnapshot, pos_ned_m: np.ndarray, limit: int) ->
     return [ids[i] for i in idx.tolist()]
 
 
-def neighbour_views(
-    core: FlightCore,
-    obs: Observed,
-    pos_sigma_m: np.ndarray,
-    ids: np.ndarray,
-    ext: NeighbourSnapshot,
-    rows: np.ndarray,
-    max_neighbours: int | None,
-) -> NeighbourViews:
-    """What each guided row sees: the nearest `max_neighbours` airborne vehicles, the shell's
-    own (`obs`, position 1-sigmas `pos_sigma_m`) and the others in `ext` (dead-reckoned from
-    their last state, traffic included, stale as `ext.stale_ids` says).
-
-    One vehicle (an agent's every tick) takes `_one_vehicle_views`, which builds the same
-    views with a fraction of the array operations; `neighbour_views_rows` is the general path
-    and its reference (tests compare them)."""
-    if len(ids) == 1:
-        views = _one_vehicle_views(core, obs, pos_sigma_m, ids, ext, rows, max_neighbours)
-        if views is not None:
-            return views
-    return neighbour_views_rows(core, obs, pos_sigma_m, ids, ext, rows, max_neighbours)
+F8 = np.dtype(float)
+"""float64, compared by identity on the one-row paths."""
 
 
-def neighbour_views_rows(
-    core: FlightCore,
-    obs: Observed,
-    pos_sigma_m: np.ndarray,
-    ids: np.ndarray,
-    ext: NeighbourSnapshot,
-    rows: np.ndarray,
-    max_neighbours: int | None,
-) -> NeighbourViews:
-    """`neighbour_views` of any number of rows: the shell's vehicles and `ext` as one world,
-    each row's nearest chosen by NeighbourViews.nearest."""
-    n = len(ids)
-    airborne = _AIRBORNE[core.mode] & obs.armed
-    sigma = np.concatenate([pos_sigma_m, ext.column("pos_sigma_m", 0.0)])
-    coop = np.concatenate([np.ones(n, bool), ext.column("cooperative", True)])
-    manned = np.concatenate([np.zeros(n, bool), ext.column("manned", False)])
-    # none of them when every position is exact and everyone cooperates (the plain views)
-    sky: dict[str, np.ndarray] = {}
-    if sigma.any():
-        sky["world_pos_sigma_m"] = sigma
-        sky["rows_pos_sigma_m"] = sigma[rows]
-    if not coop.all():
-        sky["world_cooperative"] = coop
-    if manned.any():
-        sky["world_manned"] = manned
-    return NeighbourViews.nearest(
-        obs.pos_m[rows],
-        rows,
-        np.concatenate([obs.pos_m, ext.pos_ned_m]),
-        np.concatenate([obs.vel_m_s, ext.vel_ned_m_s]),
-        np.concatenate([core.heading_rad, ext.heading_rad]),
-        np.concatenate([airborne, np.ones(len(ext), bool)]),
-        np.concatenate([np.zeros(n, bool), _stale(ext)]),
-        max_neighbours,
-        np.concatenate([ids, np.array(ext.ids, np.int64)]),
-        ids[rows],
-        **sky,
-    )
-
-
-def _one_vehicle_views(
-    core: FlightCore,
-    obs: Observed,
-    pos_sigma_m: np.ndarray,
-    ids: np.ndarray,
-    ext: NeighbourSnapshot,
-    rows: np.ndarray,
-    max_neighbours: int | None,
-) -> NeighbourViews | None:
-    """`neighbour_views_rows` of one vehicle (rows [0]), array for array: its world is the
-    vehicle (entry 0, never its own neighbour: its key is inf, whether airborne or not)
-    followed by `ext`. All of it is taken, in order, when `max_neighbours` allows (the
-    vehicle stays in as an invalid entry, as there), else the same argpartition of the same
-    keys chooses. None where the inputs are not the plain ones (float64 positions, shapes
-    that agree, a width > 0): the general path answers them."""
-    k = len(ext.ids)
-    m = k + 1
-    width = m if max_neighbours is None else min(max_neighbours, m)
-    own, at = obs.pos_m, ext.pos_ned_m
-    try:
-        plain = (
-            width > 0
-            and len(rows) == 1
-            and rows[0] == 0
-            and own.shape == (1, 3)
-            and own.dtype == _F8
-            and at.shape == (k, 3)
-            and at.dtype == _F8
-            and obs.vel_m_s.shape == (1, 3)
-            and ext.vel_ned_m_s.shape == (k, 3)
-            and core.heading_rad.shape == (1,)
-            and ext.heading_rad.shape == (k,)
-            and pos_sigma_m.shape == (1,)
-        )
-    except AttributeError:  # not arrays
-        return None
-    if not plain:
-        return None
-    # squared horizontal distances, as NeighbourViews.nearest computes them
-    d = own[0, :2] - at[:, :2]
-    np.square(d, out=d)
-    key = np.empty((1, m))
-    key[0, 0] = np.inf
-    np.add(d[:, 0], d[:, 1], out=key[0, 1:])
-    if width < m:
-        cols = key.argpartition(width - 1, axis=1)[:, :width]  # np.argpartition's own call
-        valid = np.isfinite(key[0][cols])  # take_along_axis of the one row
-
-        def pick(world: np.ndarray) -> np.ndarray:
-            return world[cols]
-
-    else:  # all of them: (1, m) of the world as it is
-        valid = np.isfinite(key)
-
-        def pick(world: np.ndarray) -> np.ndarray:
-            return world[None]
-
-    if ext.stale_ids:
-        stale = pick(np.concatenate([np.zeros(1, bool), _stale(ext)])) & valid
-    else:
-        stale = np.zeros((1, width), bool)
-    world_ids = np.concatenate([ids, np.array(ext.ids, np.int64)])
-    # the sky's columns as neighbour_views_rows gives them to NeighbourViews.nearest
-    got = ext.pos_sigma_m
-    if got is None:
-        sigma = None  # all 0
-    elif type(got) is np.ndarray and got.dtype == _F8 and got.shape == (k,):
-        sigma = got  # what column() would copy
-    else:
-        sigma = ext.column("pos_sigma_m", 0.0)
-    nbr_sigma = own_sigma = coop = manned = None
-    if np.count_nonzero(pos_sigma_m) or (sigma is not None and np.count_nonzero(sigma)):
-        if sigma is None:
-            sigma = ext.column("pos_sigma_m", 0.0)
-        world_sigma = np.concatenate([pos_sigma_m, sigma])
-        nbr_sigma = pick(np.asarray(world_sigma, float))
-        own_sigma = np.asarray(world_sigma[rows], float)
-    if ext.cooperative is not None:
-        world_coop = np.concatenate([np.ones(1, bool), ext.column("cooperative", True)])
-        if not world_coop.all():
-            coop = pick(np.asarray(world_coop, bool))
-    if ext.manned is not None:
-        world_manned = np.concatenate([np.zeros(1, bool), ext.column("manned", False)])
-        if world_manned.any():
-            manned = pick(np.asarray(world_manned, bool))
-    return NeighbourViews(
-        pick(np.concatenate([own, at])),
-        pick(np.concatenate([obs.vel_m_s, ext.vel_ned_m_s])),
-        pick(np.concatenate([core.heading_rad, ext.heading_rad])),
-        valid,
-        stale,
-        pick(np.asarray(world_ids, np.int64)),
-        np.asarray(ids[rows], np.int64),
-        nbr_sigma,
-        coop,
-        own_sigma,
-        manned,
-    )
-
-
-_F8 = np.dtype(float)
-
-
-def _stale(ext: NeighbourSnapshot) -> np.ndarray:
+def stale_mask(ext: NeighbourSnapshot) -> np.ndarray:
     """(len(ext),) which entries are stale (the ids are integers: np.isin's answer)."""
     if not ext.stale_ids:
         return np.zeros(len(ext), bool)
@@ -222,7 +57,7 @@ def stale_rows(
     `vertical_band_m` of their altitude (flying or not)."""
     stale = np.array(slowed, bool)
     if ext.stale_ids:
-        at = ext.pos_ned_m[_stale(ext)]
+        at = ext.pos_ned_m[stale_mask(ext)]
         dz = np.abs(pos_m[:, None, 2] - at[None, :, 2])
         stale |= (dz <= vertical_band_m).any(axis=1)
     return stale
@@ -331,7 +166,7 @@ def _one_vehicle_state(
     try:
         r = rows.item(0)
         plain = (
-            core.heading_rad.dtype == _F8
+            core.heading_rad.dtype == F8
             and obs.battery_pct.dtype.kind == "f"
             and pos_sigma_m.dtype.kind == "f"
         )

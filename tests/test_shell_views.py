@@ -11,10 +11,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from agent import shell_rows
+from agent import shell_views
 from agent.guidance import NeighbourViews
 from agent.neighbours import NeighbourConfig, NeighbourSnapshot, NeighbourTable
-from agent.shell_rows import _stale, neighbour_views, neighbour_views_rows
+from agent.shell_rows import stale_mask
+from agent.shell_views import neighbour_views, neighbour_views_rows
 from agent.traffic import merge_traffic
 from comms.schema import Mode, TrafficSource, VehicleState
 from comms.traffic import TrafficTable, TrafficTrack
@@ -106,7 +107,7 @@ def test_one_vehicle_views_equal_the_general_path(seed: int) -> None:
         assert fast.pos_m.shape[:2] == fast.valid.shape
         if max_neighbours != 0:  # the plain inputs take the fast path
             assert (
-                shell_rows._one_vehicle_views(core, obs, sigma, ids, ext, rows, max_neighbours)
+                shell_views._one_vehicle_views(core, obs, sigma, ids, ext, rows, max_neighbours)
                 is not None
             )
 
@@ -120,7 +121,7 @@ def test_one_vehicle_does_not_build_the_world(monkeypatch: pytest.MonkeyPatch) -
     def general(*args):
         raise AssertionError("the general path was taken")
 
-    monkeypatch.setattr(shell_rows, "neighbour_views_rows", general)
+    monkeypatch.setattr(shell_views, "neighbour_views_rows", general)
     for max_neighbours in (None, 2):
         neighbour_views(core, obs, sigma, ids, ext, np.array([0]), max_neighbours)
 
@@ -185,4 +186,107 @@ def test_stale_entries_are_those_isin_finds(seed: int) -> None:
     rng = np.random.default_rng(seed)
     ext = _ext(rng, 40.0, np.array([0.0, 0.0, -10.0]))
     want = np.isin(np.asarray(ext.ids, np.int64), np.asarray(ext.stale_ids, np.int64))
-    np.testing.assert_array_equal(_stale(ext), want, strict=True)
+    np.testing.assert_array_equal(stale_mask(ext), want, strict=True)
+
+
+def _empty() -> NeighbourSnapshot:
+    return NeighbourSnapshot(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), (), np.zeros(0), ())
+
+
+@pytest.mark.parametrize("seed", range(100))
+def test_all_kept_views_equal_the_general_path(seed: int) -> None:
+    """An agent's every tick (no traffic columns, every entry kept: at the limit, under it,
+    none) takes `_all_kept_views`, with or without sigmas, stale entries, neighbours; a
+    sigma column shorter than the snapshot (traffic rows appended, here with the traffic
+    columns dropped) is left to the array path."""
+    rng = np.random.default_rng(1000 + seed)
+    core, obs, sigma, ids = _vehicle(rng)
+    ext = _ext(rng, 40.0, obs.pos_m[0])
+    ext = dataclasses.replace(ext, cooperative=None, manned=None)
+    rows = np.array([0])
+    for snap in (ext, _empty()):
+        k = len(snap)
+        fits = snap.pos_sigma_m is None or snap.pos_sigma_m.shape == (k,)
+        for max_neighbours in (None, k + 1, k + 4):
+            args = (core, obs, sigma, ids, snap, rows, max_neighbours)
+            want = neighbour_views_rows(*args)
+            fast = shell_views._all_kept_views(core, obs, sigma, ids, snap)
+            assert (fast is not None) == fits
+            if fast is not None:
+                same(fast, want)
+            same(neighbour_views(*args), want)
+
+
+def test_all_kept_cases_are_drawn() -> None:
+    """The seeds above draw stale entries, sigmas absent, all 0 and not, on both sides."""
+    seen: set[str] = set()
+    for seed in range(100):
+        rng = np.random.default_rng(1000 + seed)
+        core, obs, sigma, ids = _vehicle(rng)
+        ext = _ext(rng, 40.0, obs.pos_m[0])
+        if ext.cooperative is not None or ext.manned is not None:  # the array path's
+            continue
+        views = shell_views._all_kept_views(core, obs, sigma, ids, ext)
+        assert views is not None
+        seen |= {
+            "stale" if ext.stale_ids else "",
+            "no sigma" if ext.pos_sigma_m is None else "",
+            "exact" if views.pos_sigma_m is None else "sigmas",
+            "own sigma" if sigma[0] else "",
+            "int32 ids" if ids.dtype == np.int32 else "",
+        }
+    assert seen >= {"stale", "no sigma", "exact", "sigmas", "own sigma", "int32 ids"}
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")
+def test_all_kept_leaves_the_odd_inputs_to_the_array_path() -> None:
+    """Non-finite or huge coordinates or sigmas, other dtypes: `_all_kept_views` answers None
+    and `neighbour_views` still equals the general path."""
+    rng = np.random.default_rng(7)
+    core, obs, _, ids = _vehicle(rng)
+    sigma = np.array([0.5])
+    ext = _ext(rng, 40.0, obs.pos_m[0])
+    while len(ext) < 3 or ext.cooperative is not None or ext.pos_sigma_m is None:
+        ext = _ext(rng, 40.0, obs.pos_m[0])
+    rows = np.array([0])
+    odd = []
+    for bad in (np.inf, -np.inf, np.nan, 1e151):
+        for column in (0, 1, 2):
+            pos = ext.pos_ned_m.copy()
+            pos[1, column] = bad
+            odd.append((core, obs, sigma, ids, dataclasses.replace(ext, pos_ned_m=pos)))
+        own = SimpleNamespace(**{**vars(obs), "pos_m": obs.pos_m.copy()})
+        own.pos_m[0, 0] = bad
+        odd.append((core, own, sigma, ids, ext))
+        odd.append((core, obs, np.array([bad]), ids, ext))
+    f4 = np.float32
+    odd += [
+        (core, obs, sigma, ids, dataclasses.replace(ext, vel_ned_m_s=ext.vel_ned_m_s.astype(f4))),
+        (core, obs, sigma, ids, dataclasses.replace(ext, heading_rad=ext.heading_rad.astype(f4))),
+        (core, obs, sigma, ids, dataclasses.replace(ext, pos_sigma_m=ext.pos_sigma_m.astype(f4))),
+        (core, obs, sigma.astype(f4), ids, ext),
+        (core, obs, sigma, ids.astype(np.uint32), ext),
+        (SimpleNamespace(mode=core.mode, heading_rad=core.heading_rad.astype(f4)), obs, sigma)
+        + (ids, ext),
+    ]
+    for case in odd:
+        assert shell_views._all_kept_views(*case) is None
+        args = (*case, rows, None)
+        same(neighbour_views(*args), neighbour_views_rows(*args))
+
+
+def test_all_kept_views_share_only_what_is_read_only() -> None:
+    """Two ticks' views share no writable memory: the cached valid and stale are read-only."""
+    rng = np.random.default_rng(5)
+    core, obs, sigma, ids = _vehicle(rng)
+    ext = _ext(rng, 40.0, obs.pos_m[0])
+    while ext.stale_ids or ext.cooperative is not None or not len(ext):
+        ext = _ext(rng, 40.0, obs.pos_m[0])
+    a = shell_views._all_kept_views(core, obs, sigma + 1.0, ids, ext)
+    b = shell_views._all_kept_views(core, obs, sigma + 1.0, ids, ext)
+    assert a is not None and b is not None
+    for name in FIELDS:
+        x, y = getattr(a, name), getattr(b, name)
+        if x is not None and np.shares_memory(x, y):
+            assert not x.flags.writeable and not y.flags.writeable, name
