@@ -111,9 +111,12 @@ def pull_period_s(heard: int, window_s: float, period_s: float, cfg: RosterSyncC
     over `cfg.pulls_heard_per_s`, within [pull_every_s, max_pull_every_s]. Every member follows
     this rule, so each pulls about as often as this one: the pullers are about the pulls heard
     a second times `period_s` (RTCP scales its report interval with the members it hears
-    alike, RFC 3550 6.2). In a fleet of n the period settles at n / pulls_heard_per_s, and
-    each member hears about pulls_heard_per_s pulls a second, however large the fleet: the
-    fleet's pull traffic grows with n, not n^2."""
+    alike, RFC 3550 6.2). A fleet of n that starts together settles at n / pulls_heard_per_s.
+    What the rule holds is the pulls each member hears: about pulls_heard_per_s a second,
+    however large the fleet, so the fleet's pull traffic grows with n, not n^2 (members that
+    join later may keep shorter periods, which the others make up for), until every period
+    is max_pull_every_s (beyond n = max_pull_every_s x pulls_heard_per_s, 60 by default, each
+    hears n / max_pull_every_s)."""
     if not (window_s > 0.0 and heard >= 0):
         return min(max(period_s, cfg.pull_every_s), cfg.max_pull_every_s)
     pullers = heard / window_s * period_s

@@ -10,6 +10,8 @@ periodic pull is a minute away catches up from another member's pulls.
 
 from __future__ import annotations
 
+import heapq
+import random
 import re
 import time
 from contextlib import ExitStack
@@ -72,6 +74,48 @@ def test_an_empty_window_keeps_the_period_within_its_bounds() -> None:
 def test_bad_settings_are_refused_with_the_reason(kwargs, says) -> None:
     with pytest.raises(ValueError, match=re.escape(says)):
         RosterSyncConfig(**kwargs)
+
+
+def simulated_fleet(n: int, join_spread_s: float, seed: int, watch_s: float = 300.0):
+    """n members on `pull_period_s`, each joining at a random time within `join_spread_s` and
+    then pulling on its own jittered period, every pull heard by every member that has joined
+    (one event loop, no Zenoh): (pulls each member heard a second over the last `watch_s` of
+    900 s, the periods at the end)."""
+    rng = random.Random(seed)
+    joins = sorted(rng.uniform(0.0, join_spread_s) for _ in range(n))
+    period = [CFG.pull_every_s] * n
+    heard, window, late = [0] * n, list(joins), [0] * n
+    events = [(t, i) for i, t in enumerate(joins)]
+    heapq.heapify(events)
+    end_s = 900.0
+    while events and events[0][0] <= end_s:
+        t, i = heapq.heappop(events)
+        for k, joined in enumerate(joins):
+            if joined <= t:
+                heard[k] += 1
+                late[k] += t >= end_s - watch_s
+        if t - window[i] >= CFG.pull_every_s:
+            period[i] = pull_period_s(heard[i], t - window[i], period[i], CFG)
+            heard[i], window[i] = 0, t
+        heapq.heappush(events, (t + period[i] * rng.uniform(0.8, 1.2), i))
+    return [x / watch_s for x in late], period
+
+
+@pytest.mark.parametrize("join_spread_s", [0.0, 300.0])
+def test_each_member_of_a_fleet_hears_the_budget_however_it_joined(join_spread_s) -> None:
+    rates, periods = simulated_fleet(40, join_spread_s, seed=7)
+    # before: 40 / 5 = 8 pulls a second each
+    assert all(abs(r - CFG.pulls_heard_per_s) < 0.15 for r in rates), rates
+    assert all(CFG.pull_every_s <= p <= CFG.max_pull_every_s for p in periods), periods
+    rates, periods = simulated_fleet(5, join_spread_s, seed=8)  # a small fleet keeps 5 s
+    assert all(p <= CFG.pull_every_s * 1.5 for p in periods), periods
+    assert all(r <= 5 / CFG.pull_every_s + 0.1 for r in rates), rates
+
+
+def test_beyond_the_cap_each_member_hears_the_fleet_over_the_longest_period() -> None:
+    rates, periods = simulated_fleet(150, 100.0, seed=9)
+    assert all(p == CFG.max_pull_every_s for p in periods)
+    assert all(abs(r - 150 / CFG.max_pull_every_s) < 0.3 for r in rates), rates  # not 150 / 5
 
 
 # -- real sessions ---------------------------------------------------------------------------------
