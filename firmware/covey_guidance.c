@@ -124,13 +124,17 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
     const float horizon = taken ? full : fminf(full, fmaxf(dist / cruise, period));
     const float reach = COVEY_SPARSE_ENCOUNTER_SEPARATIONS * sep;
     const float clear = COVEY_SPARSE_CLEAR_SEPARATIONS * sep;
+    /* a covey neighbour no faster than this stands (policy.sparse SparseConfig.still_speed_share):
+       passed clear, outside the filter's berth for the pair, it is no encounter; nearer, it
+       is one but never near now */
+    const float still = COVEY_SPARSE_STILL_SHARE * cruise;
+    const float base = sep * (1.0f + safety->margin);
     int32_t count = 0;
     float nearest = INFINITY;
     float now = INFINITY;
     for (int32_t i = 0; i < n_nbrs; ++i) {
         const float rpn = nbrs[i].pos_n_m - own->pos_n_m;
         const float rpe = nbrs[i].pos_e_m - own->pos_e_m;
-        now = fminf(now, sqrtf(rpn * rpn + rpe * rpe));
         const float rvn = nbrs[i].vel_n_m_s - vs[0];
         const float rve = nbrs[i].vel_e_m_s - vs[1];
         const float vv = rvn * rvn + rve * rve;
@@ -138,6 +142,19 @@ covey_status_t covey_sparse_choose(const covey_safety_config_t *safety, const co
         const float cn = rpn + rvn * t;
         const float ce = rpe + rve * t;
         const float d = sqrtf(cn * cn + ce * ce);
+        const float sn = nbrs[i].vel_n_m_s;
+        const float se = nbrs[i].vel_e_m_s;
+        const int32_t standing =
+            still > 0.0f && nbrs[i].non_cooperative == 0u && sn * sn + se * se <= still * still;
+        if (!standing) {
+            now = fminf(now, sqrtf(rpn * rpn + rpe * rpe));
+        } else {
+            const float so = own->pos_sigma_m;
+            const float sj = nbrs[i].pos_sigma_m;
+            if (d >= base + safety->sigma_k * sqrtf(so * so + sj * sj)) {
+                continue;
+            }
+        }
         if (d < reach) {
             ++count;
             nearest = fminf(nearest, d);

@@ -62,8 +62,10 @@ typedef struct {
  * The sparse-traffic rule, policy/sparse.py's twin with SparseConfig's defaults: where a
  * vehicle meets at most two others, not dead-on, and nobody is near yet (or it already flies
  * that way), it flies straight at its goal and leaves the encounter to the filter (ORCA);
- * else the policy. Time unit: the trained period at the
- * separation kept, COVEY_W_DT x (radius_m / 3) / max_speed_m_s.
+ * else the policy. A covey neighbour slower than COVEY_SPARSE_STILL_SHARE of the cruise speed
+ * stands: the line passing it outside the filter's berth for the pair, it is no encounter;
+ * nearer, it is one but never near now. Time unit: the trained period at the separation kept,
+ * COVEY_W_DT x (radius_m / 3) / max_speed_m_s.
  */
 #define COVEY_SPARSE_HORIZON_PERIODS 10.0f      /* this far ahead, not past a goal nobody is at */
 #define COVEY_SPARSE_ENCOUNTER_SEPARATIONS 2.0f /* closest approach nearer: an encounter */
@@ -72,6 +74,8 @@ typedef struct {
 #define COVEY_SPARSE_PROGRESS_SHARE 0.5f        /* the filtered straight line must keep this */
 #define COVEY_SPARSE_CLEAR_SEPARATIONS 2.0f     /* nobody nearer than this now, */
 #define COVEY_SPARSE_ALIGNED_COS 0.9f           /* unless already flying along the line */
+#define COVEY_SPARSE_STILL_SHARE 0.25f          /* a covey neighbour this slow stands: outside
+                                                   its berth no encounter, never near now */
 
 typedef struct {
     float vel_n_m_s;        /* the velocity to hold: straight or the policy's */

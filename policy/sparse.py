@@ -17,6 +17,9 @@ At each decision, for one vehicle:
   other vehicle's encounter, with a vehicle standing on its goal), unless the goal is taken
   (a neighbour within one separation of it now, `goal_taken`: then over the whole horizon,
   so that a vehicle on the goal, or pushed just past it, is dead-on and left to the policy);
+- a covey neighbour slower than `still_speed_share` of the cruise speed stands (a vehicle
+  holding its slot): one v_s passes outside the filter's berth for the pair is no encounter,
+  one nearer is an encounter but never near now;
 - it flies v_s when it has at most `max_encounters`, none closer than `dead_on_separations`,
   no neighbour nearer than `clear_separations` now unless it already flies along v_s, and
   the filter alone leaves v_s at least `progress_share` of its speed towards the goal; else
@@ -59,6 +62,16 @@ class SparseConfig:
     rather than turning at the neighbour with only the filter, at its margin, on a stale link."""
     aligned_cos: float = 0.9
     """Flying along the straight line: the cosine between the own velocity and it (25 deg)."""
+    still_speed_share: float = 0.25
+    """A cooperative neighbour no faster than this share of the cruise speed is standing (a
+    vehicle holding its slot or its goal). One the straight line passes no nearer than the
+    filter's berth for the pair (policy.safety.pair_radius_m) is neither an encounter nor near:
+    the filter would not act on it, and nothing reciprocal is left for the policy to resolve.
+    One nearer is an encounter (dead-on still goes to the policy) but never near now
+    (`clear_separations`): it will not turn into us, and the filter keeps its berth from a
+    vehicle that stands. Without this, a vehicle bound for a formation slot between two
+    holding vehicles 5 m either side was left to the policy, which circled the formation for
+    minutes (docs/policy.md "Standing neighbours"). 0: nobody stands (the rule before)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -72,6 +85,8 @@ class SparseConfig:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
         if not -1.0 <= self.aligned_cos <= 1.0:
             raise ValueError(f"aligned_cos must be within -1..1, got {self.aligned_cos}")
+        if not 0.0 <= self.still_speed_share <= 1.0:
+            raise ValueError(f"still_speed_share must be within 0..1, got {self.still_speed_share}")
         if not 0.0 <= self.progress_share <= 1.0:
             raise ValueError(f"progress_share must be within 0..1, got {self.progress_share}")
         if self.max_encounters < 0:
@@ -97,13 +112,27 @@ def time_to_goal_s(pos_m, goal_m, cruise_speed_m_s: float, period_s: float) -> n
     return np.maximum(np.hypot(d[..., 0], d[..., 1]) / cruise_speed_m_s, period_s)
 
 
-def encounters(pos_m, v_straight, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, radius_m):
+def encounters(
+    pos_m,
+    v_straight,
+    nbr_pos_m,
+    nbr_vel_m_s,
+    nbr_valid,
+    horizon_s,
+    radius_m,
+    still_m_s: float = 0.0,
+    berth_m=None,
+):
     """(count (...,), nearest approach (...,), nearest now (...,)) in metres, inf when none: the
     neighbours (..., K, 2) whose closest approach to a vehicle flying v_straight, within
     horizon_s (a number, or (...,) per vehicle), is nearer than radius_m; and the nearest
-    neighbour's distance now."""
+    neighbour's distance now. With `berth_m` (..., K; inf: never standing), a neighbour no
+    faster than `still_m_s` is standing: passed clear (closest approach at least its berth) it
+    is left out of all three, else it is an encounter that is not near now
+    (SparseConfig.still_speed_share)."""
     rp = np.asarray(nbr_pos_m, float) - np.asarray(pos_m, float)[..., None, :]
-    rv = np.asarray(nbr_vel_m_s, float) - np.asarray(v_straight, float)[..., None, :]
+    nv = np.asarray(nbr_vel_m_s, float)
+    rv = nv - np.asarray(v_straight, float)[..., None, :]
     vv = (rv * rv).sum(-1)
     t = np.minimum(
         np.maximum(-(rp * rv).sum(-1) / np.maximum(vv, 1e-12), 0.0),
@@ -112,9 +141,33 @@ def encounters(pos_m, v_straight, nbr_pos_m, nbr_vel_m_s, nbr_valid, horizon_s, 
     c = rp + rv * t[..., None]
     d = np.hypot(c[..., 0], c[..., 1])
     valid = np.asarray(nbr_valid, bool)
+    moving = valid
+    if berth_m is not None:
+        standing = ((nv * nv).sum(-1) <= still_m_s * still_m_s) & np.isfinite(berth_m)
+        valid = valid & ~(standing & (d >= berth_m))
+        moving = valid & ~standing
     hit = (d < radius_m) & valid
-    now = np.where(valid, np.hypot(rp[..., 0], rp[..., 1]), np.inf).min(-1, initial=np.inf)
+    now = np.where(moving, np.hypot(rp[..., 0], rp[..., 1]), np.inf).min(-1, initial=np.inf)
     return hit.sum(-1), np.where(hit, d, np.inf).min(-1, initial=np.inf), now
+
+
+def standing_berth_m(
+    safety_cfg: safety.SafetyConfig,
+    shape,
+    pos_sigma_m=None,
+    nbr_pos_sigma_m=None,
+    nbr_cooperative=None,
+    nbr_manned=None,
+) -> np.ndarray:
+    """(..., K) = `shape`: the berth past which a standing neighbour is passed clear, the
+    filter's own for the pair (policy.safety.pair_radius_m); inf for traffic that does not
+    cooperate (it may move off at any moment: it always counts)."""
+    r, _ = safety.pair_radius_m(safety_cfg, pos_sigma_m, nbr_pos_sigma_m)
+    berth = np.broadcast_to(np.asarray(r, float), shape)
+    coop = safety.effective_cooperative(nbr_cooperative, nbr_manned)
+    if coop is None:
+        return berth
+    return np.where(np.broadcast_to(np.asarray(coop, bool), shape), berth, np.inf)
 
 
 def goal_taken(goal_m, nbr_pos_m, nbr_valid, sep_m: float) -> np.ndarray:
@@ -161,14 +214,21 @@ def choose_padded(
     v_s = straight_velocity(pos_m, goal_m, cruise, period_s)
     sep = safety_cfg.radius_m
     taken = goal_taken(goal_m, nbr_pos_m, nbr_valid, sep)
+    valid = np.asarray(nbr_valid, bool)
     count, nearest, now = encounters(
         pos_m,
         v_s,
         nbr_pos_m,
         nbr_vel_m_s,
-        nbr_valid,
+        valid,
         encounter_horizon_s(pos_m, goal_m, taken, cfg, cruise, period_s),
         cfg.encounter_separations * sep,
+        cfg.still_speed_share * cruise,
+        None
+        if cfg.still_speed_share == 0.0
+        else standing_berth_m(
+            safety_cfg, valid.shape, pos_sigma_m, nbr_pos_sigma_m, nbr_cooperative, nbr_manned
+        ),
     )
     vel_m_s = np.asarray(vel_m_s, float)
     along = (vel_m_s * v_s).sum(-1)
@@ -235,12 +295,29 @@ def choose_one(
     else:
         horizon_s = min(full_s, max(math.hypot(gx, gy) / cruise, period_s))
     count, nearest, now = 0, math.inf, math.inf
-    for (nx, ny), (nvx, nvy) in pairs:
+    still_m_s = cfg.still_speed_share * cruise
+    if cfg.still_speed_share == 0.0:
+        berths = [math.inf] * len(pairs)
+    elif any(v is not None for v in sky.values()):
+        berths = standing_berth_m(
+            safety_cfg,
+            (len(pairs),),
+            sky.get("pos_sigma_m"),
+            sky.get("nbr_pos_sigma_m"),
+            sky.get("nbr_cooperative"),
+            sky.get("nbr_manned"),
+        ).tolist()
+    else:  # exact and cooperative: every pair's berth is the filter's base (pair_radius_m)
+        berths = [safety_cfg.radius_m * (1.0 + safety_cfg.margin)] * len(pairs)
+    for ((nx, ny), (nvx, nvy)), berth in zip(pairs, berths, strict=True):
         px, py = nx - x, ny - y
-        now = min(now, math.hypot(px, py))
         rx, ry = nvx - sx, nvy - sy
         t = min(max(-(px * rx + py * ry) / max(rx * rx + ry * ry, 1e-12), 0.0), horizon_s)
         d = math.hypot(px + rx * t, py + ry * t)
+        if berth == math.inf or nvx * nvx + nvy * nvy > still_m_s * still_m_s:
+            now = min(now, math.hypot(px, py))
+        elif d >= berth:
+            continue  # a standing neighbour passed clear (SparseConfig.still_speed_share)
         if d < radius_m:
             count += 1
             nearest = min(nearest, d)

@@ -211,3 +211,21 @@ def test_formation_bench_smoke(tmp_path, monkeypatch) -> None:
     assert change["vehicles"] == 30 and math.isfinite(change["settle_s"])
     assert change["min_separation_m"] >= SEPARATION_M
     assert [r["vehicles"] for r in res["assignment"]] == [10, 30, 100]
+
+
+def test_formation_turns_bench_smoke(tmp_path, monkeypatch) -> None:
+    """bench/formation.py --turns --quick: a circle of 8 turned 45, 90 (and moved) and 180
+    degrees with its slots kept, ideal and realistic vehicles: every vehicle settles in its slot,
+    no pair below the separation on true positions, the summary and the plot are written."""
+    from bench import common, formation
+
+    monkeypatch.setenv(common.OUT_ENV, str(tmp_path))
+    res = formation.turns_main(quick=True, compare_tree=None)
+    assert (tmp_path / "formation_turns.png").is_file()
+    assert (tmp_path / "formation_turns.json").is_file()
+    runs = res["runs"]
+    assert len(runs) == 2 * len(formation.QUICK_TURNS)
+    assert not [r for r in runs if r["late"]], runs
+    assert min(r["min_separation_m"] for r in runs) >= SEPARATION_M
+    for sm in res["summary"].values():
+        assert sm["late"] == 0 and sm["settle_over_straight_median"] >= 1.0

@@ -309,7 +309,7 @@ def test_c_rule_is_the_numpy_rule():
         taken = sparse.goal_taken(goal, nbr_pos, np.ones(k, bool), 3.0)
         horizon_s = sparse.encounter_horizon_s(pos, goal, taken, CFG, 1.0, 1.0)
         count, _, _ = sparse.encounters(
-            pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), horizon_s, 6.0
+            pos, v_s, nbr_pos, nbr_vel, np.ones(k, bool), horizon_s, 6.0, 0.25, np.full(k, 3.6)
         )
         if c.straight != straight:
             near += 1
