@@ -66,7 +66,8 @@ class EvalConfig:
     (policy.runtime.told_scale). Given: told as given, whatever the GNSS."""
     sparse_rule: bool = True
     """Filtered learned policies (policy+filter, c+filter) fly straight where a vehicle meets at
-    most one other and not dead-on, as the agents do (policy.sparse); off: the policy always."""
+    most two others (a vehicle that stands and is passed clear is none) and not dead-on, as the
+    agents do (policy.sparse); off: the policy always."""
     quick: bool = False
     """Small smoke suite."""
     seed: int = 0
