@@ -170,6 +170,34 @@ def standing_berth_m(
     return np.where(np.broadcast_to(np.asarray(coop, bool), shape), berth, np.inf)
 
 
+def _standing_berths_one(
+    safety_cfg: safety.SafetyConfig, cfg: SparseConfig, k: int, sky: dict
+) -> list[float]:
+    """`standing_berth_m` of one vehicle's k neighbours in Python floats (choose_one's hot
+    path; equal to it bit for bit through safety.pair_radius_one_m); all inf when nobody
+    stands (`still_speed_share` 0). `sky`: choose_one's."""
+    if cfg.still_speed_share == 0.0:
+        return [math.inf] * k
+    own = sky.get("pos_sigma_m")
+    sig, coop, manned = (sky.get(n) for n in ("nbr_pos_sigma_m", "nbr_cooperative", "nbr_manned"))
+    if own is None and sig is None and coop is None and manned is None:
+        return [safety_cfg.radius_m * (1.0 + safety_cfg.margin)] * k
+
+    def column(x, fill, dtype) -> list:
+        return [fill] * k if x is None else np.broadcast_to(np.asarray(x, dtype), (k,)).tolist()
+
+    own_m = 0.0 if own is None else float(own)
+    return [
+        safety.pair_radius_one_m(safety_cfg, own_m, s, True, False) if c and not m else math.inf
+        for s, c, m in zip(
+            column(sig, 0.0, float),
+            column(coop, True, bool),
+            column(manned, False, bool),
+            strict=True,
+        )
+    ]
+
+
 def goal_taken(goal_m, nbr_pos_m, nbr_valid, sep_m: float) -> np.ndarray:
     """(...,): a neighbour (..., K, 2) is within one separation of the goal now. Whoever is
     there, standing or pushed aside, the encounters are then looked for over the whole horizon
@@ -296,19 +324,7 @@ def choose_one(
         horizon_s = min(full_s, max(math.hypot(gx, gy) / cruise, period_s))
     count, nearest, now = 0, math.inf, math.inf
     still_m_s = cfg.still_speed_share * cruise
-    if cfg.still_speed_share == 0.0:
-        berths = [math.inf] * len(pairs)
-    elif any(v is not None for v in sky.values()):
-        berths = standing_berth_m(
-            safety_cfg,
-            (len(pairs),),
-            sky.get("pos_sigma_m"),
-            sky.get("nbr_pos_sigma_m"),
-            sky.get("nbr_cooperative"),
-            sky.get("nbr_manned"),
-        ).tolist()
-    else:  # exact and cooperative: every pair's berth is the filter's base (pair_radius_m)
-        berths = [safety_cfg.radius_m * (1.0 + safety_cfg.margin)] * len(pairs)
+    berths = _standing_berths_one(safety_cfg, cfg, len(pairs), sky)
     for ((nx, ny), (nvx, nvy)), berth in zip(pairs, berths, strict=True):
         px, py = nx - x, ny - y
         rx, ry = nvx - sx, nvy - sy

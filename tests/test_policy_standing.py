@@ -80,6 +80,23 @@ def test_a_holding_vehicle_on_the_line_is_dead_on_for_the_policy():
     assert not straight and np.allclose(v, ASKED)
 
 
+def test_the_float_berths_are_the_reference_berths():
+    """choose_one's berths (Python floats) = standing_berth_m (numpy), bit for bit, with and
+    without sigmas, cooperative and manned flags."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        k = int(rng.integers(0, 6))
+        sky = {
+            "pos_sigma_m": rng.choice([None, 0.0, 0.4]),
+            "nbr_pos_sigma_m": None if rng.uniform() < 0.3 else rng.uniform(0, 1, k),
+            "nbr_cooperative": None if rng.uniform() < 0.3 else rng.uniform(size=k) > 0.3,
+            "nbr_manned": None if rng.uniform() < 0.5 else rng.uniform(size=k) > 0.7,
+        }
+        ref = sparse.standing_berth_m(SAFE, (k,), *sky.values()).tolist()
+        assert sparse._standing_berths_one(SAFE, CFG, k, sky) == ref, sky
+    assert sparse._standing_berths_one(SAFE, OFF, 3, {}) == [np.inf] * 3
+
+
 def _scene(rng, k: int):
     """A random scene with standing, slow and moving neighbours, uncertainties and traffic."""
     f32 = lambda a: np.asarray(a, np.float32).astype(np.float64)  # noqa: E731
